@@ -1,0 +1,50 @@
+"""The one exception tree of cubetrack.
+
+Every error a user can cause (a bad file, a bad option, a broken camera) is a subclass of
+:class:`CubetrackError`; the command-line boundary prints its message on one line and exits 1.
+Messages name the offending file or value and say what valid input looks like.
+"""
+
+
+class CubetrackError(Exception):
+    """Base of every error cubetrack raises on bad input or a failing peer."""
+
+
+class ConfigError(CubetrackError):
+    """A tracker config, cube layout, extrinsics or parameter table is invalid."""
+
+
+class CameraInfoError(CubetrackError):
+    """An intrinsics file (ROS camera_info YAML or OpenCV FileStorage YAML) is missing or invalid."""
+
+
+class RecordingError(CubetrackError):
+    """A recording folder is missing or does not follow the recording contract."""
+
+
+class TrajectoryError(CubetrackError):
+    """A TUM or JSONL trajectory file is missing or malformed."""
+
+
+class ImageError(CubetrackError):
+    """An image cannot be read or decoded."""
+
+
+class DetectionError(CubetrackError):
+    """Detection was asked for something it cannot do (e.g. an unknown dictionary)."""
+
+
+class EstimationError(CubetrackError):
+    """Pose estimation got inconsistent inputs."""
+
+
+class CalibrationError(CubetrackError):
+    """Camera calibration could not produce a result (e.g. no world-marker sightings)."""
+
+
+class SimulationError(CubetrackError):
+    """A simulation scenario is impossible (e.g. a camera that sees nothing)."""
+
+
+class EvaluationError(CubetrackError):
+    """Evaluation inputs do not overlap or are empty."""

@@ -1,0 +1,114 @@
+"""Rigid-body maths as plain functions on numpy arrays (the function layer).
+
+Conventions, used everywhere in cubetrack:
+
+- A pose ``T_a_b`` is a 4x4 homogeneous matrix that maps points from frame *b* to frame *a*:
+  ``p_a = T_a_b @ p_b``. So ``T_world_cam`` is the camera's pose in the world frame.
+- Lengths are metres, angles radians unless a ``unit`` argument says otherwise, times seconds.
+- Quaternions are scalar-last ``(x, y, z, w)`` (ROS, TUM, scipy) and are returned with ``w >= 0``.
+- Camera optical frame: x right, y down, z forward (OpenCV). Marker frame: origin at the
+  marker centre, x right, y up, z out of the face (OpenCV ArUco). World frame: the world
+  marker's frame, z up (ENU).
+- Image coordinates: pixels, x right, y down, ``(0, 0)`` the centre of the top-left pixel
+  (OpenCV's convention); the top-left pixel covers ``[-0.5, 0.5] x [-0.5, 0.5]``.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+_ANGLE_UNITS = {"rad": 1.0, "deg": np.pi / 180.0}
+
+
+def to_radians(angle: float | np.ndarray, unit: str = "rad") -> float | np.ndarray:
+    """Convert ``angle`` given in ``unit`` ("rad" or "deg") to radians."""
+    try:
+        return angle * _ANGLE_UNITS[unit]
+    except KeyError:
+        raise ValueError(f"unknown angle unit {unit!r}; use 'rad' or 'deg'") from None
+
+
+def make_T(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """4x4 pose from a 3x3 rotation matrix and a translation (metres)."""
+    T = np.eye(4)
+    T[:3, :3] = R
+    T[:3, 3] = np.asarray(t, dtype=float).reshape(3)
+    return T
+
+
+def invert_T(T: np.ndarray) -> np.ndarray:
+    """Inverse of a rigid 4x4 pose: ``invert_T(T_a_b) == T_b_a``."""
+    R = T[:3, :3]
+    out = np.eye(4)
+    out[:3, :3] = R.T
+    out[:3, 3] = -R.T @ T[:3, 3]
+    return out
+
+
+def T_from_rvec_tvec(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
+    """4x4 pose from OpenCV's Rodrigues rotation vector (radians) and translation (metres)."""
+    R = Rotation.from_rotvec(np.asarray(rvec, dtype=float).reshape(3)).as_matrix()
+    return make_T(R, tvec)
+
+
+def rvec_tvec_from_T(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """OpenCV rotation vector (radians) and translation (metres) of a 4x4 pose."""
+    return Rotation.from_matrix(T[:3, :3]).as_rotvec(), T[:3, 3].copy()
+
+
+def quat_xyzw_from_R(R: np.ndarray) -> np.ndarray:
+    """Unit quaternion (x, y, z, w) with w >= 0 of a 3x3 rotation matrix."""
+    q = Rotation.from_matrix(R).as_quat()
+    return q if q[3] >= 0 else -q
+
+
+def R_from_quat_xyzw(q_xyzw: np.ndarray) -> np.ndarray:
+    """3x3 rotation matrix of a quaternion (x, y, z, w); the quaternion is normalised first."""
+    return Rotation.from_quat(np.asarray(q_xyzw, dtype=float)).as_matrix()
+
+
+def T_from_position_quat(position_m: np.ndarray, q_xyzw: np.ndarray) -> np.ndarray:
+    """4x4 pose from a position (metres) and a quaternion (x, y, z, w)."""
+    return make_T(R_from_quat_xyzw(q_xyzw), position_m)
+
+
+def position_quat_from_T(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Position (metres) and quaternion (x, y, z, w, w >= 0) of a 4x4 pose."""
+    return T[:3, 3].copy(), quat_xyzw_from_R(T[:3, :3])
+
+
+def transform_points(T_a_b: np.ndarray, points_b: np.ndarray) -> np.ndarray:
+    """Map an (N, 3) array of points from frame b to frame a."""
+    points_b = np.asarray(points_b, dtype=float).reshape(-1, 3)
+    return points_b @ T_a_b[:3, :3].T + T_a_b[:3, 3]
+
+
+def rotation_angle(R_a: np.ndarray, R_b: np.ndarray, unit: str = "rad") -> float:
+    """Angle of the relative rotation between two 3x3 rotation matrices, in ``unit``."""
+    cos = (np.trace(R_a.T @ R_b) - 1.0) / 2.0
+    angle = float(np.arccos(np.clip(cos, -1.0, 1.0)))
+    return angle / to_radians(1.0, unit)
+
+
+def shoelace_area(points_px: np.ndarray) -> float:
+    """Area (px^2) of a simple polygon from its (N, 2) vertices in order (paper eq. 3)."""
+    p = np.asarray(points_px, dtype=float).reshape(-1, 2)
+    x, y = p[:, 0], p[:, 1]
+    return 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
+
+
+def mean_rotation(Rs: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:
+    """Chordal L2 mean of (N, 3, 3) rotations (Markley et al. 2007), optionally weighted.
+
+    Insensitive to quaternion signs, unlike a component-wise quaternion mean.
+    """
+    return Rotation.from_matrix(np.asarray(Rs)).mean(weights=weights).as_matrix()
+
+
+def is_finite_pose(T: np.ndarray) -> bool:
+    """True when every element of the pose is finite and its rotation part is orthonormal."""
+    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+        return False
+    R = T[:3, :3]
+    return bool(np.allclose(R.T @ R, np.eye(3), atol=1e-6) and np.linalg.det(R) > 0)

@@ -1,0 +1,126 @@
+"""Camera intrinsics: ROS ``camera_info`` YAML (read and write) and OpenCV FileStorage YAML (read).
+
+Pixel convention: OpenCV's, (0, 0) is the centre of the top-left pixel; ``K`` is the 3x3
+camera matrix in pixels; ``dist`` the plumb_bob (k1, k2, p1, p2, k3) coefficients.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import yaml
+
+from cubetrack.errors import CameraInfoError
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class CameraIntrinsics:
+    """Pinhole intrinsics of one camera: image size (px), ``K`` (3x3, px) and distortion."""
+
+    width: int
+    height: int
+    K: np.ndarray
+    dist: np.ndarray
+    camera_name: str = ""
+
+    def __post_init__(self) -> None:
+        if self.K.shape != (3, 3) or not np.all(np.isfinite(self.K)):
+            raise CameraInfoError(f"camera matrix must be a finite 3x3 matrix, got {self.K!r}")
+        if self.K[0, 0] <= 0 or self.K[1, 1] <= 0:
+            raise CameraInfoError(f"focal lengths must be positive, got {self.K[0, 0]}, {self.K[1, 1]}")
+        if self.width <= 0 or self.height <= 0:
+            raise CameraInfoError(f"image size must be positive, got {self.width}x{self.height}")
+
+
+def _matrix(value: object, n: int, path: Path, key: str) -> np.ndarray:
+    data = value.get("data") if isinstance(value, dict) else value
+    try:
+        arr = np.asarray(data, dtype=float).reshape(-1)
+    except (TypeError, ValueError):
+        raise CameraInfoError(f"{path}: {key} must hold {n} numbers") from None
+    if n and arr.size != n:
+        raise CameraInfoError(f"{path}: {key} must hold {n} numbers, has {arr.size}")
+    return arr
+
+
+def _read_opencv_filestorage(path: Path) -> CameraIntrinsics:
+    import cv2  # only this format needs OpenCV
+
+    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    try:
+        if not fs.isOpened():
+            raise CameraInfoError(f"{path}: OpenCV cannot parse this FileStorage YAML")
+        K = fs.getNode("camera_matrix").mat()
+        dist = fs.getNode("distortion_coefficients").mat()
+        if K is None or dist is None:
+            raise CameraInfoError(f"{path}: needs camera_matrix and distortion_coefficients matrices")
+        width = int(fs.getNode("image_width").real() or 0)
+        height = int(fs.getNode("image_height").real() or 0)
+    finally:
+        fs.release()
+    K = np.asarray(K, dtype=float).reshape(3, 3)
+    if width <= 0 or height <= 0:  # older files omit the size: infer it from the principal point
+        width, height = int(round(2 * K[0, 2] + 1)), int(round(2 * K[1, 2] + 1))
+    return CameraIntrinsics(width, height, K, np.asarray(dist, dtype=float).reshape(-1), path.stem)
+
+
+def read_camera_info(path: str | Path) -> CameraIntrinsics:
+    """Read intrinsics from a ROS camera_info YAML or an OpenCV FileStorage YAML file."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8")
+    except FileNotFoundError:
+        raise CameraInfoError(f"{path}: camera_info file not found") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise CameraInfoError(f"{path}: cannot read camera_info: {exc}") from None
+    if text.lstrip().startswith("%YAML") or "!!opencv-matrix" in text:
+        return _read_opencv_filestorage(path)
+    try:
+        doc = yaml.safe_load(text)
+    except yaml.YAMLError as exc:
+        reason = str(exc).splitlines()[0]
+        raise CameraInfoError(f"{path}: not valid YAML: {reason}") from None
+    if not isinstance(doc, dict) or "camera_matrix" not in doc:
+        raise CameraInfoError(
+            f"{path}: not a ROS camera_info file (needs image_width, image_height, camera_matrix, "
+            "distortion_coefficients)"
+        )
+    K = _matrix(doc["camera_matrix"], 9, path, "camera_matrix").reshape(3, 3)
+    dist = _matrix(doc.get("distortion_coefficients", {"data": [0.0] * 5}), 0, path,
+                   "distortion_coefficients")
+    model = doc.get("distortion_model", "plumb_bob")
+    if model not in ("plumb_bob", "rational_polynomial"):
+        raise CameraInfoError(f"{path}: distortion_model {model!r} is not supported (plumb_bob)")
+    try:
+        width, height = int(doc["image_width"]), int(doc["image_height"])
+    except (KeyError, TypeError, ValueError):
+        raise CameraInfoError(f"{path}: needs integer image_width and image_height") from None
+    return CameraIntrinsics(width, height, K, dist, str(doc.get("camera_name", path.stem)))
+
+
+def camera_info_to_dict(intr: CameraIntrinsics) -> dict:
+    """The ROS camera_info YAML document (the layout ROS ``camera_calibration`` writes)."""
+    K = intr.K
+    P = np.zeros((3, 4))
+    P[:3, :3] = K
+
+    def block(rows: int, cols: int, data: np.ndarray) -> dict:
+        return {"rows": rows, "cols": cols, "data": [float(v) for v in np.ravel(data)]}
+
+    return {
+        "image_width": int(intr.width),
+        "image_height": int(intr.height),
+        "camera_name": intr.camera_name or "camera",
+        "camera_matrix": block(3, 3, K),
+        "distortion_model": "plumb_bob",
+        "distortion_coefficients": block(1, len(intr.dist), intr.dist),
+        "rectification_matrix": block(3, 3, np.eye(3)),
+        "projection_matrix": block(3, 4, P),
+    }
+
+
+def write_camera_info(intr: CameraIntrinsics, path: str | Path) -> None:
+    """Write ROS camera_info YAML."""
+    Path(path).write_text(yaml.safe_dump(camera_info_to_dict(intr), sort_keys=False), encoding="utf-8")

@@ -1,0 +1,305 @@
+"""The recording folder (contracts §3): one reader and one writer, shared by ``cubetrack
+simulate``, the live recorder, the emulator and offline tracking.
+
+Layout::
+
+    <dir>/recording.json
+    <dir>/<camera>/index.csv          seq,device_time,host_time,file
+    <dir>/<camera>/<file>.jpg
+    <dir>/<camera>/clock.csv          host_send,device_time,host_recv   (optional)
+    <dir>/camera_info/<camera>.yaml   (optional)
+    <dir>/ground_truth.tum            (optional)
+
+Times are seconds: ``device_time`` on the node's clock since boot, host times Unix time.
+A broken index row or a missing JPEG is skipped and counted (``Recording.skipped``), never
+fatal; a recording with no usable frame at all is an error.
+"""
+
+from __future__ import annotations
+
+import csv
+import heapq
+import json
+import logging
+import os
+import re
+from collections import Counter
+from dataclasses import dataclass
+from datetime import datetime, timezone
+from pathlib import Path
+from typing import Iterable, Iterator
+
+from cubetrack.errors import RecordingError
+from cubetrack.records import Frame
+
+log = logging.getLogger(__name__)
+
+FORMAT = "cubetrack.recording"
+VERSION = 1
+INDEX_HEADER = ("seq", "device_time", "host_time", "file")
+CLOCK_HEADER = ("host_send", "device_time", "host_recv")
+_CAMERA_NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}$")
+
+
+@dataclass(frozen=True, slots=True)
+class CameraEntry:
+    """A camera of a recording: its name (also its folder) and where its frames came from."""
+
+    name: str
+    source: str = ""
+
+
+@dataclass(frozen=True, slots=True)
+class IndexRow:
+    """One frame of ``index.csv``: X-Frame, X-Timestamp (s), host arrival time (Unix s), file."""
+
+    seq: int
+    device_time_s: float
+    host_time_s: float
+    file: str
+
+
+@dataclass(frozen=True, slots=True)
+class ClockSample:
+    """One ``/time`` round trip: host send time, node clock, host receive time (seconds)."""
+
+    host_send_s: float
+    device_time_s: float
+    host_recv_s: float
+
+
+def check_camera_name(name: str) -> str:
+    """Refuse camera names that cannot be a folder name (they become ``<dir>/<camera>/``)."""
+    if not isinstance(name, str) or not _CAMERA_NAME.match(name) or name in (".", ".."):
+        raise RecordingError(
+            f"camera name {name!r} is not usable as a folder name: use letters, digits, '_', '-', '.'"
+        )
+    return name
+
+
+def _fmt(t: float) -> str:
+    return f"{t:.6f}"
+
+
+class Recording:
+    """Read-only view of a recording folder. Open with :meth:`Recording.open`."""
+
+    def __init__(self, path: Path, cameras: tuple[CameraEntry, ...], created: str):
+        self.path = path
+        self.cameras = cameras
+        self.created = created
+        self.skipped: Counter[str] = Counter()  # reason -> count, filled while reading
+
+    @classmethod
+    def open(cls, path: str | Path) -> "Recording":
+        """Open a recording folder, checking ``recording.json``."""
+        path = Path(path)
+        meta_path = path / "recording.json"
+        if not path.is_dir():
+            raise RecordingError(f"{path}: recording folder not found")
+        try:
+            meta = json.loads(meta_path.read_text(encoding="utf-8"))
+        except FileNotFoundError:
+            raise RecordingError(f"{meta_path}: missing; {path} is not a recording folder") from None
+        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+            raise RecordingError(f"{meta_path}: not valid JSON: {exc}") from None
+        if not isinstance(meta, dict) or meta.get("format") != FORMAT:
+            raise RecordingError(f'{meta_path}: "format" must be "{FORMAT}"')
+        if meta.get("version") != VERSION:
+            raise RecordingError(f"{meta_path}: version {meta.get('version')!r} is not supported ({VERSION})")
+        rows = meta.get("cameras")
+        if not isinstance(rows, list) or not rows:
+            raise RecordingError(f'{meta_path}: "cameras" must list at least one camera')
+        try:
+            cameras = tuple(
+                CameraEntry(check_camera_name(row["name"]), str(row.get("source", ""))) for row in rows
+            )
+        except (TypeError, KeyError):
+            raise RecordingError(f'{meta_path}: each camera needs a "name"') from None
+        except RecordingError as exc:
+            raise RecordingError(f"{meta_path}: {exc}") from None
+        return cls(path, cameras, str(meta.get("created", "")))
+
+    @property
+    def camera_names(self) -> tuple[str, ...]:
+        return tuple(c.name for c in self.cameras)
+
+    def camera_dir(self, camera: str) -> Path:
+        if camera not in self.camera_names:
+            raise RecordingError(f"{self.path}: no camera {camera!r} (has {', '.join(self.camera_names)})")
+        return self.path / camera
+
+    def index(self, camera: str) -> list[IndexRow]:
+        """The valid rows of a camera's ``index.csv``; broken rows are skipped and counted."""
+        index_path = self.camera_dir(camera) / "index.csv"
+        try:
+            with index_path.open(newline="", encoding="utf-8") as f:
+                reader = csv.reader(f)
+                header = next(reader, None)
+                if header is None or tuple(h.strip() for h in header) != INDEX_HEADER:
+                    raise RecordingError(f"{index_path}: header must be {','.join(INDEX_HEADER)}")
+                rows = []
+                for line_no, fields in enumerate(reader, start=2):
+                    row = _parse_index_row(fields)
+                    if row is None:
+                        self.skipped["bad index row"] += 1
+                        log.warning("%s:%d: skipping malformed row %r", index_path, line_no, fields)
+                        continue
+                    rows.append(row)
+        except FileNotFoundError:
+            raise RecordingError(f"{index_path}: missing") from None
+        except (UnicodeDecodeError, csv.Error) as exc:
+            raise RecordingError(f"{index_path}: unreadable: {exc}") from None
+        if not rows:
+            raise RecordingError(f"{index_path}: empty index (no frames recorded for {camera})")
+        return rows
+
+    def frames(self, camera: str) -> Iterator[Frame]:
+        """A camera's frames in index order; missing or unreadable JPEG files are skipped and counted."""
+        folder = self.camera_dir(camera)
+        for row in self.index(camera):
+            try:
+                jpeg = (folder / row.file).read_bytes()
+            except OSError:
+                self.skipped["missing frame file"] += 1
+                log.warning("%s: frame file %s is missing; skipped", folder, row.file)
+                continue
+            yield Frame(camera, row.seq, row.device_time_s, row.host_time_s, jpeg)
+
+    def merged_frames(self, cameras: Iterable[str] | None = None) -> Iterator[Frame]:
+        """Frames of all (or the given) cameras in host arrival order, as a live run would see them."""
+        names = tuple(cameras) if cameras is not None else self.camera_names
+        return heapq.merge(*(self.frames(c) for c in names), key=lambda f: (f.host_time_s, f.camera))
+
+    def clock_samples(self, camera: str) -> list[ClockSample]:
+        """The camera's ``/time`` round trips (empty when the recording has none)."""
+        path = self.camera_dir(camera) / "clock.csv"
+        if not path.exists():
+            return []
+        samples = []
+        with path.open(newline="", encoding="utf-8") as f:
+            reader = csv.reader(f)
+            header = next(reader, None)
+            if header is None or tuple(h.strip() for h in header) != CLOCK_HEADER:
+                raise RecordingError(f"{path}: header must be {','.join(CLOCK_HEADER)}")
+            for line_no, fields in enumerate(reader, start=2):
+                try:
+                    sample = ClockSample(*(float(v) for v in fields))
+                except (TypeError, ValueError):
+                    self.skipped["bad clock row"] += 1
+                    log.warning("%s:%d: skipping malformed row %r", path, line_no, fields)
+                    continue
+                samples.append(sample)
+        return samples
+
+    def camera_info_path(self, camera: str) -> Path | None:
+        path = self.path / "camera_info" / f"{camera}.yaml"
+        return path if path.exists() else None
+
+    @property
+    def ground_truth_path(self) -> Path | None:
+        path = self.path / "ground_truth.tum"
+        return path if path.exists() else None
+
+
+def _parse_index_row(fields: list[str]) -> IndexRow | None:
+    if len(fields) != 4:
+        return None
+    try:
+        row = IndexRow(int(fields[0]), float(fields[1]), float(fields[2]), fields[3].strip())
+    except ValueError:
+        return None
+    name = row.file
+    if not name or "/" in name or "\\" in name or name in (".", ".."):
+        return None  # a file name must stay inside the camera folder
+    return row
+
+
+class RecordingWriter:
+    """Writes a recording folder incrementally; every row is flushed as it is written, so a
+    recording cut short (crash, Ctrl-C) stays readable up to its last whole frame.
+
+    Refuses to write into a folder that already holds a recording unless ``overwrite``.
+    """
+
+    def __init__(self, path: str | Path, cameras: Iterable[CameraEntry], overwrite: bool = False):
+        self.path = Path(path)
+        self.cameras = tuple(cameras)
+        if not self.cameras:
+            raise RecordingError("a recording needs at least one camera")
+        for c in self.cameras:
+            check_camera_name(c.name)
+        if (self.path / "recording.json").exists() and not overwrite:
+            raise RecordingError(f"{self.path}: already holds a recording; choose another folder")
+        if self.path.exists() and not self.path.is_dir():
+            raise RecordingError(f"{self.path}: exists and is not a folder")
+        self.path.mkdir(parents=True, exist_ok=True)
+        meta = {
+            "format": FORMAT,
+            "version": VERSION,
+            "cameras": [{"name": c.name, "source": c.source} for c in self.cameras],
+            "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        }
+        _atomic_write(self.path / "recording.json", json.dumps(meta, indent=2) + "\n")
+        self._index = {}
+        self._clock = {}
+        for c in self.cameras:
+            (self.path / c.name).mkdir(exist_ok=True)
+            self._index[c.name] = self._open_csv(self.path / c.name / "index.csv", INDEX_HEADER)
+
+    @staticmethod
+    def _open_csv(path: Path, header: tuple[str, ...]):
+        f = path.open("w", newline="", encoding="utf-8")
+        f.write(",".join(header) + "\n")
+        f.flush()
+        return f
+
+    def add_frame(self, camera: str, seq: int, device_time_s: float, host_time_s: float,
+                  jpeg: bytes) -> str:
+        """Store one frame; returns its file name (relative to the camera folder)."""
+        if camera not in self._index:
+            raise RecordingError(f"{self.path}: no camera {camera!r} in this recording")
+        name = f"{seq:08d}.jpg"
+        _atomic_write(self.path / camera / name, jpeg)
+        f = self._index[camera]
+        f.write(f"{int(seq)},{_fmt(device_time_s)},{_fmt(host_time_s)},{name}\n")
+        f.flush()
+        return name
+
+    def add_clock_sample(self, camera: str, sample: ClockSample) -> None:
+        """Store one ``/time`` round trip of ``camera``."""
+        if camera not in self._index:
+            raise RecordingError(f"{self.path}: no camera {camera!r} in this recording")
+        f = self._clock.get(camera)
+        if f is None:
+            f = self._clock[camera] = self._open_csv(self.path / camera / "clock.csv", CLOCK_HEADER)
+        f.write(f"{_fmt(sample.host_send_s)},{_fmt(sample.device_time_s)},{_fmt(sample.host_recv_s)}\n")
+        f.flush()
+
+    def camera_info_path(self, camera: str) -> Path:
+        """Where this camera's intrinsics belong; the folder is created."""
+        folder = self.path / "camera_info"
+        folder.mkdir(exist_ok=True)
+        return folder / f"{camera}.yaml"
+
+    @property
+    def ground_truth_path(self) -> Path:
+        return self.path / "ground_truth.tum"
+
+    def close(self) -> None:
+        for f in (*self._index.values(), *self._clock.values()):
+            f.close()
+
+    def __enter__(self) -> "RecordingWriter":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def _atomic_write(path: Path, data: bytes | str) -> None:
+    tmp = path.with_name(path.name + ".part")
+    mode = "wb" if isinstance(data, bytes) else "w"
+    with open(tmp, mode) as f:
+        f.write(data)
+    os.replace(tmp, path)

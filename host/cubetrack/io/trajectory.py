@@ -1,0 +1,133 @@
+"""Trajectory files (contracts §5): TUM (``timestamp tx ty tz qx qy qz qw``) and JSONL.
+
+Timestamps are Unix seconds on the host clock (estimated capture time), positions metres,
+quaternions scalar-last (x, y, z, w).
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+from typing import IO, Iterable
+
+import numpy as np
+
+from cubetrack.errors import TrajectoryError
+from cubetrack.records import TrackedPose
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Trajectory:
+    """Timestamped poses: ``times_s`` (N,), ``positions_m`` (N, 3), ``quats_xyzw`` (N, 4)."""
+
+    times_s: np.ndarray
+    positions_m: np.ndarray
+    quats_xyzw: np.ndarray
+
+    def __post_init__(self) -> None:
+        n = len(self.times_s)
+        if self.positions_m.shape != (n, 3) or self.quats_xyzw.shape != (n, 4):
+            raise TrajectoryError(
+                f"trajectory arrays disagree: {n} times, positions {self.positions_m.shape}, "
+                f"quaternions {self.quats_xyzw.shape}"
+            )
+
+    def __len__(self) -> int:
+        return len(self.times_s)
+
+
+def read_tum(path: str | Path) -> Trajectory:
+    """Read a TUM trajectory; ``#`` comments and blank lines are ignored."""
+    path = Path(path)
+    rows = []
+    try:
+        lines = path.read_text(encoding="utf-8").splitlines()
+    except FileNotFoundError:
+        raise TrajectoryError(f"{path}: trajectory file not found") from None
+    except (OSError, UnicodeDecodeError) as exc:
+        raise TrajectoryError(f"{path}: cannot read: {exc}") from None
+    for line_no, line in enumerate(lines, start=1):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        parts = line.replace(",", " ").split()
+        try:
+            values = [float(p) for p in parts]
+        except ValueError:
+            values = []
+        if len(values) != 8 or not np.all(np.isfinite(values)):
+            raise TrajectoryError(
+                f"{path}:{line_no}: expected 8 numbers 'timestamp tx ty tz qx qy qz qw', got {line!r}"
+            )
+        rows.append(values)
+    if not rows:
+        raise TrajectoryError(f"{path}: no poses in trajectory")
+    a = np.array(rows)
+    order = np.argsort(a[:, 0], kind="stable")
+    a = a[order]
+    return Trajectory(a[:, 0], a[:, 1:4], a[:, 4:8])
+
+
+def format_tum_line(time_s: float, position_m: np.ndarray, q_xyzw: np.ndarray) -> str:
+    """One TUM line (microsecond timestamps, sub-millimetre positions)."""
+    p, q = position_m, q_xyzw
+    return (f"{time_s:.6f} {p[0]:.6f} {p[1]:.6f} {p[2]:.6f} "
+            f"{q[0]:.9f} {q[1]:.9f} {q[2]:.9f} {q[3]:.9f}\n")
+
+
+def write_tum(trajectory: Trajectory, path: str | Path) -> None:
+    """Write a whole trajectory as TUM."""
+    with Path(path).open("w", encoding="utf-8") as f:
+        for t, p, q in zip(trajectory.times_s, trajectory.positions_m, trajectory.quats_xyzw):
+            f.write(format_tum_line(t, p, q))
+
+
+def pose_to_json(pose: TrackedPose) -> dict:
+    """The JSONL object of one fused pose (contracts §5)."""
+    out = {
+        "time": round(float(pose.time_s), 6),
+        "robot": pose.robot,
+        "position": [round(float(v), 6) for v in pose.position_m],
+        "quaternion_xyzw": [round(float(v), 9) for v in pose.quaternion_xyzw],
+        "cameras": list(pose.cameras),
+        "markers": list(pose.markers),
+        "latency": round(float(pose.latency_s), 6),
+    }
+    out.update(pose.extra)
+    return out
+
+
+class PoseWriter:
+    """Streams fused poses of one robot to ``<dir>/<robot>.tum`` and ``<dir>/<robot>.jsonl``,
+    flushing every pose so a crash loses nothing already produced."""
+
+    def __init__(self, out_dir: str | Path, robot: str):
+        out_dir = Path(out_dir)
+        out_dir.mkdir(parents=True, exist_ok=True)
+        self.tum_path = out_dir / f"{robot}.tum"
+        self.jsonl_path = out_dir / f"{robot}.jsonl"
+        self._tum: IO[str] = self.tum_path.open("w", encoding="utf-8")
+        self._jsonl: IO[str] = self.jsonl_path.open("w", encoding="utf-8")
+        self.count = 0
+
+    def write(self, pose: TrackedPose) -> None:
+        self._tum.write(format_tum_line(pose.time_s, pose.position_m, pose.quaternion_xyzw))
+        self._jsonl.write(json.dumps(pose_to_json(pose)) + "\n")
+        self._tum.flush()
+        self._jsonl.flush()
+        self.count += 1
+
+    def write_all(self, poses: Iterable[TrackedPose]) -> None:
+        for pose in poses:
+            self.write(pose)
+
+    def close(self) -> None:
+        self._tum.close()
+        self._jsonl.close()
+
+    def __enter__(self) -> "PoseWriter":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()

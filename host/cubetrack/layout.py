@@ -1,0 +1,212 @@
+"""The cube layout model (contracts §4): which marker sits where on a robot's cube.
+
+Cube frame: origin at the cube's centre, x forward (the "front" face), y left, z up.
+Marker frame (OpenCV ArUco): origin at the marker centre, x right, y up, z out of the face.
+``T_cube_marker`` maps marker-frame points into the cube frame.
+
+The paper's cube repeats one id on five faces (no bottom). Faces are told apart by which marker
+axis points up in the world while the robot stands upright:
+
+========  ==========  ==================================
+face      axis up     in-plane rotation of the marker
+========  ==========  ==================================
+top       +z          —
+front     +y          upright
+left      +x          turned 90° clockwise
+back      -y          upside down
+right     -x          turned 90° counter-clockwise
+========  ==========  ==================================
+"""
+
+from __future__ import annotations
+
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import tomli_w
+
+from cubetrack.errors import ConfigError
+from cubetrack.geometry import make_T, position_quat_from_T, T_from_position_quat
+
+FACES = ("top", "front", "left", "back", "right")
+DEFAULT_DICTIONARY = "DICT_4X4_50"
+
+# Outward normal of each face (cube frame) and the marker axis that points up (cube +z).
+_FACE_NORMAL = {
+    "top": (0.0, 0.0, 1.0),
+    "front": (1.0, 0.0, 0.0),
+    "left": (0.0, 1.0, 0.0),
+    "back": (-1.0, 0.0, 0.0),
+    "right": (0.0, -1.0, 0.0),
+    "bottom": (0.0, 0.0, -1.0),
+}
+_FACE_UP_AXIS = {"front": "+y", "left": "+x", "back": "-y", "right": "-x"}
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class LayoutMarker:
+    """One marker on the cube: its face name, id, black-square side (metres) and pose."""
+
+    face: str
+    marker_id: int
+    size_m: float
+    T_cube_marker: np.ndarray
+
+    def corners_cube_m(self) -> np.ndarray:
+        """(4, 3) marker corners in the cube frame, in detector order TL, TR, BR, BL."""
+        return (marker_corners_m(self.size_m) @ self.T_cube_marker[:3, :3].T) + self.T_cube_marker[:3, 3]
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class CubeLayout:
+    """A dictionary name and the markers on one cube."""
+
+    dictionary: str
+    markers: tuple[LayoutMarker, ...]
+
+    def __post_init__(self) -> None:
+        if not self.markers:
+            raise ConfigError("a cube layout needs at least one marker")
+        faces = [m.face for m in self.markers]
+        if len(set(faces)) != len(faces):
+            raise ConfigError(f"cube layout repeats a face name: {faces}")
+
+    @property
+    def ids(self) -> frozenset[int]:
+        return frozenset(m.marker_id for m in self.markers)
+
+    @property
+    def has_repeated_ids(self) -> bool:
+        return len(self.ids) < len(self.markers)
+
+    def markers_with_id(self, marker_id: int) -> tuple[LayoutMarker, ...]:
+        return tuple(m for m in self.markers if m.marker_id == marker_id)
+
+
+def marker_corners_m(size_m: float) -> np.ndarray:
+    """(4, 3) corners of a square marker in its own frame, in detector order TL, TR, BR, BL.
+
+    Matches the object points OpenCV documents for SOLVEPNP_IPPE_SQUARE.
+    """
+    h = size_m / 2.0
+    return np.array([[-h, h, 0.0], [h, h, 0.0], [h, -h, 0.0], [-h, -h, 0.0]])
+
+
+def face_T_cube_marker(face: str, cube_size_m: float) -> np.ndarray:
+    """Pose of a marker centred on ``face`` of a cube of side ``cube_size_m`` (paper's scheme)."""
+    if face not in _FACE_NORMAL:
+        raise ConfigError(f"unknown face {face!r}; faces are {', '.join(_FACE_NORMAL)}")
+    z = np.array(_FACE_NORMAL[face])
+    up = np.array([0.0, 0.0, 1.0])
+    if face in ("top", "bottom"):
+        y = np.array([1.0, 0.0, 0.0])  # the marker's y points to the cube's front
+        x = np.cross(y, z)
+    else:
+        axis = _FACE_UP_AXIS[face]
+        sign = 1.0 if axis[0] == "+" else -1.0
+        if axis[1] == "y":
+            y = sign * up
+            x = np.cross(y, z)
+        else:
+            x = sign * up
+            y = np.cross(z, x)
+    R = np.column_stack([x, y, z])
+    return make_T(R, z * cube_size_m / 2.0)
+
+
+def paper_cube_layout(
+    cube_size_m: float = 0.11,
+    marker_size_m: float = 0.08,
+    marker_id: int = 1,
+    dictionary: str = DEFAULT_DICTIONARY,
+    distinct_ids: bool = False,
+) -> CubeLayout:
+    """The paper's five-face cube; with ``distinct_ids`` faces get ids marker_id .. marker_id+4."""
+    if not 0 < marker_size_m <= cube_size_m:
+        raise ConfigError(
+            f"marker size {marker_size_m} m must be positive and fit the cube side {cube_size_m} m"
+        )
+    markers = tuple(
+        LayoutMarker(
+            face=face,
+            marker_id=marker_id + (i if distinct_ids else 0),
+            size_m=marker_size_m,
+            T_cube_marker=face_T_cube_marker(face, cube_size_m),
+        )
+        for i, face in enumerate(FACES)
+    )
+    return CubeLayout(dictionary=dictionary, markers=markers)
+
+
+def _vector(value: object, n: int, where: str) -> np.ndarray:
+    if not isinstance(value, list) or len(value) != n or not all(
+        isinstance(v, (int, float)) and not isinstance(v, bool) for v in value
+    ):
+        raise ConfigError(f"{where}: expected a list of {n} numbers, got {value!r}")
+    out = np.array(value, dtype=float)
+    if not np.all(np.isfinite(out)):
+        raise ConfigError(f"{where}: numbers must be finite, got {value!r}")
+    return out
+
+
+def layout_from_table(table: dict, where: str) -> CubeLayout:
+    """Build a layout from its parsed TOML table (contracts §4); ``where`` names it in errors."""
+    dictionary = table.get("dictionary", DEFAULT_DICTIONARY)
+    if not isinstance(dictionary, str):
+        raise ConfigError(f"{where}: 'dictionary' must be a name like {DEFAULT_DICTIONARY!r}")
+    rows = table.get("markers")
+    if not isinstance(rows, list) or not rows:
+        raise ConfigError(f"{where}: needs at least one [[markers]] table")
+    markers = []
+    for i, row in enumerate(rows):
+        w = f"{where}: markers[{i}]"
+        missing = {"face", "id", "size", "position", "quaternion_xyzw"} - set(row)
+        if missing:
+            raise ConfigError(f"{w} lacks {', '.join(sorted(missing))}")
+        if not isinstance(row["id"], int) or isinstance(row["id"], bool) or row["id"] < 0:
+            raise ConfigError(f"{w}.id must be a non-negative integer, got {row['id']!r}")
+        size = row["size"]
+        if not isinstance(size, (int, float)) or isinstance(size, bool) or not size > 0:
+            raise ConfigError(f"{w}.size must be a positive number of metres, got {size!r}")
+        q = _vector(row["quaternion_xyzw"], 4, f"{w}.quaternion_xyzw")
+        if np.linalg.norm(q) < 1e-9:
+            raise ConfigError(f"{w}.quaternion_xyzw must not be zero")
+        T = T_from_position_quat(_vector(row["position"], 3, f"{w}.position"), q)
+        markers.append(LayoutMarker(str(row["face"]), int(row["id"]), float(size), T))
+    return CubeLayout(dictionary=dictionary, markers=tuple(markers))
+
+
+def layout_to_table(layout: CubeLayout) -> dict:
+    """The TOML table of a layout (contracts §4)."""
+    rows = []
+    for m in layout.markers:
+        position, q = position_quat_from_T(m.T_cube_marker)
+        rows.append(
+            {
+                "face": m.face,
+                "id": m.marker_id,
+                "size": m.size_m,
+                "position": [round(float(v), 9) for v in position],
+                "quaternion_xyzw": [round(float(v), 12) for v in q],
+            }
+        )
+    return {"dictionary": layout.dictionary, "markers": rows}
+
+
+def read_layout(path: str | Path) -> CubeLayout:
+    """Read a cube layout TOML file."""
+    path = Path(path)
+    try:
+        table = tomllib.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise ConfigError(f"{path}: cube layout file not found") from None
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
+        raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+    return layout_from_table(table, str(path))
+
+
+def write_layout(layout: CubeLayout, path: str | Path) -> None:
+    """Write a cube layout TOML file."""
+    Path(path).write_text(tomli_w.dumps(layout_to_table(layout)), encoding="utf-8")

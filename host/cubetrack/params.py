@@ -1,0 +1,99 @@
+"""One loader and one writer for every stage's parameter dataclass.
+
+Each stage defines a frozen dataclass whose fields carry their default and, in the field's
+``metadata["doc"]``, their unit and meaning. A TOML table maps 1:1 onto the fields; unknown
+keys and wrongly typed values are refused with a message naming the table and the key.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import enum
+import types
+import typing
+from typing import Any, TypeVar
+
+from cubetrack.errors import ConfigError
+
+P = TypeVar("P")
+
+
+def param(default: Any, doc: str) -> Any:
+    """A dataclass field with its default and its documentation (unit, range, meaning)."""
+    return dataclasses.field(default=default, metadata={"doc": doc})
+
+
+def _coerce(value: Any, annotation: Any, where: str) -> Any:
+    origin = typing.get_origin(annotation)
+    if origin in (typing.Union, types.UnionType):
+        options = typing.get_args(annotation)
+        if value is None and type(None) in options:
+            return None
+        for option in options:
+            if option is type(None):
+                continue
+            try:
+                return _coerce(value, option, where)
+            except ConfigError:
+                continue
+        raise ConfigError(f"{where}: {value!r} is not one of {annotation}")
+    if origin is tuple:
+        if not isinstance(value, (list, tuple)):
+            raise ConfigError(f"{where}: expected a list, got {value!r}")
+        args = typing.get_args(annotation)
+        item = args[0] if args else Any
+        return tuple(_coerce(v, item, where) for v in value)
+    if isinstance(annotation, type) and issubclass(annotation, enum.Enum):
+        try:
+            return annotation(value)
+        except ValueError:
+            choices = ", ".join(repr(m.value) for m in annotation)
+            raise ConfigError(f"{where}: {value!r} is not one of {choices}") from None
+    if annotation is bool:
+        if not isinstance(value, bool):
+            raise ConfigError(f"{where}: expected true or false, got {value!r}")
+        return value
+    if annotation is int:
+        if isinstance(value, bool) or not isinstance(value, int):
+            raise ConfigError(f"{where}: expected an integer, got {value!r}")
+        return value
+    if annotation is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ConfigError(f"{where}: expected a number, got {value!r}")
+        return float(value)
+    if annotation is str:
+        if not isinstance(value, str):
+            raise ConfigError(f"{where}: expected a string, got {value!r}")
+        return value
+    return value
+
+
+def params_from_table(cls: type[P], table: dict[str, Any] | None, where: str) -> P:
+    """Build the params dataclass ``cls`` from a TOML table; ``where`` names it in errors."""
+    table = dict(table or {})
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(table) - names)
+    if unknown:
+        raise ConfigError(
+            f"{where}: unknown key(s) {', '.join(unknown)}; valid keys: {', '.join(sorted(names))}"
+        )
+    values = {k: _coerce(v, hints[k], f"{where}.{k}") for k, v in table.items()}
+    try:
+        return cls(**values)
+    except (TypeError, ValueError) as exc:
+        raise ConfigError(f"{where}: {exc}") from None
+
+
+def params_to_table(params: Any) -> dict[str, Any]:
+    """The TOML table of a params dataclass (enums by value, tuples as lists)."""
+    out: dict[str, Any] = {}
+    for f in dataclasses.fields(params):
+        value = getattr(params, f.name)
+        if isinstance(value, enum.Enum):
+            value = value.value
+        elif isinstance(value, tuple):
+            value = [v.value if isinstance(v, enum.Enum) else v for v in value]
+        if value is not None:
+            out[f.name] = value
+    return out

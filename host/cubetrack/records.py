@@ -1,0 +1,111 @@
+"""Frozen records passed between pipeline stages: one record per frame, per marker, per estimate.
+
+No parallel arrays: a detection carries its own id, corners and area. Arrays inside records are
+never modified after construction (stages build new records instead).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Frame:
+    """One JPEG frame from one camera, as a source delivers it.
+
+    ``device_time_s`` is the node's X-Timestamp (its clock since boot, seconds);
+    ``host_time_s`` the host's Unix time when the whole frame had arrived.
+    """
+
+    camera: str
+    seq: int
+    device_time_s: float
+    host_time_s: float
+    jpeg: bytes
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Detection:
+    """One detected square marker in one image.
+
+    ``corners_px`` is (4, 2) float64, clockwise in the image starting at the marker's top-left
+    corner (OpenCV order TL, TR, BR, BL), pixel-centre convention ((0, 0) = centre of the
+    top-left pixel). ``area_px2`` is the shoelace area of those corners (paper eq. 3).
+    Detection does not correct lens distortion and does not estimate pose.
+    """
+
+    marker_id: int
+    corners_px: np.ndarray
+    area_px2: float
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class MarkerPose:
+    """Pose of one detected marker in the camera optical frame (x right, y down, z forward).
+
+    ``T_cam_marker`` is the better of the planar PnP solutions by reprojection error,
+    ``T_cam_marker_alt`` the other (IPPE returns two; None when only one was finite).
+    Errors are RMS reprojection errors in pixels.
+    """
+
+    detection: Detection
+    size_m: float
+    T_cam_marker: np.ndarray
+    reprojection_error_px: float
+    T_cam_marker_alt: np.ndarray | None = None
+    reprojection_error_alt_px: float = float("inf")
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class FaceObservation:
+    """One cube face identified in one camera frame, with the cube pose it implies.
+
+    ``T_world_cube`` is the cube frame's pose in the world frame as implied by this face alone;
+    ``area_px2`` the marker's pixel area (the paper's quality measure).
+    """
+
+    face: str
+    marker_pose: MarkerPose
+    T_world_cube: np.ndarray
+    area_px2: float
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class CameraEstimate:
+    """The cube pose of one robot seen in one camera frame.
+
+    ``capture_time_s`` is the estimated capture time on the host clock (Unix seconds);
+    ``T_world_cube`` the camera's estimate of the cube frame in the world frame;
+    ``area_px2`` the summed pixel area of the faces used; ``faces`` the per-face observations.
+    """
+
+    camera: str
+    robot: str
+    seq: int
+    capture_time_s: float
+    arrival_time_s: float
+    T_world_cube: np.ndarray
+    area_px2: float
+    faces: tuple[FaceObservation, ...]
+    reprojection_error_px: float
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class TrackedPose:
+    """One fused pose of one robot: the cube frame in the world frame at ``time_s``.
+
+    ``time_s`` is the estimated capture time on the host clock (Unix seconds);
+    ``quaternion_xyzw`` is scalar-last. ``latency_s`` is how long after ``time_s`` the pose was
+    produced (for live tracking; offline replay reports the replayed arrival delay).
+    """
+
+    robot: str
+    time_s: float
+    position_m: np.ndarray
+    quaternion_xyzw: np.ndarray
+    cameras: tuple[str, ...]
+    markers: tuple[str, ...]
+    latency_s: float
+    extra: dict = field(default_factory=dict)
