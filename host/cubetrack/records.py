@@ -33,20 +33,23 @@ class Detection:
     ``corners_px`` is (4, 2) float64, clockwise in the image starting at the marker's top-left
     corner (OpenCV order TL, TR, BR, BL), pixel-centre convention ((0, 0) = centre of the
     top-left pixel). ``area_px2`` is the shoelace area of those corners (paper eq. 3).
+    ``dictionary`` names the OpenCV dictionary the id belongs to ("" = unspecified, matches any).
     Detection does not correct lens distortion and does not estimate pose.
     """
 
     marker_id: int
     corners_px: np.ndarray
     area_px2: float
+    dictionary: str = ""
 
 
 @dataclass(frozen=True, slots=True, eq=False)
 class MarkerPose:
     """Pose of one detected marker in the camera optical frame (x right, y down, z forward).
 
-    ``T_cam_marker`` is the better of the planar PnP solutions by reprojection error,
-    ``T_cam_marker_alt`` the other (IPPE returns two; None when only one was finite).
+    ``T_cam_marker`` is the chosen planar PnP solution: the one with the lower reprojection
+    error, unless ambiguity resolution (e.g. the upright prior in ``cubetrack.estimate``) swapped
+    them; ``T_cam_marker_alt`` the other (IPPE returns two; None when only one was valid).
     Errors are RMS reprojection errors in pixels.
     """
 

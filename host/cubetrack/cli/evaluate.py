@@ -1,0 +1,70 @@
+"""Score estimated trajectories against a ground truth: position RMSE at the nearest
+ground-truth time (paper eq. 7), rotation RMSE, detection ratio with a message timeout
+(paper eq. 8) and output rate. No alignment is applied: the world frame comes from calibration.
+
+Example:
+  cubetrack evaluate --estimate out/robot.tum --ground-truth rec/ground_truth.tum --plot figs/
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+from pathlib import Path
+
+HELP = "score trajectories against a ground truth (RMSE, detection ratio)"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--estimate", action="append", required=True, type=Path, metavar="TUM",
+                   help="estimated trajectory (TUM); repeat to compare several")
+    p.add_argument("--label", action="append", default=None,
+                   help="label for each --estimate, in order (default: the file name)")
+    p.add_argument("--ground-truth", required=True, type=Path, metavar="TUM", help="reference trajectory (TUM)")
+    p.add_argument("--timeout", type=float, default=0.5, metavar="S",
+                   help="detection-ratio message timeout in seconds (default 0.5, the paper's)")
+    p.add_argument("--max-time-diff", type=float, default=0.02, metavar="S",
+                   help="estimates farther than this from any ground-truth sample are not scored (default 0.02 s)")
+    p.add_argument("--plot", type=Path, metavar="DIR", help="write paper-style figures into DIR")
+    p.add_argument("--json", action="store_true", help="print the scores as JSON")
+
+
+def run(args: argparse.Namespace) -> int:
+    from cubetrack.errors import EvaluationError
+    from cubetrack.evaluate import EvaluationParams, evaluate
+    from cubetrack.io.trajectory import read_tum
+
+    labels = args.label or [p.stem if len(args.estimate) == 1 else str(p) for p in args.estimate]
+    if len(labels) != len(args.estimate):
+        raise EvaluationError(f"{len(labels)} --label for {len(args.estimate)} --estimate: give one per estimate")
+    if args.timeout <= 0 or args.max_time_diff <= 0:
+        raise EvaluationError("--timeout and --max-time-diff must be positive seconds")
+    params = EvaluationParams(detection_timeout_s=args.timeout, max_time_diff_s=args.max_time_diff)
+    truth = read_tum(args.ground_truth)
+    estimates = {label: read_tum(path) for label, path in zip(labels, args.estimate)}
+    results = {label: evaluate(traj, truth, params) for label, traj in estimates.items()}
+    if args.json:
+        print(json.dumps({label: r.as_dict() for label, r in results.items()}, indent=2))
+    else:
+        print(format_table(results))
+    if args.plot:
+        from cubetrack.plot import plot_rmse_bars, plot_xy
+
+        args.plot.mkdir(parents=True, exist_ok=True)
+        xy = plot_xy(estimates, truth, args.plot / "trajectory_xy.png")
+        bars = plot_rmse_bars({("", label): r.position_rmse_m for label, r in results.items()},
+                              args.plot / "rmse.png")
+        print(f"figures: {xy} {bars}")
+    return 0
+
+
+def format_table(results: dict) -> str:
+    """A plain-text table of evaluation results, one row per estimate."""
+    head = f"{'estimate':<28} {'pos RMSE':>10} {'rot RMSE':>9} {'det ratio':>9} {'rate':>8} {'scored':>8}"
+    rows = [head, "-" * len(head)]
+    for label, r in results.items():
+        rows.append(
+            f"{label[:28]:<28} {r.position_rmse_m * 100:>8.2f}cm {r.rotation_rmse_deg:>7.2f}° "
+            f"{r.detection_ratio:>9.3f} {r.output_rate_hz:>6.1f}Hz {r.poses_scored:>4}/{r.poses_total:<4}"
+        )
+    return "\n".join(rows)

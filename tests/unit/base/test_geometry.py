@@ -1,0 +1,56 @@
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from cubetrack.geometry import (T_from_position_quat, T_from_rvec_tvec, invert_T, is_finite_pose,
+                                mean_rotation, position_quat_from_T, rotation_angle, rvec_tvec_from_T,
+                                shoelace_area, transform_points)
+
+
+def random_T(rng):
+    return T_from_position_quat(rng.normal(size=3), rng.normal(size=4))
+
+
+def test_invert_and_compose():
+    rng = np.random.default_rng(1)
+    T = random_T(rng)
+    np.testing.assert_allclose(invert_T(T) @ T, np.eye(4), atol=1e-12)
+    p = rng.normal(size=(5, 3))
+    np.testing.assert_allclose(transform_points(invert_T(T), transform_points(T, p)), p, atol=1e-12)
+
+
+def test_rvec_round_trip_and_quaternion_sign():
+    rng = np.random.default_rng(2)
+    T = random_T(rng)
+    np.testing.assert_allclose(T_from_rvec_tvec(*rvec_tvec_from_T(T)), T, atol=1e-12)
+    _, q = position_quat_from_T(T)
+    assert q[3] >= 0 and np.linalg.norm(q) == pytest.approx(1.0)
+
+
+def test_shoelace_area_by_hand():
+    # a 10 x 4 rectangle, clockwise in the image, and a right triangle with legs 3 and 4
+    assert shoelace_area(np.array([[0, 0], [10, 0], [10, 4], [0, 4]])) == pytest.approx(40.0)
+    assert shoelace_area(np.array([[0, 0], [3, 0], [0, 4]])) == pytest.approx(6.0)
+
+
+def test_rotation_angle_units():
+    R = Rotation.from_euler("z", 30, degrees=True).as_matrix()
+    assert rotation_angle(np.eye(3), R, unit="deg") == pytest.approx(30.0)
+    assert rotation_angle(np.eye(3), R) == pytest.approx(np.pi / 6)
+    with pytest.raises(ValueError):
+        rotation_angle(np.eye(3), R, unit="grad")
+
+
+def test_mean_rotation_ignores_quaternion_sign():
+    # two rotations near 180 deg about z whose quaternions straddle q / -q
+    Rs = Rotation.from_euler("z", [[179.0], [-179.0]], degrees=True).as_matrix()
+    m = mean_rotation(Rs)
+    assert rotation_angle(m, Rotation.from_euler("z", 180, degrees=True).as_matrix(), unit="deg") < 1e-6
+
+
+def test_non_finite_pose_is_detected():
+    T = np.eye(4)
+    assert is_finite_pose(T)
+    T[0, 0] = np.nan
+    assert not is_finite_pose(T)
+    assert not is_finite_pose(np.diag([1.0, 1.0, -1.0, 1.0]))

@@ -1,0 +1,45 @@
+import json
+
+import numpy as np
+import pytest
+
+from cubetrack.errors import TrajectoryError
+from cubetrack.io.trajectory import PoseWriter, Trajectory, read_tum, write_tum
+from cubetrack.records import TrackedPose
+
+
+def test_tum_round_trip(tmp_path):
+    rng = np.random.default_rng(0)
+    q = rng.normal(size=(5, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    traj = Trajectory(1.7e9 + np.arange(5) * 0.1, rng.normal(size=(5, 3)), q)
+    write_tum(traj, tmp_path / "t.tum")
+    back = read_tum(tmp_path / "t.tum")
+    np.testing.assert_allclose(back.times_s, traj.times_s, atol=1e-6)
+    np.testing.assert_allclose(back.positions_m, traj.positions_m, atol=1e-6)
+    np.testing.assert_allclose(back.quats_xyzw, traj.quats_xyzw, atol=1e-9)
+
+
+def test_bad_tum_line_names_file_and_line(tmp_path):
+    p = tmp_path / "t.tum"
+    p.write_text("# comment\n1 0 0 0 0 0 0 1\n2 0 0 0 0 0 1\n")
+    with pytest.raises(TrajectoryError, match=r"t\.tum:3: expected 8 numbers"):
+        read_tum(p)
+
+
+def test_empty_tum_is_refused(tmp_path):
+    p = tmp_path / "t.tum"
+    p.write_text("# nothing\n")
+    with pytest.raises(TrajectoryError, match="no poses"):
+        read_tum(p)
+
+
+def test_pose_writer_writes_tum_and_jsonl(tmp_path):
+    pose = TrackedPose("bot", 12.5, np.array([1.0, 2.0, 3.0]), np.array([0, 0, 0, 1.0]),
+                       ("cam1", "cam2"), ("cam1:top",), 0.04)
+    with PoseWriter(tmp_path, "bot") as w:
+        w.write(pose)
+    assert read_tum(tmp_path / "bot.tum").positions_m.tolist() == [[1.0, 2.0, 3.0]]
+    obj = json.loads((tmp_path / "bot.jsonl").read_text())
+    assert obj["robot"] == "bot" and obj["cameras"] == ["cam1", "cam2"] and obj["latency"] == 0.04
+    assert obj["quaternion_xyzw"] == [0, 0, 0, 1.0]
