@@ -9,7 +9,7 @@ PACKAGE = Path(__file__).resolve().parents[2] / "host" / "cubetrack"
 
 BASE = {"errors", "geometry", "params", "progress", "records", "layout"}
 IO = {"io"}
-PIPELINE = ["source", "detect", "estimate", "calibrate", "fuse", "sink", "pipeline"]
+PIPELINE = ["timesync", "source", "detect", "estimate", "calibrate", "fuse", "sink", "pipeline"]
 
 
 def rank(module: str) -> int:

@@ -1,0 +1,229 @@
+"""The tracking pipeline: frames -> detections -> per-camera cube estimates -> fused poses.
+
+:class:`Tracker` is the one code path for live tracking and offline replay: a source hands it
+:class:`~cubetrack.records.Frame` objects in arrival order and it returns the fused poses each
+frame produced. :func:`track_recording` replays a recording folder through it and writes
+``<out>/<robot>.tum`` and ``<out>/<robot>.jsonl``.
+"""
+
+from __future__ import annotations
+
+import enum
+import logging
+from collections import Counter
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from cubetrack.detect import Detector, DetectorParams
+from cubetrack.errors import ConfigError, ImageError
+from cubetrack.estimate import EstimatorParams, estimate_cube, world_marker_pose
+from cubetrack.fuse import FusionParams, LatestEstimateFusion
+from cubetrack.geometry import invert_T
+from cubetrack.io.camera_info import CameraIntrinsics, read_camera_info
+from cubetrack.io.config import (CameraExtrinsics, RobotConfig, TrackerConfig, WorldConfig,
+                                 camera_intrinsics_path)
+from cubetrack.io.recording import ClockSample, Recording
+from cubetrack.io.trajectory import PoseWriter
+from cubetrack.params import param, params_from_table
+from cubetrack.progress import Progress
+from cubetrack.records import Frame, TrackedPose
+from cubetrack.timesync import ClockSync
+
+log = logging.getLogger(__name__)
+
+
+@enum.unique
+class CameraPoseSource(enum.Enum):
+    EXTRINSICS = "extrinsics"
+    WORLD_MARKER = "world-marker"
+
+
+@enum.unique
+class Timestamps(enum.Enum):
+    CAPTURE = "capture"
+    ARRIVAL = "arrival"
+
+
+@dataclass(frozen=True, slots=True)
+class TrackParams:
+    """The ``[track]`` section of the tracker config."""
+
+    timestamps: Timestamps = param(
+        Timestamps.CAPTURE,
+        "capture: stamp each frame with its capture time, the node's X-Timestamp mapped to the host "
+        "clock by /time round trips (clock.csv), falling back to arrival times when there are none; "
+        "arrival: stamp with the host arrival time (the paper's behaviour, late by the transfer time)",
+    )
+
+    camera_poses: CameraPoseSource = param(
+        CameraPoseSource.EXTRINSICS,
+        "extrinsics: calibrated camera poses (cubetrack calibrate); world-marker: each frame's own "
+        "world-marker pose, the paper's uncalibrated mode (frames without it give no estimate)",
+    )
+
+
+@dataclass(frozen=True, slots=True)
+class StageParams:
+    """Every stage's parameters, as resolved from a config (recorded next to the outputs)."""
+
+    detector: DetectorParams = field(default_factory=DetectorParams)
+    estimator: EstimatorParams = field(default_factory=EstimatorParams)
+    fusion: FusionParams = field(default_factory=FusionParams)
+    track: TrackParams = field(default_factory=TrackParams)
+
+    @classmethod
+    def from_config(cls, config: TrackerConfig) -> "StageParams":
+        where = str(config.path)
+        return cls(
+            detector=params_from_table(DetectorParams, config.section("detector"), f"{where}: [detector]"),
+            estimator=params_from_table(EstimatorParams, config.section("estimator"), f"{where}: [estimator]"),
+            fusion=params_from_table(FusionParams, config.section("fusion"), f"{where}: [fusion]"),
+            track=params_from_table(TrackParams, config.section("track"), f"{where}: [track]"),
+        )
+
+
+@dataclass(slots=True)
+class TrackStats:
+    """Counters of one tracking run (visible state, updated as frames pass)."""
+
+    frames: int = 0
+    corrupt_frames: int = 0
+    frames_without_camera_pose: int = 0
+    estimates: Counter = field(default_factory=Counter)  # (robot, camera) -> count
+    poses: Counter = field(default_factory=Counter)  # robot -> count
+
+
+class Tracker:
+    """Frames in, fused robot poses out. Cameras need intrinsics; camera poses come from
+    ``extrinsics`` (calibrated) or, with ``CameraPoseSource.WORLD_MARKER``, from each frame."""
+
+    def __init__(self, intrinsics: dict[str, CameraIntrinsics], world: WorldConfig,
+                 robots: tuple[RobotConfig, ...], extrinsics: dict[str, CameraExtrinsics] | None,
+                 params: StageParams = StageParams()):
+        self.intrinsics = intrinsics
+        self.world = world
+        self.robots = robots
+        self.params = params
+        if params.track.camera_poses is CameraPoseSource.EXTRINSICS:
+            missing = sorted(set(intrinsics) - set(extrinsics or {}))
+            if missing:
+                raise ConfigError(f"no extrinsics for camera(s) {', '.join(missing)}: run cubetrack calibrate")
+            self.T_world_cam = {name: e.T_world_cam for name, e in (extrinsics or {}).items()}
+        else:
+            self.T_world_cam = {}
+        dictionaries = [world.dictionary, *(r.layout.dictionary for r in robots)]
+        self.detector = Detector(params.detector, dictionaries)
+        self.fusion = LatestEstimateFusion(params.fusion)
+        self.clocks = {name: ClockSync() for name in intrinsics}
+        self.stats = TrackStats()
+
+    def add_clock_sample(self, camera: str, sample: ClockSample) -> None:
+        """Take one /time round trip of ``camera`` (feed them as they complete)."""
+        if camera in self.clocks:
+            self.clocks[camera].add_round_trip(sample.host_send_s, sample.device_time_s, sample.host_recv_s)
+
+    def capture_time(self, frame: Frame) -> float:
+        """The frame's capture time on the host clock (Unix seconds), per ``[track] timestamps``."""
+        if self.params.track.timestamps is Timestamps.ARRIVAL:
+            return frame.host_time_s
+        clock = self.clocks[frame.camera]
+        clock.add_arrival(frame.device_time_s, frame.host_time_s)
+        return clock.to_host(frame.device_time_s)
+
+    def camera_pose(self, frame: Frame, detections) -> np.ndarray | None:
+        """T_world_cam for this frame: calibrated, or from the frame's own world marker."""
+        if self.params.track.camera_poses is CameraPoseSource.EXTRINSICS:
+            return self.T_world_cam[frame.camera]
+        pose = world_marker_pose(detections, self.world, self.intrinsics[frame.camera], self.params.estimator)
+        return None if pose is None else invert_T(pose.T_cam_marker)
+
+    def process(self, frame: Frame, now_s: float | None = None) -> list[TrackedPose]:
+        """Run one frame through detection, estimation and fusion; returns the poses it produced.
+
+        ``now_s`` is the host time the frame became available (default: its arrival time).
+        A corrupt JPEG is counted and skipped.
+        """
+        self.stats.frames += 1
+        intrinsics = self.intrinsics.get(frame.camera)
+        if intrinsics is None:
+            return []
+        try:
+            detections = self.detector.detect_jpeg(frame.jpeg, f"{frame.camera} frame {frame.seq}")
+        except ImageError as exc:
+            self.stats.corrupt_frames += 1
+            log.warning("skipping corrupt frame: %s", exc)
+            return []
+        capture_time_s = self.capture_time(frame)
+        if not detections:
+            return []
+        T_world_cam = self.camera_pose(frame, detections)
+        if T_world_cam is None:
+            self.stats.frames_without_camera_pose += 1
+            return []
+        now = frame.host_time_s if now_s is None else now_s
+        poses = []
+        for robot in self.robots:
+            estimate = estimate_cube(
+                detections, robot.layout, intrinsics, T_world_cam,
+                camera=frame.camera, robot=robot.name, seq=frame.seq,
+                capture_time_s=capture_time_s, arrival_time_s=frame.host_time_s,
+                params=self.params.estimator,
+            )
+            if estimate is None:
+                continue
+            self.stats.estimates[(robot.name, frame.camera)] += 1
+            pose = self.fusion.add(estimate, now)
+            self.stats.poses[robot.name] += 1
+            poses.append(pose)
+        return poses
+
+
+def recording_intrinsics(config: TrackerConfig, recording: Recording) -> dict[str, CameraIntrinsics]:
+    """Intrinsics of every camera of a recording (config's camera_info, else the recording's)."""
+    return {
+        name: read_camera_info(camera_intrinsics_path(config, name, recording.path))
+        for name in recording.camera_names
+    }
+
+
+@dataclass(frozen=True, slots=True)
+class TrackResult:
+    """What :func:`track_recording` produced: the stats and the files per robot."""
+
+    stats: TrackStats
+    outputs: dict[str, tuple[Path, Path]]
+    skipped: dict[str, int]
+
+
+def track_recording(config: TrackerConfig, recording: Recording,
+                    extrinsics: dict[str, CameraExtrinsics] | None, out_dir: str | Path,
+                    params: StageParams | None = None, progress: Progress | None = None) -> TrackResult:
+    """Replay a recording through the tracker, writing ``<out_dir>/<robot>.tum`` and ``.jsonl``."""
+    params = params or StageParams.from_config(config)
+    tracker = Tracker(recording_intrinsics(config, recording), config.world, config.robots, extrinsics, params)
+    total = sum(len(recording.index(c)) for c in recording.camera_names)
+    trips = sorted(
+        ((s.host_recv_s, camera, s) for camera in recording.camera_names for s in recording.clock_samples(camera)),
+        key=lambda item: (item[0], item[1]),
+    )
+    next_trip = 0
+    writers = {r.name: PoseWriter(out_dir, r.name) for r in config.robots}
+    try:
+        for i, frame in enumerate(recording.merged_frames(), start=1):
+            # round trips completed before this frame arrived, exactly as a live run has them
+            while next_trip < len(trips) and trips[next_trip][0] <= frame.host_time_s:
+                tracker.add_clock_sample(trips[next_trip][1], trips[next_trip][2])
+                next_trip += 1
+            for pose in tracker.process(frame):
+                writers[pose.robot].write(pose)
+            if progress is not None:
+                progress("track", i, total)
+    finally:
+        for w in writers.values():
+            w.close()
+    skipped = dict(recording.skipped)
+    if tracker.stats.corrupt_frames:
+        skipped["corrupt frame"] = tracker.stats.corrupt_frames
+    return TrackResult(tracker.stats, {n: (w.tum_path, w.jsonl_path) for n, w in writers.items()}, skipped)

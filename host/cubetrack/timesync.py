@@ -1,0 +1,130 @@
+"""Camera clock -> host clock (contracts §1 "Clock sync", §3 ``clock.csv``).
+
+A camera node stamps each frame with X-Timestamp, its own clock since boot. The host polls
+``/time`` about once a second and keeps (host_send, device_time, host_recv) round trips. The
+device time was read somewhere inside [host_send, host_recv], so with the round trip's midpoint
+the offset is known to within half the round trip — independent of how long frames take to
+arrive. A line host = device + offset + drift * (device - device_ref) is fitted to the fastest
+recent round trips, which follows tens of ppm of drift.
+
+:class:`ClockSync` is causal: it only uses round trips it has been given so far, so a recording
+replayed through it stamps frames exactly as the live tracker did. Without round trips it falls
+back to frame arrival times (the lower envelope of arrival - device time, i.e. the fastest
+transfers), which is biased late by the minimum transfer time; ``method`` says which is in use.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections import deque
+from dataclasses import dataclass
+
+import numpy as np
+
+from cubetrack.params import param
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, slots=True)
+class ClockSyncParams:
+    """How a camera's clock is mapped to the host clock."""
+
+    window: int = param(120, "number of most recent round trips (or arrivals) used for the fit")
+    fastest_fraction: float = param(0.3, "fraction of the window's fastest round trips the line is fitted to (0..1]")
+    min_samples: int = param(3, "round trips needed before they are trusted over arrival times")
+
+    def __post_init__(self) -> None:
+        if self.window < 2 or self.min_samples < 1 or not 0.0 < self.fastest_fraction <= 1.0:
+            raise ValueError("need window >= 2, min_samples >= 1 and 0 < fastest_fraction <= 1")
+
+
+@dataclass(frozen=True, slots=True)
+class ClockFit:
+    """host_time_s = device_time_s + offset_s + drift * (device_time_s - device_ref_s)."""
+
+    offset_s: float
+    drift: float
+    device_ref_s: float
+    method: str  # "round-trip" | "arrival" | "none"
+    uncertainty_s: float
+
+    def to_host(self, device_time_s: float) -> float:
+        return device_time_s + self.offset_s + self.drift * (device_time_s - self.device_ref_s)
+
+
+def fit_line(device_s: np.ndarray, offset_s: np.ndarray) -> tuple[float, float, float]:
+    """Least-squares offset = a + b (device - ref); returns (a, b, ref). One point: b = 0."""
+    ref = float(np.mean(device_s))
+    x = device_s - ref
+    if len(x) < 2 or np.ptp(x) < 1e-6:
+        return float(np.mean(offset_s)), 0.0, ref
+    b, a = np.polyfit(x, offset_s, 1)
+    return float(a), float(b), ref
+
+
+def fit_round_trips(host_send_s: np.ndarray, device_s: np.ndarray, host_recv_s: np.ndarray,
+                    fastest_fraction: float = 0.3) -> ClockFit:
+    """Fit the clock line to the fastest round trips (their midpoints), robust to slow ones."""
+    host_send_s, device_s, host_recv_s = (np.asarray(a, dtype=float) for a in (host_send_s, device_s, host_recv_s))
+    rtt = host_recv_s - host_send_s
+    ok = np.isfinite(rtt) & (rtt >= 0)
+    host_send_s, device_s, host_recv_s, rtt = host_send_s[ok], device_s[ok], host_recv_s[ok], rtt[ok]
+    if rtt.size == 0:
+        raise ValueError("no valid round trips (host_recv must not precede host_send)")
+    keep = max(min(2, rtt.size), int(np.ceil(fastest_fraction * rtt.size)))  # two points give the drift
+    order = np.argsort(rtt, kind="stable")[:keep]
+    mid = (host_send_s[order] + host_recv_s[order]) / 2.0
+    a, b, ref = fit_line(device_s[order], mid - device_s[order])
+    return ClockFit(a, b, ref, "round-trip", float(np.max(rtt[order]) / 2.0))
+
+
+def fit_arrivals(device_s: np.ndarray, arrival_s: np.ndarray) -> ClockFit:
+    """Fallback without round trips: the line under the (device, arrival - device) points,
+    i.e. assuming the fastest frames arrived with no delay. Biased late by the minimum latency."""
+    device_s, arrival_s = np.asarray(device_s, dtype=float), np.asarray(arrival_s, dtype=float)
+    delay = arrival_s - device_s
+    a, b, ref = fit_line(device_s, delay)
+    residual = delay - (a + b * (device_s - ref))
+    a += float(np.min(residual))  # lower envelope: shift the line down to the fastest frame
+    return ClockFit(a, b, ref, "arrival", float(np.percentile(residual - np.min(residual), 50)))
+
+
+class ClockSync:
+    """Causal device->host mapping for one camera; feed round trips and frames as they arrive."""
+
+    def __init__(self, params: ClockSyncParams = ClockSyncParams()):
+        self.params = params
+        self._trips: deque[tuple[float, float, float]] = deque(maxlen=params.window)
+        self._arrivals: deque[tuple[float, float]] = deque(maxlen=params.window)
+        self._fit: ClockFit | None = None
+
+    @property
+    def method(self) -> str:
+        return self.fit().method
+
+    def add_round_trip(self, host_send_s: float, device_time_s: float, host_recv_s: float) -> None:
+        if host_recv_s >= host_send_s:
+            self._trips.append((host_send_s, device_time_s, host_recv_s))
+            self._fit = None
+
+    def add_arrival(self, device_time_s: float, arrival_s: float) -> None:
+        self._arrivals.append((device_time_s, arrival_s))
+        if len(self._trips) < self.params.min_samples:
+            self._fit = None
+
+    def fit(self) -> ClockFit:
+        if self._fit is None:
+            if len(self._trips) >= self.params.min_samples:
+                s, d, r = (np.array(v) for v in zip(*self._trips))
+                self._fit = fit_round_trips(s, d, r, self.params.fastest_fraction)
+            elif self._arrivals:
+                d, a = (np.array(v) for v in zip(*self._arrivals))
+                self._fit = fit_arrivals(d, a)
+            else:
+                self._fit = ClockFit(0.0, 0.0, 0.0, "none", float("inf"))
+        return self._fit
+
+    def to_host(self, device_time_s: float) -> float:
+        """Host time (Unix seconds) of a device timestamp with what is known now."""
+        return self.fit().to_host(device_time_s)

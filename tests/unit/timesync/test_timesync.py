@@ -1,0 +1,79 @@
+import numpy as np
+import pytest
+
+from cubetrack.timesync import ClockSync, ClockSyncParams, fit_arrivals, fit_round_trips
+
+BOOT = 1.7e9  # host Unix time at which the node's clock read 0
+DRIFT = 40e-6  # node clock runs 40 ppm slow
+
+
+def device_to_host(d):
+    return BOOT + d * (1 + DRIFT)
+
+
+def round_trips(rng, n=120, slow_every=7):
+    """Samples every ~1 s: asymmetric random one-way delays, some very slow round trips."""
+    d0 = 50.0 + np.arange(n) * 1.0
+    true_host = device_to_host(d0)
+    up = rng.uniform(0.002, 0.006, n)
+    down = rng.uniform(0.002, 0.006, n)
+    slow = np.arange(n) % slow_every == 0
+    up[slow] += rng.uniform(0.05, 0.4, slow.sum())  # spikes on the way up only: asymmetric
+    return true_host - up, d0, true_host + down
+
+
+def test_round_trip_fit_recovers_offset_and_drift_under_jitter_and_spikes():
+    rng = np.random.default_rng(3)
+    send, dev, recv = round_trips(rng)
+    fit = fit_round_trips(send, dev, recv)
+    assert fit.method == "round-trip"
+    for d in (50.0, 100.0, 169.0):
+        assert abs(fit.to_host(d) - device_to_host(d)) < 0.003  # within half the fastest round trips
+    assert fit.drift == pytest.approx(DRIFT, abs=2e-5)
+
+
+def test_naive_all_sample_mean_would_be_biased_by_slow_round_trips():
+    # guards the reason for fitting the fastest trips: the plain midpoint mean is off by > 10 ms
+    rng = np.random.default_rng(3)
+    send, dev, recv = round_trips(rng)
+    naive = np.mean((send + recv) / 2 - dev) - np.mean(device_to_host(dev) - dev)
+    robust = fit_round_trips(send, dev, recv)
+    assert abs(naive) > 0.01
+    assert abs(robust.to_host(100.0) - device_to_host(100.0)) < 0.003
+
+
+def test_drift_is_followed_over_an_hour():
+    rng = np.random.default_rng(4)
+    d0 = np.arange(0, 3600, 10.0)
+    host = device_to_host(d0)
+    fit = fit_round_trips(host - 0.003 - rng.uniform(0, 0.002, d0.size), d0, host + 0.003)
+    assert abs(fit.to_host(3600.0) - device_to_host(3600.0)) < 0.003  # 144 ms of drift followed
+
+
+def test_arrival_fallback_is_late_by_the_minimum_latency_only():
+    rng = np.random.default_rng(5)
+    dev = 10.0 + np.arange(300) / 7.5
+    latency = 0.04 + rng.exponential(0.02, dev.size)
+    fit = fit_arrivals(dev, device_to_host(dev) + latency)
+    assert fit.method == "arrival"
+    err = fit.to_host(30.0) - device_to_host(30.0)
+    assert 0.0 <= err < 0.05  # biased late by about the minimum latency (40 ms), not by the mean
+
+
+def test_clock_sync_switches_from_arrivals_to_round_trips():
+    sync = ClockSync(ClockSyncParams(min_samples=3))
+    assert sync.method == "none"
+    sync.add_arrival(10.0, device_to_host(10.0) + 0.05)
+    assert sync.method == "arrival"
+    assert sync.to_host(10.0) == pytest.approx(device_to_host(10.0) + 0.05)
+    for d in (11.0, 12.0, 13.0):
+        h = device_to_host(d)
+        sync.add_round_trip(h - 0.002, d, h + 0.002)
+    assert sync.method == "round-trip"
+    assert sync.to_host(14.0) == pytest.approx(device_to_host(14.0), abs=1e-4)
+
+
+def test_reversed_round_trip_is_ignored():
+    sync = ClockSync()
+    sync.add_round_trip(5.0, 1.0, 4.0)
+    assert sync.method == "none"
