@@ -1,4 +1,14 @@
-"""Fusion: per-camera cube estimates, which arrive unsynchronised and late, -> one pose per robot.
+"""Fusion: per-camera cube sightings, which arrive unsynchronised and late, -> poses per robot.
+
+Two families, chosen by ``[fusion] method``:
+
+- ``filter`` (the default, the best): a constant-velocity SE(3) filter (:mod:`cubetrack.filter`)
+  updated with the matched cube corners of each camera frame at its capture time. Sightings
+  are put back into capture-time order after ``reorder_delay_s``; a track starts from a joint
+  multi-camera fit (:mod:`cubetrack.joint`); faces are matched to detections by where the
+  predicted pose projects them, which resolves IPPE flips and same-id faces; a robot unseen for
+  ``lost_after_s`` is reported as not seen, never extrapolated further.
+- ``mean`` / ``weighted`` / ``gaussian``, the paper's, for comparison.
 
 The paper's three methods (§II.D) combine the cube poses implied by every face that each camera
 saw in its latest frame, over the cameras whose latest estimate is at most ``window_s`` older
@@ -20,9 +30,19 @@ from dataclasses import dataclass
 
 import numpy as np
 
+import heapq
+import itertools
+import logging
+from collections import Counter, deque
+
+from cubetrack.filter import FilterParams, PoseFilter
 from cubetrack.geometry import mean_rotation, quat_xyzw_from_R
+from cubetrack.joint import CornerSet, associate, solve_joint
+from cubetrack.layout import CubeLayout
 from cubetrack.params import param
-from cubetrack.records import CameraEstimate, TrackedPose
+from cubetrack.records import CameraEstimate, CubeSighting, TrackedPose
+
+log = logging.getLogger(__name__)
 
 
 @enum.unique
@@ -30,18 +50,30 @@ class FusionMethod(enum.Enum):
     MEAN = "mean"
     WEIGHTED = "weighted"
     GAUSSIAN = "gaussian"
+    FILTER = "filter"
 
 
 @dataclass(frozen=True, slots=True)
 class FusionParams:
     """The ``[fusion]`` section of the tracker config."""
 
-    method: FusionMethod = param(FusionMethod.MEAN, "mean | weighted | gaussian (paper eqs. 2, 4, 6)")
-    window_s: float = param(0.2, "seconds; a camera's latest estimate joins the fusion only if it is at most this much older than the newest")
+    method: FusionMethod = param(
+        FusionMethod.FILTER, "filter (default: corner-level constant-velocity filter) | mean | weighted | gaussian "
+        "(the paper's eqs. 2, 4, 6)")
+    window_s: float = param(0.2, "paper methods: a camera's latest estimate joins the fusion only if it is at most this many seconds older than the newest")
+    reorder_delay_s: float = param(0.3, "filter: sightings are processed in capture-time order this many seconds after they arrive; later ones are dropped")
+    lost_after_s: float = param(0.5, "filter: a robot with no accepted sighting for this many seconds is reported as not seen and its track restarts")
+    output_rate_hz: float = param(0.0, "filter: also emit poses on a fixed clock at this rate between accepted sightings (0: only at each sighting)")
+    association_gate_px: float = param(12.0, "filter: a detection joins a face only if its corners lie within this many pixels (or half a marker side) of the predicted face")
+    init_window_s: float = param(0.15, "filter: a track starts from all cameras' sightings within this many seconds")
+    max_rejections: int = param(3, "filter: this many rejected sightings in a row restart the track")
 
     def __post_init__(self) -> None:
-        if not self.window_s > 0:
-            raise ValueError(f"window_s must be positive, got {self.window_s}")
+        for name in ("window_s", "lost_after_s", "association_gate_px", "init_window_s"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
+        if self.reorder_delay_s < 0 or self.output_rate_hz < 0 or self.max_rejections < 1:
+            raise ValueError("reorder_delay_s and output_rate_hz must not be negative, max_rejections >= 1")
 
 
 def paper_weights(method: FusionMethod, areas_px2: np.ndarray) -> np.ndarray:
@@ -71,8 +103,17 @@ class LatestEstimateFusion:
         self.params = params
         self.latest: dict[tuple[str, str], CameraEstimate] = {}
 
-    def add(self, estimate: CameraEstimate, now_s: float) -> TrackedPose:
-        """Take one camera estimate (``now_s`` = host time it became available) and fuse."""
+    def add(self, sighting: CubeSighting, now_s: float) -> list[TrackedPose]:
+        """Take one camera's sighting (``now_s`` = host time it became available) and fuse."""
+        if sighting.estimate is None:
+            return []
+        return [self.fuse(sighting.estimate, now_s)]
+
+    def flush(self) -> list[TrackedPose]:
+        return []
+
+    def fuse(self, estimate: CameraEstimate, now_s: float) -> TrackedPose:
+        """Fuse ``estimate`` with every other camera's latest estimate of the same robot."""
         self.latest[(estimate.robot, estimate.camera)] = estimate
         newest = estimate.capture_time_s
         current = [
@@ -93,3 +134,111 @@ class LatestEstimateFusion:
             markers=tuple(f"{e.camera}:{f.face}" for e, f in faces),
             latency_s=now_s - newest,
         )
+
+
+def pose_record(robot: str, T_world_cube: np.ndarray, time_s: float, now_s: float, cameras: tuple[str, ...],
+                markers: tuple[str, ...]) -> TrackedPose:
+    return TrackedPose(robot=robot, time_s=time_s, position_m=T_world_cube[:3, 3].copy(),
+                       quaternion_xyzw=quat_xyzw_from_R(T_world_cube[:3, :3]), cameras=cameras,
+                       markers=markers, latency_s=max(0.0, now_s - time_s))
+
+
+class FilterFusion:
+    """Corner-level filtering of every robot (see the module doc). Visible state: ``filters``
+    (robot -> PoseFilter), ``pending`` (the reorder buffer), ``stats`` (counters)."""
+
+    def __init__(self, layouts: dict[str, CubeLayout], params: FusionParams = FusionParams(),
+                 filter_params: FilterParams = FilterParams()):
+        self.layouts = layouts
+        self.params = params
+        self.filter_params = filter_params
+        self.filters: dict[str, PoseFilter] = {}
+        self.pending: list[tuple[float, int, CubeSighting]] = []
+        self.recent: dict[str, deque[CubeSighting]] = {r: deque(maxlen=64) for r in layouts}
+        self.last_accepted: dict[str, float] = {}
+        self.rejections: Counter[str] = Counter()
+        self.stats: Counter[str] = Counter()
+        self._order = itertools.count()
+
+    def add(self, sighting: CubeSighting, now_s: float) -> list[TrackedPose]:
+        """Queue a sighting; returns the poses of every sighting whose reorder delay has passed."""
+        heapq.heappush(self.pending, (sighting.capture_time_s, next(self._order), sighting))
+        return self._drain(now_s, now_s - self.params.reorder_delay_s)
+
+    def flush(self, now_s: float | None = None) -> list[TrackedPose]:
+        """Process everything still queued (end of a replay)."""
+        last = max((s.arrival_time_s for _, _, s in self.pending), default=0.0)
+        return self._drain(now_s if now_s is not None else last, float("inf"))
+
+    def _drain(self, now_s: float, until_s: float) -> list[TrackedPose]:
+        out = []
+        while self.pending and self.pending[0][0] <= until_s:
+            _, _, sighting = heapq.heappop(self.pending)
+            out.extend(self._process(sighting, now_s))
+        return out
+
+    def _corners(self, sighting: CubeSighting, T_world_cube: np.ndarray) -> CornerSet | None:
+        return associate(sighting.detections, self.layouts[sighting.robot], T_world_cube, sighting.T_world_cam,
+                         sighting.intrinsics, sighting.camera, sighting.capture_time_s,
+                         self.params.association_gate_px)
+
+    def _process(self, sighting: CubeSighting, now_s: float) -> list[TrackedPose]:
+        robot, t = sighting.robot, sighting.capture_time_s
+        self.recent[robot].append(sighting)
+        f = self.filters.get(robot)
+        if f is not None and t < f.time_s:
+            self.stats["late sighting"] += 1
+            return []
+        if f is not None and t - self.last_accepted[robot] > self.params.lost_after_s:
+            log.info("%s: not seen for %.2f s; track restarts", robot, t - self.last_accepted[robot])
+            del self.filters[robot]
+            f = None
+        if f is None:
+            return self._start(sighting, now_s)
+        ticks_from = f.time_s
+        f.predict(t)
+        corners = self._corners(sighting, f.T_world_cube)
+        result = f.update([corners]) if corners is not None else None
+        if result is None or not result.accepted:
+            self.stats["rejected sighting"] += 1
+            self.rejections[robot] += 1
+            if self.rejections[robot] >= self.params.max_rejections:
+                log.info("%s: %d sightings rejected in a row; track restarts", robot, self.rejections[robot])
+                del self.filters[robot]
+            return []
+        self.rejections[robot] = 0
+        self.last_accepted[robot] = t
+        self.stats["accepted sighting"] += 1
+        markers = tuple(f"{sighting.camera}:{face}" for face in corners.faces)
+        return [*self._ticks(robot, f, ticks_from, t, now_s),
+                pose_record(robot, f.T_world_cube, t, now_s, (sighting.camera,), markers)]
+
+    def _ticks(self, robot: str, f: PoseFilter, after_s: float, until_s: float, now_s: float) -> list[TrackedPose]:
+        """Fixed-rate poses strictly between two accepted sightings (never past them)."""
+        rate = self.params.output_rate_hz
+        if rate <= 0:
+            return []
+        first = np.floor(after_s * rate) + 1
+        ticks = np.arange(first, np.ceil(until_s * rate)) / rate
+        return [pose_record(robot, f.predicted(tick), float(tick), now_s, (), ()) for tick in ticks if tick < until_s]
+
+    def _start(self, sighting: CubeSighting, now_s: float) -> list[TrackedPose]:
+        """Start a track from a joint fit over the cameras' sightings near this one."""
+        if sighting.estimate is None:
+            return []
+        robot, t = sighting.robot, sighting.capture_time_s
+        T0 = sighting.estimate.T_world_cube
+        near = [s for s in self.recent[robot]
+                if abs(s.capture_time_s - t) <= self.params.init_window_s and s.camera != sighting.camera]
+        sets = [c for c in (self._corners(s, T0) for s in (sighting, *near)) if c is not None]
+        solution = solve_joint(sets, T0, t, corner_noise_px=self.filter_params.corner_noise_px)
+        if solution is None or solution.rms_px > self.filter_params.gate_rms_px:
+            self.stats["failed track start"] += 1
+            return []
+        self.filters[robot] = PoseFilter(self.filter_params, t, solution.T_world_cube, solution.covariance)
+        self.last_accepted[robot] = t
+        self.rejections[robot] = 0
+        self.stats["track start"] += 1
+        cameras = tuple(sorted({s.camera for s in sets}))
+        markers = tuple(f"{s.camera}:{face}" for s in sets for face in s.faces)
+        return [pose_record(robot, solution.T_world_cube, t, now_s, cameras, markers)]

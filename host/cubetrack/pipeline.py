@@ -19,7 +19,8 @@ import numpy as np
 from cubetrack.detect import Detector, DetectorParams
 from cubetrack.errors import ConfigError, ImageError
 from cubetrack.estimate import EstimatorParams, estimate_cube, world_marker_pose
-from cubetrack.fuse import FusionParams, LatestEstimateFusion
+from cubetrack.filter import FilterParams
+from cubetrack.fuse import FilterFusion, FusionMethod, FusionParams, LatestEstimateFusion
 from cubetrack.geometry import invert_T
 from cubetrack.io.camera_info import CameraIntrinsics, read_camera_info
 from cubetrack.io.config import (CameraExtrinsics, RobotConfig, TrackerConfig, WorldConfig,
@@ -28,7 +29,7 @@ from cubetrack.io.recording import ClockSample, Recording
 from cubetrack.io.trajectory import PoseWriter
 from cubetrack.params import param, params_from_table
 from cubetrack.progress import Progress
-from cubetrack.records import Frame, TrackedPose
+from cubetrack.records import CubeSighting, Frame, TrackedPose
 from cubetrack.timesync import ClockSync
 
 log = logging.getLogger(__name__)
@@ -71,6 +72,7 @@ class StageParams:
     detector: DetectorParams = field(default_factory=DetectorParams)
     estimator: EstimatorParams = field(default_factory=EstimatorParams)
     fusion: FusionParams = field(default_factory=FusionParams)
+    filter: FilterParams = field(default_factory=FilterParams)
     track: TrackParams = field(default_factory=TrackParams)
 
     @classmethod
@@ -80,6 +82,7 @@ class StageParams:
             detector=params_from_table(DetectorParams, config.section("detector"), f"{where}: [detector]"),
             estimator=params_from_table(EstimatorParams, config.section("estimator"), f"{where}: [estimator]"),
             fusion=params_from_table(FusionParams, config.section("fusion"), f"{where}: [fusion]"),
+            filter=params_from_table(FilterParams, config.section("filter"), f"{where}: [filter]"),
             track=params_from_table(TrackParams, config.section("track"), f"{where}: [track]"),
         )
 
@@ -115,7 +118,10 @@ class Tracker:
             self.T_world_cam = {}
         dictionaries = [world.dictionary, *(r.layout.dictionary for r in robots)]
         self.detector = Detector(params.detector, dictionaries)
-        self.fusion = LatestEstimateFusion(params.fusion)
+        if params.fusion.method is FusionMethod.FILTER:
+            self.fusion = FilterFusion({r.name: r.layout for r in robots}, params.fusion, params.filter)
+        else:
+            self.fusion = LatestEstimateFusion(params.fusion)
         self.clocks = {name: ClockSync() for name in intrinsics}
         self.stats = TrackStats()
 
@@ -136,7 +142,9 @@ class Tracker:
         """T_world_cam for this frame: calibrated, or from the frame's own world marker."""
         if self.params.track.camera_poses is CameraPoseSource.EXTRINSICS:
             return self.T_world_cam[frame.camera]
-        pose = world_marker_pose(detections, self.world, self.intrinsics[frame.camera], self.params.estimator)
+        w = self.world
+        pose = world_marker_pose(detections, dictionary=w.dictionary, marker_id=w.marker_id, size_m=w.marker_size_m,
+                                 intrinsics=self.intrinsics[frame.camera], params=self.params.estimator)
         return None if pose is None else invert_T(pose.T_cam_marker)
 
     def process(self, frame: Frame, now_s: float | None = None) -> list[TrackedPose]:
@@ -165,18 +173,30 @@ class Tracker:
         now = frame.host_time_s if now_s is None else now_s
         poses = []
         for robot in self.robots:
+            layout = robot.layout
+            mine = tuple(d for d in detections if d.marker_id in layout.ids and d.dictionary in ("", layout.dictionary))
+            if not mine:
+                continue
             estimate = estimate_cube(
-                detections, robot.layout, intrinsics, T_world_cam,
+                mine, layout, intrinsics, T_world_cam,
                 camera=frame.camera, robot=robot.name, seq=frame.seq,
                 capture_time_s=capture_time_s, arrival_time_s=frame.host_time_s,
                 params=self.params.estimator,
             )
-            if estimate is None:
-                continue
-            self.stats.estimates[(robot.name, frame.camera)] += 1
-            pose = self.fusion.add(estimate, now)
-            self.stats.poses[robot.name] += 1
-            poses.append(pose)
+            if estimate is not None:
+                self.stats.estimates[(robot.name, frame.camera)] += 1
+            sighting = CubeSighting(frame.camera, robot.name, frame.seq, capture_time_s, frame.host_time_s,
+                                    mine, estimate, T_world_cam, intrinsics)
+            poses.extend(self.fusion.add(sighting, now))
+        for pose in poses:
+            self.stats.poses[pose.robot] += 1
+        return poses
+
+    def finish(self) -> list[TrackedPose]:
+        """Poses still held back for reordering (call at the end of a replay)."""
+        poses = self.fusion.flush()
+        for pose in poses:
+            self.stats.poses[pose.robot] += 1
         return poses
 
 
@@ -220,6 +240,8 @@ def track_recording(config: TrackerConfig, recording: Recording,
                 writers[pose.robot].write(pose)
             if progress is not None:
                 progress("track", i, total)
+        for pose in tracker.finish():
+            writers[pose.robot].write(pose)
     finally:
         for w in writers.values():
             w.close()

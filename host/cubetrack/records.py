@@ -112,3 +112,24 @@ class TrackedPose:
     markers: tuple[str, ...]
     latency_s: float
     extra: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class CubeSighting:
+    """Everything one camera frame says about one robot's cube, as handed to fusion.
+
+    ``detections`` are the frame's detections of the cube's ids and dictionary; ``estimate`` the
+    single-camera cube pose from them (None when none could be made); ``T_world_cam`` the
+    camera's pose used for this frame; ``intrinsics`` the camera's
+    :class:`cubetrack.io.camera_info.CameraIntrinsics`. Times are host-clock Unix seconds.
+    """
+
+    camera: str
+    robot: str
+    seq: int
+    capture_time_s: float
+    arrival_time_s: float
+    detections: tuple[Detection, ...]
+    estimate: CameraEstimate | None
+    T_world_cam: np.ndarray
+    intrinsics: object

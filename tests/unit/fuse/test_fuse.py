@@ -40,13 +40,13 @@ def estimate(camera, t, x, area=100.0):
 
 def test_latest_estimate_per_camera_inside_window():
     fusion = LatestEstimateFusion(FusionParams(window_s=0.2))
-    fusion.add(estimate("cam1", 10.0, 0.0), 10.05)
-    pose = fusion.add(estimate("cam2", 10.1, 1.0), 10.15)
+    fusion.fuse(estimate("cam1", 10.0, 0.0), 10.05)
+    pose = fusion.fuse(estimate("cam2", 10.1, 1.0), 10.15)
     assert pose.position_m[0] == pytest.approx(0.5) and pose.cameras == ("cam1", "cam2")
     assert pose.time_s == 10.1 and pose.latency_s == pytest.approx(0.05)
     # cam1's estimate is now 0.3 s older than the newest: left out
-    pose = fusion.add(estimate("cam2", 10.3, 2.0), 10.35)
+    pose = fusion.fuse(estimate("cam2", 10.3, 2.0), 10.35)
     assert pose.position_m[0] == pytest.approx(2.0) and pose.cameras == ("cam2",)
     # cam1 replaced by its newer estimate
-    pose = fusion.add(estimate("cam1", 10.35, 4.0), 10.4)
+    pose = fusion.fuse(estimate("cam1", 10.35, 4.0), 10.4)
     assert pose.position_m[0] == pytest.approx(3.0)

@@ -1,0 +1,143 @@
+"""A constant-velocity SE(3) filter whose measurements are cube corners in camera images.
+
+State (world frame): position ``p`` (m), velocity ``v`` (m/s), orientation ``R`` of the cube
+frame, angular velocity ``ω`` (rad/s). The covariance ``P`` (12x12) is over the error state
+``[δp, δv, δθ, δω]`` with ``R = exp(δθ) R̂`` (world-frame rotation error).
+
+Prediction: white-noise acceleration and angular acceleration (``accel_noise``, ``angular_accel_noise``,
+spectral densities). Update: an iterated EKF (Gauss-Newton on the prior plus the reprojection
+error of every matched corner of one camera frame), with Huber weights per coordinate, so one
+camera's weak monocular depth is constrained by the prediction instead of being trusted. A
+frame whose residual after the update is above ``gate_rms_px`` is rejected (outlier gating),
+and the state is left unchanged.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import numpy as np
+from scipy.spatial.transform import Rotation
+
+from cubetrack.geometry import make_T
+from cubetrack.joint import CornerSet, perturbed, reprojection_residuals_px
+from cubetrack.params import param
+
+_P, _V, _TH, _W = slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12)
+_POSE = np.r_[0:3, 6:9]  # error-state indices of [δp, δθ]
+
+
+@dataclass(frozen=True, slots=True)
+class FilterParams:
+    """The motion model and measurement model of :class:`PoseFilter`."""
+
+    accel_noise: float = param(0.5, "white-noise acceleration spectral density, m/s^2/sqrt(Hz)")
+    angular_accel_noise: float = param(2.0, "white-noise angular acceleration spectral density, rad/s^2/sqrt(Hz)")
+    corner_noise_px: float = param(0.5, "corner measurement noise (1 sigma), pixels")
+    huber_px: float = param(1.5, "corner residuals beyond this are down-weighted (Huber), pixels")
+    gate_rms_px: float = param(3.0, "a camera frame whose RMS residual after the update exceeds this is rejected, pixels")
+    iterations: int = param(4, "Gauss-Newton iterations of each update")
+    init_velocity_sigma: float = param(0.5, "velocity uncertainty (1 sigma) at track start, m/s")
+    init_angular_velocity_sigma: float = param(1.0, "angular velocity uncertainty (1 sigma) at track start, rad/s")
+
+    def __post_init__(self) -> None:
+        for name in ("accel_noise", "angular_accel_noise", "corner_noise_px", "huber_px", "gate_rms_px",
+                     "init_velocity_sigma", "init_angular_velocity_sigma"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"{name} must be positive")
+        if self.iterations < 1:
+            raise ValueError("iterations must be at least 1")
+
+
+@dataclass(frozen=True, slots=True)
+class UpdateResult:
+    """Outcome of one measurement update: accepted or gated out, with the RMS residual (px)."""
+
+    accepted: bool
+    rms_px: float
+    points: int
+
+
+class PoseFilter:
+    """One robot's filter. Create with :meth:`start`; then ``predict``/``update`` in time order."""
+
+    def __init__(self, params: FilterParams, time_s: float, T_world_cube: np.ndarray, pose_covariance: np.ndarray):
+        self.params = params
+        self.time_s = time_s
+        self.p = T_world_cube[:3, 3].copy()
+        self.R = T_world_cube[:3, :3].copy()
+        self.v = np.zeros(3)
+        self.w = np.zeros(3)
+        P = np.zeros((12, 12))
+        P[np.ix_(_POSE, _POSE)] = pose_covariance
+        P[_V, _V] = np.eye(3) * params.init_velocity_sigma**2
+        P[_W, _W] = np.eye(3) * params.init_angular_velocity_sigma**2
+        self.P = P
+
+    @property
+    def T_world_cube(self) -> np.ndarray:
+        return make_T(self.R, self.p)
+
+    def predicted(self, time_s: float) -> np.ndarray:
+        """The pose extrapolated to ``time_s`` (no state change)."""
+        dt = time_s - self.time_s
+        R = Rotation.from_rotvec(self.w * dt).as_matrix() @ self.R
+        return make_T(R, self.p + self.v * dt)
+
+    def predict(self, time_s: float) -> None:
+        """Move the state to ``time_s`` (constant velocity) and grow the covariance."""
+        dt = time_s - self.time_s
+        if dt == 0.0:
+            return
+        T = self.predicted(time_s)
+        self.p, self.R = T[:3, 3], T[:3, :3]
+        F = np.eye(12)
+        F[_P, _V] = np.eye(3) * dt
+        F[_TH, _W] = np.eye(3) * dt
+        adt = abs(dt)
+        Q = np.zeros((12, 12))
+        for (a, b), q in (((_P, _V), self.params.accel_noise**2), ((_TH, _W), self.params.angular_accel_noise**2)):
+            Q[a, a] = np.eye(3) * q * adt**3 / 3.0
+            Q[a, b] = Q[b, a] = np.eye(3) * q * adt**2 / 2.0
+            Q[b, b] = np.eye(3) * q * adt
+        self.P = F @ self.P @ F.T + Q
+        self.time_s = time_s
+
+    def update(self, sets: Sequence[CornerSet]) -> UpdateResult:
+        """Iterated EKF update with the corners of ``sets`` (taken at the filter's time)."""
+        prm = self.params
+        T0 = self.T_world_cube
+        zero3 = np.zeros(3)
+
+        def residual(delta6: np.ndarray) -> np.ndarray:  # pixels, h(x) - z
+            return reprojection_residuals_px(perturbed(T0, delta6), sets, self.time_s, zero3, zero3)
+
+        info_prior = np.linalg.inv(self.P)
+        delta = np.zeros(12)
+        eps = 1e-6
+        for _ in range(prm.iterations):
+            r = residual(delta[_POSE])
+            H6 = np.empty((r.size, 6))
+            for k in range(6):
+                step = delta[_POSE].copy()
+                step[k] += eps
+                H6[:, k] = (residual(step) - r) / eps
+            H = np.zeros((r.size, 12))
+            H[:, _POSE] = H6
+            a = np.abs(r)
+            weights = np.where(a <= prm.huber_px, 1.0, prm.huber_px / np.maximum(a, 1e-12)) / prm.corner_noise_px**2
+            info = info_prior + H.T @ (weights[:, None] * H)
+            rhs = H.T @ (weights * (H @ delta - r))
+            delta = np.linalg.solve(info, rhs)
+        r = residual(delta[_POSE])
+        rms = float(np.sqrt(np.mean(r**2))) if r.size else float("inf")
+        if not np.isfinite(rms) or rms > prm.gate_rms_px:
+            return UpdateResult(False, rms, r.size // 2)
+        self.P = np.linalg.inv(info)
+        self.P = (self.P + self.P.T) / 2.0
+        T = perturbed(T0, delta[_POSE])
+        self.p, self.R = T[:3, 3], T[:3, :3]
+        self.v = self.v + delta[_V]
+        self.w = self.w + delta[_W]
+        return UpdateResult(True, rms, r.size // 2)

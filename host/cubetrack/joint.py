@@ -1,0 +1,179 @@
+"""Joint cube-pose estimation over the corners of every face seen by every camera.
+
+The paper fuses per-marker poses; each of those is a monocular estimate of a small marker, weak
+in depth and prone to planar flips. Here the unknown is the cube pose itself and the residual is
+the reprojection error of every detected cube corner in every camera (known ``T_world_cam``,
+``K`` and distortion), with a robust loss. Frames from different cameras taken at different
+times are motion-compensated with a velocity (from the filter): the cube at time ``t_i`` is
+``p_i = p + v (t_i - t)``, ``R_i = exp(ω (t_i - t)) R``.
+
+Pose increments are world-frame: ``R = exp(δθ) R0``, ``p = p0 + δp``; covariances are ordered
+``[δp, δθ]`` (metres, radians). Pixel residuals are computed on undistorted, normalised points
+scaled by the camera's focal length, so they are in pixels.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import cv2
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.spatial.transform import Rotation
+
+from cubetrack.geometry import invert_T, make_T
+from cubetrack.layout import CubeLayout, LayoutMarker
+from cubetrack.records import Detection
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class CornerSet:
+    """One camera frame's cube corners matched to the cube model.
+
+    ``points_cube_m`` (N, 3) in the cube frame; ``normalized`` (N, 2) the detected corners
+    undistorted to normalised image coordinates; ``focal_px`` scales them back to pixels;
+    ``T_cam_world`` the camera's extrinsics; ``time_s`` its capture time (host clock).
+    """
+
+    camera: str
+    time_s: float
+    T_cam_world: np.ndarray
+    focal_px: float
+    points_cube_m: np.ndarray
+    normalized: np.ndarray
+    faces: tuple[str, ...]
+
+
+def normalize_px(corners_px: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:
+    """Undistort (N, 2) pixel points to normalised image coordinates (x/z, y/z)."""
+    pts = np.asarray(corners_px, dtype=np.float64).reshape(-1, 1, 2)
+    return cv2.undistortPoints(pts, K, dist).reshape(-1, 2)
+
+
+def project_normalized(T_cam_world: np.ndarray, points_world_m: np.ndarray) -> np.ndarray:
+    """Pinhole projection of (N, 3) world points to normalised coordinates; NaN behind the camera."""
+    pc = points_world_m @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
+    z = pc[:, 2:3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        out = pc[:, :2] / z
+    out[z[:, 0] <= 1e-6] = np.nan
+    return out
+
+
+def associate(detections: Sequence[Detection], layout: CubeLayout, T_world_cube: np.ndarray,
+              T_world_cam: np.ndarray, intrinsics, camera: str, time_s: float,
+              gate_px: float) -> CornerSet | None:
+    """Match detections to cube faces by where a predicted cube pose projects each face.
+
+    For each detection, every layout marker with its id is projected with ``T_world_cube``; the
+    one with the smallest mean corner distance wins if that distance is under ``gate_px``
+    (or under half the detected marker's side, whichever is larger). Faces facing away from the
+    camera are not candidates. Returns None when nothing matches.
+    """
+    K, dist = intrinsics.K, intrinsics.dist
+    T_cam_world = invert_T(T_world_cam)
+    T_cam_cube = T_cam_world @ T_world_cube
+    focal = float((K[0, 0] + K[1, 1]) / 2.0)
+    points, observed, faces, used = [], [], [], set()
+    for det in detections:
+        candidates: list[tuple[float, LayoutMarker]] = []
+        for marker in layout.markers_with_id(det.marker_id):
+            if marker.face in used:
+                continue
+            T_cam_marker = T_cam_cube @ marker.T_cube_marker
+            if float(T_cam_marker[:3, 2] @ T_cam_marker[:3, 3]) >= 0.0:  # facing away
+                continue
+            rvec, _ = cv2.Rodrigues(T_cam_cube[:3, :3])
+            proj, _ = cv2.projectPoints(marker.corners_cube_m(), rvec, T_cam_cube[:3, 3], K, dist)
+            d = float(np.mean(np.linalg.norm(proj.reshape(4, 2) - det.corners_px, axis=1)))
+            candidates.append((d, marker))
+        if not candidates:
+            continue
+        d, marker = min(candidates, key=lambda c: c[0])
+        side_px = float(np.sqrt(det.area_px2))
+        if d > max(gate_px, 0.5 * side_px):
+            continue
+        used.add(marker.face)
+        points.append(marker.corners_cube_m())
+        observed.append(det.corners_px)
+        faces.append(marker.face)
+    if not points:
+        return None
+    return CornerSet(camera, time_s, T_cam_world, focal, np.vstack(points),
+                     normalize_px(np.vstack(observed), K, dist), tuple(faces))
+
+
+def moved_pose(T_world_cube: np.ndarray, velocity_m_s: np.ndarray, angular_velocity_rad_s: np.ndarray,
+               dt_s: float) -> np.ndarray:
+    """The pose after ``dt_s`` seconds of constant world-frame linear and angular velocity."""
+    R = Rotation.from_rotvec(angular_velocity_rad_s * dt_s).as_matrix() @ T_world_cube[:3, :3]
+    return make_T(R, T_world_cube[:3, 3] + velocity_m_s * dt_s)
+
+
+def perturbed(T0: np.ndarray, delta: np.ndarray) -> np.ndarray:
+    """``T0`` moved by a world-frame increment ``delta = [δp (m), δθ (rad)]``."""
+    R = Rotation.from_rotvec(delta[3:6]).as_matrix() @ T0[:3, :3]
+    return make_T(R, T0[:3, 3] + delta[:3])
+
+
+def reprojection_residuals_px(T_world_cube: np.ndarray, sets: Sequence[CornerSet], t_ref_s: float,
+                              velocity_m_s: np.ndarray, angular_velocity_rad_s: np.ndarray) -> np.ndarray:
+    """Stacked (x, y) reprojection residuals in pixels of every corner set, motion-compensated
+    from ``t_ref_s`` to each set's time. Corners behind a camera give a large residual."""
+    out = []
+    for s in sets:
+        T = moved_pose(T_world_cube, velocity_m_s, angular_velocity_rad_s, s.time_s - t_ref_s)
+        pw = s.points_cube_m @ T[:3, :3].T + T[:3, 3]
+        r = (project_normalized(s.T_cam_world, pw) - s.normalized) * s.focal_px
+        out.append(np.nan_to_num(r, nan=1e3).ravel())
+    return np.concatenate(out) if out else np.zeros(0)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class JointSolution:
+    """A solved cube pose: ``T_world_cube``, its 6x6 covariance ``[δp, δθ]``, RMS residual (px)
+    and the fraction of corner coordinates within ``3 f_scale`` of their reprojection."""
+
+    T_world_cube: np.ndarray
+    covariance: np.ndarray
+    rms_px: float
+    inlier_fraction: float
+    points: int
+
+
+def solve_joint(sets: Sequence[CornerSet], T_init: np.ndarray, t_ref_s: float,
+                velocity_m_s: np.ndarray | None = None, angular_velocity_rad_s: np.ndarray | None = None,
+                corner_noise_px: float = 0.5, f_scale_px: float = 1.5) -> JointSolution | None:
+    """Least-squares cube pose at ``t_ref_s`` over all corner sets (robust soft-L1 loss),
+    starting from ``T_init``. Returns None if the fit fails or has under four corners."""
+    v = np.zeros(3) if velocity_m_s is None else np.asarray(velocity_m_s, dtype=float)
+    w = np.zeros(3) if angular_velocity_rad_s is None else np.asarray(angular_velocity_rad_s, dtype=float)
+    n_points = sum(len(s.points_cube_m) for s in sets)
+    if n_points < 4:
+        return None
+
+    def residuals(delta: np.ndarray) -> np.ndarray:
+        return reprojection_residuals_px(perturbed(T_init, delta), sets, t_ref_s, v, w) / corner_noise_px
+
+    f_scale = f_scale_px / corner_noise_px
+    try:
+        result = least_squares(residuals, np.zeros(6), method="trf", loss="soft_l1", f_scale=f_scale,
+                               x_scale=np.array([0.01, 0.01, 0.01, 0.01, 0.01, 0.01]), max_nfev=60)
+    except (ValueError, np.linalg.LinAlgError):
+        return None
+    if not np.all(np.isfinite(result.x)):
+        return None
+    J = result.jac  # of residuals in units of corner_noise_px: J^T J is the information
+    try:
+        covariance = np.linalg.inv(J.T @ J)
+    except np.linalg.LinAlgError:
+        return None
+    r_px = result.fun * corner_noise_px
+    return JointSolution(
+        T_world_cube=perturbed(T_init, result.x),
+        covariance=covariance,
+        rms_px=float(np.sqrt(np.mean(r_px**2))),
+        inlier_fraction=float(np.mean(np.abs(r_px) <= 3.0 * f_scale_px)),
+        points=n_points,
+    )

@@ -1,0 +1,83 @@
+"""The offline workflow end to end through the installed command's entry point:
+simulate -> calibrate -> track -> evaluate, on a short 3-camera scene at 1.0 m (the paper's)."""
+
+import json
+
+import numpy as np
+import pytest
+
+from cubetrack.cli.main import main
+from cubetrack.io.config import read_extrinsics
+from cubetrack.io.trajectory import read_tum
+
+pytestmark = pytest.mark.slow
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    work = tmp_path_factory.mktemp("flow")
+    rec = work / "rec"
+    assert main(["simulate", "--out", str(rec), "--cameras", "3", "--height", "1.0", "--tilt", "30",
+                 "--duration", "20", "--seed", "7", "--calibration-frames", "120"]) == 0
+    assert main(["calibrate", "--config", str(rec / "config.toml"), "--recording", str(rec / "calibration"),
+                 "--out", str(work / "extrinsics.toml")]) == 0
+    return work, rec
+
+
+def test_calibration_is_close_to_the_true_camera_poses(scene):
+    work, rec = scene
+    est, truth = read_extrinsics(work / "extrinsics.toml"), read_extrinsics(rec / "true_extrinsics.toml")
+    assert set(est) == set(truth) == {"cam1", "cam2", "cam3"}
+    for name in truth:
+        T, T0 = est[name].T_world_cam, truth[name].T_world_cam
+        assert np.linalg.norm(T[:3, 3] - T0[:3, 3]) < 0.015, name
+        cos = (np.trace(T[:3, :3].T @ T0[:3, :3]) - 1) / 2
+        assert np.degrees(np.arccos(np.clip(cos, -1, 1))) < 0.3, name
+
+
+@pytest.mark.parametrize("method", ["mean", "weighted", "gaussian"])
+def test_paper_fusions_track_within_the_paper_floor(scene, method, capsys):
+    work, rec = scene
+    out = work / f"track-{method}"
+    assert main(["track", "--config", str(rec / "config.toml"), "--extrinsics", str(work / "extrinsics.toml"),
+                 "--recording", str(rec), "--fusion", method, "--out", str(out)]) == 0
+    assert (out / "robot.jsonl").exists() and len(read_tum(out / "robot.tum")) > 100
+    capsys.readouterr()
+    assert main(["evaluate", "--estimate", str(out / "robot.tum"), "--ground-truth", str(rec / "ground_truth.tum"),
+                 "--json"]) == 0
+    score = json.loads(capsys.readouterr().out)["robot"]
+    assert score["detection_ratio"] >= 0.95
+    if method == "mean":
+        assert score["position_rmse_m"] <= 0.03
+
+
+def test_uncalibrated_mode_uses_each_frames_world_marker(scene):
+    work, rec = scene
+    out = work / "track-raw"
+    assert main(["track", "--config", str(rec / "config.toml"), "--uncalibrated", "--recording", str(rec),
+                 "--out", str(out)]) == 0
+    assert len(read_tum(out / "robot.tum")) > 50
+
+
+def test_evaluate_writes_figures(scene, tmp_path):
+    work, rec = scene
+    out = tmp_path / "track"
+    assert main(["track", "--config", str(rec / "config.toml"), "--extrinsics", str(work / "extrinsics.toml"),
+                 "--recording", str(rec), "--out", str(out)]) == 0
+    assert main(["evaluate", "--estimate", str(out / "robot.tum"), "--ground-truth", str(rec / "ground_truth.tum"),
+                 "--plot", str(tmp_path)]) == 0
+    assert (tmp_path / "trajectory_xy.png").stat().st_size > 10_000
+    assert (tmp_path / "rmse.png").stat().st_size > 5_000
+
+
+@pytest.mark.parametrize("argv,needle", [
+    (["track", "--config", "nope.toml", "--recording", ".", "--uncalibrated", "--out", "x"], "nope.toml"),
+    (["evaluate", "--estimate", "missing.tum", "--ground-truth", "missing.tum"], "missing.tum"),
+    (["track", "--config", "{rec}/config.toml", "--recording", "{rec}", "--out", "{tmp}/o"], "--extrinsics"),
+])
+def test_bad_input_gives_one_line_and_exit_1(scene, tmp_path, capsys, argv, needle):
+    _, rec = scene
+    argv = [a.format(rec=rec, tmp=tmp_path) for a in argv]
+    assert main(argv) == 1
+    err = capsys.readouterr().err.strip()
+    assert needle in err and len(err.splitlines()) == 1
