@@ -14,13 +14,13 @@ and the state is left unchanged.
 
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Sequence
 
 import numpy as np
-from scipy.spatial.transform import Rotation
 
-from cubetrack.geometry import make_T
+from cubetrack.geometry import R_from_rotvec, make_T
 from cubetrack.joint import CornerSet, perturbed, reprojection_residuals_px
 from cubetrack.params import param
 
@@ -36,13 +36,14 @@ class FilterParams:
     angular_accel_noise: float = param(2.0, "white-noise angular acceleration spectral density, rad/s^2/sqrt(Hz)")
     corner_noise_px: float = param(0.5, "corner measurement noise (1 sigma), pixels")
     huber_px: float = param(1.5, "corner residuals beyond this are down-weighted (Huber), pixels")
-    gate_rms_px: float = param(3.0, "a camera frame whose RMS residual after the update exceeds this is rejected, pixels")
+    gate_rms_px: float = param(2.0, "a camera frame whose RMS residual after the update exceeds this is rejected, pixels")
+    face_gate_px: float = param(1.2, "a face whose corners stay farther off than this (RMS) after the update is left out, pixels")
     iterations: int = param(4, "Gauss-Newton iterations of each update")
     init_velocity_sigma: float = param(0.5, "velocity uncertainty (1 sigma) at track start, m/s")
     init_angular_velocity_sigma: float = param(1.0, "angular velocity uncertainty (1 sigma) at track start, rad/s")
 
     def __post_init__(self) -> None:
-        for name in ("accel_noise", "angular_accel_noise", "corner_noise_px", "huber_px", "gate_rms_px",
+        for name in ("accel_noise", "angular_accel_noise", "corner_noise_px", "huber_px", "gate_rms_px", "face_gate_px",
                      "init_velocity_sigma", "init_angular_velocity_sigma"):
             if not getattr(self, name) > 0:
                 raise ValueError(f"{name} must be positive")
@@ -62,18 +63,25 @@ class UpdateResult:
 class PoseFilter:
     """One robot's filter. Create with :meth:`start`; then ``predict``/``update`` in time order."""
 
-    def __init__(self, params: FilterParams, time_s: float, T_world_cube: np.ndarray, pose_covariance: np.ndarray):
+    def __init__(self, params: FilterParams, time_s: float, T_world_cube: np.ndarray, covariance: np.ndarray,
+                 velocity_m_s: np.ndarray | None = None, angular_velocity_rad_s: np.ndarray | None = None):
+        """Start at ``time_s`` from a pose with its covariance: 6x6 over ``[δp, δθ]`` (velocities
+        then start at zero with the params' spreads) or 12x12 over ``[δp, δθ, v, ω]``."""
         self.params = params
         self.time_s = time_s
         self.p = T_world_cube[:3, 3].copy()
         self.R = T_world_cube[:3, :3].copy()
-        self.v = np.zeros(3)
-        self.w = np.zeros(3)
+        self.v = np.zeros(3) if velocity_m_s is None else np.asarray(velocity_m_s, dtype=float).copy()
+        self.w = np.zeros(3) if angular_velocity_rad_s is None else np.asarray(angular_velocity_rad_s, dtype=float).copy()
         P = np.zeros((12, 12))
-        P[np.ix_(_POSE, _POSE)] = pose_covariance
-        P[_V, _V] = np.eye(3) * params.init_velocity_sigma**2
-        P[_W, _W] = np.eye(3) * params.init_angular_velocity_sigma**2
-        self.P = P
+        if covariance.shape == (12, 12):
+            order = np.r_[0:3, 6:9, 3:6, 9:12]  # solver order [p, θ, v, ω] -> filter order [p, v, θ, ω]
+            P[np.ix_(order, order)] = covariance
+        else:
+            P[np.ix_(_POSE, _POSE)] = covariance
+            P[_V, _V] = np.eye(3) * params.init_velocity_sigma**2
+            P[_W, _W] = np.eye(3) * params.init_angular_velocity_sigma**2
+        self.P = (P + P.T) / 2.0
 
     @property
     def T_world_cube(self) -> np.ndarray:
@@ -82,7 +90,7 @@ class PoseFilter:
     def predicted(self, time_s: float) -> np.ndarray:
         """The pose extrapolated to ``time_s`` (no state change)."""
         dt = time_s - self.time_s
-        R = Rotation.from_rotvec(self.w * dt).as_matrix() @ self.R
+        R = R_from_rotvec(self.w * dt) @ self.R
         return make_T(R, self.p + self.v * dt)
 
     def predict(self, time_s: float) -> None:
@@ -104,8 +112,8 @@ class PoseFilter:
         self.P = F @ self.P @ F.T + Q
         self.time_s = time_s
 
-    def update(self, sets: Sequence[CornerSet]) -> UpdateResult:
-        """Iterated EKF update with the corners of ``sets`` (taken at the filter's time)."""
+    def _solve(self, sets: Sequence[CornerSet]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Gauss-Newton on prior + Huber-weighted corner residuals: (δ (12,), information, residuals px)."""
         prm = self.params
         T0 = self.T_world_cube
         zero3 = np.zeros(3)
@@ -130,14 +138,49 @@ class PoseFilter:
             info = info_prior + H.T @ (weights[:, None] * H)
             rhs = H.T @ (weights * (H @ delta - r))
             delta = np.linalg.solve(info, rhs)
-        r = residual(delta[_POSE])
-        rms = float(np.sqrt(np.mean(r**2))) if r.size else float("inf")
-        if not np.isfinite(rms) or rms > prm.gate_rms_px:
+        return delta, info, residual(delta[_POSE])
+
+    def update(self, sets: Sequence[CornerSet]) -> UpdateResult:
+        """Iterated EKF update with the corners of ``sets`` (taken at the filter's time).
+
+        A face whose corners stay more than ``face_gate_px`` (RMS) off after the update is
+        dropped and the update redone; the whole sighting is rejected if its RMS residual is
+        above ``gate_rms_px`` or no face is left.
+        """
+        sets = [s for s in sets if s is not None and len(s.faces)]
+        while sets:
+            delta, info, r = self._solve(sets)
+            face_rms = np.sqrt(np.mean(r.reshape(-1, 8) ** 2, axis=1))  # 4 corners x (x, y) per face
+            worst = int(np.argmax(face_rms))
+            if face_rms[worst] <= self.params.face_gate_px or len(face_rms) == 1:
+                break
+            sets = _without_face(sets, worst)
+        if not sets:
+            return UpdateResult(False, float("inf"), 0)
+        rms = float(np.sqrt(np.mean(r**2)))
+        if not np.isfinite(rms) or rms > self.params.gate_rms_px:
             return UpdateResult(False, rms, r.size // 2)
         self.P = np.linalg.inv(info)
         self.P = (self.P + self.P.T) / 2.0
-        T = perturbed(T0, delta[_POSE])
+        T = perturbed(self.T_world_cube, delta[_POSE])
         self.p, self.R = T[:3, 3], T[:3, :3]
         self.v = self.v + delta[_V]
         self.w = self.w + delta[_W]
         return UpdateResult(True, rms, r.size // 2)
+
+
+def _without_face(sets: Sequence[CornerSet], index: int) -> list[CornerSet]:
+    """The corner sets with their ``index``-th face overall (in stacking order) removed."""
+    out = []
+    for s in sets:
+        n = len(s.faces)
+        if 0 <= index < n:
+            keep = np.ones(4 * n, dtype=bool)
+            keep[4 * index: 4 * index + 4] = False
+            if n > 1:
+                out.append(dataclasses.replace(s, points_cube_m=s.points_cube_m[keep], normalized=s.normalized[keep],
+                                               faces=s.faces[:index] + s.faces[index + 1:]))
+        else:
+            out.append(s)
+        index -= n
+    return out

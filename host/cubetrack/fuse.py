@@ -65,7 +65,7 @@ class FusionParams:
     lost_after_s: float = param(0.5, "filter: a robot with no accepted sighting for this many seconds is reported as not seen and its track restarts")
     output_rate_hz: float = param(0.0, "filter: also emit poses on a fixed clock at this rate between accepted sightings (0: only at each sighting)")
     association_gate_px: float = param(12.0, "filter: a detection joins a face only if its corners lie within this many pixels (or half a marker side) of the predicted face")
-    init_window_s: float = param(0.15, "filter: a track starts from all cameras' sightings within this many seconds")
+    init_window_s: float = param(0.3, "filter: a track starts from a joint fit of pose and velocity over the sightings of the last this many seconds (at least three, from two cameras)")
     max_rejections: int = param(3, "filter: this many rejected sightings in a row restart the track")
 
     def __post_init__(self) -> None:
@@ -223,19 +223,33 @@ class FilterFusion:
         return [pose_record(robot, f.predicted(tick), float(tick), now_s, (), ()) for tick in ticks if tick < until_s]
 
     def _start(self, sighting: CubeSighting, now_s: float) -> list[TrackedPose]:
-        """Start a track from a joint fit over the cameras' sightings near this one."""
-        if sighting.estimate is None:
-            return []
+        """Start a track from a joint fit of pose and velocity over the recent sightings.
+
+        Every recent single-camera estimate is tried as the starting guess (one may be a flipped
+        or misidentified face); the fit that explains the most corners within the gate wins.
+        """
         robot, t = sighting.robot, sighting.capture_time_s
-        T0 = sighting.estimate.T_world_cube
-        near = [s for s in self.recent[robot]
-                if abs(s.capture_time_s - t) <= self.params.init_window_s and s.camera != sighting.camera]
-        sets = [c for c in (self._corners(s, T0) for s in (sighting, *near)) if c is not None]
-        solution = solve_joint(sets, T0, t, corner_noise_px=self.filter_params.corner_noise_px)
-        if solution is None or solution.rms_px > self.filter_params.gate_rms_px:
+        window = [s for s in self.recent[robot] if 0.0 <= t - s.capture_time_s <= self.params.init_window_s]
+        if len({s.capture_time_s for s in window}) < 3 or len({s.camera for s in window}) < 2:
+            return []  # wait for three sightings from two cameras: pose and velocity both observable
+        fp = self.filter_params
+        best = None
+        for guess in {id(s.estimate): s.estimate for s in window if s.estimate is not None}.values():
+            sets = [c for c in (self._corners(s, guess.T_world_cube) for s in window) if c is not None]
+            if len({c.camera for c in sets}) < 2:
+                continue
+            solution = solve_joint(sets, guess.T_world_cube, t, corner_noise_px=fp.corner_noise_px,
+                                   velocity_sigma=(fp.init_velocity_sigma, fp.init_angular_velocity_sigma))
+            if solution is None or solution.rms_px > fp.gate_rms_px or solution.inlier_fraction < 0.9:
+                continue
+            if best is None or (solution.points, -solution.rms_px) > (best[0].points, -best[0].rms_px):
+                best = (solution, sets)
+        if best is None:
             self.stats["failed track start"] += 1
             return []
-        self.filters[robot] = PoseFilter(self.filter_params, t, solution.T_world_cube, solution.covariance)
+        solution, sets = best
+        self.filters[robot] = PoseFilter(fp, t, solution.T_world_cube, solution.covariance,
+                                         solution.velocity_m_s, solution.angular_velocity_rad_s)
         self.last_accepted[robot] = t
         self.rejections[robot] = 0
         self.stats["track start"] += 1

@@ -46,10 +46,22 @@ def invert_T(T: np.ndarray) -> np.ndarray:
     return out
 
 
+def R_from_rotvec(rotvec: np.ndarray) -> np.ndarray:
+    """3x3 rotation of a rotation vector (axis x angle, radians): Rodrigues' formula.
+
+    The same as ``Rotation.from_rotvec(v).as_matrix()`` but fast enough for per-corner hot loops.
+    """
+    v = np.asarray(rotvec, dtype=float).reshape(3)
+    theta = float(np.sqrt(v @ v))
+    K = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+    if theta < 1e-8:
+        return np.eye(3) + K  # first order; exact to machine precision at this size
+    return np.eye(3) + (np.sin(theta) / theta) * K + ((1.0 - np.cos(theta)) / theta**2) * (K @ K)
+
+
 def T_from_rvec_tvec(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
     """4x4 pose from OpenCV's Rodrigues rotation vector (radians) and translation (metres)."""
-    R = Rotation.from_rotvec(np.asarray(rvec, dtype=float).reshape(3)).as_matrix()
-    return make_T(R, tvec)
+    return make_T(R_from_rotvec(rvec), tvec)
 
 
 def rvec_tvec_from_T(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

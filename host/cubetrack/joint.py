@@ -20,9 +20,8 @@ from typing import Sequence
 import cv2
 import numpy as np
 from scipy.optimize import least_squares
-from scipy.spatial.transform import Rotation
 
-from cubetrack.geometry import invert_T, make_T
+from cubetrack.geometry import R_from_rotvec, invert_T, make_T
 from cubetrack.layout import CubeLayout, LayoutMarker
 from cubetrack.records import Detection
 
@@ -63,14 +62,16 @@ def project_normalized(T_cam_world: np.ndarray, points_world_m: np.ndarray) -> n
 
 def associate(detections: Sequence[Detection], layout: CubeLayout, T_world_cube: np.ndarray,
               T_world_cam: np.ndarray, intrinsics, camera: str, time_s: float,
-              gate_px: float) -> CornerSet | None:
+              gate_px: float, max_view_angle_deg: float = 80.0) -> CornerSet | None:
     """Match detections to cube faces by where a predicted cube pose projects each face.
 
     For each detection, every layout marker with its id is projected with ``T_world_cube``; the
     one with the smallest mean corner distance wins if that distance is under ``gate_px``
     (or under half the detected marker's side, whichever is larger). Faces facing away from the
-    camera are not candidates. Returns None when nothing matches.
+    camera, or whose normal is more than ``max_view_angle_deg`` from the line of sight, are not
+    candidates. Returns None when nothing matches.
     """
+    min_cos_view = float(np.cos(np.radians(max_view_angle_deg)))
     K, dist = intrinsics.K, intrinsics.dist
     T_cam_world = invert_T(T_world_cam)
     T_cam_cube = T_cam_world @ T_world_cube
@@ -82,7 +83,8 @@ def associate(detections: Sequence[Detection], layout: CubeLayout, T_world_cube:
             if marker.face in used:
                 continue
             T_cam_marker = T_cam_cube @ marker.T_cube_marker
-            if float(T_cam_marker[:3, 2] @ T_cam_marker[:3, 3]) >= 0.0:  # facing away
+            cos_view = -float(T_cam_marker[:3, 2] @ T_cam_marker[:3, 3]) / float(np.linalg.norm(T_cam_marker[:3, 3]))
+            if cos_view < min_cos_view:  # facing away, or seen so obliquely that its corners are poor
                 continue
             rvec, _ = cv2.Rodrigues(T_cam_cube[:3, :3])
             proj, _ = cv2.projectPoints(marker.corners_cube_m(), rvec, T_cam_cube[:3, 3], K, dist)
@@ -107,13 +109,13 @@ def associate(detections: Sequence[Detection], layout: CubeLayout, T_world_cube:
 def moved_pose(T_world_cube: np.ndarray, velocity_m_s: np.ndarray, angular_velocity_rad_s: np.ndarray,
                dt_s: float) -> np.ndarray:
     """The pose after ``dt_s`` seconds of constant world-frame linear and angular velocity."""
-    R = Rotation.from_rotvec(angular_velocity_rad_s * dt_s).as_matrix() @ T_world_cube[:3, :3]
+    R = R_from_rotvec(angular_velocity_rad_s * dt_s) @ T_world_cube[:3, :3]
     return make_T(R, T_world_cube[:3, 3] + velocity_m_s * dt_s)
 
 
 def perturbed(T0: np.ndarray, delta: np.ndarray) -> np.ndarray:
     """``T0`` moved by a world-frame increment ``delta = [δp (m), δθ (rad)]``."""
-    R = Rotation.from_rotvec(delta[3:6]).as_matrix() @ T0[:3, :3]
+    R = R_from_rotvec(delta[3:6]) @ T0[:3, :3]
     return make_T(R, T0[:3, 3] + delta[:3])
 
 
@@ -132,10 +134,14 @@ def reprojection_residuals_px(T_world_cube: np.ndarray, sets: Sequence[CornerSet
 
 @dataclass(frozen=True, slots=True, eq=False)
 class JointSolution:
-    """A solved cube pose: ``T_world_cube``, its 6x6 covariance ``[δp, δθ]``, RMS residual (px)
-    and the fraction of corner coordinates within ``3 f_scale`` of their reprojection."""
+    """A solved cube pose at the reference time: ``T_world_cube``, the world-frame velocities
+    (zero unless estimated), the covariance of ``[δp, δθ]`` or, with velocities,
+    ``[δp, δθ, v, ω]`` (m, rad, m/s, rad/s), the RMS corner residual (px) and the fraction of
+    corner coordinates within ``3 f_scale`` of their reprojection."""
 
     T_world_cube: np.ndarray
+    velocity_m_s: np.ndarray
+    angular_velocity_rad_s: np.ndarray
     covariance: np.ndarray
     rms_px: float
     inlier_fraction: float
@@ -143,23 +149,32 @@ class JointSolution:
 
 
 def solve_joint(sets: Sequence[CornerSet], T_init: np.ndarray, t_ref_s: float,
-                velocity_m_s: np.ndarray | None = None, angular_velocity_rad_s: np.ndarray | None = None,
-                corner_noise_px: float = 0.5, f_scale_px: float = 1.5) -> JointSolution | None:
+                corner_noise_px: float = 0.5, f_scale_px: float = 1.5,
+                velocity_sigma: tuple[float, float] | None = None) -> JointSolution | None:
     """Least-squares cube pose at ``t_ref_s`` over all corner sets (robust soft-L1 loss),
-    starting from ``T_init``. Returns None if the fit fails or has under four corners."""
-    v = np.zeros(3) if velocity_m_s is None else np.asarray(velocity_m_s, dtype=float)
-    w = np.zeros(3) if angular_velocity_rad_s is None else np.asarray(angular_velocity_rad_s, dtype=float)
+    starting from ``T_init``.
+
+    Without ``velocity_sigma`` the cube is taken as still between the sets' times. With
+    ``velocity_sigma = (σ_v m/s, σ_ω rad/s)`` the linear and angular velocities are estimated
+    too, under a zero-mean Gaussian prior of those spreads (sets spread over time make them
+    observable). Returns None if the fit fails or has under four corners.
+    """
     n_points = sum(len(s.points_cube_m) for s in sets)
     if n_points < 4:
         return None
+    n = 6 if velocity_sigma is None else 12
 
-    def residuals(delta: np.ndarray) -> np.ndarray:
-        return reprojection_residuals_px(perturbed(T_init, delta), sets, t_ref_s, v, w) / corner_noise_px
+    def residuals(x: np.ndarray) -> np.ndarray:
+        v, w = (x[6:9], x[9:12]) if n == 12 else (np.zeros(3), np.zeros(3))
+        r = reprojection_residuals_px(perturbed(T_init, x[:6]), sets, t_ref_s, v, w) / corner_noise_px
+        if n == 12:
+            r = np.concatenate([r, v / velocity_sigma[0], w / velocity_sigma[1]])
+        return r
 
     f_scale = f_scale_px / corner_noise_px
     try:
-        result = least_squares(residuals, np.zeros(6), method="trf", loss="soft_l1", f_scale=f_scale,
-                               x_scale=np.array([0.01, 0.01, 0.01, 0.01, 0.01, 0.01]), max_nfev=60)
+        result = least_squares(residuals, np.zeros(n), method="trf", loss="soft_l1", f_scale=f_scale,
+                               x_scale=np.full(n, 0.01), max_nfev=80)
     except (ValueError, np.linalg.LinAlgError):
         return None
     if not np.all(np.isfinite(result.x)):
@@ -169,9 +184,12 @@ def solve_joint(sets: Sequence[CornerSet], T_init: np.ndarray, t_ref_s: float,
         covariance = np.linalg.inv(J.T @ J)
     except np.linalg.LinAlgError:
         return None
-    r_px = result.fun * corner_noise_px
+    r_px = result.fun[: 2 * n_points] * corner_noise_px
+    x = result.x
     return JointSolution(
-        T_world_cube=perturbed(T_init, result.x),
+        T_world_cube=perturbed(T_init, x[:6]),
+        velocity_m_s=x[6:9].copy() if n == 12 else np.zeros(3),
+        angular_velocity_rad_s=x[9:12].copy() if n == 12 else np.zeros(3),
         covariance=covariance,
         rms_px=float(np.sqrt(np.mean(r_px**2))),
         inlier_fraction=float(np.mean(np.abs(r_px) <= 3.0 * f_scale_px)),

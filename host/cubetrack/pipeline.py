@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import enum
 import logging
-from collections import Counter
+from collections import Counter, deque
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -33,6 +33,8 @@ from cubetrack.records import CubeSighting, Frame, TrackedPose
 from cubetrack.timesync import ClockSync
 
 log = logging.getLogger(__name__)
+
+HELD_FRAMES = 32  # per camera, waiting for the first clock round trip (about 4 s at 7.5 fps)
 
 
 @enum.unique
@@ -94,6 +96,7 @@ class TrackStats:
     frames: int = 0
     corrupt_frames: int = 0
     frames_without_camera_pose: int = 0
+    frames_before_clock_sync: int = 0
     estimates: Counter = field(default_factory=Counter)  # (robot, camera) -> count
     poses: Counter = field(default_factory=Counter)  # robot -> count
 
@@ -104,7 +107,9 @@ class Tracker:
 
     def __init__(self, intrinsics: dict[str, CameraIntrinsics], world: WorldConfig,
                  robots: tuple[RobotConfig, ...], extrinsics: dict[str, CameraExtrinsics] | None,
-                 params: StageParams = StageParams()):
+                 params: StageParams = StageParams(), synced_cameras: frozenset[str] = frozenset()):
+        """``synced_cameras``: cameras whose clock is polled by /time round trips; their frames wait
+        for the first usable round trip instead of being stamped by their late arrival."""
         self.intrinsics = intrinsics
         self.world = world
         self.robots = robots
@@ -123,19 +128,33 @@ class Tracker:
         else:
             self.fusion = LatestEstimateFusion(params.fusion)
         self.clocks = {name: ClockSync() for name in intrinsics}
+        self.synced_cameras = synced_cameras
+        self.held: dict[str, deque[Frame]] = {}  # frames waiting for their camera's first round trip
         self.stats = TrackStats()
 
-    def add_clock_sample(self, camera: str, sample: ClockSample) -> None:
-        """Take one /time round trip of ``camera`` (feed them as they complete)."""
-        if camera in self.clocks:
-            self.clocks[camera].add_round_trip(sample.host_send_s, sample.device_time_s, sample.host_recv_s)
+    def add_clock_sample(self, camera: str, sample: ClockSample) -> list[TrackedPose]:
+        """Take one /time round trip of ``camera`` (feed them as they complete). Frames held back
+        for want of a clock are processed once it is known; their poses are returned."""
+        if camera not in self.clocks:
+            return []
+        clock = self.clocks[camera]
+        clock.add_round_trip(sample.host_send_s, sample.device_time_s, sample.host_recv_s)
+        held = self.held.pop(camera, None)
+        if not held or clock.method != "round-trip":
+            if held:
+                self.held[camera] = held
+            return []
+        return [pose for frame in held for pose in self.process(frame, now_s=sample.host_recv_s)]
 
-    def capture_time(self, frame: Frame) -> float:
-        """The frame's capture time on the host clock (Unix seconds), per ``[track] timestamps``."""
+    def capture_time(self, frame: Frame) -> float | None:
+        """The frame's capture time on the host clock (Unix seconds), per ``[track] timestamps``;
+        None while a camera that answers /time has not yet given a usable round trip."""
         if self.params.track.timestamps is Timestamps.ARRIVAL:
             return frame.host_time_s
         clock = self.clocks[frame.camera]
         clock.add_arrival(frame.device_time_s, frame.host_time_s)
+        if frame.camera in self.synced_cameras and clock.method != "round-trip":
+            return None
         return clock.to_host(frame.device_time_s)
 
     def camera_pose(self, frame: Frame, detections) -> np.ndarray | None:
@@ -164,6 +183,12 @@ class Tracker:
             log.warning("skipping corrupt frame: %s", exc)
             return []
         capture_time_s = self.capture_time(frame)
+        if capture_time_s is None:
+            held = self.held.setdefault(frame.camera, deque(maxlen=HELD_FRAMES))
+            if len(held) == held.maxlen:
+                self.stats.frames_before_clock_sync += 1  # the oldest is given up
+            held.append(frame)
+            return []
         if not detections:
             return []
         T_world_cam = self.camera_pose(frame, detections)
@@ -222,7 +247,10 @@ def track_recording(config: TrackerConfig, recording: Recording,
                     params: StageParams | None = None, progress: Progress | None = None) -> TrackResult:
     """Replay a recording through the tracker, writing ``<out_dir>/<robot>.tum`` and ``.jsonl``."""
     params = params or StageParams.from_config(config)
-    tracker = Tracker(recording_intrinsics(config, recording), config.world, config.robots, extrinsics, params)
+    synced = frozenset(c for c in recording.camera_names if recording.clock_samples(c))
+    for camera in sorted(set(recording.camera_names) - synced):
+        log.warning("%s: no clock.csv; frames are stamped from their arrival times (late by the transfer time)", camera)
+    tracker = Tracker(recording_intrinsics(config, recording), config.world, config.robots, extrinsics, params, synced)
     total = sum(len(recording.index(c)) for c in recording.camera_names)
     trips = sorted(
         ((s.host_recv_s, camera, s) for camera in recording.camera_names for s in recording.clock_samples(camera)),
@@ -234,7 +262,8 @@ def track_recording(config: TrackerConfig, recording: Recording,
         for i, frame in enumerate(recording.merged_frames(), start=1):
             # round trips completed before this frame arrived, exactly as a live run has them
             while next_trip < len(trips) and trips[next_trip][0] <= frame.host_time_s:
-                tracker.add_clock_sample(trips[next_trip][1], trips[next_trip][2])
+                for pose in tracker.add_clock_sample(trips[next_trip][1], trips[next_trip][2]):
+                    writers[pose.robot].write(pose)
                 next_trip += 1
             for pose in tracker.process(frame):
                 writers[pose.robot].write(pose)

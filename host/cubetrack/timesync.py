@@ -32,11 +32,14 @@ class ClockSyncParams:
 
     window: int = param(120, "number of most recent round trips (or arrivals) used for the fit")
     fastest_fraction: float = param(0.3, "fraction of the window's fastest round trips the line is fitted to (0..1]")
-    min_samples: int = param(3, "round trips needed before they are trusted over arrival times")
+    max_round_trip_s: float = param(0.05, "round trips slower than this are ignored (they bound the offset too loosely), seconds")
+    min_samples: int = param(1, "round trips needed before they are trusted over arrival times (one fast round trip already beats arrival times)")
 
     def __post_init__(self) -> None:
         if self.window < 2 or self.min_samples < 1 or not 0.0 < self.fastest_fraction <= 1.0:
             raise ValueError("need window >= 2, min_samples >= 1 and 0 < fastest_fraction <= 1")
+        if not self.max_round_trip_s > 0:
+            raise ValueError("max_round_trip_s must be positive")
 
 
 @dataclass(frozen=True, slots=True)
@@ -104,7 +107,7 @@ class ClockSync:
         return self.fit().method
 
     def add_round_trip(self, host_send_s: float, device_time_s: float, host_recv_s: float) -> None:
-        if host_recv_s >= host_send_s:
+        if 0.0 <= host_recv_s - host_send_s <= self.params.max_round_trip_s:
             self._trips.append((host_send_s, device_time_s, host_recv_s))
             self._fit = None
 

@@ -54,3 +54,11 @@ def test_non_finite_pose_is_detected():
     T[0, 0] = np.nan
     assert not is_finite_pose(T)
     assert not is_finite_pose(np.diag([1.0, 1.0, -1.0, 1.0]))
+
+
+def test_fast_rodrigues_matches_scipy():
+    from cubetrack.geometry import R_from_rotvec
+
+    rng = np.random.default_rng(5)
+    for v in [*rng.normal(size=(20, 3)) * 2.0, np.zeros(3), np.array([1e-10, 0, 0]), np.array([np.pi, 0, 0])]:
+        np.testing.assert_allclose(R_from_rotvec(v), Rotation.from_rotvec(v).as_matrix(), atol=1e-12)

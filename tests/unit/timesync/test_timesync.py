@@ -61,7 +61,7 @@ def test_arrival_fallback_is_late_by_the_minimum_latency_only():
 
 
 def test_clock_sync_switches_from_arrivals_to_round_trips():
-    sync = ClockSync(ClockSyncParams(min_samples=3))
+    sync = ClockSync(ClockSyncParams(min_samples=3))  # (default is 1)
     assert sync.method == "none"
     sync.add_arrival(10.0, device_to_host(10.0) + 0.05)
     assert sync.method == "arrival"

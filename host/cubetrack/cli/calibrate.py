@@ -1,0 +1,84 @@
+"""Calibrate where each camera stands (T_world_cam) from a recording of the world marker.
+
+Per camera of the recording, the world marker ([world] in the config: dictionary, marker_id,
+marker_size) is detected in up to --samples frames and the camera pose is computed:
+
+  robust  (default) corners re-measured from the marker's edges, outlier frames rejected,
+          one PnP on the averaged corners — free of the detector's corner bias
+  cma     the paper's recursive cumulative moving average of per-frame poses (eq. 1)
+
+Intrinsics come from the config's camera_info or the recording's camera_info/<camera>.yaml.
+Writes the extrinsics TOML (contracts §4) with sample counts and spread; corrupt frames are
+skipped and counted. A camera that never sees the world marker is an error unless
+--allow-missing. See docs/calibration.md.
+
+Example:
+  cubetrack calibrate --config rec/config.toml --recording rec/calibration --out extrinsics.toml
+"""
+
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+HELP = "calibrate camera poses from the world marker (paper's CMA or robust)"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("--config", required=True, type=Path, metavar="CFG", help="tracker config (TOML)")
+    p.add_argument("--recording", required=True, type=Path, metavar="REC",
+                   help="recording folder with the cameras looking at the world marker")
+    p.add_argument("--out", required=True, type=Path, metavar="EXTRINSICS", help="extrinsics TOML to write")
+    p.add_argument("--method", choices=("robust", "cma"), default=None,
+                   help="robust (default) or cma (the paper's); overrides [calibration] method")
+    p.add_argument("--samples", type=int, default=None, metavar="N",
+                   help="world-marker sightings to use per camera (default 200); overrides [calibration] samples")
+    p.add_argument("--allow-missing", action="store_true",
+                   help="leave out cameras that do not see the world marker instead of failing")
+    p.add_argument("--truth", type=Path, metavar="EXTRINSICS",
+                   help="true extrinsics (e.g. REC/true_extrinsics.toml of a simulation): also print the errors")
+
+
+def run(args: argparse.Namespace) -> int:
+    import dataclasses
+
+    from cubetrack.calibrate import CalibrationMethod, calibrate_recording, calibration_params, extrinsics_errors
+    from cubetrack.errors import ConfigError
+    from cubetrack.io.config import read_extrinsics, read_tracker_config, write_extrinsics
+    from cubetrack.io.recording import Recording
+    from cubetrack.progress import StderrProgress
+
+    config = read_tracker_config(args.config)
+    params = calibration_params(config)
+    if args.method is not None:
+        params = dataclasses.replace(params, method=CalibrationMethod(args.method))
+    if args.samples is not None:
+        if args.samples < 1:
+            raise ConfigError(f"--samples must be at least 1, got {args.samples}")
+        params = dataclasses.replace(params, samples=args.samples,
+                                     min_samples=min(params.min_samples, args.samples))
+    truth = read_extrinsics(args.truth) if args.truth else None
+    recording = Recording.open(args.recording)
+    report = calibrate_recording(config, recording, params, StderrProgress(), args.allow_missing)
+    write_extrinsics(report.extrinsics, args.out)
+    errors = extrinsics_errors(report.extrinsics, truth) if truth else {}
+    print(f"method {params.method.value}; wrote {args.out}")
+    header = f"{'camera':<10} {'samples':>7} {'frames':>6}  {'position [m]':<26} {'spread cm':>9} {'spread deg':>10}"
+    if truth:
+        header += f" {'err cm':>7} {'err deg':>7}"
+    print(header)
+    for name, cal in report.cameras.items():
+        e = cal.extrinsics
+        x, y, z = e.T_world_cam[:3, 3]
+        line = (f"{name:<10} {e.samples:>7} {cal.frames_read:>6}  ({x:+.3f}, {y:+.3f}, {z:+.3f})"
+                f"{'':<4} {100 * e.spread_position_m:>9.2f} {e.spread_rotation_deg:>10.3f}")
+        if name in errors:
+            line += f" {100 * errors[name][0]:>7.2f} {errors[name][1]:>7.3f}"
+        print(line)
+        if cal.skipped:
+            print(f"{'':<10} skipped: " + ", ".join(f"{n} {why}" for why, n in sorted(cal.skipped.items())))
+    for name, why in report.missing.items():
+        print(f"{name:<10} NOT CALIBRATED: {why}")
+    for why, n in sorted(recording.skipped.items()):
+        print(f"recording: skipped {n} ({why})")
+    return 0

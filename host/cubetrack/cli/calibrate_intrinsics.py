@@ -1,0 +1,73 @@
+"""Calibrate a camera's intrinsics (K, distortion) from photos of a ChArUco board.
+
+Each image is searched for the board (OpenCV 5 CharucoDetector); views with enough corners are
+fitted together with cv2.calibrateCamera. Prints the RMS reprojection error, fx and fy with
+their standard deviations, and how each image was used; writes ROS camera_info YAML.
+Use 10-20 photos with the board filling much of the frame at varied angles; 3 usable views
+are the minimum accepted. Boards printed by OpenCV < 4.6 with an even number of rows need
+--legacy. See docs/calibration.md.
+
+Example:
+  cubetrack calibrate-intrinsics img_*.jpg --board 5x7 --square 0.04 --marker 0.02 \\
+      --dictionary DICT_6X6_250 --out cam1.yaml
+"""
+
+from __future__ import annotations
+
+import argparse
+import re
+from pathlib import Path
+
+HELP = "intrinsics from ChArUco photos -> ROS camera_info YAML"
+
+
+def add_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("images", nargs="+", type=Path, metavar="IMAGE", help="photos of the ChArUco board")
+    p.add_argument("--board", default="5x7", metavar="COLSxROWS",
+                   help="squares across x and y, e.g. 5x7 (default)")
+    p.add_argument("--square", type=float, default=0.04, metavar="M", help="square side, metres (default 0.04)")
+    p.add_argument("--marker", type=float, default=0.02, metavar="M", help="marker side, metres (default 0.02)")
+    p.add_argument("--dictionary", default="DICT_6X6_250", help="marker dictionary (default DICT_6X6_250)")
+    p.add_argument("--legacy", action="store_true",
+                   help="board made by OpenCV < 4.6 (matters for an even number of rows)")
+    p.add_argument("--min-views", type=int, default=3, metavar="N", help="usable views needed (default 3)")
+    p.add_argument("--camera-name", default=None, help="camera_name in the YAML (default: the output's stem)")
+    p.add_argument("--out", required=True, type=Path, metavar="YAML", help="camera_info YAML to write")
+
+
+def parse_board(text: str) -> tuple[int, int]:
+    from cubetrack.errors import ConfigError
+
+    m = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", text)
+    if not m:
+        raise ConfigError(f"--board {text!r}: expected squares as COLSxROWS, e.g. 5x7")
+    return int(m.group(1)), int(m.group(2))
+
+
+def run(args: argparse.Namespace) -> int:
+    from cubetrack.errors import ConfigError
+    from cubetrack.intrinsics import IntrinsicsParams, calibrate_intrinsics_files
+    from cubetrack.io.camera_info import write_camera_info
+    from cubetrack.progress import StderrProgress
+
+    sx, sy = parse_board(args.board)
+    try:
+        params = IntrinsicsParams(squares_x=sx, squares_y=sy, square_m=args.square, marker_m=args.marker,
+                                  dictionary=args.dictionary, legacy_pattern=args.legacy,
+                                  min_views=args.min_views)
+    except ValueError as exc:
+        raise ConfigError(f"board: {exc}") from None
+    name = args.camera_name or args.out.stem
+    result = calibrate_intrinsics_files(args.images, params, name, StderrProgress())
+    write_camera_info(result.intrinsics, args.out)
+    K = result.intrinsics.K
+    used = sum(v.used for v in result.views)
+    print(f"{'image':<40} {'corners':>7}  use")
+    for v in result.views:
+        status = f"rms {v.rms_px:.3f} px" if v.used else f"not used: {v.reason}"
+        print(f"{v.name:<40} {v.corners:>7}  {status}")
+    print(f"{used} of {len(result.views)} views, RMS reprojection error {result.rms_px:.3f} px")
+    print(f"fx {K[0, 0]:.2f} ± {result.std_fx_px:.2f}  fy {K[1, 1]:.2f} ± {result.std_fy_px:.2f}  "
+          f"cx {K[0, 2]:.2f}  cy {K[1, 2]:.2f} px; dist {', '.join(f'{d:.4g}' for d in result.intrinsics.dist)}")
+    print(f"wrote {args.out}")
+    return 0

@@ -1,0 +1,96 @@
+"""Detect square markers in one image and print them as JSON.
+
+For every marker: its dictionary, id, corners in pixels (TL, TR, BR, BL; (0, 0) is the centre of
+the top-left pixel), shoelace pixel area, and — with --camera-info and --marker-size — its pose
+in the camera optical frame (x right, y down, z forward): position in metres and
+quaternion_xyzw of the marker frame (x right, y up, z out of the marker), plus the other planar
+(IPPE) solution. Intrinsics: ROS camera_info YAML or OpenCV FileStorage YAML.
+
+Example:
+  cubetrack detect board.jpg --camera-info cam.yml --dictionary DICT_6X6_250 --marker-size 0.02
+"""
+
+from __future__ import annotations
+
+import argparse
+
+HELP = "detect markers in one image; print ids, corners, areas and poses as JSON"
+
+_REFINEMENTS = ("edge", "none", "subpix", "contour", "apriltag")
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("image", help="image file (JPEG, PNG, ...)")
+    parser.add_argument("--camera-info", metavar="YAML",
+                        help="intrinsics (ROS camera_info or OpenCV FileStorage YAML); "
+                             "without it no poses are printed")
+    parser.add_argument("--dictionary", action="append", metavar="NAME",
+                        help="OpenCV dictionary, e.g. DICT_6X6_250 (repeat for several; "
+                             "default DICT_4X4_50)")
+    parser.add_argument("--marker-size", type=float, metavar="METRES",
+                        help="side of the black square in metres (needed for poses)")
+    parser.add_argument("--refinement", choices=_REFINEMENTS, default=None,
+                        help="corner refinement (default: edge, the most accurate real-time one)")
+    parser.add_argument("--indent", type=int, default=2, help="JSON indentation (0: one line)")
+
+
+def _pose_json(T, err_px: float) -> dict:
+    from cubetrack.geometry import position_quat_from_T
+
+    position_m, q_xyzw = position_quat_from_T(T)
+    return {"position": [round(float(v), 6) for v in position_m],
+            "quaternion_xyzw": [round(float(v), 8) for v in q_xyzw],
+            "reprojection_error_px": round(float(err_px), 4)}
+
+
+def run(args: argparse.Namespace) -> int:
+    import json
+    import logging
+    from pathlib import Path
+
+    from cubetrack.detect import CornerRefinement, Detector, DetectorParams, decode_gray
+    from cubetrack.errors import DetectionError, ImageError
+    from cubetrack.estimate import marker_pose
+    from cubetrack.io.camera_info import read_camera_info
+
+    names = args.dictionary or ["DICT_4X4_50"]
+    fields = {"dictionary": names[0]}
+    if args.refinement:
+        fields["corner_refinement"] = CornerRefinement(args.refinement)
+    detector = Detector(DetectorParams(**fields), dictionaries=names)
+    intrinsics = read_camera_info(args.camera_info) if args.camera_info else None
+    if intrinsics is not None and not (args.marker_size and args.marker_size > 0):
+        raise DetectionError("poses need --marker-size (the black square's side in metres, e.g. 0.02)")
+    path = Path(args.image)
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise ImageError(f"{path}: image file not found") from None
+    except OSError as exc:
+        raise ImageError(f"{path}: cannot read image: {exc}") from None
+    gray = decode_gray(data, str(path))
+    if intrinsics is not None and (gray.shape[1], gray.shape[0]) != (intrinsics.width, intrinsics.height):
+        logging.getLogger(__name__).warning(
+            "%s: intrinsics are for %dx%d images, %s is %dx%d: poses will be wrong",
+            args.camera_info, intrinsics.width, intrinsics.height, path, gray.shape[1], gray.shape[0])
+    markers = []
+    for det in detector.detect_gray(gray):
+        entry = {"dictionary": det.dictionary, "id": det.marker_id,
+                 "corners_px": [[round(float(x), 4), round(float(y), 4)] for x, y in det.corners_px],
+                 "area_px2": round(det.area_px2, 3)}
+        if intrinsics is not None:
+            mp = marker_pose(det, args.marker_size, intrinsics)
+            entry["pose"] = None if mp is None else _pose_json(mp.T_cam_marker, mp.reprojection_error_px)
+            entry["pose_alt"] = (None if mp is None or mp.T_cam_marker_alt is None
+                                 else _pose_json(mp.T_cam_marker_alt, mp.reprojection_error_alt_px))
+        markers.append(entry)
+    out = {
+        "image": str(path), "width": int(gray.shape[1]), "height": int(gray.shape[0]),
+        "dictionaries": list(detector.dictionaries),
+        "corner_refinement": detector.params.corner_refinement.value,
+        "marker_size_m": args.marker_size, "pose_frame": "camera optical (x right, y down, z forward)"
+        if intrinsics is not None else None,
+        "markers": markers,
+    }
+    print(json.dumps(out, indent=args.indent or None))
+    return 0

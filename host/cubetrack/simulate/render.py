@@ -1,0 +1,440 @@
+"""An exact, anti-aliased renderer of planar textured rectangles seen by a pinhole camera
+(with optional plumb_bob lens distortion), for simulated camera frames.
+
+Exactness. A final-image pixel ``u`` covers ``[u - 0.5, u + 0.5]`` (OpenCV's pixel-centre
+convention: ``(0, 0)`` is the centre of the top-left pixel, the principal point of a centred
+camera is ``((w - 1) / 2, (h - 1) / 2)``). The scene is rendered at ``s`` samples per pixel and
+axis; supersampled pixel ``j`` has its centre at ``u = (j + 0.5) / s - 0.5``, so supersampled
+index ``j = s * u + (s - 1) / 2``. Each rectangle is drawn with ``cv2.warpPerspective`` through a
+homography that contains that transform and the texture's own convention (texel ``i`` covers
+``[i, i + 1]`` of the texture, its centre ``i`` is where OpenCV samples). Bilinear sampling of a
+texture whose texels are at least one supersampled pixel wide gives a coverage ramp centred on
+every true edge (alpha 0.5 exactly on the edge), and ``cv2.resize(..., INTER_AREA)`` by an
+integer factor is an exact box filter. Marker textures come from ``cv2.aruco.generateImageMarker``
+at one pixel per cell, enlarged by an integer factor chosen per view so that a texel covers
+one to two supersampled pixels. Lens distortion is applied by ``cv2.remap`` of the supersampled
+ideal (pinhole) image through the exactly inverted distortion (``cv2.undistortPoints`` iterated to 1e-12).
+
+Composition. A :class:`Solid` is a convex object: its faces (rectangles that never overlap,
+drawn after back-face culling, coverage added so shared edges leave no seam) and decals (markers
+printed on a face, drawn over it). Solids are composited over the background in the order
+given (painter's order: the caller lists them far to near).
+
+Everything is greyscale albedo (0 black .. 1 white) until :func:`form_image` applies lighting,
+blur, noise and quantisation.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+from functools import lru_cache
+
+import cv2
+import numpy as np
+
+from cubetrack.errors import SimulationError
+from cubetrack.geometry import invert_T
+from cubetrack.io.camera_info import CameraIntrinsics
+
+WHITE_ALBEDO = 0.85  # printed paper
+BLACK_ALBEDO = 0.05  # printed ink
+_MAX_TEXTURE = 4096
+
+
+@lru_cache(maxsize=64)
+def _marker_bits(dictionary: str, marker_id: int) -> np.ndarray:
+    """The marker image at one pixel per cell (black border included), 0 or 255."""
+    try:
+        d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, dictionary))
+    except (AttributeError, cv2.error, TypeError):
+        raise SimulationError(f"unknown ArUco dictionary {dictionary!r}; use a name like 'DICT_4X4_50'") from None
+    n = d.markerSize + 2
+    if not 0 <= marker_id < d.bytesList.shape[0]:
+        raise SimulationError(f"marker id {marker_id} is not in {dictionary} (ids 0..{d.bytesList.shape[0] - 1})")
+    return cv2.aruco.generateImageMarker(d, marker_id, n, borderBits=1)
+
+
+@dataclass(frozen=True, slots=True)
+class MarkerTexture:
+    """An ArUco marker's black square (its black border cells included) as a texture."""
+
+    dictionary: str
+    marker_id: int
+
+    @property
+    def cells(self) -> int:
+        return _marker_bits(self.dictionary, self.marker_id).shape[0]
+
+    def image(self, per_cell_x: int, per_cell_y: int) -> np.ndarray:
+        """The albedo texture with ``per_cell_*`` texels per cell (float32, row 0 = marker top)."""
+        return _marker_texture(self.dictionary, self.marker_id, per_cell_x, per_cell_y)
+
+
+@lru_cache(maxsize=256)
+def _marker_texture(dictionary: str, marker_id: int, cx: int, cy: int) -> np.ndarray:
+    bits = _marker_bits(dictionary, marker_id)
+    tex = np.where(bits > 127, np.float32(WHITE_ALBEDO), np.float32(BLACK_ALBEDO))
+    return np.ascontiguousarray(np.repeat(np.repeat(tex, cy, axis=0), cx, axis=1))
+
+
+@lru_cache(maxsize=256)
+def _ones(h: int, w: int) -> np.ndarray:
+    return np.ones((h, w), np.float32)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Quad:
+    """A planar rectangle: its frame (origin at the centre, x right, y up, z out of the visible
+    side — the marker frame convention), its size along x and y (metres), and either a uniform
+    ``albedo`` or a ``texture`` covering the whole rectangle (row 0 along its +y edge)."""
+
+    T_world_quad: np.ndarray
+    size_m: tuple[float, float]
+    albedo: float = WHITE_ALBEDO
+    texture: MarkerTexture | None = None
+
+    def corners_world(self) -> np.ndarray:
+        """(4, 3) corners TL, TR, BR, BL (marker order) in the world frame."""
+        w, h = self.size_m[0] / 2.0, self.size_m[1] / 2.0
+        local = np.array([[-w, h, 0.0], [w, h, 0.0], [w, -h, 0.0], [-w, -h, 0.0]])
+        return local @ self.T_world_quad[:3, :3].T + self.T_world_quad[:3, 3]
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Solid:
+    """A convex object: non-overlapping ``faces`` and ``decals`` printed on them."""
+
+    faces: tuple[Quad, ...]
+    decals: tuple[Quad, ...] = ()
+
+    def corners_world(self) -> np.ndarray:
+        return np.concatenate([q.corners_world() for q in self.faces])
+
+
+def box_faces(T_world_box: np.ndarray, size_m: tuple[float, float, float], albedo: float,
+              bottom: bool = False) -> tuple[Quad, ...]:
+    """The faces of a box centred at ``T_world_box`` with sides ``size_m`` (x, y, z), outward."""
+    return tuple(Quad(T_world_box @ T, wh, albedo) for T, wh in _box_templates(tuple(size_m), bottom))
+
+
+@lru_cache(maxsize=64)
+def _box_templates(size_m: tuple[float, float, float], bottom: bool) -> tuple[tuple[np.ndarray, tuple], ...]:
+    """Each face's frame in the box frame (z = outward normal) and its size."""
+    hx, hy, hz = (v / 2.0 for v in size_m)
+    # (outward normal, in-plane "up", half-extent along the normal, width, height)
+    specs = [
+        ((1, 0, 0), (0, 0, 1), hx, 2 * hy, 2 * hz),
+        ((-1, 0, 0), (0, 0, 1), hx, 2 * hy, 2 * hz),
+        ((0, 1, 0), (0, 0, 1), hy, 2 * hx, 2 * hz),
+        ((0, -1, 0), (0, 0, 1), hy, 2 * hx, 2 * hz),
+        ((0, 0, 1), (1, 0, 0), hz, 2 * hy, 2 * hx),
+    ]
+    if bottom:
+        specs.append(((0, 0, -1), (1, 0, 0), hz, 2 * hy, 2 * hx))
+    out = []
+    for normal, up, half, width, height in specs:
+        z = np.array(normal, float)
+        y = np.array(up, float)
+        T = np.eye(4)
+        T[:3, :3] = np.column_stack([np.cross(y, z), y, z])
+        T[:3, 3] = z * half
+        T.setflags(write=False)
+        out.append((T, (width, height)))
+    return tuple(out)
+
+
+def project_points(intrinsics: CameraIntrinsics, T_world_cam: np.ndarray, points_world: np.ndarray) -> np.ndarray:
+    """(N, 2) pixel positions (OpenCV convention, lens distortion applied) of (N, 3) world points."""
+    pts = np.asarray(points_world, float).reshape(-1, 3)
+    T_cam_world = invert_T(np.asarray(T_world_cam, float))
+    rvec, _ = cv2.Rodrigues(T_cam_world[:3, :3])
+    out, _ = cv2.projectPoints(pts, rvec, T_cam_world[:3, 3], np.asarray(intrinsics.K, float),
+                               np.asarray(intrinsics.dist, float).reshape(-1))
+    return out.reshape(-1, 2)
+
+
+class View:
+    """One camera's geometry for rendering: intrinsics, pose, supersampling, distortion maps."""
+
+    def __init__(self, intrinsics: CameraIntrinsics, T_world_cam: np.ndarray, supersample: int):
+        self.intrinsics = intrinsics
+        self.K = np.asarray(intrinsics.K, float)
+        self.dist = np.asarray(intrinsics.dist, float).reshape(-1)
+        self.T_world_cam = np.asarray(T_world_cam, float)
+        self.T_cam_world = invert_T(self.T_world_cam)
+        self.position_world = self.T_world_cam[:3, 3].copy()
+        self.s = int(supersample)
+        self.width, self.height = intrinsics.width, intrinsics.height
+        self.distorted = bool(np.any(self.dist != 0))
+        s = self.s
+        if not self.distorted:
+            self.canvas_origin = (0, 0)
+            self.canvas_size = (self.width * s, self.height * s)
+            self.map_x = self.map_y = None
+        else:
+            self._build_maps()
+
+    def _build_maps(self) -> None:
+        """For every supersampled pixel of the distorted image, where it looks in the ideal one."""
+        s = self.s
+        W, H = self.width * s, self.height * s
+        # exact inversion on the pixel grid (and one pixel beyond), bilinear in between: the
+        # map is smooth, interpolation errors stay below 1e-3 px for plausible lenses
+        gx = np.arange(-1, self.width + 1, dtype=np.float64)
+        gy = np.arange(-1, self.height + 1, dtype=np.float64)
+        grid = np.stack(np.meshgrid(gx, gy), axis=-1).reshape(-1, 1, 2)
+        criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-14)
+        coarse = cv2.undistortPoints(grid, self.K, self.dist, None, None, self.K, criteria)
+        coarse = coarse.reshape(len(gy), len(gx), 2)
+        # bilinear upsampling: output index j' of the enlarged grid samples coarse index
+        # (j' + 0.5) / s - 0.5, i.e. pixel (j' - s + 0.5) / s - 0.5: crop s samples each side
+        big = cv2.resize(coarse, (len(gx) * s, len(gy) * s), interpolation=cv2.INTER_LINEAR)
+        ideal = big[s:s + H, s:s + W]
+        ideal_s = s * ideal + (s - 1) / 2.0
+        lo = np.floor(ideal_s.reshape(-1, 2).min(axis=0)).astype(int) - 2
+        hi = np.ceil(ideal_s.reshape(-1, 2).max(axis=0)).astype(int) + 3
+        if np.any(hi - lo > 4 * np.array([W, H])):
+            raise SimulationError(f"lens distortion {self.dist.tolist()} is too strong to render")
+        self.canvas_origin = (int(lo[0]), int(lo[1]))
+        self.canvas_size = (int(hi[0] - lo[0]), int(hi[1] - lo[1]))
+        self.map_x = (ideal_s[..., 0] - lo[0]).astype(np.float32)
+        self.map_y = (ideal_s[..., 1] - lo[1]).astype(np.float32)
+
+    def project(self, points_world: np.ndarray) -> np.ndarray:
+        """(N, 2) pixel positions (with distortion) of world points; points must be in front."""
+        return project_points(self.intrinsics, self.T_world_cam, points_world)
+
+    def depth(self, points_world: np.ndarray) -> np.ndarray:
+        pts = np.asarray(points_world, float).reshape(-1, 3)
+        return pts @ self.T_cam_world[2, :3] + self.T_cam_world[2, 3]
+
+    def plane_to_ideal(self, T_world_plane: np.ndarray, origin: tuple[int, int]) -> np.ndarray:
+        """Homography from plane coordinates (x, y) metres to a patch's supersampled pixel indices;
+        ``origin`` is the patch's top-left in ideal supersampled indices."""
+        T = self.T_cam_world @ T_world_plane
+        M = np.column_stack([T[:3, 0], T[:3, 1], T[:3, 3]])
+        s = self.s
+        A = np.array([[s, 0.0, (s - 1) / 2.0 - origin[0]], [0.0, s, (s - 1) / 2.0 - origin[1]], [0, 0, 1.0]])
+        return A @ self.K @ M
+
+
+def _texel_to_plane(size_m: tuple[float, float], tw: int, th: int) -> np.ndarray:
+    """Texture pixel index -> rectangle coordinates (metres); texel i covers [i, i+1]."""
+    w, h = size_m
+    return np.array([[w / tw, 0.0, -w / 2 + 0.5 * w / tw],
+                     [0.0, -h / th, h / 2 - 0.5 * h / th],
+                     [0.0, 0.0, 1.0]])
+
+
+def _warp(texture: np.ndarray, H_tex_to_dst: np.ndarray, size: tuple[int, int]) -> np.ndarray:
+    return cv2.warpPerspective(texture, np.linalg.inv(H_tex_to_dst), size,
+                               flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                               borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
+
+
+def _quad_layer(view: View, quad: Quad, origin: tuple[int, int], shape: tuple[int, int]):
+    """The coverage and premultiplied albedo of one rectangle in a patch, restricted to its
+    bounding box: ``(y0, y1, x0, x1, alpha, value)`` or None when it is not visible."""
+    T = quad.T_world_quad
+    # back-face culling: the camera must be on the quad's +z side
+    if float(np.dot(view.position_world - T[:3, 3], T[:3, 2])) <= 1e-9:
+        return None
+    Hp = view.plane_to_ideal(T, origin)
+    w, h = quad.size_m
+    local = np.array([[-w / 2, h / 2, 1.0], [w / 2, h / 2, 1.0], [w / 2, -h / 2, 1.0], [-w / 2, -h / 2, 1.0]])
+    p = local @ Hp.T  # the third coordinate is the depth in the camera (metres)
+    if np.any(p[:, 2] <= 1e-3):
+        return None  # (partly) behind the camera: the caller refuses such scenes
+    xy = p[:, :2] / p[:, 2:3]
+    x0 = max(int(math.floor(xy[:, 0].min())) - 2, 0)
+    y0 = max(int(math.floor(xy[:, 1].min())) - 2, 0)
+    x1 = min(int(math.ceil(xy[:, 0].max())) + 3, shape[1])
+    y1 = min(int(math.ceil(xy[:, 1].max())) + 3, shape[0])
+    if x1 <= x0 or y1 <= y0:
+        return None
+    # Jacobian of the projective map at the corners: supersampled pixels per metre along x, y
+    J = (Hp[:2, :2][None] - xy[:, :, None] * Hp[2, :2][None, None, :]) / p[:, 2][:, None, None]
+    px_per_m_x = float(np.linalg.norm(J[:, :, 0], axis=1).min())
+    px_per_m_y = float(np.linalg.norm(J[:, :, 1], axis=1).min())
+    if quad.texture is None:
+        tw = int(np.clip(math.floor(w * px_per_m_x), 1, _MAX_TEXTURE))
+        th = int(np.clip(math.floor(h * px_per_m_y), 1, _MAX_TEXTURE))
+        tex = None
+    else:
+        n = quad.texture.cells
+        cx = int(np.clip(math.floor(w / n * px_per_m_x), 1, _MAX_TEXTURE // n))
+        cy = int(np.clip(math.floor(h / n * px_per_m_y), 1, _MAX_TEXTURE // n))
+        tex = quad.texture.image(cx, cy)
+        th, tw = tex.shape
+    shift = np.array([[1.0, 0.0, -x0], [0.0, 1.0, -y0], [0.0, 0.0, 1.0]])
+    H = shift @ Hp @ _texel_to_plane(quad.size_m, tw, th)
+    size = (x1 - x0, y1 - y0)
+    alpha = _warp(_ones(th, tw), H, size)
+    value = alpha * np.float32(quad.albedo) if tex is None else _warp(tex, H, size)
+    return y0, y1, x0, x1, alpha, value
+
+
+def draw_solid(canvas: np.ndarray, origin: tuple[int, int], view: View, solid: Solid) -> None:
+    """Composite a solid over a float32 patch in place (``origin``: the patch's top-left in
+    ideal supersampled indices)."""
+    layers = [lay for q in solid.faces if (lay := _quad_layer(view, q, origin, canvas.shape)) is not None]
+    if not layers:
+        return
+    y0 = min(lay[0] for lay in layers)
+    y1 = max(lay[1] for lay in layers)
+    x0 = min(lay[2] for lay in layers)
+    x1 = max(lay[3] for lay in layers)
+    A = np.zeros((y1 - y0, x1 - x0), np.float32)
+    P = np.zeros_like(A)
+    for ly0, ly1, lx0, lx1, alpha, value in layers:
+        A[ly0 - y0:ly1 - y0, lx0 - x0:lx1 - x0] += alpha
+        P[ly0 - y0:ly1 - y0, lx0 - x0:lx1 - x0] += value
+    for q in solid.decals:
+        lay = _quad_layer(view, q, origin, canvas.shape)
+        if lay is None:
+            continue
+        ly0, ly1, lx0, lx1, alpha, value = lay
+        ly0, ly1, lx0, lx1 = max(ly0, y0), min(ly1, y1), max(lx0, x0), min(lx1, x1)
+        if ly1 <= ly0 or lx1 <= lx0:
+            continue
+        a = alpha[ly0 - lay[0]:ly1 - lay[0], lx0 - lay[2]:lx1 - lay[2]]
+        v = value[ly0 - lay[0]:ly1 - lay[0], lx0 - lay[2]:lx1 - lay[2]]
+        sub = P[ly0 - y0:ly1 - y0, lx0 - x0:lx1 - x0]
+        sub *= 1.0 - a
+        sub += v
+    np.minimum(A, 1.0, out=A)
+    region = canvas[y0:y1, x0:x1]
+    region *= 1.0 - A
+    region += P
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Floor:
+    """The floor plane z = 0 with a square albedo texture centred on the world origin, and a
+    uniform wall albedo above the horizon."""
+
+    texture: np.ndarray
+    half_size_m: float
+    wall_albedo: float = 0.6
+
+    @property
+    def mean_albedo(self) -> float:
+        return float(self.texture.mean())
+
+
+def draw_floor(canvas: np.ndarray, origin: tuple[int, int], view: View, floor: Floor) -> None:
+    """Fill a patch with the floor (and the wall above the horizon), overwriting it."""
+    Hp = view.plane_to_ideal(np.eye(4), origin)
+    n = floor.texture.shape[0]
+    side = 2.0 * floor.half_size_m
+    H = Hp @ _texel_to_plane((side, side), n, n)
+    Hinv = np.linalg.inv(Hp)
+    h, w = canvas.shape
+    canvas[:] = cv2.warpPerspective(floor.texture, np.linalg.inv(H), (w, h),
+                                    flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                                    borderMode=cv2.BORDER_CONSTANT, borderValue=floor.mean_albedo)
+    # above the horizon the ray meets the floor behind the camera: the third coordinate is <= 0
+    third = (Hinv[2, 0] * np.arange(w, dtype=np.float64)[None, :]
+             + Hinv[2, 1] * np.arange(h, dtype=np.float64)[:, None] + Hinv[2, 2])
+    canvas[third <= 0] = floor.wall_albedo
+
+
+class Renderer:
+    """Renders one camera's frames: a static background (floor, wall, static solids) computed
+    once, and moving solids drawn only in the region of the image they can touch."""
+
+    def __init__(self, view: View, floor: Floor, static: tuple[Solid, ...] = ()):
+        self.view = view
+        cw, ch = view.canvas_size
+        canvas = np.empty((ch, cw), np.float32)
+        draw_floor(canvas, view.canvas_origin, view, floor)
+        for solid in static:
+            draw_solid(canvas, view.canvas_origin, view, solid)
+        self._canvas = canvas
+        self.background = self._final_region(0, 0, view.width, view.height, [()])
+
+    def _final_region(self, fx0: int, fy0: int, fx1: int, fy1: int,
+                      solids_per_sample: list[tuple[Solid, ...]]) -> np.ndarray:
+        v, s = self.view, self.view.s
+        sx0, sy0, sx1, sy1 = fx0 * s, fy0 * s, fx1 * s, fy1 * s
+        if not v.distorted:
+            base = self._canvas[sy0:sy1, sx0:sx1]
+            origin = (v.canvas_origin[0] + sx0, v.canvas_origin[1] + sy0)
+            mx = my = None
+        else:
+            mx = v.map_x[sy0:sy1, sx0:sx1]
+            my = v.map_y[sy0:sy1, sx0:sx1]
+            ch, cw = self._canvas.shape
+            bx0 = max(int(math.floor(float(mx.min()))) - 2, 0)
+            by0 = max(int(math.floor(float(my.min()))) - 2, 0)
+            bx1 = min(int(math.ceil(float(mx.max()))) + 3, cw)
+            by1 = min(int(math.ceil(float(my.max()))) + 3, ch)
+            base = self._canvas[by0:by1, bx0:bx1]
+            origin = (v.canvas_origin[0] + bx0, v.canvas_origin[1] + by0)
+            mx, my = mx - np.float32(bx0), my - np.float32(by0)
+        acc = None
+        for solids in solids_per_sample:
+            patch = base.copy()
+            for solid in solids:
+                draw_solid(patch, origin, v, solid)
+            if mx is not None:
+                patch = cv2.remap(patch, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+            acc = patch if acc is None else acc + patch
+        acc /= np.float32(len(solids_per_sample))
+        if s == 1:
+            return acc
+        return cv2.resize(acc, (fx1 - fx0, fy1 - fy0), interpolation=cv2.INTER_AREA)
+
+    def render(self, solids_per_sample: list[tuple[Solid, ...]]) -> np.ndarray:
+        """The albedo image (float32, final size) with the moving solids drawn; several entries
+        in ``solids_per_sample`` (the scene at instants within the exposure) are averaged."""
+        v = self.view
+        if not solids_per_sample or not any(solids_per_sample):
+            return self.background.copy()
+        pts = np.concatenate([solid.corners_world() for solids in solids_per_sample for solid in solids])
+        depth = v.depth(pts)
+        if np.all(depth <= 0.0):
+            return self.background.copy()  # entirely behind the camera
+        if np.any(depth <= 1e-3):
+            raise SimulationError("a moving object crosses a camera's image plane; "
+                                  "keep the robot away from the cameras")
+        uv = v.project(pts)
+        pad = 4
+        fx0 = max(int(math.floor(uv[:, 0].min())) - pad, 0)
+        fy0 = max(int(math.floor(uv[:, 1].min())) - pad, 0)
+        fx1 = min(int(math.ceil(uv[:, 0].max())) + pad + 1, v.width)
+        fy1 = min(int(math.ceil(uv[:, 1].max())) + pad + 1, v.height)
+        out = self.background.copy()
+        if fx1 <= fx0 or fy1 <= fy0:
+            return out
+        out[fy0:fy1, fx0:fx1] = self._final_region(fx0, fy0, fx1, fy1, solids_per_sample)
+        return out
+
+
+def lighting_gain(width: int, height: int, gradient: float, direction_rad: float, vignetting: float) -> np.ndarray:
+    """Per-pixel illumination factor: a linear gradient across the image and radial vignetting."""
+    x = np.arange(width, dtype=np.float32) - (width - 1) / 2.0
+    y = np.arange(height, dtype=np.float32) - (height - 1) / 2.0
+    half_diag = math.hypot(width, height) / 2.0
+    proj = (math.cos(direction_rad) * x[None, :] + math.sin(direction_rad) * y[:, None]) / (2.0 * half_diag)
+    r2 = (x[None, :] ** 2 + y[:, None] ** 2) / half_diag**2
+    return ((1.0 + gradient * proj) * (1.0 - vignetting * r2)).astype(np.float32)
+
+
+def form_image(albedo: np.ndarray, gain: np.ndarray, blur_px: float, noise_std: float,
+               rng: np.random.Generator) -> np.ndarray:
+    """Albedo -> 8-bit sensor image: illumination, optical blur, noise, rounding."""
+    img = albedo * gain * np.float32(255.0)
+    if blur_px > 0:
+        img = cv2.GaussianBlur(img, (0, 0), blur_px, borderType=cv2.BORDER_REFLECT)
+    if noise_std > 0:
+        img += rng.standard_normal(img.shape, dtype=np.float32) * np.float32(noise_std)
+    return np.clip(np.rint(img), 0, 255).astype(np.uint8)
+
+
+def encode_jpeg(image: np.ndarray, quality: int) -> bytes:
+    ok, buf = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, int(quality)])
+    if not ok:
+        raise SimulationError("OpenCV could not encode a JPEG frame")
+    return buf.tobytes()

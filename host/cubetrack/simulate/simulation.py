@@ -1,0 +1,301 @@
+"""Running a simulation: render every camera's frames and write the recording folder, the
+calibration recording and the files a tracker run needs (see docs/simulation.md).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import os
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import tomli_w
+
+from cubetrack.errors import RecordingError
+from cubetrack.geometry import position_quat_from_T
+from cubetrack.io.camera_info import CameraIntrinsics, write_camera_info
+from cubetrack.io.config import (CameraConfig, CameraExtrinsics, WorldConfig, tracker_config_to_table,
+                                 write_extrinsics, write_toml)
+from cubetrack.io.recording import CameraEntry, RecordingWriter
+from cubetrack.io.trajectory import Trajectory, write_tum
+from cubetrack.layout import CubeLayout, write_layout
+from cubetrack.params import params_to_table
+from cubetrack.progress import Progress
+from cubetrack.simulate.params import SimulationParams
+from cubetrack.simulate.render import Renderer, View, encode_jpeg, form_image, lighting_gain
+from cubetrack.simulate.scenario import (STREAM_CAL_GAIN, STREAM_CAL_IMAGE, STREAM_CAL_SYNC, STREAM_CAL_TIMING,
+                                         STREAM_GAIN, STREAM_IMAGE, STREAM_SYNC, STREAM_TIMING, Scene,
+                                         build_scene, rng_for)
+from cubetrack.simulate.timing import CaptureTruth, DeviceClock, plan_captures, plan_clock_samples
+
+log = logging.getLogger(__name__)
+
+CONFIG_FILE = "config.toml"
+LAYOUT_FILE = "cube.toml"
+TRUE_EXTRINSICS_FILE = "true_extrinsics.toml"
+SIMULATION_FILE = "simulation.toml"
+CALIBRATION_DIR = "calibration"
+ROBOT_NAME = "robot"
+GROUND_TRUTH_RATE_HZ = 100.0
+_GAP_BEFORE_RECORDING_S = 20.0  # the calibration recording ends this long before the tracking one
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class SimulatedCamera:
+    """The truth about one simulated camera node: intrinsics, the pose of its optical frame in
+    the world, its clock, and every frame it captured in each recording (delivered or not)."""
+
+    name: str
+    intrinsics: CameraIntrinsics
+    T_world_cam: np.ndarray
+    clock: DeviceClock
+    captures: tuple[CaptureTruth, ...]
+    calibration_captures: tuple[CaptureTruth, ...]
+
+    @property
+    def frames_written(self) -> int:
+        return sum(c.delivered for c in self.captures)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class SimulationResult:
+    """What :func:`simulate` wrote, and the truth behind it (for tests and benchmarks)."""
+
+    path: Path
+    calibration_path: Path | None
+    config_path: Path
+    params: SimulationParams
+    cameras: tuple[SimulatedCamera, ...]
+    layout: CubeLayout
+    world: WorldConfig
+    ground_truth: Trajectory
+    scene: Scene
+
+    def camera(self, name: str) -> SimulatedCamera:
+        for c in self.cameras:
+            if c.name == name:
+                return c
+        raise KeyError(name)
+
+    @property
+    def T_world_cam(self) -> dict[str, np.ndarray]:
+        """True pose of each camera's optical frame in the world frame."""
+        return {c.name: c.T_world_cam.copy() for c in self.cameras}
+
+    @property
+    def intrinsics(self) -> dict[str, CameraIntrinsics]:
+        """True intrinsics of each camera (also in ``camera_info/<camera>.yaml``)."""
+        return {c.name: c.intrinsics for c in self.cameras}
+
+    def T_world_cube(self, host_time_s: float) -> np.ndarray:
+        """True pose of the cube frame in the world at a host (Unix) time, exact (not sampled)."""
+        return self.scene.T_world_cube(host_time_s - self.params.start_unix_s)
+
+
+def _motion_offsets_s(p: SimulationParams) -> np.ndarray:
+    """Instants within the exposure (relative to mid-exposure) averaged for motion blur."""
+    if p.exposure_s <= 0:
+        return np.zeros(1)
+    n = max(2, math.ceil(p.speed_m_s * p.exposure_s / 0.002)) + 1
+    return p.exposure_s * (np.arange(n) / (n - 1) - 0.5)
+
+
+def _gains(p: SimulationParams, n: int, rng: np.random.Generator) -> np.ndarray:
+    """Slowly varying exposure gain per delivered frame (AR(1) with std ``gain_jitter``)."""
+    if p.gain_jitter <= 0 or n == 0:
+        return np.ones(n)
+    x = np.empty(n)
+    x[0] = rng.normal(0.0, p.gain_jitter)
+    innov = rng.normal(0.0, p.gain_jitter * math.sqrt(1 - 0.9**2), n)
+    for k in range(1, n):
+        x[k] = 0.9 * x[k - 1] + innov[k]
+    return 1.0 + x
+
+
+def _check_free(path: Path, overwrite: bool) -> None:
+    """Refuse a folder holding a recording; with ``overwrite`` remove that recording's frames and
+    clock files (they would linger beside the new ones), nothing else."""
+    if not (path / "recording.json").exists():
+        return
+    if not overwrite:
+        raise RecordingError(f"{path}: already holds a recording; choose another folder or overwrite it (--force)")
+    for camera_dir in path.iterdir():
+        if camera_dir.is_dir() and (camera_dir / "index.csv").exists():
+            for f in [*camera_dir.glob("*.jpg"), *camera_dir.glob("*.jpg.part"), camera_dir / "clock.csv"]:
+                f.unlink(missing_ok=True)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class _FrameJob:
+    """One frame to render: the camera, its capture, its exposure gain, whether the robot is there."""
+
+    camera: int
+    capture: CaptureTruth
+    gain: float
+    moving: bool
+    stream: int
+
+
+def _frame_jobs(scene: Scene, index: int, captures: tuple[CaptureTruth, ...], moving: bool,
+                stream: int, gain_stream: int) -> list[_FrameJob]:
+    delivered = [c for c in captures if c.delivered]
+    gains = _gains(scene.params, len(delivered), rng_for(scene.params.seed, gain_stream, index))
+    return [_FrameJob(index, c, float(g), moving, stream) for c, g in zip(delivered, gains)]
+
+
+class _FrameMaker:
+    """Renders and encodes frames; each frame has its own random stream (seed, stream, camera,
+    seq), so frames can be made in any order and on any thread with identical bytes."""
+
+    def __init__(self, scene: Scene, renderers: list[Renderer]):
+        p = scene.params
+        self.scene = scene
+        self.renderers = renderers
+        self.light = [lighting_gain(p.image_width_px, p.image_height_px, p.light_gradient,
+                                    c.light_direction_rad, p.vignetting) for c in scene.cameras]
+        self.offsets = _motion_offsets_s(p)
+
+    def __call__(self, job: _FrameJob) -> bytes:
+        p = self.scene.params
+        renderer = self.renderers[job.camera]
+        if job.moving:
+            t = job.capture.capture_host_s - p.start_unix_s
+            albedo = renderer.render([self.scene.robot_solids(t + dt) for dt in self.offsets])
+        else:
+            albedo = renderer.background
+        rng = np.random.default_rng(np.random.SeedSequence([p.seed, job.stream, job.camera, job.capture.seq]))
+        image = form_image(albedo, self.light[job.camera] * np.float32(job.gain), p.blur_px, p.noise_std, rng)
+        return encode_jpeg(image, p.jpeg_quality)
+
+
+def _write_frames(writer: RecordingWriter, scene: Scene, jobs: list[_FrameJob], make: _FrameMaker,
+                  workers: int, stage: str, progress: Progress | None) -> None:
+    """Render jobs (in parallel threads: OpenCV and NumPy release the GIL) and write them in order."""
+    def write(job: _FrameJob, jpeg: bytes, done: int) -> None:
+        c = job.capture
+        writer.add_frame(scene.cameras[job.camera].name, c.seq, c.device_time_s, c.arrival_host_s, jpeg)
+        if progress is not None:
+            progress(f"simulate {stage}", done, len(jobs))
+
+    if workers <= 1:
+        for done, job in enumerate(jobs, start=1):
+            write(job, make(job), done)
+        return
+    with ThreadPoolExecutor(max_workers=workers) as pool:
+        for done, (job, jpeg) in enumerate(zip(jobs, pool.map(make, jobs)), start=1):
+            write(job, jpeg, done)
+
+
+def simulate(params: SimulationParams, out: str | Path, progress: Progress | None = None,
+             overwrite: bool = False, workers: int | None = None) -> SimulationResult:
+    """Render a simulated session into the recording folder ``out`` (contracts §3) and return
+    the truth behind it.
+
+    Writes ``out/recording.json``, ``out/<cam>/index.csv``, JPEGs and ``clock.csv``,
+    ``out/camera_info/<cam>.yaml``, ``out/ground_truth.tum`` (100 Hz, host clock),
+    ``out/cube.toml``, ``out/config.toml``, ``out/true_extrinsics.toml``, ``out/simulation.toml``
+    and, unless ``params.calibration_frames`` is 0, the empty-arena recording
+    ``out/calibration/``. Refuses a folder that already holds a recording unless ``overwrite``.
+    ``workers`` threads render frames (default: up to 4, one per core); the output does not
+    depend on it.
+    """
+    p = params
+    out = Path(out)
+    cal_dir = out / CALIBRATION_DIR if p.calibration_frames > 0 else None
+    for folder in (out, out / CALIBRATION_DIR):
+        if folder.is_dir():
+            _check_free(folder, overwrite)
+    if cal_dir is None and (out / CALIBRATION_DIR / "recording.json").exists():
+        # overwriting: an old calibration recording would not match the new cameras
+        for f in (out / CALIBRATION_DIR).rglob("*"):
+            if f.is_file() and f.suffix in (".csv", ".yaml", ".json"):
+                f.unlink()
+    scene = build_scene(p)
+    entries = [CameraEntry(c.name, f"simulated:{c.name}") for c in scene.cameras]
+    start, end = p.start_unix_s, p.start_unix_s + p.duration_s
+
+    # timing plans first (cheap), so progress knows the totals
+    plans = [plan_captures(p, c.clock, c.capture_phase_s, rng_for(p.seed, STREAM_TIMING, i), start, end)
+             for i, c in enumerate(scene.cameras)]
+    clock_plans = [plan_clock_samples(p, c.clock, rng_for(p.seed, STREAM_SYNC, i), start, end)
+                   for i, c in enumerate(scene.cameras)]
+    cal_plans: list[tuple[CaptureTruth, ...]] = [() for _ in scene.cameras]
+    cal_clock_plans: list[tuple] = [() for _ in scene.cameras]
+    if cal_dir is not None:
+        # long enough for the wanted number of frames even with drops and skips
+        span = p.calibration_frames / p.fps / max(0.2, 1.0 - p.drop_rate - 2 * p.spike_rate) * 1.5 + 5.0
+        cal_start = start - _GAP_BEFORE_RECORDING_S - span
+        for i, c in enumerate(scene.cameras):
+            cal_plans[i] = plan_captures(p, c.clock, c.capture_phase_s, rng_for(p.seed, STREAM_CAL_TIMING, i),
+                                         cal_start, start - _GAP_BEFORE_RECORDING_S, p.calibration_frames)
+            got = [x.arrival_host_s for x in cal_plans[i] if x.delivered]
+            if len(got) < p.calibration_frames:
+                log.warning("%s: only %d of %d calibration frames arrive at drop_rate %g",
+                            c.name, len(got), p.calibration_frames, p.drop_rate)
+            last = max(got, default=cal_start)
+            cal_clock_plans[i] = plan_clock_samples(p, c.clock, rng_for(p.seed, STREAM_CAL_SYNC, i),
+                                                    cal_start, last + 0.5)
+
+    if workers is None:
+        workers = min(4, os.cpu_count() or 1)
+    with RecordingWriter(out, entries, overwrite=overwrite) as writer:
+        for c in scene.cameras:
+            write_camera_info(c.intrinsics, writer.camera_info_path(c.name))
+        _write_session_files(out, scene)
+        renderers = [Renderer(View(c.intrinsics, c.T_world_cam, p.supersample), scene.floor,
+                              (scene.world_marker,)) for c in scene.cameras]
+        make = _FrameMaker(scene, renderers)
+        for i, c in enumerate(scene.cameras):
+            for sample in clock_plans[i]:
+                writer.add_clock_sample(c.name, sample)
+        jobs = [job for i in range(len(scene.cameras))
+                for job in _frame_jobs(scene, i, plans[i], True, STREAM_IMAGE, STREAM_GAIN)]
+        _write_frames(writer, scene, jobs, make, workers, "recording", progress)
+        times = start + np.arange(int(round(p.duration_s * GROUND_TRUTH_RATE_HZ)) + 1) / GROUND_TRUTH_RATE_HZ
+        poses = [position_quat_from_T(scene.T_world_cube(t - start)) for t in times]
+        ground_truth = Trajectory(times, np.array([q[0] for q in poses]), np.array([q[1] for q in poses]))
+        write_tum(ground_truth, writer.ground_truth_path)
+
+    if cal_dir is not None:
+        with RecordingWriter(cal_dir, entries, overwrite=overwrite) as writer:
+            for i, c in enumerate(scene.cameras):
+                write_camera_info(c.intrinsics, writer.camera_info_path(c.name))
+                for sample in cal_clock_plans[i]:
+                    writer.add_clock_sample(c.name, sample)
+            jobs = [job for i in range(len(scene.cameras))
+                    for job in _frame_jobs(scene, i, cal_plans[i], False, STREAM_CAL_IMAGE, STREAM_CAL_GAIN)]
+            _write_frames(writer, scene, jobs, make, workers, "calibration", progress)
+
+    cameras = tuple(
+        SimulatedCamera(c.name, c.intrinsics, c.T_world_cam, c.clock, plans[i], cal_plans[i])
+        for i, c in enumerate(scene.cameras)
+    )
+    log.info("simulated %d cameras: %d frames in %s", len(cameras), sum(c.frames_written for c in cameras), out)
+    return SimulationResult(out, cal_dir, out / CONFIG_FILE, p, cameras, scene.layout, scene.world,
+                            ground_truth, scene)
+
+
+def _write_session_files(out: Path, scene: Scene) -> None:
+    """cube.toml, config.toml, true_extrinsics.toml and simulation.toml."""
+    p = scene.params
+    write_layout(scene.layout, out / LAYOUT_FILE)
+    cameras = [CameraConfig(c.name, "", out / "camera_info" / f"{c.name}.yaml") for c in scene.cameras]
+    write_toml(tracker_config_to_table(scene.world, cameras, [(ROBOT_NAME, LAYOUT_FILE)], relative_to=out),
+               out / CONFIG_FILE)
+    write_extrinsics({c.name: CameraExtrinsics(c.T_world_cam, method="ground truth (simulated)")
+                      for c in scene.cameras}, out / TRUE_EXTRINSICS_FILE)
+    truth = {}
+    for c in scene.cameras:
+        position, q = position_quat_from_T(c.T_world_cam)
+        truth[c.name] = {
+            "position": [float(v) for v in position],
+            "quaternion_xyzw": [float(v) for v in q],
+            "boot_host_s": float(c.clock.boot_host_s),
+            "drift_ppm": float(c.clock.drift_ppm),
+            "capture_phase_s": float(c.capture_phase_s),
+        }
+    doc = {"params": params_to_table(p), "cameras": truth}
+    (out / SIMULATION_FILE).write_text(tomli_w.dumps(doc), encoding="utf-8")
