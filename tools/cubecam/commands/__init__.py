@@ -1,0 +1,1 @@
+"""The ``cubecam`` subcommands, one module each (see :mod:`cubecam.cli`)."""
