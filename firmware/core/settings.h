@@ -66,7 +66,6 @@ struct SettingResult {
 
 const uint8_t kErrUnknownKey = 3;
 const uint8_t kErrInvalidValue = 4;
-const uint8_t kErrWriteOnly = 5;
 
 // Keys in console order; password is write-only.
 extern const char* const kSettingKeys[];

@@ -1,0 +1,102 @@
+// Stub: GS2200-WiFi library, src/GS2200AtCmd.h (1.2.x), as used.
+#ifndef CUBECAM_STUB_GS2200ATCMD_H
+#define CUBECAM_STUB_GS2200ATCMD_H
+
+#include <stdint.h>
+
+#define ATCMD_INVALID_CID 0xFF
+#define ATCMD_SSID_MAX_LENGTH 32
+#define ATCMD_BSSID_MAX_LENGTH 20
+#define ATCMD_MAC_MAX_LENGTH 18
+#define ATCMD_ESC 0x1B
+
+typedef enum {
+    ATCMD_RESP_UNMATCH = 0,
+    ATCMD_RESP_OK = 1,
+    ATCMD_RESP_INVALID_INPUT,
+    ATCMD_RESP_INVALID_CID,
+    ATCMD_RESP_ERROR,
+    ATCMD_RESP_ERROR_SOCKET_FAILURE,
+    ATCMD_RESP_DISCONNECT,
+    ATCMD_RESP_DISASSOCIATION_EVENT,
+    ATCMD_RESP_OUT_OF_STBY_ALARM,
+    ATCMD_RESP_OUT_OF_STBY_TIMER,
+    ATCMD_RESP_OUT_OF_DEEP_SLEEP,
+    ATCMD_RESP_ERROR_IP_CONFIG_FAIL,
+    ATCMD_RESP_NORMAL_BOOT_MSG,
+    ATCMD_RESP_RESET_WLAN_WD,
+    ATCMD_RESP_RESET_APP_WD,
+    ATCMD_RESP_RESET_WLAN_SW,
+    ATCMD_RESP_RESET_APP_SW,
+    ATCMD_RESP_RESET_WLAN_EXCEPT,
+    ATCMD_RESP_EXTERNAL_RESET,
+    ATCMD_RESP_RESPONSE_TIMEOUT,
+    ATCMD_RESP_BULK_DATA_RX,
+    ATCMD_RESP_UDP_BULK_DATA_RX,
+    ATCMD_RESP_ESC_OK,
+    ATCMD_RESP_ESC_FAIL,
+    ATCMD_RESP_TCP_SERVER_CONNECT,
+    ATCMD_RESP_TIMEOUT,
+    ATCMD_RESP_NO_MORE_MEMORY,
+    ATCMD_RESP_ERROR_BUFFER_HANDLING,
+    ATCMD_RESP_SPI_ERROR,
+    ATCMD_RESP_INPUT_TOO_LONG
+} ATCMD_RESP_E;
+
+typedef enum {
+    ATCMD_MODE_STATION = 0,
+    ATCMD_MODE_AD_HOC = 1,
+    ATCMD_MODE_LIMITED_AP = 2,
+    ATCMD_MODE_UNKNOWN = -1
+} ATCMD_MODE_E;
+
+typedef enum { ATCMD_PSAVE_DEFAULT = 0, ATCMD_PSAVE_ALWAYS_ON = 1 } ATCMD_PSAVE_E;
+
+typedef enum {
+    ATCMD_SEC_MAUTO = 0,
+    ATCMD_SEC_OPEN = 1,
+    ATCMD_SEC_WEP = 2,
+    ATCMD_SEC_WPAPSK = 4,
+    ATCMD_SEC_WPA2PSK = 8,
+    ATCMD_SEC_UNKNOWN = -1
+} ATCMD_SECURITYMODE_E;
+
+typedef uint8_t ATCMD_IPv4[4];
+
+typedef union {
+    ATCMD_IPv4 ipv4;
+} ATCMD_IP;
+
+typedef struct {
+    char mac[ATCMD_MAC_MAX_LENGTH + 1];
+    uint8_t connected;
+    ATCMD_MODE_E mode;
+    char bssid[ATCMD_BSSID_MAX_LENGTH + 1];
+    char ssid[ATCMD_SSID_MAX_LENGTH + 1];
+    uint8_t channel;
+    ATCMD_SECURITYMODE_E security;
+    char signal;
+    ATCMD_IP addr;
+    ATCMD_IP subnet;
+    ATCMD_IP gateway;
+    ATCMD_IP dns1;
+    ATCMD_IP dns2;
+    uint32_t rxCount;
+    uint32_t txCount;
+} ATCMD_NetworkStatus;
+
+ATCMD_RESP_E AtCmd_AT(void);
+ATCMD_RESP_E AtCmd_WRXACTIVE(uint8_t n);
+ATCMD_RESP_E AtCmd_WRXPS(uint8_t n);
+ATCMD_RESP_E AtCmd_WD(void);
+ATCMD_RESP_E AtCmd_WA(const char* pSsid, const char* pBssid, uint8_t channel);
+ATCMD_RESP_E AtCmd_NDHCP(uint8_t n);
+ATCMD_RESP_E AtCmd_NSET(char* device, char* subnet, char* gateway);
+ATCMD_RESP_E AtCmd_NSTAT(ATCMD_NetworkStatus* pStatus);
+ATCMD_RESP_E AtCmd_NSTCP(char* port, char* cid);
+ATCMD_RESP_E AtCmd_NCLOSE(uint8_t cid);
+ATCMD_RESP_E AtCmd_NCLOSEALL(void);
+ATCMD_RESP_E AtCmd_SendCommand(char* command);
+ATCMD_RESP_E AtCmd_RecvResponse(void);
+
+#endif

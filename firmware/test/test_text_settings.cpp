@@ -1,0 +1,188 @@
+#include <string.h>
+
+#include <string>
+
+#include <doctest/doctest.h>
+
+#include "core/settings.h"
+#include "core/text.h"
+
+using namespace cubecam;
+
+TEST_CASE("TextBuf formats numbers and timestamps without printf") {
+    char buf[64];
+    TextBuf t(buf, sizeof buf);
+    t.add_uint(0).add(' ').add_uint(18446744073709551615ull).add(' ').add_int(-9223372036854775807ll - 1);
+    CHECK(std::string(t.c_str()) == "0 18446744073709551615 -9223372036854775808");
+    t.clear();
+    t.add_timestamp(0).add(' ').add_timestamp(1234567).add(' ').add_timestamp(5000001);
+    CHECK(std::string(t.c_str()) == "0.000000 1.234567 5.000001");
+    t.clear();
+    t.add_fixed(75, 1).add(' ').add_fixed(14999, 3).add(' ').add_fixed(-5, 1);
+    CHECK(std::string(t.c_str()) == "7.5 14.999 -0.5");
+}
+
+TEST_CASE("TextBuf never writes past its buffer and reports the cut") {
+    char buf[8];
+    memset(buf, 'x', sizeof buf);
+    TextBuf t(buf, 6);
+    t.add("hello world");
+    CHECK(t.overflowed());
+    CHECK(t.size() == 5);
+    CHECK(std::string(t.c_str()) == "hello");
+    CHECK(buf[6] == 'x');
+}
+
+TEST_CASE("JSON strings are escaped") {
+    char buf[64];
+    TextBuf t(buf, sizeof buf);
+    t.add_json_string("a\"b\\c\n\x01");
+    CHECK(std::string(t.c_str()) == "\"a\\\"b\\\\c\\u000a\\u0001\"");
+}
+
+TEST_CASE("number parsers check bounds and syntax") {
+    uint32_t v = 0;
+    CHECK(parse_uint("65535", 5, 65535, v));
+    CHECK(v == 65535);
+    CHECK_FALSE(parse_uint("65536", 5, 65535, v));
+    CHECK_FALSE(parse_uint("", 0, 10, v));
+    CHECK_FALSE(parse_uint("1a", 2, 100, v));
+    CHECK_FALSE(parse_uint("99999999999", 11, 0xFFFFFFFFu, v));
+    CHECK(parse_tenths("7.5", 3, v));
+    CHECK(v == 75);
+    CHECK(parse_tenths("30", 2, v));
+    CHECK(v == 300);
+    CHECK_FALSE(parse_tenths("7.55", 4, v));
+    CHECK_FALSE(parse_tenths(".5", 2, v));
+    CHECK_FALSE(parse_tenths("5.", 2, v));
+    uint8_t ip[4];
+    CHECK(parse_ipv4("192.168.1.20", 12, ip));
+    CHECK(ip[0] == 192);
+    CHECK(ip[3] == 20);
+    CHECK_FALSE(parse_ipv4("192.168.1", 9, ip));
+    CHECK_FALSE(parse_ipv4("192.168.1.256", 13, ip));
+    CHECK_FALSE(parse_ipv4("1.2.3.4.5", 9, ip));
+    CHECK_FALSE(parse_ipv4("1..3.4", 6, ip));
+}
+
+namespace {
+
+SettingResult set(Settings& s, const char* key, const char* value) {
+    return settings_set(s, key, value, strlen(value));
+}
+
+std::string get(const Settings& s, const char* key) {
+    char buf[96];
+    TextBuf t(buf, sizeof buf);
+    REQUIRE(settings_get(s, key, t).ok());
+    return t.c_str();
+}
+
+}  // namespace
+
+TEST_CASE("settings record round-trips and its CRC guards every byte") {
+    Settings s;
+    settings_defaults(s);
+    REQUIRE(set(s, "ssid", "lab net").ok());
+    REQUIRE(set(s, "password", "correct horse").ok());
+    REQUIRE(set(s, "ip", "10.0.0.7/24,10.0.0.1").ok());
+    REQUIRE(set(s, "fps", "7.5").ok());
+    uint8_t rec[kSettingsRecordSize];
+    settings_encode(s, rec);
+    Settings back;
+    settings_defaults(back);
+    REQUIRE(settings_decode(rec, sizeof rec, back));
+    CHECK(std::string(back.ssid) == "lab net");
+    CHECK(std::string(back.password) == "correct horse");
+    CHECK(get(back, "ip") == "10.0.0.7/24,10.0.0.1");
+    CHECK(back.fps == FrameRate::Fps7_5);
+    for (size_t i = 0; i < sizeof rec; ++i) {
+        uint8_t copy[kSettingsRecordSize];
+        memcpy(copy, rec, sizeof rec);
+        copy[i] ^= 0x01;
+        Settings out;
+        settings_defaults(out);
+        CHECK_FALSE(settings_decode(copy, sizeof copy, out));
+        CHECK(std::string(out.name) == "cubecam");  // untouched on failure
+    }
+}
+
+TEST_CASE("zero-filled or short storage is not a settings record") {
+    uint8_t zeros[kSettingsRecordSize] = {};
+    Settings s;
+    CHECK_FALSE(settings_decode(zeros, sizeof zeros, s));
+    uint8_t rec[kSettingsRecordSize];
+    settings_defaults(s);
+    settings_encode(s, rec);
+    CHECK_FALSE(settings_decode(rec, sizeof rec - 1, s));
+}
+
+TEST_CASE("a record with a good CRC but an invalid field is rejected") {
+    Settings s;
+    settings_defaults(s);
+    s.jpeg_quality = 0;  // bypassing validation
+    uint8_t rec[kSettingsRecordSize];
+    settings_encode(s, rec);
+    Settings out;
+    CHECK_FALSE(settings_decode(rec, sizeof rec, out));
+}
+
+TEST_CASE("Wi-Fi credentials are validated before they reach the module") {
+    Settings s;
+    settings_defaults(s);
+    CHECK(set(s, "ssid", "0123456789abcdef0123456789abcdef").ok());
+    SettingResult r = set(s, "ssid", "0123456789abcdef0123456789abcdef!");
+    CHECK(r.code == kErrInvalidValue);
+    CHECK(std::string(r.message).find("32") != std::string::npos);
+    CHECK(set(s, "ssid", "a,b").code == kErrInvalidValue);
+    CHECK(set(s, "password", "1234567").code == kErrInvalidValue);
+    CHECK(std::string(set(s, "password", "1234567").message).find("8 to 63") != std::string::npos);
+    CHECK(set(s, "password", "12345678").ok());
+    std::string p63(63, 'p');
+    std::string p64(64, 'p');
+    CHECK(set(s, "password", p63.c_str()).ok());
+    CHECK(set(s, "password", p64.c_str()).code == kErrInvalidValue);
+    CHECK(std::string(s.password) == p63);  // a rejected value changes nothing
+    CHECK(set(s, "password", "").ok());      // open network
+}
+
+TEST_CASE("every key parses its documented forms and rejects others") {
+    Settings s;
+    settings_defaults(s);
+    CHECK(get(s, "fps") == "15");
+    CHECK(set(s, "fps", "30").ok());
+    CHECK(set(s, "fps", "10").code == kErrInvalidValue);  // ISX019 has 10, the Arduino enum has not
+    CHECK(set(s, "fps", "60").code == kErrInvalidValue);
+    CHECK(set(s, "fps", "7.5").ok());
+    CHECK(get(s, "fps") == "7.5");
+    CHECK(set(s, "hdr", "on").ok());
+    CHECK(s.hdr == HdrMode::On);
+    CHECK(set(s, "hdr", "maybe").code == kErrInvalidValue);
+    CHECK(set(s, "mode", "ap").ok());
+    CHECK(get(s, "mode") == "ap");
+    CHECK(set(s, "mode", "mesh").code == kErrInvalidValue);
+    CHECK(set(s, "port", "0").code == kErrInvalidValue);
+    CHECK(set(s, "port", "65536").code == kErrInvalidValue);
+    CHECK(set(s, "port", "8080").ok());
+    CHECK(set(s, "jpeg_quality", "101").code == kErrInvalidValue);
+    CHECK(set(s, "jpeg_quality", "85").ok());
+    CHECK(set(s, "name", "cam-1_a").ok());
+    CHECK(set(s, "name", "cam 1").code == kErrInvalidValue);
+    CHECK(set(s, "name", "").code == kErrInvalidValue);
+    CHECK(set(s, "ip", "dhcp").ok());
+    CHECK(set(s, "ip", "10.0.0.7/33,10.0.0.1").code == kErrInvalidValue);
+    CHECK(set(s, "ip", "10.0.0.7,10.0.0.1").code == kErrInvalidValue);
+    CHECK(set(s, "colour", "red").code == kErrUnknownKey);
+}
+
+TEST_CASE("the password is never shown") {
+    Settings s;
+    settings_defaults(s);
+    CHECK(get(s, "password") == "(empty)");
+    REQUIRE(set(s, "password", "supersecret").ok());
+    CHECK(get(s, "password") == "(set)");
+}
+
+TEST_CASE("crc32 matches the IEEE check value") {
+    CHECK(crc32(reinterpret_cast<const uint8_t*>("123456789"), 9) == 0xCBF43926u);
+}

@@ -1,0 +1,156 @@
+"""The same doctest unit tests on the host (ASan + UBSan) and on a Cortex-M4F under QEMU,
+the M4 size report, and the syntax-only compile of the sketch against the API stubs."""
+
+from __future__ import annotations
+
+import json
+import os
+import re
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+from firmware_tools import BUILD_DIR, FIRMWARE_DIR, make, require_tools
+
+QEMU = [
+    "qemu-system-arm", "-M", "mps2-an386", "-nographic", "-monitor", "none", "-serial", "none",
+    "-semihosting-config", "enable=on,target=native", "-kernel",
+]
+SUMMARY = re.compile(r"test cases:\s*(\d+) \|\s*(\d+) passed \|\s*(\d+) failed")
+
+
+def doctest_counts(output: str) -> tuple[int, int, int]:
+    m = SUMMARY.search(output)
+    assert m, output[-3000:]
+    return int(m.group(1)), int(m.group(2)), int(m.group(3))
+
+
+def count_test_cases(pattern: str) -> int:
+    return sum(p.read_text().count("\nTEST_CASE(") for p in FIRMWARE_DIR.glob(pattern))
+
+
+def run_qemu(elf: Path) -> subprocess.CompletedProcess[str]:
+    return subprocess.run(["timeout", "120", *QEMU, str(elf)], capture_output=True, text=True)
+
+
+def test_unit_tests_pass_on_host_with_sanitizers():
+    require_tools("g++", "make")
+    if not Path("/usr/include/doctest/doctest.h").exists():
+        pytest.skip("doctest-dev is not installed")
+    make("unit-host")
+    result = subprocess.run([str(BUILD_DIR / "unit-host")], capture_output=True, text=True, timeout=120)
+    total, passed, failed = doctest_counts(result.stdout)
+    assert result.returncode == 0, result.stdout[-4000:] + result.stderr[-4000:]
+    assert failed == 0 and passed == total
+    assert total == count_test_cases("test/test_*.cpp") + count_test_cases("test/host/test_*.cpp")
+    assert "runtime error" not in result.stderr  # UBSan
+
+
+def test_unit_tests_pass_on_cortex_m4_under_qemu():
+    require_tools("arm-none-eabi-g++", "qemu-system-arm", "arm-none-eabi-readelf")
+    make("unit-m4")
+    elf = BUILD_DIR / "unit-m4.elf"
+    attrs = subprocess.run(["arm-none-eabi-readelf", "-A", str(elf)], capture_output=True, text=True).stdout
+    assert "Tag_CPU_arch: v7E-M" in attrs
+    assert "Tag_FP_arch: VFPv4-D16" in attrs
+    assert "Tag_ABI_VFP_args: VFP registers" in attrs  # hard float, as the Spresense toolchain
+    result = run_qemu(elf)
+    total, passed, failed = doctest_counts(result.stdout)
+    assert result.returncode == 0, result.stdout[-4000:]
+    assert failed == 0 and passed == total
+    assert total == count_test_cases("test/test_*.cpp")  # every shared case ran on the M4
+
+
+def test_qemu_run_reports_failures_as_a_nonzero_exit():
+    require_tools("arm-none-eabi-g++", "qemu-system-arm")
+    make("m4-failcheck")
+    result = run_qemu(BUILD_DIR / "m4-failcheck.elf")
+    assert result.returncode == 1, result.stdout
+    assert doctest_counts(result.stdout) == (2, 1, 1)
+
+
+def test_m4_size_report_within_budget():
+    require_tools("arm-none-eabi-g++", "arm-none-eabi-size", "arm-none-eabi-nm")
+    make("size")
+    report = (BUILD_DIR / "size-m4.txt").read_text()
+    print(report)
+    totals = re.search(r"^\s*(\d+)\s+(\d+)\s+(\d+)\s+\d+\s+\w+\s+\(TOTALS\)", report, re.M)
+    assert totals, report
+    text, data, bss = map(int, totals.groups())
+    assert 5_000 < text < 64_000  # the core stays small next to the 1.5 MB flash
+    assert data == 0 and bss == 0  # no hidden globals in the core
+    ram = {name: int(size) for size, name in re.findall(r"\d+ (\d+) B cubecam_ram_(\w+)", report)}
+    assert ram["node"] < 16_000
+    assert ram["per_client"] < 2_000
+
+
+def test_sketch_compiles_for_m4_as_gnu11_against_the_api_stubs():
+    require_tools("arm-none-eabi-g++")
+    make("sketch-check")
+
+
+def test_the_stub_check_catches_an_api_typo(tmp_path):
+    require_tools("arm-none-eabi-g++")
+    bad = tmp_path / "camera_typo.cpp"
+    bad.write_text((FIRMWARE_DIR / "spresense" / "camera.cpp").read_text().replace("setJPEGQuality", "setJpegQuality"))
+    result = subprocess.run(
+        ["arm-none-eabi-g++", "-std=gnu++11", "-fno-exceptions", "-fno-rtti", "-fsyntax-only",
+         "-I", str(FIRMWARE_DIR), "-I", str(FIRMWARE_DIR / "stubs"), str(bad)],
+        capture_output=True, text=True,
+    )
+    assert result.returncode != 0
+    assert "setJpegQuality" in result.stderr
+
+
+def test_sketch_is_hardware_glue_only():
+    sketch = (FIRMWARE_DIR / "src" / "main.cpp").read_text()
+    assert len(sketch.splitlines()) <= 150
+    includes = re.findall(r'#include [<"]([^>"]+)[>"]', sketch)
+    assert includes == ["Arduino.h", "core/node.h", "spresense/board.h", "spresense/camera.h", "spresense/gs2200.h"]
+    for word in ("HTTP", "IMPROV", "Content-Type", "GET "):
+        assert word not in sketch
+
+
+def test_core_is_portable():
+    for path in sorted((FIRMWARE_DIR / "core").glob("*")):
+        includes = re.findall(r'#include [<"]([^>"]+)[>"]', path.read_text())
+        assert all(i.startswith("core/") or i in ("stddef.h", "stdint.h", "string.h") for i in includes), path
+
+
+def test_core_allocates_nothing_and_throws_nothing_on_the_m4():
+    require_tools("arm-none-eabi-g++", "arm-none-eabi-nm")
+    make("size")
+    objects = sorted(str(p) for p in (BUILD_DIR / "m4" / "core").glob("*.o"))
+    undefined = subprocess.run(["arm-none-eabi-nm", "-u", *objects], capture_output=True, text=True).stdout
+    symbols = {s for s in re.findall(r"\bU (\S+)", undefined) if not re.match(r"_ZN7cubecam|_ZNK7cubecam", s)}
+    # Only string functions and 64-bit division: no operator new/delete, malloc, printf,
+    # __cxa_* (exceptions, guards) or anything else from the C/C++ runtime.
+    allowed = {"memcpy", "memset", "memchr", "memcmp", "strlen", "strcmp", "strchr"}
+    allowed |= {"__aeabi_ldivmod", "__aeabi_uldivmod"}
+    assert symbols <= allowed, symbols - allowed
+
+
+def test_platformio_ini_is_valid():
+    pio = shutil.which("pio") or str(Path(sys.executable).parent / "pio")
+    if not Path(pio).exists():
+        pytest.skip("platformio is not installed (pip install platformio==6.2.0)")
+    env = dict(os.environ, PLATFORMIO_SETTING_ENABLE_TELEMETRY="No")
+    result = subprocess.run([pio, "project", "config", "--json-output"], cwd=FIRMWARE_DIR.parent,
+                            capture_output=True, text=True, timeout=120, env=env)
+    assert result.returncode == 0, result.stderr
+    sections = {name: dict(options) for name, options in json.loads(result.stdout)}
+    opts = sections["env:spresense"]
+    assert opts["platform"] == "https://github.com/maxgerhardt/platform-sonyspresense.git"
+    assert opts["board"] == "spresense"
+    assert opts["framework"] == ["arduino"]
+    assert int(opts["monitor_speed"]) == 115200
+    assert int(opts["board_upload.maximum_ram_size"]) >= 1_000_000
+    assert any("GS2200-WiFi" in dep for dep in opts["lib_deps"])
+    src = Path(sections["platformio"]["src_dir"])
+    assert src == FIRMWARE_DIR
+    filters = " ".join(opts["build_src_filter"])
+    for pattern in ("core/*.cpp", "spresense/*.cpp", "src/*.cpp"):
+        assert f"+<{pattern}>" in filters
+        assert list(src.glob(pattern)), pattern
