@@ -134,13 +134,22 @@ def read_tracker_config(path: str | Path) -> TrackerConfig:
         raise ConfigError(f"{where}: needs at least one [[robots]] table with a cube layout")
     if len({r.name for r in robots}) != len(robots):
         raise ConfigError(f"{where}: robot names must be unique")
+    world = _world(doc.get("world"), where)
+    owner: dict[tuple[str, int], str] = {(world.dictionary, world.marker_id): "the world marker"}
+    for r in robots:
+        for marker_id in sorted(r.layout.ids):
+            key = (r.layout.dictionary, marker_id)
+            if key in owner:
+                raise ConfigError(f"{where}: robot {r.name!r} uses {key[0]} id {marker_id}, already used by "
+                                  f"{owner[key]}; every robot needs ids of its own")
+            owner[key] = f"robot {r.name!r}"
     sections = {}
     for name in STAGE_SECTIONS:
         if name in doc:
             if not isinstance(doc[name], dict):
                 raise ConfigError(f"{where}: [{name}] must be a table")
             sections[name] = doc[name]
-    return TrackerConfig(path, _world(doc.get("world"), where), tuple(cameras), tuple(robots), sections)
+    return TrackerConfig(path, world, tuple(cameras), tuple(robots), sections)
 
 
 def tracker_config_to_table(

@@ -45,6 +45,9 @@ class SimulationParams:
     marker_size_m: float = param(0.08, "side of each cube marker's black square, metres")
     robot_size_m: tuple[float, ...] = param((0.30, 0.25, 0.20), "robot body length, width, height, metres")
     mast_height_m: float = param(0.05, "height of the mast between robot body and cube, metres")
+    robots: int = param(1, "number of robots on the same path, each with its own cube (ids: cube_marker_id + k, "
+                           "or + 5 k with distinct_ids); more than one are named robot1, robot2, ...")
+    robot_spacing: float = param(0.3, "with several robots: their distance along the path, as a fraction of its length")
     # --- motion
     path: str = param("figure8", "robot path: figure8 (crosses the world marker) or rectangle (rounded)")
     path_size_m: tuple[float, ...] = param((0.8, 0.5), "half-extent of the path along world x and y, metres")
@@ -104,6 +107,10 @@ class SimulationParams:
                 raise bad(name, "must be between 0 and 1")
         if not 0 <= self.drop_rate < 1:
             raise bad("drop_rate", "must be at least 0 and below 1")
+        if not 1 <= self.robots <= 8:
+            raise bad("robots", "must be between 1 and 8")
+        if not 0 < self.robot_spacing < 1:
+            raise bad("robot_spacing", "must be between 0 and 1 (exclusive)")
         if not 1 <= self.cameras <= 16:
             raise bad("cameras", "must be between 1 and 16")
         if not 0 < self.tilt_deg < 90:
@@ -126,7 +133,7 @@ class SimulationParams:
             raise bad("jpeg_quality", "must be between 1 and 100")
         if self.world_marker_id < 0 or self.cube_marker_id < 0:
             raise bad("cube_marker_id", "marker ids must not be negative")
-        cube_ids = range(self.cube_marker_id, self.cube_marker_id + (5 if self.distinct_ids else 1))
+        cube_ids = range(self.cube_marker_id, self.cube_marker_id + (5 if self.distinct_ids else 1) * self.robots)
         if self.world_marker_id in cube_ids:
             raise bad("world_marker_id", f"must differ from the cube's ids ({cube_ids.start}..{cube_ids.stop - 1})")
         if self.exposure_s >= 1.0 / self.fps:

@@ -30,6 +30,7 @@ MAST_ALBEDO = 0.3
 FLOOR_ALBEDO = 0.42
 WALL_ALBEDO = 0.6
 MAST_SIDE_M = 0.03
+ROBOT_NAME = "robot"  # the name of a lone robot; several are robot1, robot2, ...
 
 # Independent random streams: (seed, purpose, index) -> Generator. Adding a camera or changing
 # one stage's use of randomness leaves the other streams unchanged.
@@ -90,35 +91,46 @@ class RobotPath:
 
 
 @dataclass(frozen=True, slots=True, eq=False)
+class SimRobot:
+    """One simulated robot: its name, its cube's layout and the path it drives."""
+
+    name: str
+    layout: CubeLayout
+    path: RobotPath
+
+
+@dataclass(frozen=True, slots=True, eq=False)
 class Scene:
     """Everything the renderer and the timing model need, built once from the parameters."""
 
     params: SimulationParams
     cameras: tuple[CameraSetup, ...]
-    layout: CubeLayout
+    robots: tuple[SimRobot, ...]
     world: WorldConfig
-    path: RobotPath
     floor: Floor
     world_marker: Solid
 
-    def T_world_robot(self, t_s: float) -> np.ndarray:
-        """The robot's ground frame (x forward, z up) ``t_s`` seconds after the start."""
-        (x, y), yaw = self.path.pose(t_s)
+    def T_world_robot(self, t_s: float, robot: int = 0) -> np.ndarray:
+        """A robot's ground frame (x forward, z up) ``t_s`` seconds after the start."""
+        (x, y), yaw = self.robots[robot].path.pose(t_s)
         return make_T(Rotation.from_euler("z", yaw).as_matrix(), [x, y, 0.0])
 
     def T_robot_cube(self) -> np.ndarray:
         """The cube frame in the robot's ground frame: straight above it, same axes."""
         return make_T(np.eye(3), [0.0, 0.0, self.params.cube_centre_height_m])
 
-    def T_world_cube(self, t_s: float) -> np.ndarray:
-        """The cube frame in the world ``t_s`` seconds after the start of the recording."""
-        return self.T_world_robot(t_s) @ self.T_robot_cube()
+    def T_world_cube(self, t_s: float, robot: int = 0) -> np.ndarray:
+        """A robot's cube frame in the world ``t_s`` seconds after the start of the recording."""
+        return self.T_world_robot(t_s, robot) @ self.T_robot_cube()
 
-    def robot_solids(self, t_s: float) -> tuple[Solid, ...]:
-        """Robot body, mast and cube at ``t_s``, in painter's order for cameras above the cube."""
-        return self.robot_solids_at(self.T_world_robot(t_s))
+    def moving_solids(self, t_s: float, camera_position_m: np.ndarray) -> tuple[Solid, ...]:
+        """Every robot's body, mast and cube at ``t_s``, in painter's order (far robots first)
+        for a camera at ``camera_position_m`` above the cubes."""
+        poses = [self.T_world_robot(t_s, k) for k in range(len(self.robots))]
+        order = sorted(range(len(poses)), key=lambda k: -float(np.linalg.norm(poses[k][:3, 3] - camera_position_m)))
+        return tuple(solid for k in order for solid in self.robot_solids_at(poses[k], self.robots[k].layout))
 
-    def robot_solids_at(self, T_robot: np.ndarray) -> tuple[Solid, ...]:
+    def robot_solids_at(self, T_robot: np.ndarray, layout: CubeLayout) -> tuple[Solid, ...]:
         """Robot body, mast and cube with the robot's ground frame at ``T_robot`` (world)."""
         p = self.params
         length, width, height = p.robot_size_m
@@ -131,10 +143,10 @@ class Scene:
             solids.append(Solid(box_faces(mast_T, (side, side, p.mast_height_m), MAST_ALBEDO)))
         T_cube = T_robot @ self.T_robot_cube()
         faces, decals = [], []
-        for m in self.layout.markers:
+        for m in layout.markers:
             T = T_cube @ m.T_cube_marker
             faces.append(Quad(T, (p.cube_size_m, p.cube_size_m), WHITE_ALBEDO))
-            decals.append(Quad(T, (m.size_m, m.size_m), texture=MarkerTexture(self.layout.dictionary, m.marker_id)))
+            decals.append(Quad(T, (m.size_m, m.size_m), texture=MarkerTexture(layout.dictionary, m.marker_id)))
         # the face without a marker (the bottom) is never seen from above; the cube is closed anyway
         solids.append(Solid(tuple(faces), tuple(decals)))
         return tuple(solids)
@@ -190,9 +202,15 @@ def build_scene(p: SimulationParams) -> Scene:
     world marker (calibration would be impossible)."""
     scene_rng = rng_for(p.seed, STREAM_SCENE)
     floor = make_floor(scene_rng)
-    layout = paper_cube_layout(p.cube_size_m, p.marker_size_m, p.cube_marker_id, p.dictionary, p.distinct_ids)
     world = WorldConfig(p.dictionary, p.world_marker_id, p.world_marker_size_m)
-    path = RobotPath(p.path, (p.path_size_m[0], p.path_size_m[1]), p.speed_m_s, float(scene_rng.uniform(0.0, 1.0)))
+    start = float(scene_rng.uniform(0.0, 1.0))
+    robots = []
+    for k in range(p.robots):
+        first_id = p.cube_marker_id + k * (5 if p.distinct_ids else 1)
+        layout = paper_cube_layout(p.cube_size_m, p.marker_size_m, first_id, p.dictionary, p.distinct_ids)
+        path = RobotPath(p.path, (p.path_size_m[0], p.path_size_m[1]), p.speed_m_s,
+                         (start + k * p.robot_spacing) % 1.0)
+        robots.append(SimRobot(ROBOT_NAME if p.robots == 1 else f"robot{k + 1}", layout, path))
     cameras = []
     for i in range(p.cameras):
         name = f"cam{i + 1}"
@@ -203,9 +221,9 @@ def build_scene(p: SimulationParams) -> Scene:
         phase = float(clock_rng.uniform(0.0, 1.0 / p.fps))
         light = float(scene_rng.uniform(0.0, 2.0 * math.pi))
         cameras.append(CameraSetup(name, intrinsics_of(p, name), T_world_cam, clock, phase, light))
-    for marker_id in sorted({p.world_marker_id, *layout.ids}):
+    for marker_id in sorted({p.world_marker_id, *(i for r in robots for i in r.layout.ids)}):
         MarkerTexture(p.dictionary, marker_id).cells  # unknown dictionary or id: SimulationError
-    scene = Scene(p, tuple(cameras), layout, world, path, floor, make_world_marker(p))
+    scene = Scene(p, tuple(cameras), tuple(robots), world, floor, make_world_marker(p))
     _check_visibility(scene)
     return scene
 

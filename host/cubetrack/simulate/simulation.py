@@ -38,7 +38,7 @@ LAYOUT_FILE = "cube.toml"
 TRUE_EXTRINSICS_FILE = "true_extrinsics.toml"
 SIMULATION_FILE = "simulation.toml"
 CALIBRATION_DIR = "calibration"
-ROBOT_NAME = "robot"
+GROUND_TRUTH_DIR = "ground_truth"  # with several robots: ground_truth/<robot>.tum
 GROUND_TRUTH_RATE_HZ = 100.0
 _GAP_BEFORE_RECORDING_S = 20.0  # the calibration recording ends this long before the tracking one
 
@@ -69,10 +69,19 @@ class SimulationResult:
     config_path: Path
     params: SimulationParams
     cameras: tuple[SimulatedCamera, ...]
-    layout: CubeLayout
     world: WorldConfig
-    ground_truth: Trajectory
+    ground_truths: dict[str, Trajectory]
     scene: Scene
+
+    @property
+    def layout(self) -> CubeLayout:
+        """The first robot's cube layout (the only one unless ``params.robots > 1``)."""
+        return self.scene.robots[0].layout
+
+    @property
+    def ground_truth(self) -> Trajectory:
+        """The first robot's 100 Hz ground truth (also ``ground_truth.tum``)."""
+        return next(iter(self.ground_truths.values()))
 
     def camera(self, name: str) -> SimulatedCamera:
         for c in self.cameras:
@@ -90,9 +99,9 @@ class SimulationResult:
         """True intrinsics of each camera (also in ``camera_info/<camera>.yaml``)."""
         return {c.name: c.intrinsics for c in self.cameras}
 
-    def T_world_cube(self, host_time_s: float) -> np.ndarray:
-        """True pose of the cube frame in the world at a host (Unix) time, exact (not sampled)."""
-        return self.scene.T_world_cube(host_time_s - self.params.start_unix_s)
+    def T_world_cube(self, host_time_s: float, robot: int = 0) -> np.ndarray:
+        """True pose of a robot's cube frame in the world at a host (Unix) time, exact (not sampled)."""
+        return self.scene.T_world_cube(host_time_s - self.params.start_unix_s, robot)
 
 
 def _motion_offsets_s(p: SimulationParams) -> np.ndarray:
@@ -163,7 +172,8 @@ class _FrameMaker:
         renderer = self.renderers[job.camera]
         if job.moving:
             t = job.capture.capture_host_s - p.start_unix_s
-            albedo = renderer.render([self.scene.robot_solids(t + dt) for dt in self.offsets])
+            position = self.scene.cameras[job.camera].T_world_cam[:3, 3]
+            albedo = renderer.render([self.scene.moving_solids(t + dt, position) for dt in self.offsets])
         else:
             albedo = renderer.background
         rng = np.random.default_rng(np.random.SeedSequence([p.seed, job.stream, job.camera, job.capture.seq]))
@@ -195,7 +205,8 @@ def simulate(params: SimulationParams, out: str | Path, progress: Progress | Non
     the truth behind it.
 
     Writes ``out/recording.json``, ``out/<cam>/index.csv``, JPEGs and ``clock.csv``,
-    ``out/camera_info/<cam>.yaml``, ``out/ground_truth.tum`` (100 Hz, host clock),
+    ``out/camera_info/<cam>.yaml``, ``out/ground_truth.tum`` (100 Hz, host clock; the first
+    robot's, and with several robots every robot's in ``out/ground_truth/<robot>.tum``),
     ``out/cube.toml``, ``out/config.toml``, ``out/true_extrinsics.toml``, ``out/simulation.toml``
     and, unless ``params.calibration_frames`` is 0, the empty-arena recording
     ``out/calibration/``. Refuses a folder that already holds a recording unless ``overwrite``.
@@ -255,9 +266,15 @@ def simulate(params: SimulationParams, out: str | Path, progress: Progress | Non
                 for job in _frame_jobs(scene, i, plans[i], True, STREAM_IMAGE, STREAM_GAIN)]
         _write_frames(writer, scene, jobs, make, workers, "recording", progress)
         times = start + np.arange(int(round(p.duration_s * GROUND_TRUTH_RATE_HZ)) + 1) / GROUND_TRUTH_RATE_HZ
-        poses = [position_quat_from_T(scene.T_world_cube(t - start)) for t in times]
-        ground_truth = Trajectory(times, np.array([q[0] for q in poses]), np.array([q[1] for q in poses]))
-        write_tum(ground_truth, writer.ground_truth_path)
+        ground_truths = {}
+        for k, robot in enumerate(scene.robots):
+            poses = [position_quat_from_T(scene.T_world_cube(t - start, k)) for t in times]
+            ground_truths[robot.name] = Trajectory(times, np.array([q[0] for q in poses]), np.array([q[1] for q in poses]))
+        write_tum(next(iter(ground_truths.values())), writer.ground_truth_path)
+        if len(scene.robots) > 1:
+            (out / GROUND_TRUTH_DIR).mkdir(exist_ok=True)
+            for name, trajectory in ground_truths.items():
+                write_tum(trajectory, out / GROUND_TRUTH_DIR / f"{name}.tum")
 
     if cal_dir is not None:
         with RecordingWriter(cal_dir, entries, overwrite=overwrite) as writer:
@@ -274,17 +291,19 @@ def simulate(params: SimulationParams, out: str | Path, progress: Progress | Non
         for i, c in enumerate(scene.cameras)
     )
     log.info("simulated %d cameras: %d frames in %s", len(cameras), sum(c.frames_written for c in cameras), out)
-    return SimulationResult(out, cal_dir, out / CONFIG_FILE, p, cameras, scene.layout, scene.world,
-                            ground_truth, scene)
+    return SimulationResult(out, cal_dir, out / CONFIG_FILE, p, cameras, scene.world, ground_truths, scene)
 
 
 def _write_session_files(out: Path, scene: Scene) -> None:
     """cube.toml, config.toml, true_extrinsics.toml and simulation.toml."""
     p = scene.params
-    write_layout(scene.layout, out / LAYOUT_FILE)
+    robots = []
+    for robot in scene.robots:
+        layout_file = LAYOUT_FILE if len(scene.robots) == 1 else f"cube_{robot.name}.toml"
+        write_layout(robot.layout, out / layout_file)
+        robots.append((robot.name, layout_file))
     cameras = [CameraConfig(c.name, "", out / "camera_info" / f"{c.name}.yaml") for c in scene.cameras]
-    write_toml(tracker_config_to_table(scene.world, cameras, [(ROBOT_NAME, LAYOUT_FILE)], relative_to=out),
-               out / CONFIG_FILE)
+    write_toml(tracker_config_to_table(scene.world, cameras, robots, relative_to=out), out / CONFIG_FILE)
     write_extrinsics({c.name: CameraExtrinsics(c.T_world_cam, method="ground truth (simulated)")
                       for c in scene.cameras}, out / TRUE_EXTRINSICS_FILE)
     truth = {}

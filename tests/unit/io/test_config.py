@@ -59,3 +59,15 @@ def test_extrinsics_without_quaternion_is_refused(tmp_path):
     (tmp_path / "e.toml").write_text("[cam1]\nposition = [0, 0, 1]\n")
     with pytest.raises(ConfigError, match="quaternion_xyzw"):
         read_extrinsics(tmp_path / "e.toml")
+
+
+def test_robots_sharing_a_marker_id_are_refused(tmp_path):
+    p = write_config(tmp_path, "[[robots]]\nname='a'\nlayout='cube.toml'\n[[robots]]\nname='b'\nlayout='cube.toml'\n")
+    with pytest.raises(ConfigError, match="robot 'b' uses DICT_4X4_50 id 1, already used by robot 'a'"):
+        read_tracker_config(p)
+
+
+def test_cube_using_the_world_marker_id_is_refused(tmp_path):
+    p = write_config(tmp_path, "[world]\nmarker_id = 1\n[[robots]]\nname='a'\nlayout='cube.toml'\n")
+    with pytest.raises(ConfigError, match="already used by the world marker"):
+        read_tracker_config(p)

@@ -142,7 +142,7 @@ def test_robot_occludes_the_world_marker_sometimes():
         m = project_points(cam.intrinsics, cam.T_world_cam, marker)
         overlaps = []
         for t in np.arange(0.0, p.duration_s, 0.25):
-            body = scene.robot_solids(t)[0].corners_world()
+            body = scene.robot_solids_at(scene.T_world_robot(t), scene.robots[0].layout)[0].corners_world()
             b = project_points(cam.intrinsics, cam.T_world_cam, body)
             overlaps.append(b[:, 0].min() < m[:, 0].max() and b[:, 0].max() > m[:, 0].min()
                             and b[:, 1].min() < m[:, 1].max() and b[:, 1].max() > m[:, 1].min())
