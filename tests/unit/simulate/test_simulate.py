@@ -131,7 +131,7 @@ def test_robot_occludes_the_world_marker_sometimes():
     found = []
     for cam in scene.cameras:
         renderer = Renderer(View(cam.intrinsics, cam.T_world_cam, 2), scene.floor, (scene.world_marker,))
-        image = renderer.render([scene.robot_solids_at(np.eye(4))])
+        image = renderer.render([scene.robot_solids_at(np.eye(4), scene.robots[0].layout)])
         _, ids, _ = detector.detectMarkers(np.clip(image * 255, 0, 255).astype(np.uint8))
         found.append(ids is not None and 0 in ids.ravel())
     assert not all(found)
@@ -237,3 +237,19 @@ def test_cli_writes_and_refuses_to_overwrite_without_force(tmp_path, capsys):
     assert len(err) == 1 and "already holds a recording" in err[0]
     assert main([*args, "--force", "--seed", "9"]) == 0
     assert Recording.open(out).index("cam1")
+
+
+def test_several_robots_get_their_own_ids_layouts_and_ground_truth(tmp_path):
+    from cubetrack.io.config import read_tracker_config
+    from cubetrack.io.trajectory import read_tum
+    from cubetrack.simulate import SimulationParams, simulate
+
+    result = simulate(SimulationParams(robots=3, duration_s=1.0, calibration_frames=0, seed=2), tmp_path / "rec")
+    config = read_tracker_config(tmp_path / "rec" / "config.toml")
+    assert [r.name for r in config.robots] == ["robot1", "robot2", "robot3"]
+    assert [sorted(r.layout.ids) for r in config.robots] == [[1], [2], [3]]
+    for k, r in enumerate(config.robots):
+        gt = read_tum(tmp_path / "rec" / "ground_truth" / f"{r.name}.tum")
+        np.testing.assert_allclose(gt.positions_m[0], result.T_world_cube(gt.times_s[0], k)[:3, 3], atol=1e-6)
+    starts = [result.T_world_cube(result.params.start_unix_s, k)[:2, 3] for k in range(3)]
+    assert min(np.linalg.norm(a - b) for i, a in enumerate(starts) for b in starts[i + 1:]) > 0.3
