@@ -97,3 +97,20 @@ def params_to_table(params: Any) -> dict[str, Any]:
         if value is not None:
             out[f.name] = value
     return out
+
+
+def params_to_commented_toml(section: str, params: Any) -> str:
+    """A TOML table of ``params`` with each field's documentation as a comment above it."""
+    import tomli_w  # only this helper writes TOML
+
+    lines = [f"[{section}]"]
+    table = params_to_table(params)
+    for f in dataclasses.fields(params):
+        doc = f.metadata.get("doc", "")
+        if doc:
+            lines.append(f"# {doc}")
+        if f.name in table:
+            lines.append(tomli_w.dumps({f.name: table[f.name]}).strip())
+        else:
+            lines.append(f"# {f.name} = (unset)")
+    return "\n".join(lines) + "\n"

@@ -34,14 +34,7 @@ def plot_xy(estimates: Mapping[str, Trajectory], ground_truth: Trajectory | None
     ax.set_ylabel("y [m]")
     ax.set_aspect("equal", adjustable="datalim")
     ax.grid(True, alpha=0.3)
-    ax.legend(loc="best", fontsize=8)
-    if title:
-        ax.set_title(title)
-    fig.tight_layout()
-    path = Path(path)
-    fig.savefig(path, dpi=120)
-    plt.close(fig)
-    return path
+    return _save(plt, fig, ax, title, path)
 
 
 def plot_rmse_bars(rmse_m: Mapping[tuple[str, str], float], path: str | Path, title: str = "",
@@ -59,7 +52,12 @@ def plot_rmse_bars(rmse_m: Mapping[tuple[str, str], float], path: str | Path, ti
     ax.set_xticks(range(len(groups)), groups)
     ax.set_ylabel(ylabel)
     ax.grid(True, axis="y", alpha=0.3)
-    ax.legend(fontsize=8)
+    return _save(plt, fig, ax, title, path)
+
+
+def _save(plt, fig, ax, title: str, path: str | Path) -> Path:
+    """Legend, title, layout; write the figure as PNG and close it."""
+    ax.legend(loc="best", fontsize=8)
     if title:
         ax.set_title(title)
     fig.tight_layout()

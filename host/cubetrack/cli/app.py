@@ -1,0 +1,52 @@
+"""The command-line skeleton shared by ``cubetrack`` and ``cubecam``: one parser built from
+command modules, and the one error boundary.
+
+A command module has a docstring (its ``--help`` text), ``HELP`` (one line), ``add_arguments``
+and ``run(args) -> int``. Known errors (:class:`cubetrack.errors.CubetrackError`) print one line
+and exit 1; Ctrl-C exits 130; anything else is a bug: its traceback is logged and the exit code is 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import logging
+import sys
+from collections.abc import Mapping
+
+from cubetrack.errors import CubetrackError
+
+
+def build_parser(prog: str, description: str, version: str, package: str,
+                 commands: Mapping[str, str]) -> argparse.ArgumentParser:
+    """A parser with one subcommand per ``commands`` entry (name -> module in ``package``)."""
+    parser = argparse.ArgumentParser(prog=prog, description=description)
+    parser.add_argument("--version", action="version", version=f"{prog} {version}")
+    parser.add_argument("-v", "--verbose", action="count", default=0,
+                        help="more log output (-v info, -vv debug)")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+    for name, module_name in commands.items():
+        module = importlib.import_module(f"{package}.{module_name}")
+        p = sub.add_parser(name, help=module.HELP, description=module.__doc__,
+                           formatter_class=argparse.RawDescriptionHelpFormatter)
+        module.add_arguments(p)
+        p.set_defaults(_run=module.run)
+    return parser
+
+
+def run_command(parser: argparse.ArgumentParser, argv: list[str] | None) -> int:
+    """Parse ``argv``, configure logging, run the command inside the error boundary."""
+    args = parser.parse_args(argv)
+    level = (logging.WARNING, logging.INFO, logging.DEBUG)[min(args.verbose, 2)]
+    logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
+    try:
+        return int(args._run(args) or 0)
+    except CubetrackError as exc:
+        print(f"{parser.prog} {args.command}: error: {exc}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print(f"{parser.prog} {args.command}: interrupted", file=sys.stderr)
+        return 130
+    except Exception:  # a bug, not bad input: keep the traceback for the report
+        logging.getLogger(parser.prog).exception("%s %s: unexpected error (please report it)", parser.prog, args.command)
+        return 2
