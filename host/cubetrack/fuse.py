@@ -103,6 +103,10 @@ class LatestEstimateFusion:
         self.params = params
         self.latest: dict[tuple[str, str], CameraEstimate] = {}
 
+    def needs_estimate(self, robot: str) -> bool:
+        """The paper's methods fuse per-camera estimates: always make them."""
+        return True
+
     def add(self, sighting: CubeSighting, now_s: float) -> list[TrackedPose]:
         """Take one camera's sighting (``now_s`` = host time it became available) and fuse."""
         if sighting.estimate is None:
@@ -159,6 +163,10 @@ class FilterFusion:
         self.rejections: Counter[str] = Counter()
         self.stats: Counter[str] = Counter()
         self._order = itertools.count()
+
+    def needs_estimate(self, robot: str) -> bool:
+        """A per-camera estimate is only needed to start a track: not while one runs."""
+        return robot not in self.filters
 
     def add(self, sighting: CubeSighting, now_s: float) -> list[TrackedPose]:
         """Queue a sighting; returns the poses of every sighting whose reorder delay has passed."""

@@ -139,12 +139,11 @@ class Tracker:
             return []
         clock = self.clocks[camera]
         clock.add_round_trip(sample.host_send_s, sample.device_time_s, sample.host_recv_s)
-        held = self.held.pop(camera, None)
-        if not held or clock.method != "round-trip":
-            if held:
-                self.held[camera] = held
+        if clock.method != "round-trip" or camera not in self.held:
             return []
-        return [pose for frame in held for pose in self.process(frame, now_s=sample.host_recv_s)]
+        held = self.held.pop(camera)
+        return [pose for frame in held
+                for pose in self._track(frame, clock.to_host(frame.device_time_s), sample.host_recv_s)]
 
     def capture_time(self, frame: Frame) -> float | None:
         """The frame's capture time on the host clock (Unix seconds), per ``[track] timestamps``;
@@ -170,17 +169,10 @@ class Tracker:
         """Run one frame through detection, estimation and fusion; returns the poses it produced.
 
         ``now_s`` is the host time the frame became available (default: its arrival time).
-        A corrupt JPEG is counted and skipped.
+        A frame whose camera's clock is not known yet is held (see ``add_clock_sample``).
         """
         self.stats.frames += 1
-        intrinsics = self.intrinsics.get(frame.camera)
-        if intrinsics is None:
-            return []
-        try:
-            detections = self.detector.detect_jpeg(frame.jpeg, f"{frame.camera} frame {frame.seq}")
-        except ImageError as exc:
-            self.stats.corrupt_frames += 1
-            log.warning("skipping corrupt frame: %s", exc)
+        if frame.camera not in self.intrinsics:
             return []
         capture_time_s = self.capture_time(frame)
         if capture_time_s is None:
@@ -189,30 +181,43 @@ class Tracker:
                 self.stats.frames_before_clock_sync += 1  # the oldest is given up
             held.append(frame)
             return []
+        return self._track(frame, capture_time_s, frame.host_time_s if now_s is None else now_s)
+
+    def _track(self, frame: Frame, capture_time_s: float, now_s: float) -> list[TrackedPose]:
+        """Detection, estimation and fusion of a frame whose capture time is known. A corrupt
+        JPEG is counted and skipped."""
+        intrinsics = self.intrinsics[frame.camera]
+        try:
+            detections = self.detector.detect_jpeg(frame.jpeg, f"{frame.camera} frame {frame.seq}")
+        except ImageError as exc:
+            self.stats.corrupt_frames += 1
+            log.warning("skipping corrupt frame: %s", exc)
+            return []
         if not detections:
             return []
         T_world_cam = self.camera_pose(frame, detections)
         if T_world_cam is None:
             self.stats.frames_without_camera_pose += 1
             return []
-        now = frame.host_time_s if now_s is None else now_s
         poses = []
         for robot in self.robots:
             layout = robot.layout
             mine = tuple(d for d in detections if d.marker_id in layout.ids and d.dictionary in ("", layout.dictionary))
             if not mine:
                 continue
-            estimate = estimate_cube(
-                mine, layout, intrinsics, T_world_cam,
-                camera=frame.camera, robot=robot.name, seq=frame.seq,
-                capture_time_s=capture_time_s, arrival_time_s=frame.host_time_s,
-                params=self.params.estimator,
-            )
+            estimate = None
+            if self.fusion.needs_estimate(robot.name):
+                estimate = estimate_cube(
+                    mine, layout, intrinsics, T_world_cam,
+                    camera=frame.camera, robot=robot.name, seq=frame.seq,
+                    capture_time_s=capture_time_s, arrival_time_s=frame.host_time_s,
+                    params=self.params.estimator,
+                )
             if estimate is not None:
                 self.stats.estimates[(robot.name, frame.camera)] += 1
             sighting = CubeSighting(frame.camera, robot.name, frame.seq, capture_time_s, frame.host_time_s,
                                     mine, estimate, T_world_cam, intrinsics)
-            poses.extend(self.fusion.add(sighting, now))
+            poses.extend(self.fusion.add(sighting, now_s))
         for pose in poses:
             self.stats.poses[pose.robot] += 1
         return poses
