@@ -9,7 +9,7 @@ PACKAGE = Path(__file__).resolve().parents[2] / "host" / "cubetrack"
 
 BASE = {"errors", "geometry", "params", "progress", "records", "layout"}
 IO = {"io"}
-PIPELINE = ["timesync", "source", "detect", "estimate", "calibrate", "joint", "filter", "fuse", "sink", "pipeline"]
+PIPELINE = ["timesync", "source", "detect", "estimate", "calibrate", "joint", "filter", "refine", "fuse", "sink", "pipeline"]
 
 
 def rank(module: str) -> int:
@@ -25,6 +25,8 @@ def rank(module: str) -> int:
         return 2 + PIPELINE.index("detect") + 1
     if top in ("simulate", "evaluate", "plot"):
         return 2  # beside the pipeline: base + io only (checked separately)
+    if top == "live":
+        return 2 + len(PIPELINE)  # feeds live sources to the pipeline
     if top == "demo":
         return 90  # an orchestration of whole commands, used by the CLI only
     if top == "cli":

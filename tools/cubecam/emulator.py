@@ -508,6 +508,7 @@ class Emulator:
         self._rng = random.Random(self.faults.seed)
         self._rng_lock = threading.Lock()
         self._start_mono: float | None = None
+        self._unix_minus_mono = 0.0
         for cam in self._cameras:
             try:
                 first = cam.track.frames[0].path.read_bytes()
@@ -528,6 +529,7 @@ class Emulator:
                 if cam.sock is not None:
                     cam.sock.close()
             raise
+        self._unix_minus_mono = time.time() - time.monotonic()
         self._start_mono = time.monotonic() + START_LEAD_S
         for cam in self._cameras:
             self._spawn(cam.accept_loop, f"cubecam-{cam.name}-accept")
@@ -582,6 +584,20 @@ class Emulator:
     def urls(self) -> dict[str, str]:
         """Camera name -> stream URL, as a tracker config's ``url`` (valid after start)."""
         return {c.name: c.base_url + "stream" for c in self._cameras}
+
+    def unix_time(self, recorded_host_s: float) -> float:
+        """When (Unix time on this machine, ``time.time()``) the replay reaches a recorded host time
+        (the recording's ``host_time`` clock; the first pass when looping). Valid after start.
+
+        The replay is the recorded host timeline shifted by a constant: a frame whose device time
+        maps to recorded host time h (through the camera's clock fit, see :mod:`cubecam.replay`) is
+        released at ``unix_time(h)``, and ``/time`` answers the device time that maps to now. So a
+        reference on the recorded clock (e.g. ``ground_truth.tum``) is moved onto the live clock by
+        adding ``unix_time(h) - h``, the same for every h.
+        """
+        if self._start_mono is None:
+            raise EmulatorError("the emulator has not been started")
+        return recorded_host_s - self.timeline.start_host_s + self._start_mono + self._unix_minus_mono
 
     def device_now_us(self, camera: int) -> int:
         """A camera's device clock now, microseconds (the clock of X-Timestamp and /time)."""

@@ -3,7 +3,8 @@
 
 Timing model. Each camera's device clock maps to the host clock as ``host = a + b * device``
 (``b`` carries the recorded drift, e.g. 1 + 40e-6). The mapping comes from the camera's
-``clock.csv`` round trips when present (least squares through the round-trip midpoints),
+``clock.csv`` round trips when present (least squares through the midpoints of the fastest
+round trip in each stretch of time: slow ones bound the clock loosely),
 otherwise from ``index.csv`` (least-squares slope of host arrival time against device time,
 offset at the lower envelope, i.e. the fastest arrival). The replay runs on the recorded host
 timeline shifted to now: a frame is released when the replayed host time reaches its capture
@@ -157,6 +158,20 @@ def fit_clock(device_s: list[float], host_s: list[float], lower_envelope: bool, 
     return ClockMap(offset, rate)
 
 
+def fastest_round_trips(samples: list) -> list:
+    """The round trips that bound the clock best: the fastest one in each of up to 10 stretches
+    of time (at least two). A slow round trip's midpoint can sit tens of ms from the moment the
+    node read its clock; a line through all midpoints would carry that into the offset and the
+    drift, and so into the replayed timing of every frame."""
+    pairs = sorted(samples, key=lambda s: s.device_time_s)
+    chunks = min(10, len(pairs) // 3)
+    if chunks < 2:
+        return sorted(pairs, key=lambda s: s.host_recv_s - s.host_send_s)[:max(2, len(pairs) // 2)]
+    size = len(pairs) / chunks
+    return [min(pairs[int(i * size):int((i + 1) * size)], key=lambda s: s.host_recv_s - s.host_send_s)
+            for i in range(chunks)]
+
+
 def load_recording(path: str | Path) -> tuple[list[CameraTrack], Counter[str]]:
     """Every camera of a recording, and what was skipped (reason -> count): broken index rows,
     missing or corrupt JPEG files, duplicate frame numbers."""
@@ -198,8 +213,9 @@ def load_recording(path: str | Path) -> tuple[list[CameraTrack], Counter[str]]:
             raise EmulatorError(str(exc)) from None
         device = [f.device_time_s for f in frames]
         if len(samples) >= 2:
-            clock = fit_clock([s.device_time_s for s in samples],
-                              [(s.host_send_s + s.host_recv_s) / 2 for s in samples], False, f"{folder}/clock.csv")
+            fast = fastest_round_trips(samples)
+            clock = fit_clock([s.device_time_s for s in fast],
+                              [(s.host_send_s + s.host_recv_s) / 2 for s in fast], False, f"{folder}/clock.csv")
         else:
             clock = fit_clock(device, [host_of[f.seq] for f in frames], True, f"{folder}/index.csv")
         tracks.append(CameraTrack(name, frames, clock, _median_interval(device)))

@@ -13,7 +13,7 @@ import argparse
 
 HELP = "print the tracker config's tunable sections with defaults and documentation"
 
-SECTIONS = ("detector", "estimator", "calibration", "fusion", "filter", "track")
+SECTIONS = ("detector", "estimator", "calibration", "fusion", "filter", "track", "source")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -25,6 +25,7 @@ def default_sections() -> dict[str, object]:
     """Section name -> the default params of the stage that owns it."""
     from cubetrack.calibrate import CalibrationParams
     from cubetrack.pipeline import StageParams
+    from cubetrack.source import SourceParams
 
     stages = StageParams()
     return {
@@ -34,6 +35,7 @@ def default_sections() -> dict[str, object]:
         "fusion": stages.fusion,
         "filter": stages.filter,
         "track": stages.track,
+        "source": SourceParams(),
     }
 
 

@@ -1,7 +1,10 @@
-"""Run the whole offline workflow on simulated cameras and print the scores:
+"""Run the whole workflow on simulated cameras and print the scores:
 simulate a session (the paper's arena: 3 cameras at 1.0 m, 30° tilt, the five-face cube),
-calibrate the cameras on the empty-arena recording, track with each fusion method, and
-evaluate against the simulator's ground truth.
+calibrate the cameras on the empty-arena recording, serve the session with the camera
+emulator on 127.0.0.1 (the firmware's HTTP API) and track it live over HTTP for its whole
+duration, then evaluate against the simulator's ground truth (moved onto the live clock).
+The offline replay of the same recording with each fusion method (the paper's mean, weighted
+and gaussian, and the filter) is scored too, for comparison. --offline skips the live part.
 
 Example:
   cubetrack demo --out cubetrack-demo --duration 20
@@ -12,14 +15,16 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-HELP = "simulate, calibrate, track and evaluate on simulated cameras"
+HELP = "simulate, calibrate, track live over HTTP (emulated cameras) and evaluate"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, default=Path("cubetrack-demo"), metavar="DIR",
                    help="working folder (default ./cubetrack-demo); must not hold an earlier demo unless --force")
     p.add_argument("--force", action="store_true", help="replace an earlier demo in --out")
-    p.add_argument("--duration", type=float, default=30.0, metavar="S", help="seconds of simulated tracking (default 30)")
+    p.add_argument("--duration", type=float, default=20.0, metavar="S",
+                   help="seconds of simulated tracking, also the length of the live session (default 20)")
+    p.add_argument("--offline", action="store_true", help="skip the live part: replay the recording offline only")
     p.add_argument("--cameras", type=int, default=3, help="number of cameras (default 3)")
     p.add_argument("--height", type=float, default=1.0, metavar="M", help="camera height in metres (default 1.0)")
     p.add_argument("--tilt", type=float, default=30.0, metavar="DEG", help="camera tilt in degrees (default 30)")
@@ -28,6 +33,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     import shutil
+    import sys
 
     from cubetrack.demo import run_demo
     from cubetrack.errors import SimulationError
@@ -42,12 +48,26 @@ def run(args: argparse.Namespace) -> int:
         shutil.rmtree(args.out)
     sim = SimulationParams(cameras=args.cameras, height_m=args.height, tilt_deg=args.tilt,
                            duration_s=args.duration, seed=args.seed)
-    result = run_demo(args.out, sim, progress=StderrProgress())
+    def status(st) -> None:
+        print(f"live: {st.line()}", file=sys.stderr, flush=True)
+
+    result = run_demo(args.out, sim, progress=StderrProgress(), live=not args.offline, status=status)
     print(f"\ncalibration ({args.out / 'extrinsics.toml'}), error against the true camera poses:")
     for cam, (pos_m, rot_deg) in result.calibration_errors.items():
         print(f"  {cam}: position {pos_m * 100:.2f} cm, rotation {rot_deg:.3f}°")
     from cubetrack.cli.evaluate import format_table
 
-    print(f"\ntracking ({args.out / 'track'}), scored against {args.out / 'rec' / 'ground_truth.tum'}:")
-    print(format_table(result.scores))
+    if result.live is not None:
+        live = result.live
+        lr = live.result
+        latency = "-" if lr.latency_s is None else f"{lr.latency_s * 1000:.0f} ms"
+        cams = ", ".join(f"{n} {c.frames} frames" + (f" ({c.bad} bad)" if c.bad else "") for n, c in lr.cameras.items())
+        print(f"\nlive tracking over HTTP ({args.out / 'live'}): emulated cameras on 127.0.0.1, {lr.duration_s:.1f} s, "
+              f"median latency {latency}; {cams}")
+        print(f"scored against {live.ground_truth_path} (the ground truth moved onto the live clock by "
+              f"{live.clock_shift_s:+.3f} s):")
+        print(format_table({f"live {live.method}": live.score}))
+    print(f"\noffline replay of the same recording ({args.out / 'track'}), each fusion method, "
+          f"scored against {args.out / 'rec' / 'ground_truth.tum'}:")
+    print(format_table({f"offline {name}": score for name, score in result.scores.items()}))
     return 0

@@ -19,6 +19,7 @@ COMMANDS = {
     "calibrate": "calibrate",
     "calibrate-intrinsics": "calibrate_intrinsics",
     "track": "track",
+    "record": "record",
     "evaluate": "evaluate",
     "detect": "detect",
     "defaults": "defaults",

@@ -1,12 +1,19 @@
-"""Track every robot of a config through a recording (offline replay; the same code path as
-live tracking) and write DIR/<robot>.tum and DIR/<robot>.jsonl.
+"""Track every robot of a config through a recording (--recording: offline replay) or live from
+the config's camera URLs (--live), and write DIR/<robot>.tum and DIR/<robot>.jsonl. Both run the
+same tracker; only the source of the frames differs.
 
-Camera intrinsics come from the config's camera_info, else the recording's camera_info folder.
-Corrupt frames are skipped and counted. Stage parameters come from the config's [detector],
-[estimator], [fusion] and [track] sections; --fusion overrides the fusion method.
+Camera intrinsics come from the config's camera_info, else (replay only) the recording's
+camera_info folder. Corrupt frames are skipped and counted. Stage parameters come from the
+config's [detector], [estimator], [fusion] and [track] sections; --fusion overrides the fusion
+method. Live reading is tuned by the [source] section.
 
-Example:
+Live: poses are written (and flushed) as they come; a status line on stderr shows poses/s per
+robot, frames/s per camera and the latency. Runs for --duration seconds or until Ctrl-C (the
+outputs are kept either way); --record REC also records the session for replay.
+
+Examples:
   cubetrack track --config rec/config.toml --extrinsics rec/extrinsics.toml --recording rec --out out
+  cubetrack track --config lab.toml --extrinsics extrinsics.toml --live --out out --record sessions/run1
 """
 
 from __future__ import annotations
@@ -14,17 +21,23 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-HELP = "track robots through a recording -> TUM + JSONL per robot"
+HELP = "track robots through a recording or live from the cameras -> TUM + JSONL per robot"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", required=True, type=Path, help="tracker config TOML")
-    p.add_argument("--recording", required=True, type=Path, metavar="REC", help="recording folder to replay")
+    source = p.add_mutually_exclusive_group(required=True)
+    source.add_argument("--recording", type=Path, metavar="REC", help="recording folder to replay")
+    source.add_argument("--live", action="store_true", help="track live from the cameras' url in the config")
     p.add_argument("--extrinsics", type=Path, help="camera poses from cubetrack calibrate (TOML)")
     p.add_argument("--uncalibrated", action="store_true",
                    help="no extrinsics: take each frame's own world-marker pose (the paper's uncalibrated mode)")
     p.add_argument("--fusion", metavar="METHOD", help="override [fusion] method: mean | weighted | gaussian")
     p.add_argument("--out", required=True, type=Path, metavar="DIR", help="output folder")
+    p.add_argument("--duration", type=float, metavar="S", help="--live: stop after this many seconds (default: Ctrl-C)")
+    p.add_argument("--record", type=Path, metavar="REC", help="--live: also record the session into this folder")
+    p.add_argument("--status-every", type=float, default=2.0, metavar="S",
+                   help="--live: seconds between status lines (default 2)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -38,8 +51,13 @@ def run(args: argparse.Namespace) -> int:
     from cubetrack.fuse import FusionParams
     from cubetrack.progress import StderrProgress
 
+    if not args.live and (args.duration is not None or args.record is not None):
+        raise ConfigError("--duration and --record go with --live (a replay runs to the end of its recording)")
+    if args.duration is not None and not args.duration > 0:
+        raise ConfigError(f"--duration must be a positive number of seconds, got {args.duration}")
+    if not args.status_every > 0:
+        raise ConfigError(f"--status-every must be a positive number of seconds, got {args.status_every}")
     config = read_tracker_config(args.config)
-    recording = Recording.open(args.recording)
     params = StageParams.from_config(config)
     if args.fusion:
         table = {**config.section("fusion"), "method": args.fusion}
@@ -51,9 +69,40 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError("give --extrinsics (from cubetrack calibrate) or --uncalibrated")
     else:
         extrinsics = read_extrinsics(args.extrinsics)
+    if args.live:
+        return _run_live(args, config, extrinsics, params)
+    recording = Recording.open(args.recording)
     result = track_recording(config, recording, extrinsics, args.out, params, StderrProgress())
     s = result.stats
     print(f"frames: {s.frames}" + "".join(f", {reason}: {n}" for reason, n in result.skipped.items()))
     for robot, (tum, jsonl) in result.outputs.items():
         print(f"{robot}: {s.poses[robot]} poses -> {tum}, {jsonl}")
+    return 0
+
+
+def _run_live(args: argparse.Namespace, config, extrinsics, params) -> int:
+    import sys
+
+    from cubetrack.live import live_camera_urls, live_intrinsics, track_live
+
+    live_camera_urls(config), live_intrinsics(config)  # a bad config fails before the session starts
+
+    def status(s) -> None:
+        print(f"track: {s.line()}", file=sys.stderr, flush=True)
+
+    print(f"tracking live into {args.out}" + ("" if args.duration else " (Ctrl-C to stop)"), file=sys.stderr, flush=True)
+    result = track_live(config, extrinsics, args.out, params, duration_s=args.duration, record_to=args.record,
+                        status=status, status_every_s=args.status_every)
+    s = result.stats
+    latency = "-" if result.latency_s is None else f"{result.latency_s * 1000:.0f} ms"
+    print(f"{'interrupted; ' if result.interrupted else ''}tracked live for {result.duration_s:.1f} s: "
+          f"frames: {s.frames}, corrupt frame: {s.corrupt_frames}, median latency {latency}")
+    for name, c in result.cameras.items():
+        bad = "".join(f", {n} {why}" for why, n in sorted(c.bad_parts.items()))
+        print(f"  {name}: {c.frames} frames, {c.dropped} dropped (tracker behind), {c.clock_samples} clock samples, "
+              f"{c.reconnects} reconnects{bad}")
+    for robot, (tum, jsonl) in result.outputs.items():
+        print(f"{robot}: {s.poses[robot]} poses -> {tum}, {jsonl}")
+    if result.recording is not None:
+        print(f"recorded into {result.recording}")
     return 0

@@ -20,7 +20,7 @@ from cubetrack.geometry import T_from_position_quat, position_quat_from_T
 from cubetrack.io.recording import check_camera_name
 from cubetrack.layout import DEFAULT_DICTIONARY, CubeLayout, read_layout
 
-STAGE_SECTIONS = ("detector", "estimator", "fusion", "filter", "calibration", "track")
+STAGE_SECTIONS = ("detector", "estimator", "fusion", "filter", "calibration", "track", "source")
 
 
 @dataclass(frozen=True, slots=True)

@@ -1,0 +1,276 @@
+"""Live tracking and recording from camera nodes over HTTP: :class:`cubetrack.source.LiveCameras`
+feeding the same :class:`cubetrack.pipeline.Tracker` that replays recordings
+(:func:`cubetrack.pipeline.track_recording`); only the source differs.
+
+- :func:`track_live`: the config's camera URLs -> ``<out>/<robot>.tum`` and ``.jsonl``, written
+  and flushed as poses come, optionally recording the session as it goes;
+- :func:`record_live`: the config's camera URLs -> a recording folder (contracts §3) that
+  ``cubetrack track --recording`` replays.
+
+Both run until ``duration_s`` has passed, ``stop`` is set, or Ctrl-C (KeyboardInterrupt), which
+ends the session like the end of the duration: everything received so far is kept and the
+result says ``interrupted``. A status callback gets a :class:`LiveStatus` every ``status_every_s``.
+"""
+
+from __future__ import annotations
+
+import logging
+import shutil
+import statistics
+import threading
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable
+
+from cubetrack.errors import ConfigError
+from cubetrack.io.camera_info import CameraIntrinsics, read_camera_info
+from cubetrack.io.config import CameraExtrinsics, TrackerConfig
+from cubetrack.io.recording import CameraEntry, ClockSample, RecordingWriter
+from cubetrack.io.trajectory import PoseWriter
+from cubetrack.params import params_from_table
+from cubetrack.pipeline import StageParams, Tracker, TrackStats
+from cubetrack.records import Frame, TrackedPose
+from cubetrack.source import CameraStats, ClockReading, LiveCameras, SourceParams
+
+log = logging.getLogger(__name__)
+
+
+def source_params(config: TrackerConfig) -> SourceParams:
+    """The ``[source]`` section of a tracker config."""
+    return params_from_table(SourceParams, config.section("source"), f"{config.path}: [source]")
+
+
+def live_camera_urls(config: TrackerConfig) -> dict[str, str]:
+    """Camera name -> stream URL; every camera of a live config needs one."""
+    if not config.cameras:
+        raise ConfigError(f"{config.path}: no [[cameras]]; live use needs each camera's name and url")
+    missing = [c.name for c in config.cameras if not c.url]
+    if missing:
+        raise ConfigError(f"{config.path}: camera(s) {', '.join(missing)} have no url; live use reads each camera's "
+                          'stream, e.g. url = "http://192.168.1.21/stream" in its [[cameras]] table')
+    return {c.name: c.url for c in config.cameras}
+
+
+def live_intrinsics(config: TrackerConfig) -> dict[str, CameraIntrinsics]:
+    """Every camera's intrinsics from the config's ``camera_info`` (a live run has no recording
+    folder to take them from)."""
+    missing = [c.name for c in config.cameras if c.camera_info is None]
+    if missing:
+        raise ConfigError(
+            f"{config.path}: camera(s) {', '.join(missing)} have no camera_info; live tracking takes intrinsics "
+            'from the config only (there is no recording folder): add camera_info = "calib/<camera>.yaml" '
+            "(ROS camera_info YAML, e.g. from cubetrack calibrate-intrinsics) to each [[cameras]] table")
+    return {c.name: read_camera_info(c.camera_info) for c in config.cameras}
+
+
+@dataclass(frozen=True, slots=True)
+class LiveStatus:
+    """A periodic snapshot of a live session (rates over the last interval)."""
+
+    elapsed_s: float
+    frames_per_s: dict[str, float]
+    poses_per_s: dict[str, float]
+    latency_s: float | None  # median pose latency over the interval (capture -> pose produced)
+    cameras: dict[str, CameraStats]
+    queued: int
+
+    def line(self) -> str:
+        """One status line, e.g. ``12s robot 7.4 poses/s | cam1 7.5 fps ... | latency 41 ms | ...``."""
+        parts = [f"{self.elapsed_s:5.0f}s"]
+        if self.poses_per_s:
+            parts.append(" ".join(f"{r} {v:.1f} poses/s" for r, v in self.poses_per_s.items()))
+        parts.append(" ".join(f"{c} {v:.1f} fps" for c, v in self.frames_per_s.items()))
+        if self.poses_per_s:
+            parts.append("latency " + ("-" if self.latency_s is None else f"{self.latency_s * 1000:.0f} ms"))
+        bad = sum(s.bad for s in self.cameras.values())
+        reconnects = sum(s.reconnects for s in self.cameras.values())
+        dropped = sum(s.dropped for s in self.cameras.values())
+        clock = "/".join(str(s.clock_samples) for s in self.cameras.values())
+        down = [c for c, s in self.cameras.items() if not s.connected]
+        tail = f"bad {bad} reconnects {reconnects} dropped {dropped} clock {clock}"
+        if down:
+            tail += " down: " + ",".join(down)
+        parts.append(tail)
+        return " | ".join(parts)
+
+
+class _Rates:
+    """Turns counters into per-interval rates for :class:`LiveStatus`."""
+
+    def __init__(self, live: LiveCameras, robots: list[str]):
+        self.live = live
+        self.robots = robots
+        self.start = time.monotonic()
+        self.last = self.start
+        self.frames = {c: 0 for c in live.urls}
+        self.poses = {r: 0 for r in robots}
+        self.latencies: list[float] = []
+
+    def add_poses(self, poses: list[TrackedPose]) -> None:
+        for pose in poses:
+            self.latencies.append(pose.latency_s)
+
+    def snapshot(self, poses_total: dict[str, int]) -> LiveStatus:
+        now = time.monotonic()
+        dt = max(1e-6, now - self.last)
+        cams = self.live.stats()
+        fps = {c: (s.frames - self.frames[c]) / dt for c, s in cams.items()}
+        pps = {r: (poses_total.get(r, 0) - self.poses[r]) / dt for r in self.robots}
+        latency = statistics.median(self.latencies) if self.latencies else None
+        self.frames = {c: s.frames for c, s in cams.items()}
+        self.poses = {r: poses_total.get(r, 0) for r in self.robots}
+        self.latencies = []
+        self.last = now
+        return LiveStatus(now - self.start, fps, pps, latency, cams, self.live.pending())
+
+
+class _Recorder:
+    """A :class:`RecordingWriter` shared by the reader threads (one lock), with the config's
+    intrinsics copied into ``camera_info/``."""
+
+    def __init__(self, out: str | Path, config: TrackerConfig, urls: dict[str, str], overwrite: bool = False):
+        self.writer = RecordingWriter(out, [CameraEntry(name, url) for name, url in urls.items()], overwrite)
+        self.path = self.writer.path
+        self.lock = threading.Lock()
+        self.frames = 0
+        for c in config.cameras:
+            if c.camera_info is not None and c.camera_info.exists():
+                shutil.copyfile(c.camera_info, self.writer.camera_info_path(c.name))
+
+    def frame(self, frame: Frame) -> None:
+        with self.lock:
+            self.writer.add_frame(frame.camera, frame.seq, frame.device_time_s, frame.host_time_s, frame.jpeg)
+            self.frames += 1
+
+    def clock(self, camera: str, sample: ClockSample) -> None:
+        with self.lock:
+            self.writer.add_clock_sample(camera, sample)
+
+    def close(self) -> None:
+        with self.lock:
+            self.writer.close()
+
+
+@dataclass(frozen=True, slots=True)
+class LiveResult:
+    """What a live session produced. ``outputs``: robot -> (TUM, JSONL) (empty for a recording
+    session); ``recording``: the recording folder written, if any; ``interrupted``: Ctrl-C ended it."""
+
+    stats: TrackStats | None
+    cameras: dict[str, CameraStats]
+    outputs: dict[str, tuple[Path, Path]]
+    recording: Path | None
+    duration_s: float
+    interrupted: bool
+    latency_s: float | None  # median over the whole session
+
+
+def _session_over(started: float, duration_s: float | None, stop: threading.Event | None) -> bool:
+    if stop is not None and stop.is_set():
+        return True
+    return duration_s is not None and time.monotonic() - started >= duration_s
+
+
+def track_live(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | None, out_dir: str | Path,
+               params: StageParams | None = None, source: SourceParams | None = None, *,
+               duration_s: float | None = None, record_to: str | Path | None = None,
+               stop: threading.Event | None = None, status: Callable[[LiveStatus], None] | None = None,
+               status_every_s: float = 2.0, clock: Callable[[], float] = time.time) -> LiveResult:
+    """Track every robot of ``config`` live from its cameras' URLs, writing ``<out_dir>/<robot>.tum``
+    and ``.jsonl`` (flushed per pose). ``record_to``: also record the session there (everything that
+    arrived, including frames the tracker had to drop). Frames are stamped with their capture
+    time through each camera's ``/time`` round trips, exactly as in a replay of the recording."""
+    params = params or StageParams.from_config(config)
+    source = source or source_params(config)
+    urls = live_camera_urls(config)
+    intrinsics = live_intrinsics(config)
+    tracker = Tracker(intrinsics, config.world, config.robots, extrinsics, params, synced_cameras=frozenset(urls))
+    recorder = _Recorder(record_to, config, urls) if record_to is not None else None
+    writers = {r.name: PoseWriter(out_dir, r.name) for r in config.robots}
+    latencies: list[float] = []
+    interrupted = False
+    started = time.monotonic()
+
+    def emit(poses: list[TrackedPose]) -> None:
+        for pose in poses:
+            writers[pose.robot].write(pose)
+            latencies.append(pose.latency_s)
+        rates.add_poses(poses)
+
+    def handle(event) -> None:
+        if isinstance(event, ClockReading):
+            emit(tracker.add_clock_sample(event.camera, event.sample))
+        else:
+            emit(tracker.process(event, now_s=clock()))
+
+    live = LiveCameras(urls, source, on_frame=recorder.frame if recorder else None,
+                       on_clock=recorder.clock if recorder else None, clock=clock)
+    rates = _Rates(live, [r.name for r in config.robots])
+    try:
+        live.start()
+        log.info("live tracking %d camera(s): %s", len(urls), ", ".join(f"{n} {u}" for n, u in urls.items()))
+        next_status = started + status_every_s
+        try:
+            while not _session_over(started, duration_s, stop):
+                event = live.get(0.1)
+                if event is not None:
+                    handle(event)
+                if status is not None and time.monotonic() >= next_status:
+                    next_status += status_every_s
+                    status(rates.snapshot(dict(tracker.stats.poses)))
+            live.stop()
+            while (event := live.get(0)) is not None:  # what had arrived when the session ended
+                handle(event)
+        except KeyboardInterrupt:
+            interrupted = True
+            log.info("interrupted: finishing with what has arrived")
+        live.stop()
+        emit(tracker.finish())
+    finally:
+        live.stop()
+        for w in writers.values():
+            w.close()
+        if recorder is not None:
+            recorder.close()
+    return LiveResult(tracker.stats, live.stats(), {n: (w.tum_path, w.jsonl_path) for n, w in writers.items()},
+                      recorder.path if recorder else None, time.monotonic() - started, interrupted,
+                      statistics.median(latencies) if latencies else None)
+
+
+def record_live(config: TrackerConfig, out: str | Path, source: SourceParams | None = None, *,
+                duration_s: float | None = None, stop: threading.Event | None = None,
+                status: Callable[[LiveStatus], None] | None = None, status_every_s: float = 2.0,
+                overwrite: bool = False, clock: Callable[[], float] = time.time) -> LiveResult:
+    """Record the config's cameras into the recording folder ``out`` (contracts §3: frames,
+    ``index.csv``, ``clock.csv``, ``recording.json`` with the source URLs, and ``camera_info/``
+    copied from the config where it names one). Rows are flushed as they come, so whatever
+    ends the session, everything recorded so far is kept."""
+    source = source or source_params(config)
+    urls = live_camera_urls(config)
+    recorder = _Recorder(out, config, urls, overwrite)
+    live = LiveCameras(urls, source, on_frame=recorder.frame, on_clock=recorder.clock, queue=False, clock=clock)
+    rates = _Rates(live, [])
+    interrupted = False
+    started = time.monotonic()
+    try:
+        live.start()
+        log.info("recording %d camera(s) into %s", len(urls), recorder.path)
+        next_status = started + status_every_s
+        try:
+            while not _session_over(started, duration_s, stop):
+                time.sleep(0.05)
+                if live.failure is not None:
+                    raise live.failure
+                if status is not None and time.monotonic() >= next_status:
+                    next_status += status_every_s
+                    status(rates.snapshot({}))
+        except KeyboardInterrupt:
+            interrupted = True
+            log.info("interrupted: keeping what was recorded")
+    finally:
+        live.stop()
+        recorder.close()
+    if live.failure is not None:
+        raise live.failure
+    return LiveResult(None, live.stats(), {}, recorder.path, time.monotonic() - started, interrupted, None)

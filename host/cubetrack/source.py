@@ -1,0 +1,689 @@
+"""Live camera sources (architecture: layer "source"): frames and clock samples from camera nodes
+over HTTP (contracts §1), delivered in arrival order to one consumer (the tracker, a recorder).
+
+Per camera two threads run:
+
+- a **stream reader**: ``GET <url>`` (the node's ``/stream``) with requests (``stream=True``,
+  connect and read timeouts), the body read with ``raw.read1`` (returns as soon as any bytes
+  arrived, so a frame is never held back until the next one comes; see
+  ``ecosystem-facts.md`` §8), parsed by :class:`MjpegParser`. Each part becomes a
+  :class:`~cubetrack.records.Frame` stamped with the host time at which its last byte arrived.
+  A malformed part is skipped and counted, never fatal; a lost, refused or silent connection
+  is retried with exponential back-off (logged);
+- a **clock poller**: ``GET /time`` about once a second (the URL derived from the stream URL),
+  giving (host_send, device_time, host_recv) :class:`~cubetrack.io.recording.ClockSample`
+  round trips. The TCP connection is opened before ``host_send`` is taken, so the round trip
+  brackets only the request and its answer. Timeouts and garbage answers are counted and dropped.
+
+:class:`LiveCameras` runs them for a set of cameras and merges everything into one bounded,
+thread-safe queue. When the consumer falls behind, the oldest *frames* are dropped (and counted);
+clock samples are never dropped (they are few and each one matters).
+"""
+
+from __future__ import annotations
+
+import http.client
+import logging
+import math
+import re
+import socket
+import threading
+import time
+from collections import Counter, deque
+from dataclasses import dataclass, field, replace
+from typing import Callable, Iterable, Mapping
+from urllib.parse import urljoin, urlsplit
+
+from cubetrack.errors import ConfigError
+from cubetrack.io.recording import ClockSample
+from cubetrack.params import param
+from cubetrack.records import Frame
+
+log = logging.getLogger(__name__)
+
+_SOI = b"\xff\xd8"
+_EOI = b"\xff\xd9"
+
+
+@dataclass(frozen=True, slots=True)
+class SourceParams:
+    """The ``[source]`` section of the tracker config: how live cameras are read."""
+
+    connect_timeout_s: float = param(2.0, "a camera that does not accept the connection within this is retried, seconds")
+    read_timeout_s: float = param(3.0, "a stream that sends nothing for this long is dropped and reconnected, seconds")
+    backoff_initial_s: float = param(0.25, "first wait before reconnecting a lost stream, seconds (doubles per failure)")
+    backoff_max_s: float = param(5.0, "longest wait between reconnection attempts, seconds")
+    clock_period_s: float = param(1.0, "interval between /time round trips per camera, seconds")
+    clock_timeout_s: float = param(0.5, "a /time round trip not answered within this is dropped, seconds")
+    queue_frames: int = param(64, "frames waiting for the consumer, all cameras; beyond this the oldest are dropped")
+    max_header_bytes: int = param(2048, "a part whose headers are longer than this is skipped, bytes")
+    max_part_bytes: int = param(4 * 1024 * 1024, "a part whose JPEG is larger than this is skipped, bytes")
+    read_chunk_bytes: int = param(65536, "largest single socket read, bytes")
+
+    def __post_init__(self) -> None:
+        for name in ("connect_timeout_s", "read_timeout_s", "backoff_initial_s", "backoff_max_s",
+                     "clock_period_s", "clock_timeout_s"):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
+                raise ValueError(f"{name} must be a positive number of seconds, got {v!r}")
+        if self.backoff_max_s < self.backoff_initial_s:
+            raise ValueError("backoff_max_s must not be below backoff_initial_s")
+        for name in ("queue_frames", "max_header_bytes", "max_part_bytes", "read_chunk_bytes"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be at least 1")
+
+
+# --- the MJPEG part parser -------------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class MjpegPart:
+    """One whole, plausible part: X-Frame (None when the server sends none), X-Timestamp in
+    seconds, the JPEG bytes and the part headers (names lower-cased)."""
+
+    seq: int | None
+    device_time_s: float
+    jpeg: bytes
+    headers: dict[str, str]
+
+
+def boundary_from_content_type(content_type: str) -> str | None:
+    """The boundary of a ``multipart/x-mixed-replace;boundary=...`` Content-Type (quotes, spaces and
+    a leading ``--`` that some servers include are removed); None when there is none."""
+    m = re.search(r"""boundary\s*=\s*("([^"]*)"|[^;,\s]+)""", content_type, re.IGNORECASE)
+    if not m:
+        return None
+    value = m.group(2) if m.group(2) is not None else m.group(1)
+    value = value.strip().lstrip("-")
+    return value or None
+
+
+class MjpegParser:
+    """Incremental parser of a ``multipart/x-mixed-replace`` body (contracts §1 part layout).
+
+    :meth:`feed` takes bytes as they arrive and returns the parts completed by them. Parts are cut by
+    ``Content-Length`` (no wait for the next boundary); without one, by the next delimiter. Every
+    part is checked: headers within ``max_header_bytes`` and well formed, a Content-Length that is a
+    plausible number, X-Timestamp present and a number, the body a whole JPEG (SOI ... EOI) and not
+    cut short (a delimiter inside the declared length means the part was truncated: parsing resumes
+    at that delimiter, so the next part is not lost). A part failing any check is skipped and
+    counted in :attr:`bad` (reason -> count). ``boundary=None``: taken from the first ``--`` line.
+    """
+
+    _SEEK, _HEADERS, _BODY, _SCAN = range(4)
+
+    def __init__(self, boundary: str | None, max_header_bytes: int = 2048, max_part_bytes: int = 4 << 20):
+        self.max_header_bytes = max_header_bytes
+        self.max_part_bytes = max_part_bytes
+        self._delim = b"--" + boundary.encode("latin-1") if boundary else None
+        self._buf = bytearray()
+        self._state = self._SEEK
+        self._headers: dict[str, str] = {}
+        self._length = 0
+        self._scanned = 0  # bytes of the current body already searched for a delimiter
+        self.bad: Counter[str] = Counter()
+        self.parts = 0
+
+    @property
+    def in_part(self) -> bool:
+        """Whether a part has started (some of its headers came) and not yet completed."""
+        if self._state == self._HEADERS:
+            return bool(self._buf.strip())
+        return self._state != self._SEEK
+
+    def close(self) -> None:
+        """The stream ended: a part still in progress is counted as truncated."""
+        if self.in_part:
+            self._bad("part cut off by the end of the stream")
+        self._buf.clear()
+        self._state = self._SEEK
+
+    def feed(self, data: bytes) -> list[MjpegPart]:
+        self._buf += data
+        out: list[MjpegPart] = []
+        while True:
+            if self._state == self._SEEK:
+                if not self._seek():
+                    break
+            elif self._state == self._HEADERS:
+                if not self._read_headers():
+                    break
+            elif self._state == self._BODY:
+                part, progressed = self._read_body()
+                if part is not None:
+                    out.append(part)
+                if not progressed:
+                    break
+            else:
+                part, progressed = self._scan_body()
+                if part is not None:
+                    out.append(part)
+                if not progressed:
+                    break
+        return out
+
+    # --- states ---
+
+    def _bad(self, reason: str) -> None:
+        self.bad[reason] += 1
+        log.debug("skipping a stream part: %s", reason)
+
+    def _at_line_start(self, i: int) -> bool:
+        j = i
+        while j > 0 and self._buf[j - 1] == 0x2D:  # '-': some servers add dashes to the boundary
+            j -= 1
+        return j == 0 or self._buf[j - 1] == 0x0A
+
+    def _seek(self) -> bool:
+        buf = self._buf
+        if self._delim is None:  # no boundary in the Content-Type: the first "--" line defines it
+            m = re.search(rb"(?:^|\n)(--[^\r\n]{1,70})\r?\n", buf)
+            if m is None:
+                if len(buf) > self.max_header_bytes:
+                    del buf[: len(buf) - 80]
+                return False
+            self._delim = m.group(1).rstrip()
+        delim = self._delim
+        start = 0
+        while True:
+            i = buf.find(delim, start)
+            if i < 0:
+                keep = len(delim) + 4
+                if len(buf) > keep:
+                    del buf[: len(buf) - keep]
+                return False
+            if not self._at_line_start(i):
+                start = i + 1
+                continue
+            nl = buf.find(b"\n", i + len(delim))
+            if nl < 0:
+                if len(buf) - i > len(delim) + 80:  # no line end after the delimiter: not one
+                    start = i + 1
+                    continue
+                if i:
+                    del buf[:i]
+                return False
+            rest = bytes(buf[i + len(delim):nl]).strip()
+            if rest not in (b"", b"--"):  # a longer word that starts like the boundary
+                start = i + 1
+                continue
+            del buf[: nl + 1]
+            if rest == b"--":  # the close delimiter; a stream may still go on after it
+                continue
+            self._state = self._HEADERS
+            return True
+
+    def _read_headers(self) -> bool:
+        buf = self._buf
+        if buf.startswith(b"\r\n") or buf.startswith(b"\n"):
+            end, skip = 0, (2 if buf.startswith(b"\r\n") else 1)
+        else:
+            end = buf.find(b"\r\n\r\n", 0, self.max_header_bytes + 4)
+            skip = end + 4
+            if end < 0:
+                end = buf.find(b"\n\n", 0, self.max_header_bytes + 2)
+                skip = end + 2
+        if end < 0 or end > self.max_header_bytes:
+            if len(buf) > self.max_header_bytes or end > self.max_header_bytes:
+                self._bad("part headers too long")
+                self._state = self._SEEK
+                return True
+            return False
+        if end == 0:  # a blank line right after the delimiter: an empty part, or one without headers
+            rest = bytes(buf[skip:skip + len(self._delim) + 2])
+            if len(rest) < len(self._delim) + 2 and (b"\r\n" + self._delim).startswith(rest):
+                return False  # wait: it may be the next delimiter
+            del buf[:skip]
+            self._state = self._SEEK
+            if not (rest.startswith(self._delim) or rest.startswith(b"\r\n" + self._delim)):
+                self._bad("part without headers")
+            return True
+        raw = bytes(buf[:end])
+        del buf[:skip]
+        self._state = self._SEEK  # unless the headers pass
+        headers: dict[str, str] = {}
+        for line in raw.decode("latin-1").splitlines():
+            if not line.strip():
+                continue
+            name, sep, value = line.partition(":")
+            if not sep or not name.strip() or name != name.strip():
+                self._bad("malformed part header")
+                return True
+            headers[name.strip().lower()] = value.strip()
+        length = headers.get("content-length")
+        if length is not None:
+            if not length.isdigit() or not 0 < int(length) <= self.max_part_bytes:
+                self._bad("bad Content-Length")
+                return True
+            self._length = int(length)
+            self._state = self._BODY
+        else:
+            self._length = 0
+            self._state = self._SCAN
+        self._headers = headers
+        self._scanned = 0
+        return True
+
+    def _find_delimiter(self, limit: int) -> int:
+        """Index of ``\\n--boundary`` at a line start inside buf[:limit], searched once per byte."""
+        pattern = b"\n" + self._delim
+        start = max(0, self._scanned - len(pattern))
+        i = self._buf.find(pattern, start, limit)
+        self._scanned = max(self._scanned, limit)
+        if i < 0:
+            return -1
+        return i - 1 if i > 0 and self._buf[i - 1] == 0x0D else i
+
+    def _read_body(self) -> tuple[MjpegPart | None, bool]:
+        n = self._length
+        cut = self._find_delimiter(min(n, len(self._buf)))
+        if cut >= 0:  # the next part began inside this one's declared length: truncated
+            del self._buf[:cut]
+            self._bad("part shorter than its Content-Length")
+            self._state = self._SEEK
+            return None, True
+        if len(self._buf) < n:
+            return None, False
+        body = bytes(self._buf[:n])
+        del self._buf[:n]
+        self._state = self._SEEK
+        return self._finish(body), True
+
+    def _scan_body(self) -> tuple[MjpegPart | None, bool]:
+        cut = self._find_delimiter(len(self._buf))
+        if cut < 0:
+            if len(self._buf) > self.max_part_bytes:
+                self._bad("part too large")
+                del self._buf[: len(self._buf) - len(self._delim) - 4]
+                self._state = self._SEEK
+                return None, True
+            return None, False
+        body = bytes(self._buf[:cut])
+        del self._buf[:cut]
+        self._state = self._SEEK
+        return self._finish(body), True
+
+    def _finish(self, body: bytes) -> MjpegPart | None:
+        headers = self._headers
+        if not (body.startswith(_SOI) and body.rstrip(b"\r\n").endswith(_EOI)):
+            self._bad("not a whole JPEG")
+            return None
+        stamp = headers.get("x-timestamp")
+        if stamp is None:
+            self._bad("no X-Timestamp")
+            return None
+        try:
+            device_time_s = float(stamp)
+        except ValueError:
+            device_time_s = float("nan")
+        if not (math.isfinite(device_time_s) and device_time_s >= 0):
+            self._bad("bad X-Timestamp")
+            return None
+        seq_text = headers.get("x-frame")
+        if seq_text is not None and not seq_text.isdigit():
+            self._bad("bad X-Frame")
+            return None
+        self.parts += 1
+        return MjpegPart(int(seq_text) if seq_text is not None else None, device_time_s, body, headers)
+
+
+# --- the /time poller ------------------------------------------------------------------------
+
+
+def time_url(stream_url: str) -> str:
+    """The node's ``/time`` URL beside its stream URL (``http://h:p/stream?fps=5`` -> ``http://h:p/time``)."""
+    return urljoin(stream_url, "time")
+
+
+def parse_time_answer(body: bytes) -> float:
+    """Seconds from a ``/time`` body (``<seconds>.<microseconds>``); ValueError for anything else."""
+    text = body.decode("ascii").strip()
+    if not re.fullmatch(r"\d{1,12}(\.\d{1,9})?", text):
+        raise ValueError(f"not a time: {text[:40]!r}")
+    return float(text)
+
+
+def poll_time(url: str, timeout_s: float, clock: Callable[[], float] = time.time) -> ClockSample:
+    """One ``/time`` round trip. Raises OSError / http.client.HTTPException / ValueError."""
+    u = urlsplit(url)
+    if u.scheme != "http" or not u.hostname:
+        raise ValueError(f"{url}: only http:// URLs are supported")
+    conn = http.client.HTTPConnection(u.hostname, u.port or 80, timeout=timeout_s)
+    try:
+        conn.connect()  # outside the timed window: the round trip brackets request and answer only
+        conn.sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
+        path = (u.path or "/") + (f"?{u.query}" if u.query else "")
+        host_send = clock()
+        conn.request("GET", path, headers={"Connection": "close"})
+        resp = conn.getresponse()
+        body = resp.read(128)
+        host_recv = clock()
+        if resp.status != 200:
+            raise ValueError(f"HTTP {resp.status}")
+    finally:
+        conn.close()
+    return ClockSample(host_send, parse_time_answer(body), host_recv)
+
+
+# --- the live cameras ------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True)
+class ClockReading:
+    """One completed ``/time`` round trip of ``camera``, as delivered by :class:`LiveCameras`."""
+
+    camera: str
+    sample: ClockSample
+
+
+@dataclass(slots=True)
+class CameraStats:
+    """Counters of one live camera (a copy is handed out by :meth:`LiveCameras.stats`)."""
+
+    url: str = ""
+    frames: int = 0
+    bytes: int = 0
+    bad_parts: Counter = field(default_factory=Counter)  # reason -> count
+    connects: int = 0
+    reconnects: int = 0
+    connected: bool = False
+    dropped: int = 0  # frames dropped because the consumer fell behind
+    clock_samples: int = 0
+    clock_failures: Counter = field(default_factory=Counter)  # reason -> count
+    last_round_trip_s: float = float("nan")
+    last_error: str = ""
+
+    @property
+    def bad(self) -> int:
+        return sum(self.bad_parts.values())
+
+    def copy(self) -> "CameraStats":
+        return replace(self, bad_parts=Counter(self.bad_parts), clock_failures=Counter(self.clock_failures))
+
+
+class _StreamEnded(Exception):
+    """The server ended the stream or answered something that is not a stream."""
+
+
+class LiveCameras:
+    """Frames and clock samples of several camera nodes, merged in arrival order.
+
+    ``cameras``: name -> stream URL (or :class:`~cubetrack.io.config.CameraConfig` objects).
+    Use as a context manager (or :meth:`start` / :meth:`stop`); take events with :meth:`get`:
+    :class:`~cubetrack.records.Frame` or :class:`ClockReading`. ``on_frame`` / ``on_clock`` are
+    called from the reader threads for every frame / round trip before it is queued (a recorder
+    taps here, so it keeps frames the consumer drops); an exception in them stops everything
+    and is re-raised by :meth:`get`. ``queue=False``: nothing is queued (taps only).
+    ``clock`` gives host times (Unix seconds).
+    """
+
+    def __init__(self, cameras: Mapping[str, str] | Iterable, params: SourceParams = SourceParams(), *,
+                 on_frame: Callable[[Frame], None] | None = None,
+                 on_clock: Callable[[str, ClockSample], None] | None = None,
+                 queue: bool = True, clock: Callable[[], float] = time.time):
+        if isinstance(cameras, Mapping):
+            urls = dict(cameras)
+        else:
+            urls = {c.name: c.url for c in cameras}
+        if not urls:
+            raise ConfigError("no cameras to read")
+        for name, url in urls.items():
+            u = urlsplit(url)
+            if u.scheme != "http" or not u.hostname:
+                raise ConfigError(f"camera {name}: url {url!r} is not an http:// stream URL "
+                                  "(like http://192.168.1.21/stream)")
+        self.urls = urls
+        self.params = params
+        self.on_frame = on_frame
+        self.on_clock = on_clock
+        self.queue_enabled = queue
+        self.clock = clock
+        self.failure: BaseException | None = None
+        self._stats = {name: CameraStats(url=url) for name, url in urls.items()}
+        self._lock = threading.Lock()
+        self._cond = threading.Condition(self._lock)
+        self._queue: deque = deque()
+        self._queued_frames = 0
+        self._stop = threading.Event()
+        self._threads: list[threading.Thread] = []
+        self._sockets: dict[str, socket.socket] = {}
+
+    # --- lifecycle ---
+
+    def start(self) -> "LiveCameras":
+        if self._threads:
+            return self
+        for name, url in self.urls.items():
+            for target, kind in ((self._stream_loop, "stream"), (self._clock_loop, "clock")):
+                t = threading.Thread(target=target, args=(name, url), name=f"cubetrack-{name}-{kind}", daemon=True)
+                t.start()
+                self._threads.append(t)
+        return self
+
+    def stop(self, timeout_s: float | None = None) -> None:
+        """Stop every thread (blocked reads are woken by shutting their sockets down)."""
+        self._stop.set()
+        with self._cond:
+            socks = list(self._sockets.values())
+            self._cond.notify_all()
+        for s in socks:
+            try:
+                s.shutdown(socket.SHUT_RDWR)
+            except OSError:
+                pass
+        limit = timeout_s if timeout_s is not None else self.params.read_timeout_s + 1.0
+        deadline = time.monotonic() + limit
+        for t in self._threads:
+            t.join(max(0.0, deadline - time.monotonic()))
+        alive = [t.name for t in self._threads if t.is_alive()]
+        if alive:
+            log.warning("live cameras: thread(s) %s still running after stop (daemon; they end with their reads)",
+                        ", ".join(alive))
+
+    @property
+    def stopped(self) -> bool:
+        return self._stop.is_set()
+
+    def __enter__(self) -> "LiveCameras":
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    # --- what the consumer sees ---
+
+    def get(self, timeout_s: float | None = None) -> Frame | ClockReading | None:
+        """The next event in arrival order, or None after ``timeout_s`` (or once stopped and drained)."""
+        with self._cond:
+            if not self._queue and not self._stop.is_set():
+                self._cond.wait(timeout_s)
+            if self.failure is not None:
+                raise self.failure
+            if not self._queue:
+                return None
+            item = self._queue.popleft()
+            if isinstance(item, Frame):
+                self._queued_frames -= 1
+            return item
+
+    def pending(self) -> int:
+        with self._lock:
+            return len(self._queue)
+
+    def stats(self) -> dict[str, CameraStats]:
+        """A consistent copy of every camera's counters."""
+        with self._lock:
+            return {name: s.copy() for name, s in self._stats.items()}
+
+    # --- internals ---
+
+    def _fail(self, exc: BaseException) -> None:
+        log.error("live cameras: stopping: %s", exc)
+        with self._cond:
+            if self.failure is None:
+                self.failure = exc
+        self._stop.set()
+        with self._cond:
+            self._cond.notify_all()
+
+    def _put_frame(self, frame: Frame) -> None:
+        if self.on_frame is not None:
+            try:
+                self.on_frame(frame)
+            except Exception as exc:  # e.g. the recorder's disk is full: stop, the consumer re-raises
+                self._fail(exc)
+                return
+        with self._cond:
+            self._stats[frame.camera].frames += 1
+            self._stats[frame.camera].bytes += len(frame.jpeg)
+            if not self.queue_enabled:
+                return
+            if self._queued_frames >= self.params.queue_frames:
+                for i, item in enumerate(self._queue):
+                    if isinstance(item, Frame):
+                        del self._queue[i]
+                        self._queued_frames -= 1
+                        self._stats[item.camera].dropped += 1
+                        break
+            self._queue.append(frame)
+            self._queued_frames += 1
+            self._cond.notify()
+
+    def _put_clock(self, camera: str, sample: ClockSample) -> None:
+        if self.on_clock is not None:
+            try:
+                self.on_clock(camera, sample)
+            except Exception as exc:
+                self._fail(exc)
+                return
+        with self._cond:
+            st = self._stats[camera]
+            st.clock_samples += 1
+            st.last_round_trip_s = sample.host_recv_s - sample.host_send_s
+            if self.queue_enabled:
+                self._queue.append(ClockReading(camera, sample))
+                self._cond.notify()
+
+    def _count(self, camera: str, **changes) -> None:
+        with self._lock:
+            st = self._stats[camera]
+            for key, value in changes.items():
+                if key in ("bad_parts", "clock_failures"):
+                    getattr(st, key).update(value)
+                elif isinstance(value, int) and not isinstance(value, bool):
+                    setattr(st, key, getattr(st, key) + value)
+                else:
+                    setattr(st, key, value)
+
+    def _stream_loop(self, name: str, url: str) -> None:
+        import requests
+
+        p = self.params
+        backoff = p.backoff_initial_s
+        state = {"seq": 0, "got_frame": False}
+        session = requests.Session()
+        try:
+            while not self._stop.is_set():
+                state["got_frame"] = False
+                try:
+                    self._read_stream(session, name, url, state)
+                    reason = "the camera closed the stream"
+                except Exception as exc:  # network errors of every library, malformed answers
+                    reason = _describe(exc)
+                if self._stop.is_set():
+                    self._count(name, connected=False)
+                    break
+                self._count(name, connected=False, last_error=reason)
+                if state["got_frame"]:  # the connection worked: start the back-off again
+                    backoff = p.backoff_initial_s
+                self._count(name, reconnects=1)
+                log.warning("camera %s: stream lost (%s); reconnecting in %.2f s", name, reason, backoff)
+                if self._stop.wait(backoff):
+                    break
+                backoff = min(p.backoff_max_s, backoff * 2)
+        finally:
+            session.close()
+
+    def _read_stream(self, session, name: str, url: str, state: dict) -> None:
+        """One connection: read parts until it ends (returns) or fails (raises). ``state`` carries
+        the last frame number and whether this connection gave a frame."""
+        p = self.params
+        resp = session.get(url, stream=True, timeout=(p.connect_timeout_s, p.read_timeout_s),
+                           headers={"Accept": "multipart/x-mixed-replace, */*"})
+        parser = None
+        reported: Counter[str] = Counter()
+        try:
+            if resp.status_code != 200:
+                raise _StreamEnded(f"HTTP {resp.status_code}")
+            ctype = resp.headers.get("Content-Type", "")
+            if not ctype.lower().startswith("multipart/"):
+                raise _StreamEnded(f"not a multipart stream (Content-Type {ctype!r})")
+            raw = resp.raw
+            sock = _socket_of(raw)
+            with self._cond:
+                if sock is not None:
+                    self._sockets[name] = sock
+            if self._stop.is_set():
+                return
+            read1 = getattr(raw, "read1", None) or raw._fp.read1
+            parser = MjpegParser(boundary_from_content_type(ctype), p.max_header_bytes, p.max_part_bytes)
+            self._count(name, connects=1, connected=True, last_error="")
+            log.info("camera %s: streaming from %s", name, url)
+            while not self._stop.is_set():
+                data = read1(p.read_chunk_bytes)
+                if not data:
+                    return
+                arrived = self.clock()
+                for part in parser.feed(data):
+                    state["seq"] = part.seq if part.seq is not None else state["seq"] + 1
+                    self._put_frame(Frame(name, state["seq"], part.device_time_s, arrived, part.jpeg))
+                    state["got_frame"] = True
+                if parser.bad != reported:
+                    self._count(name, bad_parts=parser.bad - reported)
+                    reported = Counter(parser.bad)
+        finally:
+            if parser is not None:
+                if not self._stop.is_set():
+                    parser.close()  # a part in progress when the connection ended is counted
+                if parser.bad != reported:
+                    self._count(name, bad_parts=parser.bad - reported)
+            with self._cond:
+                self._sockets.pop(name, None)
+            resp.close()
+
+    def _clock_loop(self, name: str, stream_url: str) -> None:
+        p = self.params
+        url = time_url(stream_url)
+        next_at = time.monotonic()
+        while not self._stop.is_set():
+            try:
+                sample = poll_time(url, p.clock_timeout_s, self.clock)
+            except (OSError, http.client.HTTPException, ValueError, UnicodeDecodeError) as exc:
+                reason = "no answer" if isinstance(exc, (OSError, http.client.HTTPException)) else "garbage answer"
+                self._count(name, clock_failures=Counter({reason: 1}))
+                log.debug("camera %s: /time round trip failed: %s", name, _describe(exc))
+            else:
+                if not self._stop.is_set():
+                    self._put_clock(name, sample)
+            next_at += p.clock_period_s
+            wait = next_at - time.monotonic()
+            if wait < 0:  # fell behind (timeouts): keep the period from now
+                next_at = time.monotonic()
+                wait = 0.0
+            if self._stop.wait(wait):
+                break
+
+
+def _socket_of(raw) -> socket.socket | None:
+    """The socket under a urllib3 response (to wake a blocked read on stop); None if not reachable."""
+    try:
+        s = raw._fp.fp.raw._sock
+        return s if isinstance(s, socket.socket) else None
+    except AttributeError:
+        return None
+
+
+def _describe(exc: BaseException) -> str:
+    text = str(exc) or type(exc).__name__
+    text = re.sub(r"\s+", " ", text)
+    return text if len(text) <= 160 else text[:157] + "..."

@@ -1,0 +1,186 @@
+"""Live tracking end to end over real HTTP sockets on 127.0.0.1: a short simulated session served
+by the camera emulator (the firmware's HTTP API) -> `cubetrack track --live --record` in-process
+-> poses scored against the ground truth moved onto the live clock, as accurate as the offline
+replay of the same recording; the session recording replays offline; `cubetrack record`
+records and stops cleanly on Ctrl-C."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+from cubecam.emulator import Emulator
+from cubecam.replay import fastest_round_trips, fit_clock
+from cubetrack.cli.main import main
+from cubetrack.demo import shift_trajectory, write_live_config
+from cubetrack.evaluate import evaluate
+from cubetrack.io.recording import Recording
+from cubetrack.io.trajectory import read_tum
+from cubetrack.timesync import fit_round_trips
+
+pytestmark = pytest.mark.slow
+
+DURATION_S = 8.0
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    work = tmp_path_factory.mktemp("live")
+    rec = work / "rec"
+    assert main(["simulate", "--out", str(rec), "--duration", str(DURATION_S), "--seed", "5",
+                 "--calibration-frames", "100"]) == 0
+    assert main(["calibrate", "--config", str(rec / "config.toml"), "--recording", str(rec / "calibration"),
+                 "--out", str(work / "extrinsics.toml")]) == 0
+    assert main(["track", "--config", str(rec / "config.toml"), "--extrinsics", str(work / "extrinsics.toml"),
+                 "--recording", str(rec), "--out", str(work / "offline")]) == 0
+    return work, rec
+
+
+@pytest.fixture(scope="module")
+def live_run(scene):
+    """The emulator serves the recording once; `cubetrack track --live` follows it to the end."""
+    work, rec = scene
+    out, session = work / "live", work / "session"
+    stdout, stderr = io.StringIO(), io.StringIO()
+    with Emulator(rec, host="127.0.0.1", port=0) as emu:
+        config = write_live_config(rec / "config.toml", emu.urls, work / "live_config.toml")
+        with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
+            rc = main(["track", "--config", str(config), "--extrinsics", str(work / "extrinsics.toml"), "--live",
+                       "--out", str(out), "--duration", str(emu.timeline.period_s + 2.0), "--record", str(session),
+                       "--status-every", "1"])
+        assert emu.wait_finished(0)  # the session outlasted the replay
+        truth = read_tum(rec / "ground_truth.tum")
+        shift_s = emu.unix_time(float(truth.times_s[0])) - float(truth.times_s[0])
+        urls = dict(emu.urls)
+    assert rc == 0, stderr.getvalue()
+    return {"out": out, "session": session, "config": config, "shift_s": shift_s, "urls": urls,
+            "truth": shift_trajectory(truth, shift_s), "stdout": stdout.getvalue(), "stderr": stderr.getvalue()}
+
+
+def test_live_poses_are_as_accurate_as_the_offline_replay(scene, live_run):
+    work, rec = scene
+    offline = evaluate(read_tum(work / "offline" / "robot.tum"), read_tum(rec / "ground_truth.tum"))
+    live = evaluate(read_tum(live_run["out"] / "robot.tum"), live_run["truth"])
+    print(f"offline {offline.position_rmse_m * 100:.2f} cm / {offline.rotation_rmse_deg:.2f} deg, "
+          f"live {live.position_rmse_m * 100:.2f} cm / {live.rotation_rmse_deg:.2f} deg")
+    assert live.position_rmse_m < 0.015
+    assert live.position_rmse_m < offline.position_rmse_m + 0.005
+    assert live.detection_ratio >= 0.9
+    assert live.poses_total >= 0.8 * offline.poses_total
+    lines = (live_run["out"] / "robot.jsonl").read_text().splitlines()
+    first = json.loads(lines[0])
+    assert len(lines) == live.poses_total and first["robot"] == "robot" and first["latency"] > 0
+
+
+def test_status_lines_and_summary_are_printed(live_run):
+    status = [line for line in live_run["stderr"].splitlines() if line.startswith("track: ")]
+    assert len(status) >= 3
+    assert "robot" in status[-1] and "poses/s" in status[-1] and "cam1" in status[-1] and "latency" in status[-1]
+    assert "robot:" in live_run["stdout"] and "median latency" in live_run["stdout"]
+
+
+def test_the_clock_shift_agrees_with_the_shift_seen_through_the_device_clocks(scene, live_run):
+    """Two independent routes from the recorded host clock to the live one: the emulator's replay
+    start, and per camera device -> recorded host (the recording's clock.csv, fitted as the emulator
+    does) composed with device -> live host (the live session's own /time round trips)."""
+    _, rec = scene
+    recorded, session = Recording.open(rec), Recording.open(live_run["session"])
+    for camera in recorded.camera_names:
+        r = fastest_round_trips(recorded.clock_samples(camera))  # as the emulator fits them
+        to_recorded = fit_clock([s.device_time_s for s in r], [(s.host_send_s + s.host_recv_s) / 2 for s in r],
+                                False, camera)
+        s = session.clock_samples(camera)
+        to_live = fit_round_trips(*(np.array(v) for v in zip(*((x.host_send_s, x.device_time_s, x.host_recv_s)
+                                                              for x in s))))
+        d = np.array([f.device_time_s for f in session.index(camera)])
+        through_devices = np.median(to_live.to_host(d) - to_recorded.host(d))
+        assert abs(through_devices - live_run["shift_s"]) < 0.002, camera
+
+
+def test_the_session_recording_holds_everything_and_replays_offline(scene, live_run, tmp_path):
+    work, rec = scene
+    session = Recording.open(live_run["session"])
+    assert {c.name: c.source for c in session.cameras} == live_run["urls"]
+    for camera in session.camera_names:
+        assert session.camera_info_path(camera) is not None
+        assert len(session.index(camera)) >= 0.9 * len(Recording.open(rec).index(camera))
+        assert len(session.clock_samples(camera)) >= DURATION_S - 2
+    out = tmp_path / "replay"
+    assert main(["track", "--config", str(live_run["config"]), "--extrinsics", str(work / "extrinsics.toml"),
+                 "--recording", str(live_run["session"]), "--out", str(out)]) == 0
+    replay = evaluate(read_tum(out / "robot.tum"), live_run["truth"])
+    assert replay.position_rmse_m < 0.015 and replay.detection_ratio >= 0.9
+
+
+def test_cubetrack_record_writes_a_recording_that_replays(scene, tmp_path, capsys):
+    work, rec = scene
+    with Emulator(rec, host="127.0.0.1", port=0, loop=True) as emu:
+        config = write_live_config(rec / "config.toml", emu.urls, tmp_path / "config.toml")
+        assert main(["record", "--config", str(config), "--out", str(tmp_path / "rec"), "--duration", "3"]) == 0
+    out = capsys.readouterr()
+    assert "recorded" in out.out and "record: " in out.err
+    recording = Recording.open(tmp_path / "rec")
+    assert recording.camera_names == ("cam1", "cam2", "cam3")
+    for camera in recording.camera_names:
+        assert len(recording.index(camera)) >= 10 and len(recording.clock_samples(camera)) >= 2
+        assert recording.camera_info_path(camera) is not None
+    assert main(["track", "--config", str(config), "--extrinsics", str(work / "extrinsics.toml"),
+                 "--recording", str(tmp_path / "rec"), "--out", str(tmp_path / "track")]) == 0
+    assert len(read_tum(tmp_path / "track" / "robot.tum")) > 10
+
+
+def test_ctrl_c_stops_a_recording_and_keeps_what_was_recorded(scene, tmp_path):
+    _, rec = scene
+    with Emulator(rec, host="127.0.0.1", port=0, loop=True) as emu:
+        config = write_live_config(rec / "config.toml", emu.urls, tmp_path / "config.toml")
+        proc = subprocess.Popen([sys.executable, "-m", "cubetrack.cli.main", "record", "--config", str(config),
+                                 "--out", str(tmp_path / "rec")], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
+                                text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
+        try:
+            deadline = time.monotonic() + 60
+            while time.monotonic() < deadline:  # until some frames are on disk
+                index = tmp_path / "rec" / "cam1" / "index.csv"
+                if index.exists() and len(index.read_text().splitlines()) > 10:
+                    break
+                time.sleep(0.2)
+            proc.send_signal(signal.SIGINT)
+            out, err = proc.communicate(timeout=30)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+    assert proc.returncode == 0, err
+    assert "interrupted" in out
+    recording = Recording.open(tmp_path / "rec")
+    for camera in recording.camera_names:
+        frames = list(recording.frames(camera))
+        assert len(frames) >= 5 and all(f.jpeg.startswith(b"\xff\xd8") for f in frames)
+    assert not list((tmp_path / "rec").rglob("*.part"))
+
+
+@pytest.mark.parametrize("drop,needle", [("camera_info", "camera_info"), ("url", "url")])
+def test_a_live_config_without_intrinsics_or_url_is_one_clear_line(scene, tmp_path, capsys, drop, needle):
+    work, rec = scene
+    text = write_live_config(rec / "config.toml", {c: f"http://127.0.0.1:9/{c}" for c in ("cam1", "cam2", "cam3")},
+                             tmp_path / "config.toml").read_text()
+    lines = [line for line in text.splitlines() if not line.startswith(f"{drop} =")]
+    (tmp_path / "config.toml").write_text("\n".join(lines) + "\n")
+    assert main(["track", "--config", str(tmp_path / "config.toml"), "--extrinsics", str(work / "extrinsics.toml"),
+                 "--live", "--out", str(tmp_path / "o"), "--duration", "1"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert needle in err and "cam1" in err and len(err.splitlines()) == 1
+
+
+def test_record_and_duration_need_live(scene, tmp_path, capsys):
+    work, rec = scene
+    assert main(["track", "--config", str(rec / "config.toml"), "--extrinsics", str(work / "extrinsics.toml"),
+                 "--recording", str(rec), "--out", str(tmp_path), "--record", str(tmp_path / "r")]) == 1
+    assert "--live" in capsys.readouterr().err

@@ -1,0 +1,233 @@
+"""LiveCameras against a real local HTTP server (the emulator, with its faults): frames and
+clock samples arrive, every fault is survived and counted, reconnects are logged, the queue
+stays bounded, and stop() wakes blocked reads."""
+
+from __future__ import annotations
+
+import http.server
+import logging
+import statistics
+import threading
+import time
+
+import cv2
+import numpy as np
+import pytest
+
+from conftest import FPS, collect
+from cubecam.emulator import Emulator, Faults
+from cubecam.testdata import synthetic_jpeg
+from cubetrack.errors import ConfigError
+from cubetrack.records import Frame
+from cubetrack.source import ClockReading, LiveCameras, SourceParams
+
+FAST = SourceParams(connect_timeout_s=1.0, read_timeout_s=1.0, backoff_initial_s=0.05, backoff_max_s=0.4,
+                    clock_period_s=0.25)
+
+
+def decodes(frame: Frame) -> bool:
+    return cv2.imdecode(np.frombuffer(frame.jpeg, np.uint8), cv2.IMREAD_GRAYSCALE) is not None
+
+
+def test_frames_and_clock_samples_arrive_in_order_with_capture_stamps(images):
+    with Emulator(images=images, fps=FPS, name="cam1", loop=True) as emu:
+        with LiveCameras(emu.urls, FAST) as live:
+            frames, clocks = collect(live, 6.0, until=lambda f, c: len(f) >= 12 and len(c) >= 3)
+            stats = live.stats()["cam1"]
+    assert len(frames) >= 12 and len(clocks) >= 3
+    assert all(isinstance(c, ClockReading) and c.camera == "cam1" for c in clocks)
+    seqs = [f.seq for f in frames]
+    assert seqs == sorted(seqs) and len(set(seqs)) == len(seqs)
+    assert all(decodes(f) for f in frames)
+    # X-Timestamp is the emulated device clock; arrival is the host time the last byte came:
+    # on 127.0.0.1 without faults that is within a few ms of capture (no frame of added latency)
+    delays = [f.host_time_s - emu.unix_time(f.device_time_s) for f in frames]  # images: device = recorded host
+    assert min(delays) > -0.005
+    assert statistics.median(delays) < 0.5 / FPS
+    assert stats.frames == len(frames) and stats.bad == 0 and stats.connected and stats.reconnects == 0
+    assert stats.clock_samples >= 3 and not stats.clock_failures
+
+
+def test_added_latency_shows_in_the_arrival_times(images):
+    with Emulator(images=images, fps=FPS, name="cam1", loop=True, faults=Faults(latency_s=0.2)) as emu:
+        with LiveCameras(emu.urls, FAST) as live:
+            frames, _ = collect(live, 6.0, until=lambda f, c: len(f) >= 8)
+    delays = [f.host_time_s - emu.unix_time(f.device_time_s) for f in frames]
+    assert len(frames) >= 8
+    assert min(delays) >= 0.2 - 0.005
+    assert statistics.median(delays) < 0.2 + 0.5 / FPS
+
+
+def test_a_camera_that_disconnects_is_reconnected_and_it_is_logged(images, caplog):
+    caplog.set_level(logging.WARNING, logger="cubetrack.source")
+    with Emulator(images=images, fps=FPS, name="cam1", loop=True, faults=Faults(disconnect_every_s=0.8)) as emu:
+        with LiveCameras(emu.urls, FAST) as live:
+            frames, _ = collect(live, 4.0)
+        stats = live.stats()["cam1"]
+    assert stats.reconnects >= 2 and stats.connects >= 3
+    assert len(frames) >= 0.6 * 4.0 * FPS  # frames keep coming across reconnects
+    assert any("reconnecting" in r.getMessage() and "cam1" in r.getMessage() for r in caplog.records)
+    assert stats.bad == 0  # the node closes between parts: nothing half-read
+
+
+def test_a_stalled_stream_times_out_and_is_reconnected(images, caplog):
+    caplog.set_level(logging.WARNING, logger="cubetrack.source")
+    faults = Faults(stall_after_s=0.6)  # every connection goes silent after 0.6 s, until the client leaves
+    with Emulator(images=images, fps=FPS, name="cam1", loop=True, faults=faults) as emu:
+        params = SourceParams(read_timeout_s=0.5, backoff_initial_s=0.05, clock_period_s=0.5)
+        with LiveCameras(emu.urls, params) as live:
+            frames, _ = collect(live, 4.0)
+        stats = live.stats()["cam1"]
+    assert stats.reconnects >= 2
+    lost = [r.getMessage() for r in caplog.records if "stream lost" in r.getMessage()]
+    assert lost and all("timed out" in m for m in lost)
+    assert all("reconnecting in 0.05 s" in m for m in lost)  # each connection worked: no growing back-off
+    first_gap = max(b.host_time_s - a.host_time_s for a, b in zip(frames, frames[1:]))
+    assert first_gap >= 0.5  # the stall was seen ...
+    assert frames[-1].host_time_s - frames[0].host_time_s > 2.0  # ... and frames resumed after it
+
+
+@pytest.mark.parametrize("kind,reason", [("jpeg", "not a whole JPEG"), ("truncate", "part shorter than its Content-Length")])
+def test_corrupt_parts_are_skipped_and_counted_and_the_rest_delivered(images, kind, reason):
+    faults = Faults(corrupt_every=3, corrupt_kind=kind, seed=3)
+    with Emulator(images=images, fps=FPS, name="cam1", loop=True, faults=faults) as emu:
+        with LiveCameras(emu.urls, FAST) as live:
+            frames, _ = collect(live, 6.0, until=lambda f, c: len(f) >= 10)
+        stats = live.stats()["cam1"]
+    assert len(frames) >= 10 and all(decodes(f) for f in frames)
+    assert stats.bad_parts[reason] >= 4 and stats.reconnects == 0
+
+
+def test_a_vanished_server_is_retried_with_backoff_until_it_comes_back(images, caplog):
+    caplog.set_level(logging.WARNING, logger="cubetrack.source")
+    emu = Emulator(images=images, fps=FPS, name="cam1", loop=True).start()
+    url = emu.urls["cam1"]
+    port = int(url.split(":")[2].split("/")[0])
+    with LiveCameras({"cam1": url}, FAST) as live:
+        before, _ = collect(live, 3.0, until=lambda f, c: len(f) >= 3)
+        emu.close()
+        time.sleep(1.5)
+        down = live.stats()["cam1"]
+        emu = Emulator(images=images, fps=FPS, name="cam1", loop=True, port=port).start()
+        try:
+            after, _ = collect(live, 6.0, until=lambda f, c: len(f) >= 3 and f[-1].seq >= 3)
+        finally:
+            emu.close()
+    assert len(before) >= 3 and len(after) >= 3
+    assert not down.connected and down.reconnects >= 3 and down.clock_failures["no answer"] >= 1
+    waits = [float(r.getMessage().split("reconnecting in ")[1].split(" s")[0])
+             for r in caplog.records if "reconnecting in" in r.getMessage()]
+    assert max(waits) > min(waits)  # back-off grows while the server is away
+
+
+def test_a_wrong_path_is_an_http_error_and_retried(images):
+    with Emulator(images=images, fps=FPS, name="cam1", loop=True) as emu:
+        with LiveCameras({"cam1": emu.base_urls["cam1"] + "nostream"}, FAST) as live:
+            collect(live, 1.0)
+        stats = live.stats()["cam1"]
+    assert stats.frames == 0 and stats.reconnects >= 1 and "HTTP 404" in stats.last_error
+
+
+def test_a_consumer_that_falls_behind_loses_the_oldest_frames_not_memory(images):
+    with Emulator(images=images, fps=FPS, name="cam1", loop=True) as emu:
+        params = SourceParams(queue_frames=4, clock_period_s=0.25)
+        with LiveCameras(emu.urls, params) as live:
+            time.sleep(2.0)  # nobody reads
+            stats = live.stats()["cam1"]
+            events = []
+            while (e := live.get(0)) is not None:
+                events.append(e)
+    frames = [e for e in events if isinstance(e, Frame)]
+    assert len(frames) <= 4 and stats.dropped >= stats.frames - 4 - 1 and stats.dropped > 0
+    assert [f.seq for f in frames] == sorted(f.seq for f in frames)
+    assert frames[-1].seq >= stats.frames - 1  # the newest are kept
+    assert sum(isinstance(e, ClockReading) for e in events) >= 4  # clock samples are never dropped
+
+
+def test_stop_wakes_a_read_blocked_on_a_silent_camera(images):
+    with Emulator(images=images, fps=FPS, name="cam1", loop=True, faults=Faults(stall_after_s=0.3)) as emu:
+        live = LiveCameras(emu.urls, SourceParams(read_timeout_s=30.0)).start()
+        collect(live, 1.0)
+        t0 = time.monotonic()
+        live.stop()
+        assert time.monotonic() - t0 < 5.0  # far below the 30 s read timeout
+        assert not any(t.is_alive() for t in live._threads)
+
+
+def test_several_cameras_are_merged_in_arrival_order(tmp_path):
+    from cubecam.testdata import CameraSpec, write_recording
+
+    rec = write_recording(tmp_path / "rec", [CameraSpec("a", boot_offset_s=10.0), CameraSpec("b", boot_offset_s=99.0)],
+                          frames=30, fps=10.0)
+    with Emulator(rec, loop=True) as emu:
+        with LiveCameras(emu.urls, FAST) as live:
+            frames, clocks = collect(live, 6.0, until=lambda f, c: len(f) >= 20 and {x.camera for x in c} == {"a", "b"})
+    assert {f.camera for f in frames} == {"a", "b"}
+    arrivals = [f.host_time_s for f in frames]
+    assert arrivals == sorted(arrivals)
+
+
+def test_only_http_stream_urls_are_accepted():
+    with pytest.raises(ConfigError, match="cam1"):
+        LiveCameras({"cam1": "rtsp://10.0.0.2/stream"})
+    with pytest.raises(ConfigError, match="no cameras"):
+        LiveCameras({})
+
+
+class _Esp32Style(http.server.BaseHTTPRequestHandler):
+    """An ESP32 CameraWebServer-like stream: HTTP/1.1 chunked encoding, boundary, headers and
+    JPEG as separate chunks, X-Timestamp but no X-Frame; /time answers from the same clock."""
+
+    protocol_version = "HTTP/1.1"
+    boundary = "123456789000000000000987654321"
+
+    def chunk(self, data: bytes) -> None:
+        self.wfile.write(f"{len(data):X}\r\n".encode() + data + b"\r\n")
+        self.wfile.flush()
+
+    def do_GET(self):  # noqa: N802
+        if self.path == "/time":
+            body = f"{time.monotonic():.6f}".encode()
+            self.send_response(200)
+            self.send_header("Content-Length", str(len(body)))
+            self.send_header("Connection", "close")
+            self.end_headers()
+            self.wfile.write(body)
+            return
+        self.send_response(200)
+        self.send_header("Content-Type", f"multipart/x-mixed-replace;boundary={self.boundary}")
+        self.send_header("Transfer-Encoding", "chunked")
+        self.end_headers()
+        try:
+            for i in range(8):
+                jpeg = synthetic_jpeg(i, 80, 60)
+                self.chunk(f"\r\n--{self.boundary}\r\n".encode())
+                self.chunk(f"Content-Type: image/jpeg\r\nContent-Length: {len(jpeg)}\r\n"
+                           f"X-Timestamp: {time.monotonic():.6f}\r\n\r\n".encode())
+                self.chunk(jpeg)
+                time.sleep(0.1)
+            self.wfile.write(b"0\r\n\r\n")
+        except OSError:
+            pass
+
+    def log_message(self, *args):
+        pass
+
+
+def test_a_chunked_esp32_style_stream_without_x_frame_is_read_without_added_latency():
+    srv = http.server.ThreadingHTTPServer(("127.0.0.1", 0), _Esp32Style)
+    threading.Thread(target=srv.serve_forever, daemon=True).start()
+    try:
+        url = f"http://127.0.0.1:{srv.server_address[1]}/stream"
+        received = []
+        with LiveCameras({"esp": url}, FAST, on_frame=lambda f: received.append((f, time.monotonic()))) as live:
+            frames, clocks = collect(live, 5.0, until=lambda f, c: len(f) >= 6 and c)
+    finally:
+        srv.shutdown()
+        srv.server_close()
+    assert len(frames) >= 6 and clocks
+    assert [f.seq for f in frames[:6]] == list(range(1, 7))  # counted locally
+    assert all(decodes(f) for f in frames)
+    # the part is complete when its JPEG chunk arrives, not when the next part starts (0.1 s later)
+    delays = [arrived - f.device_time_s for f, arrived in received]  # server stamps = monotonic
+    assert statistics.median(delays) < 0.05
