@@ -12,8 +12,15 @@ Writes the extrinsics TOML (contracts §4) with sample counts and spread; corrup
 skipped and counted. A camera that never sees the world marker is an error unless
 --allow-missing. See docs/calibration.md.
 
+With --refine-with REC the calibrated poses are then refined by a bundle adjustment over the
+cube corners of a tracking recording REC (instants where several cameras saw the cube) and
+the world marker's averaged corners; --out gets the refined poses. Per-camera residuals are
+printed, and a camera that moved after the calibration recording is named with how far.
+
 Example:
   cubetrack calibrate --config rec/config.toml --recording rec/calibration --out extrinsics.toml
+  cubetrack calibrate --config rec/config.toml --recording rec/calibration --out extrinsics.toml \
+      --refine-with rec
 """
 
 from __future__ import annotations
@@ -35,6 +42,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="world-marker sightings to use per camera (default 200); overrides [calibration] samples")
     p.add_argument("--allow-missing", action="store_true",
                    help="leave out cameras that do not see the world marker instead of failing")
+    p.add_argument("--refine-with", type=Path, metavar="REC",
+                   help="tracking recording (the robot driving where several cameras see it): refine the "
+                        "calibrated poses with its cube sightings (bundle adjustment); --out gets the refined poses")
     p.add_argument("--truth", type=Path, metavar="EXTRINSICS",
                    help="true extrinsics (e.g. REC/true_extrinsics.toml of a simulation): also print the errors")
 
@@ -60,9 +70,18 @@ def run(args: argparse.Namespace) -> int:
     truth = read_extrinsics(args.truth) if args.truth else None
     recording = Recording.open(args.recording)
     report = calibrate_recording(config, recording, params, StderrProgress(), args.allow_missing)
-    write_extrinsics(report.extrinsics, args.out)
+    refined = None
+    if args.refine_with is not None:
+        from cubetrack.refine import refine_extrinsics
+
+        refined = refine_extrinsics(config, Recording.open(args.refine_with), report.extrinsics, recording,
+                                    progress=StderrProgress())
+    write_extrinsics(report.extrinsics if refined is None else refined.extrinsics, args.out)
     errors = extrinsics_errors(report.extrinsics, truth) if truth else {}
-    print(f"method {params.method.value}; wrote {args.out}")
+    if refined is None:
+        print(f"method {params.method.value}; wrote {args.out}")
+    else:
+        print(f"method {params.method.value}, refined with {args.refine_with}; wrote {args.out} (refined)")
     header = f"{'camera':<10} {'samples':>7} {'frames':>6}  {'position [m]':<26} {'spread cm':>9} {'spread deg':>10}"
     if truth:
         header += f" {'err cm':>7} {'err deg':>7}"
@@ -81,4 +100,23 @@ def run(args: argparse.Namespace) -> int:
         print(f"{name:<10} NOT CALIBRATED: {why}")
     for why, n in sorted(recording.skipped.items()):
         print(f"recording: skipped {n} ({why})")
+    if refined is not None:
+        _print_refined(refined, extrinsics_errors(refined.extrinsics, truth) if truth else {})
     return 0
+
+
+def _print_refined(refined, errors: dict) -> None:
+    print(f"refined with {refined.instants} multi-camera instants:")
+    header = (f"{'camera':<10} {'instants':>8} {'corners':>7} {'rms px':>6} {'world px':>8} "
+              f"{'shift cm':>8} {'shift deg':>9}")
+    if errors:
+        header += f" {'err cm':>7} {'err deg':>7}"
+    print(header)
+    for name, r in refined.cameras.items():
+        line = (f"{name:<10} {r.instants:>8} {r.corners:>7} {r.rms_px:>6.3f} {r.world_rms_px:>8.3f} "
+                f"{100 * r.shift_m:>8.2f} {r.shift_deg:>9.3f}")
+        if name in errors:
+            line += f" {100 * errors[name][0]:>7.2f} {errors[name][1]:>7.3f}"
+        print(line + ("  MOVED" if r.moved else ""))
+    for warning in refined.warnings:
+        print(f"warning: {warning}")
