@@ -21,7 +21,7 @@ from typing import Sequence
 import numpy as np
 
 from cubetrack.geometry import R_from_rotvec, make_T
-from cubetrack.joint import CornerSet, perturbed, reprojection_residuals_px
+from cubetrack.joint import CornerSet, perturbed, reprojection_jacobian_px
 from cubetrack.params import param
 
 _P, _V, _TH, _W = slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12)
@@ -116,21 +116,10 @@ class PoseFilter:
         """Gauss-Newton on prior + Huber-weighted corner residuals: (δ (12,), information, residuals px)."""
         prm = self.params
         T0 = self.T_world_cube
-        zero3 = np.zeros(3)
-
-        def residual(delta6: np.ndarray) -> np.ndarray:  # pixels, h(x) - z
-            return reprojection_residuals_px(perturbed(T0, delta6), sets, self.time_s, zero3, zero3)
-
         info_prior = np.linalg.inv(self.P)
         delta = np.zeros(12)
-        eps = 1e-6
         for _ in range(prm.iterations):
-            r = residual(delta[_POSE])
-            H6 = np.empty((r.size, 6))
-            for k in range(6):
-                step = delta[_POSE].copy()
-                step[k] += eps
-                H6[:, k] = (residual(step) - r) / eps
+            r, H6 = reprojection_jacobian_px(perturbed(T0, delta[_POSE]), sets)
             H = np.zeros((r.size, 12))
             H[:, _POSE] = H6
             a = np.abs(r)
@@ -138,7 +127,8 @@ class PoseFilter:
             info = info_prior + H.T @ (weights[:, None] * H)
             rhs = H.T @ (weights * (H @ delta - r))
             delta = np.linalg.solve(info, rhs)
-        return delta, info, residual(delta[_POSE])
+        r, _ = reprojection_jacobian_px(perturbed(T0, delta[_POSE]), sets)
+        return delta, info, r
 
     def update(self, sets: Sequence[CornerSet]) -> UpdateResult:
         """Iterated EKF update with the corners of ``sets`` (taken at the filter's time).

@@ -132,6 +132,43 @@ def reprojection_residuals_px(T_world_cube: np.ndarray, sets: Sequence[CornerSet
     return np.concatenate(out) if out else np.zeros(0)
 
 
+def reprojection_jacobian_px(T_world_cube: np.ndarray, sets: Sequence[CornerSet]) -> tuple[np.ndarray, np.ndarray]:
+    """Residuals (2N,) in pixels of the still cube at ``T_world_cube`` and their analytic
+    Jacobian (2N, 6) with respect to a world-frame increment ``[δp, δθ]`` (see :func:`perturbed`).
+
+    With ``q = R X`` the rotated corner, ``d(pw)/d[δp, δθ] = [I | -[q]×]``; the pinhole gives
+    ``d(x/z, y/z)/d(pc) = [[1/z, 0, -x/z²], [0, 1/z, -y/z²]]``; ``pc = R_cw pw + t_cw``.
+    Corners behind a camera get a 1000 px residual and a zero Jacobian row.
+    """
+    R, p = T_world_cube[:3, :3], T_world_cube[:3, 3]
+    residuals, jacobians = [], []
+    for s in sets:
+        q = s.points_cube_m @ R.T  # (N, 3) rotated corners
+        R_cw, t_cw = s.T_cam_world[:3, :3], s.T_cam_world[:3, 3]
+        pc = (q + p) @ R_cw.T + t_cw
+        z = pc[:, 2]
+        ok = z > 1e-6
+        zs = np.where(ok, z, 1.0)
+        r = (pc[:, :2] / zs[:, None] - s.normalized) * s.focal_px
+        r[~ok] = 1e3
+        n = len(q)
+        d_proj = np.zeros((n, 2, 3))  # d(x/z, y/z) / d(pc), scaled to pixels
+        d_proj[:, 0, 0] = d_proj[:, 1, 1] = s.focal_px / zs
+        d_proj[:, 0, 2] = -s.focal_px * pc[:, 0] / zs**2
+        d_proj[:, 1, 2] = -s.focal_px * pc[:, 1] / zs**2
+        d_proj[~ok] = 0.0
+        skew = np.zeros((n, 3, 3))  # -[q]x
+        skew[:, 0, 1], skew[:, 0, 2] = q[:, 2], -q[:, 1]
+        skew[:, 1, 0], skew[:, 1, 2] = -q[:, 2], q[:, 0]
+        skew[:, 2, 0], skew[:, 2, 1] = q[:, 1], -q[:, 0]
+        d_pw = np.concatenate([np.broadcast_to(np.eye(3), (n, 3, 3)), skew], axis=2)  # (n, 3, 6)
+        residuals.append(r.ravel())
+        jacobians.append((d_proj @ R_cw @ d_pw).reshape(2 * n, 6))
+    if not residuals:
+        return np.zeros(0), np.zeros((0, 6))
+    return np.concatenate(residuals), np.vstack(jacobians)
+
+
 @dataclass(frozen=True, slots=True, eq=False)
 class JointSolution:
     """A solved cube pose at the reference time: ``T_world_cube``, the world-frame velocities

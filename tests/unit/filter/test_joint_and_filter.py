@@ -145,3 +145,20 @@ def test_filter_drops_a_bad_face_and_rejects_a_garbage_sighting():
 def test_filter_params_are_checked(bad):
     with pytest.raises(ValueError):
         FilterParams(**bad)
+
+
+def test_analytic_jacobian_matches_finite_differences():
+    from cubetrack.joint import perturbed, reprojection_jacobian_px, reprojection_residuals_px
+
+    rng = np.random.default_rng(6)
+    T = cube_pose()
+    sets = [corner_set(T, c, rng) for c in CAMS]
+    r, J = reprojection_jacobian_px(T, sets)
+    zero = np.zeros(3)
+    np.testing.assert_allclose(r, reprojection_residuals_px(T, sets, 0.0, zero, zero), atol=1e-9)
+    eps = 1e-7
+    for k in range(6):
+        step = np.zeros(6)
+        step[k] = eps
+        numeric = (reprojection_residuals_px(perturbed(T, step), sets, 0.0, zero, zero) - r) / eps
+        np.testing.assert_allclose(J[:, k], numeric, rtol=1e-4, atol=1e-3)
