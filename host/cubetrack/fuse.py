@@ -168,6 +168,11 @@ class FilterFusion:
         """A per-camera estimate is only needed to start a track: not while one runs."""
         return robot not in self.filters
 
+    def predicted_pose(self, robot: str, time_s: float) -> np.ndarray | None:
+        """Where the robot's cube is expected at ``time_s`` (None while it is not tracked)."""
+        f = self.filters.get(robot)
+        return None if f is None else f.predicted(time_s)
+
     def add(self, sighting: CubeSighting, now_s: float) -> list[TrackedPose]:
         """Queue a sighting; returns the poses of every sighting whose reorder delay has passed."""
         heapq.heappush(self.pending, (sighting.capture_time_s, next(self._order), sighting))

@@ -16,12 +16,14 @@ from pathlib import Path
 
 import numpy as np
 
-from cubetrack.detect import Detector, DetectorParams
+import cv2
+
+from cubetrack.detect import Detector, DetectorParams, decode_gray
 from cubetrack.errors import ConfigError, ImageError
 from cubetrack.estimate import EstimatorParams, estimate_cube, world_marker_pose
 from cubetrack.filter import FilterParams
 from cubetrack.fuse import FilterFusion, FusionMethod, FusionParams, LatestEstimateFusion
-from cubetrack.geometry import invert_T
+from cubetrack.geometry import invert_T, transform_points
 from cubetrack.io.camera_info import CameraIntrinsics, read_camera_info
 from cubetrack.io.config import (CameraExtrinsics, RobotConfig, TrackerConfig, WorldConfig,
                                  camera_intrinsics_path)
@@ -29,7 +31,7 @@ from cubetrack.io.recording import ClockSample, Recording
 from cubetrack.io.trajectory import PoseWriter
 from cubetrack.params import param, params_from_table
 from cubetrack.progress import Progress
-from cubetrack.records import CubeSighting, Frame, TrackedPose
+from cubetrack.records import CubeSighting, Detection, Frame, TrackedPose
 from cubetrack.timesync import ClockSync
 
 log = logging.getLogger(__name__)
@@ -60,6 +62,13 @@ class TrackParams:
         "arrival: stamp with the host arrival time (the paper's behaviour, late by the transfer time)",
     )
 
+    roi_detection: bool = param(
+        True,
+        "while every robot is tracked, detect markers only in the image regions where the filter predicts "
+        "the cubes (with calibrated cameras and the filter fusion); the full frame is searched otherwise",
+    )
+    roi_margin_m: float = param(0.15, "a predicted cube's image region is grown by this much motion, metres")
+    full_frame_every: int = param(8, "with region detection: search a camera's full frame at least every this many frames")
     camera_poses: CameraPoseSource = param(
         CameraPoseSource.EXTRINSICS,
         "extrinsics: calibrated camera poses (cubetrack calibrate); world-marker: each frame's own "
@@ -97,6 +106,7 @@ class TrackStats:
     corrupt_frames: int = 0
     frames_without_camera_pose: int = 0
     frames_before_clock_sync: int = 0
+    region_detections: int = 0  # frames searched only around the predicted cubes
     estimates: Counter = field(default_factory=Counter)  # (robot, camera) -> count
     poses: Counter = field(default_factory=Counter)  # robot -> count
 
@@ -130,6 +140,8 @@ class Tracker:
         self.clocks = {name: ClockSync() for name in intrinsics}
         self.synced_cameras = synced_cameras
         self.held: dict[str, deque[Frame]] = {}  # frames waiting for their camera's first round trip
+        self.frames_since_full: Counter[str] = Counter()  # per camera, for region detection
+        self.cube_points_m = {r.name: np.vstack([m.corners_cube_m() for m in r.layout.markers]) for r in robots}
         self.stats = TrackStats()
 
     def add_clock_sample(self, camera: str, sample: ClockSample) -> list[TrackedPose]:
@@ -188,11 +200,12 @@ class Tracker:
         JPEG is counted and skipped."""
         intrinsics = self.intrinsics[frame.camera]
         try:
-            detections = self.detector.detect_jpeg(frame.jpeg, f"{frame.camera} frame {frame.seq}")
+            gray = decode_gray(frame.jpeg, f"{frame.camera} frame {frame.seq}")
         except ImageError as exc:
             self.stats.corrupt_frames += 1
             log.warning("skipping corrupt frame: %s", exc)
             return []
+        detections = self._detect(frame.camera, gray, capture_time_s)
         if not detections:
             return []
         T_world_cam = self.camera_pose(frame, detections)
@@ -221,6 +234,51 @@ class Tracker:
         for pose in poses:
             self.stats.poses[pose.robot] += 1
         return poses
+
+    def _regions(self, camera: str, time_s: float, shape: tuple[int, int]) -> list[tuple[int, int, int, int]] | None:
+        """Image boxes (x0, y0, x1, y1) around every robot's predicted cube, or None when the
+        full frame must be searched (a robot not tracked, a full search due, region search off)."""
+        track = self.params.track
+        if (not track.roi_detection or track.camera_poses is not CameraPoseSource.EXTRINSICS
+                or not isinstance(self.fusion, FilterFusion)
+                or self.frames_since_full[camera] + 1 >= track.full_frame_every):
+            return None
+        intrinsics = self.intrinsics[camera]
+        T_cam_world = invert_T(self.T_world_cam[camera])
+        height, width = shape
+        boxes = []
+        for robot in self.robots:
+            T_world_cube = self.fusion.predicted_pose(robot.name, time_s)
+            if T_world_cube is None:
+                return None
+            pc = transform_points(T_cam_world @ T_world_cube, self.cube_points_m[robot.name])
+            if np.any(pc[:, 2] <= 0.05):
+                return None
+            px, _ = cv2.projectPoints(pc, np.zeros(3), np.zeros(3), intrinsics.K, intrinsics.dist)
+            px = px.reshape(-1, 2)
+            grow = float(intrinsics.K[0, 0]) * track.roi_margin_m / float(pc[:, 2].min()) + 8.0
+            x0, y0 = np.floor(px.min(axis=0) - grow).astype(int)
+            x1, y1 = np.ceil(px.max(axis=0) + grow).astype(int)
+            x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, width), min(y1, height)
+            if x1 - x0 >= 16 and y1 - y0 >= 16:
+                boxes.append((x0, y0, x1, y1))  # else: predicted out of this camera's view
+        return boxes
+
+    def _detect(self, camera: str, gray: np.ndarray, time_s: float) -> tuple[Detection, ...]:
+        """Detections in the regions of the predicted cubes, or in the whole frame."""
+        boxes = self._regions(camera, time_s, gray.shape)
+        if boxes is not None:
+            found: list[Detection] = []
+            for x0, y0, x1, y1 in boxes:
+                offset = np.array([x0, y0], dtype=float)
+                found += [Detection(d.marker_id, d.corners_px + offset, d.area_px2, d.dictionary)
+                          for d in self.detector.detect_gray(np.ascontiguousarray(gray[y0:y1, x0:x1]))]
+            if found or not boxes:
+                self.frames_since_full[camera] += 1
+                self.stats.region_detections += 1
+                return tuple(found)
+        self.frames_since_full[camera] = 0
+        return self.detector.detect_gray(gray)
 
     def finish(self) -> list[TrackedPose]:
         """Poses still held back for reordering (call at the end of a replay)."""
