@@ -20,7 +20,7 @@ from typing import Sequence
 
 import numpy as np
 
-from cubetrack.detect import CornerRefinement, aruco_dictionary, decode_gray
+from cubetrack.detect import CornerRefinement, aruco_dictionary, decode_gray, opencv_corner_refinement
 from cubetrack.errors import CalibrationError, ImageError
 from cubetrack.io.camera_info import CameraIntrinsics
 from cubetrack.params import param
@@ -42,8 +42,9 @@ class IntrinsicsParams:
         False, "boards made with OpenCV < 4.6 that have an even number of rows need this")
     marker_refinement: CornerRefinement = param(
         CornerRefinement.APRILTAG,
-        "corner refinement of the board's markers, which seed the chessboard corners "
-        "(offline: the most accurate, apriltag)")
+        "corner refinement of the board's markers, which seed the chessboard corners: apriltag "
+        "(offline: the most accurate) | subpix | contour | none (edge is the tracker's own, not "
+        "available inside OpenCV's ChArUco detector)")
     min_corners: int = param(6, "ChArUco corners a view needs to be used")
     min_views: int = param(3, "usable views needed to calibrate")
 
@@ -56,6 +57,10 @@ class IntrinsicsParams:
         if self.min_corners < 4 or self.min_views < 1:
             raise ValueError("min_corners must be at least 4 and min_views at least 1")
         aruco_dictionary(self.dictionary)
+        if self.marker_refinement is CornerRefinement.EDGE:
+            raise ValueError("marker_refinement 'edge' is not available for ChArUco boards (OpenCV's "
+                             "CharucoDetector refines the markers itself); use apriltag, subpix, "
+                             "contour or none")
 
 
 @dataclass(frozen=True, slots=True)
@@ -96,12 +101,7 @@ def _charuco_detector(board, params: IntrinsicsParams):
     import cv2
 
     dp = cv2.aruco.DetectorParameters()
-    dp.cornerRefinementMethod = {
-        CornerRefinement.NONE: cv2.aruco.CORNER_REFINE_NONE,
-        CornerRefinement.SUBPIX: cv2.aruco.CORNER_REFINE_SUBPIX,
-        CornerRefinement.CONTOUR: cv2.aruco.CORNER_REFINE_CONTOUR,
-        CornerRefinement.APRILTAG: cv2.aruco.CORNER_REFINE_APRILTAG,
-    }[params.marker_refinement]
+    dp.cornerRefinementMethod = opencv_corner_refinement(params.marker_refinement)
     return cv2.aruco.CharucoDetector(board, cv2.aruco.CharucoParameters(), dp)
 
 

@@ -1,83 +1,48 @@
-"""A tiny exact renderer of a floor world marker seen by static cameras, for calibration tests.
+"""A floor world marker seen by static cameras, for calibration tests: the scene (the simulator's
+exact renderer, through ``tests/unit/scenes.py``) and a recording of it with the true camera poses.
 
-Ground truth by construction: the marker texture is mapped into the image through the exact
-plane homography at 4x supersampling (pixel-centre convention kept at both resolutions), box
-downsampled, blurred, noised and JPEG-encoded. Independent of ``cubetrack.simulate``.
+Ground truth by construction: the world marker's frame is the world frame; each camera's
+``T_world_cam`` is known; frames add blur, noise and JPEG to the exactly rendered image.
 """
 
 from __future__ import annotations
 
 from pathlib import Path
 
-import cv2
 import numpy as np
+from scenes import Camera, look_at, marker_corners_px, marker_on_paper
 
-from cubetrack.geometry import invert_T, make_T
 from cubetrack.io.camera_info import CameraIntrinsics, write_camera_info
 from cubetrack.io.config import CameraExtrinsics, tracker_config_to_table, write_extrinsics, write_toml, WorldConfig, CameraConfig
 from cubetrack.io.recording import CameraEntry, RecordingWriter
 from cubetrack.layout import paper_cube_layout, write_layout
 
 W, H = 640, 480
-MARGIN = 60
 K = np.array([[500.0, 0, 319.5], [0, 500.0, 239.5], [0, 0, 1]])
+MARKER_M = 0.25
+MARGIN_M = 0.25 * 60 / 480  # white paper around the marker, 3.1 cm (2-4 px in these views)
+FLOOR_GREY = 90
 
 
-def look_at(position_m, target_m=(0.0, 0.0, 0.0)) -> np.ndarray:
-    """T_world_cam of an optical frame (x right, y down, z forward) at ``position_m`` aimed at
-    ``target_m``, level (image x horizontal)."""
-    p = np.asarray(position_m, float)
-    z = np.asarray(target_m, float) - p
-    z /= np.linalg.norm(z)
-    x = np.cross(z, [0.0, 0.0, 1.0])
-    x /= np.linalg.norm(x)
-    y = np.cross(z, x)
-    return make_T(np.column_stack([x, y, z]), p)
+def intrinsics(dist=None) -> CameraIntrinsics:
+    return CameraIntrinsics(W, H, K, np.zeros(5) if dist is None else np.asarray(dist, float))
 
 
-def marker_texture(dictionary: str, marker_id: int, px: int = 480, margin: int = 60) -> np.ndarray:
-    d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, dictionary))
-    m = cv2.aruco.generateImageMarker(d, marker_id, px, borderBits=1)
-    return cv2.copyMakeBorder(m, margin, margin, margin, margin, cv2.BORDER_CONSTANT, value=255)
+def camera(T_world_cam, dist=None, dictionary="DICT_4X4_50", marker_id=0) -> Camera:
+    """The world marker (``MARKER_M`` on ``MARGIN_M`` of white paper, at the world origin) on a
+    uniform grey floor, seen from ``T_world_cam``; ``.jpeg(...)`` gives frames."""
+    marker = marker_on_paper(np.eye(4), dictionary, marker_id, MARKER_M, MARGIN_M)
+    return Camera(intrinsics(dist), T_world_cam, [marker], background=FLOOR_GREY)
 
 
-def _distortion_maps(K, dist, ss):
-    """For each high-res pixel of the distorted image, where it lies in the ideal (undistorted)
-    high-res image: maps for cv2.remap."""
-    ys, xs = np.mgrid[0:H * ss, 0:W * ss].astype(np.float64)
-    low = np.stack([(xs + 0.5) / ss - 0.5, (ys + 0.5) / ss - 0.5], axis=-1).reshape(-1, 1, 2)
-    ideal = cv2.undistortPoints(low, K, np.asarray(dist, float), P=K).reshape(H * ss, W * ss, 2)
-    hi = ss * (ideal + 0.5) - 0.5
-    return hi[..., 0].astype(np.float32), hi[..., 1].astype(np.float32)
+def true_corners(T_world_cam, dist=None) -> np.ndarray:
+    """The world marker's true (4, 2) corners TL, TR, BR, BL in the (distorted) image."""
+    return marker_corners_px(intrinsics(dist), T_world_cam, np.eye(4), MARKER_M)
 
 
-def render(T_world_cam, size_m=0.25, dictionary="DICT_4X4_50", marker_id=0, rng=None,
-           noise=2.0, blur=0.7, quality=85, ss=4, K=K, floor=90, dist=None) -> bytes:
-    px, margin = 480, MARGIN
-    tex = marker_texture(dictionary, marker_id, px, margin)
-    # texture pixel coords (centre convention) -> world plane (x, y), marker = world frame
-    s = size_m / px
-    A = np.array([[s, 0, -size_m / 2 - (margin - 0.5) * s],
-                  [0, -s, size_m / 2 + (margin - 0.5) * s],
-                  [0, 0, 1]])
-    T_cam_world = invert_T(T_world_cam)
-    Hw = K @ np.column_stack([T_cam_world[:3, 0], T_cam_world[:3, 1], T_cam_world[:3, 3]])
-    S = np.array([[ss, 0, (ss - 1) / 2], [0, ss, (ss - 1) / 2], [0, 0, 1]])  # low -> high res
-    Hh = S @ Hw @ A
-    hi = cv2.warpPerspective(tex, Hh, (W * ss, H * ss), flags=cv2.INTER_LINEAR,
-                             borderMode=cv2.BORDER_CONSTANT, borderValue=floor)
-    if dist is not None:
-        mx, my = _distortion_maps(K, dist, ss)
-        hi = cv2.remap(hi, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=floor)
-    img = cv2.resize(hi.astype(np.float32), (W, H), interpolation=cv2.INTER_AREA)
-    if blur:
-        img = cv2.GaussianBlur(img, (0, 0), blur)
-    rng = rng or np.random.default_rng(0)
-    img = img + rng.normal(0, noise, img.shape)
-    img = np.clip(np.round(img), 0, 255).astype(np.uint8)
-    ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, quality])
-    assert ok
-    return buf.tobytes()
+def frame(cam: Camera, rng, noise=2.0, blur=0.7, quality=85) -> bytes:
+    """One recorded frame of ``cam``: blur, noise and JPEG as a camera node's."""
+    return cam.jpeg(quality, blur, noise, rng)
 
 
 # three cameras like the paper's 1.0 m setup: 1.0 m high, about 30 deg down, around the arena
@@ -101,8 +66,9 @@ def write_scene(root: Path, frames: int = 30, cameras=None, seed: int = 1,
         for name, T in cameras.items():
             write_camera_info(CameraIntrinsics(W, H, K, np.zeros(5), name), w.camera_info_path(name))
             bad = (corrupt or {}).get(name, 0)
+            cam = camera(T)
             for i in range(frames):
-                jpeg = b"not a jpeg" if i < bad else render(T, rng=rng)
+                jpeg = b"not a jpeg" if i < bad else frame(cam, rng)
                 w.add_frame(name, i, 0.1 * i, 1000.0 + 0.1 * i, jpeg)
     write_layout(paper_cube_layout(), root / "cube.toml")
     doc = tracker_config_to_table(WorldConfig(), [CameraConfig(n) for n in cameras], [("robot", "cube.toml")])

@@ -7,6 +7,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from cubetrack.cli.calibrate_intrinsics import parse_board
+from cubetrack.detect import CornerRefinement
 from cubetrack.errors import CalibrationError, ConfigError, ImageError
 from cubetrack.geometry import make_T
 from cubetrack.intrinsics import IntrinsicsParams, calibrate_intrinsics, make_board, read_gray
@@ -97,3 +98,5 @@ def test_parse_board():
 def test_params_are_checked():
     with pytest.raises(ValueError, match="smaller than the square"):
         IntrinsicsParams(square_m=0.02, marker_m=0.03)
+    with pytest.raises(ValueError, match="'edge' is not available"):
+        IntrinsicsParams(marker_refinement=CornerRefinement.EDGE)

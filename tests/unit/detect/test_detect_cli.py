@@ -7,7 +7,7 @@ import json
 import cv2
 import numpy as np
 import pytest
-from marker_render import marker_patch, render
+from scenes import render_in_front
 
 import cubetrack.cli.main as cli_main
 from cubetrack.geometry import make_T, rotation_angle, R_from_quat_xyzw
@@ -21,7 +21,8 @@ T_CAM_MARKER = make_T(np.diag([1.0, -1.0, -1.0]) @ cv2.Rodrigues(np.array([0.3, 
 @pytest.fixture()
 def files(tmp_path, monkeypatch):
     monkeypatch.setattr(cli_main, "COMMANDS", {"detect": "detect"})  # only this command's module
-    img = render(K, (640, 480), [marker_patch("DICT_6X6_250", 17, 0.05, T_CAM_MARKER)], blur_sigma_px=0.6)
+    img = render_in_front(CameraIntrinsics(640, 480, K, np.zeros(5)), [(T_CAM_MARKER, "DICT_6X6_250", 17, 0.05, 0.025)],
+                          blur_px=0.6)
     image = tmp_path / "frame.jpg"
     cv2.imwrite(str(image), img, [cv2.IMWRITE_JPEG_QUALITY, 95])
     ros = tmp_path / "cam_ros.yaml"

@@ -1,11 +1,13 @@
-"""Detection by construction: markers rendered at known poses with an exact renderer."""
+"""Detection by construction: markers rendered at known poses with the simulator's exact renderer."""
 
 from __future__ import annotations
 
 import cv2
 import numpy as np
 import pytest
-from marker_render import Patch, cube_patches, marker_bits, marker_patch, render, true_corners
+from scenes import (
+    T_WORLD_CAM_UP, Camera, cube_solid, look_at, marker_corners_px, render_in_front,
+)
 
 from cubetrack.detect import (
     CornerRefinement, Detector, DetectorParams, decode_gray, dictionary_names, is_valid_quad,
@@ -13,11 +15,12 @@ from cubetrack.detect import (
 )
 from cubetrack.errors import ConfigError, DetectionError, ImageError
 from cubetrack.geometry import invert_T, make_T, shoelace_area
+from cubetrack.io.camera_info import CameraIntrinsics
 from cubetrack.layout import paper_cube_layout
 from cubetrack.params import params_from_table, params_to_table
 
 K = np.array([[520.0, 0.0, 319.5], [0.0, 520.0, 239.5], [0.0, 0.0, 1.0]])
-SIZE = (640, 480)
+INTR = CameraIntrinsics(640, 480, K, np.zeros(5))
 
 
 def facing(distance_m: float, yaw_deg: float = 0.0, pitch_deg: float = 0.0, roll_deg: float = 0.0,
@@ -30,13 +33,8 @@ def facing(distance_m: float, yaw_deg: float = 0.0, pitch_deg: float = 0.0, roll
     return make_T(R, [x_m, y_m, distance_m])
 
 
-def look_at(eye_m, target_m) -> np.ndarray:
-    """T_world_cam of a camera at ``eye_m`` looking at ``target_m`` (world z up, image x level)."""
-    eye, target = np.asarray(eye_m, float), np.asarray(target_m, float)
-    z = (target - eye) / np.linalg.norm(target - eye)
-    x = np.cross(z, [0.0, 0.0, 1.0])
-    x /= np.linalg.norm(x)
-    return make_T(np.column_stack([x, np.cross(z, x), z]), eye)
+def true_corners(T_cam_marker: np.ndarray, size_m: float) -> np.ndarray:
+    return marker_corners_px(INTR, T_WORLD_CAM_UP, T_WORLD_CAM_UP @ T_cam_marker, size_m)
 
 
 POSES = [facing(0.7, 30, 10, 15, 0.05, -0.03), facing(1.2, -40, 25, 100, -0.2, 0.1),
@@ -47,9 +45,9 @@ POSES = [facing(0.7, 30, 10, 15, 0.05, -0.03), facing(1.2, -40, 25, 100, -0.2, 0
 def scenes():
     out = []
     for i, T in enumerate(POSES):
-        img = render(K, SIZE, [marker_patch("DICT_4X4_50", 7, 0.08, T)], blur_sigma_px=0.7,
-                     noise_sigma=2.0, jpeg_quality=85, seed=i)
-        out.append((img, true_corners(K, T, 0.08)))
+        img = render_in_front(INTR, [(T, "DICT_4X4_50", 7, 0.08, 0.04)], blur_px=0.7, noise_std=2.0,
+                              jpeg_quality=85, rng=np.random.default_rng(i))
+        out.append((img, true_corners(T, 0.08)))
     return out
 
 
@@ -84,17 +82,19 @@ def test_default_is_edge_and_is_unbiased_on_a_cube(scenes):
     the cube's edge there; the default must stay accurate."""
     assert DetectorParams().corner_refinement is CornerRefinement.EDGE
     layout = paper_cube_layout()
-    T_cam_cube = invert_T(look_at([0.9, -0.5, 0.7], [0.0, 0.0, 0.1])) @ make_T(np.eye(3), [0, 0, 0.1])
-    img = render(K, SIZE, cube_patches(layout, 0.11, T_cam_cube), blur_sigma_px=0.6, noise_sigma=1.0)
+    T_world_cam = look_at([0.9, -0.5, 0.7], [0.0, 0.0, 0.1])
+    T_world_cube = make_T(np.eye(3), [0, 0, 0.1])
+    img = Camera(INTR, T_world_cam, [cube_solid(layout, 0.11, T_world_cube)]).image(blur_px=0.6, noise_std=1.0)
     det = Detector(DetectorParams(dictionary=layout.dictionary))
     found = det.detect_gray(img)
     assert len(found) >= 2
+    T_cam_cube = invert_T(T_world_cam) @ T_world_cube
     visible = [m for m in layout.markers if float((T_cam_cube @ m.T_cube_marker)[:3, 2]
                                                   @ (T_cam_cube @ m.T_cube_marker)[:3, 3]) < 0]
     errs = []
     for d in found:
-        best = min(np.linalg.norm(d.corners_px - true_corners(K, T_cam_cube @ m.T_cube_marker, m.size_m),
-                                  axis=1).max() for m in visible)
+        best = min(np.linalg.norm(d.corners_px - marker_corners_px(INTR, T_world_cam, T_world_cube @ m.T_cube_marker,
+                                                                   m.size_m), axis=1).max() for m in visible)
         errs.append(best)
     assert max(errs) < 0.5
 
@@ -102,8 +102,8 @@ def test_default_is_edge_and_is_unbiased_on_a_cube(scenes):
 def test_several_dictionaries_are_told_apart():
     T_a = facing(0.6, x_m=-0.09)
     T_b = facing(0.6, x_m=0.09)
-    img = render(K, SIZE, [marker_patch("DICT_4X4_50", 3, 0.08, T_a),
-                           marker_patch("DICT_6X6_250", 3, 0.08, T_b)], blur_sigma_px=0.5)
+    img = render_in_front(INTR, [(T_a, "DICT_4X4_50", 3, 0.08, 0.04), (T_b, "DICT_6X6_250", 3, 0.08, 0.04)],
+                          blur_px=0.5)
     both = Detector(dictionaries=["DICT_4X4_50", "DICT_6X6_250"]).detect_gray(img)
     assert sorted((d.dictionary, d.marker_id) for d in both) == [("DICT_4X4_50", 3), ("DICT_6X6_250", 3)]
     left = [d for d in both if d.dictionary == "DICT_4X4_50"][0]
@@ -113,7 +113,7 @@ def test_several_dictionaries_are_told_apart():
 
 
 def test_detect_jpeg_matches_detect_gray_and_rejects_broken_data():
-    img = render(K, SIZE, [marker_patch("DICT_4X4_50", 1, 0.08, facing(0.8, 20, 10))], blur_sigma_px=0.6)
+    img = render_in_front(INTR, [(facing(0.8, 20, 10), "DICT_4X4_50", 1, 0.08, 0.04)], blur_px=0.6)
     ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 95])
     jpeg = buf.tobytes()
     det = Detector()
@@ -180,7 +180,20 @@ def test_edge_refinement_reports_failure_on_a_flat_image():
     assert np.all(np.isnan(refine_corners_edges(gray, quad, 6)))
 
 
-def test_marker_bits_helper_is_consistent_with_opencv():
-    bits = marker_bits("DICT_4X4_50", 0)
-    assert bits.shape == (6, 6) and bits[0].max() == 0  # one-module black border
-    assert isinstance(Patch(np.eye(4), 0.1), Patch)
+def test_edge_refinement_options_are_checked():
+    quad = np.array([[30.0, 30.0], [70.0, 30.0], [70.0, 70.0], [30.0, 70.0]])
+    with pytest.raises(ValueError, match="focus"):
+        refine_corners_edges(np.full((100, 100), 128, np.uint8), quad, 6, focus="median")
+    with pytest.raises(ConfigError, match="edge_iterations"):
+        params_from_table(DetectorParams, {"edge_iterations": 0}, "[detector]")
+
+
+@pytest.mark.parametrize("focus", ["tent", "peak"])
+def test_edge_refinement_of_an_8_bit_image_in_a_region_equals_the_float_image(scenes, focus):
+    """The detector passes the 8-bit frame; only the quads' region is converted (to float: an
+    8-bit cv2.remap rounds its samples) and the corners come back in the frame's coordinates."""
+    img, _truth = scenes[0]
+    (d,) = Detector(DetectorParams(corner_refinement=CornerRefinement.NONE)).detect_gray(img)
+    a = refine_corners_edges(img, d.corners_px, 6, focus=focus)
+    b = refine_corners_edges(img.astype(np.float32), d.corners_px, 6, focus=focus)
+    np.testing.assert_allclose(a, b, atol=1e-9)
