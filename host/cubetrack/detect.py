@@ -444,36 +444,58 @@ class Detector:
         self.dictionaries: tuple[str, ...] = tuple(names)
         dicts = [aruco_dictionary(n) for n in names]
         self._detector = cv2.aruco.ArucoDetector(dicts, _cv_parameters(self.params))
+        self._region_detector = cv2.aruco.ArucoDetector(dicts, _cv_parameters(self.params))
         self._offset_px = (APRILTAG_PIXEL_OFFSET_PX
                            if self.params.corner_refinement is CornerRefinement.APRILTAG else 0.0)
         self._modules = tuple(d.markerSize + 2 for d in dicts)  # cells across, with a 1-bit border
 
     def detect_gray(self, gray: np.ndarray) -> tuple[Detection, ...]:
         """Detect markers in an 8-bit single-channel image (H, W); sorted by dictionary, id, x."""
-        gray = np.asarray(gray)
-        if gray.ndim != 2 or gray.dtype != np.uint8 or gray.size == 0:
-            raise ImageError(
-                f"detection needs a non-empty 8-bit grayscale image (H, W), got {gray.dtype} {gray.shape}"
-            )
-        corners, ids, _rejected, dict_indices = self._detector.detectMarkersMultiDict(gray)
+        return self._detect(_checked_gray(gray), self._detector, np.zeros(2))
+
+    def detect_region(self, gray: np.ndarray, box: tuple[int, int, int, int]) -> tuple[Detection, ...]:
+        """Detect markers only inside ``box = (x0, y0, x1, y1)`` (pixels, end exclusive) of ``gray``,
+        as a whole-image search would: the perimeter limits stay relative to the whole image (a
+        small region would otherwise admit every speck of noise as a candidate), and corners are
+        in whole-image pixels. Much cheaper than ``detect_gray`` when the box is small."""
+        gray = _checked_gray(gray)
+        x0, y0, x1, y1 = box
+        if not (0 <= x0 < x1 <= gray.shape[1] and 0 <= y0 < y1 <= gray.shape[0]):
+            raise ImageError(f"region {box} is not inside the {gray.shape[1]}x{gray.shape[0]} image")
+        crop = np.ascontiguousarray(gray[y0:y1, x0:x1])
+        scale = max(gray.shape) / max(crop.shape)
+        cv_params = _cv_parameters(self.params)
+        cv_params.minMarkerPerimeterRate = self.params.min_marker_perimeter_rate * scale
+        cv_params.maxMarkerPerimeterRate = self.params.max_marker_perimeter_rate * scale
+        self._region_detector.setDetectorParameters(cv_params)
+        return self._detect(crop, self._region_detector, np.array([x0, y0], dtype=float))
+
+    def _detect(self, gray: np.ndarray, detector, offset_px: np.ndarray) -> tuple[Detection, ...]:
+        """Run ``detector`` on ``gray``; refine, check and shift the corners by ``offset_px``.
+
+        A marker whose edge refinement fails is dropped: OpenCV's unrefined corners can be pixels
+        off on small, oblique markers, and downstream stages take corners as precise."""
+        corners, ids, _rejected, dict_indices = detector.detectMarkersMultiDict(gray)
         if ids is None or len(ids) == 0:
             return ()
         ids = np.asarray(ids).reshape(-1)
         dict_indices = (np.zeros_like(ids) if dict_indices is None
                         else np.asarray(dict_indices).reshape(-1))
         quads = np.asarray(corners, dtype=np.float64).reshape(-1, 4, 2) + self._offset_px
+        valid = np.ones(len(ids), dtype=bool)
         if self.params.corner_refinement is CornerRefinement.EDGE:
             modules = np.array([self._modules[int(k)] for k in dict_indices])
-            refined = refine_corners_edges(gray, quads, modules, self.params.edge_iterations)
-            ok = np.all(np.isfinite(refined), axis=(1, 2))
-            if not ok.all():
-                log.debug("edge refinement failed for ids %s; kept OpenCV's corners", ids[~ok].tolist())
-            quads = np.where(ok[:, None, None], refined, quads)
-        valid, areas = _quad_checks(quads, self.params.min_area_px2)
-        if not valid.all():
-            log.debug("dropped degenerate detections of ids %s", ids[~valid].tolist())
+            quads = refine_corners_edges(gray, quads, modules, self.params.edge_iterations)
+            valid = np.all(np.isfinite(quads), axis=(1, 2))
+            if not valid.all():
+                log.debug("edge refinement failed for ids %s; dropped", ids[~valid].tolist())
+            quads = np.where(valid[:, None, None], quads, 0.0)
+        checked, areas = _quad_checks(quads, self.params.min_area_px2)
+        if not checked.all():
+            log.debug("dropped degenerate detections of ids %s", ids[~checked].tolist())
+        valid &= checked
         out = []
-        for c, area, marker_id, k in zip(quads[valid], areas[valid], ids[valid], dict_indices[valid]):
+        for c, area, marker_id, k in zip(quads[valid] + offset_px, areas[valid], ids[valid], dict_indices[valid]):
             c.setflags(write=False)
             out.append(Detection(marker_id=int(marker_id), corners_px=c, area_px2=float(area),
                                  dictionary=self.dictionaries[int(k)]))
@@ -485,6 +507,13 @@ class Detector:
         truncated or corrupt."""
         gray = decode_gray(jpeg, source)
         return self.detect_gray(gray)
+
+
+def _checked_gray(gray: np.ndarray) -> np.ndarray:
+    gray = np.asarray(gray)
+    if gray.ndim != 2 or gray.dtype != np.uint8 or gray.size == 0:
+        raise ImageError(f"detection needs a non-empty 8-bit grayscale image (H, W), got {gray.dtype} {gray.shape}")
+    return gray
 
 
 def decode_gray(jpeg: bytes, source: str = "JPEG") -> np.ndarray:

@@ -269,10 +269,8 @@ class Tracker:
         boxes = self._regions(camera, time_s, gray.shape)
         if boxes is not None:
             found: list[Detection] = []
-            for x0, y0, x1, y1 in boxes:
-                offset = np.array([x0, y0], dtype=float)
-                found += [Detection(d.marker_id, d.corners_px + offset, d.area_px2, d.dictionary)
-                          for d in self.detector.detect_gray(np.ascontiguousarray(gray[y0:y1, x0:x1]))]
+            for box in boxes:
+                found += self.detector.detect_region(gray, box)
             if found or not boxes:
                 self.frames_since_full[camera] += 1
                 self.stats.region_detections += 1

@@ -197,3 +197,22 @@ def test_edge_refinement_of_an_8_bit_image_in_a_region_equals_the_float_image(sc
     a = refine_corners_edges(img, d.corners_px, 6, focus=focus)
     b = refine_corners_edges(img.astype(np.float32), d.corners_px, 6, focus=focus)
     np.testing.assert_allclose(a, b, atol=1e-9)
+
+
+def test_region_search_finds_the_same_corners_as_the_whole_image():
+    from cubetrack.detect import Detector
+
+    rng = np.random.default_rng(7)
+    gray = np.full((480, 640), 200, np.uint8)
+    marker = cv2.aruco.generateImageMarker(cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_4X4_50), 3, 60)
+    gray[200:260, 300:360] = marker
+    gray = cv2.GaussianBlur(gray, (0, 0), 0.8)
+    gray = np.clip(gray + rng.normal(0, 2, gray.shape), 0, 255).astype(np.uint8)
+    det = Detector()
+    full = det.detect_gray(gray)
+    region = det.detect_region(gray, (250, 150, 420, 320))
+    assert [d.marker_id for d in full] == [d.marker_id for d in region] == [3]
+    np.testing.assert_allclose(region[0].corners_px, full[0].corners_px, atol=1e-6)
+    assert det.detect_region(gray, (0, 0, 200, 150)) == ()
+    with pytest.raises(Exception, match="not inside"):
+        det.detect_region(gray, (600, 0, 700, 100))
