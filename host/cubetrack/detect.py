@@ -22,6 +22,7 @@ from __future__ import annotations
 import enum
 import functools
 import logging
+from pathlib import Path
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -507,6 +508,18 @@ class Detector:
         truncated or corrupt."""
         gray = decode_gray(jpeg, source)
         return self.detect_gray(gray)
+
+
+def read_gray(path: str | Path) -> np.ndarray:
+    """An image file as 8-bit grayscale; ImageError naming the file when missing or corrupt."""
+    path = Path(path)
+    try:
+        data = path.read_bytes()
+    except FileNotFoundError:
+        raise ImageError(f"{path}: image file not found") from None
+    except OSError as exc:
+        raise ImageError(f"{path}: cannot read image: {exc.strerror or exc}") from None
+    return decode_gray(data, str(path))
 
 
 def _checked_gray(gray: np.ndarray) -> np.ndarray:

@@ -20,7 +20,7 @@ from typing import Sequence
 
 import numpy as np
 
-from cubetrack.detect import CornerRefinement, aruco_dictionary, decode_gray, opencv_corner_refinement
+from cubetrack.detect import CornerRefinement, aruco_dictionary, opencv_corner_refinement, read_gray
 from cubetrack.errors import CalibrationError, ImageError
 from cubetrack.io.camera_info import CameraIntrinsics
 from cubetrack.params import param
@@ -103,18 +103,6 @@ def _charuco_detector(board, params: IntrinsicsParams):
     dp = cv2.aruco.DetectorParameters()
     dp.cornerRefinementMethod = opencv_corner_refinement(params.marker_refinement)
     return cv2.aruco.CharucoDetector(board, cv2.aruco.CharucoParameters(), dp)
-
-
-def read_gray(path: str | Path) -> np.ndarray:
-    """An image file as 8-bit grayscale; ImageError naming the file when missing or corrupt."""
-    path = Path(path)
-    try:
-        data = path.read_bytes()
-    except FileNotFoundError:
-        raise ImageError(f"{path}: image file not found") from None
-    except OSError as exc:
-        raise ImageError(f"{path}: cannot read image: {exc.strerror or exc}") from None
-    return decode_gray(data, str(path))
 
 
 def calibrate_intrinsics(

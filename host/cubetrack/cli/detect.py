@@ -48,8 +48,8 @@ def run(args: argparse.Namespace) -> int:
     import logging
     from pathlib import Path
 
-    from cubetrack.detect import CornerRefinement, Detector, DetectorParams, decode_gray
-    from cubetrack.errors import DetectionError, ImageError
+    from cubetrack.detect import CornerRefinement, Detector, DetectorParams, read_gray
+    from cubetrack.errors import DetectionError
     from cubetrack.estimate import marker_pose
     from cubetrack.io.camera_info import read_camera_info
 
@@ -62,13 +62,7 @@ def run(args: argparse.Namespace) -> int:
     if intrinsics is not None and not (args.marker_size and args.marker_size > 0):
         raise DetectionError("poses need --marker-size (the black square's side in metres, e.g. 0.02)")
     path = Path(args.image)
-    try:
-        data = path.read_bytes()
-    except FileNotFoundError:
-        raise ImageError(f"{path}: image file not found") from None
-    except OSError as exc:
-        raise ImageError(f"{path}: cannot read image: {exc}") from None
-    gray = decode_gray(data, str(path))
+    gray = read_gray(path)
     if intrinsics is not None and (gray.shape[1], gray.shape[0]) != (intrinsics.width, intrinsics.height):
         logging.getLogger(__name__).warning(
             "%s: intrinsics are for %dx%d images, %s is %dx%d: poses will be wrong",

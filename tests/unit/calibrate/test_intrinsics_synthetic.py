@@ -10,7 +10,8 @@ from cubetrack.cli.calibrate_intrinsics import parse_board
 from cubetrack.detect import CornerRefinement
 from cubetrack.errors import CalibrationError, ConfigError, ImageError
 from cubetrack.geometry import make_T
-from cubetrack.intrinsics import IntrinsicsParams, calibrate_intrinsics, make_board, read_gray
+from cubetrack.detect import read_gray
+from cubetrack.intrinsics import IntrinsicsParams, calibrate_intrinsics, make_board
 
 K_TRUE = np.array([[600.0, 0, 322.0], [0, 605.0, 236.0], [0, 0, 1]])
 
