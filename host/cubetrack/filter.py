@@ -38,7 +38,7 @@ class FilterParams:
     huber_px: float = param(1.5, "corner residuals beyond this are down-weighted (Huber), pixels")
     gate_rms_px: float = param(2.0, "a camera frame whose RMS residual after the update exceeds this is rejected, pixels")
     face_gate_px: float = param(1.2, "a face whose corners stay farther off than this (RMS) after the update is left out, pixels")
-    iterations: int = param(4, "Gauss-Newton iterations of each update")
+    iterations: int = param(2, "Gauss-Newton iterations of each update (the prediction starts close: more change nothing measurable)")
     init_velocity_sigma: float = param(0.5, "velocity uncertainty (1 sigma) at track start, m/s")
     init_angular_velocity_sigma: float = param(1.0, "angular velocity uncertainty (1 sigma) at track start, rad/s")
 

@@ -19,6 +19,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 _ANGLE_UNITS = {"rad": 1.0, "deg": np.pi / 180.0}
+_I3 = np.eye(3)
+_I3.setflags(write=False)  # a constant, shared by the hot-path helpers below
 
 
 def to_radians(angle: float | np.ndarray, unit: str = "rad") -> float | np.ndarray:
@@ -31,9 +33,10 @@ def to_radians(angle: float | np.ndarray, unit: str = "rad") -> float | np.ndarr
 
 def make_T(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     """4x4 pose from a 3x3 rotation matrix and a translation (metres)."""
-    T = np.eye(4)
+    T = np.zeros((4, 4))
     T[:3, :3] = R
     T[:3, 3] = np.asarray(t, dtype=float).reshape(3)
+    T[3, 3] = 1.0
     return T
 
 
@@ -55,8 +58,8 @@ def R_from_rotvec(rotvec: np.ndarray) -> np.ndarray:
     theta = float(np.sqrt(v @ v))
     K = np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
     if theta < 1e-8:
-        return np.eye(3) + K  # first order; exact to machine precision at this size
-    return np.eye(3) + (np.sin(theta) / theta) * K + ((1.0 - np.cos(theta)) / theta**2) * (K @ K)
+        return _I3 + K  # first order; exact to machine precision at this size
+    return _I3 + (np.sin(theta) / theta) * K + ((1.0 - np.cos(theta)) / theta**2) * (K @ K)
 
 
 def T_from_rvec_tvec(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
