@@ -68,7 +68,7 @@ class TrackParams:
         "the cubes (with calibrated cameras and the filter fusion); the full frame is searched otherwise",
     )
     roi_margin_m: float = param(0.15, "a predicted cube's image region is grown by this much motion, metres")
-    full_frame_every: int = param(8, "with region detection: search a camera's full frame at least every this many frames")
+    full_frame_every: int = param(16, "with region detection: search a camera's full frame at least every this many frames")
     camera_poses: CameraPoseSource = param(
         CameraPoseSource.EXTRINSICS,
         "extrinsics: calibrated camera poses (cubetrack calibrate); world-marker: each frame's own "
