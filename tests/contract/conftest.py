@@ -82,3 +82,33 @@ def node(request, contract_images, tmp_path_factory):
     with native.NativeNode(contract_images, fps=FPS, port=0, settings_path=settings, serial=None) as n:
         assert n.port is not None
         yield wait_for_frames(Node("native", "127.0.0.1", n.port))
+
+
+def wait_until_idle(n: Node, timeout_s: float = 5.0) -> None:
+    """Wait until the node counts no client but the /status request asking. A node notices a
+    closed stream only when its next part fails to send, so clients a test has closed may still
+    hold slots for a few frame periods; the next test must not meet them (they would make it a
+    503 test)."""
+    import json
+
+    from contract_http import get
+
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            a = get(n.host, n.port, "/status")
+            if a.status == 200 and json.loads(a.body)["clients"] <= 1:
+                return
+        except OSError:
+            pass
+        if time.monotonic() > deadline:
+            raise AssertionError(f"{n.kind} at {n.base_url} still counts closed clients after {timeout_s} s")
+        time.sleep(0.05)
+
+
+@pytest.fixture(autouse=True)
+def node_idle_between_tests(request):
+    """Every test starts on a node with all of its client slots free."""
+    if "node" in request.fixturenames:
+        wait_until_idle(request.getfixturevalue("node"))
+    yield
