@@ -21,7 +21,7 @@ import cv2
 import numpy as np
 from scipy.optimize import least_squares
 
-from cubetrack.geometry import R_from_rotvec, invert_T, make_T
+from cubetrack.geometry import R_from_rotvec, invert_T, make_T, so3_left_jacobian
 from cubetrack.layout import CubeLayout, LayoutMarker
 from cubetrack.records import Detection
 
@@ -132,17 +132,30 @@ def reprojection_residuals_px(T_world_cube: np.ndarray, sets: Sequence[CornerSet
     return np.concatenate(out) if out else np.zeros(0)
 
 
-def reprojection_jacobian_px(T_world_cube: np.ndarray, sets: Sequence[CornerSet]) -> tuple[np.ndarray, np.ndarray]:
-    """Residuals (2N,) in pixels of the still cube at ``T_world_cube`` and their analytic
-    Jacobian (2N, 6) with respect to a world-frame increment ``[δp, δθ]`` (see :func:`perturbed`).
+def reprojection_jacobian_px(T_world_cube: np.ndarray, sets: Sequence[CornerSet], t_ref_s: float = 0.0,
+                             velocity_m_s: np.ndarray | None = None,
+                             angular_velocity_rad_s: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Residuals (2N,) in pixels and their analytic Jacobian.
 
-    With ``q = R X`` the rotated corner, ``d(pw)/d[δp, δθ] = [I | -[q]×]``; the pinhole gives
-    ``d(x/z, y/z)/d(pc) = [[1/z, 0, -x/z²], [0, 1/z, -y/z²]]``; ``pc = R_cw pw + t_cw``.
-    Corners behind a camera get a 1000 px residual and a zero Jacobian row.
+    Without velocities: the still cube at ``T_world_cube``, Jacobian (2N, 6) with respect to a
+    world-frame increment ``[δp, δθ]`` (see :func:`perturbed`). With them: the cube moving from
+    ``T_world_cube`` at ``t_ref_s`` (see :func:`moved_pose`), Jacobian (2N, 12) with respect to
+    ``[δp, δθ, δv, δω]`` — the residuals of :func:`reprojection_residuals_px`.
+
+    With ``q`` the corner rotated to its moved pose, ``S = Exp(ω dt)`` and ``J_l`` the left
+    Jacobian of SO(3): ``d(pw)/d[δp, δθ, δv, δω] = [I | -[q]× S | dt I | -[q]× J_l(ω dt) dt]``;
+    the pinhole gives ``d(x/z, y/z)/d(pc) = [[1/z, 0, -x/z²], [0, 1/z, -y/z²]]``;
+    ``pc = R_cw pw + t_cw``. Corners behind a camera get a 1000 px residual and a zero row.
     """
-    R, p = T_world_cube[:3, :3], T_world_cube[:3, 3]
+    moving = velocity_m_s is not None and angular_velocity_rad_s is not None
+    R0, p0 = T_world_cube[:3, :3], T_world_cube[:3, 3]
     residuals, jacobians = [], []
     for s in sets:
+        R, p = R0, p0
+        if moving:
+            dt = s.time_s - t_ref_s
+            step = R_from_rotvec(angular_velocity_rad_s * dt)
+            R, p = step @ R0, p0 + velocity_m_s * dt
         q = s.points_cube_m @ R.T  # (N, 3) rotated corners
         R_cw, t_cw = s.T_cam_world[:3, :3], s.T_cam_world[:3, 3]
         pc = (q + p) @ R_cw.T + t_cw
@@ -161,11 +174,16 @@ def reprojection_jacobian_px(T_world_cube: np.ndarray, sets: Sequence[CornerSet]
         skew[:, 0, 1], skew[:, 0, 2] = q[:, 2], -q[:, 1]
         skew[:, 1, 0], skew[:, 1, 2] = -q[:, 2], q[:, 0]
         skew[:, 2, 0], skew[:, 2, 1] = q[:, 1], -q[:, 0]
-        d_pw = np.concatenate([np.broadcast_to(np.eye(3), (n, 3, 3)), skew], axis=2)  # (n, 3, 6)
+        eye = np.broadcast_to(np.eye(3), (n, 3, 3))
+        if moving:
+            blocks = [eye, skew @ step, eye * dt, skew @ (so3_left_jacobian(angular_velocity_rad_s * dt) * dt)]
+        else:
+            blocks = [eye, skew]
+        d_pw = np.concatenate(blocks, axis=2)  # (n, 3, 6 or 12)
         residuals.append(r.ravel())
-        jacobians.append((d_proj @ R_cw @ d_pw).reshape(2 * n, 6))
+        jacobians.append((d_proj @ R_cw @ d_pw).reshape(2 * n, -1))
     if not residuals:
-        return np.zeros(0), np.zeros((0, 6))
+        return np.zeros(0), np.zeros((0, 12 if moving else 6))
     return np.concatenate(residuals), np.vstack(jacobians)
 
 
@@ -208,10 +226,24 @@ def solve_joint(sets: Sequence[CornerSet], T_init: np.ndarray, t_ref_s: float,
             r = np.concatenate([r, v / velocity_sigma[0], w / velocity_sigma[1]])
         return r
 
+    def jacobian(x: np.ndarray) -> np.ndarray:
+        T = perturbed(T_init, x[:6])
+        if n == 6:
+            _, J = reprojection_jacobian_px(T, sets)
+        else:
+            _, J = reprojection_jacobian_px(T, sets, t_ref_s, x[6:9], x[9:12])
+        J[:, 3:6] = J[:, 3:6] @ so3_left_jacobian(x[3:6])  # x holds a finite rotation increment
+        J /= corner_noise_px
+        if n == 12:
+            prior = np.zeros((6, 12))
+            prior[:, 6:] = np.diag(np.repeat(1.0 / np.asarray(velocity_sigma, dtype=float), 3))
+            J = np.vstack([J, prior])
+        return J
+
     f_scale = f_scale_px / corner_noise_px
     try:
-        result = least_squares(residuals, np.zeros(n), method="trf", loss="soft_l1", f_scale=f_scale,
-                               x_scale=np.full(n, 0.01), max_nfev=80)
+        result = least_squares(residuals, np.zeros(n), jac=jacobian, method="trf", loss="soft_l1",
+                               f_scale=f_scale, x_scale=np.full(n, 0.01), max_nfev=80)
     except (ValueError, np.linalg.LinAlgError):
         return None
     if not np.all(np.isfinite(result.x)):

@@ -60,10 +60,10 @@ def fit_line(device_s: np.ndarray, offset_s: np.ndarray) -> tuple[float, float, 
     """Least-squares offset = a + b (device - ref); returns (a, b, ref). One point: b = 0."""
     ref = float(np.mean(device_s))
     x = device_s - ref
+    a = float(np.mean(offset_s))  # x is centred: the intercept is the mean offset
     if len(x) < 2 or np.ptp(x) < 1e-6:
-        return float(np.mean(offset_s)), 0.0, ref
-    b, a = np.polyfit(x, offset_s, 1)
-    return float(a), float(b), ref
+        return a, 0.0, ref
+    return a, float(np.dot(x, offset_s - a) / np.dot(x, x)), ref
 
 
 def fit_round_trips(host_send_s: np.ndarray, device_s: np.ndarray, host_recv_s: np.ndarray,

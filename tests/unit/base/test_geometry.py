@@ -37,6 +37,8 @@ def test_rotation_angle_units():
     R = Rotation.from_euler("z", 30, degrees=True).as_matrix()
     assert rotation_angle(np.eye(3), R, unit="deg") == pytest.approx(30.0)
     assert rotation_angle(np.eye(3), R) == pytest.approx(np.pi / 6)
+    tiny = Rotation.from_rotvec([3e-9, 0.0, 4e-9]).as_matrix()  # arccos of the trace would say ~2e-8
+    assert rotation_angle(R, R @ tiny) == pytest.approx(5e-9, rel=1e-6)
     with pytest.raises(ValueError):
         rotation_angle(np.eye(3), R, unit="grad")
 
@@ -62,3 +64,20 @@ def test_fast_rodrigues_matches_scipy():
     rng = np.random.default_rng(5)
     for v in [*rng.normal(size=(20, 3)) * 2.0, np.zeros(3), np.array([1e-10, 0, 0]), np.array([np.pi, 0, 0])]:
         np.testing.assert_allclose(R_from_rotvec(v), Rotation.from_rotvec(v).as_matrix(), atol=1e-12)
+
+
+def test_quaternion_matches_scipy_in_every_branch():
+    """Shepperd's four branches: small angles, angles near pi about each axis, random ones."""
+    from cubetrack.geometry import quat_xyzw_from_R
+
+    rng = np.random.default_rng(6)
+    axes = rng.normal(size=(30, 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    vectors = [*rng.normal(size=(30, 3)), *(axes * 1e-9), *(axes * (np.pi - 1e-9)),
+               *(np.eye(3) * np.pi), np.zeros(3)]
+    for v in vectors:
+        R = Rotation.from_rotvec(v).as_matrix()
+        expected = Rotation.from_matrix(R).as_quat()
+        q = quat_xyzw_from_R(R)
+        assert q[3] >= 0.0
+        assert min(np.abs(q - expected).max(), np.abs(q + expected).max()) < 1e-12  # q and -q: one rotation

@@ -162,3 +162,33 @@ def test_analytic_jacobian_matches_finite_differences():
         step[k] = eps
         numeric = (reprojection_residuals_px(perturbed(T, step), sets, 0.0, zero, zero) - r) / eps
         np.testing.assert_allclose(J[:, k], numeric, rtol=1e-4, atol=1e-3)
+
+
+def test_motion_jacobian_matches_finite_differences():
+    """The joint fit's Jacobian: pose increment, linear and angular velocity of a moving cube."""
+    from cubetrack.joint import moved_pose, perturbed, reprojection_jacobian_px, reprojection_residuals_px
+
+    rng = np.random.default_rng(7)
+    T = cube_pose()
+    v, w = np.array([0.2, -0.1, 0.0]), np.array([0.1, 0.3, -1.5])
+    sets = [corner_set(moved_pose(T, v, w, t), c, rng, t=t) for c, t in zip(CAMS, (-0.08, 0.0, 0.11))]
+    r, J = reprojection_jacobian_px(T, sets, 0.0, v, w)
+    assert J.shape == (len(r), 12)
+    np.testing.assert_allclose(r, reprojection_residuals_px(T, sets, 0.0, v, w), atol=1e-9)
+    eps = 1e-7
+    for k in range(12):
+        step = np.zeros(12)
+        step[k] = eps
+        numeric = (reprojection_residuals_px(perturbed(T, step[:6]), sets, 0.0, v + step[6:9], w + step[9:])
+                   - r) / eps
+        np.testing.assert_allclose(J[:, k], numeric, rtol=1e-4, atol=1e-3)
+
+
+def test_so3_left_jacobian_chains_a_finite_rotation_increment():
+    from cubetrack.geometry import R_from_rotvec, so3_left_jacobian
+
+    rng = np.random.default_rng(8)
+    for v in (rng.normal(size=3), np.array([1e-9, 0.0, 2e-9]), np.array([0.0, 3.0, 0.0])):
+        e = rng.normal(size=3) * 1e-6
+        np.testing.assert_allclose(R_from_rotvec(v + e), R_from_rotvec(so3_left_jacobian(v) @ e) @ R_from_rotvec(v),
+                                   atol=1e-11)
