@@ -22,7 +22,7 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from cubetrack.geometry import R_from_rotvec, invert_T, make_T, so3_left_jacobian
-from cubetrack.layout import CubeLayout, LayoutMarker
+from cubetrack.layout import CubeLayout
 from cubetrack.records import Detection
 
 
@@ -71,39 +71,38 @@ def associate(detections: Sequence[Detection], layout: CubeLayout, T_world_cube:
     camera, or whose normal is more than ``max_view_angle_deg`` from the line of sight, are not
     candidates. Returns None when nothing matches.
     """
-    min_cos_view = float(np.cos(np.radians(max_view_angle_deg)))
     K, dist = intrinsics.K, intrinsics.dist
     T_cam_world = invert_T(T_world_cam)
     T_cam_cube = T_cam_world @ T_world_cube
-    focal = float((K[0, 0] + K[1, 1]) / 2.0)
-    points, observed, faces, used = [], [], [], set()
-    for det in detections:
-        candidates: list[tuple[float, LayoutMarker]] = []
-        for marker in layout.markers_with_id(det.marker_id):
-            if marker.face in used:
-                continue
-            T_cam_marker = T_cam_cube @ marker.T_cube_marker
-            cos_view = -float(T_cam_marker[:3, 2] @ T_cam_marker[:3, 3]) / float(np.linalg.norm(T_cam_marker[:3, 3]))
-            if cos_view < min_cos_view:  # facing away, or seen so obliquely that its corners are poor
-                continue
-            rvec, _ = cv2.Rodrigues(T_cam_cube[:3, :3])
-            proj, _ = cv2.projectPoints(marker.corners_cube_m(), rvec, T_cam_cube[:3, 3], K, dist)
-            d = float(np.mean(np.linalg.norm(proj.reshape(4, 2) - det.corners_px, axis=1)))
-            candidates.append((d, marker))
-        if not candidates:
-            continue
-        d, marker = min(candidates, key=lambda c: c[0])
-        side_px = float(np.sqrt(det.area_px2))
-        if d > max(gate_px, 0.5 * side_px):
-            continue
-        used.add(marker.face)
-        points.append(marker.corners_cube_m())
-        observed.append(det.corners_px)
-        faces.append(marker.face)
-    if not points:
+    R_cc, t_cc = T_cam_cube[:3, :3], T_cam_cube[:3, 3]
+    corners_cam = layout.corners_m @ R_cc.T + t_cc                     # (M, 4, 3)
+    centres = corners_cam.mean(axis=1)
+    cos_view = -np.einsum("ij,ij->i", layout.normals @ R_cc.T, centres) / np.linalg.norm(centres, axis=1)
+    # facing away, or seen so obliquely that its corners are poor: not a candidate
+    visible = cos_view >= float(np.cos(np.radians(max_view_angle_deg)))
+    if not visible.any() or not detections:
         return None
-    return CornerSet(camera, time_s, T_cam_world, focal, np.vstack(points),
-                     normalize_px(np.vstack(observed), K, dist), tuple(faces))
+    proj, _ = cv2.projectPoints(corners_cam.reshape(-1, 3), np.zeros(3), np.zeros(3), K, dist)
+    observed_px = np.array([d.corners_px for d in detections])          # (D, 4, 2)
+    distance = np.linalg.norm(proj.reshape(1, -1, 4, 2) - observed_px[:, None], axis=-1).mean(axis=-1)  # (D, M)
+    free = visible.copy()
+    picked: list[tuple[int, int]] = []  # (detection, marker)
+    for i, det in enumerate(detections):
+        candidates = free & (layout.marker_ids == det.marker_id)
+        if not candidates.any():
+            continue
+        k = int(np.argmin(np.where(candidates, distance[i], np.inf)))
+        if distance[i, k] > max(gate_px, 0.5 * float(np.sqrt(det.area_px2))):
+            continue
+        free[k] = False
+        picked.append((i, k))
+    if not picked:
+        return None
+    rows, markers = (list(v) for v in zip(*picked))
+    return CornerSet(camera, time_s, T_cam_world, float((K[0, 0] + K[1, 1]) / 2.0),
+                     layout.corners_m[markers].reshape(-1, 3),
+                     normalize_px(observed_px[rows].reshape(-1, 2), K, dist),
+                     tuple(layout.markers[k].face for k in markers))
 
 
 def moved_pose(T_world_cube: np.ndarray, velocity_m_s: np.ndarray, angular_velocity_rad_s: np.ndarray,

@@ -21,7 +21,7 @@ right     -x          turned 90° counter-clockwise
 from __future__ import annotations
 
 import tomllib
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -61,10 +61,17 @@ class LayoutMarker:
 
 @dataclass(frozen=True, slots=True, eq=False)
 class CubeLayout:
-    """A dictionary name and the markers on one cube."""
+    """A dictionary name and the markers on one cube.
+
+    Derived, read-only arrays in the order of ``markers``: ``corners_m`` (M, 4, 3) marker
+    corners in the cube frame (detector order), ``normals`` (M, 3) outward face normals in the
+    cube frame, ``marker_ids`` (M,)."""
 
     dictionary: str
     markers: tuple[LayoutMarker, ...]
+    corners_m: np.ndarray = field(init=False, repr=False)
+    normals: np.ndarray = field(init=False, repr=False)
+    marker_ids: np.ndarray = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         if not self.markers:
@@ -72,6 +79,14 @@ class CubeLayout:
         faces = [m.face for m in self.markers]
         if len(set(faces)) != len(faces):
             raise ConfigError(f"cube layout repeats a face name: {faces}")
+        derived = {
+            "corners_m": np.array([m.corners_cube_m() for m in self.markers]),
+            "normals": np.array([m.T_cube_marker[:3, 2] for m in self.markers]),
+            "marker_ids": np.array([m.marker_id for m in self.markers]),
+        }
+        for name, value in derived.items():
+            value.setflags(write=False)
+            object.__setattr__(self, name, value)
 
     @property
     def ids(self) -> frozenset[int]:

@@ -141,7 +141,7 @@ class Tracker:
         self.synced_cameras = synced_cameras
         self.held: dict[str, deque[Frame]] = {}  # frames waiting for their camera's first round trip
         self.frames_since_full: Counter[str] = Counter()  # per camera, for region detection
-        self.cube_points_m = {r.name: np.vstack([m.corners_cube_m() for m in r.layout.markers]) for r in robots}
+        self.cube_points_m = {r.name: r.layout.corners_m.reshape(-1, 3) for r in robots}
         self.stats = TrackStats()
 
     def add_clock_sample(self, camera: str, sample: ClockSample) -> list[TrackedPose]:
