@@ -67,8 +67,8 @@ class TrackParams:
         "while every robot is tracked, detect markers only in the image regions where the filter predicts "
         "the cubes (with calibrated cameras and the filter fusion); the full frame is searched otherwise",
     )
-    roi_margin_m: float = param(0.15, "a predicted cube's image region is grown by this much motion, metres")
-    full_frame_every: int = param(16, "with region detection: search a camera's full frame at least every this many frames")
+    roi_margin_m: float = param(0.06, "a predicted cube's image region is grown by this much motion, metres")
+    full_frame_every: int = param(32, "with region detection: search a camera's full frame at least every this many frames")
     camera_poses: CameraPoseSource = param(
         CameraPoseSource.EXTRINSICS,
         "extrinsics: calibrated camera poses (cubetrack calibrate); world-marker: each frame's own "
