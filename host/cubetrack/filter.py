@@ -21,7 +21,7 @@ from typing import Sequence
 import numpy as np
 
 from cubetrack.geometry import R_from_rotvec, make_T
-from cubetrack.joint import CornerSet, perturbed, reprojection_jacobian_px
+from cubetrack.joint import CornerSet, perturbed, reprojection_jacobian_px, reprojection_residuals_px
 from cubetrack.params import param
 
 _P, _V, _TH, _W = slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12)
@@ -101,14 +101,15 @@ class PoseFilter:
         T = self.predicted(time_s)
         self.p, self.R = T[:3, 3], T[:3, :3]
         F = np.eye(12)
-        F[_P, _V] = np.eye(3) * dt
-        F[_TH, _W] = np.eye(3) * dt
+        np.fill_diagonal(F[_P, _V], dt)
+        np.fill_diagonal(F[_TH, _W], dt)
         adt = abs(dt)
-        Q = np.zeros((12, 12))
+        Q = np.zeros((12, 12))  # white acceleration noise over |dt|, per axis
         for (a, b), q in (((_P, _V), self.params.accel_noise**2), ((_TH, _W), self.params.angular_accel_noise**2)):
-            Q[a, a] = np.eye(3) * q * adt**3 / 3.0
-            Q[a, b] = Q[b, a] = np.eye(3) * q * adt**2 / 2.0
-            Q[b, b] = np.eye(3) * q * adt
+            np.fill_diagonal(Q[a, a], q * adt**3 / 3.0)
+            np.fill_diagonal(Q[a, b], q * adt**2 / 2.0)
+            np.fill_diagonal(Q[b, a], q * adt**2 / 2.0)
+            np.fill_diagonal(Q[b, b], q * adt)
         self.P = F @ self.P @ F.T + Q
         self.time_s = time_s
 
@@ -127,8 +128,7 @@ class PoseFilter:
             info = info_prior + H.T @ (weights[:, None] * H)
             rhs = H.T @ (weights * (H @ delta - r))
             delta = np.linalg.solve(info, rhs)
-        r, _ = reprojection_jacobian_px(perturbed(T0, delta[_POSE]), sets)
-        return delta, info, r
+        return delta, info, reprojection_residuals_px(perturbed(T0, delta[_POSE]), sets)
 
     def update(self, sets: Sequence[CornerSet]) -> UpdateResult:
         """Iterated EKF update with the corners of ``sets`` (taken at the filter's time).

@@ -118,13 +118,17 @@ def perturbed(T0: np.ndarray, delta: np.ndarray) -> np.ndarray:
     return make_T(R, T0[:3, 3] + delta[:3])
 
 
-def reprojection_residuals_px(T_world_cube: np.ndarray, sets: Sequence[CornerSet], t_ref_s: float,
-                              velocity_m_s: np.ndarray, angular_velocity_rad_s: np.ndarray) -> np.ndarray:
+def reprojection_residuals_px(T_world_cube: np.ndarray, sets: Sequence[CornerSet], t_ref_s: float = 0.0,
+                              velocity_m_s: np.ndarray | None = None,
+                              angular_velocity_rad_s: np.ndarray | None = None) -> np.ndarray:
     """Stacked (x, y) reprojection residuals in pixels of every corner set, motion-compensated
-    from ``t_ref_s`` to each set's time. Corners behind a camera give a large residual."""
+    from ``t_ref_s`` to each set's time (without velocities: the still cube). Corners behind a
+    camera give a large residual."""
+    moving = velocity_m_s is not None and angular_velocity_rad_s is not None
     out = []
     for s in sets:
-        T = moved_pose(T_world_cube, velocity_m_s, angular_velocity_rad_s, s.time_s - t_ref_s)
+        T = (moved_pose(T_world_cube, velocity_m_s, angular_velocity_rad_s, s.time_s - t_ref_s) if moving
+             else T_world_cube)
         pw = s.points_cube_m @ T[:3, :3].T + T[:3, 3]
         r = (project_normalized(s.T_cam_world, pw) - s.normalized) * s.focal_px
         out.append(np.nan_to_num(r, nan=1e3).ravel())
@@ -161,26 +165,18 @@ def reprojection_jacobian_px(T_world_cube: np.ndarray, sets: Sequence[CornerSet]
         z = pc[:, 2]
         ok = z > 1e-6
         zs = np.where(ok, z, 1.0)
-        r = (pc[:, :2] / zs[:, None] - s.normalized) * s.focal_px
+        uv = pc[:, :2] / zs[:, None]
+        r = (uv - s.normalized) * s.focal_px
         r[~ok] = 1e3
-        n = len(q)
-        d_proj = np.zeros((n, 2, 3))  # d(x/z, y/z) / d(pc), scaled to pixels
-        d_proj[:, 0, 0] = d_proj[:, 1, 1] = s.focal_px / zs
-        d_proj[:, 0, 2] = -s.focal_px * pc[:, 0] / zs**2
-        d_proj[:, 1, 2] = -s.focal_px * pc[:, 1] / zs**2
-        d_proj[~ok] = 0.0
-        skew = np.zeros((n, 3, 3))  # -[q]x
-        skew[:, 0, 1], skew[:, 0, 2] = q[:, 2], -q[:, 1]
-        skew[:, 1, 0], skew[:, 1, 2] = -q[:, 2], q[:, 0]
-        skew[:, 2, 0], skew[:, 2, 1] = q[:, 1], -q[:, 0]
-        eye = np.broadcast_to(np.eye(3), (n, 3, 3))
+        # d(pixels)/d(pw) = focal/z [[1, 0, -x/z], [0, 1, -y/z]] R_cw, one (2, 3) block per corner
+        d_pw = (R_cw[None, :2, :] - uv[:, :, None] * R_cw[2]) * np.where(ok, s.focal_px / zs, 0.0)[:, None, None]
+        d_theta = np.cross(q[:, None, :], d_pw)  # a^T (-[q]x) = q x a, row by row
         if moving:
-            blocks = [eye, skew @ step, eye * dt, skew @ (so3_left_jacobian(angular_velocity_rad_s * dt) * dt)]
+            blocks = [d_pw, d_theta @ step, d_pw * dt, d_theta @ (so3_left_jacobian(angular_velocity_rad_s * dt) * dt)]
         else:
-            blocks = [eye, skew]
-        d_pw = np.concatenate(blocks, axis=2)  # (n, 3, 6 or 12)
+            blocks = [d_pw, d_theta]
         residuals.append(r.ravel())
-        jacobians.append((d_proj @ R_cw @ d_pw).reshape(2 * n, -1))
+        jacobians.append(np.concatenate(blocks, axis=2).reshape(2 * len(q), -1))
     if not residuals:
         return np.zeros(0), np.zeros((0, 12 if moving else 6))
     return np.concatenate(residuals), np.vstack(jacobians)
@@ -219,11 +215,11 @@ def solve_joint(sets: Sequence[CornerSet], T_init: np.ndarray, t_ref_s: float,
     n = 6 if velocity_sigma is None else 12
 
     def residuals(x: np.ndarray) -> np.ndarray:
-        v, w = (x[6:9], x[9:12]) if n == 12 else (np.zeros(3), np.zeros(3))
+        if n == 6:
+            return reprojection_residuals_px(perturbed(T_init, x[:6]), sets) / corner_noise_px
+        v, w = x[6:9], x[9:12]
         r = reprojection_residuals_px(perturbed(T_init, x[:6]), sets, t_ref_s, v, w) / corner_noise_px
-        if n == 12:
-            r = np.concatenate([r, v / velocity_sigma[0], w / velocity_sigma[1]])
-        return r
+        return np.concatenate([r, v / velocity_sigma[0], w / velocity_sigma[1]])
 
     def jacobian(x: np.ndarray) -> np.ndarray:
         T = perturbed(T_init, x[:6])
