@@ -1,5 +1,6 @@
 """The same doctest unit tests on the host (ASan + UBSan) and on a Cortex-M4F under QEMU,
-the M4 size report, and the syntax-only compile of the sketch against the API stubs."""
+the M4 size report, the sketch folder's layout, and the syntax-only compile of the sketch
+against the API stubs."""
 
 from __future__ import annotations
 
@@ -13,6 +14,10 @@ from pathlib import Path
 
 import pytest
 from firmware_tools import BUILD_DIR, FIRMWARE_DIR, make, require_tools
+
+SKETCH_DIR = FIRMWARE_DIR / "cubecam"
+CORE_DIR = SKETCH_DIR / "src" / "core"
+ADAPTER_DIR = SKETCH_DIR / "src" / "spresense"
 
 QEMU = [
     "qemu-system-arm", "-M", "mps2-an386", "-nographic", "-monitor", "none", "-serial", "none",
@@ -94,10 +99,10 @@ def test_sketch_compiles_for_m4_as_gnu11_against_the_api_stubs():
 def test_the_stub_check_catches_an_api_typo(tmp_path):
     require_tools("arm-none-eabi-g++")
     bad = tmp_path / "camera_typo.cpp"
-    bad.write_text((FIRMWARE_DIR / "spresense" / "camera.cpp").read_text().replace("setJPEGQuality", "setJpegQuality"))
+    bad.write_text((ADAPTER_DIR / "camera.cpp").read_text().replace("setJPEGQuality", "setJpegQuality"))
     result = subprocess.run(
         ["arm-none-eabi-g++", "-std=gnu++11", "-fno-exceptions", "-fno-rtti", "-fsyntax-only",
-         "-I", str(FIRMWARE_DIR), "-I", str(FIRMWARE_DIR / "stubs"), str(bad)],
+         "-I", str(ADAPTER_DIR), "-I", str(FIRMWARE_DIR / "stubs"), str(bad)],
         capture_output=True, text=True,
     )
     assert result.returncode != 0
@@ -105,24 +110,47 @@ def test_the_stub_check_catches_an_api_typo(tmp_path):
 
 
 def test_sketch_is_hardware_glue_only():
-    sketch = (FIRMWARE_DIR / "src" / "main.cpp").read_text()
+    sketch = (SKETCH_DIR / "cubecam.ino").read_text()
     assert len(sketch.splitlines()) <= 150
     includes = re.findall(r'#include [<"]([^>"]+)[>"]', sketch)
-    assert includes == ["Arduino.h", "core/node.h", "spresense/board.h", "spresense/camera.h", "spresense/gs2200.h"]
+    assert includes == [
+        "Arduino.h", "src/core/node.h", "src/spresense/board.h", "src/spresense/camera.h", "src/spresense/gs2200.h"
+    ]
     for word in ("HTTP", "IMPROV", "Content-Type", "GET "):
         assert word not in sketch
 
 
+def test_sketch_folder_holds_only_what_the_board_builds():
+    """The Arduino builder compiles the sketch's src/ tree recursively: host-only code stays outside."""
+    files = sorted(str(p.relative_to(SKETCH_DIR)) for p in SKETCH_DIR.rglob("*") if p.is_file())
+    assert "cubecam.ino" in files
+    assert not [f for f in files if f.endswith(".ino") and f != "cubecam.ino"]  # one sketch, merged as written
+    stray = [f for f in files if f != "cubecam.ino" and not re.fullmatch(r"src/(core|spresense)/\w+\.(h|cpp)", f)]
+    assert stray == []
+    host_only = ("posix", "test", "fuzz", "bench", "m4", "stubs")
+    assert all((FIRMWARE_DIR / d).is_dir() and not (SKETCH_DIR / "src" / d).exists() for d in host_only)
+
+
+def test_sketch_sources_include_each_other_by_relative_path():
+    """Arduino puts no sketch folder on the include path: quotes resolve next to the including file."""
+    for path in sorted(SKETCH_DIR.rglob("*")):
+        if path.suffix not in (".h", ".cpp", ".ino"):
+            continue
+        for name in re.findall(r'#include "([^"]+)"', path.read_text()):
+            assert (path.parent / name).is_file(), f"{path}: {name}"
+
+
 def test_core_is_portable():
-    for path in sorted((FIRMWARE_DIR / "core").glob("*")):
+    for path in sorted(CORE_DIR.glob("*")):
         includes = re.findall(r'#include [<"]([^>"]+)[>"]', path.read_text())
-        assert all(i.startswith("core/") or i in ("stddef.h", "stdint.h", "string.h") for i in includes), path
+        local = [i for i in includes if (CORE_DIR / i).is_file()]
+        assert all(i in local or i in ("stddef.h", "stdint.h", "string.h") for i in includes), path
 
 
 def test_core_allocates_nothing_and_throws_nothing_on_the_m4():
     require_tools("arm-none-eabi-g++", "arm-none-eabi-nm")
     make("size")
-    objects = sorted(str(p) for p in (BUILD_DIR / "m4" / "core").glob("*.o"))
+    objects = sorted(str(p) for p in (BUILD_DIR / "m4" / CORE_DIR.relative_to(FIRMWARE_DIR)).glob("*.o"))
     undefined = subprocess.run(["arm-none-eabi-nm", "-u", *objects], capture_output=True, text=True).stdout
     symbols = {s for s in re.findall(r"\bU (\S+)", undefined) if not re.match(r"_ZN7cubecam|_ZNK7cubecam", s)}
     # Only string functions and 64-bit division: no operator new/delete, malloc, printf,
@@ -148,9 +176,6 @@ def test_platformio_ini_is_valid():
     assert int(opts["monitor_speed"]) == 115200
     assert int(opts["board_upload.maximum_ram_size"]) >= 1_000_000
     assert any("GS2200-WiFi" in dep for dep in opts["lib_deps"])
-    src = Path(sections["platformio"]["src_dir"])
-    assert src == FIRMWARE_DIR
-    filters = " ".join(opts["build_src_filter"])
-    for pattern in ("core/*.cpp", "spresense/*.cpp", "src/*.cpp"):
-        assert f"+<{pattern}>" in filters
-        assert list(src.glob(pattern)), pattern
+    # PlatformIO builds the sketch folder the Arduino IDE opens, all of it, as the Arduino builder does.
+    assert Path(sections["platformio"]["src_dir"]) == SKETCH_DIR
+    assert opts["build_src_filter"] == ["+<*>"]

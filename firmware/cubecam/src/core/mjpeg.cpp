@@ -1,8 +1,8 @@
-#include "core/mjpeg.h"
+#include "mjpeg.h"
 
 #include <string.h>
 
-#include "core/http.h"
+#include "http.h"
 
 namespace cubecam {
 

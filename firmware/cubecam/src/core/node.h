@@ -8,13 +8,13 @@
 #include <stddef.h>
 #include <stdint.h>
 
-#include "core/console.h"
-#include "core/hal.h"
-#include "core/http_server.h"
-#include "core/improv.h"
-#include "core/link.h"
-#include "core/settings.h"
-#include "core/text.h"
+#include "console.h"
+#include "hal.h"
+#include "http_server.h"
+#include "improv.h"
+#include "link.h"
+#include "settings.h"
+#include "text.h"
 
 namespace cubecam {
 

@@ -6,8 +6,8 @@
 
 #include <stdint.h>
 
-#include "core/hal.h"
-#include "core/settings.h"
+#include "hal.h"
+#include "settings.h"
 
 namespace cubecam {
 

@@ -11,8 +11,8 @@
 #ifndef CUBECAM_CORE_MJPEG_H
 #define CUBECAM_CORE_MJPEG_H
 
-#include "core/hal.h"
-#include "core/text.h"
+#include "hal.h"
+#include "text.h"
 
 namespace cubecam {
 

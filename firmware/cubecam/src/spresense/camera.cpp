@@ -1,4 +1,4 @@
-#include "spresense/camera.h"
+#include "camera.h"
 
 #include <Arduino.h>
 

@@ -1,4 +1,4 @@
-#include "core/node.h"
+#include "node.h"
 
 #include <string.h>
 

@@ -1,4 +1,4 @@
-#include "core/settings.h"
+#include "settings.h"
 
 #include <string.h>
 

@@ -1,9 +1,9 @@
-#include "spresense/gs2200.h"
+#include "gs2200.h"
 
 #include <SPI.h>
 #include <string.h>
 
-#include "core/text.h"
+#include "../core/text.h"
 
 // Defined by the GS2200-WiFi library (GS2200Hal.cpp, GS2200AtCmd.cpp) but not
 // declared in its headers: the bulk-data buffer (first byte = CID) and the

@@ -1,4 +1,4 @@
-#include "spresense/board.h"
+#include "board.h"
 
 #include <Arduino.h>
 #include <EEPROM.h>

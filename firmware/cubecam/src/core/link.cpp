@@ -1,4 +1,4 @@
-#include "core/link.h"
+#include "link.h"
 
 #include <string.h>
 

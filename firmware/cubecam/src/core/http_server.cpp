@@ -1,8 +1,8 @@
-#include "core/http_server.h"
+#include "http_server.h"
 
 #include <string.h>
 
-#include "core/mjpeg.h"
+#include "mjpeg.h"
 
 namespace cubecam {
 

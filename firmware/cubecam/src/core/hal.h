@@ -1,5 +1,5 @@
 // Hardware interfaces the portable core depends on. Each has a Spresense
-// implementation (firmware/spresense/) and a POSIX one (firmware/posix/).
+// implementation (../spresense/) and a POSIX one (firmware/posix/).
 // All calls are made from the main loop only, except where noted.
 #ifndef CUBECAM_CORE_HAL_H
 #define CUBECAM_CORE_HAL_H

@@ -1,13 +1,13 @@
 // cubecam sketch for the Sony Spresense: HDR camera board (ISX019) + iS110B
 // Wi-Fi add-on (Telit GS2200M). Hardware glue only: it builds the adapters,
-// hands them to the portable core (firmware/core) and runs its loop.
+// hands them to the portable core (src/core) and runs its loop.
 // Everything the node does is in cubecam::Node; see docs/firmware.md.
 #include <Arduino.h>
 
-#include "core/node.h"
-#include "spresense/board.h"
-#include "spresense/camera.h"
-#include "spresense/gs2200.h"
+#include "src/core/node.h"
+#include "src/spresense/board.h"
+#include "src/spresense/camera.h"
+#include "src/spresense/gs2200.h"
 
 namespace {
 

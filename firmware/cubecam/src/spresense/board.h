@@ -3,7 +3,7 @@
 #ifndef CUBECAM_SPRESENSE_BOARD_H
 #define CUBECAM_SPRESENSE_BOARD_H
 
-#include "core/hal.h"
+#include "../core/hal.h"
 
 namespace cubecam {
 namespace spresense {

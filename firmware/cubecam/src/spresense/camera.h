@@ -6,10 +6,10 @@
 
 #include <Camera.h>
 
-#include "core/hal.h"
-#include "core/http_server.h"
-#include "core/settings.h"
-#include "spresense/board.h"
+#include "../core/hal.h"
+#include "../core/http_server.h"
+#include "../core/settings.h"
+#include "board.h"
 
 namespace cubecam {
 namespace spresense {

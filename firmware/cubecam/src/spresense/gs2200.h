@@ -8,9 +8,9 @@
 
 #include <TelitWiFi.h>
 
-#include "core/hal.h"
-#include "core/http_server.h"
-#include "core/settings.h"
+#include "../core/hal.h"
+#include "../core/http_server.h"
+#include "../core/settings.h"
 
 namespace cubecam {
 namespace spresense {

@@ -6,8 +6,8 @@
 #include <stddef.h>
 #include <stdint.h>
 
-#include "core/hal.h"
-#include "core/http.h"
+#include "hal.h"
+#include "http.h"
 
 namespace cubecam {
 

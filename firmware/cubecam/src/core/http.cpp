@@ -1,4 +1,4 @@
-#include "core/http.h"
+#include "http.h"
 
 #include <string.h>
 

@@ -1,9 +1,9 @@
-#include "core/console.h"
+#include "console.h"
 
 #include <string.h>
 
-#include "core/settings.h"
-#include "core/text.h"
+#include "settings.h"
+#include "text.h"
 
 namespace cubecam {
 

@@ -1,4 +1,4 @@
-#include "core/improv.h"
+#include "improv.h"
 
 #include <string.h>
 

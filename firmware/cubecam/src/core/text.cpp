@@ -1,4 +1,4 @@
-#include "core/text.h"
+#include "text.h"
 
 #include <string.h>
 
