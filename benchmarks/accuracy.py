@@ -14,7 +14,7 @@ dropped frames; /time round trips recorded. Every scene is tracked four ways:
   eq. 1). Detection and per-face estimation are the package's (edge-refined corners, upright
   face identification), which, if anything, makes this baseline better than the paper's;
 - **our mean**: the paper's mean fusion on our calibration and capture-time stamps (reference);
-- **ours + refine** (``--refine``, when :mod:`cubetrack.refine` exists): ours with the camera
+- **ours + refine** (``--refine``, when :mod:`cubetrack.calib.bundle` exists): ours with the camera
   extrinsics refined from the cube observations of the tracking recording.
 
 and scored with :func:`cubetrack.evaluate.evaluate` (paper eqs. 7-8: position RMSE against the
@@ -105,7 +105,7 @@ def code_version() -> str:
 
 
 def refine_available() -> bool:
-    return importlib.util.find_spec("cubetrack.refine") is not None
+    return importlib.util.find_spec("cubetrack.calib.bundle") is not None
 
 
 # --------------------------------------------------------------------------------- scenes
@@ -126,7 +126,7 @@ def scene_dir(work: Path, config_index: int, seed: int) -> Path:
 
 def ensure_recording(params, rec: Path, workers: int) -> tuple[float, bool]:
     """Render ``rec`` unless it already holds a complete recording of ``params``; (seconds, reused)."""
-    from cubetrack.params import params_to_table
+    from cubetrack.core.params import params_to_table
     from cubetrack.simulate import simulate
 
     want = json.loads(json.dumps(params_to_table(params)))
@@ -162,7 +162,7 @@ MISSING = {"pos_cm": math.nan, "rot_deg": math.nan, "dr": 0.0, "far": math.nan, 
 
 
 def score(track_result, robot: str, truth) -> dict:
-    from cubetrack.evaluate import evaluate
+    from cubetrack.evaluate.metrics import evaluate
     from cubetrack.io.trajectory import read_tum
 
     traj = read_tum(track_result.outputs[robot][0])
@@ -185,7 +185,7 @@ def score(track_result, robot: str, truth) -> dict:
 
 def calibration_error(extrinsics: dict, truth: dict) -> tuple[float, float]:
     """Mean over cameras of (position error mm, rotation error deg) of calibrated extrinsics."""
-    from cubetrack.calibrate import extrinsics_errors
+    from cubetrack.calib.extrinsics import extrinsics_errors
 
     errs = list(extrinsics_errors(extrinsics, truth).values())
     return float(np.mean([e[0] for e in errs]) * 1000.0), float(np.mean([e[1] for e in errs]))
@@ -194,12 +194,13 @@ def calibration_error(extrinsics: dict, truth: dict) -> tuple[float, float]:
 def run_scene(work: str, config_index: int, seed: int, duration: float, calibration_frames: int,
               workers: int, refine: bool) -> dict:
     """Simulate (or reuse) one scene, calibrate it both ways, track it every way, score it."""
-    from cubetrack.calibrate import CalibrationMethod, CalibrationParams, calibrate_recording
-    from cubetrack.fuse import FusionMethod
+    from cubetrack.app.track import track_recording
+    from cubetrack.app.tracker import StageParams, Timestamps
+    from cubetrack.calib.extrinsics import CalibrationMethod, CalibrationParams, calibrate_recording
+    from cubetrack.fuse.fusion import FusionMethod
     from cubetrack.io.config import read_extrinsics, read_tracker_config, write_extrinsics
     from cubetrack.io.recording import Recording
     from cubetrack.io.trajectory import read_tum
-    from cubetrack.pipeline import StageParams, Timestamps, track_recording
 
     name, cameras, height, tilt, _ = CONFIGS[config_index]
     rec = scene_dir(Path(work), config_index, seed)
@@ -249,10 +250,10 @@ def run_scene(work: str, config_index: int, seed: int, duration: float, calibrat
 
 def refine_extrinsics(config, rec: Path, extrinsics: dict) -> tuple[dict, dict]:
     """Our extrinsics refined from the cube observations of the tracking recording and the world
-    marker of the calibration recording (:func:`cubetrack.refine.refine_extrinsics`, default
+    marker of the calibration recording (:func:`cubetrack.calib.bundle.refine_extrinsics`, default
     parameters); (extrinsics, what the refinement reported)."""
+    from cubetrack.calib.bundle import refine_extrinsics as refine
     from cubetrack.io.recording import Recording
-    from cubetrack.refine import refine_extrinsics as refine
 
     report = refine(config, Recording.open(rec), extrinsics, calibration=Recording.open(rec / "calibration"))
     info = {"instants": report.instants, "moved": list(report.moved), "warnings": list(report.warnings),
@@ -265,7 +266,7 @@ def refine_extrinsics(config, rec: Path, extrinsics: dict) -> tuple[dict, dict]:
 
 def _load_events(rec: Path, max_frames: int | None):
     """The recording's frames (in memory, arrival order) interleaved with its /time round trips
-    exactly as :func:`cubetrack.pipeline.track_recording` feeds them."""
+    exactly as :func:`cubetrack.app.tracker.track_recording` feeds them."""
     from cubetrack.io.recording import Recording
 
     recording = Recording.open(rec)
@@ -292,11 +293,12 @@ class SpeedCase:
     def __init__(self, rec: Path, max_frames: int | None):
         import cv2
 
-        from cubetrack.calibrate import calibrate_recording
+        from cubetrack.app.track import recording_intrinsics
+        from cubetrack.app.tracker import StageParams
+        from cubetrack.calib.extrinsics import calibrate_recording
+        from cubetrack.core.layout import marker_corners_m
         from cubetrack.io.config import read_extrinsics, read_tracker_config
         from cubetrack.io.recording import Recording
-        from cubetrack.layout import marker_corners_m
-        from cubetrack.pipeline import StageParams, recording_intrinsics
 
         self.config = read_tracker_config(rec / "config.toml")
         recording, self.frames, self.events, self.synced = _load_events(rec, max_frames)
@@ -336,7 +338,7 @@ class SpeedCase:
 
     def ours(self, limit: int | None = None) -> tuple[float, float, int]:
         """(wall s, CPU s, robot poses) of the tracker over the same frames (plus the round trips)."""
-        from cubetrack.pipeline import Tracker
+        from cubetrack.app.tracker import Tracker
 
         tracker = Tracker(self.intrinsics, self.config.world, self.config.robots, self.extrinsics, self.params,
                           self.synced)
@@ -553,7 +555,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--jobs", type=int, default=1, help="scenes rendered and tracked in parallel processes "
                     "(default 1)")
     ap.add_argument("--refine", action="store_true", help="also report ours with extrinsics refined from cube "
-                    "observations (cubetrack.refine)")
+                    "observations (cubetrack.calib.bundle)")
     ap.add_argument("--speed-rounds", type=int, default=None, help="interleaved speed rounds (default 5; "
                     "--quick: 2)")
     ap.add_argument("--speed-frames", type=int, default=None, help="frames per recording in the speed "
@@ -567,7 +569,7 @@ def main(argv: list[str] | None = None) -> int:
     rounds = args.speed_rounds or (2 if args.quick else 5)
     speed_frames = args.speed_frames if args.speed_frames is not None else (30 if args.quick else None)
     if args.refine and not refine_available():
-        ap.error("--refine needs cubetrack.refine (host/cubetrack/refine.py), which is not installed")
+        ap.error("--refine needs cubetrack.calib.bundle (host/cubetrack/refine.py), which is not installed")
     methods = [OURS] + ([REFINED] if args.refine else []) + [PAPER, OUR_MEAN]
 
     kept = args.out is not None

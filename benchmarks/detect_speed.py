@@ -30,11 +30,10 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from cubetrack.detect import Detector, DetectorParams
-from cubetrack.estimate import estimate_cube
-from cubetrack.geometry import invert_T
+from cubetrack.core.layout import marker_corners_m
+from cubetrack.detect.detector import Detector, DetectorParams
+from cubetrack.estimate.pose import estimate_cube
 from cubetrack.io.recording import Recording
-from cubetrack.layout import marker_corners_m
 from cubetrack.simulate import SimulationParams, simulate
 from cubetrack.simulate.render import project_points
 

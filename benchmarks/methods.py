@@ -20,13 +20,14 @@ from pathlib import Path
 
 import numpy as np
 
-from cubetrack.calibrate import calibrate_recording
-from cubetrack.evaluate import evaluate
-from cubetrack.fuse import FusionMethod
+from cubetrack.app.track import track_recording
+from cubetrack.app.tracker import CameraPoseSource, StageParams, TrackParams
+from cubetrack.calib.extrinsics import calibrate_recording
+from cubetrack.evaluate.metrics import evaluate
+from cubetrack.fuse.fusion import FusionMethod
 from cubetrack.io.config import read_tracker_config
 from cubetrack.io.recording import Recording
 from cubetrack.io.trajectory import read_tum
-from cubetrack.pipeline import CameraPoseSource, StageParams, TrackParams, track_recording
 from cubetrack.simulate import SimulationParams, simulate
 
 HEIGHTS = ((0.8, 20.0), (1.0, 30.0), (1.2, 40.0))
@@ -106,7 +107,7 @@ def main(argv: list[str] | None = None) -> int:
     print(table("Fig. 8: detection ratio [%]", fig8, PAPER_FIG8, "") + "\n")
     print(f"total {time.monotonic() - t0:.0f} s; recordings in {work}")
     if args.plot:
-        from cubetrack.plot import plot_rmse_bars
+        from cubetrack.evaluate.plot import plot_rmse_bars
 
         plot_rmse_bars({(f"{h} m", m): fig6[m][i] / 100 for m in fig6 for i, (h, _) in enumerate(HEIGHTS)},
                        work / "rmse_by_method.png", "RMSE by fusion method (3 cameras, calibrated)")

@@ -7,7 +7,7 @@ Importing it does nothing but define names: no logging setup, no files, no globa
 
 import logging
 
-from cubetrack.errors import CubetrackError
+from cubetrack.core.errors import CubetrackError
 
 __all__ = ["CubetrackError", "__version__"]
 __version__ = "0.1.0"

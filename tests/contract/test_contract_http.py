@@ -10,7 +10,6 @@ import time
 import cv2
 import numpy as np
 import pytest
-
 from contract_http import StreamClient, exchange, get
 
 ROUTES = ["/", "/stream", "/capture", "/status", "/time"]

@@ -9,7 +9,6 @@ import time
 
 import cv2
 import numpy as np
-
 from contract_http import StreamClient, connect, get
 
 PART = re.compile(

@@ -20,12 +20,12 @@ import pytest
 
 from cubecam.emulator import Emulator
 from cubecam.replay import fastest_round_trips, fit_clock
+from cubetrack.app.demo import shift_trajectory, write_live_config
 from cubetrack.cli.main import main
-from cubetrack.demo import shift_trajectory, write_live_config
-from cubetrack.evaluate import evaluate
+from cubetrack.evaluate.metrics import evaluate
 from cubetrack.io.recording import Recording
 from cubetrack.io.trajectory import read_tum
-from cubetrack.timesync import fit_round_trips
+from cubetrack.source.clock import fit_round_trips
 
 pytestmark = pytest.mark.slow
 

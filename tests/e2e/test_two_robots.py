@@ -4,12 +4,12 @@ cameras): both are tracked at once, each against its own ground truth, with no i
 import numpy as np
 import pytest
 
-from cubetrack.calibrate import calibrate_recording
-from cubetrack.evaluate import evaluate, nearest_indices
+from cubetrack.app.track import track_recording
+from cubetrack.calib.extrinsics import calibrate_recording
+from cubetrack.evaluate.metrics import evaluate, nearest_indices
 from cubetrack.io.config import read_tracker_config
 from cubetrack.io.recording import Recording
 from cubetrack.io.trajectory import read_tum
-from cubetrack.pipeline import track_recording
 from cubetrack.simulate import SimulationParams, simulate
 
 pytestmark = pytest.mark.slow

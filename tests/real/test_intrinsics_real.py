@@ -10,8 +10,8 @@ from pathlib import Path
 
 import pytest
 
+from cubetrack.calib.intrinsics import IntrinsicsParams, calibrate_intrinsics_files
 from cubetrack.cli import main as cli_main
-from cubetrack.intrinsics import IntrinsicsParams, calibrate_intrinsics_files
 from cubetrack.io.camera_info import read_camera_info
 
 DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "real" / "opencv-aruco-tutorial"

@@ -17,11 +17,11 @@ import cv2
 import numpy as np
 import pytest
 
-from cubetrack.detect import CornerRefinement, Detector, DetectorParams
-from cubetrack.estimate import identify_faces, marker_pose
-from cubetrack.geometry import invert_T, make_T, rotation_angle, T_from_rvec_tvec
+from cubetrack.core.geometry import T_from_rvec_tvec, invert_T, make_T
+from cubetrack.core.layout import CubeLayout, LayoutMarker
+from cubetrack.detect.detector import CornerRefinement, Detector, DetectorParams
+from cubetrack.estimate.pose import identify_faces, marker_pose
 from cubetrack.io.camera_info import read_camera_info, write_camera_info
-from cubetrack.layout import CubeLayout, LayoutMarker
 
 REAL = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "real"
 TUTORIAL = REAL / "opencv-aruco-tutorial"

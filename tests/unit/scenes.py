@@ -15,11 +15,20 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from cubetrack.geometry import make_T
+from cubetrack.core.geometry import make_T
+from cubetrack.core.layout import CubeLayout, marker_corners_m
 from cubetrack.io.camera_info import CameraIntrinsics
-from cubetrack.layout import CubeLayout, marker_corners_m
 from cubetrack.simulate.render import (
-    WHITE_ALBEDO, Floor, MarkerTexture, Quad, Renderer, Solid, View, encode_jpeg, form_image, project_points,
+    WHITE_ALBEDO,
+    Floor,
+    MarkerTexture,
+    Quad,
+    Renderer,
+    Solid,
+    View,
+    encode_jpeg,
+    form_image,
+    project_points,
 )
 
 # A camera 10 m above the floor looking straight up sees only the "wall" (uniform background):

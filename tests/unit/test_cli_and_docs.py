@@ -35,9 +35,9 @@ def test_configuration_reference_is_current():
 def test_defaults_round_trip_through_the_config_loader(tmp_path):
     import tomllib
 
-    from cubetrack.layout import paper_cube_layout, write_layout
+    from cubetrack.app.tracker import StageParams
+    from cubetrack.core.layout import paper_cube_layout, write_layout
     from cubetrack.io.config import read_tracker_config
-    from cubetrack.pipeline import StageParams
 
     write_layout(paper_cube_layout(), tmp_path / "cube.toml")
     (tmp_path / "c.toml").write_text('[[robots]]\nname = "r"\nlayout = "cube.toml"\n' + render())

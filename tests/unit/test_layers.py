@@ -1,4 +1,8 @@
-"""The host package's imports go one way only (docs/developing.md): checked on the source."""
+"""The host package's folders import one way only (docs/architecture.md): checked on the source.
+
+Each folder of ``host/cubetrack`` may import the folders listed for it here and nothing else;
+``cubetrack`` never imports ``cubecam`` (the device tools import the tracker, not the reverse).
+"""
 
 import ast
 from pathlib import Path
@@ -7,70 +11,89 @@ import pytest
 
 PACKAGE = Path(__file__).resolve().parents[2] / "host" / "cubetrack"
 
-BASE = {"errors", "geometry", "params", "progress", "records", "layout"}
-IO = {"io"}
-PIPELINE = ["timesync", "source", "detect", "estimate", "calibrate", "joint", "filter", "refine", "fuse", "sink", "pipeline"]
-
-
-def rank(module: str) -> int:
-    """Higher rank may import lower rank, never the reverse."""
-    top = module.split(".")[0]
-    if top in BASE:
-        return 0
-    if top in IO:
-        return 1
-    if top in PIPELINE:
-        return 2 + PIPELINE.index(top)
-    if top == "intrinsics":
-        return 2 + PIPELINE.index("detect") + 1
-    if top in ("simulate", "evaluate", "plot"):
-        return 2  # beside the pipeline: base + io only (checked separately)
-    if top == "live":
-        return 2 + len(PIPELINE)  # feeds live sources to the pipeline
-    if top == "demo":
-        return 90  # an orchestration of whole commands, used by the CLI only
-    if top == "cli":
-        return 100
-    return 50
+# folder -> the folders it may import (besides itself). The pipeline runs
+# source -> detect -> estimate -> fuse -> sink; a stage imports only earlier stages.
+ALLOWED = {
+    "core": set(),
+    "io": {"core"},
+    "source": {"core", "io"},
+    "detect": {"core", "io"},
+    "estimate": {"core", "io", "detect"},
+    "fuse": {"core", "io", "detect", "estimate"},
+    "sink": {"core", "io"},
+    "calib": {"core", "io", "source", "detect", "estimate", "fuse"},
+    "evaluate": {"core", "io"},
+    "simulate": {"core", "io"},
+    "app": {"core", "io", "source", "detect", "estimate", "fuse", "sink", "calib", "evaluate", "simulate"},
+    "cli": {"core", "io", "source", "detect", "estimate", "fuse", "sink", "calib", "evaluate", "simulate", "app"},
+}
 
 
 def imports_of(path: Path) -> set[str]:
+    """Every module a file imports (absolute names), at any depth of the file."""
     tree = ast.parse(path.read_text(encoding="utf-8"))
     found = set()
     for node in ast.walk(tree):
-        if isinstance(node, ast.ImportFrom) and node.module and node.module.startswith("cubetrack."):
-            found.add(node.module.removeprefix("cubetrack."))
+        if isinstance(node, ast.ImportFrom) and node.module:
+            if node.level:
+                raise AssertionError(f"{path}: relative import of {node.module!r}; import cubetrack.<folder> instead")
+            found.add(node.module)
         elif isinstance(node, ast.Import):
-            for alias in node.names:
-                if alias.name.startswith("cubetrack."):
-                    found.add(alias.name.removeprefix("cubetrack."))
+            found.update(alias.name for alias in node.names)
     return found
 
 
-def modules():
-    for path in sorted(PACKAGE.rglob("*.py")):
-        rel = path.relative_to(PACKAGE).with_suffix("")
-        name = ".".join(p for p in rel.parts if p != "__init__") or "__init__"
-        yield name, path
+def folder_of(path: Path) -> str:
+    rel = path.relative_to(PACKAGE)
+    return rel.parts[0] if len(rel.parts) > 1 else ""
 
 
-@pytest.mark.parametrize("name,path", list(modules()), ids=lambda v: str(v) if isinstance(v, str) else "")
-def test_imports_go_downstream_only(name, path):
-    if name == "__init__":
-        return
-    mine = rank(name)
-    for imported in imports_of(path):
-        if imported.split(".")[0] == name.split(".")[0]:
-            continue  # inside one package (e.g. io.config -> io.recording)
-        assert rank(imported) <= mine, f"{name} (rank {mine}) imports {imported} (rank {rank(imported)})"
-        assert not imported.startswith("cli"), f"{name} imports the CLI"
+SOURCES = sorted(PACKAGE.rglob("*.py"))
 
 
-@pytest.mark.parametrize("side", ["simulate", "evaluate"])
-def test_side_modules_use_only_base_and_io(side):
-    paths = [p for n, p in modules() if n.split(".")[0] == side]
-    assert paths, f"no module {side}"
-    for path in paths:
-        for imported in imports_of(path):
-            top = imported.split(".")[0]
-            assert top in BASE | IO | {side}, f"{path.name} imports {imported}"
+def test_every_module_sits_in_a_known_folder():
+    loose = [p.name for p in SOURCES if folder_of(p) == "" and p.name != "__init__.py"]
+    assert loose == [], f"modules outside the stage folders: {loose}"
+    unknown = {folder_of(p) for p in SOURCES} - set(ALLOWED) - {""}
+    assert unknown == set(), f"folders without an import rule in this test: {unknown}"
+
+
+def violations(mine: str, names: set[str]) -> list[str]:
+    """What a module of folder ``mine`` may not import among ``names``."""
+    bad = []
+    for name in sorted(names):
+        parts = name.split(".")
+        if parts[0] == "cubecam":
+            bad.append(f"{name} (cubetrack never imports cubecam)")
+        elif parts[0] == "cubetrack" and len(parts) > 1 and mine and parts[1] != mine \
+                and parts[1] not in ALLOWED[mine]:
+            bad.append(f"{name} ({mine}/ may import only {sorted(ALLOWED[mine])})")
+    return bad
+
+
+@pytest.mark.parametrize("path", SOURCES, ids=lambda p: str(p.relative_to(PACKAGE)))
+def test_imports_follow_the_folder_map(path):
+    assert violations(folder_of(path), imports_of(path)) == []
+
+
+def test_the_map_itself_has_no_cycle():
+    seen: dict[str, int] = {}
+
+    def depth(folder: str, trail: tuple[str, ...] = ()) -> int:
+        assert folder not in trail, f"import cycle in the map: {' -> '.join(trail + (folder,))}"
+        if folder not in seen:
+            seen[folder] = 1 + max((depth(d, trail + (folder,)) for d in ALLOWED[folder]), default=0)
+        return seen[folder]
+
+    for folder in ALLOWED:
+        depth(folder)
+
+
+def test_the_rule_catches_violations():
+    """The check is not vacuous: a later stage, the CLI and cubecam are each refused."""
+    assert violations("detect", {"cubetrack.core.errors", "cubetrack.detect.detector"}) == []
+    assert len(violations("detect", {"cubetrack.fuse.fusion"})) == 1
+    assert len(violations("fuse", {"cubetrack.sink.base"})) == 1
+    assert len(violations("app", {"cubetrack.cli.command"})) == 1
+    assert len(violations("app", {"cubecam.emulator"})) == 1
+    assert violations("", {"cubetrack.core.errors"}) == []

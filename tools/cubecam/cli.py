@@ -2,8 +2,8 @@
 
 Each command lives in ``cubecam.commands.<module>`` with a module docstring (its ``--help``),
 ``HELP`` (one line), ``add_arguments(parser)`` and ``run(args) -> int``; heavy imports happen
-inside ``run``. The error boundary is :func:`cubetrack.cli.app.run_command`: known errors
-(:class:`cubecam.errors.CubecamError`, and any :class:`cubetrack.errors.CubetrackError`) print one
+inside ``run``. The error boundary is :func:`cubetrack.cli.command.run_command`: known errors
+(:class:`cubecam.errors.CubecamError`, and any :class:`cubetrack.core.errors.CubetrackError`) print one
 line and exit 1; anything else logs its traceback and exits 2.
 """
 
@@ -12,7 +12,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from cubetrack.cli import app
+from cubetrack.cli import command
 
 from cubecam import __version__
 
@@ -26,13 +26,13 @@ COMMANDS = {
 
 
 def build_parser() -> argparse.ArgumentParser:
-    return app.build_parser(
+    return command.build_parser(
         "cubecam", "Camera-node tools for cubetrack: emulate nodes, provision and flash Spresense boards.",
         __version__, "cubecam.commands", COMMANDS)
 
 
 def main(argv: list[str] | None = None) -> int:
-    return app.run_command(build_parser(), argv)
+    return command.run_command(build_parser(), argv)
 
 
 if __name__ == "__main__":

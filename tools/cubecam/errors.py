@@ -2,11 +2,11 @@
 
 Every error a user can cause (a bad option, a missing recording, a port in use, a board that
 does not answer) is a :class:`CubecamError`; ``cubecam.cli.main`` prints its message on one
-line and exits 1. It subclasses :class:`cubetrack.errors.CubetrackError`, so code that drives
+line and exits 1. It subclasses :class:`cubetrack.core.errors.CubetrackError`, so code that drives
 both packages can catch one base.
 """
 
-from cubetrack.errors import CubetrackError
+from cubetrack.core.errors import CubetrackError
 
 
 class CubecamError(CubetrackError):

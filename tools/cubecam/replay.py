@@ -23,7 +23,7 @@ from collections import Counter
 from dataclasses import dataclass
 from pathlib import Path
 
-from cubetrack.errors import RecordingError
+from cubetrack.core.errors import RecordingError
 from cubetrack.io.recording import Recording, check_camera_name
 
 from cubecam.errors import EmulatorError

@@ -52,11 +52,11 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import dataclasses
 
-    from cubetrack.calibrate import CalibrationMethod, calibrate_recording, calibration_params, extrinsics_errors
-    from cubetrack.errors import ConfigError
+    from cubetrack.calib.extrinsics import CalibrationMethod, calibrate_recording, calibration_params, extrinsics_errors
+    from cubetrack.core.errors import ConfigError
+    from cubetrack.core.progress import StderrProgress
     from cubetrack.io.config import read_extrinsics, read_tracker_config, write_extrinsics
     from cubetrack.io.recording import Recording
-    from cubetrack.progress import StderrProgress
 
     config = read_tracker_config(args.config)
     params = calibration_params(config)
@@ -72,7 +72,7 @@ def run(args: argparse.Namespace) -> int:
     report = calibrate_recording(config, recording, params, StderrProgress(), args.allow_missing)
     refined = None
     if args.refine_with is not None:
-        from cubetrack.refine import refine_extrinsics
+        from cubetrack.calib.bundle import refine_extrinsics
 
         refined = refine_extrinsics(config, Recording.open(args.refine_with), report.extrinsics, recording,
                                     progress=StderrProgress())

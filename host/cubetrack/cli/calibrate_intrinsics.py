@@ -36,7 +36,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def parse_board(text: str) -> tuple[int, int]:
-    from cubetrack.errors import ConfigError
+    from cubetrack.core.errors import ConfigError
 
     m = re.fullmatch(r"\s*(\d+)\s*[xX]\s*(\d+)\s*", text)
     if not m:
@@ -45,10 +45,10 @@ def parse_board(text: str) -> tuple[int, int]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from cubetrack.errors import ConfigError
-    from cubetrack.intrinsics import IntrinsicsParams, calibrate_intrinsics_files
+    from cubetrack.calib.intrinsics import IntrinsicsParams, calibrate_intrinsics_files
+    from cubetrack.core.errors import ConfigError
+    from cubetrack.core.progress import StderrProgress
     from cubetrack.io.camera_info import write_camera_info
-    from cubetrack.progress import StderrProgress
 
     sx, sy = parse_board(args.board)
     try:

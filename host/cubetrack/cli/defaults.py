@@ -23,9 +23,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def default_sections() -> dict[str, object]:
     """Section name -> the default params of the stage that owns it."""
-    from cubetrack.calibrate import CalibrationParams
-    from cubetrack.pipeline import StageParams
-    from cubetrack.source import SourceParams
+    from cubetrack.app.tracker import StageParams
+    from cubetrack.calib.extrinsics import CalibrationParams
+    from cubetrack.source.streams import SourceParams
 
     stages = StageParams()
     return {
@@ -41,7 +41,7 @@ def default_sections() -> dict[str, object]:
 
 def render(sections: tuple[str, ...] = SECTIONS) -> str:
     """The commented TOML text of ``sections``."""
-    from cubetrack.params import params_to_commented_toml
+    from cubetrack.core.params import params_to_commented_toml
 
     defaults = default_sections()
     return "\n".join(params_to_commented_toml(name, defaults[name]) for name in sections)

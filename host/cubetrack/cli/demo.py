@@ -35,9 +35,9 @@ def run(args: argparse.Namespace) -> int:
     import shutil
     import sys
 
-    from cubetrack.demo import run_demo
-    from cubetrack.errors import SimulationError
-    from cubetrack.progress import StderrProgress
+    from cubetrack.app.demo import run_demo
+    from cubetrack.core.errors import SimulationError
+    from cubetrack.core.progress import StderrProgress
     from cubetrack.simulate import SimulationParams
 
     if args.out.exists() and any(args.out.iterdir()):

@@ -35,7 +35,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def _pose_json(T, err_px: float) -> dict:
-    from cubetrack.geometry import position_quat_from_T
+    from cubetrack.core.geometry import position_quat_from_T
 
     position_m, q_xyzw = position_quat_from_T(T)
     return {"position": [round(float(v), 6) for v in position_m],
@@ -48,9 +48,9 @@ def run(args: argparse.Namespace) -> int:
     import logging
     from pathlib import Path
 
-    from cubetrack.detect import CornerRefinement, Detector, DetectorParams, read_gray
-    from cubetrack.errors import DetectionError
-    from cubetrack.estimate import marker_pose
+    from cubetrack.core.errors import DetectionError
+    from cubetrack.detect.detector import CornerRefinement, Detector, DetectorParams, read_gray
+    from cubetrack.estimate.pose import marker_pose
     from cubetrack.io.camera_info import read_camera_info
 
     names = args.dictionary or ["DICT_4X4_50"]

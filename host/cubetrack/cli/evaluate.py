@@ -30,8 +30,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from cubetrack.errors import EvaluationError
-    from cubetrack.evaluate import EvaluationParams, evaluate
+    from cubetrack.core.errors import EvaluationError
+    from cubetrack.evaluate.metrics import EvaluationParams, evaluate
     from cubetrack.io.trajectory import read_tum
 
     labels = args.label or [p.stem if len(args.estimate) == 1 else str(p) for p in args.estimate]
@@ -48,7 +48,7 @@ def run(args: argparse.Namespace) -> int:
     else:
         print(format_table(results))
     if args.plot:
-        from cubetrack.plot import plot_rmse_bars, plot_xy
+        from cubetrack.evaluate.plot import plot_rmse_bars, plot_xy
 
         args.plot.mkdir(parents=True, exist_ok=True)
         xy = plot_xy(estimates, truth, args.plot / "trajectory_xy.png")

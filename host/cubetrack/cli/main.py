@@ -1,6 +1,6 @@
 """``cubetrack``: the command-line entry point and its one error boundary.
 
-Each command lives in ``cubetrack.cli.<module>`` (see :mod:`cubetrack.cli.app`). Command modules
+Each command lives in ``cubetrack.cli.<module>`` (see :mod:`cubetrack.cli.command`). Command modules
 import only argparse-level names at import time, so ``--help`` is fast; heavy modules (OpenCV,
 SciPy) are imported inside ``run``.
 """
@@ -11,7 +11,7 @@ import argparse
 import sys
 
 from cubetrack import __version__
-from cubetrack.cli import app
+from cubetrack.cli import command
 
 COMMANDS = {
     "demo": "demo",
@@ -27,12 +27,12 @@ COMMANDS = {
 
 
 def build_parser() -> argparse.ArgumentParser:
-    return app.build_parser("cubetrack", "Indoor robot tracking with Wi-Fi camera nodes and an ArUco cube.",
+    return command.build_parser("cubetrack", "Indoor robot tracking with Wi-Fi camera nodes and an ArUco cube.",
                             __version__, "cubetrack.cli", COMMANDS)
 
 
 def main(argv: list[str] | None = None) -> int:
-    return app.run_command(build_parser(), argv)
+    return command.run_command(build_parser(), argv)
 
 
 if __name__ == "__main__":

@@ -29,9 +29,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import sys
 
-    from cubetrack.errors import ConfigError
+    from cubetrack.app.live import live_camera_urls, record_live
+    from cubetrack.core.errors import ConfigError
     from cubetrack.io.config import read_tracker_config
-    from cubetrack.live import live_camera_urls, record_live
 
     if args.duration is not None and not args.duration > 0:
         raise ConfigError(f"--duration must be a positive number of seconds, got {args.duration}")

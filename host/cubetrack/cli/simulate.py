@@ -95,7 +95,7 @@ def params_from_args(args: argparse.Namespace) -> SimulationParams:
 
 
 def run(args: argparse.Namespace) -> int:
-    from cubetrack.progress import StderrProgress
+    from cubetrack.core.progress import StderrProgress
     from cubetrack.simulate import simulate
 
     params = params_from_args(args)

@@ -43,13 +43,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import dataclasses
 
-    from cubetrack.errors import ConfigError
+    from cubetrack.app.track import track_recording
+    from cubetrack.app.tracker import CameraPoseSource, StageParams, TrackParams
+    from cubetrack.core.errors import ConfigError
+    from cubetrack.core.params import params_from_table
+    from cubetrack.core.progress import StderrProgress
+    from cubetrack.fuse.fusion import FusionParams
     from cubetrack.io.config import read_extrinsics, read_tracker_config
     from cubetrack.io.recording import Recording
-    from cubetrack.params import params_from_table
-    from cubetrack.pipeline import CameraPoseSource, StageParams, TrackParams, track_recording
-    from cubetrack.fuse import FusionParams
-    from cubetrack.progress import StderrProgress
 
     if not args.live and (args.duration is not None or args.record is not None):
         raise ConfigError("--duration and --record go with --live (a replay runs to the end of its recording)")
@@ -83,7 +84,7 @@ def run(args: argparse.Namespace) -> int:
 def _run_live(args: argparse.Namespace, config, extrinsics, params) -> int:
     import sys
 
-    from cubetrack.live import live_camera_urls, live_intrinsics, track_live
+    from cubetrack.app.live import live_camera_urls, live_intrinsics, track_live
 
     live_camera_urls(config), live_intrinsics(config)  # a bad config fails before the session starts
 

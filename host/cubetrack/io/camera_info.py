@@ -12,7 +12,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-from cubetrack.errors import CameraInfoError
+from cubetrack.core.errors import CameraInfoError
 
 
 @dataclass(frozen=True, slots=True, eq=False)

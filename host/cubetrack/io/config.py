@@ -15,10 +15,10 @@ from typing import Any
 import numpy as np
 import tomli_w
 
-from cubetrack.errors import ConfigError, RecordingError
-from cubetrack.geometry import T_from_position_quat, position_quat_from_T
+from cubetrack.core.errors import ConfigError, RecordingError
+from cubetrack.core.geometry import T_from_position_quat, position_quat_from_T
+from cubetrack.core.layout import DEFAULT_DICTIONARY, CubeLayout, read_layout
 from cubetrack.io.recording import check_camera_name
-from cubetrack.layout import DEFAULT_DICTIONARY, CubeLayout, read_layout
 
 STAGE_SECTIONS = ("detector", "estimator", "fusion", "filter", "calibration", "track", "source")
 

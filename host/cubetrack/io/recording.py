@@ -29,8 +29,8 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Iterable, Iterator
 
-from cubetrack.errors import RecordingError
-from cubetrack.records import Frame
+from cubetrack.core.errors import RecordingError
+from cubetrack.core.records import Frame
 
 log = logging.getLogger(__name__)
 

@@ -13,8 +13,8 @@ from typing import IO, Iterable
 
 import numpy as np
 
-from cubetrack.errors import TrajectoryError
-from cubetrack.records import TrackedPose
+from cubetrack.core.errors import TrajectoryError
+from cubetrack.core.records import TrackedPose
 
 
 @dataclass(frozen=True, slots=True, eq=False)

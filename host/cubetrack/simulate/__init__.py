@@ -18,7 +18,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
-from cubetrack.progress import Progress
+from cubetrack.core.progress import Progress
 from cubetrack.simulate.params import SimulationParams
 
 if TYPE_CHECKING:

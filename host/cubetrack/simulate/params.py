@@ -2,7 +2,7 @@
 command line can build its options from the fields without loading OpenCV).
 
 Every field's ``doc`` gives its unit and meaning; ``cubetrack simulate --help`` shows them.
-Values are checked on construction and refused with :class:`cubetrack.errors.SimulationError`.
+Values are checked on construction and refused with :class:`cubetrack.core.errors.SimulationError`.
 """
 
 from __future__ import annotations
@@ -10,8 +10,8 @@ from __future__ import annotations
 import math
 from dataclasses import dataclass, fields
 
-from cubetrack.errors import SimulationError
-from cubetrack.params import param
+from cubetrack.core.errors import SimulationError
+from cubetrack.core.params import param
 
 PATHS = ("figure8", "rectangle")
 

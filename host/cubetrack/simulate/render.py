@@ -33,8 +33,8 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
-from cubetrack.errors import SimulationError
-from cubetrack.geometry import invert_T
+from cubetrack.core.errors import SimulationError
+from cubetrack.core.geometry import invert_T
 from cubetrack.io.camera_info import CameraIntrinsics
 
 WHITE_ALBEDO = 0.85  # printed paper

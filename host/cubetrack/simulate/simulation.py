@@ -14,21 +14,37 @@ from pathlib import Path
 import numpy as np
 import tomli_w
 
-from cubetrack.errors import RecordingError
-from cubetrack.geometry import position_quat_from_T
+from cubetrack.core.errors import RecordingError
+from cubetrack.core.geometry import position_quat_from_T
+from cubetrack.core.layout import CubeLayout, write_layout
+from cubetrack.core.params import params_to_table
+from cubetrack.core.progress import Progress
 from cubetrack.io.camera_info import CameraIntrinsics, write_camera_info
-from cubetrack.io.config import (CameraConfig, CameraExtrinsics, WorldConfig, tracker_config_to_table,
-                                 write_extrinsics, write_toml)
+from cubetrack.io.config import (
+    CameraConfig,
+    CameraExtrinsics,
+    WorldConfig,
+    tracker_config_to_table,
+    write_extrinsics,
+    write_toml,
+)
 from cubetrack.io.recording import CameraEntry, RecordingWriter
 from cubetrack.io.trajectory import Trajectory, write_tum
-from cubetrack.layout import CubeLayout, write_layout
-from cubetrack.params import params_to_table
-from cubetrack.progress import Progress
 from cubetrack.simulate.params import SimulationParams
 from cubetrack.simulate.render import Renderer, View, encode_jpeg, form_image, lighting_gain
-from cubetrack.simulate.scenario import (STREAM_CAL_GAIN, STREAM_CAL_IMAGE, STREAM_CAL_SYNC, STREAM_CAL_TIMING,
-                                         STREAM_GAIN, STREAM_IMAGE, STREAM_SYNC, STREAM_TIMING, Scene,
-                                         build_scene, rng_for)
+from cubetrack.simulate.scenario import (
+    STREAM_CAL_GAIN,
+    STREAM_CAL_IMAGE,
+    STREAM_CAL_SYNC,
+    STREAM_CAL_TIMING,
+    STREAM_GAIN,
+    STREAM_IMAGE,
+    STREAM_SYNC,
+    STREAM_TIMING,
+    Scene,
+    build_scene,
+    rng_for,
+)
 from cubetrack.simulate.timing import CaptureTruth, DeviceClock, plan_captures, plan_clock_samples
 
 log = logging.getLogger(__name__)

@@ -2,9 +2,18 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from cubetrack.geometry import (T_from_position_quat, T_from_rvec_tvec, invert_T, is_finite_pose,
-                                mean_rotation, position_quat_from_T, rotation_angle, rvec_tvec_from_T,
-                                shoelace_area, transform_points)
+from cubetrack.core.geometry import (
+    T_from_position_quat,
+    T_from_rvec_tvec,
+    invert_T,
+    is_finite_pose,
+    mean_rotation,
+    position_quat_from_T,
+    rotation_angle,
+    rvec_tvec_from_T,
+    shoelace_area,
+    transform_points,
+)
 
 
 def random_T(rng):
@@ -59,7 +68,7 @@ def test_non_finite_pose_is_detected():
 
 
 def test_fast_rodrigues_matches_scipy():
-    from cubetrack.geometry import R_from_rotvec
+    from cubetrack.core.geometry import R_from_rotvec
 
     rng = np.random.default_rng(5)
     for v in [*rng.normal(size=(20, 3)) * 2.0, np.zeros(3), np.array([1e-10, 0, 0]), np.array([np.pi, 0, 0])]:
@@ -68,7 +77,7 @@ def test_fast_rodrigues_matches_scipy():
 
 def test_quaternion_matches_scipy_in_every_branch():
     """Shepperd's four branches: small angles, angles near pi about each axis, random ones."""
-    from cubetrack.geometry import quat_xyzw_from_R
+    from cubetrack.core.geometry import quat_xyzw_from_R
 
     rng = np.random.default_rng(6)
     axes = rng.normal(size=(30, 3))

@@ -1,8 +1,8 @@
 import numpy as np
 import pytest
 
-from cubetrack.errors import ConfigError
-from cubetrack.layout import FACES, paper_cube_layout, read_layout, write_layout
+from cubetrack.core.errors import ConfigError
+from cubetrack.core.layout import FACES, paper_cube_layout, read_layout, write_layout
 
 
 def test_paper_scheme_up_axes_are_distinct():

@@ -3,8 +3,8 @@ from dataclasses import dataclass
 
 import pytest
 
-from cubetrack.errors import ConfigError
-from cubetrack.params import param, params_from_table, params_to_table
+from cubetrack.core.errors import ConfigError
+from cubetrack.core.params import param, params_from_table, params_to_table
 
 
 class Mode(enum.Enum):

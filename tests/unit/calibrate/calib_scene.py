@@ -12,10 +12,17 @@ from pathlib import Path
 import numpy as np
 from scenes import Camera, look_at, marker_corners_px, marker_on_paper
 
+from cubetrack.core.layout import paper_cube_layout, write_layout
 from cubetrack.io.camera_info import CameraIntrinsics, write_camera_info
-from cubetrack.io.config import CameraExtrinsics, tracker_config_to_table, write_extrinsics, write_toml, WorldConfig, CameraConfig
+from cubetrack.io.config import (
+    CameraConfig,
+    CameraExtrinsics,
+    WorldConfig,
+    tracker_config_to_table,
+    write_extrinsics,
+    write_toml,
+)
 from cubetrack.io.recording import CameraEntry, RecordingWriter
-from cubetrack.layout import paper_cube_layout, write_layout
 
 W, H = 640, 480
 K = np.array([[500.0, 0, 319.5], [0, 500.0, 239.5], [0, 0, 1]])

@@ -4,9 +4,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from cubetrack.calibrate import CumulativeMovingAverage, cma_pose, pose_spread
-from cubetrack.errors import CalibrationError
-from cubetrack.geometry import make_T, rotation_angle
+from cubetrack.calib.extrinsics import CumulativeMovingAverage, cma_pose, pose_spread
+from cubetrack.core.errors import CalibrationError
+from cubetrack.core.geometry import make_T, rotation_angle
 
 
 def test_eq1_recursion_by_hand():

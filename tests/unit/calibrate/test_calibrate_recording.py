@@ -1,14 +1,13 @@
 """Calibration of a rendered 3-camera recording (true camera poses known by construction),
 through the library and the CLI: accuracy, bad frames, missing cameras, file round trip."""
 
-import dataclasses
 import shutil
 
 import numpy as np
 import pytest
-
 from calib_scene import CAMERAS, look_at, write_scene
-from cubetrack.calibrate import (
+
+from cubetrack.calib.extrinsics import (
     CalibrationMethod,
     CalibrationParams,
     calibrate_recording,
@@ -16,7 +15,7 @@ from cubetrack.calibrate import (
     extrinsics_errors,
 )
 from cubetrack.cli import main as cli_main
-from cubetrack.errors import CalibrationError, ConfigError
+from cubetrack.core.errors import CalibrationError, ConfigError
 from cubetrack.io.config import read_extrinsics, read_tracker_config
 from cubetrack.io.recording import Recording
 

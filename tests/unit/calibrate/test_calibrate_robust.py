@@ -4,9 +4,9 @@ lens model) on rendered frames."""
 
 import numpy as np
 import pytest
-
 from calib_scene import CAMERAS, K, camera, frame, look_at, true_corners
-from cubetrack.calibrate import (
+
+from cubetrack.calib.extrinsics import (
     EDGE_FIT,
     CalibrationMethod,
     CalibrationParams,
@@ -16,11 +16,11 @@ from cubetrack.calibrate import (
     collect_sightings,
     refine_corners_by_edges,
 )
-from cubetrack.detect import CornerRefinement, Detector, DetectorParams, decode_gray, refine_corners_edges
-from cubetrack.geometry import rotation_angle, shoelace_area
+from cubetrack.core.geometry import rotation_angle, shoelace_area
+from cubetrack.core.records import Detection, Frame
+from cubetrack.detect.detector import CornerRefinement, Detector, DetectorParams, decode_gray, refine_corners_edges
 from cubetrack.io.camera_info import CameraIntrinsics
 from cubetrack.io.config import WorldConfig
-from cubetrack.records import Detection, Frame
 
 INTR = CameraIntrinsics(640, 480, K, np.zeros(5))
 

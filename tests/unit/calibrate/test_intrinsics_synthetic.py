@@ -6,12 +6,11 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from cubetrack.calib.intrinsics import IntrinsicsParams, calibrate_intrinsics, make_board
 from cubetrack.cli.calibrate_intrinsics import parse_board
-from cubetrack.detect import CornerRefinement
-from cubetrack.errors import CalibrationError, ConfigError, ImageError
-from cubetrack.geometry import make_T
-from cubetrack.detect import read_gray
-from cubetrack.intrinsics import IntrinsicsParams, calibrate_intrinsics, make_board
+from cubetrack.core.errors import CalibrationError, ConfigError, ImageError
+from cubetrack.core.geometry import make_T
+from cubetrack.detect.detector import CornerRefinement, read_gray
 
 K_TRUE = np.array([[600.0, 0, 322.0], [0, 605.0, 236.0], [0, 0, 1]])
 

@@ -10,7 +10,7 @@ import pytest
 from scenes import render_in_front
 
 import cubetrack.cli.main as cli_main
-from cubetrack.geometry import make_T, rotation_angle, R_from_quat_xyzw
+from cubetrack.core.geometry import R_from_quat_xyzw, make_T, rotation_angle
 from cubetrack.io.camera_info import CameraIntrinsics, write_camera_info
 
 K = np.array([[520.0, 0.0, 319.5], [0.0, 520.0, 239.5], [0.0, 0.0, 1.0]])

@@ -6,18 +6,28 @@ import cv2
 import numpy as np
 import pytest
 from scenes import (
-    T_WORLD_CAM_UP, Camera, cube_solid, look_at, marker_corners_px, render_in_front,
+    T_WORLD_CAM_UP,
+    Camera,
+    cube_solid,
+    look_at,
+    marker_corners_px,
+    render_in_front,
 )
 
-from cubetrack.detect import (
-    CornerRefinement, Detector, DetectorParams, decode_gray, dictionary_names, is_valid_quad,
+from cubetrack.core.errors import ConfigError, DetectionError, ImageError
+from cubetrack.core.geometry import invert_T, make_T, shoelace_area
+from cubetrack.core.layout import paper_cube_layout
+from cubetrack.core.params import params_from_table, params_to_table
+from cubetrack.detect.detector import (
+    CornerRefinement,
+    Detector,
+    DetectorParams,
+    decode_gray,
+    dictionary_names,
+    is_valid_quad,
     refine_corners_edges,
 )
-from cubetrack.errors import ConfigError, DetectionError, ImageError
-from cubetrack.geometry import invert_T, make_T, shoelace_area
 from cubetrack.io.camera_info import CameraIntrinsics
-from cubetrack.layout import paper_cube_layout
-from cubetrack.params import params_from_table, params_to_table
 
 K = np.array([[520.0, 0.0, 319.5], [0.0, 520.0, 239.5], [0.0, 0.0, 1.0]])
 INTR = CameraIntrinsics(640, 480, K, np.zeros(5))
@@ -200,7 +210,7 @@ def test_edge_refinement_of_an_8_bit_image_in_a_region_equals_the_float_image(sc
 
 
 def test_region_search_finds_the_same_corners_as_the_whole_image():
-    from cubetrack.detect import Detector
+    from cubetrack.detect.detector import Detector
 
     rng = np.random.default_rng(7)
     gray = np.full((480, 640), 200, np.uint8)

@@ -8,16 +8,21 @@ import pytest
 from scenes import look_at
 from scipy.spatial.transform import Rotation
 
-import cubetrack.estimate as estimate_module
-from cubetrack.errors import ConfigError, EstimationError
-from cubetrack.estimate import (
-    EstimatorParams, cube_tilt_deg, estimate_cube, identify_faces, marker_pose, world_marker_pose,
+import cubetrack.estimate.pose as estimate_module
+from cubetrack.core.errors import ConfigError, EstimationError
+from cubetrack.core.geometry import invert_T, make_T, rotation_angle, shoelace_area
+from cubetrack.core.layout import FACES, marker_corners_m, paper_cube_layout
+from cubetrack.core.params import params_from_table, params_to_table
+from cubetrack.core.records import Detection, MarkerPose
+from cubetrack.estimate.pose import (
+    EstimatorParams,
+    cube_tilt_deg,
+    estimate_cube,
+    identify_faces,
+    marker_pose,
+    world_marker_pose,
 )
-from cubetrack.geometry import invert_T, make_T, rotation_angle, shoelace_area
 from cubetrack.io.camera_info import CameraIntrinsics
-from cubetrack.layout import FACES, paper_cube_layout, marker_corners_m
-from cubetrack.params import params_from_table, params_to_table
-from cubetrack.records import Detection, MarkerPose
 
 K = np.array([[520.0, 0.0, 319.5], [0.0, 520.0, 239.5], [0.0, 0.0, 1.0]])
 PINHOLE = CameraIntrinsics(640, 480, K, np.zeros(5))

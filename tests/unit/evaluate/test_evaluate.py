@@ -2,8 +2,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from cubetrack.errors import EvaluationError
-from cubetrack.evaluate import EvaluationParams, detection_ratio, evaluate, position_rmse_m
+from cubetrack.core.errors import EvaluationError
+from cubetrack.evaluate.metrics import EvaluationParams, detection_ratio, evaluate, position_rmse_m
 from cubetrack.io.trajectory import Trajectory
 
 

@@ -3,13 +3,12 @@ that leaves the view is reported as not seen, never extrapolated."""
 
 import numpy as np
 from scipy.spatial.transform import Rotation
-
-from cubetrack.estimate import estimate_cube
-from cubetrack.fuse import FilterFusion, FusionParams
-from cubetrack.geometry import make_T
-from cubetrack.records import CubeSighting
-
 from test_joint_and_filter import CAMS, INTR, LAYOUT, detections
+
+from cubetrack.core.geometry import make_T
+from cubetrack.core.records import CubeSighting
+from cubetrack.estimate.pose import estimate_cube
+from cubetrack.fuse.fusion import FilterFusion, FusionParams
 
 V = np.array([0.25, 0.0, 0.0])
 

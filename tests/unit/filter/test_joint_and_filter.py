@@ -6,14 +6,14 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from cubetrack.estimate import marker_pose
-from cubetrack.filter import FilterParams, PoseFilter
-from cubetrack.geometry import invert_T, make_T, rotation_angle
+from cubetrack.core.geometry import invert_T, make_T, rotation_angle, shoelace_area
+from cubetrack.core.layout import paper_cube_layout
+from cubetrack.core.records import Detection
+from cubetrack.estimate.pose import marker_pose
+from cubetrack.estimate.reprojection import CornerSet, associate
+from cubetrack.fuse.corner_filter import FilterParams, PoseFilter
+from cubetrack.fuse.multi_view_fit import solve_joint
 from cubetrack.io.camera_info import CameraIntrinsics
-from cubetrack.joint import CornerSet, associate, normalize_px, solve_joint
-from cubetrack.layout import paper_cube_layout
-from cubetrack.records import Detection
-from cubetrack.geometry import shoelace_area
 
 K = np.array([[520.0, 0, 319.5], [0, 520.0, 239.5], [0, 0, 1]])
 INTR = CameraIntrinsics(640, 480, K, np.zeros(5), "cam")
@@ -148,7 +148,7 @@ def test_filter_params_are_checked(bad):
 
 
 def test_analytic_jacobian_matches_finite_differences():
-    from cubetrack.joint import perturbed, reprojection_jacobian_px, reprojection_residuals_px
+    from cubetrack.estimate.reprojection import perturbed, reprojection_jacobian_px, reprojection_residuals_px
 
     rng = np.random.default_rng(6)
     T = cube_pose()
@@ -166,7 +166,12 @@ def test_analytic_jacobian_matches_finite_differences():
 
 def test_motion_jacobian_matches_finite_differences():
     """The joint fit's Jacobian: pose increment, linear and angular velocity of a moving cube."""
-    from cubetrack.joint import moved_pose, perturbed, reprojection_jacobian_px, reprojection_residuals_px
+    from cubetrack.estimate.reprojection import (
+        moved_pose,
+        perturbed,
+        reprojection_jacobian_px,
+        reprojection_residuals_px,
+    )
 
     rng = np.random.default_rng(7)
     T = cube_pose()
@@ -185,7 +190,7 @@ def test_motion_jacobian_matches_finite_differences():
 
 
 def test_so3_left_jacobian_chains_a_finite_rotation_increment():
-    from cubetrack.geometry import R_from_rotvec, so3_left_jacobian
+    from cubetrack.core.geometry import R_from_rotvec, so3_left_jacobian
 
     rng = np.random.default_rng(8)
     for v in (rng.normal(size=3), np.array([1e-9, 0.0, 2e-9]), np.array([0.0, 3.0, 0.0])):

@@ -2,9 +2,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from cubetrack.fuse import FusionMethod, FusionParams, LatestEstimateFusion, fuse_poses, paper_weights
-from cubetrack.geometry import make_T, rotation_angle
-from cubetrack.records import CameraEstimate, FaceObservation
+from cubetrack.core.geometry import make_T, rotation_angle
+from cubetrack.core.records import CameraEstimate, FaceObservation
+from cubetrack.fuse.fusion import FusionMethod, FusionParams, LatestEstimateFusion, fuse_poses, paper_weights
 
 
 def test_paper_weights_by_hand():

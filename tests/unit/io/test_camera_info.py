@@ -3,7 +3,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from cubetrack.errors import CameraInfoError
+from cubetrack.core.errors import CameraInfoError
 from cubetrack.io.camera_info import CameraIntrinsics, read_camera_info, write_camera_info
 
 REAL = Path(__file__).resolve().parents[3] / ".." / "shared" / "data" / "real" / "opencv-aruco-tutorial"

@@ -4,7 +4,7 @@ import cv2
 import numpy as np
 import pytest
 
-from cubetrack.errors import RecordingError
+from cubetrack.core.errors import RecordingError
 from cubetrack.io.recording import CameraEntry, ClockSample, Recording, RecordingWriter
 
 

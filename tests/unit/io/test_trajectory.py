@@ -3,9 +3,9 @@ import json
 import numpy as np
 import pytest
 
-from cubetrack.errors import TrajectoryError
+from cubetrack.core.errors import TrajectoryError
+from cubetrack.core.records import TrackedPose
 from cubetrack.io.trajectory import PoseWriter, Trajectory, read_tum, write_tum
-from cubetrack.records import TrackedPose
 
 
 def test_tum_round_trip(tmp_path):

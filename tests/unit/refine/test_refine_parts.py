@@ -3,11 +3,19 @@
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from cubetrack.geometry import R_from_rotvec, invert_T, make_T, rotation_angle
-from cubetrack.joint import CornerSet
-from cubetrack.layout import marker_corners_m, paper_cube_layout
-from cubetrack.refine import (CubeFrame, Instant, RefineParams, _build_problem, _solve, group_instants,
-                              robust_average_corners, velocities)
+from cubetrack.calib.bundle import (
+    CubeFrame,
+    Instant,
+    RefineParams,
+    _build_problem,
+    _solve,
+    group_instants,
+    robust_average_corners,
+    velocities,
+)
+from cubetrack.core.geometry import R_from_rotvec, invert_T, make_T, rotation_angle
+from cubetrack.core.layout import marker_corners_m, paper_cube_layout
+from cubetrack.estimate.reprojection import CornerSet
 
 
 def look_at(position, target=(0.0, 0.0, 0.15)):

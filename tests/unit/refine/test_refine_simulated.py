@@ -8,13 +8,13 @@ import re
 import numpy as np
 import pytest
 
-from cubetrack.calibrate import CalibrationParams, calibrate_recording, extrinsics_errors
+from cubetrack.calib.bundle import METHOD, refine_extrinsics
+from cubetrack.calib.extrinsics import CalibrationParams, calibrate_recording, extrinsics_errors
 from cubetrack.cli import main as cli_main
-from cubetrack.errors import CalibrationError
-from cubetrack.geometry import R_from_rotvec, make_T
+from cubetrack.core.errors import CalibrationError
+from cubetrack.core.geometry import R_from_rotvec, make_T
 from cubetrack.io.config import CameraExtrinsics, read_extrinsics, read_tracker_config
 from cubetrack.io.recording import Recording
-from cubetrack.refine import METHOD, refine_extrinsics
 from cubetrack.simulate import SimulationParams, simulate
 
 

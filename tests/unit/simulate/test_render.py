@@ -8,10 +8,21 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from cubetrack.geometry import make_T
+from cubetrack.core.geometry import make_T
 from cubetrack.io.camera_info import CameraIntrinsics
-from cubetrack.simulate.render import (WHITE_ALBEDO, Floor, MarkerTexture, Quad, Renderer, Solid, View,
-                                       draw_solid, encode_jpeg, form_image, project_points)
+from cubetrack.simulate.render import (
+    WHITE_ALBEDO,
+    Floor,
+    MarkerTexture,
+    Quad,
+    Renderer,
+    Solid,
+    View,
+    draw_solid,
+    encode_jpeg,
+    form_image,
+    project_points,
+)
 
 K = np.array([[520.0, 0.0, 319.5], [0.0, 520.0, 239.5], [0.0, 0.0, 1.0]])
 DISTORTIONS = [np.zeros(5), np.array([-0.2, 0.05, 0.001, -0.001, 0.0])]

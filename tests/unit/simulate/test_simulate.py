@@ -9,17 +9,16 @@ import numpy as np
 import pytest
 
 from cubetrack.cli.main import main
-from cubetrack.errors import SimulationError
-from cubetrack.geometry import T_from_position_quat, rotation_angle
+from cubetrack.core.errors import SimulationError
+from cubetrack.core.geometry import T_from_position_quat, rotation_angle
+from cubetrack.core.layout import read_layout
 from cubetrack.io.camera_info import read_camera_info
 from cubetrack.io.config import read_extrinsics, read_tracker_config
 from cubetrack.io.recording import Recording
 from cubetrack.io.trajectory import read_tum
-from cubetrack.layout import read_layout
 from cubetrack.simulate import SimulationParams, simulate
 from cubetrack.simulate.render import Renderer, View, project_points
 from cubetrack.simulate.scenario import build_scene
-
 
 
 def _detector(refine=cv2.aruco.CORNER_REFINE_SUBPIX):
@@ -197,7 +196,7 @@ def test_bad_parameters_are_refused():
 def test_params_round_trip_through_a_toml_table(session):
     import tomllib
 
-    from cubetrack.params import params_from_table, params_to_table
+    from cubetrack.core.params import params_from_table, params_to_table
 
     p = SimulationParams(cameras=5, height_m=1.2, tilt_deg=40.0, seed=3, distortion=(-0.1, 0.0, 0.0, 0.0))
     assert params_from_table(SimulationParams, params_to_table(p), "sim") == p

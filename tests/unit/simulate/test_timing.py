@@ -9,7 +9,6 @@ from cubetrack.io.recording import Recording
 from cubetrack.simulate import SimulationParams
 from cubetrack.simulate.timing import DeviceClock, plan_captures, plan_clock_samples
 
-
 US = 1e-6  # files store microseconds
 
 

@@ -8,10 +8,10 @@ import threading
 import time
 
 import pytest
-
 from conftest import FPS, collect
+
 from cubecam.emulator import Emulator
-from cubetrack.source import LiveCameras, SourceParams, parse_time_answer, poll_time, time_url
+from cubetrack.source.streams import LiveCameras, SourceParams, parse_time_answer, poll_time, time_url
 
 
 @pytest.mark.parametrize("stream,expected", [

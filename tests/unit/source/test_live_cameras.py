@@ -13,13 +13,13 @@ import time
 import cv2
 import numpy as np
 import pytest
-
 from conftest import FPS, collect
+
 from cubecam.emulator import Emulator, Faults
 from cubecam.testdata import synthetic_jpeg
-from cubetrack.errors import ConfigError
-from cubetrack.records import Frame
-from cubetrack.source import ClockReading, LiveCameras, SourceParams
+from cubetrack.core.errors import ConfigError
+from cubetrack.core.records import Frame
+from cubetrack.source.streams import ClockReading, LiveCameras, SourceParams
 
 FAST = SourceParams(connect_timeout_s=1.0, read_timeout_s=1.0, backoff_initial_s=0.05, backoff_max_s=0.4,
                     clock_period_s=0.25)
@@ -59,7 +59,7 @@ def test_added_latency_shows_in_the_arrival_times(images):
 
 
 def test_a_camera_that_disconnects_is_reconnected_and_it_is_logged(images, caplog):
-    caplog.set_level(logging.WARNING, logger="cubetrack.source")
+    caplog.set_level(logging.WARNING, logger="cubetrack.source.streams")
     with Emulator(images=images, fps=FPS, name="cam1", loop=True, faults=Faults(disconnect_every_s=0.8)) as emu:
         with LiveCameras(emu.urls, FAST) as live:
             frames, _ = collect(live, 4.0)
@@ -71,7 +71,7 @@ def test_a_camera_that_disconnects_is_reconnected_and_it_is_logged(images, caplo
 
 
 def test_a_stalled_stream_times_out_and_is_reconnected(images, caplog):
-    caplog.set_level(logging.WARNING, logger="cubetrack.source")
+    caplog.set_level(logging.WARNING, logger="cubetrack.source.streams")
     faults = Faults(stall_after_s=0.6)  # every connection goes silent after 0.6 s, until the client leaves
     with Emulator(images=images, fps=FPS, name="cam1", loop=True, faults=faults) as emu:
         params = SourceParams(read_timeout_s=0.5, backoff_initial_s=0.05, clock_period_s=0.5)
@@ -99,7 +99,7 @@ def test_corrupt_parts_are_skipped_and_counted_and_the_rest_delivered(images, ki
 
 
 def test_a_vanished_server_is_retried_with_backoff_until_it_comes_back(images, caplog):
-    caplog.set_level(logging.WARNING, logger="cubetrack.source")
+    caplog.set_level(logging.WARNING, logger="cubetrack.source.streams")
     emu = Emulator(images=images, fps=FPS, name="cam1", loop=True).start()
     url = emu.urls["cam1"]
     port = int(url.split(":")[2].split("/")[0])

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from cubetrack.timesync import ClockSync, ClockSyncParams, fit_arrivals, fit_round_trips
+from cubetrack.source.clock import ClockSync, ClockSyncParams, fit_arrivals, fit_round_trips
 
 BOOT = 1.7e9  # host Unix time at which the node's clock read 0
 DRIFT = 40e-6  # node clock runs 40 ppm slow

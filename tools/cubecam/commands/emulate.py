@@ -22,8 +22,11 @@ from __future__ import annotations
 
 import argparse
 import ipaddress
+import json
+import os
 import sys
 import time
+from pathlib import Path
 
 from cubecam.errors import EmulatorError
 
@@ -56,6 +59,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--loop", action="store_true", help="start over after the last frame (clocks and frame numbers keep counting)")
     p.add_argument("--exit-at-end", action="store_true", help="stop after the last frame (without --loop)")
     p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
+    p.add_argument("--ready-file", metavar="FILE",
+                   help="once serving, write FILE (JSON): each camera's URL, the replay's period (s) and "
+                        "clock_shift_s, what moves a recorded host time onto this machine's Unix time "
+                        "(for programs that start the emulator and score against a recorded ground truth)")
     p.add_argument("--max-clients", type=int, default=4, metavar="N", help="clients served at once per camera; more get 503 (default 4, as the node)")
     p.add_argument("--jpeg-quality", type=int, default=80, metavar="Q", help="JPEG quality reported in /status (default 80)")
     f = p.add_argument_group("faults")
@@ -84,6 +91,19 @@ def _addresses(text: str | None) -> list[str] | str | None:
     return out
 
 
+def write_ready_file(path: str, emu) -> None:
+    """The serving emulator's URLs and clock, written atomically (readers never see half a file)."""
+    doc = {"urls": emu.urls, "period_s": emu.timeline.period_s,
+           "clock_shift_s": emu.unix_time(emu.timeline.start_host_s) - emu.timeline.start_host_s}
+    target = Path(path)
+    tmp = target.with_name(target.name + ".tmp")
+    try:
+        tmp.write_text(json.dumps(doc, indent=1), encoding="utf-8")
+        os.replace(tmp, target)
+    except OSError as exc:
+        raise EmulatorError(f"--ready-file {path}: cannot write: {exc.strerror}") from None
+
+
 def run(args: argparse.Namespace) -> int:
     from cubecam.emulator import Emulator, Faults, skipped_summary
 
@@ -100,6 +120,8 @@ def run(args: argparse.Namespace) -> int:
     with emu:
         for name, url in emu.urls.items():
             print(f"{name} {url}", flush=True)
+        if args.ready_file:
+            write_ready_file(args.ready_file, emu)
         print("cubecam emulate: serving; Ctrl-C stops", file=sys.stderr, flush=True)
         deadline = time.monotonic() + args.duration if args.duration else None
         while True:

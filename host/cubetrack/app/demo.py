@@ -1,5 +1,5 @@
 """The end-to-end demo as a library flow: simulate -> calibrate -> serve the recording with the
-camera emulator -> track it live over HTTP -> evaluate; plus the offline replay of the same
+camera emulator (its own process) -> track it live over HTTP -> evaluate; plus the offline replay of the same
 recording with each fusion method (the paper's three and the filter), for comparison.
 
 :func:`run_demo` is what ``cubetrack demo`` runs (``live=False``: the offline part only).
@@ -21,16 +21,24 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
 
-from cubetrack.calibrate import calibrate_recording, extrinsics_errors
-from cubetrack.evaluate import EvaluationResult, evaluate
-from cubetrack.fuse import FusionMethod
-from cubetrack.io.config import (CameraConfig, read_extrinsics, read_tracker_config, tracker_config_to_table,
-                                 write_extrinsics, write_toml)
+from cubetrack.app.emulated import EmulatedCameras
+from cubetrack.app.live import LiveResult, LiveStatus, track_live
+from cubetrack.app.track import track_recording
+from cubetrack.app.tracker import StageParams
+from cubetrack.calib.extrinsics import calibrate_recording, extrinsics_errors
+from cubetrack.core.progress import Progress
+from cubetrack.evaluate.metrics import EvaluationResult, evaluate
+from cubetrack.fuse.fusion import FusionMethod
+from cubetrack.io.config import (
+    CameraConfig,
+    read_extrinsics,
+    read_tracker_config,
+    tracker_config_to_table,
+    write_extrinsics,
+    write_toml,
+)
 from cubetrack.io.recording import Recording
 from cubetrack.io.trajectory import Trajectory, read_tum, write_tum
-from cubetrack.live import LiveResult, LiveStatus, track_live
-from cubetrack.pipeline import StageParams, track_recording
-from cubetrack.progress import Progress
 from cubetrack.simulate import SimulationParams, simulate
 
 END_GRACE_S = 1.5  # after the replay's last frame: its transfer, the clock poll, the filter's reorder delay
@@ -81,15 +89,13 @@ def run_live_demo(rec_dir: Path, config_path: Path, extrinsics, out_dir: Path, p
                   status: Callable[[LiveStatus], None] | None = None) -> LiveDemo:
     """Serve ``rec_dir`` with the emulator on 127.0.0.1 (ephemeral ports), track it live over HTTP
     until the replay has ended, and score the result against the ground truth on the live clock."""
-    from cubecam.emulator import Emulator  # the device-side tools; only the demo serves cameras
-
     rec = Recording.open(rec_dir)
     truth = read_tum(rec.ground_truth_path or rec_dir / "ground_truth.tum")
     live_dir = out_dir / "live"
-    with Emulator(rec_dir, host="127.0.0.1", port=0) as emu:
+    with EmulatedCameras(rec_dir) as emu:
         live_config = read_tracker_config(write_live_config(config_path, emu.urls, live_dir / "config.toml"))
         stop = threading.Event()
-        span_s = emu.timeline.period_s
+        span_s = emu.period_s
 
         def end_with_the_replay() -> None:
             if emu.wait_finished(span_s + 30.0):
@@ -103,7 +109,7 @@ def run_live_demo(rec_dir: Path, config_path: Path, extrinsics, out_dir: Path, p
                                 duration_s=span_s + 30.0)
         finally:
             stop.set()
-        shift_s = emu.unix_time(float(truth.times_s[0])) - float(truth.times_s[0])
+        shift_s = emu.clock_shift_s
     live_truth = shift_trajectory(truth, shift_s)
     truth_path = live_dir / "ground_truth_live.tum"
     write_tum(live_truth, truth_path)

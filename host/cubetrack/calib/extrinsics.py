@@ -40,7 +40,19 @@ from typing import TYPE_CHECKING, Iterable, Sequence
 
 import numpy as np
 
-from cubetrack.detect import (
+from cubetrack.core.errors import CalibrationError, ImageError
+from cubetrack.core.geometry import (
+    R_from_quat_xyzw,
+    invert_T,
+    make_T,
+    quat_xyzw_from_R,
+    rotation_angle,
+    shoelace_area,
+)
+from cubetrack.core.params import param, params_from_table
+from cubetrack.core.progress import Progress
+from cubetrack.core.records import Detection, Frame
+from cubetrack.detect.detector import (
     CornerRefinement,
     Detector,
     DetectorParams,
@@ -48,21 +60,9 @@ from cubetrack.detect import (
     decode_gray,
     refine_corners_edges,
 )
-from cubetrack.errors import CalibrationError, ImageError
-from cubetrack.estimate import marker_pose
-from cubetrack.geometry import (
-    invert_T,
-    make_T,
-    quat_xyzw_from_R,
-    R_from_quat_xyzw,
-    rotation_angle,
-    shoelace_area,
-)
+from cubetrack.estimate.pose import marker_pose
 from cubetrack.io.camera_info import CameraIntrinsics
 from cubetrack.io.config import CameraExtrinsics, TrackerConfig, WorldConfig
-from cubetrack.params import param, params_from_table
-from cubetrack.progress import Progress
-from cubetrack.records import Detection, Frame
 
 if TYPE_CHECKING:
     from cubetrack.io.recording import Recording
@@ -179,7 +179,7 @@ def refine_corners_by_edges(gray: np.ndarray, corners_px: np.ndarray, K: np.ndar
                             border_bits: float, min_contrast: float = 20.0) -> np.ndarray | None:
     """Deprecated: use :func:`cubetrack.detect.refine_corners_edges` (``K=``, ``dist=``; NaN, not
     None, where the fit fails)."""
-    warnings.warn("cubetrack.calibrate.refine_corners_by_edges is deprecated; use "
+    warnings.warn("cubetrack.calib.extrinsics.refine_corners_by_edges is deprecated; use "
                   "cubetrack.detect.refine_corners_edges(gray, corners, modules, K=K, dist=dist)",
                   DeprecationWarning, stacklevel=2)
     c = refine_corners_edges(gray, corners_px, border_bits, K=K, dist=dist, min_contrast=min_contrast, **EDGE_FIT)

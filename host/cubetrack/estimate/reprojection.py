@@ -1,4 +1,4 @@
-"""Joint cube-pose estimation over the corners of every face seen by every camera.
+"""The reprojection model of a body's corners in calibrated cameras (shared by fusion and calibration).
 
 The paper fuses per-marker poses; each of those is a monocular estimate of a small marker, weak
 in depth and prone to planar flips. Here the unknown is the cube pose itself and the residual is
@@ -19,11 +19,10 @@ from typing import Sequence
 
 import cv2
 import numpy as np
-from scipy.optimize import least_squares
 
-from cubetrack.geometry import R_from_rotvec, invert_T, make_T, so3_left_jacobian
-from cubetrack.layout import CubeLayout
-from cubetrack.records import Detection
+from cubetrack.core.geometry import R_from_rotvec, invert_T, make_T, so3_left_jacobian
+from cubetrack.core.layout import CubeLayout
+from cubetrack.core.records import Detection
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -192,82 +191,3 @@ def reprojection_jacobian_px(T_world_cube: np.ndarray, sets: Sequence[CornerSet]
     if not residuals:
         return np.zeros(0), np.zeros((0, 12 if moving else 6))
     return np.concatenate(residuals), np.vstack(jacobians)
-
-
-@dataclass(frozen=True, slots=True, eq=False)
-class JointSolution:
-    """A solved cube pose at the reference time: ``T_world_cube``, the world-frame velocities
-    (zero unless estimated), the covariance of ``[δp, δθ]`` or, with velocities,
-    ``[δp, δθ, v, ω]`` (m, rad, m/s, rad/s), the RMS corner residual (px) and the fraction of
-    corner coordinates within ``3 f_scale`` of their reprojection."""
-
-    T_world_cube: np.ndarray
-    velocity_m_s: np.ndarray
-    angular_velocity_rad_s: np.ndarray
-    covariance: np.ndarray
-    rms_px: float
-    inlier_fraction: float
-    points: int
-
-
-def solve_joint(sets: Sequence[CornerSet], T_init: np.ndarray, t_ref_s: float,
-                corner_noise_px: float = 0.5, f_scale_px: float = 1.5,
-                velocity_sigma: tuple[float, float] | None = None) -> JointSolution | None:
-    """Least-squares cube pose at ``t_ref_s`` over all corner sets (robust soft-L1 loss),
-    starting from ``T_init``.
-
-    Without ``velocity_sigma`` the cube is taken as still between the sets' times. With
-    ``velocity_sigma = (σ_v m/s, σ_ω rad/s)`` the linear and angular velocities are estimated
-    too, under a zero-mean Gaussian prior of those spreads (sets spread over time make them
-    observable). Returns None if the fit fails or has under four corners.
-    """
-    n_points = sum(len(s.points_cube_m) for s in sets)
-    if n_points < 4:
-        return None
-    n = 6 if velocity_sigma is None else 12
-
-    def residuals(x: np.ndarray) -> np.ndarray:
-        if n == 6:
-            return reprojection_residuals_px(perturbed(T_init, x[:6]), sets) / corner_noise_px
-        v, w = x[6:9], x[9:12]
-        r = reprojection_residuals_px(perturbed(T_init, x[:6]), sets, t_ref_s, v, w) / corner_noise_px
-        return np.concatenate([r, v / velocity_sigma[0], w / velocity_sigma[1]])
-
-    def jacobian(x: np.ndarray) -> np.ndarray:
-        T = perturbed(T_init, x[:6])
-        if n == 6:
-            _, J = reprojection_jacobian_px(T, sets)
-        else:
-            _, J = reprojection_jacobian_px(T, sets, t_ref_s, x[6:9], x[9:12])
-        J[:, 3:6] = J[:, 3:6] @ so3_left_jacobian(x[3:6])  # x holds a finite rotation increment
-        J /= corner_noise_px
-        if n == 12:
-            prior = np.zeros((6, 12))
-            prior[:, 6:] = np.diag(np.repeat(1.0 / np.asarray(velocity_sigma, dtype=float), 3))
-            J = np.vstack([J, prior])
-        return J
-
-    f_scale = f_scale_px / corner_noise_px
-    try:
-        result = least_squares(residuals, np.zeros(n), jac=jacobian, method="trf", loss="soft_l1",
-                               f_scale=f_scale, x_scale=np.full(n, 0.01), max_nfev=80)
-    except (ValueError, np.linalg.LinAlgError):
-        return None
-    if not np.all(np.isfinite(result.x)):
-        return None
-    J = result.jac  # of residuals in units of corner_noise_px: J^T J is the information
-    try:
-        covariance = np.linalg.inv(J.T @ J)
-    except np.linalg.LinAlgError:
-        return None
-    r_px = result.fun[: 2 * n_points] * corner_noise_px
-    x = result.x
-    return JointSolution(
-        T_world_cube=perturbed(T_init, x[:6]),
-        velocity_m_s=x[6:9].copy() if n == 12 else np.zeros(3),
-        angular_velocity_rad_s=x[9:12].copy() if n == 12 else np.zeros(3),
-        covariance=covariance,
-        rms_px=float(np.sqrt(np.mean(r_px**2))),
-        inlier_fraction=float(np.mean(np.abs(r_px) <= 3.0 * f_scale_px)),
-        points=n_points,
-    )

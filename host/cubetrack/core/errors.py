@@ -48,3 +48,7 @@ class SimulationError(CubetrackError):
 
 class EvaluationError(CubetrackError):
     """Evaluation inputs do not overlap or are empty."""
+
+
+class SourceError(CubetrackError):
+    """A camera source could not be started or read (e.g. the camera emulator failed)."""

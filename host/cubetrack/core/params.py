@@ -13,7 +13,7 @@ import types
 import typing
 from typing import Any, TypeVar
 
-from cubetrack.errors import ConfigError
+from cubetrack.core.errors import ConfigError
 
 P = TypeVar("P")
 

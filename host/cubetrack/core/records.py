@@ -48,7 +48,7 @@ class MarkerPose:
     """Pose of one detected marker in the camera optical frame (x right, y down, z forward).
 
     ``T_cam_marker`` is the chosen planar PnP solution: the one with the lower reprojection
-    error, unless ambiguity resolution (e.g. the upright prior in ``cubetrack.estimate``) swapped
+    error, unless ambiguity resolution (e.g. the upright prior in ``cubetrack.estimate.pose``) swapped
     them; ``T_cam_marker_alt`` the other (IPPE returns two; None when only one was valid).
     Errors are RMS reprojection errors in pixels.
     """
@@ -102,6 +102,9 @@ class TrackedPose:
     ``time_s`` is the estimated capture time on the host clock (Unix seconds);
     ``quaternion_xyzw`` is scalar-last. ``latency_s`` is how long after ``time_s`` the pose was
     produced (for live tracking; offline replay reports the replayed arrival delay).
+    ``velocity_m_s`` and ``angular_velocity_rad_s`` are world-frame rates and ``covariance`` the
+    (6, 6) covariance of the world-frame pose increment ``[δp (m), δθ (rad)]``, where the fusion
+    estimates them (the filter does), else None.
     """
 
     robot: str
@@ -112,6 +115,9 @@ class TrackedPose:
     markers: tuple[str, ...]
     latency_s: float
     extra: dict = field(default_factory=dict)
+    velocity_m_s: np.ndarray | None = None
+    angular_velocity_rad_s: np.ndarray | None = None
+    covariance: np.ndarray | None = None
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -133,3 +139,47 @@ class CubeSighting:
     estimate: CameraEstimate | None
     T_world_cam: np.ndarray
     intrinsics: object
+
+
+@dataclass(frozen=True, slots=True)
+class CameraHealth:
+    """How one live camera is doing, as sinks and the dashboard show it (a snapshot).
+
+    ``time_s`` host Unix time of the snapshot; ``frames_per_s`` over the last interval;
+    ``frames``, ``dropped`` (frames the host gave up because it was behind), ``bad`` (broken
+    parts) and ``reconnects`` count since the start; ``clock_offset_s`` (host minus device) and
+    ``clock_drift_ppm`` from the camera's clock fit (NaN until known); ``transfer_latency_s``
+    median arrival minus capture over the interval (NaN until known); ``jpeg_bytes`` the last
+    frame's size; ``last_error`` the last connection or stream error ("" if none).
+    """
+
+    camera: str
+    time_s: float
+    connected: bool
+    frames_per_s: float
+    frames: int
+    dropped: int
+    bad: int
+    reconnects: int
+    clock_offset_s: float = float("nan")
+    clock_drift_ppm: float = float("nan")
+    transfer_latency_s: float = float("nan")
+    jpeg_bytes: int = 0
+    last_error: str = ""
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class CameraView:
+    """One processed camera frame, for outputs that show images (Foxglove, the dashboard).
+
+    ``time_s`` the capture time (host Unix seconds); ``jpeg`` the frame as received;
+    ``detections`` what detection found; ``predicted_corners_px`` robot name -> (N, 2) pixel
+    positions of that robot's marker corners where the fusion expects them in this frame.
+    """
+
+    camera: str
+    seq: int
+    time_s: float
+    jpeg: bytes
+    detections: tuple[Detection, ...]
+    predicted_corners_px: dict = field(default_factory=dict)

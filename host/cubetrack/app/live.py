@@ -1,6 +1,6 @@
 """Live tracking and recording from camera nodes over HTTP: :class:`cubetrack.source.LiveCameras`
-feeding the same :class:`cubetrack.pipeline.Tracker` that replays recordings
-(:func:`cubetrack.pipeline.track_recording`); only the source differs.
+feeding the same :class:`cubetrack.app.tracker.Tracker` that replays recordings
+(:func:`cubetrack.app.tracker.track_recording`); only the source differs.
 
 - :func:`track_live`: the config's camera URLs -> ``<out>/<robot>.tum`` and ``.jsonl``, written
   and flushed as poses come, optionally recording the session as it goes;
@@ -21,17 +21,18 @@ import threading
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Sequence
 
-from cubetrack.errors import ConfigError
+from cubetrack.app.outputs import open_outputs
+from cubetrack.app.tracker import StageParams, Tracker, TrackStats
+from cubetrack.core.errors import ConfigError
+from cubetrack.core.params import params_from_table
+from cubetrack.core.records import Frame, TrackedPose
 from cubetrack.io.camera_info import CameraIntrinsics, read_camera_info
 from cubetrack.io.config import CameraExtrinsics, TrackerConfig
 from cubetrack.io.recording import CameraEntry, ClockSample, RecordingWriter
-from cubetrack.io.trajectory import PoseWriter
-from cubetrack.params import params_from_table
-from cubetrack.pipeline import StageParams, Tracker, TrackStats
-from cubetrack.records import Frame, TrackedPose
-from cubetrack.source import CameraStats, ClockReading, LiveCameras, SourceParams
+from cubetrack.sink.base import Sink
+from cubetrack.source.streams import CameraStats, ClockReading, LiveCameras, SourceParams
 
 log = logging.getLogger(__name__)
 
@@ -176,25 +177,27 @@ def track_live(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
                params: StageParams | None = None, source: SourceParams | None = None, *,
                duration_s: float | None = None, record_to: str | Path | None = None,
                stop: threading.Event | None = None, status: Callable[[LiveStatus], None] | None = None,
-               status_every_s: float = 2.0, clock: Callable[[], float] = time.time) -> LiveResult:
+               status_every_s: float = 2.0, clock: Callable[[], float] = time.time,
+               sinks: Sequence[Sink] = ()) -> LiveResult:
     """Track every robot of ``config`` live from its cameras' URLs, writing ``<out_dir>/<robot>.tum``
     and ``.jsonl`` (flushed per pose). ``record_to``: also record the session there (everything that
     arrived, including frames the tracker had to drop). Frames are stamped with their capture
-    time through each camera's ``/time`` round trips, exactly as in a replay of the recording."""
+    time through each camera's ``/time`` round trips, exactly as in a replay of the recording.
+    ``sinks``: other outputs, fed the same poses."""
     params = params or StageParams.from_config(config)
     source = source or source_params(config)
     urls = live_camera_urls(config)
     intrinsics = live_intrinsics(config)
     tracker = Tracker(intrinsics, config.world, config.robots, extrinsics, params, synced_cameras=frozenset(urls))
     recorder = _Recorder(record_to, config, urls) if record_to is not None else None
-    writers = {r.name: PoseWriter(out_dir, r.name) for r in config.robots}
+    outputs, files = open_outputs(config, intrinsics, extrinsics, out_dir, sinks)
     latencies: list[float] = []
     interrupted = False
     started = time.monotonic()
 
     def emit(poses: list[TrackedPose]) -> None:
         for pose in poses:
-            writers[pose.robot].write(pose)
+            outputs.pose(pose)
             latencies.append(pose.latency_s)
         rates.add_poses(poses)
 
@@ -229,11 +232,10 @@ def track_live(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
         emit(tracker.finish())
     finally:
         live.stop()
-        for w in writers.values():
-            w.close()
+        outputs.close()
         if recorder is not None:
             recorder.close()
-    return LiveResult(tracker.stats, live.stats(), {n: (w.tum_path, w.jsonl_path) for n, w in writers.items()},
+    return LiveResult(tracker.stats, live.stats(), files.outputs,
                       recorder.path if recorder else None, time.monotonic() - started, interrupted,
                       statistics.median(latencies) if latencies else None)
 

@@ -27,8 +27,8 @@ from pathlib import Path
 import numpy as np
 import tomli_w
 
-from cubetrack.errors import ConfigError
-from cubetrack.geometry import make_T, position_quat_from_T, T_from_position_quat
+from cubetrack.core.errors import ConfigError
+from cubetrack.core.geometry import T_from_position_quat, make_T, position_quat_from_T
 
 FACES = ("top", "front", "left", "back", "right")
 DEFAULT_DICTIONARY = "DICT_4X4_50"

@@ -1,9 +1,9 @@
 """The tracking pipeline: frames -> detections -> per-camera cube estimates -> fused poses.
 
 :class:`Tracker` is the one code path for live tracking and offline replay: a source hands it
-:class:`~cubetrack.records.Frame` objects in arrival order and it returns the fused poses each
-frame produced. :func:`track_recording` replays a recording folder through it and writes
-``<out>/<robot>.tum`` and ``<out>/<robot>.jsonl``.
+:class:`~cubetrack.core.records.Frame` objects in arrival order and it returns the fused poses each
+frame produced. It wires the one feedback edge of the pipeline: the fusion's predicted poses tell
+detection where to look (regions of interest).
 """
 
 from __future__ import annotations
@@ -12,27 +12,22 @@ import enum
 import logging
 from collections import Counter, deque
 from dataclasses import dataclass, field
-from pathlib import Path
-
-import numpy as np
 
 import cv2
+import numpy as np
 
-from cubetrack.detect import Detector, DetectorParams, decode_gray
-from cubetrack.errors import ConfigError, ImageError
-from cubetrack.estimate import EstimatorParams, estimate_cube, world_marker_pose
-from cubetrack.filter import FilterParams
-from cubetrack.fuse import FilterFusion, FusionMethod, FusionParams, LatestEstimateFusion
-from cubetrack.geometry import invert_T, transform_points
-from cubetrack.io.camera_info import CameraIntrinsics, read_camera_info
-from cubetrack.io.config import (CameraExtrinsics, RobotConfig, TrackerConfig, WorldConfig,
-                                 camera_intrinsics_path)
-from cubetrack.io.recording import ClockSample, Recording
-from cubetrack.io.trajectory import PoseWriter
-from cubetrack.params import param, params_from_table
-from cubetrack.progress import Progress
-from cubetrack.records import CubeSighting, Detection, Frame, TrackedPose
-from cubetrack.timesync import ClockSync
+from cubetrack.core.errors import ConfigError, ImageError
+from cubetrack.core.geometry import invert_T, transform_points
+from cubetrack.core.params import param, params_from_table
+from cubetrack.core.records import CubeSighting, Detection, Frame, TrackedPose
+from cubetrack.detect.detector import Detector, DetectorParams, decode_gray
+from cubetrack.estimate.pose import EstimatorParams, estimate_cube, world_marker_pose
+from cubetrack.fuse.corner_filter import FilterParams
+from cubetrack.fuse.fusion import FilterFusion, FusionMethod, FusionParams, LatestEstimateFusion
+from cubetrack.io.camera_info import CameraIntrinsics
+from cubetrack.io.config import CameraExtrinsics, RobotConfig, TrackerConfig, WorldConfig
+from cubetrack.io.recording import ClockSample
+from cubetrack.source.clock import ClockSync
 
 log = logging.getLogger(__name__)
 
@@ -284,58 +279,3 @@ class Tracker:
         for pose in poses:
             self.stats.poses[pose.robot] += 1
         return poses
-
-
-def recording_intrinsics(config: TrackerConfig, recording: Recording) -> dict[str, CameraIntrinsics]:
-    """Intrinsics of every camera of a recording (config's camera_info, else the recording's)."""
-    return {
-        name: read_camera_info(camera_intrinsics_path(config, name, recording.path))
-        for name in recording.camera_names
-    }
-
-
-@dataclass(frozen=True, slots=True)
-class TrackResult:
-    """What :func:`track_recording` produced: the stats and the files per robot."""
-
-    stats: TrackStats
-    outputs: dict[str, tuple[Path, Path]]
-    skipped: dict[str, int]
-
-
-def track_recording(config: TrackerConfig, recording: Recording,
-                    extrinsics: dict[str, CameraExtrinsics] | None, out_dir: str | Path,
-                    params: StageParams | None = None, progress: Progress | None = None) -> TrackResult:
-    """Replay a recording through the tracker, writing ``<out_dir>/<robot>.tum`` and ``.jsonl``."""
-    params = params or StageParams.from_config(config)
-    synced = frozenset(c for c in recording.camera_names if recording.clock_samples(c))
-    for camera in sorted(set(recording.camera_names) - synced):
-        log.warning("%s: no clock.csv; frames are stamped from their arrival times (late by the transfer time)", camera)
-    tracker = Tracker(recording_intrinsics(config, recording), config.world, config.robots, extrinsics, params, synced)
-    total = sum(len(recording.index(c)) for c in recording.camera_names)
-    trips = sorted(
-        ((s.host_recv_s, camera, s) for camera in recording.camera_names for s in recording.clock_samples(camera)),
-        key=lambda item: (item[0], item[1]),
-    )
-    next_trip = 0
-    writers = {r.name: PoseWriter(out_dir, r.name) for r in config.robots}
-    try:
-        for i, frame in enumerate(recording.merged_frames(), start=1):
-            # round trips completed before this frame arrived, exactly as a live run has them
-            while next_trip < len(trips) and trips[next_trip][0] <= frame.host_time_s:
-                for pose in tracker.add_clock_sample(trips[next_trip][1], trips[next_trip][2]):
-                    writers[pose.robot].write(pose)
-                next_trip += 1
-            for pose in tracker.process(frame):
-                writers[pose.robot].write(pose)
-            if progress is not None:
-                progress("track", i, total)
-        for pose in tracker.finish():
-            writers[pose.robot].write(pose)
-    finally:
-        for w in writers.values():
-            w.close()
-    skipped = dict(recording.skipped)
-    if tracker.stats.corrupt_frames:
-        skipped["corrupt frame"] = tracker.stats.corrupt_frames
-    return TrackResult(tracker.stats, {n: (w.tum_path, w.jsonl_path) for n, w in writers.items()}, skipped)

@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cubetrack.params import param
+from cubetrack.core.params import param
 
 log = logging.getLogger(__name__)
 

@@ -21,9 +21,9 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from cubetrack.errors import EvaluationError
+from cubetrack.core.errors import EvaluationError
+from cubetrack.core.params import param
 from cubetrack.io.trajectory import Trajectory
-from cubetrack.params import param
 
 
 @dataclass(frozen=True, slots=True)

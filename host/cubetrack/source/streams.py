@@ -7,7 +7,7 @@ Per camera two threads run:
   connect and read timeouts), the body read with ``raw.read1`` (returns as soon as any bytes
   arrived, so a frame is never held back until the next one comes; see
   ``ecosystem-facts.md`` §8), parsed by :class:`MjpegParser`. Each part becomes a
-  :class:`~cubetrack.records.Frame` stamped with the host time at which its last byte arrived.
+  :class:`~cubetrack.core.records.Frame` stamped with the host time at which its last byte arrived.
   A malformed part is skipped and counted, never fatal; a lost, refused or silent connection
   is retried with exponential back-off (logged);
 - a **clock poller**: ``GET /time`` about once a second (the URL derived from the stream URL),
@@ -34,10 +34,10 @@ from dataclasses import dataclass, field, replace
 from typing import Callable, Iterable, Mapping
 from urllib.parse import urljoin, urlsplit
 
-from cubetrack.errors import ConfigError
+from cubetrack.core.errors import ConfigError
+from cubetrack.core.params import param
+from cubetrack.core.records import Frame
 from cubetrack.io.recording import ClockSample
-from cubetrack.params import param
-from cubetrack.records import Frame
 
 log = logging.getLogger(__name__)
 
@@ -410,7 +410,7 @@ class LiveCameras:
 
     ``cameras``: name -> stream URL (or :class:`~cubetrack.io.config.CameraConfig` objects).
     Use as a context manager (or :meth:`start` / :meth:`stop`); take events with :meth:`get`:
-    :class:`~cubetrack.records.Frame` or :class:`ClockReading`. ``on_frame`` / ``on_clock`` are
+    :class:`~cubetrack.core.records.Frame` or :class:`ClockReading`. ``on_frame`` / ``on_clock`` are
     called from the reader threads for every frame / round trip before it is queued (a recorder
     taps here, so it keeps frames the consumer drops); an exception in them stops everything
     and is re-raised by :meth:`get`. ``queue=False``: nothing is queued (taps only).

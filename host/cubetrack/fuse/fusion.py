@@ -2,10 +2,10 @@
 
 Two families, chosen by ``[fusion] method``:
 
-- ``filter`` (the default, the best): a constant-velocity SE(3) filter (:mod:`cubetrack.filter`)
+- ``filter`` (the default, the best): a constant-velocity SE(3) filter (:mod:`cubetrack.fuse.corner_filter`)
   updated with the matched cube corners of each camera frame at its capture time. Sightings
   are put back into capture-time order after ``reorder_delay_s``; a track starts from a joint
-  multi-camera fit (:mod:`cubetrack.joint`); faces are matched to detections by where the
+  multi-camera fit (:mod:`cubetrack.estimate.reprojection`); faces are matched to detections by where the
   predicted pose projects them, which resolves IPPE flips and same-id faces; a robot unseen for
   ``lost_after_s`` is reported as not seen, never extrapolated further.
 - ``mean`` / ``weighted`` / ``gaussian``, the paper's, for comparison.
@@ -26,21 +26,21 @@ capture time (what a live node publishing on every new estimate would do).
 from __future__ import annotations
 
 import enum
-from dataclasses import dataclass
-
-import numpy as np
-
 import heapq
 import itertools
 import logging
 from collections import Counter, deque
+from dataclasses import dataclass
 
-from cubetrack.filter import FilterParams, PoseFilter
-from cubetrack.geometry import mean_rotation, quat_xyzw_from_R
-from cubetrack.joint import CornerSet, associate, solve_joint
-from cubetrack.layout import CubeLayout
-from cubetrack.params import param
-from cubetrack.records import CameraEstimate, CubeSighting, TrackedPose
+import numpy as np
+
+from cubetrack.core.geometry import mean_rotation, quat_xyzw_from_R
+from cubetrack.core.layout import CubeLayout
+from cubetrack.core.params import param
+from cubetrack.core.records import CameraEstimate, CubeSighting, TrackedPose
+from cubetrack.estimate.reprojection import CornerSet, associate
+from cubetrack.fuse.corner_filter import FilterParams, PoseFilter
+from cubetrack.fuse.multi_view_fit import solve_joint
 
 log = logging.getLogger(__name__)
 

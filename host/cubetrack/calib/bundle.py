@@ -1,6 +1,6 @@
 """Extrinsics that refine themselves: a bundle adjustment over world-marker and cube observations.
 
-World-marker calibration (:mod:`cubetrack.calibrate`) leaves every camera a few millimetres and
+World-marker calibration (:mod:`cubetrack.calib.extrinsics`) leaves every camera a few millimetres and
 a tenth of a degree off: one 25 cm marker seen obliquely from 2+ m is a weak reference, and its
 corner bias does not average out. Once the robot drives around, the cube gives many more
 corners, seen by several cameras at about the same time. This module refines all camera poses
@@ -8,30 +8,30 @@ jointly from
 
 (a) the world marker's four corners in each camera of the calibration recording (the robust
     per-camera average of the edge-refined corners over the frames, as
-    :func:`cubetrack.calibrate.calibrate_robust` averages them). They fix the gauge: the world
+    :func:`cubetrack.calib.extrinsics.calibrate_robust` averages them). They fix the gauge: the world
     frame stays the world marker's frame;
 (b) the cube corners of a tracking recording at *instants* where at least two cameras saw the
     cube within ``max_span_s`` of each other on the host clock (frames stamped by clock sync,
     ``clock.csv``, as the tracker stamps them). Frames of one instant are motion-compensated to
-    its mean time with the constant-velocity model of :mod:`cubetrack.joint`; velocities come
+    its mean time with the constant-velocity model of :mod:`cubetrack.estimate.reprojection`; velocities come
     from the instants' own poses (a local linear fit over ``velocity_window_s``), re-estimated
     after each solve.
 
 Unknowns: each camera's 6-dof pose, the cube pose at each instant and (``planar_motion``) one
 cube height per robot. Residuals: reprojection errors (pixels, on undistorted points scaled by
-the focal length, as in :mod:`cubetrack.joint`) of every corner, with a soft-L1 loss; for ground
+the focal length, as in :mod:`cubetrack.estimate.reprojection`) of every corner, with a soft-L1 loss; for ground
 robots also the cube's height against its robot's common height and its tilt from world up (the
 floor the world marker lies on is the plane the robot drives on: this fixes the world frame's
 tilt, the weak direction of one obliquely seen marker). ``scipy.optimize.least_squares`` with an
 analytic sparse Jacobian (a corner depends on one camera and one instant), so 5 cameras x
 hundreds of instants solve in seconds. Pose increments are world-frame, as in
-:mod:`cubetrack.joint`.
+:mod:`cubetrack.estimate.reprojection`.
 
 Steps (:func:`refine_extrinsics`):
 
 1. Per camera frame of the tracking recording: cube detections, a single-camera cube estimate
    (:func:`cubetrack.estimate.estimate_cube`) with the prior extrinsics, and the faces matched to
-   detections by :func:`cubetrack.joint.associate` at that estimate. Frames are grouped into
+   detections by :func:`cubetrack.estimate.reprojection.associate` at that estimate. Frames are grouped into
    instants, each starting from its best-seen camera's estimate; the cube poses are solved with
    the prior cameras held (twice: the second time with velocities from the first).
 2. *Relative* solve: cube corners only, the gauge held by a weak prior on every camera.
@@ -61,15 +61,15 @@ from scipy.optimize import least_squares
 from scipy.sparse import coo_matrix
 from scipy.spatial.transform import Rotation
 
-from cubetrack.errors import CalibrationError, ImageError
-from cubetrack.geometry import invert_T, make_T, mean_rotation, rotation_angle
+from cubetrack.core.errors import CalibrationError, ImageError
+from cubetrack.core.geometry import invert_T, make_T, mean_rotation, rotation_angle
+from cubetrack.core.layout import CubeLayout, marker_corners_m
+from cubetrack.core.params import param
+from cubetrack.core.progress import Progress
+from cubetrack.core.records import Detection
+from cubetrack.estimate.reprojection import CornerSet, associate, moved_pose, normalize_px
 from cubetrack.io.camera_info import CameraIntrinsics
 from cubetrack.io.config import CameraExtrinsics, TrackerConfig
-from cubetrack.joint import CornerSet, associate, moved_pose, normalize_px
-from cubetrack.layout import CubeLayout, marker_corners_m
-from cubetrack.params import param
-from cubetrack.progress import Progress
-from cubetrack.records import Detection
 
 if TYPE_CHECKING:
     from cubetrack.io.recording import Recording
@@ -190,7 +190,7 @@ def robust_average_corners(corners_px: np.ndarray, threshold_px: float) -> tuple
     """Mean of (N, 4, 2) corner sets over the frames whose corners all lie near the per-corner
     median (within ``threshold_px``, or 4 robust sigmas when noisier): (4, 2) mean, inliers.
 
-    The same rule as :func:`cubetrack.calibrate.calibrate_robust` applies to its sightings.
+    The same rule as :func:`cubetrack.calib.extrinsics.calibrate_robust` applies to its sightings.
     """
     corners = np.asarray(corners_px, dtype=float).reshape(-1, 4, 2)
     median = np.median(corners, axis=0)
@@ -203,14 +203,14 @@ def world_marker_observations(config: TrackerConfig, recording: Recording, intri
                               progress: Progress | None = None, samples: int | None = None) -> dict[str, WorldMarkerObservation]:
     """The world marker's averaged corners per camera of the calibration ``recording``.
 
-    Sightings are collected by :func:`cubetrack.calibrate.collect_sightings` with the config's
+    Sightings are collected by :func:`cubetrack.calib.extrinsics.collect_sightings` with the config's
     ``[calibration]`` settings (always with the robust method's edge-refined corners; ``samples``
     overrides its number of sightings); a camera
     with fewer than ``min_samples`` sightings is left out with a warning.
     """
-    from cubetrack.calibrate import CalibrationMethod, calibration_params, collect_sightings
-    from cubetrack.detect import DetectorParams
-    from cubetrack.params import params_from_table
+    from cubetrack.calib.extrinsics import CalibrationMethod, calibration_params, collect_sightings
+    from cubetrack.core.params import params_from_table
+    from cubetrack.detect.detector import DetectorParams
 
     params = dataclasses.replace(calibration_params(config), method=CalibrationMethod.ROBUST)
     if samples is not None:
@@ -236,7 +236,7 @@ def world_marker_observations(config: TrackerConfig, recording: Recording, intri
 
 def _clock_fits(recording: Recording, cameras: Sequence[str]) -> dict:
     """Device -> host clock per camera over the whole recording (offline: not causal)."""
-    from cubetrack.timesync import ClockSyncParams, fit_arrivals, fit_round_trips
+    from cubetrack.source.clock import ClockSyncParams, fit_arrivals, fit_round_trips
 
     limit = ClockSyncParams().max_round_trip_s
     fits = {}
@@ -259,8 +259,8 @@ def cube_frames(config: TrackerConfig, recording: Recording, cameras: Sequence[s
                 progress: Progress | None = None) -> list[CubeFrame]:
     """Every frame of ``cameras`` in the tracking ``recording`` that shows a robot's cube ids,
     stamped with its capture time on the host clock; in time order."""
-    from cubetrack.detect import Detector, DetectorParams
-    from cubetrack.params import params_from_table
+    from cubetrack.core.params import params_from_table
+    from cubetrack.detect.detector import Detector, DetectorParams
 
     detector_params = params_from_table(DetectorParams, config.section("detector"), f"{config.path}: [detector]")
     detector = Detector(detector_params, [r.layout.dictionary for r in config.robots])
@@ -290,7 +290,7 @@ def cube_frames(config: TrackerConfig, recording: Recording, cameras: Sequence[s
 def _frame_corners(frame: CubeFrame, layout: CubeLayout, intrinsics: CameraIntrinsics, T_world_cam: np.ndarray,
                    params: RefineParams) -> CornerSet | None:
     """The frame's corners matched to cube faces at its own single-camera estimate."""
-    from cubetrack.estimate import estimate_cube
+    from cubetrack.estimate.pose import estimate_cube
 
     est = estimate_cube(frame.detections, layout, intrinsics, T_world_cam, camera=frame.camera, robot=frame.robot,
                         seq=frame.seq, capture_time_s=frame.time_s, arrival_time_s=frame.time_s)
@@ -365,7 +365,7 @@ class _Problem:
 
 def _build_problem(instants: Sequence[Instant], cam_index: dict[str, int], vel: np.ndarray, angvel: np.ndarray,
                    world: dict[str, tuple[np.ndarray, float]], world_points: np.ndarray) -> _Problem:
-    cam, inst, pts, obs, foc, dts, ks = [], [], [], [], [], [], []
+    cam, inst, pts, obs, foc, dts = [], [], [], [], [], []
     for k, instant in enumerate(instants):
         for s in instant.sets:
             n = len(s.points_cube_m)
@@ -610,7 +610,7 @@ def _make_instants(frames: Sequence[CubeFrame], layouts: dict[str, CubeLayout],
 
 def _estimate_T(frame: CubeFrame, layout: CubeLayout, intrinsics: dict[str, CameraIntrinsics],
                 T_world_cam: dict[str, np.ndarray]) -> np.ndarray | None:
-    from cubetrack.estimate import estimate_cube
+    from cubetrack.estimate.pose import estimate_cube
 
     est = estimate_cube(frame.detections, layout, intrinsics[frame.camera], T_world_cam[frame.camera],
                         camera=frame.camera, robot=frame.robot, seq=frame.seq, capture_time_s=frame.time_s,

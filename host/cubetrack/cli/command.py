@@ -2,7 +2,7 @@
 command modules, and the one error boundary.
 
 A command module has a docstring (its ``--help`` text), ``HELP`` (one line), ``add_arguments``
-and ``run(args) -> int``. Known errors (:class:`cubetrack.errors.CubetrackError`) print one line
+and ``run(args) -> int``. Known errors (:class:`cubetrack.core.errors.CubetrackError`) print one line
 and exit 1; Ctrl-C exits 130; anything else is a bug: its traceback is logged and the exit code is 2.
 """
 
@@ -14,7 +14,7 @@ import logging
 import sys
 from collections.abc import Mapping
 
-from cubetrack.errors import CubetrackError
+from cubetrack.core.errors import CubetrackError
 
 
 def build_parser(prog: str, description: str, version: str, package: str,

@@ -2,9 +2,9 @@
 
 The detector wraps OpenCV 5's ``cv2.aruco.ArucoDetector``. It finds markers of one or more
 dictionaries (the world marker and the cubes may use different ones) and returns one
-:class:`cubetrack.records.Detection` per marker, carrying its dictionary name, id, corners and
+:class:`cubetrack.core.records.Detection` per marker, carrying its dictionary name, id, corners and
 pixel area. It does not correct lens distortion and does not estimate pose (see
-:mod:`cubetrack.estimate`).
+:mod:`cubetrack.estimate.pose`).
 
 Conventions (docs/detection.md has the details and the measurements behind the defaults):
 
@@ -22,16 +22,16 @@ from __future__ import annotations
 import enum
 import functools
 import logging
-from pathlib import Path
 from collections.abc import Sequence
 from dataclasses import dataclass
+from pathlib import Path
 
 import cv2
 import numpy as np
 
-from cubetrack.errors import DetectionError, ImageError
-from cubetrack.params import param
-from cubetrack.records import Detection
+from cubetrack.core.errors import DetectionError, ImageError
+from cubetrack.core.params import param
+from cubetrack.core.records import Detection
 
 log = logging.getLogger(__name__)
 

@@ -20,9 +20,9 @@ from typing import Sequence
 
 import numpy as np
 
-from cubetrack.geometry import R_from_rotvec, make_T
-from cubetrack.joint import CornerSet, perturbed, reprojection_jacobian_px, reprojection_residuals_px
-from cubetrack.params import param
+from cubetrack.core.geometry import R_from_rotvec, make_T
+from cubetrack.core.params import param
+from cubetrack.estimate.reprojection import CornerSet, perturbed, reprojection_jacobian_px, reprojection_residuals_px
 
 _P, _V, _TH, _W = slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12)
 _POSE = np.r_[0:3, 6:9]  # error-state indices of [δp, δθ]

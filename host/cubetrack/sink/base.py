@@ -1,0 +1,216 @@
+"""The sink stage: the one small interface every output implements, and the fan-out that feeds them.
+
+The pipeline hands each :class:`Sink` what it produced — fused poses, camera health snapshots,
+processed camera frames — through :class:`Outputs`. Sinks never feed back into the pipeline and
+never block it: a sink that talks to slow peers (a network server, a browser) is wrapped in a
+:class:`Decoupled` queue of bounded size, served by its own thread, that drops the oldest item
+when full and counts the drop. Files are written in line (a pose is on disk before the next one
+is computed). Live tracking and offline replay drive the same calls in the same order.
+"""
+
+from __future__ import annotations
+
+import abc
+import logging
+import threading
+from collections import deque
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from cubetrack.core.layout import CubeLayout
+from cubetrack.core.records import CameraHealth, CameraView, TrackedPose
+from cubetrack.io.camera_info import CameraIntrinsics
+from cubetrack.io.config import WorldConfig
+from cubetrack.io.trajectory import PoseWriter
+
+log = logging.getLogger(__name__)
+
+QUEUE_ITEMS = 256  # per decoupled sink: about 8 s of poses of one robot at 30 Hz
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class CameraSetup:
+    """One camera as the session knows it: ``T_world_cam`` (None until calibrated) and intrinsics."""
+
+    name: str
+    T_world_cam: np.ndarray | None
+    intrinsics: CameraIntrinsics | None
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class SessionInfo:
+    """What does not change during a session, given to every sink when it opens."""
+
+    world: WorldConfig
+    cameras: tuple[CameraSetup, ...]
+    robots: dict[str, CubeLayout] = field(default_factory=dict)
+
+
+class Sink(abc.ABC):
+    """An output of the pipeline. Calls come from one thread, in pipeline order; each returns
+    quickly. Only :meth:`pose` is required; the others default to ignoring their input."""
+
+    name: str = "sink"
+    #: True for outputs that must see everything and are fast (files); False for peers that may
+    #: be slow, which :class:`Outputs` runs behind a :class:`Decoupled` queue.
+    in_line: bool = False
+
+    def open(self, session: SessionInfo) -> None:
+        """The session starts: static facts (world, cameras, robots)."""
+
+    @abc.abstractmethod
+    def pose(self, pose: TrackedPose) -> None:
+        """One fused pose."""
+
+    def camera_health(self, health: CameraHealth) -> None:
+        """A camera's health snapshot (about once a second per camera, live only)."""
+
+    def camera_view(self, view: CameraView) -> None:
+        """A processed frame (only for sinks that ask for views: ``wants_views``)."""
+
+    #: whether :meth:`camera_view` should be called (views carry JPEGs: only sinks that show images)
+    wants_views: bool = False
+
+    def close(self) -> None:
+        """The session ends: flush and release everything."""
+
+
+class FileSink(Sink):
+    """``<out_dir>/<robot>.tum`` and ``.jsonl`` per robot (contracts §5), flushed pose by pose."""
+
+    name = "files"
+    in_line = True
+
+    def __init__(self, out_dir: str | Path, robots: tuple[str, ...]):
+        self.out_dir = Path(out_dir)
+        self.writers = {robot: PoseWriter(self.out_dir, robot) for robot in robots}
+
+    def pose(self, pose: TrackedPose) -> None:
+        self.writers[pose.robot].write(pose)
+
+    def close(self) -> None:
+        for writer in self.writers.values():
+            writer.close()
+
+    @property
+    def outputs(self) -> dict[str, tuple[Path, Path]]:
+        """Robot -> (TUM path, JSONL path)."""
+        return {robot: (w.tum_path, w.jsonl_path) for robot, w in self.writers.items()}
+
+
+class Decoupled(Sink):
+    """Runs ``inner`` on its own thread behind a bounded queue: the caller never waits. When the
+    queue is full the oldest item is dropped and counted (``dropped``). An exception in ``inner``
+    is logged once and the sink stops taking items (``failed``), never reaching the pipeline."""
+
+    def __init__(self, inner: Sink, max_items: int = QUEUE_ITEMS):
+        self.inner = inner
+        self.name = inner.name
+        self.wants_views = inner.wants_views
+        self.dropped = 0
+        self.failed: str | None = None
+        self._queue: deque = deque()
+        self._max_items = max_items
+        self._ready = threading.Condition()
+        self._closing = False
+        self._thread = threading.Thread(target=self._serve, name=f"cubetrack-sink-{inner.name}", daemon=True)
+        self._thread.start()
+
+    def open(self, session: SessionInfo) -> None:
+        self._put(("open", session))
+
+    def pose(self, pose: TrackedPose) -> None:
+        self._put(("pose", pose))
+
+    def camera_health(self, health: CameraHealth) -> None:
+        self._put(("camera_health", health))
+
+    def camera_view(self, view: CameraView) -> None:
+        self._put(("camera_view", view))
+
+    def _put(self, item: tuple) -> None:
+        with self._ready:
+            if self.failed is not None or self._closing:
+                return
+            if item[0] != "open" and len(self._queue) >= self._max_items:
+                self._queue.popleft()
+                self.dropped += 1
+            self._queue.append(item)
+            self._ready.notify()
+
+    def _serve(self) -> None:
+        while True:
+            with self._ready:
+                while not self._queue and not self._closing:
+                    self._ready.wait()
+                if not self._queue:
+                    return
+                kind, value = self._queue.popleft()
+            try:
+                getattr(self.inner, kind)(value)
+            except Exception as exc:  # an output's failure must not reach the pipeline
+                log.error("output %s failed and was stopped: %s", self.name, exc, exc_info=True)
+                with self._ready:
+                    self.failed = str(exc) or type(exc).__name__
+                    self._queue.clear()
+                return
+
+    def close(self, timeout_s: float = 5.0) -> None:
+        """Deliver what is queued (up to ``timeout_s``), then close ``inner``."""
+        with self._ready:
+            self._closing = True
+            self._ready.notify()
+        if self._thread.is_alive():
+            self._thread.join(timeout_s)
+        if self._thread.is_alive():
+            log.warning("output %s did not finish within %.0f s; %d item(s) left undelivered",
+                        self.name, timeout_s, len(self._queue))
+        try:
+            self.inner.close()
+        except Exception as exc:
+            log.error("output %s failed to close: %s", self.name, exc)
+
+
+class Outputs:
+    """Every sink of a session: in-line sinks are called directly, the others through
+    :class:`Decoupled`. Use as a context manager around the session."""
+
+    def __init__(self, sinks: list[Sink]):
+        self.sinks = [s if s.in_line else Decoupled(s) for s in sinks]
+        self._views = [s for s in self.sinks if s.wants_views]
+
+    @property
+    def wants_views(self) -> bool:
+        return bool(self._views)
+
+    def open(self, session: SessionInfo) -> None:
+        for sink in self.sinks:
+            sink.open(session)
+
+    def pose(self, pose: TrackedPose) -> None:
+        for sink in self.sinks:
+            sink.pose(pose)
+
+    def camera_health(self, health: CameraHealth) -> None:
+        for sink in self.sinks:
+            sink.camera_health(health)
+
+    def camera_view(self, view: CameraView) -> None:
+        for sink in self._views:
+            sink.camera_view(view)
+
+    def dropped(self) -> dict[str, int]:
+        """Sink name -> items it lost because it was slow."""
+        return {s.name: s.dropped for s in self.sinks if isinstance(s, Decoupled)}
+
+    def close(self) -> None:
+        for sink in self.sinks:
+            sink.close()
+
+    def __enter__(self) -> "Outputs":
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
