@@ -138,6 +138,7 @@ class Tracker:
         self.frames_since_full: Counter[str] = Counter()  # per camera, for region detection
         self.cube_points_m = {r.name: r.layout.corners_m.reshape(-1, 3) for r in robots}
         self.stats = TrackStats()
+        self.last_now_s = 0.0  # the host time the last frame became available
 
     def add_clock_sample(self, camera: str, sample: ClockSample) -> list[TrackedPose]:
         """Take one /time round trip of ``camera`` (feed them as they complete). Frames held back
@@ -194,6 +195,7 @@ class Tracker:
         """Detection, estimation and fusion of a frame whose capture time is known. A corrupt
         JPEG is counted and skipped."""
         intrinsics = self.intrinsics[frame.camera]
+        self.last_now_s = now_s
         try:
             gray = decode_gray(frame.jpeg, f"{frame.camera} frame {frame.seq}")
         except ImageError as exc:
@@ -273,9 +275,10 @@ class Tracker:
         self.frames_since_full[camera] = 0
         return self.detector.detect_gray(gray)
 
-    def finish(self) -> list[TrackedPose]:
-        """Poses still held back for reordering (call at the end of a replay)."""
-        poses = self.fusion.flush()
+    def finish(self, now_s: float | None = None) -> list[TrackedPose]:
+        """Poses still held back by the fusion (call at the end of a session); ``now_s``: the host
+        time now (default: when the last frame became available)."""
+        poses = self.fusion.flush(self.last_now_s if now_s is None else now_s)
         for pose in poses:
             self.stats.poses[pose.robot] += 1
         return poses

@@ -1,7 +1,7 @@
 """A constant-velocity SE(3) filter whose measurements are cube corners in camera images.
 
-State (world frame): position ``p`` (m), velocity ``v`` (m/s), orientation ``R`` of the cube
-frame, angular velocity ``ω`` (rad/s). The covariance ``P`` (12x12) is over the error state
+State (world frame): ``position_m``, ``velocity_m_s``, the orientation ``R_world_cube`` of the
+cube frame and ``angular_velocity_rad_s`` (rad/s). The covariance ``P`` (12x12) is over the error state
 ``[δp, δv, δθ, δω]`` with ``R = exp(δθ) R̂`` (world-frame rotation error).
 
 Prediction: white-noise acceleration and angular acceleration (``accel_noise``, ``angular_accel_noise``,
@@ -20,11 +20,17 @@ from typing import Sequence
 
 import numpy as np
 
-from cubetrack.core.geometry import R_from_rotvec, make_T
+from cubetrack.core.geometry import make_T
 from cubetrack.core.params import param
-from cubetrack.estimate.reprojection import CornerSet, perturbed, reprojection_jacobian_px, reprojection_residuals_px
+from cubetrack.estimate.reprojection import (
+    CornerSet,
+    moved_pose,
+    perturbed,
+    reprojection_jacobian_px,
+    reprojection_residuals_px,
+)
 
-_P, _V, _TH, _W = slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12)
+_POSITION, _VELOCITY, _ROTATION, _ANGULAR_VELOCITY = slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12)
 _POSE = np.r_[0:3, 6:9]  # error-state indices of [δp, δθ]
 
 
@@ -69,29 +75,28 @@ class PoseFilter:
         then start at zero with the params' spreads) or 12x12 over ``[δp, δθ, v, ω]``."""
         self.params = params
         self.time_s = time_s
-        self.p = T_world_cube[:3, 3].copy()
-        self.R = T_world_cube[:3, :3].copy()
-        self.v = np.zeros(3) if velocity_m_s is None else np.asarray(velocity_m_s, dtype=float).copy()
-        self.w = np.zeros(3) if angular_velocity_rad_s is None else np.asarray(angular_velocity_rad_s, dtype=float).copy()
+        self.position_m = T_world_cube[:3, 3].copy()
+        self.R_world_cube = T_world_cube[:3, :3].copy()
+        self.velocity_m_s = np.zeros(3) if velocity_m_s is None else np.asarray(velocity_m_s, dtype=float).copy()
+        self.angular_velocity_rad_s = (np.zeros(3) if angular_velocity_rad_s is None
+                                       else np.asarray(angular_velocity_rad_s, dtype=float).copy())
         P = np.zeros((12, 12))
         if covariance.shape == (12, 12):
             order = np.r_[0:3, 6:9, 3:6, 9:12]  # solver order [p, θ, v, ω] -> filter order [p, v, θ, ω]
             P[np.ix_(order, order)] = covariance
         else:
             P[np.ix_(_POSE, _POSE)] = covariance
-            P[_V, _V] = np.eye(3) * params.init_velocity_sigma**2
-            P[_W, _W] = np.eye(3) * params.init_angular_velocity_sigma**2
+            P[_VELOCITY, _VELOCITY] = np.eye(3) * params.init_velocity_sigma**2
+            P[_ANGULAR_VELOCITY, _ANGULAR_VELOCITY] = np.eye(3) * params.init_angular_velocity_sigma**2
         self.P = (P + P.T) / 2.0
 
     @property
     def T_world_cube(self) -> np.ndarray:
-        return make_T(self.R, self.p)
+        return make_T(self.R_world_cube, self.position_m)
 
     def predicted(self, time_s: float) -> np.ndarray:
-        """The pose extrapolated to ``time_s`` (no state change)."""
-        dt = time_s - self.time_s
-        R = R_from_rotvec(self.w * dt) @ self.R
-        return make_T(R, self.p + self.v * dt)
+        """The pose extrapolated to ``time_s`` at constant velocity (no state change)."""
+        return moved_pose(self.T_world_cube, self.velocity_m_s, self.angular_velocity_rad_s, time_s - self.time_s)
 
     def predict(self, time_s: float) -> None:
         """Move the state to ``time_s`` (constant velocity) and grow the covariance."""
@@ -99,13 +104,14 @@ class PoseFilter:
         if dt == 0.0:
             return
         T = self.predicted(time_s)
-        self.p, self.R = T[:3, 3], T[:3, :3]
+        self.position_m, self.R_world_cube = T[:3, 3], T[:3, :3]
         F = np.eye(12)
-        np.fill_diagonal(F[_P, _V], dt)
-        np.fill_diagonal(F[_TH, _W], dt)
+        np.fill_diagonal(F[_POSITION, _VELOCITY], dt)
+        np.fill_diagonal(F[_ROTATION, _ANGULAR_VELOCITY], dt)
         adt = abs(dt)
         Q = np.zeros((12, 12))  # white acceleration noise over |dt|, per axis
-        for (a, b), q in (((_P, _V), self.params.accel_noise**2), ((_TH, _W), self.params.angular_accel_noise**2)):
+        for (a, b), q in (((_POSITION, _VELOCITY), self.params.accel_noise**2),
+                          ((_ROTATION, _ANGULAR_VELOCITY), self.params.angular_accel_noise**2)):
             np.fill_diagonal(Q[a, a], q * adt**3 / 3.0)
             np.fill_diagonal(Q[a, b], q * adt**2 / 2.0)
             np.fill_diagonal(Q[b, a], q * adt**2 / 2.0)
@@ -153,9 +159,9 @@ class PoseFilter:
         self.P = np.linalg.inv(info)
         self.P = (self.P + self.P.T) / 2.0
         T = perturbed(self.T_world_cube, delta[_POSE])
-        self.p, self.R = T[:3, 3], T[:3, :3]
-        self.v = self.v + delta[_V]
-        self.w = self.w + delta[_W]
+        self.position_m, self.R_world_cube = T[:3, 3], T[:3, :3]
+        self.velocity_m_s = self.velocity_m_s + delta[_VELOCITY]
+        self.angular_velocity_rad_s = self.angular_velocity_rad_s + delta[_ANGULAR_VELOCITY]
         return UpdateResult(True, rms, r.size // 2)
 
 

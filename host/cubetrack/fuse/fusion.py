@@ -94,7 +94,7 @@ def fuse_poses(positions_m: np.ndarray, Rs: np.ndarray, weights: np.ndarray) -> 
 
 
 class LatestEstimateFusion:
-    """Keeps each camera's latest estimate per robot and fuses them on every new estimate.
+    """A :class:`~cubetrack.fuse.base.Fusion`. Keeps each camera's latest estimate per robot and fuses them on every new estimate.
 
     State: ``latest[(robot, camera)]`` — visible and small. Feed estimates in arrival order.
     """
@@ -113,7 +113,12 @@ class LatestEstimateFusion:
             return []
         return [self.fuse(sighting.estimate, now_s)]
 
-    def flush(self) -> list[TrackedPose]:
+    def predicted_pose(self, robot: str, time_s: float) -> None:
+        """The paper's methods have no motion model: they never predict."""
+        return None
+
+    def flush(self, now_s: float) -> list[TrackedPose]:
+        """Nothing is held back: every estimate was fused when it came."""
         return []
 
     def fuse(self, estimate: CameraEstimate, now_s: float) -> TrackedPose:
@@ -148,7 +153,7 @@ def pose_record(robot: str, T_world_cube: np.ndarray, time_s: float, now_s: floa
 
 
 class FilterFusion:
-    """Corner-level filtering of every robot (see the module doc). Visible state: ``filters``
+    """A :class:`~cubetrack.fuse.base.Fusion`: corner-level filtering of every robot (see the module doc). Visible state: ``filters``
     (robot -> PoseFilter), ``pending`` (the reorder buffer), ``stats`` (counters)."""
 
     def __init__(self, layouts: dict[str, CubeLayout], params: FusionParams = FusionParams(),
@@ -178,10 +183,9 @@ class FilterFusion:
         heapq.heappush(self.pending, (sighting.capture_time_s, next(self._order), sighting))
         return self._drain(now_s, now_s - self.params.reorder_delay_s)
 
-    def flush(self, now_s: float | None = None) -> list[TrackedPose]:
+    def flush(self, now_s: float) -> list[TrackedPose]:
         """Process everything still queued (end of a replay)."""
-        last = max((s.arrival_time_s for _, _, s in self.pending), default=0.0)
-        return self._drain(now_s if now_s is not None else last, float("inf"))
+        return self._drain(now_s, float("inf"))
 
     def _drain(self, now_s: float, until_s: float) -> list[TrackedPose]:
         out = []

@@ -33,7 +33,7 @@ def run(fusion, items):
     poses = []
     for s in items:
         poses += fusion.add(s, s.arrival_time_s)
-    return poses + fusion.flush()
+    return poses + fusion.flush(items[-1].arrival_time_s)
 
 
 def test_track_starts_and_follows_motion_in_capture_order():

@@ -119,8 +119,8 @@ def test_filter_follows_constant_velocity_motion():
         s = associate(detections(truth, CAMS[cams[k % 3]], rng), LAYOUT, f.T_world_cube, CAMS[cams[k % 3]],
                       INTR, cams[k % 3], t, 10.0)
         assert f.update([s]).accepted
-    assert np.linalg.norm(f.p - truth[:3, 3]) < 0.002
-    assert np.linalg.norm(f.v - v) < 0.03
+    assert np.linalg.norm(f.position_m - truth[:3, 3]) < 0.002
+    assert np.linalg.norm(f.velocity_m_s - v) < 0.03
 
 
 def test_filter_drops_a_bad_face_and_rejects_a_garbage_sighting():
@@ -133,7 +133,7 @@ def test_filter_drops_a_bad_face_and_rejects_a_garbage_sighting():
     bad[:4] += 25.0 / 520.0  # the first face's corners 25 px off: a misread marker
     result = f.update([CornerSet(good.camera, 0.0, good.T_cam_world, good.focal_px, good.points_cube_m, bad, good.faces)])
     assert result.accepted and result.points == 4 * (len(good.faces) - 1)
-    assert np.linalg.norm(f.p - truth[:3, 3]) < 0.003
+    assert np.linalg.norm(f.position_m - truth[:3, 3]) < 0.003
     before = f.T_world_cube.copy()
     garbage = CornerSet("cam2", 0.0, invert_T(CAMS["cam2"]), 520.0, LAYOUT.markers[0].corners_cube_m(),
                         rng.uniform(-0.3, 0.3, (4, 2)), ("top",))
