@@ -170,7 +170,7 @@ def test_platformio_ini_is_valid():
     assert result.returncode == 0, result.stderr
     sections = {name: dict(options) for name, options in json.loads(result.stdout)}
     opts = sections["env:spresense"]
-    assert opts["platform"] == "https://github.com/maxgerhardt/platform-sonyspresense.git"
+    assert opts["platform"].partition("#")[0] == "https://github.com/maxgerhardt/platform-sonyspresense.git"  # pinned
     assert opts["board"] == "spresense"
     assert opts["framework"] == ["arduino"]
     assert int(opts["monitor_speed"]) == 115200

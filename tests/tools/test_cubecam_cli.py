@@ -1,10 +1,8 @@
-"""The `cubecam` command line: help texts, `emulate` start-up output and errors, `list`,
-and `flash` (dry-run command lines, missing PlatformIO, missing Spresense platform)."""
+"""The `cubecam` command line: help texts, `emulate` start-up output and errors, and `list`
+(`flash` is in test_cubecam_flash.py)."""
 
 from __future__ import annotations
 
-import shlex
-import shutil
 import socket
 import subprocess
 import sys
@@ -18,8 +16,6 @@ from cubecam.cli import COMMANDS, main
 from cubecam.testdata import CameraSpec, write_recording
 from fakeboard import FakeBoard
 from toolcheck import CUBECAM, REPO, assert_one_line_error, run_cubecam
-
-PIO = shutil.which("pio") or str(Path(sys.executable).parent / "pio")
 
 
 def test_top_level_help_lists_every_command():
@@ -42,7 +38,8 @@ def test_console_script_is_installed():
     ("provision", ["--port", "--ssid", "--password-file", "--name", "--quality", "--fps", "--mode", "--ip", "--config"]),
     ("monitor", ["DEV", "--duration"]),
     ("list", ["--no-names"]),
-    ("flash", ["--port", "--all", "--dry-run", "--project", "--ssid", "--password-file"]),
+    ("flash", ["--port", "--all", "--builder", "--dry-run", "--burn-bootloader", "--sketch", "--project", "--ssid",
+               "--password-file"]),
 ])
 def test_every_command_documents_its_options(capsys, command, options):
     with pytest.raises(SystemExit) as exit_:
@@ -131,77 +128,3 @@ def test_attached_boards_filters_by_usb_id(monkeypatch):
                         lambda: [port("/dev/ttyUSB1", 0x10C4, 0xEA60), port("/dev/ttyACM0", 0x2341, 0x0043),
                                  port("/dev/ttyUSB0", 0x10C4, 0xEA60)])
     assert [b.device for b in boards.attached_boards()] == ["/dev/ttyUSB0", "/dev/ttyUSB1"]
-
-
-# --- flash ---
-
-
-def test_flash_dry_run_prints_the_exact_commands(capsys, tmp_path):
-    project = tmp_path / "fw"
-    rc = main(["flash", "--port", "/dev/ttyUSB0", "--dry-run", "--project", str(project), "--pio", PIO,
-               "--ssid", "lab", "--password-file", "/home/me/wifi.txt", "--name", "cam1", "--fps", "7.5"])
-    assert rc == 0
-    lines = capsys.readouterr().out.splitlines()
-    assert [shlex.split(line) for line in lines] == [
-        [PIO, "run", "-d", str(project), "-e", "spresense"],
-        [PIO, "run", "-d", str(project), "-e", "spresense", "-t", "upload", "--upload-port", "/dev/ttyUSB0"],
-        ["cubecam", "provision", "--port", "/dev/ttyUSB0", "--ssid", "lab", "--password-file", "/home/me/wifi.txt",
-         "--name", "cam1", "--fps", "7.5"],
-    ]
-
-
-def test_flash_dry_run_all_boards_without_provisioning(capsys, monkeypatch):
-    monkeypatch.setattr(boards, "attached_boards", lambda: [boards.Board("/dev/ttyUSB0", "a", ""),
-                                                            boards.Board("/dev/ttyUSB1", "b", "")])
-    assert main(["flash", "--all", "--dry-run", "--pio", PIO, "--project", "/fw"]) == 0
-    lines = capsys.readouterr().out.splitlines()
-    assert lines == [f"{PIO} run -d /fw -e spresense",
-                     f"{PIO} run -d /fw -e spresense -t upload --upload-port /dev/ttyUSB0",
-                     f"{PIO} run -d /fw -e spresense -t upload --upload-port /dev/ttyUSB1"]
-
-
-def test_flash_dry_run_never_shows_a_password(capsys, monkeypatch):
-    assert main(["flash", "--port", "/dev/ttyUSB0", "--dry-run", "--ssid", "lab"]) == 0
-    out = capsys.readouterr().out
-    assert "password from stdin or a prompt" in out
-
-
-def test_flash_all_without_boards(monkeypatch, capsys):
-    monkeypatch.setattr(boards, "attached_boards", lambda: [])
-    rc = main(["flash", "--all", "--dry-run"])
-    assert_one_line_error(rc, capsys.readouterr().err, "no boards attached")
-
-
-def test_flash_without_platformio(tmp_path, capsys):
-    rc = main(["flash", "--port", "/dev/ttyUSB0", "--pio", str(tmp_path / "no-pio")])
-    assert_one_line_error(rc, capsys.readouterr().err, "PlatformIO (pio) not found", "pip install platformio")
-
-
-@pytest.mark.skipif(not Path(PIO).exists(), reason="PlatformIO is not installed in this environment")
-def test_flash_without_the_spresense_platform(tmp_path):
-    project = tmp_path / "fw"
-    project.mkdir()
-    (project / "platformio.ini").write_text(
-        "[env:spresense]\nplatform = https://github.com/maxgerhardt/platform-sonyspresense.git\n"
-        "board = spresense\nframework = arduino\n")
-    done = run_cubecam("flash", "--port", "/dev/ttyUSB0", "--project", str(project), "--pio", PIO, timeout=90,
-                       env={"PLATFORMIO_CORE_DIR": str(tmp_path / "pio-core"),
-                            "PLATFORMIO_SETTING_ENABLE_TELEMETRY": "No",
-                            "PLATFORMIO_SETTING_CHECK_PLATFORMIO_INTERVAL": "9999"})
-    assert_one_line_error(done.returncode, done.stderr, "Spresense platform for PlatformIO is not installed",
-                          "pio pkg install")
-
-
-@pytest.mark.skipif(not Path(PIO).exists(), reason="PlatformIO is not installed in this environment")
-def test_flash_without_a_project(tmp_path, capsys):
-    rc = main(["flash", "--port", "/dev/ttyUSB0", "--project", str(tmp_path), "--pio", PIO])
-    assert_one_line_error(rc, capsys.readouterr().err, "platformio.ini: missing")
-
-
-@pytest.mark.skipif(not Path(PIO).exists() or not (REPO / "platformio.ini").exists(),
-                    reason="needs PlatformIO and the repository's platformio.ini")
-def test_flash_of_the_repository_project_without_the_platform(tmp_path):
-    done = run_cubecam("flash", "--port", "/dev/ttyUSB0", "--pio", PIO, timeout=90,
-                       env={"PLATFORMIO_CORE_DIR": str(tmp_path / "pio-core"),
-                            "PLATFORMIO_SETTING_ENABLE_TELEMETRY": "No"})
-    assert_one_line_error(done.returncode, done.stderr, "platform-sonyspresense", str(REPO / "platformio.ini"))
