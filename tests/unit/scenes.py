@@ -15,9 +15,9 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from cubetrack.core.cameras import CameraIntrinsics
 from cubetrack.core.geometry import make_T
 from cubetrack.core.layout import CubeLayout, marker_corners_m
-from cubetrack.io.camera_info import CameraIntrinsics
 from cubetrack.simulate.render import (
     WHITE_ALBEDO,
     Floor,

@@ -60,7 +60,8 @@ def write_recording(path: str | Path, cameras: list[CameraSpec], frames: int = 2
     """A recording folder where frame i of each camera is captured at host time
     ``host_start_s + i / fps`` and arrives ``latency_s`` later; device time =
     ``boot_offset_s + (host - host_start_s) / rate``. Returns the path."""
-    from cubetrack.io.recording import CameraEntry, ClockSample, RecordingWriter
+    from cubetrack.core.cameras import ClockSample
+    from cubetrack.io.recording import CameraEntry, RecordingWriter
 
     path = Path(path)
     with RecordingWriter(path, [CameraEntry(c.name, f"synthetic://{c.name}") for c in cameras]) as w:

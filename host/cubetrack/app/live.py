@@ -25,12 +25,13 @@ from typing import Callable, Sequence
 
 from cubetrack.app.outputs import open_outputs
 from cubetrack.app.tracker import StageParams, Tracker, TrackStats
+from cubetrack.core.cameras import CameraExtrinsics, CameraIntrinsics, ClockSample
 from cubetrack.core.errors import ConfigError
 from cubetrack.core.params import params_from_table
 from cubetrack.core.records import Frame, TrackedPose
-from cubetrack.io.camera_info import CameraIntrinsics, read_camera_info
-from cubetrack.io.config import CameraExtrinsics, TrackerConfig
-from cubetrack.io.recording import CameraEntry, ClockSample, RecordingWriter
+from cubetrack.io.camera_info import read_camera_info
+from cubetrack.io.config import TrackerConfig
+from cubetrack.io.recording import CameraEntry, RecordingWriter
 from cubetrack.sink.base import Sink
 from cubetrack.source.streams import CameraStats, ClockReading, LiveCameras, SourceParams
 

@@ -4,8 +4,8 @@ from __future__ import annotations
 
 from typing import Sequence
 
-from cubetrack.io.camera_info import CameraIntrinsics
-from cubetrack.io.config import CameraExtrinsics, TrackerConfig
+from cubetrack.core.cameras import CameraExtrinsics, CameraIntrinsics
+from cubetrack.io.config import TrackerConfig
 from cubetrack.sink.base import CameraSetup, FileSink, Outputs, SessionInfo, Sink
 
 

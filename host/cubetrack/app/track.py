@@ -10,9 +10,10 @@ from typing import Sequence
 
 from cubetrack.app.outputs import open_outputs
 from cubetrack.app.tracker import StageParams, Tracker, TrackStats
+from cubetrack.core.cameras import CameraExtrinsics, CameraIntrinsics
 from cubetrack.core.progress import Progress
-from cubetrack.io.camera_info import CameraIntrinsics, read_camera_info
-from cubetrack.io.config import CameraExtrinsics, TrackerConfig, camera_intrinsics_path
+from cubetrack.io.camera_info import read_camera_info
+from cubetrack.io.config import TrackerConfig, camera_intrinsics_path
 from cubetrack.io.recording import Recording
 from cubetrack.sink.base import Sink
 

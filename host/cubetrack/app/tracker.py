@@ -16,6 +16,7 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
+from cubetrack.core.cameras import CameraExtrinsics, CameraIntrinsics, ClockSample, WorldConfig
 from cubetrack.core.errors import ConfigError, ImageError
 from cubetrack.core.geometry import invert_T, transform_points
 from cubetrack.core.params import param, params_from_table
@@ -24,9 +25,7 @@ from cubetrack.detect.detector import Detector, DetectorParams, decode_gray
 from cubetrack.estimate.pose import EstimatorParams, estimate_cube, world_marker_pose
 from cubetrack.fuse.corner_filter import FilterParams
 from cubetrack.fuse.fusion import FilterFusion, FusionMethod, FusionParams, LatestEstimateFusion
-from cubetrack.io.camera_info import CameraIntrinsics
-from cubetrack.io.config import CameraExtrinsics, RobotConfig, TrackerConfig, WorldConfig
-from cubetrack.io.recording import ClockSample
+from cubetrack.io.config import RobotConfig, TrackerConfig
 from cubetrack.source.clock import ClockSync
 
 log = logging.getLogger(__name__)

@@ -61,6 +61,7 @@ from scipy.optimize import least_squares
 from scipy.sparse import coo_matrix
 from scipy.spatial.transform import Rotation
 
+from cubetrack.core.cameras import CameraExtrinsics, CameraIntrinsics
 from cubetrack.core.errors import CalibrationError, ImageError
 from cubetrack.core.geometry import invert_T, make_T, mean_rotation, rotation_angle
 from cubetrack.core.layout import CubeLayout, marker_corners_m
@@ -68,8 +69,7 @@ from cubetrack.core.params import param
 from cubetrack.core.progress import Progress
 from cubetrack.core.records import Detection
 from cubetrack.estimate.reprojection import CornerSet, associate, moved_pose, normalize_px
-from cubetrack.io.camera_info import CameraIntrinsics
-from cubetrack.io.config import CameraExtrinsics, TrackerConfig
+from cubetrack.io.config import TrackerConfig
 
 if TYPE_CHECKING:
     from cubetrack.io.recording import Recording

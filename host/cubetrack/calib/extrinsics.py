@@ -40,6 +40,7 @@ from typing import TYPE_CHECKING, Iterable, Sequence
 
 import numpy as np
 
+from cubetrack.core.cameras import CameraExtrinsics, CameraIntrinsics, WorldConfig
 from cubetrack.core.errors import CalibrationError, ImageError
 from cubetrack.core.geometry import (
     R_from_quat_xyzw,
@@ -61,8 +62,7 @@ from cubetrack.detect.detector import (
     refine_corners_edges,
 )
 from cubetrack.estimate.pose import marker_pose
-from cubetrack.io.camera_info import CameraIntrinsics
-from cubetrack.io.config import CameraExtrinsics, TrackerConfig, WorldConfig
+from cubetrack.io.config import TrackerConfig
 
 if TYPE_CHECKING:
     from cubetrack.io.recording import Recording

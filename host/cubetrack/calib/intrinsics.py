@@ -20,11 +20,11 @@ from typing import Sequence
 
 import numpy as np
 
+from cubetrack.core.cameras import CameraIntrinsics
 from cubetrack.core.errors import CalibrationError, ImageError
 from cubetrack.core.params import param
 from cubetrack.core.progress import Progress
 from cubetrack.detect.detector import CornerRefinement, aruco_dictionary, opencv_corner_refinement, read_gray
-from cubetrack.io.camera_info import CameraIntrinsics
 
 log = logging.getLogger(__name__)
 

@@ -127,7 +127,7 @@ class CubeSighting:
     ``detections`` are the frame's detections of the cube's ids and dictionary; ``estimate`` the
     single-camera cube pose from them (None when none could be made); ``T_world_cam`` the
     camera's pose used for this frame; ``intrinsics`` the camera's
-    :class:`cubetrack.io.camera_info.CameraIntrinsics`. Times are host-clock Unix seconds.
+    :class:`cubetrack.core.cameras.CameraIntrinsics`. Times are host-clock Unix seconds.
     """
 
     camera: str

@@ -44,12 +44,12 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from cubetrack.core.cameras import CameraIntrinsics
 from cubetrack.core.errors import EstimationError
 from cubetrack.core.geometry import invert_T
 from cubetrack.core.layout import CubeLayout, LayoutMarker, marker_corners_m
 from cubetrack.core.params import param
 from cubetrack.core.records import CameraEstimate, Detection, FaceObservation, MarkerPose
-from cubetrack.io.camera_info import CameraIntrinsics
 
 log = logging.getLogger(__name__)
 

@@ -1,4 +1,5 @@
-"""Camera intrinsics: ROS ``camera_info`` YAML (read and write) and OpenCV FileStorage YAML (read).
+"""Camera intrinsics files: ROS ``camera_info`` YAML (read and write) and OpenCV FileStorage YAML
+(read), as :class:`cubetrack.core.cameras.CameraIntrinsics`.
 
 Pixel convention: OpenCV's, (0, 0) is the centre of the top-left pixel; ``K`` is the 3x3
 camera matrix in pixels; ``dist`` the plumb_bob (k1, k2, p1, p2, k3) coefficients.
@@ -6,32 +7,13 @@ camera matrix in pixels; ``dist`` the plumb_bob (k1, k2, p1, p2, k3) coefficient
 
 from __future__ import annotations
 
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 import yaml
 
+from cubetrack.core.cameras import CameraIntrinsics
 from cubetrack.core.errors import CameraInfoError
-
-
-@dataclass(frozen=True, slots=True, eq=False)
-class CameraIntrinsics:
-    """Pinhole intrinsics of one camera: image size (px), ``K`` (3x3, px) and distortion."""
-
-    width: int
-    height: int
-    K: np.ndarray
-    dist: np.ndarray
-    camera_name: str = ""
-
-    def __post_init__(self) -> None:
-        if self.K.shape != (3, 3) or not np.all(np.isfinite(self.K)):
-            raise CameraInfoError(f"camera matrix must be a finite 3x3 matrix, got {self.K!r}")
-        if self.K[0, 0] <= 0 or self.K[1, 1] <= 0:
-            raise CameraInfoError(f"focal lengths must be positive, got {self.K[0, 0]}, {self.K[1, 1]}")
-        if self.width <= 0 or self.height <= 0:
-            raise CameraInfoError(f"image size must be positive, got {self.width}x{self.height}")
 
 
 def _matrix(value: object, n: int, path: Path, key: str) -> np.ndarray:

@@ -15,21 +15,13 @@ from typing import Any
 import numpy as np
 import tomli_w
 
+from cubetrack.core.cameras import CameraExtrinsics, WorldConfig
 from cubetrack.core.errors import ConfigError, RecordingError
 from cubetrack.core.geometry import T_from_position_quat, position_quat_from_T
 from cubetrack.core.layout import DEFAULT_DICTIONARY, CubeLayout, read_layout
 from cubetrack.io.recording import check_camera_name
 
 STAGE_SECTIONS = ("detector", "estimator", "fusion", "filter", "calibration", "track", "source")
-
-
-@dataclass(frozen=True, slots=True)
-class WorldConfig:
-    """The world marker: the world frame's origin (centre), z up. ``marker_size_m`` = black square side."""
-
-    dictionary: str = DEFAULT_DICTIONARY
-    marker_id: int = 0
-    marker_size_m: float = 0.25
 
 
 @dataclass(frozen=True, slots=True)
@@ -185,21 +177,6 @@ def tracker_config_to_table(
 def write_toml(doc: dict[str, Any], path: str | Path) -> None:
     """Write a TOML document."""
     Path(path).write_text(tomli_w.dumps(doc), encoding="utf-8")
-
-
-@dataclass(frozen=True, slots=True, eq=False)
-class CameraExtrinsics:
-    """A calibrated camera pose: ``T_world_cam`` of the optical frame (x right, y down, z forward).
-
-    ``samples`` = world-marker sightings used; ``spread_position_m`` / ``spread_rotation_deg``
-    = RMS deviation of the per-sample poses from the result; ``method`` = how it was computed.
-    """
-
-    T_world_cam: np.ndarray
-    samples: int = 0
-    spread_position_m: float = 0.0
-    spread_rotation_deg: float = 0.0
-    method: str = ""
 
 
 def write_extrinsics(extrinsics: dict[str, CameraExtrinsics], path: str | Path) -> None:

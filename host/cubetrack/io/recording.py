@@ -29,6 +29,7 @@ from datetime import datetime, timezone
 from pathlib import Path
 from typing import Iterable, Iterator
 
+from cubetrack.core.cameras import ClockSample
 from cubetrack.core.errors import RecordingError
 from cubetrack.core.records import Frame
 
@@ -57,15 +58,6 @@ class IndexRow:
     device_time_s: float
     host_time_s: float
     file: str
-
-
-@dataclass(frozen=True, slots=True)
-class ClockSample:
-    """One ``/time`` round trip: host send time, node clock, host receive time (seconds)."""
-
-    host_send_s: float
-    device_time_s: float
-    host_recv_s: float
 
 
 def check_camera_name(name: str) -> str:

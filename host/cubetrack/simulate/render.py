@@ -33,9 +33,9 @@ from functools import lru_cache
 import cv2
 import numpy as np
 
+from cubetrack.core.cameras import CameraIntrinsics
 from cubetrack.core.errors import SimulationError
 from cubetrack.core.geometry import invert_T
-from cubetrack.io.camera_info import CameraIntrinsics
 
 WHITE_ALBEDO = 0.85  # printed paper
 BLACK_ALBEDO = 0.05  # printed ink

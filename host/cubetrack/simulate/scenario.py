@@ -16,11 +16,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.spatial.transform import Rotation
 
+from cubetrack.core.cameras import CameraIntrinsics, WorldConfig
 from cubetrack.core.errors import SimulationError
 from cubetrack.core.geometry import invert_T, make_T, transform_points
 from cubetrack.core.layout import CubeLayout, paper_cube_layout
-from cubetrack.io.camera_info import CameraIntrinsics
-from cubetrack.io.config import WorldConfig
 from cubetrack.simulate.params import SimulationParams
 from cubetrack.simulate.render import WHITE_ALBEDO, Floor, MarkerTexture, Quad, Solid, box_faces, project_points
 from cubetrack.simulate.timing import DeviceClock, make_clock

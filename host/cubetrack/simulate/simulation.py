@@ -14,20 +14,14 @@ from pathlib import Path
 import numpy as np
 import tomli_w
 
+from cubetrack.core.cameras import CameraExtrinsics, CameraIntrinsics, WorldConfig
 from cubetrack.core.errors import RecordingError
 from cubetrack.core.geometry import position_quat_from_T
 from cubetrack.core.layout import CubeLayout, write_layout
 from cubetrack.core.params import params_to_table
 from cubetrack.core.progress import Progress
-from cubetrack.io.camera_info import CameraIntrinsics, write_camera_info
-from cubetrack.io.config import (
-    CameraConfig,
-    CameraExtrinsics,
-    WorldConfig,
-    tracker_config_to_table,
-    write_extrinsics,
-    write_toml,
-)
+from cubetrack.io.camera_info import write_camera_info
+from cubetrack.io.config import CameraConfig, tracker_config_to_table, write_extrinsics, write_toml
 from cubetrack.io.recording import CameraEntry, RecordingWriter
 from cubetrack.io.trajectory import Trajectory, write_tum
 from cubetrack.simulate.params import SimulationParams

@@ -29,7 +29,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cubetrack.io.recording import ClockSample
+from cubetrack.core.cameras import ClockSample
 from cubetrack.simulate.params import SimulationParams
 
 

@@ -19,10 +19,9 @@ from pathlib import Path
 
 import numpy as np
 
+from cubetrack.core.cameras import CameraIntrinsics, WorldConfig
 from cubetrack.core.layout import CubeLayout
 from cubetrack.core.records import CameraHealth, CameraView, TrackedPose
-from cubetrack.io.camera_info import CameraIntrinsics
-from cubetrack.io.config import WorldConfig
 from cubetrack.io.trajectory import PoseWriter
 
 log = logging.getLogger(__name__)

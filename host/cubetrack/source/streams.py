@@ -11,7 +11,7 @@ Per camera two threads run:
   A malformed part is skipped and counted, never fatal; a lost, refused or silent connection
   is retried with exponential back-off (logged);
 - a **clock poller**: ``GET /time`` about once a second (the URL derived from the stream URL),
-  giving (host_send, device_time, host_recv) :class:`~cubetrack.io.recording.ClockSample`
+  giving (host_send, device_time, host_recv) :class:`~cubetrack.core.cameras.ClockSample`
   round trips. The TCP connection is opened before ``host_send`` is taken, so the round trip
   brackets only the request and its answer. Timeouts and garbage answers are counted and dropped.
 
@@ -34,10 +34,10 @@ from dataclasses import dataclass, field, replace
 from typing import Callable, Iterable, Mapping
 from urllib.parse import urljoin, urlsplit
 
+from cubetrack.core.cameras import ClockSample
 from cubetrack.core.errors import ConfigError
 from cubetrack.core.params import param
 from cubetrack.core.records import Frame
-from cubetrack.io.recording import ClockSample
 
 log = logging.getLogger(__name__)
 

@@ -12,16 +12,10 @@ from pathlib import Path
 import numpy as np
 from scenes import Camera, look_at, marker_corners_px, marker_on_paper
 
+from cubetrack.core.cameras import CameraExtrinsics, CameraIntrinsics, WorldConfig
 from cubetrack.core.layout import paper_cube_layout, write_layout
-from cubetrack.io.camera_info import CameraIntrinsics, write_camera_info
-from cubetrack.io.config import (
-    CameraConfig,
-    CameraExtrinsics,
-    WorldConfig,
-    tracker_config_to_table,
-    write_extrinsics,
-    write_toml,
-)
+from cubetrack.io.camera_info import write_camera_info
+from cubetrack.io.config import CameraConfig, tracker_config_to_table, write_extrinsics, write_toml
 from cubetrack.io.recording import CameraEntry, RecordingWriter
 
 W, H = 640, 480

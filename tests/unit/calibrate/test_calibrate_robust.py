@@ -16,11 +16,10 @@ from cubetrack.calib.extrinsics import (
     collect_sightings,
     refine_corners_by_edges,
 )
+from cubetrack.core.cameras import CameraIntrinsics, WorldConfig
 from cubetrack.core.geometry import rotation_angle, shoelace_area
 from cubetrack.core.records import Detection, Frame
 from cubetrack.detect.detector import CornerRefinement, Detector, DetectorParams, decode_gray, refine_corners_edges
-from cubetrack.io.camera_info import CameraIntrinsics
-from cubetrack.io.config import WorldConfig
 
 INTR = CameraIntrinsics(640, 480, K, np.zeros(5))
 

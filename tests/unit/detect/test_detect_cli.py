@@ -10,8 +10,9 @@ import pytest
 from scenes import render_in_front
 
 import cubetrack.cli.main as cli_main
+from cubetrack.core.cameras import CameraIntrinsics
 from cubetrack.core.geometry import R_from_quat_xyzw, make_T, rotation_angle
-from cubetrack.io.camera_info import CameraIntrinsics, write_camera_info
+from cubetrack.io.camera_info import write_camera_info
 
 K = np.array([[520.0, 0.0, 319.5], [0.0, 520.0, 239.5], [0.0, 0.0, 1.0]])
 T_CAM_MARKER = make_T(np.diag([1.0, -1.0, -1.0]) @ cv2.Rodrigues(np.array([0.3, 0.4, 0.1]))[0],

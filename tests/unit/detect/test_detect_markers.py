@@ -14,6 +14,7 @@ from scenes import (
     render_in_front,
 )
 
+from cubetrack.core.cameras import CameraIntrinsics
 from cubetrack.core.errors import ConfigError, DetectionError, ImageError
 from cubetrack.core.geometry import invert_T, make_T, shoelace_area
 from cubetrack.core.layout import paper_cube_layout
@@ -27,7 +28,6 @@ from cubetrack.detect.detector import (
     is_valid_quad,
     refine_corners_edges,
 )
-from cubetrack.io.camera_info import CameraIntrinsics
 
 K = np.array([[520.0, 0.0, 319.5], [0.0, 520.0, 239.5], [0.0, 0.0, 1.0]])
 INTR = CameraIntrinsics(640, 480, K, np.zeros(5))

@@ -9,6 +9,7 @@ from scenes import look_at
 from scipy.spatial.transform import Rotation
 
 import cubetrack.estimate.pose as estimate_module
+from cubetrack.core.cameras import CameraIntrinsics
 from cubetrack.core.errors import ConfigError, EstimationError
 from cubetrack.core.geometry import invert_T, make_T, rotation_angle, shoelace_area
 from cubetrack.core.layout import FACES, marker_corners_m, paper_cube_layout
@@ -22,7 +23,6 @@ from cubetrack.estimate.pose import (
     marker_pose,
     world_marker_pose,
 )
-from cubetrack.io.camera_info import CameraIntrinsics
 
 K = np.array([[520.0, 0.0, 319.5], [0.0, 520.0, 239.5], [0.0, 0.0, 1.0]])
 PINHOLE = CameraIntrinsics(640, 480, K, np.zeros(5))

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from cubetrack.core.cameras import CameraIntrinsics
 from cubetrack.core.geometry import invert_T, make_T, rotation_angle, shoelace_area
 from cubetrack.core.layout import paper_cube_layout
 from cubetrack.core.records import Detection
@@ -13,7 +14,6 @@ from cubetrack.estimate.pose import marker_pose
 from cubetrack.estimate.reprojection import CornerSet, associate
 from cubetrack.fuse.corner_filter import FilterParams, PoseFilter
 from cubetrack.fuse.multi_view_fit import solve_joint
-from cubetrack.io.camera_info import CameraIntrinsics
 
 K = np.array([[520.0, 0, 319.5], [0, 520.0, 239.5], [0, 0, 1]])
 INTR = CameraIntrinsics(640, 480, K, np.zeros(5), "cam")

@@ -3,8 +3,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+from cubetrack.core.cameras import CameraIntrinsics
 from cubetrack.core.errors import CameraInfoError
-from cubetrack.io.camera_info import CameraIntrinsics, read_camera_info, write_camera_info
+from cubetrack.io.camera_info import read_camera_info, write_camera_info
 
 REAL = Path(__file__).resolve().parents[3] / ".." / "shared" / "data" / "real" / "opencv-aruco-tutorial"
 needs_real = pytest.mark.skipif(not REAL.is_dir(), reason=f"{REAL} not present")

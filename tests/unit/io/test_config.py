@@ -1,10 +1,11 @@
 import numpy as np
 import pytest
 
+from cubetrack.core.cameras import CameraExtrinsics
 from cubetrack.core.errors import ConfigError
 from cubetrack.core.geometry import T_from_position_quat
 from cubetrack.core.layout import paper_cube_layout, write_layout
-from cubetrack.io.config import CameraExtrinsics, read_extrinsics, read_tracker_config, write_extrinsics
+from cubetrack.io.config import read_extrinsics, read_tracker_config, write_extrinsics
 
 
 def write_config(tmp_path, body):

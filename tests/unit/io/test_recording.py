@@ -4,8 +4,9 @@ import cv2
 import numpy as np
 import pytest
 
+from cubetrack.core.cameras import ClockSample
 from cubetrack.core.errors import RecordingError
-from cubetrack.io.recording import CameraEntry, ClockSample, Recording, RecordingWriter
+from cubetrack.io.recording import CameraEntry, Recording, RecordingWriter
 
 
 def jpeg(value: int) -> bytes:

@@ -11,9 +11,10 @@ import pytest
 from cubetrack.calib.bundle import METHOD, refine_extrinsics
 from cubetrack.calib.extrinsics import CalibrationParams, calibrate_recording, extrinsics_errors
 from cubetrack.cli import main as cli_main
+from cubetrack.core.cameras import CameraExtrinsics
 from cubetrack.core.errors import CalibrationError
 from cubetrack.core.geometry import R_from_rotvec, make_T
-from cubetrack.io.config import CameraExtrinsics, read_extrinsics, read_tracker_config
+from cubetrack.io.config import read_extrinsics, read_tracker_config
 from cubetrack.io.recording import Recording
 from cubetrack.simulate import SimulationParams, simulate
 

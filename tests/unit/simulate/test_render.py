@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from cubetrack.core.cameras import CameraIntrinsics
 from cubetrack.core.geometry import make_T
-from cubetrack.io.camera_info import CameraIntrinsics
 from cubetrack.simulate.render import (
     WHITE_ALBEDO,
     Floor,
