@@ -81,6 +81,9 @@ class Recording:
         self.cameras = cameras
         self.created = created
         self.skipped: Counter[str] = Counter()  # reason -> count, filled while reading
+        self._index: dict[str, list[IndexRow]] = {}  # camera -> valid rows (read once)
+        self._clock: dict[str, list[ClockSample]] = {}  # camera -> round trips (read once)
+        self._missing: set[tuple[str, str]] = set()  # (camera, file) already counted as missing
 
     @classmethod
     def open(cls, path: str | Path) -> "Recording":
@@ -122,7 +125,13 @@ class Recording:
         return self.path / camera
 
     def index(self, camera: str) -> list[IndexRow]:
-        """The valid rows of a camera's ``index.csv``; broken rows are skipped and counted."""
+        """The valid rows of a camera's ``index.csv``; broken rows are skipped and counted (once:
+        the file is read on the first call)."""
+        if camera not in self._index:
+            self._index[camera] = self._read_index(camera)
+        return list(self._index[camera])
+
+    def _read_index(self, camera: str) -> list[IndexRow]:
         index_path = self.camera_dir(camera) / "index.csv"
         try:
             with index_path.open(newline="", encoding="utf-8") as f:
@@ -153,8 +162,10 @@ class Recording:
             try:
                 jpeg = (folder / row.file).read_bytes()
             except OSError:
-                self.skipped["missing frame file"] += 1
-                log.warning("%s: frame file %s is missing; skipped", folder, row.file)
+                if (camera, row.file) not in self._missing:
+                    self._missing.add((camera, row.file))
+                    self.skipped["missing frame file"] += 1
+                    log.warning("%s: frame file %s is missing; skipped", folder, row.file)
                 continue
             yield Frame(camera, row.seq, row.device_time_s, row.host_time_s, jpeg)
 
@@ -164,7 +175,13 @@ class Recording:
         return heapq.merge(*(self.frames(c) for c in names), key=lambda f: (f.host_time_s, f.camera))
 
     def clock_samples(self, camera: str) -> list[ClockSample]:
-        """The camera's ``/time`` round trips (empty when the recording has none)."""
+        """The camera's ``/time`` round trips (empty when the recording has none); broken rows
+        are skipped and counted (once: the file is read on the first call)."""
+        if camera not in self._clock:
+            self._clock[camera] = self._read_clock(camera)
+        return list(self._clock[camera])
+
+    def _read_clock(self, camera: str) -> list[ClockSample]:
         path = self.camera_dir(camera) / "clock.csv"
         if not path.exists():
             return []

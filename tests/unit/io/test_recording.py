@@ -60,6 +60,24 @@ def test_malformed_index_rows_are_skipped_and_counted(tmp_path):
     assert rec.skipped["bad index row"] == 3
 
 
+def test_each_skipped_row_or_file_is_counted_once_however_often_it_is_read(tmp_path):
+    """Reading a camera's index, clock or frames again (calibration, then tracking) does not
+    report one bad row as two."""
+    path = make(tmp_path)
+    with (path / "cam1" / "index.csv").open("a") as f:
+        f.write("garbage\n")
+    with (path / "cam1" / "clock.csv").open("a") as f:
+        f.write("1.0,oops,2.0\n")
+    (path / "cam1" / "00000005.jpg").unlink()
+    rec = Recording.open(path)
+    for _ in range(3):
+        assert len(rec.index("cam1")) == 2
+        assert len(rec.clock_samples("cam1")) == 1
+        assert [f.seq for f in rec.frames("cam1")] == [7]
+    assert list(rec.merged_frames()) and rec.skipped == {"bad index row": 1, "bad clock row": 1,
+                                                         "missing frame file": 1}
+
+
 def test_empty_index_is_an_error_naming_the_file(tmp_path):
     path = make(tmp_path)
     (path / "cam2" / "index.csv").write_text("seq,device_time,host_time,file\n")
