@@ -54,6 +54,8 @@ class FakeTools:
         self.firmware = self.sdk / "spresense" / "firmware"
         self.firmware.mkdir(parents=True)
         self.sketch = root / "cubecam"
+        self.sketch.mkdir()
+        (self.sketch / "cubecam.ino").write_text("void setup() {}\nvoid loop() {}\n")
         self.build_path = root / "build"
         self.project = root / "pio-project"
         self.project.mkdir()
@@ -268,6 +270,12 @@ def test_no_bootloader_check(tools):
     assert main(tools.args("--port", "/dev/ttyUSB0", "--no-bootloader-check")) == 0
     assert not any("details" in c for c in tools.calls("arduino-cli"))
     assert tools.runs("arduino-cli") == stripped([tools.compile(), tools.upload("/dev/ttyUSB0")])
+
+
+def test_not_a_sketch_folder(tools, capfd, tmp_path):
+    rc = main(tools.args("--port", "/dev/ttyUSB0", "--sketch", str(tmp_path)))
+    assert_one_line_error(rc, capfd.readouterr().err, f"{tmp_path / (tmp_path.name + '.ino')}: missing")
+    assert tools.runs("arduino-cli") == []
 
 
 def test_broken_arduino_cli(tools, capfd):

@@ -115,7 +115,6 @@ class PlatformIO:
         return [*self.build(), "-t", "bootloader", "--upload-port", port]
 
 
-Builder = ArduinoCli | PlatformIO
 BUILDERS = (ArduinoCli.name, PlatformIO.name)
 
 
@@ -261,9 +260,12 @@ def choose_builder(requested: str, cli: str | None, pio: str | None) -> tuple[st
 
 
 def check_arduino_cli(builder: ArduinoCli, ports: list[str], burn_bootloader: bool, loader_check: bool) -> None:
-    """Sony's board package, the GS2200-WiFi library and (unless ``loader_check`` is off) the
-    bootloader files, or FlashError with the commands that install the missing one."""
+    """The sketch, Sony's board package, the GS2200-WiFi library and (unless ``loader_check`` is
+    off) the bootloader files, or FlashError with the commands that install the missing one."""
     cli = builder.exe
+    ino = builder.sketch / f"{builder.sketch.name}.ino"
+    if not ino.is_file():
+        raise FlashError(f"{ino}: missing; --sketch must be the firmware's sketch folder (firmware/cubecam)")
     if PLATFORM_ID not in installed_platforms(cli):
         raise missing_board_package()
     if GS2200_LIBRARY not in installed_libraries(cli):
