@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 
 from cubetrack.core.cameras import CameraIntrinsics, WorldConfig
+from cubetrack.core.errors import CubetrackError
 from cubetrack.core.layout import CubeLayout
 from cubetrack.core.records import CameraHealth, CameraView, TrackedPose
 from cubetrack.io.trajectory import PoseWriter
@@ -27,6 +28,10 @@ from cubetrack.io.trajectory import PoseWriter
 log = logging.getLogger(__name__)
 
 QUEUE_ITEMS = 256  # per decoupled sink: about 8 s of poses of one robot at 30 Hz
+
+
+class OutputError(CubetrackError):
+    """An output (Zenoh, ROS 2, VRPN, Foxglove, MCAP) cannot start: a bad address, a port in use."""
 
 
 @dataclass(frozen=True, slots=True, eq=False)
