@@ -34,6 +34,18 @@ class OutputError(CubetrackError):
     """An output (Zenoh, ROS 2, VRPN, Foxglove, MCAP) cannot start: a bad address, a port in use."""
 
 
+def is_loopback_host(host: str) -> bool:
+    """Whether ``host`` (a name or an IPv4/IPv6 address) is this machine's loopback."""
+    import ipaddress
+
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
 @dataclass(frozen=True, slots=True, eq=False)
 class CameraSetup:
     """One camera as the session knows it: ``T_world_cam`` (None until calibrated) and intrinsics."""

@@ -16,12 +16,11 @@ import re
 from dataclasses import dataclass, replace
 from pathlib import Path
 
-from cubetrack.sink.base import OutputError
+from cubetrack.sink.base import OutputError, is_loopback_host
 
 log = logging.getLogger(__name__)
 
 DEFAULT_PORT = 7447
-LOOPBACK_HOSTS = ("127.0.0.1", "localhost", "[::1]", "::1")
 
 
 @dataclass(frozen=True, slots=True)
@@ -56,8 +55,7 @@ def ros_endpoints(listen: tuple[str, ...] = (), connect: tuple[str, ...] = (), m
 def is_loopback(locator: str) -> bool:
     """Whether a locator such as ``tcp/127.0.0.1:7447`` names a loopback address."""
     match = re.match(r"^[a-z0-9]+/(\[[^\]]*\]|[^:/]*)", locator)
-    host = match.group(1) if match else ""
-    return host in LOOPBACK_HOSTS or host.startswith("127.")
+    return is_loopback_host(match.group(1).strip("[]") if match else "")
 
 
 def _config(endpoints: ZenohEndpoints):
