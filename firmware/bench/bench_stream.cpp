@@ -43,6 +43,7 @@ struct EndlessCamera : Camera {
         return true;
     }
     void release(int) {}
+    CameraRestart restart() { return CameraRestart::Done; }  // never stalls
 };
 
 struct SinkNetwork : Network {

@@ -5,6 +5,7 @@
 #include <Arduino.h>
 
 #include "src/core/node.h"
+#include "src/spresense/arduino_core.h"
 #include "src/spresense/board.h"
 #include "src/spresense/camera.h"
 #include "src/spresense/gs2200.h"
@@ -31,7 +32,6 @@ struct Board {
 
     Board()
         : system(kWatchdogMs),
-          camera(clock),
           wifi(kWifiBoard, clock),
           node(cubecam::Hardware{camera, wifi, wifi, serial, storage, clock, leds, system, "CXD5602"}) {}
 };

@@ -39,6 +39,8 @@ public:
     uint32_t latest_seq();
     bool acquire_latest(Frame& out);
     void release(int lease);
+    // The files never stop: there is nothing to restart.
+    CameraRestart restart() { return CameraRestart::Done; }
     int leases_out() const { return leases_out_; }
 private:
     Clock& clock_;

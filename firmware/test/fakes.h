@@ -36,6 +36,8 @@ struct Camera : cubecam::Camera {
     int out = 0;
     int peak_out = 0;
     int bad_releases = 0;
+    int restarts = 0;
+    CameraRestart restart_result = CameraRestart::Done;
     bool held[kLeases] = {};
     std::vector<uint8_t> held_data[kLeases];
 
@@ -69,6 +71,11 @@ struct Camera : cubecam::Camera {
         }
         held[lease] = false;
         --out;
+    }
+    CameraRestart restart() override {
+        if (out > 0) return CameraRestart::Busy;
+        ++restarts;
+        return restart_result;
     }
 };
 

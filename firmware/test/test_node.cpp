@@ -327,3 +327,41 @@ TEST_CASE("measured fps follows the camera") {
     CHECK(measured > 28.0);
     CHECK(measured < 32.0);
 }
+
+TEST_CASE("a camera that stops delivering frames is restarted, once no frame is lent out") {
+    Board b;
+    b.store(provisioned("lab"));
+    b.wifi.next = JoinStatus::Joined;
+    Node node(b.hw);
+    node.boot();
+    b.run(node, kCameraStallMs * 2);
+    CHECK(b.camera.restarts == 0);  // no frame yet: nothing stopped
+    b.camera.capture(fake::jpeg(100, 1), b.clock.now_us);
+    Frame lent;
+    REQUIRE(b.camera.acquire_latest(lent));  // a client still sends it
+    b.run(node, kCameraStallMs + 10);
+    CHECK(b.camera.restarts == 0);
+    b.camera.release(lent.lease);
+    b.run(node, 2);
+    CHECK(b.camera.restarts == 1);
+    CHECK(b.serial.out.find("[W][camera] no frame for 5 s; camera restarted") != std::string::npos);
+    b.camera.capture(fake::jpeg(100, 2), b.clock.now_us);  // frames again: the count starts over
+    b.run(node, kCameraStallMs - 10);
+    CHECK(b.camera.restarts == 1);
+    b.run(node, (kMaxCameraRestarts + 1) * kCameraStallMs);
+    CHECK(b.camera.restarts == 1 + kMaxCameraRestarts);  // three more, then it gives up
+    CHECK(b.serial.out.find("[E][node] camera: no frames after 3 restarts") != std::string::npos);
+    CHECK((b.leds.mask & kLedError) != 0);
+}
+
+TEST_CASE("a camera that does not come back from a restart latches an error") {
+    Board b;
+    b.store(provisioned("lab"));
+    Node node(b.hw);
+    node.boot();
+    b.camera.capture(fake::jpeg(100, 1), b.clock.now_us);
+    b.camera.restart_result = CameraRestart::Failed;
+    b.run(node, 3 * kCameraStallMs);
+    CHECK(b.camera.restarts == 1);
+    CHECK(b.serial.out.find("camera: no frames, and it did not start again") != std::string::npos);
+}

@@ -11,6 +11,10 @@ namespace cubecam {
 
 struct Settings;
 
+// Sizes the hardware implementations provide for.
+const size_t kMaxClients = 4;     // frames lent out at once: one per HTTP client
+const uint16_t kNetChunk = 1400;  // largest Network::write (GS2200M bulk write: 1400 data bytes)
+
 // One camera frame lent to the core. `lease` identifies the loan; the buffer
 // stays valid until release(lease).
 struct Frame {
@@ -21,6 +25,8 @@ struct Frame {
     int lease;
 };
 
+enum class CameraRestart : uint8_t { Done, Busy, Failed };
+
 class Camera {
 public:
     // Sequence number of the newest captured frame, 0 before the first one.
@@ -28,6 +34,9 @@ public:
     // Lend the newest frame. False when there is none yet or no free lease.
     virtual bool acquire_latest(Frame& out) = 0;
     virtual void release(int lease) = 0;
+    // Stop and start the camera again (it stopped delivering frames). Busy
+    // while a frame is lent out: call again once it is released.
+    virtual CameraRestart restart() = 0;
 protected:
     ~Camera() {}
 };

@@ -11,8 +11,6 @@
 
 namespace cubecam {
 
-const size_t kMaxClients = 4;         // GS2200M has 16 CIDs; RAM and air time are the limit
-const uint16_t kNetChunk = 1400;      // bytes per module write (GS2200M SPI frame minus headers)
 const size_t kClientTextCap = 1024;   // response head / small body / part header per client
 const uint32_t kRequestTimeoutMs = 5000;
 const uint32_t kStallTimeoutMs = 10000;

@@ -49,6 +49,9 @@ Node::Node(const Hardware& hw)
       fps_window_start_ms_(0),
       fps_window_seq_(0),
       fps_measured_milli_(0),
+      camera_seq_(0),
+      camera_seen_ms_(0),
+      camera_restarts_(0),
       leds_(0xFF) {
     settings_defaults(running_);
     edited_ = running_;
@@ -90,6 +93,7 @@ void Node::boot() {
     }
     uint32_t now = hw_.clock.millis();
     fps_window_start_ms_ = now;
+    camera_seen_ms_ = now;
     link_.begin(running_, now);
     if (link_.state() == LinkState::Unconfigured) {
         log('I', "link", "no network configured; waiting for Improv or the console");
@@ -113,6 +117,7 @@ bool Node::loop() {
         }
     }
     measure_fps(now);
+    watch_camera(now);
     uint8_t leds = status_leds(link_.state(), now, server_.frames_sent(), server_.streaming_count() > 0,
                                last_error_[0] != '\0');
     if (leds != leds_) {
@@ -139,6 +144,30 @@ void Node::measure_fps(uint32_t now) {
     fps_measured_milli_ = static_cast<uint32_t>(static_cast<uint64_t>(seq - fps_window_seq_) * 1000000u / elapsed);
     fps_window_seq_ = seq;
     fps_window_start_ms_ = now;
+}
+
+void Node::watch_camera(uint32_t now) {
+    uint32_t seq = hw_.camera.latest_seq();
+    if (seq != camera_seq_) {
+        camera_seq_ = seq;
+        camera_seen_ms_ = now;
+        camera_restarts_ = 0;
+        return;
+    }
+    if (seq == 0 || camera_restarts_ >= kMaxCameraRestarts || !reached(now, camera_seen_ms_ + kCameraStallMs)) return;
+    CameraRestart r = hw_.camera.restart();
+    if (r == CameraRestart::Busy) return;  // a client still sends the last frame
+    camera_seen_ms_ = now;
+    if (r == CameraRestart::Failed) {
+        camera_restarts_ = kMaxCameraRestarts;
+        set_error("camera: no frames, and it did not start again");
+        return;
+    }
+    if (++camera_restarts_ == kMaxCameraRestarts) {
+        set_error("camera: no frames after 3 restarts");
+        return;
+    }
+    log('W', "camera", "no frame for 5 s; camera restarted");
 }
 
 NodeStatus Node::status() const {

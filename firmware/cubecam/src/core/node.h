@@ -37,6 +37,11 @@ const uint16_t kFrameWidth = 640;
 const uint16_t kFrameHeight = 480;
 const uint32_t kRebootDelayMs = 100;   // lets "OK" leave the UART first
 const uint32_t kFpsWindowMs = 2000;
+// A camera that delivered frames and then none for this long is restarted
+// (37 frame periods at 7.5 fps); after this many restarts in a row without a
+// frame the node gives up and latches an error.
+const uint32_t kCameraStallMs = 5000;
+const uint8_t kMaxCameraRestarts = 3;
 
 class Node : private ConsoleHost, private LineSink {
 public:
@@ -78,6 +83,7 @@ private:
     void on_link_event(LinkEvent ev, uint32_t now);
     void drop_network();
     void measure_fps(uint32_t now);
+    void watch_camera(uint32_t now);
     NodeStatus status() const;
 
     Hardware hw_;
@@ -96,6 +102,9 @@ private:
     uint32_t fps_window_start_ms_;
     uint32_t fps_window_seq_;
     uint32_t fps_measured_milli_;
+    uint32_t camera_seq_;
+    uint32_t camera_seen_ms_;
+    uint8_t camera_restarts_;
     uint8_t leds_;
 };
 

@@ -14,34 +14,6 @@ const uint8_t kLedPins[4] = {LED0, LED1, LED2, LED3};
 
 }  // namespace
 
-ArduinoClock::ArduinoClock() : last_raw_(0), high_(0) {}
-
-uint32_t ArduinoClock::millis() { return ::millis(); }
-
-uint64_t ArduinoClock::micros() {
-    uint32_t raw = ::micros();
-    if (raw < last_raw_) high_ += 1ull << 32;
-    last_raw_ = raw;
-    return high_ | raw;
-}
-
-uint64_t ArduinoClock::widen(uint32_t raw) {
-    uint64_t now = micros();
-    return now - static_cast<uint32_t>(static_cast<uint32_t>(now) - raw);
-}
-
-size_t UartSerial::read(uint8_t* buf, size_t cap) {
-    size_t n = 0;
-    while (n < cap && Serial.available() > 0) {
-        int c = Serial.read();
-        if (c < 0) break;
-        buf[n++] = static_cast<uint8_t>(c);
-    }
-    return n;
-}
-
-void UartSerial::write(const uint8_t* data, size_t len) { Serial.write(data, len); }
-
 bool EepromStorage::load(uint8_t* buf, size_t len) {
     if (len > EEPROM.length()) return false;
     for (size_t i = 0; i < len; ++i) buf[i] = EEPROM.read(static_cast<int>(i));

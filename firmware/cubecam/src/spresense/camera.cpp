@@ -2,6 +2,8 @@
 
 #include <Arduino.h>
 
+#include <new>
+
 namespace cubecam {
 namespace spresense {
 
@@ -19,9 +21,9 @@ CAM_VIDEO_FPS video_fps(FrameRate r) {
     return CAM_VIDEO_FPS_15;
 }
 
-// The JPEG buffer is 640*480*2/divisor bytes; a frame that does not fit is
-// delivered empty. Higher quality needs a bigger buffer: 87.7 kB up to 70,
-// 122.9 kB up to 85, 153.6 kB above.
+// The JPEG buffer is 640*480*2/divisor bytes (ImgBuff::calc_img_size in
+// Camera.cpp); a frame that does not fit is delivered empty. Higher quality
+// needs a bigger buffer: 87.7 kB up to 70, 122.9 kB up to 85, 153.6 kB above.
 int jpeg_divisor(uint8_t quality) { return quality <= 70 ? 7 : quality <= 85 ? 5 : 4; }
 
 const char* camera_error(CamErr e) {
@@ -34,11 +36,35 @@ const char* camera_error(CamErr e) {
     }
 }
 
+class Locked {
+public:
+    explicit Locked(pthread_mutex_t& m) : m_(m) { pthread_mutex_lock(&m_); }
+    ~Locked() { pthread_mutex_unlock(&m_); }
+private:
+    pthread_mutex_t& m_;
+};
+
 }  // namespace
 
-SpresenseCamera::SpresenseCamera(ArduinoClock& clock) : clock_(clock), seq_(0), latest_raw_us_(0) {}
+void HeldImage::hold(const CamImage& src) {
+    drop();
+    new (storage_) CamImage(src);
+    held_ = true;
+}
+
+void HeldImage::drop() {
+    if (!held_) return;
+    held_ = false;
+    image().~CamImage();
+}
+
+SpresenseCamera::SpresenseCamera() : seq_(0), latest_us_(0) {
+    settings_defaults(settings_);
+    pthread_mutex_init(&lock_, 0);
+}
 
 const char* SpresenseCamera::begin(const Settings& s) {
+    settings_ = s;
     g_camera = this;
     CamErr e = theCamera.begin(kCameraBuffers, video_fps(s.fps), CAM_IMGSIZE_VGA_H, CAM_IMGSIZE_VGA_V,
                                CAM_IMAGE_PIX_FMT_JPG, jpeg_divisor(s.jpeg_quality));
@@ -50,33 +76,35 @@ const char* SpresenseCamera::begin(const Settings& s) {
 
 void SpresenseCamera::on_frame(CamImage img) {
     if (!img.isAvailable()) return;  // the JPEG did not fit its buffer
-    uint32_t now = ::micros();
-    CamImage previous;
-    noInterrupts();
-    previous = g_camera->latest_;
-    g_camera->latest_ = img;
-    g_camera->latest_raw_us_ = now;
-    g_camera->seq_ = g_camera->seq_ + 1;
-    interrupts();
-    // `previous` goes out of scope here: its buffer returns to the driver
-    // outside the critical section (unless a client still holds it).
+    g_camera->publish(img, ::micros());
+}
+
+void SpresenseCamera::publish(const CamImage& img, uint64_t captured_us) {
+    // The frame it replaces goes back to the driver when `previous` goes out
+    // of scope, after the lock (unless a client still holds it).
+    HeldImage previous;
+    Locked lock(lock_);
+    if (latest_.held()) previous.hold(latest_.image());
+    latest_.hold(img);
+    latest_us_ = captured_us;
+    seq_ = seq_ + 1;
 }
 
 uint32_t SpresenseCamera::latest_seq() { return seq_; }
 
 bool SpresenseCamera::acquire_latest(Frame& out) {
     for (size_t i = 0; i < kMaxClients; ++i) {
-        if (leased_[i].isAvailable()) continue;
-        noInterrupts();
-        leased_[i] = latest_;
-        uint32_t seq = seq_;
-        uint32_t raw = latest_raw_us_;
-        interrupts();
-        if (!leased_[i].isAvailable()) return false;
-        out.data = leased_[i].getImgBuff();
-        out.size = static_cast<uint32_t>(leased_[i].getImgSize());
-        out.seq = seq;
-        out.capture_us = clock_.widen(raw);
+        HeldImage& lease = leased_[i];
+        if (lease.held()) continue;
+        {
+            Locked lock(lock_);
+            if (!latest_.held()) return false;
+            lease.hold(latest_.image());
+            out.seq = seq_;
+            out.capture_us = latest_us_;
+        }
+        out.data = lease.image().getImgBuff();
+        out.size = static_cast<uint32_t>(lease.image().getImgSize());
         out.lease = static_cast<int>(i);
         return true;
     }
@@ -84,7 +112,22 @@ bool SpresenseCamera::acquire_latest(Frame& out) {
 }
 
 void SpresenseCamera::release(int lease) {
-    if (lease >= 0 && static_cast<size_t>(lease) < kMaxClients) leased_[lease] = CamImage();
+    if (lease >= 0 && static_cast<size_t>(lease) < kMaxClients) leased_[lease].drop();
+}
+
+CameraRestart SpresenseCamera::restart() {
+    for (size_t i = 0; i < kMaxClients; ++i) {
+        if (leased_[i].held()) return CameraRestart::Busy;
+    }
+    // No callback runs once streaming is off; then nothing of ours refers to
+    // the library's buffers, which end() deletes whatever their references.
+    theCamera.startStreaming(false, 0);
+    {
+        Locked lock(lock_);
+        latest_.drop();
+    }
+    theCamera.end();
+    return begin(settings_) ? CameraRestart::Failed : CameraRestart::Done;
 }
 
 }  // namespace spresense

@@ -58,11 +58,25 @@ Gs2200Module::Gs2200Module(ModuleType type, Clock& clock)
 
 bool Gs2200Module::reset_module() {
     if (!spi_ready_) {
+        // Begins SPI5 and leaves a 4 MHz transaction open (GS2200Hal.cpp,
+        // Init_GS2200_SPI_cs): the bus stays ours from here on.
         Init_GS2200_SPI_type(type_);
-        SPI5.beginTransaction(SPISettings(kSpiClockHz, MSBFIRST, SPI_MODE1));  // the library's mode, faster
         spi_ready_ = true;
     }
+    use_fast_clock();
+    // What the module said while nobody listened (its boot banner, events of
+    // a lost link) would otherwise be taken as the answer to AT.
+    for (int i = 0; i < kMaxDrained && Get_GPIO37Status(); ++i) AtCmd_RecvResponse();
     return AtCmd_AT() == ATCMD_RESP_OK;
+}
+
+void Gs2200Module::use_fast_clock() {
+    // The bus lock is not recursive (a NuttX nxmutex): end the library's
+    // transaction before starting ours, or the task blocks for good. The
+    // library's write retry starts a 4 MHz one again (WiFi_Write,
+    // reinit_spi), so this runs before every bulk write too.
+    SPI5.endTransaction();
+    SPI5.beginTransaction(SPISettings(kSpiClockHz, MSBFIRST, SPI_MODE1));
 }
 
 bool Gs2200Module::start_join(const Settings& s) {
@@ -74,32 +88,34 @@ bool Gs2200Module::start_join(const Settings& s) {
     AtCmd_WRXACTIVE(1);
     join_failed_ = false;
     next_status_ms_ = clock_.millis();
-    if (ap) {
-        join_failed_ = telit_.activate_ap(String(s.ssid), String(s.password), kAccessPointChannel) != 0;
-        return true;
-    }
-    if (s.ip.dhcp) {
-        AtCmd_NDHCP(1);
-    } else {
+    if (ap || !s.ip.dhcp) {
+        // An access point needs an address of its own to serve DHCP from.
+        static const uint8_t kDefaultAp[4] = {192, 168, 1, 1};
+        bool own = !s.ip.dhcp;
         char addr[16], mask[16], gw[16];
         uint8_t m[4];
-        uint32_t bits = s.ip.prefix >= 32 ? 0xFFFFFFFFu : ~(0xFFFFFFFFu >> s.ip.prefix);
+        uint8_t prefix = own ? s.ip.prefix : 24;
+        uint32_t bits = prefix >= 32 ? 0xFFFFFFFFu : ~(0xFFFFFFFFu >> prefix);
         for (int i = 0; i < 4; ++i) m[i] = static_cast<uint8_t>(bits >> (24 - 8 * i));
         TextBuf a(addr, sizeof addr), k(mask, sizeof mask), g(gw, sizeof gw);
-        a.add_ipv4(s.ip.address);
+        a.add_ipv4(own ? s.ip.address : kDefaultAp);
         k.add_ipv4(m);
-        g.add_ipv4(s.ip.gateway);
-        AtCmd_NDHCP(0);
+        g.add_ipv4(own ? s.ip.gateway : kDefaultAp);
+        if (!ap) AtCmd_NDHCP(0);
         AtCmd_NSET(addr, mask, gw);
+    } else {
+        AtCmd_NDHCP(1);
     }
     AtCmd_WD();
-    // Settings validation keeps both printable and comma-free, so they fit
-    // this buffer and the module's comma-separated syntax.
+    // Our own AT+WPAPSK: the library's (AtCmd_WPAPSK, which activate_ap() and
+    // activate_station() use) formats into a 60-byte buffer that SSID 32 +
+    // passphrase 63 overflow. Settings validation keeps both printable and
+    // comma-free, so they fit this buffer and the module's syntax.
     char cmd[16 + kMaxSsid + kMaxPassphrase];
     TextBuf c(cmd, sizeof cmd);
     c.add("AT+WPAPSK=").add(s.ssid).add(',').add(s.password).add("\r\n");
     if (s.password[0] && AtCmd_SendCommand(cmd) != ATCMD_RESP_OK) return false;
-    join_failed_ = AtCmd_WA(s.ssid, "", 0) != ATCMD_RESP_OK;
+    join_failed_ = AtCmd_WA(s.ssid, "", ap ? kAccessPointChannel : 0) != ATCMD_RESP_OK;
     return true;
 }
 
@@ -116,6 +132,9 @@ JoinStatus Gs2200Module::join_status(LinkInfo& info) {
 }
 
 size_t Gs2200Module::scan(ScanEntry* out, size_t max) {
+    // A fresh board scans before any join: SPI5 is not set up until then, and
+    // the SPI library ignores every call on a bus that has not begun.
+    if (!spi_ready_ && !reset_module()) return 0;
     // The library has no scan wrapper. Lines are "<bssid>, <ssid>, <channel>,
     // <type>, <rssi>, <security>" (Telit AT guide; not checked on hardware).
     char cmd[] = "AT+WS\r\n";
@@ -202,6 +221,7 @@ WriteResult Gs2200Module::write(uint8_t cid, const uint8_t* data, uint16_t len) 
     // <ESC> 'Z' <cid> <4 ASCII digits> <data>, in one SPI write.
     WriteResult r = {WriteStatus::Ok, 0};
     if (len > kNetChunk) len = kNetChunk;
+    use_fast_clock();
     tx_[0] = ATCMD_ESC;
     tx_[1] = 'Z';
     tx_[2] = static_cast<uint8_t>(cid_char(cid));

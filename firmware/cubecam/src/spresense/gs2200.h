@@ -2,14 +2,14 @@
 // by connection id) and WifiControl. Uses the GS2200-WiFi library's SPI and
 // AT layer, but routes incoming data by CID itself (the library's read()
 // drops data for other CIDs) and sends its own bulk-write and WPAPSK commands
-// (the library's WPAPSK buffer is 60 bytes; SSID 32 + passphrase 63 do not fit).
+// (the library's WPAPSK buffer is 60 bytes; SSID 32 + passphrase 63 do not
+// fit), in station and access-point mode alike.
 #ifndef CUBECAM_SPRESENSE_GS2200_H
 #define CUBECAM_SPRESENSE_GS2200_H
 
 #include <TelitWiFi.h>
 
 #include "../core/hal.h"
-#include "../core/http_server.h"
 #include "../core/settings.h"
 
 namespace cubecam {
@@ -22,6 +22,8 @@ const uint32_t kNetStatusPollMs = 500;  // AT+NSTAT while joining, at most this 
 // tried on a board: set 4000000 to get the library's clock back.
 const uint32_t kSpiClockHz = 8000000;
 const uint8_t kAccessPointChannel = 6;
+// Module messages read and dropped before a module reset (at most).
+const int kMaxDrained = 8;
 
 class Gs2200Module : public Network, public WifiControl {
 public:
@@ -39,6 +41,7 @@ public:
     JoinStatus join_status(LinkInfo& info);
     size_t scan(ScanEntry* out, size_t max);
 private:
+    void use_fast_clock();
     ModuleType type_;
     Clock& clock_;
     TelitWiFi telit_;

@@ -1,0 +1,326 @@
+// The node's life with the real Spresense adapters over the real library code
+// (Camera.cpp's image buffers and threads, GS2200Hal / GS2200AtCmd /
+// TelitWiFi), on the host fakes of the layer beneath them (hostlib/). Each
+// case starts from power-on; pytest runs each in its own process.
+#include <doctest/doctest.h>
+#include <string.h>
+
+#include <algorithm>
+#include <chrono>
+#include <string>
+#include <thread>
+#include <vector>
+
+#include "core/node.h"
+#include "hostlib/gs2200m.h"
+#include "hostlib/hostlib.h"
+#include "hostlib/video_driver.h"
+#include "spresense/arduino_core.h"
+#include "spresense/camera.h"
+#include "spresense/gs2200.h"
+#include "test/fakes.h"
+
+namespace {
+
+using namespace cubecam;
+using hostlib::module;
+using hostlib::video_driver;
+
+const char kPassphrase[] = "correct horse battery staple";
+
+Settings station(const char* ssid, const char* password) {
+    Settings s;
+    settings_defaults(s);
+    strcpy(s.ssid, ssid);
+    strcpy(s.password, password);
+    return s;
+}
+
+// Ends the real camera (its threads) after everything holding its images is gone.
+struct CameraSession {
+    ~CameraSession() { theCamera.end(); }
+};
+
+// The node as cubecam.ino builds it; the settings record and LEDs are fakes.
+struct Board {
+    CameraSession session;
+    spresense::ArduinoClock clock;
+    spresense::UartSerial serial;
+    fake::Storage storage;
+    fake::Leds leds;
+    fake::System system;
+    spresense::SpresenseCamera camera;
+    spresense::Gs2200Module wifi;
+    Node node;
+
+    explicit Board(const Settings* s, ModuleType type = iS110B_TypeA)
+        : wifi(type, clock), node(Hardware{camera, wifi, wifi, serial, storage, clock, leds, system, "CXD5602"}) {
+        if (s) {
+            uint8_t rec[kSettingsRecordSize];
+            settings_encode(*s, rec);
+            storage.bytes.assign(rec, rec + sizeof rec);
+        }
+    }
+
+    // What setup() does.
+    void boot() {
+        node.boot();
+        const char* error = camera.begin(node.running());
+        if (error) node.set_error(error);
+    }
+
+    // Runs loop() (1 ms of device time per pass) until done() or the passes run out.
+    template <class Done>
+    bool run_until(Done done, int passes = 20000) {
+        for (int i = 0; i < passes; ++i) {
+            if (done()) return true;
+            node.loop();
+            hostlib::advance_ms(1);
+        }
+        return done();
+    }
+
+    // The sensor delivers a frame; waits until the camera callback published it.
+    void capture(const std::vector<uint8_t>& jpeg) {
+        uint32_t before = camera.latest_seq();
+        REQUIRE(video_driver().capture(jpeg));
+        for (int i = 0; i < 2000 && camera.latest_seq() == before; ++i) {
+            std::this_thread::sleep_for(std::chrono::milliseconds(1));
+        }
+        REQUIRE(camera.latest_seq() == before + 1);
+    }
+};
+
+void check_no_violations() {
+    for (const std::string& v : hostlib::violations()) FAIL_CHECK(v);
+}
+
+void check_secret_kept(const char* secret) {
+    CHECK(hostlib::serial_output().find(secret) == std::string::npos);
+}
+
+uint8_t http_get(const char* path) {
+    uint8_t cid = module().client_connect();
+    module().client_send(cid, std::string("GET ") + path + " HTTP/1.1\r\nHost: cubecam\r\n\r\n");
+    return cid;
+}
+
+// The JPEG bodies of a multipart stream, each as Content-Length says.
+std::vector<std::string> jpeg_parts(const std::string& stream) {
+    std::vector<std::string> parts;
+    const std::string key = "Content-Length: ";
+    for (size_t at = stream.find(key); at != std::string::npos; at = stream.find(key, at + 1)) {
+        size_t len = static_cast<size_t>(atol(stream.c_str() + at + key.size()));
+        size_t body = stream.find("\r\n\r\n", at);
+        if (body == std::string::npos || body + 4 + len > stream.size()) break;
+        parts.push_back(stream.substr(body + 4, len));
+    }
+    return parts;
+}
+
+std::vector<std::string> lines_of(const std::string& out) {
+    std::vector<fake::DecodedFrame> frames;
+    std::vector<std::string> lines;
+    fake::split_output(out, frames, lines);
+    return lines;
+}
+
+std::string text(const std::vector<uint8_t>& v) { return std::string(v.begin(), v.end()); }
+
+// Everything back to power-on, with two networks around.
+struct PowerOn {
+    PowerOn() {
+        hostlib::power_on();
+        module().networks = {{"lab", kPassphrase, -48, 6}, {"guest", "", -71, 11}};
+    }
+};
+
+// A node that booted with these settings and serves.
+struct Joined {
+    PowerOn power;
+    Board board;
+    explicit Joined(const Settings& s = station("lab", kPassphrase)) : board(&s) {
+        board.boot();
+        REQUIRE(board.run_until([] { return module().listening(); }));
+    }
+};
+
+// A client on /stream that has received `first`.
+uint8_t viewer_of(Board& b, const std::vector<uint8_t>& first) {
+    b.capture(first);
+    uint8_t cid = http_get("/stream");
+    REQUIRE(b.run_until([&] { return jpeg_parts(module().peer(cid).received).size() == 1; }));
+    return cid;
+}
+
+}  // namespace
+
+TEST_CASE("boot: the node joins through the real GS2200 library and answers /status") {
+    Joined j;
+    CHECK(module().associated());
+    CHECK(module().joined_ssid() == "lab");
+    CHECK_FALSE(module().power_save());  // begin() turned it on; streaming wants it off
+    uint8_t cid = http_get("/status");
+    REQUIRE(j.board.run_until([cid] { return !module().peer(cid).received.empty() && !module().peer(cid).open; }));
+    const std::string& reply = module().peer(cid).received;
+    CHECK(reply.find("HTTP/1.1 200") == 0);
+    CHECK(reply.find("\"ip\":\"192.168.1.23\"") != std::string::npos);
+    check_no_violations();
+    check_secret_kept(kPassphrase);
+    // Contracts §2: log lines start with '['. The GS2200 library prints its
+    // own on the same port (ConsoleLog, GS2200Hal.cpp); this is the one a boot shows.
+    for (const std::string& line : lines_of(hostlib::serial_output())) {
+        if (line.empty() || line[0] != '[') CHECK(line == "GS2200 is ready to go.\r");  // println ends in CR LF
+    }
+}
+
+TEST_CASE("stream: four clients get whole frames; a fifth gets 503; a client leaves") {
+    Joined j;
+    Board& b = j.board;
+    REQUIRE(video_driver().streaming());
+    CHECK(video_driver().jpeg_quality() == b.node.running().jpeg_quality);
+    std::vector<std::vector<uint8_t>> frames;
+    for (uint8_t k = 1; k <= 8; ++k) frames.push_back(fake::jpeg(30000 + 1500 * k, k));
+    b.capture(frames[0]);
+
+    std::vector<uint8_t> clients;
+    for (int i = 0; i < 4; ++i) clients.push_back(http_get("/stream"));
+    uint8_t fifth = http_get("/stream");
+    auto parts_of = [](uint8_t cid) { return jpeg_parts(module().peer(cid).received); };
+    REQUIRE(b.run_until([&] { return !module().peer(fifth).open; }));
+    CHECK(module().peer(fifth).received.find("HTTP/1.1 503") == 0);
+
+    for (size_t k = 0; k < 4; ++k) {
+        if (k > 0) b.capture(frames[k]);
+        REQUIRE(b.run_until([&] {
+            for (uint8_t c : clients) {
+                if (parts_of(c).size() < k + 1) return false;
+            }
+            return true;
+        }));
+    }
+    // One client leaves; the others go on, and its frame goes back to the driver.
+    module().client_close(clients[1]);
+    for (size_t k = 4; k < 8; ++k) {
+        b.capture(frames[k]);
+        REQUIRE(b.run_until([&] { return parts_of(clients[0]).size() == k + 1 && parts_of(clients[3]).size() == k + 1; }));
+    }
+    for (uint8_t c : clients) {
+        for (const std::string& part : parts_of(c)) {
+            bool intact = false;
+            for (const auto& f : frames) intact = intact || part == text(f);
+            CHECK_MESSAGE(intact, "client ", int(c), " got a frame that is not one the sensor delivered");
+        }
+    }
+    // Nothing is leased once the clients are between frames: the adapter keeps
+    // the newest frame and the driver has every other buffer.
+    REQUIRE(b.run_until([&] { return video_driver().queued_buffers() == spresense::kCameraBuffers - 1; }, 2000));
+    check_no_violations();
+}
+
+TEST_CASE("Wi-Fi drops and the module restarts; the node rejoins each time") {
+    Joined j;
+    Board& b = j.board;
+    viewer_of(b, fake::jpeg(20000, 1));
+
+    module().drop_association();
+    REQUIRE(b.run_until([] { return !module().listening(); }));
+    REQUIRE(b.run_until([] { return module().listening(); }));
+    module().reboot();
+    REQUIRE(b.run_until([] { return !module().listening(); }));
+    REQUIRE(b.run_until([] { return module().listening(); }));
+
+    uint8_t cid = http_get("/capture");
+    REQUIRE(b.run_until([cid] { return !module().peer(cid).open; }));
+    CHECK(module().peer(cid).received.find("HTTP/1.1 200") == 0);
+    CHECK(module().peer(cid).received.find(text(fake::jpeg(20000, 1))) != std::string::npos);
+    check_no_violations();
+}
+
+TEST_CASE("access point with a 32-byte SSID and a 63-byte passphrase") {
+    const std::string ssid(32, 'S');
+    const std::string pass = std::string(62, 'p') + "!";
+    Settings s = station(ssid.c_str(), pass.c_str());
+    s.mode = WifiMode::AccessPoint;
+    Joined j(s);
+    CHECK(module().access_point());
+    CHECK(module().joined_ssid() == ssid);
+    const auto& cmds = module().commands;
+    CHECK(std::find(cmds.begin(), cmds.end(), "AT+WPAPSK=" + ssid + "," + pass) != cmds.end());
+    uint8_t cid = http_get("/status");
+    REQUIRE(j.board.run_until([cid] { return !module().peer(cid).open; }));
+    CHECK(module().peer(cid).received.find("HTTP/1.1 200") == 0);
+    check_no_violations();
+    check_secret_kept(pass.c_str());
+}
+
+TEST_CASE("Improv scan on a fresh board lists the module's networks") {
+    PowerOn power;
+    Board b(nullptr);
+    b.boot();
+    b.run_until([] { return false; }, 50);
+    hostlib::serial_input(fake::improv_rpc(improv::Command::GetWifiNetworks, {}));
+    std::vector<std::vector<std::string>> results;
+    auto scan_done = [&] {
+        std::vector<fake::DecodedFrame> frames;
+        std::vector<std::string> lines;
+        fake::split_output(hostlib::serial_output(), frames, lines);
+        results.clear();
+        for (const fake::DecodedFrame& f : frames) {
+            if (f.type != improv::FrameType::RpcResult || f.data[0] != uint8_t(improv::Command::GetWifiNetworks)) continue;
+            std::vector<std::string> strings;
+            for (size_t at = 2; at < f.data.size(); at += 1 + f.data[at]) {
+                strings.push_back(std::string(f.data.begin() + long(at) + 1, f.data.begin() + long(at) + 1 + f.data[at]));
+            }
+            results.push_back(strings);
+        }
+        return !results.empty() && results.back().empty();
+    };
+    REQUIRE(b.run_until(scan_done, 200));
+    REQUIRE(results.size() == 3);
+    CHECK(results[0] == std::vector<std::string>{"lab", "-48", "YES"});
+    CHECK(results[1] == std::vector<std::string>{"guest", "-71", "NO"});
+    check_no_violations();
+}
+
+TEST_CASE("a write the module does not answer is retried; streaming stays at the fast SPI clock") {
+    Joined j;
+    Board& b = j.board;
+    b.capture(fake::jpeg(40000, 7));
+    module().ignore_write_requests = 1;
+    uint8_t cid = http_get("/capture");
+    REQUIRE(b.run_until([cid] { return !module().peer(cid).open; }));
+    CHECK(module().peer(cid).received.find(text(fake::jpeg(40000, 7))) != std::string::npos);
+    // The retried write went out at the library's 4 MHz (WiFi_Write restarts
+    // the transaction at SPI_FREQ); every other one at ours.
+    const std::vector<uint32_t>& clocks = module().bulk_clock_hz;
+    REQUIRE(clocks.size() >= 29);
+    CHECK(std::count(clocks.begin(), clocks.end(), 4000000u) == 1);
+    CHECK(std::count(clocks.begin(), clocks.end(), spresense::kSpiClockHz) == long(clocks.size()) - 1);
+    check_no_violations();
+}
+
+TEST_CASE("iS110B type C: the data-ready line on pin 20") {
+    PowerOn power;
+    hostlib::set_data_ready_pin(20);
+    Settings s = station("lab", kPassphrase);
+    Board b(&s, iS110B_TypeC);
+    b.boot();
+    CHECK(b.run_until([] { return module().listening(); }));
+    check_no_violations();
+}
+
+TEST_CASE("the camera stops delivering frames; the node restarts it and streaming goes on") {
+    Joined j;
+    Board& b = j.board;
+    uint8_t viewer = viewer_of(b, fake::jpeg(25000, 1));
+    REQUIRE(video_driver().opens() == 1);
+    REQUIRE(b.run_until([] { return video_driver().opens() == 2; }, int(kCameraStallMs) + 1000));
+    CHECK(hostlib::serial_output().find("[W][camera] no frame for 5 s; camera restarted") != std::string::npos);
+    CHECK(video_driver().streaming());
+    b.capture(fake::jpeg(26000, 2));
+    REQUIRE(b.run_until([&] { return jpeg_parts(module().peer(viewer).received).size() == 2; }));
+    CHECK(jpeg_parts(module().peer(viewer).received)[1] == text(fake::jpeg(26000, 2)));
+    REQUIRE(b.run_until([&] { return video_driver().queued_buffers() == spresense::kCameraBuffers - 1; }, 2000));
+    check_no_violations();
+}
