@@ -78,8 +78,10 @@ def T_from_rvec_tvec(rvec: np.ndarray, tvec: np.ndarray) -> np.ndarray:
 
 
 def rvec_tvec_from_T(T: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """OpenCV rotation vector (radians) and translation (metres) of a 4x4 pose."""
-    return Rotation.from_matrix(T[:3, :3]).as_rotvec(), T[:3, 3].copy()
+    """OpenCV rotation vector (radians) and translation (metres) of a 4x4 pose, each (3, 1) as
+    OpenCV's solvers take them (``cv2.Rodrigues``: ``solvePnPRefineLM`` treats (3,) vectors
+    differently)."""
+    return cv2.Rodrigues(np.asarray(T[:3, :3], dtype=np.float64))[0], T[:3, 3].reshape(3, 1).copy()
 
 
 def quat_xyzw_from_R(R: np.ndarray) -> np.ndarray:
@@ -154,8 +156,28 @@ def mean_rotation(Rs: np.ndarray, weights: np.ndarray | None = None) -> np.ndarr
 
 
 def is_finite_pose(T: np.ndarray) -> bool:
-    """True when every element of the pose is finite and its rotation part is orthonormal."""
-    if T.shape != (4, 4) or not np.all(np.isfinite(T)):
+    """True for a finite 4x4 pose whose rotation part is a rotation (orthonormal to 1e-6, det > 0).
+    In plain floats: it runs per camera frame."""
+    T = np.asarray(T)
+    if T.shape != (4, 4):
         return False
-    R = T[:3, :3]
-    return bool(np.allclose(R.T @ R, np.eye(3), atol=1e-6) and np.linalg.det(R) > 0)
+    (a, b, c, x), (d, e, f, y), (g, h, i, z), last = T.tolist()
+    if not math.isfinite(a + b + c + d + e + f + g + h + i + x + y + z + sum(last)):
+        return False
+    gram = (a * a + d * d + g * g - 1.0, b * b + e * e + h * h - 1.0, c * c + f * f + i * i - 1.0,
+            a * b + d * e + g * h, a * c + d * f + g * i, b * c + e * f + h * i)  # R^T R - I
+    det = a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
+    return max(abs(v) for v in gram) <= 1e-6 and det > 0.0
+
+
+# cv2.undistortPoints iterated to 1e-12 (OpenCV's default stops after five iterations)
+_UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12)
+
+
+def undistort_points(points_px: np.ndarray, K: np.ndarray, dist: np.ndarray,
+                     P: np.ndarray | None = None) -> np.ndarray:
+    """Distorted image points (..., 2) px to ideal ones, iterated to 1e-12: normalised image
+    coordinates (x/z, y/z), or with ``P`` (e.g. ``K``) pixels of that pinhole camera. Same shape."""
+    pts = np.asarray(points_px, dtype=np.float64)
+    out = cv2.undistortPoints(pts.reshape(-1, 1, 2), K, dist, None, P, criteria=_UNDISTORT_CRITERIA)
+    return out.reshape(pts.shape)

@@ -28,7 +28,7 @@ import numpy as np
 import tomli_w
 
 from cubetrack.core.errors import ConfigError
-from cubetrack.core.geometry import T_from_position_quat, make_T, position_quat_from_T
+from cubetrack.core.geometry import T_from_position_quat, invert_T, make_T, position_quat_from_T
 
 FACES = ("top", "front", "left", "back", "right")
 DEFAULT_DICTIONARY = "DICT_4X4_50"
@@ -63,15 +63,27 @@ class LayoutMarker:
 class CubeLayout:
     """A dictionary name and the markers on one cube.
 
-    Derived, read-only arrays in the order of ``markers``: ``corners_m`` (M, 4, 3) marker
-    corners in the cube frame (detector order), ``normals`` (M, 3) outward face normals in the
-    cube frame, ``marker_ids`` (M,)."""
+    Derived when the layout is made (read-only arrays in the order of ``markers``): the lookup
+    tables every stage that matches or projects the cube needs, so none keeps its own cache.
+
+    - ``corners_m`` (M, 4, 3): marker corners in the cube frame (detector order TL, TR, BR, BL);
+    - ``normals`` (M, 3): outward face normals in the cube frame;
+    - ``T_marker_cube`` (M, 4, 4): the inverse of each marker's ``T_cube_marker``;
+    - ``sizes_m`` (M,), ``marker_ids`` (M,);
+    - ``ids``: the set of ids; ``has_repeated_ids``: some id is on more than one face;
+    - :meth:`indices_of`: the markers carrying an id.
+    """
 
     dictionary: str
     markers: tuple[LayoutMarker, ...]
     corners_m: np.ndarray = field(init=False, repr=False)
     normals: np.ndarray = field(init=False, repr=False)
+    T_marker_cube: np.ndarray = field(init=False, repr=False)
+    sizes_m: np.ndarray = field(init=False, repr=False)
     marker_ids: np.ndarray = field(init=False, repr=False)
+    ids: frozenset[int] = field(init=False, repr=False)
+    has_repeated_ids: bool = field(init=False, repr=False)
+    _indices: dict[int, np.ndarray] = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
         if not self.markers:
@@ -82,22 +94,27 @@ class CubeLayout:
         derived = {
             "corners_m": np.array([m.corners_cube_m() for m in self.markers]),
             "normals": np.array([m.T_cube_marker[:3, 2] for m in self.markers]),
+            "T_marker_cube": np.array([invert_T(m.T_cube_marker) for m in self.markers]),
+            "sizes_m": np.array([m.size_m for m in self.markers], dtype=float),
             "marker_ids": np.array([m.marker_id for m in self.markers]),
         }
-        for name, value in derived.items():
+        indices = {int(i): np.flatnonzero(derived["marker_ids"] == i) for i in dict.fromkeys(derived["marker_ids"])}
+        for value in (*derived.values(), *indices.values()):
             value.setflags(write=False)
+        for name, value in derived.items():
             object.__setattr__(self, name, value)
+        object.__setattr__(self, "_indices", indices)
+        object.__setattr__(self, "ids", frozenset(indices))
+        object.__setattr__(self, "has_repeated_ids", len(indices) < len(self.markers))
 
-    @property
-    def ids(self) -> frozenset[int]:
-        return frozenset(m.marker_id for m in self.markers)
+    def indices_of(self, marker_id: int) -> np.ndarray:
+        """Indices into ``markers`` of the markers with ``marker_id``, in layout order (read-only;
+        empty for an id not on the cube)."""
+        return self._indices.get(marker_id, _NO_INDICES)
 
-    @property
-    def has_repeated_ids(self) -> bool:
-        return len(self.ids) < len(self.markers)
 
-    def markers_with_id(self, marker_id: int) -> tuple[LayoutMarker, ...]:
-        return tuple(m for m in self.markers if m.marker_id == marker_id)
+_NO_INDICES = np.zeros(0, dtype=np.intp)
+_NO_INDICES.setflags(write=False)
 
 
 def marker_corners_m(size_m: float) -> np.ndarray:
