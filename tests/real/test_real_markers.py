@@ -20,7 +20,8 @@ import pytest
 from cubetrack.core.geometry import T_from_rvec_tvec, invert_T, make_T
 from cubetrack.core.layout import CubeLayout, LayoutMarker
 from cubetrack.detect.detector import CornerRefinement, Detector, DetectorParams
-from cubetrack.estimate.pose import identify_faces, marker_pose
+from cubetrack.estimate.match import identify_faces
+from cubetrack.estimate.pose import marker_pose
 from cubetrack.io.camera_info import read_camera_info, write_camera_info
 
 REAL = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "real"

@@ -31,7 +31,7 @@ Steps (:func:`refine_extrinsics`):
 
 1. Per camera frame of the tracking recording: cube detections, a single-camera cube estimate
    (:func:`cubetrack.estimate.estimate_cube`) with the prior extrinsics, and the faces matched to
-   detections by :func:`cubetrack.estimate.reprojection.associate` at that estimate. Frames are grouped into
+   detections by :func:`cubetrack.estimate.match.match_faces` at that estimate. Frames are grouped into
    instants, each starting from its best-seen camera's estimate; the cube poses are solved with
    the prior cameras held (twice: the second time with velocities from the first).
 2. *Relative* solve: cube corners only, the gauge held by a weak prior on every camera.
@@ -68,7 +68,8 @@ from cubetrack.core.layout import CubeLayout, marker_corners_m
 from cubetrack.core.params import param
 from cubetrack.core.progress import Progress
 from cubetrack.core.records import Detection
-from cubetrack.estimate.reprojection import CornerSet, associate, moved_pose, normalize_px
+from cubetrack.estimate.match import body_detections, match_faces
+from cubetrack.estimate.reprojection import CornerSet, corner_set, moved_pose, normalize_px, pinhole_normalized
 from cubetrack.io.config import TrackerConfig
 
 if TYPE_CHECKING:
@@ -280,7 +281,7 @@ def cube_frames(config: TrackerConfig, recording: Recording, cameras: Sequence[s
             t = fits[camera].to_host(frame.device_time_s)
             for robot in config.robots:
                 lay = robot.layout
-                mine = tuple(d for d in detections if d.marker_id in lay.ids and d.dictionary in ("", lay.dictionary))
+                mine = body_detections(detections, lay)
                 if mine:
                     out.append(CubeFrame(camera, robot.name, frame.seq, t, mine))
     out.sort(key=lambda f: (f.time_s, f.camera))
@@ -296,8 +297,9 @@ def _frame_corners(frame: CubeFrame, layout: CubeLayout, intrinsics: CameraIntri
                         seq=frame.seq, capture_time_s=frame.time_s, arrival_time_s=frame.time_s)
     if est is None:
         return None
-    return associate(frame.detections, layout, est.T_world_cube, T_world_cam, intrinsics, frame.camera,
-                     frame.time_s, params.association_gate_px)
+    matches = match_faces(frame.detections, layout, intrinsics, T_world_cam, est.T_world_cube,
+                          gate_px=params.association_gate_px)
+    return corner_set(matches, intrinsics, T_world_cam, frame.camera, frame.time_s)
 
 
 def group_instants(frames: Sequence[CubeFrame], max_span_s: float, min_cameras: int) -> list[list[CubeFrame]]:
@@ -404,12 +406,7 @@ def _apply(T0: np.ndarray, x: np.ndarray) -> np.ndarray:
 def _project(T_world_cam: np.ndarray, cam: np.ndarray, points_world: np.ndarray) -> np.ndarray:
     """Normalised projections of (N, 3) world points in cameras ``cam``; NaN behind a camera."""
     R = T_world_cam[cam, :3, :3]
-    pc = np.einsum("nji,nj->ni", R, points_world - T_world_cam[cam, :3, 3])
-    z = pc[:, 2:3]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        out = pc[:, :2] / z
-    out[z[:, 0] <= 1e-6] = np.nan
-    return out
+    return pinhole_normalized(np.einsum("nji,nj->ni", R, points_world - T_world_cam[cam, :3, 3]))
 
 
 def _corner_residuals_px(prob: _Problem, T_cams: np.ndarray, T_cubes: np.ndarray) -> np.ndarray:
@@ -628,8 +625,9 @@ def _rematch(instants: Sequence[Instant], T_cubes: np.ndarray, vel: np.ndarray, 
         sets = []
         for f in instant.frames:
             T = moved_pose(T_cubes[k], vel[k], angvel[k], f.time_s - instant.time_s)
-            s = associate(f.detections, layouts[instant.robot], T, T_world_cam[f.camera], intrinsics[f.camera],
-                          f.camera, f.time_s, params.association_gate_px)
+            matches = match_faces(f.detections, layouts[instant.robot], intrinsics[f.camera], T_world_cam[f.camera], T,
+                                  gate_px=params.association_gate_px)
+            s = corner_set(matches, intrinsics[f.camera], T_world_cam[f.camera], f.camera, f.time_s)
             if s is not None:
                 sets.append((f, s))
         if len({f.camera for f, _ in sets}) >= params.min_cameras:

@@ -1,11 +1,11 @@
-"""The reprojection model of a body's corners in calibrated cameras (shared by fusion and calibration).
+"""The reprojection model of a body's matched corners in calibrated cameras (used by the filter,
+the multi-camera fit and the bundle adjustment).
 
-The paper fuses per-marker poses; each of those is a monocular estimate of a small marker, weak
-in depth and prone to planar flips. Here the unknown is the cube pose itself and the residual is
-the reprojection error of every detected cube corner in every camera (known ``T_world_cam``,
-``K`` and distortion), with a robust loss. Frames from different cameras taken at different
-times are motion-compensated with a velocity (from the filter): the cube at time ``t_i`` is
-``p_i = p + v (t_i - t)``, ``R_i = exp(ω (t_i - t)) R``.
+A :class:`CornerSet` is one camera frame's corners matched to the body's faces
+(:func:`cubetrack.estimate.match.match_faces`, made into a set by :func:`corner_set`), with the
+camera's known ``T_world_cam``, ``K`` and distortion. The residual of a body pose is the
+reprojection error of every corner; frames taken at different times are motion-compensated with
+a velocity: the body at time ``t_i`` is ``p_i = p + v (t_i - t)``, ``R_i = exp(ω (t_i - t)) R``.
 
 Pose increments are world-frame: ``R = exp(δθ) R0``, ``p = p0 + δp``; covariances are ordered
 ``[δp, δθ]`` (metres, radians). Pixel residuals are computed on undistorted, normalised points
@@ -14,15 +14,18 @@ scaled by the camera's focal length, so they are in pixels.
 
 from __future__ import annotations
 
+import warnings
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import cv2
 import numpy as np
 
+from cubetrack.core.cameras import CameraIntrinsics
 from cubetrack.core.geometry import R_from_rotvec, invert_T, make_T, so3_left_jacobian
 from cubetrack.core.layout import CubeLayout
 from cubetrack.core.records import Detection
+from cubetrack.estimate.match import FaceMatch, match_faces
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -49,59 +52,44 @@ def normalize_px(corners_px: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.
     return cv2.undistortPoints(pts, K, dist).reshape(-1, 2)
 
 
-def project_normalized(T_cam_world: np.ndarray, points_world_m: np.ndarray) -> np.ndarray:
-    """Pinhole projection of (N, 3) world points to normalised coordinates; NaN behind the camera."""
-    pc = points_world_m @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
-    z = pc[:, 2:3]
+def pinhole_normalized(points_cam_m: np.ndarray) -> np.ndarray:
+    """(N, 3) points in a camera's frame to normalised image coordinates (x/z, y/z); NaN for a
+    point behind the camera (z <= 1e-6 m)."""
+    z = points_cam_m[:, 2:3]
     with np.errstate(divide="ignore", invalid="ignore"):
-        out = pc[:, :2] / z
+        out = points_cam_m[:, :2] / z
     out[z[:, 0] <= 1e-6] = np.nan
     return out
 
 
-def associate(detections: Sequence[Detection], layout: CubeLayout, T_world_cube: np.ndarray,
-              T_world_cam: np.ndarray, intrinsics, camera: str, time_s: float,
-              gate_px: float, max_view_angle_deg: float = 80.0) -> CornerSet | None:
-    """Match detections to cube faces by where a predicted cube pose projects each face.
+def project_normalized(T_cam_world: np.ndarray, points_world_m: np.ndarray) -> np.ndarray:
+    """Pinhole projection of (N, 3) world points to normalised coordinates; NaN behind the camera."""
+    return pinhole_normalized(points_world_m @ T_cam_world[:3, :3].T + T_cam_world[:3, 3])
 
-    For each detection, every layout marker with its id is projected with ``T_world_cube``; the
-    one with the smallest mean corner distance wins if that distance is under ``gate_px``
-    (or under half the detected marker's side, whichever is larger). Faces facing away from the
-    camera, or whose normal is more than ``max_view_angle_deg`` from the line of sight, are not
-    candidates. Returns None when nothing matches.
-    """
+
+def corner_set(matches: Sequence[FaceMatch], intrinsics: CameraIntrinsics, T_world_cam: np.ndarray,
+               camera: str, time_s: float) -> CornerSet | None:
+    """The corner set of one camera frame's matched faces (in the order of ``matches``), or
+    None when nothing matched."""
+    if not matches:
+        return None
     K, dist = intrinsics.K, intrinsics.dist
-    T_cam_world = invert_T(T_world_cam)
-    T_cam_cube = T_cam_world @ T_world_cube
-    R_cc, t_cc = T_cam_cube[:3, :3], T_cam_cube[:3, 3]
-    corners_cam = layout.corners_m @ R_cc.T + t_cc                     # (M, 4, 3)
-    centres = corners_cam.mean(axis=1)
-    cos_view = -np.einsum("ij,ij->i", layout.normals @ R_cc.T, centres) / np.linalg.norm(centres, axis=1)
-    # facing away, or seen so obliquely that its corners are poor: not a candidate
-    visible = cos_view >= float(np.cos(np.radians(max_view_angle_deg)))
-    if not visible.any() or not detections:
-        return None
-    proj, _ = cv2.projectPoints(corners_cam.reshape(-1, 3), np.zeros(3), np.zeros(3), K, dist)
-    observed_px = np.array([d.corners_px for d in detections])          # (D, 4, 2)
-    distance = np.linalg.norm(proj.reshape(1, -1, 4, 2) - observed_px[:, None], axis=-1).mean(axis=-1)  # (D, M)
-    free = visible.copy()
-    picked: list[tuple[int, int]] = []  # (detection, marker)
-    for i, det in enumerate(detections):
-        candidates = free & (layout.marker_ids == det.marker_id)
-        if not candidates.any():
-            continue
-        k = int(np.argmin(np.where(candidates, distance[i], np.inf)))
-        if distance[i, k] > max(gate_px, 0.5 * float(np.sqrt(det.area_px2))):
-            continue
-        free[k] = False
-        picked.append((i, k))
-    if not picked:
-        return None
-    rows, markers = (list(v) for v in zip(*picked))
-    return CornerSet(camera, time_s, T_cam_world, float((K[0, 0] + K[1, 1]) / 2.0),
-                     layout.corners_m[markers].reshape(-1, 3),
-                     normalize_px(observed_px[rows].reshape(-1, 2), K, dist),
-                     tuple(layout.markers[k].face for k in markers))
+    return CornerSet(camera, time_s, invert_T(T_world_cam), float((K[0, 0] + K[1, 1]) / 2.0),
+                     np.concatenate([m.points_body_m for m in matches]),
+                     normalize_px(np.concatenate([m.detection.corners_px for m in matches]), K, dist),
+                     tuple(m.face for m in matches))
+
+
+def associate(detections: Sequence[Detection], layout: CubeLayout, T_world_cube: np.ndarray,
+              T_world_cam: np.ndarray, intrinsics: CameraIntrinsics, camera: str, time_s: float,
+              gate_px: float, max_view_angle_deg: float = 80.0) -> CornerSet | None:
+    """Deprecated: ``corner_set(match_faces(detections, layout, intrinsics, T_world_cam,
+    T_world_cube, gate_px=...), intrinsics, T_world_cam, camera, time_s)``."""
+    warnings.warn("cubetrack.estimate.reprojection.associate is deprecated; use corner_set(match_faces(...), ...)",
+                  DeprecationWarning, stacklevel=2)
+    matches = match_faces(detections, layout, intrinsics, T_world_cam, T_world_cube, gate_px=gate_px,
+                          max_view_angle_deg=max_view_angle_deg)
+    return corner_set(matches, intrinsics, T_world_cam, camera, time_s)
 
 
 def moved_pose(T_world_cube: np.ndarray, velocity_m_s: np.ndarray, angular_velocity_rad_s: np.ndarray,

@@ -38,7 +38,8 @@ from cubetrack.core.geometry import mean_rotation, quat_xyzw_from_R
 from cubetrack.core.layout import CubeLayout
 from cubetrack.core.params import param
 from cubetrack.core.records import CameraEstimate, CubeSighting, TrackedPose
-from cubetrack.estimate.reprojection import CornerSet, associate
+from cubetrack.estimate.match import match_faces
+from cubetrack.estimate.reprojection import CornerSet, corner_set
 from cubetrack.fuse.corner_filter import FilterParams, PoseFilter
 from cubetrack.fuse.multi_view_fit import solve_joint
 
@@ -195,9 +196,9 @@ class FilterFusion:
         return out
 
     def _corners(self, sighting: CubeSighting, T_world_cube: np.ndarray) -> CornerSet | None:
-        return associate(sighting.detections, self.layouts[sighting.robot], T_world_cube, sighting.T_world_cam,
-                         sighting.intrinsics, sighting.camera, sighting.capture_time_s,
-                         self.params.association_gate_px)
+        matches = match_faces(sighting.detections, self.layouts[sighting.robot], sighting.intrinsics,
+                              sighting.T_world_cam, T_world_cube, gate_px=self.params.association_gate_px)
+        return corner_set(matches, sighting.intrinsics, sighting.T_world_cam, sighting.camera, sighting.capture_time_s)
 
     def _process(self, sighting: CubeSighting, now_s: float) -> list[TrackedPose]:
         robot, t = sighting.robot, sighting.capture_time_s

@@ -8,21 +8,16 @@ import pytest
 from scenes import look_at
 from scipy.spatial.transform import Rotation
 
-import cubetrack.estimate.pose as estimate_module
+import cubetrack.estimate.marker as marker_module
 from cubetrack.core.cameras import CameraIntrinsics
 from cubetrack.core.errors import ConfigError, EstimationError
 from cubetrack.core.geometry import invert_T, make_T, rotation_angle, shoelace_area
 from cubetrack.core.layout import FACES, marker_corners_m, paper_cube_layout
 from cubetrack.core.params import params_from_table, params_to_table
 from cubetrack.core.records import Detection, MarkerPose
-from cubetrack.estimate.pose import (
-    EstimatorParams,
-    cube_tilt_deg,
-    estimate_cube,
-    identify_faces,
-    marker_pose,
-    world_marker_pose,
-)
+from cubetrack.estimate.marker import marker_pose
+from cubetrack.estimate.match import identify_faces
+from cubetrack.estimate.pose import EstimatorParams, cube_tilt_deg, estimate_cube, world_marker_pose
 
 K = np.array([[520.0, 0.0, 319.5], [0.0, 520.0, 239.5], [0.0, 0.0, 1.0]])
 PINHOLE = CameraIntrinsics(640, 480, K, np.zeros(5))
@@ -116,7 +111,7 @@ def test_marker_pose_drops_non_finite_behind_and_back_facing_solutions(monkeypat
     behind[2, 3] = -0.5
     back = T_true @ make_T(np.diag([-1.0, 1.0, -1.0]), [0, 0, 0])   # marker turned round
     fakes = {"candidates": [nan, behind, back]}
-    monkeypatch.setattr(estimate_module, "_ippe_square_candidates", lambda *a: fakes["candidates"])
+    monkeypatch.setattr(marker_module, "_ippe_square_candidates", lambda *a: fakes["candidates"])
     assert marker_pose(det, 0.05, PINHOLE) is None
     fakes["candidates"] = [nan, T_true, behind, back, T_true.copy()]
     mp = marker_pose(det, 0.05, PINHOLE)
@@ -127,7 +122,7 @@ def test_marker_pose_drops_non_finite_behind_and_back_facing_solutions(monkeypat
 def test_nan_from_opencv_never_escapes(monkeypatch):
     det = detection(PINHOLE, make_T(np.diag([1.0, -1.0, -1.0]), [0, 0, 0.5]), 0.05, 1)
     nan = np.full((3, 1), np.nan)
-    monkeypatch.setattr(estimate_module.cv2, "solvePnPGeneric",
+    monkeypatch.setattr(marker_module.cv2, "solvePnPGeneric",
                         lambda *a, **k: (2, (nan, nan), (nan, nan), np.full((2, 1), np.nan)))
     assert marker_pose(det, 0.05, PINHOLE) is None
 

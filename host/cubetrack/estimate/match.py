@@ -1,0 +1,212 @@
+"""The one matcher: a frame's marker detections -> the faces of a body, as 2D-3D corner pairs.
+
+It plays the role OpenCV's ``Board::matchImagePoints`` plays for a board (detected ids -> object
+points), for a body whose faces may repeat one id (the paper's cube) and whose single markers
+have two planar pose solutions. Everything that needs a body's corners matched calls it: the
+per-camera estimate (:func:`cubetrack.estimate.pose.estimate_cube`), the filter and the
+multi-camera fit (through :func:`cubetrack.estimate.reprojection.corner_set`) and the bundle
+adjustment of the extrinsics.
+
+:func:`match_faces` takes the detections, the body's layout, the camera (intrinsics and
+``T_world_cam``) and, when there is one, a predicted body pose. Only the body's own detections
+take part (:func:`body_detections`: one of its ids, in its dictionary). Which face a detection is
+gets settled
+
+- **by the predicted pose** when there is one (a running filter's prediction, a pose being
+  refined): the layout's faces are projected with it and each detection takes the nearest
+  unclaimed face with its id (mean corner distance under ``gate_px``, or half the detected
+  marker's side), among the faces that face the camera at most ``max_view_angle_deg`` off the
+  line of sight;
+- **without one** (:func:`identify_faces`): each detection's single-marker poses (both IPPE
+  solutions, :func:`cubetrack.estimate.marker.marker_pose`) for each face with its id imply a
+  body pose, scored by a MAP cost: reprojection (``corner_noise_px``) plus an upright prior on
+  the body's z axis against world up (``upright_sigma_deg``, hard gate
+  ``upright_tolerance_deg``). With one id on five faces the prior is what tells the faces apart
+  (they differ by 90° in the implied tilt) and what resolves IPPE's planar flip; with distinct
+  ids the face is given by the id and the prior only resolves the flip. A face seen twice keeps
+  its larger detection; faces implying a body centre farther than ``max_face_spread_m`` from the
+  largest face's are dropped.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+from collections.abc import Iterable, Sequence
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from cubetrack.core.cameras import CameraIntrinsics
+from cubetrack.core.errors import EstimationError
+from cubetrack.core.geometry import invert_T, is_finite_pose
+from cubetrack.core.layout import CubeLayout
+from cubetrack.core.records import Detection, FaceObservation, MarkerPose
+from cubetrack.estimate.marker import marker_pose
+from cubetrack.estimate.params import EstimatorParams
+
+log = logging.getLogger(__name__)
+
+_ZERO3 = np.zeros(3)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class FaceMatch:
+    """One detection matched to one face of a body. The 2D-3D corner pairs are
+    ``detection.corners_px`` (4, 2) px and ``points_body_m`` (4, 3) in the body frame, both in
+    detector order (TL, TR, BR, BL); ``marker`` indexes ``layout.markers``. ``observation``:
+    matched without a prediction, the chosen single-marker pose and the body pose it implies
+    (what the paper's fusions average); None when matched by a predicted pose."""
+
+    marker: int
+    face: str
+    detection: Detection
+    points_body_m: np.ndarray
+    observation: FaceObservation | None = None
+
+
+def body_detections(detections: Iterable[Detection], layout: CubeLayout) -> tuple[Detection, ...]:
+    """The detections of ``layout``'s markers: an id on the body, in its dictionary (a detection
+    with no dictionary named matches any), in their order."""
+    return tuple(d for d in detections if d.marker_id in layout.ids and d.dictionary in ("", layout.dictionary))
+
+
+def match_faces(detections: Iterable[Detection], layout: CubeLayout, intrinsics: CameraIntrinsics,
+                T_world_cam: np.ndarray, T_world_body: np.ndarray | None = None, *,
+                params: EstimatorParams | None = None, gate_px: float = 12.0,
+                max_view_angle_deg: float = 80.0) -> tuple[FaceMatch, ...]:
+    """Match one camera frame's detections to the faces of the body ``layout`` describes.
+
+    ``T_world_cam``: the camera's pose; ``T_world_body``: the predicted body pose, or None (see
+    the module doc for how each settles repeated ids and flips). Without a prediction the matches
+    come largest first, each with its ``observation`` (``params``: the estimator's thresholds);
+    with one, in detection order (``gate_px``, ``max_view_angle_deg``). A face is matched at
+    most once; detections of other bodies and of no face are left out. EstimationError when
+    ``T_world_cam`` is not a finite rigid pose.
+    """
+    mine = body_detections(detections, layout)
+    if not mine:
+        return ()
+    T_world_cam = _checked_camera_pose(T_world_cam)
+    if T_world_body is not None:
+        return _match_by_prediction(mine, layout, intrinsics, T_world_cam, np.asarray(T_world_body, dtype=float),
+                                    gate_px, max_view_angle_deg)
+    params = params or EstimatorParams()
+    poses: list[MarkerPose] = []
+    for det in mine:
+        for size_m in sorted(set(layout.sizes_m[layout.indices_of(det.marker_id)].tolist())):
+            mp = marker_pose(det, size_m, intrinsics, params.max_reprojection_error_px, polish=False)
+            if mp is not None:
+                poses.append(mp)
+    return tuple(FaceMatch(k, obs.face, obs.marker_pose.detection, layout.corners_m[k], obs)
+                 for k, obs in _identify(poses, layout, T_world_cam, params))
+
+
+def identify_faces(marker_poses: Iterable[MarkerPose], layout: CubeLayout, T_world_cam: np.ndarray,
+                   params: EstimatorParams | None = None) -> tuple[FaceObservation, ...]:
+    """The matcher's step without a prediction, on single-marker poses already made: assign
+    marker poses to faces and give each the body pose it implies.
+
+    ``marker_poses`` are MarkerPoses of markers in ``layout`` (other ids and dictionaries are
+    ignored). For each, every face with that id (and the same size) and each of its IPPE
+    solutions is a hypothesis; the lowest MAP cost (reprojection + upright prior) within
+    ``upright_tolerance_deg`` wins. Result: one FaceObservation per identified face, largest
+    area first, whose ``marker_pose.T_cam_marker`` is the chosen solution.
+    """
+    return tuple(obs for _k, obs in _identify(marker_poses, layout, _checked_camera_pose(T_world_cam),
+                                              params or EstimatorParams()))
+
+
+def _checked_camera_pose(T_world_cam: np.ndarray) -> np.ndarray:
+    T_world_cam = np.asarray(T_world_cam, dtype=float)
+    if not is_finite_pose(T_world_cam):
+        raise EstimationError("T_world_cam must be a finite rigid 4x4 pose")
+    return T_world_cam
+
+
+def _identify(marker_poses: Iterable[MarkerPose], layout: CubeLayout, T_world_cam: np.ndarray,
+              params: EstimatorParams) -> list[tuple[int, FaceObservation]]:
+    """:func:`identify_faces` with each face's index in ``layout.markers``."""
+    with_prior = params.use_upright_prior or layout.has_repeated_ids
+    reprojection_weight = 4.0 / (2.0 * params.corner_noise_px ** 2)   # 4 corners
+    tilt_weight = 1.0 / (2.0 * params.upright_sigma_deg ** 2)
+    chosen: list[tuple[int, FaceObservation]] = []
+    for mp in marker_poses:
+        det = mp.detection
+        faces = layout.indices_of(det.marker_id)
+        if not len(faces) or det.dictionary not in ("", layout.dictionary):
+            continue
+        T_marker_cube, sizes = layout.T_marker_cube[faces], layout.sizes_m[faces]
+        size_ok = np.abs(sizes - mp.size_m) <= 1e-6 * abs(mp.size_m)
+        # hypotheses: each solution (with the other as its alternative) x each face with the id
+        first = (mp.T_cam_marker, mp.reprojection_error_px)
+        second = (mp.T_cam_marker_alt, mp.reprojection_error_alt_px)
+        options = [(*first, *second)] + ([(*second, *first)] if mp.T_cam_marker_alt is not None else [])
+        options = [o for o in options if o[1] <= params.max_reprojection_error_px]
+        if not options or not size_ok.any():
+            continue
+        T_world_cube = (T_world_cam @ np.array([o[0] for o in options]))[:, None] @ T_marker_cube  # (S, F, 4, 4)
+        cost = reprojection_weight * np.array([[o[1] ** 2] for o in options])          # (S, 1)
+        allowed = size_ok
+        if with_prior:
+            tilt = np.degrees(np.arccos(np.clip(T_world_cube[:, :, 2, 2], -1.0, 1.0)))  # cube z vs world up
+            cost = cost + tilt_weight * tilt * tilt
+            allowed = allowed & (tilt <= params.upright_tolerance_deg)
+        cost = np.where(allowed, cost, np.inf)
+        k = int(cost.argmin())
+        if not cost.flat[k] < np.inf:
+            continue
+        s, f = divmod(k, cost.shape[1])
+        T_cam_marker, err, T_alt, err_alt = options[s]
+        if T_cam_marker is mp.T_cam_marker and (T_alt is None or math.isfinite(err_alt)):
+            pose = mp  # the solution it already has first
+        else:
+            pose = MarkerPose(det, mp.size_m, T_cam_marker, err,
+                              T_alt if (T_alt is not None and math.isfinite(err_alt)) else None,
+                              err_alt if T_alt is not None else float("inf"))
+        marker = int(faces[f])
+        chosen.append((marker, FaceObservation(layout.markers[marker].face, pose, T_world_cube[s, f], det.area_px2)))
+    # One detection per face (the larger), then consistency with the largest face.
+    chosen.sort(key=lambda c: -c[1].area_px2)
+    out: list[tuple[int, FaceObservation]] = []
+    for marker, obs in chosen:
+        if any(o.face == obs.face for _m, o in out):
+            continue
+        if out and np.linalg.norm(obs.T_world_cube[:3, 3] - out[0][1].T_world_cube[:3, 3]) > params.max_face_spread_m:
+            log.debug("face %s dropped: disagrees with face %s by more than %.3f m",
+                      obs.face, out[0][1].face, params.max_face_spread_m)
+            continue
+        out.append((marker, obs))
+    return out
+
+
+def _match_by_prediction(detections: Sequence[Detection], layout: CubeLayout, intrinsics: CameraIntrinsics,
+                         T_world_cam: np.ndarray, T_world_body: np.ndarray, gate_px: float,
+                         max_view_angle_deg: float) -> tuple[FaceMatch, ...]:
+    """Each detection, in order, takes the nearest unclaimed visible face with its id where
+    ``T_world_body`` projects the faces (see the module doc)."""
+    T_cam_body = invert_T(T_world_cam) @ T_world_body
+    R_cb, t_cb = T_cam_body[:3, :3], T_cam_body[:3, 3]
+    corners_cam = layout.corners_m @ R_cb.T + t_cb                     # (M, 4, 3)
+    centres = corners_cam.mean(axis=1)
+    cos_view = -np.einsum("ij,ij->i", layout.normals @ R_cb.T, centres) / np.linalg.norm(centres, axis=1)
+    # facing away, or seen so obliquely that its corners are poor: not a candidate
+    visible = cos_view >= float(np.cos(np.radians(max_view_angle_deg)))
+    if not visible.any():
+        return ()
+    proj, _ = cv2.projectPoints(corners_cam.reshape(-1, 3), _ZERO3, _ZERO3, intrinsics.K, intrinsics.dist)
+    observed_px = np.array([d.corners_px for d in detections])          # (D, 4, 2)
+    distance = np.linalg.norm(proj.reshape(1, -1, 4, 2) - observed_px[:, None], axis=-1).mean(axis=-1)  # (D, M)
+    free = visible.copy()
+    out: list[FaceMatch] = []
+    for i, det in enumerate(detections):
+        candidates = free & (layout.marker_ids == det.marker_id)
+        if not candidates.any():
+            continue
+        k = int(np.argmin(np.where(candidates, distance[i], np.inf)))
+        if distance[i, k] > max(gate_px, 0.5 * float(np.sqrt(det.area_px2))):
+            continue
+        free[k] = False
+        out.append(FaceMatch(k, layout.markers[k].face, det, layout.corners_m[k]))
+    return tuple(out)
