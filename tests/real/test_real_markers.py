@@ -55,7 +55,7 @@ def board_scene():
 
 
 def _centre_errors_mm(gray, intr, T_cam_board, centres, refinement):
-    found = Detector(DetectorParams(dictionary="DICT_6X6_250", corner_refinement=refinement)).detect_gray(gray)
+    found = Detector(DetectorParams(dictionary="DICT_6X6_250", corner_refinement=refinement)).detect(gray)
     errors = []
     for d in found:
         mp = marker_pose(d, 0.02, intr)
@@ -83,7 +83,7 @@ def test_upright_prior_leaves_no_normal_flips(board_scene):
     the upright prior must leave every marker's normal within 10° of the board's."""
     gray, intr, _T_cam_board, T_cam_world, _centres = board_scene
     T_world_cam = invert_T(T_cam_world)
-    for d in Detector(DetectorParams(dictionary="DICT_6X6_250")).detect_gray(gray):
+    for d in Detector(DetectorParams(dictionary="DICT_6X6_250")).detect(gray):
         layout = CubeLayout("DICT_6X6_250", (LayoutMarker("top", d.marker_id, 0.02, np.eye(4)),))
         faces = identify_faces([marker_pose(d, 0.02, intr)], layout, T_world_cam)
         assert len(faces) == 1
@@ -96,7 +96,7 @@ def test_ros_and_opencv_intrinsics_files_give_the_same_poses(board_scene, tmp_pa
     gray, intr, _T_cam_board, _T_cam_world, _centres = board_scene
     write_camera_info(intr, tmp_path / "cam.yaml")
     ros = read_camera_info(tmp_path / "cam.yaml")
-    d = Detector(DetectorParams(dictionary="DICT_6X6_250")).detect_gray(gray)[0]
+    d = Detector(DetectorParams(dictionary="DICT_6X6_250")).detect(gray)[0]
     a, b = marker_pose(d, 0.02, intr), marker_pose(d, 0.02, ros)
     assert np.allclose(a.T_cam_marker, b.T_cam_marker, atol=1e-9)
 

@@ -2,8 +2,9 @@
 
 :class:`Tracker` is the one code path for live tracking and offline replay: a source hands it
 :class:`~cubetrack.core.records.Frame` objects in arrival order and it returns the fused poses each
-frame produced. It wires the one feedback edge of the pipeline: the fusion's predicted poses tell
-detection where to look (regions of interest).
+frame produced. It is the workflow layer over the stages, and the only place that wires the one
+feedback edge of the pipeline: the fusion's predicted poses tell detection where to look
+(regions of interest; see :class:`Tracker`).
 """
 
 from __future__ import annotations
@@ -21,8 +22,10 @@ from cubetrack.core.errors import ConfigError, ImageError
 from cubetrack.core.geometry import invert_T, transform_points
 from cubetrack.core.params import param, params_from_table
 from cubetrack.core.records import CubeSighting, Detection, Frame, TrackedPose
-from cubetrack.detect.detector import Detector, DetectorParams, decode_gray
+from cubetrack.detect.detector import Box, Detector, DetectorParams, decode_gray
+from cubetrack.estimate.match import body_detections
 from cubetrack.estimate.pose import EstimatorParams, estimate_cube, world_marker_pose
+from cubetrack.fuse.base import Fusion
 from cubetrack.fuse.corner_filter import FilterParams
 from cubetrack.fuse.fusion import FilterFusion, FusionMethod, FusionParams, LatestEstimateFusion
 from cubetrack.io.config import RobotConfig, TrackerConfig
@@ -62,7 +65,8 @@ class TrackParams:
         "the cubes (with calibrated cameras and the filter fusion); the full frame is searched otherwise",
     )
     roi_margin_m: float = param(0.06, "a predicted cube's image region is grown by this much motion, metres")
-    full_frame_every: int = param(32, "with region detection: search a camera's full frame at least every this many frames")
+    full_frame_every: int = param(
+        32, "with region detection: search a camera's full frame at least every this many frames")
     camera_poses: CameraPoseSource = param(
         CameraPoseSource.EXTRINSICS,
         "extrinsics: calibrated camera poses (cubetrack calibrate); world-marker: each frame's own "
@@ -81,7 +85,7 @@ class StageParams:
     track: TrackParams = field(default_factory=TrackParams)
 
     @classmethod
-    def from_config(cls, config: TrackerConfig) -> "StageParams":
+    def from_config(cls, config: TrackerConfig) -> StageParams:
         where = str(config.path)
         return cls(
             detector=params_from_table(DetectorParams, config.section("detector"), f"{where}: [detector]"),
@@ -107,7 +111,24 @@ class TrackStats:
 
 class Tracker:
     """Frames in, fused robot poses out. Cameras need intrinsics; camera poses come from
-    ``extrinsics`` (calibrated) or, with ``CameraPoseSource.WORLD_MARKER``, from each frame."""
+    ``extrinsics`` (calibrated) or, with ``CameraPoseSource.WORLD_MARKER``, from each frame.
+
+    Per frame: its capture time (held back until a polled camera's clock is known), detection
+    (:meth:`cubetrack.detect.detector.Detector.detect`), each robot's own detections
+    (:func:`cubetrack.estimate.match.body_detections`), a per-camera estimate when the fusion
+    asks for one, and the fusion (any :class:`cubetrack.fuse.base.Fusion`).
+
+    The feedback edge, wired here and nowhere else: before detecting in a frame of a calibrated
+    camera, the tracker asks the fusion where every robot will be at the frame's capture time
+    (``Fusion.predicted_pose``). When every robot has a prediction (the filter tracks them all),
+    detection searches only the image boxes around the predicted cubes (grown by
+    ``[track] roi_margin_m`` of motion), ``detect(gray, regions)``; otherwise, when region
+    detection is off, with the paper's fusions (which never predict), or with
+    ``CameraPoseSource.WORLD_MARKER`` (the camera pose is not known before detection), the
+    whole frame. A camera's whole frame is also searched at least every ``[track]
+    full_frame_every`` frames (a robot that was never tracked can appear anywhere) and whenever
+    its boxes find nothing. Stages never call back into the fusion themselves.
+    """
 
     def __init__(self, intrinsics: dict[str, CameraIntrinsics], world: WorldConfig,
                  robots: tuple[RobotConfig, ...], extrinsics: dict[str, CameraExtrinsics] | None,
@@ -127,6 +148,7 @@ class Tracker:
             self.T_world_cam = {}
         dictionaries = [world.dictionary, *(r.layout.dictionary for r in robots)]
         self.detector = Detector(params.detector, dictionaries)
+        self.fusion: Fusion
         if params.fusion.method is FusionMethod.FILTER:
             self.fusion = FilterFusion({r.name: r.layout for r in robots}, params.fusion, params.filter)
         else:
@@ -210,14 +232,13 @@ class Tracker:
             return []
         poses = []
         for robot in self.robots:
-            layout = robot.layout
-            mine = tuple(d for d in detections if d.marker_id in layout.ids and d.dictionary in ("", layout.dictionary))
+            mine = body_detections(detections, robot.layout)
             if not mine:
                 continue
             estimate = None
             if self.fusion.needs_estimate(robot.name):
                 estimate = estimate_cube(
-                    mine, layout, intrinsics, T_world_cam,
+                    mine, robot.layout, intrinsics, T_world_cam,
                     camera=frame.camera, robot=robot.name, seq=frame.seq,
                     capture_time_s=capture_time_s, arrival_time_s=frame.host_time_s,
                     params=self.params.estimator,
@@ -231,12 +252,11 @@ class Tracker:
             self.stats.poses[pose.robot] += 1
         return poses
 
-    def _regions(self, camera: str, time_s: float, shape: tuple[int, int]) -> list[tuple[int, int, int, int]] | None:
+    def _regions(self, camera: str, time_s: float, shape: tuple[int, int]) -> list[Box] | None:
         """Image boxes (x0, y0, x1, y1) around every robot's predicted cube, or None when the
-        full frame must be searched (a robot not tracked, a full search due, region search off)."""
+        full frame must be searched (a robot not predicted, a full search due, region search off)."""
         track = self.params.track
         if (not track.roi_detection or track.camera_poses is not CameraPoseSource.EXTRINSICS
-                or not isinstance(self.fusion, FilterFusion)
                 or self.frames_since_full[camera] + 1 >= track.full_frame_every):
             return None
         intrinsics = self.intrinsics[camera]
@@ -264,15 +284,13 @@ class Tracker:
         """Detections in the regions of the predicted cubes, or in the whole frame."""
         boxes = self._regions(camera, time_s, gray.shape)
         if boxes is not None:
-            found: list[Detection] = []
-            for box in boxes:
-                found += self.detector.detect_region(gray, box)
+            found = self.detector.detect(gray, boxes)
             if found or not boxes:
                 self.frames_since_full[camera] += 1
                 self.stats.region_detections += 1
-                return tuple(found)
+                return found
         self.frames_since_full[camera] = 0
-        return self.detector.detect_gray(gray)
+        return self.detector.detect(gray)
 
     def finish(self, now_s: float | None = None) -> list[TrackedPose]:
         """Poses still held back by the fusion (call at the end of a session); ``now_s``: the host

@@ -301,7 +301,7 @@ def collect_sightings(
                         frame.seq, gray.shape[1], gray.shape[0], intrinsics.width, intrinsics.height)
             continue
         frames_read += 1
-        found = [d for d in detector.detect_gray(gray) if d.marker_id == world.marker_id]
+        found = [d for d in detector.detect(gray) if d.marker_id == world.marker_id]
         if not found:
             skipped["no world marker"] += 1
             continue

@@ -68,7 +68,7 @@ def run(args: argparse.Namespace) -> int:
             "%s: intrinsics are for %dx%d images, %s is %dx%d: poses will be wrong",
             args.camera_info, intrinsics.width, intrinsics.height, path, gray.shape[1], gray.shape[0])
     markers = []
-    for det in detector.detect_gray(gray):
+    for det in detector.detect(gray):
         entry = {"dictionary": det.dictionary, "id": det.marker_id,
                  "corners_px": [[round(float(x), 4), round(float(y), 4)] for x, y in det.corners_px],
                  "area_px2": round(det.area_px2, 3)}

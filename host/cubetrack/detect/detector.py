@@ -22,7 +22,8 @@ from __future__ import annotations
 import enum
 import functools
 import logging
-from collections.abc import Sequence
+import warnings
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -30,6 +31,7 @@ import cv2
 import numpy as np
 
 from cubetrack.core.errors import DetectionError, ImageError
+from cubetrack.core.geometry import undistort_points
 from cubetrack.core.params import param
 from cubetrack.core.records import Detection
 
@@ -249,14 +251,6 @@ _EDGE_SPAN = (0.2, 0.8)       # the detector's edge samples: the middle 60 % of 
 _EDGE_SAMPLES_ACROSS = 17     # profile samples across an edge
 _EDGE_FOCUS_PX = 3.0          # focus='tent': half-width of the tent that re-centres each edge point, px
 _PEAK_WINDOW_PX = 1.25        # focus='peak': half-width of the window around the gradient's peak, px
-_UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 50, 1e-12)
-
-
-def _undistort_px(points_px: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:
-    """Where distorted image points (..., 2) lie in the ideal pinhole image of the same ``K``
-    (iterated to 1e-12, not OpenCV's default five iterations)."""
-    out = cv2.undistortPoints(points_px.reshape(-1, 1, 2), K, dist, None, K, criteria=_UNDISTORT_CRITERIA)
-    return out.reshape(points_px.shape)
 
 
 def _distort_px(points_px: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:
@@ -275,8 +269,9 @@ def _distort_c(z: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:
 
 
 def _undistort_c(z: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:
-    """:func:`_undistort_px` on complex pixel positions x + iy."""
-    out = _undistort_px(np.stack([z.real, z.imag], axis=-1), K, dist)
+    """Where distorted complex pixel positions x + iy lie in the ideal pinhole image of the same
+    ``K`` (:func:`cubetrack.core.geometry.undistort_points`, iterated to 1e-12)."""
+    out = undistort_points(np.stack([z.real, z.imag], axis=-1), K, dist, K)
     return out[..., 0] + 1j * out[..., 1]
 
 
@@ -345,7 +340,8 @@ def refine_corners_edges(gray: np.ndarray, corners_px: np.ndarray, modules: int 
         # only the region around the quads, as float (cv2.remap of an 8-bit image rounds its
         # samples: a ~0.03 px edge bias); the margin covers the sampling half-width and the moves
         if good.any():
-            x0, y0 = max(int(z_in.real[good].min()) - _ROI_MARGIN_PX, 0), max(int(z_in.imag[good].min()) - _ROI_MARGIN_PX, 0)
+            x0 = max(int(z_in.real[good].min()) - _ROI_MARGIN_PX, 0)
+            y0 = max(int(z_in.imag[good].min()) - _ROI_MARGIN_PX, 0)
             x1, y1 = int(z_in.real[good].max()) + _ROI_MARGIN_PX + 2, int(z_in.imag[good].max()) + _ROI_MARGIN_PX + 2
             img, origin = img[y0:y1, x0:x1], complex(x0, y0)
             z_in = z_in - origin
@@ -424,7 +420,7 @@ def refine_corners_edges(gray: np.ndarray, corners_px: np.ndarray, modules: int 
 
 
 class Detector:
-    """A configured marker detector; ``detect_gray`` / ``detect_jpeg`` may be called per frame.
+    """A configured marker detector; ``detect`` / ``detect_jpeg`` may be called per frame.
 
     ``dictionaries`` lists the dictionary names to search (e.g. the world marker's and the
     cubes'); None means ``params.dictionary``. Each Detection names its dictionary, so equal ids
@@ -450,19 +446,35 @@ class Detector:
                            if self.params.corner_refinement is CornerRefinement.APRILTAG else 0.0)
         self._modules = tuple(d.markerSize + 2 for d in dicts)  # cells across, with a 1-bit border
 
-    def detect_gray(self, gray: np.ndarray) -> tuple[Detection, ...]:
-        """Detect markers in an 8-bit single-channel image (H, W); sorted by dictionary, id, x."""
-        return self._detect(_checked_gray(gray), self._detector, np.zeros(2))
+    def detect(self, gray: np.ndarray, regions: Sequence[Box] | None = None) -> tuple[Detection, ...]:
+        """Detect markers in an 8-bit single-channel image (H, W); sorted by dictionary, id, x.
 
-    def detect_region(self, gray: np.ndarray, box: tuple[int, int, int, int]) -> tuple[Detection, ...]:
-        """Detect markers only inside ``box = (x0, y0, x1, y1)`` (pixels, end exclusive) of ``gray``,
-        as a whole-image search would: the perimeter limits stay relative to the whole image (a
-        small region would otherwise admit every speck of noise as a candidate), and corners are
-        in whole-image pixels. Much cheaper than ``detect_gray`` when the box is small."""
+        ``regions``: None searches the whole image. Otherwise only these boxes ``(x0, y0, x1,
+        y1)`` (pixels, end exclusive) are searched, overlapping ones merged first, each as a
+        whole-image search would see it: the perimeter limits stay relative to the whole image
+        (a small region would otherwise admit every speck of noise as a candidate), and corners
+        are in whole-image pixels. Much cheaper than the whole image when the boxes are small; an
+        empty sequence searches nothing. ImageError for a box not inside the image."""
         gray = _checked_gray(gray)
+        if regions is None:
+            return self._detect(gray, self._detector, np.zeros(2))
+        height, width = gray.shape
+        for box in regions:
+            x0, y0, x1, y1 = box
+            if not (0 <= x0 < x1 <= width and 0 <= y0 < y1 <= height):
+                raise ImageError(f"region {tuple(box)} is not inside the {width}x{height} image")
+        found = [d for box in merged_boxes(regions) for d in self._detect_box(gray, box)]
+        found.sort(key=_detection_order)
+        return tuple(found)
+
+    def detect_gray(self, gray: np.ndarray) -> tuple[Detection, ...]:
+        """Deprecated: ``detect(gray)``."""
+        warnings.warn("Detector.detect_gray is deprecated; use Detector.detect(gray)", DeprecationWarning, stacklevel=2)
+        return self.detect(gray)
+
+    def _detect_box(self, gray: np.ndarray, box: Box) -> tuple[Detection, ...]:
+        """Detections inside one box of ``gray`` (checked), as :meth:`detect` describes."""
         x0, y0, x1, y1 = box
-        if not (0 <= x0 < x1 <= gray.shape[1] and 0 <= y0 < y1 <= gray.shape[0]):
-            raise ImageError(f"region {box} is not inside the {gray.shape[1]}x{gray.shape[0]} image")
         crop = np.ascontiguousarray(gray[y0:y1, x0:x1])
         scale = max(gray.shape) / max(crop.shape)
         cv_params = _cv_parameters(self.params)
@@ -500,14 +512,39 @@ class Detector:
             c.setflags(write=False)
             out.append(Detection(marker_id=int(marker_id), corners_px=c, area_px2=float(area),
                                  dictionary=self.dictionaries[int(k)]))
-        out.sort(key=lambda d: (d.dictionary, d.marker_id, float(d.corners_px[:, 0].mean())))
+        out.sort(key=_detection_order)
         return tuple(out)
 
     def detect_jpeg(self, jpeg: bytes, source: str = "JPEG") -> tuple[Detection, ...]:
         """Decode a JPEG to grayscale and detect; ImageError (naming ``source``) when it is empty,
         truncated or corrupt."""
-        gray = decode_gray(jpeg, source)
-        return self.detect_gray(gray)
+        return self.detect(decode_gray(jpeg, source))
+
+
+Box = tuple[int, int, int, int]  # x0, y0, x1, y1: pixels, end exclusive
+
+
+def _detection_order(d: Detection) -> tuple[str, int, float]:
+    return d.dictionary, d.marker_id, float(d.corners_px[:, 0].mean())
+
+
+def merged_boxes(boxes: Iterable[Box]) -> list[Box]:
+    """``boxes`` with every group of overlapping boxes replaced by their bounding box (repeated
+    until none overlap), so that no part of the image is searched twice."""
+    out: list[Box] = []
+    for box in boxes:
+        x0, y0, x1, y1 = box
+        merged = True
+        while merged:
+            merged = False
+            for i, (a0, b0, a1, b1) in enumerate(out):
+                if x0 < a1 and a0 < x1 and y0 < b1 and b0 < y1:
+                    x0, y0, x1, y1 = min(x0, a0), min(y0, b0), max(x1, a1), max(y1, b1)
+                    del out[i]
+                    merged = True
+                    break
+        out.append((x0, y0, x1, y1))
+    return out
 
 
 def read_gray(path: str | Path) -> np.ndarray:

@@ -118,7 +118,7 @@ def test_edge_refinement_handles_lens_distortion():
     truth = true_corners(T, dist)
     gray = decode_gray(frame(camera(T, dist), np.random.default_rng(0), noise=0.0))
     detector = Detector(DetectorParams(corner_refinement=CornerRefinement.NONE))
-    (det,) = [d for d in detector.detect_gray(gray) if d.marker_id == 0]
+    (det,) = [d for d in detector.detect(gray) if d.marker_id == 0]
     with_model = refine_corners_edges(gray, det.corners_px, 6, K=K, dist=dist, **EDGE_FIT)
     without = refine_corners_edges(gray, det.corners_px, 6, **EDGE_FIT)
     err_with = np.linalg.norm(with_model - truth, axis=1)

@@ -26,6 +26,7 @@ from cubetrack.detect.detector import (
     decode_gray,
     dictionary_names,
     is_valid_quad,
+    merged_boxes,
     refine_corners_edges,
 )
 
@@ -71,7 +72,7 @@ def test_corners_match_the_rendered_pose(scenes, refinement, mean_px, bias_px):
     det = Detector(DetectorParams(corner_refinement=refinement))
     errors, shifts = [], []
     for img, truth in scenes:
-        found = det.detect_gray(img)
+        found = det.detect(img)
         if refinement is CornerRefinement.APRILTAG and not found:
             continue  # AprilTag's quad search misses some markers; accuracy is what is checked here
         assert len(found) == 1
@@ -96,7 +97,7 @@ def test_default_is_edge_and_is_unbiased_on_a_cube(scenes):
     T_world_cube = make_T(np.eye(3), [0, 0, 0.1])
     img = Camera(INTR, T_world_cam, [cube_solid(layout, 0.11, T_world_cube)]).image(blur_px=0.6, noise_std=1.0)
     det = Detector(DetectorParams(dictionary=layout.dictionary))
-    found = det.detect_gray(img)
+    found = det.detect(img)
     assert len(found) >= 2
     T_cam_cube = invert_T(T_world_cam) @ T_world_cube
     visible = [m for m in layout.markers if float((T_cam_cube @ m.T_cube_marker)[:3, 2]
@@ -114,25 +115,29 @@ def test_several_dictionaries_are_told_apart():
     T_b = facing(0.6, x_m=0.09)
     img = render_in_front(INTR, [(T_a, "DICT_4X4_50", 3, 0.08, 0.04), (T_b, "DICT_6X6_250", 3, 0.08, 0.04)],
                           blur_px=0.5)
-    both = Detector(dictionaries=["DICT_4X4_50", "DICT_6X6_250"]).detect_gray(img)
+    both = Detector(dictionaries=["DICT_4X4_50", "DICT_6X6_250"]).detect(img)
     assert sorted((d.dictionary, d.marker_id) for d in both) == [("DICT_4X4_50", 3), ("DICT_6X6_250", 3)]
     left = [d for d in both if d.dictionary == "DICT_4X4_50"][0]
     assert left.corners_px[:, 0].mean() < 320
-    only6 = Detector(DetectorParams(dictionary="DICT_6X6_250")).detect_gray(img)
+    only6 = Detector(DetectorParams(dictionary="DICT_6X6_250")).detect(img)
     assert [(d.dictionary, d.marker_id) for d in only6] == [("DICT_6X6_250", 3)]
 
 
-def test_detect_jpeg_matches_detect_gray_and_rejects_broken_data():
+def test_detect_jpeg_decodes_then_detects_and_rejects_broken_data():
     img = render_in_front(INTR, [(facing(0.8, 20, 10), "DICT_4X4_50", 1, 0.08, 0.04)], blur_px=0.6)
     ok, buf = cv2.imencode(".jpg", img, [cv2.IMWRITE_JPEG_QUALITY, 95])
     jpeg = buf.tobytes()
     det = Detector()
-    assert [d.marker_id for d in det.detect_jpeg(jpeg)] == [1]
+    (found,) = det.detect_jpeg(jpeg)
+    assert found.marker_id == 1
+    np.testing.assert_array_equal(found.corners_px, det.detect(decode_gray(jpeg))[0].corners_px)
+    with pytest.warns(DeprecationWarning, match="detect\\(gray\\)"):
+        np.testing.assert_array_equal(det.detect_gray(decode_gray(jpeg))[0].corners_px, found.corners_px)
     for bad in (b"", jpeg[: len(jpeg) // 2], b"\xff\xd8garbage\xff\xd9", b"not an image at all"):
         with pytest.raises(ImageError, match="frame.jpg"):
             det.detect_jpeg(bad, source="frame.jpg")
     with pytest.raises(ImageError):
-        det.detect_gray(np.zeros((10, 10, 3), np.uint8))
+        det.detect(np.zeros((10, 10, 3), np.uint8))
     assert decode_gray(jpeg).shape == (480, 640)
 
 
@@ -180,7 +185,7 @@ def test_detector_drops_degenerate_detections(monkeypatch):
             return (good, flat, nan), np.array([[1], [2], [3]]), (), np.array([0, 0, 0])
 
     monkeypatch.setattr(det, "_detector", Fake())
-    found = det.detect_gray(np.zeros((60, 80), np.uint8))
+    found = det.detect(np.zeros((60, 80), np.uint8))
     assert [d.marker_id for d in found] == [1]
 
 
@@ -203,26 +208,52 @@ def test_edge_refinement_of_an_8_bit_image_in_a_region_equals_the_float_image(sc
     """The detector passes the 8-bit frame; only the quads' region is converted (to float: an
     8-bit cv2.remap rounds its samples) and the corners come back in the frame's coordinates."""
     img, _truth = scenes[0]
-    (d,) = Detector(DetectorParams(corner_refinement=CornerRefinement.NONE)).detect_gray(img)
+    (d,) = Detector(DetectorParams(corner_refinement=CornerRefinement.NONE)).detect(img)
     a = refine_corners_edges(img, d.corners_px, 6, focus=focus)
     b = refine_corners_edges(img.astype(np.float32), d.corners_px, 6, focus=focus)
     np.testing.assert_allclose(a, b, atol=1e-9)
 
 
-def test_region_search_finds_the_same_corners_as_the_whole_image():
-    from cubetrack.detect.detector import Detector
-
+def _two_markers_image() -> np.ndarray:
     rng = np.random.default_rng(7)
     gray = np.full((480, 640), 200, np.uint8)
-    marker = cv2.aruco.generateImageMarker(cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_4X4_50), 3, 60)
-    gray[200:260, 300:360] = marker
+    dictionary = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_4X4_50)
+    gray[200:260, 300:360] = cv2.aruco.generateImageMarker(dictionary, 3, 60)
+    gray[300:360, 80:140] = cv2.aruco.generateImageMarker(dictionary, 5, 60)
     gray = cv2.GaussianBlur(gray, (0, 0), 0.8)
-    gray = np.clip(gray + rng.normal(0, 2, gray.shape), 0, 255).astype(np.uint8)
+    return np.clip(gray + rng.normal(0, 2, gray.shape), 0, 255).astype(np.uint8)
+
+
+def test_region_search_finds_the_same_corners_as_the_whole_image():
+    gray = _two_markers_image()
     det = Detector()
-    full = det.detect_gray(gray)
-    region = det.detect_region(gray, (250, 150, 420, 320))
-    assert [d.marker_id for d in full] == [d.marker_id for d in region] == [3]
+    full = det.detect(gray)
+    assert [d.marker_id for d in full] == [3, 5]
+    region = det.detect(gray, [(250, 150, 420, 320)])
+    assert [d.marker_id for d in region] == [3]
     np.testing.assert_allclose(region[0].corners_px, full[0].corners_px, atol=1e-6)
-    assert det.detect_region(gray, (0, 0, 200, 150)) == ()
-    with pytest.raises(Exception, match="not inside"):
-        det.detect_region(gray, (600, 0, 700, 100))
+    assert det.detect(gray, [(0, 0, 200, 150)]) == ()
+    assert det.detect(gray, []) == ()  # no region: nothing searched
+    with pytest.raises(ImageError, match="not inside"):
+        det.detect(gray, [(250, 150, 420, 320), (600, 0, 700, 100)])
+
+
+def test_regions_are_searched_once_each_and_merged_where_they_overlap():
+    gray = _two_markers_image()
+    det = Detector()
+    full = det.detect(gray)
+    # two boxes over marker 3 overlap: one search, one detection; marker 5's box is apart
+    both = det.detect(gray, [(60, 280, 160, 380), (250, 150, 340, 320), (320, 150, 420, 320)])
+    assert [d.marker_id for d in both] == [3, 5]  # sorted as a whole-image search
+    for d, f in zip(both, full):
+        np.testing.assert_allclose(d.corners_px, f.corners_px, atol=1e-6)
+    # each half alone cuts the marker: found in neither
+    assert det.detect(gray, [(250, 150, 330, 320)]) == ()
+
+
+def test_merged_boxes_joins_chains_of_overlaps():
+    # a overlaps b; c overlaps the union of a and b but neither alone; d touches c without overlap
+    a, b, c, d = (0, 0, 10, 10), (5, 5, 20, 20), (15, 0, 30, 4), (30, 0, 40, 4)
+    assert merged_boxes([a, b, c, d]) == [(0, 0, 30, 20), d]
+    assert merged_boxes([a, c, b]) == [(0, 0, 30, 20)]
+    assert merged_boxes([]) == []
