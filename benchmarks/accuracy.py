@@ -27,7 +27,7 @@ for the worst seed. Default seeds differ from every seed the tests use (0-11).
 Speed: on the first seed's recordings, one core (``cv2.setNumThreads(1)``, the process pinned to
 one CPU), frames/s of the naive loop (``cv2.imdecode`` colour + default ``ArucoDetector``
 (DICT_4X4_50) + ``solvePnP(SOLVEPNP_IPPE_SQUARE)`` per marker) and of our per-frame pipeline
-(``pipeline.Tracker.process`` over the merged frames with the clock round trips, then
+(``cubetrack.app.tracker.Tracker.process`` over the merged frames with the clock round trips, then
 ``finish``: decode + detect + estimate + filter). The frames are read into memory first; the two
 loops alternate (ABBA) for ``--speed-rounds`` rounds and the medians are reported (target: ours
 at least the naive rate).
@@ -266,7 +266,7 @@ def refine_extrinsics(config, rec: Path, extrinsics: dict) -> tuple[dict, dict]:
 
 def _load_events(rec: Path, max_frames: int | None):
     """The recording's frames (in memory, arrival order) interleaved with its /time round trips
-    exactly as :func:`cubetrack.app.tracker.track_recording` feeds them."""
+    exactly as :func:`cubetrack.app.track.track_recording` feeds them."""
     from cubetrack.io.recording import Recording
 
     recording = Recording.open(rec)
@@ -569,7 +569,7 @@ def main(argv: list[str] | None = None) -> int:
     rounds = args.speed_rounds or (2 if args.quick else 5)
     speed_frames = args.speed_frames if args.speed_frames is not None else (30 if args.quick else None)
     if args.refine and not refine_available():
-        ap.error("--refine needs cubetrack.calib.bundle (host/cubetrack/refine.py), which is not installed")
+        ap.error("--refine needs cubetrack.calib.bundle, which is not installed")
     methods = [OURS] + ([REFINED] if args.refine else []) + [PAPER, OUR_MEAN]
 
     kept = args.out is not None
