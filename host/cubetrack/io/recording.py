@@ -21,6 +21,7 @@ import csv
 import heapq
 import json
 import logging
+import math
 import os
 import re
 from collections import Counter
@@ -96,7 +97,7 @@ class Recording:
             meta = json.loads(meta_path.read_text(encoding="utf-8"))
         except FileNotFoundError:
             raise RecordingError(f"{meta_path}: missing; {path} is not a recording folder") from None
-        except (json.JSONDecodeError, UnicodeDecodeError) as exc:
+        except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as exc:
             raise RecordingError(f"{meta_path}: not valid JSON: {exc}") from None
         if not isinstance(meta, dict) or meta.get("format") != FORMAT:
             raise RecordingError(f'{meta_path}: "format" must be "{FORMAT}"')
@@ -186,19 +187,25 @@ class Recording:
         if not path.exists():
             return []
         samples = []
-        with path.open(newline="", encoding="utf-8") as f:
-            reader = csv.reader(f)
-            header = next(reader, None)
-            if header is None or tuple(h.strip() for h in header) != CLOCK_HEADER:
-                raise RecordingError(f"{path}: header must be {','.join(CLOCK_HEADER)}")
-            for line_no, fields in enumerate(reader, start=2):
-                try:
-                    sample = ClockSample(*(float(v) for v in fields))
-                except (TypeError, ValueError):
-                    self.skipped["bad clock row"] += 1
-                    log.warning("%s:%d: skipping malformed row %r", path, line_no, fields)
-                    continue
-                samples.append(sample)
+        try:
+            with path.open(newline="", encoding="utf-8") as f:
+                reader = csv.reader(f)
+                header = next(reader, None)
+                if header is None or tuple(h.strip() for h in header) != CLOCK_HEADER:
+                    raise RecordingError(f"{path}: header must be {','.join(CLOCK_HEADER)}")
+                for line_no, fields in enumerate(reader, start=2):
+                    try:
+                        sample = ClockSample(*(float(v) for v in fields))
+                    except (TypeError, ValueError):
+                        sample = None
+                    if sample is None or not all(map(math.isfinite, (sample.host_send_s, sample.device_time_s,
+                                                                     sample.host_recv_s))):
+                        self.skipped["bad clock row"] += 1
+                        log.warning("%s:%d: skipping malformed row %r", path, line_no, fields)
+                        continue
+                    samples.append(sample)
+        except (UnicodeDecodeError, csv.Error) as exc:
+            raise RecordingError(f"{path}: unreadable: {exc}") from None
         return samples
 
     def camera_info_path(self, camera: str) -> Path | None:
@@ -217,6 +224,8 @@ def _parse_index_row(fields: list[str]) -> IndexRow | None:
     try:
         row = IndexRow(int(fields[0]), float(fields[1]), float(fields[2]), fields[3].strip())
     except ValueError:
+        return None
+    if not (math.isfinite(row.device_time_s) and math.isfinite(row.host_time_s)):
         return None
     name = row.file
     if not name or "/" in name or "\\" in name or name in (".", ".."):
