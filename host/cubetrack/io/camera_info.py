@@ -16,12 +16,31 @@ from cubetrack.core.cameras import CameraIntrinsics
 from cubetrack.core.errors import CameraInfoError
 
 
+_MAX_NUMBERS = 64  # more than any camera matrix or distortion model holds
+
+
+def _small(value: object) -> bool:
+    """Whether a (nested) list has at most _MAX_NUMBERS items in all: YAML aliases let a
+    file of a few hundred bytes hold billions of numbers."""
+    todo, seen = [value], 0
+    while todo:
+        item = todo.pop()
+        seen += 1
+        if seen > _MAX_NUMBERS:
+            return False
+        if isinstance(item, list):
+            todo.extend(item[:_MAX_NUMBERS + 1])
+    return True
+
+
 def _matrix(value: object, n: int, path: Path, key: str) -> np.ndarray:
     data = value.get("data") if isinstance(value, dict) else value
+    if not _small(data):
+        raise CameraInfoError(f"{path}: {key} must hold {n or 'a list of'} numbers")
     try:
         arr = np.asarray(data, dtype=float).reshape(-1)
     except (TypeError, ValueError):
-        raise CameraInfoError(f"{path}: {key} must hold {n} numbers") from None
+        raise CameraInfoError(f"{path}: {key} must hold {n or 'a list of'} numbers") from None
     if n and arr.size != n:
         raise CameraInfoError(f"{path}: {key} must hold {n} numbers, has {arr.size}")
     return arr
@@ -30,7 +49,10 @@ def _matrix(value: object, n: int, path: Path, key: str) -> np.ndarray:
 def _read_opencv_filestorage(path: Path) -> CameraIntrinsics:
     import cv2  # only this format needs OpenCV
 
-    fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    try:
+        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
+    except (cv2.error, SystemError):  # its parser raises on malformed YAML
+        raise CameraInfoError(f"{path}: OpenCV cannot parse this FileStorage YAML") from None
     try:
         if not fs.isOpened():
             raise CameraInfoError(f"{path}: OpenCV cannot parse this FileStorage YAML")
@@ -38,13 +60,19 @@ def _read_opencv_filestorage(path: Path) -> CameraIntrinsics:
         dist = fs.getNode("distortion_coefficients").mat()
         if K is None or dist is None:
             raise CameraInfoError(f"{path}: needs camera_matrix and distortion_coefficients matrices")
-        width = int(fs.getNode("image_width").real() or 0)
-        height = int(fs.getNode("image_height").real() or 0)
+        width_px = fs.getNode("image_width").real()
+        height_px = fs.getNode("image_height").real()
+    except cv2.error:  # a node that is not a matrix or a number
+        raise CameraInfoError(f"{path}: camera_matrix and distortion_coefficients must be OpenCV matrices") from None
     finally:
         fs.release()
-    K = np.asarray(K, dtype=float).reshape(3, 3)
-    if width <= 0 or height <= 0:  # older files omit the size: infer it from the principal point
-        width, height = int(round(2 * K[0, 2] + 1)), int(round(2 * K[1, 2] + 1))
+    try:
+        K = np.asarray(K, dtype=float).reshape(3, 3)
+        width, height = int(width_px or 0), int(height_px or 0)
+        if width <= 0 or height <= 0:  # older files omit the size: infer it from the principal point
+            width, height = int(round(2 * K[0, 2] + 1)), int(round(2 * K[1, 2] + 1))
+    except (ValueError, OverflowError):
+        raise CameraInfoError(f"{path}: needs a 3x3 camera_matrix and a finite image size") from None
     return CameraIntrinsics(width, height, K, np.asarray(dist, dtype=float).reshape(-1), path.stem)
 
 
@@ -64,6 +92,8 @@ def read_camera_info(path: str | Path) -> CameraIntrinsics:
     except yaml.YAMLError as exc:
         reason = str(exc).splitlines()[0]
         raise CameraInfoError(f"{path}: not valid YAML: {reason}") from None
+    except RecursionError:
+        raise CameraInfoError(f"{path}: not valid YAML: nested too deeply") from None
     if not isinstance(doc, dict) or "camera_matrix" not in doc:
         raise CameraInfoError(
             f"{path}: not a ROS camera_info file (needs image_width, image_height, camera_matrix, "
@@ -77,7 +107,7 @@ def read_camera_info(path: str | Path) -> CameraIntrinsics:
         raise CameraInfoError(f"{path}: distortion_model {model!r} is not supported (plumb_bob)")
     try:
         width, height = int(doc["image_width"]), int(doc["image_height"])
-    except (KeyError, TypeError, ValueError):
+    except (KeyError, TypeError, ValueError, OverflowError):
         raise CameraInfoError(f"{path}: needs integer image_width and image_height") from None
     return CameraIntrinsics(width, height, K, dist, str(doc.get("camera_name", path.stem)))
 
