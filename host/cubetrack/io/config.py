@@ -7,6 +7,7 @@ tables here and turned into each stage's params dataclass by the stage that owns
 
 from __future__ import annotations
 
+import math
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -64,6 +65,8 @@ def _load_toml(path: Path, what: str) -> dict[str, Any]:
         raise ConfigError(f"{path}: {what} file not found") from None
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+    except RecursionError:
+        raise ConfigError(f"{path}: not valid TOML: nested too deeply") from None
     except OSError as exc:
         raise ConfigError(f"{path}: cannot read {what}: {exc}") from None
 
@@ -86,7 +89,7 @@ def _world(table: Any, where: str) -> WorldConfig:
     if not isinstance(world.marker_id, int) or isinstance(world.marker_id, bool) or world.marker_id < 0:
         raise ConfigError(f"{where}: [world] marker_id must be a non-negative integer")
     size = world.marker_size_m
-    if not isinstance(size, (int, float)) or isinstance(size, bool) or not size > 0:
+    if not isinstance(size, (int, float)) or isinstance(size, bool) or not 0 < size < math.inf:
         raise ConfigError(f"{where}: [world] marker_size must be a positive number of metres")
     return WorldConfig(world.dictionary, world.marker_id, float(size))
 
@@ -104,6 +107,9 @@ def read_tracker_config(path: str | Path) -> TrackerConfig:
             f"{where}: unknown section(s) {', '.join(sorted(unknown))}; known: {', '.join(sorted(known))}"
         )
     cameras = []
+    for key in ("cameras", "robots"):
+        if not isinstance(doc.get(key, []), list):
+            raise ConfigError(f"{where}: {key} must be [[{key}]] tables")
     for i, row in enumerate(doc.get("cameras", [])):
         if not isinstance(row, dict) or "name" not in row:
             raise ConfigError(f"{where}: cameras[{i}] needs a name")
@@ -112,6 +118,8 @@ def read_tracker_config(path: str | Path) -> TrackerConfig:
         except RecordingError as exc:
             raise ConfigError(f"{where}: cameras[{i}]: {exc}") from None
         info = row.get("camera_info")
+        if info is not None and not isinstance(info, str):
+            raise ConfigError(f"{where}: cameras[{i}].camera_info must be a file name")
         cameras.append(CameraConfig(name, str(row.get("url", "")), base / info if info else None))
     names = [c.name for c in cameras]
     if len(set(names)) != len(names):
@@ -213,13 +221,16 @@ def read_extrinsics(path: str | Path) -> dict[str, CameraExtrinsics]:
             raise ConfigError(f"{where} needs position = [x, y, z] and quaternion_xyzw = [x, y, z, w]") from None
         if not (np.all(np.isfinite(position)) and np.all(np.isfinite(q)) and np.linalg.norm(q) > 1e-9):
             raise ConfigError(f"{where} has a non-finite position or a zero quaternion")
-        out[name] = CameraExtrinsics(
-            T_from_position_quat(position, q),
-            int(table.get("samples", 0)),
-            float(table.get("spread_position_m", 0.0)),
-            float(table.get("spread_rotation_deg", 0.0)),
-            str(table.get("method", "")),
-        )
+        try:
+            out[name] = CameraExtrinsics(
+                T_from_position_quat(position, q),
+                int(table.get("samples", 0)),
+                float(table.get("spread_position_m", 0.0)),
+                float(table.get("spread_rotation_deg", 0.0)),
+                str(table.get("method", "")),
+            )
+        except (TypeError, ValueError, OverflowError):
+            raise ConfigError(f"{where}: samples must be an integer and the spreads numbers") from None
     return out
 
 
