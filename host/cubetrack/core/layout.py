@@ -194,6 +194,8 @@ def layout_from_table(table: dict, where: str) -> CubeLayout:
     markers = []
     for i, row in enumerate(rows):
         w = f"{where}: markers[{i}]"
+        if not isinstance(row, dict):
+            raise ConfigError(f"{w} must be a [[markers]] table")
         missing = {"face", "id", "size", "position", "quaternion_xyzw"} - set(row)
         if missing:
             raise ConfigError(f"{w} lacks {', '.join(sorted(missing))}")
@@ -236,6 +238,10 @@ def read_layout(path: str | Path) -> CubeLayout:
         raise ConfigError(f"{path}: cube layout file not found") from None
     except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
         raise ConfigError(f"{path}: not valid TOML: {exc}") from None
+    except RecursionError:
+        raise ConfigError(f"{path}: not valid TOML: nested too deeply") from None
+    except OSError as exc:
+        raise ConfigError(f"{path}: cannot read the cube layout: {exc.strerror or exc}") from None
     return layout_from_table(table, str(path))
 
 
