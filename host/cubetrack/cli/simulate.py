@@ -9,6 +9,12 @@ camera_info/<cam>.yaml, ground_truth.tum (cube pose, 100 Hz, host clock), cube.t
 config.toml (a tracker config), true_extrinsics.toml, simulation.toml (parameters and clock
 truth), and calibration/ (an empty-arena recording for `cubetrack calibrate`).
 The same --seed gives byte-identical frames and files. Details: docs/simulation.md.
+
+--realistic switches on what real cameras and robots add (a wide-angle lens, intrinsics off by
+a calibration's error, rolling shutter, motion blur, sharp turns on an uneven floor, a hand-built
+cube, auto-exposure steps, stronger lighting gradients and vignetting, people walking through);
+single effects can then be switched off, e.g. --realistic --readout-ms 0 --people 0. The truth
+the tracker is not told is written beside it: true_camera_info/, true_cube.toml.
 """
 
 from __future__ import annotations
@@ -17,7 +23,7 @@ import argparse
 import dataclasses
 import typing
 
-from cubetrack.simulate.params import PATHS, SimulationParams
+from cubetrack.simulate.params import PATHS, REALISTIC, SimulationParams
 
 HELP = "render a simulated multi-camera recording with ground truth"
 
@@ -43,10 +49,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                         help="overwrite a recording already in REC (its old frames are deleted)")
     parser.add_argument("--workers", type=int, default=None, metavar="N",
                         help="rendering threads (default: one per core, at most 4; the output does not depend on it)")
+    parser.add_argument("--realistic", action="store_true",
+                        help="the realistic preset: every effect of real cameras and robots on (options given "
+                             "explicitly still win; e.g. --readout-ms 0 switches the rolling shutter off)")
     group = parser.add_argument_group("scenario (units in the option descriptions)")
     for f, hint in _fields():
         default = f.default
-        help_text = f"{f.metadata['doc']} (default: {_show(default)})".replace("%", "%%")
+        realistic = f"; realistic: {_show(REALISTIC[f.name])}" if f.name in REALISTIC else ""
+        help_text = f"{f.metadata['doc']} (default: {_show(default)}{realistic})".replace("%", "%%")
         kwargs: dict[str, typing.Any] = {"dest": f.name, "default": None, "help": help_text}
         if hint is bool:
             kwargs["action"] = argparse.BooleanOptionalAction
@@ -85,8 +95,9 @@ def _show(value: typing.Any) -> str:
 
 
 def params_from_args(args: argparse.Namespace) -> SimulationParams:
-    """The scenario from the parsed options (options not given keep their defaults)."""
-    given = {}
+    """The scenario from the parsed options (options not given keep their defaults, or the
+    realistic preset's with --realistic)."""
+    given = dict(REALISTIC) if getattr(args, "realistic", False) else {}
     for f, _ in _fields():
         value = getattr(args, f.name, None)
         if value is not None:

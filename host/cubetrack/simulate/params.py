@@ -3,6 +3,12 @@ command line can build its options from the fields without loading OpenCV).
 
 Every field's ``doc`` gives its unit and meaning; ``cubetrack simulate --help`` shows them.
 Values are checked on construction and refused with :class:`cubetrack.core.errors.SimulationError`.
+
+Two presets: the defaults are the *clean* preset (pinhole lens with exactly known intrinsics, a
+global shutter, a perfectly built cube on a robot that never tilts, nobody in the room);
+:data:`REALISTIC` (``SimulationParams.realistic()``, ``cubetrack simulate --realistic``) switches
+on every effect of real cameras and robots. Each effect is its own field (0 or off = absent), so
+any preset can switch single effects on or off.
 """
 
 from __future__ import annotations
@@ -13,7 +19,7 @@ from dataclasses import dataclass, fields
 from cubetrack.core.errors import SimulationError
 from cubetrack.core.params import param
 
-PATHS = ("figure8", "rectangle")
+PATHS = ("figure8", "rectangle", "sharp")
 
 
 @dataclass(frozen=True, slots=True)
@@ -34,6 +40,16 @@ class SimulationParams:
     distortion: tuple[float, ...] = param(
         (0.0, 0.0, 0.0, 0.0, 0.0), "plumb_bob lens distortion k1 k2 p1 p2 k3 (rendered exactly)")
     supersample: int = param(4, "anti-aliasing: samples per pixel along each axis (box filter)")
+    principal_offset_px: float = param(0.0, "true principal point of each camera off the image centre "
+                                            "(std per axis), pixels")
+    focal_spread: float = param(0.0, "true focal length of each camera off focal_px (relative std)")
+    readout_ms: float = param(0.0, "rolling shutter: rows are exposed one after the other, readout_ms / image "
+                                   "height apart, milliseconds (0: global shutter)")
+    # --- what the tracker is told (camera_info/<cam>.yaml), as a real calibration leaves it
+    info_focal_error: float = param(0.0, "camera_info focal length error (relative std; fx and fy share most of it)")
+    info_principal_error_px: float = param(0.0, "camera_info principal point error (std per axis), pixels")
+    info_k1_error: float = param(0.0, "camera_info k1 error (std); the k2 error is correlated with it as in a "
+                                      "calibration (about -3.4 times, so the two cancel at mid-field)")
     # --- markers and robot
     dictionary: str = param("DICT_4X4_50", "ArUco dictionary of the world marker and the cube")
     world_marker_id: int = param(0, "id of the world marker on the floor (origin of the world frame)")
@@ -48,10 +64,27 @@ class SimulationParams:
     robots: int = param(1, "number of robots on the same path, each with its own cube (ids: cube_marker_id + k, "
                            "or + 5 k with distinct_ids); more than one are named robot1, robot2, ...")
     robot_spacing: float = param(0.3, "with several robots: their distance along the path, as a fraction of its length")
+    # --- an imperfectly built cube (cube.toml stays nominal; true_cube.toml has the truth)
+    marker_shift_mm: float = param(0.0, "imperfect cube: each marker's position error (std per in-plane axis, "
+                                        "half of it along the face normal), millimetres")
+    marker_turn_deg: float = param(0.0, "imperfect cube: each marker's in-plane rotation error (std), degrees")
+    marker_undersize: float = param(0.0, "imperfect cube: markers are printed this fraction under size "
+                                         "(each within about 20 % of it)")
+    face_tilt_deg: float = param(0.0, "imperfect cube: faces not quite square, each marker plane tilted "
+                                      "(std about each in-plane axis), degrees")
     # --- motion
-    path: str = param("figure8", "robot path: figure8 (crosses the world marker) or rectangle (rounded)")
+    path: str = param("figure8", "robot path: figure8 (crosses the world marker), rectangle (rounded) or sharp "
+                                 "(random waypoints, sharp turns, accelerating and braking)")
     path_size_m: tuple[float, ...] = param((0.8, 0.5), "half-extent of the path along world x and y, metres")
-    speed_m_s: float = param(0.25, "robot speed along the path, metres per second")
+    speed_m_s: float = param(0.25, "robot speed along the path (sharp: top speed), metres per second")
+    accel_m_s2: float = param(1.0, "sharp path: acceleration and braking limit, metres per second squared")
+    turn_rate_deg_s: float = param(200.0, "sharp path: highest yaw rate in a turn, degrees per second")
+    turn_radius_m: float = param(0.08, "sharp path: radius of its rounded corners, metres")
+    floor_bumps_mm: float = param(0.0, "uneven floor: height undulation (std, wavelengths 0.4-1.5 m) that tilts "
+                                       "the robot, millimetres")
+    bounce_mm: float = param(0.0, "robot vibration: vertical bounce (std, 3-12 Hz), millimetres")
+    wobble_deg: float = param(0.0, "robot vibration: roll and pitch wobble (std each, 3-12 Hz), degrees")
+    people: int = param(0, "people walking through the arena (occluders), each crossing it again and again")
     duration_s: float = param(30.0, "length of the tracking recording, seconds")
     # --- capture and timing
     fps: float = param(7.5, "frame rate of each camera node (on its own clock), frames per second")
@@ -76,9 +109,14 @@ class SimulationParams:
     gain_jitter: float = param(0.03, "frame-to-frame exposure gain variation (std, slowly varying), fraction")
     light_gradient: float = param(0.25, "illumination change across the image (random direction), fraction")
     vignetting: float = param(0.15, "brightness loss at the image corners, fraction")
+    exposure_steps_per_s: float = param(0.0, "auto-exposure steps per second per camera (0: none)")
+    exposure_step: float = param(0.25, "auto-exposure: size of each step (std of the log gain factor)")
+    face_shading: float = param(0.0, "directional light: brightness lost by robot, cube and people faces turned "
+                                     "away from the light, fraction (0: evenly lit)")
     # --- session
     seed: int = param(0, "random seed: the same seed gives byte-identical frames and files")
     calibration_frames: int = param(200, "frames per camera of the empty-arena calibration recording (0: none)")
+    ground_truth_hz: float = param(100.0, "rate of the ground-truth trajectory, samples per second")
 
     def __post_init__(self) -> None:
         def bad(name: str, what: str) -> SimulationError:
@@ -91,22 +129,38 @@ class SimulationParams:
             if isinstance(v, tuple) and not all(isinstance(x, (int, float)) and math.isfinite(x) for x in v):
                 raise bad(f.name, "must be a list of finite numbers")
         positive = ("height_m", "distance_m", "focal_px", "world_marker_size_m", "cube_size_m",
-                    "marker_size_m", "speed_m_s", "duration_s", "fps", "clock_period_s")
+                    "marker_size_m", "speed_m_s", "duration_s", "fps", "clock_period_s", "accel_m_s2",
+                    "turn_rate_deg_s", "turn_radius_m", "ground_truth_hz")
         for name in positive:
             if not getattr(self, name) > 0:
                 raise bad(name, "must be positive")
         non_negative = ("position_jitter_m", "angle_jitter_deg", "world_margin_m", "mast_height_m",
                         "capture_jitter_s", "exposure_s", "drift_ppm", "latency_ms", "latency_jitter_ms",
                         "spike_ms", "rtt_ms", "slow_rtt_ms", "noise_std", "blur_px", "gain_jitter",
-                        "light_gradient", "vignetting", "start_unix_s")
+                        "light_gradient", "vignetting", "start_unix_s", "principal_offset_px", "focal_spread",
+                        "readout_ms", "info_focal_error", "info_principal_error_px", "info_k1_error",
+                        "marker_shift_mm", "marker_turn_deg", "marker_undersize", "face_tilt_deg",
+                        "floor_bumps_mm", "bounce_mm", "wobble_deg", "exposure_steps_per_s", "exposure_step")
         for name in non_negative:
             if getattr(self, name) < 0:
                 raise bad(name, "must not be negative")
-        for name in ("spike_rate", "slow_rtt_rate", "vignetting"):
+        for name in ("spike_rate", "slow_rtt_rate", "vignetting", "face_shading"):
             if not 0 <= getattr(self, name) <= 1:
                 raise bad(name, "must be between 0 and 1")
         if not 0 <= self.drop_rate < 1:
             raise bad("drop_rate", "must be at least 0 and below 1")
+        if not 0 <= self.people <= 8:
+            raise bad("people", "must be between 0 and 8")
+        limits = {"focal_spread": 0.1, "info_focal_error": 0.05, "info_k1_error": 0.1, "marker_undersize": 0.2,
+                  "principal_offset_px": 50.0, "info_principal_error_px": 50.0, "marker_shift_mm": 5.0,
+                  "marker_turn_deg": 10.0, "face_tilt_deg": 10.0, "wobble_deg": 10.0, "bounce_mm": 20.0,
+                  "floor_bumps_mm": 20.0, "exposure_step": 1.0}
+        for name, most in limits.items():
+            if getattr(self, name) > most:
+                raise bad(name, f"must be at most {most:g}")
+        if self.readout_ms * 1e-3 + self.exposure_s >= 1.0 / self.fps:
+            raise bad("readout_ms", f"readout plus exposure must be shorter than the frame period "
+                                    f"{1.0 / self.fps:.4f} s")
         if not 1 <= self.robots <= 8:
             raise bad("robots", "must be between 1 and 8")
         if not 0 < self.robot_spacing < 1:
@@ -152,6 +206,12 @@ class SimulationParams:
         if self.height_m <= top + 0.1:
             raise bad("height_m", f"cameras must be at least 0.1 m above the cube's top ({top:.3f} m)")
 
+    @classmethod
+    def realistic(cls, **changes) -> SimulationParams:
+        """The realistic preset (:data:`REALISTIC`: every effect of real cameras and robots on),
+        with ``changes`` applied on top (e.g. ``cameras=5, seed=3`` or ``readout_ms=0``)."""
+        return cls(**{**REALISTIC, **changes})
+
     @property
     def cube_centre_height_m(self) -> float:
         """Height of the cube frame's origin above the floor, metres."""
@@ -161,3 +221,39 @@ class SimulationParams:
     def cube_top_m(self) -> float:
         """Height of the cube's top face above the floor, metres."""
         return self.robot_size_m[2] + self.mast_height_m + self.cube_size_m
+
+
+# The realistic preset: what real camera nodes and robots add to the clean defaults (docs/simulation.md).
+REALISTIC: dict[str, object] = {
+    # a wide-angle lens, exactly rendered; each camera's own principal point and focal length
+    "distortion": (-0.3, 0.1, 0.0, 0.0, 0.0),
+    "principal_offset_px": 5.0,
+    "focal_spread": 0.01,
+    # camera_info as a ChArUco calibration leaves it
+    "info_focal_error": 0.003,
+    "info_principal_error_px": 2.0,
+    "info_k1_error": 0.005,
+    # rolling shutter and a short exposure
+    "readout_ms": 30.0,
+    "exposure_s": 0.005,
+    # faster driving with sharp turns on an uneven floor, a vibrating robot
+    "path": "sharp",
+    "speed_m_s": 0.5,
+    "floor_bumps_mm": 3.0,
+    "bounce_mm": 1.0,
+    "wobble_deg": 0.5,
+    # a hand-built cube
+    "marker_shift_mm": 1.0,
+    "marker_turn_deg": 1.0,
+    "marker_undersize": 0.01,
+    "face_tilt_deg": 0.5,
+    # light: auto-exposure steps, stronger gradients and vignetting, shaded faces
+    "exposure_steps_per_s": 0.1,
+    "light_gradient": 0.4,
+    "vignetting": 0.35,
+    "face_shading": 0.3,
+    # people walking through
+    "people": 2,
+    # fast motion: a denser ground truth (nearest-sample scoring)
+    "ground_truth_hz": 1000.0,
+}

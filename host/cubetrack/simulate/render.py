@@ -40,6 +40,8 @@ from cubetrack.core.geometry import invert_T
 WHITE_ALBEDO = 0.85  # printed paper
 BLACK_ALBEDO = 0.05  # printed ink
 _MAX_TEXTURE = 4096
+_MAX_PLAIN_TEXTURE = 1024
+_CACHED_ONES = 1 << 18  # plain coverage textures up to this many texels are cached
 
 
 @lru_cache(maxsize=64)
@@ -87,12 +89,14 @@ def _ones(h: int, w: int) -> np.ndarray:
 class Quad:
     """A planar rectangle: its frame (origin at the centre, x right, y up, z out of the visible
     side — the marker frame convention), its size along x and y (metres), and either a uniform
-    ``albedo`` or a ``texture`` covering the whole rectangle (row 0 along its +y edge)."""
+    ``albedo`` or a ``texture`` covering the whole rectangle (row 0 along its +y edge).
+    ``shade`` scales its brightness (how much light falls on it)."""
 
     T_world_quad: np.ndarray
     size_m: tuple[float, float]
     albedo: float = WHITE_ALBEDO
     texture: MarkerTexture | None = None
+    shade: float = 1.0
 
     def corners_world(self) -> np.ndarray:
         """(4, 3) corners TL, TR, BR, BL (marker order) in the world frame."""
@@ -110,6 +114,13 @@ class Solid:
 
     def corners_world(self) -> np.ndarray:
         return np.concatenate([q.corners_world() for q in self.faces])
+
+    def outline_world(self, per_edge: int) -> np.ndarray:
+        """Points along every face edge (``per_edge`` per edge, corners included), world frame."""
+        corners = self.corners_world().reshape(-1, 4, 3)
+        u = (np.arange(per_edge) / per_edge)[None, None, :, None]
+        edges = corners[:, :, None, :] + u * (np.roll(corners, -1, axis=1) - corners)[:, :, None, :]
+        return edges.reshape(-1, 3)
 
 
 def box_faces(T_world_box: np.ndarray, size_m: tuple[float, float, float], albedo: float,
@@ -205,6 +216,54 @@ class View:
         """(N, 2) pixel positions (with distortion) of world points; points must be in front."""
         return project_points(self.intrinsics, self.T_world_cam, points_world)
 
+    def image_box(self, solids: tuple[Solid, ...] | list[Solid], pad: int = 4) -> tuple[int, int, int, int] | None:
+        """The final-image box ``(x0, y0, x1, y1)`` (``pad`` pixels wider) that holds the solids'
+        image; the whole image when one of them reaches behind the camera, None when nothing is
+        in front. Distorted edges bow, so they are sampled along their length."""
+        if not solids:
+            return None
+        distorted = self.distorted
+        pts = np.concatenate([s.outline_world(8) if distorted else s.corners_world() for s in solids])
+        depth = self.depth(pts)
+        if np.all(depth <= 0.0):
+            return None
+        uv = self._near_outline(solids) if np.any(depth <= 1e-3) else self.project(pts)
+        if uv is None:
+            return None
+        x0 = max(int(math.floor(uv[:, 0].min())) - pad, 0)
+        y0 = max(int(math.floor(uv[:, 1].min())) - pad, 0)
+        x1 = min(int(math.ceil(uv[:, 0].max())) + pad + 1, self.width)
+        y1 = min(int(math.ceil(uv[:, 1].max())) + pad + 1, self.height)
+        if x1 <= x0 or y1 <= y0:
+            return None
+        return x0, y0, x1, y1
+
+    def _near_outline(self, solids) -> np.ndarray | None:
+        """Image points around solids reaching behind the camera: each face clipped 1 mm in
+        front of it, the box of their undistorted images, that box's outline distorted."""
+        boxes = []
+        for solid in solids:
+            for q in solid.faces:
+                c = q.corners_world() @ self.T_cam_world[:3, :3].T + self.T_cam_world[:3, 3]
+                if np.all(c[:, 2] < 1e-3):
+                    continue
+                xy = _clip_in_front(np.column_stack([c[:, :2], c[:, 2]]), 1e-3) if np.any(c[:, 2] < 1e-3) \
+                    else c[:, :2] / c[:, 2:3]
+                boxes.append(np.r_[xy.min(axis=0), xy.max(axis=0)])  # normalised image coordinates
+        if not boxes:
+            return None
+        b = np.array(boxes)
+        lo, hi = b[:, :2].min(axis=0), b[:, 2:].max(axis=0)
+        # the box's corners and edge points, distorted where they lie near the image
+        edge = np.linspace(0.0, 1.0, 33)
+        ring = np.concatenate([np.column_stack([lo[0] + edge * (hi[0] - lo[0]), np.full(33, y)]) for y in (lo[1], hi[1])]
+                              + [np.column_stack([np.full(33, x), lo[1] + edge * (hi[1] - lo[1])]) for x in (lo[0], hi[0])])
+        limit = 2.0 * max(self.width, self.height) / min(self.K[0, 0], self.K[1, 1])
+        ring = np.clip(ring, -limit, limit)
+        uv, _ = cv2.projectPoints(np.column_stack([ring, np.ones(len(ring))]), np.zeros(3), np.zeros(3), self.K,
+                                  self.dist)
+        return uv.reshape(-1, 2)
+
     def depth(self, points_world: np.ndarray) -> np.ndarray:
         pts = np.asarray(points_world, float).reshape(-1, 3)
         return pts @ self.T_cam_world[2, :3] + self.T_cam_world[2, 3]
@@ -233,6 +292,19 @@ def _warp(texture: np.ndarray, H_tex_to_dst: np.ndarray, size: tuple[int, int]) 
                                borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
 
 
+def _clip_in_front(p: np.ndarray, near: float) -> np.ndarray:
+    """Image points (x, y) of a polygon given as homogeneous rows (x z, y z, z), clipped to
+    depth ``z >= near``."""
+    out = []
+    for a, b in zip(p, np.roll(p, -1, axis=0)):
+        if a[2] >= near:
+            out.append(a)
+        if (a[2] >= near) != (b[2] >= near):
+            out.append(a + (near - a[2]) / (b[2] - a[2]) * (b - a))
+    q = np.array(out)
+    return q[:, :2] / q[:, 2:3]
+
+
 def _quad_layer(view: View, quad: Quad, origin: tuple[int, int], shape: tuple[int, int]):
     """The coverage and premultiplied albedo of one rectangle in a patch, restricted to its
     bounding box: ``(y0, y1, x0, x1, alpha, value)`` or None when it is not visible."""
@@ -244,22 +316,32 @@ def _quad_layer(view: View, quad: Quad, origin: tuple[int, int], shape: tuple[in
     w, h = quad.size_m
     local = np.array([[-w / 2, h / 2, 1.0], [w / 2, h / 2, 1.0], [w / 2, -h / 2, 1.0], [-w / 2, -h / 2, 1.0]])
     p = local @ Hp.T  # the third coordinate is the depth in the camera (metres)
-    if np.any(p[:, 2] <= 1e-3):
-        return None  # (partly) behind the camera: the caller refuses such scenes
-    xy = p[:, :2] / p[:, 2:3]
-    x0 = max(int(math.floor(xy[:, 0].min())) - 2, 0)
-    y0 = max(int(math.floor(xy[:, 1].min())) - 2, 0)
-    x1 = min(int(math.ceil(xy[:, 0].max())) + 3, shape[1])
-    y1 = min(int(math.ceil(xy[:, 1].max())) + 3, shape[0])
+    front = p[:, 2] > 1e-3
+    if not front.any():
+        return None
+    # a quad reaching behind the camera can cover any part of the patch; each pixel's ray meets
+    # its plane once, in front or behind: the pixels that meet it behind are masked below
+    partial = not front.all()
+    xy = p[front, :2] / p[front, 2:3]
+    # the box of its image: of the part at least 1 mm in front of the camera when it reaches
+    # behind (p is linear in the plane coordinates, so the outline is clipped in p)
+    outline = _clip_in_front(p, 1e-3) if partial else xy
+    x0 = max(int(math.floor(outline[:, 0].min())) - 2, 0)
+    y0 = max(int(math.floor(outline[:, 1].min())) - 2, 0)
+    x1 = min(int(math.ceil(outline[:, 0].max())) + 3, shape[1])
+    y1 = min(int(math.ceil(outline[:, 1].max())) + 3, shape[0])
     if x1 <= x0 or y1 <= y0:
         return None
     # Jacobian of the projective map at the corners: supersampled pixels per metre along x, y
-    J = (Hp[:2, :2][None] - xy[:, :, None] * Hp[2, :2][None, None, :]) / p[:, 2][:, None, None]
+    J = (Hp[:2, :2][None] - xy[:, :, None] * Hp[2, :2][None, None, :]) / p[front, 2][:, None, None]
     px_per_m_x = float(np.linalg.norm(J[:, :, 0], axis=1).min())
     px_per_m_y = float(np.linalg.norm(J[:, :, 1], axis=1).min())
     if quad.texture is None:
-        tw = int(np.clip(math.floor(w * px_per_m_x), 1, _MAX_TEXTURE))
-        th = int(np.clip(math.floor(h * px_per_m_y), 1, _MAX_TEXTURE))
+        # plain quads only need texels small enough for a sharp edge; one reaching behind the
+        # camera (a passer-by) gets at most _MAX_PLAIN_TEXTURE texels, so a softer edge
+        most = _MAX_PLAIN_TEXTURE if partial else _MAX_TEXTURE
+        tw = int(np.clip(math.floor(w * px_per_m_x), 1, most))
+        th = int(np.clip(math.floor(h * px_per_m_y), 1, most))
         tex = None
     else:
         n = quad.texture.cells
@@ -270,8 +352,18 @@ def _quad_layer(view: View, quad: Quad, origin: tuple[int, int], shape: tuple[in
     shift = np.array([[1.0, 0.0, -x0], [0.0, 1.0, -y0], [0.0, 0.0, 1.0]])
     H = shift @ Hp @ _texel_to_plane(quad.size_m, tw, th)
     size = (x1 - x0, y1 - y0)
-    alpha = _warp(_ones(th, tw), H, size)
-    value = alpha * np.float32(quad.albedo) if tex is None else _warp(tex, H, size)
+    alpha = _warp(_ones(th, tw) if th * tw <= _CACHED_ONES else np.ones((th, tw), np.float32), H, size)
+    value = alpha * np.float32(quad.albedo * quad.shade) if tex is None else _warp(tex, H, size)
+    if tex is not None and quad.shade != 1.0:
+        value *= np.float32(quad.shade)
+    if partial:
+        # the third coordinate of H^-1 (pixel, 1) is 1 / depth of the plane point on that ray
+        Hi = np.linalg.inv(H)
+        third = (Hi[2, 0] * np.arange(size[0], dtype=np.float64)[None, :]
+                 + Hi[2, 1] * np.arange(size[1], dtype=np.float64)[:, None] + Hi[2, 2])
+        behind = third <= 0
+        alpha[behind] = 0.0
+        value[behind] = 0.0
     return y0, y1, x0, x1, alpha, value
 
 
@@ -340,6 +432,40 @@ def draw_floor(canvas: np.ndarray, origin: tuple[int, int], view: View, floor: F
     canvas[third <= 0] = floor.wall_albedo
 
 
+@dataclass(frozen=True, slots=True)
+class Exposure:
+    """When the rows of one image are exposed. Row ``v`` integrates the scene over
+    ``[t_v - exposure_s / 2, t_v + exposure_s / 2]`` with ``t_v = time_s + (v - ref_row) * row_s``
+    (scene seconds): ``row_s`` 0 is a global shutter, otherwise a rolling shutter whose rows are
+    ``row_s`` apart; ``time_s`` is the mid-exposure instant of row ``ref_row``."""
+
+    time_s: float
+    exposure_s: float
+    row_s: float = 0.0
+    ref_row: float = 0.0
+
+    def row_times(self, rows: np.ndarray) -> np.ndarray:
+        return self.time_s + (np.asarray(rows, float) - self.ref_row) * self.row_s
+
+
+def exposure_weights(row_times_s: np.ndarray, exposure_s: float, sample_times_s: np.ndarray) -> np.ndarray:
+    """(rows, samples) weights that average the scene over each row's exposure window, the scene
+    between two rendered instants (``sample_times_s``, evenly spaced) taken as their linear
+    blend: the integral of each sample's hat function over the window (its value at the row's
+    instant for a zero exposure). Each row's weights sum to 1 when the samples span its window."""
+    step = float(sample_times_s[1] - sample_times_s[0]) if len(sample_times_s) > 1 else 1.0
+    u = (np.asarray(row_times_s, float)[:, None] - np.asarray(sample_times_s, float)[None, :]) / step
+    if exposure_s <= 0:
+        return np.maximum(0.0, 1.0 - np.abs(u))
+    half = 0.5 * exposure_s / step
+
+    def integral(x: np.ndarray) -> np.ndarray:  # of the unit hat from -inf to x
+        x = np.clip(x, -1.0, 1.0)
+        return np.where(x <= 0.0, 0.5 * (x + 1.0) ** 2, 1.0 - 0.5 * (1.0 - x) ** 2)
+
+    return (integral(u + half) - integral(u - half)) / (2.0 * half)
+
+
 class Renderer:
     """Renders one camera's frames: a static background (floor, wall, static solids) computed
     once, and moving solids drawn only in the region of the image they can touch."""
@@ -355,7 +481,10 @@ class Renderer:
         self.background = self._final_region(0, 0, view.width, view.height, [()])
 
     def _final_region(self, fx0: int, fy0: int, fx1: int, fy1: int,
-                      solids_per_sample: list[tuple[Solid, ...]]) -> np.ndarray:
+                      solids_per_sample: list[tuple[Solid, ...]], row_weights: np.ndarray | None = None
+                      ) -> np.ndarray:
+        """The final image in a box, the solids drawn at each sample and the samples averaged:
+        equally, or per final row with ``row_weights`` (rows, samples)."""
         v, s = self.view, self.view.s
         sx0, sy0, sx1, sy1 = fx0 * s, fy0 * s, fx1 * s, fy1 * s
         if not v.distorted:
@@ -374,14 +503,17 @@ class Renderer:
             origin = (v.canvas_origin[0] + bx0, v.canvas_origin[1] + by0)
             mx, my = mx - np.float32(bx0), my - np.float32(by0)
         acc = None
-        for solids in solids_per_sample:
+        for k, solids in enumerate(solids_per_sample):
             patch = base.copy()
             for solid in solids:
                 draw_solid(patch, origin, v, solid)
             if mx is not None:
                 patch = cv2.remap(patch, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+            if row_weights is not None:
+                patch *= np.repeat(row_weights[:, k].astype(np.float32), s)[:, None]
             acc = patch if acc is None else acc + patch
-        acc /= np.float32(len(solids_per_sample))
+        if row_weights is None:
+            acc /= np.float32(len(solids_per_sample))
         if s == 1:
             return acc
         return cv2.resize(acc, (fx1 - fx0, fy1 - fy0), interpolation=cv2.INTER_AREA)
@@ -389,26 +521,52 @@ class Renderer:
     def render(self, solids_per_sample: list[tuple[Solid, ...]]) -> np.ndarray:
         """The albedo image (float32, final size) with the moving solids drawn; several entries
         in ``solids_per_sample`` (the scene at instants within the exposure) are averaged."""
-        v = self.view
         if not solids_per_sample or not any(solids_per_sample):
             return self.background.copy()
-        pts = np.concatenate([solid.corners_world() for solids in solids_per_sample for solid in solids])
-        depth = v.depth(pts)
-        if np.all(depth <= 0.0):
-            return self.background.copy()  # entirely behind the camera
-        if np.any(depth <= 1e-3):
-            raise SimulationError("a moving object crosses a camera's image plane; "
-                                  "keep the robot away from the cameras")
-        uv = v.project(pts)
-        pad = 4
-        fx0 = max(int(math.floor(uv[:, 0].min())) - pad, 0)
-        fy0 = max(int(math.floor(uv[:, 1].min())) - pad, 0)
-        fx1 = min(int(math.ceil(uv[:, 0].max())) + pad + 1, v.width)
-        fy1 = min(int(math.ceil(uv[:, 1].max())) + pad + 1, v.height)
+        box = self.view.image_box([solid for solids in solids_per_sample for solid in solids])
         out = self.background.copy()
-        if fx1 <= fx0 or fy1 <= fy0:
+        if box is None:
             return out
+        fx0, fy0, fx1, fy1 = box
         out[fy0:fy1, fx0:fx1] = self._final_region(fx0, fy0, fx1, fy1, solids_per_sample)
+        return out
+
+    def render_exposure(self, solids_at, exposure: Exposure, step_s: float, band_rows: int = 32) -> np.ndarray:
+        """The albedo image of moving solids seen through ``exposure`` (a rolling shutter, motion
+        blur): ``solids_at(t)`` gives the solids at scene time t; the scene is rendered at
+        instants ``step_s`` apart (choose it so nothing moves more than a fraction of a pixel
+        between two) and each row averages the instants of its own exposure window
+        (:func:`exposure_weights`). Rows are done in bands of ``band_rows``, each with the
+        instants its rows need, so the cost grows with the exposure, not with the readout."""
+        v = self.view
+        out = self.background.copy()
+        cache: dict[int, list[tuple[Solid, tuple[int, int, int, int]]]] = {}
+
+        def at(k: int) -> list[tuple[Solid, tuple[int, int, int, int]]]:
+            """The solids in view at instant k, each with its image box."""
+            if k not in cache:
+                solids = solids_at(exposure.time_s + k * step_s)
+                cache[k] = [(solid, box) for solid in solids if (box := v.image_box((solid,))) is not None]
+            return cache[k]
+
+        half = 0.5 * exposure.exposure_s
+        for b0 in range(0, v.height, band_rows):
+            b1 = min(b0 + band_rows, v.height)
+            times = exposure.row_times(np.arange(b0, b1)) - exposure.time_s  # relative to the reference row
+            k0 = math.floor((float(times.min()) - half) / step_s - 1e-9)
+            k1 = math.ceil((float(times.max()) + half) / step_s + 1e-9)
+            ks = np.arange(k0, max(k1, k0 + 1) + 1)
+            weights = exposure_weights(times, exposure.exposure_s, ks * step_s)
+            used = np.flatnonzero(weights.sum(axis=0) > 0)
+            # only the solids whose image reaches into the band's rows
+            samples = [[(solid, box) for solid, box in at(int(ks[i])) if box[1] < b1 and box[3] > b0] for i in used]
+            boxes = [box for sample in samples for _, box in sample]
+            if not boxes:
+                continue
+            x0 = min(b[0] for b in boxes)
+            x1 = max(b[2] for b in boxes)
+            out[b0:b1, x0:x1] = self._final_region(x0, b0, x1, b1, [tuple(s for s, _ in sample) for sample in samples],
+                                                   weights[:, used])
         return out
 
 

@@ -1,11 +1,13 @@
-"""The simulated arena: where the cameras stand, what they see (floor, world marker, robot, cube)
-and how the robot moves. All poses follow cubetrack's conventions (``T_a_b`` maps b into a;
+"""The simulated arena: where the cameras stand, what they see (floor, world marker, robot, cube,
+people) and how it moves. All poses follow cubetrack's conventions (``T_a_b`` maps b into a;
 world = world marker frame, z up; camera optical frame x right, y down, z forward).
 
 Cameras stand evenly around the arena centre at ``distance_m`` and ``height_m``, each turned
 (yaw) towards the centre and tilted down by ``tilt_deg``, then moved by a small random placement
 error. The robot is a box with a mast and the cube on top; its ground point follows a closed
-path at constant speed, heading along the path.
+path (:mod:`cubetrack.simulate.motion`), on an uneven floor when asked. The cube is drawn as
+built (:func:`cubetrack.simulate.imperfections.built_layout`); the tracker is given the nominal
+layout.
 """
 
 from __future__ import annotations
@@ -20,6 +22,17 @@ from cubetrack.core.cameras import CameraIntrinsics, WorldConfig
 from cubetrack.core.errors import SimulationError
 from cubetrack.core.geometry import invert_T, make_T, transform_points
 from cubetrack.core.layout import CubeLayout, paper_cube_layout
+from cubetrack.simulate.imperfections import built_layout, calibrated_intrinsics, true_intrinsics
+from cubetrack.simulate.motion import (
+    PERSON_BODY_M,
+    PERSON_HEAD_M,
+    Person,
+    RobotPath,
+    SharpPath,
+    Terrain,
+    make_path,
+    plan_people,
+)
 from cubetrack.simulate.params import SimulationParams
 from cubetrack.simulate.render import WHITE_ALBEDO, Floor, MarkerTexture, Quad, Solid, box_faces, project_points
 from cubetrack.simulate.timing import DeviceClock, make_clock
@@ -28,13 +41,17 @@ ROBOT_ALBEDO = 0.15
 MAST_ALBEDO = 0.3
 FLOOR_ALBEDO = 0.42
 WALL_ALBEDO = 0.6
+HEAD_ALBEDO = 0.35
 MAST_SIDE_M = 0.03
+LIGHT_ELEVATION_DEG = 50.0  # the directional light of face_shading comes from this high up
 ROBOT_NAME = "robot"  # the name of a lone robot; several are robot1, robot2, ...
 
 # Independent random streams: (seed, purpose, index) -> Generator. Adding a camera or changing
 # one stage's use of randomness leaves the other streams unchanged.
 (STREAM_SCENE, STREAM_CLOCK, STREAM_TIMING, STREAM_SYNC, STREAM_IMAGE, STREAM_GAIN,
- STREAM_CAL_TIMING, STREAM_CAL_SYNC, STREAM_CAL_IMAGE, STREAM_CAL_GAIN) = range(10)
+ STREAM_CAL_TIMING, STREAM_CAL_SYNC, STREAM_CAL_IMAGE, STREAM_CAL_GAIN,
+ STREAM_LENS, STREAM_INFO, STREAM_BUILD, STREAM_FLOOR, STREAM_VIBRATION, STREAM_PATH, STREAM_PEOPLE,
+ STREAM_EXPOSURE, STREAM_CAL_EXPOSURE, STREAM_LIGHT) = range(20)
 
 
 def rng_for(seed: int, purpose: int, index: int = 0) -> np.random.Generator:
@@ -43,8 +60,10 @@ def rng_for(seed: int, purpose: int, index: int = 0) -> np.random.Generator:
 
 @dataclass(frozen=True, slots=True, eq=False)
 class CameraSetup:
-    """One simulated camera node: name, intrinsics, true pose of its optical frame, clock, the
-    phase of its capture grid on its own clock (s), and its lighting (gradient direction)."""
+    """One simulated camera node: name, true intrinsics, true pose of its optical frame, clock,
+    the phase of its capture grid on its own clock (s), its lighting (gradient direction), the
+    intrinsics the tracker is told (``camera_info``; the truth unless calibration errors are on)
+    and its rolling-shutter readout (s; 0 = global shutter)."""
 
     name: str
     intrinsics: CameraIntrinsics
@@ -52,50 +71,31 @@ class CameraSetup:
     clock: DeviceClock
     capture_phase_s: float
     light_direction_rad: float
+    camera_info: CameraIntrinsics
+    readout_s: float = 0.0
 
+    @property
+    def row_s(self) -> float:
+        """Time between the exposures of two consecutive rows, seconds."""
+        return self.readout_s / self.intrinsics.height
 
-class RobotPath:
-    """A closed path on the floor travelled at constant speed, heading along the path.
-
-    ``figure8``: x = a sin(th), y = b sin(2 th) (crosses the arena centre, so the robot drives
-    over the world marker). ``rectangle``: the superellipse |x/a|^4 + |y/b|^4 = 1.
-    """
-
-    def __init__(self, kind: str, half_extent_m: tuple[float, float], speed_m_s: float, start_fraction: float):
-        self.kind = kind
-        self.a, self.b = half_extent_m
-        self.speed_m_s = speed_m_s
-        th = np.linspace(0.0, 2.0 * math.pi, 20001)
-        pts = self._point(th)
-        seg = np.linalg.norm(np.diff(pts, axis=0), axis=1)
-        self._theta = th
-        self._arc = np.concatenate([[0.0], np.cumsum(seg)])
-        self.length_m = float(self._arc[-1])
-        self._s0 = start_fraction * self.length_m
-
-    def _point(self, th: np.ndarray) -> np.ndarray:
-        if self.kind == "figure8":
-            return np.stack([self.a * np.sin(th), self.b * np.sin(2.0 * th)], axis=-1)
-        c, s = np.cos(th), np.sin(th)
-        return np.stack([self.a * np.sign(c) * np.sqrt(np.abs(c)), self.b * np.sign(s) * np.sqrt(np.abs(s))], axis=-1)
-
-    def pose(self, t_s: float) -> tuple[np.ndarray, float]:
-        """Ground position (x, y) in metres and heading (rad) ``t_s`` seconds after the start."""
-        s = (self._s0 + self.speed_m_s * t_s) % self.length_m
-        th = float(np.interp(s, self._arc, self._theta))
-        eps = 1e-5
-        p = self._point(np.array([th - eps, th, th + eps]))
-        d = p[2] - p[0]
-        return p[1], math.atan2(d[1], d[0])
+    @property
+    def reference_row(self) -> float:
+        """The row whose mid-exposure instant is the frame's stamp (the image's middle row)."""
+        return (self.intrinsics.height - 1) / 2.0
 
 
 @dataclass(frozen=True, slots=True, eq=False)
 class SimRobot:
-    """One simulated robot: its name, its cube's layout and the path it drives."""
+    """One simulated robot: its name, its cube's layout (nominal, as the tracker is told), the
+    path it drives, the cube as built (``true_layout``) and the uneven floor and vibration that
+    tilt it (None: a flat floor, no vibration)."""
 
     name: str
     layout: CubeLayout
-    path: RobotPath
+    path: RobotPath | SharpPath
+    true_layout: CubeLayout
+    terrain: Terrain | None = None
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -108,10 +108,17 @@ class Scene:
     world: WorldConfig
     floor: Floor
     world_marker: Solid
+    people: tuple[Person, ...] = ()
+    light_world: np.ndarray | None = None  # unit vector towards the light of face_shading
 
     def T_world_robot(self, t_s: float, robot: int = 0) -> np.ndarray:
-        """A robot's ground frame (x forward, z up) ``t_s`` seconds after the start."""
-        (x, y), yaw = self.robots[robot].path.pose(t_s)
+        """A robot's ground frame (x forward, z up) ``t_s`` seconds after the start; on an uneven
+        floor it stands on its four wheels and vibrates."""
+        r = self.robots[robot]
+        xy, yaw = r.path.pose(t_s)
+        if r.terrain is not None:
+            return r.terrain.T_world_robot(np.asarray(xy, float), yaw, t_s)
+        x, y = xy
         return make_T(Rotation.from_euler("z", yaw).as_matrix(), [x, y, 0.0])
 
     def T_robot_cube(self) -> np.ndarray:
@@ -123,32 +130,65 @@ class Scene:
         return self.T_world_robot(t_s, robot) @ self.T_robot_cube()
 
     def moving_solids(self, t_s: float, camera_position_m: np.ndarray) -> tuple[Solid, ...]:
-        """Every robot's body, mast and cube at ``t_s``, in painter's order (far robots first)
-        for a camera at ``camera_position_m`` above the cubes."""
-        poses = [self.T_world_robot(t_s, k) for k in range(len(self.robots))]
-        order = sorted(range(len(poses)), key=lambda k: -float(np.linalg.norm(poses[k][:3, 3] - camera_position_m)))
-        return tuple(solid for k in order for solid in self.robot_solids_at(poses[k], self.robots[k].layout))
+        """Every robot's body, mast and cube and every person in the room at ``t_s``, in
+        painter's order (far ones first) for a camera at ``camera_position_m``."""
+        groups = []
+        for k, robot in enumerate(self.robots):
+            T = self.T_world_robot(t_s, k)
+            groups.append((T[:3, 3], lambda T=T, robot=robot: self.robot_solids_at(T, robot.layout, robot.true_layout)))
+        for person in self.people:
+            T = person.T_world_person(t_s)
+            if T is not None:
+                centre = T[:3, 3] + [0.0, 0.0, PERSON_BODY_M[2] / 2]
+                groups.append((centre, lambda T=T, person=person: self.person_solids_at(T, person.albedo)))
+        order = sorted(range(len(groups)), key=lambda k: -float(np.linalg.norm(groups[k][0] - camera_position_m)))
+        return tuple(solid for k in order for solid in groups[k][1]())
 
-    def robot_solids_at(self, T_robot: np.ndarray, layout: CubeLayout) -> tuple[Solid, ...]:
-        """Robot body, mast and cube with the robot's ground frame at ``T_robot`` (world)."""
+    def robot_solids_at(self, T_robot: np.ndarray, layout: CubeLayout,
+                        built: CubeLayout | None = None) -> tuple[Solid, ...]:
+        """Robot body, mast and cube with the robot's ground frame at ``T_robot`` (world): the
+        cube's faces where ``layout`` puts them, its markers where ``built`` (default: the same
+        layout) has them."""
         p = self.params
         length, width, height = p.robot_size_m
-        body = Solid(box_faces(T_robot @ make_T(np.eye(3), [0, 0, height / 2]), (length, width, height),
-                               ROBOT_ALBEDO))
+        body = Solid(self._shaded(box_faces(T_robot @ make_T(np.eye(3), [0, 0, height / 2]),
+                                            (length, width, height), ROBOT_ALBEDO)))
         solids = [body]
         if p.mast_height_m > 0:
             mast_T = T_robot @ make_T(np.eye(3), [0, 0, height + p.mast_height_m / 2])
             side = min(MAST_SIDE_M, p.cube_size_m)
-            solids.append(Solid(box_faces(mast_T, (side, side, p.mast_height_m), MAST_ALBEDO)))
+            solids.append(Solid(self._shaded(box_faces(mast_T, (side, side, p.mast_height_m), MAST_ALBEDO))))
         T_cube = T_robot @ self.T_robot_cube()
         faces, decals = [], []
-        for m in layout.markers:
+        for m, b in zip(layout.markers, (built or layout).markers):
             T = T_cube @ m.T_cube_marker
-            faces.append(Quad(T, (p.cube_size_m, p.cube_size_m), WHITE_ALBEDO))
-            decals.append(Quad(T, (m.size_m, m.size_m), texture=MarkerTexture(layout.dictionary, m.marker_id)))
+            shade = self.shade(T[:3, 2])
+            faces.append(Quad(T, (p.cube_size_m, p.cube_size_m), WHITE_ALBEDO, shade=shade))
+            decals.append(Quad(T_cube @ b.T_cube_marker, (b.size_m, b.size_m),
+                               texture=MarkerTexture(layout.dictionary, b.marker_id), shade=shade))
         # the face without a marker (the bottom) is never seen from above; the cube is closed anyway
         solids.append(Solid(tuple(faces), tuple(decals)))
         return tuple(solids)
+
+    def person_solids_at(self, T_person: np.ndarray, albedo: float) -> tuple[Solid, ...]:
+        """A person standing at ``T_person`` (floor frame, x along the walk): body and head boxes."""
+        depth, width, height = PERSON_BODY_M
+        body = box_faces(T_person @ make_T(np.eye(3), [0, 0, height / 2]), (depth, width, height), albedo)
+        head = box_faces(T_person @ make_T(np.eye(3), [0, 0, height + PERSON_HEAD_M[2] / 2]), PERSON_HEAD_M,
+                         HEAD_ALBEDO)
+        return Solid(self._shaded(body)), Solid(self._shaded(head))
+
+    def shade(self, normal_world: np.ndarray) -> float:
+        """Brightness factor of a face with this outward normal under the directional light."""
+        if self.light_world is None:
+            return 1.0
+        return 1.0 - self.params.face_shading * (1.0 - max(0.0, float(np.dot(normal_world, self.light_world))))
+
+    def _shaded(self, quads: tuple[Quad, ...]) -> tuple[Quad, ...]:
+        if self.light_world is None:
+            return quads
+        return tuple(Quad(q.T_world_quad, q.size_m, q.albedo, q.texture, self.shade(q.T_world_quad[:3, 2]))
+                     for q in quads)
 
 
 def make_floor(rng: np.random.Generator, half_size_m: float = 4.0, texels: int = 1024) -> Floor:
@@ -188,14 +228,6 @@ def camera_pose(azimuth_rad: float, p: SimulationParams, rng: np.random.Generato
     return make_T(R, position)
 
 
-def intrinsics_of(p: SimulationParams, name: str) -> CameraIntrinsics:
-    """VGA-like pinhole intrinsics; principal point at the image centre, pixel-centre convention."""
-    K = np.array([[p.focal_px, 0.0, (p.image_width_px - 1) / 2.0],
-                  [0.0, p.focal_px, (p.image_height_px - 1) / 2.0],
-                  [0.0, 0.0, 1.0]])
-    return CameraIntrinsics(p.image_width_px, p.image_height_px, K, np.array(p.distortion, float), name)
-
-
 def build_scene(p: SimulationParams) -> Scene:
     """The arena for a parameter set; raises SimulationError when a camera cannot see the whole
     world marker (calibration would be impossible)."""
@@ -203,13 +235,21 @@ def build_scene(p: SimulationParams) -> Scene:
     floor = make_floor(scene_rng)
     world = WorldConfig(p.dictionary, p.world_marker_id, p.world_marker_size_m)
     start = float(scene_rng.uniform(0.0, 1.0))
+    uneven = p.floor_bumps_mm > 0 or p.bounce_mm > 0 or p.wobble_deg > 0
     robots = []
     for k in range(p.robots):
         first_id = p.cube_marker_id + k * (5 if p.distinct_ids else 1)
         layout = paper_cube_layout(p.cube_size_m, p.marker_size_m, first_id, p.dictionary, p.distinct_ids)
-        path = RobotPath(p.path, (p.path_size_m[0], p.path_size_m[1]), p.speed_m_s,
-                         (start + k * p.robot_spacing) % 1.0)
-        robots.append(SimRobot(ROBOT_NAME if p.robots == 1 else f"robot{k + 1}", layout, path))
+        # robots share one path and one floor (same streams), each its own cube and vibration
+        path = make_path(p.path, (p.path_size_m[0], p.path_size_m[1]), p.speed_m_s, (start + k * p.robot_spacing) % 1.0,
+                         p.accel_m_s2, math.radians(p.turn_rate_deg_s), p.turn_radius_m, rng_for(p.seed, STREAM_PATH))
+        terrain = None
+        if uneven:
+            terrain = Terrain(1e-3 * p.floor_bumps_mm, 1e-3 * p.bounce_mm, math.radians(p.wobble_deg),
+                              (p.robot_size_m[0], p.robot_size_m[1]), rng_for(p.seed, STREAM_FLOOR),
+                              rng_for(p.seed, STREAM_VIBRATION, k))
+        robots.append(SimRobot(ROBOT_NAME if p.robots == 1 else f"robot{k + 1}", layout, path,
+                               built_layout(layout, p, rng_for(p.seed, STREAM_BUILD, k)), terrain))
     cameras = []
     for i in range(p.cameras):
         name = f"cam{i + 1}"
@@ -219,10 +259,26 @@ def build_scene(p: SimulationParams) -> Scene:
         clock = make_clock(p, clock_rng)
         phase = float(clock_rng.uniform(0.0, 1.0 / p.fps))
         light = float(scene_rng.uniform(0.0, 2.0 * math.pi))
-        cameras.append(CameraSetup(name, intrinsics_of(p, name), T_world_cam, clock, phase, light))
+        intrinsics = true_intrinsics(p, name, rng_for(p.seed, STREAM_LENS, i))
+        info = calibrated_intrinsics(intrinsics, p, rng_for(p.seed, STREAM_INFO, i))
+        cameras.append(CameraSetup(name, intrinsics, T_world_cam, clock, phase, light, info, 1e-3 * p.readout_ms))
     for marker_id in sorted({p.world_marker_id, *(i for r in robots for i in r.layout.ids)}):
         MarkerTexture(p.dictionary, marker_id).cells  # unknown dictionary or id: SimulationError
-    scene = Scene(p, tuple(cameras), tuple(robots), world, floor, make_world_marker(p))
+    light_world = None
+    if p.face_shading > 0:
+        azimuth = float(rng_for(p.seed, STREAM_LIGHT).uniform(0.0, 2.0 * math.pi))
+        elevation = math.radians(LIGHT_ELEVATION_DEG)
+        light_world = np.array([math.cos(elevation) * math.cos(azimuth), math.cos(elevation) * math.sin(azimuth),
+                                math.sin(elevation)])
+    scene = Scene(p, tuple(cameras), tuple(robots), world, floor, make_world_marker(p), (), light_world)
+    if p.people:
+        cameras_xy = np.array([c.T_world_cam[:2, 3] for c in cameras])
+
+        def robot_xy_at(t: float) -> np.ndarray:
+            return np.array([scene.T_world_robot(t, k)[:2, 3] for k in range(len(robots))])
+
+        people = plan_people(p.people, p.duration_s, cameras_xy, robot_xy_at, rng_for(p.seed, STREAM_PEOPLE))
+        scene = Scene(p, scene.cameras, scene.robots, world, floor, scene.world_marker, people, light_world)
     _check_visibility(scene)
     return scene
 

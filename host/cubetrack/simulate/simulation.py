@@ -24,17 +24,22 @@ from cubetrack.io.camera_info import write_camera_info
 from cubetrack.io.config import CameraConfig, tracker_config_to_table, write_extrinsics, write_toml
 from cubetrack.io.recording import CameraEntry, RecordingWriter
 from cubetrack.io.trajectory import Trajectory, write_tum
+from cubetrack.simulate.imperfections import auto_exposure_gains
+from cubetrack.simulate.motion import PERSON_SPEED_M_S
 from cubetrack.simulate.params import SimulationParams
-from cubetrack.simulate.render import Renderer, View, encode_jpeg, form_image, lighting_gain
+from cubetrack.simulate.render import Exposure, Renderer, View, encode_jpeg, form_image, lighting_gain
 from cubetrack.simulate.scenario import (
+    STREAM_CAL_EXPOSURE,
     STREAM_CAL_GAIN,
     STREAM_CAL_IMAGE,
     STREAM_CAL_SYNC,
     STREAM_CAL_TIMING,
+    STREAM_EXPOSURE,
     STREAM_GAIN,
     STREAM_IMAGE,
     STREAM_SYNC,
     STREAM_TIMING,
+    CameraSetup,
     Scene,
     build_scene,
     rng_for,
@@ -45,18 +50,22 @@ log = logging.getLogger(__name__)
 
 CONFIG_FILE = "config.toml"
 LAYOUT_FILE = "cube.toml"
+TRUE_LAYOUT_PREFIX = "true_"  # true_cube.toml (true_cube_<robot>.toml): the cube as built
+TRUE_CAMERA_INFO_DIR = "true_camera_info"  # true_camera_info/<cam>.yaml: the intrinsics rendered with
 TRUE_EXTRINSICS_FILE = "true_extrinsics.toml"
 SIMULATION_FILE = "simulation.toml"
 CALIBRATION_DIR = "calibration"
 GROUND_TRUTH_DIR = "ground_truth"  # with several robots: ground_truth/<robot>.tum
-GROUND_TRUTH_RATE_HZ = 100.0
 _GAP_BEFORE_RECORDING_S = 20.0  # the calibration recording ends this long before the tracking one
+_MAX_STEP_PX = 0.5    # rolling shutter: the robot moves at most this far between two rendered instants
+_PROBE_S = 0.005      # ... as measured from its projection at instants this far apart
 
 
 @dataclass(frozen=True, slots=True, eq=False)
 class SimulatedCamera:
     """The truth about one simulated camera node: intrinsics, the pose of its optical frame in
-    the world, its clock, and every frame it captured in each recording (delivered or not)."""
+    the world, its clock, every frame it captured in each recording (delivered or not), the
+    intrinsics the tracker is told (``camera_info``) and its rolling-shutter readout (s)."""
 
     name: str
     intrinsics: CameraIntrinsics
@@ -64,6 +73,8 @@ class SimulatedCamera:
     clock: DeviceClock
     captures: tuple[CaptureTruth, ...]
     calibration_captures: tuple[CaptureTruth, ...]
+    camera_info: CameraIntrinsics
+    readout_s: float = 0.0
 
     @property
     def frames_written(self) -> int:
@@ -85,8 +96,13 @@ class SimulationResult:
 
     @property
     def layout(self) -> CubeLayout:
-        """The first robot's cube layout (the only one unless ``params.robots > 1``)."""
+        """The first robot's cube layout as the tracker is told (the only one unless ``params.robots > 1``)."""
         return self.scene.robots[0].layout
+
+    @property
+    def true_layout(self) -> CubeLayout:
+        """The first robot's cube as built (also ``true_cube.toml``); the layout unless the cube is imperfect."""
+        return self.scene.robots[0].true_layout
 
     @property
     def ground_truth(self) -> Trajectory:
@@ -106,8 +122,14 @@ class SimulationResult:
 
     @property
     def intrinsics(self) -> dict[str, CameraIntrinsics]:
-        """True intrinsics of each camera (also in ``camera_info/<camera>.yaml``)."""
+        """True intrinsics of each camera (also in ``true_camera_info/<camera>.yaml``)."""
         return {c.name: c.intrinsics for c in self.cameras}
+
+    @property
+    def camera_infos(self) -> dict[str, CameraIntrinsics]:
+        """The intrinsics the tracker is told (``camera_info/<camera>.yaml``): the truth unless
+        calibration errors are simulated."""
+        return {c.name: c.camera_info for c in self.cameras}
 
     def T_world_cube(self, host_time_s: float, robot: int = 0) -> np.ndarray:
         """True pose of a robot's cube frame in the world at a host (Unix) time, exact (not sampled)."""
@@ -118,7 +140,8 @@ def _motion_offsets_s(p: SimulationParams) -> np.ndarray:
     """Instants within the exposure (relative to mid-exposure) averaged for motion blur."""
     if p.exposure_s <= 0:
         return np.zeros(1)
-    n = max(2, math.ceil(p.speed_m_s * p.exposure_s / 0.002)) + 1
+    fastest = max(p.speed_m_s, PERSON_SPEED_M_S[1]) if p.people else p.speed_m_s
+    n = max(2, math.ceil(fastest * p.exposure_s / 0.002)) + 1
     return p.exposure_s * (np.arange(n) / (n - 1) - 0.5)
 
 
@@ -159,9 +182,14 @@ class _FrameJob:
 
 
 def _frame_jobs(scene: Scene, index: int, captures: tuple[CaptureTruth, ...], moving: bool,
-                stream: int, gain_stream: int) -> list[_FrameJob]:
+                stream: int, gain_stream: int, exposure_stream: int) -> list[_FrameJob]:
+    p = scene.params
     delivered = [c for c in captures if c.delivered]
-    gains = _gains(scene.params, len(delivered), rng_for(scene.params.seed, gain_stream, index))
+    gains = _gains(p, len(delivered), rng_for(p.seed, gain_stream, index))
+    if p.exposure_steps_per_s > 0 and captures:
+        times = np.array([c.capture_host_s for c in delivered])
+        gains = gains * auto_exposure_gains(p, times, captures[0].capture_host_s, captures[-1].capture_host_s,
+                                            rng_for(p.seed, exposure_stream, index))
     return [_FrameJob(index, c, float(g), moving, stream) for c, g in zip(delivered, gains)]
 
 
@@ -182,13 +210,44 @@ class _FrameMaker:
         renderer = self.renderers[job.camera]
         if job.moving:
             t = job.capture.capture_host_s - p.start_unix_s
-            position = self.scene.cameras[job.camera].T_world_cam[:3, 3]
-            albedo = renderer.render([self.scene.moving_solids(t + dt, position) for dt in self.offsets])
+            camera = self.scene.cameras[job.camera]
+            position = camera.T_world_cam[:3, 3]
+            if camera.readout_s > 0:
+                exposure = Exposure(t, p.exposure_s, camera.row_s, camera.reference_row)
+                albedo = renderer.render_exposure(lambda ts: self.scene.moving_solids(ts, position), exposure,
+                                                  self._step_s(renderer.view, camera, exposure),
+                                                  _band_rows(camera, exposure))
+            else:
+                albedo = renderer.render([self.scene.moving_solids(t + dt, position) for dt in self.offsets])
         else:
             albedo = renderer.background
         rng = np.random.default_rng(np.random.SeedSequence([p.seed, job.stream, job.camera, job.capture.seq]))
         image = form_image(albedo, self.light[job.camera] * np.float32(job.gain), p.blur_px, p.noise_std, rng)
         return encode_jpeg(image, p.jpeg_quality)
+
+    def _step_s(self, view: View, camera: CameraSetup, exposure: Exposure) -> float:
+        """Time between rendered instants: the robots' projected corners (body, mast, cube) move
+        at most _MAX_STEP_PX between two, as measured over the frame's exposure."""
+        p = self.scene.params
+        first, last = exposure.row_times(np.array([0.0, camera.intrinsics.height - 1.0]))
+        times = np.arange(first - p.exposure_s / 2, last + p.exposure_s / 2 + _PROBE_S, _PROBE_S)
+        corners = []
+        for t in times:
+            pts = np.concatenate([solid.corners_world() for k in range(len(self.scene.robots))
+                                  for solid in self.scene.robot_solids_at(self.scene.T_world_robot(t, k),
+                                                                          self.scene.robots[k].layout)])
+            corners.append(pts)
+        corners = np.array(corners)
+        if np.any(view.depth(corners.reshape(-1, 3)) <= 0.05):
+            return 1e-4
+        uv = view.project(corners.reshape(-1, 3)).reshape(len(times), -1, 2)
+        speed = float(np.linalg.norm(np.diff(uv, axis=0), axis=2).max()) / _PROBE_S
+        return float(np.clip(_MAX_STEP_PX / max(speed, 1e-9), 1e-4, max(p.exposure_s, 1e-3)))
+
+
+def _band_rows(camera: CameraSetup, exposure: Exposure) -> int:
+    """Rows per band of a rolling-shutter render: a band's readout about half the exposure."""
+    return int(np.clip(round(0.5 * max(exposure.exposure_s, 1e-3) / camera.row_s), 8, 64))
 
 
 def _write_frames(writer: RecordingWriter, scene: Scene, jobs: list[_FrameJob], make: _FrameMaker,
@@ -264,7 +323,7 @@ def simulate(params: SimulationParams, out: str | Path, progress: Progress | Non
         workers = min(4, os.cpu_count() or 1)
     with RecordingWriter(out, entries, overwrite=overwrite) as writer:
         for c in scene.cameras:
-            write_camera_info(c.intrinsics, writer.camera_info_path(c.name))
+            write_camera_info(c.camera_info, writer.camera_info_path(c.name))
         _write_session_files(out, scene)
         renderers = [Renderer(View(c.intrinsics, c.T_world_cam, p.supersample), scene.floor,
                               (scene.world_marker,)) for c in scene.cameras]
@@ -273,9 +332,9 @@ def simulate(params: SimulationParams, out: str | Path, progress: Progress | Non
             for sample in clock_plans[i]:
                 writer.add_clock_sample(c.name, sample)
         jobs = [job for i in range(len(scene.cameras))
-                for job in _frame_jobs(scene, i, plans[i], True, STREAM_IMAGE, STREAM_GAIN)]
+                for job in _frame_jobs(scene, i, plans[i], True, STREAM_IMAGE, STREAM_GAIN, STREAM_EXPOSURE)]
         _write_frames(writer, scene, jobs, make, workers, "recording", progress)
-        times = start + np.arange(int(round(p.duration_s * GROUND_TRUTH_RATE_HZ)) + 1) / GROUND_TRUTH_RATE_HZ
+        times = start + np.arange(int(round(p.duration_s * p.ground_truth_hz)) + 1) / p.ground_truth_hz
         ground_truths = {}
         for k, robot in enumerate(scene.robots):
             poses = [position_quat_from_T(scene.T_world_cube(t - start, k)) for t in times]
@@ -289,15 +348,17 @@ def simulate(params: SimulationParams, out: str | Path, progress: Progress | Non
     if cal_dir is not None:
         with RecordingWriter(cal_dir, entries, overwrite=overwrite) as writer:
             for i, c in enumerate(scene.cameras):
-                write_camera_info(c.intrinsics, writer.camera_info_path(c.name))
+                write_camera_info(c.camera_info, writer.camera_info_path(c.name))
                 for sample in cal_clock_plans[i]:
                     writer.add_clock_sample(c.name, sample)
             jobs = [job for i in range(len(scene.cameras))
-                    for job in _frame_jobs(scene, i, cal_plans[i], False, STREAM_CAL_IMAGE, STREAM_CAL_GAIN)]
+                    for job in _frame_jobs(scene, i, cal_plans[i], False, STREAM_CAL_IMAGE, STREAM_CAL_GAIN,
+                                           STREAM_CAL_EXPOSURE)]
             _write_frames(writer, scene, jobs, make, workers, "calibration", progress)
 
     cameras = tuple(
-        SimulatedCamera(c.name, c.intrinsics, c.T_world_cam, c.clock, plans[i], cal_plans[i])
+        SimulatedCamera(c.name, c.intrinsics, c.T_world_cam, c.clock, plans[i], cal_plans[i], c.camera_info,
+                        c.readout_s)
         for i, c in enumerate(scene.cameras)
     )
     log.info("simulated %d cameras: %d frames in %s", len(cameras), sum(c.frames_written for c in cameras), out)
@@ -305,13 +366,18 @@ def simulate(params: SimulationParams, out: str | Path, progress: Progress | Non
 
 
 def _write_session_files(out: Path, scene: Scene) -> None:
-    """cube.toml, config.toml, true_extrinsics.toml and simulation.toml."""
+    """cube.toml, config.toml, true_extrinsics.toml, simulation.toml and the truth the tracker
+    is not told: true_cube.toml (the cube as built) and true_camera_info/ (true intrinsics)."""
     p = scene.params
     robots = []
     for robot in scene.robots:
         layout_file = LAYOUT_FILE if len(scene.robots) == 1 else f"cube_{robot.name}.toml"
         write_layout(robot.layout, out / layout_file)
+        write_layout(robot.true_layout, out / (TRUE_LAYOUT_PREFIX + layout_file))
         robots.append((robot.name, layout_file))
+    (out / TRUE_CAMERA_INFO_DIR).mkdir(exist_ok=True)
+    for c in scene.cameras:
+        write_camera_info(c.intrinsics, out / TRUE_CAMERA_INFO_DIR / f"{c.name}.yaml")
     cameras = [CameraConfig(c.name, "", out / "camera_info" / f"{c.name}.yaml") for c in scene.cameras]
     write_toml(tracker_config_to_table(scene.world, cameras, robots, relative_to=out), out / CONFIG_FILE)
     write_extrinsics({c.name: CameraExtrinsics(c.T_world_cam, method="ground truth (simulated)")
@@ -325,6 +391,10 @@ def _write_session_files(out: Path, scene: Scene) -> None:
             "boot_host_s": float(c.clock.boot_host_s),
             "drift_ppm": float(c.clock.drift_ppm),
             "capture_phase_s": float(c.capture_phase_s),
+            "exposure_s": float(p.exposure_s),
+            "readout_s": float(c.readout_s),
+            "row_time_s": float(c.row_s),
+            "reference_row": float(c.reference_row),
         }
     doc = {"params": params_to_table(p), "cameras": truth}
     (out / SIMULATION_FILE).write_text(tomli_w.dumps(doc), encoding="utf-8")
