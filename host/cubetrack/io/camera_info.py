@@ -7,6 +7,7 @@ camera matrix in pixels; ``dist`` the plumb_bob (k1, k2, p1, p2, k3) coefficient
 
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import numpy as np
@@ -46,34 +47,20 @@ def _matrix(value: object, n: int, path: Path, key: str) -> np.ndarray:
     return arr
 
 
-def _read_opencv_filestorage(path: Path) -> CameraIntrinsics:
-    import cv2  # only this format needs OpenCV
+def _opencv_matrix(loader: yaml.SafeLoader, node: yaml.Node) -> dict:
+    return loader.construct_mapping(node, deep=True)
 
-    try:
-        fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
-    except (cv2.error, SystemError):  # its parser raises on malformed YAML
-        raise CameraInfoError(f"{path}: OpenCV cannot parse this FileStorage YAML") from None
-    try:
-        if not fs.isOpened():
-            raise CameraInfoError(f"{path}: OpenCV cannot parse this FileStorage YAML")
-        K = fs.getNode("camera_matrix").mat()
-        dist = fs.getNode("distortion_coefficients").mat()
-        if K is None or dist is None:
-            raise CameraInfoError(f"{path}: needs camera_matrix and distortion_coefficients matrices")
-        width_px = fs.getNode("image_width").real()
-        height_px = fs.getNode("image_height").real()
-    except cv2.error:  # a node that is not a matrix or a number
-        raise CameraInfoError(f"{path}: camera_matrix and distortion_coefficients must be OpenCV matrices") from None
-    finally:
-        fs.release()
-    try:
-        K = np.asarray(K, dtype=float).reshape(3, 3)
-        width, height = int(width_px or 0), int(height_px or 0)
-        if width <= 0 or height <= 0:  # older files omit the size: infer it from the principal point
-            width, height = int(round(2 * K[0, 2] + 1)), int(round(2 * K[1, 2] + 1))
-    except (ValueError, OverflowError):
-        raise CameraInfoError(f"{path}: needs a 3x3 camera_matrix and a finite image size") from None
-    return CameraIntrinsics(width, height, K, np.asarray(dist, dtype=float).reshape(-1), path.stem)
+
+class _Loader(yaml.SafeLoader):
+    """Safe YAML that also reads OpenCV FileStorage files: an ``!!opencv-matrix`` node becomes a
+    mapping (rows, cols, dt, data). OpenCV's own reader is not used for them: a malformed matrix
+    node (e.g. without ``cols``) corrupts its heap and aborts the whole process (OpenCV 5.0.0,
+    found by fuzzing)."""
+
+    yaml_constructors = {**yaml.SafeLoader.yaml_constructors, "tag:yaml.org,2002:opencv-matrix": _opencv_matrix}
+
+
+_OPENCV_DIRECTIVE = re.compile(r"\A\s*%YAML:1\.\d+[^\n]*\n")  # OpenCV's spelling, which PyYAML refuses
 
 
 def read_camera_info(path: str | Path) -> CameraIntrinsics:
@@ -85,10 +72,9 @@ def read_camera_info(path: str | Path) -> CameraIntrinsics:
         raise CameraInfoError(f"{path}: camera_info file not found") from None
     except (OSError, UnicodeDecodeError) as exc:
         raise CameraInfoError(f"{path}: cannot read camera_info: {exc}") from None
-    if text.lstrip().startswith("%YAML") or "!!opencv-matrix" in text:
-        return _read_opencv_filestorage(path)
+    opencv = text.lstrip().startswith("%YAML:") or "!!opencv-matrix" in text
     try:
-        doc = yaml.safe_load(text)
+        doc = yaml.load(_OPENCV_DIRECTIVE.sub("", text, count=1), Loader=_Loader)
     except yaml.YAMLError as exc:
         reason = str(exc).splitlines()[0]
         raise CameraInfoError(f"{path}: not valid YAML: {reason}") from None
@@ -106,7 +92,11 @@ def read_camera_info(path: str | Path) -> CameraIntrinsics:
     if model not in ("plumb_bob", "rational_polynomial"):
         raise CameraInfoError(f"{path}: distortion_model {model!r} is not supported (plumb_bob)")
     try:
-        width, height = int(doc["image_width"]), int(doc["image_height"])
+        if opencv and "image_width" not in doc and "image_height" not in doc:
+            # older OpenCV files omit the size: infer it from the principal point
+            width, height = int(round(2 * K[0, 2] + 1)), int(round(2 * K[1, 2] + 1))
+        else:
+            width, height = int(doc["image_width"]), int(doc["image_height"])
     except (KeyError, TypeError, ValueError, OverflowError):
         raise CameraInfoError(f"{path}: needs integer image_width and image_height") from None
     return CameraIntrinsics(width, height, K, dist, str(doc.get("camera_name", path.stem)))
