@@ -61,6 +61,7 @@ from cubetrack.detect.detector import (
     decode_gray,
     refine_corners_edges,
 )
+from cubetrack.estimate.match import detections_of
 from cubetrack.estimate.pose import marker_pose
 from cubetrack.io.config import TrackerConfig
 
@@ -301,7 +302,7 @@ def collect_sightings(
                         frame.seq, gray.shape[1], gray.shape[0], intrinsics.width, intrinsics.height)
             continue
         frames_read += 1
-        found = [d for d in detector.detect(gray) if d.marker_id == world.marker_id]
+        found = detections_of(detector.detect(gray), world.dictionary, (world.marker_id,))
         if not found:
             skipped["no world marker"] += 1
             continue

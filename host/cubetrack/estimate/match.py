@@ -32,7 +32,7 @@ from __future__ import annotations
 
 import logging
 import math
-from collections.abc import Iterable, Sequence
+from collections.abc import Collection, Iterable, Sequence
 from dataclasses import dataclass
 
 import cv2
@@ -66,10 +66,15 @@ class FaceMatch:
     observation: FaceObservation | None = None
 
 
+def detections_of(detections: Iterable[Detection], dictionary: str, ids: Collection[int]) -> tuple[Detection, ...]:
+    """The detections with one of ``ids`` in ``dictionary`` (a detection with no dictionary named
+    matches any), in their order: a body's, or the world marker's."""
+    return tuple(d for d in detections if d.marker_id in ids and d.dictionary in ("", dictionary))
+
+
 def body_detections(detections: Iterable[Detection], layout: CubeLayout) -> tuple[Detection, ...]:
-    """The detections of ``layout``'s markers: an id on the body, in its dictionary (a detection
-    with no dictionary named matches any), in their order."""
-    return tuple(d for d in detections if d.marker_id in layout.ids and d.dictionary in ("", layout.dictionary))
+    """The detections of ``layout``'s markers (:func:`detections_of` its dictionary and ids)."""
+    return detections_of(detections, layout.dictionary, layout.ids)
 
 
 def match_faces(detections: Iterable[Detection], layout: CubeLayout, intrinsics: CameraIntrinsics,

@@ -38,7 +38,7 @@ from cubetrack.core.geometry import T_from_rvec_tvec, invert_T, rvec_tvec_from_T
 from cubetrack.core.layout import CubeLayout
 from cubetrack.core.records import CameraEstimate, Detection, MarkerPose
 from cubetrack.estimate.marker import in_front, marker_pose, reprojection_rms_px
-from cubetrack.estimate.match import FaceMatch, match_faces
+from cubetrack.estimate.match import FaceMatch, detections_of, match_faces
 from cubetrack.estimate.params import EstimatorParams
 
 log = logging.getLogger(__name__)
@@ -57,7 +57,7 @@ def world_marker_pose(detections: Iterable[Detection], *, dictionary: str, marke
     calibration sample, and the paper's uncalibrated "raw world-marker pose" mode.
     """
     params = params or EstimatorParams()
-    found = [d for d in detections if d.marker_id == marker_id and d.dictionary in ("", dictionary)]
+    found = detections_of(detections, dictionary, (marker_id,))
     if not found:
         return None
     best = max(found, key=lambda d: d.area_px2)
