@@ -194,9 +194,10 @@ def calibration_error(extrinsics: dict, truth: dict) -> tuple[float, float]:
 def run_scene(work: str, config_index: int, seed: int, duration: float, calibration_frames: int,
               workers: int, refine: bool) -> dict:
     """Simulate (or reuse) one scene, calibrate it both ways, track it every way, score it."""
+    from cubetrack.app.calibrate import calibrate_recording
     from cubetrack.app.track import track_recording
     from cubetrack.app.tracker import StageParams, Timestamps
-    from cubetrack.calib.extrinsics import CalibrationMethod, CalibrationParams, calibrate_recording
+    from cubetrack.calib.extrinsics import CalibrationMethod, CalibrationParams
     from cubetrack.fuse.fusion import FusionMethod
     from cubetrack.io.config import read_extrinsics, read_tracker_config, write_extrinsics
     from cubetrack.io.recording import Recording
@@ -250,9 +251,9 @@ def run_scene(work: str, config_index: int, seed: int, duration: float, calibrat
 
 def refine_extrinsics(config, rec: Path, extrinsics: dict) -> tuple[dict, dict]:
     """Our extrinsics refined from the cube observations of the tracking recording and the world
-    marker of the calibration recording (:func:`cubetrack.calib.bundle.refine_extrinsics`, default
+    marker of the calibration recording (:func:`cubetrack.app.calibrate.adjust_recording_extrinsics`, default
     parameters); (extrinsics, what the refinement reported)."""
-    from cubetrack.calib.bundle import refine_extrinsics as refine
+    from cubetrack.app.calibrate import adjust_recording_extrinsics as refine
     from cubetrack.io.recording import Recording
 
     report = refine(config, Recording.open(rec), extrinsics, calibration=Recording.open(rec / "calibration"))
@@ -293,9 +294,9 @@ class SpeedCase:
     def __init__(self, rec: Path, max_frames: int | None):
         import cv2
 
+        from cubetrack.app.calibrate import calibrate_recording
         from cubetrack.app.track import recording_intrinsics
         from cubetrack.app.tracker import StageParams
-        from cubetrack.calib.extrinsics import calibrate_recording
         from cubetrack.core.layout import marker_corners_m
         from cubetrack.io.config import read_extrinsics, read_tracker_config
         from cubetrack.io.recording import Recording

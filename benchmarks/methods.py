@@ -20,9 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
+from cubetrack.app.calibrate import calibrate_recording
 from cubetrack.app.track import track_recording
 from cubetrack.app.tracker import CameraPoseSource, StageParams, TrackParams
-from cubetrack.calib.extrinsics import calibrate_recording
 from cubetrack.evaluate.metrics import evaluate
 from cubetrack.fuse.fusion import FusionMethod
 from cubetrack.io.config import read_tracker_config

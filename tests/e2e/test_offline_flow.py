@@ -1,6 +1,7 @@
 """The offline workflow end to end through the installed command's entry point:
 simulate -> calibrate -> track -> evaluate, on a short 3-camera scene at 1.0 m (the paper's)."""
 
+import hashlib
 import json
 
 import numpy as np
@@ -8,6 +9,8 @@ import pytest
 
 from cubetrack.cli.main import main
 from cubetrack.io.config import read_extrinsics
+from cubetrack.io.recording import Recording
+from cubetrack.io.run import read_run_record
 from cubetrack.io.trajectory import read_tum
 
 pytestmark = pytest.mark.slow
@@ -42,6 +45,9 @@ def test_paper_fusions_track_within_the_paper_floor(scene, method, capsys):
     assert main(["track", "--config", str(rec / "config.toml"), "--extrinsics", str(work / "extrinsics.toml"),
                  "--recording", str(rec), "--fusion", method, "--out", str(out)]) == 0
     assert (out / "robot.jsonl").exists() and len(read_tum(out / "robot.tum")) > 100
+    run = read_run_record(out)
+    assert run["command"] == "track" and run["parameters"]["fusion"]["method"] == method
+    assert run["inputs"]["recording"]["path"] == str(rec.resolve())
     capsys.readouterr()
     assert main(["evaluate", "--estimate", str(out / "robot.tum"), "--ground-truth", str(rec / "ground_truth.tum"),
                  "--json"]) == 0
@@ -59,6 +65,32 @@ def test_uncalibrated_mode_uses_each_frames_world_marker(scene):
     assert len(read_tum(out / "robot.tum")) > 50
 
 
+def test_calibration_records_how_it_was_made(scene):
+    work, rec = scene
+    run = read_run_record(work / "extrinsics.run.json")
+    assert run["command"] == "calibrate" and run["versions"]["cubetrack"]
+    assert run["parameters"]["calibration"]["method"] == "robust" and "detector" in run["parameters"]
+    config = run["inputs"]["config"]
+    assert config["path"] == str((rec / "config.toml").resolve())
+    assert config["sha256"] == hashlib.sha256((rec / "config.toml").read_bytes()).hexdigest()
+
+
+def test_uncalibrated_keeps_the_rest_of_the_track_section(scene, tmp_path):
+    """--uncalibrated changes [track] camera_poses only: a config's other [track] settings (here
+    arrival timestamps, the paper's) still apply, so every pose carries a frame's arrival time."""
+    _, rec = scene
+    config = rec / "config_arrival.toml"  # beside the original: its relative paths still hold
+    config.write_text((rec / "config.toml").read_text() + '\n[track]\ntimestamps = "arrival"\nroi_detection = false\n')
+    out = tmp_path / "track-raw"
+    assert main(["track", "--config", str(config), "--uncalibrated", "--recording", str(rec), "--out", str(out)]) == 0
+    track = read_run_record(out)["parameters"]["track"]
+    assert (track["camera_poses"], track["timestamps"], track["roi_detection"]) == ("world-marker", "arrival", False)
+    recording = Recording.open(rec)
+    arrivals = {round(r.host_time_s, 6) for c in recording.camera_names for r in recording.index(c)}
+    times = {round(float(t), 6) for t in read_tum(out / "robot.tum").times_s}
+    assert len(times) > 50 and times <= arrivals
+
+
 def test_evaluate_writes_figures(scene, tmp_path):
     work, rec = scene
     out = tmp_path / "track"
@@ -74,6 +106,10 @@ def test_evaluate_writes_figures(scene, tmp_path):
     (["track", "--config", "nope.toml", "--recording", ".", "--uncalibrated", "--out", "x"], "nope.toml"),
     (["evaluate", "--estimate", "missing.tum", "--ground-truth", "missing.tum"], "missing.tum"),
     (["track", "--config", "{rec}/config.toml", "--recording", "{rec}", "--out", "{tmp}/o"], "--extrinsics"),
+    (["track", "--config", "{rec}/config.toml", "--recording", "{rec}", "--uncalibrated", "--fusion", "median",
+      "--out", "{tmp}/o"], "--fusion: 'median' is not one of"),
+    (["calibrate", "--config", "{rec}/config.toml", "--recording", "{rec}/calibration", "--samples", "0",
+      "--out", "{tmp}/e.toml"], "--samples: samples must be at least 1"),
 ])
 def test_bad_input_gives_one_line_and_exit_1(scene, tmp_path, capsys, argv, needle):
     _, rec = scene

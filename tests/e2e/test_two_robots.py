@@ -4,8 +4,8 @@ cameras): both are tracked at once, each against its own ground truth, with no i
 import numpy as np
 import pytest
 
+from cubetrack.app.calibrate import calibrate_recording
 from cubetrack.app.track import track_recording
-from cubetrack.calib.extrinsics import calibrate_recording
 from cubetrack.evaluate.metrics import evaluate, nearest_indices
 from cubetrack.io.config import read_tracker_config
 from cubetrack.io.recording import Recording

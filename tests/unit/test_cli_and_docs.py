@@ -33,13 +33,26 @@ def test_configuration_reference_is_current():
 
 
 def test_defaults_round_trip_through_the_config_loader(tmp_path):
+    """Every section `cubetrack defaults` prints reads back as the defaults, and a section it
+    does not know is refused with the file's name."""
     import tomllib
 
-    from cubetrack.app.tracker import StageParams
+    from cubetrack.app.config import SECTIONS, ConfigParams, load_config
+    from cubetrack.core.errors import ConfigError
     from cubetrack.core.layout import paper_cube_layout, write_layout
-    from cubetrack.io.config import read_tracker_config
 
     write_layout(paper_cube_layout(), tmp_path / "cube.toml")
     (tmp_path / "c.toml").write_text('[[robots]]\nname = "r"\nlayout = "cube.toml"\n' + render())
-    tomllib.loads(render())
-    assert StageParams.from_config(read_tracker_config(tmp_path / "c.toml")) == StageParams()
+    assert set(tomllib.loads(render())) == set(SECTIONS)
+    assert load_config(tmp_path / "c.toml")[1] == ConfigParams()
+    (tmp_path / "c.toml").write_text('[[robots]]\nname = "r"\nlayout = "cube.toml"\n[filtre]\nx = 1\n')
+    with pytest.raises(ConfigError, match=r"c\.toml: unknown section\(s\) filtre; known: .*filter"):
+        load_config(tmp_path / "c.toml")
+
+
+def test_defaults_prints_one_section_and_refuses_an_unknown_one(capsys):
+    assert main(["defaults", "--section", "bundle_adjustment"]) == 0
+    out = capsys.readouterr().out
+    assert out.startswith("[bundle_adjustment]\n") and "max_span_s = 0.1" in out and "[filter]" not in out
+    assert main(["defaults", "--section", "filtre"]) == 1
+    assert "no such section" in capsys.readouterr().err

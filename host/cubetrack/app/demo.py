@@ -19,13 +19,15 @@ import dataclasses
 import threading
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable
+from typing import Callable, Sequence
 
+from cubetrack.app.calibrate import run_calibration
+from cubetrack.app.config import config_params, parameter_tables
 from cubetrack.app.emulated import EmulatedCameras
 from cubetrack.app.live import LiveResult, LiveStatus, track_live
 from cubetrack.app.track import track_recording
 from cubetrack.app.tracker import StageParams
-from cubetrack.calib.extrinsics import calibrate_recording, extrinsics_errors
+from cubetrack.calib.extrinsics import extrinsics_errors
 from cubetrack.core.progress import Progress
 from cubetrack.evaluate.metrics import EvaluationResult, evaluate
 from cubetrack.fuse.fusion import FusionMethod
@@ -34,12 +36,13 @@ from cubetrack.io.config import (
     read_extrinsics,
     read_tracker_config,
     tracker_config_to_table,
-    write_extrinsics,
     write_toml,
 )
 from cubetrack.io.recording import Recording
+from cubetrack.io.run import RUN_FILE, write_run_record
 from cubetrack.io.trajectory import Trajectory, read_tum, write_tum
 from cubetrack.simulate import SimulationParams, simulate
+from cubetrack.sink.base import Sink
 
 END_GRACE_S = 1.5  # after the replay's last frame: its transfer, the clock poll, the filter's reorder delay
 
@@ -86,7 +89,7 @@ def write_live_config(config_path: Path, urls: dict[str, str], out: Path) -> Pat
 
 
 def run_live_demo(rec_dir: Path, config_path: Path, extrinsics, out_dir: Path, params: StageParams,
-                  status: Callable[[LiveStatus], None] | None = None) -> LiveDemo:
+                  status: Callable[[LiveStatus], None] | None = None, sinks: Sequence[Sink] = ()) -> LiveDemo:
     """Serve ``rec_dir`` with the emulator on 127.0.0.1 (ephemeral ports), track it live over HTTP
     until the replay has ended, and score the result against the ground truth on the live clock."""
     rec = Recording.open(rec_dir)
@@ -94,6 +97,8 @@ def run_live_demo(rec_dir: Path, config_path: Path, extrinsics, out_dir: Path, p
     live_dir = out_dir / "live"
     with EmulatedCameras(rec_dir) as emu:
         live_config = read_tracker_config(write_live_config(config_path, emu.urls, live_dir / "config.toml"))
+        write_run_record(live_dir / "track" / RUN_FILE, "track", parameter_tables(params),
+                         {"config": live_config.path}, {"cameras": dict(emu.urls)})
         stop = threading.Event()
         span_s = emu.period_s
 
@@ -106,7 +111,7 @@ def run_live_demo(rec_dir: Path, config_path: Path, extrinsics, out_dir: Path, p
         watcher.start()
         try:
             result = track_live(live_config, extrinsics, live_dir / "track", params, stop=stop, status=status,
-                                duration_s=span_s + 30.0)
+                                duration_s=span_s + 30.0, sinks=sinks)
         finally:
             stop.set()
         shift_s = emu.clock_shift_s
@@ -120,23 +125,31 @@ def run_live_demo(rec_dir: Path, config_path: Path, extrinsics, out_dir: Path, p
 
 def run_demo(out_dir: Path, sim: SimulationParams, methods: tuple[FusionMethod, ...] = tuple(FusionMethod),
              progress: Progress | None = None, live: bool = True,
-             status: Callable[[LiveStatus], None] | None = None) -> DemoResult:
+             status: Callable[[LiveStatus], None] | None = None, sinks: Sequence[Sink] = ()) -> DemoResult:
     """Simulate a session into ``out_dir/rec``, calibrate, track it live over HTTP from the
-    emulator (``live``), then replay it offline with each fusion method; evaluate everything."""
+    emulator (``live``), then replay it offline with each fusion method; evaluate everything.
+    ``out_dir/run.json`` records the version, the scenario and the resolved parameters; each
+    output inside has its own run record. ``sinks`` (other outputs) are fed the live session, or
+    with ``live=False`` the last offline replay."""
     rec_dir = out_dir / "rec"
     simulate(sim, rec_dir, progress=progress)
     config = read_tracker_config(rec_dir / "config.toml")
-    report = calibrate_recording(config, Recording.open(rec_dir / "calibration"), progress=progress)
-    write_extrinsics(report.extrinsics, out_dir / "extrinsics.toml")
+    settings = config_params(config)
+    write_run_record(out_dir / RUN_FILE, "demo", {"simulation": sim, **parameter_tables(settings)}, {},
+                     {"live": live, "methods": [m.value for m in methods]})
+    calibration = Recording.open(rec_dir / "calibration")
+    report = run_calibration(config, calibration, out_dir / "extrinsics.toml", settings, progress=progress).report
     errors = extrinsics_errors(report.extrinsics, read_extrinsics(rec_dir / "true_extrinsics.toml"))
     truth = read_tum(rec_dir / "ground_truth.tum")
-    base = StageParams.from_config(config)
-    live_part = run_live_demo(rec_dir, rec_dir / "config.toml", report.extrinsics, out_dir, base, status) if live else None
+    base = settings.stages
+    live_part = (run_live_demo(rec_dir, rec_dir / "config.toml", report.extrinsics, out_dir, base, status, sinks)
+                 if live else None)
     scores = {}
     for method in methods:
         params = dataclasses.replace(base, fusion=dataclasses.replace(base.fusion, method=method))
         result = track_recording(config, Recording.open(rec_dir), report.extrinsics, out_dir / "track" / method.value,
-                                 params, progress)
+                                 params, progress, () if live or method is not methods[-1] else sinks,
+                                 extrinsics_path=out_dir / "extrinsics.toml")
         robot = config.robots[0].name
         scores[method.value] = evaluate(read_tum(result.outputs[robot][0]), truth)
     return DemoResult(out_dir, errors, scores, live_part)

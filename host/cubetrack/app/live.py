@@ -23,11 +23,11 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Sequence
 
+from cubetrack.app.config import config_params
 from cubetrack.app.outputs import open_outputs
 from cubetrack.app.tracker import StageParams, Tracker, TrackStats
 from cubetrack.core.cameras import CameraExtrinsics, CameraIntrinsics, ClockSample
 from cubetrack.core.errors import ConfigError
-from cubetrack.core.params import params_from_table
 from cubetrack.core.records import Frame, TrackedPose
 from cubetrack.io.camera_info import read_camera_info
 from cubetrack.io.config import TrackerConfig
@@ -39,8 +39,8 @@ log = logging.getLogger(__name__)
 
 
 def source_params(config: TrackerConfig) -> SourceParams:
-    """The ``[source]`` section of a tracker config."""
-    return params_from_table(SourceParams, config.section("source"), f"{config.path}: [source]")
+    """The ``[source]`` section of a tracker config (read by :func:`cubetrack.app.config.config_params`)."""
+    return config_params(config).source
 
 
 def live_camera_urls(config: TrackerConfig) -> dict[str, str]:

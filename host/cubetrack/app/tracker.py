@@ -20,7 +20,7 @@ import numpy as np
 from cubetrack.core.cameras import CameraExtrinsics, CameraIntrinsics, ClockSample, WorldConfig
 from cubetrack.core.errors import ConfigError, ImageError
 from cubetrack.core.geometry import invert_T, transform_points
-from cubetrack.core.params import param, params_from_table
+from cubetrack.core.params import check, param
 from cubetrack.core.records import CubeSighting, Detection, Frame, TrackedPose
 from cubetrack.detect.detector import Box, Detector, DetectorParams, decode_gray
 from cubetrack.estimate.match import body_detections
@@ -73,6 +73,10 @@ class TrackParams:
         "world-marker pose, the paper's uncalibrated mode (frames without it give no estimate)",
     )
 
+    def __post_init__(self) -> None:
+        check(self.roi_margin_m >= 0, f"roi_margin_m must not be negative, got {self.roi_margin_m}")
+        check(self.full_frame_every >= 1, f"full_frame_every must be at least 1, got {self.full_frame_every}")
+
 
 @dataclass(frozen=True, slots=True)
 class StageParams:
@@ -86,14 +90,10 @@ class StageParams:
 
     @classmethod
     def from_config(cls, config: TrackerConfig) -> StageParams:
-        where = str(config.path)
-        return cls(
-            detector=params_from_table(DetectorParams, config.section("detector"), f"{where}: [detector]"),
-            estimator=params_from_table(EstimatorParams, config.section("estimator"), f"{where}: [estimator]"),
-            fusion=params_from_table(FusionParams, config.section("fusion"), f"{where}: [fusion]"),
-            filter=params_from_table(FilterParams, config.section("filter"), f"{where}: [filter]"),
-            track=params_from_table(TrackParams, config.section("track"), f"{where}: [track]"),
-        )
+        """The tracker's sections of ``config`` (read by :func:`cubetrack.app.config.config_params`)."""
+        from cubetrack.app.config import config_params
+
+        return config_params(config).stages
 
 
 @dataclass(slots=True)

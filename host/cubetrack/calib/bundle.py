@@ -1,4 +1,4 @@
-"""Extrinsics that refine themselves: a bundle adjustment over world-marker and cube observations.
+"""Extrinsics refined by a bundle adjustment over world-marker and cube observations.
 
 World-marker calibration (:mod:`cubetrack.calib.extrinsics`) leaves every camera a few millimetres and
 a tenth of a degree off: one 25 cm marker seen obliquely from 2+ m is a weak reference, and its
@@ -27,7 +27,8 @@ analytic sparse Jacobian (a corner depends on one camera and one instant), so 5 
 hundreds of instants solve in seconds. Pose increments are world-frame, as in
 :mod:`cubetrack.estimate.reprojection`.
 
-Steps (:func:`refine_extrinsics`):
+Steps (:func:`adjust_extrinsics`, which takes frames and clock samples held anywhere, e.g. in
+memory; ``cubetrack.app.calibrate.adjust_recording_extrinsics`` feeds it recording folders):
 
 1. Per camera frame of the tracking recording: cube detections, a single-camera cube estimate
    (:func:`cubetrack.estimate.estimate_cube`) with the prior extrinsics, and the faces matched to
@@ -54,35 +55,33 @@ from __future__ import annotations
 import dataclasses
 import logging
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Sequence
+from typing import Iterable, Mapping, Sequence
 
 import numpy as np
 from scipy.optimize import least_squares
 from scipy.sparse import coo_matrix
 from scipy.spatial.transform import Rotation
 
-from cubetrack.core.cameras import CameraExtrinsics, CameraIntrinsics
+from cubetrack.calib.extrinsics import CalibrationMethod, CalibrationParams, collect_sightings, inlier_frames
+from cubetrack.core.cameras import CameraExtrinsics, CameraIntrinsics, ClockSample, WorldConfig
 from cubetrack.core.errors import CalibrationError, ImageError
 from cubetrack.core.geometry import invert_T, make_T, mean_rotation, rotation_angle
 from cubetrack.core.layout import CubeLayout, marker_corners_m
-from cubetrack.core.params import param
+from cubetrack.core.params import check, check_positive, param
 from cubetrack.core.progress import Progress
-from cubetrack.core.records import Detection
+from cubetrack.core.records import Detection, Frame
+from cubetrack.detect.detector import Detector, DetectorParams
 from cubetrack.estimate.match import body_detections, match_faces
 from cubetrack.estimate.reprojection import CornerSet, corner_set, moved_pose, normalize_px, pinhole_normalized
-from cubetrack.io.config import TrackerConfig
-
-if TYPE_CHECKING:
-    from cubetrack.io.recording import Recording
 
 log = logging.getLogger(__name__)
 
-METHOD = "refined"  # CameraExtrinsics.method of a refined camera
+METHOD = "refined"  # CameraExtrinsics.method of a camera after bundle adjustment (the word users see)
 
 
 @dataclass(frozen=True, slots=True)
-class RefineParams:
-    """How :func:`refine_extrinsics` selects observations and solves."""
+class BundleAdjustmentParams:
+    """The ``[bundle_adjustment]`` section: how :func:`adjust_extrinsics` selects observations and solves."""
 
     max_span_s: float = param(0.1, "frames of different cameras whose capture times (host clock) lie within this many seconds form one instant")
     min_cameras: int = param(2, "an instant needs cube corners from at least this many cameras")
@@ -105,17 +104,13 @@ class RefineParams:
     max_nfev: int = param(60, "function evaluations per least-squares solve")
 
     def __post_init__(self) -> None:
-        for name in ("max_span_s", "corner_noise_px", "world_corner_noise_px", "f_scale_px", "association_gate_px",
-                     "velocity_window_s", "moved_position_m", "moved_rotation_deg",
-                     "gauge_prior_position_m", "gauge_prior_rotation_deg", "height_sigma_m"):
-            if not getattr(self, name) > 0:
-                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
-        if self.upright_sigma_deg < 0:
-            raise ValueError(f"upright_sigma_deg must not be negative, got {self.upright_sigma_deg}")
-        if self.world_samples < 1:
-            raise ValueError(f"world_samples must be at least 1, got {self.world_samples}")
-        if self.min_cameras < 2 or self.max_instants < 1 or self.rounds < 1 or self.max_nfev < 1:
-            raise ValueError("need min_cameras >= 2, max_instants >= 1, rounds >= 1, max_nfev >= 1")
+        check_positive(self, "max_span_s", "corner_noise_px", "world_corner_noise_px", "f_scale_px",
+                       "association_gate_px", "velocity_window_s", "moved_position_m", "moved_rotation_deg",
+                       "gauge_prior_position_m", "gauge_prior_rotation_deg", "height_sigma_m")
+        check(self.upright_sigma_deg >= 0, f"upright_sigma_deg must not be negative, got {self.upright_sigma_deg}")
+        check(self.world_samples >= 1, f"world_samples must be at least 1, got {self.world_samples}")
+        check(self.min_cameras >= 2 and self.max_instants >= 1 and self.rounds >= 1 and self.max_nfev >= 1,
+              "need min_cameras >= 2, max_instants >= 1, rounds >= 1, max_nfev >= 1")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -147,7 +142,7 @@ class CubeFrame:
 @dataclass(frozen=True, slots=True, eq=False)
 class Instant:
     """Cube corners of several cameras at about one time: ``sets`` (one per camera), their
-    capture times differing by at most ``RefineParams.max_span_s``; ``time_s`` their mean."""
+    capture times differing by at most ``BundleAdjustmentParams.max_span_s``; ``time_s`` their mean."""
 
     robot: str
     time_s: float
@@ -174,8 +169,8 @@ class CameraResidual:
 
 
 @dataclass(frozen=True, slots=True, eq=False)
-class RefineReport:
-    """What :func:`refine_extrinsics` found: the refined ``extrinsics`` (all prior cameras; those
+class BundleAdjustmentReport:
+    """What :func:`adjust_extrinsics` found: the refined ``extrinsics`` (all prior cameras; those
     without multi-camera sightings unchanged), the ``prior`` ones, per-camera residuals, the
     cameras that moved after calibration, the instants used and the warnings issued."""
 
@@ -188,46 +183,41 @@ class RefineReport:
 
 
 def robust_average_corners(corners_px: np.ndarray, threshold_px: float) -> tuple[np.ndarray, int]:
-    """Mean of (N, 4, 2) corner sets over the frames whose corners all lie near the per-corner
-    median (within ``threshold_px``, or 4 robust sigmas when noisier): (4, 2) mean, inliers.
-
-    The same rule as :func:`cubetrack.calib.extrinsics.calibrate_robust` applies to its sightings.
-    """
+    """Mean of (N, 4, 2) corner sets over the frames the robust rule keeps
+    (:func:`cubetrack.calib.extrinsics.inlier_frames`, as the robust calibration applies it to its
+    sightings): (4, 2) mean, inliers."""
     corners = np.asarray(corners_px, dtype=float).reshape(-1, 4, 2)
-    median = np.median(corners, axis=0)
-    dev = np.max(np.linalg.norm(corners - median, axis=2), axis=1)
-    keep = dev <= max(threshold_px, 4.0 * 1.4826 * float(np.median(dev)))
+    keep = inlier_frames(corners, threshold_px)
     return corners[keep].mean(axis=0), int(keep.sum())
 
 
-def world_marker_observations(config: TrackerConfig, recording: Recording, intrinsics: dict[str, CameraIntrinsics],
-                              progress: Progress | None = None, samples: int | None = None) -> dict[str, WorldMarkerObservation]:
-    """The world marker's averaged corners per camera of the calibration ``recording``.
+def world_marker_observations(frames: Mapping[str, Iterable[Frame]], world: WorldConfig,
+                              intrinsics: Mapping[str, CameraIntrinsics], params: CalibrationParams | None = None,
+                              detector_params: DetectorParams | None = None, progress: Progress | None = None,
+                              samples: int | None = None,
+                              frame_counts: Mapping[str, int] | None = None) -> dict[str, WorldMarkerObservation]:
+    """The world marker's averaged corners per camera of the calibration ``frames`` (camera ->
+    frames; cameras without ``intrinsics`` are left out).
 
-    Sightings are collected by :func:`cubetrack.calib.extrinsics.collect_sightings` with the config's
-    ``[calibration]`` settings (always with the robust method's edge-refined corners; ``samples``
-    overrides its number of sightings); a camera
-    with fewer than ``min_samples`` sightings is left out with a warning.
+    Sightings are collected by :func:`cubetrack.calib.extrinsics.collect_sightings` with the
+    ``[calibration]`` settings ``params`` (always with the robust method's edge-refined corners;
+    ``samples`` overrides its number of sightings); a camera with fewer than ``min_samples``
+    sightings is left out with a warning.
     """
-    from cubetrack.calib.extrinsics import CalibrationMethod, calibration_params, collect_sightings
-    from cubetrack.core.params import params_from_table
-    from cubetrack.detect.detector import DetectorParams
-
-    params = dataclasses.replace(calibration_params(config), method=CalibrationMethod.ROBUST)
+    params = dataclasses.replace(params or CalibrationParams(), method=CalibrationMethod.ROBUST)
     if samples is not None:
         params = dataclasses.replace(params, samples=samples, min_samples=min(params.min_samples, samples))
-    detector_params = params_from_table(DetectorParams, config.section("detector"), f"{config.path}: [detector]")
     out = {}
-    for camera in recording.camera_names:
+    for camera, camera_frames in frames.items():
         if camera not in intrinsics:
             continue
         sightings, _read, _skipped = collect_sightings(
-            recording.frames(camera), config.world, intrinsics[camera], params, progress,
-            stage=f"refine: world marker {camera}", detector_params=detector_params,
-            total_frames=len(recording.index(camera)))
+            camera_frames, world, intrinsics[camera], params, progress,
+            stage=f"bundle adjustment: world marker {camera}", detector_params=detector_params,
+            total_frames=(frame_counts or {}).get(camera, 0))
         if len(sightings) < params.min_samples:
-            log.warning("%s: world marker seen in %d frames of %s (need %d): no world-marker term for it",
-                        camera, len(sightings), recording.path, params.min_samples)
+            log.warning("%s: world marker seen in %d calibration frames (need %d): no world-marker term for it",
+                        camera, len(sightings), params.min_samples)
             continue
         mean, n = robust_average_corners(np.array([s.detection.corners_px for s in sightings]),
                                          params.outlier_threshold_px)
@@ -235,61 +225,65 @@ def world_marker_observations(config: TrackerConfig, recording: Recording, intri
     return out
 
 
-def _clock_fits(recording: Recording, cameras: Sequence[str]) -> dict:
-    """Device -> host clock per camera over the whole recording (offline: not causal)."""
+def _clock_fit(camera: str, samples: Sequence[ClockSample], device_s: Sequence[float], host_s: Sequence[float]):
+    """Device -> host clock of one camera over the whole recording (offline: not causal): the
+    usable ``/time`` round trips, else the frames' arrival times (``device_s``, ``host_s``)."""
     from cubetrack.source.clock import ClockSyncParams, fit_arrivals, fit_round_trips
 
     limit = ClockSyncParams().max_round_trip_s
-    fits = {}
-    for camera in cameras:
-        trips = [s for s in recording.clock_samples(camera) if 0.0 <= s.host_recv_s - s.host_send_s <= limit]
-        if trips:
-            fits[camera] = fit_round_trips(np.array([s.host_send_s for s in trips]),
-                                           np.array([s.device_time_s for s in trips]),
-                                           np.array([s.host_recv_s for s in trips]))
-        else:
-            rows = recording.index(camera)
-            log.warning("%s: no usable clock.csv round trips; frames are stamped from arrival times "
-                        "(late by the transfer time), which blurs the instants", camera)
-            fits[camera] = fit_arrivals(np.array([r.device_time_s for r in rows]),
-                                        np.array([r.host_time_s for r in rows]))
-    return fits
+    trips = [s for s in samples if 0.0 <= s.host_recv_s - s.host_send_s <= limit]
+    if trips:
+        return fit_round_trips(np.array([s.host_send_s for s in trips]),
+                               np.array([s.device_time_s for s in trips]),
+                               np.array([s.host_recv_s for s in trips]))
+    log.warning("%s: no usable clock.csv round trips; frames are stamped from arrival times "
+                "(late by the transfer time), which blurs the instants", camera)
+    return fit_arrivals(np.array(device_s), np.array(host_s))
 
 
-def cube_frames(config: TrackerConfig, recording: Recording, cameras: Sequence[str],
-                progress: Progress | None = None) -> list[CubeFrame]:
-    """Every frame of ``cameras`` in the tracking ``recording`` that shows a robot's cube ids,
-    stamped with its capture time on the host clock; in time order."""
-    from cubetrack.core.params import params_from_table
-    from cubetrack.detect.detector import Detector, DetectorParams
-
-    detector_params = params_from_table(DetectorParams, config.section("detector"), f"{config.path}: [detector]")
-    detector = Detector(detector_params, [r.layout.dictionary for r in config.robots])
-    fits = _clock_fits(recording, cameras)
-    total = sum(len(recording.index(c)) for c in cameras)
+def cube_frames(frames: Mapping[str, Iterable[Frame]], layouts: Mapping[str, CubeLayout],
+                clock_samples: Mapping[str, Sequence[ClockSample]] | None = None,
+                detector_params: DetectorParams | None = None, progress: Progress | None = None,
+                frame_count: int = 0) -> list[CubeFrame]:
+    """Every frame of ``frames`` (camera -> its frames) that shows a robot's cube ids (``layouts``:
+    robot -> cube layout), stamped with its capture time on the host clock from the camera's
+    ``clock_samples`` (round trips; without them, its frames' arrival times); in time order.
+    ``frame_count`` (all cameras' frames) only sizes the progress."""
+    detector = Detector(detector_params or DetectorParams(), [lay.dictionary for lay in layouts.values()])
     out, done = [], 0
-    for camera in cameras:
-        for frame in recording.frames(camera):
+    for camera, camera_frames in frames.items():
+        seen: list[tuple[int, float, tuple[tuple[str, tuple[Detection, ...]], ...]]] = []
+        device_s, host_s = [], []
+        for frame in camera_frames:
             done += 1
             if progress is not None:
-                progress("refine: cube detections", done, total)
+                progress("bundle adjustment: cube detections", done, frame_count)
+            device_s.append(frame.device_time_s)
+            host_s.append(frame.host_time_s)
             try:
                 detections = detector.detect_jpeg(frame.jpeg, f"{camera} frame {frame.seq}")
             except ImageError as exc:
                 log.warning("%s; skipped", exc)
                 continue
-            t = fits[camera].to_host(frame.device_time_s)
-            for robot in config.robots:
-                lay = robot.layout
+            robots = []
+            for robot, lay in layouts.items():
                 mine = body_detections(detections, lay)
                 if mine:
-                    out.append(CubeFrame(camera, robot.name, frame.seq, t, mine))
+                    robots.append((robot, mine))
+            if robots:
+                seen.append((frame.seq, frame.device_time_s, tuple(robots)))
+        if not device_s:
+            continue
+        fit = _clock_fit(camera, (clock_samples or {}).get(camera, ()), device_s, host_s)
+        for seq, device_time_s, robots in seen:
+            t = fit.to_host(device_time_s)
+            out.extend(CubeFrame(camera, robot, seq, t, mine) for robot, mine in robots)
     out.sort(key=lambda f: (f.time_s, f.camera))
     return out
 
 
 def _frame_corners(frame: CubeFrame, layout: CubeLayout, intrinsics: CameraIntrinsics, T_world_cam: np.ndarray,
-                   params: RefineParams) -> CornerSet | None:
+                   params: BundleAdjustmentParams) -> CornerSet | None:
     """The frame's corners matched to cube faces at its own single-camera estimate."""
     from cubetrack.estimate.pose import estimate_cube
 
@@ -455,7 +449,7 @@ def _camera_part(T_cams: np.ndarray, cam: np.ndarray, points_world: np.ndarray, 
     return r, A, J_cam, ok
 
 
-def _solve(prob: _Problem, T0_cams: np.ndarray, T0_cubes: np.ndarray, params: RefineParams,
+def _solve(prob: _Problem, T0_cams: np.ndarray, T0_cubes: np.ndarray, params: BundleAdjustmentParams,
            gauge_prior: bool = False, solve_cameras: bool = True) -> tuple[np.ndarray, np.ndarray]:
     """Least-squares camera and cube poses (cameras held when not ``solve_cameras``); returns
     (T_cams (C,4,4), T_cubes (K,4,4)). Analytic sparse Jacobian, soft-L1 loss."""
@@ -575,7 +569,7 @@ def _pose_distance(Ta: np.ndarray, Tb: np.ndarray) -> tuple[float, float]:
 
 def _make_instants(frames: Sequence[CubeFrame], layouts: dict[str, CubeLayout],
                    intrinsics: dict[str, CameraIntrinsics], T_world_cam: dict[str, np.ndarray],
-                   params: RefineParams, progress: Progress | None) -> list[Instant]:
+                   params: BundleAdjustmentParams, progress: Progress | None) -> list[Instant]:
     """Instants with at least ``min_cameras`` cameras' corners and a joint initial cube pose."""
     by_robot: dict[str, list[CubeFrame]] = {}
     for f in frames:
@@ -589,7 +583,7 @@ def _make_instants(frames: Sequence[CubeFrame], layouts: dict[str, CubeLayout],
     instants = []
     for done, group in enumerate(groups, start=1):
         if progress is not None:
-            progress("refine: instants", done, len(groups))
+            progress("bundle adjustment: instants", done, len(groups))
         layout = layouts[group[0].robot]
         pairs = [(f, _frame_corners(f, layout, intrinsics[f.camera], T_world_cam[f.camera], params)) for f in group]
         pairs = [(f, s) for f, s in pairs if s is not None]
@@ -617,7 +611,7 @@ def _estimate_T(frame: CubeFrame, layout: CubeLayout, intrinsics: dict[str, Came
 
 def _rematch(instants: Sequence[Instant], T_cubes: np.ndarray, vel: np.ndarray, angvel: np.ndarray,
              layouts: dict[str, CubeLayout], intrinsics: dict[str, CameraIntrinsics],
-             T_world_cam: dict[str, np.ndarray], params: RefineParams) -> tuple[list[Instant], list[int]]:
+             T_world_cam: dict[str, np.ndarray], params: BundleAdjustmentParams) -> tuple[list[Instant], list[int]]:
     """Faces matched again to the detections where the solved poses project them; returns the
     instants still seen by ``min_cameras`` cameras and their indices."""
     out, keep = [], []
@@ -638,7 +632,7 @@ def _rematch(instants: Sequence[Instant], T_cubes: np.ndarray, vel: np.ndarray, 
 
 
 def _align(T_rel: dict[str, np.ndarray], T_prior: dict[str, np.ndarray],
-           params: RefineParams) -> tuple[np.ndarray, list[str], list[str]]:
+           params: BundleAdjustmentParams) -> tuple[np.ndarray, list[str], list[str]]:
     """The rigid transform G (prior world <- relative frame) most cameras agree on; returns
     (G, consistent cameras, cameras that disagree)."""
     names = list(T_rel)
@@ -665,54 +659,64 @@ def _align(T_rel: dict[str, np.ndarray], T_prior: dict[str, np.ndarray],
     return G, inliers, [c for c in names if c not in inliers]
 
 
-def refine_extrinsics(config: TrackerConfig, recording: Recording, extrinsics: dict[str, CameraExtrinsics],
-                      calibration: Recording | None = None, params: RefineParams | None = None,
-                      progress: Progress | None = None) -> RefineReport:
-    """Refine ``extrinsics`` (the world-marker calibration) with the cube sightings of the
-    tracking ``recording`` and the world marker of the ``calibration`` recording (see the module
-    docstring). Returns the refined extrinsics of every prior camera, per-camera residuals and
-    moved cameras; warnings are also logged. CalibrationError when the recording shares fewer
-    than two cameras with the extrinsics or no instant has two cameras seeing the cube."""
-    from cubetrack.io.camera_info import read_camera_info
-    from cubetrack.io.config import camera_intrinsics_path
+def adjust_extrinsics(frames: Mapping[str, Iterable[Frame]], extrinsics: Mapping[str, CameraExtrinsics],
+                     intrinsics: Mapping[str, CameraIntrinsics], layouts: Mapping[str, CubeLayout],
+                     world: WorldConfig, *, clock_samples: Mapping[str, Sequence[ClockSample]] | None = None,
+                     world_frames: Mapping[str, Iterable[Frame]] | None = None,
+                     params: BundleAdjustmentParams = BundleAdjustmentParams(),
+                     calibration_params: CalibrationParams | None = None,
+                     detector_params: DetectorParams | None = None, progress: Progress | None = None,
+                     frame_count: int = 0, world_frame_counts: Mapping[str, int] | None = None,
+                     ) -> BundleAdjustmentReport:
+    """Refine ``extrinsics`` (the world-marker calibration) by bundle adjustment over the cube
+    sightings in the tracking ``frames`` (camera -> its frames, stamped with the camera's
+    ``clock_samples``) and the world marker in the calibration ``world_frames`` (camera -> its
+    frames; None: cube sightings only), see the module docstring. ``layouts``: robot -> cube
+    layout; ``intrinsics`` of every camera of ``frames`` that has extrinsics; ``calibration_params``
+    and ``detector_params`` are the ``[calibration]`` and ``[detector]`` settings (None: defaults).
 
-    params = params or RefineParams()
+    Returns the refined extrinsics of every prior camera, per-camera residuals and moved
+    cameras; warnings are also logged. CalibrationError when the frames share fewer than two
+    cameras with the extrinsics or no instant has two cameras seeing the cube.
+    """
     warnings: list[str] = []
 
     def warn(message: str) -> None:
         warnings.append(message)
         log.warning("%s", message)
 
-    unknown = [c for c in recording.camera_names if c not in extrinsics]
-    cameras = [c for c in recording.camera_names if c in extrinsics]
+    unknown = [c for c in frames if c not in extrinsics]
+    cameras = [c for c in frames if c in extrinsics]
     if len(cameras) < 2:
         raise CalibrationError(
-            f"{recording.path}: cameras {', '.join(recording.camera_names)} share "
+            f"cameras {', '.join(frames)} share "
             f"{len(cameras)} camera(s) with the extrinsics ({', '.join(extrinsics) or 'none'}); refinement needs "
             "a tracking recording of at least two calibrated cameras")
     if unknown:
-        warn(f"{recording.path}: camera(s) {', '.join(unknown)} have no extrinsics and are left out")
-    intrinsics = {c: read_camera_info(camera_intrinsics_path(config, c, recording.path)) for c in cameras}
-    layouts = {r.name: r.layout for r in config.robots}
+        warn(f"camera(s) {', '.join(unknown)} have no extrinsics and are left out")
+    missing = [c for c in cameras if c not in intrinsics]
+    if missing:
+        raise CalibrationError(f"camera(s) {', '.join(missing)}: no intrinsics")
     T_prior = {c: extrinsics[c].T_world_cam for c in cameras}
 
-    frames = cube_frames(config, recording, cameras, progress)
-    instants = _make_instants(frames, layouts, intrinsics, T_prior, params, progress)
+    observed = cube_frames({c: frames[c] for c in cameras}, layouts, clock_samples, detector_params, progress,
+                           frame_count)
+    instants = _make_instants(observed, layouts, intrinsics, T_prior, params, progress)
     if not instants:
         raise CalibrationError(
-            f"{recording.path}: no instant where {params.min_cameras}+ cameras saw a robot's cube within "
-            f"{1000 * params.max_span_s:.0f} ms ({len(frames)} frames with cube markers); record the robot "
+            f"no instant where {params.min_cameras}+ cameras saw a robot's cube within "
+            f"{1000 * params.max_span_s:.0f} ms ({len(observed)} frames with cube markers); record the robot "
             "driving where several cameras see it")
     used = sorted({s.camera for i in instants for s in i.sets}, key=cameras.index)
     for c in cameras:
         if c not in used:
-            warn(f"{c}: no multi-camera cube sightings in {recording.path}; its calibration is kept as it is")
+            warn(f"{c}: no multi-camera cube sightings in the tracking recording; its calibration is kept as it is")
     if len(used) < 2:
-        raise CalibrationError(f"{recording.path}: only {used[0]} has multi-camera cube sightings; "
+        raise CalibrationError(f"only {used[0]} has multi-camera cube sightings; "
                                "refinement needs at least two cameras seeing the cube at once")
     cam_index = {c: i for i, c in enumerate(used)}
     T0_cams = np.array([T_prior[c] for c in used])
-    world_points = marker_corners_m(config.world.marker_size_m)
+    world_points = marker_corners_m(world.marker_size_m)
 
     def vel_of(inst: Sequence[Instant], T_cubes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         v, w = np.zeros((len(inst), 3)), np.zeros((len(inst), 3))
@@ -743,16 +747,17 @@ def refine_extrinsics(config: TrackerConfig, recording: Recording, extrinsics: d
     T_cubes = np.einsum("ij,kjl->kil", G, T_cubes)
 
     # 2. absolute solves: re-matched faces, re-estimated velocities, world-marker corners
-    world: dict[str, tuple[np.ndarray, float]] = {}
+    world_terms: dict[str, tuple[np.ndarray, float]] = {}
     observations = {}
-    if calibration is not None:
-        observations = world_marker_observations(config, calibration, intrinsics, progress, params.world_samples)
+    if world_frames is not None:
+        observations = world_marker_observations(world_frames, world, intrinsics, calibration_params, detector_params,
+                                                 progress, params.world_samples, world_frame_counts)
         for c, obs in observations.items():
             if c in cam_index and c not in moved:
                 K = intrinsics[c].K
-                world[c] = (normalize_px(obs.corners_px, K, intrinsics[c].dist), float((K[0, 0] + K[1, 1]) / 2.0))
-    if not world and calibration is not None:
-        warn(f"{calibration.path}: no usable world-marker sightings; the refined poses keep the prior "
+                world_terms[c] = (normalize_px(obs.corners_px, K, intrinsics[c].dist), float((K[0, 0] + K[1, 1]) / 2.0))
+    if not world_terms and world_frames is not None:
+        warn("no usable world-marker sightings in the calibration recording; the refined poses keep the prior "
              "calibration's frame (aligned to the cameras that agree)")
     # without world-marker corners the gauge stays held by weak priors at the aligned poses
     for _round in range(params.rounds):
@@ -761,12 +766,12 @@ def refine_extrinsics(config: TrackerConfig, recording: Recording, extrinsics: d
         rematched, keep = _rematch(instants, T_cubes, vel, angvel, layouts, intrinsics, current, params)
         instants, T_cubes, vel, angvel = rematched, T_cubes[keep], vel[keep], angvel[keep]
         if not instants:
-            raise CalibrationError(f"{recording.path}: no multi-camera cube sightings fit the refined poses")
-        prob = _build_problem(instants, cam_index, vel, angvel, world, world_points)
-        T_cams, T_cubes = _solve(prob, T_cams, T_cubes, params, gauge_prior=not world)
+            raise CalibrationError("no multi-camera cube sightings fit the refined poses")
+        prob = _build_problem(instants, cam_index, vel, angvel, world_terms, world_points)
+        T_cams, T_cubes = _solve(prob, T_cams, T_cubes, params, gauge_prior=not world_terms)
 
     # report
-    prob = _build_problem(instants, cam_index, *vel_of(instants, T_cubes), world, world_points)
+    prob = _build_problem(instants, cam_index, *vel_of(instants, T_cubes), world_terms, world_points)
     r = _corner_residuals_px(prob, T_cams, T_cubes)
     rw = _world_residuals_px(prob, T_cams)
     refined = dict(extrinsics)
@@ -787,4 +792,5 @@ def refine_extrinsics(config: TrackerConfig, recording: Recording, extrinsics: d
     for c in cameras:
         if c not in report_cams:
             report_cams[c] = CameraResidual(c, float("nan"), 0, 0, float("nan"), 0.0, 0.0, False)
-    return RefineReport(refined, dict(extrinsics), report_cams, tuple(moved), len(instants), tuple(warnings))
+    return BundleAdjustmentReport(refined, dict(extrinsics), report_cams, tuple(moved), len(instants),
+                                  tuple(warnings))

@@ -24,6 +24,10 @@ Two methods, selected by :class:`CalibrationParams` (``[calibration] method``):
 Every result carries the number of samples used and their spread: the RMS distance (metres)
 and RMS angle (degrees) of the per-frame camera poses from the result.
 
+:func:`calibrate_cameras` takes frames (any iterable of :class:`cubetrack.core.records.Frame`
+per camera, e.g. held in memory) and returns a :class:`CalibrationReport`; it reads no file.
+``cubetrack.app.calibrate.calibrate_recording`` feeds it a recording folder and a tracker config.
+
 Frames: ``T_cam_marker`` from PnP; the world frame is the world marker's frame (z up), so
 ``T_world_cam = inv(T_cam_marker)``.
 """
@@ -33,10 +37,9 @@ from __future__ import annotations
 import dataclasses
 import enum
 import logging
-import warnings
 from collections import Counter
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING, Iterable, Sequence
+from typing import Iterable, Mapping, Sequence
 
 import numpy as np
 
@@ -50,7 +53,7 @@ from cubetrack.core.geometry import (
     rotation_angle,
     shoelace_area,
 )
-from cubetrack.core.params import param, params_from_table
+from cubetrack.core.params import check, param
 from cubetrack.core.progress import Progress
 from cubetrack.core.records import Detection, Frame
 from cubetrack.detect.detector import (
@@ -63,10 +66,6 @@ from cubetrack.detect.detector import (
 )
 from cubetrack.estimate.match import detections_of
 from cubetrack.estimate.pose import marker_pose
-from cubetrack.io.config import TrackerConfig
-
-if TYPE_CHECKING:
-    from cubetrack.io.recording import Recording
 
 log = logging.getLogger(__name__)
 
@@ -108,17 +107,9 @@ class CalibrationParams:
         "the marker's black border outwards, grey levels (0-255)")
 
     def __post_init__(self) -> None:
-        if self.samples < 1:
-            raise ValueError(f"samples must be at least 1, got {self.samples}")
-        if self.min_samples < 1:
-            raise ValueError(f"min_samples must be at least 1, got {self.min_samples}")
-        if not self.outlier_threshold_px > 0:
-            raise ValueError(f"outlier_threshold_px must be positive, got {self.outlier_threshold_px}")
-
-
-def calibration_params(config: TrackerConfig) -> CalibrationParams:
-    """The ``[calibration]`` section of a tracker config as :class:`CalibrationParams`."""
-    return params_from_table(CalibrationParams, config.section("calibration"), f"{config.path}: [calibration]")
+        check(self.samples >= 1, f"samples must be at least 1, got {self.samples}")
+        check(self.min_samples >= 1, f"min_samples must be at least 1, got {self.min_samples}")
+        check(self.outlier_threshold_px > 0, f"outlier_threshold_px must be positive, got {self.outlier_threshold_px}")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -176,17 +167,6 @@ def pose_spread(T_world_cams: Sequence[np.ndarray], T_ref: np.ndarray) -> tuple[
     return float(np.sqrt(np.mean(d**2))), float(np.sqrt(np.mean(a**2)))
 
 
-def refine_corners_by_edges(gray: np.ndarray, corners_px: np.ndarray, K: np.ndarray, dist: np.ndarray,
-                            border_bits: float, min_contrast: float = 20.0) -> np.ndarray | None:
-    """Deprecated: use :func:`cubetrack.detect.refine_corners_edges` (``K=``, ``dist=``; NaN, not
-    None, where the fit fails)."""
-    warnings.warn("cubetrack.calib.extrinsics.refine_corners_by_edges is deprecated; use "
-                  "cubetrack.detect.refine_corners_edges(gray, corners, modules, K=K, dist=dist)",
-                  DeprecationWarning, stacklevel=2)
-    c = refine_corners_edges(gray, corners_px, border_bits, K=K, dist=dist, min_contrast=min_contrast, **EDGE_FIT)
-    return None if np.isnan(c).any() else c
-
-
 # ---------------------------------------------------------------------------------------------
 # World-marker sightings in a camera's frames
 
@@ -221,7 +201,7 @@ class CameraCalibration:
 
 @dataclass(frozen=True, slots=True, eq=False)
 class CalibrationReport:
-    """The result of :func:`calibrate_recording`: calibrated cameras, and the cameras that
+    """The result of :func:`calibrate_cameras`: calibrated cameras, and the cameras that
     never (or too rarely) saw the world marker with the reason."""
 
     cameras: dict[str, CameraCalibration]
@@ -340,8 +320,11 @@ def calibrate_cma(sightings: Sequence[Sighting]) -> CameraExtrinsics:
     return CameraExtrinsics(T, len(Ts), spread_m, spread_deg, CalibrationMethod.CMA.value)
 
 
-def _inlier_mask(corners: np.ndarray, threshold_px: float) -> np.ndarray:
-    """Frames whose (4, 2) corners all lie near the per-corner median."""
+def inlier_frames(corners: np.ndarray, threshold_px: float) -> np.ndarray:
+    """The robust rule for a static marker's corners over frames: of (N, 4, 2) corners, the
+    frames whose four corners all lie within ``threshold_px`` of the per-corner median, or
+    within 4 robust sigmas (1.4826 x the median deviation) when the corners are noisier.
+    Returns an (N,) boolean mask."""
     median = np.median(corners, axis=0)
     dev = np.max(np.linalg.norm(corners - median, axis=2), axis=1)  # worst corner per frame
     sigma = 1.4826 * float(np.median(dev))
@@ -359,7 +342,7 @@ def calibrate_robust(
     inliers' own poses, each taking the IPPE solution nearer the result (flips do not inflate it).
     """
     corners = np.array([s.detection.corners_px for s in sightings])
-    keep = _inlier_mask(corners, params.outlier_threshold_px)
+    keep = inlier_frames(corners, params.outlier_threshold_px)
     mean = corners[keep].mean(axis=0)
     avg = Detection(world.marker_id, mean, shoelace_area(mean), world.dictionary)
     poses = _marker_poses(avg, world.marker_size_m, intrinsics)
@@ -409,34 +392,32 @@ def calibrate_camera(
     return CameraCalibration(camera, extrinsics, frames_read, len(sightings), inliers, dict(skipped))
 
 
-def calibrate_recording(
-    config: TrackerConfig,
-    recording: Recording,
-    params: CalibrationParams | None = None,
+def calibrate_cameras(
+    frames: Mapping[str, Iterable[Frame]],
+    intrinsics: Mapping[str, CameraIntrinsics],
+    world: WorldConfig,
+    params: CalibrationParams = CalibrationParams(),
+    detector_params: DetectorParams | None = None,
     progress: Progress | None = None,
     allow_missing: bool = False,
+    frame_counts: Mapping[str, int] | None = None,
 ) -> CalibrationReport:
-    """Calibrate every camera of ``recording`` (a :class:`cubetrack.io.recording.Recording`).
+    """Calibrate every camera of ``frames`` (camera name -> its frames, read lazily: a camera's
+    frames are read only until ``params.samples`` sightings are found) with its ``intrinsics``.
 
-    Intrinsics come from the config's ``camera_info`` or the recording's ``camera_info/``.
     A camera that cannot be calibrated raises CalibrationError naming it — unless
     ``allow_missing``, when it is left out and listed in ``report.missing`` (at least one
-    camera must still succeed).
+    camera must still succeed). ``frame_counts`` (camera -> number of frames) only sizes the
+    progress; ``detector_params`` are the ``[detector]`` settings (None: the defaults).
     """
-    from cubetrack.io.camera_info import read_camera_info
-    from cubetrack.io.config import camera_intrinsics_path
-
-    params = params or calibration_params(config)
-    detector_params = params_from_table(DetectorParams, config.section("detector"),
-                                        f"{config.path}: [detector]")
     cameras: dict[str, CameraCalibration] = {}
     missing: dict[str, str] = {}
-    for name in recording.camera_names:
-        intrinsics = read_camera_info(camera_intrinsics_path(config, name, recording.path))
+    for name, camera_frames in frames.items():
+        if name not in intrinsics:
+            raise CalibrationError(f"camera {name!r}: no intrinsics")
         try:
-            cameras[name] = calibrate_camera(recording.frames(name), name, config.world, intrinsics,
-                                             params, progress, detector_params,
-                                             total_frames=len(recording.index(name)))
+            cameras[name] = calibrate_camera(camera_frames, name, world, intrinsics[name], params, progress,
+                                             detector_params, total_frames=(frame_counts or {}).get(name, 0))
         except CalibrationError as exc:
             missing[name] = str(exc)
             if allow_missing:
@@ -445,7 +426,7 @@ def calibrate_recording(
         first = next(iter(missing.values()))
         more = f" (and {len(missing) - 1} more camera(s): {', '.join(list(missing)[1:])})" if len(missing) > 1 else ""
         hint = "" if allow_missing else "; --allow-missing calibrates the others"
-        raise CalibrationError(f"{recording.path}: {first}{more}{hint}")
+        raise CalibrationError(f"{first}{more}{hint}")
     return CalibrationReport(cameras, missing)
 
 

@@ -21,7 +21,7 @@ from typing import Sequence
 import numpy as np
 
 from cubetrack.core.cameras import CameraIntrinsics
-from cubetrack.core.errors import CalibrationError, ImageError
+from cubetrack.core.errors import CalibrationError, ImageError, ParamsError
 from cubetrack.core.params import param
 from cubetrack.core.progress import Progress
 from cubetrack.detect.detector import CornerRefinement, aruco_dictionary, opencv_corner_refinement, read_gray
@@ -50,15 +50,15 @@ class IntrinsicsParams:
 
     def __post_init__(self) -> None:
         if self.squares_x < 2 or self.squares_y < 2:
-            raise ValueError(f"a ChArUco board needs at least 2x2 squares, got {self.squares_x}x{self.squares_y}")
+            raise ParamsError(f"a ChArUco board needs at least 2x2 squares, got {self.squares_x}x{self.squares_y}")
         if not 0 < self.marker_m < self.square_m:
-            raise ValueError(f"marker side ({self.marker_m} m) must be positive and smaller than the "
+            raise ParamsError(f"marker side ({self.marker_m} m) must be positive and smaller than the "
                              f"square side ({self.square_m} m)")
         if self.min_corners < 4 or self.min_views < 1:
-            raise ValueError("min_corners must be at least 4 and min_views at least 1")
+            raise ParamsError("min_corners must be at least 4 and min_views at least 1")
         aruco_dictionary(self.dictionary)
         if self.marker_refinement is CornerRefinement.EDGE:
-            raise ValueError("marker_refinement 'edge' is not available for ChArUco boards (OpenCV's "
+            raise ParamsError("marker_refinement 'edge' is not available for ChArUco boards (OpenCV's "
                              "CharucoDetector refines the markers itself); use apriltag, subpix, "
                              "contour or none")
 

@@ -8,13 +8,16 @@ marker_size) is detected in up to --samples frames and the camera pose is comput
   cma     the paper's recursive cumulative moving average of per-frame poses (eq. 1)
 
 Intrinsics come from the config's camera_info or the recording's camera_info/<camera>.yaml.
-Writes the extrinsics TOML (contracts §4) with sample counts and spread; corrupt frames are
-skipped and counted. A camera that never sees the world marker is an error unless
---allow-missing. See docs/calibration.md.
+Writes the extrinsics TOML (contracts §4) with sample counts and spread, and beside it the run
+record (extrinsics.toml -> extrinsics.run.json: version, resolved parameters, inputs); corrupt
+frames are skipped and counted. A camera that never sees the world marker is an error unless
+--allow-missing. Parameters come from the config's [calibration] and [detector] sections
+(`cubetrack defaults` prints them); --method and --samples override two of them. See
+docs/calibration.md.
 
 With --refine-with REC the calibrated poses are then refined by a bundle adjustment over the
 cube corners of a tracking recording REC (instants where several cameras saw the cube) and
-the world marker's averaged corners; --out gets the refined poses. Per-camera residuals are
+the world marker's averaged corners ([bundle_adjustment] section); --out gets the refined poses. Per-camera residuals are
 printed, and a camera that moved after the calibration recording is named with how far.
 
 Example:
@@ -37,9 +40,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="recording folder with the cameras looking at the world marker")
     p.add_argument("--out", required=True, type=Path, metavar="EXTRINSICS", help="extrinsics TOML to write")
     p.add_argument("--method", choices=("robust", "cma"), default=None,
-                   help="robust (default) or cma (the paper's); overrides [calibration] method")
+                   help="robust or cma (the paper's); overrides [calibration] method")
     p.add_argument("--samples", type=int, default=None, metavar="N",
-                   help="world-marker sightings to use per camera (default 200); overrides [calibration] samples")
+                   help="world-marker sightings to use per camera; overrides [calibration] samples")
     p.add_argument("--allow-missing", action="store_true",
                    help="leave out cameras that do not see the world marker instead of failing")
     p.add_argument("--refine-with", type=Path, metavar="REC",
@@ -52,36 +55,35 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import dataclasses
 
-    from cubetrack.calib.extrinsics import CalibrationMethod, calibrate_recording, calibration_params, extrinsics_errors
-    from cubetrack.core.errors import ConfigError
+    from cubetrack.app.calibrate import run_calibration
+    from cubetrack.app.config import load_config
+    from cubetrack.calib.extrinsics import extrinsics_errors
+    from cubetrack.core.params import params_with
     from cubetrack.core.progress import StderrProgress
-    from cubetrack.io.config import read_extrinsics, read_tracker_config, write_extrinsics
+    from cubetrack.io.config import read_extrinsics
     from cubetrack.io.recording import Recording
 
-    config = read_tracker_config(args.config)
-    params = calibration_params(config)
+    config, settings = load_config(args.config)
+    calibration = settings.calibration
     if args.method is not None:
-        params = dataclasses.replace(params, method=CalibrationMethod(args.method))
+        calibration = params_with(calibration, "--method", method=args.method)
     if args.samples is not None:
-        if args.samples < 1:
-            raise ConfigError(f"--samples must be at least 1, got {args.samples}")
-        params = dataclasses.replace(params, samples=args.samples,
-                                     min_samples=min(params.min_samples, args.samples))
+        calibration = params_with(calibration, "--samples", samples=args.samples,
+                                  min_samples=min(calibration.min_samples, max(args.samples, 1)))
+    settings = dataclasses.replace(settings, calibration=calibration)
+    params = calibration
     truth = read_extrinsics(args.truth) if args.truth else None
     recording = Recording.open(args.recording)
-    report = calibrate_recording(config, recording, params, StderrProgress(), args.allow_missing)
-    refined = None
-    if args.refine_with is not None:
-        from cubetrack.calib.bundle import refine_extrinsics
-
-        refined = refine_extrinsics(config, Recording.open(args.refine_with), report.extrinsics, recording,
-                                    progress=StderrProgress())
-    write_extrinsics(report.extrinsics if refined is None else refined.extrinsics, args.out)
+    adjust_with = Recording.open(args.refine_with) if args.refine_with is not None else None
+    result = run_calibration(config, recording, args.out, settings, adjust_with=adjust_with,
+                             allow_missing=args.allow_missing, progress=StderrProgress())
+    report, refined = result.report, result.adjusted
     errors = extrinsics_errors(report.extrinsics, truth) if truth else {}
     if refined is None:
-        print(f"method {params.method.value}; wrote {args.out}")
+        print(f"method {params.method.value}; wrote {args.out} ({result.run_record_path.name})")
     else:
-        print(f"method {params.method.value}, refined with {args.refine_with}; wrote {args.out} (refined)")
+        print(f"method {params.method.value}, refined with {args.refine_with}; wrote {args.out} (refined; "
+              f"{result.run_record_path.name})")
     header = f"{'camera':<10} {'samples':>7} {'frames':>6}  {'position [m]':<26} {'spread cm':>9} {'spread deg':>10}"
     if truth:
         header += f" {'err cm':>7} {'err deg':>7}"

@@ -2,6 +2,8 @@
 (unit and meaning) in a comment. Paste a section into your config and change what you need;
 keys you leave out keep these defaults.
 
+Sections: detector, estimator, calibration, bundle_adjustment, fusion, filter, track, source.
+
 Example:
   cubetrack defaults > defaults.toml
   cubetrack defaults --section filter
@@ -13,40 +15,25 @@ import argparse
 
 HELP = "print the tracker config's tunable sections with defaults and documentation"
 
-SECTIONS = ("detector", "estimator", "calibration", "fusion", "filter", "track", "source")
-
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--section", choices=SECTIONS, action="append",
+    p.add_argument("--section", metavar="NAME", action="append",
                    help="only this section (repeatable; default: all)")
 
 
-def default_sections() -> dict[str, object]:
-    """Section name -> the default params of the stage that owns it."""
-    from cubetrack.app.tracker import StageParams
-    from cubetrack.calib.extrinsics import CalibrationParams
-    from cubetrack.source.streams import SourceParams
-
-    stages = StageParams()
-    return {
-        "detector": stages.detector,
-        "estimator": stages.estimator,
-        "calibration": CalibrationParams(),
-        "fusion": stages.fusion,
-        "filter": stages.filter,
-        "track": stages.track,
-        "source": SourceParams(),
-    }
-
-
-def render(sections: tuple[str, ...] = SECTIONS) -> str:
-    """The commented TOML text of ``sections``."""
+def render(sections: tuple[str, ...] | None = None) -> str:
+    """The commented TOML text of ``sections`` (default: all, in the config's order)."""
+    from cubetrack.app.config import SECTIONS, ConfigParams
+    from cubetrack.core.errors import ConfigError
     from cubetrack.core.params import params_to_commented_toml
 
-    defaults = default_sections()
-    return "\n".join(params_to_commented_toml(name, defaults[name]) for name in sections)
+    unknown = [s for s in sections or () if s not in SECTIONS]
+    if unknown:
+        raise ConfigError(f"--section {unknown[0]}: no such section; sections: {', '.join(SECTIONS)}")
+    defaults = ConfigParams()
+    return "\n".join(params_to_commented_toml(name, getattr(defaults, name)) for name in sections or SECTIONS)
 
 
 def run(args: argparse.Namespace) -> int:
-    print(render(tuple(args.section or SECTIONS)), end="")
+    print(render(tuple(args.section) if args.section else None), end="")
     return 0

@@ -1,7 +1,8 @@
 """Record the cameras of a tracker config into a recording folder (contracts §3): every camera's
 MJPEG stream (its url) as JPEGs with index.csv, its /time round trips as clock.csv,
-recording.json with the source URLs, and camera_info/ copied from the config's camera_info
-where it names one. `cubetrack track --recording` and `cubecam emulate` replay the result.
+recording.json with the source URLs, camera_info/ copied from the config's camera_info where it
+names one, and run.json (version, the [source] parameters, the config). `cubetrack track
+--recording` and `cubecam emulate` replay the result.
 
 Runs for --duration seconds, or until Ctrl-C; either way everything received so far is kept
 (rows are flushed as they are written). Lost streams are reconnected; a status line on stderr
@@ -29,20 +30,23 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import sys
 
+    from cubetrack.app.config import load_config
     from cubetrack.app.live import live_camera_urls, record_live
     from cubetrack.core.errors import ConfigError
-    from cubetrack.io.config import read_tracker_config
+    from cubetrack.io.run import RUN_FILE, write_run_record
 
     if args.duration is not None and not args.duration > 0:
         raise ConfigError(f"--duration must be a positive number of seconds, got {args.duration}")
-    config = read_tracker_config(args.config)
-    live_camera_urls(config)  # a config without urls fails before anything is written
+    config, settings = load_config(args.config)
+    urls = live_camera_urls(config)  # a config without urls fails before anything is written
 
     def status(s) -> None:
         print(f"record: {s.line()}", file=sys.stderr, flush=True)
 
     print(f"recording into {args.out}" + ("" if args.duration else " (Ctrl-C to stop)"), file=sys.stderr, flush=True)
-    result = record_live(config, args.out, duration_s=args.duration, status=status)
+    result = record_live(config, args.out, settings.source, duration_s=args.duration, status=status)
+    write_run_record(args.out / RUN_FILE, "record", {"source": settings.source}, {"config": config.path},
+                     {"cameras": urls})
     print(f"{'interrupted; ' if result.interrupted else ''}recorded {result.duration_s:.1f} s into {result.recording}")
     for name, s in result.cameras.items():
         bad = "".join(f", {n} {why}" for why, n in sorted(s.bad_parts.items()))

@@ -4,8 +4,10 @@ same tracker; only the source of the frames differs.
 
 Camera intrinsics come from the config's camera_info, else (replay only) the recording's
 camera_info folder. Corrupt frames are skipped and counted. Stage parameters come from the
-config's [detector], [estimator], [fusion] and [track] sections; --fusion overrides the fusion
-method. Live reading is tuned by the [source] section.
+config's [detector], [estimator], [fusion], [filter] and [track] sections; --fusion overrides
+the fusion method and --uncalibrated the [track] camera_poses (the rest of each section is kept).
+Live reading is tuned by the [source] section. DIR/run.json records the version, the resolved
+parameters and the inputs.
 
 Live: poses are written (and flushed) as they come; a status line on stderr shows poses/s per
 robot, frames/s per camera and the latency. Runs for --duration seconds or until Ctrl-C (the
@@ -43,13 +45,13 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 def run(args: argparse.Namespace) -> int:
     import dataclasses
 
+    from cubetrack.app.config import load_config
     from cubetrack.app.track import track_recording
-    from cubetrack.app.tracker import CameraPoseSource, StageParams, TrackParams
+    from cubetrack.app.tracker import CameraPoseSource
     from cubetrack.core.errors import ConfigError
-    from cubetrack.core.params import params_from_table
+    from cubetrack.core.params import params_with
     from cubetrack.core.progress import StderrProgress
-    from cubetrack.fuse.fusion import FusionParams
-    from cubetrack.io.config import read_extrinsics, read_tracker_config
+    from cubetrack.io.config import read_extrinsics
     from cubetrack.io.recording import Recording
 
     if not args.live and (args.duration is not None or args.record is not None):
@@ -58,22 +60,22 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--duration must be a positive number of seconds, got {args.duration}")
     if not args.status_every > 0:
         raise ConfigError(f"--status-every must be a positive number of seconds, got {args.status_every}")
-    config = read_tracker_config(args.config)
-    params = StageParams.from_config(config)
+    config, settings = load_config(args.config)
     if args.fusion:
-        table = {**config.section("fusion"), "method": args.fusion}
-        params = dataclasses.replace(params, fusion=params_from_table(FusionParams, table, "--fusion"))
-    if args.uncalibrated:
-        params = dataclasses.replace(params, track=TrackParams(camera_poses=CameraPoseSource.WORLD_MARKER))
+        settings = dataclasses.replace(settings, fusion=params_with(settings.fusion, "--fusion", method=args.fusion))
+    if args.uncalibrated:  # only the camera poses change: the rest of [track] is kept
+        settings = dataclasses.replace(settings, track=params_with(
+            settings.track, "--uncalibrated", camera_poses=CameraPoseSource.WORLD_MARKER))
         extrinsics = None
     elif args.extrinsics is None:
         raise ConfigError("give --extrinsics (from cubetrack calibrate) or --uncalibrated")
     else:
         extrinsics = read_extrinsics(args.extrinsics)
     if args.live:
-        return _run_live(args, config, extrinsics, params)
+        return _run_live(args, config, extrinsics, settings)
     recording = Recording.open(args.recording)
-    result = track_recording(config, recording, extrinsics, args.out, params, StderrProgress())
+    result = track_recording(config, recording, extrinsics, args.out, settings.stages, StderrProgress(),
+                             extrinsics_path=args.extrinsics)
     s = result.stats
     print(f"frames: {s.frames}" + "".join(f", {reason}: {n}" for reason, n in result.skipped.items()))
     for robot, (tum, jsonl) in result.outputs.items():
@@ -81,19 +83,26 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _run_live(args: argparse.Namespace, config, extrinsics, params) -> int:
+def _run_live(args: argparse.Namespace, config, extrinsics, settings) -> int:
     import sys
 
+    from cubetrack.app.config import parameter_tables
     from cubetrack.app.live import live_camera_urls, live_intrinsics, track_live
+    from cubetrack.io.run import RUN_FILE, write_run_record
 
     live_camera_urls(config), live_intrinsics(config)  # a bad config fails before the session starts
+    sections = parameter_tables(settings)
+    write_run_record(args.out / RUN_FILE, "track", {**parameter_tables(settings.stages), "source": sections["source"]},
+                     {"config": config.path, "extrinsics": args.extrinsics, "recorded_to": args.record},
+                     {"cameras": {c.name: c.url for c in config.cameras}})
+    params = settings.stages
 
     def status(s) -> None:
         print(f"track: {s.line()}", file=sys.stderr, flush=True)
 
     print(f"tracking live into {args.out}" + ("" if args.duration else " (Ctrl-C to stop)"), file=sys.stderr, flush=True)
     result = track_live(config, extrinsics, args.out, params, duration_s=args.duration, record_to=args.record,
-                        status=status, status_every_s=args.status_every)
+                        status=status, status_every_s=args.status_every, source=settings.source)
     s = result.stats
     latency = "-" if result.latency_s is None else f"{result.latency_s * 1000:.0f} ms"
     print(f"{'interrupted; ' if result.interrupted else ''}tracked live for {result.duration_s:.1f} s: "

@@ -14,6 +14,12 @@ class ConfigError(CubetrackError):
     """A tracker config, cube layout, extrinsics or parameter table is invalid."""
 
 
+class ParamsError(ConfigError, ValueError):
+    """A parameter value is out of range: the one error every params dataclass raises in its
+    ``__post_init__``. The config loader (:func:`cubetrack.core.params.params_from_table`) turns
+    it into a one-line :class:`ConfigError` naming the file and section."""
+
+
 class CameraInfoError(CubetrackError):
     """An intrinsics file (ROS camera_info YAML or OpenCV FileStorage YAML) is missing or invalid."""
 

@@ -3,6 +3,11 @@
 Each stage defines a frozen dataclass whose fields carry their default and, in the field's
 ``metadata["doc"]``, their unit and meaning. A TOML table maps 1:1 onto the fields; unknown
 keys and wrongly typed values are refused with a message naming the table and the key.
+
+One validation rule: a params dataclass checks its values in ``__post_init__`` and refuses a
+bad one with :class:`cubetrack.core.errors.ParamsError` (:func:`check` raises it); the loader
+turns that into a one-line :class:`cubetrack.core.errors.ConfigError` naming where the value
+came from (``<file>: [section]``, or a command-line option for :func:`params_with`).
 """
 
 from __future__ import annotations
@@ -13,7 +18,7 @@ import types
 import typing
 from typing import Any, TypeVar
 
-from cubetrack.core.errors import ConfigError
+from cubetrack.core.errors import ConfigError, CubetrackError, ParamsError
 
 P = TypeVar("P")
 
@@ -21,6 +26,20 @@ P = TypeVar("P")
 def param(default: Any, doc: str) -> Any:
     """A dataclass field with its default and its documentation (unit, range, meaning)."""
     return dataclasses.field(default=default, metadata={"doc": doc})
+
+
+def check(condition: bool, message: str) -> None:
+    """Refuse a parameter value: raise :class:`ParamsError` with ``message`` unless ``condition``.
+    For ``__post_init__`` of params dataclasses."""
+    if not condition:
+        raise ParamsError(message)
+
+
+def check_positive(params: Any, *names: str) -> None:
+    """Refuse any of the fields ``names`` of ``params`` that is not a positive number."""
+    for name in names:
+        value = getattr(params, name)
+        check(value > 0, f"{name} must be positive, got {value}")
 
 
 def _coerce(value: Any, annotation: Any, where: str) -> Any:
@@ -79,9 +98,26 @@ def params_from_table(cls: type[P], table: dict[str, Any] | None, where: str) ->
             f"{where}: unknown key(s) {', '.join(unknown)}; valid keys: {', '.join(sorted(names))}"
         )
     values = {k: _coerce(v, hints[k], f"{where}.{k}") for k, v in table.items()}
+    return _build(lambda: cls(**values), where)
+
+
+def params_with(params: P, where: str, **values: Any) -> P:
+    """``params`` with some fields replaced, each value checked as the loader checks a table's
+    (``where`` names the source in errors, e.g. ``"--fusion"``); the other fields are kept."""
+    hints = typing.get_type_hints(type(params))
+    names = {f.name for f in dataclasses.fields(params)}
+    unknown = sorted(set(values) - names)
+    if unknown:
+        raise ConfigError(f"{where}: unknown key(s) {', '.join(unknown)}; valid keys: {', '.join(sorted(names))}")
+    coerced = {k: _coerce(v, hints[k], where) for k, v in values.items()}
+    return _build(lambda: dataclasses.replace(params, **coerced), where)
+
+
+def _build(make: typing.Callable[[], P], where: str) -> P:
+    """Run ``make`` (a params constructor); its refusal becomes one line naming ``where``."""
     try:
-        return cls(**values)
-    except (TypeError, ValueError) as exc:
+        return make()
+    except (CubetrackError, TypeError, ValueError) as exc:
         raise ConfigError(f"{where}: {exc}") from None
 
 

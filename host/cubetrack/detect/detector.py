@@ -30,7 +30,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from cubetrack.core.errors import DetectionError, ImageError
+from cubetrack.core.errors import DetectionError, ImageError, ParamsError
 from cubetrack.core.geometry import undistort_points
 from cubetrack.core.params import param
 from cubetrack.core.records import Detection
@@ -175,25 +175,25 @@ class DetectorParams:
     def __post_init__(self) -> None:
         aruco_dictionary(self.dictionary)  # DetectionError with the valid names
         if not 0.0 < self.relative_corner_refinement_win_size <= 4.0:
-            raise ValueError(f"relative_corner_refinement_win_size must be in (0, 4], got "
+            raise ParamsError(f"relative_corner_refinement_win_size must be in (0, 4], got "
                              f"{self.relative_corner_refinement_win_size}")
         if self.corner_refinement_win_size_px < 1 or self.corner_refinement_max_iterations < 1:
-            raise ValueError("corner_refinement_win_size_px and corner_refinement_max_iterations must be >= 1")
+            raise ParamsError("corner_refinement_win_size_px and corner_refinement_max_iterations must be >= 1")
         if not self.corner_refinement_min_accuracy_px > 0.0:
-            raise ValueError("corner_refinement_min_accuracy_px must be positive")
+            raise ParamsError("corner_refinement_min_accuracy_px must be positive")
         lo, hi, step = (self.adaptive_thresh_win_size_min_px, self.adaptive_thresh_win_size_max_px,
                         self.adaptive_thresh_win_size_step_px)
         if lo < 3 or hi < lo or step < 1:
-            raise ValueError(f"adaptive threshold windows need 3 <= min <= max and step >= 1, got "
+            raise ParamsError(f"adaptive threshold windows need 3 <= min <= max and step >= 1, got "
                              f"min {lo}, max {hi}, step {step}")
         if not 0.0 < self.min_marker_perimeter_rate < self.max_marker_perimeter_rate:
-            raise ValueError("need 0 < min_marker_perimeter_rate < max_marker_perimeter_rate")
+            raise ParamsError("need 0 < min_marker_perimeter_rate < max_marker_perimeter_rate")
         if not 0.0 <= self.error_correction_rate <= 1.0:
-            raise ValueError(f"error_correction_rate must be in [0, 1], got {self.error_correction_rate}")
+            raise ParamsError(f"error_correction_rate must be in [0, 1], got {self.error_correction_rate}")
         if self.min_area_px2 < 0.0 or self.min_distance_to_border_px < 0:
-            raise ValueError("min_area_px2 and min_distance_to_border_px must not be negative")
+            raise ParamsError("min_area_px2 and min_distance_to_border_px must not be negative")
         if self.edge_iterations < 1:
-            raise ValueError(f"edge_iterations must be at least 1, got {self.edge_iterations}")
+            raise ParamsError(f"edge_iterations must be at least 1, got {self.edge_iterations}")
 
 
 def _cv_parameters(p: DetectorParams) -> cv2.aruco.DetectorParameters:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+from cubetrack.core.errors import ParamsError
 from cubetrack.core.params import param
 
 
@@ -44,4 +45,4 @@ class EstimatorParams:
         for name in ("max_reprojection_error_px", "corner_noise_px", "upright_sigma_deg",
                      "upright_tolerance_deg", "max_face_spread_m", "max_joint_reprojection_error_px"):
             if not getattr(self, name) > 0.0:
-                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
+                raise ParamsError(f"{name} must be positive, got {getattr(self, name)}")

@@ -22,7 +22,7 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from cubetrack.core.errors import EvaluationError
-from cubetrack.core.params import param
+from cubetrack.core.params import check_positive, param
 from cubetrack.io.trajectory import Trajectory
 
 
@@ -32,6 +32,9 @@ class EvaluationParams:
 
     detection_timeout_s: float = param(0.5, "seconds without an estimate after which the robot counts as lost (paper: 0.5 s)")
     max_time_diff_s: float = param(0.02, "seconds; estimates farther than this from any ground-truth sample are not scored")
+
+    def __post_init__(self) -> None:
+        check_positive(self, "detection_timeout_s", "max_time_diff_s")
 
 
 @dataclass(frozen=True, slots=True)

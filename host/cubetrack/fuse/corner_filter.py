@@ -20,6 +20,7 @@ from typing import Sequence
 
 import numpy as np
 
+from cubetrack.core.errors import ParamsError
 from cubetrack.core.geometry import make_T
 from cubetrack.core.params import param
 from cubetrack.estimate.reprojection import (
@@ -52,9 +53,9 @@ class FilterParams:
         for name in ("accel_noise", "angular_accel_noise", "corner_noise_px", "huber_px", "gate_rms_px", "face_gate_px",
                      "init_velocity_sigma", "init_angular_velocity_sigma"):
             if not getattr(self, name) > 0:
-                raise ValueError(f"{name} must be positive")
+                raise ParamsError(f"{name} must be positive")
         if self.iterations < 1:
-            raise ValueError("iterations must be at least 1")
+            raise ParamsError("iterations must be at least 1")
 
 
 @dataclass(frozen=True, slots=True)

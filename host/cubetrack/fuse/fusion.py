@@ -34,6 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from cubetrack.core.errors import ParamsError
 from cubetrack.core.geometry import mean_rotation, quat_xyzw_from_R
 from cubetrack.core.layout import CubeLayout
 from cubetrack.core.params import param
@@ -72,9 +73,9 @@ class FusionParams:
     def __post_init__(self) -> None:
         for name in ("window_s", "lost_after_s", "association_gate_px", "init_window_s"):
             if not getattr(self, name) > 0:
-                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
+                raise ParamsError(f"{name} must be positive, got {getattr(self, name)}")
         if self.reorder_delay_s < 0 or self.output_rate_hz < 0 or self.max_rejections < 1:
-            raise ValueError("reorder_delay_s and output_rate_hz must not be negative, max_rejections >= 1")
+            raise ParamsError("reorder_delay_s and output_rate_hz must not be negative, max_rejections >= 1")
 
 
 def paper_weights(method: FusionMethod, areas_px2: np.ndarray) -> np.ndarray:

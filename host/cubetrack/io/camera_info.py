@@ -15,6 +15,7 @@ import yaml
 
 from cubetrack.core.cameras import CameraIntrinsics
 from cubetrack.core.errors import CameraInfoError
+from cubetrack.io.files import atomic_write
 
 
 _MAX_NUMBERS = 64  # more than any camera matrix or distortion model holds
@@ -124,5 +125,5 @@ def camera_info_to_dict(intr: CameraIntrinsics) -> dict:
 
 
 def write_camera_info(intr: CameraIntrinsics, path: str | Path) -> None:
-    """Write ROS camera_info YAML."""
-    Path(path).write_text(yaml.safe_dump(camera_info_to_dict(intr), sort_keys=False), encoding="utf-8")
+    """Write ROS camera_info YAML (atomically)."""
+    atomic_write(path, yaml.safe_dump(camera_info_to_dict(intr), sort_keys=False))

@@ -1,8 +1,9 @@
 """The tracker config TOML (contracts §4) and the extrinsics TOML written by calibration.
 
-Relative paths inside a config resolve against the config file's folder. Stage parameter
-tables (``[detector]``, ``[estimator]``, ``[fusion]``, ``[calibration]``, ...) are kept as raw
-tables here and turned into each stage's params dataclass by the stage that owns them.
+Relative paths inside a config resolve against the config file's folder. Every other table
+(``[detector]``, ``[estimator]``, ``[fusion]``, ``[calibration]``, ...) is kept raw in
+``TrackerConfig.sections``; the workflow layer (:func:`cubetrack.app.config.config_params`) turns
+each into its stage's params dataclass, once, and refuses unknown sections.
 """
 
 from __future__ import annotations
@@ -20,9 +21,8 @@ from cubetrack.core.cameras import CameraExtrinsics, WorldConfig
 from cubetrack.core.errors import ConfigError, RecordingError
 from cubetrack.core.geometry import T_from_position_quat, position_quat_from_T
 from cubetrack.core.layout import DEFAULT_DICTIONARY, CubeLayout, read_layout
+from cubetrack.io.files import atomic_write
 from cubetrack.io.recording import check_camera_name
-
-STAGE_SECTIONS = ("detector", "estimator", "fusion", "filter", "calibration", "track", "source")
 
 
 @dataclass(frozen=True, slots=True)
@@ -36,11 +36,11 @@ class CameraConfig:
 
 @dataclass(frozen=True, slots=True, eq=False)
 class RobotConfig:
-    """A tracked robot and the layout of its cube."""
+    """A tracked robot and the layout of its cube (``layout_path``: the file it was read from)."""
 
     name: str
     layout: CubeLayout
-    layout_path: Path
+    layout_path: Path | None = None
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -51,10 +51,11 @@ class TrackerConfig:
     world: WorldConfig
     cameras: tuple[CameraConfig, ...]
     robots: tuple[RobotConfig, ...]
-    sections: dict[str, dict[str, Any]] = field(default_factory=dict)
+    sections: dict[str, dict[str, Any]] = field(default_factory=dict)  # name -> raw parameter table
+    outputs: tuple[dict[str, Any], ...] = ()  # raw [[outputs]] tables (cubetrack.app.outputs reads them)
 
     def section(self, name: str) -> dict[str, Any]:
-        """The raw table of a stage section (empty when the file has none)."""
+        """The raw table of a parameter section (empty when the file has none)."""
         return dict(self.sections.get(name, {}))
 
 
@@ -100,15 +101,9 @@ def read_tracker_config(path: str | Path) -> TrackerConfig:
     doc = _load_toml(path, "tracker config")
     where = str(path)
     base = path.parent
-    known = {"world", "cameras", "robots", *STAGE_SECTIONS}
-    unknown = set(doc) - known
-    if unknown:
-        raise ConfigError(
-            f"{where}: unknown section(s) {', '.join(sorted(unknown))}; known: {', '.join(sorted(known))}"
-        )
     cameras = []
-    for key in ("cameras", "robots"):
-        if not isinstance(doc.get(key, []), list):
+    for key in ("cameras", "robots", "outputs"):
+        if not isinstance(doc.get(key, []), list) or not all(isinstance(t, dict) for t in doc.get(key, [])):
             raise ConfigError(f"{where}: {key} must be [[{key}]] tables")
     for i, row in enumerate(doc.get("cameras", [])):
         if not isinstance(row, dict) or "name" not in row:
@@ -144,12 +139,13 @@ def read_tracker_config(path: str | Path) -> TrackerConfig:
                                   f"{owner[key]}; every robot needs ids of its own")
             owner[key] = f"robot {r.name!r}"
     sections = {}
-    for name in STAGE_SECTIONS:
-        if name in doc:
-            if not isinstance(doc[name], dict):
-                raise ConfigError(f"{where}: [{name}] must be a table")
-            sections[name] = doc[name]
-    return TrackerConfig(path, world, tuple(cameras), tuple(robots), sections)
+    for name, table in doc.items():
+        if name in ("world", "cameras", "robots", "outputs"):
+            continue
+        if not isinstance(table, dict):
+            raise ConfigError(f"{where}: {name} must be a [{name}] table of parameters")
+        sections[name] = table
+    return TrackerConfig(path, world, tuple(cameras), tuple(robots), sections, tuple(doc.get("outputs", [])))
 
 
 def tracker_config_to_table(
@@ -183,8 +179,8 @@ def tracker_config_to_table(
 
 
 def write_toml(doc: dict[str, Any], path: str | Path) -> None:
-    """Write a TOML document."""
-    Path(path).write_text(tomli_w.dumps(doc), encoding="utf-8")
+    """Write a TOML document (atomically: an earlier file is replaced only by the whole new one)."""
+    atomic_write(path, tomli_w.dumps(doc))
 
 
 def write_extrinsics(extrinsics: dict[str, CameraExtrinsics], path: str | Path) -> None:

@@ -22,7 +22,6 @@ import heapq
 import json
 import logging
 import math
-import os
 import re
 from collections import Counter
 from dataclasses import dataclass
@@ -33,6 +32,7 @@ from typing import Iterable, Iterator
 from cubetrack.core.cameras import ClockSample
 from cubetrack.core.errors import RecordingError
 from cubetrack.core.records import Frame
+from cubetrack.io.files import atomic_write
 
 log = logging.getLogger(__name__)
 
@@ -258,7 +258,7 @@ class RecordingWriter:
             "cameras": [{"name": c.name, "source": c.source} for c in self.cameras],
             "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         }
-        _atomic_write(self.path / "recording.json", json.dumps(meta, indent=2) + "\n")
+        atomic_write(self.path / "recording.json", json.dumps(meta, indent=2) + "\n")
         self._index = {}
         self._clock = {}
         for c in self.cameras:
@@ -278,7 +278,7 @@ class RecordingWriter:
         if camera not in self._index:
             raise RecordingError(f"{self.path}: no camera {camera!r} in this recording")
         name = f"{seq:08d}.jpg"
-        _atomic_write(self.path / camera / name, jpeg)
+        atomic_write(self.path / camera / name, jpeg)
         f = self._index[camera]
         f.write(f"{int(seq)},{_fmt(device_time_s)},{_fmt(host_time_s)},{name}\n")
         f.flush()
@@ -313,11 +313,3 @@ class RecordingWriter:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
-
-
-def _atomic_write(path: Path, data: bytes | str) -> None:
-    tmp = path.with_name(path.name + ".part")
-    mode = "wb" if isinstance(data, bytes) else "w"
-    with open(tmp, mode) as f:
-        f.write(data)
-    os.replace(tmp, path)

@@ -21,6 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from cubetrack.core.errors import ParamsError
 from cubetrack.core.params import param
 
 log = logging.getLogger(__name__)
@@ -37,9 +38,9 @@ class ClockSyncParams:
 
     def __post_init__(self) -> None:
         if self.window < 2 or self.min_samples < 1 or not 0.0 < self.fastest_fraction <= 1.0:
-            raise ValueError("need window >= 2, min_samples >= 1 and 0 < fastest_fraction <= 1")
+            raise ParamsError("need window >= 2, min_samples >= 1 and 0 < fastest_fraction <= 1")
         if not self.max_round_trip_s > 0:
-            raise ValueError("max_round_trip_s must be positive")
+            raise ParamsError("max_round_trip_s must be positive")
 
 
 @dataclass(frozen=True, slots=True)

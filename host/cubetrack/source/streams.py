@@ -35,7 +35,7 @@ from typing import Callable, Iterable, Mapping
 from urllib.parse import urljoin, urlsplit
 
 from cubetrack.core.cameras import ClockSample
-from cubetrack.core.errors import ConfigError
+from cubetrack.core.errors import ConfigError, ParamsError
 from cubetrack.core.params import param
 from cubetrack.core.records import Frame
 
@@ -65,12 +65,12 @@ class SourceParams:
                      "clock_period_s", "clock_timeout_s"):
             v = getattr(self, name)
             if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                raise ValueError(f"{name} must be a positive number of seconds, got {v!r}")
+                raise ParamsError(f"{name} must be a positive number of seconds, got {v!r}")
         if self.backoff_max_s < self.backoff_initial_s:
-            raise ValueError("backoff_max_s must not be below backoff_initial_s")
+            raise ParamsError("backoff_max_s must not be below backoff_initial_s")
         for name in ("queue_frames", "max_header_bytes", "max_part_bytes", "read_chunk_bytes"):
             if getattr(self, name) < 1:
-                raise ValueError(f"{name} must be at least 1")
+                raise ParamsError(f"{name} must be at least 1")
 
 
 # --- the MJPEG part parser -------------------------------------------------------------------

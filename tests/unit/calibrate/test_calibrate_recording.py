@@ -7,13 +7,9 @@ import numpy as np
 import pytest
 from calib_scene import CAMERAS, look_at, write_scene
 
-from cubetrack.calib.extrinsics import (
-    CalibrationMethod,
-    CalibrationParams,
-    calibrate_recording,
-    calibration_params,
-    extrinsics_errors,
-)
+from cubetrack.app.calibrate import calibrate_recording
+from cubetrack.app.config import config_params
+from cubetrack.calib.extrinsics import CalibrationMethod, CalibrationParams, extrinsics_errors
 from cubetrack.cli import main as cli_main
 from cubetrack.core.errors import CalibrationError, ConfigError
 from cubetrack.io.config import read_extrinsics, read_tracker_config
@@ -95,14 +91,14 @@ def test_calibration_section_is_read_and_checked(tmp_path, scene):
     text = config_path.read_text() + '\n[calibration]\nmethod = "cma"\nsamples = 50\n'
     (tmp_path / "cube.toml").write_text((config_path.parent / "cube.toml").read_text())
     (tmp_path / "c.toml").write_text(text)
-    params = calibration_params(read_tracker_config(tmp_path / "c.toml"))
+    params = config_params(read_tracker_config(tmp_path / "c.toml")).calibration
     assert params.method is CalibrationMethod.CMA and params.samples == 50
     (tmp_path / "c.toml").write_text(text.replace("samples = 50", "samples = 50\nsmaples = 3"))
     with pytest.raises(ConfigError, match="smaples"):
-        calibration_params(read_tracker_config(tmp_path / "c.toml"))
+        config_params(read_tracker_config(tmp_path / "c.toml"))
     (tmp_path / "c.toml").write_text(text.replace('"cma"', '"median"'))
     with pytest.raises(ConfigError, match="method"):
-        calibration_params(read_tracker_config(tmp_path / "c.toml"))
+        config_params(read_tracker_config(tmp_path / "c.toml"))
 
 
 def test_cli_writes_extrinsics_that_read_back(scene, tmp_path, cli, capsys):

@@ -11,10 +11,9 @@ from cubetrack.calib.extrinsics import (
     CalibrationMethod,
     CalibrationParams,
     Sighting,
-    _inlier_mask,
     calibrate_robust,
     collect_sightings,
-    refine_corners_by_edges,
+    inlier_frames,
 )
 from cubetrack.core.cameras import CameraIntrinsics, WorldConfig
 from cubetrack.core.geometry import rotation_angle, shoelace_area
@@ -31,13 +30,13 @@ def sightings_from(corners_list):
     return out
 
 
-def test_inlier_mask_drops_strays():
+def test_inlier_frames_drops_strays():
     rng = np.random.default_rng(0)
     base = true_corners(CAMERAS["cam1"])
     corners = np.array([base + rng.normal(0, 0.05, base.shape) for _ in range(30)])
     corners[5] += [3.0, 0.0]  # camera bumped in one frame
     corners[9, 2] += [0.0, -2.0]  # one corner wrong
-    mask = _inlier_mask(corners, 1.0)
+    mask = inlier_frames(corners, 1.0)
     assert not mask[5] and not mask[9]
     assert mask.sum() == 28
 
@@ -105,8 +104,7 @@ def test_edge_refinement_gives_up_on_a_blank_image():
     c = np.array([[300.0, 200.0], [340.0, 200.0], [340.0, 240.0], [300.0, 240.0]])
     dist = np.array([-0.25, 0.08, 0.0, 0.0, 0.0])
     assert np.all(np.isnan(refine_corners_edges(gray, c, 6, K=K, dist=dist)))
-    with pytest.deprecated_call():
-        assert refine_corners_by_edges(gray, c, K, dist, 6) is None
+    assert np.all(np.isnan(refine_corners_edges(gray, c, 6, K=K, dist=dist, **EDGE_FIT)))
 
 
 def test_edge_refinement_handles_lens_distortion():
@@ -125,6 +123,3 @@ def test_edge_refinement_handles_lens_distortion():
     err_without = np.linalg.norm(without - truth, axis=1)
     assert err_with.max() < 0.1, err_with
     assert err_without.max() > 2 * err_with.max()
-    with pytest.deprecated_call():
-        np.testing.assert_allclose(refine_corners_by_edges(gray, det.corners_px, K, dist, 6, min_contrast=8.0),
-                                   with_model)

@@ -4,7 +4,8 @@ own renderer, placement errors, lighting, noise) the robust calibration puts eve
 
 import pytest
 
-from cubetrack.calib.extrinsics import CalibrationMethod, CalibrationParams, calibrate_recording, extrinsics_errors
+from cubetrack.app.calibrate import calibrate_recording
+from cubetrack.calib.extrinsics import CalibrationMethod, CalibrationParams, extrinsics_errors
 from cubetrack.cli import main as cli_main
 from cubetrack.io.config import read_extrinsics, read_tracker_config
 from cubetrack.io.recording import Recording

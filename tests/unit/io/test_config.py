@@ -34,10 +34,11 @@ method = "weighted"
     assert cfg.cameras[0].camera_info == tmp_path / "calib" / "cam1.yaml"
     assert cfg.robots[0].layout.has_repeated_ids
     assert cfg.section("fusion") == {"method": "weighted"}
+    assert cfg.section("filter") == {}  # sections are kept raw: app.config turns them into params
 
 
 @pytest.mark.parametrize("body,match", [
-    ("[[robots]]\nname='a'\nlayout='cube.toml'\n[bogus]\nx=1\n", "unknown section"),
+    ("bogus = 1\n[[robots]]\nname='a'\nlayout='cube.toml'\n", r"bogus must be a \[bogus\] table"),
     ("[world]\nmarker_size = -1\n[[robots]]\nname='a'\nlayout='cube.toml'\n", "marker_size"),
     ("", "at least one"),
     ("[[robots]]\nname='a'\nlayout='missing.toml'\n", "missing.toml: cube layout file not found"),

@@ -8,8 +8,9 @@ import re
 import numpy as np
 import pytest
 
-from cubetrack.calib.bundle import METHOD, refine_extrinsics
-from cubetrack.calib.extrinsics import CalibrationParams, calibrate_recording, extrinsics_errors
+from cubetrack.app.calibrate import adjust_recording_extrinsics, calibrate_recording
+from cubetrack.calib.bundle import METHOD
+from cubetrack.calib.extrinsics import CalibrationParams, extrinsics_errors
 from cubetrack.cli import main as cli_main
 from cubetrack.core.cameras import CameraExtrinsics
 from cubetrack.core.errors import CalibrationError
@@ -21,7 +22,7 @@ from cubetrack.simulate import SimulationParams, simulate
 
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):
-    rec = tmp_path_factory.mktemp("refine") / "rec"
+    rec = tmp_path_factory.mktemp("bundle") / "rec"
     simulate(SimulationParams(duration_s=16, calibration_frames=60, seed=3), rec)
     config = read_tracker_config(rec / "config.toml")
     truth = read_extrinsics(rec / "true_extrinsics.toml")
@@ -59,7 +60,7 @@ def test_camera_moved_after_calibration_is_named_and_recovered(scene):
     stale = dict(truth)
     stale["cam2"] = CameraExtrinsics(_moved(truth["cam2"].T_world_cam, np.array([0.02, -0.02, 0.01]),
                                             np.radians([0.6, 0.0, 0.8])))
-    report = refine_extrinsics(config, Recording.open(rec), stale, Recording.open(rec / "calibration"))
+    report = adjust_recording_extrinsics(config, Recording.open(rec), stale, Recording.open(rec / "calibration"))
     assert report.moved == ("cam2",)
     assert report.cameras["cam2"].moved and not report.cameras["cam1"].moved
     warning = next(w for w in report.warnings if "cam2" in w)
@@ -74,7 +75,7 @@ def test_recording_without_the_calibrated_cameras_is_one_line_error(scene):
     rec, config, truth, _prior = scene
     renamed = {f"other{i}": e for i, e in enumerate(truth.values())}
     with pytest.raises(CalibrationError, match="share 0 camera") as exc:
-        refine_extrinsics(config, Recording.open(rec), renamed)
+        adjust_recording_extrinsics(config, Recording.open(rec), renamed)
     assert "\n" not in str(exc.value)
 
 
@@ -82,5 +83,5 @@ def test_no_multi_camera_cube_sightings_is_one_line_error(scene):
     rec, config, truth, _prior = scene
     # the calibration recording shows the empty arena: no cube anywhere
     with pytest.raises(CalibrationError, match="no instant where") as exc:
-        refine_extrinsics(config, Recording.open(rec / "calibration"), truth)
+        adjust_recording_extrinsics(config, Recording.open(rec / "calibration"), truth)
     assert "\n" not in str(exc.value)

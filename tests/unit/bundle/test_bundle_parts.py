@@ -4,9 +4,9 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 from cubetrack.calib.bundle import (
+    BundleAdjustmentParams,
     CubeFrame,
     Instant,
-    RefineParams,
     _build_problem,
     _solve,
     group_instants,
@@ -87,7 +87,7 @@ def test_bundle_adjustment_recovers_cameras_from_exact_corners():
                       for T in true_cams])
     cubes0 = np.array([make_T(R_from_rotvec(rng.normal(0, 0.01, 3)) @ i.T_world_cube[:3, :3],
                               i.T_world_cube[:3, 3] + rng.normal(0, 0.005, 3)) for i in instants])
-    T_cams, _ = _solve(prob, start, cubes0, RefineParams(max_nfev=100))
+    T_cams, _ = _solve(prob, start, cubes0, BundleAdjustmentParams(max_nfev=100))
     for T, T_true in zip(T_cams, true_cams):
         assert np.linalg.norm(T[:3, 3] - T_true[:3, 3]) < 1e-5
         assert rotation_angle(T[:3, :3], T_true[:3, :3], "deg") < 1e-4
