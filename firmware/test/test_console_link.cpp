@@ -54,13 +54,29 @@ TEST_CASE("every console answer ends in OK or ERR") {
     }
 }
 
+TEST_CASE("help lists every key with what it takes, in lines that fit a terminal") {
+    Host h;
+    std::vector<std::string> out = run(h, "help\n");
+    REQUIRE(out.back() == "OK");
+    std::string keys;
+    for (const std::string& line : out) {
+        CHECK(line.size() <= 80);
+        if (line.compare(0, 5, "keys:") == 0 || (!keys.empty() && line.compare(0, 5, "     ") == 0)) keys += line.substr(5);
+    }
+    for (size_t i = 0; i < kSettingCount; ++i) CHECK(keys.find(std::string(" ") + kSettingFields[i].key) != std::string::npos);
+    for (const char* hint : {"password(write-only)", "mode(station|ap)", "ip(dhcp|a.b.c.d/prefix,gateway)", "port(1-65535)",
+                             "jpeg_quality(1-100)", "fps(30|15|7.5)", "hdr(off|auto|on)"}) {
+        CHECK(keys.find(hint) != std::string::npos);
+    }
+}
+
 TEST_CASE("get and set round-trip, values keep their spaces") {
     Host h;
     CHECK(run(h, "set ssid My Lab Net\n") == std::vector<std::string>{"OK"});
     CHECK(run(h, "get ssid\n") == std::vector<std::string>{"ssid=My Lab Net", "OK"});
     CHECK(run(h, "set fps 7.5\r\nget fps\r\n") == std::vector<std::string>{"OK", "fps=7.5", "OK"});
     std::vector<std::string> all = run(h, "get\n");
-    CHECK(all.size() == kSettingKeyCount + 1);
+    CHECK(all.size() == kSettingCount + 1);
     CHECK(all.front() == "name=cubecam");
 }
 
@@ -228,4 +244,15 @@ TEST_CASE("LED patterns tell the link state apart") {
     CHECK((status_leds(LinkState::Online, 0, 2, false, false) & kLedFrame) == 0);
     CHECK((status_leds(LinkState::Online, 0, 0, true, false) & kLedClient) != 0);
     CHECK((status_leds(LinkState::Online, 0, 0, false, true) & kLedError) != 0);
+}
+
+TEST_CASE("deadlines hold across the 32-bit millisecond wrap") {
+    CHECK(deadline_reached(1000, 1000));
+    CHECK_FALSE(deadline_reached(999, 1000));
+    uint32_t near_wrap = 0xFFFFFF00u;
+    uint32_t deadline = near_wrap + 0x200;  // wrapped past zero
+    CHECK_FALSE(deadline_reached(near_wrap, deadline));
+    CHECK_FALSE(deadline_reached(0xFFFFFFFFu, deadline));
+    CHECK(deadline_reached(deadline, deadline));
+    CHECK(deadline_reached(deadline + 5, deadline));
 }

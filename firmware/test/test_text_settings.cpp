@@ -186,3 +186,51 @@ TEST_CASE("the password is never shown") {
 TEST_CASE("crc32 matches the IEEE check value") {
     CHECK(crc32(reinterpret_cast<const uint8_t*>("123456789"), 9) == 0xCBF43926u);
 }
+
+TEST_CASE("a record written by firmware 0.1.0 reads back the same and is written the same") {
+    // The settings above, as the record code before the field table encoded
+    // them: boards keep these bytes in flash across firmware updates.
+    const char kHex[] =
+        "43425543010063616d2d32000000000000000000000000000000000000000000000000000000006c6162206e6574000000000000"
+        "0000000000000000000000000000000000000000636f727265637420686f72736500000000000000000000000000000000000000"
+        "000000000000000000000000000000000000000000000000000000000000000001000a000007180a000001901f554b0002f03f43"
+        "f8";
+    REQUIRE(strlen(kHex) == 2 * kSettingsRecordSize);
+    uint8_t stored[kSettingsRecordSize];
+    for (size_t i = 0; i < kSettingsRecordSize; ++i) {
+        char byte[3] = {kHex[2 * i], kHex[2 * i + 1], 0};
+        stored[i] = static_cast<uint8_t>(strtoul(byte, nullptr, 16));
+    }
+    Settings s;
+    REQUIRE(settings_decode(stored, sizeof stored, s));
+    const char* expected[][2] = {{"name", "cam-2"}, {"ssid", "lab net"},          {"password", "(set)"},
+                                 {"mode", "ap"},    {"ip", "10.0.0.7/24,10.0.0.1"}, {"port", "8080"},
+                                 {"jpeg_quality", "85"}, {"fps", "7.5"},          {"hdr", "on"}};
+    for (const auto& kv : expected) CHECK(get(s, kv[0]) == kv[1]);
+    CHECK(std::string(s.password) == "correct horse");
+    uint8_t again[kSettingsRecordSize];
+    settings_encode(s, again);
+    CHECK(memcmp(again, stored, sizeof stored) == 0);
+}
+
+TEST_CASE("every field of the table: its default is valid, reads back as typed, and is in the record") {
+    Settings s;
+    settings_defaults(s);
+    size_t record = 4 + 2 + 4;
+    for (size_t i = 0; i < kSettingCount; ++i) {
+        const SettingField& f = kSettingFields[i];
+        CAPTURE(f.key);
+        record += f.bytes;
+        std::string shown = get(s, f.key);
+        if (f.write_only) {
+            CHECK(shown == (f.default_text[0] ? "(set)" : "(empty)"));
+        } else {
+            CHECK(shown == f.default_text);
+            CHECK(set(s, f.key, shown.c_str()).ok());
+        }
+        SettingResult bad = set(s, f.key, "\x01");
+        CHECK(bad.code == kErrInvalidValue);
+        CHECK(std::string(bad.message).find(f.key) == 0);  // the message names the key
+    }
+    CHECK(record == kSettingsRecordSize);
+}

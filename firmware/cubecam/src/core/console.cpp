@@ -18,9 +18,8 @@ const char* const kHelp[] = {
     "  save                 store the settings in flash",
     "  factory-reset        store factory defaults",
     "  reboot               restart the node",
-    "keys: name ssid password(write-only) mode(station|ap) ip(dhcp|a.b.c.d/prefix,gateway)",
-    "      port jpeg_quality(1-100) fps(30|15|7.5) hdr(off|auto|on)",
 };
+const size_t kHelpWidth = 80;
 
 // Splits "word rest" at the first space.
 size_t word_len(const char* s, size_t n) {
@@ -66,6 +65,7 @@ void Console::execute(const char* line, size_t len) {
     size_t args_len = cmd < len ? len - cmd - 1 : 0;
     if (is(line, cmd, "help")) {
         for (size_t i = 0; i < sizeof kHelp / sizeof kHelp[0]; ++i) out_.line(kHelp[i]);
+        help_keys();
     } else if (is(line, cmd, "status")) {
         host_.report_status(out_);
     } else if (is(line, cmd, "get")) {
@@ -88,15 +88,35 @@ void Console::execute(const char* line, size_t len) {
     out_.line("OK");
 }
 
+// "keys: name ssid password(write-only) mode(station|ap) ...", wrapped.
+void Console::help_keys() {
+    char buf[kHelpWidth + 1];
+    TextBuf t(buf, sizeof buf);
+    t.add("keys:");
+    for (size_t i = 0; i < kSettingCount; ++i) {
+        char word[64];
+        TextBuf w(word, sizeof word);
+        w.add(' ').add(kSettingFields[i].key);
+        settings_hint(kSettingFields[i], w);
+        if (t.size() + w.size() > kHelpWidth) {
+            out_.line(t.c_str());
+            t.clear();
+            t.add("     ");
+        }
+        t.add(w.c_str());
+    }
+    out_.line(t.c_str());
+}
+
 void Console::cmd_get(const char* args, size_t len) {
     char buf[96];
     TextBuf t(buf, sizeof buf);
     const Settings& s = host_.edited_settings();
     if (len == 0) {
-        for (size_t i = 0; i < kSettingKeyCount; ++i) {
+        for (size_t i = 0; i < kSettingCount; ++i) {
             t.clear();
-            t.add(kSettingKeys[i]).add('=');
-            settings_get(s, kSettingKeys[i], t);
+            t.add(kSettingFields[i].key).add('=');
+            settings_get(s, kSettingFields[i].key, t);
             out_.line(t.c_str());
         }
         out_.line("OK");

@@ -48,6 +48,7 @@ public:
     void execute(const char* line, size_t len);
 
 private:
+    void help_keys();
     void cmd_get(const char* args, size_t len);
     void cmd_set(const char* args, size_t len);
     void error(uint8_t code, const char* message);

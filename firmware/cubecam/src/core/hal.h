@@ -131,6 +131,12 @@ protected:
     ~Clock() {}
 };
 
+// True once now_ms is at or past deadline_ms on the wrapping 32-bit
+// millisecond clock (deadlines less than 24 days ahead).
+inline bool deadline_reached(uint32_t now_ms, uint32_t deadline_ms) {
+    return static_cast<int32_t>(now_ms - deadline_ms) >= 0;
+}
+
 class Leds {
 public:
     virtual void show(uint8_t mask) = 0;  // bit n = LEDn on

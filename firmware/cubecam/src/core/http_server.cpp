@@ -11,7 +11,6 @@ namespace {
 const int kNoLease = -1;
 const int kEventsPerServe = 8;
 
-bool time_reached(uint32_t now, uint32_t deadline) { return static_cast<int32_t>(now - deadline) >= 0; }
 
 }  // namespace
 
@@ -79,7 +78,7 @@ ServeResult HttpServer::serve(const NodeStatus& status) {
         if (s.state == SlotState::Sending || s.state == SlotState::StreamSending) {
             r.progressed |= pump(s, now, r.link_lost);
             if (r.link_lost) return r;
-        } else if (s.state == SlotState::Reading && time_reached(now, s.deadline_ms)) {
+        } else if (s.state == SlotState::Reading && deadline_reached(now, s.deadline_ms)) {
             free_slot(s, true);
         }
     }
@@ -190,7 +189,7 @@ void HttpServer::respond(Slot& s, const NodeStatus& status, uint32_t now) {
 }
 
 void HttpServer::start_next_frame(Slot& s, uint32_t now) {
-    if (camera_.latest_seq() == s.last_seq || !time_reached(now, s.next_frame_ms)) return;
+    if (camera_.latest_seq() == s.last_seq || !deadline_reached(now, s.next_frame_ms)) return;
     Frame f;
     if (!camera_.acquire_latest(f)) return;
     if (f.seq <= s.last_seq) {
@@ -238,7 +237,7 @@ bool HttpServer::pump(Slot& s, uint32_t now, bool& link_lost) {
         return true;
     }
     if (w.accepted == 0) {
-        if (time_reached(now, s.deadline_ms)) free_slot(s, true);
+        if (deadline_reached(now, s.deadline_ms)) free_slot(s, true);
         return false;
     }
     s.deadline_ms = now + kStallTimeoutMs;

@@ -4,12 +4,6 @@
 
 namespace cubecam {
 
-namespace {
-
-bool reached(uint32_t now, uint32_t deadline) { return static_cast<int32_t>(now - deadline) >= 0; }
-
-}  // namespace
-
 LinkSupervisor::LinkSupervisor(WifiControl& wifi)
     : wifi_(wifi), trying_(false), state_(LinkState::Unconfigured), deadline_ms_(0), backoff_ms_(kFirstBackoffMs) {
     settings_defaults(settings_);
@@ -53,7 +47,7 @@ LinkEvent LinkSupervisor::tick(uint32_t now) {
     case LinkState::Online:
         return LinkEvent::None;
     case LinkState::Backoff:
-        if (reached(now, deadline_ms_)) state_ = LinkState::Resetting;
+        if (deadline_reached(now, deadline_ms_)) state_ = LinkState::Resetting;
         return LinkEvent::None;
     case LinkState::Resetting:
         if (wifi_.reset_module() && wifi_.start_join(settings())) {
@@ -71,7 +65,7 @@ LinkEvent LinkSupervisor::tick(uint32_t now) {
             backoff_ms_ = kFirstBackoffMs;
             return LinkEvent::Online;
         }
-        if (st == JoinStatus::Pending && !reached(now, deadline_ms_)) return LinkEvent::None;
+        if (st == JoinStatus::Pending && !deadline_reached(now, deadline_ms_)) return LinkEvent::None;
         break;
     }
     }

@@ -31,7 +31,6 @@ void emit(LineSink& out, TextBuf& t) {
     t.clear();
 }
 
-bool reached(uint32_t now, uint32_t deadline) { return static_cast<int32_t>(now - deadline) >= 0; }
 
 }  // namespace
 
@@ -85,10 +84,10 @@ void Node::boot() {
         log('W', "config", "no valid settings record; using factory defaults");
     }
     edited_ = running_;
-    for (size_t i = 0; i < kSettingKeyCount; ++i) {
+    for (size_t i = 0; i < kSettingCount; ++i) {
         t.clear();
-        t.add(kSettingKeys[i]).add('=');
-        settings_get(running_, kSettingKeys[i], t);
+        t.add(kSettingFields[i].key).add('=');
+        settings_get(running_, kSettingFields[i].key, t);
         log('I', "config", t.c_str());
     }
     uint32_t now = hw_.clock.millis();
@@ -124,7 +123,7 @@ bool Node::loop() {
         leds_ = leds;
         hw_.leds.show(leds);
     }
-    if (reboot_pending_ && reached(now, reboot_at_ms_)) {
+    if (reboot_pending_ && deadline_reached(now, reboot_at_ms_)) {
         reboot_pending_ = false;
         hw_.system.reboot();
     }
@@ -154,7 +153,7 @@ void Node::watch_camera(uint32_t now) {
         camera_restarts_ = 0;
         return;
     }
-    if (seq == 0 || camera_restarts_ >= kMaxCameraRestarts || !reached(now, camera_seen_ms_ + kCameraStallMs)) return;
+    if (seq == 0 || camera_restarts_ >= kMaxCameraRestarts || !deadline_reached(now, camera_seen_ms_ + kCameraStallMs)) return;
     CameraRestart r = hw_.camera.restart();
     if (r == CameraRestart::Busy) return;  // a client still sends the last frame
     camera_seen_ms_ = now;

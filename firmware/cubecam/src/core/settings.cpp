@@ -7,35 +7,142 @@ namespace cubecam {
 namespace {
 
 const SettingResult kOk = {0, ""};
-const SettingResult kUnknownKey = {kErrUnknownKey,
-                                   "unknown key; keys: name ssid password mode ip port jpeg_quality fps hdr"};
+const SettingResult kUnknownKey = {kErrUnknownKey, "unknown key; try help"};
+const char kIpSyntax[] = "dhcp|a.b.c.d/prefix,gateway";
 
 SettingResult invalid(const char* message) {
     SettingResult r = {kErrInvalidValue, message};
     return r;
 }
 
-bool is_name_char(char c) {
-    return (c >= 'a' && c <= 'z') || (c >= 'A' && c <= 'Z') || (c >= '0' && c <= '9') || c == '-' ||
-           c == '_';
+bool equals(const char* v, size_t n, const char* word) { return strlen(word) == n && memcmp(v, word, n) == 0; }
+
+bool in_charset(char c, Charset set) {
+    if (set == Charset::Wifi) return c >= 0x20 && c <= 0x7e && c != ',';
+    return (c >= 'a' && c <= 'z') || (c >= 'A' && c <= 'Z') || (c >= '0' && c <= '9') || c == '-' || c == '_';
 }
 
-// Printable ASCII without ',' (the GS2200M AT command separator).
-bool is_wifi_text(const char* v, size_t n) {
-    for (size_t i = 0; i < n; ++i) {
-        if (v[i] < 0x20 || v[i] > 0x7e || v[i] == ',') return false;
+const SettingField* find(const char* key) {
+    for (size_t i = 0; i < kSettingCount; ++i) {
+        if (strcmp(kSettingFields[i].key, key) == 0) return &kSettingFields[i];
     }
+    return 0;
+}
+
+// The member a field describes.
+uint8_t* member(Settings& s, const SettingField& f) { return reinterpret_cast<uint8_t*>(&s) + f.offset; }
+const uint8_t* member(const Settings& s, const SettingField& f) {
+    return reinterpret_cast<const uint8_t*>(&s) + f.offset;
+}
+
+// Choice and Number members are 1- or 2-byte unsigned integers (or enums of them).
+uint16_t read_int(const Settings& s, const SettingField& f) {
+    if (f.bytes == 1) return *member(s, f);
+    uint16_t v;
+    memcpy(&v, member(s, f), sizeof v);
+    return v;
+}
+
+void write_int(Settings& s, const SettingField& f, uint16_t v) {
+    if (f.bytes == 1) {
+        *member(s, f) = static_cast<uint8_t>(v);
+    } else {
+        memcpy(member(s, f), &v, sizeof v);
+    }
+}
+
+SettingResult check_text(const SettingField& f, const char* v, size_t n) {
+    bool length_ok = (n == 0 && f.empty_ok) || (n >= f.min && n <= f.max);
+    if (!length_ok) return invalid(f.rule);
+    for (size_t i = 0; i < n; ++i) {
+        if (!in_charset(v[i], f.charset)) return invalid(f.charset_rule);
+    }
+    return kOk;
+}
+
+bool choice_value(const SettingField& f, const char* v, size_t n, uint16_t& value) {
+    for (uint8_t i = 0; i < f.count; ++i) {
+        if (equals(v, n, f.words[i])) {
+            value = f.values[i];
+            return true;
+        }
+    }
+    return false;
+}
+
+const char* choice_word(const SettingField& f, uint16_t value) {
+    for (uint8_t i = 0; i < f.count; ++i) {
+        if (f.values[i] == value) return f.words[i];
+    }
+    return 0;
+}
+
+bool parse_ip_config(const char* v, size_t n, IpConfig& ip) {
+    IpConfig parsed;
+    memset(&parsed, 0, sizeof parsed);
+    if (equals(v, n, "dhcp")) {
+        parsed.dhcp = true;
+        ip = parsed;
+        return true;
+    }
+    const char* slash = static_cast<const char*>(memchr(v, '/', n));
+    const char* comma = static_cast<const char*>(memchr(v, ',', n));
+    if (!slash || !comma || comma < slash) return false;
+    uint32_t prefix = 0;
+    if (!parse_ipv4(v, static_cast<size_t>(slash - v), parsed.address) ||
+        !parse_uint(slash + 1, static_cast<size_t>(comma - slash - 1), 32, prefix) || prefix == 0 ||
+        !parse_ipv4(comma + 1, static_cast<size_t>(v + n - comma - 1), parsed.gateway)) {
+        return false;
+    }
+    parsed.prefix = static_cast<uint8_t>(prefix);
+    ip = parsed;
     return true;
 }
 
-void copy_text(char* dst, size_t cap, const char* src, size_t n) {
-    if (n >= cap) n = cap - 1;
-    memcpy(dst, src, n);
-    dst[n] = '\0';
+SettingResult set_field(Settings& s, const SettingField& f, const char* v, size_t n) {
+    switch (f.type) {
+    case FieldType::Text: {
+        SettingResult r = check_text(f, v, n);
+        if (!r.ok()) return r;
+        memset(member(s, f), 0, f.bytes);
+        memcpy(member(s, f), v, n);
+        return kOk;
+    }
+    case FieldType::Choice: {
+        uint16_t value = 0;
+        if (!choice_value(f, v, n, value)) return invalid(f.rule);
+        write_int(s, f, value);
+        return kOk;
+    }
+    case FieldType::Number: {
+        uint32_t value = 0;
+        if (!parse_uint(v, n, f.max, value) || value < f.min) return invalid(f.rule);
+        write_int(s, f, static_cast<uint16_t>(value));
+        return kOk;
+    }
+    case FieldType::Ip:
+        return parse_ip_config(v, n, s.ip) ? kOk : invalid(f.rule);
+    }
+    return invalid(f.rule);
 }
 
-bool equals(const char* v, size_t n, const char* word) {
-    return strlen(word) == n && memcmp(v, word, n) == 0;
+// A stored field is valid when the console would have accepted it.
+bool field_valid(const Settings& s, const SettingField& f) {
+    switch (f.type) {
+    case FieldType::Text: {
+        const char* text = reinterpret_cast<const char*>(member(s, f));
+        return check_text(f, text, strlen(text)).ok();
+    }
+    case FieldType::Choice:
+        return choice_word(f, read_int(s, f)) != 0;
+    case FieldType::Number: {
+        uint16_t v = read_int(s, f);
+        return v >= f.min && v <= f.max;
+    }
+    case FieldType::Ip:
+        return s.ip.dhcp || (s.ip.prefix >= 1 && s.ip.prefix <= 32);
+    }
+    return false;
 }
 
 class Writer {
@@ -54,6 +161,7 @@ public:
         memcpy(p_, v, n);
         p_ += n;
     }
+    // Text with its NUL padding, so the record holds nothing else.
     void text(const char* s, size_t field) {
         memset(p_, 0, field);
         memcpy(p_, s, strlen(s));
@@ -81,51 +189,52 @@ public:
     }
     // A text field must hold its terminating NUL inside the field.
     bool text(char* dst, size_t field) {
-        const void* nul = memchr(p_, 0, field);
-        if (!nul) return false;
-        memcpy(dst, p_, field);
-        p_ += field;
+        if (!memchr(p_, 0, field)) return false;
+        bytes(dst, field);
         return true;
     }
 private:
     const uint8_t* p_;
 };
 
-bool valid_name(const char* v, size_t n) {
-    if (n == 0 || n > kMaxName) return false;
-    for (size_t i = 0; i < n; ++i) {
-        if (!is_name_char(v[i])) return false;
+void encode_field(Writer& w, const Settings& s, const SettingField& f) {
+    switch (f.type) {
+    case FieldType::Text:
+        w.text(reinterpret_cast<const char*>(member(s, f)), f.bytes);
+        break;
+    case FieldType::Choice:
+    case FieldType::Number:
+        if (f.bytes == 1) {
+            w.u8(static_cast<uint8_t>(read_int(s, f)));
+        } else {
+            w.u16(read_int(s, f));
+        }
+        break;
+    case FieldType::Ip:
+        w.u8(s.ip.dhcp ? 1 : 0);
+        w.bytes(s.ip.address, 4);
+        w.u8(s.ip.prefix);
+        w.bytes(s.ip.gateway, 4);
+        break;
     }
-    return true;
 }
 
-bool valid_frame_rate(uint16_t tenths) {
-    return tenths == static_cast<uint16_t>(FrameRate::Fps30) ||
-           tenths == static_cast<uint16_t>(FrameRate::Fps15) ||
-           tenths == static_cast<uint16_t>(FrameRate::Fps7_5);
-}
-
-SettingResult parse_ip_config(const char* v, size_t n, IpConfig& ip) {
-    static const char kMsg[] = "ip must be dhcp or a.b.c.d/prefix,gateway (e.g. 192.168.1.20/24,192.168.1.1)";
-    if (equals(v, n, "dhcp")) {
-        memset(&ip, 0, sizeof ip);
-        ip.dhcp = true;
-        return kOk;
+bool decode_field(Reader& r, Settings& s, const SettingField& f) {
+    switch (f.type) {
+    case FieldType::Text:
+        return r.text(reinterpret_cast<char*>(member(s, f)), f.bytes);
+    case FieldType::Choice:
+    case FieldType::Number:
+        write_int(s, f, f.bytes == 1 ? r.u8() : r.u16());
+        return true;
+    case FieldType::Ip:
+        s.ip.dhcp = r.u8() != 0;
+        r.bytes(s.ip.address, 4);
+        s.ip.prefix = r.u8();
+        r.bytes(s.ip.gateway, 4);
+        return true;
     }
-    const char* slash = static_cast<const char*>(memchr(v, '/', n));
-    const char* comma = static_cast<const char*>(memchr(v, ',', n));
-    if (!slash || !comma || comma < slash) return invalid(kMsg);
-    IpConfig parsed;
-    memset(&parsed, 0, sizeof parsed);
-    uint32_t prefix = 0;
-    if (!parse_ipv4(v, static_cast<size_t>(slash - v), parsed.address) ||
-        !parse_uint(slash + 1, static_cast<size_t>(comma - slash - 1), 32, prefix) || prefix == 0 ||
-        !parse_ipv4(comma + 1, static_cast<size_t>(v + n - comma - 1), parsed.gateway)) {
-        return invalid(kMsg);
-    }
-    parsed.prefix = static_cast<uint8_t>(prefix);
-    ip = parsed;
-    return kOk;
+    return false;
 }
 
 }  // namespace
@@ -143,31 +252,17 @@ uint16_t frame_rate_tenths(FrameRate r) { return static_cast<uint16_t>(r); }
 
 void settings_defaults(Settings& s) {
     memset(&s, 0, sizeof s);
-    copy_text(s.name, sizeof s.name, "cubecam", 7);
-    s.mode = WifiMode::Station;
-    s.ip.dhcp = true;
-    s.port = 80;
-    s.jpeg_quality = 70;
-    s.fps = FrameRate::Fps15;
-    s.hdr = HdrMode::Auto;
+    for (size_t i = 0; i < kSettingCount; ++i) {
+        const SettingField& f = kSettingFields[i];
+        set_field(s, f, f.default_text, strlen(f.default_text));
+    }
 }
 
 void settings_encode(const Settings& s, uint8_t out[kSettingsRecordSize]) {
     Writer w(out);
     w.u32(kSettingsMagic);
     w.u16(kSettingsVersion);
-    w.text(s.name, sizeof s.name);
-    w.text(s.ssid, sizeof s.ssid);
-    w.text(s.password, sizeof s.password);
-    w.u8(static_cast<uint8_t>(s.mode));
-    w.u8(s.ip.dhcp ? 1 : 0);
-    w.bytes(s.ip.address, 4);
-    w.u8(s.ip.prefix);
-    w.bytes(s.ip.gateway, 4);
-    w.u16(s.port);
-    w.u8(s.jpeg_quality);
-    w.u16(static_cast<uint16_t>(s.fps));
-    w.u8(static_cast<uint8_t>(s.hdr));
+    for (size_t i = 0; i < kSettingCount; ++i) encode_field(w, s, kSettingFields[i]);
     w.u32(crc32(out, kSettingsRecordSize - 4));
 }
 
@@ -179,141 +274,71 @@ bool settings_decode(const uint8_t* rec, size_t len, Settings& s) {
     if (tail.u32() != crc32(rec, kSettingsRecordSize - 4)) return false;
     Settings d;
     memset(&d, 0, sizeof d);
-    if (!r.text(d.name, sizeof d.name) || !r.text(d.ssid, sizeof d.ssid) ||
-        !r.text(d.password, sizeof d.password)) {
-        return false;
+    for (size_t i = 0; i < kSettingCount; ++i) {
+        if (!decode_field(r, d, kSettingFields[i]) || !field_valid(d, kSettingFields[i])) return false;
     }
-    uint8_t mode = r.u8();
-    d.ip.dhcp = r.u8() != 0;
-    r.bytes(d.ip.address, 4);
-    d.ip.prefix = r.u8();
-    r.bytes(d.ip.gateway, 4);
-    d.port = r.u16();
-    d.jpeg_quality = r.u8();
-    uint16_t fps = r.u16();
-    uint8_t hdr = r.u8();
-    size_t pass_len = strlen(d.password);
-    if (mode > 1 || hdr > 2 || !valid_frame_rate(fps) || d.port == 0 || d.jpeg_quality == 0 ||
-        d.jpeg_quality > 100 || !valid_name(d.name, strlen(d.name)) ||
-        !validate_ssid(d.ssid, strlen(d.ssid)).ok() ||
-        (pass_len > 0 && !validate_passphrase(d.password, pass_len).ok()) ||
-        (!d.ip.dhcp && (d.ip.prefix == 0 || d.ip.prefix > 32))) {
-        return false;
-    }
-    d.mode = static_cast<WifiMode>(mode);
-    d.fps = static_cast<FrameRate>(fps);
-    d.hdr = static_cast<HdrMode>(hdr);
     s = d;
     return true;
 }
 
-const char* const kSettingKeys[] = {"name", "ssid",         "password", "mode", "ip",
-                                    "port", "jpeg_quality", "fps",      "hdr"};
-const size_t kSettingKeyCount = sizeof kSettingKeys / sizeof kSettingKeys[0];
-
-SettingResult validate_ssid(const char* v, size_t n) {
-    if (n > kMaxSsid) return invalid("ssid must be at most 32 bytes");
-    if (!is_wifi_text(v, n)) return invalid("ssid must be printable ASCII without commas");
-    return kOk;
-}
+SettingResult validate_ssid(const char* v, size_t n) { return check_text(*find("ssid"), v, n); }
 
 SettingResult validate_passphrase(const char* v, size_t n) {
-    if (n < kMinPassphrase || n > kMaxPassphrase) {
-        return invalid("password must be 8 to 63 characters (WPA2 passphrase)");
-    }
-    if (!is_wifi_text(v, n)) return invalid("password must be printable ASCII without commas");
-    return kOk;
+    const SettingField& f = *find("password");
+    return n == 0 ? invalid(f.rule) : check_text(f, v, n);
 }
 
 SettingResult settings_set(Settings& s, const char* key, const char* v, size_t n) {
-    if (strcmp(key, "name") == 0) {
-        if (!valid_name(v, n)) return invalid("name must be 1 to 32 of A-Z a-z 0-9 - _");
-        copy_text(s.name, sizeof s.name, v, n);
-    } else if (strcmp(key, "ssid") == 0) {
-        SettingResult r = validate_ssid(v, n);
-        if (!r.ok()) return r;
-        copy_text(s.ssid, sizeof s.ssid, v, n);
-    } else if (strcmp(key, "password") == 0) {
-        // Empty means an open network.
-        if (n > 0) {
-            SettingResult r = validate_passphrase(v, n);
-            if (!r.ok()) return r;
-        }
-        copy_text(s.password, sizeof s.password, v, n);
-    } else if (strcmp(key, "mode") == 0) {
-        if (equals(v, n, "station")) {
-            s.mode = WifiMode::Station;
-        } else if (equals(v, n, "ap")) {
-            s.mode = WifiMode::AccessPoint;
-        } else {
-            return invalid("mode must be station or ap");
-        }
-    } else if (strcmp(key, "ip") == 0) {
-        return parse_ip_config(v, n, s.ip);
-    } else if (strcmp(key, "port") == 0) {
-        uint32_t port = 0;
-        if (!parse_uint(v, n, 65535, port) || port == 0) return invalid("port must be 1 to 65535");
-        s.port = static_cast<uint16_t>(port);
-    } else if (strcmp(key, "jpeg_quality") == 0) {
-        uint32_t q = 0;
-        if (!parse_uint(v, n, 100, q) || q == 0) return invalid("jpeg_quality must be 1 to 100");
-        s.jpeg_quality = static_cast<uint8_t>(q);
-    } else if (strcmp(key, "fps") == 0) {
-        uint32_t tenths = 0;
-        if (!parse_tenths(v, n, tenths) || tenths > 0xFFFF ||
-            !valid_frame_rate(static_cast<uint16_t>(tenths))) {
-            return invalid("fps must be 30, 15 or 7.5 (the rates the ISX019 accepts)");
-        }
-        s.fps = static_cast<FrameRate>(tenths);
-    } else if (strcmp(key, "hdr") == 0) {
-        if (equals(v, n, "off")) {
-            s.hdr = HdrMode::Off;
-        } else if (equals(v, n, "auto")) {
-            s.hdr = HdrMode::Auto;
-        } else if (equals(v, n, "on")) {
-            s.hdr = HdrMode::On;
-        } else {
-            return invalid("hdr must be off, auto or on");
-        }
-    } else {
-        return kUnknownKey;
-    }
-    return kOk;
+    const SettingField* f = find(key);
+    return f ? set_field(s, *f, v, n) : kUnknownKey;
 }
 
 SettingResult settings_get(const Settings& s, const char* key, TextBuf& out) {
-    if (strcmp(key, "name") == 0) {
-        out.add(s.name);
-    } else if (strcmp(key, "ssid") == 0) {
-        out.add(s.ssid);
-    } else if (strcmp(key, "password") == 0) {
-        out.add(s.password[0] ? "(set)" : "(empty)");
-    } else if (strcmp(key, "mode") == 0) {
-        out.add(s.mode == WifiMode::Station ? "station" : "ap");
-    } else if (strcmp(key, "ip") == 0) {
+    const SettingField* f = find(key);
+    if (!f) return kUnknownKey;
+    switch (f->type) {
+    case FieldType::Text: {
+        const char* text = reinterpret_cast<const char*>(member(s, *f));
+        if (f->write_only) {
+            out.add(text[0] ? "(set)" : "(empty)");
+        } else {
+            out.add(text);
+        }
+        break;
+    }
+    case FieldType::Choice:
+        out.add(choice_word(*f, read_int(s, *f)));
+        break;
+    case FieldType::Number:
+        out.add_uint(read_int(s, *f));
+        break;
+    case FieldType::Ip:
         if (s.ip.dhcp) {
             out.add("dhcp");
         } else {
             out.add_ipv4(s.ip.address).add('/').add_uint(s.ip.prefix).add(',').add_ipv4(s.ip.gateway);
         }
-    } else if (strcmp(key, "port") == 0) {
-        out.add_uint(s.port);
-    } else if (strcmp(key, "jpeg_quality") == 0) {
-        out.add_uint(s.jpeg_quality);
-    } else if (strcmp(key, "fps") == 0) {
-        uint16_t t = frame_rate_tenths(s.fps);
-        if (t % 10 == 0) {
-            out.add_uint(t / 10);
-        } else {
-            out.add_fixed(t, 1);
-        }
-    } else if (strcmp(key, "hdr") == 0) {
-        static const char* const kHdr[] = {"off", "auto", "on"};
-        out.add(kHdr[static_cast<uint8_t>(s.hdr)]);
-    } else {
-        return kUnknownKey;
+        break;
     }
     return kOk;
+}
+
+void settings_hint(const SettingField& f, TextBuf& out) {
+    switch (f.type) {
+    case FieldType::Text:
+        if (f.write_only) out.add("(write-only)");
+        return;
+    case FieldType::Choice:
+        for (uint8_t i = 0; i < f.count; ++i) out.add(i ? '|' : '(').add(f.words[i]);
+        out.add(')');
+        return;
+    case FieldType::Number:
+        out.add('(').add_uint(f.min).add('-').add_uint(f.max).add(')');
+        return;
+    case FieldType::Ip:
+        out.add('(').add(kIpSyntax).add(')');
+        return;
+    }
 }
 
 }  // namespace cubecam

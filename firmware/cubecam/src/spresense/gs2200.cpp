@@ -3,6 +3,7 @@
 #include <SPI.h>
 #include <string.h>
 
+#include "../core/gs2200m.h"
 #include "../core/text.h"
 
 // Defined by the GS2200-WiFi library (GS2200Hal.cpp, GS2200AtCmd.cpp) but not
@@ -18,38 +19,10 @@ namespace spresense {
 
 namespace {
 
-char cid_char(uint8_t cid) { return "0123456789abcdef"[cid & 15]; }
-
-bool cid_value(char c, uint8_t& cid) {
-    if (c >= '0' && c <= '9') {
-        cid = static_cast<uint8_t>(c - '0');
-    } else if (c >= 'a' && c <= 'f') {
-        cid = static_cast<uint8_t>(c - 'a' + 10);
-    } else {
-        return false;
-    }
-    return true;
+// The newest line of the last module message.
+const char* last_line() {
+    return RespBuffer_Index > 0 ? reinterpret_cast<const char*>(RespBuffer[RespBuffer_Index - 1]) : "";
 }
-
-// The n-th space-separated word after `keyword` in the newest response line.
-bool response_word(const char* keyword, int n, char& first_char) {
-    if (RespBuffer_Index <= 0) return false;
-    const char* line = reinterpret_cast<const char*>(RespBuffer[RespBuffer_Index - 1]);
-    const char* p = strstr(line, keyword);
-    if (!p) return false;
-    p += strlen(keyword);
-    for (int word = 0; *p; ++word) {
-        while (*p == ' ') ++p;
-        if (word == n) {
-            first_char = *p;
-            return *p != '\0';
-        }
-        while (*p && *p != ' ') ++p;
-    }
-    return false;
-}
-
-bool reached(uint32_t now, uint32_t deadline) { return static_cast<int32_t>(now - deadline) >= 0; }
 
 }  // namespace
 
@@ -122,7 +95,7 @@ bool Gs2200Module::start_join(const Settings& s) {
 JoinStatus Gs2200Module::join_status(LinkInfo& info) {
     if (join_failed_) return JoinStatus::Failed;
     uint32_t now = clock_.millis();
-    if (!reached(now, next_status_ms_)) return JoinStatus::Pending;
+    if (!deadline_reached(now, next_status_ms_)) return JoinStatus::Pending;
     next_status_ms_ = now + kNetStatusPollMs;
     ATCMD_NetworkStatus st;
     if (AtCmd_NSTAT(&st) != ATCMD_RESP_OK || st.addr.ipv4[0] == 0) return JoinStatus::Pending;
@@ -135,37 +108,12 @@ size_t Gs2200Module::scan(ScanEntry* out, size_t max) {
     // A fresh board scans before any join: SPI5 is not set up until then, and
     // the SPI library ignores every call on a bus that has not begun.
     if (!spi_ready_ && !reset_module()) return 0;
-    // The library has no scan wrapper. Lines are "<bssid>, <ssid>, <channel>,
-    // <type>, <rssi>, <security>" (Telit AT guide; not checked on hardware).
+    // The library has no scan wrapper.
     char cmd[] = "AT+WS\r\n";
     if (AtCmd_SendCommand(cmd) != ATCMD_RESP_OK) return 0;
     size_t n = 0;
     for (int i = 0; i < RespBuffer_Index && n < max; ++i) {
-        const char* line = reinterpret_cast<const char*>(RespBuffer[i]);
-        const char* field[6];
-        int count = 0;
-        field[count++] = line;
-        for (const char* p = line; *p && count < 6; ++p) {
-            if (*p == ',') field[count++] = p + 1;
-        }
-        if (count < 6) continue;
-        const char* ssid = field[1];
-        while (*ssid == ' ') ++ssid;
-        size_t len = static_cast<size_t>(field[2] - 1 - ssid);
-        while (len > 0 && ssid[len - 1] == ' ') --len;
-        if (len == 0 || len > kMaxSsid) continue;
-        memset(out[n].ssid, 0, sizeof out[n].ssid);
-        memcpy(out[n].ssid, ssid, len);
-        const char* rssi = field[4];
-        while (*rssi == ' ') ++rssi;
-        int value = 0;
-        bool negative = *rssi == '-';
-        for (const char* d = rssi + (negative ? 1 : 0); *d >= '0' && *d <= '9' && value < 200; ++d) {
-            value = value * 10 + (*d - '0');
-        }
-        out[n].rssi = static_cast<int8_t>(negative ? -value : value);
-        out[n].secured = strstr(field[5], "NONE") == 0;
-        ++n;
+        if (gs2200m::parse_scan_line(reinterpret_cast<const char*>(RespBuffer[i]), out[n])) ++n;
     }
     return n;
 }
@@ -185,19 +133,18 @@ NetEvent Gs2200Module::poll(uint8_t* buf, uint16_t cap) {
     NetEvent ev = {NetEventKind::None, 0, 0};
     if (!Get_GPIO37Status()) return ev;  // the module has nothing for us
     WiFi_InitESCBuffer();
-    char c = 0;
     switch (AtCmd_RecvResponse()) {
     case ATCMD_RESP_BULK_DATA_RX:
-        if (ESCBufferCnt < 1 || !cid_value(static_cast<char>(ESCBuffer[0]), ev.cid)) break;
+        if (ESCBufferCnt < 1 || !gs2200m::parse_cid(static_cast<char>(ESCBuffer[0]), ev.cid)) break;
         ev.len = static_cast<uint16_t>(ESCBufferCnt - 1 < cap ? ESCBufferCnt - 1 : cap);
         memcpy(buf, ESCBuffer + 1, ev.len);
         ev.kind = NetEventKind::Data;
         break;
-    case ATCMD_RESP_TCP_SERVER_CONNECT:  // "CONNECT <server cid> <new cid> <ip> <port>"
-        if (response_word("CONNECT", 1, c) && cid_value(c, ev.cid)) ev.kind = NetEventKind::Accepted;
+    case ATCMD_RESP_TCP_SERVER_CONNECT:
+        if (gs2200m::event_cid(last_line(), "CONNECT", 1, ev.cid)) ev.kind = NetEventKind::Accepted;
         break;
-    case ATCMD_RESP_DISCONNECT:  // "DISCONNECT <cid>"
-        if (response_word("DISCONNECT", 0, c) && cid_value(c, ev.cid)) ev.kind = NetEventKind::Closed;
+    case ATCMD_RESP_DISCONNECT:
+        if (gs2200m::event_cid(last_line(), "DISCONNECT", 0, ev.cid)) ev.kind = NetEventKind::Closed;
         break;
     case ATCMD_RESP_DISASSOCIATION_EVENT:
         ev.kind = NetEventKind::LinkLost;
@@ -218,16 +165,13 @@ NetEvent Gs2200Module::poll(uint8_t* buf, uint16_t cap) {
 }
 
 WriteResult Gs2200Module::write(uint8_t cid, const uint8_t* data, uint16_t len) {
-    // <ESC> 'Z' <cid> <4 ASCII digits> <data>, in one SPI write.
+    // Header and data in one SPI write.
     WriteResult r = {WriteStatus::Ok, 0};
     if (len > kNetChunk) len = kNetChunk;
     use_fast_clock();
-    tx_[0] = ATCMD_ESC;
-    tx_[1] = 'Z';
-    tx_[2] = static_cast<uint8_t>(cid_char(cid));
-    for (int i = 0, div = 1000; i < 4; ++i, div /= 10) tx_[3 + i] = static_cast<uint8_t>('0' + (len / div) % 10);
-    memcpy(tx_ + 7, data, len);
-    if (WiFi_Write(tx_, static_cast<uint16_t>(len + 7)) != SPI_RESP_STATUS_OK) {
+    gs2200m::bulk_header(cid, len, tx_);
+    memcpy(tx_ + gs2200m::kBulkHeaderBytes, data, len);
+    if (WiFi_Write(tx_, static_cast<uint16_t>(gs2200m::kBulkHeaderBytes + len)) != SPI_RESP_STATUS_OK) {
         r.status = WriteStatus::LinkFailure;
         return r;
     }
@@ -235,7 +179,7 @@ WriteResult Gs2200Module::write(uint8_t cid, const uint8_t* data, uint16_t len) 
     return r;
 }
 
-void Gs2200Module::close(uint8_t cid) { AtCmd_NCLOSE(static_cast<uint8_t>(cid_char(cid))); }
+void Gs2200Module::close(uint8_t cid) { AtCmd_NCLOSE(static_cast<uint8_t>(gs2200m::cid_char(cid))); }
 
 }  // namespace spresense
 }  // namespace cubecam

@@ -9,6 +9,7 @@
 
 #include <TelitWiFi.h>
 
+#include "../core/gs2200m.h"
 #include "../core/hal.h"
 #include "../core/settings.h"
 
@@ -48,7 +49,7 @@ private:
     bool spi_ready_;
     bool join_failed_;
     uint32_t next_status_ms_;
-    uint8_t tx_[7 + kNetChunk];
+    uint8_t tx_[gs2200m::kBulkHeaderBytes + kNetChunk];
 };
 
 }  // namespace spresense
