@@ -29,7 +29,7 @@ from cubetrack.fuse.base import Fusion
 from cubetrack.fuse.corner_filter import FilterParams
 from cubetrack.fuse.fusion import FilterFusion, FusionMethod, FusionParams, LatestEstimateFusion
 from cubetrack.io.config import RobotConfig, TrackerConfig
-from cubetrack.source.clock import ClockSync
+from cubetrack.source.clock import ClockFitMethod, ClockSync
 
 log = logging.getLogger(__name__)
 
@@ -168,7 +168,7 @@ class Tracker:
             return []
         clock = self.clocks[camera]
         clock.add_round_trip(sample.host_send_s, sample.device_time_s, sample.host_recv_s)
-        if clock.method != "round-trip" or camera not in self.held:
+        if clock.method is not ClockFitMethod.ROUND_TRIP or camera not in self.held:
             return []
         held = self.held.pop(camera)
         return [pose for frame in held
@@ -181,7 +181,7 @@ class Tracker:
             return frame.host_time_s
         clock = self.clocks[frame.camera]
         clock.add_arrival(frame.device_time_s, frame.host_time_s)
-        if frame.camera in self.synced_cameras and clock.method != "round-trip":
+        if frame.camera in self.synced_cameras and clock.method is not ClockFitMethod.ROUND_TRIP:
             return None
         return clock.to_host(frame.device_time_s)
 

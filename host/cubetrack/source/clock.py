@@ -15,6 +15,7 @@ transfers), which is biased late by the minimum transfer time; ``method`` says w
 
 from __future__ import annotations
 
+import enum
 import logging
 from collections import deque
 from dataclasses import dataclass
@@ -43,6 +44,15 @@ class ClockSyncParams:
             raise ParamsError("max_round_trip_s must be positive")
 
 
+@enum.unique
+class ClockFitMethod(enum.Enum):
+    """What a clock fit rests on: ``/time`` round trips, frame arrival times, or nothing yet."""
+
+    ROUND_TRIP = "round-trip"
+    ARRIVAL = "arrival"
+    NONE = "none"
+
+
 @dataclass(frozen=True, slots=True)
 class ClockFit:
     """host_time_s = device_time_s + offset_s + drift * (device_time_s - device_ref_s)."""
@@ -50,7 +60,7 @@ class ClockFit:
     offset_s: float
     drift: float
     device_ref_s: float
-    method: str  # "round-trip" | "arrival" | "none"
+    method: ClockFitMethod
     uncertainty_s: float
 
     def to_host(self, device_time_s: float) -> float:
@@ -80,7 +90,7 @@ def fit_round_trips(host_send_s: np.ndarray, device_s: np.ndarray, host_recv_s: 
     order = np.argsort(rtt, kind="stable")[:keep]
     mid = (host_send_s[order] + host_recv_s[order]) / 2.0
     a, b, ref = fit_line(device_s[order], mid - device_s[order])
-    return ClockFit(a, b, ref, "round-trip", float(np.max(rtt[order]) / 2.0))
+    return ClockFit(a, b, ref, ClockFitMethod.ROUND_TRIP, float(np.max(rtt[order]) / 2.0))
 
 
 def fit_arrivals(device_s: np.ndarray, arrival_s: np.ndarray) -> ClockFit:
@@ -91,7 +101,7 @@ def fit_arrivals(device_s: np.ndarray, arrival_s: np.ndarray) -> ClockFit:
     a, b, ref = fit_line(device_s, delay)
     residual = delay - (a + b * (device_s - ref))
     a += float(np.min(residual))  # lower envelope: shift the line down to the fastest frame
-    return ClockFit(a, b, ref, "arrival", float(np.percentile(residual - np.min(residual), 50)))
+    return ClockFit(a, b, ref, ClockFitMethod.ARRIVAL, float(np.percentile(residual - np.min(residual), 50)))
 
 
 class ClockSync:
@@ -104,7 +114,7 @@ class ClockSync:
         self._fit: ClockFit | None = None
 
     @property
-    def method(self) -> str:
+    def method(self) -> ClockFitMethod:
         return self.fit().method
 
     def add_round_trip(self, host_send_s: float, device_time_s: float, host_recv_s: float) -> None:
@@ -126,7 +136,7 @@ class ClockSync:
                 d, a = (np.array(v) for v in zip(*self._arrivals))
                 self._fit = fit_arrivals(d, a)
             else:
-                self._fit = ClockFit(0.0, 0.0, 0.0, "none", float("inf"))
+                self._fit = ClockFit(0.0, 0.0, 0.0, ClockFitMethod.NONE, float("inf"))
         return self._fit
 
     def to_host(self, device_time_s: float) -> float:

@@ -1,7 +1,7 @@
 import numpy as np
 import pytest
 
-from cubetrack.source.clock import ClockSync, ClockSyncParams, fit_arrivals, fit_round_trips
+from cubetrack.source.clock import ClockFitMethod, ClockSync, ClockSyncParams, fit_arrivals, fit_round_trips
 
 BOOT = 1.7e9  # host Unix time at which the node's clock read 0
 DRIFT = 40e-6  # node clock runs 40 ppm slow
@@ -26,7 +26,7 @@ def test_round_trip_fit_recovers_offset_and_drift_under_jitter_and_spikes():
     rng = np.random.default_rng(3)
     send, dev, recv = round_trips(rng)
     fit = fit_round_trips(send, dev, recv)
-    assert fit.method == "round-trip"
+    assert fit.method is ClockFitMethod.ROUND_TRIP
     for d in (50.0, 100.0, 169.0):
         assert abs(fit.to_host(d) - device_to_host(d)) < 0.003  # within half the fastest round trips
     assert fit.drift == pytest.approx(DRIFT, abs=2e-5)
@@ -55,25 +55,25 @@ def test_arrival_fallback_is_late_by_the_minimum_latency_only():
     dev = 10.0 + np.arange(300) / 7.5
     latency = 0.04 + rng.exponential(0.02, dev.size)
     fit = fit_arrivals(dev, device_to_host(dev) + latency)
-    assert fit.method == "arrival"
+    assert fit.method is ClockFitMethod.ARRIVAL
     err = fit.to_host(30.0) - device_to_host(30.0)
     assert 0.0 <= err < 0.05  # biased late by about the minimum latency (40 ms), not by the mean
 
 
 def test_clock_sync_switches_from_arrivals_to_round_trips():
     sync = ClockSync(ClockSyncParams(min_samples=3))  # (default is 1)
-    assert sync.method == "none"
+    assert sync.method is ClockFitMethod.NONE
     sync.add_arrival(10.0, device_to_host(10.0) + 0.05)
-    assert sync.method == "arrival"
+    assert sync.method is ClockFitMethod.ARRIVAL
     assert sync.to_host(10.0) == pytest.approx(device_to_host(10.0) + 0.05)
     for d in (11.0, 12.0, 13.0):
         h = device_to_host(d)
         sync.add_round_trip(h - 0.002, d, h + 0.002)
-    assert sync.method == "round-trip"
+    assert sync.method is ClockFitMethod.ROUND_TRIP
     assert sync.to_host(14.0) == pytest.approx(device_to_host(14.0), abs=1e-4)
 
 
 def test_reversed_round_trip_is_ignored():
     sync = ClockSync()
     sync.add_round_trip(5.0, 1.0, 4.0)
-    assert sync.method == "none"
+    assert sync.method is ClockFitMethod.NONE
