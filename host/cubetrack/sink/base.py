@@ -88,6 +88,8 @@ class Sink(abc.ABC):
 
     #: whether :meth:`camera_view` should be called (views carry JPEGs: only sinks that show images)
     wants_views: bool = False
+    #: where a user finds this output (one line for the command line), "" for none
+    where: str = ""
 
     def close(self) -> None:
         """The session ends: flush and release everything."""

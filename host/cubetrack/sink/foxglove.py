@@ -140,14 +140,15 @@ class FoxgloveSink(Sink):
             except RuntimeError as exc:
                 raise OutputError(f"Foxglove server cannot listen on {host}:{port}: "
                                   f"{str(exc).removeprefix('FoxgloveError: ')}") from None
-            where = f"ws://{host}:{self.server.port}"
+            where = self.where = f"Foxglove WebSocket ws://{host}:{self.server.port}"
             if is_loopback_host(host):
-                log.info("Foxglove server on %s (loopback only)", where)
+                log.info("%s (loopback only)", where)
             else:
-                log.warning("Foxglove server on %s: reachable from other machines", where)
+                log.warning("%s: reachable from other machines", where)
         else:
             self.name, self.in_line = "mcap", True
             self.path = Path(mcap)
+            self.where = f"MCAP file {self.path}"
             try:
                 self.writer = foxglove.open_mcap(self.path, allow_overwrite=overwrite, context=self.context)
             except (OSError, RuntimeError) as exc:

@@ -131,6 +131,9 @@ class Ros2Sink(Sink):
         self.tf_static: _Publisher | None = None
         self.static_payload: bytes | None = None
         self.static_sent_s = 0.0
+        endpoints = endpoints or ros_endpoints()
+        self.where = (f"ROS 2 ({params.profile.value}, {params.distro.value}, domain {params.domain_id}) over Zenoh "
+                      f"via {', '.join(endpoints.connect) or str(endpoints.config_file)}")
 
     def _publisher(self, topic: str, ros_type: cdr.RosType, qos: rmw_zenoh.Qos) -> _Publisher:
         publisher = _Publisher(self, topic, ros_type, qos, entity_id=len(self.publishers) + 1)

@@ -193,6 +193,8 @@ class VrpnServer:
         self._wake()
 
     def close(self) -> None:
+        if self.closing:
+            return
         self.closing = True
         self._wake()
         self.thread.join(5)
@@ -428,6 +430,7 @@ class VrpnSink(Sink):
         self.server = VrpnServer(params)
         self.trackers: dict[str, str] = {}
         where = f"{params.host}:{self.server.port}"
+        self.where = f"VRPN trackers <robot>@{where}"
         if not is_loopback_host(params.host):
             log.warning("VRPN server listening on %s (UDP and TCP): reachable from other machines", where)
         else:

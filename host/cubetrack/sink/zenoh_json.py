@@ -79,7 +79,10 @@ class ZenohJsonSink(Sink):
         self.params = params
         self.prefix = _key_prefix(params.prefix)
         self.clock = clock
-        self.zenoh = open_session(endpoints or json_endpoints(), "Zenoh output")
+        endpoints = endpoints or json_endpoints()
+        self.zenoh = open_session(endpoints, "Zenoh output")
+        self.where = (f"Zenoh JSON under {self.prefix}/** (listening on {', '.join(endpoints.listen) or '-'}"
+                      f"{', connecting to ' + ', '.join(endpoints.connect) if endpoints.connect else ''})")
         self.robot_ids: dict[str, str] = {}
         self.camera_ids: dict[str, str] = {}
         self.status: dict[str, _RobotStatus] = {}

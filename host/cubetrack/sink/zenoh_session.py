@@ -72,6 +72,9 @@ def _config(endpoints: ZenohEndpoints):
         "listen/endpoints": list(endpoints.listen),
         "connect/endpoints": list(endpoints.connect),
         "scouting/multicast/enabled": False,
+        # open returns once the peers' subscriptions are known: the first samples are not lost
+        "open/return_conditions/connect_scouted": True,
+        "open/return_conditions/declares": True,
     }
     if endpoints.ros:
         settings.update({

@@ -27,9 +27,8 @@ def free_port(kind: int = socket.SOCK_STREAM) -> int:
     raise RuntimeError("no free port")
 
 
-@pytest.fixture
-def router():
-    """A Zenoh router on 127.0.0.1 (what ``ros2 run rmw_zenoh_cpp rmw_zenohd`` would be); yields its locator."""
+def open_router():
+    """A Zenoh router on 127.0.0.1 (what ``ros2 run rmw_zenoh_cpp rmw_zenohd`` would be): (session, locator)."""
     import zenoh
 
     locator = f"tcp/127.0.0.1:{free_port()}"
@@ -37,7 +36,13 @@ def router():
     config.insert_json5("mode", '"router"')
     config.insert_json5("listen/endpoints", f'["{locator}"]')
     config.insert_json5("scouting/multicast/enabled", "false")
-    session = zenoh.open(config)
+    return zenoh.open(config), locator
+
+
+@pytest.fixture
+def router():
+    """:func:`open_router`; yields its locator."""
+    session, locator = open_router()
     yield locator
     session.close()
 
@@ -52,6 +57,23 @@ def peer(connect: str):
     config.insert_json5("listen/endpoints", '["tcp/127.0.0.1:0"]')
     config.insert_json5("scouting/multicast/enabled", "false")
     return zenoh.open(config)
+
+
+def wait_connected(consumer, producer, timeout_s: float = 15.0) -> None:
+    """Until a sample put by session ``producer`` reaches session ``consumer`` (routes are set up:
+    a loaded machine can take seconds, and samples sent before that are lost)."""
+    import threading
+    import time
+
+    key = f"probe/{producer.zid()}"
+    arrived = threading.Event()
+    sub = consumer.declare_subscriber(key, lambda sample: arrived.set())
+    deadline = time.monotonic() + timeout_s
+    while not arrived.wait(0.1):
+        producer.put(key, b"")
+        if time.monotonic() > deadline:
+            raise TimeoutError("the two Zenoh sessions never reached each other")
+    sub.undeclare()
 
 
 def look_at(position, target) -> np.ndarray:

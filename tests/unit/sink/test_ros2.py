@@ -14,7 +14,7 @@ import time
 import numpy as np
 import pytest
 import xxhash
-from conftest import peer, tracked
+from conftest import peer, tracked, wait_connected
 from rosbags.typesys import Stores, get_typestore
 
 from cubetrack.sink.base import OutputError
@@ -39,13 +39,15 @@ class Listener:
         self.sub = self.session.declare_subscriber(keys, self.samples.put)
         self.live = self.session.liveliness().declare_subscriber("@ros2_lv/**", self.tokens.put, history=True)
 
-    def take(self, n: int, timeout_s: float = 5.0) -> list:
+    def take(self, n: int, timeout_s: float = 15.0) -> list:
         out, deadline = [], time.monotonic() + timeout_s
         while len(out) < n:
-            out.append(self.samples.get(timeout=max(0.01, deadline - time.monotonic())))
+            sample = self.samples.get(timeout=max(0.01, deadline - time.monotonic()))
+            if not str(sample.key_expr).startswith("probe/"):  # see wait_connected
+                out.append(sample)
         return out
 
-    def token_keys(self, n: int, timeout_s: float = 5.0) -> set[str]:
+    def token_keys(self, n: int, timeout_s: float = 15.0) -> set[str]:
         keys, deadline = set(), time.monotonic() + timeout_s
         while len(keys) < n:
             sample = self.tokens.get(timeout=max(0.01, deadline - time.monotonic()))
@@ -56,9 +58,13 @@ class Listener:
         self.session.close()
 
 
-def ros_sink(router, **params) -> Ros2Sink:
-    """The sink with rmw_zenoh's session settings, pointed at the test's router."""
-    return Ros2Sink(Ros2Params(**params), ros_endpoints(connect=(router,)))
+def ros_sink(router, listener: "Listener | None" = None, **params) -> Ros2Sink:
+    """The sink with rmw_zenoh's session settings, pointed at the test's router (and reaching
+    ``listener`` before it returns)."""
+    sink = Ros2Sink(Ros2Params(**params), ros_endpoints(connect=(router,)))
+    if listener is not None:
+        wait_connected(listener.session, sink.zenoh)
+    return sink
 
 
 def unpack(attachment: bytes) -> tuple[int, int, bytes]:
@@ -78,7 +84,7 @@ def by_key(samples) -> dict:
 
 def test_topics_keys_attachments_and_payloads_follow_rmw_zenoh(router, session_info):
     listener = Listener(router, "0/**")
-    sink = ros_sink(router)
+    sink = ros_sink(router, listener)
     try:
         sink.open(session_info)
         static = listener.take(1)[0]  # /tf_static goes out at once
@@ -131,7 +137,7 @@ def test_topics_keys_attachments_and_payloads_follow_rmw_zenoh(router, session_i
 
 def test_odometry_carries_the_covariance_and_the_twist_in_the_robot_frame(router, session_info):
     listener = Listener(router, "0/robot_1/odom/**")
-    sink = ros_sink(router)
+    sink = ros_sink(router, listener)
     try:
         sink.open(session_info)
         pose = tracked("robot 1!", 40)  # yaw 1 rad
@@ -217,7 +223,7 @@ def test_a_late_subscriber_still_gets_the_static_transforms(router, session_info
 
 def test_humble_keys_carry_no_type_hash(router, session_info):
     listener = Listener(router, "7/**")
-    sink = ros_sink(router, distro=rmw_zenoh.Distro.HUMBLE, domain_id=7, namespace="lab one")
+    sink = ros_sink(router, listener, distro=rmw_zenoh.Distro.HUMBLE, domain_id=7, namespace="lab one")
     try:
         sink.open(session_info)
         sink.pose(tracked("2nd", 0))
@@ -234,7 +240,7 @@ def test_humble_keys_carry_no_type_hash(router, session_info):
 
 def test_bridge_profile_publishes_bare_topic_keys_without_attachment(router, session_info):
     listener = Listener(router, "**")
-    sink = ros_sink(router, profile=Ros2Profile.BRIDGE)
+    sink = ros_sink(router, listener, profile=Ros2Profile.BRIDGE)
     try:
         sink.open(session_info)
         sink.pose(tracked("robot 1!", 0))

@@ -6,7 +6,7 @@ import queue
 import time
 
 import pytest
-from conftest import free_port, peer, tracked
+from conftest import free_port, peer, tracked, wait_connected
 
 from cubetrack.core.records import CameraHealth
 from cubetrack.sink.base import OutputError
@@ -20,7 +20,7 @@ def collect(session, keys: str) -> queue.Queue:
     return got
 
 
-def drain(got: queue.Queue, until, timeout_s: float = 5.0) -> dict:
+def drain(got: queue.Queue, until, timeout_s: float = 15.0) -> dict:
     """Samples by key until ``until(samples)`` holds."""
     samples: dict = {}
     deadline = time.monotonic() + timeout_s
@@ -46,7 +46,7 @@ def test_a_subscriber_receives_pose_velocity_status_health_and_the_session(sessi
     consumer = peer(locator)  # connects to the sink's own listener: no router needed
     try:
         got = collect(consumer, "lab/cubetrack/**")
-        time.sleep(0.3)
+        wait_connected(consumer, sink.zenoh)
         sink.open(session_info)
         for i in range(3):
             sink.pose(tracked("robot 1!", i))
@@ -88,7 +88,7 @@ def test_when_the_port_is_taken_by_a_router_the_output_connects_to_it(router, se
     sink = ZenohJsonSink(endpoints=ZenohEndpoints(listen=(router,), fallback_connect=True))
     try:
         got = collect(consumer, "cubetrack/robots/**")
-        time.sleep(0.3)
+        wait_connected(consumer, sink.zenoh)
         sink.open(session_info)
         sink.pose(tracked("2nd", 1))
         samples = drain(got, lambda s: "cubetrack/robots/robot_2nd/pose" in s)

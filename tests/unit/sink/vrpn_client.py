@@ -83,6 +83,7 @@ class TrackerClient:
         self.sock = connect(port, mode)
         self.sock.sendall(cookie)  # each side sends its cookie at once
         self.server_cookie = recv_exact(self.sock, 24)
+        self.sock.settimeout(None)  # a quiet server (no robot seen yet) is not a broken one
         self.senders: dict[int, str] = {}
         self.types: dict[int, str] = {}
         self.reports: list[tuple[str, str, float, bytes]] = []

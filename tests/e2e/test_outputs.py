@@ -1,0 +1,148 @@
+"""``cubetrack demo`` with every output at once, each watched by its consumer while it runs:
+a VRPN client, a ROS 2 subscriber (through a Zenoh router standing in for rmw_zenohd), the
+Foxglove WebSocket client, a Zenoh JSON subscriber; then the MCAP file it wrote, and ``cubetrack
+track`` replaying the demo's recording with an ``[[outputs]]`` table in the config."""
+
+import queue
+import sys
+import threading
+import time
+from pathlib import Path
+
+import pytest
+
+REPO = Path(__file__).resolve().parents[2]
+sys.path.insert(0, str(REPO / "tests" / "unit" / "sink"))  # the consumers written for the unit tests
+
+from conftest import free_port, open_router, peer  # noqa: E402
+from foxglove_client import LiveClient, read_mcap  # noqa: E402
+from vrpn_client import TrackerClient  # noqa: E402
+
+from cubetrack.cli.main import main  # noqa: E402
+
+pytestmark = pytest.mark.slow
+POSE_KEY = "0/robot/pose/geometry_msgs::msg::dds_::PoseStamped_/RIHS01_10f3786d7d40fd2b54367835614bff85d4ad3b5dab62bf8bca0cc232d73b4cd8"
+
+
+def retry(make, timeout_s=120.0):
+    deadline = time.monotonic() + timeout_s
+    while True:
+        try:
+            return make()
+        except (OSError, TimeoutError, ConnectionError):
+            if time.monotonic() > deadline:
+                raise
+            time.sleep(0.3)
+
+
+class Consumers:
+    """Every consumer, connected while the demo runs (the servers start before the simulation)."""
+
+    def __init__(self, router: str, vrpn_port: int, foxglove_port: int):
+        self.vrpn = None
+        self.foxglove = None
+        self.errors: list[str] = []
+        self.ros = peer(router)
+        self.ros_samples: queue.Queue = queue.Queue()
+        self.ros.declare_subscriber("0/**", self.ros_samples.put)
+        self.json_samples: queue.Queue = queue.Queue()
+        self.ros.declare_subscriber("cubetrack/**", self.json_samples.put)
+        self.stop = threading.Event()
+        self.threads = [threading.Thread(target=self._vrpn, args=(vrpn_port,), daemon=True),
+                        threading.Thread(target=self._foxglove, args=(foxglove_port,), daemon=True)]
+        for t in self.threads:
+            t.start()
+
+    def _vrpn(self, port):
+        try:
+            self.vrpn = retry(lambda: TrackerClient(port, "robot"))
+        except Exception as exc:
+            self.errors.append(f"vrpn: {exc!r}")
+
+    def _foxglove(self, port):
+        try:
+            client = retry(lambda: LiveClient(port))
+            client.poll(lambda c: self.stop.is_set() or "/robots/robot/pose" in c.messages, timeout_s=240)
+            self.foxglove = client
+        except Exception as exc:
+            self.errors.append(f"foxglove: {exc!r}")
+
+    def close(self):
+        self.stop.set()
+        for t in self.threads:
+            t.join(10)
+        self.ros.close()
+
+
+@pytest.fixture(scope="module")
+def demo(tmp_path_factory):
+    out = tmp_path_factory.mktemp("outputs")
+    router, router_locator = open_router()
+    vrpn_port, foxglove_port = free_port(), free_port()
+    consumers = Consumers(router_locator, vrpn_port, foxglove_port)
+    try:
+        code = main(["demo", "--out", str(out / "demo"), "--duration", "3", "--vrpn", f"127.0.0.1:{vrpn_port}",
+                     "--foxglove", f"127.0.0.1:{foxglove_port}", "--mcap", str(out / "demo.mcap"),
+                     "--ros2", "--zenoh", "--zenoh-connect", router_locator])
+        time.sleep(0.5)
+    finally:
+        consumers.close()
+    yield code, out, consumers, router_locator
+    router.close()
+
+
+def drain(q: queue.Queue) -> list:
+    items = []
+    while not q.empty():
+        items.append(q.get())
+    return items
+
+
+def test_the_demo_serves_vrpn_ros2_zenoh_foxglove_and_writes_mcap(demo):
+    from rosbags.typesys import Stores, get_typestore
+
+    code, out, consumers, _ = demo
+    assert code == 0 and not consumers.errors
+    poses = consumers.vrpn.poses("robot")
+    assert len(poses) > 20 and all(sensor == 0 for _, sensor, _, _ in poses)
+    ros = [s for s in drain(consumers.ros_samples) if str(s.key_expr) == POSE_KEY]
+    assert len(ros) > 20 and all(len(s.attachment.to_bytes()) == 33 for s in ros)
+    msg = get_typestore(Stores.ROS2_JAZZY).deserialize_cdr(ros[-1].payload.to_bytes(), "geometry_msgs/msg/PoseStamped")
+    assert msg.header.frame_id == "world" and abs(msg.pose.orientation.w) <= 1.0
+    json_keys = {str(s.key_expr) for s in drain(consumers.json_samples)}
+    assert {"cubetrack/robots/robot/pose", "cubetrack/robots/robot/status", "cubetrack/session"} <= json_keys
+    assert consumers.foxglove is not None and consumers.foxglove.messages["/robots/robot/pose"]
+    channels, messages = read_mcap(out / "demo.mcap")
+    assert {"/robots/robot/pose", "/tf", "/scene", "/cameras/cam1/calibration"} <= set(channels)
+    assert len(messages["/robots/robot/pose"]) == len(poses)  # the file and the VRPN client saw every pose
+    images = messages["/cameras/cam1/image"]
+    assert len(images) > 10 and all(m.data[:2] == b"\xff\xd8" and m.format == "jpeg" for _, m in images)
+    notes = [m for _, m in messages["/cameras/cam1/annotations"] if m.points]
+    assert notes and all(len(m.points) % 5 == 0 for m in notes)  # the predicted cube's five markers
+
+
+def test_track_takes_outputs_from_the_config(demo, capsys):
+    code, out, _, _ = demo
+    demo_dir = out / "demo"
+    config = demo_dir / "rec" / "with_outputs.toml"  # beside the original: its relative paths still hold
+    config.write_text((demo_dir / "rec" / "config.toml").read_text() + '\n[[outputs]]\ntype = "mcap"\npath = "replay.mcap"\n')
+    assert main(["track", "--config", str(config), "--extrinsics", str(demo_dir / "extrinsics.toml"),
+                 "--recording", str(demo_dir / "rec"), "--out", str(out / "replay")]) == 0
+    assert "output: MCAP file" in capsys.readouterr().err
+    channels, messages = read_mcap(demo_dir / "rec" / "replay.mcap")  # relative to the config's folder
+    tum = (out / "replay" / "robot.tum").read_text().splitlines()
+    assert len(messages["/robots/robot/pose"]) == len(tum) > 20
+
+
+def test_bad_outputs_are_one_line_errors(demo, tmp_path, capsys):
+    _, out, _, _ = demo
+    demo_dir = out / "demo"
+    args = ["track", "--config", str(demo_dir / "rec" / "config.toml"), "--extrinsics",
+            str(demo_dir / "extrinsics.toml"), "--recording", str(demo_dir / "rec"), "--out", str(tmp_path / "x")]
+    assert main(args + ["--vrpn", "127.0.0.1:99999"]) == 1
+    assert "port 99999 out of range" in capsys.readouterr().err
+    config = demo_dir / "rec" / "bad_outputs.toml"
+    config.write_text((demo_dir / "rec" / "config.toml").read_text() + '\n[[outputs]]\ntype = "carrier-pigeon"\n')
+    assert main(["track", "--config", str(config)] + args[3:]) == 1
+    err = capsys.readouterr().err
+    assert "outputs[0]: type must be one of zenoh, ros2, vrpn, foxglove, mcap" in err and err.count("\n") == 1
