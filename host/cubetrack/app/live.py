@@ -14,7 +14,9 @@ result says ``interrupted``. A status callback gets a :class:`LiveStatus` every 
 
 from __future__ import annotations
 
+import dataclasses
 import logging
+import math
 import shutil
 import statistics
 import threading
@@ -28,7 +30,9 @@ from cubetrack.app.outputs import open_outputs
 from cubetrack.app.tracker import StageParams, Tracker, TrackStats
 from cubetrack.core.cameras import CameraExtrinsics, CameraIntrinsics, ClockSample
 from cubetrack.core.errors import ConfigError
-from cubetrack.core.records import Frame, TrackedPose
+from cubetrack.core.geometry import quat_xyzw_from_R
+from cubetrack.core.records import CameraView, Frame, TrackedPose
+from cubetrack.fuse.base import Fusion
 from cubetrack.io.camera_info import read_camera_info
 from cubetrack.io.config import TrackerConfig
 from cubetrack.io.recording import CameraEntry, RecordingWriter
@@ -73,18 +77,20 @@ class LiveStatus:
     elapsed_s: float
     frames_per_s: dict[str, float]
     poses_per_s: dict[str, float]
-    latency_s: float | None  # median pose latency over the interval (capture -> pose produced)
+    latency_s: float | None  # median pose latency over the interval (capture -> pose output)
     cameras: dict[str, CameraStats]
     queued: int
+    arrival_latency_s: float | None = None  # median over the interval of frame arrival -> pose output
 
     def line(self) -> str:
-        """One status line, e.g. ``12s robot 7.4 poses/s | cam1 7.5 fps ... | latency 41 ms | ...``."""
+        """One status line, e.g. ``12s robot 7.4 poses/s | cam1 7.5 fps ... | latency 4/51 ms | ...``
+        (arrival -> pose / capture -> pose, medians)."""
         parts = [f"{self.elapsed_s:5.0f}s"]
         if self.poses_per_s:
             parts.append(" ".join(f"{r} {v:.1f} poses/s" for r, v in self.poses_per_s.items()))
         parts.append(" ".join(f"{c} {v:.1f} fps" for c, v in self.frames_per_s.items()))
         if self.poses_per_s:
-            parts.append("latency " + ("-" if self.latency_s is None else f"{self.latency_s * 1000:.0f} ms"))
+            parts.append(f"latency {_ms(self.arrival_latency_s)}/{_ms(self.latency_s)} ms")
         bad = sum(s.bad for s in self.cameras.values())
         reconnects = sum(s.reconnects for s in self.cameras.values())
         dropped = sum(s.dropped for s in self.cameras.values())
@@ -95,6 +101,10 @@ class LiveStatus:
             tail += " down: " + ",".join(down)
         parts.append(tail)
         return " | ".join(parts)
+
+
+def _ms(seconds: float | None) -> str:
+    return "-" if seconds is None else f"{seconds * 1000:.0f}"
 
 
 class _Rates:
@@ -108,10 +118,14 @@ class _Rates:
         self.frames = {c: 0 for c in live.urls}
         self.poses = {r: 0 for r in robots}
         self.latencies: list[float] = []
+        self.arrival_latencies: list[float] = []
 
     def add_poses(self, poses: list[TrackedPose]) -> None:
         for pose in poses:
-            self.latencies.append(pose.latency_s)
+            if not pose.predicted:
+                self.latencies.append(pose.latency_s)
+            if pose.arrival_latency_s is not None:
+                self.arrival_latencies.append(pose.arrival_latency_s)
 
     def snapshot(self, poses_total: dict[str, int]) -> LiveStatus:
         now = time.monotonic()
@@ -119,12 +133,17 @@ class _Rates:
         cams = self.live.stats()
         fps = {c: (s.frames - self.frames[c]) / dt for c, s in cams.items()}
         pps = {r: (poses_total.get(r, 0) - self.poses[r]) / dt for r in self.robots}
-        latency = statistics.median(self.latencies) if self.latencies else None
+        status = LiveStatus(now - self.start, fps, pps, _median(self.latencies), cams, self.live.pending(),
+                            _median(self.arrival_latencies))
         self.frames = {c: s.frames for c, s in cams.items()}
         self.poses = {r: poses_total.get(r, 0) for r in self.robots}
-        self.latencies = []
+        self.latencies, self.arrival_latencies = [], []
         self.last = now
-        return LiveStatus(now - self.start, fps, pps, latency, cams, self.live.pending())
+        return status
+
+
+def _median(values: list[float]) -> float | None:
+    return statistics.median(values) if values else None
 
 
 class _Recorder:
@@ -157,7 +176,8 @@ class _Recorder:
 @dataclass(frozen=True, slots=True)
 class LiveResult:
     """What a live session produced. ``outputs``: robot -> (TUM, JSONL) (empty for a recording
-    session); ``recording``: the recording folder written, if any; ``interrupted``: Ctrl-C ended it."""
+    session); ``recording``: the recording folder written, if any; ``interrupted``: Ctrl-C ended it;
+    latencies are medians over the session's fused poses."""
 
     stats: TrackStats | None
     cameras: dict[str, CameraStats]
@@ -165,13 +185,26 @@ class LiveResult:
     recording: Path | None
     duration_s: float
     interrupted: bool
-    latency_s: float | None  # median over the whole session
+    latency_s: float | None  # capture -> pose output
+    arrival_latency_s: float | None = None  # frame arrival -> pose output
 
 
 def _session_over(started: float, duration_s: float | None, stop: threading.Event | None) -> bool:
     if stop is not None and stop.is_set():
         return True
     return duration_s is not None and time.monotonic() - started >= duration_s
+
+
+def predicted_poses(fusion: Fusion, robots: Sequence[str], now_s: float) -> list[TrackedPose]:
+    """Each tracked robot's pose predicted to ``now_s`` by the fusion's motion model (none for a
+    robot that is not tracked or no longer seen; none from fusions without a motion model)."""
+    out = []
+    for robot in robots:
+        T = fusion.predicted_pose(robot, now_s)
+        if T is not None:
+            out.append(TrackedPose(robot, now_s, T[:3, 3].copy(), quat_xyzw_from_R(T[:3, :3]), (), (), 0.0,
+                                   predicted=True))
+    return out
 
 
 def track_live(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | None, out_dir: str | Path,
@@ -184,6 +217,8 @@ def track_live(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
     and ``.jsonl`` (flushed per pose). ``record_to``: also record the session there (everything that
     arrived, including frames the tracker had to drop). Frames are stamped with their capture
     time through each camera's ``/time`` round trips, exactly as in a replay of the recording.
+    Each pose's latencies are taken when it is handed to the outputs. With ``[fusion]
+    output_rate_hz``, each tracked robot's pose predicted to now is output at that rate as well.
     ``sinks``: other outputs, fed the same poses."""
     params = params or StageParams.from_config(config)
     source = source or source_params(config)
@@ -193,20 +228,35 @@ def track_live(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
     recorder = _Recorder(record_to, config, urls) if record_to is not None else None
     outputs, files = open_outputs(config, intrinsics, extrinsics, out_dir, sinks)
     latencies: list[float] = []
+    arrival_latencies: list[float] = []
     interrupted = False
     started = time.monotonic()
+    robots = [r.name for r in config.robots]
+    tick_s = 1.0 / params.fusion.output_rate_hz if params.fusion.output_rate_hz > 0 else None
 
-    def emit(poses: list[TrackedPose]) -> None:
+    def emit(poses: list[TrackedPose], now_s: float) -> None:
+        """Output poses the tracker made for ``now_s``, their latencies moved to this moment."""
+        delay_s = clock() - now_s
+        poses = [pose if pose.predicted else dataclasses.replace(
+            pose, latency_s=pose.latency_s + delay_s,
+            arrival_latency_s=None if pose.arrival_latency_s is None else pose.arrival_latency_s + delay_s)
+            for pose in poses]
         for pose in poses:
             outputs.pose(pose)
-            latencies.append(pose.latency_s)
+            if not pose.predicted:
+                latencies.append(pose.latency_s)
+            if pose.arrival_latency_s is not None:
+                arrival_latencies.append(pose.arrival_latency_s)
         rates.add_poses(poses)
 
     def handle(event) -> None:
         if isinstance(event, ClockReading):
-            emit(tracker.add_clock_sample(event.camera, event.sample))
+            emit(tracker.add_clock_sample(event.camera, event.sample), event.sample.host_recv_s)
         else:
-            emit(tracker.process(event, now_s=clock()))
+            now_s = clock()
+            emit(tracker.process(event, now_s=now_s), now_s)
+            if outputs.wants_views:  # the frame for outputs that show images (no detections handed out yet)
+                outputs.camera_view(CameraView(event.camera, event.seq, event.host_time_s, event.jpeg, ()))
 
     live = LiveCameras(urls, source, on_frame=recorder.frame if recorder else None,
                        on_clock=recorder.clock if recorder else None, clock=clock)
@@ -215,11 +265,15 @@ def track_live(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
         live.start()
         log.info("live tracking %d camera(s): %s", len(urls), ", ".join(f"{n} {u}" for n, u in urls.items()))
         next_status = started + status_every_s
+        next_tick = clock()
         try:
             while not _session_over(started, duration_s, stop):
-                event = live.get(0.1)
+                event = live.get(0.1 if tick_s is None else min(0.1, max(0.0, next_tick - clock())))
                 if event is not None:
                     handle(event)
+                if tick_s is not None and (now_s := clock()) >= next_tick:
+                    next_tick = (math.floor(now_s / tick_s) + 1) * tick_s  # the next tick of the rate's grid
+                    emit(predicted_poses(tracker.fusion, robots, now_s), now_s)
                 if status is not None and time.monotonic() >= next_status:
                     next_status += status_every_s
                     status(rates.snapshot(dict(tracker.stats.poses)))
@@ -230,7 +284,8 @@ def track_live(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
             interrupted = True
             log.info("interrupted: finishing with what has arrived")
         live.stop()
-        emit(tracker.finish())
+        now_s = clock()
+        emit(tracker.finish(now_s), now_s)
     finally:
         live.stop()
         outputs.close()
@@ -238,7 +293,7 @@ def track_live(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
             recorder.close()
     return LiveResult(tracker.stats, live.stats(), files.outputs,
                       recorder.path if recorder else None, time.monotonic() - started, interrupted,
-                      statistics.median(latencies) if latencies else None)
+                      _median(latencies), _median(arrival_latencies))
 
 
 def record_live(config: TrackerConfig, out: str | Path, source: SourceParams | None = None, *,

@@ -101,7 +101,10 @@ class TrackedPose:
 
     ``time_s`` is the estimated capture time on the host clock (Unix seconds);
     ``quaternion_xyzw`` is scalar-last. ``latency_s`` is how long after ``time_s`` the pose was
-    produced (for live tracking; offline replay reports the replayed arrival delay).
+    output (capture -> output; offline replay reports the replayed arrival delay) and
+    ``arrival_latency_s`` how long after its newest frame had arrived (arrival -> output; None
+    where no frame produced it). ``predicted``: a pose the motion model predicted to ``time_s``
+    (the host time it was output, for control loops), not a fused measurement.
     ``velocity_m_s`` and ``angular_velocity_rad_s`` are world-frame rates and ``covariance`` the
     (6, 6) covariance of the world-frame pose increment ``[δp (m), δθ (rad)]``, where the fusion
     estimates them (the filter does), else None.
@@ -118,6 +121,8 @@ class TrackedPose:
     velocity_m_s: np.ndarray | None = None
     angular_velocity_rad_s: np.ndarray | None = None
     covariance: np.ndarray | None = None
+    arrival_latency_s: float | None = None
+    predicted: bool = False
 
 
 @dataclass(frozen=True, slots=True, eq=False)

@@ -1,8 +1,9 @@
 """A constant-velocity SE(3) filter whose measurements are cube corners in camera images.
 
-State (world frame): ``position_m``, ``velocity_m_s``, the orientation ``R_world_cube`` of the
-cube frame and ``angular_velocity_rad_s`` (rad/s). The covariance ``P`` (12x12) is over the error state
-``[δp, δv, δθ, δω]`` with ``R = exp(δθ) R̂`` (world-frame rotation error).
+State (world frame): ``position_m``, the orientation ``R_world_cube`` of the cube frame,
+``velocity_m_s`` and ``angular_velocity_rad_s`` (rad/s). The covariance ``P`` (12x12) is over the
+error state ``[δp, δθ, δv, δω]`` with ``R = exp(δθ) R̂`` (world-frame rotation error): the pose
+block first, the order of :func:`cubetrack.fuse.multi_view_fit.solve_joint`.
 
 Prediction: white-noise acceleration and angular acceleration (``accel_noise``, ``angular_accel_noise``,
 spectral densities). Update: an iterated EKF (Gauss-Newton on the prior plus the reprojection
@@ -14,7 +15,9 @@ and the state is left unchanged.
 
 from __future__ import annotations
 
+import copy
 import dataclasses
+import functools
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -31,8 +34,9 @@ from cubetrack.estimate.reprojection import (
     reprojection_residuals_px,
 )
 
-_POSITION, _VELOCITY, _ROTATION, _ANGULAR_VELOCITY = slice(0, 3), slice(3, 6), slice(6, 9), slice(9, 12)
-_POSE = np.r_[0:3, 6:9]  # error-state indices of [δp, δθ]
+_POSE, _VELOCITY, _ANGULAR_VELOCITY = slice(0, 6), slice(6, 9), slice(9, 12)  # error-state blocks
+_RATES = np.zeros((12, 12))  # d(state)/dt under constant velocity: δp' = δv, δθ' = δω
+_RATES[0:6, 6:12] = np.eye(6)
 
 
 @dataclass(frozen=True, slots=True)
@@ -67,8 +71,23 @@ class UpdateResult:
     points: int
 
 
+@functools.lru_cache(maxsize=8)
+def _motion_noise(params: FilterParams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(A, B, C)`` with the process noise over a step of ``dt`` = ``A |dt|³/3 + B dt²/2 + C |dt|``
+    (white acceleration and angular acceleration, per axis)."""
+    q = np.repeat([params.accel_noise**2, params.angular_accel_noise**2], 3)  # p, θ axes
+    A, B, C = np.zeros((12, 12)), np.zeros((12, 12)), np.zeros((12, 12))
+    A[0:6, 0:6] = np.diag(q)
+    B[0:6, 6:12] = B[6:12, 0:6] = np.diag(q)
+    C[6:12, 6:12] = np.diag(q)
+    for m in (A, B, C):
+        m.setflags(write=False)
+    return A, B, C
+
+
 class PoseFilter:
-    """One robot's filter. Create with :meth:`start`; then ``predict``/``update`` in time order."""
+    """One robot's filter: ``predict`` / ``update`` in time order. Every step replaces the state's
+    arrays rather than writing into them, so a :meth:`copy` is an independent snapshot."""
 
     def __init__(self, params: FilterParams, time_s: float, T_world_cube: np.ndarray, covariance: np.ndarray,
                  velocity_m_s: np.ndarray | None = None, angular_velocity_rad_s: np.ndarray | None = None):
@@ -83,10 +102,9 @@ class PoseFilter:
                                        else np.asarray(angular_velocity_rad_s, dtype=float).copy())
         P = np.zeros((12, 12))
         if covariance.shape == (12, 12):
-            order = np.r_[0:3, 6:9, 3:6, 9:12]  # solver order [p, θ, v, ω] -> filter order [p, v, θ, ω]
-            P[np.ix_(order, order)] = covariance
+            P[:] = covariance
         else:
-            P[np.ix_(_POSE, _POSE)] = covariance
+            P[_POSE, _POSE] = covariance
             P[_VELOCITY, _VELOCITY] = np.eye(3) * params.init_velocity_sigma**2
             P[_ANGULAR_VELOCITY, _ANGULAR_VELOCITY] = np.eye(3) * params.init_angular_velocity_sigma**2
         self.P = (P + P.T) / 2.0
@@ -94,6 +112,15 @@ class PoseFilter:
     @property
     def T_world_cube(self) -> np.ndarray:
         return make_T(self.R_world_cube, self.position_m)
+
+    @property
+    def pose_covariance(self) -> np.ndarray:
+        """(6, 6) covariance of the world-frame pose increment ``[δp (m), δθ (rad)]``."""
+        return self.P[_POSE, _POSE].copy()
+
+    def copy(self) -> PoseFilter:
+        """An independent snapshot (cheap: the arrays are shared until a step replaces them)."""
+        return copy.copy(self)
 
     def predicted(self, time_s: float) -> np.ndarray:
         """The pose extrapolated to ``time_s`` at constant velocity (no state change)."""
@@ -106,34 +133,30 @@ class PoseFilter:
             return
         T = self.predicted(time_s)
         self.position_m, self.R_world_cube = T[:3, 3], T[:3, :3]
-        F = np.eye(12)
-        np.fill_diagonal(F[_POSITION, _VELOCITY], dt)
-        np.fill_diagonal(F[_ROTATION, _ANGULAR_VELOCITY], dt)
+        F = np.eye(12) + dt * _RATES
+        A, B, C = _motion_noise(self.params)
         adt = abs(dt)
-        Q = np.zeros((12, 12))  # white acceleration noise over |dt|, per axis
-        for (a, b), q in (((_POSITION, _VELOCITY), self.params.accel_noise**2),
-                          ((_ROTATION, _ANGULAR_VELOCITY), self.params.angular_accel_noise**2)):
-            np.fill_diagonal(Q[a, a], q * adt**3 / 3.0)
-            np.fill_diagonal(Q[a, b], q * adt**2 / 2.0)
-            np.fill_diagonal(Q[b, a], q * adt**2 / 2.0)
-            np.fill_diagonal(Q[b, b], q * adt)
-        self.P = F @ self.P @ F.T + Q
+        self.P = F @ self.P @ F.T + (adt**3 / 3.0) * A + (dt * dt / 2.0) * B + adt * C
         self.time_s = time_s
 
     def _solve(self, sets: Sequence[CornerSet]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Gauss-Newton on prior + Huber-weighted corner residuals: (δ (12,), information, residuals px)."""
+        """Gauss-Newton on prior + Huber-weighted corner residuals: (δ (12,), information, residuals px).
+
+        The corners see only the pose block of the state: their information adds to that block and
+        their gradient to its rows (the Jacobian's velocity columns are zero)."""
         prm = self.params
         T0 = self.T_world_cube
         info_prior = np.linalg.inv(self.P)
         delta = np.zeros(12)
+        rhs = np.zeros(12)
         for _ in range(prm.iterations):
-            r, H6 = reprojection_jacobian_px(perturbed(T0, delta[_POSE]), sets)
-            H = np.zeros((r.size, 12))
-            H[:, _POSE] = H6
+            r, H = reprojection_jacobian_px(perturbed(T0, delta[_POSE]), sets)
             a = np.abs(r)
             weights = np.where(a <= prm.huber_px, 1.0, prm.huber_px / np.maximum(a, 1e-12)) / prm.corner_noise_px**2
-            info = info_prior + H.T @ (weights[:, None] * H)
-            rhs = H.T @ (weights * (H @ delta - r))
+            WH = weights[:, None] * H
+            info = info_prior.copy()
+            info[_POSE, _POSE] += H.T @ WH
+            rhs[_POSE] = WH.T @ (H @ delta[_POSE] - r)
             delta = np.linalg.solve(info, rhs)
         return delta, info, reprojection_residuals_px(perturbed(T0, delta[_POSE]), sets)
 

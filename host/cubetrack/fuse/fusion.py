@@ -3,10 +3,14 @@
 Two families, chosen by ``[fusion] method``:
 
 - ``filter`` (the default, the best): a constant-velocity SE(3) filter (:mod:`cubetrack.fuse.corner_filter`)
-  updated with the matched cube corners of each camera frame at its capture time. Sightings
-  are put back into capture-time order after ``reorder_delay_s``; a track starts from a joint
-  multi-camera fit (:mod:`cubetrack.estimate.reprojection`); faces are matched to detections by where the
-  predicted pose projects them, which resolves IPPE flips and same-id faces; a robot unseen for
+  updated with the matched cube corners of each camera frame at its capture time, as soon as
+  the frame has been processed (no waiting for other cameras). A sighting older than the
+  filter's newest state (another camera's later frame arrived first) is folded in exactly: each
+  robot keeps its last ``history_s`` of sightings with the state before each, goes back to the
+  state before the late one and re-applies the newer ones after it, so the state always equals
+  processing everything received in capture order. A track starts from a joint multi-camera fit
+  (:mod:`cubetrack.fuse.multi_view_fit`); faces are matched to detections by where the predicted
+  pose projects them, which resolves IPPE flips and same-id faces; a robot unseen for
   ``lost_after_s`` is reported as not seen, never extrapolated further.
 - ``mean`` / ``weighted`` / ``gaussian``, the paper's, for comparison.
 
@@ -25,11 +29,10 @@ capture time (what a live node publishing on every new estimate would do).
 
 from __future__ import annotations
 
+import bisect
 import enum
-import heapq
-import itertools
 import logging
-from collections import Counter, deque
+from collections import Counter
 from dataclasses import dataclass
 
 import numpy as np
@@ -63,9 +66,9 @@ class FusionParams:
         FusionMethod.FILTER, "filter (default: corner-level constant-velocity filter) | mean | weighted | gaussian "
         "(the paper's eqs. 2, 4, 6)")
     window_s: float = param(0.2, "paper methods: a camera's latest estimate joins the fusion only if it is at most this many seconds older than the newest")
-    reorder_delay_s: float = param(0.3, "filter: sightings are processed in capture-time order this many seconds after they arrive; later ones are dropped")
+    history_s: float = param(0.5, "filter: a sighting up to this many seconds older than the newest one is folded in exactly (the newer ones are re-applied after it); older ones are dropped, counted")
     lost_after_s: float = param(0.5, "filter: a robot with no accepted sighting for this many seconds is reported as not seen and its track restarts")
-    output_rate_hz: float = param(0.0, "filter: also emit poses on a fixed clock at this rate between accepted sightings (0: only at each sighting)")
+    output_rate_hz: float = param(0.0, "filter, live tracking: also emit each tracked robot's pose predicted to the current host time at this rate, for control loops (0: only at each sighting)")
     association_gate_px: float = param(12.0, "filter: a detection joins a face only if its corners lie within this many pixels (or half a marker side) of the predicted face")
     init_window_s: float = param(0.3, "filter: a track starts from a joint fit of pose and velocity over the sightings of the last this many seconds (at least three, from two cameras)")
     max_rejections: int = param(3, "filter: this many rejected sightings in a row restart the track")
@@ -74,8 +77,8 @@ class FusionParams:
         for name in ("window_s", "lost_after_s", "association_gate_px", "init_window_s"):
             if not getattr(self, name) > 0:
                 raise ParamsError(f"{name} must be positive, got {getattr(self, name)}")
-        if self.reorder_delay_s < 0 or self.output_rate_hz < 0 or self.max_rejections < 1:
-            raise ParamsError("reorder_delay_s and output_rate_hz must not be negative, max_rejections >= 1")
+        if self.history_s < 0 or self.output_rate_hz < 0 or self.max_rejections < 1:
+            raise ParamsError("history_s and output_rate_hz must not be negative, max_rejections >= 1")
 
 
 def paper_weights(method: FusionMethod, areas_px2: np.ndarray) -> np.ndarray:
@@ -144,113 +147,181 @@ class LatestEstimateFusion:
             cameras=tuple(sorted({e.camera for e in current})),
             markers=tuple(f"{e.camera}:{f.face}" for e, f in faces),
             latency_s=now_s - newest,
+            arrival_latency_s=now_s - estimate.arrival_time_s,
         )
 
 
-def pose_record(robot: str, T_world_cube: np.ndarray, time_s: float, now_s: float, cameras: tuple[str, ...],
+def pose_record(sighting: CubeSighting, f: PoseFilter, now_s: float, cameras: tuple[str, ...],
                 markers: tuple[str, ...]) -> TrackedPose:
-    return TrackedPose(robot=robot, time_s=time_s, position_m=T_world_cube[:3, 3].copy(),
-                       quaternion_xyzw=quat_xyzw_from_R(T_world_cube[:3, :3]), cameras=cameras,
-                       markers=markers, latency_s=max(0.0, now_s - time_s))
+    """The filter's state after ``sighting`` as a pose (with its velocities and pose covariance)."""
+    return TrackedPose(robot=sighting.robot, time_s=f.time_s, position_m=f.position_m.copy(),
+                       quaternion_xyzw=quat_xyzw_from_R(f.R_world_cube), cameras=cameras,
+                       markers=markers, latency_s=max(0.0, now_s - f.time_s), velocity_m_s=f.velocity_m_s.copy(),
+                       angular_velocity_rad_s=f.angular_velocity_rad_s.copy(), covariance=f.pose_covariance,
+                       arrival_latency_s=max(0.0, now_s - sighting.arrival_time_s))
+
+
+@dataclass(frozen=True, slots=True)
+class RobotState:
+    """What processing one robot's sightings in capture order has built. Never modified: a step
+    makes a new one (the filter it holds is a snapshot that nothing updates in place)."""
+
+    filter: PoseFilter | None = None
+    last_accepted_s: float = float("-inf")
+    rejections: int = 0
+
+
+@dataclass(slots=True, eq=False)
+class HistoryStep:
+    """One sighting in a robot's history, the state just before it and what applying it did."""
+
+    key: tuple[float, str, int]  # capture order: (capture time, camera, seq)
+    sighting: CubeSighting
+    before: RobotState
+    outcome: str = ""
 
 
 class FilterFusion:
-    """A :class:`~cubetrack.fuse.base.Fusion`: corner-level filtering of every robot (see the module doc). Visible state: ``filters``
-    (robot -> PoseFilter), ``pending`` (the reorder buffer), ``stats`` (counters)."""
+    """A :class:`~cubetrack.fuse.base.Fusion`: corner-level filtering of every robot (see the module
+    doc). Visible state: ``state`` (robot -> :class:`RobotState` after its newest sighting),
+    ``history`` (robot -> the last ``history_s`` of :class:`HistoryStep` in capture order),
+    ``stats`` (counters of the outcomes of capture-order processing, plus ``late sighting``,
+    ``replayed sighting`` and ``too late sighting``).
+
+    A late sighting is put in its place in the history at once, and the steps from there on are
+    re-applied when the robot's state is next needed for a pose (its next newest sighting, or
+    :meth:`settled_state`): a burst of late sightings costs one re-application, not one each.
+    Predictions for region detection (:meth:`predicted_pose`) do not wait for that."""
+
+    START_WINDOW = 64  # a track start looks at most at this many sightings (the newest)
 
     def __init__(self, layouts: dict[str, CubeLayout], params: FusionParams = FusionParams(),
                  filter_params: FilterParams = FilterParams()):
         self.layouts = layouts
         self.params = params
         self.filter_params = filter_params
-        self.filters: dict[str, PoseFilter] = {}
-        self.pending: list[tuple[float, int, CubeSighting]] = []
-        self.recent: dict[str, deque[CubeSighting]] = {r: deque(maxlen=64) for r in layouts}
-        self.last_accepted: dict[str, float] = {}
-        self.rejections: Counter[str] = Counter()
+        self.state: dict[str, RobotState] = {r: RobotState() for r in layouts}
+        self.history: dict[str, list[HistoryStep]] = {r: [] for r in layouts}
+        self._keys: dict[str, list[tuple[float, str, int]]] = {r: [] for r in layouts}
+        self._stale: dict[str, int] = {}  # robot -> first history index whose step must be re-applied
         self.stats: Counter[str] = Counter()
-        self._order = itertools.count()
 
     def needs_estimate(self, robot: str) -> bool:
         """A per-camera estimate is only needed to start a track: not while one runs."""
-        return robot not in self.filters
+        return self.state[robot].filter is None
 
     def predicted_pose(self, robot: str, time_s: float) -> np.ndarray | None:
-        """Where the robot's cube is expected at ``time_s`` (None while it is not tracked)."""
-        f = self.filters.get(robot)
-        return None if f is None else f.predicted(time_s)
+        """Where the robot's cube is expected at ``time_s`` (None while it is not tracked, or once
+        it has not been seen for ``lost_after_s``), from the state after its newest sighting
+        (late sightings that came since are not folded in yet)."""
+        state = self.state.get(robot)
+        if state is None or state.filter is None or time_s - state.last_accepted_s > self.params.lost_after_s:
+            return None
+        return state.filter.predicted(time_s)
 
     def add(self, sighting: CubeSighting, now_s: float) -> list[TrackedPose]:
-        """Queue a sighting; returns the poses of every sighting whose reorder delay has passed."""
-        heapq.heappush(self.pending, (sighting.capture_time_s, next(self._order), sighting))
-        return self._drain(now_s, now_s - self.params.reorder_delay_s)
+        """Fuse a sighting now. Returns its pose if it was accepted and is the robot's newest; a
+        late sighting (older than the newest) is folded in exactly and gives no pose of its own, so
+        each robot's poses leave in capture-time order."""
+        robot = sighting.robot
+        history, keys = self.history[robot], self._keys[robot]
+        key = (sighting.capture_time_s, sighting.camera, sighting.seq)
+        if keys and sighting.capture_time_s < keys[-1][0] - self.params.history_s:
+            self.stats["too late sighting"] += 1
+            return []
+        i = bisect.bisect_right(keys, key)
+        if i < len(history):  # late: the state before it is that of the step it goes before
+            self.stats["late sighting"] += 1
+            history.insert(i, HistoryStep(key, sighting, history[i].before))
+            keys.insert(i, key)
+            self._stale[robot] = min(self._stale.get(robot, i), i)
+            return []
+        history.append(HistoryStep(key, sighting, self.state[robot]))
+        keys.append(key)
+        poses = self._apply_from(robot, self._stale.pop(robot, len(history) - 1), now_s)
+        self._forget(robot)
+        return poses
+
+    def settled_state(self, robot: str, now_s: float) -> RobotState:
+        """The robot's state after processing every sighting received, in capture order."""
+        if robot in self._stale:
+            self._apply_from(robot, self._stale.pop(robot), now_s)
+        return self.state[robot]
 
     def flush(self, now_s: float) -> list[TrackedPose]:
-        """Process everything still queued (end of a replay)."""
-        return self._drain(now_s, float("inf"))
+        """Fold in the late sightings still pending (they give no poses: nothing is held back)."""
+        for robot in list(self._stale):
+            self.settled_state(robot, now_s)
+        return []
 
-    def _drain(self, now_s: float, until_s: float) -> list[TrackedPose]:
-        out = []
-        while self.pending and self.pending[0][0] <= until_s:
-            _, _, sighting = heapq.heappop(self.pending)
-            out.extend(self._process(sighting, now_s))
-        return out
+    def _apply_from(self, robot: str, start: int, now_s: float) -> list[TrackedPose]:
+        """Apply the robot's steps from ``start`` on in capture order (each on the state the one
+        before left); returns the poses of the last."""
+        history = self.history[robot]
+        state = history[start].before
+        poses: list[TrackedPose] = []
+        for index in range(start, len(history)):
+            step = history[index]
+            step.before = state
+            state, poses, outcome = self._apply(state, history, index, now_s)
+            if step.outcome:
+                self.stats[step.outcome] -= 1
+                self.stats["replayed sighting"] += 1
+            self.stats[outcome] += 1
+            step.outcome = outcome
+        self.state[robot] = state
+        return poses
+
+    def _forget(self, robot: str) -> None:
+        """Drop the steps no late sighting can reach any more (nor a track start's window)."""
+        history, keys = self.history[robot], self._keys[robot]
+        oldest = keys[-1][0] - self.params.history_s - self.params.init_window_s
+        n = bisect.bisect_left(keys, (oldest,))
+        if n > 0:
+            del history[:n], keys[:n]
 
     def _corners(self, sighting: CubeSighting, T_world_cube: np.ndarray) -> CornerSet | None:
         matches = match_faces(sighting.detections, self.layouts[sighting.robot], sighting.intrinsics,
                               sighting.T_world_cam, T_world_cube, gate_px=self.params.association_gate_px)
         return corner_set(matches, sighting.intrinsics, sighting.T_world_cam, sighting.camera, sighting.capture_time_s)
 
-    def _process(self, sighting: CubeSighting, now_s: float) -> list[TrackedPose]:
+    def _apply(self, state: RobotState, history: list[HistoryStep], index: int,
+               now_s: float) -> tuple[RobotState, list[TrackedPose], str]:
+        """One step of capture-order processing: the sighting ``history[index]`` on ``state``.
+        Returns the new state, the poses it gives and its outcome (a stats key)."""
+        sighting = history[index].sighting
         robot, t = sighting.robot, sighting.capture_time_s
-        self.recent[robot].append(sighting)
-        f = self.filters.get(robot)
-        if f is not None and t < f.time_s:
-            self.stats["late sighting"] += 1
-            return []
-        if f is not None and t - self.last_accepted[robot] > self.params.lost_after_s:
-            log.info("%s: not seen for %.2f s; track restarts", robot, t - self.last_accepted[robot])
-            del self.filters[robot]
-            f = None
-        if f is None:
-            return self._start(sighting, now_s)
-        ticks_from = f.time_s
+        if state.filter is not None and t - state.last_accepted_s > self.params.lost_after_s:
+            log.info("%s: not seen for %.2f s; track restarts", robot, t - state.last_accepted_s)
+            state = RobotState(None, state.last_accepted_s, state.rejections)
+        if state.filter is None:
+            window = history[max(0, index + 1 - self.START_WINDOW): index + 1]
+            return self._start(state, sighting, [s.sighting for s in window], now_s)
+        f = state.filter.copy()
         f.predict(t)
         corners = self._corners(sighting, f.T_world_cube)
         result = f.update([corners]) if corners is not None else None
         if result is None or not result.accepted:
-            self.stats["rejected sighting"] += 1
-            self.rejections[robot] += 1
-            if self.rejections[robot] >= self.params.max_rejections:
-                log.info("%s: %d sightings rejected in a row; track restarts", robot, self.rejections[robot])
-                del self.filters[robot]
-            return []
-        self.rejections[robot] = 0
-        self.last_accepted[robot] = t
-        self.stats["accepted sighting"] += 1
+            rejections = state.rejections + 1
+            if rejections >= self.params.max_rejections:
+                log.info("%s: %d sightings rejected in a row; track restarts", robot, rejections)
+                return RobotState(None, state.last_accepted_s, rejections), [], "rejected sighting"
+            return RobotState(f, state.last_accepted_s, rejections), [], "rejected sighting"
         markers = tuple(f"{sighting.camera}:{face}" for face in corners.faces)
-        return [*self._ticks(robot, f, ticks_from, t, now_s),
-                pose_record(robot, f.T_world_cube, t, now_s, (sighting.camera,), markers)]
+        return (RobotState(f, t, 0), [pose_record(sighting, f, now_s, (sighting.camera,), markers)],
+                "accepted sighting")
 
-    def _ticks(self, robot: str, f: PoseFilter, after_s: float, until_s: float, now_s: float) -> list[TrackedPose]:
-        """Fixed-rate poses strictly between two accepted sightings (never past them)."""
-        rate = self.params.output_rate_hz
-        if rate <= 0:
-            return []
-        first = np.floor(after_s * rate) + 1
-        ticks = np.arange(first, np.ceil(until_s * rate)) / rate
-        return [pose_record(robot, f.predicted(tick), float(tick), now_s, (), ()) for tick in ticks if tick < until_s]
-
-    def _start(self, sighting: CubeSighting, now_s: float) -> list[TrackedPose]:
+    def _start(self, state: RobotState, sighting: CubeSighting, recent: list[CubeSighting],
+               now_s: float) -> tuple[RobotState, list[TrackedPose], str]:
         """Start a track from a joint fit of pose and velocity over the recent sightings.
 
         Every recent single-camera estimate is tried as the starting guess (one may be a flipped
         or misidentified face); the fit that explains the most corners within the gate wins.
         """
-        robot, t = sighting.robot, sighting.capture_time_s
-        window = [s for s in self.recent[robot] if 0.0 <= t - s.capture_time_s <= self.params.init_window_s]
+        t = sighting.capture_time_s
+        window = [s for s in recent if 0.0 <= t - s.capture_time_s <= self.params.init_window_s]
         if len({s.capture_time_s for s in window}) < 3 or len({s.camera for s in window}) < 2:
-            return []  # wait for three sightings from two cameras: pose and velocity both observable
+            return state, [], "sighting before track start"  # three sightings from two cameras: pose and velocity
         fp = self.filter_params
         best = None
         for guess in {id(s.estimate): s.estimate for s in window if s.estimate is not None}.values():
@@ -264,14 +335,10 @@ class FilterFusion:
             if best is None or (solution.points, -solution.rms_px) > (best[0].points, -best[0].rms_px):
                 best = (solution, sets)
         if best is None:
-            self.stats["failed track start"] += 1
-            return []
+            return state, [], "failed track start"
         solution, sets = best
-        self.filters[robot] = PoseFilter(fp, t, solution.T_world_cube, solution.covariance,
-                                         solution.velocity_m_s, solution.angular_velocity_rad_s)
-        self.last_accepted[robot] = t
-        self.rejections[robot] = 0
-        self.stats["track start"] += 1
+        f = PoseFilter(fp, t, solution.T_world_cube, solution.covariance, solution.velocity_m_s,
+                       solution.angular_velocity_rad_s)
         cameras = tuple(sorted({s.camera for s in sets}))
         markers = tuple(f"{s.camera}:{face}" for s in sets for face in s.faces)
-        return [pose_record(robot, solution.T_world_cube, t, now_s, cameras, markers)]
+        return RobotState(f, t, 0), [pose_record(sighting, f, now_s, cameras, markers)], "track start"

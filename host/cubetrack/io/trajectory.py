@@ -94,6 +94,10 @@ def pose_to_json(pose: TrackedPose) -> dict:
         "markers": list(pose.markers),
         "latency": round(float(pose.latency_s), 6),
     }
+    if pose.arrival_latency_s is not None:
+        out["arrival_latency"] = round(float(pose.arrival_latency_s), 6)
+    if pose.predicted:
+        out["predicted"] = True
     out.update(pose.extra)
     return out
 

@@ -1,7 +1,10 @@
-"""FilterFusion on synthetic sightings: track start, reordering, fixed-rate output, and a robot
-that leaves the view is reported as not seen, never extrapolated."""
+"""FilterFusion on synthetic sightings: track start, late sightings folded in exactly whatever
+the arrival order, and a robot that leaves the view is reported as not seen, never extrapolated."""
+
+import dataclasses
 
 import numpy as np
+import pytest
 from scipy.spatial.transform import Rotation
 from test_joint_and_filter import CAMS, INTR, LAYOUT, detections
 
@@ -50,21 +53,100 @@ def test_robot_out_of_view_is_not_extrapolated():
     rng = np.random.default_rng(1)
     items = sightings(1.5, rng) + sightings(4.0, rng, t_start=3.0)  # unseen from 1.5 s to 3 s
     items.sort(key=lambda s: s.arrival_time_s)
-    poses = run(FilterFusion({"bot": LAYOUT}, FusionParams(output_rate_hz=30.0)), items)
+    fusion = FilterFusion({"bot": LAYOUT})
+    poses = run(fusion, [s for s in items if s.capture_time_s < 2.5])
+    last = max(p.time_s for p in poses)
+    assert fusion.predicted_pose("bot", last + 0.2) is not None
+    assert fusion.predicted_pose("bot", 2.5) is None  # not seen for more than lost_after_s
+    poses += run(fusion, [s for s in items if s.capture_time_s >= 2.5])
     times = np.array([p.time_s for p in poses])
     assert not np.any((times > 1.5) & (times < 3.0))  # nothing invented while unseen
     assert np.any(times > 3.0)  # the track restarts when the robot is back
-    fixed = [p for p in poses if not p.cameras]  # fixed-rate poses between sightings
-    assert fixed and all(abs(p.time_s * 30.0 - round(p.time_s * 30.0)) < 1e-6 for p in fixed)
 
 
-def test_sighting_later_than_the_reorder_delay_is_dropped_not_used():
+def state_of(fusion, now_s=0.0):
+    f = fusion.settled_state("bot", now_s).filter
+    return np.concatenate([f.position_m, f.R_world_cube.ravel(), f.velocity_m_s, f.angular_velocity_rad_s,
+                           f.P.ravel(), [f.time_s]])
+
+
+def in_capture_order(items):
+    return sorted(items, key=lambda s: (s.capture_time_s, s.camera, s.seq))
+
+
+def same_pose(a, b):
+    assert a.time_s == b.time_s and a.cameras == b.cameras and a.markers == b.markers
+    for x, y in ((a.position_m, b.position_m), (a.quaternion_xyzw, b.quaternion_xyzw),
+                 (a.velocity_m_s, b.velocity_m_s), (a.covariance, b.covariance)):
+        np.testing.assert_allclose(x, y, rtol=1e-9, atol=1e-12)
+
+
+def arrival_orders(items, rng):
+    """Arrival orders a host sees: per-frame transfer jitter; a shuffle; everything backwards."""
+    jitter = sorted(items, key=lambda s: s.capture_time_s + 0.03 + rng.exponential(0.05))
+    shuffled = [items[k] for k in rng.permutation(len(items))]
+    return {"jitter": jitter, "shuffled": shuffled, "reversed": in_capture_order(items)[::-1]}
+
+
+@pytest.mark.parametrize("order", ["jitter", "shuffled", "reversed"])
+def test_late_sightings_are_folded_in_exactly_as_in_capture_order(order):
+    """Whatever the arrival order, after every sighting the filter equals processing what has
+    arrived in capture order, and each pose equals that processing's pose of the same sighting."""
+    rng = np.random.default_rng(3)
+    items = [dataclasses.replace(s, seq=k) for k, s in enumerate(sightings(1.6, rng))]
+    arrived = arrival_orders(items, np.random.default_rng(4))[order]
+    params = FusionParams(history_s=2.0)  # the whole session can be reordered
+    fusion = FilterFusion({"bot": LAYOUT}, params)
+    late = 0
+    for n, s in enumerate(arrived, start=1):
+        newest = max((x.capture_time_s for x in arrived[:n - 1]), default=-1.0)
+        late += s.capture_time_s < newest
+        poses = fusion.add(s, s.arrival_time_s)
+        reference = FilterFusion({"bot": LAYOUT}, params)
+        expected = {}
+        for x in in_capture_order(arrived[:n]):
+            for p in reference.add(x, s.arrival_time_s):
+                expected[(p.time_s, p.cameras)] = p
+        if reference.state["bot"].filter is None:
+            assert fusion.settled_state("bot", s.arrival_time_s).filter is None
+        else:
+            np.testing.assert_allclose(state_of(fusion), state_of(reference), rtol=1e-9, atol=1e-12)
+        assert len(poses) <= 1
+        for p in poses:
+            assert p.time_s == s.capture_time_s and s.capture_time_s >= newest  # only the newest gives a pose
+            same_pose(p, expected[(p.time_s, p.cameras)])
+    assert late > (5 if order != "reversed" else len(items) - 2)
+    assert fusion.stats["late sighting"] == late
+    outcomes = ("accepted sighting", "rejected sighting", "track start", "failed track start")
+    assert {k: fusion.stats[k] for k in outcomes} == {k: reference.stats[k] for k in outcomes}
+    assert fusion.stats["accepted sighting"] > 0.8 * len(items)
+
+
+def test_sighting_older_than_the_history_is_dropped_not_used():
     rng = np.random.default_rng(2)
     items = sightings(2.0, rng)
     late = items.pop(10)
-    fusion = FilterFusion({"bot": LAYOUT}, FusionParams(reorder_delay_s=0.1))
-    poses = run(fusion, items + [CubeSighting(late.camera, late.robot, late.seq, late.capture_time_s,
-                                             late.capture_time_s + 1.5, late.detections, late.estimate,
-                                             late.T_world_cam, late.intrinsics)])
-    assert fusion.stats["late sighting"] == 1
-    assert all(p.time_s != late.capture_time_s for p in poses)
+    fusion = FilterFusion({"bot": LAYOUT}, FusionParams(history_s=0.5))
+    run(fusion, items)
+    before = state_of(fusion)
+    assert fusion.add(dataclasses.replace(late, arrival_time_s=late.capture_time_s + 1.5), 3.0) == []
+    assert fusion.stats["replayed sighting"] == 0
+    assert fusion.stats["too late sighting"] == 1 and fusion.stats["late sighting"] == 0
+    np.testing.assert_array_equal(state_of(fusion), before)
+    assert all(step.key[0] >= 2.0 - 0.5 - 0.3 - 0.2 for step in fusion.history["bot"])  # old steps forgotten
+
+
+def test_a_burst_of_late_sightings_is_re_applied_once_when_the_next_pose_is_due():
+    rng = np.random.default_rng(5)
+    items = in_capture_order(sightings(2.5, rng))
+    held = items[30:36]  # six sightings that arrive after the seventh
+    fusion = FilterFusion({"bot": LAYOUT})
+    run(fusion, items[:30] + items[36:37])
+    for s in held:
+        assert fusion.add(s, 2.0) == []  # folded in, no pose of its own
+    assert fusion.stats["late sighting"] == 6 and fusion.stats["replayed sighting"] == 0  # nothing re-applied yet
+    poses = fusion.add(items[37], 2.0)
+    assert fusion.stats["replayed sighting"] == 1  # items[36], once, after the six
+    reference = FilterFusion({"bot": LAYOUT})
+    expected = run(reference, items[:38])
+    same_pose(poses[0], expected[-1])

@@ -10,8 +10,10 @@ from cubetrack.core.cameras import CameraIntrinsics
 from cubetrack.core.geometry import invert_T, make_T, rotation_angle, shoelace_area
 from cubetrack.core.layout import paper_cube_layout
 from cubetrack.core.records import Detection
+from cubetrack.estimate import reprojection
+from cubetrack.estimate.match import match_faces
 from cubetrack.estimate.pose import marker_pose
-from cubetrack.estimate.reprojection import CornerSet, associate
+from cubetrack.estimate.reprojection import CornerSet
 from cubetrack.fuse.corner_filter import FilterParams, PoseFilter
 from cubetrack.fuse.multi_view_fit import solve_joint
 
@@ -56,7 +58,13 @@ def detections(T_world_cube, T_world_cam, rng, noise_px=0.2, faces=None):
 
 def corner_set(T_world_cube, camera, rng, t=0.0, **kw):
     dets = detections(T_world_cube, CAMS[camera], rng, **kw)
-    return associate(dets, LAYOUT, T_world_cube, CAMS[camera], INTR, camera, t, gate_px=10.0)
+    return matched(dets, T_world_cube, camera, t)
+
+
+def matched(dets, T_world_cube, camera, t, gate_px=10.0):
+    """The corner set of ``dets`` matched to the faces where ``T_world_cube`` puts them."""
+    matches = match_faces(dets, LAYOUT, INTR, CAMS[camera], T_world_cube, gate_px=gate_px)
+    return reprojection.corner_set(matches, INTR, CAMS[camera], camera, t)
 
 
 def test_association_tells_same_id_faces_apart_by_the_predicted_pose():
@@ -66,7 +74,7 @@ def test_association_tells_same_id_faces_apart_by_the_predicted_pose():
     assert len(s.faces) >= 2 and len(set(s.faces)) == len(s.faces)
     # the same detections against a prediction turned by 90 degrees match other faces, or none
     turned = truth @ make_T(Rotation.from_euler("z", 90, degrees=True).as_matrix(), [0, 0, 0])
-    other = associate(detections(truth, CAMS["cam1"], rng), LAYOUT, turned, CAMS["cam1"], INTR, "cam1", 0.0, 10.0)
+    other = matched(detections(truth, CAMS["cam1"], rng), turned, "cam1", 0.0)
     assert other is None or other.faces != s.faces
 
 
@@ -116,8 +124,7 @@ def test_filter_follows_constant_velocity_motion():
         t = k / 22.5
         truth = make_T(T0[:3, :3], T0[:3, 3] + v * t)
         f.predict(t)
-        s = associate(detections(truth, CAMS[cams[k % 3]], rng), LAYOUT, f.T_world_cube, CAMS[cams[k % 3]],
-                      INTR, cams[k % 3], t, 10.0)
+        s = matched(detections(truth, CAMS[cams[k % 3]], rng), f.T_world_cube, cams[k % 3], t)
         assert f.update([s]).accepted
     assert np.linalg.norm(f.position_m - truth[:3, 3]) < 0.002
     assert np.linalg.norm(f.velocity_m_s - v) < 0.03
