@@ -4,7 +4,8 @@ The detector wraps OpenCV 5's ``cv2.aruco.ArucoDetector``. It finds markers of o
 dictionaries (the world marker and the cubes may use different ones) and returns one
 :class:`cubetrack.core.records.Detection` per marker, carrying its dictionary name, id, corners and
 pixel area. It does not correct lens distortion and does not estimate pose (see
-:mod:`cubetrack.estimate.pose`).
+:mod:`cubetrack.estimate`). Where to look is an input: ``Detector.detect(gray, regions)``
+searches the whole image, or only the given boxes (the tracker's regions of interest).
 
 Conventions (docs/detection.md has the details and the measurements behind the defaults):
 

@@ -177,7 +177,8 @@ def marker_pose(detection: Detection, size_m: float, intrinsics: CameraIntrinsic
     back to the camera, or reprojects worse than ``max_reprojection_error_px``. None when none
     survives. Rotation vectors are not kept: poses are rebuilt from them as 4x4 matrices, which
     also normalises OpenCV's occasional huge-norm rotation vectors. ``polish=False`` keeps IPPE's
-    closed-form solutions (exact for exact corners; what :func:`estimate_cube` uses per frame).
+    closed-form solutions (exact for exact corners; what :func:`cubetrack.estimate.pose.estimate_cube`
+    uses per frame).
     """
     if not size_m > 0.0:
         raise EstimationError(f"marker size must be positive metres, got {size_m!r}")

@@ -30,11 +30,12 @@ from cubetrack.estimate.match import FaceMatch, match_faces
 
 @dataclass(frozen=True, slots=True, eq=False)
 class CornerSet:
-    """One camera frame's cube corners matched to the cube model.
+    """One camera frame's cube corners matched to the cube's faces (made by :func:`corner_set`).
 
     ``points_cube_m`` (N, 3) in the cube frame; ``normalized`` (N, 2) the detected corners
     undistorted to normalised image coordinates; ``focal_px`` scales them back to pixels;
-    ``T_cam_world`` the camera's extrinsics; ``time_s`` its capture time (host clock).
+    ``T_cam_world`` the camera's extrinsics; ``time_s`` its capture time (host clock); ``faces``
+    the matched faces' names, four rows each, in order.
     """
 
     camera: str
