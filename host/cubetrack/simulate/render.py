@@ -18,7 +18,13 @@ ideal (pinhole) image through the exactly inverted distortion (``cv2.undistortPo
 Composition. A :class:`Solid` is a convex object: its faces (rectangles that never overlap,
 drawn after back-face culling, coverage added so shared edges leave no seam) and decals (markers
 printed on a face, drawn over it). Solids are composited over the background in the order
-given (painter's order: the caller lists them far to near).
+given (painter's order: the caller lists them far to near). A face reaching behind the camera
+is drawn where its plane is met in front of the camera.
+
+Time. :meth:`Renderer.render` averages the scene at given instants (a global shutter's motion
+blur); :meth:`Renderer.render_exposure` renders a rolling shutter: each row of the (distorted,
+sensor) image averages the scene over its own exposure window (:class:`Exposure`), the scene
+between rendered instants taken as their linear blend (:func:`exposure_weights`).
 
 Everything is greyscale albedo (0 black .. 1 white) until :func:`form_image` applies lighting,
 blur, noise and quantisation.
