@@ -60,7 +60,8 @@ class _Scratch:
     @classmethod
     def dir(cls) -> Path:
         if cls.path is None:
-            cls.path = Path(tempfile.mkdtemp(prefix="cubetrack-fuzz-"))
+            shm = Path("/dev/shm")  # memory-backed where there is one: the file targets write every input
+            cls.path = Path(tempfile.mkdtemp(prefix="cubetrack-fuzz-", dir=shm if shm.is_dir() else None))
         return cls.path
 
 
@@ -285,11 +286,10 @@ class PythonTarget:
 
 PY_TARGETS: dict[str, PythonTarget] = {
     "mjpeg": PythonTarget(target_mjpeg, ("cubetrack.source.streams",),
-                          ("cubetrack.source.streams:MjpegParser", "cubetrack.source.streams:boundary_from_content_type"),
-                          max_len=16384),
+                          ("cubetrack.source.streams:MjpegParser", "cubetrack.source.streams:boundary_from_content_type")),
     "time_answer": PythonTarget(target_time_answer, ("cubetrack.source.streams", "cubecam.mjpeg"),
                                 ("cubetrack.source.streams:parse_time_answer",), max_len=64),
-    "improv": PythonTarget(target_improv, ("cubecam.improv",), ("cubecam.improv:Parser",
+    "cubecam_improv": PythonTarget(target_improv, ("cubecam.improv",), ("cubecam.improv:Parser",
                            "cubecam.improv:decode_state", "cubecam.improv:decode_error",
                            "cubecam.improv:_decode_command_frame", "cubecam.improv:_split_strings")),
     "http_request": PythonTarget(target_http_request, ("cubecam.request",),
@@ -315,13 +315,12 @@ def python_seeds() -> dict[str, list[bytes]]:
 
     import cv2
     import numpy as np
+    import yaml
 
     from cubecam import improv, mjpeg
     from cubecam.testdata import synthetic_jpeg
     from cubetrack.core.cameras import CameraIntrinsics
     from cubetrack.io.camera_info import camera_info_to_dict
-
-    import yaml
 
     jpegs = [synthetic_jpeg(i, 16, 16, quality=30) for i in range(2)]
     stream = mjpeg.PART_DELIMITER + b"".join(
@@ -351,12 +350,31 @@ def python_seeds() -> dict[str, list[bytes]]:
     return {
         "mjpeg": [b"\x00" + stream, b"\x0f" + stream, b"\x01" + stream, b"\x02" + no_length, b"\x07" + truncated],
         "time_answer": [b"12.345678", b"0.000000", b" 5.5\n", b"999999999999.999999999", b"abc"],
-        "improv": [b"\x00" + serial, b"\x3f" + serial, b"\xc3" + wifi[:20], b"\x05" + wifi],
+        "cubecam_improv": [b"\x00" + serial, b"\x3f" + serial, b"\xc3" + wifi[:20], b"\x05" + wifi],
         "http_request": [b"\x00GET /stream?fps=7.5 HTTP/1.1\r\nHost: cam\r\n\r\n", b"\x03GET /time HTTP/1.0\n\n",
                          b"\xffPOST /status HTTP/1.1\r\nContent-Length: 3\r\n\r\nabc", b"\x01\r\nGET / HTTP/1.1\r\n\r\n"],
         "recording": [FILE_SEPARATOR.join((meta, index, clock)), FILE_SEPARATOR.join((meta, index))],
         "config": [bytes([i]) + config[name] for i, name in enumerate(_CONFIG_FILES)],
         "camera_info": [ros, path.read_bytes()],
+    }
+
+
+def firmware_seeds() -> dict[str, list[bytes]]:
+    """Well-formed inputs of the firmware targets (see firmware/fuzz/fuzz_*.cpp for their layout:
+    http's first byte sets the read size; improv's 0xFF bytes are 150 ms pauses)."""
+    from cubecam import improv
+
+    frames = [improv.encode_rpc(improv.Command.GET_CURRENT_STATE), improv.encode_rpc(improv.Command.GET_DEVICE_INFO),
+              improv.encode_wifi_settings("lab", "correct horse battery"), improv.encode_rpc(improv.Command.GET_WIFI_NETWORKS),
+              improv.encode_rpc(improv.Command.HOSTNAME, ["cam1"])]
+    return {
+        "http": [b"\x10GET /stream?fps=5 HTTP/1.1\r\nHost: cam\r\n\r\n", b"\x01GET /capture HTTP/1.0\r\n\r\n",
+                 b"\x3fPOST /status HTTP/1.1\r\nContent-Length: 3\r\n\r\nabc", b"\x05GET /time HTTP/1.1\nX: y\n\n",
+                 b"\x07GET / HTTP/1.1\r\nAccept: */*\r\n\r\nGET /status HTTP/1.1\r\n\r\n"],
+        "improv": [b"\n" + f + b"\n" for f in frames] + [b"help\nget\nset fps 30\nstatus\n",
+                                                      frames[2][:12] + b"\xff" + frames[0] + b"\n"],
+        "console": [b"help\n", b"set ssid My Lab\nget ssid\nsave\n", b"set ip 10.0.0.2/24,10.0.0.1\nget\n",
+                    b"set password hunter2hunter2\nget password\nstatus\nreboot\n", b"factory_reset\nset fps 7.5\n"],
     }
 
 
@@ -426,11 +444,12 @@ def corpus_files(folder: Path) -> list[Path]:
     return sorted(p for p in folder.iterdir() if p.is_file()) if folder.is_dir() else []
 
 
-def write_python_seeds() -> int:
-    """Add the seed inputs missing from tests/corpus/<target>/ (named by content); returns how many."""
+def write_seeds() -> int:
+    """Add the seed inputs missing from tests/corpus/<target>/ and firmware/fuzz/corpus/<target>/
+    (named by content); returns how many."""
     added = 0
-    for name, seeds in python_seeds().items():
-        folder = PY_CORPUS / name
+    for folder, seeds in [*((PY_CORPUS / n, s) for n, s in python_seeds().items()),
+                          *((FIRMWARE_CORPUS / n, s) for n, s in firmware_seeds().items())]:
         folder.mkdir(parents=True, exist_ok=True)
         for data in seeds:
             path = folder / f"seed-{hashlib.sha1(data).hexdigest()[:16]}"
@@ -559,7 +578,6 @@ def merge_corpus(cmd: list[str], saved: Path, work: Path, crashes: list[Path], l
 def atheris_worker(name: str, argv: list[str]) -> None:
     """Runs inside the subprocess: instrument the target's modules, then hand over to libFuzzer."""
     import importlib
-
     import logging
 
     import atheris
@@ -659,13 +677,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--work", type=Path, metavar="DIR", help="working corpora and logs (default: a new temporary folder)")
     p.add_argument("--save", action="store_true", help="merge new coverage and crash inputs into the saved corpora")
     p.add_argument("--replay", action="store_true", help="only run every saved input once (what CI does)")
-    p.add_argument("--seed", action="store_true", help="write the seed inputs of the Python targets into tests/corpus")
+    p.add_argument("--seed", action="store_true", help="add the seed inputs to the saved corpora and exit")
     p.add_argument("--jobs", type=int, default=1, help="make -j (default 1; the campaigns run one at a time)")
     p.add_argument("--list", action="store_true", help="list the targets and exit")
     args = p.parse_args(argv)
 
     if args.seed:
-        print(f"fuzz_campaign: {write_python_seeds()} seed input(s) added under {PY_CORPUS.relative_to(REPO)}")
+        print(f"fuzz_campaign: {write_seeds()} seed input(s) added")
         return 0
     firmware: dict[str, Path] = {}
     if not args.skip_firmware:
@@ -675,6 +693,9 @@ def main(argv: list[str] | None = None) -> int:
             print(f"fuzz_campaign: building the firmware fuzzers in {args.build_dir} ...", file=sys.stderr, flush=True)
             firmware = build_firmware_fuzzers(args.build_dir.resolve(), args.jobs)
     python = [] if args.skip_python else list(PY_TARGETS)
+    if set(python) & set(firmware):
+        raise SystemExit(f"fuzz_campaign: {', '.join(sorted(set(python) & set(firmware)))}: a Python and a firmware "
+                         "target of the same name; rename the Python one in PY_TARGETS")
     if args.list:
         print("python:   " + " ".join(python))
         print("firmware: " + " ".join(firmware))

@@ -5,6 +5,8 @@ memory) and must now be the project's one-line error, or a skipped and counted r
 from __future__ import annotations
 
 import json
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -72,12 +74,12 @@ def test_an_alias_bomb_camera_info_is_refused_without_building_it(tmp_path):
 @pytest.mark.parametrize("text,message", [
     (ROS_K + "image_width: .inf\nimage_height: 480\n", "integer image_width"),
     ("[" * 50_000 + "]" * 50_000, "nested too deeply"),
-    ("%YAML:1.0\n: : [\n", "OpenCV cannot parse"),
-    ("%YAML:1.0\ncamera_matrix: {}\ndistortion_coefficients: {}\n", "must be OpenCV matrices"),
-    ("%YAML:1.0\ncamera_matrix: !!opencv-matrix\n  rows: 2\n  cols: 2\n  dt: d\n  data: [1, 2, 3, 4]\n"
-     "distortion_coefficients: !!opencv-matrix\n  rows: 1\n  cols: 1\n  dt: d\n  data: [0]\n", "3x3 camera_matrix"),
-    ("%YAML:1.0\n" + OPENCV_K + "distortion_coefficients: !!opencv-matrix\n  rows: 1\n  cols: 1\n  dt: d\n"
-     "  data: [0]\nimage_width: .inf\n", "finite image size"),
+    ("%YAML:1.0\n: : [\n", "not valid YAML"),
+    ("%YAML:1.0\ncamera_matrix: {}\ndistortion_coefficients: {}\n", "camera_matrix must hold 9 numbers"),
+    ("%YAML:1.0\ncamera_matrix: !!opencv-matrix\n  rows: 2\n  cols: 2\n  dt: d\n  data: [1, 2, 3, 4]\n",
+     "camera_matrix must hold 9 numbers, has 4"),
+    ("%YAML:1.0\n" + OPENCV_K + "image_width: .inf\nimage_height: 480\n", "integer image_width"),
+    ("%YAML:1.0\ncamera_matrix: !!opencv-matrix [1, 2]\n", "not valid YAML"),
     (ROS_K + "distortion_coefficients: {data: {a: 1}}\nimage_width: 1\nimage_height: 1\n",
      "distortion_coefficients must hold a list of numbers"),
 ])
@@ -86,6 +88,27 @@ def test_malformed_camera_info_files_are_camera_info_errors(tmp_path, text, mess
     path.write_text(text)
     with pytest.raises(CameraInfoError, match=message):
         read_camera_info(path)
+
+
+def test_a_malformed_opencv_matrix_does_not_abort_the_process(tmp_path):
+    """The fuzzer's file: OpenCV's FileStorage reader (5.0.0) corrupted its heap on this matrix
+    node and the process died of SIGABRT; OpenCV files are now read with PyYAML."""
+    path = tmp_path / "cam.yaml"
+    path.write_text("%YAML:1.0\n---\ncamera_matrix: !!opencv-matrix\n   rows: 3\n   `ols: 3\n   dt: d\n"
+                    "   data: [ 500., 0., 320., 0., 500., 240., 0., 0., 1. ]\n")
+    code = ("import sys\nfrom cubetrack.core.errors import CameraInfoError\nfrom cubetrack.io.camera_info import "
+            "read_camera_info\ntry:\n    read_camera_info(sys.argv[1])\nexcept CameraInfoError as e:\n    print(e)\n")
+    proc = subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr[-2000:]
+    assert "not valid YAML" in proc.stdout
+
+
+def test_older_opencv_files_without_a_size_still_read(tmp_path):
+    path = tmp_path / "cam.yaml"
+    path.write_text("%YAML:1.0\n" + OPENCV_K + "distortion_coefficients: !!opencv-matrix\n  rows: 5\n  cols: 1\n"
+                    "  dt: d\n  data: [0.1, -0.2, 0.0, 0.0, 0.0]\n")
+    intr = read_camera_info(path)
+    assert (intr.width, intr.height) == (641, 481) and intr.K[0, 0] == 500 and intr.dist[1] == -0.2
 
 
 LAYOUT = '[[markers]]\nface = "top"\nid = 1\nsize = 0.08\nposition = [0, 0, 0.055]\nquaternion_xyzw = [0, 0, 0, 1]\n'

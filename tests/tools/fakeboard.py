@@ -9,7 +9,10 @@ pyserial flushes input on open). Behaviours:
 - ``garbage``: sends random bytes (no newline-delimited frames) and never answers;
 - ``bad_checksum``: answers, but every frame's checksum is wrong;
 - ``vanish_on_wifi``: the port disappears (master closed) when Wi-Fi settings arrive;
-- ``no_join_answer``: accepts Wi-Fi settings, then never reports success or failure.
+- ``no_join_answer``: accepts Wi-Fi settings, then never reports success or failure;
+- ``garbled_echo``: answers normally, but first echoes what it receives with the byte before
+  each chunk's final newline flipped (a terminal in echo mode on a noisy line: the host's own
+  Improv frames come back with bad checksums, console lines come back as text).
 
 ``boot_delay_s`` keeps it silent for a while first (a booting board), then it prints a boot
 banner. It also prints a log line every ``log_every_s`` to interleave with the answers.
@@ -126,6 +129,9 @@ class FakeBoard:
                 continue
             if now < self._booted_at:
                 continue  # booting: input is lost, as on a board that is not up yet
+            if self.behaviour == "garbled_echo" and len(data) >= 2:
+                cut = len(data) - 2 if data.endswith(b"\n") else len(data) - 1
+                self._write(data[:cut] + bytes((data[cut] ^ 0x01,)) + data[cut + 1:])
             if not banner_sent:
                 self.boots += 1
                 self._write(b"[I] boot: fake cubecam node\n")

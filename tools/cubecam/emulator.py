@@ -439,6 +439,13 @@ def _client_left(conn: socket.socket) -> bool:
         return True
 
 
+def _is_loopback(address: str) -> bool:
+    try:
+        return ipaddress.ip_address(address).is_loopback
+    except ValueError:
+        return address == "localhost"
+
+
 def _close(conn: socket.socket) -> None:
     try:
         conn.close()
@@ -536,6 +543,9 @@ class Emulator:
         self._spawn(self._replay_loop, "cubecam-replay")
         for cam in self._cameras:
             log.info("camera %s served at %s", cam.name, cam.base_url)
+            if not _is_loopback(cam.address):
+                log.warning("camera %s listens on %s, reachable from the network: anyone there can watch it; "
+                            "bind 127.0.0.1 to keep it on this machine", cam.name, cam.base_url)
         return self
 
     def _spawn(self, target, name: str) -> None:

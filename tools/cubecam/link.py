@@ -33,6 +33,7 @@ CONSOLE_TIMEOUT_S = 5.0
 JOIN_TIMEOUT_S = 45.0         # the node itself gives up after 30 s (Improv convention)
 DETAIL_LIMIT = 3
 _ERR_LINE = re.compile(r"^ERR \d+\b")
+SECRET_RUN = 8  # a log line holding this many consecutive characters of a secret is hidden
 
 
 def open_serial(device: str, baud: int = BAUD):
@@ -92,6 +93,7 @@ class NodeLink:
         self.bytes_seen = 0
         self._last_byte = time.monotonic()
         self._collect_lines = False
+        self._secrets: set[str] = set()  # sent on this link: never shown again (a board may echo them)
 
     @classmethod
     def open(cls, device: str, on_log: Callable[[str], None] | None = None) -> "NodeLink":
@@ -140,11 +142,22 @@ class NodeLink:
                 self.frames.append(ev)
             elif isinstance(ev, improv.BadFrame):
                 self.bad[ev.reason.split(" 0x")[0]] += 1
-                log.debug("%s: bad Improv frame: %s %r", self.device, ev.reason, ev.raw)
+                # not its bytes: it may be our own Wi-Fi frame echoed back
+                log.debug("%s: bad Improv frame: %s (%d bytes)", self.device, ev.reason, len(ev.raw))
             elif self._collect_lines:
                 self.lines.append(ev.text)
             else:
-                self.on_log(ev.text)
+                self.on_log(self.redact(ev.text))
+
+    def redact(self, text: str) -> str:
+        """``text`` as it may be logged or printed: hidden when it holds a run of SECRET_RUN
+        characters of a secret sent on this link (a board that echoes its input, or a noisy
+        line, would otherwise put the Wi-Fi password in the log)."""
+        for secret in self._secrets:
+            run = min(SECRET_RUN, len(secret))
+            if any(secret[i:i + run] in text for i in range(len(secret) - run + 1)):
+                return "(a line holding the Wi-Fi password, not shown)"
+        return text
 
     def _heard(self) -> str:
         if not self.bytes_seen:
@@ -258,6 +271,8 @@ class NodeLink:
 
     def send_wifi(self, ssid: str, password: str, timeout_s: float = JOIN_TIMEOUT_S) -> list[str]:
         """Send Wi-Fi settings; wait until the node joined (its URLs) or failed."""
+        if password:
+            self._secrets.add(password)
         self.write(b"\n" + improv.encode_wifi_settings(ssid, password) + b"\n")
         deadline = time.monotonic() + timeout_s
         provisioned = False
@@ -291,6 +306,8 @@ class NodeLink:
         shown = " ".join(line.split(" ")[:2]) + " ***" if secret else line
         if "\n" in line or "\r" in line:
             raise ProvisionError(f"console command {shown!r} must be one line")
+        if secret and line.count(" ") >= 2:
+            self._secrets.add(line.split(" ", 2)[2])
         self.lines.clear()
         self._collect_lines = True
         try:
@@ -304,7 +321,7 @@ class NodeLink:
                     if text == "OK" or text.startswith("OK "):
                         return answer
                     if _ERR_LINE.match(text):
-                        raise ProvisionError(f"{self.device}: node refused `{shown}`: {text}")
+                        raise ProvisionError(f"{self.device}: node refused `{shown}`: {self.redact(text)}")
                     if text:
                         answer.append(text)
             raise SerialDeviceError(
@@ -312,7 +329,7 @@ class NodeLink:
         finally:
             self._collect_lines = False
             for text in self.lines:
-                self.on_log(text)
+                self.on_log(self.redact(text))
             self.lines.clear()
 
 

@@ -25,7 +25,7 @@ import ipaddress
 import logging
 import re
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 from cubecam import improv
@@ -46,7 +46,7 @@ class ProvisionRequest:
     ``a.b.c.d/prefix,gateway``; ``fps`` frames per second (the node accepts 30, 15, 7.5)."""
 
     ssid: str
-    password: str
+    password: str = field(repr=False)
     name: str | None = None
     jpeg_quality: int | None = None
     fps: float | None = None

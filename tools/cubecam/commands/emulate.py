@@ -12,6 +12,9 @@ skipped and counted. Ctrl-C stops.
   cubecam emulate --recording rec/ --addresses auto --port 80
   cubecam emulate --recording rec/ --bandwidth 100k --latency 0.05 --jitter 0.02
 
+It listens on 127.0.0.1 unless --bind or --addresses say otherwise, and warns when a camera is
+reachable from the network.
+
 Fault options mimic a Wi-Fi node, to test clients: --latency/--jitter (s, on every answer
 and part), --drop-rate (frames lost at capture), --bandwidth (bytes/s per camera, suffix k
 or M; a GS2200M manages roughly 100k), --disconnect-every (s), --stall-after/--stall-for

@@ -1,0 +1,113 @@
+"""Every server the project starts binds loopback unless told otherwise, and says so when told
+otherwise (issue 12, item 5): the camera emulator (library and `cubecam emulate`) and the firmware
+built for the host (cubecam-native). "Binds loopback" is checked from outside: a connection to
+this machine's own network address is refused. (The dashboard, VRPN, Zenoh and Foxglove servers
+get the same tests when they exist.)"""
+
+from __future__ import annotations
+
+import logging
+import re
+import shutil
+import socket
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+import pytest
+
+from cubecam.emulator import Emulator
+from cubecam.testdata import write_images
+
+REPO = Path(__file__).resolve().parents[2]
+if str(REPO) not in sys.path:
+    sys.path.insert(0, str(REPO))
+from tests.helpers.native import build_native  # noqa: E402
+
+WARNING = "reachable from the network"
+
+
+def network_address() -> str | None:
+    """This machine's address on its outbound interface (no packet is sent); None without one."""
+    with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as s:
+        try:
+            s.connect(("10.255.255.255", 1))
+        except OSError:
+            return None
+        address = s.getsockname()[0]
+    return None if address.startswith("127.") else address
+
+
+def reachable(host: str, port: int) -> bool:
+    try:
+        socket.create_connection((host, port), timeout=1).close()
+        return True
+    except OSError:
+        return False
+
+
+@pytest.fixture(scope="module")
+def images(tmp_path_factory):
+    return write_images(tmp_path_factory.mktemp("img"), 3, 160, 120)
+
+
+def port_of(url: str) -> int:
+    return int(re.search(r":(\d+)/", url).group(1))
+
+
+def test_the_emulator_binds_loopback_by_default_and_is_silent_about_it(images, caplog):
+    caplog.set_level(logging.WARNING)
+    with Emulator(images=images, fps=5, name="cam") as emu:
+        port = port_of(emu.base_urls["cam"])
+        assert emu.base_urls["cam"].startswith("http://127.0.0.1:")
+        assert reachable("127.0.0.1", port)
+        outside = network_address()
+        if outside is not None:
+            assert not reachable(outside, port)
+    assert WARNING not in caplog.text
+
+
+def test_the_emulator_warns_when_it_serves_the_network(images, caplog):
+    caplog.set_level(logging.WARNING)
+    with Emulator(images=images, fps=5, name="cam", host="0.0.0.0") as emu:
+        port = port_of(emu.base_urls["cam"])
+        outside = network_address()
+        if outside is not None:
+            assert reachable(outside, port)  # told otherwise: it really serves the network ...
+    assert WARNING in caplog.text and "camera cam" in caplog.text  # ... and says so
+
+
+@pytest.mark.parametrize("bind,warned", [(None, False), ("0.0.0.0", True)])
+def test_cubecam_emulate_says_when_it_serves_the_network(images, bind, warned):
+    cmd = [sys.executable, "-m", "cubecam.cli", "emulate", "--images", str(images), "--port", "0", "--duration", "0.3"]
+    proc = subprocess.run(cmd + (["--bind", bind] if bind else []), capture_output=True, text=True, timeout=60)
+    assert proc.returncode == 0, proc.stderr
+    assert (WARNING in proc.stderr) is warned, proc.stderr
+    if not bind:
+        assert re.search(r"http://127\.0\.0\.1:\d+/stream", proc.stdout)
+
+
+def test_cubecam_native_binds_loopback_by_default(images):
+    if shutil.which("g++") is None or shutil.which("make") is None:
+        pytest.skip("g++ and make are needed to build cubecam-native (tests/install.sh installs them)")
+    binary = build_native()
+    with tempfile.TemporaryDirectory() as tmp:
+        proc = subprocess.Popen([str(binary), "--images", str(images), "--settings", f"{tmp}/settings.bin", "--port", "0",
+                                 "--serial", "none", "--set", "ssid=lab"], stdout=subprocess.PIPE, text=True)
+        try:
+            for line in proc.stdout:
+                if line.startswith("http: "):
+                    url = line.split(": ", 1)[1].strip()
+                    break
+            else:
+                pytest.fail("cubecam-native printed no http: line")
+            assert url.startswith("http://127.0.0.1:")
+            port = port_of(url)
+            assert reachable("127.0.0.1", port)
+            outside = network_address()
+            if outside is not None:
+                assert not reachable(outside, port)
+        finally:
+            proc.terminate()
+            proc.wait(timeout=10)
