@@ -37,7 +37,7 @@ def _square_at(centre_cam: np.ndarray, side_m: float) -> Solid:
 
 
 def _centroid(img: np.ndarray, near: np.ndarray, half: int = 5) -> np.ndarray:
-    x0, y0 = int(round(near[0])) - half, int(round(near[1])) - half
+    x0, y0 = round(near[0]) - half, round(near[1]) - half
     win = img[y0:y0 + 2 * half + 1, x0:x0 + 2 * half + 1]
     ys, xs = np.mgrid[0:win.shape[0], 0:win.shape[1]]
     return np.array([(win * xs).sum(), (win * ys).sum()]) / win.sum() + [x0, y0]
