@@ -7,7 +7,8 @@ jitter, transfer latency with spikes, dropped frames, JPEG quality, noise, blur 
 Writes into --out (contracts §3): recording.json, <cam>/index.csv + JPEGs + clock.csv,
 camera_info/<cam>.yaml, ground_truth.tum (cube pose, 100 Hz, host clock), cube.toml,
 config.toml (a tracker config), true_extrinsics.toml, simulation.toml (parameters and clock
-truth), and calibration/ (an empty-arena recording for `cubetrack calibrate`).
+truth), run.json (the version and the parameters) and calibration/ (an empty-arena recording for
+`cubetrack calibrate`).
 The same --seed gives byte-identical frames and files. Details: docs/simulation.md.
 
 --realistic switches on what real cameras and robots add (a wide-angle lens, intrinsics off by
@@ -27,10 +28,12 @@ from cubetrack.simulate.params import PATHS, REALISTIC, SimulationParams
 
 HELP = "render a simulated multi-camera recording with ground truth"
 
-_UNIT_SUFFIXES = ("_m_s", "_deg", "_m", "_s")
+_UNIT_SUFFIXES = ("_m_s2", "_deg_s", "_m_s", "_deg", "_m", "_s")
 
 
 def _flag(name: str) -> str:
+    if name.endswith("_per_s"):  # a rate keeps its unit: --exposure-steps-per-s
+        return "--" + name.replace("_", "-")
     for suffix in _UNIT_SUFFIXES:
         if name.endswith(suffix):
             name = name[: -len(suffix)]
@@ -77,8 +80,9 @@ def _metavar(name: str, hint: typing.Any) -> str:
         return "NAME"
     if name == "fps":
         return "FPS"
-    for suffix, unit in (("_m_s", "M/S"), ("_deg", "DEG"), ("_ms", "MS"), ("_px", "PX"), ("_ppm", "PPM"),
-                         ("_m", "M"), ("_s", "S")):
+    for suffix, unit in (("_m_s2", "M/S2"), ("_deg_s", "DEG/S"), ("_per_s", "N/S"), ("_m_s", "M/S"), ("_deg", "DEG"),
+                         ("_hz", "HZ"), ("_mm", "MM"), ("_ms", "MS"), ("_px", "PX"), ("_ppm", "PPM"), ("_m", "M"),
+                         ("_s", "S")):
         if name.endswith(suffix):
             return unit
     return "X"
@@ -107,10 +111,12 @@ def params_from_args(args: argparse.Namespace) -> SimulationParams:
 
 def run(args: argparse.Namespace) -> int:
     from cubetrack.core.progress import StderrProgress
+    from cubetrack.io.run import RUN_FILE, write_run_record
     from cubetrack.simulate import simulate
 
     params = params_from_args(args)
     result = simulate(params, args.out, progress=StderrProgress(), overwrite=args.force, workers=args.workers)
+    write_run_record(result.path / RUN_FILE, "simulate", {"simulation": params}, {})
     frames = sum(c.frames_written for c in result.cameras)
     cal = sum(sum(x.delivered for x in c.calibration_captures) for c in result.cameras)
     print(f"wrote {result.path}: {len(result.cameras)} cameras, {frames} frames over {params.duration_s:g} s, "

@@ -167,4 +167,6 @@ def test_cli_realistic_preset_with_single_effects_switched_off(capsys):
     with pytest.raises(SystemExit):
         main(["simulate", "--help"])
     text = capsys.readouterr().out
-    assert "--realistic" in text and "--readout-ms" in text and "--marker-shift-mm" in text
+    for option in ("--realistic", "--readout-ms MS", "--marker-shift-mm MM", "--turn-rate DEG/S", "--accel M/S2",
+                   "--exposure-steps-per-s N/S", "--ground-truth-hz HZ", "--wobble DEG", "realistic: sharp"):
+        assert option in text, option
