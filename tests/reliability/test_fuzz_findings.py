@@ -55,7 +55,7 @@ def test_clock_rows_with_non_finite_times_are_skipped_and_counted(tmp_path):
 
 def test_a_deeply_nested_recording_json_is_a_recording_error(tmp_path):
     with pytest.raises(RecordingError, match="not valid JSON"):
-        recording(tmp_path, meta=b"[" * 100_000)
+        recording(tmp_path, meta=b"[" * 5_000)
 
 
 def test_an_alias_bomb_camera_info_is_refused_without_building_it(tmp_path):
@@ -73,7 +73,7 @@ def test_an_alias_bomb_camera_info_is_refused_without_building_it(tmp_path):
 
 @pytest.mark.parametrize("text,message", [
     (ROS_K + "image_width: .inf\nimage_height: 480\n", "integer image_width"),
-    ("[" * 50_000 + "]" * 50_000, "nested too deeply"),
+    ("[" * 1_000 + "]" * 1_000, "nested too deeply"),
     ("%YAML:1.0\n: : [\n", "not valid YAML"),
     ("%YAML:1.0\ncamera_matrix: {}\ndistortion_coefficients: {}\n", "camera_matrix must hold 9 numbers"),
     ("%YAML:1.0\ncamera_matrix: !!opencv-matrix\n  rows: 2\n  cols: 2\n  dt: d\n  data: [1, 2, 3, 4]\n",
@@ -121,7 +121,7 @@ ROBOT = '[[robots]]\nname = "bot"\nlayout = "cube.toml"\n'
     ('[[cameras]]\nname = "cam1"\ncamera_info = 5\n' + ROBOT, r"cameras\[0\].camera_info must be a file name"),
     ('[world]\nmarker_size = inf\n' + ROBOT, "marker_size must be a positive number"),
     ('[[robots]]\nname = "bot"\nlayout = "."\n', "cannot read the cube layout"),
-    ("a = " + "[" * 100_000, "nested too deeply"),
+    ("a = " + "[" * 5_000, "nested too deeply"),
 ])
 def test_malformed_tracker_configs_are_config_errors(tmp_path, config, message):
     (tmp_path / "cube.toml").write_text(LAYOUT)
@@ -132,7 +132,7 @@ def test_malformed_tracker_configs_are_config_errors(tmp_path, config, message):
 
 @pytest.mark.parametrize("layout,message", [
     ("markers = [1, 2]\n", r"markers\[0\] must be a \[\[markers\]\] table"),
-    ("markers = " + "[" * 100_000, "nested too deeply"),
+    ("markers = " + "[" * 5_000, "nested too deeply"),
 ])
 def test_malformed_cube_layouts_are_config_errors(tmp_path, layout, message):
     (tmp_path / "cube.toml").write_text(layout)
