@@ -1,0 +1,94 @@
+"""Choosing outputs: the config's [[outputs]] tables, the command-line flags, and their errors."""
+
+import argparse
+
+import pytest
+from conftest import free_port
+
+from cubetrack.app.outputs import (OutputSpec, close_sinks, config_output_specs, merge_outputs, output_sinks,
+                                   parse_address)
+from cubetrack.cli.outputs import add_output_arguments, flag_output_specs
+from cubetrack.core.errors import ConfigError
+from cubetrack.core.layout import paper_cube_layout, write_layout
+from cubetrack.io.config import read_tracker_config
+from cubetrack.sink.foxglove import FoxgloveSink
+from cubetrack.sink.vrpn import VrpnParams, VrpnSink
+
+
+@pytest.mark.parametrize("text,expected", [
+    ("", ("127.0.0.1", 3883)), ("0.0.0.0:4000", ("0.0.0.0", 4000)), ("4000", ("127.0.0.1", 4000)),
+    ("192.168.1.5", ("192.168.1.5", 3883)), ("[::1]:4000", ("::1", 4000)), ("localhost:0", ("localhost", 0)),
+])
+def test_addresses(text, expected):
+    assert parse_address(text, ("127.0.0.1", 3883), "--vrpn") == expected
+
+
+@pytest.mark.parametrize("text,message", [("host:port", "not ADDR:PORT"), ("1.2.3.4:70000", "out of range")])
+def test_bad_addresses(text, message):
+    with pytest.raises(ConfigError, match=message):
+        parse_address(text, ("127.0.0.1", 3883), "--vrpn")
+
+
+def flags(*argv) -> argparse.Namespace:
+    parser = argparse.ArgumentParser()
+    add_output_arguments(parser)
+    return parser.parse_args(list(argv))
+
+
+def test_flags_become_output_tables():
+    specs = flag_output_specs(flags("--vrpn", "--foxglove", "0.0.0.0:9000", "--ros2", "--ros-distro", "humble",
+                                    "--ros-bridge", "--zenoh-connect", "tcp/10.0.0.1:7447", "--mcap", "x.mcap"))
+    tables = {s.type: s.table for s in specs}
+    assert tables["vrpn"] == {"type": "vrpn", "address": ""}
+    assert tables["foxglove"]["address"] == "0.0.0.0:9000"
+    assert tables["ros2"] == {"type": "ros2", "distro": "humble", "profile": "bridge", "connect": ["tcp/10.0.0.1:7447"]}
+    assert tables["mcap"]["path"] == "x.mcap"
+    assert flag_output_specs(flags()) == []
+
+
+def test_config_outputs_resolve_paths_against_the_config_and_flags_replace_them(tmp_path):
+    write_layout(paper_cube_layout(), tmp_path / "cube.toml")
+    port = free_port()
+    (tmp_path / "lab.toml").write_text(
+        '[[robots]]\nname = "robot"\nlayout = "cube.toml"\n'
+        f'[[outputs]]\ntype = "vrpn"\naddress = "127.0.0.1:{port}"\n'
+        '[[outputs]]\ntype = "mcap"\npath = "out/session.mcap"\n')
+    (tmp_path / "out").mkdir()
+    config = read_tracker_config(tmp_path / "lab.toml")
+    specs = config_output_specs(config)
+    assert [s.type for s in specs] == ["vrpn", "mcap"] and specs[0].where.endswith("lab.toml: outputs[0]")
+    sinks = output_sinks(specs)
+    try:
+        vrpn, mcap = sinks
+        assert isinstance(vrpn, VrpnSink) and vrpn.port == port
+        assert isinstance(mcap, FoxgloveSink) and mcap.path == tmp_path / "out" / "session.mcap"
+    finally:
+        close_sinks(sinks)
+        close_sinks(sinks)  # closing twice is harmless (a session closes them first)
+    other = free_port()
+    merged = merge_outputs(specs, flag_output_specs(flags("--vrpn", str(other))))
+    assert [(s.type, s.table.get("address")) for s in merged] == [("mcap", None), ("vrpn", str(other))]
+
+
+@pytest.mark.parametrize("table,message", [
+    ({"type": "pigeon"}, "type must be one of zenoh, ros2, vrpn, foxglove, mcap"),
+    ({"type": "vrpn", "adress": "x"}, "unknown key"),
+    ({"type": "mcap"}, "needs path"),
+    ({"type": "ros2", "distro": "noetic"}, "distro: humble | iron | jazzy | kilted | rolling"),
+    ({"type": "zenoh", "connect": "127.0.0.1:7447"}, "Zenoh locators"),
+    ({"type": "zenoh", "mode": "broker"}, "mode must be peer, client or router"),
+    ({"type": "zenoh", "zenoh_config": "missing.json5"}, "not found"),
+])
+def test_bad_output_tables_are_one_line_errors(tmp_path, table, message):
+    with pytest.raises(ConfigError, match=message) as err:
+        output_sinks([OutputSpec(table, tmp_path, "lab.toml: outputs[0]")])
+    assert str(err.value).startswith("lab.toml: outputs[0]: ") and "\n" not in str(err.value)
+
+
+def test_outputs_started_before_a_failure_are_closed_again(tmp_path):
+    port = free_port()
+    with pytest.raises(ConfigError):
+        output_sinks([OutputSpec({"type": "vrpn", "address": str(port)}, tmp_path, "a"),
+                      OutputSpec({"type": "mcap"}, tmp_path, "b")])
+    again = VrpnSink(VrpnParams(port=port))  # the first server was closed: its port is free again
+    again.close()
