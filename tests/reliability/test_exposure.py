@@ -1,8 +1,8 @@
 """Every server the project starts binds loopback unless told otherwise, and says so when told
-otherwise (issue 12, item 5): the camera emulator (library and `cubecam emulate`) and the firmware
-built for the host (cubecam-native). "Binds loopback" is checked from outside: a connection to
-this machine's own network address is refused. (The dashboard, VRPN, Zenoh and Foxglove servers
-get the same tests when they exist.)"""
+otherwise (issue 12, item 5): the camera emulator (library and `cubecam emulate`), the firmware
+built for the host (cubecam-native), and the VRPN, Foxglove and Zenoh outputs of `cubetrack track`.
+"Binds loopback" is checked from outside: a connection to this machine's own network address is
+refused. (The dashboard gets the same test when it exists.)"""
 
 from __future__ import annotations
 
@@ -111,3 +111,53 @@ def test_cubecam_native_binds_loopback_by_default(images):
         finally:
             proc.terminate()
             proc.wait(timeout=10)
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def output(kind: str, address: str):
+    """An output server started as `cubetrack track --<kind> ADDRESS` starts it."""
+    from cubetrack.app.outputs import OutputSpec, output_sinks
+
+    return output_sinks([OutputSpec({"type": kind, "address": address}, Path("."), f"--{kind}")])[0]
+
+
+@pytest.mark.parametrize("kind", ["vrpn", "foxglove"])
+def test_vrpn_and_foxglove_bind_loopback_unless_told_otherwise_and_say_so(kind, caplog):
+    caplog.set_level(logging.INFO)
+    outside = network_address()
+    for address, exposed in ((str(free_port()), False), (f"0.0.0.0:{free_port()}", True)):
+        caplog.clear()
+        sink = output(kind, address)
+        try:
+            port = sink.port if kind == "vrpn" else sink.server.port
+            assert reachable("127.0.0.1", port)
+            if outside is not None:
+                assert reachable(outside, port) is exposed, (kind, address)
+        finally:
+            sink.close()
+        assert ("reachable from other machines" in caplog.text) is exposed, caplog.text
+
+
+def test_zenoh_listens_on_loopback_unless_told_otherwise_and_says_so(caplog):
+    pytest.importorskip("zenoh")
+    from cubetrack.sink.zenoh_session import json_endpoints, open_session, ros_endpoints
+
+    assert json_endpoints().listen == ("tcp/127.0.0.1:7447",) and ros_endpoints().listen == ("tcp/localhost:0",)
+    caplog.set_level(logging.INFO)
+    outside = network_address()
+    for host, exposed in (("127.0.0.1", False), ("0.0.0.0", True)):
+        caplog.clear()
+        port = free_port()
+        session = open_session(json_endpoints(listen=(f"tcp/{host}:{port}",)), "zenoh output")
+        try:
+            assert reachable("127.0.0.1", port)
+            if outside is not None:
+                assert reachable(outside, port) is exposed
+        finally:
+            session.close()
+        assert ("reachable from other machines" in caplog.text) is exposed, caplog.text
