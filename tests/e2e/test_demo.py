@@ -20,6 +20,14 @@ def test_the_demo_tracks_live_over_http_and_prints_both_tables(tmp_path, capsys)
     assert rmse_cm < 1.5
     assert (out / "live" / "track" / "robot.tum").exists() and (out / "live" / "ground_truth_live.tum").exists()
     assert (out / "live" / "config.toml").exists()
+    from cubetrack.io.run import read_run_record
+
+    demo = read_run_record(out)
+    assert demo["command"] == "demo" and demo["parameters"]["simulation"]["duration_s"] == 8
+    assert demo["parameters"]["fusion"]["method"] == "filter"
+    assert read_run_record(out / "extrinsics.run.json")["command"] == "calibrate"
+    for folder in (out / "live" / "track", out / "track" / "mean"):
+        assert read_run_record(folder)["command"] == "track", folder
 
 
 def test_the_offline_demo_keeps_the_old_behaviour(tmp_path, capsys):

@@ -67,6 +67,8 @@ def test_uncalibrated_mode_uses_each_frames_world_marker(scene):
 
 def test_calibration_records_how_it_was_made(scene):
     work, rec = scene
+    simulated = read_run_record(rec)
+    assert simulated["command"] == "simulate" and simulated["parameters"]["simulation"]["seed"] == 7
     run = read_run_record(work / "extrinsics.run.json")
     assert run["command"] == "calibrate" and run["versions"]["cubetrack"]
     assert run["parameters"]["calibration"]["method"] == "robust" and "detector" in run["parameters"]
@@ -89,6 +91,23 @@ def test_uncalibrated_keeps_the_rest_of_the_track_section(scene, tmp_path):
     arrivals = {round(r.host_time_s, 6) for c in recording.camera_names for r in recording.index(c)}
     times = {round(float(t), 6) for t in read_tum(out / "robot.tum").times_s}
     assert len(times) > 50 and times <= arrivals
+
+
+def test_record_writes_its_run_record(scene, tmp_path):
+    """`cubetrack record` from emulated cameras: the recording folder gets run.json with the
+    [source] parameters it ran with and the config."""
+    from cubecam.emulator import Emulator
+    from cubetrack.app.demo import write_live_config
+
+    _, rec = scene
+    with Emulator(rec, host="127.0.0.1", port=0, loop=True) as emu:
+        config = write_live_config(rec / "config.toml", emu.urls, tmp_path / "config.toml")
+        config.write_text(config.read_text() + "\n[source]\nclock_period_s = 0.5\n")
+        assert main(["record", "--config", str(config), "--out", str(tmp_path / "rec"), "--duration", "2"]) == 0
+    run = read_run_record(tmp_path / "rec")
+    assert run["command"] == "record" and run["parameters"]["source"]["clock_period_s"] == 0.5
+    assert run["inputs"]["config"]["path"] == str(config.resolve()) and set(run["cameras"]) == {"cam1", "cam2", "cam3"}
+    assert Recording.open(tmp_path / "rec").camera_names == ("cam1", "cam2", "cam3")
 
 
 def test_evaluate_writes_figures(scene, tmp_path):

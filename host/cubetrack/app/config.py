@@ -17,16 +17,12 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from cubetrack.app.tracker import StageParams, TrackParams
+from cubetrack.app.tracker import StageParams
 from cubetrack.calib.bundle import BundleAdjustmentParams
 from cubetrack.calib.extrinsics import CalibrationParams
 from cubetrack.core.cameras import CameraIntrinsics
 from cubetrack.core.errors import ConfigError
 from cubetrack.core.params import params_from_table, params_to_table
-from cubetrack.detect.detector import DetectorParams
-from cubetrack.estimate.pose import EstimatorParams
-from cubetrack.fuse.corner_filter import FilterParams
-from cubetrack.fuse.fusion import FusionParams
 from cubetrack.io.camera_info import read_camera_info
 from cubetrack.io.config import TrackerConfig, camera_intrinsics_path, read_tracker_config
 from cubetrack.io.recording import Recording
@@ -34,31 +30,23 @@ from cubetrack.source.streams import SourceParams
 
 
 @dataclass(frozen=True, slots=True)
-class ConfigParams:
+class ConfigParams(StageParams):
     """Every parameter section of a tracker config, resolved (defaults where the file is silent).
 
-    The fields are the sections (``[detector]`` ... ``[source]``), in the order ``cubetrack
-    defaults`` prints them: this class is the one list of them.
+    The fields are the sections, in the order ``cubetrack defaults`` prints them: the tracker's
+    (``[detector]`` ... ``[track]``, from :class:`~cubetrack.app.tracker.StageParams`, so these
+    parameters run a :class:`~cubetrack.app.tracker.Tracker` as they are), then calibration,
+    bundle adjustment and the live source. This class is the one list of sections.
     """
 
-    detector: DetectorParams = field(default_factory=DetectorParams)
-    estimator: EstimatorParams = field(default_factory=EstimatorParams)
     calibration: CalibrationParams = field(default_factory=CalibrationParams)
     bundle_adjustment: BundleAdjustmentParams = field(default_factory=BundleAdjustmentParams)
-    fusion: FusionParams = field(default_factory=FusionParams)
-    filter: FilterParams = field(default_factory=FilterParams)
-    track: TrackParams = field(default_factory=TrackParams)
     source: SourceParams = field(default_factory=SourceParams)
 
     @property
     def stages(self) -> StageParams:
-        """The parameters the :class:`~cubetrack.app.tracker.Tracker` runs with."""
-        return StageParams(self.detector, self.estimator, self.fusion, self.filter, self.track)
-
-    def with_stages(self, stages: StageParams) -> ConfigParams:
-        """These parameters with the tracker's sections taken from ``stages``."""
-        return dataclasses.replace(self, detector=stages.detector, estimator=stages.estimator,
-                                   fusion=stages.fusion, filter=stages.filter, track=stages.track)
+        """Only the tracker's sections (what a track run records)."""
+        return StageParams(**{f.name: getattr(self, f.name) for f in dataclasses.fields(StageParams)})
 
 
 SECTIONS: tuple[str, ...] = tuple(f.name for f in dataclasses.fields(ConfigParams))

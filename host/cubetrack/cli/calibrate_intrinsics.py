@@ -3,9 +3,10 @@
 Each image is searched for the board (OpenCV 5 CharucoDetector); views with enough corners are
 fitted together with cv2.calibrateCamera. Prints the RMS reprojection error, fx and fy with
 their standard deviations, and how each image was used; writes ROS camera_info YAML.
-Use 10-20 photos with the board filling much of the frame at varied angles; 3 usable views
-are the minimum accepted. Boards printed by OpenCV < 4.6 with an even number of rows need
---legacy. See docs/calibration.md.
+Use 10-20 photos with the board filling much of the frame at varied angles. Boards printed by
+OpenCV < 4.6 with an even number of rows need --legacy. Options left out keep the board
+parameters' defaults (cubetrack.calib.intrinsics.IntrinsicsParams: the board of the example
+below, 3 usable views at least). See docs/calibration.md.
 
 Example:
   cubetrack calibrate-intrinsics img_*.jpg --board 5x7 --square 0.04 --marker 0.02 \\
@@ -23,14 +24,13 @@ HELP = "intrinsics from ChArUco photos -> ROS camera_info YAML"
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("images", nargs="+", type=Path, metavar="IMAGE", help="photos of the ChArUco board")
-    p.add_argument("--board", default="5x7", metavar="COLSxROWS",
-                   help="squares across x and y, e.g. 5x7 (default)")
-    p.add_argument("--square", type=float, default=0.04, metavar="M", help="square side, metres (default 0.04)")
-    p.add_argument("--marker", type=float, default=0.02, metavar="M", help="marker side, metres (default 0.02)")
-    p.add_argument("--dictionary", default="DICT_6X6_250", help="marker dictionary (default DICT_6X6_250)")
+    p.add_argument("--board", metavar="COLSxROWS", help="squares across x and y, e.g. 5x7")
+    p.add_argument("--square", type=float, metavar="M", help="square side, metres")
+    p.add_argument("--marker", type=float, metavar="M", help="marker side, metres")
+    p.add_argument("--dictionary", help="marker dictionary, e.g. DICT_6X6_250")
     p.add_argument("--legacy", action="store_true",
                    help="board made by OpenCV < 4.6 (matters for an even number of rows)")
-    p.add_argument("--min-views", type=int, default=3, metavar="N", help="usable views needed (default 3)")
+    p.add_argument("--min-views", type=int, metavar="N", help="usable views needed")
     p.add_argument("--camera-name", default=None, help="camera_name in the YAML (default: the output's stem)")
     p.add_argument("--out", required=True, type=Path, metavar="YAML", help="camera_info YAML to write")
 
@@ -46,17 +46,15 @@ def parse_board(text: str) -> tuple[int, int]:
 
 def run(args: argparse.Namespace) -> int:
     from cubetrack.calib.intrinsics import IntrinsicsParams, calibrate_intrinsics_files
-    from cubetrack.core.errors import ConfigError
+    from cubetrack.core.params import params_with
     from cubetrack.core.progress import StderrProgress
     from cubetrack.io.camera_info import write_camera_info
 
-    sx, sy = parse_board(args.board)
-    try:
-        params = IntrinsicsParams(squares_x=sx, squares_y=sy, square_m=args.square, marker_m=args.marker,
-                                  dictionary=args.dictionary, legacy_pattern=args.legacy,
-                                  min_views=args.min_views)
-    except ValueError as exc:
-        raise ConfigError(f"board: {exc}") from None
+    given = {"square_m": args.square, "marker_m": args.marker, "dictionary": args.dictionary,
+             "legacy_pattern": args.legacy or None, "min_views": args.min_views}
+    if args.board is not None:
+        given["squares_x"], given["squares_y"] = parse_board(args.board)
+    params = params_with(IntrinsicsParams(), "board", **{k: v for k, v in given.items() if v is not None})
     name = args.camera_name or args.out.stem
     result = calibrate_intrinsics_files(args.images, params, name, StderrProgress())
     write_camera_info(result.intrinsics, args.out)

@@ -15,20 +15,25 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from cubetrack.simulate.params import SimulationParams
+
 HELP = "simulate, calibrate, track live over HTTP (emulated cameras) and evaluate"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", type=Path, default=Path("cubetrack-demo"), metavar="DIR",
-                   help="working folder (default ./cubetrack-demo); must not hold an earlier demo unless --force")
+                   help="working folder (default ./%(default)s); must not hold an earlier demo unless --force")
     p.add_argument("--force", action="store_true", help="replace an earlier demo in --out")
     p.add_argument("--duration", type=float, default=20.0, metavar="S",
-                   help="seconds of simulated tracking, also the length of the live session (default 20)")
+                   help="seconds of simulated tracking, also the length of the live session (default %(default)s)")
     p.add_argument("--offline", action="store_true", help="skip the live part: replay the recording offline only")
-    p.add_argument("--cameras", type=int, default=3, help="number of cameras (default 3)")
-    p.add_argument("--height", type=float, default=1.0, metavar="M", help="camera height in metres (default 1.0)")
-    p.add_argument("--tilt", type=float, default=30.0, metavar="DEG", help="camera tilt in degrees (default 30)")
-    p.add_argument("--seed", type=int, default=1, help="random seed (default 1)")
+    scene = SimulationParams()  # the simulator's arena is the demo's (the paper's 1.0 m setup)
+    p.add_argument("--cameras", type=int, default=scene.cameras, help="number of cameras (default %(default)s)")
+    p.add_argument("--height", type=float, default=scene.height_m, metavar="M",
+                   help="camera height in metres (default %(default)s)")
+    p.add_argument("--tilt", type=float, default=scene.tilt_deg, metavar="DEG",
+                   help="camera tilt in degrees (default %(default)s)")
+    p.add_argument("--seed", type=int, default=1, help="random seed (default %(default)s)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -38,7 +43,6 @@ def run(args: argparse.Namespace) -> int:
     from cubetrack.app.demo import run_demo
     from cubetrack.core.errors import SimulationError
     from cubetrack.core.progress import StderrProgress
-    from cubetrack.simulate import SimulationParams
 
     if args.out.exists() and any(args.out.iterdir()):
         if not args.force:

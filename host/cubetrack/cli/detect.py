@@ -16,8 +16,6 @@ import argparse
 
 HELP = "detect markers in one image; print ids, corners, areas and poses as JSON"
 
-_REFINEMENTS = ("edge", "none", "subpix", "contour", "apriltag")
-
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("image", help="image file (JPEG, PNG, ...)")
@@ -26,11 +24,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
                              "without it no poses are printed")
     parser.add_argument("--dictionary", action="append", metavar="NAME",
                         help="OpenCV dictionary, e.g. DICT_6X6_250 (repeat for several; "
-                             "default DICT_4X4_50)")
+                             "default: the [detector] dictionary)")
     parser.add_argument("--marker-size", type=float, metavar="METRES",
                         help="side of the black square in metres (needed for poses)")
-    parser.add_argument("--refinement", choices=_REFINEMENTS, default=None,
-                        help="corner refinement (default: edge, the most accurate real-time one)")
+    parser.add_argument("--refinement", metavar="METHOD",
+                        help="corner refinement; overrides [detector] corner_refinement "
+                             "(`cubetrack defaults --section detector` lists the methods)")
     parser.add_argument("--indent", type=int, default=2, help="JSON indentation (0: one line)")
 
 
@@ -49,15 +48,16 @@ def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from cubetrack.core.errors import DetectionError
-    from cubetrack.detect.detector import CornerRefinement, Detector, DetectorParams, read_gray
+    from cubetrack.core.params import params_with
+    from cubetrack.detect.detector import Detector, DetectorParams, read_gray
     from cubetrack.estimate.pose import marker_pose
     from cubetrack.io.camera_info import read_camera_info
 
-    names = args.dictionary or ["DICT_4X4_50"]
-    fields = {"dictionary": names[0]}
+    names = args.dictionary or [DetectorParams().dictionary]
+    params = params_with(DetectorParams(), "--dictionary", dictionary=names[0])
     if args.refinement:
-        fields["corner_refinement"] = CornerRefinement(args.refinement)
-    detector = Detector(DetectorParams(**fields), dictionaries=names)
+        params = params_with(params, "--refinement", corner_refinement=args.refinement)
+    detector = Detector(params, dictionaries=names)
     intrinsics = read_camera_info(args.camera_info) if args.camera_info else None
     if intrinsics is not None and not (args.marker_size and args.marker_size > 0):
         raise DetectionError("poses need --marker-size (the black square's side in metres, e.g. 0.02)")

@@ -21,25 +21,28 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--label", action="append", default=None,
                    help="label for each --estimate, in order (default: the file name)")
     p.add_argument("--ground-truth", required=True, type=Path, metavar="TUM", help="reference trajectory (TUM)")
-    p.add_argument("--timeout", type=float, default=0.5, metavar="S",
-                   help="detection-ratio message timeout in seconds (default 0.5, the paper's)")
-    p.add_argument("--max-time-diff", type=float, default=0.02, metavar="S",
-                   help="estimates farther than this from any ground-truth sample are not scored (default 0.02 s)")
+    p.add_argument("--timeout", type=float, metavar="S",
+                   help="detection-ratio message timeout in seconds (default: the paper's)")
+    p.add_argument("--max-time-diff", type=float, metavar="S",
+                   help="estimates farther than this many seconds from any ground-truth sample are not scored")
     p.add_argument("--plot", type=Path, metavar="DIR", help="write paper-style figures into DIR")
     p.add_argument("--json", action="store_true", help="print the scores as JSON")
 
 
 def run(args: argparse.Namespace) -> int:
     from cubetrack.core.errors import EvaluationError
+    from cubetrack.core.params import params_with
     from cubetrack.evaluate.metrics import EvaluationParams, evaluate
     from cubetrack.io.trajectory import read_tum
 
     labels = args.label or [p.stem if len(args.estimate) == 1 else str(p) for p in args.estimate]
     if len(labels) != len(args.estimate):
         raise EvaluationError(f"{len(labels)} --label for {len(args.estimate)} --estimate: give one per estimate")
-    if args.timeout <= 0 or args.max_time_diff <= 0:
-        raise EvaluationError("--timeout and --max-time-diff must be positive seconds")
-    params = EvaluationParams(detection_timeout_s=args.timeout, max_time_diff_s=args.max_time_diff)
+    params = EvaluationParams()
+    if args.timeout is not None:
+        params = params_with(params, "--timeout", detection_timeout_s=args.timeout)
+    if args.max_time_diff is not None:
+        params = params_with(params, "--max-time-diff", max_time_diff_s=args.max_time_diff)
     truth = read_tum(args.ground_truth)
     estimates = {label: read_tum(path) for label, path in zip(labels, args.estimate)}
     results = {label: evaluate(traj, truth, params) for label, traj in estimates.items()}

@@ -39,7 +39,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--duration", type=float, metavar="S", help="--live: stop after this many seconds (default: Ctrl-C)")
     p.add_argument("--record", type=Path, metavar="REC", help="--live: also record the session into this folder")
     p.add_argument("--status-every", type=float, default=2.0, metavar="S",
-                   help="--live: seconds between status lines (default 2)")
+                   help="--live: seconds between status lines (default %(default)s)")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -20,7 +20,6 @@ right     -x          turned 90° counter-clockwise
 
 from __future__ import annotations
 
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -29,6 +28,7 @@ import tomli_w
 
 from cubetrack.core.errors import ConfigError
 from cubetrack.core.geometry import T_from_position_quat, invert_T, make_T, position_quat_from_T
+from cubetrack.core.params import read_toml
 
 FACES = ("top", "front", "left", "back", "right")
 DEFAULT_DICTIONARY = "DICT_4X4_50"
@@ -231,18 +231,7 @@ def layout_to_table(layout: CubeLayout) -> dict:
 
 def read_layout(path: str | Path) -> CubeLayout:
     """Read a cube layout TOML file."""
-    path = Path(path)
-    try:
-        table = tomllib.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise ConfigError(f"{path}: cube layout file not found") from None
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"{path}: not valid TOML: {exc}") from None
-    except RecursionError:
-        raise ConfigError(f"{path}: not valid TOML: nested too deeply") from None
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read the cube layout: {exc.strerror or exc}") from None
-    return layout_from_table(table, str(path))
+    return layout_from_table(read_toml(path, "cube layout"), str(path))
 
 
 def write_layout(layout: CubeLayout, path: str | Path) -> None:

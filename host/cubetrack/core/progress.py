@@ -14,9 +14,10 @@ Progress = Callable[[str, int, int], None]
 
 
 class StderrProgress:
-    """Prints ``stage: done/total`` to stderr at most every ``interval_s`` seconds, and once at the end."""
+    """Prints ``stage: done/total`` to ``stream`` (default: the ``sys.stderr`` of the moment it
+    prints) at most every ``interval_s`` seconds, and once at the end."""
 
-    def __init__(self, stream: TextIO = sys.stderr, interval_s: float = 1.0):
+    def __init__(self, stream: TextIO | None = None, interval_s: float = 1.0):
         self.stream = stream
         self.interval_s = interval_s
         self._last: dict[str, float] = {}
@@ -29,5 +30,6 @@ class StderrProgress:
         self._last[stage] = now
         of = f"/{total}" if total else ""
         pct = f" ({100.0 * done / total:.0f}%)" if total else ""
-        self.stream.write(f"{stage}: {done}{of}{pct}\n")
-        self.stream.flush()
+        stream = self.stream if self.stream is not None else sys.stderr
+        stream.write(f"{stage}: {done}{of}{pct}\n")
+        stream.flush()

@@ -9,7 +9,6 @@ each into its stage's params dataclass, once, and refuses unknown sections.
 from __future__ import annotations
 
 import math
-import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -21,6 +20,7 @@ from cubetrack.core.cameras import CameraExtrinsics, WorldConfig
 from cubetrack.core.errors import ConfigError, RecordingError
 from cubetrack.core.geometry import T_from_position_quat, position_quat_from_T
 from cubetrack.core.layout import DEFAULT_DICTIONARY, CubeLayout, read_layout
+from cubetrack.core.params import read_toml
 from cubetrack.io.files import atomic_write
 from cubetrack.io.recording import check_camera_name
 
@@ -59,19 +59,6 @@ class TrackerConfig:
         return dict(self.sections.get(name, {}))
 
 
-def _load_toml(path: Path, what: str) -> dict[str, Any]:
-    try:
-        return tomllib.loads(path.read_text(encoding="utf-8"))
-    except FileNotFoundError:
-        raise ConfigError(f"{path}: {what} file not found") from None
-    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as exc:
-        raise ConfigError(f"{path}: not valid TOML: {exc}") from None
-    except RecursionError:
-        raise ConfigError(f"{path}: not valid TOML: nested too deeply") from None
-    except OSError as exc:
-        raise ConfigError(f"{path}: cannot read {what}: {exc}") from None
-
-
 def _world(table: Any, where: str) -> WorldConfig:
     if table is None:
         return WorldConfig()
@@ -98,7 +85,7 @@ def _world(table: Any, where: str) -> WorldConfig:
 def read_tracker_config(path: str | Path) -> TrackerConfig:
     """Read and check a tracker config TOML file (contracts §4)."""
     path = Path(path)
-    doc = _load_toml(path, "tracker config")
+    doc = read_toml(path, "tracker config")
     where = str(path)
     base = path.parent
     cameras = []
@@ -202,7 +189,7 @@ def write_extrinsics(extrinsics: dict[str, CameraExtrinsics], path: str | Path) 
 def read_extrinsics(path: str | Path) -> dict[str, CameraExtrinsics]:
     """Read the extrinsics TOML written by ``cubetrack calibrate``."""
     path = Path(path)
-    doc = _load_toml(path, "extrinsics")
+    doc = read_toml(path, "extrinsics")
     if not doc:
         raise ConfigError(f"{path}: no camera tables; expected [cam1] position = [...] quaternion_xyzw = [...]")
     out = {}

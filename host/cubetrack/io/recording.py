@@ -134,26 +134,32 @@ class Recording:
 
     def _read_index(self, camera: str) -> list[IndexRow]:
         index_path = self.camera_dir(camera) / "index.csv"
+        rows = self._read_rows(index_path, INDEX_HEADER, _parse_index_row, "bad index row")
+        if not rows:
+            raise RecordingError(f"{index_path}: empty index (no frames recorded for {camera})")
+        return rows
+
+    def _read_rows(self, path: Path, header: tuple[str, ...], parse, reason: str) -> list:
+        """The rows of a CSV file that must start with ``header``, each through ``parse`` (None:
+        a broken row, skipped and counted under ``reason``)."""
+        rows = []
         try:
-            with index_path.open(newline="", encoding="utf-8") as f:
+            with path.open(newline="", encoding="utf-8") as f:
                 reader = csv.reader(f)
-                header = next(reader, None)
-                if header is None or tuple(h.strip() for h in header) != INDEX_HEADER:
-                    raise RecordingError(f"{index_path}: header must be {','.join(INDEX_HEADER)}")
-                rows = []
+                first = next(reader, None)
+                if first is None or tuple(h.strip() for h in first) != header:
+                    raise RecordingError(f"{path}: header must be {','.join(header)}")
                 for line_no, fields in enumerate(reader, start=2):
-                    row = _parse_index_row(fields)
+                    row = parse(fields)
                     if row is None:
-                        self.skipped["bad index row"] += 1
-                        log.warning("%s:%d: skipping malformed row %r", index_path, line_no, fields)
+                        self.skipped[reason] += 1
+                        log.warning("%s:%d: skipping malformed row %r", path, line_no, fields)
                         continue
                     rows.append(row)
         except FileNotFoundError:
-            raise RecordingError(f"{index_path}: missing") from None
+            raise RecordingError(f"{path}: missing") from None
         except (UnicodeDecodeError, csv.Error) as exc:
-            raise RecordingError(f"{index_path}: unreadable: {exc}") from None
-        if not rows:
-            raise RecordingError(f"{index_path}: empty index (no frames recorded for {camera})")
+            raise RecordingError(f"{path}: unreadable: {exc}") from None
         return rows
 
     def frames(self, camera: str) -> Iterator[Frame]:
@@ -186,27 +192,7 @@ class Recording:
         path = self.camera_dir(camera) / "clock.csv"
         if not path.exists():
             return []
-        samples = []
-        try:
-            with path.open(newline="", encoding="utf-8") as f:
-                reader = csv.reader(f)
-                header = next(reader, None)
-                if header is None or tuple(h.strip() for h in header) != CLOCK_HEADER:
-                    raise RecordingError(f"{path}: header must be {','.join(CLOCK_HEADER)}")
-                for line_no, fields in enumerate(reader, start=2):
-                    try:
-                        sample = ClockSample(*(float(v) for v in fields))
-                    except (TypeError, ValueError):
-                        sample = None
-                    if sample is None or not all(map(math.isfinite, (sample.host_send_s, sample.device_time_s,
-                                                                     sample.host_recv_s))):
-                        self.skipped["bad clock row"] += 1
-                        log.warning("%s:%d: skipping malformed row %r", path, line_no, fields)
-                        continue
-                    samples.append(sample)
-        except (UnicodeDecodeError, csv.Error) as exc:
-            raise RecordingError(f"{path}: unreadable: {exc}") from None
-        return samples
+        return self._read_rows(path, CLOCK_HEADER, _parse_clock_row, "bad clock row")
 
     def camera_info_path(self, camera: str) -> Path | None:
         path = self.path / "camera_info" / f"{camera}.yaml"
@@ -216,6 +202,15 @@ class Recording:
     def ground_truth_path(self) -> Path | None:
         path = self.path / "ground_truth.tum"
         return path if path.exists() else None
+
+
+def _parse_clock_row(fields: list[str]) -> ClockSample | None:
+    try:
+        sample = ClockSample(*(float(v) for v in fields))
+    except (TypeError, ValueError):
+        return None
+    times = (sample.host_send_s, sample.device_time_s, sample.host_recv_s)
+    return sample if all(map(math.isfinite, times)) else None
 
 
 def _parse_index_row(fields: list[str]) -> IndexRow | None:

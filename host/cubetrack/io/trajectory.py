@@ -9,7 +9,7 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import IO, Iterable
+from typing import IO
 
 import numpy as np
 
@@ -121,10 +121,6 @@ class PoseWriter:
         self._tum.flush()
         self._jsonl.flush()
         self.count += 1
-
-    def write_all(self, poses: Iterable[TrackedPose]) -> None:
-        for pose in poses:
-            self.write(pose)
 
     def close(self) -> None:
         self._tum.close()
