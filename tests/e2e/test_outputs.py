@@ -117,8 +117,11 @@ def test_the_demo_serves_vrpn_ros2_zenoh_foxglove_and_writes_mcap(demo):
     assert len(messages["/robots/robot/pose"]) == len(poses)  # the file and the VRPN client saw every pose
     images = messages["/cameras/cam1/image"]
     assert len(images) > 10 and all(m.data[:2] == b"\xff\xd8" and m.format == "jpeg" for _, m in images)
-    notes = [m for _, m in messages["/cameras/cam1/annotations"] if m.points]
-    assert notes and all(len(m.points) % 5 == 0 for m in notes)  # the predicted cube's five markers
+    notes = [m for _, m in messages["/cameras/cam1/annotations"]]
+    predicted = [[p for p in m.points if p.outline_color.g < 0.9] for m in notes]  # orange, not green
+    detected = [[p for p in m.points if p.outline_color.g >= 0.9] for m in notes]
+    assert any(predicted) and all(len(p) % 5 == 0 for p in predicted)  # the predicted cube's five markers
+    assert all(len(d) == len(m.texts) for d, m in zip(detected, notes))  # each detected marker with its id
 
 
 def test_track_takes_outputs_from_the_config(demo, capsys):
