@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from cubetrack.cli.outputs import add_output_arguments, output_sinks_from_args
 from cubetrack.simulate.params import SimulationParams
 
 HELP = "simulate, calibrate, track live over HTTP (emulated cameras) and evaluate"
@@ -34,6 +35,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--tilt", type=float, default=scene.tilt_deg, metavar="DEG",
                    help="camera tilt in degrees (default %(default)s)")
     p.add_argument("--seed", type=int, default=1, help="random seed (default %(default)s)")
+    add_output_arguments(p)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -55,7 +57,13 @@ def run(args: argparse.Namespace) -> int:
     def status(st) -> None:
         print(f"live: {st.line()}", file=sys.stderr, flush=True)
 
-    result = run_demo(args.out, sim, progress=StderrProgress(), live=not args.offline, status=status)
+    from cubetrack.app.outputs import close_sinks
+
+    sinks = output_sinks_from_args(args)
+    try:
+        result = run_demo(args.out, sim, progress=StderrProgress(), live=not args.offline, status=status, sinks=sinks)
+    finally:
+        close_sinks(sinks)
     print(f"\ncalibration ({args.out / 'extrinsics.toml'}), error against the true camera poses:")
     for cam, (pos_m, rot_deg) in result.calibration_errors.items():
         print(f"  {cam}: position {pos_m * 100:.2f} cm, rotation {rot_deg:.3f}°")

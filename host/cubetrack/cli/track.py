@@ -23,6 +23,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from cubetrack.cli.outputs import add_output_arguments, output_sinks_from_args
+
 HELP = "track robots through a recording or live from the cameras -> TUM + JSONL per robot"
 
 
@@ -40,12 +42,14 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--record", type=Path, metavar="REC", help="--live: also record the session into this folder")
     p.add_argument("--status-every", type=float, default=2.0, metavar="S",
                    help="--live: seconds between status lines (default %(default)s)")
+    add_output_arguments(p)
 
 
 def run(args: argparse.Namespace) -> int:
     import dataclasses
 
     from cubetrack.app.config import load_config
+    from cubetrack.app.outputs import close_sinks
     from cubetrack.app.track import track_recording
     from cubetrack.app.tracker import CameraPoseSource
     from cubetrack.core.errors import ConfigError
@@ -71,11 +75,15 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError("give --extrinsics (from cubetrack calibrate) or --uncalibrated")
     else:
         extrinsics = read_extrinsics(args.extrinsics)
-    if args.live:
-        return _run_live(args, config, extrinsics, settings)
-    recording = Recording.open(args.recording)
-    result = track_recording(config, recording, extrinsics, args.out, settings.stages, StderrProgress(),
-                             extrinsics_path=args.extrinsics)
+    recording = None if args.live else Recording.open(args.recording)
+    sinks = output_sinks_from_args(args, config)
+    try:
+        if args.live:
+            return _run_live(args, config, extrinsics, settings, sinks)
+        result = track_recording(config, recording, extrinsics, args.out, settings.stages, StderrProgress(), sinks,
+                                 extrinsics_path=args.extrinsics)
+    finally:
+        close_sinks(sinks)
     s = result.stats
     print(f"frames: {s.frames}" + "".join(f", {reason}: {n}" for reason, n in result.skipped.items()))
     for robot, (tum, jsonl) in result.outputs.items():
@@ -83,7 +91,7 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
-def _run_live(args: argparse.Namespace, config, extrinsics, settings) -> int:
+def _run_live(args: argparse.Namespace, config, extrinsics, settings, sinks) -> int:
     import sys
 
     from cubetrack.app.config import parameter_tables
@@ -102,7 +110,8 @@ def _run_live(args: argparse.Namespace, config, extrinsics, settings) -> int:
 
     print(f"tracking live into {args.out}" + ("" if args.duration else " (Ctrl-C to stop)"), file=sys.stderr, flush=True)
     result = track_live(config, extrinsics, args.out, params, duration_s=args.duration, record_to=args.record,
-                        status=status, status_every_s=args.status_every, source=settings.source)
+                        status=status, status_every_s=args.status_every, source=settings.source,
+                        sinks=sinks)
     s = result.stats
     latency = "-" if result.latency_s is None else f"{result.latency_s * 1000:.0f} ms"
     print(f"{'interrupted; ' if result.interrupted else ''}tracked live for {result.duration_s:.1f} s: "
