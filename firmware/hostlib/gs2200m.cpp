@@ -3,7 +3,9 @@
 #include <stdio.h>
 #include <stdlib.h>
 
+#include "core/wpa.h"
 #include "hostlib.h"
+#include "test/s2w.h"
 
 namespace hostlib {
 
@@ -73,8 +75,8 @@ void Gs2200m::reboot() {
     dhcp_ = true;
     power_save_ = false;
     static_ip_.clear();
-    psk_ssid_.clear();
-    psk_pass_.clear();
+    key_ssid_.clear();
+    key_.clear();
     associated_ = false;
     joined_ssid_.clear();
     ip_ = "0.0.0.0";
@@ -232,13 +234,17 @@ std::string Gs2200m::answer(const std::string& cmd) {
         return kOk;
     }
     if (name == "AT+WPAPSK") {
-        size_t comma = args.find(',');
-        if (comma == std::string::npos) return kInvalid;
-        std::string pass = args.substr(comma + 1);
-        if (pass.size() < 8 || pass.size() > 63) return kInvalid;
-        psk_ssid_ = args.substr(0, comma);
-        psk_pass_ = pass;
+        std::string ssid, passphrase;
+        if (!s2w::wpapsk(args, ssid, passphrase)) return kInvalid;
+        key_ssid_ = ssid;
+        key_ = derived_key(ssid, passphrase);
         return std::string("Computing PSK from SSID and PassPhrase...\r\n") + kOk;
+    }
+    if (name == "AT+WPSK") {  // the key itself; the SSID stays the one of the last AT+WPAPSK
+        std::vector<uint8_t> key;
+        if (!s2w::wpsk(args, key)) return kInvalid;
+        key_ = key;
+        return kOk;
     }
     if (name == "AT+WA") return join(args);
     if (cmd == "AT+NSTAT=?") return network_status();
@@ -260,11 +266,19 @@ std::string Gs2200m::answer(const std::string& cmd) {
     return kInvalid;
 }
 
+std::vector<uint8_t> Gs2200m::derived_key(const std::string& ssid, const std::string& passphrase) {
+    uint8_t key[cubecam::wpa::kPskBytes];
+    cubecam::wpa::psk(ssid.c_str(), passphrase.c_str(), key);
+    return std::vector<uint8_t>(key, key + sizeof key);
+}
+
 std::string Gs2200m::join(const std::string& args) {
-    std::vector<std::string> f = split(args, ',');
-    const std::string& ssid = f[0];
+    std::string ssid;
+    if (!s2w::wa(args, ssid)) return kInvalid;
+    // The module drops a stored key computed for another SSID.
+    if (!key_ssid_.empty() && key_ssid_ != ssid) key_.clear();
     if (mode_ == 2) {  // limited AP: create the network
-        if (psk_ssid_ != ssid) return kError;
+        if (key_.empty()) return kError;
         associated_ = true;
         joined_ssid_ = ssid;
         ip_ = static_ip_.empty() ? "0.0.0.0" : static_ip_;
@@ -275,7 +289,7 @@ std::string Gs2200m::join(const std::string& args) {
         if (a.ssid == ssid) ap = &a;
     }
     if (!ap) return kError;
-    if (!ap->passphrase.empty() && (psk_ssid_ != ssid || psk_pass_ != ap->passphrase)) return kError;
+    if (!ap->passphrase.empty() && key_ != derived_key(ap->ssid, ap->passphrase)) return kError;
     if (!dhcp_ && static_ip_.empty()) return "ERROR: IP CONFIG FAIL\r\n";
     associated_ = true;
     joined_ssid_ = ssid;

@@ -21,7 +21,7 @@ namespace hostlib {
 
 struct AccessPoint {
     std::string ssid;
-    std::string passphrase;  // empty: open network
+    std::string passphrase;  // empty: open network (any bytes: the key is derived from them)
     int rssi;
     int channel;
 };
@@ -63,6 +63,9 @@ public:
     std::string joined_ssid() const { return joined_ssid_; }
     bool power_save() const { return power_save_; }
     bool listening() const { return server_cid_ >= 0; }
+    // The WPA2 key the module holds (what its access point uses), empty: none.
+    const std::vector<uint8_t>& key() const { return key_; }
+    static std::vector<uint8_t> derived_key(const std::string& ssid, const std::string& passphrase);
 
 private:
     void on_header(const uint8_t* h);
@@ -94,7 +97,8 @@ private:
     bool dhcp_;
     bool power_save_;
     std::string static_ip_;
-    std::string psk_ssid_, psk_pass_;
+    std::string key_ssid_;      // the SSID of the last AT+WPAPSK
+    std::vector<uint8_t> key_;  // the WPA2 key it uses (AT+WPAPSK or AT+WPSK), empty: none
     bool associated_;
     std::string joined_ssid_;
     std::string ip_;

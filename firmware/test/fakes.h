@@ -148,6 +148,7 @@ struct Wifi : cubecam::WifiControl {
     bool reset_ok = true;
     JoinStatus next = JoinStatus::Pending;
     std::vector<std::string> joined_ssids;
+    std::vector<std::string> joined_passwords;
     int resets = 0;
     uint8_t ip[4] = {192, 168, 1, 20};
     bool reset_module() override {
@@ -156,6 +157,7 @@ struct Wifi : cubecam::WifiControl {
     }
     bool start_join(const Settings& s) override {
         joined_ssids.push_back(s.ssid);
+        joined_passwords.push_back(s.password);
         return true;
     }
     JoinStatus join_status(LinkInfo& info) override {

@@ -89,6 +89,13 @@ TEST_CASE("the password is write-only") {
     CHECK(run(h, "get password\n").front() == "password=(set)");
 }
 
+TEST_CASE("set password takes the rest of the line: commas, quotes and spaces at either end") {
+    Host h;
+    CHECK(run(h, "set password  my \"secret\", ok \r\n") == std::vector<std::string>{"OK"});
+    CHECK(std::string(h.edited.password) == " my \"secret\", ok ");
+    for (const std::string& line : run(h, "get\n")) CHECK(line.find("secret") == std::string::npos);
+}
+
 TEST_CASE("console errors have codes and say what is valid") {
     Host h;
     CHECK(run(h, "frobnicate\n").back() == "ERR 1 unknown command; try help");

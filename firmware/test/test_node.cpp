@@ -154,6 +154,26 @@ TEST_CASE("Improv provisioning: joins, saves, answers PROVISIONED with the URL; 
     CHECK(strings_of(frames[1]) == std::vector<std::string>{"http://192.168.1.20/"});
 }
 
+TEST_CASE("Improv provisioning takes passphrases with commas, quotes, spaces and UTF-8, byte for byte") {
+    for (const std::string& pass : {std::string("my \"secret\", ok?"), std::string(" lead,trail "),
+                                    std::string("caf\xc3\xa9 cr\xc3\xa8me 123")}) {
+        CAPTURE(pass);
+        Board b;
+        Node node(b.hw);
+        node.boot();
+        b.serial.out.clear();
+        b.serial.in = fake::improv_rpc(improv::Command::WifiSettings, {"lab", pass});
+        b.run(node, 5);
+        b.wifi.next = JoinStatus::Joined;
+        b.run(node, 5);
+        CHECK(b.wifi.joined_passwords == std::vector<std::string>{pass});
+        Settings saved;
+        REQUIRE(settings_decode(b.storage.bytes.data(), b.storage.bytes.size(), saved));
+        CHECK(std::string(saved.password) == pass);
+        CHECK(b.serial.out.find(pass) == std::string::npos);
+    }
+}
+
 TEST_CASE("Improv provisioning that cannot join answers error 3 and READY, and keeps the old settings") {
     Board b;
     b.store(provisioned("old"));
@@ -192,7 +212,7 @@ TEST_CASE("Improv credentials that the module cannot take get a clear error, not
     CHECK(frames[0].type == improv::FrameType::ErrorState);
     CHECK(frames[0].data == std::vector<uint8_t>{0x01});
     REQUIRE_FALSE(lines.empty());
-    CHECK(lines.back() == "[E][improv] password must be 8 to 63 characters (WPA2 passphrase)");
+    CHECK(lines.back() == "[E][improv] password must be 8 to 63 bytes (WPA2 passphrase)");
     CHECK(b.wifi.joined_ssids.empty());
 }
 

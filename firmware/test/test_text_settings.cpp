@@ -127,6 +127,29 @@ TEST_CASE("a record with a good CRC but an invalid field is rejected") {
     CHECK_FALSE(settings_decode(rec, sizeof rec, out));
 }
 
+TEST_CASE("a record holds nothing the console could not have set (fuzz-settings finding)") {
+    // fuzz-settings found records that decoded although setting their values
+    // back gave another record: DHCP with an address, prefix or gateway left
+    // in the field, or a DHCP byte other than 0 and 1 (firmware/fuzz/corpus/
+    // settings/crash-5905939...). `get ip` said "dhcp", the record said more.
+    size_t ip_at = 6;
+    for (size_t i = 0; kSettingFields[i].type != FieldType::Ip; ++i) ip_at += kSettingFields[i].bytes;
+    const uint8_t bad[][10] = {{1, 192, 168, 1, 9, 0, 0, 0, 0, 0}, {1, 0, 0, 0, 0, 24, 0, 0, 0, 0},
+                               {1, 0, 0, 0, 0, 0, 10, 0, 0, 1}, {2, 0, 0, 0, 0, 0, 0, 0, 0, 0},
+                               {0, 10, 0, 0, 2, 0, 10, 0, 0, 1}};
+    for (const uint8_t* ip : bad) {
+        Settings s;
+        settings_defaults(s);
+        uint8_t rec[kSettingsRecordSize];
+        settings_encode(s, rec);
+        memcpy(rec + ip_at, ip, 10);
+        uint32_t crc = crc32(rec, kSettingsRecordSize - 4);
+        for (int i = 0; i < 4; ++i) rec[kSettingsRecordSize - 4 + i] = static_cast<uint8_t>(crc >> (8 * i));
+        Settings out;
+        CHECK_FALSE(settings_decode(rec, sizeof rec, out));
+    }
+}
+
 TEST_CASE("Wi-Fi credentials are validated before they reach the module") {
     Settings s;
     settings_defaults(s);
@@ -144,6 +167,37 @@ TEST_CASE("Wi-Fi credentials are validated before they reach the module") {
     CHECK(set(s, "password", p64.c_str()).code == kErrInvalidValue);
     CHECK(std::string(s.password) == p63);  // a rejected value changes nothing
     CHECK(set(s, "password", "").ok());      // open network
+}
+
+TEST_CASE("passphrases users really have: commas, quotes, spaces, UTF-8; control characters are refused") {
+    Settings s;
+    settings_defaults(s);
+    for (const char* pass : {"a,b,c,d,e", "my \"secret\", ok", "  spaced out  ", "back\\slash\\", "\"quoted\"",
+                             "gr\xc3\xbc\xc3\x9f dich, welt"}) {
+        CAPTURE(pass);
+        CHECK(set(s, "password", pass).ok());
+        CHECK(std::string(s.password) == pass);
+    }
+    std::string utf8_63;
+    while (utf8_63.size() < 62) utf8_63 += "\xc3\xa9";
+    utf8_63 += "x";
+    CHECK(set(s, "password", utf8_63.c_str()).ok());  // 63 bytes, 32 characters
+    CHECK(set(s, "password", (utf8_63 + "x").c_str()).code == kErrInvalidValue);
+    for (const char* bad : {"tab\there123", "new\nline123", "del\x7f" "ete123"}) {
+        CAPTURE(bad);
+        SettingResult r = set(s, "password", bad);
+        CHECK(r.code == kErrInvalidValue);
+        CHECK(std::string(r.message) == "password must not contain control characters");
+    }
+    CHECK(std::string(set(s, "ssid", "lab,2").message) == "ssid must be printable ASCII without commas");
+    CHECK(set(s, "ssid", "caf\xc3\xa9").code == kErrInvalidValue);
+    // What the console and Improv accept is what a record keeps.
+    REQUIRE(set(s, "password", "my \"secret\", ok").ok());
+    uint8_t rec[kSettingsRecordSize];
+    settings_encode(s, rec);
+    Settings back;
+    REQUIRE(settings_decode(rec, sizeof rec, back));
+    CHECK(std::string(back.password) == "my \"secret\", ok");
 }
 
 TEST_CASE("every key parses its documented forms and rejects others") {

@@ -254,6 +254,58 @@ TEST_CASE("access point with a 32-byte SSID and a 63-byte passphrase") {
     check_secret_kept(pass.c_str());
 }
 
+TEST_CASE("passphrases with commas and quotes and spaces and UTF-8 reach the module intact") {
+    struct Case {
+        std::string passphrase;
+        std::string wpapsk;  // the AT+WPAPSK the module gets
+        bool key;            // and then AT+WPSK with the key
+    };
+    const Case cases[] = {
+        {"correct horse battery", "AT+WPAPSK=lab,correct horse battery", false},
+        {"a,b,c,d,e", "AT+WPAPSK=lab,\"a,b,c,d,e\"", false},
+        {" spaced, out ", "AT+WPAPSK=lab,\" spaced, out \"", false},
+        {"my \"secret\", ok", "AT+WPAPSK=lab,cubecam-key-follows", true},
+        {"ends, in \\", "AT+WPAPSK=lab,cubecam-key-follows", true},
+        {"caf\xc3\xa9 cr\xc3\xa8me", "AT+WPAPSK=lab,cubecam-key-follows", true},
+    };
+    for (const Case& c : cases) {
+        CAPTURE(c.passphrase);
+        PowerOn power;
+        module().networks = {{"lab", c.passphrase, -48, 6}};
+        Settings s = station("lab", c.passphrase.c_str());
+        Board b(&s);
+        b.boot();
+        REQUIRE(b.run_until([] { return module().listening(); }));
+        CHECK(module().joined_ssid() == "lab");
+        const auto& cmds = module().commands;
+        auto wpapsk = std::find(cmds.begin(), cmds.end(), c.wpapsk);
+        REQUIRE(wpapsk != cmds.end());
+        bool key_sent = wpapsk + 1 != cmds.end() && (wpapsk + 1)->compare(0, 8, "AT+WPSK=") == 0;
+        CHECK(key_sent == c.key);
+        CHECK(std::find(cmds.begin(), cmds.end(), "AT+WA=lab") != cmds.end());
+        check_no_violations();
+        check_secret_kept(c.passphrase.c_str());
+    }
+}
+
+TEST_CASE("access point whose SSID has quotes and whose passphrase goes as its key") {
+    const std::string ssid = "\"cam\" " + std::string(26, 'S');
+    const std::string pass = "say \"hi\", " + std::string(53, 'p');
+    REQUIRE(ssid.size() == 32);
+    REQUIRE(pass.size() == 63);
+    Settings s = station(ssid.c_str(), pass.c_str());
+    s.mode = WifiMode::AccessPoint;
+    Joined j(s);
+    CHECK(module().access_point());
+    CHECK(module().joined_ssid() == ssid);
+    CHECK(module().key() == hostlib::Gs2200m::derived_key(ssid, pass));  // what a station derives too
+    const auto& cmds = module().commands;
+    std::string escaped = "\\\"cam\\\" " + std::string(26, 'S');
+    CHECK(std::find(cmds.begin(), cmds.end(), "AT+WA=" + escaped + ",,6") != cmds.end());
+    check_no_violations();
+    check_secret_kept(pass.c_str());
+}
+
 TEST_CASE("Improv scan on a fresh board lists the module's networks") {
     PowerOn power;
     Board b(nullptr);

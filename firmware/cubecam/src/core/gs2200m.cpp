@@ -12,6 +12,18 @@ const char* skip_spaces(const char* p) {
     return p;
 }
 
+bool printable_ascii(char c) { return c >= 0x20 && c <= 0x7e; }
+
+// The SSID argument: a backslash before every '"', which the module takes
+// away again. No quotes around it: an SSID has no comma (settings.h), and its
+// first character is then never a '"'.
+void add_ssid(TextBuf& out, const char* ssid) {
+    for (const char* p = ssid; *p; ++p) {
+        if (*p == '"') out.add('\\');
+        out.add(*p);
+    }
+}
+
 }  // namespace
 
 char cid_char(uint8_t cid) { return "0123456789abcdef"[cid & 15]; }
@@ -75,6 +87,51 @@ void bulk_header(uint8_t cid, uint16_t len, uint8_t out[kBulkHeaderBytes]) {
     out[1] = 'Z';
     out[2] = static_cast<uint8_t>(cid_char(cid));
     for (int i = 0, div = 1000; i < 4; ++i, div /= 10) out[3 + i] = static_cast<uint8_t>('0' + (len / div) % 10);
+}
+
+const char kKeyFollows[] = "cubecam-key-follows";
+
+PassphraseArg passphrase_arg(const char* passphrase) {
+    size_t len = strlen(passphrase);
+    bool plain = len > 0 && passphrase[0] != ' ' && passphrase[0] != '"' && passphrase[len - 1] != ' ';
+    bool quoted = len > 0 && passphrase[len - 1] != '\\';
+    for (size_t i = 0; i < len; ++i) {
+        char c = passphrase[i];
+        if (!printable_ascii(c)) return PassphraseArg::KeyOnly;
+        if (c == ',') plain = false;
+        if (c == '"' && (i == 0 || passphrase[i - 1] != '\\')) quoted = false;
+    }
+    if (plain) return PassphraseArg::Plain;
+    return quoted ? PassphraseArg::Quoted : PassphraseArg::KeyOnly;
+}
+
+bool add_wpapsk(TextBuf& out, const char* ssid, const char* passphrase) {
+    PassphraseArg form = passphrase_arg(passphrase);
+    if (form == PassphraseArg::KeyOnly) return false;
+    out.add("AT+WPAPSK=");
+    add_ssid(out, ssid);
+    out.add(',');
+    if (form == PassphraseArg::Quoted) {
+        out.add('"').add(passphrase).add('"');
+    } else {
+        out.add(passphrase);
+    }
+    out.add("\r\n");
+    return true;
+}
+
+void add_wpsk(TextBuf& out, const uint8_t psk[wpa::kPskBytes]) {
+    static const char kHex[] = "0123456789abcdef";
+    out.add("AT+WPSK=");
+    for (size_t i = 0; i < wpa::kPskBytes; ++i) out.add(kHex[psk[i] >> 4]).add(kHex[psk[i] & 15]);
+    out.add("\r\n");
+}
+
+void add_wa(TextBuf& out, const char* ssid, uint8_t channel) {
+    out.add("AT+WA=");
+    add_ssid(out, ssid);
+    if (channel > 0) out.add(",,").add_uint(channel);
+    out.add("\r\n");
 }
 
 }  // namespace gs2200m

@@ -18,7 +18,9 @@ SettingResult invalid(const char* message) {
 bool equals(const char* v, size_t n, const char* word) { return strlen(word) == n && memcmp(v, word, n) == 0; }
 
 bool in_charset(char c, Charset set) {
-    if (set == Charset::Wifi) return c >= 0x20 && c <= 0x7e && c != ',';
+    uint8_t b = static_cast<uint8_t>(c);
+    if (set == Charset::Ssid) return b >= 0x20 && b <= 0x7e && c != ',';
+    if (set == Charset::Passphrase) return b >= 0x20 && b != 0x7f;
     return (c >= 'a' && c <= 'z') || (c >= 'A' && c <= 'Z') || (c >= '0' && c <= '9') || c == '-' || c == '_';
 }
 
@@ -139,8 +141,12 @@ bool field_valid(const Settings& s, const SettingField& f) {
         uint16_t v = read_int(s, f);
         return v >= f.min && v <= f.max;
     }
-    case FieldType::Ip:
-        return s.ip.dhcp || (s.ip.prefix >= 1 && s.ip.prefix <= 32);
+    case FieldType::Ip: {
+        // As parse_ip_config leaves it: DHCP with no address at all.
+        static const uint8_t kNone[4] = {0, 0, 0, 0};
+        if (!s.ip.dhcp) return s.ip.prefix >= 1 && s.ip.prefix <= 32;
+        return s.ip.prefix == 0 && memcmp(s.ip.address, kNone, 4) == 0 && memcmp(s.ip.gateway, kNone, 4) == 0;
+    }
     }
     return false;
 }
@@ -227,12 +233,14 @@ bool decode_field(Reader& r, Settings& s, const SettingField& f) {
     case FieldType::Number:
         write_int(s, f, f.bytes == 1 ? r.u8() : r.u16());
         return true;
-    case FieldType::Ip:
-        s.ip.dhcp = r.u8() != 0;
+    case FieldType::Ip: {
+        uint8_t dhcp = r.u8();
+        s.ip.dhcp = dhcp != 0;
         r.bytes(s.ip.address, 4);
         s.ip.prefix = r.u8();
         r.bytes(s.ip.gateway, 4);
-        return true;
+        return dhcp <= 1;  // the encoder writes 0 or 1
+    }
     }
     return false;
 }

@@ -55,8 +55,9 @@ enum class FieldType : uint8_t {
 
 // Text that may stand in the field.
 enum class Charset : uint8_t {
-    Name,  // A-Z a-z 0-9 - _
-    Wifi   // printable ASCII without ',' (the GS2200M's AT commands separate fields with it)
+    Name,        // A-Z a-z 0-9 - _
+    Ssid,        // printable ASCII without ',' (the scan list and the AT commands separate fields with it)
+    Passphrase   // any byte but control characters: printable ASCII, and UTF-8 beyond it
 };
 
 struct SettingField {
@@ -89,17 +90,17 @@ constexpr SettingField choice_field(const char* key, uint16_t offset, uint8_t by
                                     const uint16_t* values, uint8_t count, const char* default_text,
                                     const char* rule) {
     return SettingField{key,   FieldType::Choice, offset, bytes, 0,            0,    words,  values,
-                        count, Charset::Wifi,     false,  false, default_text, rule, nullptr};
+                        count, Charset::Name,     false,  false, default_text, rule, nullptr};
 }
 
 constexpr SettingField number_field(const char* key, uint16_t offset, uint8_t bytes, uint16_t min, uint16_t max,
                                     const char* default_text, const char* rule) {
     return SettingField{key, FieldType::Number, offset, bytes, min,          max,  nullptr, nullptr,
-                        0,   Charset::Wifi,     false,  false, default_text, rule, nullptr};
+                        0,   Charset::Name,     false,  false, default_text, rule, nullptr};
 }
 
 constexpr SettingField ip_field(const char* key, uint16_t offset, const char* default_text, const char* rule) {
-    return SettingField{key,   FieldType::Ip, offset, 10, 0, 0, nullptr, nullptr, 0, Charset::Wifi, false, false,
+    return SettingField{key,   FieldType::Ip, offset, 10, 0, 0, nullptr, nullptr, 0, Charset::Name, false, false,
                         default_text, rule, nullptr};
 }
 
@@ -114,12 +115,13 @@ constexpr uint16_t kHdrValues[] = {0, 1, 2};
 constexpr SettingField kSettingFields[] = {
     text_field("name", offsetof(Settings, name), sizeof(Settings::name), 1, Charset::Name, false, false, "cubecam",
                "name must be 1 to 32 of A-Z a-z 0-9 - _", "name must be 1 to 32 of A-Z a-z 0-9 - _"),
-    text_field("ssid", offsetof(Settings, ssid), sizeof(Settings::ssid), 0, Charset::Wifi, true, false, "",
+    text_field("ssid", offsetof(Settings, ssid), sizeof(Settings::ssid), 0, Charset::Ssid, true, false, "",
                "ssid must be at most 32 bytes", "ssid must be printable ASCII without commas"),
-    // Empty means an open network.
-    text_field("password", offsetof(Settings, password), sizeof(Settings::password), kMinPassphrase, Charset::Wifi,
-               true, true, "", "password must be 8 to 63 characters (WPA2 passphrase)",
-               "password must be printable ASCII without commas"),
+    // Empty means an open network. Commas, quotes and spaces are fine: the
+    // GS2200M adapter quotes the passphrase, or sends the key it derives.
+    text_field("password", offsetof(Settings, password), sizeof(Settings::password), kMinPassphrase,
+               Charset::Passphrase, true, true, "", "password must be 8 to 63 bytes (WPA2 passphrase)",
+               "password must not contain control characters"),
     choice_field("mode", offsetof(Settings, mode), 1, kModeWords, kModeValues, 2, "station",
                  "mode must be station or ap"),
     ip_field("ip", offsetof(Settings, ip), "dhcp",

@@ -5,6 +5,7 @@
 
 #include "../core/gs2200m.h"
 #include "../core/text.h"
+#include "../core/wpa.h"
 
 // Defined by the GS2200-WiFi library (GS2200Hal.cpp, GS2200AtCmd.cpp) but not
 // declared in its headers: the bulk-data buffer (first byte = CID) and the
@@ -80,16 +81,31 @@ bool Gs2200Module::start_join(const Settings& s) {
         AtCmd_NDHCP(1);
     }
     AtCmd_WD();
-    // Our own AT+WPAPSK: the library's (AtCmd_WPAPSK, which activate_ap() and
-    // activate_station() use) formats into a 60-byte buffer that SSID 32 +
-    // passphrase 63 overflow. Settings validation keeps both printable and
-    // comma-free, so they fit this buffer and the module's syntax.
-    char cmd[16 + kMaxSsid + kMaxPassphrase];
+    // Our own AT+WPAPSK and AT+WA: the library's (AtCmd_WPAPSK, which
+    // activate_ap() and activate_station() use) formats into a 60-byte buffer
+    // that SSID 32 + passphrase 63 overflow, and neither quotes nor escapes.
+    if (s.password[0] && !send_key(s)) return false;
+    char cmd[gs2200m::kMaxCredentialCommand];
     TextBuf c(cmd, sizeof cmd);
-    c.add("AT+WPAPSK=").add(s.ssid).add(',').add(s.password).add("\r\n");
-    if (s.password[0] && AtCmd_SendCommand(cmd) != ATCMD_RESP_OK) return false;
-    join_failed_ = AtCmd_WA(s.ssid, "", ap ? kAccessPointChannel : 0) != ATCMD_RESP_OK;
+    gs2200m::add_wa(c, s.ssid, ap ? kAccessPointChannel : 0);
+    join_failed_ = AtCmd_SendCommand(cmd) != ATCMD_RESP_OK;
     return true;
+}
+
+bool Gs2200Module::send_key(const Settings& s) {
+    char cmd[gs2200m::kMaxCredentialCommand];
+    TextBuf c(cmd, sizeof cmd);
+    if (gs2200m::add_wpapsk(c, s.ssid, s.password)) return AtCmd_SendCommand(cmd) == ATCMD_RESP_OK;
+    // A passphrase AT+WPAPSK cannot carry (a comma together with a lone '"',
+    // UTF-8, ...): the module gets the key derived from it, after a stand-in
+    // passphrase that tells it which SSID the key is for.
+    uint8_t key[wpa::kPskBytes];
+    wpa::psk(s.ssid, s.password, key);
+    gs2200m::add_wpapsk(c, s.ssid, gs2200m::kKeyFollows);
+    bool ok = AtCmd_SendCommand(cmd) == ATCMD_RESP_OK;
+    c.clear();
+    gs2200m::add_wpsk(c, key);
+    return ok && AtCmd_SendCommand(cmd) == ATCMD_RESP_OK;
 }
 
 JoinStatus Gs2200Module::join_status(LinkInfo& info) {

@@ -1,9 +1,11 @@
 // The Telit GS2200M on the iS110B add-on board as the core's Network (sockets
 // by connection id) and WifiControl. Uses the GS2200-WiFi library's SPI and
 // AT layer, but routes incoming data by CID itself (the library's read()
-// drops data for other CIDs) and sends its own bulk-write and WPAPSK commands
-// (the library's WPAPSK buffer is 60 bytes; SSID 32 + passphrase 63 do not
-// fit), in station and access-point mode alike.
+// drops data for other CIDs) and sends its own bulk-write, WPAPSK and WA
+// commands (the library's WPAPSK buffer is 60 bytes, SSID 32 + passphrase 63
+// do not fit, and it neither quotes nor escapes), in station and
+// access-point mode alike; a passphrase the AT syntax cannot carry goes as
+// the key derived from it (AT+WPSK, core/gs2200m.h).
 #ifndef CUBECAM_SPRESENSE_GS2200_H
 #define CUBECAM_SPRESENSE_GS2200_H
 
@@ -43,6 +45,8 @@ public:
     size_t scan(ScanEntry* out, size_t max);
 private:
     void use_fast_clock();
+    // AT+WPAPSK, or AT+WPAPSK with a stand-in and AT+WPSK with the key.
+    bool send_key(const Settings& s);
     ModuleType type_;
     Clock& clock_;
     TelitWiFi telit_;
