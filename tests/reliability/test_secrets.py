@@ -29,8 +29,8 @@ from fakeboard import FakeBoard  # noqa: E402
 
 from tests.helpers.native import NativeNode, build_native  # noqa: E402
 
-PASSWORD = "Wq7-distinct-Pa55phrase"
-FRAGMENT = PASSWORD[3:15]  # "-distinct-Pa": any leak of most of it
+PASSWORD = 'Wq7 "distinct", Pa55 phrase'  # comma, quotes and spaces (issue 12, item 6)
+FRAGMENT = PASSWORD[3:15]  # ' "distinct",': any leak of most of it
 
 
 def assert_absent(outputs: dict[str, str | bytes]) -> None:

@@ -56,15 +56,20 @@ class ProvisionRequest:
     join_timeout_s: float = JOIN_TIMEOUT_S
     reboot: bool = False
 
-    def check(self) -> "ProvisionRequest":
+    def check(self) -> ProvisionRequest:
         ssid_bytes = len(self.ssid.encode("utf-8"))
         if not 1 <= ssid_bytes <= 32:
             raise ProvisionError(f"SSID must be 1 to 32 bytes, got {ssid_bytes}")
+        if "," in self.ssid or not all(" " <= c <= "~" for c in self.ssid):
+            raise ProvisionError(f"SSID {self.ssid!r}: the node takes printable ASCII without commas "
+                                 "(its scan list and AT commands separate fields with them)")
         pw = len(self.password.encode("utf-8"))
         if pw and not 8 <= pw <= 63:
-            raise ProvisionError(f"a WPA2 password has 8 to 63 characters, got {pw} (empty = open network)")
-        if "\n" in self.password or "\r" in self.password:
-            raise ProvisionError("the password must be one line")
+            raise ProvisionError(f"a WPA2 password has 8 to 63 bytes (characters, unless beyond ASCII), got {pw} "
+                                 "(empty = open network)")
+        if any(ord(c) < 0x20 or ord(c) == 0x7F for c in self.password):
+            raise ProvisionError("the password must be one line without control characters (tab, ...): "
+                                 "the node takes any other character, commas, quotes and spaces included")
         if self.name is not None and not _NAME.match(self.name):
             raise ProvisionError(f"name {self.name!r}: use 1-32 letters, digits, '_' or '-'")
         if self.jpeg_quality is not None and not 1 <= self.jpeg_quality <= 100:
