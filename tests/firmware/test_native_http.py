@@ -344,6 +344,27 @@ def test_no_free_slot_is_503(node):
         time.sleep(0.05)
 
 
+def test_half_requests_and_silent_connections_give_their_slots_back(node):
+    """Clients that send half a request and then nothing, or nothing at all, hold the four
+    slots only until the request timeout (5 s from the connection, however many bytes came:
+    kRequestTimeoutMs); they are closed without an answer and the node serves again."""
+    held = [socket.create_connection(("127.0.0.1", node.port), timeout=10) for _ in range(4)]
+    try:
+        t0 = time.monotonic()
+        held[0].sendall(b"GET /sta")
+        held[1].sendall(b"GET /stream HTTP/1.1\r\nHost: ca")
+        time.sleep(0.3)
+        assert get(node, "/status")[0] == 503
+        for s in held:
+            assert s.recv(64) == b""  # closed, nothing said
+        freed_after = time.monotonic() - t0
+        assert 4.5 < freed_after < 7.0
+        assert get(node, "/status")[0] == 200
+    finally:
+        for s in held:
+            s.close()
+
+
 def test_random_bytes_leave_the_node_serving(node):
     import random
 
