@@ -22,6 +22,8 @@ import numpy as np
 from scipy.spatial.transform import Rotation
 
 _ANGLE_UNITS = {"rad": 1.0, "deg": np.pi / 180.0}
+_EYE4 = np.eye(4)
+_EYE4.setflags(write=False)
 
 
 def to_radians(angle: float | np.ndarray, unit: str = "rad") -> float | np.ndarray:
@@ -34,19 +36,19 @@ def to_radians(angle: float | np.ndarray, unit: str = "rad") -> float | np.ndarr
 
 def make_T(R: np.ndarray, t: np.ndarray) -> np.ndarray:
     """4x4 pose from a 3x3 rotation matrix and a translation (metres)."""
-    T = np.zeros((4, 4))
+    T = _EYE4.copy()
     T[:3, :3] = R
     T[:3, 3] = np.asarray(t, dtype=float).reshape(3)
-    T[3, 3] = 1.0
     return T
 
 
 def invert_T(T: np.ndarray) -> np.ndarray:
-    """Inverse of a rigid 4x4 pose: ``invert_T(T_a_b) == T_b_a``."""
-    R = T[:3, :3]
-    out = np.eye(4)
-    out[:3, :3] = R.T
-    out[:3, 3] = -R.T @ T[:3, 3]
+    """Inverse of a rigid 4x4 pose: ``invert_T(T_a_b) == T_b_a``. (Runs many times per frame:
+    a copied identity and one 3-vector negation, not ``np.eye`` and a negated matrix.)"""
+    Rt = T[:3, :3].T
+    out = _EYE4.copy()
+    out[:3, :3] = Rt
+    out[:3, 3] = -(Rt @ T[:3, 3])
     return out
 
 
