@@ -1,6 +1,7 @@
 // cubecam-native: the firmware core on the host. Serves the JPEG files of a
 // folder as its camera over real TCP, speaks Improv + console on a pty (or
 // stdin/stdout) and keeps its settings in a file. See firmware/README.md.
+#include <arpa/inet.h>
 #include <errno.h>
 #include <getopt.h>
 #include <poll.h>
@@ -109,7 +110,12 @@ bool apply_sets(const Options& o, SettingsStorage& storage) {
         std::string value = eq == std::string::npos ? "" : kv.substr(eq + 1);
         SettingResult r = settings_set(s, key.c_str(), value.data(), value.size());
         if (eq == std::string::npos || !r.ok()) {
-            fprintf(stderr, "cubecam-native: --set %s: %s\n", kv.c_str(),
+            bool secret = false;  // a write-only value (the password) is not shown
+            for (size_t f = 0; f < kSettingCount; ++f) {
+                secret = secret || (key == kSettingFields[f].key && kSettingFields[f].write_only);
+            }
+            std::string shown = secret ? key + "=(not shown)" : kv;
+            fprintf(stderr, "cubecam-native: --set %s: %s\n", shown.c_str(),
                     eq == std::string::npos ? "expected KEY=VALUE" : r.message);
             return false;
         }
@@ -129,6 +135,11 @@ int main(int argc, char** argv) {
     if (!parse_options(argc, argv, o)) {
         fputs(kUsage, stderr);
         return 2;
+    }
+    in_addr_t bind_addr = inet_addr(o.bind.c_str());
+    if (bind_addr == INADDR_NONE || (ntohl(bind_addr) >> 24) != 127) {
+        fprintf(stderr, "cubecam-native: listening on %s: reachable from the network (the default 127.0.0.1 is not)\n",
+                o.bind.c_str());
     }
     signal(SIGPIPE, SIG_IGN);
     signal(SIGINT, on_signal);

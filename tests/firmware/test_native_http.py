@@ -378,6 +378,19 @@ def test_random_bytes_leave_the_node_serving(node):
     assert status_json(node)["name"] == "cubecam"
 
 
+@pytest.mark.parametrize("bind,warned", [("127.0.0.1", False), ("0.0.0.0", True)])
+def test_it_says_when_it_is_reachable_from_the_network(native_binary, jpeg_dir, tmp_path, bind, warned):
+    proc = subprocess.Popen([str(native_binary), "--images", str(jpeg_dir), "--settings", str(tmp_path / "s.bin"),
+                             "--serial", "none", "--port", "0", "--bind", bind, "--set", "ssid=lab"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    try:
+        assert proc.stdout.readline().startswith("http: ")
+    finally:
+        proc.terminate()
+        _, err = proc.communicate(timeout=10)
+    assert ("reachable from the network" in err) is warned, err
+
+
 def test_fixed_port_and_sigterm(native_binary, jpeg_dir):
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

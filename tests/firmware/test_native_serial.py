@@ -295,3 +295,4 @@ def test_command_line_errors_exit_2_with_one_line(native_binary, jpeg_dir, tmp_p
                             capture_output=True, timeout=10)
     assert result.returncode == 2
     assert message in result.stderr
+    assert b"=short" not in result.stderr  # a refused password is not shown either
