@@ -17,6 +17,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from cubetrack.app.parallel import LiveParams
 from cubetrack.app.tracker import StageParams
 from cubetrack.calib.bundle import BundleAdjustmentParams
 from cubetrack.calib.extrinsics import CalibrationParams
@@ -36,12 +37,13 @@ class ConfigParams(StageParams):
     The fields are the sections, in the order ``cubetrack defaults`` prints them: the tracker's
     (``[detector]`` ... ``[track]``, from :class:`~cubetrack.app.tracker.StageParams`, so these
     parameters run a :class:`~cubetrack.app.tracker.Tracker` as they are), then calibration,
-    bundle adjustment and the live source. This class is the one list of sections.
+    bundle adjustment, the live source and live processing. This class is the one list of sections.
     """
 
     calibration: CalibrationParams = field(default_factory=CalibrationParams)
     bundle_adjustment: BundleAdjustmentParams = field(default_factory=BundleAdjustmentParams)
     source: SourceParams = field(default_factory=SourceParams)
+    live: LiveParams = field(default_factory=LiveParams)
 
     @property
     def stages(self) -> StageParams:

@@ -15,6 +15,7 @@ result says ``interrupted``. A status callback gets a :class:`LiveStatus` every 
 from __future__ import annotations
 
 import dataclasses
+import functools
 import logging
 import math
 import shutil
@@ -27,7 +28,8 @@ from typing import Callable, Sequence
 
 from cubetrack.app.config import config_params
 from cubetrack.app.outputs import open_outputs
-from cubetrack.app.tracker import StageParams, Tracker, TrackStats
+from cubetrack.app.parallel import FramePool, LiveParams, by_capture_time
+from cubetrack.app.tracker import FrameResult, FrameWorker, StageParams, Tracker, TrackStats
 from cubetrack.core.cameras import CameraExtrinsics, CameraIntrinsics, ClockSample
 from cubetrack.core.errors import ConfigError
 from cubetrack.core.geometry import quat_xyzw_from_R
@@ -212,16 +214,24 @@ def track_live(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
                duration_s: float | None = None, record_to: str | Path | None = None,
                stop: threading.Event | None = None, status: Callable[[LiveStatus], None] | None = None,
                status_every_s: float = 2.0, clock: Callable[[], float] = time.time,
-               sinks: Sequence[Sink] = ()) -> LiveResult:
+               sinks: Sequence[Sink] = (), live_params: LiveParams | None = None) -> LiveResult:
     """Track every robot of ``config`` live from its cameras' URLs, writing ``<out_dir>/<robot>.tum``
     and ``.jsonl`` (flushed per pose). ``record_to``: also record the session there (everything that
     arrived, including frames the tracker had to drop). Frames are stamped with their capture
     time through each camera's ``/time`` round trips, exactly as in a replay of the recording.
-    Each pose's latencies are taken when it is handed to the outputs. With ``[fusion]
+
+    Per-frame work runs on ``[live] workers`` (:mod:`cubetrack.app.parallel`); this thread is
+    the one ordered consumer: it plans each frame when a worker is free (the fusion's prediction
+    tells detection where to look), fuses each result as soon as it is ready, and takes the
+    clock samples. A frame still waiting when its camera's next one arrives is dropped (counted
+    per camera); frames of a camera whose clock is not known yet are given up (counted). Each
+    pose's latencies are taken when it is handed to the outputs. With ``[fusion]
     output_rate_hz``, each tracked robot's pose predicted to now is output at that rate as well.
     ``sinks``: other outputs, fed the same poses."""
-    params = params or StageParams.from_config(config)
-    source = source or source_params(config)
+    settings = config_params(config)
+    params = params or settings.stages
+    source = source or settings.source
+    live_params = live_params or settings.live
     urls = live_camera_urls(config)
     intrinsics = live_intrinsics(config)
     tracker = Tracker(intrinsics, config.world, config.robots, extrinsics, params, synced_cameras=frozenset(urls))
@@ -233,6 +243,7 @@ def track_live(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
     started = time.monotonic()
     robots = [r.name for r in config.robots]
     tick_s = 1.0 / params.fusion.output_rate_hz if params.fusion.output_rate_hz > 0 else None
+    wake = threading.Event()
 
     def emit(poses: list[TrackedPose], now_s: float) -> None:
         """Output poses the tracker made for ``now_s``, their latencies moved to this moment."""
@@ -249,28 +260,47 @@ def track_live(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
                 arrival_latencies.append(pose.arrival_latency_s)
         rates.add_poses(poses)
 
-    def handle(event) -> None:
-        if isinstance(event, ClockReading):
-            emit(tracker.add_clock_sample(event.camera, event.sample), event.sample.host_recv_s)
-        else:
-            now_s = clock()
-            emit(tracker.process(event, now_s=now_s), now_s)
-            if outputs.wants_views:  # the frame for outputs that show images (no detections handed out yet)
-                outputs.camera_view(CameraView(event.camera, event.seq, event.host_time_s, event.jpeg, ()))
+    def take_events() -> None:
+        """Clock samples always; frames while a worker is free (the others wait in the source).
+        Until the first worker has started, this thread does the per-frame work itself."""
+        while (event := live.get(0, frames=pool.idle() > 0 or not pool.ready)) is not None:
+            if isinstance(event, ClockReading):
+                emit(tracker.add_clock_sample(event.camera, event.sample), event.sample.host_recv_s)
+            elif (job := tracker.admit(event, hold=False)) is not None:
+                if pool.ready:
+                    pool.submit(job)
+                else:
+                    fuse(tracker.worker.work(job))
 
+    def fuse(result: FrameResult) -> None:
+        now_s = clock()
+        emit(tracker.fuse(result, now_s), now_s)
+        if outputs.wants_views:  # the frame and what detection found in it, for outputs that show images
+            frame = result.job.frame
+            found = tuple(d for sighting in result.sightings for d in sighting.detections)
+            outputs.camera_view(CameraView(frame.camera, frame.seq, result.job.capture_time_s, frame.jpeg, found))
+
+    def fuse_results() -> None:
+        for result in by_capture_time(pool.take()):
+            fuse(result)
+
+    make_worker = functools.partial(FrameWorker, intrinsics, config.world, config.robots, tracker.T_world_cam, params)
+    pool = FramePool(make_worker, live_params.worker_count, live_params.worker_kind, wake.set, source.max_part_bytes)
     live = LiveCameras(urls, source, on_frame=recorder.frame if recorder else None,
-                       on_clock=recorder.clock if recorder else None, clock=clock)
-    rates = _Rates(live, [r.name for r in config.robots])
+                       on_clock=recorder.clock if recorder else None, clock=clock, wake=wake.set)
+    rates = _Rates(live, robots)
     try:
         live.start()
-        log.info("live tracking %d camera(s): %s", len(urls), ", ".join(f"{n} {u}" for n, u in urls.items()))
+        log.info("live tracking %d camera(s) with %d %s worker(s): %s", len(urls), pool.count,
+                 live_params.worker_kind.value, ", ".join(f"{n} {u}" for n, u in urls.items()))
         next_status = started + status_every_s
         next_tick = clock()
         try:
             while not _session_over(started, duration_s, stop):
-                event = live.get(0.1 if tick_s is None else min(0.1, max(0.0, next_tick - clock())))
-                if event is not None:
-                    handle(event)
+                wake.wait(0.1 if tick_s is None else min(0.1, max(0.0, next_tick - clock())))
+                wake.clear()
+                fuse_results()
+                take_events()
                 if tick_s is not None and (now_s := clock()) >= next_tick:
                     next_tick = (math.floor(now_s / tick_s) + 1) * tick_s  # the next tick of the rate's grid
                     emit(predicted_poses(tracker.fusion, robots, now_s), now_s)
@@ -278,8 +308,11 @@ def track_live(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
                     next_status += status_every_s
                     status(rates.snapshot(dict(tracker.stats.poses)))
             live.stop()
-            while (event := live.get(0)) is not None:  # what had arrived when the session ended
-                handle(event)
+            while pool.busy() or live.pending():  # what had arrived when the session ended
+                wake.wait(0.05)
+                wake.clear()
+                fuse_results()
+                take_events()
         except KeyboardInterrupt:
             interrupted = True
             log.info("interrupted: finishing with what has arrived")
@@ -288,6 +321,7 @@ def track_live(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
         emit(tracker.finish(now_s), now_s)
     finally:
         live.stop()
+        pool.close()
         outputs.close()
         if recorder is not None:
             recorder.close()

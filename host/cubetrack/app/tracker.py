@@ -96,6 +96,103 @@ class StageParams:
         return config_params(config).stages
 
 
+@dataclass(frozen=True, slots=True, eq=False)
+class FrameJob:
+    """One frame's per-frame work order, decided by the tracker (the workflow layer) from the
+    fusion's state: where detection looks (``regions``; None = the whole frame) and which robots'
+    per-camera estimates the fusion asks for."""
+
+    frame: Frame
+    capture_time_s: float
+    regions: tuple[Box, ...] | None
+    estimate_robots: frozenset[str]
+
+
+@enum.unique
+class FrameOutcome(enum.Enum):
+    REGIONS = "regions"  # detection searched only the regions (and found something, or had none)
+    FULL_FRAME = "full frame"  # the whole frame was searched
+    CORRUPT = "corrupt"  # the JPEG did not decode
+    NO_CAMERA_POSE = "no camera pose"  # world-marker mode: the frame showed no world marker
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class FrameResult:
+    """What the per-frame work made of a :class:`FrameJob`: a sighting per robot seen."""
+
+    job: FrameJob
+    outcome: FrameOutcome
+    sightings: tuple[CubeSighting, ...] = ()
+    error: str = ""
+
+
+class FrameWorker:
+    """The per-frame work: decode, detect (in the job's regions, else the whole frame), the
+    camera's pose, each robot's own detections and, where asked, its per-camera estimate. Holds
+    no fusion state, so any number of workers run in threads or processes (one per thread: a
+    detector is not shared)."""
+
+    def __init__(self, intrinsics: dict[str, CameraIntrinsics], world: WorldConfig,
+                 robots: tuple[RobotConfig, ...], T_world_cam: dict[str, np.ndarray], params: StageParams):
+        self.intrinsics = intrinsics
+        self.world = world
+        self.robots = robots
+        self.T_world_cam = T_world_cam
+        self.params = params
+        self.detector = Detector(params.detector, [world.dictionary, *(r.layout.dictionary for r in robots)])
+
+    def camera_pose(self, frame: Frame, detections) -> np.ndarray | None:
+        """T_world_cam for this frame: calibrated, or from the frame's own world marker."""
+        if self.params.track.camera_poses is CameraPoseSource.EXTRINSICS:
+            return self.T_world_cam[frame.camera]
+        w = self.world
+        pose = world_marker_pose(detections, dictionary=w.dictionary, marker_id=w.marker_id, size_m=w.marker_size_m,
+                                 intrinsics=self.intrinsics[frame.camera], params=self.params.estimator)
+        return None if pose is None else invert_T(pose.T_cam_marker)
+
+    def work(self, job: FrameJob) -> FrameResult:
+        frame = job.frame
+        try:
+            gray = decode_gray(frame.jpeg, f"{frame.camera} frame {frame.seq}")
+        except ImageError as exc:
+            return FrameResult(job, FrameOutcome.CORRUPT, error=str(exc))
+        detections, outcome = self._detect(gray, job.regions)
+        if not detections:
+            return FrameResult(job, outcome)
+        T_world_cam = self.camera_pose(frame, detections)
+        if T_world_cam is None:
+            return FrameResult(job, FrameOutcome.NO_CAMERA_POSE)
+        intrinsics = self.intrinsics[frame.camera]
+        sightings = []
+        for robot in self.robots:
+            mine = body_detections(detections, robot.layout)
+            if not mine:
+                continue
+            estimate = None
+            if robot.name in job.estimate_robots:
+                estimate = estimate_cube(
+                    mine, robot.layout, intrinsics, T_world_cam,
+                    camera=frame.camera, robot=robot.name, seq=frame.seq,
+                    capture_time_s=job.capture_time_s, arrival_time_s=frame.host_time_s,
+                    params=self.params.estimator,
+                )
+            sightings.append(CubeSighting(frame.camera, robot.name, frame.seq, job.capture_time_s, frame.host_time_s,
+                                          mine, estimate, T_world_cam, intrinsics))
+        return FrameResult(job, outcome, tuple(sightings))
+
+    def _detect(self, gray: np.ndarray, regions: tuple[Box, ...] | None) -> tuple[tuple[Detection, ...], FrameOutcome]:
+        """Detections in the regions (cut to the image), or in the whole frame (also when the
+        regions find nothing)."""
+        if regions is not None:
+            height, width = gray.shape
+            regions = tuple(box for box in ((x0, y0, min(x1, width), min(y1, height)) for x0, y0, x1, y1 in regions)
+                            if box[2] - box[0] >= 16 and box[3] - box[1] >= 16)
+            found = self.detector.detect(gray, regions)
+            if found or not regions:
+                return found, FrameOutcome.REGIONS
+        return self.detector.detect(gray), FrameOutcome.FULL_FRAME
+
+
 @dataclass(slots=True)
 class TrackStats:
     """Counters of one tracking run (visible state, updated as frames pass)."""
@@ -146,8 +243,7 @@ class Tracker:
             self.T_world_cam = {name: e.T_world_cam for name, e in (extrinsics or {}).items()}
         else:
             self.T_world_cam = {}
-        dictionaries = [world.dictionary, *(r.layout.dictionary for r in robots)]
-        self.detector = Detector(params.detector, dictionaries)
+        self.worker = FrameWorker(intrinsics, world, robots, self.T_world_cam, params)
         self.fusion: Fusion
         if params.fusion.method is FusionMethod.FILTER:
             self.fusion = FilterFusion({r.name: r.layout for r in robots}, params.fusion, params.filter)
@@ -185,74 +281,74 @@ class Tracker:
             return None
         return clock.to_host(frame.device_time_s)
 
-    def camera_pose(self, frame: Frame, detections) -> np.ndarray | None:
-        """T_world_cam for this frame: calibrated, or from the frame's own world marker."""
-        if self.params.track.camera_poses is CameraPoseSource.EXTRINSICS:
-            return self.T_world_cam[frame.camera]
-        w = self.world
-        pose = world_marker_pose(detections, dictionary=w.dictionary, marker_id=w.marker_id, size_m=w.marker_size_m,
-                                 intrinsics=self.intrinsics[frame.camera], params=self.params.estimator)
-        return None if pose is None else invert_T(pose.T_cam_marker)
-
     def process(self, frame: Frame, now_s: float | None = None) -> list[TrackedPose]:
         """Run one frame through detection, estimation and fusion; returns the poses it produced.
 
         ``now_s`` is the host time the frame became available (default: its arrival time).
         A frame whose camera's clock is not known yet is held (see ``add_clock_sample``).
         """
+        job = self.admit(frame)
+        if job is None:
+            return []
+        return self.fuse(self.worker.work(job), frame.host_time_s if now_s is None else now_s)
+
+    def admit(self, frame: Frame, hold: bool = True) -> FrameJob | None:
+        """Count a frame and plan its per-frame work (:meth:`plan`); None when there is nothing to
+        do now: a camera without intrinsics, or a polled camera whose clock is not known yet (the
+        frame is held for :meth:`add_clock_sample`, or with ``hold=False`` given up and counted,
+        as live tracking does: a frame that waited for the clock is stale)."""
         self.stats.frames += 1
         if frame.camera not in self.intrinsics:
-            return []
+            return None
         capture_time_s = self.capture_time(frame)
         if capture_time_s is None:
+            if not hold:
+                self.stats.frames_before_clock_sync += 1
+                return None
             held = self.held.setdefault(frame.camera, deque(maxlen=HELD_FRAMES))
             if len(held) == held.maxlen:
                 self.stats.frames_before_clock_sync += 1  # the oldest is given up
             held.append(frame)
-            return []
-        return self._track(frame, capture_time_s, frame.host_time_s if now_s is None else now_s)
+            return None
+        return self.plan(frame, capture_time_s)
 
     def _track(self, frame: Frame, capture_time_s: float, now_s: float) -> list[TrackedPose]:
-        """Detection, estimation and fusion of a frame whose capture time is known. A corrupt
+        """Detection, estimation and fusion of a frame whose capture time is known, in turn."""
+        return self.fuse(self.worker.work(self.plan(frame, capture_time_s)), now_s)
+
+    def plan(self, frame: Frame, capture_time_s: float) -> FrameJob:
+        """The per-frame work order of a frame whose capture time is known: the regions where
+        the fusion predicts the robots, and the robots whose fusion wants an estimate."""
+        return FrameJob(frame, capture_time_s, self._regions(frame.camera, capture_time_s),
+                        frozenset(r.name for r in self.robots if self.fusion.needs_estimate(r.name)))
+
+    def fuse(self, result: FrameResult, now_s: float) -> list[TrackedPose]:
+        """Count what the per-frame work found and fuse its sightings (``now_s``: the host time
+        they became available). Results of several workers may come in any order; a corrupt
         JPEG is counted and skipped."""
-        intrinsics = self.intrinsics[frame.camera]
+        frame = result.job.frame
         self.last_now_s = now_s
-        try:
-            gray = decode_gray(frame.jpeg, f"{frame.camera} frame {frame.seq}")
-        except ImageError as exc:
+        if result.outcome is FrameOutcome.CORRUPT:
             self.stats.corrupt_frames += 1
-            log.warning("skipping corrupt frame: %s", exc)
+            log.warning("skipping corrupt frame: %s", result.error)
             return []
-        detections = self._detect(frame.camera, gray, capture_time_s)
-        if not detections:
-            return []
-        T_world_cam = self.camera_pose(frame, detections)
-        if T_world_cam is None:
+        if result.outcome is FrameOutcome.REGIONS:
+            self.frames_since_full[frame.camera] += 1
+            self.stats.region_detections += 1
+        elif result.outcome is FrameOutcome.FULL_FRAME:
+            self.frames_since_full[frame.camera] = 0
+        else:
             self.stats.frames_without_camera_pose += 1
-            return []
         poses = []
-        for robot in self.robots:
-            mine = body_detections(detections, robot.layout)
-            if not mine:
-                continue
-            estimate = None
-            if self.fusion.needs_estimate(robot.name):
-                estimate = estimate_cube(
-                    mine, robot.layout, intrinsics, T_world_cam,
-                    camera=frame.camera, robot=robot.name, seq=frame.seq,
-                    capture_time_s=capture_time_s, arrival_time_s=frame.host_time_s,
-                    params=self.params.estimator,
-                )
-            if estimate is not None:
-                self.stats.estimates[(robot.name, frame.camera)] += 1
-            sighting = CubeSighting(frame.camera, robot.name, frame.seq, capture_time_s, frame.host_time_s,
-                                    mine, estimate, T_world_cam, intrinsics)
+        for sighting in result.sightings:
+            if sighting.estimate is not None:
+                self.stats.estimates[(sighting.robot, sighting.camera)] += 1
             poses.extend(self.fusion.add(sighting, now_s))
         for pose in poses:
             self.stats.poses[pose.robot] += 1
         return poses
 
-    def _regions(self, camera: str, time_s: float, shape: tuple[int, int]) -> list[Box] | None:
+    def _regions(self, camera: str, time_s: float) -> tuple[Box, ...] | None:
         """Image boxes (x0, y0, x1, y1) around every robot's predicted cube, or None when the
         full frame must be searched (a robot not predicted, a full search due, region search off)."""
         track = self.params.track
@@ -261,7 +357,7 @@ class Tracker:
             return None
         intrinsics = self.intrinsics[camera]
         T_cam_world = invert_T(self.T_world_cam[camera])
-        height, width = shape
+        width, height = intrinsics.width, intrinsics.height
         boxes = []
         for robot in self.robots:
             T_world_cube = self.fusion.predicted_pose(robot.name, time_s)
@@ -278,19 +374,7 @@ class Tracker:
             x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, width), min(y1, height)
             if x1 - x0 >= 16 and y1 - y0 >= 16:
                 boxes.append((x0, y0, x1, y1))  # else: predicted out of this camera's view
-        return boxes
-
-    def _detect(self, camera: str, gray: np.ndarray, time_s: float) -> tuple[Detection, ...]:
-        """Detections in the regions of the predicted cubes, or in the whole frame."""
-        boxes = self._regions(camera, time_s, gray.shape)
-        if boxes is not None:
-            found = self.detector.detect(gray, boxes)
-            if found or not boxes:
-                self.frames_since_full[camera] += 1
-                self.stats.region_detections += 1
-                return found
-        self.frames_since_full[camera] = 0
-        return self.detector.detect(gray)
+        return tuple(boxes)
 
     def finish(self, now_s: float | None = None) -> list[TrackedPose]:
         """Poses still held back by the fusion (call at the end of a session); ``now_s``: the host

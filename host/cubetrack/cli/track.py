@@ -115,7 +115,8 @@ def _run_live(args: argparse.Namespace, config, extrinsics, settings, sinks) -> 
     s = result.stats
     latency = "-" if result.latency_s is None else f"{result.latency_s * 1000:.0f} ms"
     print(f"{'interrupted; ' if result.interrupted else ''}tracked live for {result.duration_s:.1f} s: "
-          f"frames: {s.frames}, corrupt frame: {s.corrupt_frames}, median latency {latency}")
+          f"frames: {s.frames}, before their camera's clock was known: {s.frames_before_clock_sync}, "
+          f"corrupt frame: {s.corrupt_frames}, median latency {latency}")
     for name, c in result.cameras.items():
         bad = "".join(f", {n} {why}" for why, n in sorted(c.bad_parts.items()))
         print(f"  {name}: {c.frames} frames, {c.dropped} dropped (tracker behind), {c.clock_samples} clock samples, "

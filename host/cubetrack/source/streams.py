@@ -16,8 +16,10 @@ Per camera two threads run:
   brackets only the request and its answer. Timeouts and garbage answers are counted and dropped.
 
 :class:`LiveCameras` runs them for a set of cameras and merges everything into one bounded,
-thread-safe queue. When the consumer falls behind, the oldest *frames* are dropped (and counted);
-clock samples are never dropped (they are few and each one matters).
+thread-safe queue in arrival order. When the consumer falls behind, each camera keeps only its
+newest frame (``frames_per_camera``): an older one still waiting is dropped and counted per camera
+(a stale frame is worth less than a fresh one). Clock samples are never dropped (they are few and
+each one matters).
 """
 
 from __future__ import annotations
@@ -55,7 +57,7 @@ class SourceParams:
     backoff_max_s: float = param(5.0, "longest wait between reconnection attempts, seconds")
     clock_period_s: float = param(1.0, "interval between /time round trips per camera, seconds")
     clock_timeout_s: float = param(0.5, "a /time round trip not answered within this is dropped, seconds")
-    queue_frames: int = param(64, "frames waiting for the consumer, all cameras; beyond this the oldest are dropped")
+    frames_per_camera: int = param(1, "frames of one camera waiting for the consumer; a newer frame pushes the oldest out (dropped, counted): when the host is behind, only the freshest frames are processed")
     max_header_bytes: int = param(2048, "a part whose headers are longer than this is skipped, bytes")
     max_part_bytes: int = param(4 * 1024 * 1024, "a part whose JPEG is larger than this is skipped, bytes")
     read_chunk_bytes: int = param(65536, "largest single socket read, bytes")
@@ -68,7 +70,7 @@ class SourceParams:
                 raise ParamsError(f"{name} must be a positive number of seconds, got {v!r}")
         if self.backoff_max_s < self.backoff_initial_s:
             raise ParamsError("backoff_max_s must not be below backoff_initial_s")
-        for name in ("queue_frames", "max_header_bytes", "max_part_bytes", "read_chunk_bytes"):
+        for name in ("frames_per_camera", "max_header_bytes", "max_part_bytes", "read_chunk_bytes"):
             if getattr(self, name) < 1:
                 raise ParamsError(f"{name} must be at least 1")
 
@@ -414,13 +416,15 @@ class LiveCameras:
     called from the reader threads for every frame / round trip before it is queued (a recorder
     taps here, so it keeps frames the consumer drops); an exception in them stops everything
     and is re-raised by :meth:`get`. ``queue=False``: nothing is queued (taps only).
-    ``clock`` gives host times (Unix seconds).
+    ``clock`` gives host times (Unix seconds); ``wake`` is called (from a reader thread) whenever
+    an event is queued, for consumers that wait on more than this source.
     """
 
     def __init__(self, cameras: Mapping[str, str] | Iterable, params: SourceParams = SourceParams(), *,
                  on_frame: Callable[[Frame], None] | None = None,
                  on_clock: Callable[[str, ClockSample], None] | None = None,
-                 queue: bool = True, clock: Callable[[], float] = time.time):
+                 queue: bool = True, clock: Callable[[], float] = time.time,
+                 wake: Callable[[], None] | None = None):
         if isinstance(cameras, Mapping):
             urls = dict(cameras)
         else:
@@ -438,12 +442,13 @@ class LiveCameras:
         self.on_clock = on_clock
         self.queue_enabled = queue
         self.clock = clock
+        self.wake = wake
         self.failure: BaseException | None = None
         self._stats = {name: CameraStats(url=url) for name, url in urls.items()}
         self._lock = threading.Lock()
         self._cond = threading.Condition(self._lock)
         self._queue: deque = deque()
-        self._queued_frames = 0
+        self._queued_frames: Counter[str] = Counter()  # per camera
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self._sockets: dict[str, socket.socket] = {}
@@ -492,19 +497,30 @@ class LiveCameras:
 
     # --- what the consumer sees ---
 
-    def get(self, timeout_s: float | None = None) -> Frame | ClockReading | None:
-        """The next event in arrival order, or None after ``timeout_s`` (or once stopped and drained)."""
+    def get(self, timeout_s: float | None = None, frames: bool = True) -> Frame | ClockReading | None:
+        """The next event in arrival order, or None after ``timeout_s`` (or once stopped and drained).
+        ``frames=False``: the next clock reading only (frames keep waiting: a consumer with no
+        room for a frame still takes the clock samples)."""
         with self._cond:
-            if not self._queue and not self._stop.is_set():
+            if not self._has(frames) and not self._stop.is_set():
                 self._cond.wait(timeout_s)
             if self.failure is not None:
                 raise self.failure
-            if not self._queue:
-                return None
-            item = self._queue.popleft()
+            if frames:
+                if not self._queue:
+                    return None
+                item = self._queue.popleft()
+            else:
+                item = next((e for e in self._queue if isinstance(e, ClockReading)), None)
+                if item is None:
+                    return None
+                self._queue.remove(item)
             if isinstance(item, Frame):
-                self._queued_frames -= 1
+                self._queued_frames[item.camera] -= 1
             return item
+
+    def _has(self, frames: bool) -> bool:
+        return bool(self._queue) if frames else any(isinstance(e, ClockReading) for e in self._queue)
 
     def pending(self) -> int:
         with self._lock:
@@ -538,16 +554,16 @@ class LiveCameras:
             self._stats[frame.camera].bytes += len(frame.jpeg)
             if not self.queue_enabled:
                 return
-            if self._queued_frames >= self.params.queue_frames:
-                for i, item in enumerate(self._queue):
-                    if isinstance(item, Frame):
-                        del self._queue[i]
-                        self._queued_frames -= 1
-                        self._stats[item.camera].dropped += 1
-                        break
+            if self._queued_frames[frame.camera] >= self.params.frames_per_camera:
+                oldest = next(e for e in self._queue if isinstance(e, Frame) and e.camera == frame.camera)
+                self._queue.remove(oldest)
+                self._queued_frames[frame.camera] -= 1
+                self._stats[frame.camera].dropped += 1
             self._queue.append(frame)
-            self._queued_frames += 1
+            self._queued_frames[frame.camera] += 1
             self._cond.notify()
+        if self.wake is not None:
+            self.wake()
 
     def _put_clock(self, camera: str, sample: ClockSample) -> None:
         if self.on_clock is not None:
@@ -560,9 +576,12 @@ class LiveCameras:
             st = self._stats[camera]
             st.clock_samples += 1
             st.last_round_trip_s = sample.host_recv_s - sample.host_send_s
-            if self.queue_enabled:
-                self._queue.append(ClockReading(camera, sample))
-                self._cond.notify()
+            if not self.queue_enabled:
+                return
+            self._queue.append(ClockReading(camera, sample))
+            self._cond.notify()
+        if self.wake is not None:
+            self.wake()
 
     def _count(self, camera: str, **changes) -> None:
         with self._lock:

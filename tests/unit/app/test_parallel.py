@@ -1,0 +1,94 @@
+"""The frame pool of live tracking: worker processes (JPEGs in shared memory) and threads give
+what the tracker's own frame worker gives, frame by frame; a corrupt JPEG is a counted outcome,
+a worker process that dies ends the session with one clear error."""
+
+from __future__ import annotations
+
+import functools
+import os
+import signal
+import threading
+import time
+
+import pytest
+import test_tracker
+from test_tracker import BLUE, INTRINSICS, RED, T_WORLD_CAM, WORLD
+
+from cubetrack.app.parallel import FramePool, LiveParams, WorkerKind
+from cubetrack.app.tracker import FrameJob, FrameOutcome, FrameWorker, StageParams
+from cubetrack.core.errors import SourceError
+from cubetrack.core.records import Frame
+
+scenes = test_tracker.scenes  # the rendered frames of the tracker's tests (a fixture)
+MAKE_WORKER = functools.partial(FrameWorker, INTRINSICS, WORLD, (RED, BLUE), T_WORLD_CAM, StageParams())
+
+
+def jobs(scenes) -> list[FrameJob]:
+    out = []
+    for k, cam in enumerate(sorted(T_WORLD_CAM)):
+        jpeg = scenes["both"][cam]
+        out.append(FrameJob(Frame(cam, k, 1.0, 2.0, jpeg), 3.0 + k, None, frozenset({"red", "blue"})))
+        out.append(FrameJob(Frame(cam, 10 + k, 1.0, 2.0, jpeg), 4.0 + k, ((0, 0, 320, 240),), frozenset()))
+    out.append(FrameJob(Frame("cam1", 99, 1.0, 2.0, b"\xff\xd8 not a jpeg \xff\xd9"), 9.0, None, frozenset()))
+    return out
+
+
+def run_pool(pool: FramePool, wake: threading.Event, todo: list[FrameJob], timeout_s: float = 120.0):
+    results, todo = [], list(todo)
+    deadline = time.monotonic() + timeout_s
+    while (todo or pool.busy()) and time.monotonic() < deadline:
+        while todo and pool.idle():
+            pool.submit(todo.pop(0))
+        wake.wait(0.5)
+        wake.clear()
+        results += pool.take()
+    assert not todo and not pool.busy(), "the pool did not finish"
+    return results
+
+
+def summary(result):
+    return (result.outcome, [(s.robot, s.estimate is not None, [(d.marker_id, d.corners_px.tolist())
+                                                                 for d in s.detections]) for s in result.sightings])
+
+
+@pytest.mark.parametrize("kind", list(WorkerKind))
+def test_the_pool_gives_what_the_trackers_worker_gives(scenes, kind):
+    todo = jobs(scenes)
+    expected = {(j.frame.camera, j.frame.seq): summary(MAKE_WORKER().work(j)) for j in todo}
+    wake = threading.Event()
+    with FramePool(MAKE_WORKER, 2, kind, wake.set, max_frame_bytes=1 << 20) as pool:
+        results = run_pool(pool, wake, todo)
+    assert len(results) == len(todo)
+    for r in results:
+        assert summary(r) == expected[(r.job.frame.camera, r.job.frame.seq)]
+        assert r.job.frame.jpeg  # the job comes back whole, JPEG included
+    outcomes = {r.outcome for r in results}
+    assert {FrameOutcome.FULL_FRAME, FrameOutcome.REGIONS, FrameOutcome.CORRUPT} <= outcomes
+    assert any(s.estimate is not None for r in results for s in r.sightings)
+
+
+def test_a_worker_process_that_dies_ends_the_session_with_one_clear_error(scenes):
+    wake = threading.Event()
+    with FramePool(MAKE_WORKER, 1, WorkerKind.PROCESS, wake.set, max_frame_bytes=1 << 20) as pool:
+        run_pool(pool, wake, jobs(scenes)[:1])
+        os.kill(pool._lanes[0].process.pid, signal.SIGKILL)
+        deadline = time.monotonic() + 30
+        with pytest.raises(SourceError, match="frame worker process ended unexpectedly"):
+            while time.monotonic() < deadline:
+                pool.take()
+                time.sleep(0.05)
+
+
+def test_a_frame_larger_than_the_shared_buffer_is_a_corrupt_frame_not_a_crash(scenes):
+    wake = threading.Event()
+    big = jobs(scenes)[0]
+    with FramePool(MAKE_WORKER, 1, WorkerKind.PROCESS, wake.set, max_frame_bytes=1024) as pool:
+        [result] = run_pool(pool, wake, [big])
+    assert result.outcome is FrameOutcome.CORRUPT and "larger than the frame buffer" in result.error
+
+
+def test_live_params_default_to_one_worker_per_core():
+    assert LiveParams().worker_count == (os.cpu_count() or 1)
+    assert LiveParams(workers=3).worker_count == 3
+    with pytest.raises(Exception, match="workers"):
+        LiveParams(workers=-1)
