@@ -14,7 +14,7 @@ import pytest
 REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO / "tests" / "unit" / "sink"))  # the consumers written for the unit tests
 
-from conftest import free_port, open_router, peer  # noqa: E402
+from sink_helpers import free_port, open_router, peer  # noqa: E402
 from foxglove_client import LiveClient, read_mcap  # noqa: E402
 from vrpn_client import TrackerClient  # noqa: E402
 
