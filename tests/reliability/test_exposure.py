@@ -1,8 +1,8 @@
 """Every server the project starts binds loopback unless told otherwise, and says so when told
 otherwise (issue 12, item 5): the camera emulator (library and `cubecam emulate`), the firmware
-built for the host (cubecam-native), and the VRPN, Foxglove and Zenoh outputs of `cubetrack track`.
-"Binds loopback" is checked from outside: a connection to this machine's own network address is
-refused. (The dashboard gets the same test when it exists.)"""
+built for the host (cubecam-native), the VRPN, Foxglove and Zenoh outputs of `cubetrack track`, and
+the dashboard. "Binds loopback" is checked from outside: a connection to this machine's own
+network address is refused."""
 
 from __future__ import annotations
 
@@ -88,29 +88,30 @@ def test_cubecam_emulate_says_when_it_serves_the_network(images, bind, warned):
         assert re.search(r"http://127\.0\.0\.1:\d+/stream", proc.stdout)
 
 
-def test_cubecam_native_binds_loopback_by_default(images):
+@pytest.mark.parametrize("bind", [None, "0.0.0.0"])
+def test_cubecam_native_binds_loopback_unless_told_otherwise_and_says_so(images, bind):
     if shutil.which("g++") is None or shutil.which("make") is None:
         pytest.skip("g++ and make are needed to build cubecam-native (tests/install.sh installs them)")
     binary = build_native()
     with tempfile.TemporaryDirectory() as tmp:
-        proc = subprocess.Popen([str(binary), "--images", str(images), "--settings", f"{tmp}/settings.bin", "--port", "0",
-                                 "--serial", "none", "--set", "ssid=lab"], stdout=subprocess.PIPE, text=True)
+        cmd = [str(binary), "--images", str(images), "--settings", f"{tmp}/settings.bin", "--port", "0",
+               "--serial", "none", "--set", "ssid=lab"] + (["--bind", bind] if bind else [])
+        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
         try:
             for line in proc.stdout:
                 if line.startswith("http: "):
-                    url = line.split(": ", 1)[1].strip()
+                    port = port_of(line.split(": ", 1)[1].strip())
                     break
             else:
                 pytest.fail("cubecam-native printed no http: line")
-            assert url.startswith("http://127.0.0.1:")
-            port = port_of(url)
             assert reachable("127.0.0.1", port)
             outside = network_address()
             if outside is not None:
-                assert not reachable(outside, port)
+                assert reachable(outside, port) is (bind is not None)
         finally:
             proc.terminate()
-            proc.wait(timeout=10)
+            _, err = proc.communicate(timeout=10)
+    assert ("reachable from the network" in err) is (bind is not None), err
 
 
 def free_port() -> int:
@@ -160,4 +161,21 @@ def test_zenoh_listens_on_loopback_unless_told_otherwise_and_says_so(caplog):
                 assert reachable(outside, port) is exposed
         finally:
             session.close()
+        assert ("reachable from other machines" in caplog.text) is exposed, caplog.text
+
+
+def test_the_dashboard_binds_loopback_unless_told_otherwise_and_says_so(caplog):
+    from cubetrack.sink.dashboard.server import DashboardServer
+
+    caplog.set_level(logging.INFO)
+    outside = network_address()
+    for host, exposed in (("127.0.0.1", False), ("0.0.0.0", True)):
+        caplog.clear()
+        server = DashboardServer(host=host, port=0) if host != "127.0.0.1" else DashboardServer(port=0)
+        try:
+            assert reachable("127.0.0.1", server.port)
+            if outside is not None:
+                assert reachable(outside, server.port) is exposed
+        finally:
+            server.close()
         assert ("reachable from other machines" in caplog.text) is exposed, caplog.text
