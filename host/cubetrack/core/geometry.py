@@ -163,13 +163,13 @@ def is_finite_pose(T: np.ndarray) -> bool:
     T = np.asarray(T)
     if T.shape != (4, 4):
         return False
-    (a, b, c, x), (d, e, f, y), (g, h, i, z), last = T.tolist()
-    if not math.isfinite(a + b + c + d + e + f + g + h + i + x + y + z + sum(last)):
+    (a, b, c, x), (d, e, f, y), (g, h, i, z), (p, q, r, w) = T.tolist()
+    if not math.isfinite(a + b + c + d + e + f + g + h + i + x + y + z + p + q + r + w):
         return False
     gram = (a * a + d * d + g * g - 1.0, b * b + e * e + h * h - 1.0, c * c + f * f + i * i - 1.0,
             a * b + d * e + g * h, a * c + d * f + g * i, b * c + e * f + h * i)  # R^T R - I
     det = a * (e * i - f * h) - b * (d * i - f * g) + c * (d * h - e * g)
-    return max(abs(v) for v in gram) <= 1e-6 and det > 0.0
+    return max(map(abs, gram)) <= 1e-6 and det > 0.0
 
 
 # cv2.undistortPoints iterated to 1e-12 (OpenCV's default stops after five iterations)

@@ -464,9 +464,10 @@ class Detector:
             x0, y0, x1, y1 = box
             if not (0 <= x0 < x1 <= width and 0 <= y0 < y1 <= height):
                 raise ImageError(f"region {tuple(box)} is not inside the {width}x{height} image")
-        found = [d for box in merged_boxes(regions) for d in self._detect_box(gray, box)]
-        found.sort(key=_detection_order)
-        return tuple(found)
+        per_box = [self._detect_box(gray, box) for box in merged_boxes(regions)]
+        if len(per_box) == 1:
+            return per_box[0]  # sorted already
+        return tuple(sorted((d for found in per_box for d in found), key=_detection_order))
 
     def detect_gray(self, gray: np.ndarray) -> tuple[Detection, ...]:
         """Deprecated: ``detect(gray)``."""
@@ -526,7 +527,8 @@ Box = tuple[int, int, int, int]  # x0, y0, x1, y1: pixels, end exclusive
 
 
 def _detection_order(d: Detection) -> tuple[str, int, float]:
-    return d.dictionary, d.marker_id, float(d.corners_px[:, 0].mean())
+    """Dictionary, id, then x: the corners' summed x (the mean's order, at half its cost)."""
+    return d.dictionary, d.marker_id, float(d.corners_px[:, 0].sum())
 
 
 def merged_boxes(boxes: Iterable[Box]) -> list[Box]:
