@@ -33,12 +33,13 @@ from cubetrack.app.tracker import FrameResult, FrameWorker, StageParams, Tracker
 from cubetrack.core.cameras import CameraExtrinsics, CameraIntrinsics, ClockSample
 from cubetrack.core.errors import ConfigError
 from cubetrack.core.geometry import quat_xyzw_from_R
-from cubetrack.core.records import CameraView, Frame, TrackedPose
+from cubetrack.core.records import CameraHealth, CameraView, Frame, TrackedPose
 from cubetrack.fuse.base import Fusion
 from cubetrack.io.camera_info import read_camera_info
 from cubetrack.io.config import TrackerConfig
 from cubetrack.io.recording import CameraEntry, RecordingWriter
 from cubetrack.sink.base import Sink
+from cubetrack.source.clock import ClockFitMethod, ClockSync
 from cubetrack.source.streams import CameraStats, ClockReading, LiveCameras, SourceParams
 
 log = logging.getLogger(__name__)
@@ -146,6 +147,45 @@ class _Rates:
 
 def _median(values: list[float]) -> float | None:
     return statistics.median(values) if values else None
+
+
+HEALTH_EVERY_S = 1.0  # camera health snapshots for the outputs, per camera
+
+
+class _Health:
+    """Each camera's :class:`CameraHealth` for the outputs (the dashboard, Foxglove, Zenoh),
+    taken every ``HEALTH_EVERY_S``: the source's counters, frames/s and mean JPEG size over the
+    interval, the median transfer latency (arrival - capture) of the frames processed in it, and
+    the camera's clock fit (offset and drift, NaN until a ``/time`` round trip is known)."""
+
+    def __init__(self, live: LiveCameras, clocks: dict[str, ClockSync], clock: Callable[[], float]):
+        self.live, self.clocks, self.clock = live, clocks, clock
+        self.last = time.monotonic()
+        self.counts = {c: (0, 0) for c in live.urls}  # frames, bytes at the last snapshot
+        self.jpeg_bytes = {c: 0 for c in live.urls}
+        self.transfer: dict[str, list[float]] = {c: [] for c in live.urls}
+
+    def frame(self, frame: Frame, capture_time_s: float) -> None:
+        self.transfer[frame.camera].append(frame.host_time_s - capture_time_s)
+
+    def snapshots(self) -> list[CameraHealth]:
+        now = time.monotonic()
+        dt, self.last = max(1e-6, now - self.last), now
+        out = []
+        for name, s in self.live.stats().items():
+            frames, size = self.counts[name]
+            if s.frames > frames:
+                self.jpeg_bytes[name] = (s.bytes - size) // (s.frames - frames)
+            self.counts[name] = (s.frames, s.bytes)
+            fit = self.clocks[name].fit() if name in self.clocks else None
+            synced = fit is not None and fit.method is ClockFitMethod.ROUND_TRIP
+            transfer = _median(self.transfer[name])
+            self.transfer[name] = []
+            out.append(CameraHealth(name, self.clock(), s.connected, (s.frames - frames) / dt, s.frames, s.dropped,
+                                    s.bad, s.reconnects, fit.offset_s if synced else math.nan,
+                                    fit.drift * 1e6 if synced else math.nan,
+                                    math.nan if transfer is None else transfer, self.jpeg_bytes[name], s.last_error))
+        return out
 
 
 class _Recorder:
@@ -275,6 +315,7 @@ def track_live(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
     def fuse(result: FrameResult) -> None:
         now_s = clock()
         emit(tracker.fuse(result, now_s), now_s)
+        health.frame(result.job.frame, result.job.capture_time_s)
         if outputs.wants_views:  # the frame and what detection found in it, for outputs that show images
             frame = result.job.frame
             found = tuple(d for sighting in result.sightings for d in sighting.detections)
@@ -289,11 +330,13 @@ def track_live(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
     live = LiveCameras(urls, source, on_frame=recorder.frame if recorder else None,
                        on_clock=recorder.clock if recorder else None, clock=clock, wake=wake.set)
     rates = _Rates(live, robots)
+    health = _Health(live, tracker.clocks, clock)
     try:
         live.start()
         log.info("live tracking %d camera(s) with %d %s worker(s): %s", len(urls), pool.count,
                  live_params.worker_kind.value, ", ".join(f"{n} {u}" for n, u in urls.items()))
         next_status = started + status_every_s
+        next_health = time.monotonic()
         next_tick = clock()
         try:
             while not _session_over(started, duration_s, stop):
@@ -307,6 +350,10 @@ def track_live(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
                 if status is not None and time.monotonic() >= next_status:
                     next_status += status_every_s
                     status(rates.snapshot(dict(tracker.stats.poses)))
+                if time.monotonic() >= next_health:
+                    next_health += HEALTH_EVERY_S
+                    for snapshot in health.snapshots():
+                        outputs.camera_health(snapshot)
             live.stop()
             while pool.busy() or live.pending():  # what had arrived when the session ended
                 wake.wait(0.05)

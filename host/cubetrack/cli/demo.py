@@ -15,6 +15,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from cubetrack.cli.dashboard import add_dashboard, add_dashboard_argument
 from cubetrack.cli.outputs import add_output_arguments, output_sinks_from_args
 from cubetrack.simulate.params import SimulationParams
 
@@ -36,6 +37,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="camera tilt in degrees (default %(default)s)")
     p.add_argument("--seed", type=int, default=1, help="random seed (default %(default)s)")
     add_output_arguments(p)
+    add_dashboard_argument(p)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -46,6 +48,8 @@ def run(args: argparse.Namespace) -> int:
     from cubetrack.core.errors import SimulationError
     from cubetrack.core.progress import StderrProgress
 
+    if args.offline and args.dashboard is not None:
+        raise SimulationError("--dashboard shows the live session: not with --offline")
     if args.out.exists() and any(args.out.iterdir()):
         if not args.force:
             raise SimulationError(f"{args.out}: not empty; choose another --out or pass --force")
@@ -59,7 +63,7 @@ def run(args: argparse.Namespace) -> int:
 
     from cubetrack.app.outputs import close_sinks
 
-    sinks = output_sinks_from_args(args)
+    sinks = add_dashboard(args, output_sinks_from_args(args), out_dir=args.out / "live" / "track")
     try:
         result = run_demo(args.out, sim, progress=StderrProgress(), live=not args.offline, status=status, sinks=sinks)
     finally:

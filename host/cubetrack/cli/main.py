@@ -20,6 +20,7 @@ COMMANDS = {
     "calibrate-intrinsics": "calibrate_intrinsics",
     "track": "track",
     "record": "record",
+    "dashboard": "dashboard",
     "evaluate": "evaluate",
     "detect": "detect",
     "defaults": "defaults",

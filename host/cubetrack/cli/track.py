@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from cubetrack.cli.dashboard import add_dashboard, add_dashboard_argument
 from cubetrack.cli.outputs import add_output_arguments, output_sinks_from_args
 
 HELP = "track robots through a recording or live from the cameras -> TUM + JSONL per robot"
@@ -43,6 +44,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--status-every", type=float, default=2.0, metavar="S",
                    help="--live: seconds between status lines (default %(default)s)")
     add_output_arguments(p)
+    add_dashboard_argument(p)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -58,8 +60,8 @@ def run(args: argparse.Namespace) -> int:
     from cubetrack.io.config import read_extrinsics
     from cubetrack.io.recording import Recording
 
-    if not args.live and (args.duration is not None or args.record is not None):
-        raise ConfigError("--duration and --record go with --live (a replay runs to the end of its recording)")
+    if not args.live and (args.duration is not None or args.record is not None or args.dashboard is not None):
+        raise ConfigError("--duration, --record and --dashboard go with --live (a replay runs to the end of its recording)")
     if args.duration is not None and not args.duration > 0:
         raise ConfigError(f"--duration must be a positive number of seconds, got {args.duration}")
     if not args.status_every > 0:
@@ -76,7 +78,7 @@ def run(args: argparse.Namespace) -> int:
     else:
         extrinsics = read_extrinsics(args.extrinsics)
     recording = None if args.live else Recording.open(args.recording)
-    sinks = output_sinks_from_args(args, config)
+    sinks = add_dashboard(args, output_sinks_from_args(args, config), config, args.out)
     try:
         if args.live:
             return _run_live(args, config, extrinsics, settings, sinks)

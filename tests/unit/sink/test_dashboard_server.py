@@ -362,7 +362,9 @@ def test_the_sink_behind_the_session_queue(session_info, rendered):
     sink = DashboardSink(owned, owns_server=True)
     assert sink.where == f"dashboard: {owned.url}"
     sink.open(session_info)
-    sink.close()
-    sink.close()  # twice is harmless (a session and its command both close it)
+    sink.close()  # the session's end: the page still shows it
+    assert get(owned, "/api/session").json()["state"] == "ended"
+    sink.close()  # the command's end
+    sink.close()  # more is harmless
     with pytest.raises(requests.ConnectionError):
         requests.get(owned.url, timeout=2)

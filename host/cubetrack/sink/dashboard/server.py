@@ -424,9 +424,10 @@ class DashboardServer:
 
 
 class DashboardSink(Sink):
-    """A session's output to a :class:`DashboardServer`. ``owns_server``: closing the session
-    stops the server too (``track --dashboard``); otherwise the server outlives the session
-    (``cubetrack dashboard`` runs one session after another)."""
+    """A session's output to a :class:`DashboardServer`. :meth:`close` ends the session (the
+    page keeps showing it); with ``owns_server`` (``track --dashboard``, ``demo --dashboard``)
+    a second :meth:`close`, the command's own when it ends, stops the server too. Without it the
+    server outlives every session (``cubetrack dashboard`` runs one session after another)."""
 
     name = "dashboard"
     wants_views = True
@@ -435,8 +436,10 @@ class DashboardSink(Sink):
         self.server = server
         self.owns_server = owns_server
         self.where = f"dashboard: {server.url}"
+        self._open = False
 
     def open(self, session: SessionInfo) -> None:
+        self._open = True
         self.server.state.open_session(session)
 
     def pose(self, pose: TrackedPose) -> None:
@@ -449,8 +452,8 @@ class DashboardSink(Sink):
         self.server.state.camera_view(view)
 
     def close(self) -> None:
-        if self.server.closing.is_set():
-            return
-        self.server.state.close_session()
-        if self.owns_server:
+        if self._open:
+            self._open = False
+            self.server.state.close_session()
+        elif self.owns_server:
             self.server.close()

@@ -13,7 +13,7 @@ function el(tag, attrs = {}, ...children) {
     if (k === "class") node.className = v; else if (k === "text") node.textContent = v;
     else if (k.startsWith("on")) node.addEventListener(k.slice(2), v); else node.setAttribute(k, v === true ? "" : v);
   }
-  for (const c of children.flat()) if (c !== null && c !== undefined) node.append(c);
+  for (const c of children.flat()) if (c !== null && c !== undefined && c !== false) node.append(c);
   return node;
 }
 
@@ -73,14 +73,14 @@ function tileFor(name) {
   const stat = (key, label, wide) => [el("dt", { text: label }), el("dd", { "data-stat": key, class: wide ? "wide" : null, text: "–" })];
   tile = el("article", { class: "tile", "data-camera": name, "data-status": "waiting" },
     el("header", {}, el("span", { class: "name", text: name }), el("span", { class: "status", text: "waiting" })),
-    el("div", { class: "frame" }, el("img", { alt: `${name}: no frame yet` })),
+    el("div", { class: "frame" }, el("img", { alt: `${name}: newest frame`, hidden: true }), el("span", { class: "hint", text: "no frame yet" })),
     el("p", { class: "reason" }),
     el("dl", { class: "stats" },
       stat("fps", "fps"), stat("dropped", "dropped"), stat("latency", "transfer"), stat("jpeg", "JPEG"),
       stat("offset", "clock offset"), stat("drift", "drift"), stat("reconnects", "reconnects"), stat("bad", "bad parts"),
       stat("error", "last error", true), stat("url", "url", true)));
   const img = $("img", tile);
-  img.addEventListener("load", () => { img.dataset.loading = ""; loadFrame(tile); });
+  img.addEventListener("load", () => { img.dataset.loading = ""; img.hidden = false; $(".frame .hint", tile).hidden = true; loadFrame(tile); });
   img.addEventListener("error", () => { img.dataset.loading = ""; });
   $("#tiles").append(tile);
   return tile;
@@ -104,6 +104,13 @@ function setFrame(name, view) {
   loadFrame(tile);
 }
 
+// host minus device clock: for a node counting seconds since it booted, the Unix time it booted
+function clockOffset(s) {
+  if (s === null || s === undefined) return "–";
+  if (Math.abs(s) > 1e6) return `booted ${new Date(s * 1000).toLocaleTimeString()}.${String(Math.floor((s % 1) * 1000)).padStart(3, "0")}`;
+  return fmt(s * 1000, 1, " ms");
+}
+
 function renderCamera(cam) {
   model.cameras.set(cam.name, cam);
   const tile = tileFor(cam.name);
@@ -116,7 +123,7 @@ function renderCamera(cam) {
   put("dropped", h.dropped === undefined ? "–" : String(h.dropped));
   put("latency", fmt(h.transfer_latency_s === null || h.transfer_latency_s === undefined ? null : h.transfer_latency_s * 1000, 0, " ms"));
   put("jpeg", h.jpeg_bytes ? fmt(h.jpeg_bytes / 1024, 1, " KB") : "–");
-  put("offset", fmt(h.clock_offset_s === null || h.clock_offset_s === undefined ? null : h.clock_offset_s * 1000, 1, " ms"));
+  put("offset", clockOffset(h.clock_offset_s));
   put("drift", fmt(h.clock_drift_ppm, 1, " ppm"));
   put("reconnects", h.reconnects === undefined ? "–" : String(h.reconnects));
   put("bad", h.bad === undefined ? "–" : String(h.bad));
@@ -256,7 +263,7 @@ function renderCalibration() {
     el("tbody", {}, rows));
   const parts = [steps, el("p", { id: "calibration-message", text: c.message })];
   if (c.progress) parts.push(progressBar(c.progress.done, c.progress.total, c.progress.label));
-  if (c.drive) parts.push(el("div", { id: "drive-progress" }, progressBar(c.drive.instants, c.drive.target, "poses seen by two or more cameras")));
+  if (c.drive) parts.push(el("div", { id: "drive-progress" }, progressBar(c.drive.instants, c.drive.target, "sightings matched by another camera")));
   parts.push(table, buttons("calibration", c));
   for (const w of c.warnings || []) parts.push(el("p", { class: "poor", text: w }));
   parts.push(el("p", { class: "hint", text: c.saved ? `saved ${c.saved.what} to ${c.saved.path}` : `Save writes ${c.save_to}` }));
@@ -267,12 +274,12 @@ function renderRecording() {
   const r = model.panels.recording;
   if (!r) return;
   const since = r.since_s ? ` since ${new Date(r.since_s * 1000).toLocaleTimeString()}` : "";
-  $("#recording").replaceChildren(
+  $("#recording").replaceChildren(el("div", {},
     el("p", { id: "recording-state", "data-recording": String(r.recording), text: (r.recording ? "recording" : r.mode) + since }),
     r.out_dir ? el("p", { class: "hint", text: `trajectories: ${r.out_dir}` }) : null,
     r.recording_dir ? el("p", { class: "hint", text: `frames: ${r.recording_dir}` }) : null,
     r.message ? el("p", { class: "hint", text: r.message }) : null,
-    (r.actions || []).length || r.controls ? buttons("recording", r) : null);
+    r.controls ? buttons("recording", r) : null));
   renderSession();
 }
 

@@ -1,0 +1,670 @@
+"""``cubetrack dashboard``: a live session of the config's cameras shown in the browser, with the
+guided calibration and the session controls (docs/dashboard.md).
+
+:class:`DashboardApp` runs one live session after another (:func:`cubetrack.app.live.track_live`,
+the same code as ``cubetrack track --live``) and feeds each to a
+:class:`~cubetrack.sink.dashboard.server.DashboardServer`. Sessions are restarted when the page
+asks for something else:
+
+``watch``        the default: the cameras are read and the robots tracked, nothing is kept;
+``record``       "Start recording": trajectories in ``<out>/sessions/<stamp>/``, the frames in
+                 its ``recording/`` (replayable with ``cubetrack track --recording``);
+``calibration``  collecting world-marker samples: the frames go to ``<out>/calibration/<stamp>/world``;
+``drive``        "drive the robot around": the frames go to ``<out>/calibration/<stamp>/drive``.
+
+Before the cameras are calibrated the robots are tracked in the paper's uncalibrated mode (each
+frame's own world-marker pose, ``[track] camera_poses = "world-marker"``).
+
+The calibration steps call what ``cubetrack calibrate`` calls,
+:func:`cubetrack.app.calibrate.run_calibration` on the recordings just made (``--refine-with``
+for the drive), and write what it writes (the extrinsics and their run record in the
+calibration folder). Around it, this module adds what a person at the cameras needs: whether
+each camera sees the world marker now (:class:`_Watcher` searches the newest frames for it),
+the samples collected so far, each camera's reprojection error on its own recording
+(:func:`world_marker_reprojection`) and a verdict with advice (:func:`calibration_advice`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+import shutil
+import tempfile
+import threading
+import time
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from cubetrack.app.calibrate import CalibrationRun, run_calibration
+from cubetrack.app.config import ConfigParams, parameter_tables
+from cubetrack.app.live import track_live
+from cubetrack.app.tracker import CameraPoseSource
+from cubetrack.calib.extrinsics import CalibrationReport, world_detector
+from cubetrack.core.cameras import CameraExtrinsics, CameraIntrinsics, WorldConfig
+from cubetrack.core.errors import CalibrationError, ConfigError, CubetrackError, ImageError, RecordingError
+from cubetrack.core.geometry import invert_T, transform_points
+from cubetrack.core.layout import marker_corners_m
+from cubetrack.core.params import check, check_positive, param
+from cubetrack.core.records import CameraView, Detection, Frame, TrackedPose
+from cubetrack.detect.detector import DetectorParams, decode_gray
+from cubetrack.estimate.match import detections_of
+from cubetrack.io.config import TrackerConfig, write_extrinsics
+from cubetrack.io.recording import Recording
+from cubetrack.io.run import RUN_FILE, run_record_beside, write_run_record
+from cubetrack.sink.base import Sink
+from cubetrack.sink.dashboard.server import (
+    TRAJECTORY_FILES,
+    DashboardError,
+    DashboardServer,
+    DashboardSink,
+    Download,
+    folder_downloads,
+)
+
+log = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, slots=True)
+class GuideParams:
+    """How the dashboard judges a calibration and guides the steps."""
+
+    min_marker_side_px: float = param(
+        30.0, "the world marker should appear at least this wide in a camera (square root of its pixel area); "
+        "smaller: move the camera closer or print a bigger marker, pixels")
+    max_spread_cm: float = param(1.0, "a camera whose per-frame poses scatter more than this is poor, centimetres")
+    max_spread_deg: float = param(0.5, "... or more than this, degrees")
+    max_reprojection_px: float = param(
+        1.0, "a camera whose detected world-marker corners lie farther (RMS) than this from where its calibrated "
+        "pose projects them is poor, pixels")
+    min_inlier_fraction: float = param(
+        0.7, "a camera whose calibration kept fewer than this fraction of its world-marker sightings (the others "
+        "were outliers) is poor")
+    check_frames: int = param(30, "frames of each camera's calibration recording the reprojection error is measured on")
+    check_every_s: float = param(0.5, "outside the collection, each camera's newest frame is searched for the "
+                                 "world marker this often, seconds")
+    drive_instants: int = param(150, "drive step: robot sightings matched by another camera's (within [bundle_adjustment] "
+                                "max_span_s) to collect before refining")
+
+    def __post_init__(self) -> None:
+        check_positive(self, "min_marker_side_px", "max_spread_cm", "max_spread_deg", "max_reprojection_px",
+                       "check_every_s")
+        check(0.0 <= self.min_inlier_fraction <= 1.0,
+              f"min_inlier_fraction must be within 0..1, got {self.min_inlier_fraction}")
+        check(self.check_frames >= 1 and self.drive_instants >= 1, "check_frames and drive_instants must be at least 1")
+
+
+# --- judging a calibration ---------------------------------------------------------------------
+
+
+def world_marker_reprojection(frames: Iterable[Frame], T_world_cam: np.ndarray, intrinsics: CameraIntrinsics,
+                              world: WorldConfig, detector_params: DetectorParams | None = None,
+                              max_frames: int = 30) -> tuple[float, float, int]:
+    """How well a calibrated camera pose explains the camera's own frames: (RMS distance in
+    pixels between the world marker's detected corners and their projection through
+    ``T_world_cam``, the marker's mean apparent side in pixels, frames used). The first
+    ``max_frames`` frames that show the marker once are used; (NaN, NaN, 0) when none does."""
+    import cv2
+
+    corners_world = marker_corners_m(world.marker_size_m)  # the world frame is the marker's
+    T_cam_world = invert_T(T_world_cam)
+    projected, _ = cv2.projectPoints(transform_points(T_cam_world, corners_world), np.zeros(3), np.zeros(3),
+                                     intrinsics.K, intrinsics.dist)
+    projected = projected.reshape(4, 2)
+    detector = world_detector(world, detector_params)
+    errors, sides = [], []
+    for frame in frames:
+        if len(sides) >= max_frames:
+            break
+        try:
+            gray = decode_gray(frame.jpeg, f"{frame.camera} frame {frame.seq}")
+        except ImageError:
+            continue
+        found = detections_of(detector.detect(gray), world.dictionary, (world.marker_id,))
+        if len(found) != 1:
+            continue
+        errors.append(np.sum((found[0].corners_px - projected) ** 2, axis=1))
+        sides.append(math.sqrt(found[0].area_px2))
+    if not sides:
+        return math.nan, math.nan, 0
+    return float(np.sqrt(np.mean(errors))), float(np.mean(sides)), len(sides)
+
+
+def calibration_advice(spread_cm: float, spread_deg: float, reprojection_px: float, marker_side_px: float,
+                       inliers: int, sightings: int, params: GuideParams = GuideParams()) -> list[str]:
+    """What to do about a calibrated camera (empty: it is good). Each rule names the figure it
+    looked at; see :class:`GuideParams` for the limits."""
+    advice = []
+    if math.isfinite(marker_side_px) and marker_side_px < params.min_marker_side_px:
+        advice.append(f"the world marker is only {marker_side_px:.0f} px wide in this camera: move the camera "
+                      f"closer to it or print a bigger marker (then set [world] marker_size)")
+    if spread_cm > params.max_spread_cm or spread_deg > params.max_spread_deg:
+        advice.append(f"the per-frame poses scatter by {spread_cm:.2f} cm / {spread_deg:.2f}°: check the focus "
+                      "and the lighting, and that neither the camera nor the marker moved")
+    if not math.isfinite(reprojection_px) or reprojection_px > params.max_reprojection_px:
+        seen = "not found in its frames" if not math.isfinite(reprojection_px) else f"{reprojection_px:.2f} px away"
+        advice.append(f"the world marker's corners are {seen} from where the calibrated pose puts them: check "
+                      "the camera's focus and its camera_info (intrinsics)")
+    if sightings and inliers < params.min_inlier_fraction * sightings:
+        advice.append(f"only {inliers} of {sightings} sightings agreed: something moved or covered the marker "
+                      "while collecting; collect again")
+    return advice
+
+
+def missing_advice(reason: str, camera_status: str, last_error: str) -> list[str]:
+    """What to do about a camera that could not be calibrated."""
+    if camera_status in ("down", "stale", "waiting"):
+        tail = f" (last error: {last_error})" if last_error else ""
+        return [f"the camera sent no usable frames: check its power, its Wi-Fi and its url in the config{tail}"]
+    if "no world marker" in reason or "found in 0 of" in reason:
+        return ["the camera never saw the whole world marker: turn or move it until the marker is in view"]
+    return [("the camera saw the world marker too rarely: make sure the whole marker is in view and nothing "
+             "covers it, then collect again")]
+
+
+def camera_result(report: CalibrationReport, name: str, recording: Recording, intrinsics: CameraIntrinsics,
+                  world: WorldConfig, detector_params: DetectorParams, params: GuideParams) -> dict:
+    """One calibrated camera's row of the calibration panel: position, spread, reprojection
+    error on its own recording, and the verdict with advice."""
+    cal = report.cameras[name]
+    e = cal.extrinsics
+    rms_px, side_px, used = world_marker_reprojection(recording.frames(name), e.T_world_cam, intrinsics, world,
+                                                      detector_params, params.check_frames)
+    advice = calibration_advice(100 * e.spread_position_m, e.spread_rotation_deg, rms_px, side_px, cal.inliers,
+                                cal.sightings, params)
+    return {"calibrated": True, "samples": e.samples, "sightings": cal.sightings, "frames": cal.frames_read,
+            "position_m": [float(v) for v in e.T_world_cam[:3, 3]], "spread_cm": 100 * e.spread_position_m,
+            "spread_deg": e.spread_rotation_deg, "reprojection_px": rms_px if math.isfinite(rms_px) else None,
+            "marker_side_px": side_px if math.isfinite(side_px) else None, "checked_frames": used,
+            "poor": bool(advice), "advice": advice, "error": ""}
+
+
+def recorded_cameras(path: Path) -> tuple[Recording, dict[str, str]]:
+    """The recording at ``path`` restricted to the cameras that recorded frames (a camera that
+    was down while recording has an empty index), and why each other camera was left out."""
+    recording = Recording.open(path)
+    kept, empty = [], {}
+    for camera in recording.cameras:
+        try:
+            recording.index(camera.name)
+            kept.append(camera)
+        except RecordingError as exc:
+            empty[camera.name] = str(exc)
+    if not kept:
+        raise CalibrationError(f"{path}: no camera recorded a frame")
+    return Recording(recording.path, tuple(kept), recording.created), empty
+
+
+# --- the session loop --------------------------------------------------------------------------
+
+
+@dataclass(frozen=True, slots=True)
+class SessionPlan:
+    """One live session: what it is for, where its trajectories go, where its frames are
+    recorded (None: not recorded), and the camera poses it tracks with."""
+
+    kind: str
+    out_dir: Path
+    record_to: Path | None
+    extrinsics: dict[str, CameraExtrinsics]
+
+
+class _Watcher(Sink):
+    """The workflow's own output of each session: searches the newest frames for the world
+    marker (every frame while collecting, else every ``check_every_s`` per camera) and counts the
+    poses several cameras took part in. It runs behind the session's queue, so it never slows
+    the tracker (frames it has no time for are dropped)."""
+
+    name = "dashboard-guide"
+    wants_views = True
+
+    def __init__(self, app: DashboardApp):
+        self.app = app
+        self.detector = world_detector(app.config.world, app.settings.detector)
+
+    def pose(self, pose: TrackedPose) -> None:
+        self.app.pose_seen(pose)
+
+    def camera_view(self, view: CameraView) -> None:
+        if not self.app.wants_marker_check(view.camera):
+            return
+        try:
+            gray = decode_gray(view.jpeg, f"{view.camera} frame {view.seq}")
+        except ImageError:
+            return
+        world = self.app.config.world
+        found = detections_of(self.detector.detect(gray), world.dictionary, (world.marker_id,))
+        self.app.marker_checked(view.camera, found[0] if len(found) == 1 else None)
+
+
+def _stamp(parent: Path, clock: Callable[[], float]) -> Path:
+    """A new folder name under ``parent`` from the local time (``20250101-120000``, ``-2`` ...)."""
+    base = time.strftime("%Y%m%d-%H%M%S", time.localtime(clock()))
+    path, n = parent / base, 1
+    while path.exists():
+        n += 1
+        path = parent / f"{base}-{n}"
+    return path
+
+
+class DashboardApp:
+    """The dashboard's workflow (module doc). ``out_dir`` holds the sessions and calibrations;
+    ``extrinsics_path`` is where "Save" writes (an earlier file there is kept beside it, renamed
+    with its time) and ``extrinsics`` what the cameras are calibrated with now (may be partial)."""
+
+    def __init__(self, config: TrackerConfig, settings: ConfigParams, server: DashboardServer, out_dir: Path,
+                 extrinsics_path: Path, extrinsics: dict[str, CameraExtrinsics] | None = None,
+                 params: GuideParams = GuideParams(), clock: Callable[[], float] = time.time):
+        from cubetrack.app.live import live_camera_urls, live_intrinsics
+
+        self.config = config
+        self.settings = settings
+        self.server = server
+        self.out_dir = Path(out_dir)
+        self.extrinsics_path = Path(extrinsics_path)
+        self.params = params
+        self.clock = clock
+        self.urls = live_camera_urls(config)
+        self.intrinsics = live_intrinsics(config)
+        self.extrinsics = dict(extrinsics or {})
+        self._lock = threading.RLock()
+        self._stop = threading.Event()
+        self._session_stop = threading.Event()
+        self._scratch = tempfile.TemporaryDirectory(prefix="cubetrack-dashboard-")
+        self._plan = self._watch_plan()
+        self._since_s = self.clock()
+        self._message = ""
+        self._dirty = threading.Event()
+        self._worker: threading.Thread | None = None
+        # the calibration panel's state
+        self.step = "check"
+        self.target = settings.calibration.samples
+        self.samples = {c: 0 for c in self.urls}
+        self.marker = {c: (-math.inf, -math.inf, None) for c in self.urls}  # camera -> (checked, seen (host s), side px)
+        self.results: dict[str, dict] = {}
+        self.refined: dict[str, dict] = {}
+        self.warnings: list[str] = []
+        self.progress: tuple[str, int, int] | None = None
+        self.drive_instants = 0
+        self._last_sighting: dict[str, dict[str, float]] = {}  # robot -> camera -> time of its last sighting
+        self.calibration_dir: Path | None = None
+        self.candidate: CalibrationRun | None = None
+        self.saved: dict | None = None
+        self.step_message = "Point every camera at the world marker; each row below says whether it sees it."
+        server.add_actions("calibration", {"collect": self._collect, "stop": self._stop_collecting,
+                                           "cancel": self._cancel, "save": self._save, "drive": self._drive,
+                                           "refine": self._refine})
+        server.add_actions("recording", {"start": self._start_recording, "stop": self._stop_recording})
+        server.set_downloads(self.downloads)
+        self._publish()
+
+    # --- sessions ---
+
+    def _watch_plan(self) -> SessionPlan:
+        return SessionPlan("watch", Path(self._scratch.name), None, dict(self.extrinsics))
+
+    def _stage_params(self, extrinsics: dict[str, CameraExtrinsics]):
+        """The tracker's parameters; the uncalibrated mode while some camera has no extrinsics."""
+        stages = self.settings.stages
+        if set(self.intrinsics) <= set(extrinsics):
+            return stages
+        return dataclasses.replace(stages, track=dataclasses.replace(stages.track,
+                                                                     camera_poses=CameraPoseSource.WORLD_MARKER))
+
+    def run(self, duration_s: float | None = None) -> None:
+        """Run sessions until :meth:`stop`, ``duration_s`` or Ctrl-C."""
+        timer = None
+        if duration_s is not None:
+            timer = threading.Timer(duration_s, self.stop)
+            timer.daemon = True
+            timer.start()
+        publisher = threading.Thread(target=self._publish_loop, name="cubetrack-dashboard-panels", daemon=True)
+        publisher.start()
+        try:
+            while not self._stop.is_set():
+                with self._lock:
+                    plan = self._plan
+                    self._session_stop = threading.Event()
+                    stop = self._session_stop
+                    self._since_s = self.clock()
+                    self._dirty.set()
+                interrupted = self._run_session(plan, stop)
+                self._session_ended(plan)
+                if interrupted:
+                    break
+        except KeyboardInterrupt:
+            pass
+        finally:
+            self._stop.set()
+            if timer is not None:
+                timer.cancel()
+            self._scratch.cleanup()
+
+    def _run_session(self, plan: SessionPlan, stop: threading.Event) -> bool:
+        """One live session; returns whether Ctrl-C ended it. A session that cannot start (e.g.
+        its folder cannot be written) is reported on the page and the plain watch session follows."""
+        if plan.kind == "record":
+            write_run_record(plan.out_dir / RUN_FILE, "dashboard", parameter_tables(self._stage_params(plan.extrinsics)),
+                             {"config": self.config.path, "extrinsics": self.extrinsics_path
+                              if self.extrinsics_path.exists() else None}, {"cameras": dict(self.urls)})
+        try:
+            result = track_live(self.config, plan.extrinsics or None, plan.out_dir, self._stage_params(plan.extrinsics),
+                                self.settings.source, stop=stop, record_to=plan.record_to,
+                                sinks=[DashboardSink(self.server), _Watcher(self)])
+        except CubetrackError as exc:
+            log.error("dashboard: the %s session failed: %s", plan.kind, exc)
+            with self._lock:
+                self._message = f"the {plan.kind} session failed: {exc}"
+                self._plan = self._watch_plan()
+                if self.step in ("collecting", "driving"):
+                    self.step, self.step_message = "check", self._message
+            self._stop.wait(1.0)
+            return False
+        return result.interrupted
+
+    def _restart(self, plan: SessionPlan) -> None:
+        """End the running session; ``plan`` runs next (caller holds the lock)."""
+        self._plan = plan
+        self._session_stop.set()
+
+    def _session_ended(self, plan: SessionPlan) -> None:
+        """After a collecting or driving session, compute from what it recorded."""
+        with self._lock:
+            if self._stop.is_set():
+                return
+            if plan.kind == "calibration" and self.step == "calibrating":
+                self._start_worker(self._calibrate, plan.record_to)
+            elif plan.kind == "drive" and self.step == "refining":
+                self._start_worker(self._refine_with, plan.record_to)
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._session_stop.set()
+
+    # --- what the watcher reports (from the session's output thread) ---
+
+    def wants_marker_check(self, camera: str) -> bool:
+        with self._lock:
+            if self.step == "collecting":
+                return True
+            return self.clock() - self.marker[camera][0] >= self.params.check_every_s
+
+    def marker_checked(self, camera: str, detection: Detection | None) -> None:
+        with self._lock:
+            now, (_, seen_s, side) = self.clock(), self.marker[camera]
+            if detection is not None:
+                seen_s, side = now, math.sqrt(detection.area_px2)
+            self.marker[camera] = (now, seen_s, side)
+            if self.step == "collecting" and detection is not None and self._plan.kind == "calibration":
+                self.samples[camera] = self.samples.get(camera, 0) + 1
+                if self._collected_enough():
+                    self._finish_collecting()
+            self._dirty.set()
+
+    def pose_seen(self, pose: TrackedPose) -> None:
+        """While driving: count the sightings another camera matched within the bundle
+        adjustment's ``max_span_s`` (what makes an instant it can use)."""
+        if pose.predicted or not pose.cameras:
+            return
+        with self._lock:
+            if self.step != "driving":
+                return
+            last = self._last_sighting.setdefault(pose.robot, {})
+            span_s = self.settings.bundle_adjustment.max_span_s
+            if len(pose.cameras) > 1 or any(abs(pose.time_s - t) <= span_s for c, t in last.items()
+                                            if c not in pose.cameras):
+                self.drive_instants += 1
+                self._dirty.set()
+            for camera in pose.cameras:
+                last[camera] = pose.time_s
+
+    def _camera_status(self, camera: str) -> tuple[str, str]:
+        cam = self.server.state.camera_json(camera) or {}
+        health = cam.get("health") or {}
+        return cam.get("status", "waiting"), health.get("last_error") or cam.get("reason", "")
+
+    def _collected_enough(self) -> bool:
+        """Every camera that is up has its samples (and one camera at least)."""
+        up = [c for c in self.urls if self._camera_status(c)[0] == "ok"]
+        return bool(up) and all(self.samples[c] >= self.target for c in up)
+
+    # --- actions (HTTP threads) ---
+
+    def _require(self, *steps: str) -> None:
+        if self.step not in steps:
+            raise DashboardError(f"not now: the calibration is at step {self.step!r}")
+        if self._plan.kind == "record":
+            raise DashboardError("a recording is running: stop it first")
+
+    def _collect(self, body: dict) -> dict:
+        samples = body.get("samples", self.settings.calibration.samples)
+        if isinstance(samples, bool) or not isinstance(samples, int) or not 1 <= samples <= 100000:
+            raise ConfigError(f"samples must be a whole number from 1 to 100000, got {samples!r}")
+        with self._lock:
+            self._require("check", "result", "refined", "failed")
+            self.calibration_dir = _stamp(self.out_dir / "calibration", self.clock)
+            self.target = samples
+            self.samples = {c: 0 for c in self.urls}
+            self.results, self.refined, self.warnings, self.candidate, self.progress = {}, {}, [], None, None
+            self._go("collecting", f"Collecting {samples} world-marker sightings per camera into "
+                     f"{self.calibration_dir / 'world'}; keep the cameras and the marker still.",
+                     SessionPlan("calibration", self._plan.out_dir, self.calibration_dir / "world",
+                                 dict(self.extrinsics)))
+            self._publish()
+            return {"recording": str(self.calibration_dir / "world"), "samples": samples}
+
+    def _go(self, step: str, message: str, plan: SessionPlan | None = None) -> None:
+        """Move the calibration to ``step``; ``plan`` (default: watching) runs next (caller holds the lock)."""
+        self.step, self.step_message = step, message
+        self._restart(plan or self._watch_plan())
+        self._dirty.set()
+
+    def _finish_collecting(self) -> None:
+        self._go("calibrating", "Calibrating every camera from the samples just recorded...")
+
+    def _stop_collecting(self, body: dict) -> dict:
+        with self._lock:
+            self._require("collecting")
+            self._finish_collecting()
+            self._publish()
+            return {}
+
+    def _cancel(self, body: dict) -> dict:
+        with self._lock:
+            self._require("collecting", "driving")
+            self._go("check" if self.step == "collecting" else "result", "Cancelled; what was recorded stays on disk.")
+            self._publish()
+            return {}
+
+    def _save(self, body: dict) -> dict:
+        with self._lock:
+            self._require("result", "refined")
+            run = self.candidate
+            kind = "refined" if self.step == "refined" else "calibration"
+            target = self.extrinsics_path
+            target.parent.mkdir(parents=True, exist_ok=True)
+            kept = None
+            if target.exists():  # nothing saved before is lost: the old file stays beside, with its time
+                stamp = time.strftime("%Y%m%d-%H%M%S", time.localtime(target.stat().st_mtime))
+                kept = target.with_name(f"{target.stem}.{stamp}{target.suffix}")
+                shutil.copy2(target, kept)
+            write_extrinsics(run.extrinsics, target)  # atomically
+            if run.run_record_path.exists():
+                shutil.copyfile(run.run_record_path, run_record_beside(target))
+            self.extrinsics = dict(run.extrinsics)
+            self.saved = {"path": str(target), "what": kind, "cameras": sorted(run.extrinsics),
+                          "previous": str(kept) if kept else None}
+            self.step_message = (f"Saved to {target}" + (f" (the earlier file is now {kept.name})" if kept else "")
+                                 + ". Tracking now uses these camera poses.")
+            if self._plan.kind == "watch":
+                self._restart(self._watch_plan())
+            self._publish()
+            return dict(self.saved)
+
+    def _drive(self, body: dict) -> dict:
+        with self._lock:
+            self._require("result", "refined")
+            self.drive_instants, self._last_sighting, self.refined = 0, {}, {}
+            extrinsics = {**self.extrinsics, **self.candidate.report.extrinsics}
+            self._go("driving", "Drive the robot around where several cameras see it; the frames go to "
+                     f"{self.calibration_dir / 'drive'}.",
+                     SessionPlan("drive", self._plan.out_dir, self.calibration_dir / "drive", extrinsics))
+            self._publish()
+            return {"recording": str(self.calibration_dir / "drive")}
+
+    def _refine(self, body: dict) -> dict:
+        with self._lock:
+            self._require("driving")
+            self._go("refining", "Refining the camera poses with the robot's cube (bundle adjustment)...")
+            self._publish()
+            return {}
+
+    def _start_recording(self, body: dict) -> dict:
+        with self._lock:
+            if self._plan.kind != "watch" or self.step in ("collecting", "driving"):
+                raise DashboardError(f"not now: the cameras are busy ({self._plan.kind})")
+            out = _stamp(self.out_dir / "sessions", self.clock)
+            self._restart(SessionPlan("record", out, out / "recording", dict(self.extrinsics)))
+            self._message = ""
+            self._publish()
+            return {"out_dir": str(out), "recording": str(out / "recording")}
+
+    def _stop_recording(self, body: dict) -> dict:
+        with self._lock:
+            if self._plan.kind != "record":
+                raise DashboardError("no recording is running")
+            out = self._plan.out_dir
+            self._restart(self._watch_plan())
+            self._message = f"recorded into {out}"
+            self._publish()
+            return {"out_dir": str(out)}
+
+    # --- computing (a worker thread) ---
+
+    def _start_worker(self, target: Callable[[Path], None], recording: Path) -> None:
+        self._worker = threading.Thread(target=target, args=(recording,), name="cubetrack-dashboard-calibrate",
+                                        daemon=True)
+        self._worker.start()
+
+    def _progress(self, stage: str, done: int, total: int) -> None:
+        with self._lock:
+            self.progress = (stage, done, total)
+            self._dirty.set()
+
+    def _computed(self, step: str, message: str) -> None:
+        """A computation ended at ``step``."""
+        with self._lock:
+            self.step, self.progress, self.step_message = step, None, message
+            self._publish()
+
+    def _calibrate(self, recording_path: Path) -> None:
+        try:
+            recording, empty = recorded_cameras(recording_path)
+            run = run_calibration(self.config, recording, self.calibration_dir / "extrinsics.toml", self.settings,
+                                  allow_missing=True, progress=self._progress)
+            results = {}
+            for name in run.report.cameras:
+                results[name] = camera_result(run.report, name, recording, self.intrinsics[name], self.config.world,
+                                              self.settings.detector, self.params)
+            for name, reason in run.report.missing.items():
+                status, error = self._camera_status(name)
+                results[name] = {"calibrated": False, "poor": True, "advice": missing_advice(reason, status, error),
+                                 "error": reason}
+            for name in set(self.urls) - set(results):
+                results[name] = {"calibrated": False, "poor": True, "error": empty.get(name, "no frames recorded"),
+                                 "advice": missing_advice("", "down", self._camera_status(name)[1])}
+        except CubetrackError as exc:
+            return self._computed("failed", f"Calibration failed: {exc}")
+        with self._lock:
+            self.candidate, self.results = run, results
+            poor = sorted(n for n, r in results.items() if r["poor"])
+            self._computed("result", "Every camera is calibrated well: save the extrinsics." if not poor else
+                           f"{', '.join(poor)}: see the advice; collect again, or save what is good.")
+
+    def _refine_with(self, drive_path: Path) -> None:
+        try:
+            run = run_calibration(self.config, recorded_cameras(self.calibration_dir / "world")[0],
+                                  self.calibration_dir / "refined.toml", self.settings,
+                                  adjust_with=recorded_cameras(drive_path)[0], allow_missing=True,
+                                  progress=self._progress)
+        except CubetrackError as exc:
+            return self._computed("result", f"Refinement failed: {exc}")
+        refined = {name: {"shift_cm": 100 * r.shift_m, "shift_deg": r.shift_deg, "moved": r.moved,
+                          "rms_px": r.rms_px, "world_rms_px": r.world_rms_px if math.isfinite(r.world_rms_px) else None,
+                          "instants": r.instants}
+                   for name, r in run.adjusted.cameras.items()}
+        with self._lock:
+            self.candidate, self.refined, self.warnings = run, refined, list(run.adjusted.warnings)
+            moved = [n for n, r in refined.items() if r["moved"]]
+            self._computed("refined", f"Refined with {run.adjusted.instants} instants. "
+                           + (f"{', '.join(moved)} moved since the world-marker calibration. " if moved else "")
+                           + "Save to use the refined poses.")
+
+    # --- panels ---
+
+    def _publish_loop(self) -> None:
+        while not self._stop.is_set():
+            if self._dirty.wait(0.25):
+                self._dirty.clear()
+                with self._lock:
+                    self._publish()
+                self._stop.wait(0.25)
+
+    def _publish(self) -> None:
+        """Both panels, as the page and ``GET /api/calibration`` / ``/api/recording`` show them
+        (caller holds the lock, or is the constructor)."""
+        self.server.state.set_panel("calibration", self.calibration_json())
+        self.server.state.set_panel("recording", self.recording_json())
+
+    def calibration_json(self) -> dict:
+        with self._lock:
+            now = self.clock()
+            cameras = []
+            for name in self.urls:
+                checked_s, seen_s, side = self.marker[name]
+                status = self._camera_status(name)[0]
+                recent = max(4 * self.params.check_every_s, 2.0)  # one frame without the marker is not enough
+                sees = (now - seen_s <= recent) if status == "ok" and now - checked_s <= recent else None
+                cameras.append({"name": name, "status": status, "sees_marker": sees,
+                                "marker_side_px": side if sees else None, "samples": self.samples.get(name, 0),
+                                "result": self.results.get(name), "refined": self.refined.get(name)})
+            actions = {"check": ["collect"], "failed": ["collect"], "collecting": ["stop", "cancel"],
+                       "result": ["collect", "save", "drive"], "refined": ["collect", "save", "drive"],
+                       "driving": ["refine", "cancel"]}.get(self.step, [])
+            if self._plan.kind == "record":
+                actions = []
+            if self.step in ("result", "refined") and not (self.candidate and self.candidate.extrinsics):
+                actions = [a for a in actions if a not in ("save", "drive")]
+            progress = None
+            if self.progress is not None:
+                progress = {"label": self.progress[0], "done": self.progress[1], "total": self.progress[2]}
+            return {"step": self.step, "message": self.step_message, "target_samples": self.target,
+                    "save_to": str(self.extrinsics_path), "saved": self.saved, "progress": progress,
+                    "drive": {"instants": self.drive_instants, "target": self.params.drive_instants}
+                    if self.step in ("driving", "refining") else None,
+                    "folder": str(self.calibration_dir) if self.calibration_dir else None,
+                    "cameras": cameras, "warnings": self.warnings, "actions": actions}
+
+    def recording_json(self) -> dict:
+        with self._lock:
+            plan = self._plan
+            recording = plan.kind == "record"
+            return {"mode": plan.kind, "recording": recording, "since_s": self._since_s,
+                    "out_dir": str(plan.out_dir) if recording else None,
+                    "recording_dir": str(plan.record_to) if plan.record_to else None,
+                    "message": self._message, "controls": True,
+                    "actions": ["stop"] if recording else (["start"] if plan.kind == "watch" and self.step not in
+                                                           ("collecting", "driving") else [])}
+
+    def downloads(self) -> list[Download]:
+        """Every recorded session's trajectory files and every calibration's extrinsics."""
+        files = []
+        for folder, group, patterns in (("sessions", "session", TRAJECTORY_FILES),
+                                        ("calibration", "calibration", ("extrinsics.toml", "refined.toml"))):
+            root = self.out_dir / folder
+            for session in sorted(p for p in root.iterdir() if p.is_dir()) if root.is_dir() else ():
+                files += folder_downloads(session, f"{group} {session.name}", patterns, f"{folder}/{session.name}/")
+        return files
