@@ -1,0 +1,175 @@
+"""The sighting message: what a ``cubetrack worker`` publishes per camera frame on Zenoh and
+``cubetrack fuse`` reads (contracts, "Sighting messages").
+
+One message per processed camera frame, little-endian binary, corners and never images::
+
+    magic "CTSG" | version u8 | flags u8 | seq i64 | device, capture, arrival time f64 (seconds)
+    clock: method u8 (0 none, 1 arrival, 2 round-trip), offset_s f64, drift f64, device_ref_s f64
+    health: connected u8, frames u32, dropped u32, bad u32, reconnects u32
+    camera: u8 length + UTF-8
+    [T_world_cam: 12 f64, rows 0-2 of the 4x4, when flags bit 0]
+    dictionaries: u8 count, each u8 length + UTF-8
+    detections: u16 count, each marker id i32, dictionary index u8, corners 8 f64 (TL, TR, BR, BL
+    x, y in pixels), area f64 (px^2)
+
+``flags`` bit 0: a per-frame camera pose follows (world-marker mode); bits 1-2 the detection
+outcome (0 regions, 1 full frame, 2 corrupt JPEG, 3 no camera pose). Times are host-clock Unix
+seconds after the worker's clock mapping (``capture = device + offset + drift * (device -
+device_ref)``), so the fusion orders sightings exactly as one process would; the mapping itself
+travels along for inspection. Floats are float64, so a decoded message is bit-identical to what
+the worker computed. A newer version is refused, never guessed at.
+"""
+
+from __future__ import annotations
+
+import math
+import struct
+from dataclasses import dataclass
+
+import numpy as np
+
+from cubetrack.core.errors import CubetrackError
+from cubetrack.core.records import Detection
+
+MAGIC = b"CTSG"
+VERSION = 1
+OUTCOMES = ("regions", "full frame", "corrupt", "no camera pose")
+CLOCK_METHODS = ("none", "arrival", "round-trip")
+
+_HEAD = struct.Struct("<4sBBq3dB3dB4I")
+_DETECTION = struct.Struct("<iB9d")
+_POSE = struct.Struct("<12d")
+_U8 = struct.Struct("<B")
+_U16 = struct.Struct("<H")
+
+
+class SightingWireError(CubetrackError):
+    """A sighting message that cannot be read (truncated, not a sighting, a newer version)."""
+
+
+@dataclass(frozen=True, slots=True)
+class WireClock:
+    """The worker's clock mapping of the camera: host = device + offset_s + drift * (device - device_ref_s)."""
+
+    method: str = "none"
+    offset_s: float = math.nan
+    drift: float = math.nan
+    device_ref_s: float = math.nan
+
+
+@dataclass(frozen=True, slots=True)
+class WireHealth:
+    """The camera's source counters at the time of the frame (since the worker started)."""
+
+    connected: bool = True
+    frames: int = 0
+    dropped: int = 0
+    bad: int = 0
+    reconnects: int = 0
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class SightingMessage:
+    """One camera frame's sighting as it travels between a worker and the fusion."""
+
+    camera: str
+    seq: int
+    device_time_s: float
+    capture_time_s: float
+    arrival_time_s: float
+    outcome: str
+    detections: tuple[Detection, ...]
+    clock: WireClock = WireClock()
+    health: WireHealth = WireHealth()
+    T_world_cam: np.ndarray | None = None
+
+
+def _name(text: str, what: str) -> bytes:
+    raw = text.encode("utf-8")
+    if len(raw) > 255:
+        raise SightingWireError(f"sighting message: {what} {text[:40]!r}... is longer than 255 bytes")
+    return _U8.pack(len(raw)) + raw
+
+
+def encode_sighting(message: SightingMessage) -> bytes:
+    """The message's bytes (see the module docstring)."""
+    if message.outcome not in OUTCOMES:
+        raise SightingWireError(f"sighting message: unknown outcome {message.outcome!r}")
+    if message.clock.method not in CLOCK_METHODS:
+        raise SightingWireError(f"sighting message: unknown clock method {message.clock.method!r}")
+    if len(message.detections) > 0xFFFF:
+        raise SightingWireError(f"sighting message: {len(message.detections)} detections, at most 65535")
+    flags = (message.T_world_cam is not None) | OUTCOMES.index(message.outcome) << 1
+    h, c = message.health, message.clock
+    parts = [_HEAD.pack(MAGIC, VERSION, flags, message.seq, message.device_time_s, message.capture_time_s,
+                        message.arrival_time_s, CLOCK_METHODS.index(c.method), c.offset_s, c.drift, c.device_ref_s,
+                        h.connected, *(min(v, 0xFFFFFFFF) for v in (h.frames, h.dropped, h.bad, h.reconnects))),
+             _name(message.camera, "camera name")]
+    if message.T_world_cam is not None:
+        parts.append(_POSE.pack(*np.asarray(message.T_world_cam, dtype=np.float64)[:3].ravel()))
+    dictionaries = sorted({d.dictionary for d in message.detections})
+    if len(dictionaries) > 255:
+        raise SightingWireError("sighting message: more than 255 dictionaries")
+    parts.append(_U8.pack(len(dictionaries)))
+    parts.extend(_name(d, "dictionary name") for d in dictionaries)
+    parts.append(_U16.pack(len(message.detections)))
+    for d in message.detections:
+        parts.append(_DETECTION.pack(d.marker_id, dictionaries.index(d.dictionary),
+                                     *np.asarray(d.corners_px, dtype=np.float64).ravel(), d.area_px2))
+    return b"".join(parts)
+
+
+class _Reader:
+    def __init__(self, data: bytes):
+        self.data, self.at = data, 0
+
+    def take(self, layout: struct.Struct, what: str) -> tuple:
+        if self.at + layout.size > len(self.data):
+            raise SightingWireError(f"sighting message truncated in its {what} ({len(self.data)} bytes)")
+        values = layout.unpack_from(self.data, self.at)
+        self.at += layout.size
+        return values
+
+    def name(self, what: str) -> str:
+        (n,) = self.take(_U8, what)
+        raw = self.data[self.at:self.at + n]
+        if len(raw) < n:
+            raise SightingWireError(f"sighting message truncated in its {what} ({len(self.data)} bytes)")
+        self.at += n
+        try:
+            return raw.decode("utf-8")
+        except UnicodeDecodeError:
+            raise SightingWireError(f"sighting message: its {what} is not UTF-8") from None
+
+
+def decode_sighting(data: bytes) -> SightingMessage:
+    """The message in ``data``; :class:`SightingWireError` (one line) for anything else."""
+    data = bytes(data)
+    if data[:4] != MAGIC:
+        raise SightingWireError(f"not a cubetrack sighting message (starts {data[:4]!r})")
+    if len(data) > 4 and data[4] != VERSION:
+        raise SightingWireError(f"sighting message version {data[4]}, this cubetrack reads version {VERSION}")
+    r = _Reader(data)
+    (_, _, flags, seq, device_s, capture_s, arrival_s, method, offset_s, drift, ref_s, connected,
+     frames, dropped, bad, reconnects) = r.take(_HEAD, "header")
+    if flags >> 3 or method >= len(CLOCK_METHODS):
+        raise SightingWireError(f"sighting message: unknown flags {flags:#x} or clock method {method}")
+    camera = r.name("camera name")
+    T_world_cam = None
+    if flags & 1:
+        T_world_cam = np.vstack([np.array(r.take(_POSE, "camera pose")).reshape(3, 4), [0.0, 0.0, 0.0, 1.0]])
+    (n_dict,) = r.take(_U8, "dictionaries")
+    dictionaries = [r.name("dictionary name") for _ in range(n_dict)]
+    (n_det,) = r.take(_U16, "detections")
+    detections = []
+    for _ in range(n_det):
+        marker_id, index, *values = r.take(_DETECTION, "detections")
+        if index >= n_dict:
+            raise SightingWireError(f"sighting message: detection of marker {marker_id} names dictionary {index} "
+                                    f"of {n_dict}")
+        detections.append(Detection(marker_id, np.array(values[:8]).reshape(4, 2), values[8], dictionaries[index]))
+    if r.at != len(data):
+        raise SightingWireError(f"sighting message: {len(data) - r.at} bytes after its end")
+    return SightingMessage(camera, seq, device_s, capture_s, arrival_s, OUTCOMES[(flags >> 1) & 3], tuple(detections),
+                           WireClock(CLOCK_METHODS[method], offset_s, drift, ref_s),
+                           WireHealth(bool(connected), frames, dropped, bad, reconnects), T_world_cam)

@@ -1,0 +1,83 @@
+"""The sighting message (cubetrack.core.sighting_wire): bit-exact round trips, compactness, and
+one-line refusals of anything that is not a version-1 sighting."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from cubetrack.core.records import Detection
+from cubetrack.core.sighting_wire import (SightingMessage, SightingWireError, WireClock, WireHealth, decode_sighting,
+                                          encode_sighting)
+
+
+def message(pose: bool = False, detections: int = 3) -> SightingMessage:
+    rng = np.random.default_rng(3)
+    dets = tuple(Detection(7 + i, rng.uniform(0, 640, (4, 2)), float(rng.uniform(100, 900)),
+                           "DICT_4X4_50" if i % 2 else "DICT_6X6_250") for i in range(detections))
+    T = np.eye(4)
+    T[:3, :3] = np.array([[0.0, -1, 0], [1, 0, 0], [0, 0, 1]])
+    T[:3, 3] = [1.0 / 3, -2.5, 0.1]
+    return SightingMessage("cäm-1", 2**40 + 5, 1234.000001, 1.7e9 + 1 / 7, 1.7e9 + 0.05 + 1 / 7, "full frame", dets,
+                           WireClock("round-trip", 1.7e9 - 1234.0, 3.1e-5, 1000.0),
+                           WireHealth(False, 812, 3, 1, 2), T if pose else None)
+
+
+@pytest.mark.parametrize("pose", [False, True])
+def test_round_trip_is_bit_exact(pose):
+    sent = message(pose)
+    got = decode_sighting(encode_sighting(sent))
+    for name in ("camera", "seq", "device_time_s", "capture_time_s", "arrival_time_s", "outcome", "clock", "health"):
+        assert getattr(got, name) == getattr(sent, name), name
+    assert len(got.detections) == len(sent.detections)
+    for a, b in zip(got.detections, sent.detections):
+        assert (a.marker_id, a.area_px2, a.dictionary) == (b.marker_id, b.area_px2, b.dictionary)
+        assert np.array_equal(a.corners_px, b.corners_px) and a.corners_px.shape == (4, 2)
+    if pose:
+        assert np.array_equal(got.T_world_cam, sent.T_world_cam)
+    else:
+        assert got.T_world_cam is None
+
+
+def test_every_outcome_and_an_empty_frame_travel():
+    for outcome in ("regions", "full frame", "corrupt", "no camera pose"):
+        sent = SightingMessage("c", 0, 0.0, 1.0, 2.0, outcome, ())
+        assert decode_sighting(encode_sighting(sent)).outcome == outcome
+
+
+def test_compact_corners_not_images():
+    size = len(encode_sighting(message(detections=3)))
+    assert size == len(encode_sighting(message(detections=2))) + 77  # id, dictionary, 8 corners, area
+    assert size < 400
+
+
+@pytest.mark.parametrize("data, needle", [
+    (b"", "not a cubetrack sighting"),
+    (b"GET / HTTP/1.1\r\n", "not a cubetrack sighting"),
+    (b"CTSG\x02" + bytes(90), "version 2, this cubetrack reads version 1"),
+])
+def test_foreign_or_newer_data_is_refused_in_one_line(data, needle):
+    with pytest.raises(SightingWireError, match=needle) as info:
+        decode_sighting(data)
+    assert "\n" not in str(info.value)
+
+
+def test_every_truncation_and_trailing_bytes_are_refused():
+    data = encode_sighting(message(pose=True))
+    for n in range(len(data)):
+        with pytest.raises(SightingWireError) as info:
+            decode_sighting(data[:n])
+        assert "\n" not in str(info.value)
+    with pytest.raises(SightingWireError, match="1 bytes after its end"):
+        decode_sighting(data + b"\0")
+
+
+def test_a_bad_dictionary_index_or_name_is_refused():
+    data = bytearray(encode_sighting(message(detections=1)))
+    data[-73] = 9  # the only detection's dictionary index (after its 4-byte id)
+    with pytest.raises(SightingWireError, match="names dictionary 9 of 1"):
+        decode_sighting(bytes(data))
+    with pytest.raises(SightingWireError, match="unknown outcome"):
+        encode_sighting(SightingMessage("c", 0, 0.0, 0.0, 0.0, "lost", ()))
+    with pytest.raises(SightingWireError, match="longer than 255 bytes"):
+        encode_sighting(SightingMessage("c" * 300, 0, 0.0, 0.0, 0.0, "regions", ()))
