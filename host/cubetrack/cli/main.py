@@ -20,6 +20,8 @@ COMMANDS = {
     "calibrate-intrinsics": "calibrate_intrinsics",
     "track": "track",
     "record": "record",
+    "worker": "worker",
+    "fuse": "fuse",
     "dashboard": "dashboard",
     "evaluate": "evaluate",
     "detect": "detect",
