@@ -1,0 +1,489 @@
+"""Issue 9's benchmark: the live tracker on N emulated cameras x fps, over HTTP, as a user runs it.
+
+A simulated recording (``cubetrack simulate``: N cameras at --fps, a short transfer latency so
+each camera really delivers --fps) is calibrated (``cubetrack calibrate``) and served on 127.0.0.1
+by the camera emulator in its own process (``cubecam emulate --loop``, through
+:class:`cubetrack.app.emulated.EmulatedCameras`). The tracker runs as its own process too:
+``cubetrack track --live`` for --duration seconds (with --record it also records the session, as
+``--record`` does for a user: that costs the tracker's process a file per frame). Meanwhile
+this script samples the tracker's process tree (its frame workers included) for CPU time and
+RSS. Then it reports:
+
+- frames/s offered (what the tracker received), processed, and dropped by the tracker (a camera's
+  frame replaced by its next before a worker was free, or given up before its clock was known);
+- CPU per processed frame and cores used (the tracker's processes; the emulator's shown apart);
+- p50 / p95 / p99 of arrival -> pose and capture -> pose (the JSONL's ``arrival_latency`` and
+  ``latency``: up to the moment each pose was handed to the outputs);
+- RSS of the tracker's processes at the start (after --warmup seconds) and at the end;
+- accuracy against the ground truth (moved onto the live clock, repeated per loop of the
+  replay; poses from 0.05 s before to 0.5 s after the replay jumps back to its start are not
+  scored, the robot teleports there) and against the offline replay (``cubetrack track
+  --recording``) of the same frames: the simulated recording the emulator serves, or with
+  --record the recorded session; the two must agree within 10 %;
+- on the same frames (the first --speed-frames of that recording), in this run: the
+  naive loop (``cv2.imdecode`` colour + default ``ArucoDetector`` + ``solvePnP`` per marker, one
+  thread) and our tracker replaying them as fast as it can with its frame workers, and with the
+  live run's processed rate: the throughput ratios against the naive loop;
+- the machine's core count (``nproc``).
+
+Targets (issue 9, on a 2-core machine at 16 cameras x 30 fps): <= 1 % of frames dropped by the
+tracker; p95 arrival -> pose <= 15 ms and p99 <= 30 ms; throughput >= 2x the naive loop's;
+live accuracy within 10 % of the offline replay's. The last line lists the targets missed.
+
+    .venv/bin/python benchmarks/live.py [--cameras 16] [--fps 30] [--duration 60] [--out DIR]
+    .venv/bin/python benchmarks/live.py --quick        # 2 cameras x 10 fps for 5 s (the CI smoke run)
+
+--out keeps the recording, the calibration, the live poses and ``live_report.json`` (a recording
+made with the same parameters is reused). Exit code 0 for a completed run (this is a report).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import functools
+import json
+import os
+import re
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+REPORT_FILE = "live_report.json"
+TARGET_DROPPED = 0.01
+TARGET_P95_MS, TARGET_P99_MS = 15.0, 30.0
+TARGET_SPEED = 2.0
+TARGET_ACCURACY = 0.10
+TICK = os.sysconf("SC_CLK_TCK")
+PAGE = os.sysconf("SC_PAGE_SIZE")
+
+
+def parse_args(argv: list[str] | None) -> argparse.Namespace:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], epilog=__doc__.split("\n\n", 1)[1],
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--cameras", type=int, default=16, help="emulated cameras (default 16)")
+    p.add_argument("--fps", type=float, default=30.0, help="frames per second per camera (default 30)")
+    p.add_argument("--duration", type=float, default=60.0, help="seconds of live tracking (default 60)")
+    p.add_argument("--recording-s", type=float, default=20.0,
+                   help="seconds of simulated recording, looped by the emulator (default 20)")
+    p.add_argument("--warmup", type=float, default=5.0, help="seconds before the RSS 'start' sample (default 5)")
+    p.add_argument("--speed-frames", type=int, default=1500, help="frames of the session for the naive-loop "
+                   "comparison (default 1500)")
+    p.add_argument("--seed", type=int, default=7, help="scene seed (default 7)")
+    p.add_argument("--out", type=Path, help="keep everything here (default: a temporary folder, deleted)")
+    p.add_argument("--quick", action="store_true", help="smoke run: 2 cameras x 10 fps, 5 s, small recording")
+    p.add_argument("--record", action="store_true",
+                   help="the tracker records the session too; the offline replay and the speed comparison use it")
+    p.add_argument("--tracker-arg", action="append", default=[], metavar="ARG",
+                   help="extra argument for `cubetrack track` (repeatable)")
+    args = p.parse_args(argv)
+    if args.quick:
+        args.cameras, args.fps, args.duration, args.recording_s = 2, 10.0, 5.0, 3.0
+        args.warmup, args.speed_frames = 1.5, 60
+    for name in ("cameras", "fps", "duration", "recording_s", "speed_frames"):
+        if not getattr(args, name) > 0:
+            p.error(f"--{name.replace('_', '-')} must be positive")
+    return args
+
+
+def cubetrack(*argv: str) -> None:
+    """A cubetrack command in-process (setup steps); its output goes to stderr."""
+    from cubetrack.cli.main import main
+
+    with contextlib.redirect_stdout(sys.stderr):
+        code = main(list(argv))
+    if code != 0:
+        raise SystemExit(f"cubetrack {argv[0]} failed ({code})")
+
+
+def ensure_recording(args: argparse.Namespace, work: Path) -> Path:
+    rec = work / f"rec_c{args.cameras}_f{args.fps:g}_d{args.recording_s:g}_s{args.seed}"
+    if (rec / "extrinsics.toml").exists():
+        return rec
+    cubetrack("simulate", "--out", str(rec), "--force", "--cameras", str(args.cameras), "--fps", str(args.fps),
+              "--duration", str(args.recording_s), "--seed", str(args.seed),
+              "--latency-ms", "8", "--latency-jitter-ms", "2", "--spike-rate", "0", "--drop-rate", "0",
+              "--calibration-frames", "30" if args.quick else "60")
+    cubetrack("calibrate", "--config", str(rec / "config.toml"), "--recording", str(rec / "calibration"),
+              "--out", str(rec / "extrinsics.toml"))
+    return rec
+
+
+# --------------------------------------------------------------------------- process sampling
+
+
+def _children(pid: int) -> list[int]:
+    out = []
+    with contextlib.suppress(OSError):
+        for task in os.listdir(f"/proc/{pid}/task"):
+            with open(f"/proc/{pid}/task/{task}/children") as f:
+                out += [int(c) for c in f.read().split()]
+    return out
+
+
+def _tree(pid: int) -> list[int]:
+    pids, todo = [], [pid]
+    while todo:
+        p = todo.pop()
+        pids.append(p)
+        todo += _children(p)
+    return pids
+
+
+def _cpu_rss(pid: int) -> tuple[float, int] | None:
+    try:
+        with open(f"/proc/{pid}/stat") as f:
+            fields = f.read().rsplit(")", 1)[1].split()
+        with open(f"/proc/{pid}/statm") as f:
+            rss_pages = int(f.read().split()[1])
+    except (OSError, IndexError, ValueError):
+        return None
+    return (int(fields[11]) + int(fields[12])) / TICK, rss_pages * PAGE
+
+
+class TreeSampler:
+    """Samples a process and its descendants every ``period_s``: CPU seconds (each process's last
+    value is kept, so processes that ended still count) and the summed RSS."""
+
+    def __init__(self, pid: int, period_s: float = 0.25):
+        self.pid, self.period_s = pid, period_s
+        self.cpu: dict[int, float] = {}
+        self.samples: list[tuple[float, float, int, int]] = []  # (monotonic s, CPU s, RSS bytes, processes)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        while not self._stop.is_set():
+            rss, alive = 0, 0
+            for p in _tree(self.pid):
+                got = _cpu_rss(p)
+                if got is not None:
+                    self.cpu[p], r = got
+                    rss, alive = rss + r, alive + 1
+            if rss:
+                self.samples.append((time.monotonic(), sum(self.cpu.values()), rss, alive))
+            self._stop.wait(self.period_s)
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join()
+
+    def at(self, t: float) -> tuple[float, float, int, int]:
+        return min(self.samples, key=lambda s: abs(s[0] - t))
+
+    def last_full(self) -> tuple[float, float, int, int]:
+        """The last sample with every process (frame workers included) still running."""
+        most = max(s[3] for s in self.samples)
+        return [s for s in self.samples if s[3] == most][-1]
+
+
+# --------------------------------------------------------------------------- the live run
+
+
+def run_live(args: argparse.Namespace, rec: Path, work: Path) -> dict:
+    from cubetrack.app.demo import write_live_config
+    from cubetrack.app.emulated import EmulatedCameras
+
+    out, session = work / "live", work / "session"
+    for path in (out, session):
+        if path.exists():
+            subprocess.run(["rm", "-rf", str(path)], check=True)
+    with EmulatedCameras(rec, ("--loop",)) as emu:
+        config = write_live_config(rec / "config.toml", emu.urls, work / "live_config.toml")
+        command = [sys.executable, "-m", "cubetrack.cli.main", "track", "--config", str(config),
+                   "--extrinsics", str(rec / "extrinsics.toml"), "--live", "--out", str(out),
+                   "--duration", str(args.duration), "--status-every", "5",
+                   *(["--record", str(session)] if args.record else []), *args.tracker_arg]
+        emulator = TreeSampler(emu._process.pid, 1.0)
+        started = time.monotonic()
+        with open(work / "tracker_stdout.txt", "w") as stdout, open(work / "tracker_stderr.txt", "w") as stderr:
+            proc = subprocess.Popen(command, stdout=stdout, stderr=stderr, cwd=ROOT)
+            sampler = TreeSampler(proc.pid)
+            code = proc.wait(args.duration + 300)
+        ended = time.monotonic()
+        sampler.stop()
+        emulator.stop()
+        shift_s, period_s = emu.clock_shift_s, emu.period_s
+    if code != 0:
+        raise SystemExit(f"the live tracker failed ({code}): {(work / 'tracker_stderr.txt').read_text()[-2000:]}")
+    text = (work / "tracker_stdout.txt").read_text()
+    cams = [tuple(map(int, m)) for m in re.findall(r": (\d+) frames, (\d+) dropped", text)]
+    summary = re.search(r"tracked live for ([\d.]+) s: frames: (\d+), before their camera's clock was known: (\d+)",
+                        text)
+    if summary is None or len(cams) != args.cameras:
+        raise SystemExit(f"cannot read the tracker's summary:\n{text}")
+    duration_s = float(summary.group(1))
+    taken, before_clock = int(summary.group(2)), int(summary.group(3))
+    offered = sum(f for f, _ in cams)
+    dropped_behind = sum(d for _, d in cams)
+    processed = taken - before_clock
+    first, last, full = sampler.samples[0], sampler.samples[-1], sampler.last_full()
+    warm = sampler.at(started + args.warmup)
+    cpu_emulator = emulator.samples[-1][1] - emulator.samples[0][1] if len(emulator.samples) > 1 else float("nan")
+    poses = [json.loads(line) for line in (out / "robot.jsonl").read_text().splitlines()]
+    fused = [p for p in poses if not p.get("predicted")]
+    arrival = np.array([p["arrival_latency"] for p in fused]) * 1000.0
+    capture = np.array([p["latency"] for p in fused]) * 1000.0
+    return {
+        "command": " ".join(command[1:]),
+        "duration_s": duration_s,
+        "wall_s": ended - started,
+        "offered_frames": offered,
+        "processed_frames": processed,
+        "dropped_behind": dropped_behind,
+        "dropped_before_clock": before_clock,
+        "offered_fps": offered / duration_s,
+        "processed_fps": processed / duration_s,
+        "dropped_fps": (dropped_behind + before_clock) / duration_s,
+        "dropped_fraction": (dropped_behind + before_clock) / max(offered, 1),
+        "cpu_s": last[1] - first[1],
+        "cpu_ms_per_frame": (last[1] - first[1]) / max(processed, 1) * 1000.0,
+        "cores_used": (full[1] - warm[1]) / max(full[0] - warm[0], 1e-9),
+        "emulator_cores_used": cpu_emulator / max(emulator.samples[-1][0] - emulator.samples[0][0], 1e-9)
+        if len(emulator.samples) > 1 else float("nan"),
+        "rss_start_mb": warm[2] / 1e6,
+        "rss_end_mb": full[2] / 1e6,
+        "poses": len(fused),
+        "arrival_ms": percentiles(arrival),
+        "capture_ms": percentiles(capture),
+        "clock_shift_s": shift_s,
+        "period_s": period_s,
+    }
+
+
+def percentiles(values: np.ndarray) -> dict:
+    if not len(values):
+        return {"p50": float("nan"), "p95": float("nan"), "p99": float("nan")}
+    p50, p95, p99 = np.percentile(values, [50, 95, 99])
+    return {"p50": float(p50), "p95": float(p95), "p99": float(p99)}
+
+
+# --------------------------------------------------------------------------- accuracy
+
+
+SEAM_S = (0.05, 0.5)  # not scored: this long before and after the replay jumps back to its start
+
+
+def live_truth(rec: Path, shift_s: float, period_s: float, span_s: tuple[float, float]):
+    """The recording's ground truth on the live clock, repeated for every loop of the replay,
+    within ``span_s`` (the live session's first and last frame), and the loops' seams (where the
+    robot jumps back to where the recording started: poses around them are not scored)."""
+    from cubetrack.io.trajectory import Trajectory, read_tum
+
+    truth = read_tum(rec / "ground_truth.tum")
+    first = float(truth.times_s[0]) + shift_s
+    loops = int(np.ceil((span_s[1] - first) / period_s)) + 1
+    times = np.concatenate([truth.times_s + shift_s + k * period_s for k in range(loops)])
+    seams = first + period_s * np.arange(1, loops)
+    keep = (times >= span_s[0]) & (times <= span_s[1])
+    return Trajectory(times[keep], np.tile(truth.positions_m, (loops, 1))[keep],
+                      np.tile(truth.quats_xyzw, (loops, 1))[keep]), seams
+
+
+def away_from_seams(trajectory, seams: np.ndarray):
+    """The part of ``trajectory`` that is scored."""
+    from cubetrack.io.trajectory import Trajectory
+
+    keep = scored(trajectory.times_s, seams)
+    return Trajectory(trajectory.times_s[keep], trajectory.positions_m[keep], trajectory.quats_xyzw[keep])
+
+
+def scored(times: np.ndarray, seams: np.ndarray) -> np.ndarray:
+    """Which times are far enough from every seam to be scored."""
+    ok = np.ones(len(times), dtype=bool)
+    for seam in seams:
+        ok &= (times < seam - SEAM_S[0]) | (times > seam + SEAM_S[1])
+    return ok
+
+
+def replayed(args: argparse.Namespace, rec: Path, work: Path) -> tuple[Path, Path]:
+    """(config, recording) of the frames the live run was given: the recorded session with
+    --record, else the simulated recording the emulator served."""
+    return (work / "live_config.toml", work / "session") if args.record else (rec / "config.toml", rec)
+
+
+def accuracy(args: argparse.Namespace, rec: Path, work: Path, live: dict) -> dict:
+    from cubetrack.evaluate.metrics import evaluate
+    from cubetrack.io.recording import Recording
+    from cubetrack.io.trajectory import read_tum
+
+    offline = work / "offline"
+    config, recording = replayed(args, rec, work)
+    cubetrack("track", "--config", str(config), "--extrinsics", str(rec / "extrinsics.toml"),
+              "--recording", str(recording), "--out", str(offline))
+    if args.record:
+        session = Recording.open(recording)
+        arrivals = [f.host_time_s for c in session.camera_names for f in session.index(c)]
+        span = (min(arrivals), max(arrivals))
+    else:
+        times = read_tum(work / "live" / "robot.tum").times_s
+        span = (float(times[0]) - 1.0, float(times[-1]))
+    truth, seams = live_truth(rec, live["clock_shift_s"], live["period_s"], span)
+    offline_truth = (read_tum(rec / "ground_truth.tum"), np.zeros(0))
+    out = {}
+    for name, path, (gt, cuts) in (("live", work / "live" / "robot.tum", (truth, seams)),
+                                   ("offline", offline / "robot.tum", (truth, seams) if args.record else offline_truth)):
+        poses = read_tum(path)
+        r = evaluate(away_from_seams(poses, cuts), away_from_seams(gt, cuts))
+        out[name] = {"pos_cm": r.position_rmse_m * 100.0, "rot_deg": r.rotation_rmse_deg,
+                     "detection_ratio": evaluate(poses, gt).detection_ratio, "poses": len(poses)}
+    out["pos_ratio"] = out["live"]["pos_cm"] / out["offline"]["pos_cm"]
+    out["rot_ratio"] = out["live"]["rot_deg"] / out["offline"]["rot_deg"]
+    return out
+
+
+# --------------------------------------------------------------------------- the same frames, naive and ours
+
+
+def speed(args: argparse.Namespace, rec: Path, work: Path, live: dict) -> dict:
+    """The naive loop (one thread) and our tracker (one thread, then its frame workers as fast as
+    they go) over the same frames (:func:`replayed`), in memory."""
+    import cv2
+
+    from cubetrack.app.config import load_config, recording_intrinsics
+    from cubetrack.app.parallel import FramePool, by_capture_time
+    from cubetrack.app.tracker import FrameWorker, Tracker
+    from cubetrack.core.layout import marker_corners_m
+    from cubetrack.io.config import read_extrinsics
+    from cubetrack.io.recording import Recording
+
+    config_path, recording_path = replayed(args, rec, work)
+    config, settings = load_config(config_path)
+    recording = Recording.open(recording_path)
+    frames = list(recording.merged_frames())[: args.speed_frames]
+    intrinsics = recording_intrinsics(config, recording)
+    extrinsics = read_extrinsics(rec / "extrinsics.toml")
+
+    cv2.setNumThreads(1)
+    sizes = {config.world.marker_id: config.world.marker_size_m}
+    for robot in config.robots:
+        for m in robot.layout.markers:
+            sizes.setdefault(m.marker_id, m.size_m)
+    objects = {i: marker_corners_m(s).astype(np.float64) for i, s in sizes.items()}
+    detector = cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_4X4_50))
+    t0 = time.perf_counter()
+    for frame in frames:
+        img = cv2.imdecode(np.frombuffer(frame.jpeg, np.uint8), cv2.IMREAD_COLOR)
+        corners, ids, _ = detector.detectMarkers(img)
+        if ids is None:
+            continue
+        intr = intrinsics[frame.camera]
+        for c, marker_id in zip(corners, ids.reshape(-1)):
+            if int(marker_id) in objects:
+                cv2.solvePnP(objects[int(marker_id)], c.reshape(4, 2), intr.K, intr.dist, flags=cv2.SOLVEPNP_IPPE_SQUARE)
+    naive_fps = len(frames) / (time.perf_counter() - t0)
+
+    tracker = Tracker(intrinsics, config.world, config.robots, extrinsics, settings.stages)
+    work_ms, fuse_ms = [], []  # one thread, frame by frame: the processing part of the latency budget
+    t0 = time.perf_counter()
+    for frame in frames:
+        job = tracker.admit(frame)
+        if job is None:
+            continue
+        t1 = time.perf_counter()
+        result = tracker.worker.work(job)
+        t2 = time.perf_counter()
+        tracker.fuse(result, frame.host_time_s)
+        work_ms.append((t2 - t1) * 1000.0)
+        fuse_ms.append((time.perf_counter() - t2) * 1000.0)
+    inline_fps = len(frames) / (time.perf_counter() - t0)
+
+    tracker = Tracker(intrinsics, config.world, config.robots, extrinsics, settings.stages)
+    wake = threading.Event()
+    make = functools.partial(FrameWorker, intrinsics, config.world, config.robots, tracker.T_world_cam,
+                             settings.stages)
+    live_params = settings.live
+    with FramePool(make, live_params.worker_count, live_params.worker_kind, wake.set) as pool:
+        while pool.idle() != pool.count:
+            wake.wait(0.1)
+            wake.clear()
+        todo = list(frames)
+        t0 = time.perf_counter()
+        while todo or pool.busy():
+            for result in by_capture_time(pool.take()):
+                tracker.fuse(result, result.job.frame.host_time_s)
+            while todo and pool.idle():
+                job = tracker.admit(todo.pop(0))
+                if job is not None:
+                    pool.submit(job)
+            wake.wait(0.01)
+            wake.clear()
+        ours_fps = len(frames) / (time.perf_counter() - t0)
+    return {"frames": len(frames), "naive_fps": naive_fps, "ours_fps": ours_fps, "ratio": ours_fps / naive_fps,
+            "inline_fps": inline_fps, "work_ms": percentiles(np.array(work_ms)), "fuse_ms": percentiles(np.array(fuse_ms)),
+            "live_ratio": live["processed_fps"] / naive_fps, "workers": f"{pool.count} {live_params.worker_kind.value}"}
+
+
+# --------------------------------------------------------------------------- report
+
+
+def print_report(args: argparse.Namespace, report: dict) -> list[str]:
+    live, acc, sp = report["live"], report["accuracy"], report["speed"]
+    a, c = live["arrival_ms"], live["capture_ms"]
+    before, after = report["load_average"]
+    print(f"live benchmark: {args.cameras} cameras x {args.fps:g} fps, {live['duration_s']:.0f} s, "
+          f"nproc {report['nproc']} (load average before {before[0]:.1f}, after {after[0]:.1f}: other "
+          "programs' share of the cores)")
+    print(f"  command: {live['command']}")
+    print(f"  frames/s: offered {live['offered_fps']:.1f}, processed {live['processed_fps']:.1f}, dropped by the "
+          f"tracker {live['dropped_fps']:.1f} ({live['dropped_fraction'] * 100:.2f} %: {live['dropped_behind']} "
+          f"replaced by a newer frame, {live['dropped_before_clock']} before the camera's clock was known)")
+    print(f"  CPU: {live['cpu_ms_per_frame']:.2f} ms per processed frame, {live['cores_used']:.2f} cores "
+          f"(the emulator: {live['emulator_cores_used']:.2f} cores)")
+    print(f"  arrival -> pose ms: p50 {a['p50']:.1f}  p95 {a['p95']:.1f}  p99 {a['p99']:.1f}   "
+          f"capture -> pose ms: p50 {c['p50']:.1f}  p95 {c['p95']:.1f}  p99 {c['p99']:.1f}  ({live['poses']} poses)")
+    print(f"  RSS: {live['rss_start_mb']:.0f} MB at {args.warmup:g} s, {live['rss_end_mb']:.0f} MB at the end")
+    print(f"  accuracy vs ground truth: live {acc['live']['pos_cm']:.2f} cm / {acc['live']['rot_deg']:.2f} deg "
+          f"(detection ratio {acc['live']['detection_ratio']:.3f}); offline replay of the same frames "
+          f"{acc['offline']['pos_cm']:.2f} cm / {acc['offline']['rot_deg']:.2f} deg; live/offline "
+          f"{acc['pos_ratio']:.2f} / {acc['rot_ratio']:.2f}")
+    print(f"  same {sp['frames']} frames: naive loop {sp['naive_fps']:.1f} frames/s (one thread), ours "
+          f"{sp['ours_fps']:.1f} frames/s ({sp['workers']} workers; one thread {sp['inline_fps']:.1f}): ratio "
+          f"{sp['ratio']:.2f}; live processed / naive {sp['live_ratio']:.2f}")
+    w, f = sp["work_ms"], sp["fuse_ms"]
+    print(f"  per frame, one thread: decode + detect + estimate p50 {w['p50']:.2f} ms p95 {w['p95']:.2f} ms; "
+          f"fusion p50 {f['p50']:.2f} ms p95 {f['p95']:.2f} ms")
+    failures = []
+    if live["dropped_fraction"] > TARGET_DROPPED:
+        failures.append(f"dropped {live['dropped_fraction'] * 100:.1f} % > {TARGET_DROPPED * 100:g} %")
+    if not a["p95"] <= TARGET_P95_MS:
+        failures.append(f"p95 arrival->pose {a['p95']:.1f} ms > {TARGET_P95_MS:g}")
+    if not a["p99"] <= TARGET_P99_MS:
+        failures.append(f"p99 arrival->pose {a['p99']:.1f} ms > {TARGET_P99_MS:g}")
+    if not sp["ratio"] >= TARGET_SPEED:
+        failures.append(f"throughput ours/naive {sp['ratio']:.2f} < {TARGET_SPEED:g}")
+    if not max(acc["pos_ratio"], acc["rot_ratio"]) <= 1.0 + TARGET_ACCURACY:
+        failures.append(f"live accuracy {max(acc['pos_ratio'], acc['rot_ratio']):.2f}x the offline replay's")
+    print("SUMMARY: " + ("all targets met" if not failures else f"{len(failures)} target(s) missed: "
+                         + "; ".join(failures)))
+    return failures
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = parse_args(argv)
+    with contextlib.ExitStack() as stack:
+        work = args.out or Path(stack.enter_context(tempfile.TemporaryDirectory(prefix="cubetrack-live-bench-")))
+        work.mkdir(parents=True, exist_ok=True)
+        print(f"preparing {args.cameras} cameras x {args.fps:g} fps ...", file=sys.stderr, flush=True)
+        rec = ensure_recording(args, work)
+        print(f"tracking live for {args.duration:g} s ...", file=sys.stderr, flush=True)
+        load = os.getloadavg()
+        live = run_live(args, rec, work)
+        print("replaying the frames offline and timing the naive loop ...", file=sys.stderr, flush=True)
+        report = {"nproc": os.cpu_count(), "load_average": [load, os.getloadavg()], "args": {k: (str(v) if isinstance(v, Path) else v)
+                                                     for k, v in vars(args).items()},
+                  "live": live, "accuracy": accuracy(args, rec, work, live), "speed": speed(args, rec, work, live)}
+        report["failures"] = print_report(args, report)
+        (work / REPORT_FILE).write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,51 @@
+"""Smoke run of benchmarks/live.py (issue 9's benchmark): 2 emulated cameras for a few seconds,
+the tracker live over HTTP in its own process. The targets are the benchmark's business (never
+a timing here): the report is complete and consistent, and the live run tracked the robot."""
+
+import json
+import math
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+pytestmark = pytest.mark.slow
+
+ROOT = Path(__file__).resolve().parents[2]
+
+
+def test_quick_run_prints_and_saves_a_complete_report(tmp_path):
+    run = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "live.py"), "--quick", "--out", str(tmp_path)],
+                         capture_output=True, text=True, timeout=900, cwd=ROOT)
+    assert run.returncode == 0, run.stderr[-3000:]
+    lines = run.stdout.splitlines()
+    for start in ("live benchmark: 2 cameras x 10 fps", "  command: ", "  frames/s: offered", "  CPU: ",
+                  "  arrival -> pose ms: p50", "  RSS: ", "  accuracy vs ground truth: live",
+                  "  same ", "  per frame, one thread: ", "SUMMARY: "):
+        assert sum(line.startswith(start) for line in lines) == 1, start
+    assert "nproc" in lines[0] and "naive loop" in next(line for line in lines if line.startswith("  same "))
+
+    doc = json.loads((tmp_path / "live_report.json").read_text(encoding="utf-8"))
+    live, acc, speed = doc["live"], doc["accuracy"], doc["speed"]
+    assert doc["nproc"] >= 1 and "--live" in live["command"]
+    # the counts add up: every frame offered was processed or dropped (and counted)
+    assert live["offered_frames"] > 0 and live["processed_frames"] > 0
+    assert live["offered_frames"] == live["processed_frames"] + live["dropped_behind"] + live["dropped_before_clock"]
+    assert math.isclose(live["dropped_fraction"], (live["dropped_behind"] + live["dropped_before_clock"])
+                        / live["offered_frames"])
+    for kind in ("arrival_ms", "capture_ms"):
+        p = live[kind]
+        assert 0 <= p["p50"] <= p["p95"] <= p["p99"], kind
+    assert live["poses"] > 0 and live["cpu_ms_per_frame"] > 0 and live["rss_end_mb"] > 0
+    for run in ("live", "offline"):
+        assert 0 < acc[run]["pos_cm"] < 2.0 and 0 < acc[run]["rot_deg"] < 2.0, run
+        assert acc[run]["detection_ratio"] > 0.5, run
+    assert math.isclose(acc["pos_ratio"], acc["live"]["pos_cm"] / acc["offline"]["pos_cm"])
+    assert speed["frames"] > 0 and speed["naive_fps"] > 0 and speed["ours_fps"] > 0 and speed["inline_fps"] > 0
+    for part in ("work_ms", "fuse_ms"):
+        assert 0 < speed[part]["p50"] <= speed[part]["p95"], part
+    assert math.isclose(speed["ratio"], speed["ours_fps"] / speed["naive_fps"])
+    assert doc["failures"] == [] or lines[-1].startswith("SUMMARY: ") and "missed" in lines[-1]
+    # the live poses and the offline replay are kept in --out
+    assert (tmp_path / "live" / "robot.jsonl").exists() and (tmp_path / "offline" / "robot.tum").exists()
