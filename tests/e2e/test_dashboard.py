@@ -251,6 +251,7 @@ def test_the_dashboard_guides_a_calibration_in_the_browser(lab, tmp_path):
         # 3: results: spread and reprojection error per camera, cam4 flagged with advice
         panel = api(url, "/api/calibration")
         results = {c["name"]: c["result"] for c in panel["cameras"]}
+        assert browser.eval("document.querySelectorAll('#calibration-cameras tr.advice-row').length") == 1
         for cam in ("cam1", "cam2", "cam3"):
             r = results[cam]
             assert r["calibrated"] and not r["poor"], r
@@ -263,7 +264,7 @@ def test_the_dashboard_guides_a_calibration_in_the_browser(lab, tmp_path):
             assert browser.eval(f"document.querySelector('{row} td.reprojection').textContent") == \
                 f"{r['reprojection_px']:.2f} px"
         assert not results["cam4"]["calibrated"] and results["cam4"]["poor"]
-        advice = browser.eval("document.querySelector('#calibration-cameras tr[data-camera=cam4] .advice')"
+        advice = browser.eval("document.querySelector('#calibration-cameras tr[data-advice-for=cam4] .advice')"
                               ".textContent")
         assert advice.startswith("the camera sent no usable frames: check its power, its Wi-Fi and its url")
         browser.screenshot(shots / "dashboard-calibration.png")

@@ -275,6 +275,7 @@ class DashboardApp:
         self._session_stop = threading.Event()
         self._scratch = tempfile.TemporaryDirectory(prefix="cubetrack-dashboard-")
         self._plan = self._watch_plan()
+        self._running: SessionPlan | None = None  # the session running now (its files are still growing)
         self._since_s = self.clock()
         self._message = ""
         self._dirty = threading.Event()
@@ -326,12 +327,15 @@ class DashboardApp:
         try:
             while not self._stop.is_set():
                 with self._lock:
-                    plan = self._plan
+                    plan = self._running = self._plan
                     self._session_stop = threading.Event()
                     stop = self._session_stop
                     self._since_s = self.clock()
                     self._dirty.set()
                 interrupted = self._run_session(plan, stop)
+                with self._lock:
+                    self._running = None
+                    self._dirty.set()  # its files can be downloaded now
                 self._session_ended(plan)
                 if interrupted:
                     break
@@ -660,11 +664,14 @@ class DashboardApp:
                                                            ("collecting", "driving") else [])}
 
     def downloads(self) -> list[Download]:
-        """Every recorded session's trajectory files and every calibration's extrinsics."""
+        """Every recorded session's trajectory files (once the session has ended) and every
+        calibration's extrinsics."""
+        with self._lock:
+            growing = self._running.out_dir if self._running is not None else None
         files = []
         for folder, group, patterns in (("sessions", "session", TRAJECTORY_FILES),
                                         ("calibration", "calibration", ("extrinsics.toml", "refined.toml"))):
             root = self.out_dir / folder
-            for session in sorted(p for p in root.iterdir() if p.is_dir()) if root.is_dir() else ():
+            for session in sorted(p for p in root.iterdir() if p.is_dir() and p != growing) if root.is_dir() else ():
                 files += folder_downloads(session, f"{group} {session.name}", patterns, f"{folder}/{session.name}/")
         return files

@@ -32,6 +32,7 @@ def test_camera_status_rules():
     assert camera_status(health(frames=0), None, 10.0, 1.0) == ("waiting", "connected, no frame yet")
     assert camera_status(health(connected=False, error="connection refused"), None, 10.0, 1.0) == \
         ("down", "connection refused")
+    assert camera_status(health(connected=False, frames=0), None, 10.0, 1.0) == ("waiting", "connecting")
     assert camera_status(health(connected=False), 9.9, 10.0, 1.0) == ("down", "not connected")
     assert camera_status(health(), 9.5, 10.0, 1.0) == ("ok", "")
     status, reason = camera_status(health(error="read timed out"), 8.0, 10.0, 1.0)

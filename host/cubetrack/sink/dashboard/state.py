@@ -12,7 +12,7 @@ Every part has one JSON form (:meth:`DashboardState.camera_json`, :meth:`Dashboa
 A camera's status (:func:`camera_status`):
 
 ``ok``       frames arrive;
-``waiting``  nothing heard yet (no health snapshot, or connected without a frame so far);
+``waiting``  nothing heard yet (no health snapshot, connecting, or connected without a frame so far);
 ``down``     not connected: the reason is the source's last error (refused, timed out, ...);
 ``stale``    connected but no frame for ``stale_after_s``: the reason says for how long.
 
@@ -90,6 +90,8 @@ def camera_status(health: CameraHealth | None, last_frame_s: float | None, now_s
             return "ok", ""
         return "waiting", "no answer from the camera yet"
     if not health.connected:
+        if not (health.last_error or health.reconnects or health.frames):
+            return "waiting", "connecting"  # the session has just started
         return "down", health.last_error or "not connected"
     if last_frame_s is None:
         return "waiting", "connected, no frame yet"

@@ -240,26 +240,26 @@ function renderCalibration() {
   const saved = c.saved ? 3 : -1;
   const steps = el("ol", { class: "steps" }, STEPS.map(([key, label], i) => el("li", {
     "data-step": key, class: i === current ? "current" : (i < current || i === saved ? "done" : null), text: label })));
-  const rows = c.cameras.map((cam) => {
+  const headers = ["camera", "world marker", "samples", "spread", "reprojection", "verdict", "refinement moved it by"];
+  const rows = c.cameras.flatMap((cam) => {
     const r = cam.result, f = cam.refined;
     const seen = cam.sees_marker === null ? el("span", { class: "unknown", text: cam.status === "down" || cam.status === "stale" ? "camera down" : "not checked" })
       : cam.sees_marker ? el("span", { class: "good", text: `✓ seen${cam.marker_side_px ? `, ${cam.marker_side_px.toFixed(0)} px` : ""}` })
       : el("span", { class: "poor", text: "✗ not seen" });
-    let verdict = "–";
-    if (r) {
-      verdict = el("div", {}, el("span", { class: r.poor ? "poor" : "good", text: !r.calibrated ? "NOT CALIBRATED" : r.poor ? "POOR" : "good" }),
-        r.advice.length ? el("ul", { class: "advice" }, r.advice.map((a) => el("li", { text: a }))) : null);
-    }
-    return el("tr", { "data-camera": cam.name, "data-poor": r ? String(r.poor) : null },
+    const verdict = r ? el("span", { class: r.poor ? "poor" : "good", text: !r.calibrated ? "NOT CALIBRATED" : r.poor ? "POOR" : "good" }) : "–";
+    const row = el("tr", { "data-camera": cam.name, "data-poor": r ? String(r.poor) : null },
       el("td", { text: cam.name }), el("td", { class: "marker" }, seen),
       el("td", { class: "samples" }, c.step === "collecting" ? progressBar(cam.samples, c.target_samples) : String(cam.samples || "–")),
       el("td", { class: "num spread", text: r && r.calibrated ? `${fmt(r.spread_cm, 2)} cm / ${fmt(r.spread_deg, 2)}°` : "–" }),
       el("td", { class: "num reprojection", text: r && r.calibrated ? fmt(r.reprojection_px, 2, " px") : "–" }),
       el("td", { class: "verdict" }, verdict),
       el("td", { class: "num moved", text: f ? `${fmt(f.shift_cm, 2)} cm / ${fmt(f.shift_deg, 2)}°${f.moved ? " MOVED" : ""}` : "–" }));
+    if (!r || !r.advice.length) return [row];
+    return [row, el("tr", { class: "advice-row", "data-advice-for": cam.name },
+      el("td", { colspan: headers.length }, el("ul", { class: "advice" }, r.advice.map((a) => el("li", { text: a })))))];
   });
   const table = el("table", { id: "calibration-cameras" },
-    el("thead", {}, el("tr", {}, ["camera", "world marker", "samples", "spread", "reprojection", "verdict", "refinement moved it"].map((h) => el("th", { text: h })))),
+    el("thead", {}, el("tr", {}, headers.map((h) => el("th", { text: h })))),
     el("tbody", {}, rows));
   const parts = [steps, el("p", { id: "calibration-message", text: c.message })];
   if (c.progress) parts.push(progressBar(c.progress.done, c.progress.total, c.progress.label));
