@@ -9,6 +9,8 @@ import json
 import socket
 import subprocess
 import sys
+import threading
+import time
 
 import numpy as np
 import pytest
@@ -120,3 +122,37 @@ def test_a_worker_with_an_unknown_camera_is_one_clear_line(scene, tmp_path):
                   "--cameras", "nosuch", "--duration", "1")
     _, stderr = p.communicate(timeout=60)
     assert p.returncode != 0 and "no camera nosuch" in stderr and len(stderr.strip().splitlines()) == 1
+
+
+def test_the_fusion_counts_and_skips_what_is_not_a_sighting(scene, tmp_path):
+    """A hostile or broken peer on the sighting keys: junk, a truncated message and a camera
+    the config does not know are refused and counted; the fusion goes on."""
+    from cubetrack.app.config import load_config
+    from cubetrack.app.fusion_service import run_fusion
+    from cubetrack.app.worker import fuse_endpoints, sighting_key, worker_endpoints
+    from cubetrack.core.sighting_wire import SightingMessage, encode_sighting
+    from cubetrack.io.config import read_extrinsics
+    from cubetrack.sink.zenoh_session import open_session
+
+    work, rec = scene
+    config, _ = load_config(rec / "config.toml")
+    port, stop, lines, result = free_port(), threading.Event(), [], []
+    fusion = threading.Thread(target=lambda: result.append(run_fusion(
+        config, read_extrinsics(work / "extrinsics.toml"), tmp_path / "out",
+        fuse_endpoints(listen=(f"tcp/127.0.0.1:{port}",)), stop=stop, status=lines.append, status_every_s=0.2)))
+    fusion.start()
+    peer = open_session(worker_endpoints(connect=(f"tcp/127.0.0.1:{port}",)), "test")
+    good = encode_sighting(SightingMessage("nosuch", 1, 0.0, 1.0, 1.0, "full frame", ()))
+    try:
+        deadline = time.monotonic() + 20
+        while not any("refused" in line for line in lines) and time.monotonic() < deadline:
+            for data in (b"GET / HTTP/1.0", good[:-1], good):  # until the fusion is there
+                peer.put(sighting_key("cam1"), data)
+            time.sleep(0.2)
+        time.sleep(0.5)
+    finally:
+        stop.set()
+        fusion.join(30)
+        peer.close()
+    assert result and result[0].bad_messages >= 3
+    assert sum(result[0].heard.values()) == 0 and not result[0].interrupted
