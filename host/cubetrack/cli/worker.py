@@ -79,9 +79,11 @@ def bus(args: argparse.Namespace, make):
 def run(args: argparse.Namespace) -> int:
     import sys
 
+    from cubetrack.app.live import live_camera_urls, live_intrinsics
     from cubetrack.app.worker import chosen_cameras, run_worker, worker_endpoints
 
     config, settings, extrinsics = load(args)
+    live_camera_urls(config), live_intrinsics(config)  # a bad config fails before anything starts
     cameras = chosen_cameras(config, [c.strip() for c in args.cameras.split(",") if c.strip()])
 
     def status(text: str) -> None:
