@@ -112,6 +112,7 @@ def test_the_fusion_says_which_cameras_it_heard(scaled_run):
         assert f"{camera} (" in stdout
     status = [line for line in stderr.splitlines() if line.startswith("fuse: ") and "hearing" in line]
     assert status and all(c in status[-2] for c in scaled_run["cameras"]), stderr
+    assert any(" 2 worker(s), hearing" in line for line in status), stderr  # their liveliness tokens
     for stdout, _ in scaled_run["workers"]:
         assert "published" in stdout
 

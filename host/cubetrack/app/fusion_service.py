@@ -24,7 +24,7 @@ from cubetrack.app.config import config_params
 from cubetrack.app.live import HEALTH_EVERY_S, live_intrinsics
 from cubetrack.app.outputs import open_outputs
 from cubetrack.app.tracker import FrameJob, FrameOutcome, FrameResult, StageParams, Tracker, TrackStats
-from cubetrack.app.worker import SIGHTINGS_KEY
+from cubetrack.app.worker import SIGHTINGS_KEY, WORKERS_KEY
 from cubetrack.core.cameras import CameraExtrinsics
 from cubetrack.core.records import CameraHealth, CubeSighting, Frame, TrackedPose
 from cubetrack.core.sighting_wire import SightingMessage, SightingWireError, decode_sighting
@@ -112,6 +112,7 @@ def run_fusion(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
     inbox: collections.deque[bytes] = collections.deque()
     wake = threading.Event()
     heard = {c.name: Heard() for c in config.cameras}
+    workers: set[str] = set()
     bad = 0
     interrupted = False
     started = time.monotonic()
@@ -119,6 +120,15 @@ def run_fusion(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
     def receive(sample) -> None:  # a Zenoh thread
         inbox.append(bytes(sample.payload))
         wake.set()
+
+    def worker_event(sample) -> None:  # a Zenoh thread: a worker's liveliness token came or went
+        name = str(sample.key_expr).removeprefix(f"{WORKERS_KEY}/")
+        if str(sample.kind).endswith("DELETE"):
+            workers.discard(name)
+            log.warning("fuse: worker %s left", name)
+        else:
+            workers.add(name)
+            log.info("fuse: worker %s joined", name)
 
     def emit(poses: list[TrackedPose], now_s: float) -> None:
         for pose in poses:
@@ -154,7 +164,7 @@ def run_fusion(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
         live = [f"{c} {h.messages}" for c, h in heard.items() if now - h.last_heard_s < SILENT_AFTER_S]
         silent = [c for c, h in heard.items() if not now - h.last_heard_s < SILENT_AFTER_S]
         poses = " ".join(f"{r} {n} poses" for r, n in tracker.stats.poses.items())
-        return (f"{now - started:5.0f}s hearing {', '.join(live) or 'no camera'}"
+        return (f"{now - started:5.0f}s {len(workers)} worker(s), hearing {', '.join(live) or 'no camera'}"
                 + (f" | silent: {', '.join(silent)}" if silent else "") + (f" | {poses}" if poses else "")
                 + (f" | refused {bad}" if bad else ""))
 
@@ -162,6 +172,7 @@ def run_fusion(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
     try:
         session = open_session(endpoints, "fuse")
         subscriber = session.declare_subscriber(f"{SIGHTINGS_KEY}/*", receive)
+        watcher = session.liveliness().declare_subscriber(f"{WORKERS_KEY}/*", worker_event, history=True)
         log.info("fuse: subscribed to %s/*", SIGHTINGS_KEY)
         next_status = started + status_every_s
         try:
@@ -176,6 +187,7 @@ def run_fusion(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
         except KeyboardInterrupt:
             interrupted = True
         subscriber.undeclare()
+        watcher.undeclare()
         fuse_inbox()
         now_s = clock()
         emit(tracker.finish(now_s), now_s)

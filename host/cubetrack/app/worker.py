@@ -7,7 +7,9 @@ publishes one sighting message per frame (:mod:`cubetrack.core.sighting_wire`) u
 ``cubetrack/sightings/<camera>``. The fusion (:mod:`cubetrack.app.fusion_service`) subscribes to
 ``cubetrack/sightings/*``. A worker holds no fusion state, so detection searches whole frames
 (there is no prediction to search around) and per-camera estimates are made by the fusion, from
-the corners, when it asks for one (as in one process: only then).
+the corners, when it asks for one (as in one process: only then). Each running worker holds a
+Zenoh liveliness token ``cubetrack/workers/<host>-<pid>``; the fusion reports workers coming and
+going (a killed worker's token goes when its connection drops).
 
 Zenoh: the fusion listens on ``tcp/127.0.0.1:7450`` and workers connect there (loopback by
 default); either may start first, restart, or come and go.
@@ -17,7 +19,9 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import os
 import re
+import socket
 import threading
 import time
 from dataclasses import dataclass
@@ -37,6 +41,7 @@ from cubetrack.source.streams import CameraStats, ClockReading, LiveCameras, Sou
 log = logging.getLogger(__name__)
 
 SIGHTINGS_KEY = "cubetrack/sightings"  # one camera's sightings: cubetrack/sightings/<camera>
+WORKERS_KEY = "cubetrack/workers"  # a liveliness token per running worker: cubetrack/workers/<host>-<pid>
 FUSE_PORT = 7450
 
 
@@ -60,6 +65,11 @@ def sighting_key(camera: str) -> str:
     if not camera or re.search(r"[/*$#?\s]", camera):
         raise ConfigError(f"camera name {camera!r} cannot be a Zenoh key chunk (no '/', '*', '$', '#', '?' or spaces)")
     return f"{SIGHTINGS_KEY}/{camera}"
+
+
+def worker_id() -> str:
+    """This worker's name on the bus: host name and process id (a key chunk)."""
+    return re.sub(r"[^A-Za-z0-9_.-]", "_", f"{socket.gethostname()}-{os.getpid()}")
 
 
 def sighting_message(result: FrameResult, clock: ClockSync, stats: CameraStats, with_pose: bool) -> SightingMessage:
@@ -117,6 +127,7 @@ def run_worker(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
     with_pose = params.track.camera_poses is CameraPoseSource.WORLD_MARKER
     session = open_session(endpoints, "worker")
     publishers = {n: session.declare_publisher(k) for n, k in keys.items()}
+    token = session.liveliness().declare_token(f"{WORKERS_KEY}/{worker_id()}")
     live = LiveCameras(urls, source, clock=clock)
     published = 0
     interrupted = False
@@ -150,5 +161,6 @@ def run_worker(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
         live.stop()
         for publisher in publishers.values():
             publisher.undeclare()
+        token.undeclare()
         session.close()
     return WorkerResult(tracker.stats, published, live.stats(), time.monotonic() - started, interrupted)

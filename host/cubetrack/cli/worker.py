@@ -83,8 +83,8 @@ def run(args: argparse.Namespace) -> int:
     from cubetrack.app.worker import chosen_cameras, run_worker, worker_endpoints
 
     config, settings, extrinsics = load(args)
-    live_camera_urls(config), live_intrinsics(config)  # a bad config fails before anything starts
     cameras = chosen_cameras(config, [c.strip() for c in args.cameras.split(",") if c.strip()])
+    live_camera_urls(config), live_intrinsics(config)  # a bad config fails before anything starts
 
     def status(text: str) -> None:
         print(f"worker: {text}", file=sys.stderr, flush=True)
