@@ -221,12 +221,13 @@ class _Watcher(Sink):
     name = "dashboard-guide"
     wants_views = True
 
-    def __init__(self, app: DashboardApp):
+    def __init__(self, app: DashboardApp, plan: SessionPlan):
         self.app = app
+        self.plan = plan
         self.detector = world_detector(app.config.world, app.settings.detector)
 
     def pose(self, pose: TrackedPose) -> None:
-        self.app.pose_seen(pose)
+        self.app.pose_seen(pose, self.plan)
 
     def camera_view(self, view: CameraView) -> None:
         if not self.app.wants_marker_check(view.camera):
@@ -237,7 +238,7 @@ class _Watcher(Sink):
             return
         world = self.app.config.world
         found = detections_of(self.detector.detect(gray), world.dictionary, (world.marker_id,))
-        self.app.marker_checked(view.camera, found[0] if len(found) == 1 else None)
+        self.app.marker_checked(view.camera, found[0] if len(found) == 1 else None, self.plan)
 
 
 def _stamp(parent: Path, clock: Callable[[], float]) -> Path:
@@ -357,14 +358,15 @@ class DashboardApp:
         try:
             result = track_live(self.config, plan.extrinsics or None, plan.out_dir, self._stage_params(plan.extrinsics),
                                 self.settings.source, stop=stop, record_to=plan.record_to,
-                                sinks=[DashboardSink(self.server), _Watcher(self)])
+                                sinks=[DashboardSink(self.server), _Watcher(self, plan)])
         except CubetrackError as exc:
             log.error("dashboard: the %s session failed: %s", plan.kind, exc)
             with self._lock:
                 self._message = f"the {plan.kind} session failed: {exc}"
                 self._plan = self._watch_plan()
-                if self.step in ("collecting", "driving"):
-                    self.step, self.step_message = "check", self._message
+                if self.step in ("collecting", "driving"):  # back to where the step began
+                    self.step = "check" if self.step == "collecting" else "result"
+                    self.step_message = self._message
             self._stop.wait(1.0)
             return False
         return result.interrupted
@@ -396,25 +398,31 @@ class DashboardApp:
                 return True
             return self.clock() - self.marker[camera][0] >= self.params.check_every_s
 
-    def marker_checked(self, camera: str, detection: Detection | None) -> None:
+    def _recording(self, kind: str, plan: SessionPlan | None = None) -> bool:
+        """Whether the session of ``kind`` the step waits for is the one running (and, with
+        ``plan``, the one that reported): a step's counts come from its own session only, not
+        from the one still ending when the step began."""
+        return self._running is not None and self._running.kind == kind and plan in (None, self._running)
+
+    def marker_checked(self, camera: str, detection: Detection | None, plan: SessionPlan) -> None:
         with self._lock:
             now, (_, seen_s, side) = self.clock(), self.marker[camera]
             if detection is not None:
                 seen_s, side = now, math.sqrt(detection.area_px2)
             self.marker[camera] = (now, seen_s, side)
-            if self.step == "collecting" and detection is not None and self._plan.kind == "calibration":
+            if self.step == "collecting" and detection is not None and self._recording("calibration", plan):
                 self.samples[camera] = self.samples.get(camera, 0) + 1
                 if self._collected_enough():
                     self._finish_collecting()
             self._dirty.set()
 
-    def pose_seen(self, pose: TrackedPose) -> None:
+    def pose_seen(self, pose: TrackedPose, plan: SessionPlan) -> None:
         """While driving: count the sightings another camera matched within the bundle
         adjustment's ``max_span_s`` (what makes an instant it can use)."""
         if pose.predicted or not pose.cameras:
             return
         with self._lock:
-            if self.step != "driving":
+            if self.step != "driving" or not self._recording("drive", plan):
                 return
             last = self._last_sighting.setdefault(pose.robot, {})
             span_s = self.settings.bundle_adjustment.max_span_s
@@ -472,6 +480,8 @@ class DashboardApp:
     def _stop_collecting(self, body: dict) -> dict:
         with self._lock:
             self._require("collecting")
+            if not self._recording("calibration"):
+                raise DashboardError("not yet: the cameras are still being connected for the collection")
             self._finish_collecting()
             self._publish()
             return {}
@@ -522,6 +532,8 @@ class DashboardApp:
     def _refine(self, body: dict) -> dict:
         with self._lock:
             self._require("driving")
+            if not self._recording("drive"):
+                raise DashboardError("not yet: the cameras are still being connected for the drive")
             self._go("refining", "Refining the camera poses with the robot's cube (bundle adjustment)...")
             self._publish()
             return {}
@@ -640,6 +652,8 @@ class DashboardApp:
                        "driving": ["refine", "cancel"]}.get(self.step, [])
             if self._plan.kind == "record":
                 actions = []
+            if self.step in ("collecting", "driving") and not self._recording(self._plan.kind):
+                actions = ["cancel"]  # its session is starting
             if self.step in ("result", "refined") and not (self.candidate and self.candidate.extrinsics):
                 actions = [a for a in actions if a not in ("save", "drive")]
             progress = None

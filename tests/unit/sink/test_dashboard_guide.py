@@ -135,7 +135,11 @@ def test_the_actions_run_only_in_their_step(app):
     r = post(server, "/api/calibration/collect", {"samples": 30})
     assert r.status_code == 200 and r.json()["panel"]["step"] == "collecting"
     assert r.json()["result"]["recording"].startswith(str(guide.out_dir / "calibration"))
-    assert r.json()["panel"]["actions"] == ["stop", "cancel"] and r.json()["panel"]["target_samples"] == 30
+    assert r.json()["panel"]["target_samples"] == 30
+    # its session has not started (nothing runs sessions here): no samples can come, so no stop yet
+    assert r.json()["panel"]["actions"] == ["cancel"]
+    r = post(server, "/api/calibration/stop")
+    assert r.status_code == 409 and r.json()["error"].startswith("not yet: the cameras are still being connected")
     recording = requests.get(server.url + "api/recording", timeout=10).json()
     assert recording["mode"] == "calibration" and recording["actions"] == []  # the cameras are busy
     assert post(server, "/api/recording/start").status_code == 409

@@ -319,15 +319,20 @@ def test_downloads_offer_listed_files_only(server, tmp_path):
 
 
 def test_client_limit_and_slow_clients(session_info):
-    srv = DashboardServer("127.0.0.1", 0, DashboardParams(max_clients=2, client_timeout_s=1.0))
+    srv = DashboardServer("127.0.0.1", 0, DashboardParams(max_clients=2, client_timeout_s=2.0))
     try:
         idle = [socket.create_connection(("127.0.0.1", srv.port)) for _ in range(2)]
         for s in idle:
             s.sendall(b"GET /api/state HTTP/1.1\r\n")  # and never the rest
-        time.sleep(0.2)
-        assert get(srv, "/api/session").status_code == 503
-        time.sleep(1.5)  # the slow clients were dropped
-        assert get(srv, "/api/session").status_code == 200
+        started = time.monotonic()
+        codes = []
+        while time.monotonic() - started < 1.5 and 503 not in codes:  # until the server has taken them
+            codes.append(get(srv, "/api/session").status_code)
+        assert codes[-1] == 503
+        while get(srv, "/api/session").status_code != 200:  # the slow clients are dropped
+            assert time.monotonic() - started < 6.0
+            time.sleep(0.1)
+        assert time.monotonic() - started > 1.5  # not before their time was up
         for s in idle:
             s.close()
     finally:
