@@ -301,9 +301,10 @@ def track_live(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
         rates.add_poses(poses)
 
     def take_events() -> None:
-        """Clock samples always; frames while a worker is free (the others wait in the source).
-        Until the first worker has started, this thread does the per-frame work itself."""
-        while (event := live.get(0, frames=pool.idle() > 0 or not pool.ready)) is not None:
+        """Clock samples always; frames while a worker is free, the freshest first (the others
+        wait in the source, one per camera, until a newer frame replaces them). Until the first
+        worker has started, this thread does the per-frame work itself."""
+        while (event := live.get(0, frames=pool.idle() > 0 or not pool.ready, newest_first=True)) is not None:
             if isinstance(event, ClockReading):
                 emit(tracker.add_clock_sample(event.camera, event.sample), event.sample.host_recv_s)
             elif (job := tracker.admit(event, hold=False)) is not None:
@@ -325,10 +326,16 @@ def track_live(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
         for result in by_capture_time(pool.take()):
             fuse(result)
 
+    def wake_for_source() -> None:
+        """A frame or clock sample came: worth waking for only when a worker could take a frame
+        (otherwise the next result wakes this thread; clock samples can wait that long)."""
+        if pool.idle() or not pool.ready:
+            wake.set()
+
     make_worker = functools.partial(FrameWorker, intrinsics, config.world, config.robots, tracker.T_world_cam, params)
     pool = FramePool(make_worker, live_params.worker_count, live_params.worker_kind, wake.set, source.max_part_bytes)
     live = LiveCameras(urls, source, on_frame=recorder.frame if recorder else None,
-                       on_clock=recorder.clock if recorder else None, clock=clock, wake=wake.set)
+                       on_clock=recorder.clock if recorder else None, clock=clock, wake=wake_for_source)
     rates = _Rates(live, robots)
     health = _Health(live, tracker.clocks, clock)
     try:

@@ -44,9 +44,9 @@ class LiveParams:
 
     workers: int = param(0, "per-frame workers (decode, detection, per-camera estimate); 0: one per core")
     worker_kind: WorkerKind = param(
-        WorkerKind.PROCESS,
-        "process: worker processes, each frame's JPEG handed over in shared memory (measured faster, "
-        "docs/live.md); thread: threads of the tracker's process")
+        WorkerKind.THREAD,
+        "thread: threads of the tracker's process (measured faster here, docs/live.md); process: worker "
+        "processes, each frame's JPEG handed over in shared memory")
 
     def __post_init__(self) -> None:
         check(self.workers >= 0, f"workers must not be negative, got {self.workers}")

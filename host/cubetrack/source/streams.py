@@ -497,21 +497,25 @@ class LiveCameras:
 
     # --- what the consumer sees ---
 
-    def get(self, timeout_s: float | None = None, frames: bool = True) -> Frame | ClockReading | None:
+    def get(self, timeout_s: float | None = None, frames: bool = True,
+            newest_first: bool = False) -> Frame | ClockReading | None:
         """The next event in arrival order, or None after ``timeout_s`` (or once stopped and drained).
         ``frames=False``: the next clock reading only (frames keep waiting: a consumer with no
-        room for a frame still takes the clock samples)."""
+        room for a frame still takes the clock samples). ``newest_first``: clock readings first,
+        then the frame that arrived last (the freshest, of whichever camera)."""
         with self._cond:
             if not self._has(frames) and not self._stop.is_set():
                 self._cond.wait(timeout_s)
             if self.failure is not None:
                 raise self.failure
-            if frames:
+            if frames and not newest_first:
                 if not self._queue:
                     return None
                 item = self._queue.popleft()
             else:
                 item = next((e for e in self._queue if isinstance(e, ClockReading)), None)
+                if item is None and frames:
+                    item = next((e for e in reversed(self._queue) if isinstance(e, Frame)), None)
                 if item is None:
                     return None
                 self._queue.remove(item)

@@ -137,14 +137,17 @@ def test_a_consumer_that_falls_behind_keeps_each_cameras_newest_frame_only(tmp_p
         with LiveCameras(emu.urls, SourceParams(clock_period_s=0.25), wake=woken.set) as live:
             time.sleep(2.0)  # nobody reads
             assert woken.is_set()
+            live.stop()
             clocks = []
             while (e := live.get(0, frames=False)) is not None:  # clock samples pass waiting frames
                 clocks.append(e)
             stats = live.stats()
-            events = []
+            freshest = live.get(0, newest_first=True)
+            events = [freshest]
             while (e := live.get(0)) is not None:
                 events.append(e)
     frames = [e for e in events if isinstance(e, Frame)]
+    assert isinstance(freshest, Frame) and freshest.host_time_s == max(f.host_time_s for f in frames)
     assert len(clocks) >= 4 and all(isinstance(e, ClockReading) for e in clocks)  # never dropped
     assert sorted(f.camera for f in frames) == ["a", "b"]  # one frame per camera waited
     for f in frames:
