@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import dataclasses
 import functools
 import json
 import os
@@ -80,6 +81,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--quick", action="store_true", help="smoke run: 2 cameras x 10 fps, 5 s, small recording")
     p.add_argument("--record", action="store_true",
                    help="the tracker records the session too; the offline replay and the speed comparison use it")
+    p.add_argument("--worker-kind", choices=("process", "thread"),
+                   help="the tracker's [live] worker_kind (default: the config's, i.e. the package default)")
     p.add_argument("--tracker-arg", action="append", default=[], metavar="ARG",
                    help="extra argument for `cubetrack track` (repeatable)")
     args = p.parse_args(argv)
@@ -155,6 +158,7 @@ class TreeSampler:
         self.pid, self.period_s = pid, period_s
         self.cpu: dict[int, float] = {}
         self.samples: list[tuple[float, float, int, int]] = []  # (monotonic s, CPU s, RSS bytes, processes)
+        self.main_cpu: list[float] = []  # the first process's own CPU s, per sample
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
         self._thread.start()
@@ -169,6 +173,7 @@ class TreeSampler:
                     rss, alive = rss + r, alive + 1
             if rss:
                 self.samples.append((time.monotonic(), sum(self.cpu.values()), rss, alive))
+                self.main_cpu.append(self.cpu.get(self.pid, 0.0))
             self._stop.wait(self.period_s)
 
     def stop(self) -> None:
@@ -197,6 +202,9 @@ def run_live(args: argparse.Namespace, rec: Path, work: Path) -> dict:
             subprocess.run(["rm", "-rf", str(path)], check=True)
     with EmulatedCameras(rec, ("--loop",)) as emu:
         config = write_live_config(rec / "config.toml", emu.urls, work / "live_config.toml")
+        if args.worker_kind:
+            config.write_text(config.read_text(encoding="utf-8") + f'\n[live]\nworker_kind = "{args.worker_kind}"\n',
+                              encoding="utf-8")
         command = [sys.executable, "-m", "cubetrack.cli.main", "track", "--config", str(config),
                    "--extrinsics", str(rec / "extrinsics.toml"), "--live", "--out", str(out),
                    "--duration", str(args.duration), "--status-every", "5",
@@ -226,6 +234,7 @@ def run_live(args: argparse.Namespace, rec: Path, work: Path) -> dict:
     processed = taken - before_clock
     first, last, full = sampler.samples[0], sampler.samples[-1], sampler.last_full()
     warm = sampler.at(started + args.warmup)
+    main_cpu = (sampler.main_cpu[sampler.samples.index(full)] - sampler.main_cpu[sampler.samples.index(warm)])
     cpu_emulator = emulator.samples[-1][1] - emulator.samples[0][1] if len(emulator.samples) > 1 else float("nan")
     poses = [json.loads(line) for line in (out / "robot.jsonl").read_text().splitlines()]
     fused = [p for p in poses if not p.get("predicted")]
@@ -246,6 +255,7 @@ def run_live(args: argparse.Namespace, rec: Path, work: Path) -> dict:
         "cpu_s": last[1] - first[1],
         "cpu_ms_per_frame": (last[1] - first[1]) / max(processed, 1) * 1000.0,
         "cores_used": (full[1] - warm[1]) / max(full[0] - warm[0], 1e-9),
+        "main_cores_used": main_cpu / max(full[0] - warm[0], 1e-9),
         "emulator_cores_used": cpu_emulator / max(emulator.samples[-1][0] - emulator.samples[0][0], 1e-9)
         if len(emulator.samples) > 1 else float("nan"),
         "rss_start_mb": warm[2] / 1e6,
@@ -328,8 +338,9 @@ def accuracy(args: argparse.Namespace, rec: Path, work: Path, live: dict) -> dic
     truth, seams = live_truth(rec, live["clock_shift_s"], live["period_s"], span)
     offline_truth = (read_tum(rec / "ground_truth.tum"), np.zeros(0))
     out = {}
-    for name, path, (gt, cuts) in (("live", work / "live" / "robot.tum", (truth, seams)),
-                                   ("offline", offline / "robot.tum", (truth, seams) if args.record else offline_truth)):
+    runs = (("live", work / "live" / "robot.tum", (truth, seams)),
+            ("offline", offline / "robot.tum", (truth, seams) if args.record else offline_truth))
+    for name, path, (gt, cuts) in runs:
         poses = read_tum(path)
         r = evaluate(away_from_seams(poses, cuts), away_from_seams(gt, cuts))
         out[name] = {"pos_cm": r.position_rmse_m * 100.0, "rot_deg": r.rotation_rmse_deg,
@@ -348,7 +359,7 @@ def speed(args: argparse.Namespace, rec: Path, work: Path, live: dict) -> dict:
     import cv2
 
     from cubetrack.app.config import load_config, recording_intrinsics
-    from cubetrack.app.parallel import FramePool, by_capture_time
+    from cubetrack.app.parallel import FramePool, WorkerKind, by_capture_time
     from cubetrack.app.tracker import FrameWorker, Tracker
     from cubetrack.core.layout import marker_corners_m
     from cubetrack.io.config import read_extrinsics
@@ -377,7 +388,8 @@ def speed(args: argparse.Namespace, rec: Path, work: Path, live: dict) -> dict:
         intr = intrinsics[frame.camera]
         for c, marker_id in zip(corners, ids.reshape(-1)):
             if int(marker_id) in objects:
-                cv2.solvePnP(objects[int(marker_id)], c.reshape(4, 2), intr.K, intr.dist, flags=cv2.SOLVEPNP_IPPE_SQUARE)
+                cv2.solvePnP(objects[int(marker_id)], c.reshape(4, 2), intr.K, intr.dist,
+                             flags=cv2.SOLVEPNP_IPPE_SQUARE)
     naive_fps = len(frames) / (time.perf_counter() - t0)
 
     tracker = Tracker(intrinsics, config.world, config.robots, extrinsics, settings.stages)
@@ -400,6 +412,8 @@ def speed(args: argparse.Namespace, rec: Path, work: Path, live: dict) -> dict:
     make = functools.partial(FrameWorker, intrinsics, config.world, config.robots, tracker.T_world_cam,
                              settings.stages)
     live_params = settings.live
+    if args.worker_kind:
+        live_params = dataclasses.replace(live_params, worker_kind=WorkerKind(args.worker_kind))
     with FramePool(make, live_params.worker_count, live_params.worker_kind, wake.set) as pool:
         while pool.idle() != pool.count:
             wake.wait(0.1)
@@ -417,7 +431,8 @@ def speed(args: argparse.Namespace, rec: Path, work: Path, live: dict) -> dict:
             wake.clear()
         ours_fps = len(frames) / (time.perf_counter() - t0)
     return {"frames": len(frames), "naive_fps": naive_fps, "ours_fps": ours_fps, "ratio": ours_fps / naive_fps,
-            "inline_fps": inline_fps, "work_ms": percentiles(np.array(work_ms)), "fuse_ms": percentiles(np.array(fuse_ms)),
+            "inline_fps": inline_fps, "work_ms": percentiles(np.array(work_ms)),
+            "fuse_ms": percentiles(np.array(fuse_ms)),
             "live_ratio": live["processed_fps"] / naive_fps, "workers": f"{pool.count} {live_params.worker_kind.value}"}
 
 
@@ -435,7 +450,8 @@ def print_report(args: argparse.Namespace, report: dict) -> list[str]:
     print(f"  frames/s: offered {live['offered_fps']:.1f}, processed {live['processed_fps']:.1f}, dropped by the "
           f"tracker {live['dropped_fps']:.1f} ({live['dropped_fraction'] * 100:.2f} %: {live['dropped_behind']} "
           f"replaced by a newer frame, {live['dropped_before_clock']} before the camera's clock was known)")
-    print(f"  CPU: {live['cpu_ms_per_frame']:.2f} ms per processed frame, {live['cores_used']:.2f} cores "
+    print(f"  CPU: {live['cpu_ms_per_frame']:.2f} ms per processed frame, {live['cores_used']:.2f} cores, of "
+          f"which the main process (readers, planning, fusion, outputs) {live['main_cores_used']:.2f} "
           f"(the emulator: {live['emulator_cores_used']:.2f} cores)")
     print(f"  arrival -> pose ms: p50 {a['p50']:.1f}  p95 {a['p95']:.1f}  p99 {a['p99']:.1f}   "
           f"capture -> pose ms: p50 {c['p50']:.1f}  p95 {c['p95']:.1f}  p99 {c['p99']:.1f}  ({live['poses']} poses)")
@@ -477,8 +493,9 @@ def main(argv: list[str] | None = None) -> int:
         load = os.getloadavg()
         live = run_live(args, rec, work)
         print("replaying the frames offline and timing the naive loop ...", file=sys.stderr, flush=True)
-        report = {"nproc": os.cpu_count(), "load_average": [load, os.getloadavg()], "args": {k: (str(v) if isinstance(v, Path) else v)
-                                                     for k, v in vars(args).items()},
+        after = os.getloadavg()
+        report = {"nproc": os.cpu_count(), "load_average": [load, after],
+                  "args": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
                   "live": live, "accuracy": accuracy(args, rec, work, live), "speed": speed(args, rec, work, live)}
         report["failures"] = print_report(args, report)
         (work / REPORT_FILE).write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
