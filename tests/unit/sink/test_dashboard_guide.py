@@ -9,7 +9,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 import requests
-from conftest import INTRINSICS, look_at
+from sink_helpers import INTRINSICS, look_at
 
 from cubetrack.app.config import load_config
 from cubetrack.app.dashboard import (

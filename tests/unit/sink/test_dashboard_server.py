@@ -14,7 +14,7 @@ import cv2
 import numpy as np
 import pytest
 import requests
-from conftest import INTRINSICS
+from sink_helpers import INTRINSICS
 
 from cubetrack.core.geometry import make_T, position_quat_from_T, transform_points
 from cubetrack.core.layout import paper_cube_layout
@@ -35,7 +35,7 @@ CUBE_T = make_T(cv2.Rodrigues(np.array([0.0, 0.0, np.radians(25)]))[0], [0.45, 0
 def rendered(request):
     """cam-a's view (1, 0, 1) -> origin of the world marker and robot "robot 1!"'s cube: the JPEG
     and what the detector finds in it."""
-    from conftest import look_at
+    from sink_helpers import look_at
 
     T_world_cam = look_at(np.array([1.0, 0.0, 1.0]), [0, 0, 0])
     layout = paper_cube_layout()

@@ -5,7 +5,7 @@ import math
 
 import numpy as np
 import pytest
-from conftest import tracked
+from sink_helpers import tracked
 
 from cubetrack.core.records import CameraHealth, CameraView
 from cubetrack.sink.dashboard.state import DashboardParams, DashboardState, EventHub, camera_status, health_json

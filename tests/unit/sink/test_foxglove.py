@@ -7,7 +7,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from conftest import INTRINSICS, tracked
+from sink_helpers import INTRINSICS, tracked
 from foxglove_client import LiveClient, read_mcap
 
 from cubetrack.core.records import CameraHealth, CameraView, Detection

@@ -3,7 +3,7 @@
 import argparse
 
 import pytest
-from conftest import free_port
+from sink_helpers import free_port
 
 from cubetrack.app.outputs import (OutputSpec, close_sinks, config_output_specs, merge_outputs, output_sinks,
                                    parse_address)

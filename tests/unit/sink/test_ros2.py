@@ -14,7 +14,7 @@ import time
 import numpy as np
 import pytest
 import xxhash
-from conftest import peer, tracked, wait_connected
+from sink_helpers import peer, tracked, wait_connected
 from rosbags.typesys import Stores, get_typestore
 
 from cubetrack.sink.base import OutputError

@@ -6,7 +6,7 @@ import time
 
 import numpy as np
 import pytest
-from conftest import tracked
+from sink_helpers import tracked
 from vrpn_client import TrackerClient, connect, recv_exact
 
 from cubetrack.sink.base import OutputError

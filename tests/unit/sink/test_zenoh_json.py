@@ -6,7 +6,7 @@ import queue
 import time
 
 import pytest
-from conftest import free_port, peer, tracked, wait_connected
+from sink_helpers import free_port, peer, tracked, wait_connected
 
 from cubetrack.core.records import CameraHealth
 from cubetrack.sink.base import OutputError
