@@ -33,7 +33,7 @@ import bisect
 import enum
 import logging
 from collections import Counter
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -179,6 +179,7 @@ class HistoryStep:
     sighting: CubeSighting
     before: RobotState
     outcome: str = ""
+    poses: list[TrackedPose] = field(default_factory=list)  # what applying it gave
 
 
 class FilterFusion:
@@ -204,6 +205,7 @@ class FilterFusion:
         self.history: dict[str, list[HistoryStep]] = {r: [] for r in layouts}
         self._keys: dict[str, list[tuple[float, str, int]]] = {r: [] for r in layouts}
         self._stale: dict[str, int] = {}  # robot -> first history index whose step must be re-applied
+        self._sent: dict[str, tuple[float, str, int]] = {}  # robot -> key of the newest step whose poses left
         self.stats: Counter[str] = Counter()
 
     def needs_estimate(self, robot: str) -> bool:
@@ -220,9 +222,11 @@ class FilterFusion:
         return state.filter.predicted(time_s)
 
     def add(self, sighting: CubeSighting, now_s: float) -> list[TrackedPose]:
-        """Fuse a sighting now. Returns its pose if it was accepted and is the robot's newest; a
-        late sighting (older than the newest) is folded in exactly and gives no pose of its own, so
-        each robot's poses leave in capture-time order."""
+        """Fuse a sighting now. Returns the poses it made due: its own if it was accepted and is
+        the robot's newest, after those of earlier sightings that re-applying the late ones made
+        newer than the robot's last pose out (a track that starts within the re-applied steps
+        gives its poses from its start on). A late sighting (older than the newest) is folded in
+        exactly and gives no pose by itself, so each robot's poses leave in capture order."""
         robot = sighting.robot
         history, keys = self.history[robot], self._keys[robot]
         key = (sighting.capture_time_s, sighting.camera, sighting.seq)
@@ -238,38 +242,52 @@ class FilterFusion:
             return []
         history.append(HistoryStep(key, sighting, self.state[robot]))
         keys.append(key)
-        poses = self._apply_from(robot, self._stale.pop(robot, len(history) - 1), now_s)
+        self._apply_from(robot, self._stale.pop(robot, len(history) - 1), now_s)
+        poses = self._due_poses(robot)
         self._forget(robot)
         return poses
 
     def settled_state(self, robot: str, now_s: float) -> RobotState:
-        """The robot's state after processing every sighting received, in capture order."""
+        """The robot's state after processing every sighting received, in capture order (poses
+        this makes due leave with the next :meth:`add` of the robot, or :meth:`flush`)."""
         if robot in self._stale:
             self._apply_from(robot, self._stale.pop(robot), now_s)
         return self.state[robot]
 
     def flush(self, now_s: float) -> list[TrackedPose]:
-        """Fold in the late sightings still pending (they give no poses: nothing is held back)."""
-        for robot in list(self._stale):
+        """Fold in the late sightings still pending and return the poses that makes due (nothing
+        else is held back)."""
+        poses = []
+        for robot in self.history:
             self.settled_state(robot, now_s)
-        return []
+            poses += self._due_poses(robot)
+        return poses
 
-    def _apply_from(self, robot: str, start: int, now_s: float) -> list[TrackedPose]:
+    def _apply_from(self, robot: str, start: int, now_s: float) -> None:
         """Apply the robot's steps from ``start`` on in capture order (each on the state the one
-        before left); returns the poses of the last."""
+        before left), keeping each step's poses with it."""
         history = self.history[robot]
         state = history[start].before
-        poses: list[TrackedPose] = []
         for index in range(start, len(history)):
             step = history[index]
             step.before = state
-            state, poses, outcome = self._apply(state, history, index, now_s)
+            state, step.poses, outcome = self._apply(state, history, index, now_s)
             if step.outcome:
                 self.stats[step.outcome] -= 1
                 self.stats["replayed sighting"] += 1
             self.stats[outcome] += 1
             step.outcome = outcome
         self.state[robot] = state
+
+    def _due_poses(self, robot: str) -> list[TrackedPose]:
+        """The poses of the robot's steps after the last one whose poses left, in capture order."""
+        history, keys = self.history[robot], self._keys[robot]
+        sent = self._sent.get(robot)
+        poses = []
+        for step in history[0 if sent is None else bisect.bisect_right(keys, sent):]:
+            if step.poses:
+                poses += step.poses
+                self._sent[robot] = step.key
         return poses
 
     def _forget(self, robot: str) -> None:

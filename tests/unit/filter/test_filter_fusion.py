@@ -98,6 +98,7 @@ def test_late_sightings_are_folded_in_exactly_as_in_capture_order(order):
     params = FusionParams(history_s=2.0)  # the whole session can be reordered
     fusion = FilterFusion({"bot": LAYOUT}, params)
     late = 0
+    sent = []
     for n, s in enumerate(arrived, start=1):
         newest = max((x.capture_time_s for x in arrived[:n - 1]), default=-1.0)
         late += s.capture_time_s < newest
@@ -111,10 +112,11 @@ def test_late_sightings_are_folded_in_exactly_as_in_capture_order(order):
             assert fusion.settled_state("bot", s.arrival_time_s).filter is None
         else:
             np.testing.assert_allclose(state_of(fusion), state_of(reference), rtol=1e-9, atol=1e-12)
-        assert len(poses) <= 1
-        for p in poses:
-            assert p.time_s == s.capture_time_s and s.capture_time_s >= newest  # only the newest gives a pose
+        for p in poses:  # the newest's, or re-applied ones newer than the last pose out
+            assert p.time_s <= s.capture_time_s and s.capture_time_s >= newest
             same_pose(p, expected[(p.time_s, p.cameras)])
+        sent += [p.time_s for p in poses]
+    assert sent == sorted(sent) and len(set(sent)) == len(sent)  # each robot's poses leave in capture order
     assert late > (5 if order != "reversed" else len(items) - 2)
     assert fusion.stats["late sighting"] == late
     outcomes = ("accepted sighting", "rejected sighting", "track start", "failed track start")
@@ -150,3 +152,24 @@ def test_a_burst_of_late_sightings_is_re_applied_once_when_the_next_pose_is_due(
     reference = FilterFusion({"bot": LAYOUT})
     expected = run(reference, items[:38])
     same_pose(poses[0], expected[-1])
+
+
+def test_a_track_started_by_late_sightings_gives_its_poses_from_its_start():
+    """One camera's sightings arrive on time; the others' first 0.6 s arrive together at 0.65 s
+    (their clocks were not known yet). The track starts within the re-applied steps, and its poses
+    from there on leave at once, in capture order: the first pose is not delayed to the newest."""
+    rng = np.random.default_rng(6)
+    items = sightings(1.5, rng)
+    held = [s for s in items if s.camera != "cam1" and s.capture_time_s < 0.6]
+    on_time = [s for s in items if s not in held]
+    arrived = sorted([dataclasses.replace(s, arrival_time_s=0.65) for s in held] + on_time,
+                     key=lambda s: s.arrival_time_s)
+    fusion = FilterFusion({"bot": LAYOUT})
+    poses = run(fusion, arrived)
+    times = [p.time_s for p in poses]
+    assert times == sorted(times)
+    reference = run(FilterFusion({"bot": LAYOUT}), in_capture_order(items))
+    assert times[0] == reference[0].time_s < 0.25  # the start, not the newest sighting at 0.65 s
+    same_pose(poses[0], reference[0])
+    first_after = [p for p in poses if p.time_s > 0.6]
+    assert len(poses) - len(first_after) >= 5  # the poses between the start and the release left too
