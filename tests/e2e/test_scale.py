@@ -1,11 +1,13 @@
 """Workers and a fusion over real loopback Zenoh, end to end: a short simulated session served
 over HTTP by the camera emulator (a child process), two `cubetrack worker` processes each reading
 half of the cameras, one `cubetrack fuse` process -> poses that match the offline replay of the
-same recording pose for pose (on the live clock), and a fusion that says which cameras it heard."""
+same recording pose for pose (on the live clock), and a fusion that says which cameras it heard.
+Two automatic workers share the cameras; one is SIGKILLed and the other takes its cameras over."""
 
 from __future__ import annotations
 
 import json
+import signal
 import socket
 import subprocess
 import sys
@@ -157,3 +159,126 @@ def test_the_fusion_counts_and_skips_what_is_not_a_sighting(scene, tmp_path):
         peer.close()
     assert result and result[0].bad_messages >= 3
     assert sum(result[0].heard.values()) == 0 and not result[0].interrupted
+
+
+class Bus:
+    """The test's own Zenoh peer on the sighting bus: when each camera's sightings arrive and
+    who claims each camera (the liveliness tokens the workers hold)."""
+
+    def __init__(self, port: int):
+        from cubetrack.app.worker import CLAIMS_KEY, SIGHTINGS_KEY, ClaimBoard, worker_endpoints
+        from cubetrack.core.sighting_wire import decode_sighting
+        from cubetrack.sink.zenoh_session import open_session
+
+        self.arrivals: dict[str, list[float]] = {}  # camera -> time.monotonic() of each sighting
+        self.board = ClaimBoard()
+        self.session = open_session(worker_endpoints(connect=(f"tcp/127.0.0.1:{port}",)), "test")
+
+        def sighting(sample) -> None:
+            camera = decode_sighting(bytes(sample.payload)).camera
+            self.arrivals.setdefault(camera, []).append(time.monotonic())
+
+        self.subscriber = self.session.declare_subscriber(f"{SIGHTINGS_KEY}/*", sighting)
+        self.watcher = self.session.liveliness().declare_subscriber(
+            f"{CLAIMS_KEY}/**", lambda s: self.board.token(str(s.key_expr), not str(s.kind).endswith("DELETE")),
+            history=True)
+
+    def holders(self) -> dict[str, set[str]]:
+        return {c: w for c, w in self.board.snapshot()[1].items() if w}
+
+    def heard_since(self, camera: str, t: float) -> bool:
+        return any(a > t for a in self.arrivals.get(camera, ())[-5:])
+
+    def close(self) -> None:
+        self.subscriber.undeclare()
+        self.watcher.undeclare()
+        self.session.close()
+
+
+def wait_for(condition, timeout_s: float, what: str, procs) -> float:
+    """Poll ``condition`` until true; the time.monotonic() it became true."""
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        if time.monotonic() > deadline or any(p.poll() is not None for p in procs):
+            for p in procs:
+                p.kill()
+            stderrs = [p.communicate(timeout=30)[1][-2000:] for p in procs]
+            pytest.fail(f"{what}: not within {timeout_s} s; stderr: {stderrs}")
+        time.sleep(0.02)
+    return time.monotonic()
+
+
+TAKEOVER_CLAIM_S = 2.0  # token gone on the kernel closing the socket (ms) + the next check (<= 0.2 s)
+TAKEOVER_SIGHTING_S = 4.0  # + connect, first /time round trip and a frame (~0.3 s on a quiet machine)
+
+
+def test_a_killed_workers_cameras_are_taken_over(scene, tmp_path):
+    """Two workers without --cameras claim disjoint, fair shares; SIGKILL one mid-run: the other
+    claims its cameras within TAKEOVER_CLAIM_S and their sightings resume within
+    TAKEOVER_SIGHTING_S, while the survivor's own cameras never stop and the fusion keeps
+    producing poses."""
+    work, rec = scene
+    port = free_port()
+    with EmulatedCameras(rec, ("--loop",)) as emu:
+        config = write_live_config(rec / "config.toml", emu.urls, work / "auto_config.toml")
+        cameras = [c.name for c in read_tracker_config(config).cameras]
+        common = ["--config", str(config), "--extrinsics", str(work / "extrinsics.toml"), "--duration", "120",
+                  "--status-every", "1"]
+        fuse = cubetrack("fuse", *common, "--out", str(tmp_path / "fused"), "--bus-listen", f"tcp/127.0.0.1:{port}")
+        bus = Bus(port)
+        workers = [cubetrack("worker", *common, "--bus-connect", f"tcp/127.0.0.1:{port}") for _ in range(2)]
+        procs = [fuse, *workers]
+        try:
+            ids = [f"-{w.pid}" for w in workers]
+
+            def owners() -> dict[str, list[int]]:
+                return {c: [i for i, suffix in enumerate(ids) for w in ws if w.endswith(suffix)]
+                        for c, ws in bus.holders().items()}
+
+            def settled() -> bool:
+                o = owners()
+                return (all(len(o.get(c, ())) == 1 for c in cameras)
+                        and all(bus.heard_since(c, time.monotonic() - 0.5) for c in cameras))
+
+            wait_for(settled, 90, "every camera claimed once and heard", procs)
+            time.sleep(1.0)
+            before = owners()
+            assert all(len(before.get(c, ())) == 1 for c in cameras), before  # still one reader each
+            shares = [[c for c in cameras if before[c] == [i]] for i in range(2)]
+            assert all(shares) and abs(len(shares[0]) - len(shares[1])) <= 1, shares
+            victim, survivor = shares
+            killed, killed_unix_s = time.monotonic(), time.time()
+            workers[0].send_signal(signal.SIGKILL)
+            workers[0].wait(10)
+            claimed = wait_for(lambda: all(owners().get(c) == [1] for c in cameras), 20,
+                               f"the survivor claims {victim}", [fuse, workers[1]])
+            resumed = wait_for(lambda: all(bus.heard_since(c, claimed) for c in victim), 20,
+                               f"sightings of {victim} resume", [fuse, workers[1]])
+            time.sleep(1.5)
+            for p in (workers[1], fuse):
+                p.send_signal(signal.SIGINT)
+            outs = [p.communicate(timeout=60) for p in (workers[1], fuse)]
+        finally:
+            for p in procs:
+                if p.poll() is None:
+                    p.kill()
+                    p.wait()
+            bus.close()
+    assert [p.returncode for p in (workers[1], fuse)] == [0, 0], outs
+    gaps = {c: max(np.diff([a for a in bus.arrivals[c] if killed - 1.0 < a < resumed + 1.0])) for c in survivor}
+    print(f"victim {victim}, survivor {survivor}: claimed {claimed - killed:.3f} s and heard {resumed - killed:.3f} s "
+          f"after the kill; the survivor's cameras' longest gap around it {max(gaps.values()):.3f} s")
+    assert claimed - killed < TAKEOVER_CLAIM_S
+    assert resumed - killed < TAKEOVER_SIGHTING_S
+    assert max(gaps.values()) < 1.0, gaps  # the survivor's own cameras went on (a frame every 1/fps)
+    # the victim's cameras were silent between the kill and the take-over, not after
+    for c in victim:
+        assert not [a for a in bus.arrivals[c] if killed + 0.2 < a < claimed]
+    # the fusion heard every camera and fused poses from the taken-over cameras after the kill
+    lines = [json.loads(line) for line in (tmp_path / "fused" / "robot.jsonl").read_text().splitlines()]
+    assert lines and "interrupted" in outs[1][0]
+    times_s = np.array([line["time"] for line in lines])
+    after = times_s[times_s > killed_unix_s]
+    assert len(after) and np.max(np.diff(after)) < 1.0  # poses went on through the take-over
+    assert [line for line in lines if line["time"] > killed_unix_s + (resumed - killed)
+            and set(line["cameras"]) & set(victim)], "no pose from the taken-over cameras"

@@ -16,9 +16,9 @@ import logging
 import math
 import threading
 import time
-from dataclasses import dataclass
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable, Sequence
 
 from cubetrack.app.config import config_params
 from cubetrack.app.live import HEALTH_EVERY_S, live_intrinsics
@@ -37,6 +37,7 @@ from cubetrack.sink.zenoh_session import ZenohEndpoints, open_session
 log = logging.getLogger(__name__)
 
 SILENT_AFTER_S = 2.0  # a camera not heard from for this long is reported silent
+RECENT_FRAMES = 64  # per camera, the frames remembered to drop a second worker's copy of a frame
 
 
 @dataclass(slots=True)
@@ -46,11 +47,22 @@ class Heard:
     messages: int = 0
     last_heard_s: float = math.nan  # time.monotonic()
     health: CameraHealth | None = None
+    recent: collections.deque = field(default_factory=lambda: collections.deque(maxlen=RECENT_FRAMES))
+
+    def first_copy(self, message: SightingMessage) -> bool:
+        """Whether ``message`` is the first of its frame (two workers can read one camera for
+        a moment while a claim changes hands: the second copy of a frame is dropped)."""
+        frame = (message.seq, message.device_time_s)
+        if frame in self.recent:
+            return False
+        self.recent.append(frame)
+        return True
 
 
 @dataclass(frozen=True, slots=True)
 class FuseResult:
-    """What a fusion session did. ``heard``: camera -> messages; ``bad_messages``: refused."""
+    """What a fusion session did. ``heard``: camera -> messages; ``bad_messages``: refused;
+    ``duplicates``: second copies of a frame (from two workers reading one camera)."""
 
     stats: TrackStats
     heard: dict[str, int]
@@ -58,6 +70,7 @@ class FuseResult:
     outputs: dict[str, tuple[Path, Path]]
     duration_s: float
     interrupted: bool
+    duplicates: int = 0
 
 
 def frame_result(tracker: Tracker, message: SightingMessage) -> FrameResult | None:
@@ -113,7 +126,7 @@ def run_fusion(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
     wake = threading.Event()
     heard = {c.name: Heard() for c in config.cameras}
     workers: set[str] = set()
-    bad = 0
+    bad = duplicates = 0
     interrupted = False
     started = time.monotonic()
 
@@ -135,7 +148,7 @@ def run_fusion(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
             outputs.pose(pose)
 
     def fuse_inbox() -> None:
-        nonlocal bad
+        nonlocal bad, duplicates
         messages = []
         while inbox:
             try:
@@ -150,9 +163,12 @@ def run_fusion(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
                 bad += 1
                 log.warning("fuse: sighting of camera %r, which the config and extrinsics do not know", message.camera)
                 continue
+            h = heard[message.camera]
+            if not h.first_copy(message):
+                duplicates += 1
+                continue
             now_s = clock()
             emit(tracker.fuse(result, now_s), now_s)
-            h = heard[message.camera]
             h.messages += 1
             h.last_heard_s = time.monotonic()
             if h.health is None or now_s - h.health.time_s >= HEALTH_EVERY_S:
@@ -166,7 +182,7 @@ def run_fusion(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
         poses = " ".join(f"{r} {n} poses" for r, n in tracker.stats.poses.items())
         return (f"{now - started:5.0f}s {len(workers)} worker(s), hearing {', '.join(live) or 'no camera'}"
                 + (f" | silent: {', '.join(silent)}" if silent else "") + (f" | {poses}" if poses else "")
-                + (f" | refused {bad}" if bad else ""))
+                + (f" | refused {bad}" if bad else "") + (f" | duplicates {duplicates}" if duplicates else ""))
 
     session = None
     try:
@@ -196,4 +212,4 @@ def run_fusion(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
             session.close()
         outputs.close()
     return FuseResult(tracker.stats, {c: h.messages for c, h in heard.items()}, bad, files.outputs,
-                      time.monotonic() - started, interrupted)
+                      time.monotonic() - started, interrupted, duplicates)

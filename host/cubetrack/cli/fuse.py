@@ -49,7 +49,7 @@ def run(args: argparse.Namespace) -> int:
     finally:
         close_sinks(sinks)
     print(f"{'interrupted; ' if result.interrupted else ''}fused for {result.duration_s:.1f} s: "
-          f"refused messages {result.bad_messages}; heard from "
+          f"refused messages {result.bad_messages}, duplicate frames dropped {result.duplicates}; heard from "
           + ", ".join(f"{c} ({n} sightings)" for c, n in result.heard.items() if n)
           + "".join(f"; never heard from {c}" for c, n in result.heard.items() if not n))
     for robot, (tum, jsonl) in result.outputs.items():

@@ -2,12 +2,18 @@
 time, the camera's clock mapping and health; never images) on Zenoh under
 cubetrack/sightings/<camera>, for `cubetrack fuse` (docs/scaling.md).
 
+Without --cameras the worker claims its share of the cameras no other worker reads (automatic
+assignment through Zenoh liveliness tokens: start as many workers as you like, each takes a fair
+share, and the cameras of a worker that stops or dies are taken over by the others within about
+a second). With --cameras it reads exactly those.
+
 By default the worker connects to a fusion on this machine (tcp/127.0.0.1:7450) and keeps trying
 until it is there; --bus-connect names another host's fusion or a Zenoh router. Frames are
 stamped with their capture time through each camera's /time round trips. Runs for --duration
 seconds or until Ctrl-C.
 
 Examples:
+  cubetrack worker --config lab.toml --extrinsics extrinsics.toml
   cubetrack worker --config lab.toml --extrinsics extrinsics.toml --cameras cam1,cam2
   cubetrack worker --config lab.toml --extrinsics extrinsics.toml --cameras cam3 --bus-connect tcp/10.0.0.5:7450
 """
@@ -44,7 +50,8 @@ def add_common_arguments(p: argparse.ArgumentParser) -> None:
 def add_arguments(p: argparse.ArgumentParser) -> None:
     add_common_arguments(p)
     p.add_argument("--cameras", default="", metavar="A,B",
-                   help="the cameras this worker reads, by name (default: every camera of the config)")
+                   help="the cameras this worker reads, by name (default: a share of the cameras no other "
+                        "worker reads, claimed automatically)")
     add_bus_arguments(p, "default: the fusion at tcp/127.0.0.1:7450")
 
 
@@ -83,14 +90,15 @@ def run(args: argparse.Namespace) -> int:
     from cubetrack.app.worker import chosen_cameras, run_worker, worker_endpoints
 
     config, settings, extrinsics = load(args)
-    cameras = chosen_cameras(config, [c.strip() for c in args.cameras.split(",") if c.strip()])
+    cameras = [c.strip() for c in args.cameras.split(",") if c.strip()]
+    every = chosen_cameras(config, cameras)
     live_camera_urls(config), live_intrinsics(config)  # a bad config fails before anything starts
 
     def status(text: str) -> None:
         print(f"worker: {text}", file=sys.stderr, flush=True)
 
-    print(f"worker: {', '.join(cameras)}" + ("" if args.duration else " (Ctrl-C to stop)"), file=sys.stderr,
-          flush=True)
+    print((f"worker: {', '.join(cameras)}" if cameras else f"worker: a share of {', '.join(every)}")
+          + ("" if args.duration else " (Ctrl-C to stop)"), file=sys.stderr, flush=True)
     result = run_worker(config, extrinsics, cameras, bus(args, worker_endpoints), settings.stages, settings.source,
                         duration_s=args.duration, status=status, status_every_s=args.status_every)
     s = result.stats
@@ -98,4 +106,7 @@ def run(args: argparse.Namespace) -> int:
           f"published {result.published}, before their camera's clock was known {s.frames_before_clock_sync}")
     for name, c in result.cameras.items():
         print(f"  {name}: {c.frames} frames, {c.dropped} dropped (worker behind), {c.reconnects} reconnects")
+    if not cameras:
+        print("  claims: " + ", ".join(f"{'took' if taken else 'gave up'} {camera} at {at_s:.2f} s"
+                                       for at_s, camera, taken in result.claims))
     return 0

@@ -1,0 +1,95 @@
+"""Automatic camera claiming (cubetrack.app.worker): the share rule every worker computes alike,
+and the take / give-up decisions that keep one reader per camera as workers come and go."""
+
+from __future__ import annotations
+
+import itertools
+
+import pytest
+
+from cubetrack.app.worker import ClaimBoard, claim_changes, claim_key, share_cameras
+from cubetrack.core.errors import ConfigError
+
+CAMERAS = [f"cam{i}" for i in range(1, 8)]
+
+
+@pytest.mark.parametrize("workers", [1, 2, 3, 4, 7, 9])
+def test_every_camera_has_one_owner_and_shares_differ_by_at_most_one(workers):
+    pool = [f"host-{100 + i}" for i in range(workers)]
+    owner = share_cameras(CAMERAS, pool)
+    assert set(owner) == set(CAMERAS) and set(owner.values()) <= set(pool)
+    loads = [list(owner.values()).count(w) for w in pool]
+    assert max(loads) - min(loads) <= 1
+
+
+def test_the_share_does_not_depend_on_the_order_workers_are_seen():
+    pool = ["b-2", "a-1", "c-3"]
+    answers = {tuple(sorted(share_cameras(CAMERAS, p).items())) for p in itertools.permutations(pool)}
+    assert len(answers) == 1
+    assert share_cameras(CAMERAS, []) == {}
+
+
+def test_a_worker_leaving_moves_few_cameras_besides_its_own():
+    pool = [f"w{i}" for i in range(4)]
+    cameras = [f"cam{i}" for i in range(40)]
+    before = share_cameras(cameras, pool)
+    after = share_cameras(cameras, pool[1:])
+    moved = [c for c in cameras if before[c] != "w0" and after[c] != before[c]]
+    assert all(after[c] != "w0" for c in cameras)
+    assert len(moved) <= 4, moved  # the cap makes a few move; a plain modulo would move most
+
+
+def simulate(workers, named=None, rounds=6):
+    """Workers that each see every token (the bus), applying claim_changes in turn."""
+    named = named or {}
+    held = {w: set() for w in workers}
+    for _ in range(rounds):
+        for w in workers:
+            holders = {}
+            for v, cams in itertools.chain(held.items(), named.items()):
+                for c in cams:
+                    holders.setdefault(c, set()).add(v)
+            take, give = claim_changes(w, CAMERAS, held[w], workers, holders)
+            held[w] = (held[w] - give) | take
+    return held
+
+
+def test_workers_starting_together_end_with_disjoint_fair_shares():
+    held = simulate(["h-10", "h-11", "h-12"])
+    cams = [c for cs in held.values() for c in cs]
+    assert sorted(cams) == sorted(CAMERAS)  # each camera read once
+    assert max(map(len, held.values())) - min(map(len, held.values())) <= 1
+
+
+def test_a_camera_claimed_by_a_named_worker_is_not_shared():
+    held = simulate(["h-10", "h-11"], named={"fixed-1": {"cam1", "cam2"}})
+    cams = sorted(c for cs in held.values() for c in cs)
+    assert cams == sorted(set(CAMERAS) - {"cam1", "cam2"})
+
+
+def test_a_camera_still_claimed_by_another_is_not_taken_and_a_double_claim_is_resolved():
+    # a dead worker's cameras are free once its token is gone, not before
+    take, give = claim_changes("b", ["cam1"], set(), ["b"], {"cam1": {"a"}})  # "a" is a named worker
+    assert take == set() and give == set()
+    take, give = claim_changes("b", ["cam1"], set(), ["b"], {})
+    assert take == {"cam1"} and give == set()
+    # both claimed cam1 before seeing each other: the greater name gives way
+    holders = {"cam1": {"a", "b"}}
+    assert claim_changes("b", ["cam1"], {"cam1"}, ["a", "b"], holders)[1] == {"cam1"}
+    owner = share_cameras(["cam1"], ["a", "b"])["cam1"]
+    assert claim_changes("a", ["cam1"], {"cam1"}, ["a", "b"], holders)[1] == (set() if owner == "a" else {"cam1"})
+
+
+def test_the_board_follows_tokens_and_ignores_other_keys():
+    board = ClaimBoard()
+    board.token("cubetrack/pool/h-1", True)
+    board.token(claim_key("cam1", "h-1"), True)
+    board.token(claim_key("cam1", "h-2"), True)
+    board.token("cubetrack/claims/too/many/chunks", True)
+    board.token("cubetrack/workers/h-1", True)
+    assert board.snapshot() == ({"h-1"}, {"cam1": {"h-1", "h-2"}})
+    board.token(claim_key("cam1", "h-1"), False)
+    board.token("cubetrack/pool/h-1", False)
+    assert board.snapshot() == (set(), {"cam1": {"h-2"}})
+    with pytest.raises(ConfigError, match="key chunk"):
+        claim_key("cam/1", "h-1")
