@@ -24,7 +24,11 @@ RSS. Then it reports:
   naive loop (``cv2.imdecode`` colour + default ``ArucoDetector`` + ``solvePnP`` per marker, one
   thread) and our tracker replaying them as fast as it can with its frame workers, and with the
   live run's processed rate: the throughput ratios against the naive loop;
-- the machine's core count (``nproc``).
+- the machine's core count (``nproc``);
+- with --outputs (issue 10): a second live session on the same cameras with every output on
+  (``--zenoh --ros2 --vrpn --foxglove --mcap``, servers on free loopback ports, no client
+  attached) and its processed frames/s, CPU per frame and arrival -> pose p95 against the
+  first session's (pose files only), as ratios.
 
 Targets (issue 9, on a 2-core machine at 16 cameras x 30 fps): <= 1 % of frames dropped by the
 tracker; p95 arrival -> pose <= 15 ms and p99 <= 30 ms; throughput >= 2x the naive loop's;
@@ -32,6 +36,7 @@ live accuracy within 10 % of the offline replay's. The last line lists the targe
 
     .venv/bin/python benchmarks/live.py [--cameras 16] [--fps 30] [--duration 60] [--out DIR]
     .venv/bin/python benchmarks/live.py --quick        # 2 cameras x 10 fps for 5 s (the CI smoke run)
+    .venv/bin/python benchmarks/live.py --outputs      # and the cost of every output (issue 10)
 
 --out keeps the recording, the calibration, the live poses and ``live_report.json`` (a recording
 made with the same parameters is reused). Exit code 0 for a completed run (this is a report).
@@ -83,6 +88,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                    help="the tracker records the session too; the offline replay and the speed comparison use it")
     p.add_argument("--worker-kind", choices=("process", "thread"),
                    help="the tracker's [live] worker_kind (default: the config's, i.e. the package default)")
+    p.add_argument("--outputs", action="store_true",
+                   help="issue 10: a second live session with every output on (--zenoh --ros2 --vrpn --foxglove "
+                        "--mcap), compared with the first (pose files only)")
     p.add_argument("--tracker-arg", action="append", default=[], metavar="ARG",
                    help="extra argument for `cubetrack track` (repeatable)")
     args = p.parse_args(argv)
@@ -192,11 +200,14 @@ class TreeSampler:
 # --------------------------------------------------------------------------- the live run
 
 
-def run_live(args: argparse.Namespace, rec: Path, work: Path) -> dict:
+def run_live(args: argparse.Namespace, rec: Path, work: Path, name: str = "live",
+             outputs: tuple[str, ...] = ()) -> dict:
+    """One live session of the tracker (``name``: its folder in ``work`` and the prefix of its log
+    files; ``outputs``: output flags for ``cubetrack track``, none: the pose files only)."""
     from cubetrack.app.demo import write_live_config
     from cubetrack.app.emulated import EmulatedCameras
 
-    out, session = work / "live", work / "session"
+    out, session = work / name, work / "session"
     for path in (out, session):
         if path.exists():
             subprocess.run(["rm", "-rf", str(path)], check=True)
@@ -208,10 +219,11 @@ def run_live(args: argparse.Namespace, rec: Path, work: Path) -> dict:
         command = [sys.executable, "-m", "cubetrack.cli.main", "track", "--config", str(config),
                    "--extrinsics", str(rec / "extrinsics.toml"), "--live", "--out", str(out),
                    "--duration", str(args.duration), "--status-every", "5",
-                   *(["--record", str(session)] if args.record else []), *args.tracker_arg]
+                   *(["--record", str(session)] if args.record and name == "live" else []), *outputs,
+                   *args.tracker_arg]
         emulator = TreeSampler(emu._process.pid, 1.0)
         started = time.monotonic()
-        with open(work / "tracker_stdout.txt", "w") as stdout, open(work / "tracker_stderr.txt", "w") as stderr:
+        with open(work / f"{name}_stdout.txt", "w") as stdout, open(work / f"{name}_stderr.txt", "w") as stderr:
             proc = subprocess.Popen(command, stdout=stdout, stderr=stderr, cwd=ROOT)
             sampler = TreeSampler(proc.pid)
             code = proc.wait(args.duration + 300)
@@ -220,8 +232,8 @@ def run_live(args: argparse.Namespace, rec: Path, work: Path) -> dict:
         emulator.stop()
         shift_s, period_s = emu.clock_shift_s, emu.period_s
     if code != 0:
-        raise SystemExit(f"the live tracker failed ({code}): {(work / 'tracker_stderr.txt').read_text()[-2000:]}")
-    text = (work / "tracker_stdout.txt").read_text()
+        raise SystemExit(f"the live tracker failed ({code}): {(work / f'{name}_stderr.txt').read_text()[-2000:]}")
+    text = (work / f"{name}_stdout.txt").read_text()
     cams = [tuple(map(int, m)) for m in re.findall(r": (\d+) frames, (\d+) dropped", text)]
     summary = re.search(r"tracked live for ([\d.]+) s: frames: (\d+), before their camera's clock was known: (\d+)",
                         text)
@@ -266,6 +278,34 @@ def run_live(args: argparse.Namespace, rec: Path, work: Path) -> dict:
         "clock_shift_s": shift_s,
         "period_s": period_s,
     }
+
+
+def free_port() -> int:
+    """A TCP port of 127.0.0.1 free right now."""
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def outputs_cost(args: argparse.Namespace, rec: Path, work: Path, files_only: dict) -> dict:
+    """Issue 10's check: a second live session on the same cameras with every output on (Zenoh
+    JSON, ROS 2 over Zenoh, VRPN, Foxglove WebSocket, MCAP with every camera frame) against
+    ``files_only`` (the session with the pose files only): processed frames/s, CPU per frame
+    and arrival -> pose latency of both, and their ratios."""
+    mcap = work / "live_outputs.mcap"
+    flags = ("--zenoh", "--ros2", "--vrpn", f"127.0.0.1:{free_port()}", "--foxglove", f"127.0.0.1:{free_port()}",
+             "--mcap", str(mcap))
+    on = run_live(args, rec, work, "live_outputs", flags)
+    mcap_mb = mcap.stat().st_size / 1e6 if mcap.exists() else 0.0
+    mcap.unlink(missing_ok=True)  # every camera frame: large
+    keys = ("processed_fps", "dropped_fraction", "cpu_ms_per_frame", "cores_used", "arrival_ms", "poses")
+    return {"flags": " ".join(flags), "mcap_mb": mcap_mb, "files_only": {k: files_only[k] for k in keys},
+            "all_outputs": {k: on[k] for k in keys},
+            "processed_ratio": on["processed_fps"] / max(files_only["processed_fps"], 1e-9),
+            "cpu_ratio": on["cpu_ms_per_frame"] / max(files_only["cpu_ms_per_frame"], 1e-9),
+            "p95_ratio": on["arrival_ms"]["p95"] / max(files_only["arrival_ms"]["p95"], 1e-9)}
 
 
 def percentiles(values: np.ndarray) -> dict:
@@ -477,6 +517,14 @@ def print_report(args: argparse.Namespace, report: dict) -> list[str]:
         failures.append(f"throughput ours/naive {sp['ratio']:.2f} < {TARGET_SPEED:g}")
     if not max(acc["pos_ratio"], acc["rot_ratio"]) <= 1.0 + TARGET_ACCURACY:
         failures.append(f"live accuracy {max(acc['pos_ratio'], acc['rot_ratio']):.2f}x the offline replay's")
+    if "outputs" in report:
+        o = report["outputs"]
+        off, on = o["files_only"], o["all_outputs"]
+        print(f"  outputs: files only {off['processed_fps']:.1f} frames/s processed, {off['cpu_ms_per_frame']:.2f} ms "
+              f"CPU per frame, arrival -> pose p95 {off['arrival_ms']['p95']:.1f} ms; every output on "
+              f"{on['processed_fps']:.1f} frames/s, {on['cpu_ms_per_frame']:.2f} ms, p95 {on['arrival_ms']['p95']:.1f} "
+              f"ms (MCAP {o['mcap_mb']:.0f} MB); on/off: processed {o['processed_ratio']:.2f}, CPU per frame "
+              f"{o['cpu_ratio']:.2f}, p95 {o['p95_ratio']:.2f}")
     print("SUMMARY: " + ("all targets met" if not failures else f"{len(failures)} target(s) missed: "
                          + "; ".join(failures)))
     return failures
@@ -492,11 +540,17 @@ def main(argv: list[str] | None = None) -> int:
         print(f"tracking live for {args.duration:g} s ...", file=sys.stderr, flush=True)
         load = os.getloadavg()
         live = run_live(args, rec, work)
+        outputs = None
+        if args.outputs:
+            print("tracking live again with every output on ...", file=sys.stderr, flush=True)
+            outputs = outputs_cost(args, rec, work, live)
         print("replaying the frames offline and timing the naive loop ...", file=sys.stderr, flush=True)
         after = os.getloadavg()
         report = {"nproc": os.cpu_count(), "load_average": [load, after],
                   "args": {k: (str(v) if isinstance(v, Path) else v) for k, v in vars(args).items()},
                   "live": live, "accuracy": accuracy(args, rec, work, live), "speed": speed(args, rec, work, live)}
+        if outputs is not None:
+            report["outputs"] = outputs
         report["failures"] = print_report(args, report)
         (work / REPORT_FILE).write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
     return 0

@@ -16,13 +16,13 @@ ROOT = Path(__file__).resolve().parents[2]
 
 
 def test_quick_run_prints_and_saves_a_complete_report(tmp_path):
-    run = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "live.py"), "--quick", "--out", str(tmp_path)],
-                         capture_output=True, text=True, timeout=900, cwd=ROOT)
+    command = [sys.executable, str(ROOT / "benchmarks" / "live.py"), "--quick", "--outputs", "--out", str(tmp_path)]
+    run = subprocess.run(command, check=False, capture_output=True, text=True, timeout=900, cwd=ROOT)
     assert run.returncode == 0, run.stderr[-3000:]
     lines = run.stdout.splitlines()
     for start in ("live benchmark: 2 cameras x 10 fps", "  command: ", "  frames/s: offered", "  CPU: ",
                   "  arrival -> pose ms: p50", "  RSS: ", "  accuracy vs ground truth: live",
-                  "  same ", "  per frame, one thread: ", "SUMMARY: "):
+                  "  same ", "  per frame, one thread: ", "  outputs: files only ", "SUMMARY: "):
         assert sum(line.startswith(start) for line in lines) == 1, start
     assert "nproc" in lines[0] and "naive loop" in next(line for line in lines if line.startswith("  same "))
 
@@ -47,5 +47,13 @@ def test_quick_run_prints_and_saves_a_complete_report(tmp_path):
         assert 0 < speed[part]["p50"] <= speed[part]["p95"], part
     assert math.isclose(speed["ratio"], speed["ours_fps"] / speed["naive_fps"])
     assert doc["failures"] == [] or lines[-1].startswith("SUMMARY: ") and "missed" in lines[-1]
+    # --outputs: a second session with every output on, compared with the first (pose files only)
+    out = doc["outputs"]
+    assert out["files_only"]["processed_fps"] == live["processed_fps"]
+    for flag in ("--zenoh", "--ros2", "--vrpn 127.0.0.1:", "--foxglove 127.0.0.1:", "--mcap "):
+        assert flag in out["flags"], flag
+    assert out["all_outputs"]["poses"] > 0 and out["mcap_mb"] > 0
+    assert math.isclose(out["processed_ratio"], out["all_outputs"]["processed_fps"] / live["processed_fps"])
+    assert math.isclose(out["cpu_ratio"], out["all_outputs"]["cpu_ms_per_frame"] / live["cpu_ms_per_frame"])
     # the live poses and the offline replay are kept in --out
     assert (tmp_path / "live" / "robot.jsonl").exists() and (tmp_path / "offline" / "robot.tum").exists()
