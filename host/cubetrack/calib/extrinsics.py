@@ -38,8 +38,8 @@ import dataclasses
 import enum
 import logging
 from collections import Counter
+from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Iterable, Mapping, Sequence
 
 import numpy as np
 
@@ -214,13 +214,62 @@ class CalibrationReport:
 
 def world_detector(world: WorldConfig, detector_params: DetectorParams | None = None,
                    corner_refinement: CornerRefinement | None = None) -> Detector:
-    """A :class:`cubetrack.detect.Detector` for the world marker's dictionary, with the config's
-    ``[detector]`` settings (``detector_params``; None = the defaults) and, when given, another
-    ``corner_refinement``."""
+    """A :class:`cubetrack.detect.Detector` for the world reference's dictionaries, with the
+    config's ``[detector]`` settings (``detector_params``; None = the defaults) and, when given,
+    another ``corner_refinement``."""
     params = dataclasses.replace(detector_params or DetectorParams(), dictionary=world.dictionary)
     if corner_refinement is not None:
         params = dataclasses.replace(params, corner_refinement=corner_refinement)
-    return Detector(params)
+    return Detector(params, list(world.dictionaries))
+
+
+def calibration_detector(world: WorldConfig, params: CalibrationParams,
+                         detector_params: DetectorParams | None = None) -> tuple[Detector, bool]:
+    """The detector calibration measures the world reference with, and whether its corners are
+    then re-measured by the edge fit (:data:`EDGE_FIT`): the robust method detects with
+    ``[calibration] corner_refinement`` (``edge``: OpenCV's unrefined quad, then the edge fit),
+    the paper's CMA with the ``[detector]`` corners."""
+    robust = params.method is CalibrationMethod.ROBUST
+    refine = robust and params.corner_refinement is CornerRefinement.EDGE
+    corner_refinement = (CornerRefinement.NONE if refine else params.corner_refinement) if robust else None
+    return world_detector(world, detector_params, corner_refinement), refine
+
+
+def calibration_images(frames: Iterable[Frame], intrinsics: CameraIntrinsics, skipped: Counter,
+                       enough: Callable[[], bool], progress: Progress | None = None, stage: str = "calibrate",
+                       total_frames: int = 0) -> Iterator[tuple[Frame, np.ndarray]]:
+    """The grey images of a camera's calibration ``frames`` until ``enough()``: corrupt frames and
+    frames not of the intrinsics' size are counted in ``skipped`` (never fatal). Progress counts
+    frames examined out of ``total_frames`` (0 = unknown)."""
+    seen = 0
+    for frame in frames:
+        if enough():
+            break
+        seen += 1
+        if progress is not None:
+            progress(stage, seen, total_frames)
+        try:
+            gray = decode_gray(frame.jpeg, f"{frame.camera} frame {frame.seq}")
+        except ImageError as exc:
+            skipped["corrupt JPEG"] += 1
+            log.warning("%s; skipped", exc)
+            continue
+        if intrinsics.width and (gray.shape[1], gray.shape[0]) != (intrinsics.width, intrinsics.height):
+            skipped["wrong image size"] += 1
+            log.warning("%s frame %d: image is %dx%d, intrinsics are for %dx%d; skipped", frame.camera,
+                        frame.seq, gray.shape[1], gray.shape[0], intrinsics.width, intrinsics.height)
+            continue
+        yield frame, gray
+    if progress is not None and total_frames and seen < total_frames:
+        progress(stage, total_frames, total_frames)  # enough sightings: done early
+
+
+def edge_fitted_corners(gray: np.ndarray, corners_px: np.ndarray, dictionary: str, intrinsics: CameraIntrinsics,
+                        min_contrast: float) -> np.ndarray:
+    """A marker's corners re-measured by the calibration's edge fit (:data:`EDGE_FIT`, the
+    camera's lens model); NaN when its edges cannot be fitted."""
+    return refine_corners_edges(gray, corners_px, aruco_dictionary(dictionary).markerSize + 2, K=intrinsics.K,
+                                dist=intrinsics.dist, min_contrast=min_contrast, **EDGE_FIT)
 
 
 def _marker_poses(detection: Detection, size_m: float,
@@ -255,32 +304,12 @@ def collect_sightings(
     ``params.corner_refinement``; with ``edge`` (the default) the detector's unrefined quad is
     fitted by :func:`cubetrack.detect.refine_corners_edges` with the camera's lens model.
     """
-    robust = params.method is CalibrationMethod.ROBUST
-    refine = robust and params.corner_refinement is CornerRefinement.EDGE
-    detector = world_detector(world, detector_params,
-                              (CornerRefinement.NONE if refine else params.corner_refinement) if robust else None)
-    modules = aruco_dictionary(world.dictionary).markerSize + 2
+    detector, refine = calibration_detector(world, params, detector_params)
     sightings: list[Sighting] = []
     skipped: Counter = Counter()
     frames_read = 0
-    seen = 0
-    for frame in frames:
-        if len(sightings) >= params.samples:
-            break
-        seen += 1
-        if progress is not None:
-            progress(stage, seen, total_frames)
-        try:
-            gray = decode_gray(frame.jpeg, f"{frame.camera} frame {frame.seq}")
-        except ImageError as exc:
-            skipped["corrupt JPEG"] += 1
-            log.warning("%s; skipped", exc)
-            continue
-        if intrinsics.width and (gray.shape[1], gray.shape[0]) != (intrinsics.width, intrinsics.height):
-            skipped["wrong image size"] += 1
-            log.warning("%s frame %d: image is %dx%d, intrinsics are for %dx%d; skipped", frame.camera,
-                        frame.seq, gray.shape[1], gray.shape[0], intrinsics.width, intrinsics.height)
-            continue
+    for frame, gray in calibration_images(frames, intrinsics, skipped, lambda: len(sightings) >= params.samples,
+                                          progress, stage, total_frames):
         frames_read += 1
         found = detections_of(detector.detect(gray), world.dictionary, (world.marker_id,))
         if not found:
@@ -291,8 +320,7 @@ def collect_sightings(
             continue
         det = found[0]
         if refine:
-            corners = refine_corners_edges(gray, det.corners_px, modules, K=intrinsics.K, dist=intrinsics.dist,
-                                           min_contrast=params.edge_min_contrast, **EDGE_FIT)
+            corners = edge_fitted_corners(gray, det.corners_px, world.dictionary, intrinsics, params.edge_min_contrast)
             if np.isnan(corners).any():
                 skipped["edge refinement failed"] += 1
                 continue
@@ -303,8 +331,6 @@ def collect_sightings(
             continue
         T_alt = invert_T(poses[1][0]) if len(poses) > 1 else None
         sightings.append(Sighting(frame.seq, det, invert_T(poses[0][0]), T_alt))
-    if progress is not None and total_frames and seen < total_frames:
-        progress(stage, total_frames, total_frames)  # enough sightings: done early
     return sightings, frames_read, skipped
 
 
@@ -375,7 +401,12 @@ def calibrate_camera(
 ) -> CameraCalibration:
     """Calibrate one camera from its frames; CalibrationError when it saw the world marker in
     fewer than ``params.min_samples`` frames. ``detector_params``: the ``[detector]`` settings
-    (:class:`cubetrack.detect.DetectorParams`, its dictionary replaced by the world's)."""
+    (:class:`cubetrack.detect.DetectorParams`, its dictionary replaced by the world's). A world
+    reference of more than the one marker (more markers, a board) is measured and solved by
+    :mod:`cubetrack.calib.reference`."""
+    if not world.single_marker:
+        return _calibrate_camera_reference(frames, camera, world, intrinsics, params, progress, detector_params,
+                                           total_frames)
     sightings, frames_read, skipped = collect_sightings(
         frames, world, intrinsics, params, progress, stage=f"calibrate {camera}",
         detector_params=detector_params, total_frames=total_frames)
@@ -389,6 +420,25 @@ def calibrate_camera(
         extrinsics, inliers = calibrate_cma(sightings), len(sightings)
     else:
         extrinsics, inliers = calibrate_robust(sightings, world, intrinsics, params)
+    return CameraCalibration(camera, extrinsics, frames_read, len(sightings), inliers, dict(skipped))
+
+
+def _calibrate_camera_reference(frames: Iterable[Frame], camera: str, world: WorldConfig,
+                                intrinsics: CameraIntrinsics, params: CalibrationParams, progress: Progress | None,
+                                detector_params: DetectorParams | None, total_frames: int) -> CameraCalibration:
+    from cubetrack.calib.reference import calibrate_reference, collect_reference
+
+    sightings, frames_read, skipped = collect_reference(frames, world, intrinsics, params, progress,
+                                                        f"calibrate {camera}", detector_params, total_frames)
+    if len(sightings) < params.min_samples:
+        why = ", ".join(f"{n} {reason}" for reason, n in skipped.most_common()) or "no frames"
+        raise CalibrationError(
+            f"camera {camera!r}: the world reference found in {len(sightings)} of {frames_read} frames, need at "
+            f"least {params.min_samples} ({why}); make sure the camera sees its markers or board")
+    try:
+        extrinsics, inliers = calibrate_reference(sightings, intrinsics, params)
+    except CalibrationError as exc:
+        raise CalibrationError(f"camera {camera!r}: {exc}") from None
     return CameraCalibration(camera, extrinsics, frames_read, len(sightings), inliers, dict(skipped))
 
 

@@ -1,5 +1,6 @@
 """Value types of the cameras and the world that every stage shares: intrinsics, a calibrated
-camera pose, the world marker, and one clock round trip.
+camera pose, the world reference (the world marker, more floor markers, a ChArUco board), and one
+clock round trip.
 
 They are plain frozen values; reading and writing them is :mod:`cubetrack.io` (``camera_info``
 YAML, the config and extrinsics TOML, ``clock.csv``).
@@ -9,12 +10,13 @@ Pixel convention: OpenCV's, (0, 0) is the centre of the top-left pixel.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
 from cubetrack.core.errors import CameraInfoError
-from cubetrack.core.layout import DEFAULT_DICTIONARY
+from cubetrack.core.geometry import make_T, transform_points
+from cubetrack.core.layout import DEFAULT_DICTIONARY, marker_corners_m
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -52,13 +54,85 @@ class CameraExtrinsics:
     method: str = ""
 
 
+@dataclass(frozen=True, slots=True, eq=False)
+class WorldMarker:
+    """A marker of the world reference at a known pose: its id, black-square side (metres),
+    dictionary and ``T_world_marker`` (marker frame: centre, x right, y up, z out of the face)."""
+
+    marker_id: int
+    size_m: float
+    T_world_marker: np.ndarray
+    dictionary: str = DEFAULT_DICTIONARY
+
+    def corners_world_m(self) -> np.ndarray:
+        """(4, 3) corners in the world frame, TL TR BR BL (the detector's order)."""
+        return transform_points(self.T_world_marker, marker_corners_m(self.size_m))
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class WorldBoard:
+    """A ChArUco board of the world reference (OpenCV's ``CharucoBoard``): ``squares_x`` columns
+    x ``squares_y`` rows of ``square_size_m`` squares, markers of ``marker_size_m`` from
+    ``dictionary`` with ids ``first_marker_id`` on (``legacy_pattern``: boards of OpenCV < 4.6).
+
+    Board frame: origin at the board's centre, x along its rows (left to right as OpenCV draws
+    it), y towards its first row, z out of the printed face. ``T_world_board`` places it in the
+    world (identity: the board is the world frame)."""
+
+    squares_x: int
+    squares_y: int
+    square_size_m: float
+    marker_size_m: float
+    dictionary: str = DEFAULT_DICTIONARY
+    first_marker_id: int = 0
+    legacy_pattern: bool = False
+    T_world_board: np.ndarray = field(default_factory=lambda: np.eye(4))
+
+    @property
+    def marker_count(self) -> int:
+        return self.squares_x * self.squares_y // 2
+
+    @property
+    def marker_ids(self) -> range:
+        return range(self.first_marker_id, self.first_marker_id + self.marker_count)
+
+    @property
+    def T_board_opencv(self) -> np.ndarray:
+        """OpenCV's board frame (origin at the first row's outer corner, y down the rows, z into
+        the board) in this board frame."""
+        w, h = self.squares_x * self.square_size_m, self.squares_y * self.square_size_m
+        return make_T(np.diag([1.0, -1.0, -1.0]), [-w / 2.0, h / 2.0, 0.0])
+
+
 @dataclass(frozen=True, slots=True)
 class WorldConfig:
-    """The world marker: the world frame's origin (centre), z up. ``marker_size_m`` = black square side."""
+    """The world reference. The world marker: the world frame's origin (centre), z up;
+    ``marker_size_m`` = black square side. Optionally more ``markers`` at known world poses and a
+    ChArUco ``board``, for larger rooms and better calibration; ``origin_marker`` False: the world
+    marker is not part of the reference (then the markers or the board define the world frame)."""
 
     dictionary: str = DEFAULT_DICTIONARY
     marker_id: int = 0
     marker_size_m: float = 0.25
+    markers: tuple[WorldMarker, ...] = ()
+    board: WorldBoard | None = None
+    origin_marker: bool = True
+
+    @property
+    def single_marker(self) -> bool:
+        """Only the world marker: the reference of the paper (and of every version before)."""
+        return self.origin_marker and not self.markers and self.board is None
+
+    def reference_markers(self) -> tuple[WorldMarker, ...]:
+        """The single markers of the reference: the world marker (when used) at the origin, then ``markers``."""
+        origin = (WorldMarker(self.marker_id, self.marker_size_m, np.eye(4), self.dictionary),) if self.origin_marker else ()
+        return origin + self.markers
+
+    @property
+    def dictionaries(self) -> tuple[str, ...]:
+        """Every dictionary of the reference, the world marker's first."""
+        names = [m.dictionary for m in self.reference_markers()] + ([self.board.dictionary] if self.board else [])
+        return tuple(dict.fromkeys([self.dictionary, *names]))
 
 
 @dataclass(frozen=True, slots=True)

@@ -47,12 +47,14 @@ _FACE_UP_AXIS = {"front": "+y", "left": "+x", "back": "-y", "right": "-x"}
 
 @dataclass(frozen=True, slots=True, eq=False)
 class LayoutMarker:
-    """One marker on the cube: its face name, id, black-square side (metres) and pose."""
+    """One marker on the cube: its face name, id, black-square side (metres) and pose; its
+    ``dictionary`` when it is not the layout's ("" = the layout's)."""
 
     face: str
     marker_id: int
     size_m: float
     T_cube_marker: np.ndarray
+    dictionary: str = ""
 
     def corners_cube_m(self) -> np.ndarray:
         """(4, 3) marker corners in the cube frame, in detector order TL, TR, BR, BL."""
@@ -72,6 +74,10 @@ class CubeLayout:
     - ``sizes_m`` (M,), ``marker_ids`` (M,);
     - ``ids``: the set of ids; ``has_repeated_ids``: some id is on more than one face;
     - :meth:`indices_of`: the markers carrying an id.
+
+    Markers may come from several dictionaries (a marker's own ``dictionary``):
+    ``marker_dictionaries`` (M,) names each marker's, ``dictionaries`` lists them (the layout's
+    first), ``keys`` is the set of (dictionary, id); ids repeat only when a (dictionary, id) does.
     """
 
     dictionary: str
@@ -83,6 +89,9 @@ class CubeLayout:
     marker_ids: np.ndarray = field(init=False, repr=False)
     ids: frozenset[int] = field(init=False, repr=False)
     has_repeated_ids: bool = field(init=False, repr=False)
+    marker_dictionaries: tuple[str, ...] = field(init=False, repr=False)
+    dictionaries: tuple[str, ...] = field(init=False, repr=False)
+    keys: frozenset[tuple[str, int]] = field(init=False, repr=False)
     _indices: dict[int, np.ndarray] = field(init=False, repr=False)
 
     def __post_init__(self) -> None:
@@ -105,12 +114,20 @@ class CubeLayout:
             object.__setattr__(self, name, value)
         object.__setattr__(self, "_indices", indices)
         object.__setattr__(self, "ids", frozenset(indices))
-        object.__setattr__(self, "has_repeated_ids", len(indices) < len(self.markers))
+        names = tuple(m.dictionary or self.dictionary for m in self.markers)
+        keys = list(zip(names, (m.marker_id for m in self.markers)))
+        object.__setattr__(self, "marker_dictionaries", names)
+        object.__setattr__(self, "dictionaries", tuple(dict.fromkeys((self.dictionary, *names))))
+        object.__setattr__(self, "keys", frozenset(keys))
+        object.__setattr__(self, "has_repeated_ids", len(set(keys)) < len(self.markers))
 
-    def indices_of(self, marker_id: int) -> np.ndarray:
-        """Indices into ``markers`` of the markers with ``marker_id``, in layout order (read-only;
-        empty for an id not on the cube)."""
-        return self._indices.get(marker_id, _NO_INDICES)
+    def indices_of(self, marker_id: int, dictionary: str = "") -> np.ndarray:
+        """Indices into ``markers`` of the markers with ``marker_id`` (of ``dictionary``; "" =
+        any), in layout order (read-only; empty for an id not on the cube)."""
+        found = self._indices.get(marker_id, _NO_INDICES)
+        if not dictionary or len(self.dictionaries) == 1 and dictionary == self.dictionary:
+            return found
+        return found[[self.marker_dictionaries[i] == dictionary for i in found]] if len(found) else found
 
 
 _NO_INDICES = np.zeros(0, dtype=np.intp)
@@ -184,7 +201,8 @@ def _vector(value: object, n: int, where: str) -> np.ndarray:
 
 
 def layout_from_table(table: dict, where: str) -> CubeLayout:
-    """Build a layout from its parsed TOML table (contracts §4); ``where`` names it in errors."""
+    """Build a layout from its parsed TOML table (contracts §4; a marker may name its own
+    ``dictionary``); ``where`` names it in errors."""
     dictionary = table.get("dictionary", DEFAULT_DICTIONARY)
     if not isinstance(dictionary, str):
         raise ConfigError(f"{where}: 'dictionary' must be a name like {DEFAULT_DICTIONARY!r}")
@@ -208,7 +226,11 @@ def layout_from_table(table: dict, where: str) -> CubeLayout:
         if np.linalg.norm(q) < 1e-9:
             raise ConfigError(f"{w}.quaternion_xyzw must not be zero")
         T = T_from_position_quat(_vector(row["position"], 3, f"{w}.position"), q)
-        markers.append(LayoutMarker(str(row["face"]), int(row["id"]), float(size), T))
+        own = row.get("dictionary", "")
+        if not isinstance(own, str):
+            raise ConfigError(f"{w}.dictionary must be a name like {DEFAULT_DICTIONARY!r}")
+        markers.append(LayoutMarker(str(row["face"]), int(row["id"]), float(size), T,
+                                    "" if own == dictionary else own))
     return CubeLayout(dictionary=dictionary, markers=tuple(markers))
 
 
@@ -224,6 +246,7 @@ def layout_to_table(layout: CubeLayout) -> dict:
                 "size": m.size_m,
                 "position": [round(float(v), 9) for v in position],
                 "quaternion_xyzw": [round(float(v), 12) for v in q],
+                **({"dictionary": m.dictionary} if m.dictionary and m.dictionary != layout.dictionary else {}),
             }
         )
     return {"dictionary": layout.dictionary, "markers": rows}

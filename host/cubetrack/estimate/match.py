@@ -73,8 +73,11 @@ def detections_of(detections: Iterable[Detection], dictionary: str, ids: Collect
 
 
 def body_detections(detections: Iterable[Detection], layout: CubeLayout) -> tuple[Detection, ...]:
-    """The detections of ``layout``'s markers (:func:`detections_of` its dictionary and ids)."""
-    return detections_of(detections, layout.dictionary, layout.ids)
+    """The detections of ``layout``'s markers (:func:`detections_of` its dictionary and ids; a
+    layout of several dictionaries: each marker's own)."""
+    if len(layout.dictionaries) == 1:
+        return detections_of(detections, layout.dictionary, layout.ids)
+    return tuple(d for d in detections if len(layout.indices_of(d.marker_id, d.dictionary)))
 
 
 def match_faces(detections: Iterable[Detection], layout: CubeLayout, intrinsics: CameraIntrinsics,
@@ -100,7 +103,7 @@ def match_faces(detections: Iterable[Detection], layout: CubeLayout, intrinsics:
     params = params or EstimatorParams()
     poses: list[MarkerPose] = []
     for det in mine:
-        for size_m in sorted(set(layout.sizes_m[layout.indices_of(det.marker_id)].tolist())):
+        for size_m in sorted(set(layout.sizes_m[layout.indices_of(det.marker_id, det.dictionary)].tolist())):
             mp = marker_pose(det, size_m, intrinsics, params.max_reprojection_error_px, polish=False)
             if mp is not None:
                 poses.append(mp)
@@ -139,8 +142,8 @@ def _identify(marker_poses: Iterable[MarkerPose], layout: CubeLayout, T_world_ca
     chosen: list[tuple[int, FaceObservation]] = []
     for mp in marker_poses:
         det = mp.detection
-        faces = layout.indices_of(det.marker_id)
-        if not len(faces) or det.dictionary not in ("", layout.dictionary):
+        faces = layout.indices_of(det.marker_id, det.dictionary)
+        if not len(faces):
             continue
         T_marker_cube, sizes = layout.T_marker_cube[faces], layout.sizes_m[faces]
         size_ok = np.abs(sizes - mp.size_m) <= 1e-6 * abs(mp.size_m)
@@ -207,6 +210,8 @@ def _match_by_prediction(detections: Sequence[Detection], layout: CubeLayout, in
     out: list[FaceMatch] = []
     for i, det in enumerate(detections):
         candidates = free & (layout.marker_ids == det.marker_id)
+        if len(layout.dictionaries) > 1 and det.dictionary:
+            candidates &= np.array([name == det.dictionary for name in layout.marker_dictionaries])
         if not candidates.any():
             continue
         k = int(np.argmin(np.where(candidates, distance[i], np.inf)))

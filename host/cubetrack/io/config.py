@@ -16,7 +16,7 @@ from typing import Any
 import numpy as np
 import tomli_w
 
-from cubetrack.core.cameras import CameraExtrinsics, WorldConfig
+from cubetrack.core.cameras import CameraExtrinsics, WorldBoard, WorldConfig, WorldMarker
 from cubetrack.core.errors import ConfigError, RecordingError
 from cubetrack.core.geometry import T_from_position_quat, position_quat_from_T
 from cubetrack.core.layout import DEFAULT_DICTIONARY, CubeLayout, read_layout
@@ -59,27 +59,124 @@ class TrackerConfig:
         return dict(self.sections.get(name, {}))
 
 
+def _number(value: Any, where: str, key: str, positive: bool = True) -> float:
+    if not isinstance(value, (int, float)) or isinstance(value, bool) or not math.isfinite(value) or (
+            positive and not value > 0):
+        raise ConfigError(f"{where}: {key} must be a {'positive ' if positive else ''}number, got {value!r}")
+    return float(value)
+
+
+def _count(value: Any, where: str, key: str, minimum: int = 0) -> int:
+    if not isinstance(value, int) or isinstance(value, bool) or value < minimum:
+        raise ConfigError(f"{where}: {key} must be an integer of at least {minimum}, got {value!r}")
+    return value
+
+
+def _pose(table: dict, where: str) -> np.ndarray:
+    """``position`` (m) and ``quaternion_xyzw`` of a table (both optional: the identity)."""
+    position, q = table.get("position", [0.0, 0.0, 0.0]), table.get("quaternion_xyzw", [0.0, 0.0, 0.0, 1.0])
+    for key, value, n in (("position", position, 3), ("quaternion_xyzw", q, 4)):
+        if not isinstance(value, list) or len(value) != n:
+            raise ConfigError(f"{where}: {key} must be a list of {n} numbers, got {value!r}")
+        for v in value:
+            _number(v, where, key, positive=False)
+    if np.linalg.norm(q) < 1e-9:
+        raise ConfigError(f"{where}: quaternion_xyzw must not be zero")
+    return T_from_position_quat(np.array(position, float), np.array(q, float))
+
+
+def _dictionary(table: dict, where: str, default: str) -> str:
+    name = table.get("dictionary", default)
+    if not isinstance(name, str):
+        raise ConfigError(f"{where}: dictionary must be a name like {DEFAULT_DICTIONARY!r}")
+    return name
+
+
+def _keys(table: Any, where: str, allowed: set[str]) -> dict:
+    if not isinstance(table, dict):
+        raise ConfigError(f"{where} must be a table")
+    unknown = set(table) - allowed
+    if unknown:
+        raise ConfigError(f"{where} has unknown key(s) {', '.join(sorted(unknown))}; known: {', '.join(sorted(allowed))}")
+    return table
+
+
 def _world(table: Any, where: str) -> WorldConfig:
     if table is None:
         return WorldConfig()
-    if not isinstance(table, dict):
-        raise ConfigError(f"{where}: [world] must be a table")
-    unknown = set(table) - {"dictionary", "marker_id", "marker_size"}
-    if unknown:
-        raise ConfigError(f"{where}: [world] has unknown key(s) {', '.join(sorted(unknown))}")
-    world = WorldConfig(
-        dictionary=table.get("dictionary", DEFAULT_DICTIONARY),
-        marker_id=table.get("marker_id", 0),
-        marker_size_m=table.get("marker_size", 0.25),
-    )
-    if not isinstance(world.dictionary, str):
-        raise ConfigError(f"{where}: [world] dictionary must be a name like {DEFAULT_DICTIONARY!r}")
-    if not isinstance(world.marker_id, int) or isinstance(world.marker_id, bool) or world.marker_id < 0:
-        raise ConfigError(f"{where}: [world] marker_id must be a non-negative integer")
-    size = world.marker_size_m
-    if not isinstance(size, (int, float)) or isinstance(size, bool) or not 0 < size < math.inf:
-        raise ConfigError(f"{where}: [world] marker_size must be a positive number of metres")
-    return WorldConfig(world.dictionary, world.marker_id, float(size))
+    table = _keys(table, f"{where}: [world]",
+                  {"dictionary", "marker_id", "marker_size", "markers", "board", "origin_marker"})
+    dictionary = _dictionary(table, f"{where}: [world]", DEFAULT_DICTIONARY)
+    marker_id = _count(table.get("marker_id", 0), f"{where}: [world]", "marker_id")
+    size = _number(table.get("marker_size", 0.25), f"{where}: [world]", "marker_size (metres)")
+    rows = table.get("markers", [])
+    if not isinstance(rows, list):
+        raise ConfigError(f"{where}: world.markers must be [[world.markers]] tables")
+    markers = []
+    for i, row in enumerate(rows):
+        w = f"{where}: world.markers[{i}]"
+        row = _keys(row, w, {"id", "size", "dictionary", "position", "quaternion_xyzw"})
+        if "id" not in row or "position" not in row:
+            raise ConfigError(f"{w} needs an id and a position (and quaternion_xyzw unless it lies flat like the world marker)")
+        markers.append(WorldMarker(_count(row["id"], w, "id"), _number(row.get("size", size), w, "size (metres)"),
+                                   _pose(row, w), _dictionary(row, w, dictionary)))
+    board = None
+    if "board" in table:
+        w = f"{where}: [world.board]"
+        b = _keys(table["board"], w, {"squares", "square_size", "marker_size", "dictionary", "first_marker_id",
+                                      "legacy_pattern", "position", "quaternion_xyzw"})
+        squares = b.get("squares")
+        if not isinstance(squares, list) or len(squares) != 2:
+            raise ConfigError(f"{w}: squares must be [columns, rows], e.g. [5, 7]")
+        missing = {"square_size", "marker_size"} - set(b)
+        if missing:
+            raise ConfigError(f"{w} lacks {', '.join(sorted(missing))} (metres)")
+        legacy = b.get("legacy_pattern", False)
+        if not isinstance(legacy, bool):
+            raise ConfigError(f"{w}: legacy_pattern must be true or false")
+        board = WorldBoard(_count(squares[0], w, "squares", 2), _count(squares[1], w, "squares", 2),
+                           _number(b["square_size"], w, "square_size (metres)"),
+                           _number(b["marker_size"], w, "marker_size (metres)"), _dictionary(b, w, dictionary),
+                           _count(b.get("first_marker_id", 0), w, "first_marker_id"), legacy, _pose(b, w))
+        if not board.marker_size_m < board.square_size_m:
+            raise ConfigError(f"{w}: marker_size must be smaller than square_size")
+    origin = table.get("origin_marker", True)
+    if not isinstance(origin, bool):
+        raise ConfigError(f"{where}: [world] origin_marker must be true or false")
+    if not origin and not markers and board is None:
+        raise ConfigError(f"{where}: [world] origin_marker = false needs [[world.markers]] or a [world.board]")
+    return WorldConfig(dictionary, marker_id, size, tuple(markers), board, origin)
+
+
+def world_marker_keys(world: WorldConfig) -> list[tuple[tuple[str, int], str]]:
+    """(dictionary, id) of every marker of the world reference, with what it is (for errors)."""
+    keys = [((m.dictionary, m.marker_id), "the world marker" if k == 0 and world.origin_marker else f"world marker {k}")
+            for k, m in enumerate(world.reference_markers())]
+    if world.board is not None:
+        keys += [((world.board.dictionary, i), "the world board") for i in world.board.marker_ids]
+    return keys
+
+
+def world_to_table(world: WorldConfig) -> dict[str, Any]:
+    """The ``[world]`` table of a world reference (:func:`_world` reads it back)."""
+    def pose(T: np.ndarray) -> dict[str, list[float]]:
+        position, q = position_quat_from_T(T)
+        return {"position": [float(v) for v in position], "quaternion_xyzw": [float(v) for v in q]}
+
+    table: dict[str, Any] = {"dictionary": world.dictionary, "marker_id": world.marker_id,
+                             "marker_size": world.marker_size_m}
+    if not world.origin_marker:
+        table["origin_marker"] = False
+    if world.markers:
+        table["markers"] = [{"id": m.marker_id, "size": m.size_m, "dictionary": m.dictionary, **pose(m.T_world_marker)}
+                            for m in world.markers]
+    if world.board is not None:
+        b = world.board
+        table["board"] = {"squares": [b.squares_x, b.squares_y], "square_size": b.square_size_m,
+                          "marker_size": b.marker_size_m, "dictionary": b.dictionary,
+                          "first_marker_id": b.first_marker_id, "legacy_pattern": b.legacy_pattern,
+                          **pose(b.T_world_board)}
+    return table
 
 
 def read_tracker_config(path: str | Path) -> TrackerConfig:
@@ -117,10 +214,14 @@ def read_tracker_config(path: str | Path) -> TrackerConfig:
     if len({r.name for r in robots}) != len(robots):
         raise ConfigError(f"{where}: robot names must be unique")
     world = _world(doc.get("world"), where)
-    owner: dict[tuple[str, int], str] = {(world.dictionary, world.marker_id): "the world marker"}
+    owner: dict[tuple[str, int], str] = {}
+    for key, what in world_marker_keys(world):
+        if key in owner:
+            raise ConfigError(f"{where}: {what} uses {key[0]} id {key[1]}, already used by {owner[key]}")
+        owner[key] = what
     for r in robots:
-        for marker_id in sorted(r.layout.ids):
-            key = (r.layout.dictionary, marker_id)
+        for key in sorted(r.layout.keys):
+            marker_id = key[1]
             if key in owner:
                 raise ConfigError(f"{where}: robot {r.name!r} uses {key[0]} id {marker_id}, already used by "
                                   f"{owner[key]}; every robot needs ids of its own")
@@ -153,8 +254,7 @@ def tracker_config_to_table(
         return str(p)
 
     doc: dict[str, Any] = {
-        "world": {"dictionary": world.dictionary, "marker_id": world.marker_id,
-                  "marker_size": world.marker_size_m},
+        "world": world_to_table(world),
         "cameras": [
             {"name": c.name, "url": c.url, **({"camera_info": rel(c.camera_info)} if c.camera_info else {})}
             for c in cameras
