@@ -119,7 +119,7 @@ ROBOT = '[[robots]]\nname = "bot"\nlayout = "cube.toml"\n'
     ("cameras = 5\n" + ROBOT, "cameras must be"),
     ('robots = "bot"\n', "robots must be"),
     ('[[cameras]]\nname = "cam1"\ncamera_info = 5\n' + ROBOT, r"cameras\[0\].camera_info must be a file name"),
-    ('[world]\nmarker_size = inf\n' + ROBOT, "marker_size must be a positive number"),
+    ('[world]\nmarker_size = inf\n' + ROBOT, "marker_size.* must be a positive number"),
     ('[[robots]]\nname = "bot"\nlayout = "."\n', "cannot read the cube layout"),
     ("a = " + "[" * 5_000, "nested too deeply"),
 ])

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import csv
 import heapq
+import io
 import json
 import logging
 import math
@@ -32,7 +33,7 @@ from typing import Iterable, Iterator
 from cubetrack.core.cameras import ClockSample
 from cubetrack.core.errors import RecordingError
 from cubetrack.core.records import Frame
-from cubetrack.io.files import atomic_write
+from cubetrack.io.files import LineFile, atomic_write, os_errors_as
 
 log = logging.getLogger(__name__)
 
@@ -145,17 +146,22 @@ class Recording:
         rows = []
         try:
             with path.open(newline="", encoding="utf-8") as f:
-                reader = csv.reader(f)
-                first = next(reader, None)
-                if first is None or tuple(h.strip() for h in first) != header:
-                    raise RecordingError(f"{path}: header must be {','.join(header)}")
-                for line_no, fields in enumerate(reader, start=2):
-                    row = parse(fields)
-                    if row is None:
-                        self.skipped[reason] += 1
-                        log.warning("%s:%d: skipping malformed row %r", path, line_no, fields)
-                        continue
-                    rows.append(row)
+                text = f.read()
+            if text and not text.endswith(("\n", "\r")):  # the row being written when its writer died
+                text = text[:text.rfind("\n") + 1]
+                self.skipped["unfinished last row"] += 1
+                log.warning("%s: the last row has no line end (its writer stopped in it); skipped", path)
+            reader = csv.reader(io.StringIO(text, newline=""))
+            first = next(reader, None)
+            if first is None or tuple(h.strip() for h in first) != header:
+                raise RecordingError(f"{path}: header must be {','.join(header)}")
+            for line_no, fields in enumerate(reader, start=2):
+                row = parse(fields)
+                if row is None:
+                    self.skipped[reason] += 1
+                    log.warning("%s:%d: skipping malformed row %r", path, line_no, fields)
+                    continue
+                rows.append(row)
         except FileNotFoundError:
             raise RecordingError(f"{path}: missing") from None
         except (UnicodeDecodeError, csv.Error) as exc:
@@ -229,8 +235,12 @@ def _parse_index_row(fields: list[str]) -> IndexRow | None:
 
 
 class RecordingWriter:
-    """Writes a recording folder incrementally; every row is flushed as it is written, so a
-    recording cut short (crash, Ctrl-C) stays readable up to its last whole frame.
+    """Writes a recording folder incrementally, so that a recording cut short (a killed process,
+    Ctrl-C, a full disk) stays readable up to its last whole frame: ``recording.json`` is written
+    last of the folder's skeleton (a folder that has it has every camera's ``index.csv`` with its
+    header), a frame's JPEG is stored whole before its index row, and rows are whole lines
+    written one at a time (:class:`cubetrack.io.files.LineFile`). A write the disk refuses is a
+    :class:`RecordingError` naming the file; what was recorded before it stays readable.
 
     Refuses to write into a folder that already holds a recording unless ``overwrite``.
     """
@@ -246,26 +256,24 @@ class RecordingWriter:
             raise RecordingError(f"{self.path}: already holds a recording; choose another folder")
         if self.path.exists() and not self.path.is_dir():
             raise RecordingError(f"{self.path}: exists and is not a folder")
-        self.path.mkdir(parents=True, exist_ok=True)
         meta = {
             "format": FORMAT,
             "version": VERSION,
             "cameras": [{"name": c.name, "source": c.source} for c in self.cameras],
             "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
         }
-        atomic_write(self.path / "recording.json", json.dumps(meta, indent=2) + "\n")
-        self._index = {}
-        self._clock = {}
-        for c in self.cameras:
-            (self.path / c.name).mkdir(exist_ok=True)
-            self._index[c.name] = self._open_csv(self.path / c.name / "index.csv", INDEX_HEADER)
-
-    @staticmethod
-    def _open_csv(path: Path, header: tuple[str, ...]):
-        f = path.open("w", newline="", encoding="utf-8")
-        f.write(",".join(header) + "\n")
-        f.flush()
-        return f
+        self._index: dict[str, LineFile] = {}
+        self._clock: dict[str, LineFile] = {}
+        try:
+            with os_errors_as(RecordingError, self.path):
+                self.path.mkdir(parents=True, exist_ok=True)
+                for c in self.cameras:
+                    (self.path / c.name).mkdir(exist_ok=True)
+                    self._index[c.name] = LineFile(self.path / c.name / "index.csv", ",".join(INDEX_HEADER))
+                atomic_write(self.path / "recording.json", json.dumps(meta, indent=2) + "\n")
+        except BaseException:
+            self.close()
+            raise
 
     def add_frame(self, camera: str, seq: int, device_time_s: float, host_time_s: float,
                   jpeg: bytes) -> str:
@@ -273,21 +281,23 @@ class RecordingWriter:
         if camera not in self._index:
             raise RecordingError(f"{self.path}: no camera {camera!r} in this recording")
         name = f"{seq:08d}.jpg"
-        atomic_write(self.path / camera / name, jpeg)
-        f = self._index[camera]
-        f.write(f"{int(seq)},{_fmt(device_time_s)},{_fmt(host_time_s)},{name}\n")
-        f.flush()
+        index = self._index[camera]
+        with os_errors_as(RecordingError, self.path / camera / name):
+            atomic_write(self.path / camera / name, jpeg)
+        with os_errors_as(RecordingError, index.path):
+            index.write_line(f"{int(seq)},{_fmt(device_time_s)},{_fmt(host_time_s)},{name}")
         return name
 
     def add_clock_sample(self, camera: str, sample: ClockSample) -> None:
         """Store one ``/time`` round trip of ``camera``."""
         if camera not in self._index:
             raise RecordingError(f"{self.path}: no camera {camera!r} in this recording")
-        f = self._clock.get(camera)
-        if f is None:
-            f = self._clock[camera] = self._open_csv(self.path / camera / "clock.csv", CLOCK_HEADER)
-        f.write(f"{_fmt(sample.host_send_s)},{_fmt(sample.device_time_s)},{_fmt(sample.host_recv_s)}\n")
-        f.flush()
+        path = self.path / camera / "clock.csv"
+        with os_errors_as(RecordingError, path):
+            f = self._clock.get(camera)
+            if f is None:
+                f = self._clock[camera] = LineFile(path, ",".join(CLOCK_HEADER))
+            f.write_line(f"{_fmt(sample.host_send_s)},{_fmt(sample.device_time_s)},{_fmt(sample.host_recv_s)}")
 
     def camera_info_path(self, camera: str) -> Path:
         """Where this camera's intrinsics belong; the folder is created."""

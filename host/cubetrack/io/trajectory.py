@@ -9,12 +9,12 @@ from __future__ import annotations
 import json
 from dataclasses import dataclass
 from pathlib import Path
-from typing import IO
 
 import numpy as np
 
 from cubetrack.core.errors import TrajectoryError
 from cubetrack.core.records import TrackedPose
+from cubetrack.io.files import LineFile, os_errors_as
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -104,27 +104,37 @@ def pose_to_json(pose: TrackedPose) -> dict:
 
 class PoseWriter:
     """Streams fused poses of one robot to ``<dir>/<robot>.tum`` and ``<dir>/<robot>.jsonl``,
-    flushing every pose so a crash loses nothing already produced."""
+    one whole line per pose and file as it comes (:class:`cubetrack.io.files.LineFile`): a killed
+    process loses at most the pose it was writing (its TUM line may be there without its JSONL
+    line), and a full disk is a :class:`TrajectoryError` naming the file, the files still
+    holding whole lines."""
 
     def __init__(self, out_dir: str | Path, robot: str):
         out_dir = Path(out_dir)
-        out_dir.mkdir(parents=True, exist_ok=True)
         self.tum_path = out_dir / f"{robot}.tum"
         self.jsonl_path = out_dir / f"{robot}.jsonl"
-        self._tum: IO[str] = self.tum_path.open("w", encoding="utf-8")
-        self._jsonl: IO[str] = self.jsonl_path.open("w", encoding="utf-8")
+        self._files: list[LineFile] = []
+        try:
+            with os_errors_as(TrajectoryError, out_dir):
+                out_dir.mkdir(parents=True, exist_ok=True)
+                for path in (self.tum_path, self.jsonl_path):
+                    self._files.append(LineFile(path))
+        except BaseException:
+            self.close()
+            raise
         self.count = 0
 
     def write(self, pose: TrackedPose) -> None:
-        self._tum.write(format_tum_line(pose.time_s, pose.position_m, pose.quaternion_xyzw))
-        self._jsonl.write(json.dumps(pose_to_json(pose)) + "\n")
-        self._tum.flush()
-        self._jsonl.flush()
+        tum, jsonl = self._files
+        with os_errors_as(TrajectoryError, tum.path):
+            tum.write_line(format_tum_line(pose.time_s, pose.position_m, pose.quaternion_xyzw).rstrip("\n"))
+        with os_errors_as(TrajectoryError, jsonl.path):
+            jsonl.write_line(json.dumps(pose_to_json(pose)))
         self.count += 1
 
     def close(self) -> None:
-        self._tum.close()
-        self._jsonl.close()
+        for f in self._files:
+            f.close()
 
     def __enter__(self) -> "PoseWriter":
         return self
