@@ -55,6 +55,7 @@ WORKERS_KEY = "cubetrack/workers"  # a liveliness token per running worker: cube
 CLAIMS_KEY = "cubetrack/claims"  # a liveliness token per camera a worker reads: cubetrack/claims/<camera>/<worker>
 POOL_KEY = "cubetrack/pool"  # a liveliness token per automatic worker: cubetrack/pool/<worker>
 FUSE_PORT = 7450
+BUS_LEASE_MS = 3000  # a worker or fusion silent this long (frozen, host gone) is dropped with its claims
 SETTLE_S = 1.0  # an automatic worker on the bus listens this long to the others' tokens before it claims
 CHECK_EVERY_S = 0.2  # how often an automatic worker compares its claims with its share
 
@@ -63,7 +64,7 @@ def fuse_endpoints(listen: tuple[str, ...] = (), connect: tuple[str, ...] = (), 
                    config_file=None) -> ZenohEndpoints:
     """The fusion's session: a peer listening on ``tcp/127.0.0.1:7450`` unless told otherwise."""
     default = () if connect or config_file is not None else (f"tcp/127.0.0.1:{FUSE_PORT}",)
-    return ZenohEndpoints(mode, listen or default, connect, config_file)
+    return ZenohEndpoints(mode, listen or default, connect, config_file, lease_ms=BUS_LEASE_MS)
 
 
 def worker_endpoints(listen: tuple[str, ...] = (), connect: tuple[str, ...] = (), mode: str = "peer",
@@ -71,10 +72,11 @@ def worker_endpoints(listen: tuple[str, ...] = (), connect: tuple[str, ...] = ()
     """A worker's session: a peer connecting to the fusion at ``tcp/127.0.0.1:7450`` (retried
     until it is there) unless told otherwise. It listens on a free loopback port, which the
     fusion passes on (Zenoh gossip) so that workers connect to each other and see each other's
-    claims even while the fusion is away."""
+    claims even while the fusion is away. A peer silent for ``BUS_LEASE_MS`` is dropped (Zenoh's
+    default is 10 s): a frozen or unplugged worker's cameras are taken over within about that."""
     default = () if listen or config_file is not None else (f"tcp/127.0.0.1:{FUSE_PORT}",)
     own = () if config_file is not None else ("tcp/127.0.0.1:0",)
-    return ZenohEndpoints(mode, listen or own, connect or default, config_file)
+    return ZenohEndpoints(mode, listen or own, connect or default, config_file, lease_ms=BUS_LEASE_MS)
 
 
 def key_chunk(what: str, name: str) -> str:

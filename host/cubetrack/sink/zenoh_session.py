@@ -35,6 +35,7 @@ class ZenohEndpoints:
     config_file: Path | None = None
     ros: bool = False
     fallback_connect: bool = False  # listen failed because the port is taken: connect there instead
+    lease_ms: int | None = None  # a peer silent this long is dropped, its liveliness tokens with it (Zenoh: 10 s)
 
 
 def json_endpoints(listen: tuple[str, ...] = (), connect: tuple[str, ...] = (), mode: str = "peer",
@@ -76,6 +77,8 @@ def _config(endpoints: ZenohEndpoints):
         "open/return_conditions/connect_scouted": True,
         "open/return_conditions/declares": True,
     }
+    if endpoints.lease_ms is not None:
+        settings["transport/link/tx/lease"] = endpoints.lease_ms
     if endpoints.ros:
         settings.update({
             "scouting/gossip/enabled": True,
