@@ -707,6 +707,10 @@ def _socket_of(raw) -> socket.socket | None:
 
 
 def _describe(exc: BaseException) -> str:
-    text = str(exc) or type(exc).__name__
+    """One line on why a connection failed: for requests' wrapped errors the underlying reason
+    (``HTTPConnection(host='...', port=9): Failed to establish a new connection: [Errno 111]
+    Connection refused``), not the wrapper's long preamble."""
+    reason = getattr(exc.args[0], "reason", None) if exc.args else None  # urllib3's MaxRetryError
+    text = str(reason or exc) or type(exc).__name__
     text = re.sub(r"\s+", " ", text)
     return text if len(text) <= 160 else text[:157] + "..."
