@@ -49,6 +49,7 @@ NET_CHUNK = 1400            # bytes per write when the bandwidth is capped (a GS
 START_LEAD_S = 0.05         # the first frame is released this long after start()
 EMULATED_RSSI_DBM = -45
 CORRUPT_KINDS = ("jpeg", "truncate")
+FAULT_LOG_ITEMS = 4096      # faults injected remembered per camera (Unix time, kind), for soak tests
 
 
 @dataclass(frozen=True, slots=True)
@@ -152,6 +153,12 @@ class _Camera:
         self.bucket = (_TokenBucket(emu.faults.bandwidth_bytes_per_s)
                        if emu.faults.bandwidth_bytes_per_s else None)
         self.width, self.height = 0, 0
+        self.faults_injected: deque[tuple[float, str]] = deque(maxlen=FAULT_LOG_ITEMS)
+
+    def _injected(self, kind: str) -> None:
+        """Note a fault injected now: "disconnect", "stall" or "corrupt"."""
+        with self.cond:
+            self.faults_injected.append((time.time(), kind))
 
     # --- frames ---
 
@@ -398,17 +405,21 @@ class _Camera:
                 header_size = len(body)
                 if faults.corrupt_every and parts % faults.corrupt_every == 0:
                     body = self.emu._corrupt(body, faults.corrupt_kind)
+                    self._injected("corrupt")
                 part = mjpeg.part_header(header_size, frame.seq, frame.capture_us) + body + mjpeg.PART_DELIMITER
                 self._send(conn, part, end_mono)
                 with self.cond:
                     self.frames_sent += 1
         finally:
+            if end_mono is not None and time.monotonic() >= end_mono and not stop.is_set():
+                self._injected("disconnect")
             with self.cond:
                 self.streaming -= 1
 
     def _stall(self, conn: socket.socket, stall_for_s: float | None, end_mono: float | None) -> None:
         """Send nothing for a while (or until the client leaves) while keeping the connection."""
         stop = self.emu._stop
+        self._injected("stall")
         until = time.monotonic() + stall_for_s if stall_for_s else None
         conn.settimeout(0.1)
         try:
@@ -584,6 +595,14 @@ class Emulator:
     @property
     def cameras(self) -> tuple[str, ...]:
         return tuple(c.name for c in self._cameras)
+
+    def faults_injected(self) -> dict[str, list[tuple[float, str]]]:
+        """Camera name -> the faults injected so far (the last FAULT_LOG_ITEMS): (Unix time, kind)."""
+        out = {}
+        for c in self._cameras:
+            with c.cond:
+                out[c.name] = list(c.faults_injected)
+        return out
 
     @property
     def base_urls(self) -> dict[str, str]:
