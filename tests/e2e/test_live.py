@@ -9,7 +9,9 @@ from __future__ import annotations
 import contextlib
 import io
 import json
+import multiprocessing
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -24,7 +26,7 @@ from cubetrack.app.demo import shift_trajectory, write_live_config
 from cubetrack.cli.main import main
 from cubetrack.evaluate.metrics import evaluate
 from cubetrack.io.recording import Recording
-from cubetrack.io.trajectory import read_tum
+from cubetrack.io.trajectory import Trajectory, read_tum
 from cubetrack.source.clock import fit_round_trips
 
 pytestmark = pytest.mark.slow
@@ -219,3 +221,44 @@ def test_record_and_duration_need_live(scene, tmp_path, capsys):
     assert main(["track", "--config", str(rec / "config.toml"), "--extrinsics", str(work / "extrinsics.toml"),
                  "--recording", str(rec), "--out", str(tmp_path), "--record", str(tmp_path / "r")]) == 1
     assert "--live" in capsys.readouterr().err
+
+
+def test_camera_worker_processes_track_as_accurately_as_the_offline_replay(scene, tmp_path):
+    """[live] worker_kind = "camera-process": two worker processes each read a share of the cameras
+    and do their per-frame work, planned by the fusion's forecasts; the fusion stays in the tracker's
+    process. Same accuracy as the replay, poses in capture order, every frame accounted for, and
+    the worker processes are gone when the command returns. The worker processes start (import
+    the stages) while the emulator already serves, so it loops the recording: poses are scored
+    against the ground truth of each loop, away from the seams where the robot jumps back."""
+    work, rec = scene
+    out = tmp_path / "live"
+    with Emulator(rec, host="127.0.0.1", port=0, loop=True) as emu:
+        config = write_live_config(rec / "config.toml", emu.urls, tmp_path / "config.toml")
+        config.write_text(config.read_text() + '\n[live]\nworker_kind = "camera-process"\nworkers = 2\n')
+        stdout = io.StringIO()
+        with contextlib.redirect_stdout(stdout):
+            rc = main(["track", "--config", str(config), "--extrinsics", str(work / "extrinsics.toml"), "--live",
+                       "--out", str(out), "--duration", str(emu.timeline.period_s + 4.0)])
+        truth = read_tum(rec / "ground_truth.tum")
+        shift_s = emu.unix_time(float(truth.times_s[0])) - float(truth.times_s[0])
+        period_s = emu.timeline.period_s
+    assert rc == 0
+    loops = [shift_trajectory(truth, shift_s + k * period_s) for k in range(3)]
+    seams = [float(loop.times_s[0]) for loop in loops[1:]]
+    poses = read_tum(out / "robot.tum")
+    keep = np.all([(poses.times_s < seam - 0.05) | (poses.times_s > seam + 0.5) for seam in seams], axis=0)
+    live = evaluate(Trajectory(poses.times_s[keep], poses.positions_m[keep], poses.quats_xyzw[keep]),
+                    Trajectory(*(np.concatenate([getattr(loop, a) for loop in loops])
+                                 for a in ("times_s", "positions_m", "quats_xyzw"))))
+    offline = evaluate(read_tum(work / "offline" / "robot.tum"), truth)
+    print(f"offline {offline.position_rmse_m * 100:.2f} cm, camera processes {live.position_rmse_m * 100:.2f} cm "
+          f"({live.poses_total} poses, the first {poses.times_s[0] - shift_s - truth.times_s[0]:.1f} s in)")
+    assert live.position_rmse_m < offline.position_rmse_m + 0.005
+    assert live.poses_total >= 0.5 * offline.poses_total
+    times = [json.loads(line)["time"] for line in (out / "robot.jsonl").read_text().splitlines()]
+    assert times == sorted(times)
+    text = stdout.getvalue()
+    cameras = [tuple(map(int, m)) for m in re.findall(r": (\d+) frames, (\d+) dropped", text)]
+    frames = int(re.search(r"frames: (\d+)", text).group(1))
+    assert len(cameras) == 3 and frames == sum(f - d for f, d in cameras) > 0  # each frame processed or dropped
+    assert not [c for c in multiprocessing.active_children() if c.name == "cubetrack-camera-worker"]

@@ -26,9 +26,10 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Sequence
 
+from cubetrack.app.camera_workers import CameraProcesses, forecast_of
 from cubetrack.app.config import config_params
 from cubetrack.app.outputs import open_outputs
-from cubetrack.app.parallel import FramePool, LiveParams, by_capture_time
+from cubetrack.app.parallel import FramePool, LiveParams, WorkerKind, by_capture_time
 from cubetrack.app.tracker import FrameResult, FrameWorker, StageParams, Tracker, TrackStats
 from cubetrack.core.cameras import CameraExtrinsics, CameraIntrinsics, ClockSample
 from cubetrack.core.errors import ConfigError
@@ -332,15 +333,53 @@ def track_live(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
         if pool.idle() or not pool.ready:
             wake.set()
 
-    make_worker = functools.partial(FrameWorker, intrinsics, config.world, config.robots, tracker.T_world_cam, params)
-    pool = FramePool(make_worker, live_params.worker_count, live_params.worker_kind, wake.set, source.max_part_bytes)
-    live = LiveCameras(urls, source, on_frame=recorder.frame if recorder else None,
-                       on_clock=recorder.clock if recorder else None, clock=clock, wake=wake_for_source)
+    def take_from_cameras() -> None:
+        """Camera worker processes: their clock samples, then their results, oldest capture
+        first; the fusion's new forecast goes back to them."""
+        results, readings = live.take()
+        for reading in readings:
+            emit(tracker.add_clock_sample(reading.camera, reading.sample), reading.sample.host_recv_s)
+        for result in by_capture_time(results):
+            tracker.stats.frames += 1
+            fuse(result)
+        if results:
+            live.forecast(forecast_of(tracker.fusion, robots, clock()))
+
+    def step() -> None:
+        if pool is None:
+            take_from_cameras()
+        else:
+            fuse_results()
+            take_events()
+
+    def working() -> bool:
+        """Work that had arrived when the session ended is still being done."""
+        if pool is None:
+            return live.running or live.pending() > 0
+        return pool.busy() > 0 or live.pending() > 0
+
+    if live_params.worker_kind is WorkerKind.CAMERA_PROCESS and recorder is not None:
+        log.warning("recording: frames are recorded by this process, so they are read here and processed by "
+                    "worker threads instead of camera worker processes")
+        live_params = dataclasses.replace(live_params, worker_kind=WorkerKind.THREAD)
+    if live_params.worker_kind is WorkerKind.CAMERA_PROCESS:
+        pool = None
+        make_tracker = functools.partial(Tracker, intrinsics, config.world, config.robots, extrinsics, params,
+                                         synced_cameras=frozenset(urls))
+        live = CameraProcesses(urls, source, make_tracker, live_params.worker_count, views=outputs.wants_views,
+                               wake=wake.set, clock=clock)
+    else:
+        make_worker = functools.partial(FrameWorker, intrinsics, config.world, config.robots, tracker.T_world_cam,
+                                        params)
+        pool = FramePool(make_worker, live_params.worker_count, live_params.worker_kind, wake.set,
+                         source.max_part_bytes)
+        live = LiveCameras(urls, source, on_frame=recorder.frame if recorder else None,
+                           on_clock=recorder.clock if recorder else None, clock=clock, wake=wake_for_source)
     rates = _Rates(live, robots)
     health = _Health(live, tracker.clocks, clock)
     try:
         live.start()
-        log.info("live tracking %d camera(s) with %d %s worker(s): %s", len(urls), pool.count,
+        log.info("live tracking %d camera(s) with %d %s worker(s): %s", len(urls), live_params.worker_count,
                  live_params.worker_kind.value, ", ".join(f"{n} {u}" for n, u in urls.items()))
         next_status = started + status_every_s
         next_health = time.monotonic()
@@ -349,8 +388,7 @@ def track_live(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
             while not _session_over(started, duration_s, stop):
                 wake.wait(0.1 if tick_s is None else min(0.1, max(0.0, next_tick - clock())))
                 wake.clear()
-                fuse_results()
-                take_events()
+                step()
                 if tick_s is not None and (now_s := clock()) >= next_tick:
                     next_tick = (math.floor(now_s / tick_s) + 1) * tick_s  # the next tick of the rate's grid
                     emit(predicted_poses(tracker.fusion, robots, now_s), now_s)
@@ -362,20 +400,25 @@ def track_live(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
                     for snapshot in health.snapshots():
                         outputs.camera_health(snapshot)
             live.stop()
-            while pool.busy() or live.pending():  # what had arrived when the session ended
+            while working():  # what had arrived when the session ended
                 wake.wait(0.05)
                 wake.clear()
-                fuse_results()
-                take_events()
+                step()
         except KeyboardInterrupt:
             interrupted = True
             log.info("interrupted: finishing with what has arrived")
         live.stop()
+        if pool is None:  # the frames the camera worker processes gave up
+            tracker.stats.frames_before_clock_sync = live.before_clock()
+            tracker.stats.frames += tracker.stats.frames_before_clock_sync
         now_s = clock()
         emit(tracker.finish(now_s), now_s)
     finally:
         live.stop()
-        pool.close()
+        if pool is None:
+            live.close()
+        else:
+            pool.close()
         outputs.close()
         if recorder is not None:
             recorder.close()

@@ -36,6 +36,7 @@ from cubetrack.core.params import check, param
 class WorkerKind(enum.Enum):
     PROCESS = "process"
     THREAD = "thread"
+    CAMERA_PROCESS = "camera-process"
 
 
 @dataclass(frozen=True, slots=True)
@@ -46,7 +47,9 @@ class LiveParams:
     worker_kind: WorkerKind = param(
         WorkerKind.THREAD,
         "thread: threads of the tracker's process (measured faster here, docs/live.md); process: worker "
-        "processes, each frame's JPEG handed over in shared memory")
+        "processes, each frame's JPEG handed over in shared memory; camera-process: worker processes that each "
+        "read a share of the cameras and do their per-frame work, the fusion in the tracker's process "
+        "(cubetrack.app.camera_workers; not while recording)")
 
     def __post_init__(self) -> None:
         check(self.workers >= 0, f"workers must not be negative, got {self.workers}")

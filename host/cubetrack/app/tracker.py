@@ -249,6 +249,9 @@ class Tracker:
             self.fusion = FilterFusion({r.name: r.layout for r in robots}, params.fusion, params.filter)
         else:
             self.fusion = LatestEstimateFusion(params.fusion)
+        # what plans each frame (regions, estimates): the fusion itself, or in a camera worker
+        # process a forecast sent by the fusion (cubetrack.app.camera_workers.Forecast)
+        self.forecast = self.fusion
         self.clocks = {name: ClockSync() for name in intrinsics}
         self.synced_cameras = synced_cameras
         self.held: dict[str, deque[Frame]] = {}  # frames waiting for their camera's first round trip
@@ -320,25 +323,15 @@ class Tracker:
         """The per-frame work order of a frame whose capture time is known: the regions where
         the fusion predicts the robots, and the robots whose fusion wants an estimate."""
         return FrameJob(frame, capture_time_s, self._regions(frame.camera, capture_time_s),
-                        frozenset(r.name for r in self.robots if self.fusion.needs_estimate(r.name)))
+                        frozenset(r.name for r in self.robots if self.forecast.needs_estimate(r.name)))
 
     def fuse(self, result: FrameResult, now_s: float) -> list[TrackedPose]:
         """Count what the per-frame work found and fuse its sightings (``now_s``: the host time
         they became available). Results of several workers may come in any order; a corrupt
         JPEG is counted and skipped."""
-        frame = result.job.frame
         self.last_now_s = now_s
-        if result.outcome is FrameOutcome.CORRUPT:
-            self.stats.corrupt_frames += 1
-            log.warning("skipping corrupt frame: %s", result.error)
+        if not self.count(result):
             return []
-        if result.outcome is FrameOutcome.REGIONS:
-            self.frames_since_full[frame.camera] += 1
-            self.stats.region_detections += 1
-        elif result.outcome is FrameOutcome.FULL_FRAME:
-            self.frames_since_full[frame.camera] = 0
-        else:
-            self.stats.frames_without_camera_pose += 1
         poses = []
         for sighting in result.sightings:
             if sighting.estimate is not None:
@@ -347,6 +340,23 @@ class Tracker:
         for pose in poses:
             self.stats.poses[pose.robot] += 1
         return poses
+
+    def count(self, result: FrameResult) -> bool:
+        """Count what the per-frame work found (and when the camera's whole frame was last
+        searched); False for a corrupt JPEG (logged)."""
+        frame = result.job.frame
+        if result.outcome is FrameOutcome.CORRUPT:
+            self.stats.corrupt_frames += 1
+            log.warning("skipping corrupt frame: %s", result.error)
+            return False
+        if result.outcome is FrameOutcome.REGIONS:
+            self.frames_since_full[frame.camera] += 1
+            self.stats.region_detections += 1
+        elif result.outcome is FrameOutcome.FULL_FRAME:
+            self.frames_since_full[frame.camera] = 0
+        else:
+            self.stats.frames_without_camera_pose += 1
+        return True
 
     def _regions(self, camera: str, time_s: float) -> tuple[Box, ...] | None:
         """Image boxes (x0, y0, x1, y1) around every robot's predicted cube, or None when the
@@ -360,7 +370,7 @@ class Tracker:
         width, height = intrinsics.width, intrinsics.height
         boxes = []
         for robot in self.robots:
-            T_world_cube = self.fusion.predicted_pose(robot.name, time_s)
+            T_world_cube = self.forecast.predicted_pose(robot.name, time_s)
             if T_world_cube is None:
                 return None
             pc = transform_points(T_cam_world @ T_world_cube, self.cube_points_m[robot.name])

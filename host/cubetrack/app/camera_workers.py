@@ -1,0 +1,288 @@
+"""Camera worker processes for live tracking (``[live] worker_kind = "camera-process"``).
+
+Each worker process owns a share of the cameras end to end: it reads their streams and
+``/time`` round trips (:class:`~cubetrack.source.streams.LiveCameras`, freshest frame first),
+stamps capture times with its own clock fits, plans each frame and does the per-frame work
+(decode, detection, per-camera estimates) with a :class:`~cubetrack.app.tracker.Tracker` of its
+own, whose plans come from a :class:`Forecast`: each robot's motion as the fusion predicts it,
+sent by the tracker's process after every batch of fused results. Results go back over a pipe
+without the JPEG (unless an output shows camera frames), with the clock samples and the
+cameras' counters; the tracker's process only fuses them, in one ordered consumer. No JPEG
+crosses processes, and the GIL of one process no longer limits the per-frame work.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import multiprocessing
+import signal
+import threading
+import time
+from collections import deque
+from collections.abc import Callable, Mapping, Sequence
+from dataclasses import dataclass
+from multiprocessing.connection import Connection
+
+import cv2
+import numpy as np
+
+from cubetrack.app.tracker import FrameResult, Tracker
+from cubetrack.core.errors import SourceError
+from cubetrack.estimate.reprojection import moved_pose
+from cubetrack.fuse.base import Fusion
+from cubetrack.source.streams import CameraStats, ClockReading, LiveCameras, SourceParams
+
+log = logging.getLogger(__name__)
+
+STATS_EVERY_S = 0.5  # a worker process sends its cameras' counters this often
+FORECAST_SPAN_S = 0.1  # the motion in a forecast: from the fusion's predictions this far apart
+IN_FLIGHT = 2  # results a worker process may have sent that the fusion has not taken yet
+
+
+@dataclass(frozen=True, slots=True)
+class Forecast:
+    """What a worker process plans frames with: per tracked robot its predicted pose at
+    ``time_s`` with constant world-frame linear and angular velocity (the filter's motion
+    model), and the robots whose fusion asks for per-camera estimates. Duck-types the two
+    :class:`~cubetrack.fuse.base.Fusion` methods that planning uses."""
+
+    motions: Mapping[str, tuple[float, np.ndarray, np.ndarray, np.ndarray]]  # time_s, T_world_cube, v, w
+    estimate_robots: frozenset[str]
+
+    def predicted_pose(self, robot: str, time_s: float) -> np.ndarray | None:
+        motion = self.motions.get(robot)
+        if motion is None:
+            return None
+        t0, T, v, w = motion
+        return moved_pose(T, v, w, time_s - t0)
+
+    def needs_estimate(self, robot: str) -> bool:
+        return robot in self.estimate_robots
+
+
+def forecast_of(fusion: Fusion, robots: Sequence[str], now_s: float) -> Forecast:
+    """The fusion's predictions at ``now_s`` and ``FORECAST_SPAN_S`` later, as a :class:`Forecast`."""
+    motions = {}
+    for robot in robots:
+        T0 = fusion.predicted_pose(robot, now_s)
+        if T0 is None:
+            continue
+        T1 = fusion.predicted_pose(robot, now_s + FORECAST_SPAN_S)
+        if T1 is None:
+            v = w = np.zeros(3)
+        else:
+            v = (T1[:3, 3] - T0[:3, 3]) / FORECAST_SPAN_S
+            w = cv2.Rodrigues(T1[:3, :3] @ T0[:3, :3].T)[0].reshape(3) / FORECAST_SPAN_S
+        motions[robot] = (now_s, T0, v, w)
+    return Forecast(motions, frozenset(r for r in robots if fusion.needs_estimate(r)))
+
+
+def share_cameras(urls: Mapping[str, str], count: int) -> list[dict[str, str]]:
+    """The cameras dealt round-robin to ``count`` worker processes (none left empty)."""
+    names = list(urls)
+    shares = [{name: urls[name] for name in names[k::count]} for k in range(min(count, len(names)))]
+    return [share for share in shares if share]
+
+
+@dataclass(frozen=True, slots=True)
+class WorkerUpdate:
+    """What a worker process reports besides results: its cameras' counters and the frames it
+    gave up before their camera's clock was known (since it started)."""
+
+    cameras: dict[str, CameraStats]
+    before_clock: int
+
+
+class CameraProcesses:
+    """``count`` camera worker processes over ``urls`` (see the module doc), with the part of
+    :class:`~cubetrack.source.streams.LiveCameras`' interface the live loop uses (``urls``,
+    :meth:`stats`, :meth:`pending`, :meth:`stop`). ``make_tracker`` builds each process's
+    tracker (picklable: a ``functools.partial``); ``wake`` is called whenever something came.
+    Take what came with :meth:`take`; send each new :class:`Forecast` with :meth:`forecast`."""
+
+    def __init__(self, urls: Mapping[str, str], source: SourceParams, make_tracker: Callable[[], Tracker],
+                 count: int, *, views: bool = False, wake: Callable[[], None] = lambda: None,
+                 clock: Callable[[], float] = time.time):
+        self.urls = dict(urls)
+        self.count = count
+        self._wake = wake
+        self._lock = threading.Lock()
+        self._results: deque[tuple[int, FrameResult]] = deque()  # (lane, result)
+        self._taken: list[int] = []  # per lane: results taken by the fusion
+        self._clocks: deque[ClockReading] = deque()
+        self._stats = {name: CameraStats(url=url) for name, url in self.urls.items()}
+        self._before_clock: dict[int, int] = {}  # per worker process
+        self._failure: BaseException | None = None
+        self._lanes = []
+        context = multiprocessing.get_context("spawn")  # fork would copy this process's threads' locks
+        for share in share_cameras(self.urls, count):
+            parent, child = context.Pipe()
+            process = context.Process(target=_worker_main, args=(child, share, source, make_tracker, views, clock),
+                                      daemon=True, name="cubetrack-camera-worker")
+            process.start()
+            child.close()
+            reader = threading.Thread(target=self._read, args=(len(self._lanes), parent, process), daemon=True,
+                                      name="cubetrack-camera-worker-results")
+            self._lanes.append((parent, process, reader))
+            self._taken.append(0)
+            reader.start()
+        self._open = len(self._lanes)
+
+    def take(self) -> tuple[list[FrameResult], list[ClockReading]]:
+        """The results and clock samples that came since the last call (arrival order)."""
+        with self._lock:
+            if self._failure is not None:
+                raise self._failure
+            results, clocks = [], list(self._clocks)
+            for lane, result in self._results:
+                results.append(result)
+                self._taken[lane] += 1
+            self._results.clear()
+            self._clocks.clear()
+        return results, clocks
+
+    def forecast(self, forecast: Forecast) -> None:
+        """Hand every worker process the fusion's newest forecast, and how many of its results
+        the fusion has taken (a worker process keeps at most ``IN_FLIGHT`` beyond that: when the
+        fusion is behind, frames wait in the source, where each camera keeps only its newest)."""
+        for (conn, _process, _reader), taken in zip(self._lanes, self._taken):
+            try:
+                conn.send((forecast, taken))
+            except OSError:  # the process ended: its reader reports it
+                pass
+
+    def stats(self) -> dict[str, CameraStats]:
+        with self._lock:
+            return {name: s.copy() for name, s in self._stats.items()}
+
+    def before_clock(self) -> int:
+        """Frames given up before their camera's clock was known, so far."""
+        with self._lock:
+            return sum(self._before_clock.values())
+
+    def pending(self) -> int:
+        with self._lock:
+            return len(self._results) + len(self._clocks)
+
+    @property
+    def running(self) -> bool:
+        """Some worker process has not finished yet."""
+        with self._lock:
+            return self._open > 0
+
+    def stop(self, timeout_s: float = 10.0) -> None:
+        """Ask every worker process to finish: each stops reading, works off the frames it had
+        and sends its last counters; :attr:`running` turns False when all have."""
+        for conn, _process, _reader in self._lanes:
+            try:
+                conn.send(None)
+            except OSError:
+                pass
+
+    def close(self) -> None:
+        self.stop()
+        for conn, process, reader in self._lanes:
+            process.join(10.0)
+            if process.is_alive():
+                process.terminate()
+                process.join()
+            reader.join(5.0)
+            conn.close()
+
+    def start(self) -> CameraProcesses:
+        """Nothing to do: the processes started with the object (for the live loop's sake)."""
+        return self
+
+    def _read(self, lane: int, conn: Connection, process) -> None:
+        finished = False
+        try:
+            while True:
+                kind, payload = conn.recv()
+                with self._lock:
+                    if kind == "result":
+                        self._results.append((lane, payload))
+                    elif kind == "clock":
+                        self._clocks.append(payload)
+                    elif kind == "update":
+                        self._stats.update(payload.cameras)
+                        self._before_clock[lane] = payload.before_clock
+                    elif kind == "failed":
+                        self._failure = self._failure or SourceError(f"a camera worker process failed: {payload}")
+                    if kind in ("done", "failed"):
+                        finished = True
+                self._wake()
+                if finished:
+                    break
+        except (EOFError, OSError):
+            with self._lock:
+                if not finished:
+                    self._failure = self._failure or SourceError(
+                        f"a camera worker process ended unexpectedly (exit code {process.exitcode})")
+        finally:
+            with self._lock:
+                self._open -= 1
+            self._wake()
+
+
+def _worker_main(conn: Connection, urls: dict[str, str], source: SourceParams, make_tracker: Callable[[], Tracker],
+                 views: bool, clock: Callable[[], float]) -> None:
+    """A camera worker process: its cameras' frames in, results out, until None comes (Ctrl-C
+    is the tracker's process's business: it ends the session, then this process)."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    cv2.setNumThreads(1)
+    try:
+        _work_cameras(conn, urls, source, make_tracker(), views, clock)
+    except (EOFError, BrokenPipeError):
+        pass
+    except Exception as exc:  # a bug or a broken camera source: the tracker's process re-raises it
+        log.exception("camera worker process failed")
+        conn.send(("failed", f"{type(exc).__name__}: {exc}"))
+
+
+def _work_cameras(conn: Connection, urls: dict[str, str], source: SourceParams, tracker: Tracker, views: bool,
+                  clock: Callable[[], float]) -> None:
+    wake = threading.Event()
+    tracker.forecast = Forecast({}, frozenset(r.name for r in tracker.robots))
+    live = LiveCameras(urls, source, clock=clock, wake=wake.set)
+    live.start()
+    next_update = time.monotonic() + STATS_EVERY_S
+    stopping = False
+    sent = taken = 0
+    try:
+        while True:
+            while conn.poll():
+                message = conn.recv()
+                if message is None:
+                    stopping = True
+                    live.stop()
+                else:
+                    tracker.forecast, taken = message
+            room = stopping or sent - taken < IN_FLIGHT
+            event = live.get(0 if stopping or not room else 0.05, frames=room, newest_first=True)
+            if event is None:
+                if stopping:
+                    break
+                if not room:
+                    conn.poll(0.05)  # wait for the fusion to take a result
+            elif isinstance(event, ClockReading):
+                tracker.add_clock_sample(event.camera, event.sample)
+                conn.send(("clock", event))
+            elif (job := tracker.admit(event, hold=False)) is not None:
+                result = tracker.worker.work(job)
+                tracker.count(result)
+                if not views:
+                    job = dataclasses.replace(job, frame=dataclasses.replace(job.frame, jpeg=b""))
+                conn.send(("result", FrameResult(job, result.outcome, result.sightings, result.error)))
+                sent += 1
+            if time.monotonic() >= next_update:
+                next_update = time.monotonic() + STATS_EVERY_S
+                conn.send(("update", _update(live, tracker)))
+    finally:
+        live.stop()
+    conn.send(("update", _update(live, tracker)))
+    conn.send(("done", None))
+
+
+def _update(live: LiveCameras, tracker: Tracker) -> WorkerUpdate:
+    return WorkerUpdate(live.stats(), tracker.stats.frames_before_clock_sync)
