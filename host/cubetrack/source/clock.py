@@ -100,8 +100,9 @@ def fit_arrivals(device_s: np.ndarray, arrival_s: np.ndarray) -> ClockFit:
     delay = arrival_s - device_s
     a, b, ref = fit_line(device_s, delay)
     residual = delay - (a + b * (device_s - ref))
-    a += float(np.min(residual))  # lower envelope: shift the line down to the fastest frame
-    return ClockFit(a, b, ref, ClockFitMethod.ARRIVAL, float(np.percentile(residual - np.min(residual), 50)))
+    lowest = float(residual.min())
+    a += lowest  # lower envelope: shift the line down to the fastest frame
+    return ClockFit(a, b, ref, ClockFitMethod.ARRIVAL, float(np.median(residual)) - lowest)
 
 
 class ClockSync:
@@ -132,9 +133,9 @@ class ClockSync:
             if len(self._trips) >= self.params.min_samples:
                 s, d, r = (np.array(v) for v in zip(*self._trips))
                 self._fit = fit_round_trips(s, d, r, self.params.fastest_fraction)
-            elif self._arrivals:
-                d, a = (np.array(v) for v in zip(*self._arrivals))
-                self._fit = fit_arrivals(d, a)
+            elif self._arrivals:  # refitted per frame until a round trip comes: one array, few numpy calls
+                arrivals = np.array(self._arrivals)
+                self._fit = fit_arrivals(arrivals[:, 0], arrivals[:, 1])
             else:
                 self._fit = ClockFit(0.0, 0.0, 0.0, ClockFitMethod.NONE, float("inf"))
         return self._fit
