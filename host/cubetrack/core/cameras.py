@@ -22,13 +22,16 @@ from cubetrack.core.layout import DEFAULT_DICTIONARY, marker_corners_m
 @dataclass(frozen=True, slots=True, eq=False)
 class CameraIntrinsics:
     """Pinhole intrinsics of one camera: image size (px), ``K`` (3x3 camera matrix, px) and the
-    plumb_bob distortion coefficients ``dist`` (k1, k2, p1, p2, k3)."""
+    plumb_bob distortion coefficients ``dist`` (k1, k2, p1, p2, k3); ``readout_s``: the sensor's
+    rolling-shutter readout, top row to bottom row (s; 0: a global shutter): row ``v`` is exposed
+    ``(v - (height - 1) / 2) readout_s / height`` after the frame's stamp."""
 
     width: int
     height: int
     K: np.ndarray
     dist: np.ndarray
     camera_name: str = ""
+    readout_s: float = 0.0
 
     def __post_init__(self) -> None:
         if self.K.shape != (3, 3) or not np.all(np.isfinite(self.K)):
@@ -37,6 +40,8 @@ class CameraIntrinsics:
             raise CameraInfoError(f"focal lengths must be positive, got {self.K[0, 0]}, {self.K[1, 1]}")
         if self.width <= 0 or self.height <= 0:
             raise CameraInfoError(f"image size must be positive, got {self.width}x{self.height}")
+        if not 0.0 <= self.readout_s < 1.0:
+            raise CameraInfoError(f"rolling-shutter readout must be in [0, 1) s, got {self.readout_s}")
 
 
 @dataclass(frozen=True, slots=True, eq=False)

@@ -44,7 +44,10 @@ class FilterParams:
     """The motion model and measurement model of :class:`PoseFilter`."""
 
     accel_noise: float = param(0.5, "white-noise acceleration spectral density, m/s^2/sqrt(Hz)")
-    angular_accel_noise: float = param(2.0, "white-noise angular acceleration spectral density, rad/s^2/sqrt(Hz)")
+    angular_accel_noise: float = param(0.5, "white-noise angular acceleration spectral density about the world's x and y "
+                                       "axes (tilting), rad/s^2/sqrt(Hz)")
+    yaw_accel_noise: float = param(10.0, "white-noise angular acceleration spectral density about the world's z axis "
+                                   "(turning: robots turn sharply, they tilt little), rad/s^2/sqrt(Hz)")
     corner_noise_px: float = param(0.5, "corner measurement noise (1 sigma), pixels")
     huber_px: float = param(1.5, "corner residuals beyond this are down-weighted (Huber), pixels")
     gate_rms_px: float = param(2.0, "a camera frame whose RMS residual after the update exceeds this is rejected, pixels")
@@ -54,7 +57,7 @@ class FilterParams:
     init_angular_velocity_sigma: float = param(1.0, "angular velocity uncertainty (1 sigma) at track start, rad/s")
 
     def __post_init__(self) -> None:
-        for name in ("accel_noise", "angular_accel_noise", "corner_noise_px", "huber_px", "gate_rms_px", "face_gate_px",
+        for name in ("accel_noise", "angular_accel_noise", "yaw_accel_noise", "corner_noise_px", "huber_px", "gate_rms_px", "face_gate_px",
                      "init_velocity_sigma", "init_angular_velocity_sigma"):
             if not getattr(self, name) > 0:
                 raise ParamsError(f"{name} must be positive")
@@ -75,7 +78,7 @@ class UpdateResult:
 def _motion_noise(params: FilterParams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(A, B, C)`` with the process noise over a step of ``dt`` = ``A |dt|³/3 + B dt²/2 + C |dt|``
     (white acceleration and angular acceleration, per axis)."""
-    q = np.repeat([params.accel_noise**2, params.angular_accel_noise**2], 3)  # p, θ axes
+    q = np.repeat([params.accel_noise**2, params.angular_accel_noise**2, params.yaw_accel_noise**2], [3, 2, 1])  # p, θ
     A, B, C = np.zeros((12, 12)), np.zeros((12, 12)), np.zeros((12, 12))
     A[0:6, 0:6] = np.diag(q)
     B[0:6, 6:12] = B[6:12, 0:6] = np.diag(q)
@@ -142,26 +145,37 @@ class PoseFilter:
     def _solve(self, sets: Sequence[CornerSet]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Gauss-Newton on prior + Huber-weighted corner residuals: (δ (12,), information, residuals px).
 
-        The corners see only the pose block of the state: their information adds to that block and
-        their gradient to its rows (the Jacobian's velocity columns are zero)."""
+        Corners taken at the filter's time see only the pose block of the state: their information
+        adds to that block and their gradient to its rows. A set taken at another instant (a
+        rolling shutter's row time) sees the pose moved there at the filter's velocities, so it
+        informs the velocities too (the full 12-column Jacobian)."""
         prm = self.params
         T0 = self.T_world_cube
         info_prior = np.linalg.inv(self.P)
         delta = np.zeros(12)
         rhs = np.zeros(12)
+        block = slice(0, 12) if any(s.time_s != self.time_s for s in sets) else _POSE
         for _ in range(prm.iterations):
-            r, H = reprojection_jacobian_px(perturbed(T0, delta[_POSE]), sets)
+            r, H = reprojection_jacobian_px(*self._at(T0, delta, sets, block))
             a = np.abs(r)
             weights = np.where(a <= prm.huber_px, 1.0, prm.huber_px / np.maximum(a, 1e-12)) / prm.corner_noise_px**2
             WH = weights[:, None] * H
             info = info_prior.copy()
-            info[_POSE, _POSE] += H.T @ WH
-            rhs[_POSE] = WH.T @ (H @ delta[_POSE] - r)
+            info[block, block] += H.T @ WH
+            rhs[block] = WH.T @ (H @ delta[block] - r)
             delta = np.linalg.solve(info, rhs)
-        return delta, info, reprojection_residuals_px(perturbed(T0, delta[_POSE]), sets)
+        return delta, info, reprojection_residuals_px(*self._at(T0, delta, sets, block))
+
+    def _at(self, T0: np.ndarray, delta: np.ndarray, sets: Sequence[CornerSet], block: slice) -> tuple:
+        """The arguments of the reprojection functions for the state moved by ``delta``."""
+        if block == _POSE:
+            return perturbed(T0, delta[_POSE]), sets
+        return (perturbed(T0, delta[_POSE]), sets, self.time_s, self.velocity_m_s + delta[_VELOCITY],
+                self.angular_velocity_rad_s + delta[_ANGULAR_VELOCITY])
 
     def update(self, sets: Sequence[CornerSet]) -> UpdateResult:
-        """Iterated EKF update with the corners of ``sets`` (taken at the filter's time).
+        """Iterated EKF update with the corners of ``sets``, each taken at its ``time_s`` (the
+        filter's time, or near it: a rolling-shutter row time).
 
         A face whose corners stay more than ``face_gate_px`` (RMS) off after the update is
         dropped and the update redone; the whole sighting is rejected if its RMS residual is

@@ -298,10 +298,20 @@ class FilterFusion:
         if n > 0:
             del history[:n], keys[:n]
 
-    def _corners(self, sighting: CubeSighting, T_world_cube: np.ndarray) -> CornerSet | None:
-        matches = match_faces(sighting.detections, self.layouts[sighting.robot], sighting.intrinsics,
+    def _corners(self, sighting: CubeSighting, T_world_cube: np.ndarray) -> list[CornerSet]:
+        """The sighting's corners matched to faces where ``T_world_cube`` projects them: one set,
+        taken at the capture time; under a rolling shutter (the camera's ``readout_s``) one set
+        per face, taken when the rows of its corners were (their mean row's time)."""
+        intrinsics, t = sighting.intrinsics, sighting.capture_time_s
+        matches = match_faces(sighting.detections, self.layouts[sighting.robot], intrinsics,
                               sighting.T_world_cam, T_world_cube, gate_px=self.params.association_gate_px)
-        return corner_set(matches, sighting.intrinsics, sighting.T_world_cam, sighting.camera, sighting.capture_time_s)
+        if not matches:
+            return []
+        if intrinsics.readout_s <= 0:
+            return [corner_set(matches, intrinsics, sighting.T_world_cam, sighting.camera, t)]
+        row_s, middle = intrinsics.readout_s / intrinsics.height, (intrinsics.height - 1) / 2.0
+        return [corner_set((m,), intrinsics, sighting.T_world_cam, sighting.camera,
+                           t + (float(np.mean(m.detection.corners_px[:, 1])) - middle) * row_s) for m in matches]
 
     def _apply(self, state: RobotState, history: list[HistoryStep], index: int,
                now_s: float) -> tuple[RobotState, list[TrackedPose], str]:
@@ -318,14 +328,14 @@ class FilterFusion:
         f = state.filter.copy()
         f.predict(t)
         corners = self._corners(sighting, f.T_world_cube)
-        result = f.update([corners]) if corners is not None else None
+        result = f.update(corners) if corners else None
         if result is None or not result.accepted:
             rejections = state.rejections + 1
             if rejections >= self.params.max_rejections:
                 log.info("%s: %d sightings rejected in a row; track restarts", robot, rejections)
                 return RobotState(None, state.last_accepted_s, rejections), [], "rejected sighting"
             return RobotState(f, state.last_accepted_s, rejections), [], "rejected sighting"
-        markers = tuple(f"{sighting.camera}:{face}" for face in corners.faces)
+        markers = tuple(f"{sighting.camera}:{face}" for c in corners for face in c.faces)
         return (RobotState(f, t, 0), [pose_record(sighting, f, now_s, (sighting.camera,), markers)],
                 "accepted sighting")
 
@@ -343,7 +353,7 @@ class FilterFusion:
         fp = self.filter_params
         best = None
         for guess in {id(s.estimate): s.estimate for s in window if s.estimate is not None}.values():
-            sets = [c for c in (self._corners(s, guess.T_world_cube) for s in window) if c is not None]
+            sets = [c for s in window for c in self._corners(s, guess.T_world_cube)]
             if len({c.camera for c in sets}) < 2:
                 continue
             solution = solve_joint(sets, guess.T_world_cube, t, corner_noise_px=fp.corner_noise_px,

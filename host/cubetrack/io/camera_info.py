@@ -2,7 +2,10 @@
 (read), as :class:`cubetrack.core.cameras.CameraIntrinsics`.
 
 Pixel convention: OpenCV's, (0, 0) is the centre of the top-left pixel; ``K`` is the 3x3
-camera matrix in pixels; ``dist`` the plumb_bob (k1, k2, p1, p2, k3) coefficients.
+camera matrix in pixels; ``dist`` the plumb_bob (k1, k2, p1, p2, k3) coefficients. One key of
+ours beside ROS's: ``rolling_shutter_readout_s`` (optional, default 0: a global shutter), the
+sensor's readout time from the top row to the bottom row, which the tracker's measurement model
+uses (each corner is seen at its row's time).
 """
 
 from __future__ import annotations
@@ -61,6 +64,7 @@ class _Loader(yaml.SafeLoader):
     yaml_constructors = {**yaml.SafeLoader.yaml_constructors, "tag:yaml.org,2002:opencv-matrix": _opencv_matrix}
 
 
+READOUT_KEY = "rolling_shutter_readout_s"  # an addition of ours: top row to bottom row, seconds
 _OPENCV_DIRECTIVE = re.compile(r"\A\s*%YAML:1\.\d+[^\n]*\n")  # OpenCV's spelling, which PyYAML refuses
 
 
@@ -100,7 +104,10 @@ def read_camera_info(path: str | Path) -> CameraIntrinsics:
             width, height = int(doc["image_width"]), int(doc["image_height"])
     except (KeyError, TypeError, ValueError, OverflowError):
         raise CameraInfoError(f"{path}: needs integer image_width and image_height") from None
-    return CameraIntrinsics(width, height, K, dist, str(doc.get("camera_name", path.stem)))
+    readout = doc.get(READOUT_KEY, 0.0)
+    if isinstance(readout, bool) or not isinstance(readout, (int, float)) or not 0.0 <= readout < 1.0:
+        raise CameraInfoError(f"{path}: {READOUT_KEY} must be a number of seconds in [0, 1), got {readout!r}")
+    return CameraIntrinsics(width, height, K, dist, str(doc.get("camera_name", path.stem)), float(readout))
 
 
 def camera_info_to_dict(intr: CameraIntrinsics) -> dict:
@@ -112,7 +119,7 @@ def camera_info_to_dict(intr: CameraIntrinsics) -> dict:
     def block(rows: int, cols: int, data: np.ndarray) -> dict:
         return {"rows": rows, "cols": cols, "data": [float(v) for v in np.ravel(data)]}
 
-    return {
+    doc = {
         "image_width": int(intr.width),
         "image_height": int(intr.height),
         "camera_name": intr.camera_name or "camera",
@@ -122,6 +129,9 @@ def camera_info_to_dict(intr: CameraIntrinsics) -> dict:
         "rectification_matrix": block(3, 3, np.eye(3)),
         "projection_matrix": block(3, 4, P),
     }
+    if intr.readout_s > 0:  # not ROS's: a global-shutter camera's file stays plain camera_info
+        doc[READOUT_KEY] = float(intr.readout_s)
+    return doc
 
 
 def write_camera_info(intr: CameraIntrinsics, path: str | Path) -> None:

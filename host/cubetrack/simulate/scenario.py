@@ -13,7 +13,7 @@ layout.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 from scipy.spatial.transform import Rotation
@@ -260,7 +260,9 @@ def build_scene(p: SimulationParams) -> Scene:
         phase = float(clock_rng.uniform(0.0, 1.0 / p.fps))
         light = float(scene_rng.uniform(0.0, 2.0 * math.pi))
         intrinsics = true_intrinsics(p, name, rng_for(p.seed, STREAM_LENS, i))
-        info = calibrated_intrinsics(intrinsics, p, rng_for(p.seed, STREAM_INFO, i))
+        # the tracker is told the readout too (the sensor mode's datasheet value: exact)
+        info = replace(calibrated_intrinsics(intrinsics, p, rng_for(p.seed, STREAM_INFO, i)),
+                       readout_s=1e-3 * p.readout_ms)
         cameras.append(CameraSetup(name, intrinsics, T_world_cam, clock, phase, light, info, 1e-3 * p.readout_ms))
     for marker_id in sorted({p.world_marker_id, *(i for r in robots for i in r.layout.ids)}):
         MarkerTexture(p.dictionary, marker_id).cells  # unknown dictionary or id: SimulationError

@@ -204,3 +204,16 @@ def test_so3_left_jacobian_chains_a_finite_rotation_increment():
         e = rng.normal(size=3) * 1e-6
         np.testing.assert_allclose(R_from_rotvec(v + e), R_from_rotvec(so3_left_jacobian(v) @ e) @ R_from_rotvec(v),
                                    atol=1e-11)
+
+
+def test_turning_is_less_certain_than_tilting_over_a_prediction():
+    """Robots turn sharply about the world's z axis and tilt little: the process noise says so
+    (yaw_accel_noise vs angular_accel_noise), in the world frame whatever the cube's heading."""
+    heading = cube_pose(yaw_deg=60.0)
+    f = PoseFilter(FilterParams(angular_accel_noise=0.5, yaw_accel_noise=10.0), 0.0, heading, np.eye(12) * 1e-6)
+    f.predict(0.2)
+    tilt, yaw = f.P[3, 3], f.P[5, 5]
+    assert tilt == pytest.approx(f.P[4, 4]) and yaw > 100 * (tilt - 1e-6) > 0
+    same = PoseFilter(FilterParams(angular_accel_noise=2.0, yaw_accel_noise=2.0), 0.0, heading, np.eye(12) * 1e-6)
+    same.predict(0.2)
+    assert same.P[3, 3] == pytest.approx(same.P[5, 5])

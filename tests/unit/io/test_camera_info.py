@@ -22,6 +22,18 @@ def test_ros_yaml_round_trip(tmp_path):
     text = (tmp_path / "c.yaml").read_text()
     for key in ("camera_matrix", "distortion_model: plumb_bob", "rectification_matrix", "projection_matrix"):
         assert key in text
+    assert back.readout_s == 0.0 and "rolling_shutter" not in text  # a global shutter: plain ROS camera_info
+
+
+def test_rolling_shutter_readout_round_trip_and_bad_values(tmp_path):
+    K = np.array([[520.0, 0, 319.5], [0, 520.0, 239.5], [0, 0, 1]])
+    write_camera_info(CameraIntrinsics(640, 480, K, np.zeros(5), "cam1", readout_s=0.03), tmp_path / "c.yaml")
+    assert read_camera_info(tmp_path / "c.yaml").readout_s == 0.03
+    text = (tmp_path / "c.yaml").read_text()
+    for bad in ("-0.01", "'fast'", "2.0"):
+        (tmp_path / "bad.yaml").write_text(text.replace("rolling_shutter_readout_s: 0.03", f"rolling_shutter_readout_s: {bad}"))
+        with pytest.raises(CameraInfoError, match="bad.yaml: rolling_shutter_readout_s"):
+            read_camera_info(tmp_path / "bad.yaml")
 
 
 @needs_real

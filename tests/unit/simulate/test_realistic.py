@@ -83,6 +83,7 @@ def test_every_true_value_is_written_beside_the_recording(realistic_session):
         assert np.allclose(truth.K, cam.intrinsics.K) and np.allclose(truth.dist, cam.intrinsics.dist)
         assert np.allclose(told.K, cam.camera_info.K) and np.allclose(told.dist, cam.camera_info.dist)
         assert not np.allclose(told.K, truth.K) and told.dist[0] != truth.dist[0]
+        assert told.readout_s == pytest.approx(0.03)  # the tracker is told the rolling-shutter readout
         assert truth.dist[0] == pytest.approx(-0.3)
         assert read_camera_info(result.calibration_path / "camera_info" / f"{cam.name}.yaml").K[0, 0] == told.K[0, 0]
     nominal = read_layout(out / "cube.toml")
