@@ -11,6 +11,7 @@ into DIR: docs/img holds the ones docs/dashboard.md shows)."""
 from __future__ import annotations
 
 import base64
+import contextlib
 import json
 import os
 import re
@@ -41,10 +42,18 @@ if CHROMIUM is None:
     pytest.skip("Chromium is not installed (Debian package chromium)", allow_module_level=True)
 websocket = pytest.importorskip("websocket", reason="websocket-client is a test extra")
 
-# One lap of the robot's path takes the whole recording (3.0 m at 0.4 m/s), so the looping
-# emulator replays a continuous drive; the rectangle keeps the robot off the world marker.
-SIMULATION = ["--duration", "7.48", "--speed", "0.4", "--path", "rectangle", "--path-size", "0.5", "0.35",
-              "--calibration-frames", "1", "--seed", "3"]
+# One lap of the robot's path takes the whole recording (3.0 m at 0.4 m/s); the rectangle keeps
+# the robot off the world marker. The looping emulator's period is a little longer than the
+# recording (the last frame's interval and the cameras' phases: 7.53 s), so the lab fixture
+# slows the robot until a lap takes exactly that period: otherwise the robot jumps 2 cm at each
+# loop, and a drive across that seam makes the bundle adjustment move correct cameras by cm.
+DURATION_S, SPEED_M_S = 7.48, 0.4
+
+
+def simulation(speed_m_s: float) -> list[str]:
+    return ["--duration", str(DURATION_S), "--speed", f"{speed_m_s:.6f}", "--path", "rectangle", "--path-size",
+            "0.5", "0.35", "--calibration-frames", "1", "--seed", "3", "--force"]
+
 REFUSED_URL = "http://127.0.0.1:9/stream"  # the discard port: nobody listens
 SAMPLES = 12
 
@@ -123,10 +132,8 @@ class Browser:
             shutil.copyfile(path, Path(os.environ["CUBETRACK_SCREENSHOTS"]) / path.name)
 
     def close(self) -> None:
-        try:
-            self.call("Browser.close")
-        except Exception:
-            pass
+        with contextlib.suppress(OSError, RuntimeError, websocket.WebSocketException):
+            self.call("Browser.close")  # the browser may close the socket before it answers
         self.ws.close()
         try:
             self.proc.wait(10)
@@ -168,8 +175,9 @@ class Process:
         return code
 
 
-def emulator(work: Path, *source: str) -> tuple[Process, dict[str, str]]:
-    """`cubecam emulate ... --loop` on 127.0.0.1 (ephemeral ports): the process and its URLs."""
+def emulator(work: Path, *source: str) -> tuple[Process, dict]:
+    """`cubecam emulate ... --loop` on 127.0.0.1 (ephemeral ports): the process and what it
+    serves (its ready file: urls, period_s, clock_shift_s)."""
     ready = work / f"ready-{len(list(work.glob('ready-*')))}.json"
     proc = Process([sys.executable, "-m", "cubecam", "emulate", *source, "--bind", "127.0.0.1", "--port", "0",
                     "--loop", "--ready-file", str(ready)], work)
@@ -178,7 +186,7 @@ def emulator(work: Path, *source: str) -> tuple[Process, dict[str, str]]:
         assert proc.proc.poll() is None and time.monotonic() < deadline, "".join(proc.lines)
         time.sleep(0.05)
     time.sleep(0.1)  # the file is written whole, but give the writer its close
-    return proc, json.loads(ready.read_text())["urls"]
+    return proc, json.loads(ready.read_text())
 
 
 def cubetrack(*args: str, cwd: Path) -> Process:
@@ -191,8 +199,15 @@ def lab(tmp_path_factory):
     camera nobody listens on; the tracker config for it."""
     work = tmp_path_factory.mktemp("dashboard")
     rec = work / "rec"
-    assert main(["simulate", "--out", str(rec), *SIMULATION]) == 0
-    emu, urls = emulator(work, "--recording", str(rec))
+    assert main(["simulate", "--out", str(rec), *simulation(SPEED_M_S)]) == 0
+    emu, served = emulator(work, "--recording", str(rec))
+    # the same frames at the same times, the robot slowed to one lap per period of the replay
+    period_s = served["period_s"]
+    emu.stop()
+    assert main(["simulate", "--out", str(rec), *simulation(SPEED_M_S * DURATION_S / period_s)]) == 0
+    emu, served = emulator(work, "--recording", str(rec))
+    assert served["period_s"] == pytest.approx(period_s, abs=1e-6)
+    urls = served["urls"]
     config = write_live_config(rec / "config.toml", urls, work / "lab.toml")
     with config.open("a", encoding="utf-8") as f:
         f.write(f'\n[[cameras]]\nname = "cam4"\nurl = "{REFUSED_URL}"\n'
@@ -209,9 +224,6 @@ def api(url: str, path: str):
     return r.json()
 
 
-@pytest.mark.xfail(strict=False, reason="the final 'drive the robot' refinement step gets too few multi-camera "
-                   "sightings since the live loop took the freshest frame first (f06ed10): 7 of the 10 needed, and "
-                   "a 6 cm shift; the steps before it pass. Open: to fix next session")
 def test_the_dashboard_guides_a_calibration_in_the_browser(lab, tmp_path):
     work, shots = lab["work"], tmp_path
     out, extrinsics = work / "dash", work / "extrinsics.toml"
@@ -228,7 +240,7 @@ def test_the_dashboard_guides_a_calibration_in_the_browser(lab, tmp_path):
         browser.wait_for("document.querySelectorAll('.tile .frame img[src]:not([hidden])').length === 3")
         browser.wait_for("document.querySelector('.tile[data-camera=cam4]').dataset.status === 'down'")
         reason = browser.eval("document.querySelector('.tile[data-camera=cam4] .reason').textContent")
-        assert "127.0.0.1" in reason and "port=9" in reason
+        assert "127.0.0.1" in reason and "port=9" in reason and reason.endswith("Connection refused"), reason
         assert browser.eval("getComputedStyle(document.querySelector('.tile[data-camera=cam4]')).borderTopColor") \
             == "rgb(229, 72, 77)"  # red
         for cam in ("cam1", "cam2", "cam3"):  # health under the frame: frames/s, clock, JPEG size
@@ -292,7 +304,8 @@ def test_the_dashboard_guides_a_calibration_in_the_browser(lab, tmp_path):
         # 5: drive the robot around, refine: how far each camera moved
         browser.click("#calibration-drive")
         browser.wait_for("document.querySelector('#drive-progress progress') !== null")
-        browser.wait_for("document.querySelector('#drive-progress progress').value >= 12", 60)
+        # as many instants as the adjustment uses ([bundle_adjustment] max_instants): about a lap of the path
+        browser.wait_for("document.querySelector('#drive-progress progress').value >= 30", 120)
         browser.click("#calibration-refine")
         browser.wait_for("document.querySelector('li.current[data-step=refine]') !== null && "
                          "document.querySelector('#calibration-message').textContent.startsWith('Refined')", 180)
@@ -347,12 +360,12 @@ def test_track_live_shows_its_session_and_a_stalled_camera_turns_red_within_two_
     frames.mkdir()
     for f in sorted((lab["rec"] / "cam1").glob("*.jpg"))[:10]:
         shutil.copyfile(f, frames / f.name)
-    stall, stall_urls = emulator(tmp_path, "--images", str(frames), "--name", "cam5", "--fps", "10",
+    stall, stall_served = emulator(tmp_path, "--images", str(frames), "--name", "cam5", "--fps", "10",
                                  "--stall-after", "2.5")
     config = tmp_path / "lab.toml"
     text = lab["config"].read_text(encoding="utf-8")
     info = (lab["rec"] / "camera_info" / "cam1.yaml").as_posix()
-    config.write_text(text + f'\n[[cameras]]\nname = "cam5"\nurl = "{stall_urls["cam5"]}"\ncamera_info = "{info}"\n',
+    config.write_text(text + f'\n[[cameras]]\nname = "cam5"\nurl = "{stall_served["urls"]["cam5"]}"\ncamera_info = "{info}"\n',
                       encoding="utf-8")
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
@@ -363,17 +376,21 @@ def test_track_live_shows_its_session_and_a_stalled_camera_turns_red_within_two_
     try:
         url = track.wait_line(r"output: dashboard: (http://127\.0\.0\.1:\d+/)").group(1)
         assert url == f"http://127.0.0.1:{port}/"
-        deadline = time.monotonic() + 20
-        while api(url, "/api/cameras/cam5")["status"] != "ok":
-            assert time.monotonic() < deadline
+        # Waits are on the camera's state, with time limits only against a hang: each answer says
+        # the status as of that moment (not as of the dashboard's last tick), so the checks below
+        # hold however loaded the machine is. The emulator stalls each connection 2.5 s after it
+        # starts; the tracker reconnects 3 s into a stall ([source] read_timeout_s), and cam5 is ok again.
+        deadline = time.monotonic() + 90
+        while (cam := api(url, "/api/cameras/cam5"))["status"] != "ok":
+            assert time.monotonic() < deadline, f"cam5 never streamed: {cam}"
             time.sleep(0.05)
         ages = []
         while (cam := api(url, "/api/cameras/cam5"))["status"] == "ok":  # until the stream stalls
             ages.append(cam["frame_age_s"])
-            assert time.monotonic() < deadline + 10
+            assert time.monotonic() < deadline, f"cam5 never stalled: {cam}"
             time.sleep(0.05)
-        assert cam["status"] == "stale" and cam["reason"].startswith("no frame for")
-        assert cam["frame_age_s"] <= 2.0 and max(ages) <= 2.0
+        assert cam["status"] == "stale" and cam["reason"].startswith("no frame for"), cam
+        assert cam["frame_age_s"] <= 2.0 and max(ages) <= 2.0, (cam, max(ages))
         browser = Browser(tmp_path / "profile")
         browser.goto(url)
         browser.wait_for("(t => t && ['stale', 'down'].includes(t.dataset.status))"

@@ -27,6 +27,7 @@ from cubetrack.core.params import params_from_table, params_to_table
 from cubetrack.io.camera_info import read_camera_info
 from cubetrack.io.config import TrackerConfig, camera_intrinsics_path, read_tracker_config
 from cubetrack.io.recording import Recording
+from cubetrack.sink.dashboard.state import DashboardParams
 from cubetrack.source.streams import SourceParams
 
 
@@ -37,13 +38,15 @@ class ConfigParams(StageParams):
     The fields are the sections, in the order ``cubetrack defaults`` prints them: the tracker's
     (``[detector]`` ... ``[track]``, from :class:`~cubetrack.app.tracker.StageParams`, so these
     parameters run a :class:`~cubetrack.app.tracker.Tracker` as they are), then calibration,
-    bundle adjustment, the live source and live processing. This class is the one list of sections.
+    bundle adjustment, the live source, live processing and the dashboard. This class is the one
+    list of sections.
     """
 
     calibration: CalibrationParams = field(default_factory=CalibrationParams)
     bundle_adjustment: BundleAdjustmentParams = field(default_factory=BundleAdjustmentParams)
     source: SourceParams = field(default_factory=SourceParams)
     live: LiveParams = field(default_factory=LiveParams)
+    dashboard: DashboardParams = field(default_factory=DashboardParams)
 
     @property
     def stages(self) -> StageParams:

@@ -48,7 +48,6 @@ from cubetrack.core.cameras import CameraExtrinsics, CameraIntrinsics, WorldConf
 from cubetrack.core.errors import CalibrationError, ConfigError, CubetrackError, ImageError, RecordingError
 from cubetrack.core.geometry import invert_T, transform_points
 from cubetrack.core.layout import marker_corners_m
-from cubetrack.core.params import check, check_positive, param
 from cubetrack.core.records import CameraView, Detection, Frame, TrackedPose
 from cubetrack.detect.detector import DetectorParams, decode_gray
 from cubetrack.estimate.match import detections_of
@@ -64,37 +63,9 @@ from cubetrack.sink.dashboard.server import (
     Download,
     folder_downloads,
 )
+from cubetrack.sink.dashboard.state import DashboardParams
 
 log = logging.getLogger(__name__)
-
-
-@dataclass(frozen=True, slots=True)
-class GuideParams:
-    """How the dashboard judges a calibration and guides the steps."""
-
-    min_marker_side_px: float = param(
-        30.0, "the world marker should appear at least this wide in a camera (square root of its pixel area); "
-        "smaller: move the camera closer or print a bigger marker, pixels")
-    max_spread_cm: float = param(1.0, "a camera whose per-frame poses scatter more than this is poor, centimetres")
-    max_spread_deg: float = param(0.5, "... or more than this, degrees")
-    max_reprojection_px: float = param(
-        1.0, "a camera whose detected world-marker corners lie farther (RMS) than this from where its calibrated "
-        "pose projects them is poor, pixels")
-    min_inlier_fraction: float = param(
-        0.7, "a camera whose calibration kept fewer than this fraction of its world-marker sightings (the others "
-        "were outliers) is poor")
-    check_frames: int = param(30, "frames of each camera's calibration recording the reprojection error is measured on")
-    check_every_s: float = param(0.5, "outside the collection, each camera's newest frame is searched for the "
-                                 "world marker this often, seconds")
-    drive_instants: int = param(150, "drive step: robot sightings matched by another camera's (within [bundle_adjustment] "
-                                "max_span_s) to collect before refining")
-
-    def __post_init__(self) -> None:
-        check_positive(self, "min_marker_side_px", "max_spread_cm", "max_spread_deg", "max_reprojection_px",
-                       "check_every_s")
-        check(0.0 <= self.min_inlier_fraction <= 1.0,
-              f"min_inlier_fraction must be within 0..1, got {self.min_inlier_fraction}")
-        check(self.check_frames >= 1 and self.drive_instants >= 1, "check_frames and drive_instants must be at least 1")
 
 
 # --- judging a calibration ---------------------------------------------------------------------
@@ -134,9 +105,9 @@ def world_marker_reprojection(frames: Iterable[Frame], T_world_cam: np.ndarray, 
 
 
 def calibration_advice(spread_cm: float, spread_deg: float, reprojection_px: float, marker_side_px: float,
-                       inliers: int, sightings: int, params: GuideParams = GuideParams()) -> list[str]:
+                       inliers: int, sightings: int, params: DashboardParams) -> list[str]:
     """What to do about a calibrated camera (empty: it is good). Each rule names the figure it
-    looked at; see :class:`GuideParams` for the limits."""
+    looked at; see :class:`~cubetrack.sink.dashboard.state.DashboardParams` for the limits."""
     advice = []
     if math.isfinite(marker_side_px) and marker_side_px < params.min_marker_side_px:
         advice.append(f"the world marker is only {marker_side_px:.0f} px wide in this camera: move the camera "
@@ -166,7 +137,7 @@ def missing_advice(reason: str, camera_status: str, last_error: str) -> list[str
 
 
 def camera_result(report: CalibrationReport, name: str, recording: Recording, intrinsics: CameraIntrinsics,
-                  world: WorldConfig, detector_params: DetectorParams, params: GuideParams) -> dict:
+                  world: WorldConfig, detector_params: DetectorParams, params: DashboardParams) -> dict:
     """One calibrated camera's row of the calibration panel: position, spread, reprojection
     error on its own recording, and the verdict with advice."""
     cal = report.cameras[name]
@@ -196,6 +167,30 @@ def recorded_cameras(path: Path) -> tuple[Recording, dict[str, str]]:
     if not kept:
         raise CalibrationError(f"{path}: no camera recorded a frame")
     return Recording(recording.path, tuple(kept), recording.created), empty
+
+
+class InstantCounter:
+    """Counts, while driving, the instants the bundle adjustment will find
+    (:func:`cubetrack.calib.bundle.group_instants`): sightings of one robot by at least
+    ``min_cameras`` cameras within ``max_span_s``, each sighting in one instant only. Counted
+    from the poses (one per processed frame), so a lower bound: the drive recording keeps the
+    frames the live loop had no time for."""
+
+    def __init__(self, max_span_s: float, min_cameras: int):
+        self.max_span_s = max_span_s
+        self.min_cameras = min_cameras
+        self.count = 0
+        self._unused: dict[str, list[tuple[float, str]]] = {}  # robot -> (time, camera) in no instant yet
+
+    def add(self, robot: str, time_s: float, cameras: Iterable[str]) -> bool:
+        """Take one pose's sightings; whether they completed an instant."""
+        unused = [(t, c) for t, c in self._unused.get(robot, ()) if abs(time_s - t) <= self.max_span_s]
+        unused += [(time_s, c) for c in cameras]
+        if len({c for _, c in unused}) >= self.min_cameras:
+            self.count += 1
+            unused = []
+        self._unused[robot] = unused
+        return not unused
 
 
 # --- the session loop --------------------------------------------------------------------------
@@ -258,7 +253,7 @@ class DashboardApp:
 
     def __init__(self, config: TrackerConfig, settings: ConfigParams, server: DashboardServer, out_dir: Path,
                  extrinsics_path: Path, extrinsics: dict[str, CameraExtrinsics] | None = None,
-                 params: GuideParams = GuideParams(), clock: Callable[[], float] = time.time):
+                 clock: Callable[[], float] = time.time):
         from cubetrack.app.live import live_camera_urls, live_intrinsics
 
         self.config = config
@@ -266,7 +261,7 @@ class DashboardApp:
         self.server = server
         self.out_dir = Path(out_dir)
         self.extrinsics_path = Path(extrinsics_path)
-        self.params = params
+        self.params = settings.dashboard  # the guide's limits; the display's went to the server
         self.clock = clock
         self.urls = live_camera_urls(config)
         self.intrinsics = live_intrinsics(config)
@@ -290,8 +285,7 @@ class DashboardApp:
         self.refined: dict[str, dict] = {}
         self.warnings: list[str] = []
         self.progress: tuple[str, int, int] | None = None
-        self.drive_instants = 0
-        self._last_sighting: dict[str, dict[str, float]] = {}  # robot -> camera -> time of its last sighting
+        self.drive = self._drive_counter()
         self.calibration_dir: Path | None = None
         self.candidate: CalibrationRun | None = None
         self.saved: dict | None = None
@@ -416,22 +410,19 @@ class DashboardApp:
                     self._finish_collecting()
             self._dirty.set()
 
+    def _drive_counter(self) -> InstantCounter:
+        adjust = self.settings.bundle_adjustment
+        return InstantCounter(adjust.max_span_s, adjust.min_cameras)
+
     def pose_seen(self, pose: TrackedPose, plan: SessionPlan) -> None:
-        """While driving: count the sightings another camera matched within the bundle
-        adjustment's ``max_span_s`` (what makes an instant it can use)."""
+        """While driving: count the instants the bundle adjustment can use (:class:`InstantCounter`)."""
         if pose.predicted or not pose.cameras:
             return
         with self._lock:
             if self.step != "driving" or not self._recording("drive", plan):
                 return
-            last = self._last_sighting.setdefault(pose.robot, {})
-            span_s = self.settings.bundle_adjustment.max_span_s
-            if len(pose.cameras) > 1 or any(abs(pose.time_s - t) <= span_s for c, t in last.items()
-                                            if c not in pose.cameras):
-                self.drive_instants += 1
+            if self.drive.add(pose.robot, pose.time_s, pose.cameras):
                 self._dirty.set()
-            for camera in pose.cameras:
-                last[camera] = pose.time_s
 
     def _camera_status(self, camera: str) -> tuple[str, str]:
         cam = self.server.state.camera_json(camera) or {}
@@ -521,7 +512,7 @@ class DashboardApp:
     def _drive(self, body: dict) -> dict:
         with self._lock:
             self._require("result", "refined")
-            self.drive_instants, self._last_sighting, self.refined = 0, {}, {}
+            self.drive, self.refined = self._drive_counter(), {}
             extrinsics = {**self.extrinsics, **self.candidate.report.extrinsics}
             self._go("driving", "Drive the robot around where several cameras see it; the frames go to "
                      f"{self.calibration_dir / 'drive'}.",
@@ -661,7 +652,7 @@ class DashboardApp:
                 progress = {"label": self.progress[0], "done": self.progress[1], "total": self.progress[2]}
             return {"step": self.step, "message": self.step_message, "target_samples": self.target,
                     "save_to": str(self.extrinsics_path), "saved": self.saved, "progress": progress,
-                    "drive": {"instants": self.drive_instants, "target": self.params.drive_instants}
+                    "drive": {"instants": self.drive.count, "target": self.params.drive_instants}
                     if self.step in ("driving", "refining") else None,
                     "folder": str(self.calibration_dir) if self.calibration_dir else None,
                     "cameras": cameras, "warnings": self.warnings, "actions": actions}

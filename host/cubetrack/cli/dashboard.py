@@ -68,13 +68,16 @@ def add_dashboard(args: argparse.Namespace, sinks: list, config=None, out_dir: P
     are closed again before the error goes on."""
     if getattr(args, "dashboard", None) is None:
         return sinks
+    from cubetrack.app.config import config_params
     from cubetrack.app.outputs import close_sinks, parse_address
     from cubetrack.sink.dashboard.server import TRAJECTORY_FILES, DashboardServer, DashboardSink, folder_downloads
+    from cubetrack.sink.dashboard.state import DashboardParams
 
     try:
         host, port = parse_address(args.dashboard, DEFAULT_ADDRESS, "--dashboard")
         urls = {c.name: c.url for c in config.cameras} if config is not None else None
-        server = DashboardServer(host, port, camera_urls=urls)
+        params = config_params(config).dashboard if config is not None else DashboardParams()
+        server = DashboardServer(host, port, params, camera_urls=urls)
     except BaseException:
         close_sinks(sinks)
         raise
@@ -111,7 +114,7 @@ def run(args: argparse.Namespace) -> int:
         unknown = sorted(set(extrinsics) - set(urls))
         if unknown:
             raise ConfigError(f"{extrinsics_path}: camera(s) {', '.join(unknown)} are not in {args.config}")
-    server = DashboardServer(args.bind, args.port, camera_urls=urls)
+    server = DashboardServer(args.bind, args.port, settings.dashboard, camera_urls=urls)
     try:
         app = DashboardApp(config, settings, server, args.out, extrinsics_path, extrinsics)
         calibrated = f"{len(extrinsics)} of {len(urls)} cameras calibrated ({extrinsics_path})" if extrinsics else \

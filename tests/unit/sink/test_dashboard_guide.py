@@ -3,6 +3,7 @@ check on rendered frames, the verdicts and their advice, recordings with a silen
 actions' guards over HTTP (nothing runs out of order)."""
 
 import math
+import subprocess
 import sys
 from pathlib import Path
 
@@ -14,7 +15,6 @@ from sink_helpers import INTRINSICS, look_at
 from cubetrack.app.config import load_config
 from cubetrack.app.dashboard import (
     DashboardApp,
-    GuideParams,
     calibration_advice,
     missing_advice,
     recorded_cameras,
@@ -27,6 +27,7 @@ from cubetrack.core.records import Frame
 from cubetrack.io.camera_info import write_camera_info
 from cubetrack.io.recording import CameraEntry, RecordingWriter
 from cubetrack.sink.dashboard.server import DashboardServer
+from cubetrack.sink.dashboard.state import DashboardParams
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 from scenes import Camera, marker_on_paper
@@ -60,7 +61,7 @@ def test_the_reprojection_check_measures_how_far_a_pose_is_off(marker_frames):
 
 
 def test_a_good_calibration_gets_no_advice_and_each_poor_figure_its_own():
-    p = GuideParams()
+    p = DashboardParams()
     assert calibration_advice(0.2, 0.05, 0.1, 45.0, 30, 30, p) == []
     small = calibration_advice(0.2, 0.05, 0.1, 18.0, 30, 30, p)
     assert len(small) == 1 and "18 px" in small[0] and "bigger marker" in small[0] and "closer" in small[0]
@@ -166,11 +167,55 @@ def test_the_page_offers_recorded_trajectories_and_calibrations(app):
     assert requests.get(server.url.rstrip("/") + files[0]["url"], timeout=10).content == b"x\n"
 
 
+def test_the_dashboard_section_of_the_config_reaches_the_guide_and_a_bad_value_is_one_line(app, tmp_path):
+    guide, _ = app
+    assert guide.params == DashboardParams()
+    lab = (tmp_path / "lab.toml").read_text()
+    (tmp_path / "lab.toml").write_text(lab + "\n[dashboard]\ndrive_instants = 7\nmax_spread_cm = 2.5\n")
+    config, settings = load_config(tmp_path / "lab.toml")
+    server = DashboardServer("127.0.0.1", 0, settings.dashboard)
+    try:
+        guide = DashboardApp(config, settings, server, tmp_path / "out2", tmp_path / "extrinsics.toml")
+        assert (guide.params.drive_instants, guide.params.max_spread_cm) == (7, 2.5)
+        assert calibration_advice(2.0, 0.05, 0.1, 45.0, 30, 30, guide.params) == []  # 2 cm is fine now
+    finally:
+        server.close()
+    (tmp_path / "lab.toml").write_text(lab + "\n[dashboard]\njpeg_quality = 0\n")
+    p = subprocess.run([sys.executable, "-m", "cubetrack.cli.main", "dashboard", "--config", str(tmp_path / "lab.toml"),
+                        "--port", "0"], check=False, capture_output=True, text=True, timeout=120)
+    assert p.returncode != 0 and len(p.stderr.strip().splitlines()) == 1, p.stderr
+    assert "lab.toml: [dashboard]" in p.stderr and "jpeg_quality" in p.stderr
+
+
 def test_guide_params_refuse_bad_values():
     from cubetrack.core.errors import ParamsError
 
     with pytest.raises(ParamsError, match="min_inlier_fraction"):
-        GuideParams(min_inlier_fraction=1.5)
+        DashboardParams(min_inlier_fraction=1.5)
     with pytest.raises(ParamsError, match="max_spread_cm must be positive"):
-        GuideParams(max_spread_cm=0)
+        DashboardParams(max_spread_cm=0)
     assert make_T(np.eye(3), [0, 0, 0]).shape == (4, 4)
+
+
+def test_the_drive_counts_instants_as_the_bundle_adjustment_groups_them():
+    from cubetrack.app.dashboard import InstantCounter
+
+    counter = InstantCounter(max_span_s=0.1, min_cameras=2)
+    # three cameras see the robot at one moment: one instant, not one per pose
+    assert [counter.add("robot", t, [c]) for t, c in ((1.0, "cam1"), (1.01, "cam2"), (1.02, "cam3"))] \
+        == [False, True, False]
+    assert counter.count == 1
+    # one camera alone, or two cameras too far apart in time: nothing
+    for t in (2.0, 2.05, 2.1):
+        counter.add("robot", t, ["cam1"])
+    counter.add("robot", 2.5, ["cam2"])
+    assert counter.count == 1
+    # another robot's sightings are its own; a pose several cameras took part in is an instant at once
+    counter.add("other", 2.52, ["cam3"])
+    assert counter.count == 1
+    assert counter.add("robot", 3.0, ["cam1", "cam2"]) and counter.count == 2
+    # three cameras needed: two are not enough
+    strict = InstantCounter(max_span_s=0.1, min_cameras=3)
+    strict.add("robot", 1.0, ["cam1"])
+    strict.add("robot", 1.05, ["cam2"])
+    assert strict.count == 0 and strict.add("robot", 1.08, ["cam3"]) and strict.count == 1

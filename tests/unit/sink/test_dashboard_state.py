@@ -70,6 +70,23 @@ def test_a_camera_that_stops_sending_turns_red_within_two_seconds_and_says_why()
     assert state.camera_json("cam-a")["status"] == "ok"
 
 
+def test_an_answer_is_current_even_when_the_tick_is_late():
+    """A loaded machine runs the tick thread late: the API still never calls a camera ok whose
+    newest frame is older than stale_after_s, and says stale as soon as it is."""
+    clock = Clock()
+    state = DashboardState(DashboardParams(), clock)
+    state.camera_health(health(time_s=clock.now))
+    state.camera_view(view(time_s=clock.now))
+    state.tick()
+    clock.now += 0.9
+    cam = state.camera_json("cam-a")
+    assert cam["status"] == "ok" and cam["frame_age_s"] == pytest.approx(0.9)
+    clock.now += 0.2  # no tick since the frame
+    for cam in (state.camera_json("cam-a"), state.cameras_json()[0]):
+        assert (cam["status"], cam["reason"]) == ("stale", "no frame for 1.1 s")
+        assert cam["frame_age_s"] == pytest.approx(1.1)
+
+
 def test_health_counters_alone_keep_a_camera_green_and_a_lost_one_is_down_with_its_error():
     clock = Clock()
     state = DashboardState(DashboardParams(), clock)

@@ -43,7 +43,8 @@ HEALTH_FIELDS = tuple(f.name for f in dataclasses.fields(CameraHealth))
 
 @dataclass(frozen=True, slots=True)
 class DashboardParams:
-    """How the dashboard shows a session (``cubetrack dashboard`` and ``--dashboard``)."""
+    """The ``[dashboard]`` section: how the dashboard shows a session (``cubetrack dashboard``
+    and ``--dashboard``) and how its guided calibration judges a camera and paces the steps."""
 
     tile_width_px: int = param(320, "camera tiles: frames are scaled down to this width, pixels")
     jpeg_quality: int = param(75, "camera tiles: JPEG quality of the annotated frames, 1-100")
@@ -57,6 +58,23 @@ class DashboardParams:
     tick_s: float = param(0.25, "camera statuses are recomputed this often, seconds")
     max_clients: int = param(32, "HTTP connections served at once; more are answered 503")
     client_timeout_s: float = param(10.0, "a client that sends its request or reads the event stream slower than this is dropped, seconds")
+    min_marker_side_px: float = param(
+        30.0, "calibration: the world marker should appear at least this wide in a camera (square root of its pixel "
+        "area); smaller: move the camera closer or print a bigger marker, pixels")
+    max_spread_cm: float = param(1.0, "calibration: a camera whose per-frame poses scatter more than this is poor, centimetres")
+    max_spread_deg: float = param(0.5, "calibration: ... or more than this, degrees")
+    max_reprojection_px: float = param(
+        1.0, "calibration: a camera whose detected world-marker corners lie farther (RMS) than this from where its "
+        "calibrated pose projects them is poor, pixels")
+    min_inlier_fraction: float = param(
+        0.7, "calibration: a camera whose calibration kept fewer than this fraction of its world-marker sightings "
+        "(the others were outliers) is poor")
+    check_frames: int = param(30, "calibration: frames of each camera's calibration recording the reprojection error is measured on")
+    check_every_s: float = param(0.5, "outside the collection, each camera's newest frame is searched for the "
+                                 "world marker this often, seconds")
+    drive_instants: int = param(150, "calibration, drive step: instants to collect before refining: sightings of one "
+                                "robot by at least [bundle_adjustment] min_cameras cameras within its max_span_s, each "
+                                "sighting counted in one instant (as the bundle adjustment groups them)")
 
     def __post_init__(self) -> None:
         check(16 <= self.tile_width_px <= 4096, f"tile_width_px must be 16..4096, got {self.tile_width_px}")
@@ -64,7 +82,11 @@ class DashboardParams:
         check(self.trail_points >= 2, f"trail_points must be at least 2, got {self.trail_points}")
         check(self.max_clients >= 1, f"max_clients must be at least 1, got {self.max_clients}")
         check_positive(self, "stale_after_s", "trail_s", "seen_within_s", "views_per_s", "poses_per_s",
-                       "floor_range_m", "tick_s", "client_timeout_s")
+                       "floor_range_m", "tick_s", "client_timeout_s", "min_marker_side_px", "max_spread_cm",
+                       "max_spread_deg", "max_reprojection_px", "check_every_s")
+        check(0.0 <= self.min_inlier_fraction <= 1.0,
+              f"min_inlier_fraction must be within 0..1, got {self.min_inlier_fraction}")
+        check(self.check_frames >= 1 and self.drive_instants >= 1, "check_frames and drive_instants must be at least 1")
 
 
 def finite(value: float) -> float | None:
@@ -347,12 +369,20 @@ class DashboardState:
             return list(self._cameras)
 
     def camera_json(self, name: str) -> dict | None:
+        """A camera's state as of now: its status is recomputed here, not only at the next tick,
+        so an answer never says ``ok`` about a frame older than ``stale_after_s`` (however late
+        the tick thread runs on a loaded machine)."""
         with self._lock:
             cam = self._cameras.get(name)
-            return None if cam is None else self._camera_json(cam, self.clock())
+            if cam is None:
+                return None
+            self._update_status(cam)
+            return self._camera_json(cam, self.clock())
 
     def cameras_json(self) -> list[dict]:
         with self._lock:
+            for cam in self._cameras.values():
+                self._update_status(cam)
             now_s = self.clock()
             return [self._camera_json(cam, now_s) for cam in self._cameras.values()]
 
