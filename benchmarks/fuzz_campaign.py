@@ -309,7 +309,7 @@ PY_TARGETS: dict[str, PythonTarget] = {
                             "cubetrack.core.params:params_from_table", "cubetrack.core.params:_coerce")),
     "camera_info": PythonTarget(target_camera_info, ("cubetrack.io.camera_info",),
                                 ("cubetrack.io.camera_info:read_camera_info", "cubetrack.io.camera_info:_matrix",
-                                 "cubetrack.io.camera_info:_read_opencv_filestorage")),
+                                 "cubetrack.io.camera_info:_opencv_matrix", "cubetrack.io.camera_info:_small")),
 }
 
 
