@@ -43,6 +43,7 @@ from cubetrack.core.layout import CubeLayout
 from cubetrack.core.params import param
 from cubetrack.core.records import CameraEstimate, CubeSighting, TrackedPose
 from cubetrack.estimate.match import match_faces
+from cubetrack.estimate.pose import estimate_cube
 from cubetrack.estimate.reprojection import CornerSet, corner_set
 from cubetrack.fuse.corner_filter import FilterParams, PoseFilter
 from cubetrack.fuse.multi_view_fit import solve_joint
@@ -72,9 +73,12 @@ class FusionParams:
     association_gate_px: float = param(12.0, "filter: a detection joins a face only if its corners lie within this many pixels (or half a marker side) of the predicted face")
     init_window_s: float = param(0.3, "filter: a track starts from a joint fit of pose and velocity over the sightings of the last this many seconds (at least three, from two cameras)")
     max_rejections: int = param(3, "filter: this many rejected sightings in a row restart the track")
+    reacquire_m: float = param(0.1, "filter: a sighting the tracked pose does not explain is re-examined against its own "
+                               "camera's cube pose (other faces, a flip); if that pose is within this many metres of the "
+                               "prediction and explains the corners, the track goes on from it at once")
 
     def __post_init__(self) -> None:
-        for name in ("window_s", "lost_after_s", "association_gate_px", "init_window_s"):
+        for name in ("window_s", "lost_after_s", "association_gate_px", "init_window_s", "reacquire_m"):
             if not getattr(self, name) > 0:
                 raise ParamsError(f"{name} must be positive, got {getattr(self, name)}")
         if self.history_s < 0 or self.output_rate_hz < 0 or self.max_rejections < 1:
@@ -328,16 +332,41 @@ class FilterFusion:
         f = state.filter.copy()
         f.predict(t)
         corners = self._corners(sighting, f.T_world_cube)
-        result = f.update(corners) if corners else None
-        if result is None or not result.accepted:
+        outcome = "accepted sighting"
+        if not (corners and f.update(corners).accepted):
+            again = self._reacquire(sighting, f)
+            if again is not None:
+                (f, corners), outcome = again, "re-acquired sighting"
+            else:
+                outcome = "rejected sighting"
+        if outcome == "rejected sighting":
             rejections = state.rejections + 1
             if rejections >= self.params.max_rejections:
                 log.info("%s: %d sightings rejected in a row; track restarts", robot, rejections)
                 return RobotState(None, state.last_accepted_s, rejections), [], "rejected sighting"
             return RobotState(f, state.last_accepted_s, rejections), [], "rejected sighting"
         markers = tuple(f"{sighting.camera}:{face}" for c in corners for face in c.faces)
-        return (RobotState(f, t, 0), [pose_record(sighting, f, now_s, (sighting.camera,), markers)],
-                "accepted sighting")
+        return RobotState(f, t, 0), [pose_record(sighting, f, now_s, (sighting.camera,), markers)], outcome
+
+    def _reacquire(self, sighting: CubeSighting, f: PoseFilter) -> tuple[PoseFilter, list[CornerSet]] | None:
+        """The other hypothesis for a sighting the predicted pose ``f`` does not explain: the
+        camera's own cube pose from its detections (another face, a flip, a turn the motion model
+        missed). If it lies within ``reacquire_m`` of the prediction and its matched corners pass
+        the filter's gate, the track goes on from it (the prediction's velocities, a broad pose
+        prior): (the new filter, its corners); else None."""
+        estimate = sighting.estimate or estimate_cube(
+            sighting.detections, self.layouts[sighting.robot], sighting.intrinsics, sighting.T_world_cam,
+            camera=sighting.camera, robot=sighting.robot, seq=sighting.seq,
+            capture_time_s=sighting.capture_time_s, arrival_time_s=sighting.arrival_time_s)
+        if estimate is None or np.linalg.norm(estimate.T_world_cube[:3, 3] - f.position_m) > self.params.reacquire_m:
+            return None
+        corners = self._corners(sighting, estimate.T_world_cube)
+        if not corners:
+            return None
+        prior = np.diag(np.repeat([self.params.reacquire_m**2, np.radians(30.0) ** 2], 3))
+        g = PoseFilter(self.filter_params, f.time_s, estimate.T_world_cube, prior, f.velocity_m_s,
+                       f.angular_velocity_rad_s)
+        return (g, corners) if g.update(corners).accepted else None
 
     def _start(self, state: RobotState, sighting: CubeSighting, recent: list[CubeSighting],
                now_s: float) -> tuple[RobotState, list[TrackedPose], str]:

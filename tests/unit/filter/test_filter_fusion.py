@@ -119,7 +119,7 @@ def test_late_sightings_are_folded_in_exactly_as_in_capture_order(order):
     assert sent == sorted(sent) and len(set(sent)) == len(sent)  # each robot's poses leave in capture order
     assert late > (5 if order != "reversed" else len(items) - 2)
     assert fusion.stats["late sighting"] == late
-    outcomes = ("accepted sighting", "rejected sighting", "track start", "failed track start")
+    outcomes = ("accepted sighting", "re-acquired sighting", "rejected sighting", "track start", "failed track start")
     assert {k: fusion.stats[k] for k in outcomes} == {k: reference.stats[k] for k in outcomes}
     assert fusion.stats["accepted sighting"] > 0.8 * len(items)
 
@@ -227,3 +227,39 @@ def test_rolling_shutter_row_times_are_modelled_when_the_readout_is_known():
         errors[told] = (np.sqrt(np.mean(np.square(rot))), np.sqrt(np.mean(np.square(pos))))
     assert errors[0.03][0] < 0.6 * errors[0.0][0], errors
     assert errors[0.03][1] < 0.6 * errors[0.0][1], errors
+
+
+def bumped(t):
+    """The test cube, pushed 8 cm sideways at 1.3 s (a bump: faster than any motion model)."""
+    return truth(t) if t < 1.3 else make_T(truth(t)[:3, :3], truth(t)[:3, 3] + [0.0, 0.08, 0.0])
+
+
+def test_a_track_that_loses_lock_re_acquires_from_the_next_sighting():
+    """The robot is bumped 8 cm sideways: the predicted pose explains none of the next sightings'
+    corners, so the first sighting after the bump is re-examined against its camera's own cube
+    pose, which explains it: a pose at once, right, and the track goes on (no restart, no gap). A
+    sighting of a cube 0.3 m from the prediction (another thing with the same id) is rejected."""
+    rng = np.random.default_rng(8)
+    items = []
+    for k, cam in enumerate(CAMS):
+        for t in np.arange(k * 0.044, 2.0, 1 / 7.5):
+            dets = detections(bumped(t), CAMS[cam], rng, noise_px=0.2)
+            items.append(CubeSighting(cam, "bot", 0, t, t + 0.05, dets, None, CAMS[cam], INTR))
+    items.sort(key=lambda s: s.capture_time_s)
+    starts = [s for s in items if s.capture_time_s < 0.5]  # the track starts from per-camera estimates
+    items[:len(starts)] = [dataclasses.replace(s, estimate=estimate_cube(
+        s.detections, LAYOUT, INTR, s.T_world_cam, camera=s.camera, robot="bot", seq=0,
+        capture_time_s=s.capture_time_s, arrival_time_s=s.arrival_time_s)) for s in starts]
+    fusion = FilterFusion({"bot": LAYOUT})
+    poses = run(fusion, items)
+    back = min(s.capture_time_s for s in items if s.capture_time_s > 1.3)
+    after = [p for p in poses if p.time_s > 1.3]
+    assert after[0].time_s == back and fusion.stats["re-acquired sighting"] >= 1, fusion.stats
+    assert fusion.stats["track start"] == 1  # never restarted
+    for p in after:
+        assert np.linalg.norm(p.position_m - bumped(p.time_s)[:3, 3]) < 0.01
+        R = Rotation.from_quat(p.quaternion_xyzw).as_matrix()
+        assert rotation_angle(R, bumped(p.time_s)[:3, :3], "deg") < 3.0
+    elsewhere = make_T(np.eye(3), bumped(2.05)[:3, 3] + [0.3, 0.0, 0.0])
+    stray = CubeSighting("cam1", "bot", 1, 2.05, 2.1, detections(elsewhere, CAMS["cam1"], rng), None, CAMS["cam1"], INTR)
+    assert fusion.add(stray, 2.1) == [] and fusion.stats["rejected sighting"] >= 1
