@@ -230,3 +230,36 @@ def test_a_full_disk_ends_track_with_one_line_and_whole_pose_lines(served, small
     _fill(small_disk, 8 * 1024)  # once the run record is written: a page for each pose file
     assert "robot.tum" in (last := _one_line_disk_full_error(proc, "track")) or "robot.jsonl" in last
     assert check_trajectory(out)[0] >= 1
+
+
+def test_a_line_the_file_system_cannot_take_whole_is_cut_off_again(tmp_path):
+    """A write cut short (here by a file size limit, as a full disk cuts it) leaves no torn line."""
+    path = tmp_path / "rows.csv"
+    code = ("import resource, signal, sys\n"
+            "from cubetrack.io.files import LineFile\n"
+            "signal.signal(signal.SIGXFSZ, signal.SIG_IGN)\n"
+            "resource.setrlimit(resource.RLIMIT_FSIZE, (100, resource.RLIM_INFINITY))\n"
+            "f = LineFile(sys.argv[1], 'header')\n"
+            "for i in range(10):\n"
+            "    try:\n"
+            "        f.write_line(f'{i:02d},' + 'x' * 26)\n"
+            "    except OSError as exc:\n"
+            "        print(i, exc.errno)\n"
+            "        break\n")
+    done = subprocess.run([sys.executable, "-c", code, str(path)], check=True, capture_output=True, text=True)
+    assert done.stdout.split()[0] == "3"  # 7 + 3 x 30 bytes fit in 100, the fourth line only in part
+    assert path.read_text() == "header\n" + "".join(f"{i:02d}," + "x" * 26 + "\n" for i in range(3))
+
+
+def test_an_unfinished_last_index_row_is_skipped_and_counted(tmp_path):
+    from cubetrack.io.recording import CameraEntry, RecordingWriter
+
+    with RecordingWriter(tmp_path / "rec", [CameraEntry("cam1")]) as writer:
+        for seq in (1, 2):
+            writer.add_frame("cam1", seq, seq * 0.1, 1000.0 + seq * 0.1, SOI + b"jpeg" + EOI)
+    index = tmp_path / "rec" / "cam1" / "index.csv"
+    with index.open("a") as f:
+        f.write("3,0.300000,1000.300000,0000")  # cut inside the file name: four fields, no line end
+    recording = Recording.open(tmp_path / "rec")
+    assert [row.seq for row in recording.index("cam1")] == [1, 2]
+    assert recording.skipped == {"unfinished last row": 1}
