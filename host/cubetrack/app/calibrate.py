@@ -1,9 +1,11 @@
-"""Calibration workflows: a tracker config and recording folders in, extrinsics out.
+"""Calibration workflows: a tracker config and recording folders in, extrinsics (or a body
+layout) out.
 
 They turn the config and the folders into the typed arguments of the calibration library once
 (:mod:`cubetrack.app.config`) and call it: :func:`cubetrack.calib.extrinsics.calibrate_cameras`
-(the world marker) and :func:`cubetrack.calib.bundle.adjust_extrinsics` (bundle adjustment over
-the cube sightings of a tracking recording), which themselves read no file.
+(the world marker), :func:`cubetrack.calib.bundle.adjust_extrinsics` (bundle adjustment over
+the cube sightings of a tracking recording) and :func:`cubetrack.calib.body.calibrate_body` (the
+markers' placement on a body), which themselves read no file.
 """
 
 from __future__ import annotations
@@ -12,12 +14,14 @@ import dataclasses
 from pathlib import Path
 
 from cubetrack.app.config import ConfigParams, config_params, parameter_tables, recording_intrinsics
+from cubetrack.calib.body import BodyCalibrationReport, calibrate_body
 from cubetrack.calib.bundle import BundleAdjustmentReport, adjust_extrinsics
 from cubetrack.calib.extrinsics import CalibrationParams, CalibrationReport, calibrate_cameras
 from cubetrack.core.cameras import CameraExtrinsics
-from cubetrack.core.errors import CalibrationError
+from cubetrack.core.errors import CalibrationError, ConfigError
+from cubetrack.core.layout import layout_to_table
 from cubetrack.core.progress import Progress
-from cubetrack.io.config import TrackerConfig, write_extrinsics
+from cubetrack.io.config import RobotConfig, TrackerConfig, write_extrinsics, write_toml
 from cubetrack.io.recording import Recording
 from cubetrack.io.run import run_record_beside, write_run_record
 
@@ -105,4 +109,73 @@ def run_calibration(config: TrackerConfig, recording: Recording, out: str | Path
                      {"config": config.path, "recording": recording.path,
                       "tracking_recording": adjust_with.path if adjust_with is not None else None},
                      {"outputs": {"extrinsics": str(out.resolve())}})
+    return result
+
+
+def config_robot(config: TrackerConfig, robot: str | None) -> RobotConfig:
+    """The config's robot named ``robot`` (None: its only robot); ConfigError naming the robots
+    otherwise."""
+    names = [r.name for r in config.robots]
+    if robot is None and len(names) == 1:
+        return config.robots[0]
+    if robot is None:
+        raise ConfigError(f"{config.path}: robots {', '.join(names)}: say which body to calibrate (--robot)")
+    for r in config.robots:
+        if r.name == robot:
+            return r
+    raise ConfigError(f"{config.path}: no robot {robot!r}; robots: {', '.join(names)}")
+
+
+def calibrate_recording_body(config: TrackerConfig, recording: Recording, extrinsics: dict[str, CameraExtrinsics],
+                             robot: str | None = None, params: ConfigParams | None = None,
+                             progress: Progress | None = None) -> BodyCalibrationReport:
+    """Calibrate the placement of the markers on ``robot``'s body (None: the config's only robot)
+    from its sightings in the tracking ``recording`` (stamped with its ``clock.csv``) by the
+    cameras of ``extrinsics``; ``params``: the config's resolved sections (None: read from
+    ``config``), of which ``[bundle_adjustment]`` and ``[detector]`` apply."""
+    params = params or config_params(config)
+    body = config_robot(config, robot)
+    cameras = [c for c in recording.camera_names if c in extrinsics]
+    try:
+        return calibrate_body(
+            {c: recording.frames(c) for c in recording.camera_names}, extrinsics,
+            recording_intrinsics(config, recording, cameras), body.layout, body.name,
+            clock_samples={c: recording.clock_samples(c) for c in cameras}, params=params.bundle_adjustment,
+            detector_params=params.detector, progress=progress,
+            frame_count=sum(len(recording.index(c)) for c in cameras),
+            edge_corners=params.bundle_adjustment.body_edge_corners)
+    except CalibrationError as exc:
+        raise CalibrationError(f"{recording.path}: {exc}") from None
+
+
+@dataclasses.dataclass(frozen=True, slots=True, eq=False)
+class BodyCalibrationRun:
+    """What :func:`run_body_calibration` produced: the report, the layout file written and its run record."""
+
+    report: BodyCalibrationReport
+    layout_path: Path
+    run_record_path: Path
+
+
+def run_body_calibration(config: TrackerConfig, recording: Recording, extrinsics: dict[str, CameraExtrinsics],
+                         out: str | Path, params: ConfigParams | None = None, *, robot: str | None = None,
+                         extrinsics_path: str | Path | None = None,
+                         progress: Progress | None = None) -> BodyCalibrationRun:
+    """``cubetrack calibrate-body``: calibrate the body, write its layout TOML to ``out`` (never
+    over the layout file the config names: that is the nominal layout) and the run record beside
+    it. Nothing is written when a step fails."""
+    params = params or config_params(config)
+    body = config_robot(config, robot)
+    out = Path(out)
+    if body.layout_path is not None and out.resolve() == body.layout_path.resolve():
+        raise ConfigError(f"{out} is the nominal layout of robot {body.name!r} the calibration starts from; "
+                          "write the calibrated layout to another file and point [[robots]] layout at it")
+    report = calibrate_recording_body(config, recording, extrinsics, body.name, params, progress)
+    result = BodyCalibrationRun(report, out, run_record_beside(out))
+    write_toml(layout_to_table(report.layout), out)
+    write_run_record(result.run_record_path, "calibrate-body",
+                     {k: v for k, v in parameter_tables(params).items() if k in ("detector", "bundle_adjustment")},
+                     {"config": config.path, "recording": recording.path, "extrinsics": extrinsics_path,
+                      "nominal_layout": body.layout_path},
+                     {"robot": body.name, "outputs": {"layout": str(out.resolve())}})
     return result

@@ -54,25 +54,41 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
-from typing import Iterable, Mapping, Sequence
 
 import numpy as np
-from scipy.optimize import least_squares
-from scipy.sparse import coo_matrix
 from scipy.spatial.transform import Rotation
 
-from cubetrack.calib.extrinsics import CalibrationMethod, CalibrationParams, collect_sightings, inlier_frames
+from cubetrack.calib.extrinsics import (
+    CalibrationMethod,
+    CalibrationParams,
+    collect_sightings,
+    edge_fitted_corners,
+    inlier_frames,
+)
+from cubetrack.calib.solver import (
+    BodyPrior,
+    Freedom,
+    IntrinsicsPrior,
+    Model,
+    Observations,
+    PosePrior,
+    corner_residuals_px,
+    padded_dist,
+    solve,
+    world_residuals_px,
+)
 from cubetrack.core.cameras import CameraExtrinsics, CameraIntrinsics, ClockSample, WorldConfig
 from cubetrack.core.errors import CalibrationError, ImageError
-from cubetrack.core.geometry import invert_T, make_T, mean_rotation, rotation_angle
-from cubetrack.core.layout import CubeLayout, marker_corners_m
+from cubetrack.core.geometry import invert_T, make_T, mean_rotation, rotation_angle, shoelace_area
+from cubetrack.core.layout import CubeLayout, LayoutMarker, marker_corners_m
 from cubetrack.core.params import check, check_positive, param
 from cubetrack.core.progress import Progress
 from cubetrack.core.records import Detection, Frame
-from cubetrack.detect.detector import Detector, DetectorParams
+from cubetrack.detect.detector import Detector, DetectorParams, decode_gray
 from cubetrack.estimate.match import body_detections, match_faces
-from cubetrack.estimate.reprojection import CornerSet, corner_set, moved_pose, normalize_px, pinhole_normalized
+from cubetrack.estimate.reprojection import moved_pose
 
 log = logging.getLogger(__name__)
 
@@ -102,11 +118,25 @@ class BundleAdjustmentParams:
     world_samples: int = param(60, "world-marker sightings averaged per camera of the calibration recording (the first N found)")
     rounds: int = param(2, "absolute solves, each after re-matching faces and re-estimating velocities")
     max_nfev: int = param(60, "function evaluations per least-squares solve")
+    refine_intrinsics: bool = param(False, "absolute solves: refine each camera's focal lengths, principal point, k1 and k2 too, held near its camera_info by the intrinsics_* sigmas")
+    intrinsics_focal_sigma: float = param(0.005, "refined intrinsics: the camera_info focal lengths' uncertainty (1 sigma), relative")
+    intrinsics_principal_sigma_px: float = param(4.0, "refined intrinsics: the camera_info principal point's uncertainty (1 sigma), pixels")
+    intrinsics_k1_sigma: float = param(0.01, "refined intrinsics: the camera_info k1's uncertainty (1 sigma)")
+    intrinsics_k2_sigma: float = param(0.03, "refined intrinsics: the camera_info k2's uncertainty (1 sigma)")
+    body_position_sigma_m: float = param(0.003, "calibrate-body: how far a marker may be from its nominal place (1 sigma), metres")
+    body_rotation_sigma_deg: float = param(2.0, "calibrate-body: how far a marker may be turned from its nominal pose (1 sigma), degrees")
+    body_size_sigma: float = param(0.02, "calibrate-body: a marker's printed size against its nominal size (1 sigma), relative")
+    body_camera_sigma_m: float = param(0.01, "calibrate-body: cameras are refined too, held near the given extrinsics with this position sigma, metres")
+    body_camera_sigma_deg: float = param(0.3, "calibrate-body: ... and this rotation sigma, degrees")
+    body_edge_corners: bool = param(True, "calibrate-body: re-measure the body's marker corners by the calibration's edge fit (as the world marker's; about 4x the CPU time of the detector's corners, measured 25 % lower rotation errors)")
 
     def __post_init__(self) -> None:
         check_positive(self, "max_span_s", "corner_noise_px", "world_corner_noise_px", "f_scale_px",
                        "association_gate_px", "velocity_window_s", "moved_position_m", "moved_rotation_deg",
-                       "gauge_prior_position_m", "gauge_prior_rotation_deg", "height_sigma_m")
+                       "gauge_prior_position_m", "gauge_prior_rotation_deg", "height_sigma_m",
+                       "intrinsics_focal_sigma", "intrinsics_principal_sigma_px", "intrinsics_k1_sigma",
+                       "intrinsics_k2_sigma", "body_position_sigma_m", "body_rotation_sigma_deg", "body_size_sigma",
+                       "body_camera_sigma_m", "body_camera_sigma_deg")
         check(self.upright_sigma_deg >= 0, f"upright_sigma_deg must not be negative, got {self.upright_sigma_deg}")
         check(self.world_samples >= 1, f"world_samples must be at least 1, got {self.world_samples}")
         check(self.min_cameras >= 2 and self.max_instants >= 1 and self.rounds >= 1 and self.max_nfev >= 1,
@@ -120,11 +150,14 @@ class BundleAdjustmentParams:
 @dataclass(frozen=True, slots=True, eq=False)
 class WorldMarkerObservation:
     """The world marker in one camera of the calibration recording: the robust average of its
-    (edge-refined) corners over ``frames`` inlier frames, (4, 2) px, TL TR BR BL."""
+    (edge-refined) corners over ``frames`` inlier frames, (4, 2) px, TL TR BR BL. A world reference
+    of more than one marker: ``points_world_m`` (n, 3) its points and ``corners_px`` (n, 2) their
+    averaged pixels (:mod:`cubetrack.calib.reference`)."""
 
     camera: str
     corners_px: np.ndarray
     frames: int
+    points_world_m: np.ndarray | None = None
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -140,6 +173,17 @@ class CubeFrame:
 
 
 @dataclass(frozen=True, slots=True, eq=False)
+class FrameCorners:
+    """One camera frame's detections matched to a body's markers: ``markers`` (F,) indices into
+    the layout's markers, ``corners_px`` (F, 4, 2) their detected corners (TL TR BR BL)."""
+
+    camera: str
+    time_s: float
+    markers: np.ndarray
+    corners_px: np.ndarray
+
+
+@dataclass(frozen=True, slots=True, eq=False)
 class Instant:
     """Cube corners of several cameras at about one time: ``sets`` (one per camera), their
     capture times differing by at most ``BundleAdjustmentParams.max_span_s``; ``time_s`` their mean."""
@@ -147,7 +191,7 @@ class Instant:
     robot: str
     time_s: float
     frames: tuple[CubeFrame, ...]
-    sets: tuple[CornerSet, ...]
+    sets: tuple[FrameCorners, ...]
     T_world_cube: np.ndarray
 
 
@@ -180,6 +224,7 @@ class BundleAdjustmentReport:
     moved: tuple[str, ...]
     instants: int
     warnings: tuple[str, ...] = field(default_factory=tuple)
+    intrinsics: dict[str, CameraIntrinsics] = field(default_factory=dict)  # refined (refine_intrinsics) or as given
 
 
 def robust_average_corners(corners_px: np.ndarray, threshold_px: float) -> tuple[np.ndarray, int]:
@@ -211,6 +256,12 @@ def world_marker_observations(frames: Mapping[str, Iterable[Frame]], world: Worl
     for camera, camera_frames in frames.items():
         if camera not in intrinsics:
             continue
+        if not world.single_marker:
+            reference = _reference_observation(camera, camera_frames, world, intrinsics[camera], params,
+                                               detector_params, progress, (frame_counts or {}).get(camera, 0))
+            if reference is not None:
+                out[camera] = reference
+            continue
         sightings, _read, _skipped = collect_sightings(
             camera_frames, world, intrinsics[camera], params, progress,
             stage=f"bundle adjustment: world marker {camera}", detector_params=detector_params,
@@ -223,6 +274,23 @@ def world_marker_observations(frames: Mapping[str, Iterable[Frame]], world: Worl
                                          params.outlier_threshold_px)
         out[camera] = WorldMarkerObservation(camera, mean, n)
     return out
+
+
+def _reference_observation(camera: str, frames: Iterable[Frame], world: WorldConfig, intrinsics: CameraIntrinsics,
+                           params: CalibrationParams, detector_params: DetectorParams | None,
+                           progress: Progress | None, total_frames: int) -> WorldMarkerObservation | None:
+    """The averaged points of a world reference of several markers or a board in one camera."""
+    from cubetrack.calib.reference import average_reference, collect_reference
+
+    sightings, _read, _skipped = collect_reference(frames, world, intrinsics, params, progress,
+                                                   f"bundle adjustment: world reference {camera}", detector_params,
+                                                   total_frames)
+    try:
+        averaged = average_reference(sightings, params.outlier_threshold_px, params.min_samples)
+    except CalibrationError:
+        log.warning("%s: world reference seen in %d calibration frames: no world term for it", camera, len(sightings))
+        return None
+    return WorldMarkerObservation(camera, averaged.pixels, max(averaged.frames.values()), averaged.points_world_m)
 
 
 def _clock_fit(camera: str, samples: Sequence[ClockSample], device_s: Sequence[float], host_s: Sequence[float]):
@@ -244,12 +312,19 @@ def _clock_fit(camera: str, samples: Sequence[ClockSample], device_s: Sequence[f
 def cube_frames(frames: Mapping[str, Iterable[Frame]], layouts: Mapping[str, CubeLayout],
                 clock_samples: Mapping[str, Sequence[ClockSample]] | None = None,
                 detector_params: DetectorParams | None = None, progress: Progress | None = None,
-                frame_count: int = 0) -> list[CubeFrame]:
+                frame_count: int = 0, lenses: Mapping[str, CameraIntrinsics] | None = None,
+                edge_min_contrast: float = 20.0) -> list[CubeFrame]:
     """Every frame of ``frames`` (camera -> its frames) that shows a robot's cube ids (``layouts``:
     robot -> cube layout), stamped with its capture time on the host clock from the camera's
     ``clock_samples`` (round trips; without them, its frames' arrival times); in time order.
-    ``frame_count`` (all cameras' frames) only sizes the progress."""
-    detector = Detector(detector_params or DetectorParams(), [lay.dictionary for lay in layouts.values()])
+    ``frame_count`` (all cameras' frames) only sizes the progress.
+
+    ``lenses`` (camera -> intrinsics): the cube corners are measured as the world marker's are
+    for calibration (:func:`cubetrack.detect.refine_corners_edges` with
+    :data:`cubetrack.calib.extrinsics.EDGE_FIT` and the camera's lens model: sides straight in
+    the undistorted image, edge points from the gradient's peak), offline accuracy for the body
+    calibration; detections whose edges cannot be fitted (``edge_min_contrast``) are dropped."""
+    detector = Detector(detector_params or DetectorParams(), [name for lay in layouts.values() for name in lay.dictionaries])
     out, done = [], 0
     for camera, camera_frames in frames.items():
         seen: list[tuple[int, float, tuple[tuple[str, tuple[Detection, ...]], ...]]] = []
@@ -261,13 +336,16 @@ def cube_frames(frames: Mapping[str, Iterable[Frame]], layouts: Mapping[str, Cub
             device_s.append(frame.device_time_s)
             host_s.append(frame.host_time_s)
             try:
-                detections = detector.detect_jpeg(frame.jpeg, f"{camera} frame {frame.seq}")
+                gray = decode_gray(frame.jpeg, f"{camera} frame {frame.seq}")
             except ImageError as exc:
                 log.warning("%s; skipped", exc)
                 continue
+            detections = detector.detect(gray)
             robots = []
             for robot, lay in layouts.items():
                 mine = body_detections(detections, lay)
+                if mine and lenses is not None and camera in lenses:
+                    mine = _edge_fitted(gray, mine, lenses[camera], edge_min_contrast)
                 if mine:
                     robots.append((robot, mine))
             if robots:
@@ -282,18 +360,35 @@ def cube_frames(frames: Mapping[str, Iterable[Frame]], layouts: Mapping[str, Cub
     return out
 
 
-def _frame_corners(frame: CubeFrame, layout: CubeLayout, intrinsics: CameraIntrinsics, T_world_cam: np.ndarray,
-                   params: BundleAdjustmentParams) -> CornerSet | None:
-    """The frame's corners matched to cube faces at its own single-camera estimate."""
-    from cubetrack.estimate.pose import estimate_cube
+def _edge_fitted(gray: np.ndarray, detections: Sequence[Detection], lens: CameraIntrinsics,
+                 min_contrast: float) -> tuple[Detection, ...]:
+    """Detections with their corners re-measured by the calibration's edge fit (those it cannot
+    fit left out); one marker at a time (the dense sampling of several would exceed cv2.remap's
+    row length)."""
+    corners = [edge_fitted_corners(gray, d.corners_px, d.dictionary, lens, min_contrast) for d in detections]
+    return tuple(Detection(d.marker_id, c, shoelace_area(c), d.dictionary)
+                 for d, c in zip(detections, corners) if not np.isnan(c).any())
 
-    est = estimate_cube(frame.detections, layout, intrinsics, T_world_cam, camera=frame.camera, robot=frame.robot,
-                        seq=frame.seq, capture_time_s=frame.time_s, arrival_time_s=frame.time_s)
-    if est is None:
-        return None
-    matches = match_faces(frame.detections, layout, intrinsics, T_world_cam, est.T_world_cube,
+
+def _frame_corners(frame: CubeFrame, layout: CubeLayout, intrinsics: CameraIntrinsics, T_world_cam: np.ndarray,
+                   params: BundleAdjustmentParams, T_world_cube: np.ndarray | None = None) -> FrameCorners | None:
+    """The frame's detections matched to the layout's markers at ``T_world_cube``, or (None) at
+    the frame's own single-camera estimate; None when nothing matched."""
+    if T_world_cube is None:
+        from cubetrack.estimate.pose import estimate_cube
+
+        est = estimate_cube(frame.detections, layout, intrinsics, T_world_cam, camera=frame.camera,
+                            robot=frame.robot, seq=frame.seq, capture_time_s=frame.time_s,
+                            arrival_time_s=frame.time_s)
+        if est is None:
+            return None
+        T_world_cube = est.T_world_cube
+    matches = match_faces(frame.detections, layout, intrinsics, T_world_cam, T_world_cube,
                           gate_px=params.association_gate_px)
-    return corner_set(matches, intrinsics, T_world_cam, frame.camera, frame.time_s)
+    if not matches:
+        return None
+    return FrameCorners(frame.camera, frame.time_s, np.array([m.marker for m in matches]),
+                        np.array([m.detection.corners_px for m in matches], dtype=float))
 
 
 def group_instants(frames: Sequence[CubeFrame], max_span_s: float, min_cameras: int) -> list[list[CubeFrame]]:
@@ -337,226 +432,180 @@ def velocities(times_s: np.ndarray, Ts: np.ndarray, window_s: float) -> tuple[np
 
 
 # ---------------------------------------------------------------------------------------------
-# The bundle adjustment
+# One refinement's state: instants, their matched corners, the model being solved
+
+_OPENCV_DIST_LENGTHS = (5, 8, 12, 14)  # distortion vector lengths cv2.projectPoints takes
 
 
-@dataclass(frozen=True, slots=True, eq=False)
-class _Problem:
-    """Corner observations as flat arrays (one row per corner)."""
-
-    cam: np.ndarray  # (N,) camera index
-    inst: np.ndarray  # (N,) instant index
-    points_cube: np.ndarray  # (N, 3)
-    observed: np.ndarray  # (N, 2) normalised
-    focal: np.ndarray  # (N,)
-    motion_R: np.ndarray  # (N, 3, 3) exp(ω dt)
-    motion_t: np.ndarray  # (N, 3) v dt
-    world_cam: np.ndarray  # (M,) camera index of each world-marker corner
-    world_points: np.ndarray  # (M, 3)
-    world_observed: np.ndarray  # (M, 2)
-    world_focal: np.ndarray  # (M,)
-    robot: np.ndarray  # (K,) robot index of each instant
-    robots: int
+def layout_with(layout: CubeLayout, T_body_markers: np.ndarray, sizes_m: np.ndarray) -> CubeLayout:
+    """``layout`` with its markers (same faces, ids, dictionary) at ``T_body_markers`` (M, 4, 4)
+    and of sides ``sizes_m`` (M,)."""
+    return CubeLayout(layout.dictionary, tuple(LayoutMarker(m.face, m.marker_id, float(s), np.array(T, float))
+                                               for m, T, s in zip(layout.markers, T_body_markers, sizes_m)))
 
 
-def _build_problem(instants: Sequence[Instant], cam_index: dict[str, int], vel: np.ndarray, angvel: np.ndarray,
-                   world: dict[str, tuple[np.ndarray, float]], world_points: np.ndarray) -> _Problem:
-    cam, inst, pts, obs, foc, dts = [], [], [], [], [], []
-    for k, instant in enumerate(instants):
-        for s in instant.sets:
-            n = len(s.points_cube_m)
-            cam.append(np.full(n, cam_index[s.camera]))
-            inst.append(np.full(n, k))
-            pts.append(s.points_cube_m)
-            obs.append(s.normalized)
-            foc.append(np.full(n, s.focal_px))
-            dts.append(np.full(n, s.time_s - instant.time_s))
-    inst_a = np.concatenate(inst)
-    dt = np.concatenate(dts)
-    motion_R = Rotation.from_rotvec(angvel[inst_a] * dt[:, None]).as_matrix()
-    motion_t = vel[inst_a] * dt[:, None]
-    names = list(dict.fromkeys(i.robot for i in instants))
-    robot = np.array([names.index(i.robot) for i in instants], dtype=int)
-    wc, wp, wo, wf = [], [], [], []
-    for name, (normalized, focal) in world.items():
-        wc.append(np.full(4, cam_index[name]))
-        wp.append(world_points)
-        wo.append(normalized)
-        wf.append(np.full(4, focal))
-    return _Problem(np.concatenate(cam), inst_a, np.vstack(pts), np.vstack(obs), np.concatenate(foc), motion_R,
-                    motion_t, np.concatenate(wc) if wc else np.zeros(0, int), np.vstack(wp) if wp else np.zeros((0, 3)),
-                    np.vstack(wo) if wo else np.zeros((0, 2)), np.concatenate(wf) if wf else np.zeros(0),
-                    robot, len(names))
+def _intrinsics_arrays(intrinsics: Sequence[CameraIntrinsics]) -> tuple[np.ndarray, np.ndarray]:
+    """(C, 3, 3) camera matrices and (C, D) distortion vectors padded to one length OpenCV takes."""
+    dists = [padded_dist(i.dist) for i in intrinsics]
+    n = next(k for k in _OPENCV_DIST_LENGTHS if k >= max(len(d) for d in dists))
+    return (np.array([i.K for i in intrinsics], float),
+            np.array([np.concatenate([d, np.zeros(n - len(d))]) for d in dists]))
 
 
-def _apply(T0: np.ndarray, x: np.ndarray) -> np.ndarray:
-    """(K, 4, 4) poses moved by (K, 6) world-frame increments [δp, δθ]."""
-    out = T0.copy()
-    out[:, :3, :3] = Rotation.from_rotvec(x[:, 3:6]).as_matrix() @ T0[:, :3, :3]
-    out[:, :3, 3] = T0[:, :3, 3] + x[:, :3]
-    return out
+@dataclass(eq=False)
+class Refinement:
+    """One bundle adjustment in progress (:func:`adjust_extrinsics`, and
+    :func:`cubetrack.calib.body.calibrate_body`): the ``instants`` and their matched corners, the
+    ``cameras`` and ``robots`` in model order, the ``model`` being solved, the velocities of the
+    instants and what the priors hold to (the given intrinsics and layouts)."""
+
+    params: BundleAdjustmentParams
+    cameras: list[str]
+    robots: list[str]
+    layouts: dict[str, CubeLayout]  # as given (the body prior)
+    given: dict[str, CameraIntrinsics]
+    instants: list[Instant]
+    model: Model
+    vel: np.ndarray
+    angvel: np.ndarray
+    readout_s: dict[str, float] = field(default_factory=dict)  # rolling-shutter readout per camera (0: global)
+
+    @classmethod
+    def start(cls, instants: Sequence[Instant], cameras: Sequence[str], T_world_cam: Mapping[str, np.ndarray],
+              intrinsics: Mapping[str, CameraIntrinsics], layouts: Mapping[str, CubeLayout],
+              params: BundleAdjustmentParams, readout_s: Mapping[str, float] | None = None) -> Refinement:
+        robots = list(dict.fromkeys(i.robot for i in instants))
+        K, dist = _intrinsics_arrays([intrinsics[c] for c in cameras])
+        markers = [m for r in robots for m in layouts[r].markers]
+        model = Model(np.array([T_world_cam[c] for c in cameras], float), K, dist,
+                      np.array([i.T_world_cube for i in instants], float),
+                      np.array([m.T_cube_marker for m in markers], float), np.array([m.size_m for m in markers], float),
+                      np.array([j for j, r in enumerate(robots) for _ in layouts[r].markers]), np.ones(len(robots)))
+        zeros = np.zeros((len(instants), 3))
+        return cls(params, list(cameras), robots, {r: layouts[r] for r in robots}, {c: intrinsics[c] for c in cameras},
+                   list(instants), model, zeros, zeros.copy(), dict(readout_s or {}))
+
+    def first_marker(self, robot: str) -> int:
+        """Index in the model's markers of the robot's first layout marker."""
+        return sum(len(self.layouts[r].markers) for r in self.robots[:self.robots.index(robot)])
+
+    def layout(self, robot: str) -> CubeLayout:
+        """The robot's layout as the model has it now (refined when the body is)."""
+        i, n = self.first_marker(robot), len(self.layouts[robot].markers)
+        return layout_with(self.layouts[robot], self.model.T_body_markers[i:i + n], self.model.sizes_m[i:i + n])
+
+    def T_world_cam(self) -> dict[str, np.ndarray]:
+        return {c: self.model.T_cams[i] for i, c in enumerate(self.cameras)}
+
+    def intrinsics(self) -> dict[str, CameraIntrinsics]:
+        """Each camera's intrinsics as the model has them now (the given ones unless refined)."""
+        out = {}
+        for i, c in enumerate(self.cameras):
+            g = self.given[c]
+            if np.array_equal(self.model.K[i], g.K) and np.array_equal(self.model.dist[i, :len(g.dist)], g.dist):
+                out[c] = g
+            else:
+                dist = self.model.dist[i, :max(len(g.dist), 5)]
+                out[c] = CameraIntrinsics(g.width, g.height, self.model.K[i].copy(), dist.copy(), g.camera_name)
+        return out
+
+    def update_velocities(self) -> None:
+        """Velocities of every instant from the solved body poses (per robot)."""
+        T = self.model.T_bodies
+        self.vel, self.angvel = np.zeros((len(self.instants), 3)), np.zeros((len(self.instants), 3))
+        for robot in self.robots:
+            idx = np.array([k for k, i in enumerate(self.instants) if i.robot == robot], dtype=int)
+            if len(idx):
+                self.vel[idx], self.angvel[idx] = velocities(np.array([self.instants[k].time_s for k in idx]), T[idx],
+                                                             self.params.velocity_window_s)
+
+    def observations(self, world: Mapping[str, tuple[np.ndarray, np.ndarray]] | None = None) -> Observations:
+        """The solver's observations: every instant's corners, motion-compensated with the current
+        velocities to the time their row was exposed (a rolling shutter's row ``v`` of ``H``
+        rows is exposed ``(v - (H - 1) / 2) readout / H`` after the frame's stamp), and ``world``
+        points (camera -> (points (n, 3) m, pixels (n, 2)))."""
+        cam_index = {c: i for i, c in enumerate(self.cameras)}
+        row_time = {c: self.readout_s.get(c, 0.0) / self.given[c].height for c in self.cameras}
+        firsts = {r: self.first_marker(r) for r in self.robots}
+        cam, inst, marker, pixels, dts = [], [], [], [], []
+        for k, instant in enumerate(self.instants):
+            for s in instant.sets:
+                n = 4 * len(s.markers)
+                cam.append(np.full(n, cam_index[s.camera]))
+                inst.append(np.full(n, k))
+                marker.append(np.repeat(s.markers + firsts[instant.robot], 4))
+                px = s.corners_px.reshape(-1, 2)
+                pixels.append(px)
+                rows = (px[:, 1] - (self.given[s.camera].height - 1) / 2.0) * row_time[s.camera]
+                dts.append(s.time_s - instant.time_s + rows)
+        inst_a, dt = np.concatenate(inst), np.concatenate(dts)
+        wc, wp, wx = [], [], []
+        for name, (points, px) in (world or {}).items():
+            wc.append(np.full(len(points), cam_index[name]))
+            wp.append(points)
+            wx.append(px)
+        return Observations(np.concatenate(cam), inst_a, np.concatenate(marker), np.tile(np.arange(4), len(inst_a) // 4),
+                            np.vstack(pixels), Rotation.from_rotvec(self.angvel[inst_a] * dt[:, None]).as_matrix(),
+                            self.vel[inst_a] * dt[:, None],
+                            np.array([self.robots.index(i.robot) for i in self.instants], dtype=int), len(self.robots),
+                            np.concatenate(wc) if wc else np.zeros(0, int), np.vstack(wp) if wp else np.zeros((0, 3)),
+                            np.vstack(wx) if wx else np.zeros((0, 2)))
+
+    def freedom(self, *, cameras: bool = True, camera_prior: PosePrior | None = None, intrinsics: bool = False,
+                body: bool = False, free_scale: bool = False) -> Freedom:
+        """A :class:`~cubetrack.calib.solver.Freedom` with this refinement's noise, loss, ground-robot
+        priors and, when asked, intrinsics held near the given ones and markers near the given layouts."""
+        p = self.params
+        intrinsics_prior = body_prior = None
+        if intrinsics:
+            K, dist = _intrinsics_arrays([self.given[c] for c in self.cameras])
+            intrinsics_prior = IntrinsicsPrior(K, dist, p.intrinsics_focal_sigma, p.intrinsics_principal_sigma_px,
+                                               p.intrinsics_k1_sigma, p.intrinsics_k2_sigma)
+        if body:
+            markers = [m for r in self.robots for m in self.layouts[r].markers]
+            body_prior = BodyPrior(np.array([m.T_cube_marker for m in markers]), np.array([m.size_m for m in markers]),
+                                   p.body_position_sigma_m, np.radians(p.body_rotation_sigma_deg), p.body_size_sigma)
+        return Freedom(cameras, camera_prior, intrinsics_prior, body_prior, free_scale, p.corner_noise_px,
+                       p.world_corner_noise_px, p.f_scale_px, p.height_sigma_m if p.planar_motion else 0.0,
+                       float(np.radians(p.upright_sigma_deg)), p.max_nfev)
+
+    def solve(self, free: Freedom, world: Mapping[str, tuple[np.ndarray, np.ndarray]] | None = None) -> None:
+        self.model = solve(self.observations(world), self.model, free)
+
+    def rematch(self) -> None:
+        """Faces matched again to the detections where the solved poses (and the current layouts
+        and intrinsics) project them; instants no longer seen by ``min_cameras`` cameras are
+        dropped. CalibrationError when none is left."""
+        intrinsics, T_world_cam = self.intrinsics(), self.T_world_cam()
+        layouts = {r: self.layout(r) for r in self.robots}
+        keep, out = [], []
+        for k, instant in enumerate(self.instants):
+            sets = []
+            for f in instant.frames:
+                T = moved_pose(self.model.T_bodies[k], self.vel[k], self.angvel[k], f.time_s - instant.time_s)
+                s = _frame_corners(f, layouts[instant.robot], intrinsics[f.camera], T_world_cam[f.camera], self.params, T)
+                if s is not None:
+                    sets.append((f, s))
+            if len({f.camera for f, _ in sets}) >= self.params.min_cameras:
+                keep.append(k)
+                out.append(Instant(instant.robot, instant.time_s, tuple(f for f, _ in sets), tuple(s for _, s in sets),
+                                   self.model.T_bodies[k]))
+        if not out:
+            raise CalibrationError("no multi-camera cube sightings fit the refined poses")
+        self.instants = out
+        self.model = self.model.replace(T_bodies=self.model.T_bodies[keep])
+        self.vel, self.angvel = self.vel[keep], self.angvel[keep]
+
+    def residuals(self, world: Mapping[str, tuple[np.ndarray, np.ndarray]] | None = None
+                  ) -> tuple[Observations, np.ndarray, np.ndarray]:
+        """(observations, body-corner residuals (N, 2) px, world-point residuals (M, 2) px) now."""
+        obs = self.observations(world)
+        return obs, corner_residuals_px(obs, self.model), world_residuals_px(obs, self.model)
 
 
-def _project(T_world_cam: np.ndarray, cam: np.ndarray, points_world: np.ndarray) -> np.ndarray:
-    """Normalised projections of (N, 3) world points in cameras ``cam``; NaN behind a camera."""
-    R = T_world_cam[cam, :3, :3]
-    return pinhole_normalized(np.einsum("nji,nj->ni", R, points_world - T_world_cam[cam, :3, 3]))
-
-
-def _corner_residuals_px(prob: _Problem, T_cams: np.ndarray, T_cubes: np.ndarray) -> np.ndarray:
-    """(N, 2) cube-corner reprojection residuals in pixels."""
-    # the cube moved from the instant's time to the frame's: R' = exp(ω dt) R, p' = p + v dt
-    rotated = np.einsum("nij,nj->ni", T_cubes[prob.inst, :3, :3], prob.points_cube)
-    pw = np.einsum("nij,nj->ni", prob.motion_R, rotated) + T_cubes[prob.inst, :3, 3] + prob.motion_t
-    return (_project(T_cams, prob.cam, pw) - prob.observed) * prob.focal[:, None]
-
-
-def _world_residuals_px(prob: _Problem, T_cams: np.ndarray) -> np.ndarray:
-    """(M, 2) world-marker corner reprojection residuals in pixels."""
-    if not len(prob.world_cam):
-        return np.zeros((0, 2))
-    return (_project(T_cams, prob.world_cam, prob.world_points) - prob.world_observed) * prob.world_focal[:, None]
-
-
-def _skew(v: np.ndarray) -> np.ndarray:
-    """(N, 3, 3) cross-product matrices of (N, 3) vectors."""
-    out = np.zeros(v.shape[:-1] + (3, 3))
-    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
-    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
-    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
-    return out
-
-
-def _camera_part(T_cams: np.ndarray, cam: np.ndarray, points_world: np.ndarray, observed: np.ndarray,
-                 focal: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Residuals (N, 2) in units of ``sigma`` of world points seen by cameras ``cam``, their
-    derivative by the world point (N, 2, 3) and by the camera's [δp, δθ] (N, 2, 6)."""
-    Rc = T_cams[cam, :3, :3]
-    y = points_world - T_cams[cam, :3, 3]
-    pc = np.einsum("nji,nj->ni", Rc, y)
-    z = pc[:, 2]
-    ok = z > 1e-6
-    zs = np.where(ok, z, 1.0)
-    scale = (focal / sigma)[:, None]
-    r = np.where(ok[:, None], (pc[:, :2] / zs[:, None] - observed) * scale, 1e3)
-    dpi = np.zeros((len(z), 2, 3))
-    dpi[:, 0, 0] = dpi[:, 1, 1] = 1.0 / zs
-    dpi[:, 0, 2] = -pc[:, 0] / zs**2
-    dpi[:, 1, 2] = -pc[:, 1] / zs**2
-    dpi *= (scale * ok[:, None])[:, :, None]
-    A = dpi @ np.transpose(Rc, (0, 2, 1))  # d r / d X_world
-    J_cam = np.concatenate([-A, A @ _skew(y)], axis=2)
-    return r, A, J_cam, ok
-
-
-def _solve(prob: _Problem, T0_cams: np.ndarray, T0_cubes: np.ndarray, params: BundleAdjustmentParams,
-           gauge_prior: bool = False, solve_cameras: bool = True) -> tuple[np.ndarray, np.ndarray]:
-    """Least-squares camera and cube poses (cameras held when not ``solve_cameras``); returns
-    (T_cams (C,4,4), T_cubes (K,4,4)). Analytic sparse Jacobian, soft-L1 loss."""
-    C, K = len(T0_cams), len(T0_cubes)
-    nc = 6 * C if solve_cameras else 0
-    nh = prob.robots if params.planar_motion else 0  # one cube height per robot
-    h0 = np.array([np.median(T0_cubes[prob.robot == j, 2, 3]) for j in range(nh)])
-    use_world = solve_cameras and len(prob.world_cam) > 0
-    gauge = solve_cameras and gauge_prior
-    ns = prob.robots if (use_world and params.free_cube_scale) else 0  # cube scale - 1 per robot
-    sigma, sigma_w = params.corner_noise_px, params.world_corner_noise_px
-    sigma_u = np.radians(params.upright_sigma_deg) if params.upright_sigma_deg > 0 else 0.0
-    prior_scale = np.r_[np.full(3, params.gauge_prior_position_m), np.full(3, np.radians(params.gauge_prior_rotation_deg))]
-    N, M = len(prob.cam), len(prob.world_cam) if use_world else 0
-    n = nc + 6 * K + nh + ns
-    scale_col = nc + 6 * K + nh  # first scale column
-
-    # the Jacobian's pattern, in the order jac() fills in its values
-    rows, cols = [], []
-    m = 0
-    corner_rows = np.repeat(2 * np.arange(N)[:, None] + np.arange(2)[None, :], 1, axis=1)  # (N, 2)
-    cube_cols = nc + 6 * prob.inst[:, None] + np.arange(6)[None, :]  # (N, 6)
-    if solve_cameras:
-        cam_cols = 6 * prob.cam[:, None] + np.arange(6)[None, :]
-        block = np.concatenate([cam_cols, cube_cols], axis=1)  # (N, 12)
-    else:
-        block = cube_cols
-    if ns:
-        block = np.concatenate([block, scale_col + prob.robot[prob.inst][:, None]], axis=1)
-    rows.append(np.broadcast_to(corner_rows[:, :, None], (N, 2, block.shape[1])).ravel())
-    cols.append(np.broadcast_to(block[:, None, :], (N, 2, block.shape[1])).ravel())
-    m += 2 * N
-    if use_world:
-        wr = m + 2 * np.arange(M)[:, None] + np.arange(2)[None, :]
-        wc = 6 * prob.world_cam[:, None] + np.arange(6)[None, :]
-        rows.append(np.broadcast_to(wr[:, :, None], (M, 2, 6)).ravel())
-        cols.append(np.broadcast_to(wc[:, None, :], (M, 2, 6)).ravel())
-        m += 2 * M
-    if nh:
-        rows += [m + np.arange(K), m + np.arange(K)]
-        cols += [nc + 6 * np.arange(K) + 2, nc + 6 * K + prob.robot]
-        m += K
-    if sigma_u:
-        ur = m + 2 * np.arange(K)[:, None] + np.arange(2)[None, :]
-        uc = nc + 6 * np.arange(K)[:, None] + 3 + np.arange(3)[None, :]
-        rows.append(np.broadcast_to(ur[:, :, None], (K, 2, 3)).ravel())
-        cols.append(np.broadcast_to(uc[:, None, :], (K, 2, 3)).ravel())
-        m += 2 * K
-    if gauge:
-        rows.append(m + np.arange(nc))
-        cols.append(np.arange(nc))
-        m += nc
-    rows_a, cols_a = np.concatenate(rows), np.concatenate(cols)
-
-    def unpack(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        T_cams = _apply(T0_cams, x[:nc].reshape(C, 6)) if solve_cameras else T0_cams
-        return T_cams, _apply(T0_cubes, x[nc:nc + 6 * K].reshape(K, 6))
-
-    def evaluate(x: np.ndarray, with_jac: bool):
-        T_cams, T_cubes = unpack(x)
-        points = prob.points_cube
-        if ns:
-            points = points * (1.0 + x[scale_col + prob.robot[prob.inst]])[:, None]
-        a = np.einsum("nij,nj->ni", T_cubes[prob.inst, :3, :3], points)  # R_k s P
-        pw = np.einsum("nij,nj->ni", prob.motion_R, a) + T_cubes[prob.inst, :3, 3] + prob.motion_t
-        r, A, J_cam, _ok = _camera_part(T_cams, prob.cam, pw, prob.observed, prob.focal, sigma)
-        res, vals = [r.ravel()], []
-        if with_jac:
-            J_cube = np.concatenate([A, -(A @ prob.motion_R) @ _skew(a)], axis=2)
-            parts = [J_cam, J_cube] if solve_cameras else [J_cube]
-            if ns:
-                unscaled = a / (1.0 + x[scale_col + prob.robot[prob.inst]])[:, None]
-                parts.append(A @ np.einsum("nij,nj->ni", prob.motion_R, unscaled)[:, :, None])
-            vals.append(np.concatenate(parts, axis=2).ravel())
-        if use_world:
-            rw, _A, Jw, _ = _camera_part(T_cams, prob.world_cam, prob.world_points, prob.world_observed,
-                                         prob.world_focal, sigma_w)
-            res.append(rw.ravel())
-            if with_jac:
-                vals.append(Jw.ravel())
-        if nh:
-            h = h0 + x[nc + 6 * K:nc + 6 * K + nh]
-            res.append((T_cubes[:, 2, 3] - h[prob.robot]) / params.height_sigma_m)
-            if with_jac:
-                vals += [np.full(K, 1.0 / params.height_sigma_m), np.full(K, -1.0 / params.height_sigma_m)]
-        if sigma_u:  # the cube's z axis (third column) near world up
-            up = T_cubes[:, :3, 2]
-            res.append(up[:, :2].ravel() / sigma_u)
-            if with_jac:
-                vals.append((-_skew(up)[:, :2, :] / sigma_u).ravel())
-        if gauge:
-            res.append(x[:nc] / np.tile(prior_scale, C))
-            if with_jac:
-                vals.append(1.0 / np.tile(prior_scale, C))
-        return np.concatenate(res), (np.concatenate(vals) if with_jac else None)
-
-    def fun(x: np.ndarray) -> np.ndarray:
-        return evaluate(x, False)[0]
-
-    def jac(x: np.ndarray):
-        vals = evaluate(x, True)[1]
-        return coo_matrix((vals, (rows_a, cols_a)), shape=(m, n)).tocsr()
-
-    result = least_squares(fun, np.zeros(n), jac=jac, method="trf", loss="soft_l1",
-                           f_scale=params.f_scale_px / sigma, x_scale=np.full(n, 1e-3),
-                           max_nfev=params.max_nfev, tr_solver="lsmr")
-    return unpack(result.x)
+def rms_px(residuals: np.ndarray) -> float:
+    """RMS length of (n, 2) pixel residuals; NaN when there are none."""
+    return float(np.sqrt(np.nanmean(np.sum(residuals ** 2, axis=1)))) if len(residuals) else float("nan")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -567,10 +616,12 @@ def _pose_distance(Ta: np.ndarray, Tb: np.ndarray) -> tuple[float, float]:
     return float(np.linalg.norm(Ta[:3, 3] - Tb[:3, 3])), rotation_angle(Ta[:3, :3], Tb[:3, :3], "deg")
 
 
-def _make_instants(frames: Sequence[CubeFrame], layouts: dict[str, CubeLayout],
-                   intrinsics: dict[str, CameraIntrinsics], T_world_cam: dict[str, np.ndarray],
-                   params: BundleAdjustmentParams, progress: Progress | None) -> list[Instant]:
-    """Instants with at least ``min_cameras`` cameras' corners and a joint initial cube pose."""
+def make_instants(frames: Sequence[CubeFrame], layouts: Mapping[str, CubeLayout],
+                  intrinsics: Mapping[str, CameraIntrinsics], T_world_cam: Mapping[str, np.ndarray],
+                  params: BundleAdjustmentParams, progress: Progress | None = None) -> list[Instant]:
+    """Instants (:func:`group_instants`) with at least ``min_cameras`` cameras' matched corners,
+    each starting from its best-seen camera's single-camera estimate; at most ``max_instants``,
+    evenly spread."""
     by_robot: dict[str, list[CubeFrame]] = {}
     for f in frames:
         by_robot.setdefault(f.robot, []).append(f)
@@ -590,8 +641,8 @@ def _make_instants(frames: Sequence[CubeFrame], layouts: dict[str, CubeLayout],
         if len({f.camera for f, _ in pairs}) < params.min_cameras:
             continue
         t_ref = float(np.mean([f.time_s for f, _ in pairs]))
-        # start from the single-camera estimate of the camera seeing the most corners
-        start = max(pairs, key=lambda p: len(p[1].points_cube_m))
+        # start from the single-camera estimate of the camera seeing the most markers
+        start = max(pairs, key=lambda p: len(p[1].markers))
         est_T = _estimate_T(start[0], layout, intrinsics, T_world_cam)
         if est_T is None:
             continue
@@ -599,36 +650,14 @@ def _make_instants(frames: Sequence[CubeFrame], layouts: dict[str, CubeLayout],
     return instants
 
 
-def _estimate_T(frame: CubeFrame, layout: CubeLayout, intrinsics: dict[str, CameraIntrinsics],
-                T_world_cam: dict[str, np.ndarray]) -> np.ndarray | None:
+def _estimate_T(frame: CubeFrame, layout: CubeLayout, intrinsics: Mapping[str, CameraIntrinsics],
+                T_world_cam: Mapping[str, np.ndarray]) -> np.ndarray | None:
     from cubetrack.estimate.pose import estimate_cube
 
     est = estimate_cube(frame.detections, layout, intrinsics[frame.camera], T_world_cam[frame.camera],
                         camera=frame.camera, robot=frame.robot, seq=frame.seq, capture_time_s=frame.time_s,
                         arrival_time_s=frame.time_s)
     return None if est is None else est.T_world_cube
-
-
-def _rematch(instants: Sequence[Instant], T_cubes: np.ndarray, vel: np.ndarray, angvel: np.ndarray,
-             layouts: dict[str, CubeLayout], intrinsics: dict[str, CameraIntrinsics],
-             T_world_cam: dict[str, np.ndarray], params: BundleAdjustmentParams) -> tuple[list[Instant], list[int]]:
-    """Faces matched again to the detections where the solved poses project them; returns the
-    instants still seen by ``min_cameras`` cameras and their indices."""
-    out, keep = [], []
-    for k, instant in enumerate(instants):
-        sets = []
-        for f in instant.frames:
-            T = moved_pose(T_cubes[k], vel[k], angvel[k], f.time_s - instant.time_s)
-            matches = match_faces(f.detections, layouts[instant.robot], intrinsics[f.camera], T_world_cam[f.camera], T,
-                                  gate_px=params.association_gate_px)
-            s = corner_set(matches, intrinsics[f.camera], T_world_cam[f.camera], f.camera, f.time_s)
-            if s is not None:
-                sets.append((f, s))
-        if len({f.camera for f, _ in sets}) >= params.min_cameras:
-            keep.append(k)
-            out.append(Instant(instant.robot, instant.time_s, tuple(f for f, _ in sets), tuple(s for _, s in sets),
-                               T_cubes[k]))
-    return out, keep
 
 
 def _align(T_rel: dict[str, np.ndarray], T_prior: dict[str, np.ndarray],
@@ -659,32 +688,27 @@ def _align(T_rel: dict[str, np.ndarray], T_prior: dict[str, np.ndarray],
     return G, inliers, [c for c in names if c not in inliers]
 
 
-def adjust_extrinsics(frames: Mapping[str, Iterable[Frame]], extrinsics: Mapping[str, CameraExtrinsics],
-                     intrinsics: Mapping[str, CameraIntrinsics], layouts: Mapping[str, CubeLayout],
-                     world: WorldConfig, *, clock_samples: Mapping[str, Sequence[ClockSample]] | None = None,
-                     world_frames: Mapping[str, Iterable[Frame]] | None = None,
-                     params: BundleAdjustmentParams = BundleAdjustmentParams(),
-                     calibration_params: CalibrationParams | None = None,
-                     detector_params: DetectorParams | None = None, progress: Progress | None = None,
-                     frame_count: int = 0, world_frame_counts: Mapping[str, int] | None = None,
-                     ) -> BundleAdjustmentReport:
-    """Refine ``extrinsics`` (the world-marker calibration) by bundle adjustment over the cube
-    sightings in the tracking ``frames`` (camera -> its frames, stamped with the camera's
-    ``clock_samples``) and the world marker in the calibration ``world_frames`` (camera -> its
-    frames; None: cube sightings only), see the module docstring. ``layouts``: robot -> cube
-    layout; ``intrinsics`` of every camera of ``frames`` that has extrinsics; ``calibration_params``
-    and ``detector_params`` are the ``[calibration]`` and ``[detector]`` settings (None: defaults).
+def world_marker_terms(observations: Mapping[str, WorldMarkerObservation], world: WorldConfig,
+                       cameras: Iterable[str]) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """The solver's world points of the ``cameras`` that have a world-marker observation: the
+    marker's four corners (world frame), or the reference's points, and their averaged pixels."""
+    marker = marker_corners_m(world.marker_size_m)
+    return {c: (marker if observations[c].points_world_m is None else observations[c].points_world_m,
+                observations[c].corners_px) for c in cameras if c in observations}
 
-    Returns the refined extrinsics of every prior camera, per-camera residuals and moved
-    cameras; warnings are also logged. CalibrationError when the frames share fewer than two
-    cameras with the extrinsics or no instant has two cameras seeing the cube.
-    """
-    warnings: list[str] = []
 
-    def warn(message: str) -> None:
-        warnings.append(message)
-        log.warning("%s", message)
-
+def start_refinement(frames: Mapping[str, Iterable[Frame]], extrinsics: Mapping[str, CameraExtrinsics],
+                     intrinsics: Mapping[str, CameraIntrinsics], layouts: Mapping[str, CubeLayout], *,
+                     clock_samples: Mapping[str, Sequence[ClockSample]] | None,
+                     params: BundleAdjustmentParams, detector_params: DetectorParams | None,
+                     progress: Progress | None, frame_count: int, warn: Callable[[str], None],
+                     readout_s: Mapping[str, float] | None = None,
+                     calibration_corners: bool = False) -> tuple[Refinement, list[str]]:
+    """The first steps every refinement shares: the cube frames of the cameras with extrinsics,
+    instants, and body poses solved with the cameras held (twice: the second time with
+    velocities from the first). Returns the refinement and all cameras with extrinsics (some may
+    have no multi-camera sightings: warned about). CalibrationError for too few cameras or no
+    instant."""
     unknown = [c for c in frames if c not in extrinsics]
     cameras = [c for c in frames if c in extrinsics]
     if len(cameras) < 2:
@@ -698,10 +722,9 @@ def adjust_extrinsics(frames: Mapping[str, Iterable[Frame]], extrinsics: Mapping
     if missing:
         raise CalibrationError(f"camera(s) {', '.join(missing)}: no intrinsics")
     T_prior = {c: extrinsics[c].T_world_cam for c in cameras}
-
     observed = cube_frames({c: frames[c] for c in cameras}, layouts, clock_samples, detector_params, progress,
-                           frame_count)
-    instants = _make_instants(observed, layouts, intrinsics, T_prior, params, progress)
+                           frame_count, {c: intrinsics[c] for c in cameras} if calibration_corners else None)
+    instants = make_instants(observed, layouts, intrinsics, T_prior, params, progress)
     if not instants:
         raise CalibrationError(
             f"no instant where {params.min_cameras}+ cameras saw a robot's cube within "
@@ -714,77 +737,91 @@ def adjust_extrinsics(frames: Mapping[str, Iterable[Frame]], extrinsics: Mapping
     if len(used) < 2:
         raise CalibrationError(f"only {used[0]} has multi-camera cube sightings; "
                                "refinement needs at least two cameras seeing the cube at once")
-    cam_index = {c: i for i, c in enumerate(used)}
-    T0_cams = np.array([T_prior[c] for c in used])
-    world_points = marker_corners_m(world.marker_size_m)
-
-    def vel_of(inst: Sequence[Instant], T_cubes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        v, w = np.zeros((len(inst), 3)), np.zeros((len(inst), 3))
-        for robot in {i.robot for i in inst}:
-            idx = np.array([k for k, i in enumerate(inst) if i.robot == robot])
-            v[idx], w[idx] = velocities(np.array([inst[k].time_s for k in idx]), T_cubes[idx], params.velocity_window_s)
-        return v, w
-
-    # 1. cube poses with the prior cameras (twice: the second with velocities from the first);
-    #    then the relative solve: cube corners only, the gauge held by weak priors
-    T_cubes = np.array([i.T_world_cube for i in instants])
-    vel, angvel = np.zeros((len(instants), 3)), np.zeros((len(instants), 3))
+    refinement = Refinement.start(instants, used, T_prior, intrinsics, layouts, params, readout_s)
     for _ in range(2):
-        prob = _build_problem(instants, cam_index, vel, angvel, {}, world_points)
-        _, T_cubes = _solve(prob, T0_cams, T_cubes, params, solve_cameras=False)
-        vel, angvel = vel_of(instants, T_cubes)
-    prob = _build_problem(instants, cam_index, vel, angvel, {}, world_points)
-    T_cams, T_cubes = _solve(prob, T0_cams, T_cubes, params, gauge_prior=True)
-    G, consistent, moved = _align({c: T_cams[i] for c, i in cam_index.items()}, T_prior, params)
+        refinement.solve(refinement.freedom(cameras=False))
+        refinement.update_velocities()
+    return refinement, cameras
+
+
+def adjust_extrinsics(frames: Mapping[str, Iterable[Frame]], extrinsics: Mapping[str, CameraExtrinsics],
+                     intrinsics: Mapping[str, CameraIntrinsics], layouts: Mapping[str, CubeLayout],
+                     world: WorldConfig, *, clock_samples: Mapping[str, Sequence[ClockSample]] | None = None,
+                     world_frames: Mapping[str, Iterable[Frame]] | None = None,
+                     params: BundleAdjustmentParams = BundleAdjustmentParams(),
+                     calibration_params: CalibrationParams | None = None,
+                     detector_params: DetectorParams | None = None, progress: Progress | None = None,
+                     frame_count: int = 0, world_frame_counts: Mapping[str, int] | None = None,
+                     readout_s: Mapping[str, float] | None = None) -> BundleAdjustmentReport:
+    """Refine ``extrinsics`` (the world-marker calibration) by bundle adjustment over the cube
+    sightings in the tracking ``frames`` (camera -> its frames, stamped with the camera's
+    ``clock_samples``) and the world marker in the calibration ``world_frames`` (camera -> its
+    frames; None: cube sightings only), see the module docstring. ``layouts``: robot -> cube
+    layout; ``intrinsics`` of every camera of ``frames`` that has extrinsics; ``calibration_params``
+    and ``detector_params`` are the ``[calibration]`` and ``[detector]`` settings (None: defaults).
+
+    Returns the refined extrinsics of every prior camera, per-camera residuals and moved
+    cameras (and, with ``refine_intrinsics``, the refined intrinsics); warnings are also logged.
+    ``readout_s``: each camera's rolling-shutter readout (s; absent or 0: a global shutter).
+    CalibrationError when the frames share fewer than two cameras with the extrinsics or no
+    instant has two cameras seeing the cube.
+    """
+    warnings: list[str] = []
+
+    def warn(message: str) -> None:
+        warnings.append(message)
+        log.warning("%s", message)
+
+    ref, cameras = start_refinement(frames, extrinsics, intrinsics, layouts, clock_samples=clock_samples,
+                                    params=params, detector_params=detector_params, progress=progress,
+                                    frame_count=frame_count, warn=warn, readout_s=readout_s)
+    T_prior = {c: extrinsics[c].T_world_cam for c in cameras}
+    used = ref.cameras
+
+    # 1. the relative solve: cube corners only, the gauge held by weak priors on the cameras
+    gauge = PosePrior(ref.model.T_cams.copy(), params.gauge_prior_position_m, np.radians(params.gauge_prior_rotation_deg))
+    ref.solve(ref.freedom(camera_prior=gauge))
+    G, consistent, moved = _align(ref.T_world_cam(), T_prior, params)
     if moved and len(consistent) < 2:
         # two cameras disagree (or none agree): the data cannot say which one moved
         names = ", ".join(used)
-        d = max(_pose_distance(G @ T_cams[cam_index[c]], T_prior[c])[0] for c in used)
+        d = max(_pose_distance(G @ T, T_prior[c])[0] for c, T in ref.T_world_cam().items())
         warn(f"cameras {names} disagree with their calibration by up to {100 * d:.1f} cm: one of them moved "
              "after calibration, but it takes three cameras to tell which; recalibrate")
         moved = []
-    T_cams = np.einsum("ij,cjk->cik", G, T_cams)
-    T_cubes = np.einsum("ij,kjl->kil", G, T_cubes)
+    ref.model = ref.model.replace(T_cams=np.einsum("ij,cjk->cik", G, ref.model.T_cams),
+                                  T_bodies=np.einsum("ij,kjl->kil", G, ref.model.T_bodies))
 
     # 2. absolute solves: re-matched faces, re-estimated velocities, world-marker corners
-    world_terms: dict[str, tuple[np.ndarray, float]] = {}
-    observations = {}
+    world_terms: dict[str, tuple[np.ndarray, np.ndarray]] = {}
     if world_frames is not None:
         observations = world_marker_observations(world_frames, world, intrinsics, calibration_params, detector_params,
                                                  progress, params.world_samples, world_frame_counts)
-        for c, obs in observations.items():
-            if c in cam_index and c not in moved:
-                K = intrinsics[c].K
-                world_terms[c] = (normalize_px(obs.corners_px, K, intrinsics[c].dist), float((K[0, 0] + K[1, 1]) / 2.0))
-    if not world_terms and world_frames is not None:
-        warn("no usable world-marker sightings in the calibration recording; the refined poses keep the prior "
-             "calibration's frame (aligned to the cameras that agree)")
+        world_terms = world_marker_terms(observations, world, [c for c in used if c not in moved])
+        if not world_terms:
+            warn("no usable world-marker sightings in the calibration recording; the refined poses keep the prior "
+                 "calibration's frame (aligned to the cameras that agree)")
     # without world-marker corners the gauge stays held by weak priors at the aligned poses
     for _round in range(params.rounds):
-        vel, angvel = vel_of(instants, T_cubes)
-        current = {c: T_cams[i] for c, i in cam_index.items()}
-        rematched, keep = _rematch(instants, T_cubes, vel, angvel, layouts, intrinsics, current, params)
-        instants, T_cubes, vel, angvel = rematched, T_cubes[keep], vel[keep], angvel[keep]
-        if not instants:
-            raise CalibrationError("no multi-camera cube sightings fit the refined poses")
-        prob = _build_problem(instants, cam_index, vel, angvel, world_terms, world_points)
-        T_cams, T_cubes = _solve(prob, T_cams, T_cubes, params, gauge_prior=not world_terms)
+        ref.update_velocities()
+        ref.rematch()
+        gauge = None if world_terms else PosePrior(ref.model.T_cams.copy(), params.gauge_prior_position_m,
+                                                   np.radians(params.gauge_prior_rotation_deg))
+        ref.solve(ref.freedom(camera_prior=gauge, intrinsics=params.refine_intrinsics,
+                              free_scale=params.free_cube_scale and bool(world_terms)), world_terms)
 
     # report
-    prob = _build_problem(instants, cam_index, *vel_of(instants, T_cubes), world_terms, world_points)
-    r = _corner_residuals_px(prob, T_cams, T_cubes)
-    rw = _world_residuals_px(prob, T_cams)
+    ref.update_velocities()
+    obs, r, rw = ref.residuals(world_terms)
     refined = dict(extrinsics)
     report_cams = {}
-    for c, i in cam_index.items():
-        mine = prob.cam == i
-        rms = float(np.sqrt(np.nanmean(np.sum(r[mine] ** 2, axis=1)))) if mine.any() else float("nan")
-        wm = prob.world_cam == i
-        wrms = float(np.sqrt(np.nanmean(np.sum(rw[wm] ** 2, axis=1)))) if wm.any() else float("nan")
-        shift_m, shift_deg = _pose_distance(T_cams[i], T_prior[c])
-        n_inst = int(len(np.unique(prob.inst[mine])))
-        report_cams[c] = CameraResidual(c, rms, int(mine.sum()), n_inst, wrms, shift_m, shift_deg, c in moved)
-        refined[c] = CameraExtrinsics(T_cams[i], n_inst, 0.0, 0.0, METHOD)
+    for i, c in enumerate(used):
+        mine = obs.cam == i
+        shift_m, shift_deg = _pose_distance(ref.model.T_cams[i], T_prior[c])
+        n_inst = len(np.unique(obs.inst[mine]))
+        report_cams[c] = CameraResidual(c, rms_px(r[mine]), int(mine.sum()), n_inst, rms_px(rw[obs.world_cam == i]),
+                                        shift_m, shift_deg, c in moved)
+        refined[c] = CameraExtrinsics(ref.model.T_cams[i], n_inst, 0.0, 0.0, METHOD)
         if c in moved:
             warn(f"camera {c} has moved after calibration: the other cameras' cube sightings put it "
                  f"{100 * shift_m:.1f} cm and {shift_deg:.2f} deg from its calibrated pose; its world-marker "
@@ -792,5 +829,5 @@ def adjust_extrinsics(frames: Mapping[str, Iterable[Frame]], extrinsics: Mapping
     for c in cameras:
         if c not in report_cams:
             report_cams[c] = CameraResidual(c, float("nan"), 0, 0, float("nan"), 0.0, 0.0, False)
-    return BundleAdjustmentReport(refined, dict(extrinsics), report_cams, tuple(moved), len(instants),
-                                  tuple(warnings))
+    return BundleAdjustmentReport(refined, dict(extrinsics), report_cams, tuple(moved), len(ref.instants),
+                                  tuple(warnings), {**dict(intrinsics), **ref.intrinsics()})

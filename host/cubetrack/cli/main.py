@@ -18,6 +18,7 @@ COMMANDS = {
     "simulate": "simulate",
     "calibrate": "calibrate",
     "calibrate-intrinsics": "calibrate_intrinsics",
+    "calibrate-body": "calibrate_body",
     "make-body": "make_body",
     "track": "track",
     "record": "record",

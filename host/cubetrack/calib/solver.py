@@ -1,0 +1,419 @@
+"""The bundle adjustment's least-squares core: camera poses, camera intrinsics, body poses and
+the pose and size of every marker on a body, from marker corners observed in pixels.
+
+Used by the extrinsics refinement (:mod:`cubetrack.calib.bundle`) and the body calibration
+(:mod:`cubetrack.calib.body`); both build :class:`Observations` and a start :class:`Model`,
+choose the free blocks and their priors (:class:`Freedom`) and call :func:`solve`.
+
+The measurement model of one body corner ``u`` (a corner of a unit marker, TL TR BR BL) of
+marker ``m`` seen by camera ``c`` at instant ``k``::
+
+    P = R_m (s_m u) + t_m                     marker pose and size on the body (body frame)
+    X = exp(ω dt) R_k (1 + σ_r) P + t_k + v dt    body pose at the instant, moved to the frame's
+                                              time (the constant-velocity model of
+                                              :mod:`cubetrack.estimate.reprojection`), σ_r the
+                                              body's free scale (``free_cube_scale``)
+    pixel = project(K_c, dist_c, R_c^T (X - t_c))   OpenCV's lens model (cv2.projectPoints)
+
+and of a static world point ``X`` (a world marker's or a board's corner) just the last line.
+Residuals are pixel errors over their noise, a soft-L1 loss over all of them; for ground robots
+the body's height against one height per robot and its tilt from world up; and priors: camera
+poses (a weak gauge prior, or the extrinsics a body calibration starts from), intrinsics (the
+camera_info they start from: focal length, principal point, k1, k2) and marker poses and sizes
+(the nominal layout). Every Jacobian is analytic (cv2.projectPoints gives the lens model's) and
+sparse: a corner depends on one camera, one instant and one marker.
+
+Increments: poses move by world-frame (cameras, bodies) or body-frame (markers) increments
+``[δp, δθ]``: ``R = exp(δθ) R0``, ``p = p0 + δp``; focal lengths relatively, ``f = f0 (1 + δ)``;
+the principal point in units of the focal length, ``c = c0 + f0 δ``; k1 and k2 as they are; a
+marker's size relatively.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from scipy.optimize import least_squares
+from scipy.sparse import coo_matrix
+from scipy.spatial.transform import Rotation
+
+from cubetrack.core.layout import marker_corners_m
+
+UNIT_CORNERS = marker_corners_m(1.0)  # (4, 3) corners of a unit marker, TL TR BR BL
+INTRINSIC_NAMES = ("fx", "fy", "cx", "cy", "k1", "k2")  # the refined intrinsics, in column order
+_BEHIND_PX = 1e3  # residual (in noise units) of a point behind its camera
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Observations:
+    """Corner observations as flat arrays.
+
+    Body corners (one row each): camera ``cam``, instant ``inst``, ``marker`` (index into the
+    model's markers) and its ``corner`` (0..3: TL TR BR BL), ``pixels`` (N, 2) observed;
+    ``motion_R`` (N, 3, 3), ``motion_t`` (N, 3): the body's motion from the instant's time to the
+    frame's, ``exp(ω dt)`` and ``v dt``. ``robot`` (K,) of each instant, ``robots`` how many.
+    World points: ``world_cam`` (M,), ``world_points`` (M, 3) metres, ``world_pixels`` (M, 2).
+    """
+
+    cam: np.ndarray
+    inst: np.ndarray
+    marker: np.ndarray
+    corner: np.ndarray
+    pixels: np.ndarray
+    motion_R: np.ndarray
+    motion_t: np.ndarray
+    robot: np.ndarray
+    robots: int
+    world_cam: np.ndarray
+    world_points: np.ndarray
+    world_pixels: np.ndarray
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Model:
+    """Everything the observations depend on: ``T_cams`` (C, 4, 4) camera poses in the world,
+    ``K`` (C, 3, 3) and ``dist`` (C, D) their intrinsics, ``T_bodies`` (K, 4, 4) the body pose
+    at each instant, ``T_body_markers`` (G, 4, 4) and ``sizes_m`` (G,) the markers on the bodies
+    (``marker_robot`` (G,): whose body) and ``scales`` (robots,) each body's scale (1 unless
+    ``free_cube_scale``)."""
+
+    T_cams: np.ndarray
+    K: np.ndarray
+    dist: np.ndarray
+    T_bodies: np.ndarray
+    T_body_markers: np.ndarray
+    sizes_m: np.ndarray
+    marker_robot: np.ndarray
+    scales: np.ndarray
+
+    def replace(self, **changes) -> Model:
+        values = {name: getattr(self, name) for name in self.__slots__}
+        values.update(changes)
+        return Model(**values)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class PosePrior:
+    """Poses (n, 4, 4) held near ``T`` with ``sigma_m`` (position) and ``sigma_rad`` (rotation)."""
+
+    T: np.ndarray
+    sigma_m: float
+    sigma_rad: float
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class IntrinsicsPrior:
+    """Intrinsics held near ``K`` (C, 3, 3), ``dist`` (C, D): focal lengths within
+    ``focal_rel`` (relative), the principal point within ``principal_px``, k1 and k2 within
+    ``k1``, ``k2`` (1 sigma). Other distortion coefficients stay as they start."""
+
+    K: np.ndarray
+    dist: np.ndarray
+    focal_rel: float
+    principal_px: float
+    k1: float
+    k2: float
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class BodyPrior:
+    """Markers held near their nominal poses ``T`` (G, 4, 4) and sizes ``sizes_m`` (G,):
+    ``sigma_m``, ``sigma_rad`` and the relative size ``size_rel`` (1 sigma)."""
+
+    T: np.ndarray
+    sizes_m: np.ndarray
+    sigma_m: float
+    sigma_rad: float
+    size_rel: float
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Freedom:
+    """What a solve may change and how it is held: cameras (``cameras``; ``camera_prior`` None =
+    no prior), intrinsics (``intrinsics`` prior, None = fixed), markers (``body`` prior, None =
+    fixed), each body's scale (``free_scale``); the body poses are always free. Noise and
+    loss: ``corner_noise_px``, ``world_noise_px``, ``f_scale_px``; ground robots: ``height_sigma_m``
+    (0 = no common height), ``upright_sigma_rad`` (0 = no upright prior); ``max_nfev``."""
+
+    cameras: bool = True
+    camera_prior: PosePrior | None = None
+    intrinsics: IntrinsicsPrior | None = None
+    body: BodyPrior | None = None
+    free_scale: bool = False
+    corner_noise_px: float = 0.5
+    world_noise_px: float = 0.5
+    f_scale_px: float = 1.5
+    height_sigma_m: float = 0.0
+    upright_sigma_rad: float = 0.0
+    max_nfev: int = 60
+
+
+def apply_increments(T0: np.ndarray, x: np.ndarray) -> np.ndarray:
+    """(n, 4, 4) poses moved by (n, 6) increments [δp, δθ]: ``R = exp(δθ) R0``, ``p = p0 + δp``."""
+    out = T0.copy()
+    out[:, :3, :3] = Rotation.from_rotvec(x[:, 3:6]).as_matrix() @ T0[:, :3, :3]
+    out[:, :3, 3] = T0[:, :3, 3] + x[:, :3]
+    return out
+
+
+def pose_offsets(T: np.ndarray, T_ref: np.ndarray) -> np.ndarray:
+    """(n, 6) [p - p_ref, log(R R_ref^T)] of (n, 4, 4) poses from their references."""
+    rot = Rotation.from_matrix(T[:, :3, :3] @ np.transpose(T_ref[:, :3, :3], (0, 2, 1))).as_rotvec()
+    return np.concatenate([T[:, :3, 3] - T_ref[:, :3, 3], rot], axis=1)
+
+
+def skew(v: np.ndarray) -> np.ndarray:
+    """(N, 3, 3) cross-product matrices of (N, 3) vectors."""
+    out = np.zeros(v.shape[:-1] + (3, 3))
+    out[..., 0, 1], out[..., 0, 2] = -v[..., 2], v[..., 1]
+    out[..., 1, 0], out[..., 1, 2] = v[..., 2], -v[..., 0]
+    out[..., 2, 0], out[..., 2, 1] = -v[..., 1], v[..., 0]
+    return out
+
+
+def padded_dist(dist: np.ndarray) -> np.ndarray:
+    """Distortion coefficients as OpenCV takes them (at least k1 k2 p1 p2 k3)."""
+    dist = np.asarray(dist, float).ravel()
+    return np.concatenate([dist, np.zeros(max(0, 5 - len(dist)))])
+
+
+def project(points_cam: np.ndarray, K: np.ndarray, dist: np.ndarray,
+            with_jac: bool = False) -> tuple[np.ndarray, np.ndarray | None, np.ndarray]:
+    """Pixels (N, 2) of points (N, 3) in a camera's frame through OpenCV's lens model; with
+    ``with_jac`` also d pixel / d [point, fx, fy, cx, cy, dist...] (N, 2, 7 + D). Returns
+    (pixels, jacobian or None, in front): points within 1 µm of the image plane or behind it
+    get NaN pixels and a zero Jacobian."""
+    n = len(points_cam)
+    front = points_cam[:, 2] > 1e-6
+    pixels = np.full((n, 2), np.nan)
+    jac = np.zeros((n, 2, 7 + len(dist))) if with_jac else None
+    if front.any():
+        zero = np.zeros(3)
+        uv, J = cv2.projectPoints(points_cam[front].astype(np.float64), zero, zero, K, dist)
+        pixels[front] = uv.reshape(-1, 2)
+        if with_jac:
+            J = J.reshape(-1, 2, J.shape[1])
+            jac[front] = J[:, :, 3:]  # d/d tvec = d/d point; then f, c, dist
+    return pixels, jac, front
+
+
+def body_points(obs: Observations, model: Model) -> np.ndarray:
+    """(N, 3) the observed corners in their body's frame (marker pose and size, body scale)."""
+    T_m = model.T_body_markers[obs.marker]
+    local = UNIT_CORNERS[obs.corner] * model.sizes_m[obs.marker][:, None]
+    P = np.einsum("nij,nj->ni", T_m[:, :3, :3], local) + T_m[:, :3, 3]
+    return P * model.scales[model.marker_robot[obs.marker]][:, None]
+
+
+def corner_residuals_px(obs: Observations, model: Model) -> np.ndarray:
+    """(N, 2) body-corner reprojection errors in pixels (NaN behind a camera)."""
+    a = np.einsum("nij,nj->ni", model.T_bodies[obs.inst, :3, :3], body_points(obs, model))
+    X = np.einsum("nij,nj->ni", obs.motion_R, a) + model.T_bodies[obs.inst, :3, 3] + obs.motion_t
+    return _projected(model, obs.cam, X, False)[0] - obs.pixels
+
+
+def world_residuals_px(obs: Observations, model: Model) -> np.ndarray:
+    """(M, 2) world-point reprojection errors in pixels (NaN behind a camera)."""
+    if not len(obs.world_cam):
+        return np.zeros((0, 2))
+    return _projected(model, obs.world_cam, obs.world_points, False)[0] - obs.world_pixels
+
+
+def _projected(model: Model, cam: np.ndarray, X: np.ndarray, with_jac: bool):
+    """Pixels (N, 2) of world points X seen by cameras ``cam``; with ``with_jac`` also
+    d pixel / d X (N, 2, 3) and d pixel / d [fx, fy, cx, cy, dist...] (N, 2, 4 + D)."""
+    Rc = model.T_cams[cam, :3, :3]
+    pc = np.einsum("nji,nj->ni", Rc, X - model.T_cams[cam, :3, 3])
+    n, D = len(X), model.dist.shape[1]
+    pixels = np.full((n, 2), np.nan)
+    dX = np.zeros((n, 2, 3)) if with_jac else None
+    dI = np.zeros((n, 2, 4 + D)) if with_jac else None
+    for c in np.unique(cam):
+        rows = np.flatnonzero(cam == c)
+        px, J, _front = project(pc[rows], model.K[c], model.dist[c], with_jac)
+        pixels[rows] = px
+        if with_jac:
+            dX[rows] = J[:, :, :3] @ model.T_cams[c, :3, :3].T
+            dI[rows] = J[:, :, 3:]
+    return pixels, dX, dI
+
+
+@dataclass(frozen=True, slots=True)
+class _Layout:
+    """Where each block's columns start in the parameter vector, and its size."""
+
+    C: int
+    K: int
+    G: int
+    R: int
+    cams: int
+    intr: int
+    bodies: int
+    heights: int
+    scales: int
+    markers: int
+    n: int
+
+
+def _columns(obs: Observations, model: Model, free: Freedom) -> _Layout:
+    C, K, G, R = len(model.T_cams), len(model.T_bodies), len(model.T_body_markers), obs.robots
+    sizes = [6 * C if free.cameras else 0, 6 * C if free.intrinsics is not None else 0, 6 * K,
+             R if free.height_sigma_m > 0 else 0, R if free.free_scale else 0,
+             7 * G if free.body is not None else 0]
+    starts = np.concatenate([[0], np.cumsum(sizes)])
+    return _Layout(C, K, G, R, *(int(s) for s in starts[:6]), int(starts[6]))
+
+
+def solve(obs: Observations, model: Model, free: Freedom) -> Model:
+    """Least-squares ``model`` for ``obs`` with the blocks and priors ``free`` gives (see the
+    module docstring); returns the solved model (fixed blocks as they came)."""
+    L = _columns(obs, model, free)
+    sigma, sigma_w = free.corner_noise_px, free.world_noise_px
+    heights0 = np.array([np.median(model.T_bodies[obs.robot == j, 2, 3]) if (obs.robot == j).any() else 0.0
+                         for j in range(L.R)])
+    f0 = model.K[:, [0, 1], [0, 1]]  # (C, 2)
+    fmean0 = f0.mean(axis=1)
+
+    def unpack(x: np.ndarray) -> Model:
+        changes = {"T_bodies": apply_increments(model.T_bodies, x[L.bodies:L.bodies + 6 * L.K].reshape(L.K, 6))}
+        if free.cameras:
+            changes["T_cams"] = apply_increments(model.T_cams, x[L.cams:L.cams + 6 * L.C].reshape(L.C, 6))
+        if free.intrinsics is not None:
+            d = x[L.intr:L.intr + 6 * L.C].reshape(L.C, 6)
+            K = model.K.copy()
+            K[:, 0, 0], K[:, 1, 1] = f0[:, 0] * (1 + d[:, 0]), f0[:, 1] * (1 + d[:, 1])
+            K[:, 0, 2], K[:, 1, 2] = model.K[:, 0, 2] + fmean0 * d[:, 2], model.K[:, 1, 2] + fmean0 * d[:, 3]
+            dist = model.dist.copy()
+            dist[:, :2] += d[:, 4:6]
+            changes.update(K=K, dist=dist)
+        if free.free_scale:
+            changes["scales"] = model.scales + x[L.scales:L.scales + L.R]
+        if free.body is not None:
+            d = x[L.markers:L.markers + 7 * L.G].reshape(L.G, 7)
+            changes["T_body_markers"] = apply_increments(model.T_body_markers, d[:, :6])
+            changes["sizes_m"] = model.sizes_m * (1 + d[:, 6])
+        return model.replace(**changes)
+
+    def evaluate(x: np.ndarray, with_jac: bool):
+        m = unpack(x)
+        res: list[np.ndarray] = []
+        rows: list[np.ndarray] = []
+        cols: list[np.ndarray] = []
+        vals: list[np.ndarray] = []
+        row = 0
+
+        def block(r: np.ndarray, parts: list[tuple[np.ndarray, np.ndarray]]) -> None:
+            """Residuals r (n, k) and their Jacobian parts: (columns (n, w), values (n, k, w))."""
+            nonlocal row
+            n, k = r.shape
+            res.append(r.ravel())
+            if with_jac:
+                base = row + k * np.arange(n)[:, None] + np.arange(k)[None, :]  # (n, k)
+                for c, v in parts:
+                    w = c.shape[1]
+                    rows.append(np.broadcast_to(base[:, :, None], (n, k, w)).ravel())
+                    cols.append(np.broadcast_to(c[:, None, :], (n, k, w)).ravel())
+                    vals.append(v.ravel())
+            row += n * k
+
+        def cam_parts(cam: np.ndarray, X: np.ndarray, A: np.ndarray, dI: np.ndarray, scale: float) -> list:
+            parts = []
+            if free.cameras:
+                y = X - m.T_cams[cam, :3, 3]
+                parts.append((L.cams + 6 * cam[:, None] + np.arange(6), np.concatenate([-A, A @ skew(y)], axis=2)))
+            if free.intrinsics is not None:
+                Jd = np.stack([dI[:, :, 0] * f0[cam, 0, None], dI[:, :, 1] * f0[cam, 1, None],
+                               dI[:, :, 2] * fmean0[cam, None], dI[:, :, 3] * fmean0[cam, None],
+                               dI[:, :, 4], dI[:, :, 5]], axis=2) / scale
+                parts.append((L.intr + 6 * cam[:, None] + np.arange(6), Jd))
+            return parts
+
+        # body corners
+        if len(obs.cam):
+            T_m = m.T_body_markers[obs.marker]
+            local = UNIT_CORNERS[obs.corner] * m.sizes_m[obs.marker][:, None]
+            q = np.einsum("nij,nj->ni", T_m[:, :3, :3], local)  # R_m s u
+            scale = m.scales[m.marker_robot[obs.marker]]
+            P = (q + T_m[:, :3, 3]) * scale[:, None]
+            Rk = m.T_bodies[obs.inst, :3, :3]
+            a = np.einsum("nij,nj->ni", Rk, P)
+            X = np.einsum("nij,nj->ni", obs.motion_R, a) + m.T_bodies[obs.inst, :3, 3] + obs.motion_t
+            px, dX, dI = _projected(m, obs.cam, X, with_jac)
+            front = np.isfinite(px[:, 0])
+            r = np.where(front[:, None], (px - obs.pixels) / sigma, _BEHIND_PX)
+            parts = []
+            if with_jac:
+                A = dX / sigma * front[:, None, None]
+                dI = dI * front[:, None, None]
+                parts = cam_parts(obs.cam, X, A, dI, sigma)
+                parts.append((L.bodies + 6 * obs.inst[:, None] + np.arange(6),
+                              np.concatenate([A, -(A @ obs.motion_R) @ skew(a)], axis=2)))
+                B = A @ obs.motion_R @ Rk  # d r / d P
+                if free.free_scale:
+                    unscaled = P / scale[:, None]
+                    parts.append((L.scales + obs.robot[obs.inst][:, None], B @ unscaled[:, :, None]))
+                if free.body is not None:
+                    Bs = B * scale[:, None, None]
+                    unit = np.einsum("nij,nj->ni", T_m[:, :3, :3], UNIT_CORNERS[obs.corner])
+                    size0 = model.sizes_m[obs.marker]
+                    Jm = np.concatenate([Bs, -Bs @ skew(q), (Bs @ unit[:, :, None]) * size0[:, None, None]], axis=2)
+                    parts.append((L.markers + 7 * obs.marker[:, None] + np.arange(7), Jm))
+            block(r, parts)
+        # world points
+        if len(obs.world_cam) and (free.cameras or free.intrinsics is not None):
+            px, dX, dI = _projected(m, obs.world_cam, obs.world_points, with_jac)
+            front = np.isfinite(px[:, 0])
+            r = np.where(front[:, None], (px - obs.world_pixels) / sigma_w, _BEHIND_PX)
+            parts = []
+            if with_jac:
+                parts = cam_parts(obs.world_cam, obs.world_points, dX / sigma_w * front[:, None, None],
+                                  dI * front[:, None, None], sigma_w)
+            block(r, parts)
+        k_idx = np.arange(L.K)
+        # ground robots: one height per robot, body z near world up
+        if free.height_sigma_m > 0:
+            h = heights0 + x[L.heights:L.heights + L.R]
+            r = ((m.T_bodies[:, 2, 3] - h[obs.robot]) / free.height_sigma_m)[:, None]
+            ones = np.full((L.K, 1, 1), 1.0 / free.height_sigma_m)
+            block(r, [(L.bodies + 6 * k_idx[:, None] + 2, ones), (L.heights + obs.robot[:, None], -ones)])
+        if free.upright_sigma_rad > 0:
+            up = m.T_bodies[:, :3, 2]
+            block(up[:, :2] / free.upright_sigma_rad,
+                  [(L.bodies + 6 * k_idx[:, None] + 3 + np.arange(3), -skew(up)[:, :2, :] / free.upright_sigma_rad)])
+        # priors
+        if free.cameras and free.camera_prior is not None:
+            p = free.camera_prior
+            s = np.r_[np.full(3, p.sigma_m), np.full(3, p.sigma_rad)]
+            c_idx = np.arange(L.C)
+            block(pose_offsets(m.T_cams, p.T) / s,
+                  [(L.cams + 6 * c_idx[:, None] + np.arange(6), np.broadcast_to(np.diag(1.0 / s), (L.C, 6, 6)))])
+        if free.intrinsics is not None:
+            p = free.intrinsics
+            fp = p.K[:, [0, 1], [0, 1]]
+            s = np.column_stack([p.focal_rel * fp, np.full((L.C, 2), p.principal_px), np.full(L.C, p.k1),
+                                 np.full(L.C, p.k2)])
+            value = np.column_stack([m.K[:, 0, 0], m.K[:, 1, 1], m.K[:, 0, 2], m.K[:, 1, 2], m.dist[:, :2]])
+            prior = np.column_stack([fp, p.K[:, 0, 2], p.K[:, 1, 2], p.dist[:, :2]])
+            d = np.column_stack([f0, fmean0, fmean0, np.ones(L.C), np.ones(L.C)]) / s
+            c_idx = np.arange(L.C)
+            block((value - prior) / s, [(L.intr + 6 * c_idx[:, None] + np.arange(6), d[:, :, None] * np.eye(6))])
+        if free.body is not None:
+            p = free.body
+            s = np.r_[np.full(3, p.sigma_m), np.full(3, p.sigma_rad), p.size_rel]
+            offsets = np.column_stack([pose_offsets(m.T_body_markers, p.T), m.sizes_m / p.sizes_m - 1.0])
+            g_idx = np.arange(L.G)
+            d = np.tile(1.0 / s, (L.G, 1))
+            d[:, 6] *= model.sizes_m / p.sizes_m
+            block(offsets / s, [(L.markers + 7 * g_idx[:, None] + np.arange(7), d[:, :, None] * np.eye(7))])
+        r_all = np.concatenate(res)
+        if not with_jac:
+            return r_all, None
+        J = coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(row, L.n))
+        return r_all, J.tocsr()
+
+    result = least_squares(lambda x: evaluate(x, False)[0], np.zeros(L.n), jac=lambda x: evaluate(x, True)[1],
+                           method="trf", loss="soft_l1", f_scale=free.f_scale_px / sigma,
+                           x_scale=np.full(L.n, 1e-3), max_nfev=free.max_nfev, tr_solver="lsmr")
+    return unpack(result.x)
