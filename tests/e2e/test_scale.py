@@ -166,15 +166,17 @@ class Bus:
     """The test's own Zenoh peer on the sighting bus: when each camera's sightings arrive and
     who claims each camera (the liveliness tokens the workers hold)."""
 
-    def __init__(self, port: int):
-        from cubetrack.app.worker import CLAIMS_KEY, SIGHTINGS_KEY, ClaimBoard, worker_endpoints
+    def __init__(self, port: int, hub: bool = False):
+        """``hub``: listen on ``port`` (the workers' default peer) instead of connecting there."""
+        from cubetrack.app.worker import CLAIMS_KEY, SIGHTINGS_KEY, ClaimBoard, fuse_endpoints, worker_endpoints
         from cubetrack.core.sighting_wire import decode_sighting
         from cubetrack.sink.zenoh_session import open_session
 
         self.received: dict[str, list[float]] = {}  # camera -> time.monotonic() each sighting came here
         self.stamped: dict[str, list[float]] = {}  # camera -> the frame's arrival at its worker (Unix s)
         self.board = ClaimBoard()
-        self.session = open_session(worker_endpoints(connect=(f"tcp/127.0.0.1:{port}",)), "test")
+        locator = (f"tcp/127.0.0.1:{port}",)
+        self.session = open_session(fuse_endpoints(listen=locator) if hub else worker_endpoints(connect=locator), "test")
 
         def sighting(sample) -> None:
             message = decode_sighting(bytes(sample.payload))
@@ -307,3 +309,50 @@ def test_a_dead_workers_cameras_are_taken_over(scene, tmp_path, how):
     assert len(after) and np.max(np.diff(after)) < 1.0  # poses went on through the take-over
     assert [line for line in lines if line["time"] > killed_unix_s + (resumed - killed)
             and set(line["cameras"]) & set(victim)], "no pose from the taken-over cameras"
+
+
+def test_named_and_automatic_workers_share_the_cameras(scene, tmp_path):
+    """A worker with --cameras keeps its camera; two automatic workers share the others, one
+    each; one stopped with Ctrl-C drops its tokens at once and the other takes its camera.
+    (The cameras are unreachable: claiming does not depend on them; the test's peer is the hub.)"""
+    work, rec = scene
+    port = free_port()
+    cameras = [c.name for c in read_tracker_config(rec / "config.toml").cameras]
+    config = write_live_config(rec / "config.toml", dict.fromkeys(cameras, "http://127.0.0.1:9/stream"),
+                               tmp_path / "lab.toml")
+    common = ["--config", str(config), "--extrinsics", str(work / "extrinsics.toml"), "--duration", "120",
+              "--bus-connect", f"tcp/127.0.0.1:{port}"]
+    bus = Bus(port, hub=True)
+    named = cubetrack("worker", *common, "--cameras", cameras[0])
+    autos = [cubetrack("worker", *common) for _ in range(2)]
+    procs = [named, *autos]
+    try:
+        def held() -> dict[str, list[str]]:
+            return {c: sorted(w.rsplit("-", 1)[1] for w in bus.holders().get(c, ())) for c in cameras}
+
+        def shared() -> bool:
+            h = held()
+            return (h[cameras[0]] == [str(named.pid)] and all(len(h[c]) == 1 for c in cameras[1:])
+                    and {h[c][0] for c in cameras[1:]} == {str(a.pid) for a in autos})
+
+        wait_for(shared, 90, "the named camera kept, the others one per automatic worker", procs)
+        gone = next(c for c in cameras[1:] if held()[c] == [str(autos[0].pid)])
+        autos[0].send_signal(signal.SIGINT)
+        stopped = time.monotonic()
+        took = wait_for(lambda: held()[gone] == [str(autos[1].pid)], 20, f"{gone} taken over", [named, autos[1]])
+        print(f"Ctrl-C: {gone} claimed by the other worker {took - stopped:.3f} s later")
+        assert took - stopped < 5.0  # the stopping worker drops its tokens itself: no lease to wait for
+        assert held()[cameras[0]] == [str(named.pid)]
+        first = autos[0].communicate(timeout=60)  # one Ctrl-C only: a second one would cut its clean-up
+        for p in (named, autos[1]):
+            p.send_signal(signal.SIGINT)
+        outs = [p.communicate(timeout=60) for p in (named, autos[1])]
+        outs.insert(1, first)
+    finally:
+        for p in procs:
+            if p.poll() is None:
+                p.kill()
+                p.wait()
+        bus.close()
+    assert [p.returncode for p in procs] == [0, 0, 0], outs
+    assert f"took {gone}" in outs[2][0] and f"gave up {gone}" in outs[1][0]  # the summaries list the claims
