@@ -206,6 +206,17 @@ class Bus:
         self.session.close()
 
 
+def fused_poses(path) -> list[dict]:
+    """The poses of a fusion's JSONL so far (flushed per pose; a line being written is skipped)."""
+    poses = []
+    for line in path.read_text().splitlines() if path.exists() else ():
+        try:
+            poses.append(json.loads(line))
+        except json.JSONDecodeError:
+            break
+    return poses
+
+
 def wait_for(condition, timeout_s: float, what: str, procs) -> float:
     """Poll ``condition`` until true; the time.monotonic() it became true."""
     deadline = time.monotonic() + timeout_s
@@ -253,12 +264,12 @@ def test_a_dead_workers_cameras_are_taken_over(scene, tmp_path, how):
                 return {c: [i for i, suffix in enumerate(ids) for w in ws if w.endswith(suffix)]
                         for c, ws in bus.holders().items()}
 
-            def settled() -> bool:
+            def settled() -> bool:  # both workers hold a share (a slow starter is not yet in the pool)
                 o = owners()
-                return (all(len(o.get(c, ())) == 1 for c in cameras)
+                return (all(len(o.get(c, ())) == 1 for c in cameras) and {o[c][0] for c in cameras} == {0, 1}
                         and all(bus.heard_since(c, time.monotonic() - 0.5) for c in cameras))
 
-            wait_for(settled, 90, "every camera claimed once and heard", procs)
+            wait_for(settled, 90, "every camera claimed once, both workers with a share, every camera heard", procs)
             time.sleep(1.0)
             before = owners()
             assert all(len(before.get(c, ())) == 1 for c in cameras), before  # still one reader each
@@ -273,7 +284,12 @@ def test_a_dead_workers_cameras_are_taken_over(scene, tmp_path, how):
                                f"the survivor claims {victim}", [fuse, workers[1]])
             resumed = wait_for(lambda: all(bus.heard_since(c, claimed) for c in victim), 20,
                                f"sightings of {victim} resume", [fuse, workers[1]])
-            time.sleep(1.5)
+            resumed_unix_s = killed_unix_s + resumed - killed
+            # until the fusion has a pose from a taken-over camera (once the robot is in its view)
+            wait_for(lambda: any(p["time"] > resumed_unix_s and set(p["cameras"]) & set(victim)
+                                 for p in fused_poses(tmp_path / "fused" / "robot.jsonl")), 60,
+                     f"a fused pose from {victim}", [fuse, workers[1]])
+            time.sleep(max(0.0, resumed + 1.5 - time.monotonic()))  # the gaps below look 1 s past `resumed`
             if how == "SIGSTOP":
                 workers[0].send_signal(signal.SIGCONT)
                 wait_for(lambda: all(len(owners().get(c, ())) == 1 for c in cameras) and len(bus.holders()) == 3,
@@ -301,14 +317,15 @@ def test_a_dead_workers_cameras_are_taken_over(scene, tmp_path, how):
     # worker); the victim's lost frames until the take-over, no longer
     assert max(gaps[c] for c in survivor) < 1.5, gaps
     assert max(gaps[c] for c in victim) < TAKEOVER_SIGHTING_S[how], gaps
-    # the fusion heard every camera and fused poses from the taken-over cameras after the kill
-    lines = [json.loads(line) for line in (tmp_path / "fused" / "robot.jsonl").read_text().splitlines()]
-    assert lines and "interrupted" in outs[1][0]
-    times_s = np.array([line["time"] for line in lines])
+    # the poses went on: after the kill no longer gap than the take-over plus the longest the
+    # robot goes unseen in the offline replay of the recording (the cameras' views, not the bus)
+    assert "interrupted" in outs[1][0]
+    times_s = np.array([p["time"] for p in fused_poses(tmp_path / "fused" / "robot.jsonl")])
     after = times_s[times_s > killed_unix_s]
-    assert len(after) and np.max(np.diff(after)) < 1.0  # poses went on through the take-over
-    assert [line for line in lines if line["time"] > killed_unix_s + (resumed - killed)
-            and set(line["cameras"]) & set(victim)], "no pose from the taken-over cameras"
+    unseen_s = float(np.max(np.diff(read_tum(work / "offline" / "robot.tum").times_s)))
+    print(f"longest gap between fused poses after the {how}: {np.max(np.diff(after)):.3f} s "
+          f"(offline replay: {unseen_s:.3f} s)")
+    assert len(after) > 1 and np.max(np.diff(after)) < max(unseen_s, 0.5) + (resumed - killed) + 0.5
 
 
 def test_named_and_automatic_workers_share_the_cameras(scene, tmp_path):
