@@ -123,7 +123,7 @@ def calibrate_body(frames: Mapping[str, Iterable[Frame]], extrinsics: Mapping[st
     with ``extrinsics`` and ``intrinsics``; see the module docstring. ``params``: the
     ``[bundle_adjustment]`` settings (instants, noise, rounds, the body_* and intrinsics priors);
     ``readout_s``: each camera's rolling-shutter readout (seconds; a corner is moved to the time
-    its row was exposed); ``edge_corners``: re-measure the corners by the calibration's edge fit.
+    its row was exposed; None: the intrinsics' ``readout_s``, from camera_info); ``edge_corners``: re-measure the corners by the calibration's edge fit.
 
     CalibrationError when fewer than two calibrated cameras saw the body at once.
     """

@@ -506,7 +506,7 @@ class Refinement:
                 out[c] = g
             else:
                 dist = self.model.dist[i, :max(len(g.dist), 5)]
-                out[c] = CameraIntrinsics(g.width, g.height, self.model.K[i].copy(), dist.copy(), g.camera_name)
+                out[c] = dataclasses.replace(g, K=self.model.K[i].copy(), dist=dist.copy())
         return out
 
     def update_velocities(self) -> None:
@@ -706,9 +706,10 @@ def start_refinement(frames: Mapping[str, Iterable[Frame]], extrinsics: Mapping[
                      calibration_corners: bool = False) -> tuple[Refinement, list[str]]:
     """The first steps every refinement shares: the cube frames of the cameras with extrinsics,
     instants, and body poses solved with the cameras held (twice: the second time with
-    velocities from the first). Returns the refinement and all cameras with extrinsics (some may
-    have no multi-camera sightings: warned about). CalibrationError for too few cameras or no
-    instant."""
+    velocities from the first). ``readout_s``: each camera's rolling-shutter readout (None: the
+    intrinsics' ``readout_s``, from camera_info). Returns the refinement and all cameras with
+    extrinsics (some may have no multi-camera sightings: warned about). CalibrationError for too
+    few cameras or no instant."""
     unknown = [c for c in frames if c not in extrinsics]
     cameras = [c for c in frames if c in extrinsics]
     if len(cameras) < 2:
@@ -737,6 +738,8 @@ def start_refinement(frames: Mapping[str, Iterable[Frame]], extrinsics: Mapping[
     if len(used) < 2:
         raise CalibrationError(f"only {used[0]} has multi-camera cube sightings; "
                                "refinement needs at least two cameras seeing the cube at once")
+    if readout_s is None:
+        readout_s = {c: intrinsics[c].readout_s for c in used}
     refinement = Refinement.start(instants, used, T_prior, intrinsics, layouts, params, readout_s)
     for _ in range(2):
         refinement.solve(refinement.freedom(cameras=False))
@@ -762,7 +765,7 @@ def adjust_extrinsics(frames: Mapping[str, Iterable[Frame]], extrinsics: Mapping
 
     Returns the refined extrinsics of every prior camera, per-camera residuals and moved
     cameras (and, with ``refine_intrinsics``, the refined intrinsics); warnings are also logged.
-    ``readout_s``: each camera's rolling-shutter readout (s; absent or 0: a global shutter).
+    ``readout_s``: each camera's rolling-shutter readout (s; None: the intrinsics' ``readout_s``).
     CalibrationError when the frames share fewer than two cameras with the extrinsics or no
     instant has two cameras seeing the cube.
     """

@@ -186,3 +186,24 @@ def test_bundle_adjustment_recovers_the_markers_on_the_body():
     pos, rot = _pose_errors(relative, true_relative)
     assert pos < 1e-5 and rot < 1e-3
     assert np.abs(model.sizes_m - scene.sizes).max() < 1e-6
+
+
+def test_rolling_shutter_moves_each_corner_to_its_rows_time():
+    """With a readout, a corner on row v is moved by the body's velocity over
+    (frame time - instant time) + (v - (H - 1) / 2) readout / H; with none (camera_info's default),
+    over the frame's offset alone."""
+    from cubetrack.calib.bundle import BundleAdjustmentParams, FrameCorners, Instant, Refinement
+    from cubetrack.core.cameras import CameraIntrinsics
+
+    lens = CameraIntrinsics(640, 480, np.array([[500.0, 0, 319.5], [0, 500.0, 239.5], [0, 0, 1]]), np.zeros(5))
+    corners = np.array([[[100.0, 0.0], [120.0, 0.0], [120.0, 239.5], [100.0, 479.0]]])
+    frame = FrameCorners("cam", 10.02, np.array([0]), corners)
+    instant = Instant("r", 10.0, (), (frame,), np.eye(4))
+    layout = paper_cube_layout()
+    v = np.array([[0.5, -0.2, 0.0]])
+    for readout_s, row_dt in ((0.03, 0.03 / 480 * (corners[0, :, 1] - 239.5)), (None, np.zeros(4))):
+        ref = Refinement.start([instant], ["cam"], {"cam": np.eye(4)}, {"cam": lens}, {"r": layout},
+                               BundleAdjustmentParams(), None if readout_s is None else {"cam": readout_s})
+        ref.vel = v
+        obs = ref.observations()
+        assert np.allclose(obs.motion_t, v * (0.02 + row_dt)[:, None], atol=1e-12), readout_s
