@@ -4,8 +4,9 @@ cubetrack/sightings/<camera>, for `cubetrack fuse` (docs/scaling.md).
 
 Without --cameras the worker claims its share of the cameras no other worker reads (automatic
 assignment through Zenoh liveliness tokens: start as many workers as you like, each takes a fair
-share, and the cameras of a worker that stops or dies are taken over by the others within about
-a second). With --cameras it reads exactly those.
+share; the cameras of a worker that stops or crashes are taken over by the others within a
+fraction of a second, those of one that hangs or drops off the network within about 3 s, the
+bus's lease). With --cameras it reads exactly those.
 
 By default the worker connects to a fusion on this machine (tcp/127.0.0.1:7450) and keeps trying
 until it is there; --bus-connect names another host's fusion or a Zenoh router. Frames are
