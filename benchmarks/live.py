@@ -463,6 +463,7 @@ def speed(args: argparse.Namespace, rec: Path, work: Path, live: dict) -> dict:
             while pool.idle() != pool.count:
                 wake.wait(0.1)
                 wake.clear()
+                pool.take()  # raises if a worker process failed to start
             todo = list(frames)
             t0 = time.perf_counter()
             while todo or pool.busy():
