@@ -1,6 +1,7 @@
-"""Smoke run of benchmarks/accuracy.py (issue 5's goal benchmark): one short seed of every
-configuration. The targets are the benchmark's business; here: the report is complete, and on
-every scene our tracker's errors are finite and below the paper's mean fusion's."""
+"""Smoke run of benchmarks/accuracy.py (issues 5 and 15's goal benchmark): one short seed of every
+configuration in the clean preset and of two in the realistic one. The targets are the benchmark's
+business; here: the report is complete, and on every scene our tracker's errors are finite and
+below the paper's mean fusion's."""
 
 import importlib.util
 import json
@@ -30,20 +31,27 @@ def test_quick_run_reports_every_configuration_and_beats_the_paper_mean(tmp_path
     assert bench.main(["--quick", "--duration", "6", "--jobs", "2", "--out", str(tmp_path)]) == 0
     text = capsys.readouterr().out
 
-    # every configuration has its rows (ours, the paper's mean, our mean) and a target line
+    # every configuration and preset has its rows (ours, the paper's mean, our mean) and a target line
     lines = text.splitlines()
+    expected = {(bench.CLEAN, ci) for ci in range(len(bench.CONFIGS))} | {(bench.REALISTIC, ci)
+                                                                           for ci in bench.QUICK_REALISTIC}
     for name, *_ in bench.CONFIGS:
         table_row = [line for line in lines if line.startswith(name) and bench.LABELS[bench.OURS] in line]
-        assert len(table_row) == 1, name
-        assert any(line.strip().startswith(name) and "pos ≤" in line for line in lines), name
+        assert len(table_row) == 1 and bench.CLEAN in table_row[0], name
+    for preset, ci in expected:
+        label = f"{preset} {bench.CONFIGS[ci][0]}"
+        assert sum(line.strip().startswith(label) and "pos ≤" in line for line in lines) == 1, label
+    realistic_rows = [line for line in lines if bench.REALISTIC in line and bench.LABELS[bench.OURS] in line]
+    assert len(realistic_rows) == len(bench.QUICK_REALISTIC)
     for method in (bench.PAPER, bench.OUR_MEAN):
-        assert sum(bench.LABELS[method] in line for line in lines) == len(bench.CONFIGS)
+        assert sum(bench.LABELS[method] in line for line in lines) == len(expected)
     speed = [line for line in lines if line.startswith("speed (one core")]
     assert len(speed) == 1 and "naive loop" in speed[0] and "ratio ours/naive" in speed[0]
     assert lines[-1].startswith("SUMMARY: ")
 
     doc = json.loads((tmp_path / bench.REPORT_FILE).read_text(encoding="utf-8"))
-    assert len(doc["scenes"]) == len(bench.CONFIGS)
+    assert {(scene["preset"], scene["config"]) for scene in doc["scenes"]} == expected
+    assert len(doc["scenes"]) == len(expected)
     for scene in doc["scenes"]:
         ours, paper = scene["methods"][bench.OURS], scene["methods"][bench.PAPER]
         assert math.isfinite(ours["pos_cm"]) and math.isfinite(ours["rot_deg"]), scene["config"]
