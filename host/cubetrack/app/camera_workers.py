@@ -27,7 +27,7 @@ from multiprocessing.connection import Connection
 import cv2
 import numpy as np
 
-from cubetrack.app.tracker import FrameResult, Tracker
+from cubetrack.app.tracker import FrameOutcome, FrameResult, Tracker
 from cubetrack.core.errors import SourceError
 from cubetrack.estimate.reprojection import moved_pose
 from cubetrack.fuse.base import Fusion
@@ -242,9 +242,8 @@ def _worker_main(conn: Connection, urls: dict[str, str], source: SourceParams, m
 
 def _work_cameras(conn: Connection, urls: dict[str, str], source: SourceParams, tracker: Tracker, views: bool,
                   clock: Callable[[], float]) -> None:
-    wake = threading.Event()
     tracker.forecast = Forecast({}, frozenset(r.name for r in tracker.robots))
-    live = LiveCameras(urls, source, clock=clock, wake=wake.set)
+    live = LiveCameras(urls, source, clock=clock)
     live.start()
     next_update = time.monotonic() + STATS_EVERY_S
     stopping = False
@@ -270,7 +269,8 @@ def _work_cameras(conn: Connection, urls: dict[str, str], source: SourceParams, 
                 conn.send(("clock", event))
             elif (job := tracker.admit(event, hold=False)) is not None:
                 result = tracker.worker.work(job)
-                tracker.count(result)
+                if result.outcome is not FrameOutcome.CORRUPT:  # counted (and logged) by the fusion's tracker
+                    tracker.count(result)  # when this camera's whole frame was last searched
                 if not views:
                     job = dataclasses.replace(job, frame=dataclasses.replace(job.frame, jpeg=b""))
                 conn.send(("result", FrameResult(job, result.outcome, result.sightings, result.error)))
