@@ -38,8 +38,8 @@ OUTPUT_KEYS = {
     "zenoh": {"prefix", "listen", "connect", "mode", "zenoh_config"},
     "ros2": {"distro", "domain_id", "profile", "namespace", "world_frame", "listen", "connect", "mode", "zenoh_config"},
     "vrpn": {"address"},
-    "foxglove": {"address"},
-    "mcap": {"path"},
+    "foxglove": {"address", "image_fps"},
+    "mcap": {"path", "image_fps"},
 }
 DEFAULT_ADDRESSES = {"vrpn": ("127.0.0.1", 3883), "foxglove": ("127.0.0.1", 8765)}
 
@@ -136,13 +136,18 @@ def _sink(spec: OutputSpec, default_domain_id: int) -> Sink:
 
         host, port = parse_address(str(table.get("address", "")), DEFAULT_ADDRESSES["vrpn"], where)
         return VrpnSink(VrpnParams(host=host, port=port))
-    from cubetrack.sink.foxglove import FoxgloveSink
+    from cubetrack.sink.foxglove import FoxgloveParams, FoxgloveSink
 
+    try:
+        params = FoxgloveParams(**{key: table[key] for key in ("image_fps",) if key in table})
+    except ConfigError as exc:
+        raise ConfigError(f"{where}: {exc}") from None
     if spec.type == "foxglove":
-        return FoxgloveSink(server=parse_address(str(table.get("address", "")), DEFAULT_ADDRESSES["foxglove"], where))
+        return FoxgloveSink(server=parse_address(str(table.get("address", "")), DEFAULT_ADDRESSES["foxglove"], where),
+                            params=params)
     if "path" not in table:
         raise ConfigError(f"{where}: an mcap output needs path = \"<file>.mcap\"")
-    return FoxgloveSink(mcap=spec.base / str(table["path"]))
+    return FoxgloveSink(mcap=spec.base / str(table["path"]), params=params)
 
 
 def output_sinks(specs: list[OutputSpec], default_domain_id: int = 0) -> list[Sink]:

@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import abc
 import logging
+import math
 import threading
 from collections import deque
 from dataclasses import dataclass, field
@@ -88,6 +89,9 @@ class Sink(abc.ABC):
 
     #: whether :meth:`camera_view` should be called (views carry JPEGs: only sinks that show images)
     wants_views: bool = False
+    #: at most one view per camera per this many seconds of capture time (0: every view);
+    #: :class:`Outputs` thins the views out before they reach the sink or its queue
+    view_interval_s: float = 0.0
     #: where a user finds this output (one line for the command line), "" for none
     where: str = ""
 
@@ -127,6 +131,7 @@ class Decoupled(Sink):
         self.inner = inner
         self.name = inner.name
         self.wants_views = inner.wants_views
+        self.view_interval_s = inner.view_interval_s
         self.dropped = 0
         self.failed: str | None = None
         self._queue: deque = deque()
@@ -198,6 +203,7 @@ class Outputs:
     def __init__(self, sinks: list[Sink]):
         self.sinks = [s if s.in_line else Decoupled(s) for s in sinks]
         self._views = [s for s in self.sinks if s.wants_views]
+        self._next_view_s: dict[tuple[int, str], float] = {}
 
     @property
     def wants_views(self) -> bool:
@@ -216,8 +222,21 @@ class Outputs:
             sink.camera_health(health)
 
     def camera_view(self, view: CameraView) -> None:
-        for sink in self._views:
+        for i, sink in enumerate(self._views):
+            if sink.view_interval_s > 0 and not self._view_due(i, sink.view_interval_s, view):
+                continue
             sink.camera_view(view)
+
+    def _view_due(self, sink: int, interval_s: float, view: CameraView) -> bool:
+        """Whether ``view`` is due for view sink ``sink`` (one per camera per ``interval_s``: the
+        due time steps by ``interval_s`` so that the rate holds on average whatever the frames'
+        jitter; after a gap it restarts from the view)."""
+        key = (sink, view.camera)
+        due_s = self._next_view_s.get(key, -math.inf)
+        if view.time_s < due_s:
+            return False
+        self._next_view_s[key] = due_s + interval_s if view.time_s - due_s < interval_s else view.time_s + interval_s
+        return True
 
     def dropped(self) -> dict[str, int]:
         """Sink name -> items it lost because it was slow."""

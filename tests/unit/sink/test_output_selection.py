@@ -52,7 +52,7 @@ def test_config_outputs_resolve_paths_against_the_config_and_flags_replace_them(
     (tmp_path / "lab.toml").write_text(
         '[[robots]]\nname = "robot"\nlayout = "cube.toml"\n'
         f'[[outputs]]\ntype = "vrpn"\naddress = "127.0.0.1:{port}"\n'
-        '[[outputs]]\ntype = "mcap"\npath = "out/session.mcap"\n')
+        '[[outputs]]\ntype = "mcap"\npath = "out/session.mcap"\nimage_fps = 5\n')
     (tmp_path / "out").mkdir()
     config = read_tracker_config(tmp_path / "lab.toml")
     specs = config_output_specs(config)
@@ -62,6 +62,7 @@ def test_config_outputs_resolve_paths_against_the_config_and_flags_replace_them(
         vrpn, mcap = sinks
         assert isinstance(vrpn, VrpnSink) and vrpn.port == port
         assert isinstance(mcap, FoxgloveSink) and mcap.path == tmp_path / "out" / "session.mcap"
+        assert vrpn.view_interval_s == 0 and mcap.view_interval_s == 0.2  # image_fps = 5
     finally:
         close_sinks(sinks)
         close_sinks(sinks)  # closing twice is harmless (a session closes them first)
@@ -78,6 +79,8 @@ def test_config_outputs_resolve_paths_against_the_config_and_flags_replace_them(
     ({"type": "zenoh", "connect": "127.0.0.1:7447"}, "Zenoh locators"),
     ({"type": "zenoh", "mode": "broker"}, "mode must be peer, client or router"),
     ({"type": "zenoh", "zenoh_config": "missing.json5"}, "not found"),
+    ({"type": "mcap", "path": "s.mcap", "image_fps": -1}, "image_fps must be a number >= 0"),
+    ({"type": "foxglove", "image_fps": "fast"}, "image_fps must be a number >= 0"),
 ])
 def test_bad_output_tables_are_one_line_errors(tmp_path, table, message):
     with pytest.raises(ConfigError, match=message) as err:

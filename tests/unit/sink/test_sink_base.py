@@ -4,7 +4,7 @@ import threading
 
 import numpy as np
 
-from cubetrack.core.records import TrackedPose
+from cubetrack.core.records import CameraView, TrackedPose
 from cubetrack.sink.base import Decoupled, FileSink, Outputs, Sink
 
 
@@ -55,3 +55,39 @@ def test_a_failing_sink_is_stopped_without_reaching_the_pipeline(tmp_path, caplo
     assert broken.failed == "peer went away"
     assert len((tmp_path / "r1.jsonl").read_text().splitlines()) == 2
     assert "output broken failed" in caplog.text
+
+
+class Views(Sink):
+    """A sink that shows images, at most ``fps`` per camera (0: all)."""
+
+    name = "views"
+    in_line = True
+    wants_views = True
+
+    def __init__(self, fps: float):
+        self.view_interval_s = 1 / fps if fps else 0.0
+        self.seen: list[tuple[str, int]] = []
+
+    def pose(self, p):
+        pass
+
+    def camera_view(self, view):
+        self.seen.append((view.camera, view.seq))
+
+
+def test_views_are_thinned_per_sink_and_camera_to_the_sink_s_rate():
+    every, ten = Views(0), Views(10)
+    rng = np.random.default_rng(3)
+    with Outputs([every, ten]) as outputs:
+        for seq in range(300):  # 10 s of two cameras at 30 fps with a few ms of jitter
+            for camera, offset in (("cam1", 0.0), ("cam2", 0.011)):
+                t = 100.0 + seq / 30 + offset + rng.uniform(-0.004, 0.004)
+                outputs.camera_view(CameraView(camera, seq, t, b"", ()))
+        outputs.camera_view(CameraView("cam1", 900, 130.0, b"", ()))  # after a gap of 20 s: due at once
+    assert len(every.seen) == 601
+    for camera in ("cam1", "cam2"):
+        seqs = [s for c, s in ten.seen if c == camera]
+        assert 99 <= len(seqs) - (camera == "cam1") <= 101  # 10 per second on average, whatever the jitter
+        gaps = np.diff(seqs[:100])
+        assert set(gaps.tolist()) <= {2, 3, 4}  # evenly spread, not bursts
+    assert ten.seen[-1] == ("cam1", 900)
