@@ -10,6 +10,7 @@ APT_PACKAGES=(
   gcc-arm-none-eabi libnewlib-arm-none-eabi libstdc++-arm-none-eabi-newlib  # Cortex-M4F build
   qemu-system-arm                                         # runs the M4 unit tests
   ffmpeg chromium socat                                   # third-party stream clients, ptys
+  libcairo2                                               # cairosvg: make-body --pdf
 )
 missing=()
 for p in "${APT_PACKAGES[@]}"; do
