@@ -272,6 +272,8 @@ def run_live(args: argparse.Namespace, rec: Path, work: Path, name: str = "live"
         "cpu_s": last[1] - first[1],
         "cpu_ms_per_frame": (last[1] - first[1]) / max(processed, 1) * 1000.0,
         "cpu_ms_per_frame_warm": (full[1] - warm[1]) / max(window_frames, 1) * 1000.0,
+        "processed_fps_warm": window_frames / max(full[0] - warm[0], 1e-9),
+        "offered_fps_warm": offered_after(args.warmup, (work / f"{name}_stderr.txt").read_text()),
         "cores_used": (full[1] - warm[1]) / max(full[0] - warm[0], 1e-9),
         "main_cores_used": main_cpu / max(full[0] - warm[0], 1e-9),
         "emulator_cores_used": cpu_emulator / max(emulator.samples[-1][0] - emulator.samples[0][0], 1e-9)
@@ -284,6 +286,15 @@ def run_live(args: argparse.Namespace, rec: Path, work: Path, name: str = "live"
         "clock_shift_s": shift_s,
         "period_s": period_s,
     }
+
+
+def offered_after(warmup_s: float, stderr: str, every_s: float = 5.0) -> float:
+    """Frames/s received from all cameras after ``warmup_s``: the mean over the tracker's status
+    lines (every ``every_s``) whose interval began after it; NaN when there is none."""
+    rates = [sum(float(v) for v in re.findall(r" ([\d.]+) fps", rest))
+             for at, rest in re.findall(r"^track:\s+(\d+)s \|(.*)$", stderr, re.MULTILINE)
+             if int(at) - every_s >= warmup_s - 0.5]
+    return float(np.mean(rates)) if rates else float("nan")
 
 
 def free_port() -> int:
@@ -497,6 +508,8 @@ def print_report(args: argparse.Namespace, report: dict) -> list[str]:
           f"nproc {report['nproc']} (load average before {before[0]:.1f}, after {after[0]:.1f}: other "
           "programs' share of the cores)")
     print(f"  command: {live['command']}")
+    print(f"  after the first {args.warmup:g} s (worker processes start while the cameras send): frames/s offered "
+          f"{live['offered_fps_warm']:.1f}, processed {live['processed_fps_warm']:.1f}")
     print(f"  frames/s: offered {live['offered_fps']:.1f}, processed {live['processed_fps']:.1f}, dropped by the "
           f"tracker {live['dropped_fps']:.1f} ({live['dropped_fraction'] * 100:.2f} %: {live['dropped_behind']} "
           f"replaced by a newer frame, {live['dropped_before_clock']} before the camera's clock was known)")
