@@ -6,6 +6,7 @@ Outputs come from the config's ``[[outputs]]`` tables and from command-line flag
 from __future__ import annotations
 
 from dataclasses import dataclass
+from functools import partial
 from pathlib import Path
 from typing import Sequence
 
@@ -164,6 +165,25 @@ def output_sinks(specs: list[OutputSpec], default_domain_id: int = 0) -> list[Si
     except BaseException:
         close_sinks(sinks)
         raise
+    return sinks
+
+
+def start_outputs(specs: list[OutputSpec], default_domain_id: int = 0) -> list[Sink]:
+    """The outputs a tracking session runs: MCAP files in this process, written in line (they
+    hold every pose); the network outputs (Zenoh, ROS 2, VRPN, Foxglove live) together in a
+    process of their own (:class:`~cubetrack.sink.process.OutputProcess`), so that their work
+    does not take the tracker's process's CPU. A bad output fails here, before the session."""
+    from cubetrack.sink.process import OutputProcess
+
+    files = [s for s in specs if s.table.get("type") == "mcap"]
+    network = [s for s in specs if s.table.get("type") != "mcap"]
+    sinks = output_sinks(files, default_domain_id)
+    if network:
+        try:
+            sinks.append(OutputProcess(partial(output_sinks, network, default_domain_id)))
+        except BaseException:
+            close_sinks(sinks)
+            raise
     return sinks
 
 

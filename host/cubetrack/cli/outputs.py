@@ -62,14 +62,14 @@ def flag_output_specs(args: argparse.Namespace):
 def output_sinks_from_args(args: argparse.Namespace, config=None) -> list:
     """Start the outputs of the config (``[[outputs]]``) and of the flags; ROS_DOMAIN_ID from the
     environment is the default domain."""
-    from cubetrack.app.outputs import config_output_specs, merge_outputs, output_sinks
+    from cubetrack.app.outputs import config_output_specs, merge_outputs, start_outputs
     from cubetrack.core.errors import ConfigError
 
     domain = os.environ.get("ROS_DOMAIN_ID", "0")
     if not domain.isdigit():
         raise ConfigError(f"ROS_DOMAIN_ID must be a number, got {domain!r}")
     specs = merge_outputs(config_output_specs(config) if config is not None else [], flag_output_specs(args))
-    sinks = output_sinks(specs, int(domain))
+    sinks = start_outputs(specs, int(domain))
     for sink in sinks:
         print(f"output: {sink.where}", file=sys.stderr, flush=True)
     return sinks

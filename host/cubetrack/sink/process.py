@@ -1,0 +1,131 @@
+"""Outputs in a process of their own, so that their work does not take the tracker's CPU.
+
+The tracker's process is bound by Python's global interpreter lock: the live tracker uses about
+1.3 of 2 cores, and every output thread in that process (encoding CDR, JSON, VRPN messages,
+Foxglove annotations) takes its share of the same lock from the pipeline. :class:`OutputProcess`
+runs a set of outputs in a child process instead; the pipeline's side only pickles each item
+onto a pipe (from the :class:`~cubetrack.sink.base.Decoupled` thread :class:`Outputs` gives it,
+so a full pipe costs the pipeline nothing: the oldest items are dropped and counted there).
+
+The child builds its outputs with ``factory`` (a picklable callable returning the sinks, e.g. a
+``functools.partial`` of :func:`cubetrack.app.outputs.output_sinks`), runs them behind their own
+:class:`Outputs` (each network output still on its own thread, so one stalled client does not
+hold up another) and reports how to reach them. It ignores Ctrl-C (the tracker closes it) and
+ends when the tracker's process goes away.
+"""
+
+from __future__ import annotations
+
+import logging
+import multiprocessing
+import signal
+from collections.abc import Callable
+from multiprocessing.connection import Connection
+
+from cubetrack.core.errors import ConfigError, CubetrackError
+from cubetrack.sink.base import OutputError, Outputs, Sink
+
+log = logging.getLogger(__name__)
+
+START_TIMEOUT_S = 60.0  # importing zenoh and foxglove-sdk on a loaded machine takes seconds
+CLOSE_TIMEOUT_S = 10.0
+
+
+def serve_outputs(factory: Callable[[], list[Sink]], conn: Connection, log_level: int) -> None:
+    """The child process: build the outputs, say where they are, then pass on what arrives."""
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    logging.basicConfig(level=log_level, format="%(levelname)s %(name)s: %(message)s")
+    try:
+        sinks = factory()
+    except CubetrackError as exc:
+        conn.send(("error", isinstance(exc, ConfigError), str(exc)))
+        return
+    except Exception as exc:  # noqa: BLE001  (reported to the tracker as a one-line error)
+        conn.send(("error", False, f"{type(exc).__name__}: {exc}"))
+        return
+    views = [s for s in sinks if s.wants_views]
+    conn.send(("ready", [s.where for s in sinks if s.where], bool(views),
+               min((s.view_interval_s for s in views), default=0.0)))
+    outputs = Outputs(sinks)
+    try:
+        while True:
+            try:
+                kind, value = conn.recv()
+            except (EOFError, OSError):  # the tracker's process is gone
+                break
+            if kind == "close":
+                break
+            getattr(outputs, kind)(value)
+    finally:
+        outputs.close()
+        for name, count in outputs.dropped().items():
+            if count:
+                log.warning("output %s dropped %d items it could not send in time", name, count)
+
+
+class OutputProcess(Sink):
+    """The sinks ``factory`` builds, in a child process; starts (and reports a bad output) in the
+    constructor, like the outputs themselves."""
+
+    name = "outputs process"
+
+    def __init__(self, factory: Callable[[], list[Sink]]):
+        context = multiprocessing.get_context("spawn")  # fork would copy the tracker's threads' locks
+        self._conn, child = context.Pipe()
+        self._process = context.Process(target=serve_outputs, name="cubetrack-outputs", daemon=True,
+                                        args=(factory, child, logging.getLogger().getEffectiveLevel()))
+        self._process.start()
+        child.close()
+        try:
+            if not self._conn.poll(START_TIMEOUT_S):
+                raise OutputError(f"the outputs' process did not start within {START_TIMEOUT_S:.0f} s")
+            message = self._conn.recv()
+        except (EOFError, OSError):
+            self._stop()
+            raise OutputError("the outputs' process ended while starting its outputs (see the log above)") from None
+        except BaseException:
+            self._stop()
+            raise
+        if message[0] == "error":
+            self._stop()
+            raise (ConfigError if message[1] else OutputError)(message[2])
+        _, wheres, self.wants_views, self.view_interval_s = message
+        self.where = "; ".join(wheres) + " (in a process of their own)" if wheres else ""
+
+    def _send(self, kind: str, value: object) -> None:
+        try:
+            self._conn.send((kind, value))
+        except (BrokenPipeError, OSError):
+            raise OutputError("the outputs' process has ended") from None
+
+    def open(self, session) -> None:
+        self._send("open", session)
+
+    def pose(self, pose) -> None:
+        self._send("pose", pose)
+
+    def camera_health(self, health) -> None:
+        self._send("camera_health", health)
+
+    def camera_view(self, view) -> None:
+        self._send("camera_view", view)
+
+    def close(self) -> None:
+        """Let the child deliver what it holds and close its outputs (harmless twice)."""
+        if self._process is None:
+            return
+        try:
+            self._conn.send(("close", None))
+        except (BrokenPipeError, OSError):
+            pass
+        self._process.join(CLOSE_TIMEOUT_S)
+        self._stop()
+
+    def _stop(self) -> None:
+        if self._process is None:
+            return
+        if self._process.is_alive():
+            self._process.terminate()
+            self._process.join(2.0)
+        self._conn.close()
+        self._process = None

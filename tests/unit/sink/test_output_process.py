@@ -1,0 +1,74 @@
+"""Network outputs in a process of their own: reachable as before, failures reported as one line
+before the session, a dead output process never reaching the pipeline, files kept in line."""
+
+import os
+import signal
+import socket
+
+import pytest
+from sink_helpers import free_port, tracked
+from vrpn_client import TrackerClient
+
+from cubetrack.app.outputs import OutputSpec, close_sinks, start_outputs
+from cubetrack.core.errors import ConfigError
+from cubetrack.sink.base import Decoupled, OutputError, Outputs
+from cubetrack.sink.foxglove import FoxgloveSink
+from cubetrack.sink.process import OutputProcess
+
+
+def spec(table: dict, tmp_path) -> OutputSpec:
+    return OutputSpec(table, tmp_path, f"lab.toml: outputs ({table['type']})")
+
+
+def test_network_outputs_run_in_a_child_process_and_serve_as_before(tmp_path, session_info):
+    port = free_port()
+    sinks = start_outputs([spec({"type": "mcap", "path": "s.mcap"}, tmp_path),
+                           spec({"type": "vrpn", "address": f"127.0.0.1:{port}"}, tmp_path)])
+    try:
+        mcap, remote = sinks
+        assert isinstance(mcap, FoxgloveSink) and mcap.in_line  # files stay in this process, in line
+        assert isinstance(remote, OutputProcess) and f"127.0.0.1:{port}" in remote.where
+        child = remote._process
+        assert child.is_alive() and child.pid != os.getpid()
+        with Outputs(sinks) as outputs:
+            outputs.open(session_info)
+            client = TrackerClient(port, "robot_1")  # the server listens in the child
+            try:
+                for i in range(5):
+                    outputs.pose(tracked("robot 1!", i))
+                assert client.wait_for(lambda c: len(c.poses("robot_1")) == 5, timeout_s=20)
+            finally:
+                client.close()
+        child.join(10)
+        assert not child.is_alive()  # closing the session ends the output process
+    finally:
+        close_sinks(sinks)
+    assert (tmp_path / "s.mcap").stat().st_size > 0
+
+
+def test_a_bad_output_fails_before_the_session_with_its_one_line_reason(tmp_path):
+    with socket.socket() as taken:
+        taken.bind(("127.0.0.1", 0))
+        taken.listen()
+        port = taken.getsockname()[1]
+        with pytest.raises(OutputError) as err:
+            start_outputs([spec({"type": "vrpn", "address": f"127.0.0.1:{port}"}, tmp_path)])
+    assert str(port) in str(err.value) and "\n" not in str(err.value)
+    with pytest.raises(ConfigError, match=r"^lab.toml: outputs \(zenoh\): mode must be peer, client or router"):
+        start_outputs([spec({"type": "zenoh", "mode": "broker"}, tmp_path)])
+
+
+def test_an_output_process_that_dies_stops_without_reaching_the_pipeline(tmp_path, session_info, caplog):
+    sinks = start_outputs([spec({"type": "vrpn", "address": f"127.0.0.1:{free_port()}"}, tmp_path)])
+    remote = sinks[0]
+    with Outputs(sinks) as outputs:
+        outputs.open(session_info)
+        os.kill(remote._process.pid, signal.SIGKILL)
+        remote._process.join(10)
+        decoupled = outputs.sinks[0]
+        assert isinstance(decoupled, Decoupled)
+        for i in range(200):  # never raises: the pipeline goes on
+            outputs.pose(tracked("robot 1!", i))
+        decoupled._thread.join(10)
+        assert decoupled.failed == "the outputs' process has ended"
+    assert "output outputs process failed" in caplog.text
