@@ -169,22 +169,12 @@ def output_sinks(specs: list[OutputSpec], default_domain_id: int = 0) -> list[Si
 
 
 def start_outputs(specs: list[OutputSpec], default_domain_id: int = 0) -> list[Sink]:
-    """The outputs a tracking session runs: MCAP files in this process, written in line (they
-    hold every pose); the network outputs (Zenoh, ROS 2, VRPN, Foxglove live) together in a
-    process of their own (:class:`~cubetrack.sink.process.OutputProcess`), so that their work
-    does not take the tracker's process's CPU. A bad output fails here, before the session."""
+    """The outputs a tracking session runs, all together in a process of their own
+    (:class:`~cubetrack.sink.process.OutputProcess`), so that their work does not take the
+    tracker's process's CPU; none for no specs. A bad output fails here, before the session."""
     from cubetrack.sink.process import OutputProcess
 
-    files = [s for s in specs if s.table.get("type") == "mcap"]
-    network = [s for s in specs if s.table.get("type") != "mcap"]
-    sinks = output_sinks(files, default_domain_id)
-    if network:
-        try:
-            sinks.append(OutputProcess(partial(output_sinks, network, default_domain_id)))
-        except BaseException:
-            close_sinks(sinks)
-            raise
-    return sinks
+    return [OutputProcess(partial(output_sinks, specs, default_domain_id))] if specs else []
 
 
 def close_sinks(sinks: Sequence[Sink]) -> None:

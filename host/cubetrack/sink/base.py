@@ -190,6 +190,8 @@ class Decoupled(Sink):
         if self._thread.is_alive():
             log.warning("output %s did not finish within %.0f s; %d item(s) left undelivered",
                         self.name, timeout_s, len(self._queue))
+        if self.dropped:
+            log.warning("output %s dropped %d item(s) it could not take in time", self.name, self.dropped)
         try:
             self.inner.close()
         except Exception as exc:

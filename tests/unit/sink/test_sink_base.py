@@ -33,7 +33,7 @@ class Broken(Sink):
         raise RuntimeError("peer went away")
 
 
-def test_a_stalled_sink_costs_the_caller_nothing_and_counts_what_it_lost(tmp_path):
+def test_a_stalled_sink_costs_the_caller_nothing_and_counts_what_it_lost(tmp_path, caplog):
     gate = Gate()
     with Outputs([FileSink(tmp_path, ("r1",)), gate]) as outputs:
         for i in range(300):
@@ -44,6 +44,7 @@ def test_a_stalled_sink_costs_the_caller_nothing_and_counts_what_it_lost(tmp_pat
     assert len(lines) == 300  # the in-line file sink saw everything
     assert dropped > 0 and len(gate.seen) + dropped == 300
     assert gate.seen == sorted(gate.seen) and gate.seen[-1] == 399.0  # the newest kept, in order
+    assert f"output gate dropped {dropped} item(s)" in caplog.text  # and the user is told
 
 
 def test_a_failing_sink_is_stopped_without_reaching_the_pipeline(tmp_path, caplog):
