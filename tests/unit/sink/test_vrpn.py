@@ -107,6 +107,7 @@ def test_hostile_peers_are_refused_without_harm(sink):
             pass
         liar.close()
         client = TrackerClient(sink.port, "robot_1")  # the server still serves
+        assert client.wait_for(lambda c: "vrpn_Base pong_message" in c.order)  # it has taken the client in
         sink.pose(tracked("robot 1!", 0))
         assert client.wait_for(lambda c: len(c.poses("robot_1")) == 1)
         client.close()
