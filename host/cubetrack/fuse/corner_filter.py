@@ -6,12 +6,7 @@ error state ``[δp, δθ, δv, δω]`` with ``R = exp(δθ) R̂`` (world-frame r
 block first, the order of :func:`cubetrack.fuse.multi_view_fit.solve_joint`.
 
 Prediction: white-noise acceleration and angular acceleration (``accel_noise``, ``angular_accel_noise``,
-spectral densities). Turning noise adapts: the yaw acceleration noise is ``yaw_accel_noise``
-scaled by the square root of the recent normalised yaw innovation squared (its running mean over
-accepted sightings, ``yaw_nis_smoothing``) over ``yaw_nis_target``, kept between
-``steady_yaw_accel_noise`` and ``yaw_accel_noise``: sightings that the prediction explains lower
-it, turns it missed raise it. It is part of the state (a function of the sightings in capture
-order), so late sightings and replays give the same poses. Update: an iterated EKF (Gauss-Newton on the prior plus the reprojection
+spectral densities). Update: an iterated EKF (Gauss-Newton on the prior plus the reprojection
 error of every matched corner of one camera frame), with Huber weights per coordinate, so one
 camera's weak monocular depth is constrained by the prediction instead of being trusted. A
 frame whose residual after the update is above ``gate_rms_px`` is rejected (outlier gating),
@@ -52,12 +47,7 @@ class FilterParams:
     angular_accel_noise: float = param(0.5, "white-noise angular acceleration spectral density about the world's x and y "
                                        "axes (tilting), rad/s^2/sqrt(Hz)")
     yaw_accel_noise: float = param(10.0, "white-noise angular acceleration spectral density about the world's z axis "
-                                   "at most (turning: robots turn sharply, they tilt little), rad/s^2/sqrt(Hz)")
-    steady_yaw_accel_noise: float = param(3.0, "the same at least, while the recent sightings' yaw innovations are "
-                                          "small, rad/s^2/sqrt(Hz)")
-    yaw_nis_target: float = param(0.1, "the yaw noise is yaw_accel_noise x sqrt(recent mean normalised yaw "
-                                  "innovation squared / this), within the two bounds")
-    yaw_nis_smoothing: float = param(0.03, "weight of each accepted sighting in that running mean (0-1]")
+                                   "(turning: robots turn sharply, they tilt little), rad/s^2/sqrt(Hz)")
     corner_noise_px: float = param(0.5, "corner measurement noise (1 sigma), pixels")
     huber_px: float = param(1.5, "corner residuals beyond this are down-weighted (Huber), pixels")
     gate_rms_px: float = param(2.0, "a camera frame whose RMS residual after the update exceeds this is rejected, pixels")
@@ -67,13 +57,10 @@ class FilterParams:
     init_angular_velocity_sigma: float = param(1.0, "angular velocity uncertainty (1 sigma) at track start, rad/s")
 
     def __post_init__(self) -> None:
-        for name in ("accel_noise", "angular_accel_noise", "yaw_accel_noise", "steady_yaw_accel_noise", "yaw_nis_target",
-                     "corner_noise_px", "huber_px", "gate_rms_px", "face_gate_px",
+        for name in ("accel_noise", "angular_accel_noise", "yaw_accel_noise", "corner_noise_px", "huber_px", "gate_rms_px", "face_gate_px",
                      "init_velocity_sigma", "init_angular_velocity_sigma"):
             if not getattr(self, name) > 0:
                 raise ParamsError(f"{name} must be positive")
-        if not 0 < self.yaw_nis_smoothing <= 1:
-            raise ParamsError("yaw_nis_smoothing must be in (0, 1]")
         if self.iterations < 1:
             raise ParamsError("iterations must be at least 1")
 
@@ -90,9 +77,8 @@ class UpdateResult:
 @functools.lru_cache(maxsize=8)
 def _motion_noise(params: FilterParams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(A, B, C)`` with the process noise over a step of ``dt`` = ``A |dt|³/3 + B dt²/2 + C |dt|``
-    (white acceleration and angular acceleration, per axis), but for the yaw (adaptive, added by
-    :meth:`PoseFilter.predict`)."""
-    q = np.repeat([params.accel_noise**2, params.angular_accel_noise**2, 0.0], [3, 2, 1])  # p, θ
+    (white acceleration and angular acceleration, per axis)."""
+    q = np.repeat([params.accel_noise**2, params.angular_accel_noise**2, params.yaw_accel_noise**2], [3, 2, 1])  # p, θ
     A, B, C = np.zeros((12, 12)), np.zeros((12, 12)), np.zeros((12, 12))
     A[0:6, 0:6] = np.diag(q)
     B[0:6, 6:12] = B[6:12, 0:6] = np.diag(q)
@@ -112,7 +98,6 @@ class PoseFilter:
         then start at zero with the params' spreads) or 12x12 over ``[δp, δθ, v, ω]``."""
         self.params = params
         self.time_s = time_s
-        self.yaw_nis_mean = params.yaw_nis_target  # recent normalised yaw innovation squared: starts at the target
         self.position_m = T_world_cube[:3, 3].copy()
         self.R_world_cube = T_world_cube[:3, :3].copy()
         self.velocity_m_s = np.zeros(3) if velocity_m_s is None else np.asarray(velocity_m_s, dtype=float).copy()
@@ -140,13 +125,6 @@ class PoseFilter:
         """An independent snapshot (cheap: the arrays are shared until a step replaces them)."""
         return copy.copy(self)
 
-    @property
-    def yaw_noise(self) -> float:
-        """The yaw acceleration noise the next prediction uses (see the module doc)."""
-        prm = self.params
-        level = prm.yaw_accel_noise * np.sqrt(self.yaw_nis_mean / prm.yaw_nis_target)
-        return float(min(max(level, prm.steady_yaw_accel_noise), prm.yaw_accel_noise))  # the upper bound wins
-
     def predicted(self, time_s: float) -> np.ndarray:
         """The pose extrapolated to ``time_s`` at constant velocity (no state change)."""
         return moved_pose(self.T_world_cube, self.velocity_m_s, self.angular_velocity_rad_s, time_s - self.time_s)
@@ -161,13 +139,7 @@ class PoseFilter:
         F = np.eye(12) + dt * _RATES
         A, B, C = _motion_noise(self.params)
         adt = abs(dt)
-        P = F @ self.P @ F.T + (adt**3 / 3.0) * A + (dt * dt / 2.0) * B + adt * C
-        q = self.yaw_noise**2  # δθ_z (5) and δω_z (11): the same white-noise model
-        P[5, 5] += q * adt**3 / 3.0
-        P[5, 11] += q * dt * dt / 2.0
-        P[11, 5] += q * dt * dt / 2.0
-        P[11, 11] += q * adt
-        self.P = P
+        self.P = F @ self.P @ F.T + (adt**3 / 3.0) * A + (dt * dt / 2.0) * B + adt * C
         self.time_s = time_s
 
     def _solve(self, sets: Sequence[CornerSet]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -222,10 +194,8 @@ class PoseFilter:
         rms = float(np.sqrt(np.mean(r**2)))
         if not np.isfinite(rms) or rms > self.params.gate_rms_px:
             return UpdateResult(False, rms, r.size // 2)
-        P = np.linalg.inv(info)
-        yaw_nis = float(delta[5] ** 2 / max(self.P[5, 5] - P[5, 5], 1e-300))  # δθ about the world's z / its spread
-        self.yaw_nis_mean += self.params.yaw_nis_smoothing * (yaw_nis - self.yaw_nis_mean)
-        self.P = (P + P.T) / 2.0
+        self.P = np.linalg.inv(info)
+        self.P = (self.P + self.P.T) / 2.0
         T = perturbed(self.T_world_cube, delta[_POSE])
         self.position_m, self.R_world_cube = T[:3, 3], T[:3, :3]
         self.velocity_m_s = self.velocity_m_s + delta[_VELOCITY]
