@@ -37,6 +37,7 @@ from cubetrack.estimate.reprojection import (
 _POSE, _VELOCITY, _ANGULAR_VELOCITY = slice(0, 6), slice(6, 9), slice(9, 12)  # error-state blocks
 _RATES = np.zeros((12, 12))  # d(state)/dt under constant velocity: δp' = δv, δθ' = δω
 _RATES[0:6, 6:12] = np.eye(6)
+_IDENTITY = np.eye(12)
 
 
 @dataclass(frozen=True, slots=True)
@@ -90,7 +91,9 @@ def _motion_noise(params: FilterParams) -> tuple[np.ndarray, np.ndarray, np.ndar
 
 class PoseFilter:
     """One robot's filter: ``predict`` / ``update`` in time order. Every step replaces the state's
-    arrays rather than writing into them, so a :meth:`copy` is an independent snapshot."""
+    arrays rather than writing into them, so a :meth:`copy` is an independent snapshot. The pose
+    is kept as one read-only 4x4 ``T_world_cube`` (``position_m`` and ``R_world_cube`` are views
+    of it): the steps that need it as a matrix do not rebuild it."""
 
     def __init__(self, params: FilterParams, time_s: float, T_world_cube: np.ndarray, covariance: np.ndarray,
                  velocity_m_s: np.ndarray | None = None, angular_velocity_rad_s: np.ndarray | None = None):
@@ -98,8 +101,7 @@ class PoseFilter:
         then start at zero with the params' spreads) or 12x12 over ``[δp, δθ, v, ω]``."""
         self.params = params
         self.time_s = time_s
-        self.position_m = T_world_cube[:3, 3].copy()
-        self.R_world_cube = T_world_cube[:3, :3].copy()
+        self._set_pose(make_T(T_world_cube[:3, :3], T_world_cube[:3, 3]))
         self.velocity_m_s = np.zeros(3) if velocity_m_s is None else np.asarray(velocity_m_s, dtype=float).copy()
         self.angular_velocity_rad_s = (np.zeros(3) if angular_velocity_rad_s is None
                                        else np.asarray(angular_velocity_rad_s, dtype=float).copy())
@@ -112,9 +114,25 @@ class PoseFilter:
             P[_ANGULAR_VELOCITY, _ANGULAR_VELOCITY] = np.eye(3) * params.init_angular_velocity_sigma**2
         self.P = (P + P.T) / 2.0
 
+    def _set_pose(self, T_world_cube: np.ndarray) -> None:
+        """Take ``T_world_cube`` (a new array nothing else holds) as the pose."""
+        T_world_cube.setflags(write=False)
+        self._T_world_cube = T_world_cube
+
     @property
     def T_world_cube(self) -> np.ndarray:
-        return make_T(self.R_world_cube, self.position_m)
+        """The pose (read-only 4x4)."""
+        return self._T_world_cube
+
+    @property
+    def position_m(self) -> np.ndarray:
+        """The cube's origin in the world frame (read-only view of the pose), metres."""
+        return self._T_world_cube[:3, 3]
+
+    @property
+    def R_world_cube(self) -> np.ndarray:
+        """The cube frame's orientation in the world frame (read-only view of the pose)."""
+        return self._T_world_cube[:3, :3]
 
     @property
     def pose_covariance(self) -> np.ndarray:
@@ -134,29 +152,29 @@ class PoseFilter:
         dt = time_s - self.time_s
         if dt == 0.0:
             return
-        T = self.predicted(time_s)
-        self.position_m, self.R_world_cube = T[:3, 3], T[:3, :3]
-        F = np.eye(12) + dt * _RATES
+        self._set_pose(self.predicted(time_s))
+        F = _IDENTITY + dt * _RATES
         A, B, C = _motion_noise(self.params)
         adt = abs(dt)
         self.P = F @ self.P @ F.T + (adt**3 / 3.0) * A + (dt * dt / 2.0) * B + adt * C
         self.time_s = time_s
 
-    def _solve(self, sets: Sequence[CornerSet]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """Gauss-Newton on prior + Huber-weighted corner residuals: (δ (12,), information, residuals px).
+    def _solve(self, sets: Sequence[CornerSet]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Gauss-Newton on prior + Huber-weighted corner residuals: (δ (12,), information, the
+        pose moved by δ (4x4 ``T_world_cube``), residuals px there).
 
         Corners taken at the filter's time see only the pose block of the state: their information
         adds to that block and their gradient to its rows. A set taken at another instant (a
         rolling shutter's row time) sees the pose moved there at the filter's velocities, so it
         informs the velocities too (the full 12-column Jacobian)."""
         prm = self.params
-        T0 = self.T_world_cube
+        T0 = T = self.T_world_cube  # T: T0 moved by delta (at delta = 0, T0 itself)
         info_prior = np.linalg.inv(self.P)
         delta = np.zeros(12)
         rhs = np.zeros(12)
         block = slice(0, 12) if any(s.time_s != self.time_s for s in sets) else _POSE
         for _ in range(prm.iterations):
-            r, H = reprojection_jacobian_px(*self._at(T0, delta, sets, block))
+            r, H = reprojection_jacobian_px(*self._at(T, delta, sets, block))
             a = np.abs(r)
             weights = np.where(a <= prm.huber_px, 1.0, prm.huber_px / np.maximum(a, 1e-12)) / prm.corner_noise_px**2
             WH = weights[:, None] * H
@@ -164,13 +182,15 @@ class PoseFilter:
             info[block, block] += H.T @ WH
             rhs[block] = WH.T @ (H @ delta[block] - r)
             delta = np.linalg.solve(info, rhs)
-        return delta, info, reprojection_residuals_px(*self._at(T0, delta, sets, block))
+            T = perturbed(T0, delta[_POSE])
+        return delta, info, T, reprojection_residuals_px(*self._at(T, delta, sets, block))
 
-    def _at(self, T0: np.ndarray, delta: np.ndarray, sets: Sequence[CornerSet], block: slice) -> tuple:
-        """The arguments of the reprojection functions for the state moved by ``delta``."""
+    def _at(self, T: np.ndarray, delta: np.ndarray, sets: Sequence[CornerSet], block: slice) -> tuple:
+        """The arguments of the reprojection functions for the state moved by ``delta`` (its pose
+        ``T``, already moved)."""
         if block == _POSE:
-            return perturbed(T0, delta[_POSE]), sets
-        return (perturbed(T0, delta[_POSE]), sets, self.time_s, self.velocity_m_s + delta[_VELOCITY],
+            return T, sets
+        return (T, sets, self.time_s, self.velocity_m_s + delta[_VELOCITY],
                 self.angular_velocity_rad_s + delta[_ANGULAR_VELOCITY])
 
     def update(self, sets: Sequence[CornerSet]) -> UpdateResult:
@@ -183,7 +203,7 @@ class PoseFilter:
         """
         sets = [s for s in sets if s is not None and len(s.faces)]
         while sets:
-            delta, info, r = self._solve(sets)
+            delta, info, T, r = self._solve(sets)
             face_rms = np.sqrt(np.mean(r.reshape(-1, 8) ** 2, axis=1))  # 4 corners x (x, y) per face
             worst = int(np.argmax(face_rms))
             if face_rms[worst] <= self.params.face_gate_px or len(face_rms) == 1:
@@ -196,8 +216,7 @@ class PoseFilter:
             return UpdateResult(False, rms, r.size // 2)
         self.P = np.linalg.inv(info)
         self.P = (self.P + self.P.T) / 2.0
-        T = perturbed(self.T_world_cube, delta[_POSE])
-        self.position_m, self.R_world_cube = T[:3, 3], T[:3, :3]
+        self._set_pose(T)
         self.velocity_m_s = self.velocity_m_s + delta[_VELOCITY]
         self.angular_velocity_rad_s = self.angular_velocity_rad_s + delta[_ANGULAR_VELOCITY]
         return UpdateResult(True, rms, r.size // 2)
