@@ -15,7 +15,6 @@ and the state is left unchanged.
 
 from __future__ import annotations
 
-import copy
 import dataclasses
 import functools
 from dataclasses import dataclass
@@ -141,7 +140,9 @@ class PoseFilter:
 
     def copy(self) -> PoseFilter:
         """An independent snapshot (cheap: the arrays are shared until a step replaces them)."""
-        return copy.copy(self)
+        snapshot = object.__new__(type(self))
+        snapshot.__dict__.update(self.__dict__)  # what copy.copy does, without its generic dispatch
+        return snapshot
 
     def predicted(self, time_s: float) -> np.ndarray:
         """The pose extrapolated to ``time_s`` at constant velocity (no state change)."""
