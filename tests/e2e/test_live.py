@@ -28,6 +28,7 @@ from cubetrack.evaluate.metrics import evaluate
 from cubetrack.io.recording import Recording
 from cubetrack.io.trajectory import Trajectory, read_tum
 from cubetrack.source.clock import fit_round_trips
+from tests.helpers.scene import simulated_scene
 
 pytestmark = pytest.mark.slow
 
@@ -36,15 +37,7 @@ DURATION_S = 8.0
 
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):
-    work = tmp_path_factory.mktemp("live")
-    rec = work / "rec"
-    assert main(["simulate", "--out", str(rec), "--duration", str(DURATION_S), "--seed", "5",
-                 "--calibration-frames", "100"]) == 0
-    assert main(["calibrate", "--config", str(rec / "config.toml"), "--recording", str(rec / "calibration"),
-                 "--out", str(work / "extrinsics.toml")]) == 0
-    assert main(["track", "--config", str(rec / "config.toml"), "--extrinsics", str(work / "extrinsics.toml"),
-                 "--recording", str(rec), "--out", str(work / "offline")]) == 0
-    return work, rec
+    return simulated_scene(tmp_path_factory.mktemp("live"), DURATION_S, seed=5, calibration_frames=100)
 
 
 @pytest.fixture(scope="module")

@@ -20,10 +20,10 @@ import pytest
 from cubetrack.app.demo import write_live_config
 from cubetrack.app.emulated import EmulatedCameras
 from cubetrack.app.worker import BUS_LEASE_MS
-from cubetrack.cli.main import main
 from cubetrack.evaluate.metrics import evaluate
 from cubetrack.io.config import read_tracker_config
 from cubetrack.io.trajectory import Trajectory, read_tum
+from tests.helpers.scene import simulated_scene
 
 pytestmark = pytest.mark.slow
 
@@ -37,6 +37,14 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+def kill_leftovers(procs: list[subprocess.Popen]) -> None:
+    """Kill what a test left running (after a failure)."""
+    for p in procs:
+        if p.poll() is None:
+            p.kill()
+            p.wait()
+
+
 def cubetrack(*args: str) -> subprocess.Popen:
     return subprocess.Popen([sys.executable, "-m", "cubetrack.cli.main", *args], stdout=subprocess.PIPE,
                             stderr=subprocess.PIPE, text=True)
@@ -44,15 +52,7 @@ def cubetrack(*args: str) -> subprocess.Popen:
 
 @pytest.fixture(scope="module")
 def scene(tmp_path_factory):
-    work = tmp_path_factory.mktemp("scale")
-    rec = work / "rec"
-    assert main(["simulate", "--out", str(rec), "--duration", str(DURATION_S), "--seed", "11",
-                 "--calibration-frames", "60"]) == 0
-    assert main(["calibrate", "--config", str(rec / "config.toml"), "--recording", str(rec / "calibration"),
-                 "--out", str(work / "extrinsics.toml")]) == 0
-    assert main(["track", "--config", str(rec / "config.toml"), "--extrinsics", str(work / "extrinsics.toml"),
-                 "--recording", str(rec), "--out", str(work / "offline")]) == 0
-    return work, rec
+    return simulated_scene(tmp_path_factory.mktemp("scale"), DURATION_S, seed=11, calibration_frames=60)
 
 
 @pytest.fixture(scope="module")
@@ -303,10 +303,7 @@ def test_a_dead_workers_cameras_are_taken_over(scene, tmp_path, how):
                 p.send_signal(signal.SIGINT)
             outs = [p.communicate(timeout=60) for p in (workers[1], fuse)]
         finally:
-            for p in procs:
-                if p.poll() is None:
-                    p.kill()
-                    p.wait()
+            kill_leftovers(procs)
             bus.close()
     assert [p.returncode for p in (workers[1], fuse)] == [0, 0], outs
     window_s = (killed_unix_s - 1.0, killed_unix_s + resumed - killed + 1.0)
@@ -368,10 +365,7 @@ def test_named_and_automatic_workers_share_the_cameras(scene, tmp_path):
         outs = [p.communicate(timeout=60) for p in (named, autos[1])]
         outs.insert(1, first)
     finally:
-        for p in procs:
-            if p.poll() is None:
-                p.kill()
-                p.wait()
+        kill_leftovers(procs)
         bus.close()
     assert [p.returncode for p in procs] == [0, 0, 0], outs
     assert f"took {gone}" in outs[2][0] and f"gave up {gone}" in outs[1][0]  # the summaries list the claims
