@@ -55,3 +55,47 @@ def test_estimates_far_from_any_ground_truth_are_not_scored():
 def test_disjoint_times_are_an_error():
     with pytest.raises(EvaluationError, match="do not overlap"):
         evaluate(Trajectory(np.array([5.0]), np.zeros((1, 3)), np.array([[0, 0, 0, 1.0]])), gt())
+
+
+def turning_truth(hz=10.0, yaw_deg_s=90.0, speed_m_s=1.0):
+    """A ground truth sampled at ``hz`` of a cube moving along x and turning about z at constant rates."""
+    t = 100.0 + np.arange(11) / hz
+    p = np.column_stack([speed_m_s * (t - 100.0), np.zeros_like(t), np.full_like(t, 0.1)])
+    q = Rotation.from_euler("z", yaw_deg_s * (t - 100.0)[:, None], degrees=True).as_quat()
+    return Trajectory(t, p, q)
+
+
+def test_truth_is_interpolated_to_each_pose_time_and_eq7_is_beside_it():
+    # a perfect estimate 30 ms after a 10 Hz sample: against the interpolated truth it is exact;
+    # eq. 7's nearest sample is 30 ms (3 cm, 2.7 deg) off
+    times = np.array([100.13, 100.53, 100.87])
+    pos = np.column_stack([times - 100.0, np.zeros(3), np.full(3, 0.1)])
+    q = Rotation.from_euler("z", 90.0 * (times - 100.0)[:, None], degrees=True).as_quat()
+    r = evaluate(Trajectory(times, pos, q), turning_truth(), EvaluationParams(max_time_diff_s=0.05))
+    assert r.poses_scored == 3
+    assert r.position_rmse_m == pytest.approx(0.0, abs=1e-9)
+    assert r.rotation_rmse_deg == pytest.approx(0.0, abs=1e-6)
+    assert r.position_rmse_nearest_m == pytest.approx(0.03)
+    assert r.rotation_rmse_nearest_deg == pytest.approx(2.7)
+    assert r.as_dict()["rotation_rmse_nearest_deg"] == pytest.approx(2.7)
+
+
+def test_interpolated_rotation_is_a_slerp_not_a_blend():
+    # samples 100 deg apart (1000 deg/s at 10 Hz): a component-wise quaternion blend is off by
+    # several degrees between them, the slerp is exact for a constant rate
+    truth = turning_truth(yaw_deg_s=1000.0)
+    times = np.array([100.025, 100.05, 100.075])
+    q = Rotation.from_euler("z", 1000.0 * (times - 100.0)[:, None], degrees=True).as_quat()
+    pos = np.column_stack([times - 100.0, np.zeros(3), np.full(3, 0.1)])
+    r = evaluate(Trajectory(times, pos, q), truth, EvaluationParams(max_time_diff_s=0.05))
+    assert r.rotation_rmse_deg == pytest.approx(0.0, abs=1e-6)
+
+
+def test_poses_just_outside_the_truth_take_its_end_samples():
+    truth = turning_truth()
+    times = np.array([99.99, 101.01])  # within max_time_diff_s of the first and last samples
+    pos = truth.positions_m[[0, -1]]
+    r = evaluate(Trajectory(times, pos, truth.quats_xyzw[[0, -1]]), truth)
+    assert r.poses_scored == 2
+    assert r.position_rmse_m == pytest.approx(0.0, abs=1e-12)
+    assert r.rotation_rmse_deg == pytest.approx(0.0, abs=1e-6)
