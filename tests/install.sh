@@ -26,3 +26,12 @@ fi
 [ -x .venv/bin/python ] || python3 -m venv .venv
 .venv/bin/python -m pip install -q --upgrade pip
 .venv/bin/python -m pip install -q -e '.[test]'
+
+# The official Foxglove WebSocket client library (npm; versions pinned in its package-lock.json),
+# which tests/e2e/test_outputs.py runs against the live server. Without npm that test is skipped.
+if command -v npm >/dev/null; then
+  [ -d tests/e2e/foxglove_client/node_modules/@foxglove/ws-protocol ] ||
+    npm ci --prefix tests/e2e/foxglove_client --no-audit --no-fund --loglevel=error
+else
+  echo "install.sh: npm not found: the official Foxglove client test will be skipped"
+fi

@@ -1,9 +1,15 @@
 """``cubetrack demo`` with every output at once, each watched by its consumer while it runs:
 a VRPN client, a ROS 2 subscriber (through a Zenoh router standing in for rmw_zenohd), the
-Foxglove WebSocket client, a Zenoh JSON subscriber; then the MCAP file it wrote, and ``cubetrack
+Foxglove WebSocket client, the official Foxglove client library (@foxglove/ws-protocol, from a
+Node.js script: tests/e2e/foxglove_client), a Zenoh JSON subscriber; then the MCAP file it wrote, and ``cubetrack
 track`` replaying the demo's recording with an ``[[outputs]]`` table in the config."""
 
+import base64
+import json
 import queue
+import re
+import shutil
+import subprocess
 import sys
 import threading
 import time
@@ -15,12 +21,15 @@ REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO / "tests" / "unit" / "sink"))  # the consumers written for the unit tests
 
 from sink_helpers import free_port, open_router, peer  # noqa: E402
-from foxglove_client import LiveClient, read_mcap  # noqa: E402
+from foxglove_client import LiveClient, decode, read_mcap  # noqa: E402
 from vrpn_client import TrackerClient  # noqa: E402
 
 from cubetrack.cli.main import main  # noqa: E402
 
 pytestmark = pytest.mark.slow
+NODE_CLIENT = REPO / "tests" / "e2e" / "foxglove_client"
+NODE_TOPICS = ("/robots/robot/pose", "/tf", "/scene", "/cameras/cam1/image", "/cameras/cam1/annotations",
+               "/cameras/cam1/calibration", "/cameras/cam1/health")
 POSE_KEY = "0/robot/pose/geometry_msgs::msg::dds_::PoseStamped_/RIHS01_10f3786d7d40fd2b54367835614bff85d4ad3b5dab62bf8bca0cc232d73b4cd8"
 
 
@@ -35,10 +44,19 @@ def retry(make, timeout_s=120.0):
             time.sleep(0.3)
 
 
+def node_client_missing() -> str | None:
+    """Why the official Foxglove client cannot run here, None when it can."""
+    if shutil.which("node") is None:
+        return "node (Node.js) is not installed: the official Foxglove client library runs on it"
+    if not (NODE_CLIENT / "node_modules" / "@foxglove" / "ws-protocol").is_dir():
+        return f"@foxglove/ws-protocol is not installed: run tests/install.sh (npm ci in {NODE_CLIENT})"
+    return None
+
+
 class Consumers:
     """Every consumer, connected while the demo runs (the servers start before the simulation)."""
 
-    def __init__(self, router: str, vrpn_port: int, foxglove_port: int):
+    def __init__(self, router: str, vrpn_port: int, foxglove_port: int, folder: Path):
         self.vrpn = None
         self.foxglove = None
         self.errors: list[str] = []
@@ -52,6 +70,13 @@ class Consumers:
                         threading.Thread(target=self._foxglove, args=(foxglove_port,), daemon=True)]
         for t in self.threads:
             t.start()
+        # its output to files: a pipe nobody reads while the demo runs would hold the client up
+        self.node_files = (folder / "node_client.out", folder / "node_client.err")
+        with open(self.node_files[0], "w") as stdout, open(self.node_files[1], "w") as stderr:
+            self.node = None if node_client_missing() else subprocess.Popen(
+                ["node", "client.mjs", f"ws://127.0.0.1:{foxglove_port}", "--topics", ",".join(NODE_TOPICS),
+                 "--timeout", "300"], cwd=NODE_CLIENT, stdout=stdout, stderr=stderr)
+        self.node_output: tuple[int, str, str] | None = None  # exit code, stdout, stderr
 
     def _vrpn(self, port):
         try:
@@ -72,6 +97,13 @@ class Consumers:
         for t in self.threads:
             t.join(10)
         self.ros.close()
+        if self.node is not None:
+            try:
+                self.node.wait(timeout=15)
+            except subprocess.TimeoutExpired:
+                self.node.kill()
+                self.node.wait()
+            self.node_output = (self.node.returncode, *(f.read_text() for f in self.node_files))
 
 
 @pytest.fixture(scope="module")
@@ -79,7 +111,7 @@ def demo(tmp_path_factory):
     out = tmp_path_factory.mktemp("outputs")
     router, router_locator = open_router()
     vrpn_port, foxglove_port = free_port(), free_port()
-    consumers = Consumers(router_locator, vrpn_port, foxglove_port)
+    consumers = Consumers(router_locator, vrpn_port, foxglove_port, out)
     try:
         code = main(["demo", "--out", str(out / "demo"), "--duration", "3", "--vrpn", f"127.0.0.1:{vrpn_port}",
                      "--foxglove", f"127.0.0.1:{foxglove_port}", "--mcap", str(out / "demo.mcap"),
@@ -122,6 +154,39 @@ def test_the_demo_serves_vrpn_ros2_zenoh_foxglove_and_writes_mcap(demo):
     detected = [[p for p in m.points if p.outline_color.g >= 0.9] for m in notes]
     assert any(predicted) and all(len(p) % 5 == 0 for p in predicted)  # the predicted cube's five markers
     assert all(len(d) == len(m.texts) for d, m in zip(detected, notes))  # each detected marker with its id
+
+
+def test_the_official_foxglove_client_sees_every_channel_with_a_message_of_each(demo):
+    missing = node_client_missing()
+    if missing:
+        pytest.skip(missing)
+    code, out, consumers, _ = demo
+    assert code == 0 and consumers.node_output is not None
+    returncode, stdout, stderr = consumers.node_output
+    arrived = re.findall(r'"topic":"([^"]+)","logTime"', stdout)
+    assert returncode == 0, f"{stderr[-2000:]}; first messages on {arrived}"
+    lines = [json.loads(line) for line in stdout.splitlines()]
+    assert lines[0]["serverInfo"]["name"] == "cubetrack"
+    advertised = {c["topic"]: c for line in lines if "advertise" in line for c in line["advertise"]}
+    written, _ = read_mcap(out / "demo.mcap")
+    assert set(written) <= set(advertised)  # the live server offers every channel the MCAP file holds
+    assert {t: (c["schemaName"], c["encoding"]) for t, c in advertised.items() if t in written} == {
+        t: (schema, encoding) for t, (schema, _, encoding) in written.items()}
+    first = {}
+    for line in lines:
+        if "message" in line:
+            channel = advertised[line["message"]["topic"]]
+            schema = channel["schema"]
+            raw = base64.b64decode(schema) if channel["schemaEncoding"] == "protobuf" else schema.encode()
+            first[channel["topic"]] = decode(channel["schemaName"], channel["schemaEncoding"], raw,
+                                             base64.b64decode(line["message"]["data"]))
+    assert set(NODE_TOPICS) <= set(first)
+    assert first["/robots/robot/pose"].frame_id == "world" and abs(first["/robots/robot/pose"].pose.orientation.w) <= 1
+    assert first["/tf"].transforms and first["/scene"].entities
+    image = first["/cameras/cam1/image"]
+    assert image.format == "jpeg" and image.data[:2] == b"\xff\xd8" and image.frame_id == "cam1_optical_frame"
+    assert first["/cameras/cam1/calibration"].width > 0 and len(first["/cameras/cam1/calibration"].K) == 9
+    assert first["/cameras/cam1/health"]["camera"] == "cam1"
 
 
 def test_track_takes_outputs_from_the_config(demo, capsys):
