@@ -1,8 +1,9 @@
 """Camera worker processes for live tracking (``[live] worker_kind = "camera-process"``).
 
 Each worker process owns a share of the cameras end to end: it reads their streams and
-``/time`` round trips (:class:`~cubetrack.source.streams.LiveCameras`, freshest frame first),
-stamps capture times with its own clock fits, plans each frame and does the per-frame work
+``/time`` round trips on its one thread, between frames (:class:`~cubetrack.source.streams.LiveCameras`
+without a thread of its own: non-blocking sockets; frames in arrival order, each camera's newest
+only), stamps capture times with its own clock fits, plans each frame and does the per-frame work
 (decode, detection, per-camera estimates) with a :class:`~cubetrack.app.tracker.Tracker` of its
 own, whose plans come from a :class:`Forecast`: each robot's motion as the fusion predicts it,
 sent by the tracker's process after every batch of fused results. Results go back over a pipe
@@ -17,12 +18,10 @@ import dataclasses
 import logging
 import multiprocessing
 import signal
-import threading
 import time
-from collections import deque
 from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass
-from multiprocessing.connection import Connection
+from multiprocessing.connection import Connection, wait
 
 import cv2
 import numpy as np
@@ -37,7 +36,9 @@ log = logging.getLogger(__name__)
 
 STATS_EVERY_S = 0.5  # a worker process sends its cameras' counters this often
 FORECAST_SPAN_S = 0.1  # the motion in a forecast: from the fusion's predictions this far apart
-IN_FLIGHT = 2  # results a worker process may have sent that the fusion has not taken yet
+FORECAST_EVERY_S = 0.01  # the tracker's process sends a new forecast at most this often
+IN_FLIGHT = 4  # results a worker process may have sent that the fusion has not taken yet
+MESSAGES_PER_TAKE = 64  # messages read from one worker process per take(), so that no process starves another
 
 
 @dataclass(frozen=True, slots=True)
@@ -98,23 +99,19 @@ class CameraProcesses:
     """``count`` camera worker processes over ``urls`` (see the module doc), with the part of
     :class:`~cubetrack.source.streams.LiveCameras`' interface the live loop uses (``urls``,
     :meth:`stats`, :meth:`pending`, :meth:`stop`). ``make_tracker`` builds each process's
-    tracker (picklable: a ``functools.partial``); ``wake`` is called whenever something came.
-    Take what came with :meth:`take`; send each new :class:`Forecast` with :meth:`forecast`."""
+    tracker (picklable: a ``functools.partial``). Wait for and take what came with :meth:`take`
+    (on the caller's thread: no thread of this process reads the pipes, so none competes with
+    the fusion for the GIL); send each new :class:`Forecast` with :meth:`forecast`."""
 
     def __init__(self, urls: Mapping[str, str], source: SourceParams, make_tracker: Callable[[], Tracker],
-                 count: int, *, views: bool = False, wake: Callable[[], None] = lambda: None,
-                 clock: Callable[[], float] = time.time):
+                 count: int, *, views: bool = False, clock: Callable[[], float] = time.time):
         self.urls = dict(urls)
         self.count = count
-        self._wake = wake
-        self._lock = threading.Lock()
-        self._results: deque[tuple[int, FrameResult]] = deque()  # (lane, result)
         self._taken: list[int] = []  # per lane: results taken by the fusion
-        self._clocks: deque[ClockReading] = deque()
         self._stats = {name: CameraStats(url=url) for name, url in self.urls.items()}
         self._before_clock: dict[int, int] = {}  # per worker process
-        self._failure: BaseException | None = None
-        self._lanes = []
+        self._lanes: list[tuple[Connection, multiprocessing.Process]] = []
+        self._open: dict[Connection, int] = {}  # the pipes of processes that have not finished -> lane
         context = multiprocessing.get_context("spawn")  # fork would copy this process's threads' locks
         for share in share_cameras(self.urls, count):
             parent, child = context.Pipe()
@@ -122,59 +119,74 @@ class CameraProcesses:
                                       daemon=True, name="cubetrack-camera-worker")
             process.start()
             child.close()
-            reader = threading.Thread(target=self._read, args=(len(self._lanes), parent, process), daemon=True,
-                                      name="cubetrack-camera-worker-results")
-            self._lanes.append((parent, process, reader))
+            self._open[parent] = len(self._lanes)
+            self._lanes.append((parent, process))
             self._taken.append(0)
-            reader.start()
-        self._open = len(self._lanes)
 
-    def take(self) -> tuple[list[FrameResult], list[ClockReading]]:
-        """The results and clock samples that came since the last call (arrival order)."""
-        with self._lock:
-            if self._failure is not None:
-                raise self._failure
-            results, clocks = [], list(self._clocks)
-            for lane, result in self._results:
-                results.append(result)
-                self._taken[lane] += 1
-            self._results.clear()
-            self._clocks.clear()
+    def take(self, timeout_s: float = 0.0) -> tuple[list[FrameResult], list[ClockReading]]:
+        """The results and clock samples that came (arrival order per process), waiting up to
+        ``timeout_s`` for the first. Raises :class:`SourceError` when a worker process failed."""
+        results: list[FrameResult] = []
+        clocks: list[ClockReading] = []
+        if not self._open:
+            return results, clocks
+        for conn in wait(list(self._open), timeout_s):
+            lane = self._open[conn]
+            for _ in range(MESSAGES_PER_TAKE):
+                try:
+                    kind, payload = conn.recv()
+                except (EOFError, OSError):
+                    del self._open[conn]
+                    raise SourceError("a camera worker process ended unexpectedly "
+                                      f"(exit code {self._lanes[lane][1].exitcode})") from None
+                if kind == "result":
+                    results.append(payload)
+                    self._taken[lane] += 1
+                elif kind == "clock":
+                    clocks.append(payload)
+                elif kind == "update":
+                    self._stats.update(payload.cameras)
+                    self._before_clock[lane] = payload.before_clock
+                elif kind == "failed":
+                    del self._open[conn]
+                    raise SourceError(f"a camera worker process failed: {payload}")
+                if kind == "done":
+                    del self._open[conn]
+                    break
+                if not conn.poll():
+                    break
         return results, clocks
 
-    def forecast(self, forecast: Forecast) -> None:
-        """Hand every worker process the fusion's newest forecast, and how many of its results
-        the fusion has taken (a worker process keeps at most ``IN_FLIGHT`` beyond that: when the
-        fusion is behind, frames wait in the source, where each camera keeps only its newest)."""
-        for (conn, _process, _reader), taken in zip(self._lanes, self._taken):
+    def forecast(self, forecast: Forecast | None) -> None:
+        """Hand every worker process the fusion's newest forecast (None: no new one), and how
+        many of its results the fusion has taken (a worker process keeps at most ``IN_FLIGHT``
+        beyond that: when the fusion is behind, frames wait in the source, where each camera
+        keeps only its newest)."""
+        for conn, lane in self._open.items():
             try:
-                conn.send((forecast, taken))
-            except OSError:  # the process ended: its reader reports it
+                conn.send((forecast, self._taken[lane]))
+            except OSError:  # the process ended: take() reports it
                 pass
 
     def stats(self) -> dict[str, CameraStats]:
-        with self._lock:
-            return {name: s.copy() for name, s in self._stats.items()}
+        return {name: s.copy() for name, s in self._stats.items()}
 
     def before_clock(self) -> int:
         """Frames given up before their camera's clock was known, so far."""
-        with self._lock:
-            return sum(self._before_clock.values())
+        return sum(self._before_clock.values())
 
     def pending(self) -> int:
-        with self._lock:
-            return len(self._results) + len(self._clocks)
+        return sum(conn.poll() for conn in self._open)
 
     @property
     def running(self) -> bool:
         """Some worker process has not finished yet."""
-        with self._lock:
-            return self._open > 0
+        return bool(self._open)
 
     def stop(self, timeout_s: float = 10.0) -> None:
         """Ask every worker process to finish: each stops reading, works off the frames it had
-        and sends its last counters; :attr:`running` turns False when all have."""
-        for conn, _process, _reader in self._lanes:
+        and sends its last counters; :attr:`running` turns False when :meth:`take` has had them all."""
+        for conn in self._open:
             try:
                 conn.send(None)
             except OSError:
@@ -182,47 +194,17 @@ class CameraProcesses:
 
     def close(self) -> None:
         self.stop()
-        for conn, process, reader in self._lanes:
+        for conn, process in self._lanes:
             process.join(10.0)
             if process.is_alive():
                 process.terminate()
                 process.join()
-            reader.join(5.0)
             conn.close()
+        self._open.clear()
 
     def start(self) -> CameraProcesses:
         """Nothing to do: the processes started with the object (for the live loop's sake)."""
         return self
-
-    def _read(self, lane: int, conn: Connection, process) -> None:
-        finished = False
-        try:
-            while True:
-                kind, payload = conn.recv()
-                with self._lock:
-                    if kind == "result":
-                        self._results.append((lane, payload))
-                    elif kind == "clock":
-                        self._clocks.append(payload)
-                    elif kind == "update":
-                        self._stats.update(payload.cameras)
-                        self._before_clock[lane] = payload.before_clock
-                    elif kind == "failed":
-                        self._failure = self._failure or SourceError(f"a camera worker process failed: {payload}")
-                    if kind in ("done", "failed"):
-                        finished = True
-                self._wake()
-                if finished:
-                    break
-        except (EOFError, OSError):
-            with self._lock:
-                if not finished:
-                    self._failure = self._failure or SourceError(
-                        f"a camera worker process ended unexpectedly (exit code {process.exitcode})")
-        finally:
-            with self._lock:
-                self._open -= 1
-            self._wake()
 
 
 def _worker_main(conn: Connection, urls: dict[str, str], source: SourceParams, make_tracker: Callable[[], Tracker],
@@ -243,8 +225,9 @@ def _worker_main(conn: Connection, urls: dict[str, str], source: SourceParams, m
 def _work_cameras(conn: Connection, urls: dict[str, str], source: SourceParams, tracker: Tracker, views: bool,
                   clock: Callable[[], float]) -> None:
     tracker.forecast = Forecast({}, frozenset(r.name for r in tracker.robots))
-    live = LiveCameras(urls, source, clock=clock)
+    live = LiveCameras(urls, source, clock=clock, thread=False)  # read on this thread, between frames
     live.start()
+    live.wake_on(conn)
     next_update = time.monotonic() + STATS_EVERY_S
     stopping = False
     sent = taken = 0
@@ -256,14 +239,15 @@ def _work_cameras(conn: Connection, urls: dict[str, str], source: SourceParams, 
                     stopping = True
                     live.stop()
                 else:
-                    tracker.forecast, taken = message
+                    forecast, taken = message
+                    tracker.forecast = forecast or tracker.forecast
             room = stopping or sent - taken < IN_FLIGHT
-            event = live.get(0 if stopping or not room else 0.05, frames=room, newest_first=True)
+            # in arrival order: the fusion gets fewer late sightings to fold in (each costs re-applying the
+            # newer ones) than freshest-first would give it; a camera keeps only its newest frame waiting
+            event = live.get(0 if stopping else 0.05, frames=room)  # or until a message comes
             if event is None:
                 if stopping:
                     break
-                if not room:
-                    conn.poll(0.05)  # wait for the fusion to take a result
             elif isinstance(event, ClockReading):
                 tracker.add_clock_sample(event.camera, event.sample)
                 conn.send(("clock", event))

@@ -26,7 +26,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable, Sequence
 
-from cubetrack.app.camera_workers import CameraProcesses, forecast_of
+from cubetrack.app.camera_workers import FORECAST_EVERY_S, CameraProcesses, forecast_of
 from cubetrack.app.config import config_params
 from cubetrack.app.outputs import open_outputs
 from cubetrack.app.parallel import FramePool, LiveParams, WorkerKind, by_capture_time
@@ -333,22 +333,33 @@ def track_live(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
         if pool.idle() or not pool.ready:
             wake.set()
 
-    def take_from_cameras() -> None:
-        """Camera worker processes: their clock samples, then their results, oldest capture
-        first; the fusion's new forecast goes back to them."""
-        results, readings = live.take()
+    next_forecast = [0.0]
+
+    def take_from_cameras(timeout_s: float) -> None:
+        """Camera worker processes: wait up to ``timeout_s`` for what they send; their clock
+        samples, then their results, oldest capture first; back goes how many were taken and,
+        at most every ``FORECAST_EVERY_S``, the fusion's new forecast."""
+        results, readings = live.take(timeout_s)
         for reading in readings:
             emit(tracker.add_clock_sample(reading.camera, reading.sample), reading.sample.host_recv_s)
         for result in by_capture_time(results):
             tracker.stats.frames += 1
             fuse(result)
         if results:
-            live.forecast(forecast_of(tracker.fusion, robots, clock()))
+            now_s = clock()
+            forecast = None
+            if now_s >= next_forecast[0]:
+                next_forecast[0] = now_s + FORECAST_EVERY_S
+                forecast = forecast_of(tracker.fusion, robots, now_s)
+            live.forecast(forecast)
 
-    def step() -> None:
+    def step(timeout_s: float) -> None:
+        """Wait up to ``timeout_s`` for something to do, then do it."""
         if pool is None:
-            take_from_cameras()
+            take_from_cameras(timeout_s)
         else:
+            wake.wait(timeout_s)
+            wake.clear()
             fuse_results()
             take_events()
 
@@ -367,7 +378,7 @@ def track_live(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
         make_tracker = functools.partial(Tracker, intrinsics, config.world, config.robots, extrinsics, params,
                                          synced_cameras=frozenset(urls))
         live = CameraProcesses(urls, source, make_tracker, live_params.worker_count, views=outputs.wants_views,
-                               wake=wake.set, clock=clock)
+                               clock=clock)
     else:
         make_worker = functools.partial(FrameWorker, intrinsics, config.world, config.robots, tracker.T_world_cam,
                                         params)
@@ -386,9 +397,7 @@ def track_live(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
         next_tick = clock()
         try:
             while not _session_over(started, duration_s, stop):
-                wake.wait(0.1 if tick_s is None else min(0.1, max(0.0, next_tick - clock())))
-                wake.clear()
-                step()
+                step(0.1 if tick_s is None else min(0.1, max(0.0, next_tick - clock())))
                 if tick_s is not None and (now_s := clock()) >= next_tick:
                     next_tick = (math.floor(now_s / tick_s) + 1) * tick_s  # the next tick of the rate's grid
                     emit(predicted_poses(tracker.fusion, robots, now_s), now_s)
@@ -401,9 +410,7 @@ def track_live(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
                         outputs.camera_health(snapshot)
             live.stop()
             while working():  # what had arrived when the session ended
-                wake.wait(0.05)
-                wake.clear()
-                step()
+                step(0.05)
         except KeyboardInterrupt:
             interrupted = True
             log.info("interrupted: finishing with what has arrived")
@@ -413,6 +420,11 @@ def track_live(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
             tracker.stats.frames += tracker.stats.frames_before_clock_sync
         now_s = clock()
         emit(tracker.finish(now_s), now_s)
+        late = getattr(tracker.fusion, "stats", {})
+        if late:
+            log.info("fusion: %d sightings fused, %d of them late (folded in), %d steps re-applied after them",
+                     sum(tracker.stats.estimates.values()) + tracker.stats.frames, late["late sighting"],
+                     late["replayed sighting"])
     finally:
         live.stop()
         if pool is None:

@@ -1,22 +1,23 @@
 """Live camera sources (architecture: layer "source"): frames and clock samples from camera nodes
 over HTTP (contracts §1), delivered in arrival order to one consumer (the tracker, a recorder).
 
-Per camera two threads run:
+Per camera two HTTP exchanges run, all cameras on one event loop (non-blocking sockets,
+:mod:`selectors`; :mod:`cubetrack.source.http_get`), in a thread of its own or, for a process
+that does its per-frame work between reads, in the consumer's own thread:
 
-- a **stream reader**: ``GET <url>`` (the node's ``/stream``) with requests (``stream=True``,
-  connect and read timeouts), the body read with ``raw.read1`` (returns as soon as any bytes
-  arrived, so a frame is never held back until the next one comes; see
-  ``ecosystem-facts.md`` §8), parsed by :class:`MjpegParser`. Each part becomes a
-  :class:`~cubetrack.core.records.Frame` stamped with the host time at which its last byte arrived.
-  A malformed part is skipped and counted, never fatal; a lost, refused or silent connection
-  is retried with exponential back-off (logged);
-- a **clock poller**: ``GET /time`` about once a second (the URL derived from the stream URL),
+- the **stream**: ``GET <url>`` (the node's ``/stream``), the body handed to :class:`MjpegParser`
+  as each read returns, so a frame is never held back until the next one comes (see
+  ``ecosystem-facts.md`` §8). Each part becomes a :class:`~cubetrack.core.records.Frame` stamped
+  with the host time at which its last byte arrived (the kernel's receive time). A malformed
+  part is skipped and counted, never fatal; a lost, refused or silent connection is retried
+  with exponential back-off (logged);
+- the **clock**: ``GET /time`` about once a second (the URL derived from the stream URL),
   giving (host_send, device_time, host_recv) :class:`~cubetrack.core.cameras.ClockSample`
   round trips. The TCP connection is opened before ``host_send`` is taken, so the round trip
   brackets only the request and its answer. Timeouts and garbage answers are counted and dropped.
 
 :class:`LiveCameras` runs them for a set of cameras and merges everything into one bounded,
-thread-safe queue in arrival order. When the consumer falls behind, each camera keeps only its
+queue in arrival order. When the consumer falls behind, each camera keeps only its
 newest frame (``frames_per_camera``): an older one still waiting is dropped and counted per camera
 (a stale frame is worth less than a fresh one). Clock samples are never dropped (they are few and
 each one matters).
@@ -24,10 +25,10 @@ each one matters).
 
 from __future__ import annotations
 
-import http.client
 import logging
 import math
 import re
+import selectors
 import socket
 import threading
 import time
@@ -40,6 +41,7 @@ from cubetrack.core.cameras import ClockSample
 from cubetrack.core.errors import ConfigError, ParamsError
 from cubetrack.core.params import param
 from cubetrack.core.records import Frame
+from cubetrack.source.http_get import HttpError, HttpGet
 
 log = logging.getLogger(__name__)
 
@@ -345,26 +347,51 @@ def parse_time_answer(body: bytes) -> float:
     return float(text)
 
 
+class _ClockPoll:
+    """One ``/time`` round trip on an event loop: connect within ``timeout_s``, then the request
+    and its answer within ``timeout_s``. :meth:`handle` returns the sample once the answer is
+    in; raises OSError / :class:`HttpError` (no answer) or ValueError (a garbage answer)."""
+
+    def __init__(self, url: str, timeout_s: float, clock: Callable[[], float]):
+        self.get = HttpGet(url, {"Connection": "close"}, clock, read_bytes=256)
+        self.timeout_s = timeout_s
+        self.deadline = time.monotonic() + timeout_s
+        self.body = bytearray()
+
+    def handle(self) -> ClockSample | None:
+        was_connected = self.get.connected
+        self.body += self.get.handle()
+        if self.get.connected and not was_connected:  # the request went out: the answer's time starts
+            self.deadline = time.monotonic() + self.timeout_s
+        if len(self.body) > 128:
+            raise ValueError("answer longer than 128 bytes")
+        if not self.get.ended:
+            return None
+        status = self.get.head[0] if self.get.head else 0
+        if status != 200:
+            raise ValueError(f"HTTP {status}")
+        return ClockSample(self.get.sent_s, parse_time_answer(bytes(self.body)), self.get.received_s)
+
+
 def poll_time(url: str, timeout_s: float, clock: Callable[[], float] = time.time) -> ClockSample:
-    """One ``/time`` round trip. Raises OSError / http.client.HTTPException / ValueError."""
-    u = urlsplit(url)
-    if u.scheme != "http" or not u.hostname:
-        raise ValueError(f"{url}: only http:// URLs are supported")
-    conn = http.client.HTTPConnection(u.hostname, u.port or 80, timeout=timeout_s)
+    """One ``/time`` round trip, waited for. The TCP connection is opened before ``host_send`` is
+    taken, so the round trip brackets the request and its answer only. Raises OSError /
+    :class:`HttpError` / ValueError."""
+    poll = _ClockPoll(url, timeout_s, clock)
     try:
-        conn.connect()  # outside the timed window: the round trip brackets request and answer only
-        conn.sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-        path = (u.path or "/") + (f"?{u.query}" if u.query else "")
-        host_send = clock()
-        conn.request("GET", path, headers={"Connection": "close"})
-        resp = conn.getresponse()
-        body = resp.read(128)
-        host_recv = clock()
-        if resp.status != 200:
-            raise ValueError(f"HTTP {resp.status}")
+        with selectors.DefaultSelector() as selector:
+            selector.register(poll.get.sock, poll.get.events)
+            while True:
+                left = poll.deadline - time.monotonic()
+                if left <= 0:
+                    raise TimeoutError("timed out")
+                if selector.select(left):
+                    sample = poll.handle()
+                    if sample is not None:
+                        return sample
+                    selector.modify(poll.get.sock, poll.get.events)
     finally:
-        conn.close()
-    return ClockSample(host_send, parse_time_answer(body), host_recv)
+        poll.get.close()
 
 
 # --- the live cameras ------------------------------------------------------------------------
@@ -407,24 +434,53 @@ class _StreamEnded(Exception):
     """The server ended the stream or answered something that is not a stream."""
 
 
+_STREAM, _CLOCK, _WAKE = "stream", "clock", "wake"
+READS_PER_EVENT = 4  # reads of one ready stream before the loop turns to the others
+
+
+@dataclass(slots=True, eq=False)
+class _Camera:
+    """One camera's state on the event loop: its stream connection (or when to reconnect) and
+    its ``/time`` round trip in flight (or when the next is due)."""
+
+    name: str
+    url: str
+    time_url: str
+    stream: HttpGet | None = None
+    parser: MjpegParser | None = None
+    deadline: float = 0.0  # monotonic: the stream times out (connect, answer, or silence)
+    reconnect_at: float = 0.0
+    backoff: float = 0.0
+    got_frame: bool = False
+    seq: int = 0
+    reported: Counter = field(default_factory=Counter)  # bad parts already counted in the stats
+    poll: _ClockPoll | None = None
+    poll_at: float = 0.0
+
+
 class LiveCameras:
     """Frames and clock samples of several camera nodes, merged in arrival order.
 
     ``cameras``: name -> stream URL (or :class:`~cubetrack.io.config.CameraConfig` objects).
     Use as a context manager (or :meth:`start` / :meth:`stop`); take events with :meth:`get`:
     :class:`~cubetrack.core.records.Frame` or :class:`ClockReading`. ``on_frame`` / ``on_clock`` are
-    called from the reader threads for every frame / round trip before it is queued (a recorder
-    taps here, so it keeps frames the consumer drops); an exception in them stops everything
-    and is re-raised by :meth:`get`. ``queue=False``: nothing is queued (taps only).
-    ``clock`` gives host times (Unix seconds); ``wake`` is called (from a reader thread) whenever
-    an event is queued, for consumers that wait on more than this source.
+    called for every frame / round trip before it is queued (a recorder taps here, so it keeps
+    frames the consumer drops); an exception in them stops everything and is re-raised by
+    :meth:`get`. ``queue=False``: nothing is queued (taps only). ``clock`` gives host times (Unix
+    seconds); ``wake`` is called whenever an event is queued, for consumers that wait on more
+    than this source.
+
+    Every camera is read on one event loop (non-blocking sockets, :mod:`selectors`, see
+    :mod:`cubetrack.source.http_get`): with ``thread=True`` it runs in one thread of its own;
+    with ``thread=False`` there is no thread and :meth:`get` reads whatever the sockets hold
+    before it answers (for a process that does its per-frame work between reads).
     """
 
     def __init__(self, cameras: Mapping[str, str] | Iterable, params: SourceParams = SourceParams(), *,
                  on_frame: Callable[[Frame], None] | None = None,
                  on_clock: Callable[[str, ClockSample], None] | None = None,
                  queue: bool = True, clock: Callable[[], float] = time.time,
-                 wake: Callable[[], None] | None = None):
+                 wake: Callable[[], None] | None = None, thread: bool = True):
         if isinstance(cameras, Mapping):
             urls = dict(cameras)
         else:
@@ -443,6 +499,7 @@ class LiveCameras:
         self.queue_enabled = queue
         self.clock = clock
         self.wake = wake
+        self.threaded = thread
         self.failure: BaseException | None = None
         self._stats = {name: CameraStats(url=url) for name, url in urls.items()}
         self._lock = threading.Lock()
@@ -451,39 +508,52 @@ class LiveCameras:
         self._queued_frames: Counter[str] = Counter()  # per camera
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
-        self._sockets: dict[str, socket.socket] = {}
+        self._cameras = [_Camera(name, url, time_url(url), backoff=params.backoff_initial_s)
+                         for name, url in urls.items()]
+        self._selector: selectors.BaseSelector | None = None
+        self._waker: tuple[socket.socket, socket.socket] | None = None
+        self._next_due = 0.0
+        self._woken = False
 
     # --- lifecycle ---
 
     def start(self) -> "LiveCameras":
-        if self._threads:
+        if self._selector is not None:
             return self
-        for name, url in self.urls.items():
-            for target, kind in ((self._stream_loop, "stream"), (self._clock_loop, "clock")):
-                t = threading.Thread(target=target, args=(name, url), name=f"cubetrack-{name}-{kind}", daemon=True)
-                t.start()
-                self._threads.append(t)
+        self._selector = selectors.DefaultSelector()
+        now = time.monotonic()
+        for camera in self._cameras:
+            camera.reconnect_at = camera.poll_at = now
+        if self.threaded:
+            self._waker = socket.socketpair()
+            for s in self._waker:
+                s.setblocking(False)
+            self._selector.register(self._waker[0], selectors.EVENT_READ, None)
+            t = threading.Thread(target=self._run, name="cubetrack-cameras", daemon=True)
+            self._threads.append(t)
+            t.start()
         return self
 
     def stop(self, timeout_s: float | None = None) -> None:
-        """Stop every thread (blocked reads are woken by shutting their sockets down)."""
+        """Stop reading (every connection is closed; what was queued can still be taken)."""
+        if self._stop.is_set():
+            return
         self._stop.set()
         with self._cond:
-            socks = list(self._sockets.values())
             self._cond.notify_all()
-        for s in socks:
-            try:
-                s.shutdown(socket.SHUT_RDWR)
-            except OSError:
-                pass
-        limit = timeout_s if timeout_s is not None else self.params.read_timeout_s + 1.0
-        deadline = time.monotonic() + limit
+        if self._selector is None:
+            return
+        if not self._threads:
+            self._close_all()
+            return
+        try:
+            self._waker[1].send(b"x")
+        except OSError:
+            pass
         for t in self._threads:
-            t.join(max(0.0, deadline - time.monotonic()))
-        alive = [t.name for t in self._threads if t.is_alive()]
-        if alive:
-            log.warning("live cameras: thread(s) %s still running after stop (daemon; they end with their reads)",
-                        ", ".join(alive))
+            t.join(timeout_s if timeout_s is not None else self.params.read_timeout_s + 1.0)
+        if any(t.is_alive() for t in self._threads):
+            log.warning("live cameras: the reading thread is still running after stop (daemon; it ends with its read)")
 
     @property
     def stopped(self) -> bool:
@@ -503,8 +573,10 @@ class LiveCameras:
         ``frames=False``: the next clock reading only (frames keep waiting: a consumer with no
         room for a frame still takes the clock samples). ``newest_first``: clock readings first,
         then the frame that arrived last (the freshest, of whichever camera)."""
+        if not self.threaded:
+            self._read_for(timeout_s, frames)
         with self._cond:
-            if not self._has(frames) and not self._stop.is_set():
+            if self.threaded and not self._has(frames) and not self._stop.is_set():
                 self._cond.wait(timeout_s)
             if self.failure is not None:
                 raise self.failure
@@ -523,6 +595,25 @@ class LiveCameras:
                 self._queued_frames[item.camera] -= 1
             return item
 
+    def wake_on(self, fileobj) -> None:
+        """Without a thread: :meth:`get` also stops waiting when ``fileobj`` (e.g. a pipe from
+        another process, read by the caller) has something to read."""
+        self._selector.register(fileobj, selectors.EVENT_READ, _WAKE)
+
+    def _read_for(self, timeout_s: float | None, frames: bool) -> None:
+        """Without a thread: read what the sockets hold, then wait up to ``timeout_s`` for an event
+        (or for a file given to :meth:`wake_on`)."""
+        if self._selector is None or self._stop.is_set():
+            return
+        self._woken = False
+        self._step(0.0)
+        deadline = None if timeout_s is None else time.monotonic() + timeout_s
+        while not self._has(frames) and not self._stop.is_set() and not self._woken:
+            left = 1.0 if deadline is None else deadline - time.monotonic()
+            if left <= 0:
+                break
+            self._step(left)
+
     def _has(self, frames: bool) -> bool:
         return bool(self._queue) if frames else any(isinstance(e, ClockReading) for e in self._queue)
 
@@ -535,7 +626,7 @@ class LiveCameras:
         with self._lock:
             return {name: s.copy() for name, s in self._stats.items()}
 
-    # --- internals ---
+    # --- internals: the queue ---
 
     def _fail(self, exc: BaseException) -> None:
         log.error("live cameras: stopping: %s", exc)
@@ -598,119 +689,205 @@ class LiveCameras:
                 else:
                     setattr(st, key, value)
 
-    def _stream_loop(self, name: str, url: str) -> None:
-        import requests
+    # --- internals: the event loop ---
 
-        p = self.params
-        backoff = p.backoff_initial_s
-        state = {"seq": 0, "got_frame": False}
-        session = requests.Session()
+    def _run(self) -> None:
         try:
             while not self._stop.is_set():
-                state["got_frame"] = False
+                self._step(1.0)
+        except Exception as exc:  # a bug: stop, the consumer re-raises
+            self._fail(exc)
+        finally:
+            self._close_all()
+
+    def _step(self, timeout_s: float) -> None:
+        """Read every socket that is ready (waiting up to ``timeout_s`` for one, less when a
+        connection's deadline or a round trip is due sooner), then act on what is due."""
+        wait = max(0.0, min(timeout_s, self._next_due - time.monotonic()))
+        for key, _mask in self._selector.select(wait):
+            if key.data is None:  # the waker: stop() was called
                 try:
-                    self._read_stream(session, name, url, state)
-                    reason = "the camera closed the stream"
-                except Exception as exc:  # network errors of every library, malformed answers
-                    reason = _describe(exc)
-                if self._stop.is_set():
-                    self._count(name, connected=False)
-                    break
-                self._count(name, connected=False, last_error=reason)
-                if state["got_frame"]:  # the connection worked: start the back-off again
-                    backoff = p.backoff_initial_s
-                self._count(name, reconnects=1)
-                log.warning("camera %s: stream lost (%s); reconnecting in %.2f s", name, reason, backoff)
-                if self._stop.wait(backoff):
-                    break
-                backoff = min(p.backoff_max_s, backoff * 2)
-        finally:
-            session.close()
-
-    def _read_stream(self, session, name: str, url: str, state: dict) -> None:
-        """One connection: read parts until it ends (returns) or fails (raises). ``state`` carries
-        the last frame number and whether this connection gave a frame."""
-        p = self.params
-        resp = session.get(url, stream=True, timeout=(p.connect_timeout_s, p.read_timeout_s),
-                           headers={"Accept": "multipart/x-mixed-replace, */*"})
-        parser = None
-        reported: Counter[str] = Counter()
-        try:
-            if resp.status_code != 200:
-                raise _StreamEnded(f"HTTP {resp.status_code}")
-            ctype = resp.headers.get("Content-Type", "")
-            if not ctype.lower().startswith("multipart/"):
-                raise _StreamEnded(f"not a multipart stream (Content-Type {ctype!r})")
-            raw = resp.raw
-            sock = _socket_of(raw)
-            with self._cond:
-                if sock is not None:
-                    self._sockets[name] = sock
-            if self._stop.is_set():
-                return
-            read1 = getattr(raw, "read1", None) or raw._fp.read1
-            parser = MjpegParser(boundary_from_content_type(ctype), p.max_header_bytes, p.max_part_bytes)
-            self._count(name, connects=1, connected=True, last_error="")
-            log.info("camera %s: streaming from %s", name, url)
-            while not self._stop.is_set():
-                data = read1(p.read_chunk_bytes)
-                if not data:
-                    return
-                arrived = self.clock()
-                for part in parser.feed(data):
-                    state["seq"] = part.seq if part.seq is not None else state["seq"] + 1
-                    self._put_frame(Frame(name, state["seq"], part.device_time_s, arrived, part.jpeg))
-                    state["got_frame"] = True
-                if parser.bad != reported:
-                    self._count(name, bad_parts=parser.bad - reported)
-                    reported = Counter(parser.bad)
-        finally:
-            if parser is not None:
-                if not self._stop.is_set():
-                    parser.close()  # a part in progress when the connection ended is counted
-                if parser.bad != reported:
-                    self._count(name, bad_parts=parser.bad - reported)
-            with self._cond:
-                self._sockets.pop(name, None)
-            resp.close()
-
-    def _clock_loop(self, name: str, stream_url: str) -> None:
-        p = self.params
-        url = time_url(stream_url)
-        next_at = time.monotonic()
-        while not self._stop.is_set():
-            try:
-                sample = poll_time(url, p.clock_timeout_s, self.clock)
-            except (OSError, http.client.HTTPException, ValueError, UnicodeDecodeError) as exc:
-                reason = "no answer" if isinstance(exc, (OSError, http.client.HTTPException)) else "garbage answer"
-                self._count(name, clock_failures=Counter({reason: 1}))
-                log.debug("camera %s: /time round trip failed: %s", name, _describe(exc))
+                    key.fileobj.recv(64)
+                except OSError:
+                    pass
+                continue
+            if key.data is _WAKE:  # a file of the consumer's: it reads it
+                self._woken = True
+                continue
+            camera, kind = key.data
+            if kind is _STREAM:
+                self._on_stream(camera)
             else:
-                if not self._stop.is_set():
-                    self._put_clock(name, sample)
-            next_at += p.clock_period_s
-            wait = next_at - time.monotonic()
-            if wait < 0:  # fell behind (timeouts): keep the period from now
-                next_at = time.monotonic()
-                wait = 0.0
-            if self._stop.wait(wait):
-                break
+                self._on_clock(camera)
+        self._due(time.monotonic())
 
+    def _due(self, now: float) -> None:
+        """Connect, time out and poll what is due at ``now``; note when the next thing is due."""
+        if self._stop.is_set():
+            return
+        p = self.params
+        due = now + 1.0
+        for camera in self._cameras:
+            if camera.stream is None:
+                if now >= camera.reconnect_at:
+                    self._connect(camera, now)
+            elif now >= camera.deadline:
+                what = "connect" if not camera.stream.connected else (
+                    "the answer" if camera.stream.head is None else "the next bytes")
+                limit = p.connect_timeout_s if what == "connect" else p.read_timeout_s
+                self._stream_lost(camera, TimeoutError(f"timed out ({what}, {limit:g} s)"))
+            due = min(due, camera.deadline if camera.stream is not None else camera.reconnect_at)
+            if camera.poll is None and now >= camera.poll_at:
+                self._start_poll(camera, now)
+            elif camera.poll is not None and now >= camera.poll.deadline:
+                self._poll_done(camera, reason="no answer", detail="timed out")
+            due = min(due, camera.poll.deadline if camera.poll is not None else camera.poll_at)
+        self._next_due = due
 
-def _socket_of(raw) -> socket.socket | None:
-    """The socket under a urllib3 response (to wake a blocked read on stop); None if not reachable."""
-    try:
-        s = raw._fp.fp.raw._sock
-        return s if isinstance(s, socket.socket) else None
-    except AttributeError:
-        return None
+    def _register(self, get: HttpGet, data: tuple[_Camera, str]) -> None:
+        self._selector.register(get.sock, get.events, data)
+
+    def _unregister(self, get: HttpGet) -> None:
+        try:
+            self._selector.unregister(get.sock)
+        except (KeyError, ValueError):
+            pass
+        get.close()
+
+    def _connect(self, camera: _Camera, now: float) -> None:
+        p = self.params
+        camera.got_frame = False
+        try:
+            get = HttpGet(camera.url, {"Accept": "multipart/x-mixed-replace, */*"}, self.clock, p.read_chunk_bytes)
+        except (OSError, ValueError) as exc:
+            self._stream_lost(camera, exc)
+            return
+        camera.stream, camera.deadline = get, now + p.connect_timeout_s
+        self._register(get, (camera, _STREAM))
+
+    def _on_stream(self, camera: _Camera) -> None:
+        get = camera.stream
+        try:
+            for _ in range(READS_PER_EVENT):
+                was_connected = get.connected
+                data = get.handle()
+                if get.connected and not was_connected:  # the request went out: the answer is due
+                    camera.deadline = time.monotonic() + self.params.read_timeout_s
+                    self._selector.modify(get.sock, get.events, (camera, _STREAM))
+                    return
+                if camera.parser is None and get.head is not None:
+                    self._stream_started(camera, get)
+                if data:
+                    camera.deadline = time.monotonic() + self.params.read_timeout_s
+                    self._parts(camera, data, get.received_s)
+                if get.ended:
+                    raise _StreamEnded("the camera closed the stream")
+                if not get.filled:
+                    return
+        except BlockingIOError:  # nothing more to read now
+            return
+        except Exception as exc:  # network errors, malformed answers
+            self._stream_lost(camera, exc)
+
+    def _stream_started(self, camera: _Camera, get: HttpGet) -> None:
+        status, headers = get.head
+        if status != 200:
+            raise _StreamEnded(f"HTTP {status}")
+        ctype = headers.get("content-type", "")
+        if not ctype.lower().startswith("multipart/"):
+            raise _StreamEnded(f"not a multipart stream (Content-Type {ctype!r})")
+        p = self.params
+        camera.parser = MjpegParser(boundary_from_content_type(ctype), p.max_header_bytes, p.max_part_bytes)
+        camera.reported = Counter()
+        self._count(camera.name, connects=1, connected=True, last_error="")
+        log.info("camera %s: streaming from %s", camera.name, camera.url)
+
+    def _parts(self, camera: _Camera, data: bytes, arrived_s: float) -> None:
+        parser = camera.parser
+        for part in parser.feed(data):
+            camera.seq = part.seq if part.seq is not None else camera.seq + 1
+            self._put_frame(Frame(camera.name, camera.seq, part.device_time_s, arrived_s, part.jpeg))
+            camera.got_frame = True
+        self._report_bad(camera)
+
+    def _report_bad(self, camera: _Camera) -> None:
+        bad = camera.parser.bad
+        if bad != camera.reported:
+            self._count(camera.name, bad_parts=bad - camera.reported)
+            camera.reported = Counter(bad)
+
+    def _stream_lost(self, camera: _Camera, exc: BaseException) -> None:
+        """End the camera's connection (if any) and schedule the next attempt with back-off."""
+        p = self.params
+        if camera.stream is not None:
+            self._unregister(camera.stream)
+            camera.stream = None
+        if camera.parser is not None:
+            camera.parser.close()  # a part in progress when the connection ended is counted
+            self._report_bad(camera)
+            camera.parser = None
+        reason = _describe(exc)
+        self._count(camera.name, connected=False, last_error=reason)
+        if camera.got_frame:  # the connection worked: start the back-off again
+            camera.backoff = p.backoff_initial_s
+        self._count(camera.name, reconnects=1)
+        log.warning("camera %s: stream lost (%s); reconnecting in %.2f s", camera.name, reason, camera.backoff)
+        camera.reconnect_at = time.monotonic() + camera.backoff
+        camera.backoff = min(p.backoff_max_s, camera.backoff * 2)
+
+    def _start_poll(self, camera: _Camera, now: float) -> None:
+        camera.poll_at = max(camera.poll_at + self.params.clock_period_s, now)
+        try:
+            camera.poll = _ClockPoll(camera.time_url, self.params.clock_timeout_s, self.clock)
+        except (OSError, ValueError) as exc:
+            self._poll_done(camera, reason="no answer", detail=_describe(exc))
+            return
+        self._register(camera.poll.get, (camera, _CLOCK))
+
+    def _on_clock(self, camera: _Camera) -> None:
+        poll = camera.poll
+        try:
+            sample = poll.handle()
+        except BlockingIOError:
+            return
+        except (OSError, HttpError) as exc:
+            self._poll_done(camera, reason="no answer", detail=_describe(exc))
+        except (ValueError, UnicodeDecodeError) as exc:
+            self._poll_done(camera, reason="garbage answer", detail=_describe(exc))
+        else:
+            if sample is None:
+                self._selector.modify(poll.get.sock, poll.get.events, (camera, _CLOCK))
+            else:
+                self._poll_done(camera)
+                self._put_clock(camera.name, sample)
+
+    def _poll_done(self, camera: _Camera, reason: str = "", detail: str = "") -> None:
+        """The round trip in flight ended (with a failure ``reason``, counted, or a sample)."""
+        if camera.poll is not None:
+            self._unregister(camera.poll.get)
+            camera.poll = None
+        if reason:
+            self._count(camera.name, clock_failures=Counter({reason: 1}))
+            log.debug("camera %s: /time round trip failed: %s", camera.name, detail)
+
+    def _close_all(self) -> None:
+        for camera in self._cameras:
+            if camera.stream is not None:
+                self._unregister(camera.stream)
+                camera.stream = None
+            camera.parser = None
+            self._poll_done(camera)
+            self._count(camera.name, connected=False)
+        if self._waker is not None:
+            for s in self._waker:
+                s.close()
+            self._waker = None
+        if self._selector is not None:
+            self._selector.close()
 
 
 def _describe(exc: BaseException) -> str:
-    """One line on why a connection failed: for requests' wrapped errors the underlying reason
-    (``HTTPConnection(host='...', port=9): Failed to establish a new connection: [Errno 111]
-    Connection refused``), not the wrapper's long preamble."""
-    reason = getattr(exc.args[0], "reason", None) if exc.args else None  # urllib3's MaxRetryError
-    text = str(reason or exc) or type(exc).__name__
-    text = re.sub(r"\s+", " ", text)
+    """One line on why a connection failed (``[Errno 111] Connection refused``, ``HTTP 404``,
+    ``timed out (the next bytes, 3 s)``)."""
+    text = re.sub(r"\s+", " ", str(exc)) or type(exc).__name__
     return text if len(text) <= 160 else text[:157] + "..."
