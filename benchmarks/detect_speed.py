@@ -17,11 +17,25 @@ projected true corners (cube markers, matched to the nearest true face) and the 
 our cube estimates, so a speed change can be checked for an accuracy change on the same frames.
 
     .venv/bin/python benchmarks/detect_speed.py [--duration 10] [--rounds 5] [--seed 0]
+
+``--stages`` instead replays a recording's frames (``--recording DIR``: a folder with
+``config.toml`` and ``extrinsics.toml`` or ``true_extrinsics.toml``, e.g. one made by
+``benchmarks/live.py``; default: the simulated one above) through the tracker on one thread, a
+fresh tracker per round, so detection searches the regions the tracker's own forecasts give. It
+prints the thread CPU time per frame of each stage (decode, OpenCV's search, the edge refinement,
+the per-camera estimate, planning, fusion; median of rounds), the estimate/ functions the fusion
+calls (in place, then each alone on the calls it made in the first ``--micro-frames`` frames),
+the naive loop on the same frames as the ratio, and whether the poses were bit-identical across
+rounds (exit 1 if not). Frames are stamped by their arrival times (clock.csv is not used).
+
+    nice -n 19 .venv/bin/python benchmarks/detect_speed.py --stages --recording /tmp/lb16q/rec_c16_f30_d20_s7 \
+        --frames 600 --rounds 3
 """
 
 from __future__ import annotations
 
 import argparse
+import hashlib
 import sys
 import tempfile
 import time
@@ -45,7 +59,7 @@ def naive_frame(jpeg: bytes, detector, K: np.ndarray, dist: np.ndarray, obj: np.
     out = []
     if ids is not None:
         for c, marker_id in zip(corners, ids.ravel()):
-            ok, rvec, tvec = cv2.solvePnP(obj, c.reshape(4, 1, 2), K, dist, flags=cv2.SOLVEPNP_IPPE_SQUARE)
+            _ok, rvec, tvec = cv2.solvePnP(obj, c.reshape(4, 1, 2), K, dist, flags=cv2.SOLVEPNP_IPPE_SQUARE)
             out.append((int(marker_id), c.reshape(4, 2).astype(float), rvec, tvec))
     return out
 
@@ -84,7 +98,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--duration", type=float, default=10.0, help="seconds of simulated recording (default 10)")
     ap.add_argument("--rounds", type=int, default=5, help="timing rounds over all frames (default 5)")
     ap.add_argument("--seed", type=int, default=0, help="simulation seed (default 0)")
+    ap.add_argument("--stages", action="store_true", help="per-stage CPU per frame through the tracker (see above)")
+    ap.add_argument("--recording", help="--stages: recording folder (default: a simulated one)")
+    ap.add_argument("--frames", type=int, default=0, help="--stages: the first N frames only (default all)")
+    ap.add_argument("--micro-frames", type=int, default=200,
+                    help="--stages: frames whose estimate/ calls are timed alone (default 200)")
     args = ap.parse_args(argv)
+    if args.stages:
+        return stage_costs(args)
     cv2.setNumThreads(1)
 
     with tempfile.TemporaryDirectory() as tmp:
@@ -150,6 +171,210 @@ def main(argv: list[str] | None = None) -> int:
     print(f"cube estimates: {estimates} of {len(frames)} frames, position error median "
           f"{np.median(position_mm):.1f} mm, p95 {np.percentile(position_mm, 95):.1f} mm")
     return 0
+
+
+# --------------------------------------------------------------------------- per-stage CPU (issue 9)
+
+# Per-frame stages, timed by wrapping the functions the tracker calls (module attribute, key);
+# the detector's own ``detect`` is wrapped on the worker's instance.
+_FRAME_HOOKS = (("cubetrack.app.tracker", "decode_gray", "decode"),
+                ("cubetrack.detect.detector", "refine_corners_edges", "edge"))
+# What the fusion calls per sighting (module attribute, name printed).
+_FUSION_HOOKS = (("cubetrack.fuse.fusion", "match_faces"), ("cubetrack.fuse.fusion", "corner_set"),
+                 ("cubetrack.fuse.fusion", "estimate_cube"),
+                 ("cubetrack.fuse.corner_filter", "reprojection_jacobian_px"),
+                 ("cubetrack.fuse.corner_filter", "reprojection_residuals_px"),
+                 ("cubetrack.fuse.corner_filter", "perturbed"), ("cubetrack.fuse.corner_filter", "moved_pose"),
+                 ("cubetrack.fuse.multi_view_fit", "reprojection_jacobian_px"),
+                 ("cubetrack.fuse.multi_view_fit", "reprojection_residuals_px"))
+# Per-frame estimate/ functions of the frame worker, micro-benchmarked like the fusion's.
+_WORKER_HOOKS = (("cubetrack.app.tracker", "estimate_cube"), ("cubetrack.app.tracker", "body_detections"))
+
+
+class _Hooks:
+    """Thread-CPU timers (and, while ``recording``, argument capture) wrapped around module
+    functions; ``restore`` puts the originals back."""
+
+    def __init__(self) -> None:
+        self.cpu_s: dict[str, float] = {}
+        self.calls: dict[str, list] = {}
+        self.recording = False
+        self._undo: list = []
+
+    def wrap(self, owner, attr: str, key: str) -> None:
+        original = getattr(owner, attr)
+        self.cpu_s.setdefault(key, 0.0)
+        self.calls.setdefault(key, [])
+        clock, cpu, calls = time.thread_time, self.cpu_s, self.calls[key]
+
+        def timed(*args, **kwargs):
+            if self.recording:
+                calls.append((original, args, kwargs))
+            t0 = clock()
+            try:
+                return original(*args, **kwargs)
+            finally:
+                cpu[key] += clock() - t0
+
+        setattr(owner, attr, timed)
+        self._undo.append((owner, attr, original))
+
+    def restore(self) -> None:
+        for owner, attr, original in reversed(self._undo):
+            setattr(owner, attr, original)
+        self._undo.clear()
+
+
+def _stage_inputs(args: argparse.Namespace, tmp: Path):
+    """(frames, intrinsics, world, robots, extrinsics, stage params, source description)."""
+    from cubetrack.app.config import load_config, recording_intrinsics
+    from cubetrack.io.config import read_extrinsics
+
+    if args.recording is None:
+        sim = simulate(SimulationParams(duration_s=args.duration, seed=args.seed, calibration_frames=0), tmp / "rec")
+        path, extrinsics_file = Path(sim.path), Path(sim.path) / "true_extrinsics.toml"
+    else:
+        path = Path(args.recording)
+        extrinsics_file = path / "extrinsics.toml"
+        if not extrinsics_file.exists():
+            extrinsics_file = path / "true_extrinsics.toml"
+    config, settings = load_config(path / "config.toml")
+    recording = Recording.open(path)
+    frames = list(recording.merged_frames())
+    if args.frames:
+        frames = frames[: args.frames]
+    intrinsics = recording_intrinsics(config, recording)
+    return (frames, intrinsics, config.world, config.robots, read_extrinsics(extrinsics_file), settings.stages,
+            f"{path} ({len(recording.camera_names)} cameras, extrinsics {extrinsics_file.name})")
+
+
+def _pose_digest(poses) -> str:
+    """sha256 of the poses' robot, time, markers, position and orientation (exact bytes)."""
+    h = hashlib.sha256()
+    for p in poses:
+        h.update(repr((p.robot, p.time_s, p.markers)).encode())
+        h.update(np.asarray(p.position_m, dtype=np.float64).tobytes())
+        h.update(np.asarray(p.quaternion_xyzw, dtype=np.float64).tobytes())
+    return h.hexdigest()
+
+
+def stage_costs(args: argparse.Namespace) -> int:
+    """Replay a recording's frames through the tracker's stages on one thread and print the CPU
+    per frame of each (thread CPU time, median over rounds), the estimate/ functions the fusion
+    calls (timed in place, then each alone on the calls it made), and the naive loop on the same
+    frames for the ratio."""
+    import importlib
+    import os
+
+    from cubetrack.app.tracker import Tracker
+
+    cv2.setNumThreads(1)
+    with tempfile.TemporaryDirectory() as tmp:
+        frames, intrinsics, world, robots, extrinsics, stages, source = _stage_inputs(args, Path(tmp))
+    print(f"{source}: {len(frames)} frames, one thread, {args.rounds} rounds, {os.cpu_count()} cores, "
+          f"load average {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
+
+    naive_detector = cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, world.dictionary)),
+                                             cv2.aruco.DetectorParameters())
+    obj = marker_corners_m(robots[0].layout.markers[0].size_m).reshape(4, 1, 3)
+
+    def naive_round() -> float:
+        t0 = time.thread_time()
+        for f in frames:
+            naive_frame(f.jpeg, naive_detector, intrinsics[f.camera].K, intrinsics[f.camera].dist, obj)
+        return time.thread_time() - t0
+
+    def ours_round(micro: bool) -> tuple[dict[str, float], list, dict]:
+        """One pass of a fresh tracker (so every round does the same work): CPU s per stage, the
+        poses, and (``micro``) the estimate/ calls made in the first frames."""
+        tracker = Tracker(intrinsics, world, robots, extrinsics, stages)
+        hooks = _Hooks()
+        for module, attr, key in _FRAME_HOOKS:
+            hooks.wrap(importlib.import_module(module), attr, key)
+        hooks.wrap(tracker.worker.detector, "detect", "detect")
+        for module, attr in _FUSION_HOOKS + _WORKER_HOOKS:
+            hooks.wrap(importlib.import_module(module), attr, f"{module.rsplit('.', 1)[1]}.{attr}")
+        cpu = {"plan": 0.0, "work": 0.0, "fuse": 0.0}
+        poses = []
+        clock = time.thread_time
+        try:
+            for i, frame in enumerate(frames):
+                hooks.recording = micro and i < args.micro_frames
+                t0 = clock()
+                job = tracker.admit(frame)
+                t1 = clock()
+                cpu["plan"] += t1 - t0
+                if job is None:
+                    continue
+                result = tracker.worker.work(job)
+                t2 = clock()
+                poses += tracker.fuse(result, frame.host_time_s)
+                cpu["work"] += t2 - t1
+                cpu["fuse"] += clock() - t2
+            t0 = clock()
+            poses += tracker.finish()
+            cpu["fuse"] += clock() - t0
+        finally:
+            hooks.restore()
+        cpu.update(hooks.cpu_s)
+        cpu["detect"] -= cpu["edge"]                       # exclusive times
+        cpu["estimate"] = cpu["work"] - cpu["decode"] - cpu["detect"] - cpu["edge"]
+        return cpu, poses, hooks.calls
+
+    rounds: list[dict[str, float]] = []
+    naive_s: list[float] = []
+    digests = set()
+    calls = {}
+    for r in range(args.rounds):
+        order = (True, False) if r % 2 == 0 else (False, True)
+        for is_naive in order:
+            if is_naive:
+                naive_s.append(naive_round())
+                continue
+            cpu, poses, recorded = ours_round(micro=r == 0)
+            rounds.append(cpu)
+            calls = calls or recorded
+            digests.add(_pose_digest(poses))
+    n = len(frames)
+
+    def ms(values) -> float:
+        return float(np.median(values)) / n * 1000.0
+
+    total = ms([c["plan"] + c["work"] + c["fuse"] for c in rounds])
+    naive = ms(naive_s)
+    rows = [("decode (JPEG -> gray)", "decode"), ("detect (OpenCV search, quads)", "detect"),
+            ("edge refinement", "edge"), ("per-camera estimate", "estimate"), ("planning (regions)", "plan"),
+            ("fusion", "fuse")]
+    print(f"{'stage':<34} {'CPU ms/frame':>12} {'share':>6}   rounds")
+    for label, key in rows:
+        value = ms([c[key] for c in rounds])
+        print(f"{label:<34} {value:12.3f} {100.0 * value / total:5.1f}%   "
+              + " ".join(f"{c[key] / n * 1000.0:.3f}" for c in rounds))
+    print(f"{'total (ours, one thread)':<34} {total:12.3f}")
+    print(f"{'naive loop (same frames)':<34} {naive:12.3f}          ratio naive/ours {naive / total:.2f}")
+    inside = [k for k in rounds[0] if "." in k]
+    print("in place (inclusive, incl. timer overhead):")
+    for key in inside:
+        value = ms([c[key] for c in rounds])
+        if value > 0.0:
+            print(f"  {key:<40} {value:8.3f} ms/frame")
+    print(f"alone, on the calls of the first {min(args.micro_frames, n)} frames (median of {args.rounds} rounds):")
+    micro_frames = min(args.micro_frames, n)
+    for key, recorded in calls.items():
+        if not recorded or key in ("decode", "detect", "edge"):
+            continue
+        times = []
+        for _ in range(args.rounds):
+            t0 = time.thread_time()
+            for fn, a, kw in recorded:
+                fn(*a, **kw)
+            times.append(time.thread_time() - t0)
+        per_call = float(np.median(times)) / len(recorded)
+        print(f"  {key:<40} {len(recorded) / micro_frames:6.2f} calls/frame {per_call * 1e6:8.1f} us/call "
+              f"{per_call * len(recorded) / micro_frames * 1000.0:7.3f} ms/frame")
+    print(f"poses: {len(poses)}; replay {'bit-identical across rounds' if len(digests) == 1 else 'DIFFERS across rounds'}"
+          f" (sha256 {min(digests)[:16]})")
+    return 0 if len(digests) == 1 else 1
 
 
 if __name__ == "__main__":

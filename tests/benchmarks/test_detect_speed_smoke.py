@@ -1,0 +1,54 @@
+"""Smoke run of benchmarks/detect_speed.py --stages (issue 9's per-stage CPU benchmark) on a short
+simulated recording: every stage and the estimate/ functions the fusion calls are reported, the
+replay is bit-identical across rounds, and the timing hooks are gone afterwards. Timings
+themselves are the benchmark's business, never asserted here."""
+
+import importlib.util
+import re
+import sys
+from pathlib import Path
+
+import pytest
+
+import cubetrack.app.tracker as tracker_module
+import cubetrack.detect.detector as detector_module
+import cubetrack.fuse.corner_filter as corner_filter_module
+
+pytestmark = pytest.mark.slow
+
+BENCHMARK = Path(__file__).resolve().parents[2] / "benchmarks" / "detect_speed.py"
+
+
+def load_benchmark():
+    name = "cubetrack_benchmark_detect_speed"
+    if name not in sys.modules:
+        spec = importlib.util.spec_from_file_location(name, BENCHMARK)
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[name] = module
+        spec.loader.exec_module(module)
+    return sys.modules[name]
+
+
+def test_stages_report_every_stage_and_a_bit_identical_replay(capsys):
+    originals = (tracker_module.decode_gray, detector_module.refine_corners_edges,
+                 corner_filter_module.reprojection_jacobian_px)
+    bench = load_benchmark()
+    assert bench.main(["--stages", "--duration", "3", "--rounds", "2", "--micro-frames", "20"]) == 0
+    text = capsys.readouterr().out
+
+    def ms(label: str) -> float:
+        match = re.search(rf"^{re.escape(label)}\s+([0-9.]+)", text, re.MULTILINE)
+        assert match, f"no line {label!r} in:\n{text}"
+        return float(match.group(1))
+
+    stages = [ms(label) for label in ("decode (JPEG -> gray)", "detect (OpenCV search, quads)", "edge refinement",
+                                      "per-camera estimate", "planning (regions)", "fusion")]
+    assert all(value >= 0.0 for value in stages) and ms("decode (JPEG -> gray)") > 0.0
+    assert abs(sum(stages) - ms("total (ours, one thread)")) <= 0.1 * ms("total (ours, one thread)") + 0.01
+    assert ms("naive loop (same frames)") > 0.0
+    # the fusion ran (a track started) and its estimate/ calls were timed alone
+    for name in ("fusion.match_faces", "corner_filter.reprojection_jacobian_px", "corner_filter.reprojection_residuals_px"):
+        assert re.search(rf"^  {re.escape(name)}\s+[0-9.]+ calls/frame\s+[0-9.]+ us/call", text, re.MULTILINE), name
+    assert re.search(r"^poses: [1-9][0-9]*; replay bit-identical across rounds", text, re.MULTILINE), text
+    assert (tracker_module.decode_gray, detector_module.refine_corners_edges,
+            corner_filter_module.reprojection_jacobian_px) == originals
