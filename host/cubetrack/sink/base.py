@@ -200,10 +200,11 @@ class Decoupled(Sink):
 
 class Outputs:
     """Every sink of a session: in-line sinks are called directly, the others through
-    :class:`Decoupled`. Use as a context manager around the session."""
+    :class:`Decoupled` (``all_in_line``: every sink directly, for a process that does nothing
+    but feed outputs that never block). Use as a context manager around the session."""
 
-    def __init__(self, sinks: list[Sink]):
-        self.sinks = [s if s.in_line else Decoupled(s) for s in sinks]
+    def __init__(self, sinks: list[Sink], all_in_line: bool = False):
+        self.sinks = [s if s.in_line or all_in_line else Decoupled(s) for s in sinks]
         self._views = [s for s in self.sinks if s.wants_views]
         self._next_view_s: dict[tuple[int, str], float] = {}
 

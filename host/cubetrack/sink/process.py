@@ -8,10 +8,13 @@ onto a pipe (from the :class:`~cubetrack.sink.base.Decoupled` thread :class:`Out
 so a full pipe costs the pipeline nothing: the oldest items are dropped and counted there).
 
 The child builds its outputs with ``factory`` (a picklable callable returning the sinks, e.g. a
-``functools.partial`` of :func:`cubetrack.app.outputs.output_sinks`), runs them behind their own
-:class:`Outputs` (each network output still on its own thread, so one stalled client does not
-hold up another) and reports how to reach them. It ignores Ctrl-C (the tracker closes it) and
-ends when the tracker's process goes away.
+``functools.partial`` of :func:`cubetrack.app.outputs.output_sinks`), reports how to reach them
+and calls them in line, one item after another, from the thread that reads the pipe: none of
+them waits for a peer (each server queues per client and drops for a slow one, Zenoh drops under
+congestion, MCAP writes to a file), and a thread per output would cost a wake-up and a lock
+hand-over per output and item, more than most of them spend on the item (benchmarks/outputs.py).
+If the child falls behind, the pipe's queue in the tracker drops the oldest items and counts
+them. It ignores Ctrl-C (the tracker closes it) and ends when the tracker's process goes away.
 """
 
 from __future__ import annotations
@@ -46,7 +49,7 @@ def serve_outputs(factory: Callable[[], list[Sink]], conn: Connection, log_level
     views = [s for s in sinks if s.wants_views]
     conn.send(("ready", [s.where for s in sinks if s.where], bool(views),
                min((s.view_interval_s for s in views), default=0.0)))
-    outputs = Outputs(sinks)
+    outputs = Outputs(sinks, all_in_line=True)
     try:
         while True:
             try:

@@ -182,15 +182,23 @@ class VrpnServer:
                         self._queue(client, self._framed(client, i, SENDER_DESCRIPTION, description_body(name), 0.0))
         self._wake()
 
+    @property
+    def serving(self) -> bool:
+        """Whether any client is ready for messages (without one, :meth:`publish` has nothing to do)."""
+        return any(client.ready for client in list(self.clients.values()))
+
     def publish(self, sender: str, time_s: float, bodies: list[tuple[str, bytes]]) -> None:
         """Queue messages (type name, body) from tracker ``sender`` to every ready client."""
         sender_id = self.senders.index(sender)
+        queued = False
         with self.lock:
             for client in self.clients.values():
                 if client.ready:
                     for type_name, body in bodies:
                         self._queue(client, self._framed(client, sender_id, TYPES.index(type_name), body, time_s))
-        self._wake()
+                    queued = True
+        if queued:  # the I/O thread sleeps while there is nothing to send
+            self._wake()
 
     def close(self) -> None:
         if self.closing:
@@ -448,7 +456,7 @@ class VrpnSink(Sink):
 
     def pose(self, pose: TrackedPose) -> None:
         tracker = self.trackers.get(pose.robot)
-        if tracker is None:
+        if tracker is None or not self.server.serving:
             return
         bodies = [(POS_QUAT, pos_quat_body(0, pose.position_m, pose.quaternion_xyzw))]
         if pose.velocity_m_s is not None and pose.angular_velocity_rad_s is not None \
