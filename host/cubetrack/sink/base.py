@@ -14,6 +14,7 @@ import abc
 import logging
 import math
 import threading
+import time
 from collections import deque
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -94,6 +95,15 @@ class Sink(abc.ABC):
     view_interval_s: float = 0.0
     #: where a user finds this output (one line for the command line), "" for none
     where: str = ""
+    #: behind a :class:`Decoupled` queue: after an item arrives, wait this long for more and hand
+    #: all that is queued over together (:meth:`deliver`); 0: one by one, at once
+    batch_window_s: float = 0.0
+
+    def deliver(self, items: list[tuple[str, object]]) -> None:
+        """Several calls at once, as ``(method name, value)`` in order (what :class:`Decoupled`
+        took from its queue); a sink that can send them together overrides this."""
+        for kind, value in items:
+            getattr(self, kind)(value)
 
     def close(self) -> None:
         """The session ends: flush and release everything."""
@@ -164,15 +174,23 @@ class Decoupled(Sink):
             self._ready.notify()
 
     def _serve(self) -> None:
+        window_s = self.inner.batch_window_s
         while True:
             with self._ready:
                 while not self._queue and not self._closing:
                     self._ready.wait()
                 if not self._queue:
                     return
-                kind, value = self._queue.popleft()
+            if window_s > 0:  # a batching sink: what arrives meanwhile joins the batch
+                time.sleep(window_s)  # (puts do not wake this thread)
+            with self._ready:
+                if window_s > 0:
+                    items = list(self._queue)
+                    self._queue.clear()
+                else:
+                    items = [self._queue.popleft()]
             try:
-                getattr(self.inner, kind)(value)
+                self.inner.deliver(items)
             except Exception as exc:  # an output's failure must not reach the pipeline
                 log.error("output %s failed and was stopped: %s", self.name, exc, exc_info=True)
                 with self._ready:

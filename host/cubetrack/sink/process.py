@@ -3,9 +3,12 @@
 The tracker's process is bound by Python's global interpreter lock: the live tracker uses about
 1.3 of 2 cores, and every output thread in that process (encoding CDR, JSON, VRPN messages,
 Foxglove annotations) takes its share of the same lock from the pipeline. :class:`OutputProcess`
-runs a set of outputs in a child process instead; the pipeline's side only pickles each item
-onto a pipe (from the :class:`~cubetrack.sink.base.Decoupled` thread :class:`Outputs` gives it,
-so a full pipe costs the pipeline nothing: the oldest items are dropped and counted there).
+runs a set of outputs in a child process instead; the pipeline's side only pickles items onto a
+pipe (from the :class:`~cubetrack.sink.base.Decoupled` thread :class:`Outputs` gives it, so a
+full pipe costs the pipeline nothing: the oldest items are dropped and counted there). Items go
+in batches (whatever arrived within ``BATCH_WINDOW_S`` of the first: one wake-up, one pickle and
+one write for several), each record as a compact tuple of plain values (:func:`pack`): pickling
+the frozen dataclasses and their small numpy arrays as objects cost ten times more.
 
 The child builds its outputs with ``factory`` (a picklable callable returning the sinks, e.g. a
 ``functools.partial`` of :func:`cubetrack.app.outputs.output_sinks`), reports how to reach them
@@ -25,13 +28,60 @@ import signal
 from collections.abc import Callable
 from multiprocessing.connection import Connection
 
+import numpy as np
+
 from cubetrack.core.errors import ConfigError, CubetrackError
+from cubetrack.core.records import CameraHealth, CameraView, Detection, TrackedPose
 from cubetrack.sink.base import OutputError, Outputs, Sink
 
 log = logging.getLogger(__name__)
 
 START_TIMEOUT_S = 60.0  # importing zenoh and foxglove-sdk on a loaded machine takes seconds
 CLOSE_TIMEOUT_S = 30.0  # the child delivers what it holds (up to 5 s per output) and closes MCAP files
+BATCH_WINDOW_S = 0.004  # items wait at most this long for others to share their pipe write
+
+
+def _array(values: np.ndarray | None) -> bytes | None:
+    return None if values is None else np.ascontiguousarray(values, dtype=float).tobytes()
+
+
+def _unarray(data: bytes | None, *shape: int) -> np.ndarray | None:
+    return None if data is None else np.frombuffer(data).reshape(shape)
+
+
+def pack(kind: str, value: object) -> tuple:
+    """``(kind, fields)`` with the records' arrays as bytes: what crosses the pipe."""
+    if kind == "pose":
+        p = value
+        return kind, (p.robot, p.time_s, _array(p.position_m), _array(p.quaternion_xyzw), p.cameras, p.markers,
+                      p.latency_s, p.extra, _array(p.velocity_m_s), _array(p.angular_velocity_rad_s),
+                      _array(p.covariance), p.arrival_latency_s, p.predicted)
+    if kind == "camera_view":
+        v = value
+        return kind, (v.camera, v.seq, v.time_s, v.jpeg,
+                      tuple((d.marker_id, _array(d.corners_px), d.area_px2, d.dictionary) for d in v.detections),
+                      {robot: np.asarray(c, float) for robot, c in v.predicted_corners_px.items()})
+    if kind == "camera_health":
+        return kind, tuple(getattr(value, name) for name in CameraHealth.__slots__)
+    return kind, value
+
+
+def unpack(kind: str, fields) -> tuple[str, object]:
+    """The call :func:`pack` packed."""
+    if kind == "pose":
+        (robot, time_s, position, quaternion, cameras, markers, latency_s, extra, velocity, angular, covariance,
+         arrival_latency_s, predicted) = fields
+        return kind, TrackedPose(robot, time_s, _unarray(position, 3), _unarray(quaternion, 4), cameras, markers,
+                                 latency_s, extra, _unarray(velocity, 3), _unarray(angular, 3),
+                                 _unarray(covariance, 6, 6), arrival_latency_s, predicted)
+    if kind == "camera_view":
+        camera, seq, time_s, jpeg, detections, predicted = fields
+        return kind, CameraView(camera, seq, time_s, jpeg, tuple(
+            Detection(marker_id, _unarray(corners, 4, 2), area, dictionary)
+            for marker_id, corners, area, dictionary in detections), predicted)
+    if kind == "camera_health":
+        return kind, CameraHealth(*fields)
+    return kind, fields
 
 
 def serve_outputs(factory: Callable[[], list[Sink]], conn: Connection, log_level: int) -> None:
@@ -53,12 +103,14 @@ def serve_outputs(factory: Callable[[], list[Sink]], conn: Connection, log_level
     try:
         while True:
             try:
-                kind, value = conn.recv()
+                batch = conn.recv()
             except (EOFError, OSError):  # the tracker's process is gone
                 break
-            if kind == "close":
+            if batch is None:  # the session closes
                 break
-            getattr(outputs, kind)(value)
+            for item in batch:
+                kind, value = unpack(*item)
+                getattr(outputs, kind)(value)
     finally:
         outputs.close()  # each output says what it dropped
 
@@ -92,30 +144,32 @@ class OutputProcess(Sink):
         _, wheres, self.wants_views, self.view_interval_s = message
         self.where = "; ".join(wheres) + " (in a process of their own)" if wheres else ""
 
-    def _send(self, kind: str, value: object) -> None:
+    batch_window_s = BATCH_WINDOW_S
+
+    def deliver(self, items: list[tuple[str, object]]) -> None:
         try:
-            self._conn.send((kind, value))
+            self._conn.send([pack(kind, value) for kind, value in items])
         except (BrokenPipeError, OSError):
             raise OutputError("the outputs' process has ended") from None
 
     def open(self, session) -> None:
-        self._send("open", session)
+        self.deliver([("open", session)])
 
     def pose(self, pose) -> None:
-        self._send("pose", pose)
+        self.deliver([("pose", pose)])
 
     def camera_health(self, health) -> None:
-        self._send("camera_health", health)
+        self.deliver([("camera_health", health)])
 
     def camera_view(self, view) -> None:
-        self._send("camera_view", view)
+        self.deliver([("camera_view", view)])
 
     def close(self) -> None:
         """Let the child deliver what it holds and close its outputs (harmless twice)."""
         if self._process is None:
             return
         try:
-            self._conn.send(("close", None))
+            self._conn.send(None)
         except (BrokenPipeError, OSError):
             pass
         self._process.join(CLOSE_TIMEOUT_S)

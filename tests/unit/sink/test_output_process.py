@@ -71,3 +71,40 @@ def test_an_output_process_that_dies_stops_without_reaching_the_pipeline(tmp_pat
         decoupled._thread.join(10)
         assert decoupled.failed == "the outputs' process has ended"
     assert "output outputs process failed" in caplog.text
+
+
+def test_items_cross_the_pipe_as_compact_tuples_and_come_back_equal():
+    import math
+    import pickle
+
+    import numpy as np
+
+    from cubetrack.core.records import CameraHealth, CameraView, Detection
+    from cubetrack.sink.process import pack, unpack
+
+    def same(a, b) -> bool:
+        if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+            return a is not None and b is not None and np.array_equal(a, b) and np.shape(a) == np.shape(b)
+        if isinstance(a, float) and math.isnan(a):
+            return isinstance(b, float) and math.isnan(b)
+        if isinstance(a, tuple):
+            return type(b) is tuple and len(a) == len(b) and all(same(x, y) for x, y in zip(a, b))
+        if isinstance(a, dict):
+            return a.keys() == b.keys() and all(same(a[k], b[k]) for k in a)
+        if hasattr(a, "__slots__"):
+            return type(a) is type(b) and all(same(getattr(a, f), getattr(b, f)) for f in a.__slots__)
+        return a == b
+
+    corners = np.array([[1.5, 2.0], [10.0, 2.5], [9.5, 11.0], [1.0, 10.0]])
+    items = [("pose", tracked("robot 1!", 3)), ("pose", tracked("2nd", 4, velocity=False)),
+             ("camera_view", CameraView("cam-a", 7, 1_700_000_000.25, b"\xff\xd8jpeg",
+                                        (Detection(4, corners, 80.0, "DICT_4X4_50"), Detection(9, corners + 1, 81.0)),
+                                        {"robot 1!": np.arange(40.0).reshape(20, 2)})),
+             ("camera_health", CameraHealth("cam b", 1_700_000_001.0, True, 29.5, 100, 2, 1, 0, 0.01,
+                                            transfer_latency_s=float("nan"), last_error="timeout"))]
+    for kind, value in items:
+        packed = pack(kind, value)
+        assert "cubetrack" not in str(pickle.dumps(packed))  # plain values only: no record classes pickled
+        again_kind, again = unpack(*pickle.loads(pickle.dumps(packed)))
+        assert again_kind == kind and same(value, again), kind
+    assert not same(items[0][1], unpack(*pack("pose", tracked("robot 1!", 4)))[1])  # the comparison can fail
