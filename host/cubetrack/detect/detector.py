@@ -277,13 +277,17 @@ def _undistort_c(z: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=8)
-def _edge_sampling(samples_along: int, samples_across: int,
-                   span: tuple[float, float]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def _edge_sampling(samples_along: int, samples_across: int, span: tuple[float, float]) -> tuple[np.ndarray, ...]:
     """Sample positions of the edge fit: along a side (fractions t, and the powers 1, t, t^2
-    per row), across it (units of the half-width), and the midpoints between those."""
+    per row), across it (units of the half-width), the midpoints between those, the matrix
+    taking a profile to its differences (m, m-1), and the midpoints beside ones (m-1, 2: a
+    profile's moments in one product)."""
     t = np.linspace(span[0], span[1], samples_along)
     unit = np.linspace(-1.0, 1.0, samples_across)
-    out = (t, np.stack([np.ones_like(t), t, t * t], axis=1), unit, 0.5 * (unit[1:] + unit[:-1]))
+    unit_mid = 0.5 * (unit[1:] + unit[:-1])
+    step = np.eye(samples_across, samples_across - 1, -1) - np.eye(samples_across, samples_across - 1)
+    out = (t, np.stack([np.ones_like(t), t, t * t], axis=1), unit, unit_mid, step,
+           np.stack([unit_mid, np.ones_like(unit_mid)], axis=1))
     for a in out:
         a.setflags(write=False)
     return out
@@ -329,10 +333,9 @@ def refine_corners_edges(gray: np.ndarray, corners_px: np.ndarray, modules: int 
     not the arithmetic, are the cost at a few markers per frame).
     """
     img = np.asarray(gray)
-    c_in = np.asarray(corners_px, dtype=np.float64)
+    c_in = np.ascontiguousarray(corners_px, dtype=np.float64)
     single = c_in.ndim == 2
-    z_in = c_in[..., 0] + 1j * c_in[..., 1]                             # x + iy
-    z_in = z_in.reshape(-1, 4)                                          # (M, 4)
+    z_in = c_in.view(np.complex128).reshape(-1, 4)                     # (M, 4) x + iy (a view)
     good = np.isfinite(z_in).all(axis=1)
     if not good.all():
         z_in = np.where(good[:, None], z_in, 0.0)
@@ -341,9 +344,10 @@ def refine_corners_edges(gray: np.ndarray, corners_px: np.ndarray, modules: int 
         # only the region around the quads, as float (cv2.remap of an 8-bit image rounds its
         # samples: a ~0.03 px edge bias); the margin covers the sampling half-width and the moves
         if good.any():
-            x0 = max(int(z_in.real[good].min()) - _ROI_MARGIN_PX, 0)
-            y0 = max(int(z_in.imag[good].min()) - _ROI_MARGIN_PX, 0)
-            x1, y1 = int(z_in.real[good].max()) + _ROI_MARGIN_PX + 2, int(z_in.imag[good].max()) + _ROI_MARGIN_PX + 2
+            xy = c_in.reshape(-1, 4, 2)[good].reshape(-1, 2)
+            (x0, y0), (x1, y1) = xy.min(axis=0).tolist(), xy.max(axis=0).tolist()
+            x0, y0 = max(int(x0) - _ROI_MARGIN_PX, 0), max(int(y0) - _ROI_MARGIN_PX, 0)
+            x1, y1 = int(x1) + _ROI_MARGIN_PX + 2, int(y1) + _ROI_MARGIN_PX + 2
             img, origin = img[y0:y1, x0:x1], complex(x0, y0)
             z_in = z_in - origin
         img = img.astype(np.float32)
@@ -362,42 +366,58 @@ def refine_corners_edges(gray: np.ndarray, corners_px: np.ndarray, modules: int 
     peak = focus == "peak"
     if focus_px is None:
         focus_px = _PEAK_WINDOW_PX if peak else _EDGE_FOCUS_PX
-    t, powers_t, unit, unit_mid = _edge_sampling(samples_along, samples_across, tuple(span))
+    t, powers_t, unit, unit_mid, step, across = _edge_sampling(samples_along, samples_across, tuple(span))
+    ones_t, k = powers_t[:, 0], len(t)
     z = z0
+    side_px = None  # the initial quad's side lengths (pinhole image)
+    # few numpy calls per iteration, each over every marker, side and sample at once: they, not
+    # the arithmetic, are the cost; sums over samples are matrix products with constant vectors
     for _ in range(iterations):
         v = z[:, _NEXT_I] - z                                           # side i: corner i -> i+1
         length = np.abs(v)                                              # (M, 4) px
+        if side_px is None:
+            side_px = length
         n = v * (-1j / np.maximum(length, 1e-9))                        # outward unit normal (clockwise, y down)
         w = np.minimum(np.maximum((length[:, _NEXT_I] + length[:, _PREV_I]) * (0.4 * inv_modules), 1.5), 4.0)
-        base = z[..., None] + t * v[..., None]                          # (M, 4, k)
-        p = base[..., None] + (unit * (w * n)[..., None])[:, :, None, :]   # (M, 4, k, m)
+        p = (z[..., None] + t * v[..., None])[..., None] + unit * (w * n)[..., None, None]   # (M, 4, k, m)
         if lens is not None:
             p = _distort_c(p, *lens)
-        prof = cv2.remap(img, p.real.astype(np.float32).reshape(1, -1), p.imag.astype(np.float32).reshape(1, -1),
-                         cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).reshape(p.shape)
+        xy = p.view(np.float64).reshape(1, -1, 2).astype(np.float32)  # interleaved x, y: one map
+        prof = cv2.remap(img, xy, None, cv2.INTER_LINEAR,
+                         borderMode=cv2.BORDER_REPLICATE).reshape(p.shape).astype(np.float64)
         # edge point along n from the rising gradient (see focus)
-        g = np.maximum(prof[..., 1:] - prof[..., :-1], 0.0)             # (M, 4, k, m-1)
-        s_mid = (unit_mid * w[..., None])[:, :, None, :]                # (M, 4, 1, m-1) px
-        mass = g.sum(axis=-1)
+        g = np.maximum(prof @ step, 0.0)                                # (M, 4, k, m-1) differences
+        wide = w[..., None]                                             # (M, 4, 1) half-width px
         if peak:   # start at the gradient's peak; a hard window of +-focus_px around the edge point
+            mass = g @ across[:, 1]
             smooth = g[..., :-2] + 2.0 * g[..., 1:-1] + g[..., 2:]       # a steadier peak
-            off = unit_mid[smooth.argmax(axis=-1) + 1] * w[..., None]
+            off = unit_mid[smooth.argmax(axis=-1) + 1] * wide
+            s_mid = (unit_mid * wide[..., None])                        # (M, 4, 1, m-1) px
+            for _focus in range(3):
+                d = s_mid - off[..., None]
+                gf = g * (np.abs(d) <= focus_px)
+                off = off + (gf * d) @ across[:, 1] / np.maximum(gf @ across[:, 1], 1e-12)
         else:      # start at the centroid of the whole profile's gradient; a tent of half-width focus_px
-            off = (g * s_mid).sum(axis=-1) / np.maximum(mass, 1e-12)    # (M, 4, k) px along n
-        for _focus in range(3 if peak else 2):
-            d = s_mid - off[..., None]
-            gf = g * (np.abs(d) <= focus_px) if peak else g * np.maximum(1.0 - np.abs(d) * (1.0 / focus_px), 0.0)
-            off = off + (gf * d).sum(axis=-1) / np.maximum(gf.sum(axis=-1), 1e-12)
+            moments = g @ across                                        # (M, 4, k, 2): sum g u, sum g
+            mass = moments[..., 1]
+            off = wide * moments[..., 0] / np.maximum(mass, 1e-12)      # (M, 4, k) px along n
+            s_mid = (unit_mid * wide[..., None])
+            for _focus in range(2):
+                # the centroid under tent weights focus_px - |d| (the scale cancels) around the last
+                gf = g * np.maximum(focus_px - np.abs(s_mid - off[..., None]), 0.0)
+                moments = gf @ across
+                off = wide * moments[..., 0] / np.maximum(moments[..., 1], 1e-12)
         weight = mass * ((mass > 1e-6) & (prof[..., -1] - prof[..., 0] > min_contrast))
         # each side: off = a + b t by weighted least squares (edge points scatter across the
         # side only), then once more without points beyond 2.5 sigma of that line
         for robust in (False, True):
             if robust:
-                resid = off - (a[..., None] + b[..., None] * t)
-                rms2 = (weight * resid * resid).sum(axis=-1) / np.maximum(s0, 1e-12)
-                weight = weight * (resid * resid <= np.maximum(6.25 * rms2, 0.01)[..., None])
-            mom = np.stack([weight, weight * off], axis=-2) @ powers_t     # (M, 4, 2, 3)
-            s0, s1, s2, sy, sty = mom[..., 0, 0], mom[..., 0, 1], mom[..., 0, 2], mom[..., 1, 0], mom[..., 1, 1]
+                resid2 = off - (a[..., None] + b[..., None] * t)
+                resid2 *= resid2
+                rms2 = (weight * resid2) @ ones_t / np.maximum(s0, 1e-12)
+                weight = weight * (resid2 <= np.maximum(6.25 * rms2, 0.01)[..., None])
+            s0, s1, s2 = (powers_t.T @ weight.reshape(-1, k).T).reshape(3, -1, 4)   # (M, 4) each
+            sy, sty = (powers_t.T[:2] @ (weight * off).reshape(-1, k).T).reshape(2, -1, 4)
             den = s0 * s2 - s1 * s1
             den = np.where(den > 1e-12, den, np.nan)                    # < 2 usable points: no line
             b = (s0 * sty - s1 * sy) / den
@@ -407,16 +427,16 @@ def refine_corners_edges(gray: np.ndarray, corners_px: np.ndarray, modules: int 
         P1, D1 = P[:, _PREV_I], D[:, _PREV_I]
         s = ((P - P1).conj() * D).imag / (D1.conj() * D).imag
         z = P1 + s * D1
-        good &= ((length > 4.0) & ((weight > 0.0).sum(axis=-1) >= 3)).all(axis=1)
-        good &= np.isfinite(z).all(axis=1)
+        good &= ((length > 4.0) & (np.sign(weight) @ ones_t >= 3.0) & np.isfinite(z)).all(axis=1)
         z = np.where(good[:, None], z, z0)
     if lens is not None:
         z = _distort_c(z, *lens)
+        side_px = np.abs(z_in[:, _NEXT_I] - z_in)
     # a corner moving more than two modules (at least 3 px) is a failed fit
     moved = np.abs(z - z_in).max(axis=1)
-    good &= moved <= np.maximum(2.0 * np.abs(z_in[:, _NEXT_I] - z_in).mean(axis=1) * inv_modules[:, 0], 3.0)
+    good &= moved <= np.maximum(0.5 * side_px.sum(axis=1) * inv_modules[:, 0], 3.0)   # 2 x mean side
     z = np.where(good[:, None], z + origin, complex(np.nan, np.nan))
-    c = np.stack([z.real, z.imag], axis=-1)
+    c = z.view(np.float64).reshape(*z.shape, 2)
     return c[0] if single else c
 
 
