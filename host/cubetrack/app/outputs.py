@@ -109,10 +109,6 @@ def _zenoh_endpoints(spec: OutputSpec, ros: bool):
 
 def _sink(spec: OutputSpec, default_domain_id: int) -> Sink:
     table, where = spec.table, spec.where
-    unknown = set(table) - OUTPUT_KEYS[spec.type] - {"type"}
-    if unknown:
-        raise ConfigError(f"{where}: unknown key(s) {', '.join(sorted(unknown))} for a {spec.type} output; "
-                          f"known: {', '.join(sorted(OUTPUT_KEYS[spec.type]))}")
     if spec.type == "zenoh":
         from cubetrack.sink.zenoh_json import ZenohJsonParams, ZenohJsonSink
 
@@ -137,18 +133,42 @@ def _sink(spec: OutputSpec, default_domain_id: int) -> Sink:
 
         host, port = parse_address(str(table.get("address", "")), DEFAULT_ADDRESSES["vrpn"], where)
         return VrpnSink(VrpnParams(host=host, port=port))
-    from cubetrack.sink.foxglove import FoxgloveParams, FoxgloveSink
+    return _foxglove_sink([spec])
+
+
+def _foxglove_params(spec: OutputSpec):
+    from cubetrack.sink.foxglove import FoxgloveParams
 
     try:
-        params = FoxgloveParams(**{key: table[key] for key in ("image_fps",) if key in table})
+        return FoxgloveParams(**{key: spec.table[key] for key in ("image_fps",) if key in spec.table})
     except ConfigError as exc:
-        raise ConfigError(f"{where}: {exc}") from None
-    if spec.type == "foxglove":
-        return FoxgloveSink(server=parse_address(str(table.get("address", "")), DEFAULT_ADDRESSES["foxglove"], where),
-                            params=params)
-    if "path" not in table:
-        raise ConfigError(f"{where}: an mcap output needs path = \"<file>.mcap\"")
-    return FoxgloveSink(mcap=spec.base / str(table["path"]), params=params)
+        raise ConfigError(f"{spec.where}: {exc}") from None
+
+
+def _foxglove_sink(specs: list[OutputSpec]) -> Sink:
+    """The Foxglove server and/or MCAP file of ``specs`` (one of each at most, same parameters)
+    as one sink: one foxglove-sdk context builds and encodes each message once for both."""
+    from cubetrack.sink.foxglove import FoxgloveSink
+
+    server = mcap = None
+    for spec in specs:
+        if spec.type == "foxglove":
+            server = parse_address(str(spec.table.get("address", "")), DEFAULT_ADDRESSES["foxglove"], spec.where)
+        elif "path" not in spec.table:
+            raise ConfigError(f"{spec.where}: an mcap output needs path = \"<file>.mcap\"")
+        else:
+            mcap = spec.base / str(spec.table["path"])
+    return FoxgloveSink(server=server, mcap=mcap, params=_foxglove_params(specs[0]))
+
+
+def _grouped(specs: list[OutputSpec]) -> list[list[OutputSpec]]:
+    """Each output alone, except a Foxglove server and an MCAP file with the same parameters:
+    those together (:func:`_foxglove_sink`)."""
+    foxglove = [s for s in specs if s.type in ("foxglove", "mcap")]
+    if len(foxglove) == 2 and foxglove[0].type != foxglove[1].type and \
+            _foxglove_params(foxglove[0]) == _foxglove_params(foxglove[1]):
+        return [[s] for s in specs if s not in foxglove] + [foxglove]
+    return [[s] for s in specs]
 
 
 def output_sinks(specs: list[OutputSpec], default_domain_id: int = 0) -> list[Sink]:
@@ -158,10 +178,14 @@ def output_sinks(specs: list[OutputSpec], default_domain_id: int = 0) -> list[Si
         if spec.table.get("type") not in OUTPUT_KEYS:
             raise ConfigError(f"{spec.where}: type must be one of {', '.join(OUTPUT_KEYS)}, "
                               f"got {spec.table.get('type')!r}")
+        unknown = set(spec.table) - OUTPUT_KEYS[spec.type] - {"type"}
+        if unknown:
+            raise ConfigError(f"{spec.where}: unknown key(s) {', '.join(sorted(unknown))} for a {spec.type} output; "
+                              f"known: {', '.join(sorted(OUTPUT_KEYS[spec.type]))}")
     sinks: list[Sink] = []
     try:
-        for spec in specs:
-            sinks.append(_sink(spec, default_domain_id))
+        for group in _grouped(specs):
+            sinks.append(_sink(group[0], default_domain_id) if len(group) == 1 else _foxglove_sink(group))
     except BaseException:
         close_sinks(sinks)
         raise

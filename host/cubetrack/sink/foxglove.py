@@ -7,14 +7,17 @@ Channels (foxglove-sdk well-known schemas, protobuf; names made topic-safe by
 | --- | --- | --- |
 | ``/robots/<r>/pose`` | ``foxglove.PoseInFrame`` | the cube frame in ``world`` |
 | ``/tf`` | ``foxglove.FrameTransforms`` | world -> ``<r>`` at every pose; world -> ``<c>_optical_frame`` of each calibrated camera (at the start and every ``static_every_s``) |
-| ``/scene`` | ``foxglove.SceneUpdate`` | entity ``robot/<r>``: a cube of the layout's size at the pose; entity ``camera/<c>``: the camera's field of view as a frustum ``frustum_depth_m`` deep, with its name |
+| ``/scene`` | ``foxglove.SceneUpdate`` | entity ``robot/<r>``: a cube of the layout's size in the frame ``<r>`` (frame-locked: it moves with ``/tf``); entity ``camera/<c>``: the camera's field of view as a frustum ``frustum_depth_m`` deep, with its name; both at the start and every ``static_every_s`` |
 | ``/cameras/<c>/image`` | ``foxglove.CompressedImage`` | the JPEG as received (live sessions that hand out views) |
 | ``/cameras/<c>/annotations`` | ``foxglove.ImageAnnotations`` | detected markers (green outlines, ids) and the predicted cube's markers (orange) |
 | ``/cameras/<c>/calibration`` | ``foxglove.CameraCalibration`` | intrinsics, so the image and 3D panels line up |
 | ``/cameras/<c>/health`` | JSON (schema ``cubetrack.CameraHealth``) | the camera's health snapshot |
 
 Where a view carries no predicted corners, the cube is projected from the robot's latest
-fused pose. The live server binds 127.0.0.1 unless another address is given.
+fused pose. The live server binds 127.0.0.1 unless another address is given. With both a server
+and an MCAP file, one foxglove-sdk ``Context`` feeds both: each message is built and encoded
+once. Per pose only the pose and its transform are sent; what changes slowly (the scene, the
+camera transforms and calibrations) is re-sent every ``static_every_s`` for viewers that join late.
 """
 
 from __future__ import annotations
@@ -114,21 +117,38 @@ def frustum_points_cam(camera: CameraSetup, depth_m: float) -> np.ndarray:
 def project(camera: CameraSetup, points_world: np.ndarray) -> np.ndarray | None:
     """Pixel positions of ``points_world`` ((N, 3)) in ``camera`` (with its distortion), None
     when any is behind it or the camera is not calibrated."""
-    import cv2
-
     if camera.T_world_cam is None or camera.intrinsics is None:
         return None
-    points_cam = transform_points(invert_T(camera.T_world_cam), points_world)
-    if np.any(points_cam[:, 2] <= 1e-3):
-        return None
-    pixels, _ = cv2.projectPoints(points_cam, np.zeros(3), np.zeros(3), np.asarray(camera.intrinsics.K, float),
-                                  np.asarray(camera.intrinsics.dist, float))
-    return pixels.reshape(-1, 2)
+    return _Projector(camera).pixels(points_world)
+
+
+class _Projector:
+    """Pixels of world points in one calibrated camera (with its distortion), its constants
+    computed once."""
+
+    def __init__(self, camera: CameraSetup):
+        self.T_cam_world = invert_T(camera.T_world_cam)
+        self.K = np.asarray(camera.intrinsics.K, float)
+        self.dist = np.asarray(camera.intrinsics.dist, float)
+
+    def pixels(self, points_world: np.ndarray) -> np.ndarray | None:
+        """(N, 2) pixel positions, None when any point is behind the camera."""
+        import cv2
+
+        points_cam = transform_points(self.T_cam_world, points_world)
+        if np.any(points_cam[:, 2] <= 1e-3):
+            return None
+        pixels, _ = cv2.projectPoints(points_cam, _ZERO3, _ZERO3, self.K, self.dist)
+        return pixels.reshape(-1, 2)
+
+
+_ZERO3 = np.zeros(3)
 
 
 class FoxgloveSink(Sink):
-    """The channels above, to a live server (``server=(host, port)``) or an MCAP file
-    (``mcap=path``; written in line, like the trajectory files). Opens in the constructor."""
+    """The channels above, to a live server (``server=(host, port)``), an MCAP file
+    (``mcap=path``; written in line, like the trajectory files) or both from one context.
+    Opens in the constructor."""
 
     wants_views = True
 
@@ -136,39 +156,45 @@ class FoxgloveSink(Sink):
                  params: FoxgloveParams = FoxgloveParams(), overwrite: bool = False):
         import foxglove
 
-        if (server is None) == (mcap is None):
-            raise ValueError("give exactly one of server=(host, port) and mcap=path")
+        if server is None and mcap is None:
+            raise ValueError("give server=(host, port), mcap=path or both")
         self.params = params
         self.view_interval_s = 1.0 / params.image_fps if params.image_fps > 0 else 0.0
         self.context = foxglove.Context()
         self.server = self.writer = None
-        if server is not None:
-            self.name, self.in_line = "foxglove", False
-            host, port = server
-            try:
-                self.server = foxglove.start_server(name="cubetrack", host=host, port=port, context=self.context)
-            except RuntimeError as exc:
-                raise OutputError(f"Foxglove server cannot listen on {host}:{port}: "
-                                  f"{str(exc).removeprefix('FoxgloveError: ')}") from None
-            where = self.where = f"Foxglove WebSocket ws://{host}:{self.server.port}"
-            if is_loopback_host(host):
-                log.info("%s (loopback only)", where)
-            else:
-                log.warning("%s: reachable from other machines", where)
-        else:
-            self.name, self.in_line = "mcap", True
+        names, wheres = [], []
+        if mcap is not None:
             self.path = Path(mcap)
-            self.where = f"MCAP file {self.path}"
             try:
                 self.writer = foxglove.open_mcap(self.path, allow_overwrite=overwrite, context=self.context)
             except (OSError, RuntimeError) as exc:
                 raise OutputError(f"{self.path}: cannot write the MCAP file: {exc}") from None
+            names.append("mcap")
+            wheres.append(f"MCAP file {self.path}")
+        if server is not None:
+            host, port = server
+            try:
+                self.server = foxglove.start_server(name="cubetrack", host=host, port=port, context=self.context)
+            except RuntimeError as exc:
+                self.close()
+                raise OutputError(f"Foxglove server cannot listen on {host}:{port}: "
+                                  f"{str(exc).removeprefix('FoxgloveError: ')}") from None
+            where = f"Foxglove WebSocket ws://{host}:{self.server.port}"
+            if is_loopback_host(host):
+                log.info("%s (loopback only)", where)
+            else:
+                log.warning("%s: reachable from other machines", where)
+            names.insert(0, "foxglove")
+            wheres.insert(0, where)
+        self.name, self.where = " + ".join(names), "; ".join(wheres)
+        self.in_line = self.writer is not None  # a file holds everything, like the trajectory files
         self.robots: dict[str, str] = {}
         self.cameras: dict[str, CameraSetup] = {}
         self.camera_ids: dict[str, str] = {}
         self.cube_size_m: dict[str, np.ndarray] = {}
         self.cube_markers_m: dict[str, np.ndarray] = {}
-        self.last_pose: dict[str, np.ndarray] = {}
+        self.projectors: dict[str, _Projector] = {}
+        self.last_pose: dict[str, TrackedPose] = {}
         self.channels: dict[str, object] = {}
         self.static_sent_s = -math.inf
 
@@ -193,6 +219,8 @@ class FoxgloveSink(Sink):
         self.robots = identifiers(list(session.robots), "robot")
         self.camera_ids = identifiers([c.name for c in session.cameras], "camera")
         self.cameras = {c.name: c for c in session.cameras}
+        self.projectors = {c.name: _Projector(c) for c in session.cameras
+                           if c.T_world_cam is not None and c.intrinsics is not None}
         for robot, layout in session.robots.items():
             corners = layout.corners_m.reshape(-1, 4, 3)
             self.cube_markers_m[robot] = corners
@@ -211,12 +239,19 @@ class FoxgloveSink(Sink):
         self.channels[topic].log(message, log_time=int(time_s * 1e9))
 
     def _send_static(self, time_s: float) -> None:
-        """Camera transforms, calibrations and frusta (re-sent so late viewers get them)."""
-        from foxglove.messages import (CameraCalibration, FrameTransform, FrameTransforms, LinePrimitive,
-                                       LinePrimitiveLineType, Point3, SceneEntity, SceneUpdate, TextPrimitive)
+        """Camera transforms, calibrations and frusta, the robots' cubes (re-sent so late viewers
+        get them)."""
+        from foxglove.messages import (CameraCalibration, CubePrimitive, FrameTransform, FrameTransforms,
+                                       LinePrimitive, LinePrimitiveLineType, Point3, SceneEntity, SceneUpdate,
+                                       TextPrimitive)
 
         world = self.params.world_frame
-        transforms, entities = [], []
+        transforms = []
+        entities = [SceneEntity(timestamp=_ts(time_s), frame_id=rid, id=f"robot/{rid}", frame_locked=True,
+                                cubes=[CubePrimitive(pose=_pose(_ZERO3, (0.0, 0.0, 0.0, 1.0)),
+                                                     size=_vector3(self.cube_size_m[robot]),
+                                                     color=_colour(CUBE_COLOUR))])
+                    for robot, rid in self.robots.items() if robot in self.cube_size_m]
         for name, camera in self.cameras.items():
             cid = self.camera_ids[name]
             if camera.intrinsics is not None:
@@ -252,24 +287,19 @@ class FoxgloveSink(Sink):
         self.static_sent_s = time_s
 
     def pose(self, pose: TrackedPose) -> None:
-        from foxglove.messages import (CubePrimitive, FrameTransform, FrameTransforms, PoseInFrame, SceneEntity,
-                                       SceneUpdate)
+        from foxglove.messages import FrameTransform, FrameTransforms, PoseInFrame
 
         rid = self.robots.get(pose.robot)
         if rid is None:
             return
         t, world = pose.time_s, self.params.world_frame
-        frame_pose = _pose(pose.position_m, pose.quaternion_xyzw)
-        self._log(f"/robots/{rid}/pose", PoseInFrame(timestamp=_ts(t), frame_id=world, pose=frame_pose), t)
+        stamp = _ts(t)
+        self._log(f"/robots/{rid}/pose", PoseInFrame(timestamp=stamp, frame_id=world, pose=_pose(
+            pose.position_m, pose.quaternion_xyzw)), t)
         self._log("/tf", FrameTransforms(transforms=[FrameTransform(
-            timestamp=_ts(t), parent_frame_id=world, child_frame_id=rid, translation=_vector3(pose.position_m),
+            timestamp=stamp, parent_frame_id=world, child_frame_id=rid, translation=_vector3(pose.position_m),
             rotation=_quaternion(pose.quaternion_xyzw))]), t)
-        size = self.cube_size_m[pose.robot]
-        self._log("/scene", SceneUpdate(entities=[SceneEntity(
-            timestamp=_ts(t), frame_id=world, id=f"robot/{rid}", cubes=[CubePrimitive(
-                pose=frame_pose, size=_vector3(size),
-                color=_colour(CUBE_COLOUR))])]), t)
-        self.last_pose[pose.robot] = T_from_position_quat(pose.position_m, pose.quaternion_xyzw)
+        self.last_pose[pose.robot] = pose
         if t - self.static_sent_s >= self.params.static_every_s:
             self._send_static(t)
 
@@ -294,11 +324,13 @@ class FoxgloveSink(Sink):
                                                                   y=float(d.corners_px[0][1])),
                                 text=str(d.marker_id), font_size=14.0, text_color=_colour(GREEN),
                                 background_color=_colour((0, 0, 0, 0.5))) for d in view.detections]
+        projector = self.projectors.get(view.camera)
         for robot in self.robots:
             corners = view.predicted_corners_px.get(robot)
-            if corners is None and robot in self.last_pose:
-                corners = project(self.cameras[view.camera], transform_points(
-                    self.last_pose[robot], self.cube_markers_m[robot].reshape(-1, 3)))
+            last = self.last_pose.get(robot)
+            if corners is None and last is not None and projector is not None:
+                corners = projector.pixels(transform_points(T_from_position_quat(
+                    last.position_m, last.quaternion_xyzw), self.cube_markers_m[robot].reshape(-1, 3)))
             if corners is not None:
                 points += [outline(square, ORANGE) for square in np.asarray(corners).reshape(-1, 4, 2)]
         self._log(f"/cameras/{cid}/annotations", ImageAnnotations(timestamp=_ts(t), points=points, texts=texts), t)

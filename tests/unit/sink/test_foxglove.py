@@ -166,3 +166,30 @@ def test_the_layout_in_docs_is_the_generated_one_and_names_real_channels():
                    *(f"/cameras/cam{i}/{k}" for i in (1, 2, 3) for k in ("image", "annotations", "calibration", "health"))}
     assert topics and topics <= demo_topics
     assert {"/scene", "/robots/robot/pose", "/cameras/cam1/image", "/cameras/cam3/health"} <= topics
+
+
+def test_one_sink_serves_live_and_records_the_same_messages(tmp_path, session_info):
+    path = tmp_path / "both.mcap"
+    sink = FoxgloveSink(server=("127.0.0.1", 0), mcap=path)
+    assert sink.in_line and sink.name == "foxglove + mcap"
+    client = LiveClient(sink.port)
+    picture = jpeg()
+    try:
+        client.poll(lambda c: c.server_info is not None)
+        feed(sink, session_info, picture)
+        client.poll(lambda c: set(c.topics()) == set(TOPICS))
+        for _ in range(40):  # until the subscriptions have taken effect
+            try:
+                client.poll(lambda c: "/cameras/cam_a/annotations" in c.messages, timeout_s=0.25)
+                break
+            except TimeoutError:
+                sink.pose(tracked("robot 1!", 1))
+                sink.camera_view(CameraView("cam-a", 12, tracked("robot 1!", 1).time_s, picture, (DETECTION,)))
+    finally:
+        client.close()
+        sink.close()
+    _, recorded = read_mcap(path)
+    check_messages(recorded, session_info, picture)
+    live, = (m for _, m in client.messages["/cameras/cam_a/annotations"][-1:])
+    same = recorded["/cameras/cam_a/annotations"][-1][1]
+    assert live.SerializeToString() == same.SerializeToString()  # the same message, encoded once

@@ -95,3 +95,26 @@ def test_outputs_started_before_a_failure_are_closed_again(tmp_path):
                       OutputSpec({"type": "mcap"}, tmp_path, "b")])
     again = VrpnSink(VrpnParams(port=port))  # the first server was closed: its port is free again
     again.close()
+
+
+def test_a_foxglove_server_and_an_mcap_file_alike_share_one_sink(tmp_path):
+    port = free_port()
+    both = [OutputSpec({"type": "foxglove", "address": f"127.0.0.1:{port}"}, tmp_path, "--foxglove"),
+            OutputSpec({"type": "vrpn", "address": f"127.0.0.1:{free_port()}"}, tmp_path, "--vrpn"),
+            OutputSpec({"type": "mcap", "path": "s.mcap"}, tmp_path, "--mcap")]
+    sinks = output_sinks(both)
+    try:
+        vrpn, foxglove = sinks  # one context builds each message once for the server and the file
+        assert isinstance(vrpn, VrpnSink) and isinstance(foxglove, FoxgloveSink)
+        assert foxglove.port == port and foxglove.path == tmp_path / "s.mcap" and foxglove.in_line
+        assert f"ws://127.0.0.1:{port}" in foxglove.where and "s.mcap" in foxglove.where
+    finally:
+        close_sinks(sinks)
+    (tmp_path / "s.mcap").unlink()
+    both[2] = OutputSpec({"type": "mcap", "path": "s.mcap", "image_fps": 0}, tmp_path, "--mcap")  # every image
+    sinks = output_sinks(both)
+    try:
+        assert [type(s) for s in sinks] == [FoxgloveSink, VrpnSink, FoxgloveSink]  # apart: they differ
+        assert sinks[0].view_interval_s == 0.1 and sinks[2].view_interval_s == 0
+    finally:
+        close_sinks(sinks)
