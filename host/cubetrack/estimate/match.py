@@ -40,7 +40,7 @@ import numpy as np
 
 from cubetrack.core.cameras import CameraIntrinsics
 from cubetrack.core.errors import EstimationError
-from cubetrack.core.geometry import invert_T, is_finite_pose
+from cubetrack.core.geometry import is_finite_pose
 from cubetrack.core.layout import CubeLayout
 from cubetrack.core.records import Detection, FaceObservation, MarkerPose
 from cubetrack.estimate.marker import marker_pose
@@ -193,29 +193,34 @@ def _match_by_prediction(detections: Sequence[Detection], layout: CubeLayout, in
                          T_world_cam: np.ndarray, T_world_body: np.ndarray, gate_px: float,
                          max_view_angle_deg: float) -> tuple[FaceMatch, ...]:
     """Each detection, in order, takes the nearest unclaimed visible face with its id where
-    ``T_world_body`` projects the faces (see the module doc)."""
-    T_cam_body = invert_T(T_world_cam) @ T_world_body
-    R_cb, t_cb = T_cam_body[:3, :3], T_cam_body[:3, 3]
+    ``T_world_body`` projects the faces (see the module doc). Runs per sighting in the filter:
+    few numpy calls, and plain Python over the handful of faces."""
+    R_wc = T_world_cam[:3, :3]
+    R_cb = R_wc.T @ T_world_body[:3, :3]
+    t_cb = (T_world_body[:3, 3] - T_world_cam[:3, 3]) @ R_wc
     corners_cam = layout.corners_m @ R_cb.T + t_cb                     # (M, 4, 3)
-    centres = corners_cam.mean(axis=1)
-    cos_view = -np.einsum("ij,ij->i", layout.normals @ R_cb.T, centres) / np.linalg.norm(centres, axis=1)
-    # facing away, or seen so obliquely that its corners are poor: not a candidate
-    visible = cos_view >= float(np.cos(np.radians(max_view_angle_deg)))
+    # facing away, or seen so obliquely that its corners are poor: not a candidate (the view
+    # angle's cosine -n.c / |c|, with c twice the face's centre: its diagonal's midpoint)
+    centres = corners_cam[:, 0] + corners_cam[:, 2]
+    toward = -np.einsum("ij,ij->i", layout.normals @ R_cb.T, centres)
+    visible = toward >= math.cos(math.radians(max_view_angle_deg)) * np.sqrt(np.einsum("ij,ij->i", centres, centres))
     if not visible.any():
         return ()
     proj, _ = cv2.projectPoints(corners_cam.reshape(-1, 3), _ZERO3, _ZERO3, intrinsics.K, intrinsics.dist)
-    observed_px = np.array([d.corners_px for d in detections])          # (D, 4, 2)
-    distance = np.linalg.norm(proj.reshape(1, -1, 4, 2) - observed_px[:, None], axis=-1).mean(axis=-1)  # (D, M)
-    free = visible.copy()
+    d = proj.reshape(1, -1, 4, 2) - np.array([det.corners_px for det in detections])[:, None]   # (D, M, 4, 2)
+    d *= d
+    distances = (np.sqrt(d[..., 0] + d[..., 1]).sum(axis=-1) * 0.25).tolist()   # mean corner distance (D, M)
+    free = visible.tolist()
+    ids = layout.marker_ids.tolist()
+    by_dictionary = len(layout.dictionaries) > 1
     out: list[FaceMatch] = []
-    for i, det in enumerate(detections):
-        candidates = free & (layout.marker_ids == det.marker_id)
-        if len(layout.dictionaries) > 1 and det.dictionary:
-            candidates &= np.array([name == det.dictionary for name in layout.marker_dictionaries])
-        if not candidates.any():
-            continue
-        k = int(np.argmin(np.where(candidates, distance[i], np.inf)))
-        if distance[i, k] > max(gate_px, 0.5 * float(np.sqrt(det.area_px2))):
+    for det, row in zip(detections, distances):
+        best, k = math.inf, -1
+        for j, distance in enumerate(row):
+            if (distance < best and free[j] and ids[j] == det.marker_id
+                    and not (by_dictionary and det.dictionary and layout.marker_dictionaries[j] != det.dictionary)):
+                best, k = distance, j
+        if k < 0 or best > max(gate_px, 0.5 * math.sqrt(det.area_px2)):
             continue
         free[k] = False
         out.append(FaceMatch(k, layout.markers[k].face, det, layout.corners_m[k]))

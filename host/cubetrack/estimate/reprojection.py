@@ -53,21 +53,6 @@ def normalize_px(corners_px: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.
     return cv2.undistortPoints(pts, K, dist).reshape(-1, 2)
 
 
-def pinhole_normalized(points_cam_m: np.ndarray) -> np.ndarray:
-    """(N, 3) points in a camera's frame to normalised image coordinates (x/z, y/z); NaN for a
-    point behind the camera (z <= 1e-6 m)."""
-    z = points_cam_m[:, 2:3]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        out = points_cam_m[:, :2] / z
-    out[z[:, 0] <= 1e-6] = np.nan
-    return out
-
-
-def project_normalized(T_cam_world: np.ndarray, points_world_m: np.ndarray) -> np.ndarray:
-    """Pinhole projection of (N, 3) world points to normalised coordinates; NaN behind the camera."""
-    return pinhole_normalized(points_world_m @ T_cam_world[:3, :3].T + T_cam_world[:3, 3])
-
-
 def corner_set(matches: Sequence[FaceMatch], intrinsics: CameraIntrinsics, T_world_cam: np.ndarray,
                camera: str, time_s: float) -> CornerSet | None:
     """The corner set of one camera frame's matched faces (in the order of ``matches``), or
@@ -106,33 +91,53 @@ def perturbed(T0: np.ndarray, delta: np.ndarray) -> np.ndarray:
     return make_T(R, T0[:3, 3] + delta[:3])
 
 
+def _residuals(s: CornerSet, R: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The set's corners with the body at rotation ``R``, position ``p`` (world): ``q`` rotated
+    (world axes, (N, 3)), their normalised image points ``uv`` (N, 2), ``focal/z`` (N,) and the
+    pixel residuals (N, 2). A corner behind the camera (z <= 1e-6 m) gets a 1000 px residual
+    and a zero ``focal/z``."""
+    R_cw, t_cw = s.T_cam_world[:3, :3], s.T_cam_world[:3, 3]
+    q = s.points_cube_m @ R.T
+    pc = q @ R_cw.T + (R_cw @ p + t_cw)
+    z = pc[:, 2]
+    ok = z > 1e-6
+    if ok.all():
+        uv = pc[:, :2] / z[:, None]
+        scale = s.focal_px / z
+        return q, uv, scale, (uv - s.normalized) * s.focal_px
+    zs = np.where(ok, z, 1.0)
+    uv = pc[:, :2] / zs[:, None]
+    r = (uv - s.normalized) * s.focal_px
+    r[~ok] = 1e3
+    return q, uv, np.where(ok, s.focal_px / zs, 0.0), r
+
+
 def reprojection_residuals_px(T_world_cube: np.ndarray, sets: Sequence[CornerSet], t_ref_s: float = 0.0,
                               velocity_m_s: np.ndarray | None = None,
                               angular_velocity_rad_s: np.ndarray | None = None) -> np.ndarray:
     """Stacked (x, y) reprojection residuals in pixels of every corner set, motion-compensated
     from ``t_ref_s`` to each set's time (without velocities: the still cube). Corners behind a
-    camera give a large residual."""
+    camera give a large residual (1000 px; a NaN one, e.g. of a corner that did not undistort,
+    too)."""
     moving = velocity_m_s is not None and angular_velocity_rad_s is not None
     out = []
     for s in sets:
         T = (moved_pose(T_world_cube, velocity_m_s, angular_velocity_rad_s, s.time_s - t_ref_s) if moving
              else T_world_cube)
-        pw = s.points_cube_m @ T[:3, :3].T + T[:3, 3]
-        r = (project_normalized(s.T_cam_world, pw) - s.normalized) * s.focal_px
-        out.append(np.nan_to_num(r, nan=1e3).ravel())
-    return np.concatenate(out) if out else np.zeros(0)
+        out.append(_residuals(s, T[:3, :3], T[:3, 3])[3].ravel())
+    if not out:
+        return np.zeros(0)
+    r = out[0] if len(out) == 1 else np.concatenate(out)
+    return r if np.isfinite(r).all() else np.nan_to_num(r, nan=1e3)
 
 
-def _cross_rows(q: np.ndarray, a: np.ndarray) -> np.ndarray:
-    """``q[k] x a[k, i]`` for (N, 3) vectors and (N, M, 3) rows (``np.cross`` costs ~10x more
-    at these sizes)."""
-    q0, q1, q2 = q[:, 0, None], q[:, 1, None], q[:, 2, None]
-    a0, a1, a2 = a[..., 0], a[..., 1], a[..., 2]
-    out = np.empty_like(a)
-    out[..., 0] = q1 * a2 - q2 * a1
-    out[..., 1] = q2 * a0 - q0 * a2
-    out[..., 2] = q0 * a1 - q1 * a0
-    return out
+# (q @ _NEG_SKEW).reshape(3, 3) is -[q]x: a row vector a times it is q x a
+_NEG_SKEW = np.zeros((3, 3, 3))
+_NEG_SKEW[0, 1, 2], _NEG_SKEW[0, 2, 1] = 1.0, -1.0
+_NEG_SKEW[1, 2, 0], _NEG_SKEW[1, 0, 2] = 1.0, -1.0
+_NEG_SKEW[2, 0, 1], _NEG_SKEW[2, 1, 0] = 1.0, -1.0
+_NEG_SKEW = _NEG_SKEW.reshape(3, 9)
+_NEG_SKEW.setflags(write=False)
 
 
 def reprojection_jacobian_px(T_world_cube: np.ndarray, sets: Sequence[CornerSet], t_ref_s: float = 0.0,
@@ -159,18 +164,11 @@ def reprojection_jacobian_px(T_world_cube: np.ndarray, sets: Sequence[CornerSet]
             dt = s.time_s - t_ref_s
             step = R_from_rotvec(angular_velocity_rad_s * dt)
             R, p = step @ R0, p0 + velocity_m_s * dt
-        q = s.points_cube_m @ R.T  # (N, 3) rotated corners
-        R_cw, t_cw = s.T_cam_world[:3, :3], s.T_cam_world[:3, 3]
-        pc = (q + p) @ R_cw.T + t_cw
-        z = pc[:, 2]
-        ok = z > 1e-6
-        zs = np.where(ok, z, 1.0)
-        uv = pc[:, :2] / zs[:, None]
-        r = (uv - s.normalized) * s.focal_px
-        r[~ok] = 1e3
+        q, uv, scale, r = _residuals(s, R, p)
+        R_cw = s.T_cam_world[:3, :3]
         # d(pixels)/d(pw) = focal/z [[1, 0, -x/z], [0, 1, -y/z]] R_cw, one (2, 3) block per corner
-        d_pw = (R_cw[None, :2, :] - uv[:, :, None] * R_cw[2]) * np.where(ok, s.focal_px / zs, 0.0)[:, None, None]
-        d_theta = _cross_rows(q, d_pw)  # a^T (-[q]x) = q x a, row by row
+        d_pw = (R_cw[:2] - uv[:, :, None] * R_cw[2]) * scale[:, None, None]
+        d_theta = d_pw @ (q @ _NEG_SKEW).reshape(-1, 3, 3)  # a^T (-[q]x) = q x a, row by row
         if moving:
             blocks = [d_pw, d_theta @ step, d_pw * dt, d_theta @ (so3_left_jacobian(angular_velocity_rad_s * dt) * dt)]
         else:
@@ -179,4 +177,6 @@ def reprojection_jacobian_px(T_world_cube: np.ndarray, sets: Sequence[CornerSet]
         jacobians.append(np.concatenate(blocks, axis=2).reshape(2 * len(q), -1))
     if not residuals:
         return np.zeros(0), np.zeros((0, 12 if moving else 6))
+    if len(residuals) == 1:
+        return residuals[0], jacobians[0]
     return np.concatenate(residuals), np.vstack(jacobians)
