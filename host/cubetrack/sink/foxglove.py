@@ -195,6 +195,7 @@ class FoxgloveSink(Sink):
         self.cube_markers_m: dict[str, np.ndarray] = {}
         self.projectors: dict[str, _Projector] = {}
         self.last_pose: dict[str, TrackedPose] = {}
+        self.cube_world_m: dict[str, np.ndarray] = {}  # marker corners at the last pose, once a view needed them
         self.channels: dict[str, object] = {}
         self.static_sent_s = -math.inf
 
@@ -300,6 +301,7 @@ class FoxgloveSink(Sink):
             timestamp=stamp, parent_frame_id=world, child_frame_id=rid, translation=_vector3(pose.position_m),
             rotation=_quaternion(pose.quaternion_xyzw))]), t)
         self.last_pose[pose.robot] = pose
+        self.cube_world_m.pop(pose.robot, None)
         if t - self.static_sent_s >= self.params.static_every_s:
             self._send_static(t)
 
@@ -327,13 +329,20 @@ class FoxgloveSink(Sink):
         projector = self.projectors.get(view.camera)
         for robot in self.robots:
             corners = view.predicted_corners_px.get(robot)
-            last = self.last_pose.get(robot)
-            if corners is None and last is not None and projector is not None:
-                corners = projector.pixels(transform_points(T_from_position_quat(
-                    last.position_m, last.quaternion_xyzw), self.cube_markers_m[robot].reshape(-1, 3)))
+            if corners is None and robot in self.last_pose and projector is not None:
+                corners = projector.pixels(self._cube_world(robot))
             if corners is not None:
                 points += [outline(square, ORANGE) for square in np.asarray(corners).reshape(-1, 4, 2)]
         self._log(f"/cameras/{cid}/annotations", ImageAnnotations(timestamp=_ts(t), points=points, texts=texts), t)
+
+    def _cube_world(self, robot: str) -> np.ndarray:
+        """The robot's marker corners in the world at its last pose (computed once per pose)."""
+        corners = self.cube_world_m.get(robot)
+        if corners is None:
+            last = self.last_pose[robot]
+            corners = self.cube_world_m[robot] = transform_points(T_from_position_quat(
+                last.position_m, last.quaternion_xyzw), self.cube_markers_m[robot].reshape(-1, 3))
+        return corners
 
     def camera_health(self, health: CameraHealth) -> None:
         cid = self.camera_ids.get(health.camera)

@@ -22,12 +22,13 @@ from __future__ import annotations
 
 import enum
 import logging
+import math
 import time
 from dataclasses import dataclass
 
 import numpy as np
 
-from cubetrack.core.geometry import R_from_quat_xyzw, position_quat_from_T
+from cubetrack.core.geometry import position_quat_from_T
 from cubetrack.core.records import TrackedPose
 from cubetrack.sink import cdr, rmw_zenoh
 from cubetrack.sink.base import OutputError, SessionInfo, Sink
@@ -174,9 +175,9 @@ class Ros2Sink(Sink):
         frame, pose_pub, odom_pub = self.robots[pose.robot]
         world = self.world_frame
         pose_pub.put(cdr.pose_stamped(pose.time_s, world, pose.position_m, pose.quaternion_xyzw))
-        R_body_world = R_from_quat_xyzw(pose.quaternion_xyzw).T
-        linear = None if pose.velocity_m_s is None else R_body_world @ pose.velocity_m_s
-        angular = None if pose.angular_velocity_rad_s is None else R_body_world @ pose.angular_velocity_rad_s
+        linear = None if pose.velocity_m_s is None else into_body(pose.quaternion_xyzw, pose.velocity_m_s)
+        angular = None if pose.angular_velocity_rad_s is None else into_body(pose.quaternion_xyzw,
+                                                                             pose.angular_velocity_rad_s)
         odom_pub.put(cdr.odometry(pose.time_s, world, frame, pose.position_m, pose.quaternion_xyzw,
                                   _finite(pose.covariance), _finite(linear), _finite(angular)))
         self.tf.put(cdr.tf_message([cdr.Transform(pose.time_s, world, frame, pose.position_m,
@@ -200,6 +201,18 @@ class Ros2Sink(Sink):
 def camera_frame(camera_id: str) -> str:
     """The tf frame of a camera's optical frame (x right, y down, z forward)."""
     return f"{camera_id}_optical_frame"
+
+
+def into_body(quaternion_xyzw: np.ndarray, vector_world: np.ndarray) -> np.ndarray:
+    """A world-frame vector in the body frame the quaternion (body in world) turns: the inverse
+    rotation, ``v + 2 u x (u x v - w v)`` with ``(u, w)`` the normalised quaternion, in plain floats
+    (a rotation matrix from scipy cost several times more, per pose)."""
+    x, y, z, w = (float(c) for c in quaternion_xyzw)
+    n = math.sqrt(x * x + y * y + z * z + w * w)
+    x, y, z, w = x / n, y / n, z / n, w / n
+    vx, vy, vz = (float(c) for c in vector_world)
+    ax, ay, az = y * vz - z * vy - w * vx, z * vx - x * vz - w * vy, x * vy - y * vx - w * vz  # u x v - w v
+    return np.array([vx + 2 * (y * az - z * ay), vy + 2 * (z * ax - x * az), vz + 2 * (x * ay - y * ax)])
 
 
 def _finite(values: np.ndarray | None) -> np.ndarray | None:

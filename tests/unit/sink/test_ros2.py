@@ -259,3 +259,16 @@ def test_a_bad_endpoint_or_domain_is_a_one_line_error():
         Ros2Sink(Ros2Params(), ros_endpoints(listen=("tcp/not-an-address",)))
     with pytest.raises(OutputError, match="domain id"):
         Ros2Params(domain_id=999)
+
+
+def test_the_twist_turns_into_the_body_frame_as_the_rotation_matrix_does():
+    from cubetrack.core.geometry import R_from_quat_xyzw
+    from cubetrack.sink.ros2 import into_body
+
+    rng = np.random.default_rng(3)
+    for _ in range(200):
+        q = rng.normal(size=4) * rng.uniform(0.5, 2.0)  # not normalised: normalised first, as the matrix is
+        v = rng.normal(size=3)
+        assert into_body(q, v) == pytest.approx(R_from_quat_xyzw(q).T @ v, abs=1e-12)
+    yaw_90 = np.array([0.0, 0.0, np.sqrt(0.5), np.sqrt(0.5)])  # body x = world y
+    assert into_body(yaw_90, np.array([0.0, 1.0, 0.0])) == pytest.approx([1.0, 0.0, 0.0])
