@@ -231,13 +231,13 @@ _PREV_I = np.array(_PREV)
 def _quad_checks(quads: np.ndarray, min_area_px2: float) -> tuple[np.ndarray, np.ndarray]:
     """For (N, 4, 2) quads: which are finite, strictly convex, clockwise in the image (y down)
     and larger than ``min_area_px2``, and their shoelace areas (px^2)."""
-    x, y = quads[..., 0], quads[..., 1]
-    ex, ey = x[:, _NEXT] - x, y[:, _NEXT] - y                          # edge i: corner i -> i+1
-    turns = ex * ey[:, _NEXT] - ey * ex[:, _NEXT]                      # > 0: a right turn (clockwise)
-    area = 0.5 * np.abs((x * y[:, _NEXT] - y * x[:, _NEXT]).sum(axis=1))
-    finite = np.isfinite(quads).all(axis=(1, 2))
+    following = quads[:, _NEXT_I]                                      # corner i + 1 of each corner i
+    e = following - quads                                               # edge i: corner i -> i+1
+    e_next = e[:, _NEXT_I]
+    turns = e[..., 0] * e_next[..., 1] - e[..., 1] * e_next[..., 0]     # > 0: a right turn (clockwise)
+    area = 0.5 * np.abs((quads[..., 0] * following[..., 1] - quads[..., 1] * following[..., 0]).sum(axis=1))
     with np.errstate(invalid="ignore"):
-        ok = finite & (turns > 0.0).all(axis=1) & (area > max(min_area_px2, 0.0))
+        ok = np.isfinite(quads).all(axis=(1, 2)) & (turns.min(axis=1) > 0.0) & (area > max(min_area_px2, 0.0))
     return ok, area
 
 
@@ -517,25 +517,22 @@ class Detector:
         dict_indices = (np.zeros_like(ids) if dict_indices is None
                         else np.asarray(dict_indices).reshape(-1))
         quads = np.asarray(corners, dtype=np.float64).reshape(-1, 4, 2) + self._offset_px
-        valid = np.ones(len(ids), dtype=bool)
         if self.params.corner_refinement is CornerRefinement.EDGE:
-            modules = np.array([self._modules[int(k)] for k in dict_indices])
-            quads = refine_corners_edges(gray, quads, modules, self.params.edge_iterations)
-            valid = np.all(np.isfinite(quads), axis=(1, 2))
-            if not valid.all():
-                log.debug("edge refinement failed for ids %s; dropped", ids[~valid].tolist())
-            quads = np.where(valid[:, None, None], quads, 0.0)
-        checked, areas = _quad_checks(quads, self.params.min_area_px2)
-        if not checked.all():
-            log.debug("dropped degenerate detections of ids %s", ids[~checked].tolist())
-        valid &= checked
-        out = []
-        for c, area, marker_id, k in zip(quads[valid] + offset_px, areas[valid], ids[valid], dict_indices[valid]):
-            c.setflags(write=False)
-            out.append(Detection(marker_id=int(marker_id), corners_px=c, area_px2=float(area),
-                                 dictionary=self.dictionaries[int(k)]))
-        out.sort(key=_detection_order)
-        return tuple(out)
+            modules = self._modules[0] if len(self._modules) == 1 else np.take(self._modules, dict_indices)
+            quads = refine_corners_edges(gray, quads, modules, self.params.edge_iterations)  # NaN: failed
+        valid, areas = _quad_checks(quads, self.params.min_area_px2)
+        if not valid.all():
+            log.debug("dropped detections of ids %s (edge refinement failed, or not a convex quad)",
+                      ids[~valid].tolist())
+        quads += offset_px
+        quads.setflags(write=False)
+        # plain Python from here: a handful of markers
+        x_sums, areas, ids, dict_indices = (quads[..., 0].sum(axis=1).tolist(), areas.tolist(), ids.tolist(),
+                                            dict_indices.tolist())
+        names = [self.dictionaries[k] for k in dict_indices]
+        order = sorted(np.flatnonzero(valid).tolist(), key=lambda i: (names[i], ids[i], x_sums[i]))  # _detection_order
+        return tuple(Detection(marker_id=ids[i], corners_px=quads[i], area_px2=areas[i], dictionary=names[i])
+                     for i in order)
 
     def detect_jpeg(self, jpeg: bytes, source: str = "JPEG") -> tuple[Detection, ...]:
         """Decode a JPEG to grayscale and detect; ImageError (naming ``source``) when it is empty,
