@@ -6,7 +6,11 @@ error state ``[δp, δθ, δv, δω]`` with ``R = exp(δθ) R̂`` (world-frame r
 block first, the order of :func:`cubetrack.fuse.multi_view_fit.solve_joint`.
 
 Prediction: white-noise acceleration and angular acceleration (``accel_noise``, ``angular_accel_noise``,
-spectral densities). Update: an iterated EKF (Gauss-Newton on the prior plus the reprojection
+spectral densities). About the world's z axis the angular acceleration noise has two levels: the
+turning one (``yaw_accel_noise``) from a sharp turn (yaw rate above ``sharp_turn_rad_s``) until
+``turn_hold_s`` after the last, the steady one (``steady_yaw_accel_noise``) otherwise, so a robot
+that turns sharply is followed through its turns and one that does not gets a smoother heading.
+The level is part of the state (a function of the sightings in capture order). Update: an iterated EKF (Gauss-Newton on the prior plus the reprojection
 error of every matched corner of one camera frame), with Huber weights per coordinate, so one
 camera's weak monocular depth is constrained by the prediction instead of being trusted. A
 frame whose residual after the update is above ``gate_rms_px`` is rejected (outlier gating),
@@ -47,7 +51,10 @@ class FilterParams:
     angular_accel_noise: float = param(0.5, "white-noise angular acceleration spectral density about the world's x and y "
                                        "axes (tilting), rad/s^2/sqrt(Hz)")
     yaw_accel_noise: float = param(10.0, "white-noise angular acceleration spectral density about the world's z axis "
-                                   "(turning: robots turn sharply, they tilt little), rad/s^2/sqrt(Hz)")
+                                   "while the robot turns sharply (robots turn sharply, they tilt little), rad/s^2/sqrt(Hz)")
+    steady_yaw_accel_noise: float = param(3.0, "the same once it has not turned sharply for turn_hold_s, rad/s^2/sqrt(Hz)")
+    sharp_turn_rad_s: float = param(2.0, "a yaw rate above this is a sharp turn, rad/s")
+    turn_hold_s: float = param(3.0, "the turning noise holds this long after the last sharp turn, seconds")
     corner_noise_px: float = param(0.5, "corner measurement noise (1 sigma), pixels")
     huber_px: float = param(1.5, "corner residuals beyond this are down-weighted (Huber), pixels")
     gate_rms_px: float = param(2.0, "a camera frame whose RMS residual after the update exceeds this is rejected, pixels")
@@ -57,7 +64,8 @@ class FilterParams:
     init_angular_velocity_sigma: float = param(1.0, "angular velocity uncertainty (1 sigma) at track start, rad/s")
 
     def __post_init__(self) -> None:
-        for name in ("accel_noise", "angular_accel_noise", "yaw_accel_noise", "corner_noise_px", "huber_px", "gate_rms_px", "face_gate_px",
+        for name in ("accel_noise", "angular_accel_noise", "yaw_accel_noise", "steady_yaw_accel_noise",
+                     "sharp_turn_rad_s", "turn_hold_s", "corner_noise_px", "huber_px", "gate_rms_px", "face_gate_px",
                      "init_velocity_sigma", "init_angular_velocity_sigma"):
             if not getattr(self, name) > 0:
                 raise ParamsError(f"{name} must be positive")
@@ -75,10 +83,11 @@ class UpdateResult:
 
 
 @functools.lru_cache(maxsize=8)
-def _motion_noise(params: FilterParams) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _motion_noise(params: FilterParams, turning: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(A, B, C)`` with the process noise over a step of ``dt`` = ``A |dt|³/3 + B dt²/2 + C |dt|``
-    (white acceleration and angular acceleration, per axis)."""
-    q = np.repeat([params.accel_noise**2, params.angular_accel_noise**2, params.yaw_accel_noise**2], [3, 2, 1])  # p, θ
+    (white acceleration and angular acceleration, per axis; the yaw's while turning sharply or not)."""
+    yaw = params.yaw_accel_noise if turning else params.steady_yaw_accel_noise
+    q = np.repeat([params.accel_noise**2, params.angular_accel_noise**2, yaw**2], [3, 2, 1])  # p, θ
     A, B, C = np.zeros((12, 12)), np.zeros((12, 12)), np.zeros((12, 12))
     A[0:6, 0:6] = np.diag(q)
     B[0:6, 6:12] = B[6:12, 0:6] = np.diag(q)
@@ -104,6 +113,8 @@ class PoseFilter:
         self.velocity_m_s = np.zeros(3) if velocity_m_s is None else np.asarray(velocity_m_s, dtype=float).copy()
         self.angular_velocity_rad_s = (np.zeros(3) if angular_velocity_rad_s is None
                                        else np.asarray(angular_velocity_rad_s, dtype=float).copy())
+        self.turning_until_s = float("-inf")  # the turning noise until then (see predict)
+        self._note_turn()
         P = np.zeros((12, 12))
         if covariance.shape == (12, 12):
             P[:] = covariance
@@ -112,6 +123,11 @@ class PoseFilter:
             P[_VELOCITY, _VELOCITY] = np.eye(3) * params.init_velocity_sigma**2
             P[_ANGULAR_VELOCITY, _ANGULAR_VELOCITY] = np.eye(3) * params.init_angular_velocity_sigma**2
         self.P = (P + P.T) / 2.0
+
+    def _note_turn(self) -> None:
+        """Hold the turning noise for ``turn_hold_s`` from now if the robot turns sharply."""
+        if abs(self.angular_velocity_rad_s[2]) > self.params.sharp_turn_rad_s:
+            self.turning_until_s = self.time_s + self.params.turn_hold_s
 
     def _set_pose(self, T_world_cube: np.ndarray) -> None:
         """Take ``T_world_cube`` (a new array nothing else holds) as the pose."""
@@ -155,7 +171,7 @@ class PoseFilter:
             return
         self._set_pose(self.predicted(time_s))
         F = _IDENTITY + dt * _RATES
-        A, B, C = _motion_noise(self.params)
+        A, B, C = _motion_noise(self.params, self.time_s <= self.turning_until_s)
         adt = abs(dt)
         self.P = F @ self.P @ F.T + (adt**3 / 3.0) * A + (dt * dt / 2.0) * B + adt * C
         self.time_s = time_s
@@ -220,6 +236,7 @@ class PoseFilter:
         self._set_pose(T)
         self.velocity_m_s = self.velocity_m_s + delta[_VELOCITY]
         self.angular_velocity_rad_s = self.angular_velocity_rad_s + delta[_ANGULAR_VELOCITY]
+        self._note_turn()
         return UpdateResult(True, rms, r.size // 2)
 
 
