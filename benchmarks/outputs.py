@@ -16,11 +16,16 @@ per frame of
 The stream is built once (cached in --out): ``cubetrack simulate`` renders --cameras x
 --stream-fps for --recording-s seconds, the offline tracker (``track_recording``, true
 extrinsics) gives the poses, the detector the markers of each frame. It is replayed in a loop
-(times shifted by its length) for --duration seconds. No client is connected to any server.
+(times shifted by its length) for --duration seconds. No client is connected to any server, unless
+--clients: then a process of consumers (not counted) takes everything as users would: a Zenoh
+router (what ``rmw_zenohd`` is) that the Zenoh and ROS 2 outputs connect to, subscribed to
+every key; a VRPN client of the robot's tracker; a Foxglove WebSocket client subscribed to every
+channel (the test suite's clients, tests/unit/sink); it says how many messages each received.
 
     .venv/bin/python benchmarks/outputs.py                      # every output on, 480 frames/s, 10 s
     .venv/bin/python benchmarks/outputs.py --each               # and each output alone
     .venv/bin/python benchmarks/outputs.py --only mcap foxglove # just these, together
+    .venv/bin/python benchmarks/outputs.py --clients            # with a consumer on every output
     .venv/bin/python benchmarks/outputs.py --quick              # CI smoke: 2 cameras, 60 frames/s, 2 s
 
 Run it under ``nice -n 19`` on a shared machine and compare CPU per frame (not wall time);
@@ -54,6 +59,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--only", nargs="+", choices=OUTPUTS, default=list(OUTPUTS), metavar="OUTPUT",
                    help=f"the outputs to run together (default all: {' '.join(OUTPUTS)})")
     p.add_argument("--each", action="store_true", help="also run each of them alone")
+    p.add_argument("--clients", action="store_true", help="a consumer on every output (in a process not counted)")
+    p.add_argument("--consume", nargs=3, type=int, metavar=("ROUTER", "VRPN", "FOXGLOVE"), help=argparse.SUPPRESS)
     p.add_argument("--cameras", type=int, default=16, help="cameras of the recorded stream (default 16)")
     p.add_argument("--stream-fps", type=float, default=30.0, help="frames/s per camera of the recording (default 30)")
     p.add_argument("--recording-s", type=float, default=3.0, help="seconds of recording, looped (default 3)")
@@ -157,26 +164,118 @@ def process_cpu_s(pid: int) -> float:
     return (int(fields[11]) + int(fields[12])) / TICK
 
 
-def output_specs(names: list[str], work: Path):
+def output_specs(names: list[str], work: Path, ports: tuple[int, int, int] | None):
+    """The outputs ``names``; ``ports`` (Zenoh router, VRPN, Foxglove) where consumers wait,
+    else free ones and the Zenoh outputs' defaults (as benchmarks/live.py runs them)."""
     from cubetrack.app.outputs import OutputSpec
 
-    tables = {"zenoh": {"type": "zenoh"}, "ros2": {"type": "ros2"},
-              "vrpn": {"type": "vrpn", "address": f"127.0.0.1:{free_port()}"},
-              "foxglove": {"type": "foxglove", "address": f"127.0.0.1:{free_port()}"},
+    router, vrpn, foxglove = ports or (None, free_port(), free_port())
+    zenoh = {"connect": [f"tcp/127.0.0.1:{router}"]} if router else {}
+    tables = {"zenoh": {"type": "zenoh", **zenoh}, "ros2": {"type": "ros2", **zenoh},
+              "vrpn": {"type": "vrpn", "address": f"127.0.0.1:{vrpn}"},
+              "foxglove": {"type": "foxglove", "address": f"127.0.0.1:{foxglove}"},
               "mcap": {"type": "mcap", "path": "outputs_bench.mcap"}}
     (work / "outputs_bench.mcap").unlink(missing_ok=True)
     return [OutputSpec(tables[name], work, f"--{name}") for name in names]
 
 
+def consume(router_port: int, vrpn_port: int, foxglove_port: int) -> None:
+    """The consumers' process (--clients): until stdin closes, then prints what each received."""
+    import threading
+
+    import zenoh
+
+    sys.path.insert(0, str(ROOT / "tests" / "unit" / "sink"))
+    from foxglove_client import LiveClient  # the test suite's clients, written from the protocols
+    from vrpn_client import TrackerClient
+
+    config = zenoh.Config()
+    for key, value in (("mode", '"router"'), ("listen/endpoints", f'["tcp/127.0.0.1:{router_port}"]'),
+                       ("scouting/multicast/enabled", "false")):
+        config.insert_json5(key, value)
+    router = zenoh.open(config)
+    counts = {"zenoh": 0, "vrpn": 0, "foxglove": 0}
+
+    def count(sample) -> None:
+        counts["zenoh"] += 1
+
+    router.declare_subscriber("**", count)
+    stop = threading.Event()
+
+    def retry(make):
+        while not stop.is_set():
+            try:
+                return make()
+            except OSError:
+                time.sleep(0.2)
+        return None
+
+    def foxglove() -> None:
+        import websocket
+
+        client = retry(lambda: LiveClient(foxglove_port))
+        while client is not None and not stop.is_set():
+            try:
+                opcode, data = client.ws.recv_data()
+            except websocket.WebSocketTimeoutException:
+                continue
+            except (OSError, websocket.WebSocketException):
+                return
+            if opcode == websocket.ABNF.OPCODE_TEXT:
+                client._text(json.loads(data))  # subscribes to what is advertised
+            else:
+                counts["foxglove"] += 1
+
+    threads = [threading.Thread(target=foxglove, daemon=True)]
+    threads[0].start()
+    print("ready", flush=True)
+    vrpn = retry(lambda: TrackerClient(vrpn_port, "robot"))
+    sys.stdin.read()  # the benchmark closes it at the end of the run
+    stop.set()
+    if vrpn is not None:
+        counts["vrpn"] = len(vrpn.reports)
+        vrpn.close()
+    router.close()
+    print(json.dumps(counts), flush=True)
+
+
+@contextlib.contextmanager
+def consumers(enabled: bool):
+    """(ports, result) of a consumers' process for one run; ``result`` holds their counts after it."""
+    if not enabled:
+        yield None, {}
+        return
+    import subprocess
+
+    ports = (free_port(), free_port(), free_port())
+    proc = subprocess.Popen([sys.executable, __file__, "--consume", *map(str, ports)], stdin=subprocess.PIPE,
+                            stdout=subprocess.PIPE, text=True)
+    result: dict = {}
+    try:
+        if proc.stdout.readline().strip() != "ready":
+            raise SystemExit("the consumers' process did not start")
+        yield ports, result
+    finally:
+        out, _ = proc.communicate("", timeout=60)
+        result.update(json.loads(out.strip().splitlines()[-1]) if out.strip() else {})
+
+
 def feed(args: argparse.Namespace, stream, names: list[str], work: Path) -> dict:
     """One run: the stream at ``args.fps`` frames/s into the outputs ``names`` (none: the baseline)."""
+    with consumers(args.clients and bool(names)) as (ports, received):
+        result = _feed(args, stream, names, work, ports)
+    result["received"] = received
+    return result
+
+
+def _feed(args: argparse.Namespace, stream, names: list[str], work: Path, ports) -> dict:
     from cubetrack.app.outputs import start_outputs
     from cubetrack.sink.base import Outputs
 
     session, items, frames = stream
     span_s = items[-1][0] - items[0][0] + 1.0 / args.stream_fps
     speed = args.fps / (frames / span_s)  # stream seconds per second of feeding
-    sinks = start_outputs(output_specs(names, work)) if names else []
+    sinks = start_outputs(output_specs(names, work, ports)) if names else []
     child = sinks[0]._process.pid if sinks else None
     outputs = Outputs(sinks)
     outputs.open(session)
@@ -226,6 +325,9 @@ def feed(args: argparse.Namespace, stream, names: list[str], work: Path) -> dict
 
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
+    if args.consume:
+        consume(*args.consume)
+        return 0
     import logging
 
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
@@ -256,6 +358,8 @@ def main(argv: list[str] | None = None) -> int:
     for r in report["runs"]:
         print(f"  {' + '.join(r['outputs']):<37} {r['frames_per_s']:>8.1f} {r['parent_cpu_ms_per_frame']:>15.3f} "
               f"{r['child_cpu_ms_per_frame']:>14.3f} {r['dropped_items']:>7d} {r['mcap_mb']:>7.2f}")
+        if r["received"]:
+            print(f"    consumers received: {', '.join(f'{k} {v} messages' for k, v in r['received'].items())}")
     return 0
 
 
