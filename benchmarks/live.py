@@ -22,9 +22,10 @@ RSS. Then it reports:
   --record the recorded session; the two must agree within 10 %;
 - on the same frames (the first --speed-frames of that recording), in this run: the
   naive loop (``cv2.imdecode`` colour + default ``ArucoDetector`` + ``solvePnP`` per marker, one
-  thread) and our tracker replaying them as fast as it can with its frame workers (threads, then
-  processes with the JPEGs in shared memory: the faster counts), and with the
-  live run's processed rate: the throughput ratios against the naive loop;
+  thread) and our tracker replaying them as fast as it can as ``cubetrack track --recording``
+  does (one frame worker process per core, started before the clock runs; this thread plans
+  and fuses), with the CPU per frame of both sides, and with the live run's processed rate:
+  the throughput ratios against the naive loop;
 - the machine's core count (``nproc``);
 - with --outputs (issue 10): a second live session on the same cameras with every output on
   (``--zenoh --ros2 --vrpn --foxglove --mcap``, servers on free loopback ports, no client
@@ -47,7 +48,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import functools
 import json
 import os
 import re
@@ -411,13 +411,13 @@ def accuracy(args: argparse.Namespace, rec: Path, work: Path, live: dict) -> dic
 
 
 def speed(args: argparse.Namespace, rec: Path, work: Path, live: dict) -> dict:
-    """The naive loop (one thread) and our tracker (one thread, then its frame workers as fast as
-    they go) over the same frames (:func:`replayed`), in memory."""
+    """The naive loop (one thread) and our tracker (one thread frame by frame, then the replay with
+    its frame worker processes as fast as it goes) over the same frames (:func:`replayed`), in memory."""
     import cv2
 
     from cubetrack.app.config import load_config, recording_intrinsics
-    from cubetrack.app.parallel import FramePool, WorkerKind, by_capture_time
-    from cubetrack.app.tracker import FrameWorker, Tracker
+    from cubetrack.app.track import replay_pool, track_frames
+    from cubetrack.app.tracker import Tracker
     from cubetrack.core.layout import marker_corners_m
     from cubetrack.io.config import read_extrinsics
     from cubetrack.io.recording import Recording
@@ -464,37 +464,32 @@ def speed(args: argparse.Namespace, rec: Path, work: Path, live: dict) -> dict:
         fuse_ms.append((time.perf_counter() - t2) * 1000.0)
     inline_fps = len(frames) / (time.perf_counter() - t0)
 
-    def pooled_fps(kind: WorkerKind) -> float:
-        """Our tracker on the frames with ``kind`` frame workers (one per core), as fast as it goes."""
-        tracker = Tracker(intrinsics, config.world, config.robots, extrinsics, settings.stages)
-        wake = threading.Event()
-        make = functools.partial(FrameWorker, intrinsics, config.world, config.robots, tracker.T_world_cam,
-                                 settings.stages)
-        with FramePool(make, settings.live.worker_count, kind, wake.set) as pool:
-            while pool.idle() != pool.count:
-                wake.wait(0.1)
-                wake.clear()
-                pool.take()  # raises if a worker process failed to start
-            todo = list(frames)
-            t0 = time.perf_counter()
-            while todo or pool.busy():
-                for result in by_capture_time(pool.take()):
-                    tracker.fuse(result, result.job.frame.host_time_s)
-                while todo and pool.idle():
-                    job = tracker.admit(todo.pop(0))
-                    if job is not None:
-                        pool.submit(job)
-                wake.wait(0.01)
-                wake.clear()
-            return len(frames) / (time.perf_counter() - t0)
-
-    # replaying frames from memory there are no cameras to share: thread and process frame workers
-    pooled = {kind.value: pooled_fps(kind) for kind in (WorkerKind.THREAD, WorkerKind.PROCESS)}
-    best = max(pooled, key=pooled.get)
-    return {"frames": len(frames), "naive_fps": naive_fps, "ours_fps": pooled[best], "pooled_fps": pooled,
-            "ratio": pooled[best] / naive_fps, "inline_fps": inline_fps, "work_ms": percentiles(np.array(work_ms)),
+    # ours as `cubetrack track --recording` runs it: worker processes (started before the clock
+    # runs) doing the per-frame work while this thread plans and fuses (cubetrack.app.track)
+    workers = settings.live.worker_count
+    layouts = {r.name: r.layout for r in config.robots}
+    clock = {c: recording.clock_samples(c) for c in recording.camera_names}
+    with replay_pool(intrinsics, config.world, layouts, extrinsics, settings.stages, workers) as pool:
+        while not pool.all_started:
+            pool.wait(0.2)
+            pool.take()  # raises if a worker process failed to start
+        pids = pool.process_ids
+        cpu0, main0, t0 = sum(_cpu_rss(p)[0] for p in pids), time.process_time(), time.perf_counter()
+        track_frames(frames, intrinsics, config.world, layouts, extrinsics, _NoSink(), settings.stages,
+                     clock_samples=clock, pool=pool)
+        wall = time.perf_counter() - t0
+        main_ms, workers_ms = ((time.process_time() - main0) / len(frames) * 1000.0,
+                               (sum(_cpu_rss(p)[0] for p in pids) - cpu0) / len(frames) * 1000.0)
+    ours_fps = len(frames) / wall
+    return {"frames": len(frames), "naive_fps": naive_fps, "ours_fps": ours_fps, "ratio": ours_fps / naive_fps,
+            "inline_fps": inline_fps, "work_ms": percentiles(np.array(work_ms)),
             "fuse_ms": percentiles(np.array(fuse_ms)), "live_ratio": live["processed_fps"] / naive_fps,
-            "workers": f"{settings.live.worker_count} {best}"}
+            "workers": workers, "ours_cpu_ms": {"main": main_ms, "workers": workers_ms}}
+
+
+class _NoSink:
+    def pose(self, pose) -> None:
+        pass
 
 
 # --------------------------------------------------------------------------- report
@@ -525,10 +520,11 @@ def print_report(args: argparse.Namespace, report: dict) -> list[str]:
           f"(detection ratio {acc['live']['detection_ratio']:.3f}); offline replay of the same frames "
           f"{acc['offline']['pos_cm']:.2f} cm / {acc['offline']['rot_deg']:.2f} deg; live/offline "
           f"{acc['pos_ratio']:.2f} / {acc['rot_ratio']:.2f}")
+    cpu = sp["ours_cpu_ms"]
     print(f"  same {sp['frames']} frames: naive loop {sp['naive_fps']:.1f} frames/s (one thread), ours "
-          f"{sp['ours_fps']:.1f} frames/s ({sp['workers']} workers, the faster of "
-          f"{' / '.join(f'{k} {v:.1f}' for k, v in sp['pooled_fps'].items())}; one thread {sp['inline_fps']:.1f}): ratio "
-          f"{sp['ratio']:.2f}; live processed / naive {sp['live_ratio']:.2f}")
+          f"{sp['ours_fps']:.1f} frames/s (the replay with {sp['workers']} worker processes: CPU per frame "
+          f"{cpu['main']:.2f} ms planning and fusing + {cpu['workers']:.2f} ms in the workers; one thread "
+          f"{sp['inline_fps']:.1f}): ratio {sp['ratio']:.2f}; live processed / naive {sp['live_ratio']:.2f}")
     w, f = sp["work_ms"], sp["fuse_ms"]
     print(f"  per frame, one thread: decode + detect + estimate p50 {w['p50']:.2f} ms p95 {w['p95']:.2f} ms; "
           f"fusion p50 {f['p50']:.2f} ms p95 {f['p95']:.2f} ms")

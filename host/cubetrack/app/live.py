@@ -382,8 +382,7 @@ def track_live(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
     else:
         make_worker = functools.partial(FrameWorker, intrinsics, config.world, config.robots, tracker.T_world_cam,
                                         params)
-        pool = FramePool(make_worker, live_params.worker_count, live_params.worker_kind, wake.set,
-                         source.max_part_bytes)
+        pool = FramePool(make_worker, live_params.worker_count, live_params.worker_kind, wake.set)
         live = LiveCameras(urls, source, on_frame=recorder.frame if recorder else None,
                            on_clock=recorder.clock if recorder else None, clock=clock, wake=wake_for_source)
     rates = _Rates(live, robots)

@@ -1,19 +1,19 @@
-"""Per-frame work on every core for live tracking; the fusion stays one ordered consumer.
+"""Per-frame work on every core for live tracking and replays; the fusion stays one ordered consumer.
 
 The tracker (:class:`~cubetrack.app.tracker.Tracker`) splits a frame's work in three: ``admit``
 plans it from the fusion's state (capture time, the regions where detection looks, which robots
 need an estimate), a :class:`~cubetrack.app.tracker.FrameWorker` does it (decode, detection,
 per-camera estimates: no shared state), and ``fuse`` hands the sightings to the fusion. A
-:class:`FramePool` runs the middle part on worker processes (the JPEG handed over in shared
-memory, the result pickled back) or threads (OpenCV releases the GIL in decoding and detection;
-the Python parts of detection and estimation hold it), and wakes the consumer when a result is
-ready. It takes a job only while a worker is free, so frames wait in the source, where each
-camera keeps only its newest (:class:`~cubetrack.source.streams.LiveCameras`).
+:class:`FramePool` runs the middle part on worker processes (the job, JPEG included, pickled
+through a pipe, the result pickled back) or threads (OpenCV releases the GIL in decoding and
+detection; the Python parts of detection and estimation hold it), and wakes the consumer when a
+result is ready. Live, it takes a job only while a worker is free, so frames wait in the
+source, where each camera keeps only its newest (:class:`~cubetrack.source.streams.LiveCameras`);
+a replay (:func:`cubetrack.app.track.track_frames`) keeps a few jobs queued per worker.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import enum
 import multiprocessing
 import os
@@ -21,13 +21,13 @@ import queue
 import threading
 from collections import deque
 from dataclasses import dataclass
-from multiprocessing import shared_memory
 from multiprocessing.connection import Connection
+from multiprocessing.connection import wait as connection_wait
 from typing import Callable
 
 import cv2
 
-from cubetrack.app.tracker import FrameJob, FrameOutcome, FrameResult, FrameWorker
+from cubetrack.app.tracker import FrameJob, FrameResult, FrameWorker
 from cubetrack.core.errors import SourceError
 from cubetrack.core.params import check, param
 
@@ -47,7 +47,7 @@ class LiveParams:
     worker_kind: WorkerKind = param(
         WorkerKind.THREAD,
         "thread: threads of the tracker's process (measured faster here, docs/live.md); process: worker "
-        "processes, each frame's JPEG handed over in shared memory; camera-process: worker processes that each "
+        "processes, each frame's JPEG handed over through a pipe; camera-process: worker processes that each "
         "read a share of the cameras and do their per-frame work, the fusion in the tracker's process "
         "(cubetrack.app.camera_workers; not while recording)")
 
@@ -60,21 +60,25 @@ class LiveParams:
 
 
 class FramePool:
-    """``count`` frame workers of ``kind``. :meth:`submit` a job while :meth:`idle` > 0; results
-    come back through :meth:`take` (completion order) and ``wake`` is called as each is ready.
+    """``count`` frame workers of ``kind``, each taking up to ``depth`` jobs at a time.
+    :meth:`submit` a job while :meth:`idle` > 0; results come back through :meth:`take`
+    (completion order) and ``wake`` is called as each is ready (None: :meth:`wait` for it).
 
     Worker processes start in the background (importing the stages takes a second or two): until
     the first is ready, :attr:`ready` is False and the consumer does the work itself. Use as a
     context manager; :meth:`close` ends the workers."""
 
     def __init__(self, make_worker: Callable[[], FrameWorker], count: int, kind: WorkerKind,
-                 wake: Callable[[], None] = lambda: None, max_frame_bytes: int = 4 * 1024 * 1024):
+                 wake: Callable[[], None] | None = None, depth: int = 1):
         self.kind = kind
         self.count = count
-        self._wake = wake
+        self.depth = depth
+        self.submitted = 0  # jobs handed to workers so far
+        self._event = threading.Event()
+        self._wake = wake or self._event.set
         self._lock = threading.Lock()
         self._done: deque[FrameResult] = deque()
-        self._idle: deque = deque()  # lanes (worker processes) or None per idle worker thread
+        self._idle: deque = deque()  # one entry per free job slot: its lane (worker process), or None (threads)
         self._failure: BaseException | None = None
         if kind is WorkerKind.THREAD:
             self._jobs: queue.SimpleQueue = queue.SimpleQueue()
@@ -82,11 +86,12 @@ class FramePool:
                                               name=f"cubetrack-frame-worker-{k}") for k in range(count)]
             for t in self._threads:
                 t.start()
-            self._idle.extend([None] * count)
+            self._idle.extend([None] * (count * depth))
             self._lanes: list[_ProcessLane] = []
         else:
             context = multiprocessing.get_context("spawn")  # fork would copy this process's threads' locks
-            self._lanes = [_ProcessLane(context, make_worker, max_frame_bytes, self) for _ in range(count)]
+            self._lanes = [_ProcessLane(context, make_worker, self, depth, threaded=wake is not None)
+                           for _ in range(count)]
         self.started = len(self._idle)
 
     def __enter__(self) -> FramePool:
@@ -101,8 +106,19 @@ class FramePool:
         with self._lock:
             return self.started > 0
 
+    @property
+    def all_started(self) -> bool:
+        """Every worker has started."""
+        with self._lock:
+            return self.started == self.count * self.depth
+
+    @property
+    def process_ids(self) -> list[int]:
+        """The worker processes' ids (none for threads)."""
+        return [lane.process.pid for lane in self._lanes]
+
     def idle(self) -> int:
-        """Started workers without a job."""
+        """Free job slots of the started workers."""
         with self._lock:
             return len(self._idle)
 
@@ -112,15 +128,34 @@ class FramePool:
             return self.started - len(self._idle)
 
     def submit(self, job: FrameJob) -> None:
-        """Hand a job to an idle worker (call only while :meth:`idle` > 0)."""
+        """Hand a job to a worker with a free slot (call only while :meth:`idle` > 0)."""
         with self._lock:
             if self._failure is not None:
                 raise self._failure
             lane = self._idle.popleft()
+            self.submitted += 1
         if lane is None:
             self._jobs.put(job)
         else:
             lane.send(job)
+
+    def wait(self, timeout_s: float) -> None:
+        """Without a ``wake`` of the caller's: wait up to ``timeout_s`` for a result or a started
+        worker (worker processes' messages are read here, on the caller's thread)."""
+        if self.kind is WorkerKind.THREAD:
+            self._event.wait(timeout_s)
+            self._event.clear()
+            return
+        open_lanes = {lane.conn: lane for lane in self._lanes if not lane.closing}
+        for conn in connection_wait(list(open_lanes), timeout_s):
+            lane = open_lanes[conn]
+            try:
+                while True:
+                    lane.receive()
+                    if not conn.poll():
+                        break
+            except (EOFError, OSError):
+                lane.ended()
 
     def take(self) -> list[FrameResult]:
         """Every result ready now (completion order)."""
@@ -133,8 +168,8 @@ class FramePool:
 
     def _lane_ready(self, lane: _ProcessLane) -> None:
         with self._lock:
-            self.started += 1
-            self._idle.append(lane)
+            self.started += lane.depth
+            self._idle.extend([lane] * lane.depth)
         self._wake()
 
     def _finished(self, result: FrameResult | BaseException, lane: _ProcessLane | None = None) -> None:
@@ -166,46 +201,55 @@ class FramePool:
 
 
 class _ProcessLane:
-    """One worker process: a pipe for job headers and results, a shared-memory block for the
-    JPEG, and a thread in this process that waits for its messages."""
+    """One worker process: a pipe for jobs (JPEG included, so that several can be queued) and
+    results. With ``threaded``, a thread in this process waits for its results; without, the
+    pool's :meth:`FramePool.wait` reads them on the caller's thread (no GIL hand-offs)."""
 
-    def __init__(self, context, make_worker: Callable[[], FrameWorker], max_frame_bytes: int, pool: FramePool):
-        self.memory = shared_memory.SharedMemory(create=True, size=max_frame_bytes)
+    def __init__(self, context, make_worker: Callable[[], FrameWorker], pool: FramePool, depth: int,
+                 threaded: bool):
         self.conn, child = context.Pipe()
-        self.process = context.Process(target=_process_main, args=(child, self.memory.name, make_worker),
-                                       daemon=True, name="cubetrack-frame-worker")
+        self.process = context.Process(target=_process_main, args=(child, make_worker), daemon=True,
+                                       name="cubetrack-frame-worker")
         self.process.start()
         child.close()
         self.pool = pool
-        self.job: FrameJob | None = None
+        self.depth = depth
+        self.jobs: deque[FrameJob] = deque()  # sent, in order; the worker answers in the same order
+        self.started = False
         self.closing = False
-        self.reader = threading.Thread(target=self._read, daemon=True, name="cubetrack-frame-results")
-        self.reader.start()
+        self.reader = None
+        if threaded:
+            self.reader = threading.Thread(target=self._read, daemon=True, name="cubetrack-frame-results")
+            self.reader.start()
 
     def send(self, job: FrameJob) -> None:
-        size = len(job.frame.jpeg)
-        self.job = job
-        if size > self.memory.size:
-            self.job = None
-            self.pool._finished(FrameResult(job, FrameOutcome.CORRUPT, error=f"{size} bytes: larger than the "
-                                            "frame buffer"), self)
+        self.jobs.append(job)
+        self.conn.send(job)
+
+    def receive(self) -> None:
+        """Take one message of the worker process (blocks until one comes)."""
+        message = self.conn.recv()
+        if not self.started:
+            if message != "ready":
+                raise EOFError
+            self.started = True
+            self.pool._lane_ready(self)
             return
-        self.memory.buf[:size] = job.frame.jpeg
-        self.conn.send((dataclasses.replace(job, frame=dataclasses.replace(job.frame, jpeg=b"")), size))
+        outcome, sightings, error = message
+        self.pool._finished(FrameResult(self.jobs.popleft(), outcome, sightings, error), self)
+
+    def ended(self) -> None:
+        if not self.closing:
+            self.closing = True
+            self.pool._finished(SourceError(f"a frame worker process ended unexpectedly "
+                                            f"(exit code {self.process.exitcode})"))
 
     def _read(self) -> None:
         try:
-            if self.conn.recv() != "ready":
-                raise EOFError
-            self.pool._lane_ready(self)
             while True:
-                outcome, sightings, error = self.conn.recv()
-                job, self.job = self.job, None
-                self.pool._finished(FrameResult(job, outcome, sightings, error), self)
+                self.receive()
         except (EOFError, OSError):
-            if not self.closing:
-                self.pool._finished(SourceError(f"a frame worker process ended unexpectedly "
-                                                f"(exit code {self.process.exitcode})"))
+            self.ended()
 
     def close(self) -> None:
         self.closing = True
@@ -218,27 +262,22 @@ class _ProcessLane:
             self.process.terminate()
             self.process.join()
         self.conn.close()
-        self.reader.join(5.0)
-        self.memory.close()
-        self.memory.unlink()
+        if self.reader is not None:
+            self.reader.join(5.0)
 
 
-def _process_main(conn: Connection, memory_name: str, make_worker: Callable[[], FrameWorker]) -> None:
-    """A worker process: jobs in (the JPEG from shared memory), results out, until None comes."""
+def _process_main(conn: Connection, make_worker: Callable[[], FrameWorker]) -> None:
+    """A worker process: jobs in, results (without the job, which the other side keeps) out,
+    until None comes."""
     cv2.setNumThreads(1)
-    memory = shared_memory.SharedMemory(name=memory_name)
     try:
         worker = make_worker()
         conn.send("ready")
-        while (message := conn.recv()) is not None:
-            job, size = message
-            jpeg = bytes(memory.buf[:size])
-            result = worker.work(dataclasses.replace(job, frame=dataclasses.replace(job.frame, jpeg=jpeg)))
+        while (job := conn.recv()) is not None:
+            result = worker.work(job)
             conn.send((result.outcome, result.sightings, result.error))
     except (EOFError, KeyboardInterrupt):
         pass
-    finally:
-        memory.close()
 
 
 def by_capture_time(results: list[FrameResult]) -> list[FrameResult]:

@@ -9,14 +9,18 @@ recording folder into those arguments (:mod:`cubetrack.app.config`) and writes t
 
 from __future__ import annotations
 
+import functools
 import logging
+import os
+from collections import deque
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
 from cubetrack.app.config import config_params, parameter_tables, recording_intrinsics
 from cubetrack.app.outputs import open_outputs
-from cubetrack.app.tracker import StageParams, Tracker, TrackStats
+from cubetrack.app.parallel import FramePool, WorkerKind
+from cubetrack.app.tracker import FrameJob, FrameResult, FrameWorker, StageParams, Tracker, TrackStats
 from cubetrack.core.cameras import CameraExtrinsics, CameraIntrinsics, ClockSample, WorldConfig
 from cubetrack.core.layout import CubeLayout
 from cubetrack.core.progress import Progress
@@ -31,11 +35,15 @@ log = logging.getLogger(__name__)
 __all__ = ["TrackResult", "recording_intrinsics", "track_frames", "track_recording"]
 
 
+REPLAY_LAG = 4  # a replay plans each frame with the fusion as it was this many frames earlier (2 per worker on 2 cores)
+MIN_FRAMES_FOR_WORKERS = 600  # shorter replays are done on one thread (worker processes take 1-2 s to start)
+
+
 def track_frames(frames: Iterable[Frame], intrinsics: Mapping[str, CameraIntrinsics], world: WorldConfig,
                  layouts: Mapping[str, CubeLayout], extrinsics: Mapping[str, CameraExtrinsics] | None,
                  output: Sink | Outputs, params: StageParams = StageParams(), *,
                  clock_samples: Mapping[str, Sequence[ClockSample]] | None = None,
-                 progress: Progress | None = None, frame_count: int = 0) -> TrackStats:
+                 progress: Progress | None = None, frame_count: int = 0, pool: FramePool | None = None) -> TrackStats:
     """Track ``frames`` (in host arrival order, as a live run receives them) and hand every fused
     pose to ``output``; returns the run's counters.
 
@@ -44,6 +52,14 @@ def track_frames(frames: Iterable[Frame], intrinsics: Mapping[str, CameraIntrins
     completed between the frames (by receive time), exactly as a live run has them; a camera
     with round trips has its first frames held until one arrives. ``frame_count`` only sizes
     the progress.
+
+    The per-frame work (decode, detection, per-camera estimates) runs on ``pool``'s workers
+    (:func:`replay_pool`; None: on this thread) while this thread plans and fuses; until they
+    have started, and whenever none is free, this thread does it. So that the result does not
+    depend on how many workers there are or how fast each is, every frame is planned (its
+    detection regions, the estimates asked for) with the fusion exactly as it was after the
+    frames up to ``REPLAY_LAG`` frames before it, and the results are fused in frame order: a
+    replay is the same, bit for bit, with one thread or any number of workers, run after run.
     """
     clock_samples = clock_samples or {}
     synced = frozenset(c for c, samples in clock_samples.items() if samples)
@@ -53,19 +69,53 @@ def track_frames(frames: Iterable[Frame], intrinsics: Mapping[str, CameraIntrins
     trips = sorted(((s.host_recv_s, camera, s) for camera, samples in clock_samples.items() for s in samples),
                    key=lambda item: (item[0], item[1]))
     next_trip = 0
+    planned: deque[FrameJob | None] = deque()  # in frame order; None: a frame with nothing to do now
+    done: dict[FrameJob, FrameResult] = {}
+
+    def fuse_oldest() -> None:
+        job = planned.popleft()
+        if job is None:
+            return
+        while job not in done:
+            pool.wait(1.0)
+            done.update((r.job, r) for r in pool.take())
+        result = done.pop(job)
+        for pose in tracker.fuse(result, result.job.frame.host_time_s):
+            output.pose(pose)
+
     for i, frame in enumerate(frames, start=1):
         # round trips completed before this frame arrived, exactly as a live run has them
         while next_trip < len(trips) and trips[next_trip][0] <= frame.host_time_s:
             for pose in tracker.add_clock_sample(trips[next_trip][1], trips[next_trip][2]):
                 output.pose(pose)
             next_trip += 1
-        for pose in tracker.process(frame):
-            output.pose(pose)
+        if len(planned) == REPLAY_LAG:
+            fuse_oldest()
+        job = tracker.admit(frame)
+        if job is not None:
+            if pool is not None and pool.idle():
+                pool.submit(job)
+            else:  # no worker process (yet): this thread does the work
+                done[job] = tracker.worker.work(job)
+        planned.append(job)
         if progress is not None:
             progress("track", i, frame_count)
+    while planned:
+        fuse_oldest()
     for pose in tracker.finish():
         output.pose(pose)
     return tracker.stats
+
+
+def replay_pool(intrinsics: Mapping[str, CameraIntrinsics], world: WorldConfig, layouts: Mapping[str, CubeLayout],
+                extrinsics: Mapping[str, CameraExtrinsics] | None, params: StageParams, workers: int) -> FramePool:
+    """``workers`` frame worker processes for :func:`track_frames` with these arguments, each
+    with room for its share of the ``REPLAY_LAG`` frames planned ahead (they start in the
+    background; close the pool when done)."""
+    robots = tuple(RobotConfig(name, layout) for name, layout in layouts.items())
+    T_world_cam = {name: e.T_world_cam for name, e in (extrinsics or {}).items()}
+    make_worker = functools.partial(FrameWorker, dict(intrinsics), world, robots, T_world_cam, params)
+    return FramePool(make_worker, workers, WorkerKind.PROCESS, depth=-(-REPLAY_LAG // workers))
 
 
 @dataclass(frozen=True, slots=True)
@@ -82,11 +132,15 @@ class TrackResult:
 def track_recording(config: TrackerConfig, recording: Recording,
                     extrinsics: dict[str, CameraExtrinsics] | None, out_dir: str | Path,
                     params: StageParams | None = None, progress: Progress | None = None,
-                    sinks: Sequence[Sink] = (), *, extrinsics_path: str | Path | None = None) -> TrackResult:
+                    sinks: Sequence[Sink] = (), *, extrinsics_path: str | Path | None = None,
+                    workers: int = 0) -> TrackResult:
     """Replay a recording through the tracker, writing ``<out_dir>/<robot>.tum`` and ``.jsonl``,
     feeding ``sinks`` (other outputs) the same poses, and recording how in ``<out_dir>/run.json``
     (``extrinsics_path``: where ``extrinsics`` were read, for that record). ``params`` None: the
-    config's sections."""
+    config's sections. ``workers``: frame worker processes (0: one per core; recordings of fewer
+    than ``MIN_FRAMES_FOR_WORKERS`` frames are replayed on one thread); the poses are the same
+    whatever their number (:func:`track_frames`)."""
+    workers = workers or os.cpu_count() or 1
     params = params or config_params(config).stages
     cameras = recording.camera_names
     clock = {c: recording.clock_samples(c) for c in cameras}
@@ -100,12 +154,17 @@ def track_recording(config: TrackerConfig, recording: Recording,
         out_dir / RUN_FILE, "track", parameter_tables(params),
         {"config": config.path, "recording": recording.path, "extrinsics": extrinsics_path})
     total = sum(len(recording.index(c)) for c in cameras)
+    if total < MIN_FRAMES_FOR_WORKERS:
+        workers = 1
+    layouts = {r.name: r.layout for r in config.robots}
     outputs, files = open_outputs(config, intrinsics, extrinsics, out_dir, sinks)
+    pool = replay_pool(intrinsics, config.world, layouts, extrinsics, params, workers) if workers > 1 else None
     try:
-        stats = track_frames(recording.merged_frames(), intrinsics, config.world,
-                             {r.name: r.layout for r in config.robots}, extrinsics, outputs, params,
-                             clock_samples=clock, progress=progress, frame_count=total)
+        stats = track_frames(recording.merged_frames(), intrinsics, config.world, layouts, extrinsics, outputs,
+                             params, clock_samples=clock, progress=progress, frame_count=total, pool=pool)
     finally:
+        if pool is not None:
+            pool.close()
         outputs.close()
     skipped = dict(recording.skipped)
     if stats.corrupt_frames:

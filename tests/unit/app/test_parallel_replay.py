@@ -1,0 +1,79 @@
+"""A replay with frame worker processes (cubetrack.app.track.track_frames with a replay_pool)
+gives exactly, bit for bit, what the replay on one thread gives, run after run, while the
+workers really do the per-frame work; a worker process that dies ends the replay with one clear
+error."""
+
+from __future__ import annotations
+
+import heapq
+import os
+import signal
+
+import pytest
+
+from cubetrack.app.config import load_config, recording_intrinsics
+from cubetrack.app.track import REPLAY_LAG, replay_pool, track_frames
+from cubetrack.core.errors import SourceError
+from cubetrack.io.config import read_extrinsics
+from cubetrack.io.recording import Recording
+from cubetrack.simulate import SimulationParams, simulate
+
+
+class Collect:
+    def __init__(self):
+        self.poses = []
+
+    def pose(self, pose):
+        self.poses.append(pose)
+
+
+@pytest.fixture(scope="module")
+def replay(tmp_path_factory):
+    """The arguments of track_frames for a short simulated session, frames in memory."""
+    rec = tmp_path_factory.mktemp("replay") / "rec"
+    simulate(SimulationParams(duration_s=4, cameras=4, fps=15.0, calibration_frames=0, seed=4), rec)
+    config, settings = load_config(rec / "config.toml")
+    recording = Recording.open(rec)
+    frames = list(heapq.merge(*(recording.frames(c) for c in recording.camera_names),
+                              key=lambda f: (f.host_time_s, f.camera)))
+    return {"frames": frames, "intrinsics": recording_intrinsics(config, recording), "world": config.world,
+            "layouts": {r.name: r.layout for r in config.robots},
+            "extrinsics": read_extrinsics(rec / "true_extrinsics.toml"), "params": settings.stages,
+            "clock": {c: recording.clock_samples(c) for c in recording.camera_names}}
+
+
+def run(replay, pool=None):
+    out = Collect()
+    stats = track_frames(replay["frames"], replay["intrinsics"], replay["world"], replay["layouts"],
+                         replay["extrinsics"], out, replay["params"], clock_samples=replay["clock"], pool=pool)
+    return stats, [(p.robot, p.time_s, p.position_m.tobytes(), p.quaternion_xyzw.tobytes(), p.latency_s,
+                    p.cameras, p.markers) for p in out.poses]
+
+
+def started_pool(replay, workers):
+    pool = replay_pool(replay["intrinsics"], replay["world"], replay["layouts"], replay["extrinsics"],
+                       replay["params"], workers)
+    while not pool.all_started:
+        pool.wait(0.5)
+        pool.take()
+    return pool
+
+
+def test_worker_processes_replay_bit_for_bit_what_one_thread_replays(replay):
+    stats, poses = run(replay)
+    assert len(poses) > 50 and stats.region_detections > 0  # the plans (regions) depend on the fusion
+    for workers in (2, 3):
+        with started_pool(replay, workers) as pool:
+            assert pool.depth * workers >= REPLAY_LAG  # every frame planned ahead fits in the workers
+            again, poses_again = run(replay, pool)
+            assert pool.submitted > 0.8 * len(replay["frames"])  # the workers did the work (this thread: the frames held for the clock)
+        assert poses_again == poses, workers
+        assert (again.frames, again.poses, again.region_detections, again.estimates) == \
+            (stats.frames, stats.poses, stats.region_detections, stats.estimates)
+
+
+def test_a_worker_process_that_dies_ends_the_replay_with_one_clear_error(replay):
+    with started_pool(replay, 2) as pool:
+        os.kill(pool.process_ids[0], signal.SIGKILL)
+        with pytest.raises(SourceError, match="frame worker process ended unexpectedly"):
+            run(replay, pool)
