@@ -108,6 +108,7 @@ class CameraProcesses:
         self.urls = dict(urls)
         self.count = count
         self._taken: list[int] = []  # per lane: results taken by the fusion
+        self._told: list[int] = []  # per lane: the count of taken results it was last sent
         self._stats = {name: CameraStats(url=url) for name, url in self.urls.items()}
         self._before_clock: dict[int, int] = {}  # per worker process
         self._lanes: list[tuple[Connection, multiprocessing.Process]] = []
@@ -122,6 +123,7 @@ class CameraProcesses:
             self._open[parent] = len(self._lanes)
             self._lanes.append((parent, process))
             self._taken.append(0)
+            self._told.append(0)
 
     def take(self, timeout_s: float = 0.0) -> tuple[list[FrameResult], list[ClockReading]]:
         """The results and clock samples that came (arrival order per process), waiting up to
@@ -158,11 +160,14 @@ class CameraProcesses:
         return results, clocks
 
     def forecast(self, forecast: Forecast | None) -> None:
-        """Hand every worker process the fusion's newest forecast (None: no new one), and how
-        many of its results the fusion has taken (a worker process keeps at most ``IN_FLIGHT``
-        beyond that: when the fusion is behind, frames wait in the source, where each camera
-        keeps only its newest)."""
+        """Hand every worker process the fusion's newest forecast, and how many of its results
+        the fusion has taken (a worker process keeps at most ``IN_FLIGHT`` beyond that: when the
+        fusion is behind, frames wait in the source, where each camera keeps only its newest).
+        None: no new forecast; only the processes whose results were taken since are told."""
         for conn, lane in self._open.items():
+            if forecast is None and self._taken[lane] == self._told[lane]:
+                continue
+            self._told[lane] = self._taken[lane]
             try:
                 conn.send((forecast, self._taken[lane]))
             except OSError:  # the process ended: take() reports it
