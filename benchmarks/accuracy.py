@@ -24,7 +24,10 @@ Every scene is tracked these ways (the same frames for each):
   face identification), which, if anything, makes this baseline better than the paper's;
 - **our mean**: the paper's mean fusion on our calibration and capture-time stamps (reference);
 - **ours + refine** (``--refine``, when :mod:`cubetrack.calib.bundle` exists): ours with the camera
-  extrinsics refined from the cube observations of the tracking recording.
+  extrinsics refined from the cube observations of the tracking recording;
+- **ours + body** (``--body``): ours with the body calibrated (``cubetrack calibrate-body``) from
+  the tracking recording itself (in-sample: the session both calibrates and scores the cube), the
+  remedy for the realistic preset's hand-built cube that ``cube.toml`` calls nominal.
 
 and scored with :func:`cubetrack.evaluate.evaluate`: position and rotation RMSE against the ground
 truth interpolated to each pose's own time (the paper's eq. 7 takes the nearest ground-truth
@@ -44,7 +47,7 @@ loops alternate (ABBA) for ``--speed-rounds`` rounds and the medians are reporte
 at least the naive rate).
 
     .venv/bin/python benchmarks/accuracy.py [--duration 30] [--seeds 101 202 303] [--jobs 2]
-                                            [--presets clean realistic] [--out DIR] [--quick] [--refine]
+                                            [--presets clean realistic] [--out DIR] [--quick] [--refine] [--body]
 
 The exit code is 0 for a completed run (this is a report); the last line lists failing targets.
 ``--out`` keeps the recordings and writes ``accuracy_report.json``; an existing complete
@@ -89,10 +92,11 @@ TARGET_DR = 0.99
 TARGET_RATIO = 5.0
 TARGET_SPEED = 1.0
 
-OURS, PAPER, OUR_MEAN, REFINED = "ours", "paper_mean", "our_mean", "ours_refined"
+OURS, PAPER, OUR_MEAN, REFINED, BODY = "ours", "paper_mean", "our_mean", "ours_refined", "ours_body"
 LABELS = {
     OURS: "ours (filter, robust cal)",
     REFINED: "ours + refine",
+    BODY: "ours + calibrate-body",
     PAPER: "paper mean (CMA, arrival)",
     OUR_MEAN: "our mean (robust, capture)",
 }
@@ -209,7 +213,7 @@ def calibration_error(extrinsics: dict, truth: dict) -> tuple[float, float]:
 
 
 def run_scene(work: str, preset: str, config_index: int, seed: int, duration: float, calibration_frames: int,
-              workers: int, refine: bool) -> dict:
+              workers: int, refine: bool, body: bool = False) -> dict:
     """Simulate (or reuse) one scene, calibrate it both ways, track it every way, score it."""
     from cubetrack.app.calibrate import calibrate_recording
     from cubetrack.app.track import track_recording
@@ -254,11 +258,18 @@ def run_scene(work: str, preset: str, config_index: int, seed: int, duration: fl
         if refined_ext is not None:
             variants[REFINED] = (base, refined_ext)
             out["calibration"][REFINED] = calibration_error(refined_ext, true_extrinsics)
+    if body:
+        t_body = time.monotonic()
+        config_body, out["body"] = calibrated_body(config, rec, ours_ext, robot)
+        out["body"]["seconds"] = time.monotonic() - t_body
     out["calibration"]["robust"] = calibration_error(ours_ext, true_extrinsics)
     out["calibration"]["cma"] = calibration_error(cma_ext, true_extrinsics)
     for key, (params, extrinsics) in variants.items():
         result = track_recording(config, Recording.open(rec), extrinsics, rec / "track" / key, params)
         out["methods"][key] = score(result, robot, truth)
+    if body:
+        result = track_recording(config_body, Recording.open(rec), ours_ext, rec / "track" / BODY, base)
+        out["methods"][BODY] = score(result, robot, truth)
     t3 = time.monotonic()
     out["distance_m"] = camera_distances(rec)
     out["seconds"] = {"render": render_s, "reused": reused, "calibrate": t2 - t1, "track": t3 - t2,
@@ -277,6 +288,26 @@ def refine_extrinsics(config, rec: Path, extrinsics: dict) -> tuple[dict, dict]:
     info = {"instants": report.instants, "moved": list(report.moved), "warnings": list(report.warnings),
             "rms_px": {c: r.rms_px for c, r in report.cameras.items()}}
     return report.extrinsics, info
+
+
+def calibrated_body(config, rec: Path, extrinsics: dict, robot: str):
+    """``config`` with ``robot``'s layout calibrated from the tracking recording
+    (:func:`cubetrack.app.calibrate.calibrate_recording_body`, default parameters), and the worst
+    marker placement errors (mm, degrees) of the nominal and the calibrated layout against the
+    cube as built (``true_cube.toml``)."""
+    from cubetrack.app.calibrate import calibrate_recording_body
+    from cubetrack.calib.body import placement_errors
+    from cubetrack.core.layout import read_layout
+    from cubetrack.io.recording import Recording
+
+    report = calibrate_recording_body(config, Recording.open(rec), extrinsics, robot)
+    robots = tuple(dataclasses.replace(r, layout=report.layout) if r.name == robot else r for r in config.robots)
+    truth = read_layout(rec / "true_cube.toml")
+    nominal = next(r.layout for r in config.robots if r.name == robot)
+    worst = {name: (max(e[0] for e in errs.values()) * 1000.0, max(e[1] for e in errs.values()))
+             for name, errs in (("nominal", placement_errors(nominal, truth)),
+                                ("calibrated", placement_errors(report.layout, truth)))}
+    return dataclasses.replace(config, robots=robots), {"placement_worst_mm_deg": worst}
 
 
 # --------------------------------------------------------------------------------- speed
@@ -444,7 +475,7 @@ def build_report(scenes: list[dict], seeds: list[int], methods: list[str]) -> di
                                              max(s["distance_m"][2] for s in mine)),
                "calibration": {k: tuple(np.mean([s["calibration"][k] for s in mine if k in s["calibration"]], axis=0))
                                for k in dict.fromkeys(k for s in mine for k in s["calibration"])},
-               "refine": [s.get("refine") for s in mine]}
+               "refine": [s.get("refine") for s in mine], "body": [s.get("body") for s in mine]}
         for m in methods:
             per = [s["methods"].get(m, MISSING) for s in mine]
             row["methods"][m] = {k: _agg([p[k] for p in per]) for k in ("pos_cm", "rot_deg", "pos_cm_eq7", "rot_deg_eq7",
@@ -453,9 +484,9 @@ def build_report(scenes: list[dict], seeds: list[int], methods: list[str]) -> di
         ratios = [s["methods"][PAPER]["pos_cm"] / s["methods"][OURS]["pos_cm"] for s in mine]
         row["ratio"] = _agg(ratios)
         row["ratio_per_seed"] = ratios
-        if REFINED in methods:
-            r2 = [s["methods"][PAPER]["pos_cm"] / s["methods"].get(REFINED, MISSING)["pos_cm"] for s in mine]
-            row["ratio_refined"] = _agg(r2)
+        for method, key in ((REFINED, "ratio_refined"), (BODY, "ratio_body")):
+            if method in methods:
+                row[key] = _agg([s["methods"][PAPER]["pos_cm"] / s["methods"].get(method, MISSING)["pos_cm"] for s in mine])
         rows[f"{preset} {name}"] = row
     return {"seeds": seeds, "configs": rows}
 
@@ -539,9 +570,15 @@ def print_report(report: dict, speed: dict | None, methods: list[str], duration:
                 moved = f", moved: {', '.join(info['moved'])}" if info["moved"] else ""
                 p(f"{'':<18} refine seed {sd}: {info['instants']} instants, {info['seconds']:.0f} s, "
                   f"{len(info['warnings'])} warning(s){moved}")
+        for sd, info in zip(row["seeds"], row["body"]):
+            if info is not None:
+                worst = info["placement_worst_mm_deg"]
+                (n_mm, n_deg), (c_mm, c_deg) = worst["nominal"], worst["calibrated"]
+                p(f"{'':<18} calibrate-body seed {sd}: {info['seconds']:.0f} s; worst marker placement nominal "
+                  f"{n_mm:.2f} mm / {n_deg:.2f}°, calibrated {c_mm:.2f} mm / {c_deg:.2f}°")
     p()
     failures = []
-    for method, ratio_key in ((OURS, "ratio"), (REFINED, "ratio_refined")):
+    for method, ratio_key in ((OURS, "ratio"), (REFINED, "ratio_refined"), (BODY, "ratio_body")):
         if method not in methods:
             continue
         fails, lines = _worst_failures(report, method, ratio_key)
@@ -585,6 +622,8 @@ def main(argv: list[str] | None = None) -> int:
                     "(default 1)")
     ap.add_argument("--refine", action="store_true", help="also report ours with extrinsics refined from cube "
                     "observations (cubetrack.calib.bundle)")
+    ap.add_argument("--body", action="store_true", help="also report ours with the body calibrated from the tracking "
+                    "recording (cubetrack calibrate-body; in-sample)")
     ap.add_argument("--speed-rounds", type=int, default=None, help="interleaved speed rounds (default 5; "
                     "--quick: 2)")
     ap.add_argument("--speed-frames", type=int, default=None, help="frames per recording in the speed "
@@ -602,7 +641,7 @@ def main(argv: list[str] | None = None) -> int:
     speed_frames = args.speed_frames if args.speed_frames is not None else (30 if args.quick else None)
     if args.refine and not refine_available():
         ap.error("--refine needs cubetrack.calib.bundle, which is not installed")
-    methods = [OURS] + ([REFINED] if args.refine else []) + [PAPER, OUR_MEAN]
+    methods = [OURS] + ([REFINED] if args.refine else []) + ([BODY] if args.body else []) + [PAPER, OUR_MEAN]
 
     kept = args.out is not None
     work = args.out if kept else Path(tempfile.mkdtemp(prefix="cubetrack-accuracy-"))
@@ -627,7 +666,7 @@ def main(argv: list[str] | None = None) -> int:
                   f"{result['methods'][OURS]['pos_cm']:.2f} cm, paper mean {result['methods'][PAPER]['pos_cm']:.2f} cm",
                   file=sys.stderr, flush=True)
 
-        call = [(str(work), preset, ci, seed, duration, calibration_frames, workers, args.refine)
+        call = [(str(work), preset, ci, seed, duration, calibration_frames, workers, args.refine, args.body)
                 for preset, ci, seed in jobs]
         print(f"{len(jobs)} scenes, {n_jobs} at a time, in {work} ...", file=sys.stderr, flush=True)
         if n_jobs == 1:
