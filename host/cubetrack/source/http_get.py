@@ -6,9 +6,10 @@ work of its process for the GIL (docs/live.md).
 :class:`HttpGet` connects, writes the request, parses the response head (bounded in size, so an
 endless or flooding head is an error, not a growing buffer) and hands back the body as it
 arrives, de-chunked where the server sends ``Transfer-Encoding: chunked``. Each read is stamped
-with the kernel's receive time of its last byte (``SO_TIMESTAMPNS`` on Linux; elsewhere the time
-of the read), so a frame's arrival time does not include the time its bytes waited in the
-socket while the process was busy.
+with the kernel's receive time of the newest data it returned (``SO_TIMESTAMPNS`` on Linux;
+elsewhere the time of the read), so a frame's arrival time does not include the time its bytes
+waited in the socket while the process was busy. (Data that waited together is stamped with
+the newest arrival among it: an upper bound for the older frames, right for the newest.)
 """
 
 from __future__ import annotations

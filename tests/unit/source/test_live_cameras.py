@@ -243,3 +243,37 @@ def test_a_chunked_esp32_style_stream_without_x_frame_is_read_without_added_late
     # the part is complete when its JPEG chunk arrives, not when the next part starts (0.1 s later)
     delays = [arrived - f.device_time_s for f, arrived in received]  # server stamps = monotonic
     assert statistics.median(delays) < 0.05
+
+
+def test_without_a_thread_frames_are_read_inside_get_and_stamped_when_they_arrived(images):
+    """thread=False (a camera worker process): nothing reads while the consumer is busy, yet the
+    frames keep the time their bytes reached this host (the kernel's receive time), not the
+    time get() read them; a file given to wake_on() ends get()'s wait."""
+    import socket as socket_module
+
+    params = SourceParams(frames_per_camera=50, read_timeout_s=30.0, clock_period_s=0.25)
+    faults = Faults(stall_after_s=1.0)  # frames for 1 s, then silence (the connection stays)
+    with Emulator(images=images, fps=FPS, name="cam1", loop=True, faults=faults) as emu:
+        live = LiveCameras(emu.urls, params, thread=False).start()
+        here, there = socket_module.socketpair()
+        try:
+            live.wake_on(here)
+            assert not live._threads
+            collect(live, 3.0, until=lambda f, c: len(f) >= 1)  # connected and streaming
+            time.sleep(2.0)  # busy: nobody reads; the rest of the frames wait in the socket
+            read_from = time.time()
+            waited = []
+            while (event := live.get(0)) is not None:
+                waited.append(event)
+            there.send(b"x")
+            t0 = time.monotonic()
+            assert live.get(5.0, frames=False) is None  # woken by the file, not by a clock sample
+            woke_s = time.monotonic() - t0
+        finally:
+            live.stop()
+            here.close()
+            there.close()
+    stamps = [e.host_time_s for e in waited if isinstance(e, Frame)]
+    assert len(stamps) >= 2  # frames that came while nobody read, all kept (frames_per_camera 50)
+    assert all(t < read_from - 0.8 for t in stamps)  # they arrived before the stream went silent
+    assert woke_s < 1.0
