@@ -67,6 +67,7 @@ from cubetrack.calib.extrinsics import (
     edge_fitted_corners,
     inlier_frames,
 )
+from cubetrack.calib.marker_fit import template_fitted_corners
 from cubetrack.calib.solver import (
     BodyPrior,
     Freedom,
@@ -128,7 +129,7 @@ class BundleAdjustmentParams:
     body_size_sigma: float = param(0.02, "calibrate-body: a marker's printed size against its nominal size (1 sigma), relative")
     body_camera_sigma_m: float = param(0.01, "calibrate-body: cameras are refined too, held near the given extrinsics with this position sigma, metres")
     body_camera_sigma_deg: float = param(0.3, "calibrate-body: ... and this rotation sigma, degrees")
-    body_edge_corners: bool = param(True, "calibrate-body: re-measure the body's marker corners by the calibration's edge fit (as the world marker's; about 4x the CPU time of the detector's corners, measured 25 % lower rotation errors)")
+    body_edge_corners: bool = param(True, "calibrate-body: re-measure the body's marker corners by the calibration's edge fit (as the world marker's) and then by fitting each marker's whole image (cubetrack.calib.marker_fit; about 70 ms per marker seen, docs/calibration.md has the measured errors)")
 
     def __post_init__(self) -> None:
         check_positive(self, "max_span_s", "corner_noise_px", "world_corner_noise_px", "f_scale_px",
@@ -319,11 +320,13 @@ def cube_frames(frames: Mapping[str, Iterable[Frame]], layouts: Mapping[str, Cub
     ``clock_samples`` (round trips; without them, its frames' arrival times); in time order.
     ``frame_count`` (all cameras' frames) only sizes the progress.
 
-    ``lenses`` (camera -> intrinsics): the cube corners are measured as the world marker's are
-    for calibration (:func:`cubetrack.detect.refine_corners_edges` with
+    ``lenses`` (camera -> intrinsics): the cube corners are measured for the body calibration:
+    as the world marker's are for calibration (:func:`cubetrack.detect.refine_corners_edges` with
     :data:`cubetrack.calib.extrinsics.EDGE_FIT` and the camera's lens model: sides straight in
-    the undistorted image, edge points from the gradient's peak), offline accuracy for the body
-    calibration; detections whose edges cannot be fitted (``edge_min_contrast``) are dropped."""
+    the undistorted image, edge points from the gradient's peak), then by fitting the whole marker
+    image (:func:`cubetrack.calib.marker_fit.template_fitted_corners`: no bias on obliquely seen
+    markers); detections whose edges cannot be fitted (``edge_min_contrast``) or whose template
+    fit fails are dropped."""
     detector = Detector(detector_params or DetectorParams(), [name for lay in layouts.values() for name in lay.dictionaries])
     out, done = [], 0
     for camera, camera_frames in frames.items():
@@ -362,10 +365,12 @@ def cube_frames(frames: Mapping[str, Iterable[Frame]], layouts: Mapping[str, Cub
 
 def _edge_fitted(gray: np.ndarray, detections: Sequence[Detection], lens: CameraIntrinsics,
                  min_contrast: float) -> tuple[Detection, ...]:
-    """Detections with their corners re-measured by the calibration's edge fit (those it cannot
-    fit left out); one marker at a time (the dense sampling of several would exceed cv2.remap's
-    row length)."""
+    """Detections with their corners re-measured by the calibration's edge fit and then the
+    template fit (those either cannot fit left out); one marker at a time (the dense sampling of
+    several would exceed cv2.remap's row length)."""
     corners = [edge_fitted_corners(gray, d.corners_px, d.dictionary, lens, min_contrast) for d in detections]
+    corners = [c if np.isnan(c).any() else template_fitted_corners(gray, c, d.dictionary, d.marker_id, lens)
+               for d, c in zip(detections, corners)]
     return tuple(Detection(d.marker_id, c, shoelace_area(c), d.dictionary)
                  for d, c in zip(detections, corners) if not np.isnan(c).any())
 
