@@ -14,7 +14,7 @@ import pytest
 import test_tracker
 from test_tracker import BLUE, INTRINSICS, RED, T_WORLD_CAM, WORLD
 
-from cubetrack.app.parallel import FramePool, LiveParams, WorkerKind
+from cubetrack.app.parallel import CAMERA_PROCESSES_FROM, FramePool, LiveParams, WorkerKind
 from cubetrack.app.tracker import FrameJob, FrameOutcome, FrameWorker, StageParams
 from cubetrack.core.errors import SourceError
 from cubetrack.core.records import Frame
@@ -51,7 +51,7 @@ def summary(result):
                                                                  for d in s.detections]) for s in result.sightings])
 
 
-@pytest.mark.parametrize(("kind", "depth"), [(kind, 1) for kind in WorkerKind] + [(WorkerKind.PROCESS, 3)])
+@pytest.mark.parametrize(("kind", "depth"), [(WorkerKind.THREAD, 1), (WorkerKind.PROCESS, 1), (WorkerKind.PROCESS, 3)])
 def test_the_pool_gives_what_the_trackers_worker_gives(scenes, kind, depth):
     todo = jobs(scenes)
     expected = {(j.frame.camera, j.frame.seq): summary(MAKE_WORKER().work(j)) for j in todo}
@@ -82,6 +82,18 @@ def test_a_worker_process_that_dies_ends_the_session_with_one_clear_error(scenes
 
 def test_live_params_default_to_one_worker_per_core():
     assert LiveParams().worker_count == (os.cpu_count() or 1)
+    assert LiveParams().worker_kind is WorkerKind.AUTO
     assert LiveParams(workers=3).worker_count == 3
     with pytest.raises(Exception, match="workers"):
         LiveParams(workers=-1)
+
+
+def test_auto_takes_camera_processes_for_many_cameras_unless_recording_or_on_one_core():
+    auto = LiveParams(workers=2)
+    assert auto.kind_for(CAMERA_PROCESSES_FROM, recording=False) is WorkerKind.CAMERA_PROCESS
+    assert auto.kind_for(CAMERA_PROCESSES_FROM - 1, recording=False) is WorkerKind.THREAD
+    assert auto.kind_for(16, recording=True) is WorkerKind.THREAD  # the tracker's process writes the recording
+    assert LiveParams(workers=1).kind_for(16, recording=False) is WorkerKind.THREAD
+    chosen = LiveParams(worker_kind=WorkerKind.PROCESS)
+    assert chosen.kind_for(16, recording=False) is WorkerKind.PROCESS
+    assert LiveParams(worker_kind=WorkerKind.CAMERA_PROCESS).kind_for(3, recording=True) is WorkerKind.THREAD
