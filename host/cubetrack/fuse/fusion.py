@@ -71,6 +71,9 @@ class FusionParams:
     lost_after_s: float = param(0.5, "filter: a robot with no accepted sighting for this many seconds is reported as not seen and its track restarts")
     output_rate_hz: float = param(0.0, "filter, live tracking: also emit each tracked robot's pose predicted to the current host time at this rate, for control loops (0: only at each sighting)")
     association_gate_px: float = param(12.0, "filter: a detection joins a face only if its corners lie within this many pixels (or half a marker side) of the predicted face")
+    max_view_angle_deg: float = param(70.0, "filter: a face seen more obliquely than this (the angle between its normal and "
+                                      "the camera's ray to it at the predicted pose) is left out: its corners are 2-3 "
+                                      "times noisier than a face's seen head-on")
     init_window_s: float = param(0.3, "filter: a track starts from a joint fit of pose and velocity over the sightings of the last this many seconds (at least three, from two cameras)")
     max_rejections: int = param(3, "filter: this many rejected sightings in a row restart the track")
     reacquire_m: float = param(0.1, "filter: a sighting the tracked pose does not explain is re-examined against its own "
@@ -81,6 +84,8 @@ class FusionParams:
         for name in ("window_s", "lost_after_s", "association_gate_px", "init_window_s", "reacquire_m"):
             if not getattr(self, name) > 0:
                 raise ParamsError(f"{name} must be positive, got {getattr(self, name)}")
+        if not 0 < self.max_view_angle_deg <= 90:
+            raise ParamsError(f"max_view_angle_deg must be in (0, 90], got {self.max_view_angle_deg}")
         if self.history_s < 0 or self.output_rate_hz < 0 or self.max_rejections < 1:
             raise ParamsError("history_s and output_rate_hz must not be negative, max_rejections >= 1")
 
@@ -308,7 +313,8 @@ class FilterFusion:
         per face, taken when the rows of its corners were (their mean row's time)."""
         intrinsics, t = sighting.intrinsics, sighting.capture_time_s
         matches = match_faces(sighting.detections, self.layouts[sighting.robot], intrinsics,
-                              sighting.T_world_cam, T_world_cube, gate_px=self.params.association_gate_px)
+                              sighting.T_world_cam, T_world_cube, gate_px=self.params.association_gate_px,
+                              max_view_angle_deg=self.params.max_view_angle_deg)
         if not matches:
             return []
         if intrinsics.readout_s <= 0:
