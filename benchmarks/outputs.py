@@ -226,15 +226,21 @@ def consume(router_port: int, vrpn_port: int, foxglove_port: int) -> None:
             else:
                 counts["foxglove"] += 1
 
-    threads = [threading.Thread(target=foxglove, daemon=True)]
-    threads[0].start()
+    vrpn = []
+
+    def vrpn_client() -> None:
+        client = retry(lambda: TrackerClient(vrpn_port, "robot"))
+        if client is not None:
+            vrpn.append(client)
+
+    for target in (foxglove, vrpn_client):  # each waits for its server (runs without it have none)
+        threading.Thread(target=target, daemon=True).start()
     print("ready", flush=True)
-    vrpn = retry(lambda: TrackerClient(vrpn_port, "robot"))
     sys.stdin.read()  # the benchmark closes it at the end of the run
     stop.set()
-    if vrpn is not None:
-        counts["vrpn"] = len(vrpn.reports)
-        vrpn.close()
+    for client in vrpn:
+        counts["vrpn"] = len(client.reports)
+        client.close()
     router.close()
     print(json.dumps(counts), flush=True)
 
