@@ -22,8 +22,9 @@ plugins, ``vrpn_print_devices``) open ``<robot>@host:3883``. The wire protocol, 
 Everything is sent over TCP (clients read it in every mode). One sender per robot, sensor 0
 (as OptiTrack Motive does), named by :func:`cubetrack.sink.names.identifiers`.
 
-Never blocking the pipeline: :meth:`VrpnServer.publish` only appends to per-client queues; a
-thread does all socket work without blocking. A client that does not read keeps at most
+Never blocking the pipeline: :meth:`VrpnServer.publish` appends to per-client queues and sends
+what each socket takes at once, never waiting; a thread does the rest of the socket work (what a
+socket would not take, connections, reading) without blocking. A client that does not read keeps at most
 ``max_queued_bytes`` queued besides a 64 KiB socket buffer (the oldest whole messages are
 dropped and counted, so it gets recent poses, not a growing backlog); one that
 vanishes or breaks the protocol is dropped. A call-back request is honoured only towards the
@@ -190,14 +191,17 @@ class VrpnServer:
     def publish(self, sender: str, time_s: float, bodies: list[tuple[str, bytes]]) -> None:
         """Queue messages (type name, body) from tracker ``sender`` to every ready client."""
         sender_id = self.senders.index(sender)
-        queued = False
+        wake = False
         with self.lock:
             for client in self.clients.values():
                 if client.ready:
                     for type_name, body in bodies:
                         self._queue(client, self._framed(client, sender_id, TYPES.index(type_name), body, time_s))
-                    queued = True
-        if queued:  # the I/O thread sleeps while there is nothing to send
+                    # sent from here while the socket takes it (no hand-over to the I/O thread); the
+                    # I/O thread is woken for a rest the socket would not take, or a broken connection
+                    if self._send_queued(client) is not None or client.partial or client.outbox:
+                        wake = True
+        if wake:
             self._wake()
 
     def close(self) -> None:
@@ -327,24 +331,30 @@ class VrpnServer:
             with self.lock:
                 client.outbox.appendleft(COOKIE)
                 client.queued_bytes += COOKIE_SIZE
+        with self.lock:
+            error = self._send_queued(client)
+        if error is not None:
+            self._drop(client, error)
+
+    def _send_queued(self, client: _Client) -> str | None:
+        """Send what ``client`` has queued until its socket would block (with the lock held, by
+        either thread); the error that broke the connection, else None."""
         while True:
-            with self.lock:
-                if not client.partial:
-                    if not client.outbox:
-                        return
-                    data = client.outbox.popleft()
-                    client.queued_bytes -= len(data)
-                    client.partial = memoryview(data)
+            if not client.partial:
+                if not client.outbox:
+                    return None
+                data = client.outbox.popleft()
+                client.queued_bytes -= len(data)
+                client.partial = memoryview(data)
             try:
                 sent = client.sock.send(client.partial)
             except BlockingIOError:
-                return
+                return None
             except OSError as exc:
-                self._drop(client, str(exc))
-                return
+                return str(exc) or type(exc).__name__
             client.partial = client.partial[sent:]
             if client.partial:
-                return
+                return None
 
     def _read(self, client: _Client) -> None:
         try:
