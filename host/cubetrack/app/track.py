@@ -69,35 +69,44 @@ def track_frames(frames: Iterable[Frame], intrinsics: Mapping[str, CameraIntrins
     trips = sorted(((s.host_recv_s, camera, s) for camera, samples in clock_samples.items() for s in samples),
                    key=lambda item: (item[0], item[1]))
     next_trip = 0
-    planned: deque[FrameJob | None] = deque()  # in frame order; None: a frame with nothing to do now
+    planned: deque[tuple[FrameJob | None, float]] = deque()  # in order, with the time each became available
     done: dict[FrameJob, FrameResult] = {}
 
     def fuse_oldest() -> None:
-        job = planned.popleft()
+        job, now_s = planned.popleft()
         if job is None:
             return
         while job not in done:
             pool.wait(1.0)
             done.update((r.job, r) for r in pool.take())
-        result = done.pop(job)
-        for pose in tracker.fuse(result, result.job.frame.host_time_s):
+        for pose in tracker.fuse(done.pop(job), now_s):
             output.pose(pose)
 
-    for i, frame in enumerate(frames, start=1):
-        # round trips completed before this frame arrived, exactly as a live run has them
-        while next_trip < len(trips) and trips[next_trip][0] <= frame.host_time_s:
-            for pose in tracker.add_clock_sample(trips[next_trip][1], trips[next_trip][2]):
-                output.pose(pose)
-            next_trip += 1
+    def make_room() -> None:
+        """Before a frame is planned: fuse what is ``REPLAY_LAG`` frames older."""
         if len(planned) == REPLAY_LAG:
             fuse_oldest()
-        job = tracker.admit(frame)
+
+    def schedule(job: FrameJob | None, now_s: float) -> None:
+        """Hand a planned frame's work to a worker (or do it), to be fused ``REPLAY_LAG`` frames later."""
         if job is not None:
             if pool is not None and pool.idle():
                 pool.submit(job)
             else:  # no worker process (yet): this thread does the work
                 done[job] = tracker.worker.work(job)
-        planned.append(job)
+        planned.append((job, now_s))
+
+    for i, frame in enumerate(frames, start=1):
+        # round trips completed before this frame arrived, exactly as a live run has them; the
+        # frames held for a camera's first one are planned as they are released
+        while next_trip < len(trips) and trips[next_trip][0] <= frame.host_time_s:
+            _, camera, sample = trips[next_trip]
+            for held, capture_time_s in tracker.released_frames(camera, sample):
+                make_room()
+                schedule(tracker.plan(held, capture_time_s), sample.host_recv_s)
+            next_trip += 1
+        make_room()
+        schedule(tracker.admit(frame), frame.host_time_s)
         if progress is not None:
             progress("track", i, frame_count)
     while planned:

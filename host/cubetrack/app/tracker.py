@@ -263,15 +263,20 @@ class Tracker:
     def add_clock_sample(self, camera: str, sample: ClockSample) -> list[TrackedPose]:
         """Take one /time round trip of ``camera`` (feed them as they complete). Frames held back
         for want of a clock are processed once it is known; their poses are returned."""
+        return [pose for frame, capture_time_s in self.released_frames(camera, sample)
+                for pose in self._track(frame, capture_time_s, sample.host_recv_s)]
+
+    def released_frames(self, camera: str, sample: ClockSample) -> list[tuple[Frame, float]]:
+        """Take one /time round trip of ``camera``; the frames held back for want of a clock
+        that it releases, with their capture times, for the caller to plan (:meth:`plan`) and
+        process in this order (:meth:`add_clock_sample` does all that)."""
         if camera not in self.clocks:
             return []
         clock = self.clocks[camera]
         clock.add_round_trip(sample.host_send_s, sample.device_time_s, sample.host_recv_s)
         if clock.method is not ClockFitMethod.ROUND_TRIP or camera not in self.held:
             return []
-        held = self.held.pop(camera)
-        return [pose for frame in held
-                for pose in self._track(frame, clock.to_host(frame.device_time_s), sample.host_recv_s)]
+        return [(frame, clock.to_host(frame.device_time_s)) for frame in self.held.pop(camera)]
 
     def capture_time(self, frame: Frame) -> float | None:
         """The frame's capture time on the host clock (Unix seconds), per ``[track] timestamps``;
