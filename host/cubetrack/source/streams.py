@@ -827,6 +827,9 @@ class LiveCameras:
             self._report_bad(camera)
             camera.parser = None
         reason = _describe(exc)
+        if isinstance(exc, OSError):  # name the peer, as "cannot connect" messages usually do
+            u = urlsplit(camera.url)
+            reason = f"connection to host={u.hostname!r}, port={u.port or 80}: {reason}"
         self._count(camera.name, connected=False, last_error=reason)
         if camera.got_frame:  # the connection worked: start the back-off again
             camera.backoff = p.backoff_initial_s
