@@ -2,7 +2,7 @@
 // FoxgloveClient). It offers the subprotocols viewers offer: "foxglove.sdk.v1" (the only one
 // foxglove-sdk's server accepts; the same protocol under a new name) and the library's own
 // "foxglove.websocket.v1" (older servers). It subscribes to every channel the server advertises
-// and prints, one JSON object per line,
+// (0.2 s after the advertisements pause) and prints, one JSON object per line,
 //   {"serverInfo": {...}}                      the server's info message
 //   {"advertise": [channel, ...]}              each advertise message (topic, encoding, schema...)
 //   {"message": {"topic", "logTime", "data"}}  the first message of each channel (data in base64)
@@ -67,12 +67,24 @@ function connect() {
     process.exit(1);
   });
   client.on("serverInfo", (info) => print({ serverInfo: info }));
+  // Subscribe once the advertisements have paused for 0.2 s, as a viewer subscribes when a panel
+  // asks: foxglove-sdk's server (0.30.3) can lose a subscription that arrives while the channel
+  // it has just advertised is being registered ("attempted to subscribe to unknown channel").
+  let pending = [];
+  let settle;
   client.on("advertise", (newChannels) => {
     print({ advertise: newChannels });
     for (const channel of newChannels) {
       advertised.add(channel.topic);
-      channels.set(client.subscribe(channel.id), channel);
+      pending.push(channel);
     }
+    clearTimeout(settle);
+    settle = setTimeout(() => {
+      for (const channel of pending) {
+        channels.set(client.subscribe(channel.id), channel);
+      }
+      pending = [];
+    }, 200);
   });
   client.on("message", ({ subscriptionId, timestamp, data }) => {
     const channel = channels.get(subscriptionId);
