@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import struct
 from dataclasses import dataclass
+from functools import lru_cache
 
 import numpy as np
 
@@ -75,13 +76,11 @@ class _Writer:
 
     def float64s(self, values) -> None:
         self.align(8)
-        array = np.asarray(values, dtype="<f8").reshape(-1)
-        self.body += array.tobytes()
+        self.body += _float64s(len(values)).pack(*values)
 
     def string(self, text: str) -> None:
-        data = text.encode("utf-8") + b"\x00"
-        self.uint32(len(data))
-        self.body += data
+        self.align(4)
+        self.body += _string(text)
 
     def header(self, time_s: float, frame_id: str) -> None:
         sec, nanosec = stamp(time_s)
@@ -93,6 +92,18 @@ class _Writer:
         return ENCAPSULATION_CDR_LE + bytes(self.body)
 
 
+@lru_cache(maxsize=64)
+def _float64s(count: int) -> struct.Struct:
+    return struct.Struct(f"<{count}d")
+
+
+@lru_cache(maxsize=256)
+def _string(text: str) -> bytes:
+    """A CDR string (uint32 length with the NUL, the UTF-8 bytes, NUL), once per frame id."""
+    data = text.encode("utf-8") + b"\x00"
+    return struct.pack("<I", len(data)) + data
+
+
 def stamp(time_s: float) -> tuple[int, int]:
     """``builtin_interfaces/Time`` (int32 sec, uint32 nanosec) of a Unix time in seconds."""
     nanoseconds = round(time_s * 1e9)
@@ -101,8 +112,8 @@ def stamp(time_s: float) -> tuple[int, int]:
 
 
 def _pose(writer: _Writer, position_m: np.ndarray, quaternion_xyzw: np.ndarray) -> None:
-    writer.float64s(np.concatenate([np.asarray(position_m, float).reshape(3),
-                                    np.asarray(quaternion_xyzw, float).reshape(4)]))
+    writer.float64s([*np.asarray(position_m, float).reshape(3).tolist(),
+                     *np.asarray(quaternion_xyzw, float).reshape(4).tolist()])
 
 
 def pose_stamped(time_s: float, frame_id: str, position_m: np.ndarray, quaternion_xyzw: np.ndarray) -> bytes:
@@ -123,11 +134,14 @@ def odometry(time_s: float, frame_id: str, child_frame_id: str, position_m: np.n
     w.header(time_s, frame_id)
     w.string(child_frame_id)
     _pose(w, position_m, quaternion_xyzw)
-    w.float64s(np.zeros(36) if pose_covariance is None else np.asarray(pose_covariance, float).reshape(36))
-    w.float64s(np.zeros(3) if linear_m_s is None else linear_m_s)
-    w.float64s(np.zeros(3) if angular_rad_s is None else angular_rad_s)
-    w.float64s(np.zeros(36))
+    w.float64s(_ZEROS_36 if pose_covariance is None else np.asarray(pose_covariance, float).reshape(36).tolist())
+    w.float64s(_ZEROS_3 if linear_m_s is None else np.asarray(linear_m_s, float).tolist())
+    w.float64s(_ZEROS_3 if angular_rad_s is None else np.asarray(angular_rad_s, float).tolist())
+    w.float64s(_ZEROS_36)
     return w.bytes()
+
+
+_ZEROS_3, _ZEROS_36 = (0.0,) * 3, (0.0,) * 36
 
 
 def tf_message(transforms: list[Transform] | tuple[Transform, ...]) -> bytes:
