@@ -192,9 +192,8 @@ class Decoupled(Sink):
             try:
                 self.inner.deliver(items)
             except Exception as exc:  # an output's failure must not reach the pipeline
-                log.error("output %s failed and was stopped: %s", self.name, exc, exc_info=True)
                 with self._ready:
-                    self.failed = str(exc) or type(exc).__name__
+                    self.failed = _stopped(self.name, exc)
                     self._queue.clear()
                 return
 
@@ -216,13 +215,58 @@ class Decoupled(Sink):
             log.error("output %s failed to close: %s", self.name, exc)
 
 
+def _stopped(name: str, exc: Exception) -> str:
+    """Log that output ``name`` failed with ``exc`` and is stopped; the reason, for ``failed``."""
+    log.error("output %s failed and was stopped: %s", name, exc, exc_info=True)
+    return str(exc) or type(exc).__name__
+
+
+class Guarded(Sink):
+    """Calls ``inner`` in line; an exception in it is logged once and ``inner`` is called no
+    more (``failed``), never reaching the caller or the other sinks."""
+
+    def __init__(self, inner: Sink):
+        self.inner = inner
+        self.name = inner.name
+        self.in_line = True
+        self.wants_views = inner.wants_views
+        self.view_interval_s = inner.view_interval_s
+        self.failed: str | None = None
+
+    def deliver(self, items: list[tuple[str, object]]) -> None:
+        if self.failed is None:
+            try:
+                self.inner.deliver(items)
+            except Exception as exc:  # one output's failure stops that output only
+                self.failed = _stopped(self.name, exc)
+
+    def open(self, session: SessionInfo) -> None:
+        self.deliver([("open", session)])
+
+    def pose(self, pose: TrackedPose) -> None:
+        self.deliver([("pose", pose)])
+
+    def camera_health(self, health: CameraHealth) -> None:
+        self.deliver([("camera_health", health)])
+
+    def camera_view(self, view: CameraView) -> None:
+        self.deliver([("camera_view", view)])
+
+    def close(self) -> None:
+        try:
+            self.inner.close()
+        except Exception as exc:
+            log.error("output %s failed to close: %s", self.name, exc)
+
+
 class Outputs:
     """Every sink of a session: in-line sinks are called directly, the others through
-    :class:`Decoupled` (``all_in_line``: every sink directly, for a process that does nothing
-    but feed outputs that never block). Use as a context manager around the session."""
+    :class:`Decoupled` (``all_in_line``: every sink in line behind :class:`Guarded`, for a process
+    that does nothing but feed outputs that never block). Use as a context manager around the
+    session."""
 
     def __init__(self, sinks: list[Sink], all_in_line: bool = False):
-        self.sinks = [s if s.in_line or all_in_line else Decoupled(s) for s in sinks]
+        self.sinks = [Guarded(s) if all_in_line else s if s.in_line else Decoupled(s) for s in sinks]
         self._views = [s for s in self.sinks if s.wants_views]
         self._next_view_s: dict[tuple[int, str], float] = {}
 

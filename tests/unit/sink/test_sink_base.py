@@ -92,3 +92,13 @@ def test_views_are_thinned_per_sink_and_camera_to_the_sink_s_rate():
         gaps = np.diff(seqs[:100])
         assert set(gaps.tolist()) <= {2, 3, 4}  # evenly spread, not bursts
     assert ten.seen[-1] == ("cam1", 900)
+
+
+def test_in_line_outputs_of_the_outputs_process_fail_alone(tmp_path, caplog):
+    files = FileSink(tmp_path, ("r1",))
+    with Outputs([Broken(), files], all_in_line=True) as outputs:  # as the outputs' process runs them
+        broken = outputs.sinks[0]
+        for i in range(3):
+            outputs.pose(pose(i))  # never raises
+    assert broken.failed == "peer went away" and caplog.text.count("output broken failed") == 1
+    assert len((tmp_path / "r1.jsonl").read_text().splitlines()) == 3  # the other output saw every pose
