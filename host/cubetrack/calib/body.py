@@ -6,7 +6,10 @@ turned by a degree, printed slightly small, and the faces are not quite square. 
 takes the layout as exact, so every such error becomes a pose error that changes with the face
 in view. :func:`calibrate_body` estimates each marker's pose on the body and its size from the
 body's sightings in a tracking recording — a bundle adjustment (:mod:`cubetrack.calib.solver`)
-over the same multi-camera instants as the extrinsics refinement (:mod:`cubetrack.calib.bundle`),
+over multi-camera instants as in the extrinsics refinement (:mod:`cubetrack.calib.bundle`) but of
+frames closer in time (``body_max_span_s``), each corner's noise growing with its frame's time from
+its instant (``body_motion_noise_px_per_s``: the constant-velocity motion between the frames misses
+turns and vibration), the corners measured by the template fit (:mod:`cubetrack.calib.marker_fit`),
 with the markers free, held near the nominal layout by priors (``body_position_sigma_m``,
 ``body_rotation_sigma_deg``, ``body_size_sigma``), the cameras refined too but held near the given
 extrinsics (``body_camera_sigma_m``, ``body_camera_sigma_deg``), and (``refine_intrinsics``) the
@@ -21,6 +24,7 @@ tracked pose of a perfectly built body is unchanged. Markers never seen keep the
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
@@ -114,19 +118,23 @@ def placement_errors(layout: CubeLayout, truth: CubeLayout, aligned: bool = True
 def calibrate_body(frames: Mapping[str, Iterable[Frame]], extrinsics: Mapping[str, CameraExtrinsics],
                    intrinsics: Mapping[str, CameraIntrinsics], layout: CubeLayout, robot: str = "robot", *,
                    clock_samples: Mapping[str, Sequence[ClockSample]] | None = None,
-                   params: BundleAdjustmentParams = BundleAdjustmentParams(),
+                   params: BundleAdjustmentParams | None = None,
                    detector_params: DetectorParams | None = None, progress: Progress | None = None,
                    frame_count: int = 0, readout_s: Mapping[str, float] | None = None,
                    edge_corners: bool = False) -> BodyCalibrationReport:
     """Calibrate the placement of every marker of ``layout`` (the nominal body of ``robot``) from
     the tracking ``frames`` (camera -> its frames, stamped with ``clock_samples``) of cameras
     with ``extrinsics`` and ``intrinsics``; see the module docstring. ``params``: the
-    ``[bundle_adjustment]`` settings (instants, noise, rounds, the body_* and intrinsics priors);
-    ``readout_s``: each camera's rolling-shutter readout (seconds; a corner is moved to the time
-    its row was exposed; None: the intrinsics' ``readout_s``, from camera_info); ``edge_corners``: re-measure the corners by the calibration's edge fit.
+    ``[bundle_adjustment]`` settings (None: the defaults; instants, their span
+    ``body_max_span_s``, noise, rounds, the body_* and intrinsics priors); ``readout_s``: each
+    camera's rolling-shutter readout (seconds; a corner is moved to the time its row was
+    exposed; None: the intrinsics' ``readout_s``, from camera_info); ``edge_corners``:
+    re-measure the corners by the calibration's edge fit and template fit
+    (:mod:`cubetrack.calib.marker_fit`).
 
     CalibrationError when fewer than two calibrated cameras saw the body at once.
     """
+    params = params or BundleAdjustmentParams()
     warnings: list[str] = []
 
     def warn(message: str) -> None:
@@ -134,7 +142,8 @@ def calibrate_body(frames: Mapping[str, Iterable[Frame]], extrinsics: Mapping[st
         log.warning("%s", message)
 
     ref, _cameras = start_refinement(frames, extrinsics, intrinsics, {robot: layout}, clock_samples=clock_samples,
-                                     params=params, detector_params=detector_params, progress=progress,
+                                     params=dataclasses.replace(params, max_span_s=params.body_max_span_s),
+                                     detector_params=detector_params, progress=progress,
                                      frame_count=frame_count, warn=warn, readout_s=readout_s,
                                      calibration_corners=edge_corners)
     T_given = ref.model.T_cams.copy()

@@ -129,6 +129,8 @@ class BundleAdjustmentParams:
     body_size_sigma: float = param(0.02, "calibrate-body: a marker's printed size against its nominal size (1 sigma), relative")
     body_camera_sigma_m: float = param(0.01, "calibrate-body: cameras are refined too, held near the given extrinsics with this position sigma, metres")
     body_camera_sigma_deg: float = param(0.3, "calibrate-body: ... and this rotation sigma, degrees")
+    body_max_span_s: float = param(0.08, "calibrate-body: max_span_s of the body calibration's instants (shorter: the body's motion between the frames of an instant is modelled as constant velocity, which misses sharp turns and vibration; measured in docs/calibration.md)")
+    body_motion_noise_px_per_s: float = param(25.0, "calibrate-body: a corner's noise grows by this many pixels per second of its frame's time from its instant (the constant-velocity motion between an instant's frames misses turns and vibration; 0 = not at all)")
     body_edge_corners: bool = param(True, "calibrate-body: re-measure the body's marker corners by the calibration's edge fit (as the world marker's) and then by fitting each marker's whole image (cubetrack.calib.marker_fit; about 70 ms per marker seen, docs/calibration.md has the measured errors)")
 
     def __post_init__(self) -> None:
@@ -137,8 +139,10 @@ class BundleAdjustmentParams:
                        "gauge_prior_position_m", "gauge_prior_rotation_deg", "height_sigma_m",
                        "intrinsics_focal_sigma", "intrinsics_principal_sigma_px", "intrinsics_k1_sigma",
                        "intrinsics_k2_sigma", "body_position_sigma_m", "body_rotation_sigma_deg", "body_size_sigma",
-                       "body_camera_sigma_m", "body_camera_sigma_deg")
+                       "body_camera_sigma_m", "body_camera_sigma_deg", "body_max_span_s")
         check(self.upright_sigma_deg >= 0, f"upright_sigma_deg must not be negative, got {self.upright_sigma_deg}")
+        check(self.body_motion_noise_px_per_s >= 0,
+              f"body_motion_noise_px_per_s must not be negative, got {self.body_motion_noise_px_per_s}")
         check(self.world_samples >= 1, f"world_samples must be at least 1, got {self.world_samples}")
         check(self.min_cameras >= 2 and self.max_instants >= 1 and self.rounds >= 1 and self.max_nfev >= 1,
               "need min_cameras >= 2, max_instants >= 1, rounds >= 1, max_nfev >= 1")
@@ -554,7 +558,7 @@ class Refinement:
                             self.vel[inst_a] * dt[:, None],
                             np.array([self.robots.index(i.robot) for i in self.instants], dtype=int), len(self.robots),
                             np.concatenate(wc) if wc else np.zeros(0, int), np.vstack(wp) if wp else np.zeros((0, 3)),
-                            np.vstack(wx) if wx else np.zeros((0, 2)))
+                            np.vstack(wx) if wx else np.zeros((0, 2)), dt)
 
     def freedom(self, *, cameras: bool = True, camera_prior: PosePrior | None = None, intrinsics: bool = False,
                 body: bool = False, free_scale: bool = False) -> Freedom:
@@ -572,7 +576,8 @@ class Refinement:
                                    p.body_position_sigma_m, np.radians(p.body_rotation_sigma_deg), p.body_size_sigma)
         return Freedom(cameras, camera_prior, intrinsics_prior, body_prior, free_scale, p.corner_noise_px,
                        p.world_corner_noise_px, p.f_scale_px, p.height_sigma_m if p.planar_motion else 0.0,
-                       float(np.radians(p.upright_sigma_deg)), p.max_nfev)
+                       float(np.radians(p.upright_sigma_deg)), p.max_nfev,
+                       p.body_motion_noise_px_per_s if body else 0.0)
 
     def solve(self, free: Freedom, world: Mapping[str, tuple[np.ndarray, np.ndarray]] | None = None) -> None:
         self.model = solve(self.observations(world), self.model, free)

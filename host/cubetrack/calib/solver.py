@@ -55,6 +55,7 @@ class Observations:
     ``motion_R`` (N, 3, 3), ``motion_t`` (N, 3): the body's motion from the instant's time to the
     frame's, ``exp(ω dt)`` and ``v dt``. ``robot`` (K,) of each instant, ``robots`` how many.
     World points: ``world_cam`` (M,), ``world_points`` (M, 3) metres, ``world_pixels`` (M, 2).
+    ``dt_s`` (N,): each body corner's time from its instant (seconds; None: all at the instant).
     """
 
     cam: np.ndarray
@@ -69,6 +70,7 @@ class Observations:
     world_cam: np.ndarray
     world_points: np.ndarray
     world_pixels: np.ndarray
+    dt_s: np.ndarray | None = None
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -134,7 +136,10 @@ class Freedom:
     """What a solve may change and how it is held: cameras (``cameras``; ``camera_prior`` None =
     no prior), intrinsics (``intrinsics`` prior, None = fixed), markers (``body`` prior, None =
     fixed), each body's scale (``free_scale``); the body poses are always free. Noise and
-    loss: ``corner_noise_px``, ``world_noise_px``, ``f_scale_px``; ground robots: ``height_sigma_m``
+    loss: ``corner_noise_px``, ``world_noise_px``, ``f_scale_px``, ``motion_noise_px_per_s`` (a body
+    corner's noise grows with its time from the instant, ``sqrt(corner_noise_px^2 + (motion_noise_px_per_s
+    dt)^2)``: the constant-velocity motion between an instant's frames misses turns and vibration);
+    ground robots: ``height_sigma_m``
     (0 = no common height), ``upright_sigma_rad`` (0 = no upright prior); ``max_nfev``."""
 
     cameras: bool = True
@@ -148,6 +153,7 @@ class Freedom:
     height_sigma_m: float = 0.0
     upright_sigma_rad: float = 0.0
     max_nfev: int = 60
+    motion_noise_px_per_s: float = 0.0
 
 
 def apply_increments(T0: np.ndarray, x: np.ndarray) -> np.ndarray:
@@ -273,6 +279,9 @@ def solve(obs: Observations, model: Model, free: Freedom) -> Model:
     sigma, sigma_w = free.corner_noise_px, free.world_noise_px
     heights0 = np.array([np.median(model.T_bodies[obs.robot == j, 2, 3]) if (obs.robot == j).any() else 0.0
                          for j in range(L.R)])
+    corner_sigma = np.full((len(obs.cam), 1), sigma)  # (N, 1) each body corner's noise
+    if free.motion_noise_px_per_s > 0 and obs.dt_s is not None:
+        corner_sigma = np.hypot(sigma, free.motion_noise_px_per_s * obs.dt_s)[:, None]
     f0 = model.K[:, [0, 1], [0, 1]]  # (C, 2)
     fmean0 = f0.mean(axis=1)
 
@@ -342,12 +351,12 @@ def solve(obs: Observations, model: Model, free: Freedom) -> Model:
             X = np.einsum("nij,nj->ni", obs.motion_R, a) + m.T_bodies[obs.inst, :3, 3] + obs.motion_t
             px, dX, dI = _projected(m, obs.cam, X, with_jac)
             front = np.isfinite(px[:, 0])
-            r = np.where(front[:, None], (px - obs.pixels) / sigma, _BEHIND_PX)
+            r = np.where(front[:, None], (px - obs.pixels) / corner_sigma, _BEHIND_PX)
             parts = []
             if with_jac:
-                A = dX / sigma * front[:, None, None]
+                A = dX / corner_sigma[:, :, None] * front[:, None, None]
                 dI = dI * front[:, None, None]
-                parts = cam_parts(obs.cam, X, A, dI, sigma)
+                parts = cam_parts(obs.cam, X, A, dI, corner_sigma[:, :, None])
                 parts.append((L.bodies + 6 * obs.inst[:, None] + np.arange(6),
                               np.concatenate([A, -(A @ obs.motion_R) @ skew(a)], axis=2)))
                 B = A @ obs.motion_R @ Rk  # d r / d P
