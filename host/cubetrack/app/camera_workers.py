@@ -2,8 +2,8 @@
 
 Each worker process owns a share of the cameras end to end: it reads their streams and
 ``/time`` round trips on its one thread, between frames (:class:`~cubetrack.source.streams.LiveCameras`
-without a thread of its own: non-blocking sockets; frames in arrival order, each camera's newest
-only), stamps capture times with its own clock fits, plans each frame and does the per-frame work
+without a thread of its own: non-blocking sockets; frames in arrival order, the freshest first
+once behind, each camera's newest only), stamps capture times with its own clock fits, plans each frame and does the per-frame work
 (decode, detection, per-camera estimates) with a :class:`~cubetrack.app.tracker.Tracker` of its
 own, whose plans come from a :class:`Forecast`: each robot's motion as the fusion predicts it,
 sent by the tracker's process after every batch of fused results. Results go back over a pipe
@@ -37,6 +37,7 @@ log = logging.getLogger(__name__)
 STATS_EVERY_S = 0.5  # a worker process sends its cameras' counters this often
 FORECAST_SPAN_S = 0.1  # the motion in a forecast: from the fusion's predictions this far apart
 FORECAST_EVERY_S = 0.01  # the tracker's process sends a new forecast at most this often
+BEHIND_S = 0.015  # a worker process whose oldest waiting frame is older than this takes the freshest first
 IN_FLIGHT = 4  # results a worker process may have sent that the fusion has not taken yet
 MESSAGES_PER_TAKE = 64  # messages read from one worker process per take(), so that no process starves another
 
@@ -248,8 +249,9 @@ def _work_cameras(conn: Connection, urls: dict[str, str], source: SourceParams, 
                     tracker.forecast = forecast or tracker.forecast
             room = stopping or sent - taken < IN_FLIGHT
             # in arrival order: the fusion gets fewer late sightings to fold in (each costs re-applying the
-            # newer ones) than freshest-first would give it; a camera keeps only its newest frame waiting
-            event = live.get(0 if stopping else 0.05, frames=room)  # or until a message comes
+            # newer ones) than freshest-first would give it; freshest first only once behind
+            event = live.get(0 if stopping else 0.05, frames=room,  # or until a message comes
+                             newest_first_after_s=BEHIND_S)
             if event is None:
                 if stopping:
                     break

@@ -567,12 +567,14 @@ class LiveCameras:
 
     # --- what the consumer sees ---
 
-    def get(self, timeout_s: float | None = None, frames: bool = True,
-            newest_first: bool = False) -> Frame | ClockReading | None:
+    def get(self, timeout_s: float | None = None, frames: bool = True, newest_first: bool = False,
+            newest_first_after_s: float | None = None) -> Frame | ClockReading | None:
         """The next event in arrival order, or None after ``timeout_s`` (or once stopped and drained).
         ``frames=False``: the next clock reading only (frames keep waiting: a consumer with no
         room for a frame still takes the clock samples). ``newest_first``: clock readings first,
-        then the frame that arrived last (the freshest, of whichever camera)."""
+        then the frame that arrived last (the freshest, of whichever camera);
+        ``newest_first_after_s``: so only while the oldest waiting frame has waited longer than
+        this (the consumer is behind), else arrival order."""
         if not self.threaded:
             self._read_for(timeout_s, frames)
         with self._cond:
@@ -580,6 +582,9 @@ class LiveCameras:
                 self._cond.wait(timeout_s)
             if self.failure is not None:
                 raise self.failure
+            if frames and not newest_first and newest_first_after_s is not None:
+                oldest = next((e for e in self._queue if isinstance(e, Frame)), None)
+                newest_first = oldest is not None and self.clock() - oldest.host_time_s > newest_first_after_s
             if frames and not newest_first:
                 if not self._queue:
                     return None

@@ -156,6 +156,25 @@ def test_a_consumer_that_falls_behind_keeps_each_cameras_newest_frame_only(tmp_p
         assert f.seq >= st.frames - 1  # the newest was kept
 
 
+def test_a_consumer_behind_gets_the_freshest_frame_first_one_keeping_up_the_oldest(tmp_path):
+    from cubecam.testdata import CameraSpec, write_recording
+
+    rec = write_recording(tmp_path / "rec", [CameraSpec("a"), CameraSpec("b")], frames=30, fps=10.0)
+    with Emulator(rec, loop=True) as emu:
+        with LiveCameras(emu.urls, SourceParams(clock_period_s=0.25)) as live:
+            time.sleep(1.5)  # nobody reads: each camera's newest frame waits
+            live.stop()
+            while live.get(0, frames=False) is not None:  # the clock samples
+                pass
+            waiting = [live._queue[0], live._queue[-1]]  # arrival order: the older, the fresher
+            assert [type(e) for e in waiting] == [Frame, Frame]
+            kept_up = live.get(0, newest_first_after_s=60.0)  # nothing waited that long: arrival order
+            live._queue.appendleft(kept_up)
+            live._queued_frames[kept_up.camera] += 1
+            behind = live.get(0, newest_first_after_s=0.001)  # the older one waited longer: freshest first
+    assert kept_up is waiting[0] and behind is waiting[1]
+
+
 def test_stop_wakes_a_read_blocked_on_a_silent_camera(images):
     with Emulator(images=images, fps=FPS, name="cam1", loop=True, faults=Faults(stall_after_s=0.3)) as emu:
         live = LiveCameras(emu.urls, SourceParams(read_timeout_s=30.0)).start()
