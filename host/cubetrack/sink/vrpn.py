@@ -40,6 +40,7 @@ import selectors
 import socket
 import struct
 import threading
+import time
 from collections import deque
 from dataclasses import dataclass
 
@@ -66,6 +67,7 @@ TYPES = (POS_QUAT, VELOCITY, PONG)  # our type ids are their indexes
 POS_QUAT_BODY = struct.Struct(">ii3d4d")
 VELOCITY_BODY = struct.Struct(">ii3d4dd")
 VEL_QUAT_DT_S = 1.0
+FLUSH_ON_CLOSE_S = 1.0  # at most this long, all clients together, for what is queued when the server closes
 SEND_BUFFER_BYTES = 64 * 1024  # kernel buffer per client: a slow client gets recent poses, not a backlog
 
 
@@ -210,6 +212,17 @@ class VrpnServer:
         self.closing = True
         self._wake()
         self.thread.join(5)
+        deadline = time.monotonic() + FLUSH_ON_CLOSE_S
+        with self.lock:  # what clients still have queued goes out (the session's last poses), briefly
+            for client in self.clients.values():
+                if client.connecting:
+                    continue
+                try:
+                    client.sock.settimeout(max(0.01, deadline - time.monotonic()))
+                    client.sock.sendall(client.partial)
+                    client.sock.sendall(b"".join(client.outbox))
+                except OSError:
+                    pass
         for sock in list(self.clients) + [self.tcp, self.udp, self.wake_r, self.wake_w]:
             sock.close()
         self.selector.close()
