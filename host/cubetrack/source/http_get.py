@@ -24,9 +24,9 @@ import time
 from collections.abc import Callable
 from urllib.parse import urlsplit
 
-MAX_HEAD_BYTES = 16384  # a response head longer than this is refused
-MAX_HEADERS = 100
-MAX_CHUNK_LINE = 1024
+import h11
+
+MAX_HEAD_BYTES = 16384  # a response head (or a chunk-size line) longer than this is refused
 _SO_TIMESTAMPNS = 35 if sys.platform.startswith("linux") else None  # SCM_TIMESTAMPNS too (asm-generic/socket.h)
 _TIMESPEC = struct.Struct("@qq")
 _ANC_SPACE = socket.CMSG_SPACE(_TIMESPEC.size) if hasattr(socket, "CMSG_SPACE") else 0
@@ -34,52 +34,6 @@ _ANC_SPACE = socket.CMSG_SPACE(_TIMESPEC.size) if hasattr(socket, "CMSG_SPACE") 
 
 class HttpError(Exception):
     """The peer answered something that is not a usable HTTP response (one line on what)."""
-
-
-class _Chunked:
-    """Incremental ``Transfer-Encoding: chunked`` decoder."""
-
-    def __init__(self) -> None:
-        self._buf = bytearray()
-        self._left = 0  # bytes of the current chunk still to come
-        self._crlf = False  # the CRLF after a chunk's data is due
-        self.done = False
-
-    def feed(self, data: bytes) -> bytes:
-        buf = self._buf
-        buf += data
-        out = bytearray()
-        while buf and not self.done:
-            if self._left:
-                take = min(self._left, len(buf))
-                out += buf[:take]
-                del buf[:take]
-                self._left -= take
-                self._crlf = self._left == 0
-                continue
-            nl = buf.find(b"\n")
-            if nl < 0:
-                if len(buf) > MAX_CHUNK_LINE:
-                    raise HttpError("bad chunked encoding (chunk size line too long)")
-                break
-            line = bytes(buf[:nl]).strip()
-            del buf[:nl + 1]
-            if self._crlf:
-                self._crlf = False
-                if line:
-                    raise HttpError("bad chunked encoding (no line end after a chunk)")
-                continue
-            size_text = line.split(b";", 1)[0].strip()
-            try:
-                size = int(size_text, 16)
-            except ValueError:
-                raise HttpError(f"bad chunked encoding (chunk size {size_text[:20]!r})") from None
-            if size < 0:
-                raise HttpError("bad chunked encoding (negative chunk size)")
-            if size == 0:
-                self.done = True
-            self._left = size
-        return bytes(out)
 
 
 class HttpGet:
@@ -90,8 +44,9 @@ class HttpGet:
     response (status, headers with lower-case names) once its head is in; :attr:`ended` is True
     once the body is complete (Content-Length reached, last chunk, or the server closed).
     ``sent_s`` is ``clock()`` taken just before the request was written; ``received_s`` the
-    receive time of the last byte read (see the module doc). Resolving a host name blocks; camera nodes are normally given by address. :attr:`filled`: the last read filled
-    the buffer (more may be waiting)."""
+    receive time of the last byte read (see the module doc). Resolving a host name blocks;
+    camera nodes are normally given by address. :attr:`filled`: the last read filled the buffer
+    (more may be waiting). The HTTP/1.1 parsing (head, body framing, chunks) is ``h11``'s."""
 
     def __init__(self, url: str, headers: dict[str, str], clock: Callable[[], float] = time.time,
                  read_bytes: int = 65536):
@@ -100,9 +55,10 @@ class HttpGet:
             raise ValueError(f"{url}: only http:// URLs are supported")
         port = u.port or 80
         path = (u.path or "/") + (f"?{u.query}" if u.query else "")
-        lines = [f"GET {path} HTTP/1.1", f"Host: {u.hostname}:{port}",
-                 *(f"{k}: {v}" for k, v in headers.items()), "", ""]
-        self._request = "\r\n".join(lines).encode("latin-1")
+        self._http = h11.Connection(h11.CLIENT, max_incomplete_event_size=MAX_HEAD_BYTES)
+        self._request = self._http.send(h11.Request(
+            method="GET", target=path, headers=[("Host", f"{u.hostname}:{port}"), *headers.items()]))
+        self._http.send(h11.EndOfMessage())
         self.clock = clock
         self.read_bytes = read_bytes
         self.kernel_stamps = clock is time.time and _SO_TIMESTAMPNS is not None
@@ -116,9 +72,6 @@ class HttpGet:
         self.sent_s = float("nan")
         self.received_s = float("nan")
         self.filled = False
-        self._head = bytearray()
-        self._length: int | None = None  # body bytes still to come (Content-Length), None: until close
-        self._chunked: _Chunked | None = None
         try:
             self.sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             if self.kernel_stamps:
@@ -150,25 +103,27 @@ class HttpGet:
             self.events = selectors.EVENT_READ
             return b""
         data = self._recv()
-        if not data:
-            if self.head is None:
-                raise HttpError("the server closed the connection without an answer")
-            if self._chunked is not None or self._length:
-                raise HttpError("the server closed the connection inside the body")
-            self.ended = True
-            return b""
-        if self.head is None:
-            data = self._read_head(data)
-            if self.head is None:
-                return b""
-        if self._chunked is not None:
-            data = self._chunked.feed(data)
-            self.ended = self._chunked.done
-        elif self._length is not None:
-            data = data[:self._length]
-            self._length -= len(data)
-            self.ended = self._length == 0
-        return data
+        self._http.receive_data(data)  # b"": the server closed the connection
+        body = bytearray()
+        try:
+            while not self.ended:
+                event = self._http.next_event()
+                if event is h11.NEED_DATA:
+                    break
+                if isinstance(event, h11.Response):
+                    self.head = (event.status_code,
+                                 {name.decode("latin-1"): value.decode("latin-1") for name, value in event.headers})
+                elif isinstance(event, h11.Data):
+                    body += event.data
+                elif isinstance(event, (h11.EndOfMessage, h11.ConnectionClosed)):
+                    if self.head is None:
+                        raise HttpError("the server closed the connection without an answer")
+                    self.ended = True
+        except h11.RemoteProtocolError as exc:
+            if self.head is None and not data:
+                raise HttpError("the server closed the connection without an answer") from None
+            raise HttpError(f"bad HTTP response ({exc})") from None
+        return bytes(body)
 
     def _recv(self) -> bytes:
         if not self.kernel_stamps:
@@ -186,37 +141,3 @@ class HttpGet:
         else:
             self.received_s = self.clock()
         return data
-
-    def _read_head(self, data: bytes) -> bytes:
-        self._head += data
-        end = self._head.find(b"\r\n\r\n")
-        skip = 4
-        if end < 0:
-            end, skip = self._head.find(b"\n\n"), 2
-        if end < 0:
-            if len(self._head) > MAX_HEAD_BYTES:
-                raise HttpError(f"response head longer than {MAX_HEAD_BYTES} bytes")
-            return b""
-        if end > MAX_HEAD_BYTES:
-            raise HttpError(f"response head longer than {MAX_HEAD_BYTES} bytes")
-        lines = bytes(self._head[:end]).decode("latin-1").splitlines()
-        rest = bytes(self._head[end + skip:])
-        self._head = bytearray()
-        status = lines[0].split(None, 2)
-        if len(status) < 2 or not status[0].startswith("HTTP/") or not status[1].isdigit():
-            raise HttpError(f"not an HTTP response ({lines[0][:40]!r})")
-        if len(lines) > MAX_HEADERS + 1:
-            raise HttpError(f"more than {MAX_HEADERS} response headers")
-        headers: dict[str, str] = {}
-        for line in lines[1:]:
-            name, sep, value = line.partition(":")
-            if not sep:
-                raise HttpError(f"malformed response header ({line[:40]!r})")
-            headers[name.strip().lower()] = value.strip()
-        self.head = (int(status[1]), headers)
-        if "chunked" in headers.get("transfer-encoding", "").lower():
-            self._chunked = _Chunked()
-        elif (length := headers.get("content-length", "")).isdigit():
-            self._length = int(length)
-            self.ended = self._length == 0
-        return rest
