@@ -11,6 +11,7 @@ import math
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.ndimage import uniform_filter1d
 from scipy.spatial.transform import Rotation
 
 from cubetrack.core.errors import SimulationError
@@ -20,6 +21,10 @@ _SHARP_WAYPOINTS = 8
 _SHARP_MIN_SEGMENT_M = 0.3
 _SHARP_MAX_TURN_DEG = 150.0
 _SHARP_STEP_M = 0.001  # resolution of the speed profile along the path
+# distance between a sharp-path robot's drive wheels: the 0.25 m wide robot body (wheels at its sides);
+# with the path's wheel acceleration limit it bounds the yaw acceleration, 2 accel / track
+WHEEL_TRACK_M = 0.25
+_SHARP_STRAIGHT_CURVATURE = 1e-6  # 1/m: below it a sharp path runs straight
 
 
 class RobotPath:
@@ -82,22 +87,60 @@ class SharpPath:
     """A closed loop through random waypoints in the path's extent, its corners rounded by arcs
     of ``turn_radius_m`` (smaller where the segments are short), driven at up to ``speed_m_s``,
     accelerating and braking at ``accel_m_s2``, and slow enough in each turn that the yaw rate
-    stays at most ``turn_rate_rad_s``. Turns of up to 150 degrees: sharp turns at speed."""
+    stays at most ``turn_rate_rad_s``. Turns of up to 150 degrees: sharp turns at speed.
+
+    A wheeled robot cannot step its yaw rate: the curvature ramps linearly into and out of each
+    arc (a clothoid transition: the arcs' curvature averaged over a sliding window of arc
+    length), long enough that at the turn's speed the yaw acceleration stays within what the
+    wheels can do, ``2 accel_m_s2 / WHEEL_TRACK_M``; where the curvature ramps more steeply
+    (shorter arcs) the robot drives slower."""
 
     def __init__(self, half_extent_m: tuple[float, float], speed_m_s: float, accel_m_s2: float,
                  turn_rate_rad_s: float, turn_radius_m: float, start_fraction: float, rng: np.random.Generator):
         points = self._waypoints(half_extent_m, rng)
         self.pieces = self._round_corners(points, turn_radius_m)
         self.length_m = self.pieces[-1].start_m + self.pieces[-1].length_m
-        # speed limit along the path, then acceleration limits forwards and backwards (twice
-        # round the loop, so the limits carry over the start)
+        self.yaw_accel_limit_rad_s2 = 2.0 * accel_m_s2 / WHEEL_TRACK_M
         n = max(math.ceil(self.length_m / _SHARP_STEP_M), 16)
         s = np.linspace(0.0, self.length_m, n + 1)
-        starts = np.array([p.start_m for p in self.pieces])
-        radius = np.array([p.radius_m for p in self.pieces])[np.clip(np.searchsorted(starts, s, "right") - 1, 0, None)]
-        limit = np.where(radius > 0, np.minimum(speed_m_s, turn_rate_rad_s * radius), speed_m_s)
-        v2 = limit**2
         ds = self.length_m / n
+        curvature = self._transition_curvature(s, ds, speed_m_s, turn_rate_rad_s, turn_radius_m)
+        self._xy, self._yaw = self._integrate(s, ds, curvature)
+        # speed limit along the path: through each turn (where the curvature is not zero) one
+        # speed, at which the yaw rate v k stays within turn_rate_rad_s and the yaw acceleration
+        # v^2 dk/ds within the wheels' limit; braking and accelerating happen on the straights
+        turn_limit = np.minimum(turn_rate_rad_s / np.maximum(np.abs(curvature), 1e-12),
+                                np.sqrt(self.yaw_accel_limit_rad_s2 / np.maximum(np.abs(np.gradient(curvature, ds)), 1e-12)))
+        limit = np.minimum(speed_m_s, self._per_turn_minimum(turn_limit, np.abs(curvature) > _SHARP_STRAIGHT_CURVATURE))
+        v = self._speed_profile(limit, accel_m_s2, ds)
+        # time along the path: constant acceleration between profile points
+        dt = 2.0 * ds / (v[:-1] + v[1:])
+        self._s = s
+        self._t = np.concatenate([[0.0], np.cumsum(dt)])
+        self.lap_s = float(self._t[-1])
+        self._t0 = float(np.interp(start_fraction * self.length_m, s, self._t))
+
+    @staticmethod
+    def _per_turn_minimum(values: np.ndarray, turning: np.ndarray) -> np.ndarray:
+        """``values`` with each closed-loop run of ``turning`` samples set to the run's minimum."""
+        out = values.copy()
+        if turning.all():
+            return np.full_like(values, values.min())
+        shift = int(np.argmin(turning))  # a straight sample: runs start after it
+        order = np.roll(np.arange(len(values)), -shift)
+        run = np.cumsum(~turning[order])  # the same id along one run of turning samples
+        on = turning[order]
+        for r in np.unique(run[on]):
+            idx = order[on & (run == r)]
+            out[idx] = values[idx].min()
+        return out
+
+    @staticmethod
+    def _speed_profile(limit_m_s: np.ndarray, accel_m_s2: float, ds: float) -> np.ndarray:
+        """The fastest speed under ``limit_m_s`` reached accelerating and braking at ``accel_m_s2``
+        (twice round the loop, so the limits carry over the start)."""
+        v2 = limit_m_s**2
+        n = len(v2) - 1
         for _ in range(2):
             for k in range(1, n + 1):
                 v2[k] = min(v2[k], v2[k - 1] + 2.0 * accel_m_s2 * ds)
@@ -105,14 +148,38 @@ class SharpPath:
             for k in range(n - 1, -1, -1):
                 v2[k] = min(v2[k], v2[k + 1] + 2.0 * accel_m_s2 * ds)
             v2[n] = min(v2[n], v2[0] + 2.0 * accel_m_s2 * ds)
-        v = np.sqrt(v2)
-        # time along the path: constant acceleration between profile points
-        dt = 2.0 * ds / (v[:-1] + v[1:])
-        self._s = s
-        self._t = np.concatenate([[0.0], np.cumsum(dt)])
-        self.lap_s = float(self._t[-1])
-        self._t0 = float(np.interp(start_fraction * self.length_m, s, self._t))
-        self._starts = starts
+        return np.sqrt(v2)
+
+    def _transition_curvature(self, s: np.ndarray, ds: float, speed_m_s: float, turn_rate_rad_s: float,
+                              turn_radius_m: float) -> np.ndarray:
+        """Signed curvature (1/m) at ``s``: the arcs' curvature averaged over a window as long as
+        the yaw rate of a turn at full radius needs to ramp up at the yaw acceleration limit."""
+        starts = np.array([p.start_m for p in self.pieces])
+        k_piece = np.array([p.turn / p.radius_m if p.radius_m > 0 else 0.0 for p in self.pieces])
+        k = k_piece[np.clip(np.searchsorted(starts, s[:-1], "right") - 1, 0, None)]
+        v_turn = min(speed_m_s, turn_rate_rad_s * turn_radius_m)
+        ramp_m = v_turn**2 / (turn_radius_m * self.yaw_accel_limit_rad_s2)
+        window = max(round(ramp_m / ds) | 1, 1)
+        smooth = uniform_filter1d(k, window, mode="wrap")
+        return np.append(smooth, smooth[0])
+
+    def _integrate(self, s: np.ndarray, ds: float, curvature: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Positions (x, y) and headings at ``s`` of the path with ``curvature``, placed on the
+        designed path at the middle of its first straight and closed (the small gap the
+        transitions leave spread evenly along the loop)."""
+        first = self.pieces[0]
+        mid = round((first.start_m + 0.5 * first.length_m) / ds)
+        heading = np.concatenate([[0.0], np.cumsum(0.5 * (curvature[:-1] + curvature[1:]) * ds)])
+        turns = round((heading[-1] - heading[0]) / (2.0 * math.pi))
+        heading -= s / s[-1] * (heading[-1] - heading[0] - 2.0 * math.pi * turns)  # closes to whole turns
+        heading += first.angle_rad - heading[mid]
+        tangent = np.stack([np.cos(heading), np.sin(heading)], axis=-1)
+        xy = np.concatenate([[[0.0, 0.0]], np.cumsum(0.5 * (tangent[:-1] + tangent[1:]) * ds, axis=0)])
+        gap = xy[-1] - xy[0]
+        xy -= np.outer(s / s[-1], gap)
+        tangent -= gap / s[-1]
+        xy += first.pose(first.start_m + 0.5 * first.length_m)[0] - xy[mid]
+        return xy, np.unwrap(np.arctan2(tangent[:, 1], tangent[:, 0]))
 
     @staticmethod
     def _waypoints(half_extent_m: tuple[float, float], rng: np.random.Generator) -> np.ndarray:
@@ -164,8 +231,8 @@ class SharpPath:
         """Ground position (x, y) in metres and heading (rad) ``t_s`` seconds after the start."""
         t = (self._t0 + t_s) % self.lap_s
         s = float(np.interp(t, self._t, self._s))
-        piece = self.pieces[max(int(np.searchsorted(self._starts, s, "right")) - 1, 0)]
-        return piece.pose(s)
+        xy = np.array([np.interp(s, self._s, self._xy[:, 0]), np.interp(s, self._s, self._xy[:, 1])])
+        return xy, float(np.interp(s, self._s, self._yaw))
 
 
 def make_path(kind: str, half_extent_m: tuple[float, float], speed_m_s: float, start_fraction: float,
