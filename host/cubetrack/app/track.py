@@ -146,10 +146,12 @@ def track_recording(config: TrackerConfig, recording: Recording,
     """Replay a recording through the tracker, writing ``<out_dir>/<robot>.tum`` and ``.jsonl``,
     feeding ``sinks`` (other outputs) the same poses, and recording how in ``<out_dir>/run.json``
     (``extrinsics_path``: where ``extrinsics`` were read, for that record). ``params`` None: the
-    config's sections. ``workers``: frame worker processes (0: one per core; recordings of fewer
-    than ``MIN_FRAMES_FOR_WORKERS`` frames are replayed on one thread); the poses are the same
+    config's sections. ``workers``: frame worker processes (0: one per core beyond the one this
+    thread's planning and fusion need, so none on two cores, where three busy processes replay
+    slower than one thread (docs/live.md); recordings of fewer than ``MIN_FRAMES_FOR_WORKERS``
+    frames are replayed on one thread); the poses are the same
     whatever their number (:func:`track_frames`)."""
-    workers = workers or os.cpu_count() or 1
+    workers = workers or max(1, (os.cpu_count() or 1) - 1)
     params = params or config_params(config).stages
     cameras = recording.camera_names
     clock = {c: recording.clock_samples(c) for c in cameras}
