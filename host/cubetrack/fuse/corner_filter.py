@@ -61,7 +61,9 @@ class FilterParams:
     face_gate_px: float = param(1.2, "a face whose corners stay farther off than this (RMS) after the update is left out, pixels")
     iterations: int = param(2, "Gauss-Newton iterations of each update (the prediction starts close: more change nothing measurable)")
     init_velocity_sigma: float = param(0.5, "velocity uncertainty (1 sigma) at track start, m/s")
-    init_angular_velocity_sigma: float = param(1.0, "angular velocity uncertainty (1 sigma) at track start, rad/s")
+    init_angular_velocity_sigma: float = param(3.0, "angular velocity uncertainty (1 sigma) at track start, rad/s "
+                                               "(robots turn at up to 3.5 rad/s: a tighter prior pulls a start in a turn "
+                                               "towards no turn)")
 
     def __post_init__(self) -> None:
         for name in ("accel_noise", "angular_accel_noise", "yaw_accel_noise", "steady_yaw_accel_noise",

@@ -292,3 +292,16 @@ def test_faces_seen_more_obliquely_than_max_view_angle_are_left_out():
     assert default < every  # the oblique face was detected and matched, and is left out by default
     with pytest.raises(ValueError):
         FusionParams(max_view_angle_deg=0.0)
+
+
+def test_a_track_started_in_a_sharp_turn_is_as_good_from_its_first_pose():
+    """The start fits pose and velocities to three sightings of two cameras; its angular velocity
+    prior must not pull a sharp turn's 3 rad/s yaw rate towards zero (with a 1 rad/s prior the
+    first pose is 1.0-1.3 deg off, the later ones 0.2-0.7)."""
+    first = []
+    for seed in range(4):
+        poses = run(FilterFusion({"bot": LAYOUT}), rolling_shutter_sightings(0.0, 0.0, np.random.default_rng(seed), 0.8))
+        first.append([rotation_angle(Rotation.from_quat(p.quaternion_xyzw).as_matrix(), turning(p.time_s)[:3, :3])
+                      for p in poses[:3]])
+    first = np.degrees(first)
+    assert first[:, 0].mean() < 0.8 and first.max() < 2.5, first
