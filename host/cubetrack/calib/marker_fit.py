@@ -30,6 +30,7 @@ from scipy.optimize import least_squares
 from cubetrack.calib.solver import project
 from cubetrack.core.cameras import CameraIntrinsics
 from cubetrack.core.geometry import undistort_points
+from cubetrack.core.params import check, check_positive
 from cubetrack.detect.detector import aruco_dictionary
 
 _TEMPLATE_RES = 16  # template samples per module
@@ -54,6 +55,12 @@ class TemplateFitParams:
     start_blur_px: float = 0.8
     max_move_px: float = 1.5
     max_nfev: int = 40
+
+    def __post_init__(self) -> None:
+        check_positive(self, "supersample", "white_modules", "margin_modules", "start_blur_px", "max_move_px",
+                       "max_nfev")
+        check(self.margin_modules <= self.white_modules,
+              f"margin_modules ({self.margin_modules}) must not exceed white_modules ({self.white_modules})")
 
 
 @functools.lru_cache(maxsize=64)
