@@ -86,7 +86,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--quick", action="store_true", help="smoke run: 2 cameras x 10 fps, 5 s, small recording")
     p.add_argument("--record", action="store_true",
                    help="the tracker records the session too; the offline replay and the speed comparison use it")
-    p.add_argument("--worker-kind", choices=("process", "thread", "camera-process"),
+    p.add_argument("--worker-kind", choices=("auto", "process", "thread", "camera-process"),
                    help="the tracker's [live] worker_kind (default: the config's, i.e. the package default)")
     p.add_argument("--outputs", action="store_true",
                    help="issue 10: a second live session with every output on (--zenoh --ros2 --vrpn --foxglove "

@@ -372,7 +372,7 @@ def track_live(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
     if live_params.worker_kind is WorkerKind.CAMERA_PROCESS and recorder is not None:
         log.warning("recording: frames are recorded by this process, so they are read here and processed by "
                     "worker threads instead of camera worker processes")
-    live_params = dataclasses.replace(live_params, worker_kind=live_params.kind_for(recorder is not None))
+    live_params = dataclasses.replace(live_params, worker_kind=live_params.kind_for(len(urls), recorder is not None))
     if live_params.worker_kind is WorkerKind.CAMERA_PROCESS:
         pool = None
         make_tracker = functools.partial(Tracker, intrinsics, config.world, config.robots, extrinsics, params,

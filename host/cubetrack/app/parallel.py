@@ -34,9 +34,13 @@ from cubetrack.core.params import check, param
 
 @enum.unique
 class WorkerKind(enum.Enum):
+    AUTO = "auto"
     PROCESS = "process"
     THREAD = "thread"
     CAMERA_PROCESS = "camera-process"
+
+
+CAMERA_PROCESSES_FROM = 12  # [live] worker_kind = "auto": camera worker processes from this many cameras on
 
 
 @dataclass(frozen=True, slots=True)
@@ -45,11 +49,12 @@ class LiveParams:
 
     workers: int = param(0, "per-frame workers (decode, detection, per-camera estimate); 0: one per core")
     worker_kind: WorkerKind = param(
-        WorkerKind.THREAD,
-        "thread: threads of the tracker's process (the fastest here, measured: docs/live.md); process: worker "
-        "processes, each frame's JPEG handed over through a pipe; camera-process: worker processes that each read a "
-        "share of the cameras and do their per-frame work, the fusion in the tracker's process "
-        "(cubetrack.app.camera_workers; not while recording)")
+        WorkerKind.AUTO,
+        "auto: camera-process from 12 cameras on (when not recording, on more than one core), else thread "
+        "(measured, docs/live.md); thread: threads of the tracker's process; process: worker processes, each "
+        "frame's JPEG handed over through a pipe; camera-process: worker processes that each read a share of the "
+        "cameras and do their per-frame work, the fusion in the tracker's process (cubetrack.app.camera_workers; "
+        "not while recording)")
 
     def __post_init__(self) -> None:
         check(self.workers >= 0, f"workers must not be negative, got {self.workers}")
@@ -58,10 +63,13 @@ class LiveParams:
     def worker_count(self) -> int:
         return self.workers or os.cpu_count() or 1
 
-    def kind_for(self, recording: bool) -> WorkerKind:
-        """The worker kind a live session runs with (``recording``: it also records, which the
-        tracker's process does: no camera worker processes then)."""
+    def kind_for(self, cameras: int, recording: bool) -> WorkerKind:
+        """The worker kind a live session of ``cameras`` cameras runs with (``recording``: it also
+        records, which the tracker's process does: no camera worker processes then)."""
         kind = self.worker_kind
+        if kind is WorkerKind.AUTO:
+            kind = WorkerKind.CAMERA_PROCESS if cameras >= CAMERA_PROCESSES_FROM and self.worker_count > 1 \
+                else WorkerKind.THREAD
         return WorkerKind.THREAD if kind is WorkerKind.CAMERA_PROCESS and recording else kind
 
 

@@ -14,7 +14,7 @@ import pytest
 import test_tracker
 from test_tracker import BLUE, INTRINSICS, RED, T_WORLD_CAM, WORLD
 
-from cubetrack.app.parallel import FramePool, LiveParams, WorkerKind
+from cubetrack.app.parallel import CAMERA_PROCESSES_FROM, FramePool, LiveParams, WorkerKind
 from cubetrack.app.tracker import FrameJob, FrameOutcome, FrameWorker, StageParams
 from cubetrack.core.errors import SourceError
 from cubetrack.core.records import Frame
@@ -82,13 +82,18 @@ def test_a_worker_process_that_dies_ends_the_session_with_one_clear_error(scenes
 
 def test_live_params_default_to_one_worker_per_core():
     assert LiveParams().worker_count == (os.cpu_count() or 1)
-    assert LiveParams().worker_kind is WorkerKind.THREAD
+    assert LiveParams().worker_kind is WorkerKind.AUTO
     assert LiveParams(workers=3).worker_count == 3
     with pytest.raises(Exception, match="workers"):
         LiveParams(workers=-1)
 
 
-def test_camera_processes_fall_back_to_threads_while_recording():
-    assert LiveParams(worker_kind=WorkerKind.CAMERA_PROCESS).kind_for(recording=True) is WorkerKind.THREAD
-    assert LiveParams(worker_kind=WorkerKind.CAMERA_PROCESS).kind_for(recording=False) is WorkerKind.CAMERA_PROCESS
-    assert LiveParams(worker_kind=WorkerKind.PROCESS).kind_for(recording=True) is WorkerKind.PROCESS
+def test_auto_takes_camera_processes_for_many_cameras_unless_recording_or_on_one_core():
+    auto = LiveParams(workers=2)
+    assert auto.kind_for(CAMERA_PROCESSES_FROM, recording=False) is WorkerKind.CAMERA_PROCESS
+    assert auto.kind_for(CAMERA_PROCESSES_FROM - 1, recording=False) is WorkerKind.THREAD
+    assert auto.kind_for(16, recording=True) is WorkerKind.THREAD  # the tracker's process writes the recording
+    assert LiveParams(workers=1).kind_for(16, recording=False) is WorkerKind.THREAD
+    chosen = LiveParams(worker_kind=WorkerKind.PROCESS)
+    assert chosen.kind_for(16, recording=False) is WorkerKind.PROCESS
+    assert LiveParams(worker_kind=WorkerKind.CAMERA_PROCESS).kind_for(3, recording=True) is WorkerKind.THREAD
