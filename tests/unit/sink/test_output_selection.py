@@ -111,7 +111,10 @@ def test_a_foxglove_server_and_an_mcap_file_alike_share_one_sink(tmp_path):
     finally:
         close_sinks(sinks)
     (tmp_path / "s.mcap").unlink()
-    both[2] = OutputSpec({"type": "mcap", "path": "s.mcap", "image_fps": 0}, tmp_path, "--mcap")  # every image
+    # fresh ports: the closed server's port may not be free again at once
+    both = [OutputSpec({"type": "foxglove", "address": f"127.0.0.1:{free_port()}"}, tmp_path, "--foxglove"),
+            OutputSpec({"type": "vrpn", "address": f"127.0.0.1:{free_port()}"}, tmp_path, "--vrpn"),
+            OutputSpec({"type": "mcap", "path": "s.mcap", "image_fps": 0}, tmp_path, "--mcap")]  # every image
     sinks = output_sinks(both)
     try:
         assert [type(s) for s in sinks] == [FoxgloveSink, VrpnSink, FoxgloveSink]  # apart: they differ
