@@ -95,8 +95,8 @@ class Sink(abc.ABC):
     view_interval_s: float = 0.0
     #: where a user finds this output (one line for the command line), "" for none
     where: str = ""
-    #: behind a :class:`Decoupled` queue: after an item arrives, wait this long for more and hand
-    #: all that is queued over together (:meth:`deliver`); 0: one by one, at once
+    #: behind a :class:`Decoupled` queue: hand over all that is queued together (:meth:`deliver`),
+    #: at most one batch per this long (an item after a quiet spell goes at once); 0: one by one
     batch_window_s: float = 0.0
 
     def deliver(self, items: list[tuple[str, object]]) -> None:
@@ -175,14 +175,18 @@ class Decoupled(Sink):
 
     def _serve(self) -> None:
         window_s = self.inner.batch_window_s
+        last_s = float("-inf")  # when the last batch went
         while True:
             with self._ready:
                 while not self._queue and not self._closing:
                     self._ready.wait()
                 if not self._queue:
                     return
-            if window_s > 0:  # a batching sink: what arrives meanwhile joins the batch
-                time.sleep(window_s)  # (puts do not wake this thread)
+            if window_s > 0:  # a batching sink: at most one batch per window, so an item that comes
+                wait_s = last_s + window_s - time.monotonic()  # after a quiet spell goes at once
+                if wait_s > 0:  # and ones that follow it closely join the next batch
+                    time.sleep(wait_s)  # (puts do not wake this thread)
+                last_s = time.monotonic()
             with self._ready:
                 if window_s > 0:
                     items = list(self._queue)

@@ -6,8 +6,8 @@ Foxglove annotations) takes its share of the same lock from the pipeline. :class
 runs a set of outputs in a child process instead; the pipeline's side only pickles items onto a
 pipe (from the :class:`~cubetrack.sink.base.Decoupled` thread :class:`Outputs` gives it, so a
 full pipe costs the pipeline nothing: the oldest items are dropped and counted there). Items go
-in batches (whatever arrived within ``BATCH_WINDOW_S`` of the first: one wake-up, one pickle and
-one write for several), each record as a compact tuple of plain values (:func:`pack`): pickling
+in batches (at most one per ``BATCH_WINDOW_S``: an item after a quiet spell goes at once, and what
+follows it within the window waits for the next batch: one wake-up, one pickle and one write for several), each record as a compact tuple of plain values (:func:`pack`): pickling
 the frozen dataclasses and their small numpy arrays as objects cost ten times more.
 
 The child builds its outputs with ``factory`` (a picklable callable returning the sinks, e.g. a
@@ -38,7 +38,7 @@ log = logging.getLogger(__name__)
 
 START_TIMEOUT_S = 60.0  # importing zenoh and foxglove-sdk on a loaded machine takes seconds
 CLOSE_TIMEOUT_S = 30.0  # the child delivers what it holds (up to 5 s per output) and closes MCAP files
-BATCH_WINDOW_S = 0.004  # items wait at most this long for others to share their pipe write
+BATCH_WINDOW_S = 0.004  # at most one pipe write per this long; an item waits at most this long
 
 
 def _array(values: np.ndarray | None) -> bytes | None:

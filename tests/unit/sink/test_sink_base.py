@@ -102,3 +102,36 @@ def test_in_line_outputs_of_the_outputs_process_fail_alone(tmp_path, caplog):
             outputs.pose(pose(i))  # never raises
     assert broken.failed == "peer went away" and caplog.text.count("output broken failed") == 1
     assert len((tmp_path / "r1.jsonl").read_text().splitlines()) == 3  # the other output saw every pose
+
+
+class Batching(Sink):
+    """A batching sink (as the outputs' process's pipe is) that records each batch it is handed."""
+
+    name = "batching"
+    batch_window_s = 0.5
+
+    def __init__(self):
+        self.batches: list[list[float]] = []
+        self.delivered = threading.Event()
+
+    def deliver(self, items):
+        self.batches.append([value.time_s for _, value in items])
+        self.delivered.set()
+
+    def pose(self, p):  # only batches reach it
+        raise AssertionError("a batching sink is handed batches")
+
+
+def test_a_batching_sink_sends_a_lone_item_at_once_and_batches_what_follows_it():
+    inner = Batching()
+    sink = Decoupled(inner)
+    try:
+        sink.pose(pose(0))
+        assert inner.delivered.wait(0.25), "a lone item after a quiet spell waited for the batching window"
+        inner.delivered.clear()
+        sink.pose(pose(1))  # within the window of the first batch: these wait for the next one, together
+        sink.pose(pose(2))
+        assert inner.delivered.wait(5.0)
+    finally:
+        sink.close()
+    assert inner.batches == [[100.0], [101.0, 102.0]]
