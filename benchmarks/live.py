@@ -147,7 +147,9 @@ def _tree(pid: int) -> list[int]:
     return pids
 
 
-def _cpu_rss(pid: int) -> tuple[float, int] | None:
+def process_cpu_rss(pid: int) -> tuple[float, int] | None:
+    """User + system CPU seconds (all threads) and resident bytes of process ``pid`` (None: gone).
+    benchmarks/outputs.py reads its child's CPU with it too."""
     try:
         with open(f"/proc/{pid}/stat") as f:
             fields = f.read().rsplit(")", 1)[1].split()
@@ -175,7 +177,7 @@ class TreeSampler:
         while not self._stop.is_set():
             rss, alive = 0, 0
             for p in _tree(self.pid):
-                got = _cpu_rss(p)
+                got = process_cpu_rss(p)
                 if got is not None:
                     self.cpu[p], r = got
                     rss, alive = rss + r, alive + 1
@@ -474,12 +476,12 @@ def speed(args: argparse.Namespace, rec: Path, work: Path, live: dict) -> dict:
             pool.wait(0.2)
             pool.take()  # raises if a worker process failed to start
         pids = pool.process_ids
-        cpu0, main0, t0 = sum(_cpu_rss(p)[0] for p in pids), time.process_time(), time.perf_counter()
+        cpu0, main0, t0 = sum(process_cpu_rss(p)[0] for p in pids), time.process_time(), time.perf_counter()
         track_frames(frames, intrinsics, config.world, layouts, extrinsics, _NoSink(), settings.stages,
                      clock_samples=clock, pool=pool)
         wall = time.perf_counter() - t0
         main_ms, workers_ms = ((time.process_time() - main0) / len(frames) * 1000.0,
-                               (sum(_cpu_rss(p)[0] for p in pids) - cpu0) / len(frames) * 1000.0)
+                               (sum(process_cpu_rss(p)[0] for p in pids) - cpu0) / len(frames) * 1000.0)
     pool_fps = len(frames) / wall
     # ours: as `track --recording` runs on this machine (worker processes only for the cores beyond one)
     replay_workers = max(1, (os.cpu_count() or 1) - 1)

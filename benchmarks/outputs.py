@@ -46,9 +46,10 @@ import time
 from dataclasses import replace
 from pathlib import Path
 
+from live import process_cpu_rss  # benchmarks/live.py, next to this script (one /proc reader)
+
 ROOT = Path(__file__).resolve().parents[1]
 OUTPUTS = ("zenoh", "ros2", "vrpn", "foxglove", "mcap")
-TICK = os.sysconf("SC_CLK_TCK")
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
@@ -155,13 +156,6 @@ def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return s.getsockname()[1]
-
-
-def process_cpu_s(pid: int) -> float:
-    """User + system CPU seconds of process ``pid`` (all its threads)."""
-    with open(f"/proc/{pid}/stat") as f:
-        fields = f.read().rsplit(")", 1)[1].split()
-    return (int(fields[11]) + int(fields[12])) / TICK
 
 
 def output_specs(names: list[str], work: Path, ports: tuple[int, int, int] | None):
@@ -287,7 +281,7 @@ def _feed(args: argparse.Namespace, stream, names: list[str], work: Path, ports)
     outputs.open(session)
     sent = fed_frames = 0
     start_s, start_cpu = time.monotonic(), time.process_time()
-    start_child = process_cpu_s(child) if child else 0.0
+    start_child = process_cpu_rss(child)[0] if child else 0.0
     t0 = items[0][0]
     loop = 0
     while True:
@@ -317,7 +311,7 @@ def _feed(args: argparse.Namespace, stream, names: list[str], work: Path, ports)
     parent_cpu = time.process_time() - start_cpu
     settle_s = 0.5
     time.sleep(settle_s)
-    child_cpu = process_cpu_s(child) - start_child if child else 0.0
+    child_cpu = process_cpu_rss(child)[0] - start_child if child else 0.0
     dropped = sum(outputs.dropped().values())
     outputs.close()
     mcap = work / "outputs_bench.mcap"
