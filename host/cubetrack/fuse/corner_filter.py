@@ -50,7 +50,7 @@ class FilterParams:
     accel_noise: float = param(0.5, "white-noise acceleration spectral density, m/s^2/sqrt(Hz)")
     angular_accel_noise: float = param(0.5, "white-noise angular acceleration spectral density about the world's x and y "
                                        "axes (tilting), rad/s^2/sqrt(Hz)")
-    yaw_accel_noise: float = param(10.0, "white-noise angular acceleration spectral density about the world's z axis "
+    yaw_accel_noise: float = param(5.0, "white-noise angular acceleration spectral density about the world's z axis "
                                    "while the robot turns sharply (robots turn sharply, they tilt little), rad/s^2/sqrt(Hz)")
     steady_yaw_accel_noise: float = param(3.0, "the same once it has not turned sharply for turn_hold_s, rad/s^2/sqrt(Hz)")
     sharp_turn_rad_s: float = param(2.0, "a yaw rate above this is a sharp turn, rad/s")
