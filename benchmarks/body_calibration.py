@@ -11,12 +11,14 @@ truth (``true_cube.toml``, compared in the body frame that fits it best, as
 rotation error (°) and the size error (mm); max and mean over the markers; the nominal layout's
 errors for reference. Each recording is calibrated with the calibration's corners (the
 default: edge fit, then the template fit of :mod:`cubetrack.calib.marker_fit`) and, with
-``--compare``, with the detector's corners (``[bundle_adjustment] body_edge_corners = false``).
-CPU seconds of each calibrate-body (its child process), the core count and the load average are
+``--compare``, with the detector's corners (``[bundle_adjustment] body_edge_corners = false``),
+and with ``--compare-instants`` with the instants model (``body_knot_s = 0``: one body pose per
+instant, moved with a fitted velocity) instead of the body's continuous-time trajectory. CPU seconds of each calibrate-body (its child process), the core count and the load average are
 printed.
 
     .venv/bin/python benchmarks/body_calibration.py [--seeds 44 45] [--duration 60] [--out DIR]
-                                                    [--path sharp] [--compare] [--refine-intrinsics]
+                                                    [--path sharp] [--compare] [--compare-instants]
+                                                    [--refine-intrinsics]
 
 ``--out`` keeps the recordings (DIR/seed<N>) and reuses a complete one made with the same
 parameters; without it they go to a temporary folder. A 60 s recording takes a few minutes to
@@ -71,14 +73,19 @@ def simulate(rec: Path, seed: int, duration_s: float, path: str) -> None:
     print(f"seed {seed}: simulated {duration_s:g} s in {time.monotonic() - t0:.0f} s", flush=True)
 
 
-def calibrate(rec: Path, corners: str, refine_intrinsics: bool) -> tuple[Path, float]:
-    """calibrate-body on ``rec`` with the calibration's (``calibration``) or the detector's
-    (``detector``) corners; the layout written and the child's CPU seconds."""
+# the calibrations compared: name -> [bundle_adjustment] settings over the recording's config
+KINDS = {"calibration": "", "detector": "body_edge_corners = false", "instants": "body_knot_s = 0.0"}
+
+
+def calibrate(rec: Path, kind: str, refine_intrinsics: bool) -> tuple[Path, float]:
+    """calibrate-body on ``rec`` as ``kind`` says (:data:`KINDS`: the default, the detector's
+    corners, or instants instead of the body's continuous-time trajectory); the layout written and
+    the child's CPU seconds."""
     config = rec / "config.toml"
-    if corners == "detector":
-        config = rec / "config_detector_corners.toml"
-        config.write_text((rec / "config.toml").read_text() + "\n[bundle_adjustment]\nbody_edge_corners = false\n")
-    out = rec / f"body_{corners}{'_intrinsics' if refine_intrinsics else ''}.toml"
+    if KINDS[kind]:
+        config = rec / f"config_{kind}.toml"
+        config.write_text((rec / "config.toml").read_text() + f"\n[bundle_adjustment]\n{KINDS[kind]}\n")
+    out = rec / f"body_{kind}{'_intrinsics' if refine_intrinsics else ''}.toml"
     cpu0 = child_cpu_s()
     run(["calibrate-body", "--config", str(config), "--extrinsics", str(rec / "true_extrinsics.toml"),
          "--recording", str(rec), "--out", str(out), *(["--refine-intrinsics"] if refine_intrinsics else [])])
@@ -106,9 +113,11 @@ def main(argv: list[str] | None = None) -> int:
                     help="the robot's path (default: sharp, the realistic preset's)")
     ap.add_argument("--out", type=Path, help="keep the recordings here (and reuse complete ones)")
     ap.add_argument("--compare", action="store_true", help="also calibrate with the detector's corners")
+    ap.add_argument("--compare-instants", action="store_true",
+                    help="also calibrate with instants (body_knot_s = 0) instead of the body's trajectory")
     ap.add_argument("--refine-intrinsics", action="store_true", help="calibrate-body --refine-intrinsics")
     args = ap.parse_args(argv)
-    kinds = ["calibration", *(["detector"] if args.compare else [])]
+    kinds = ["calibration", *(["detector"] if args.compare else []), *(["instants"] if args.compare_instants else [])]
     print(f"body calibration benchmark: {os.cpu_count()} cores, load average "
           f"{' '.join(f'{x:.1f}' for x in os.getloadavg())}; realistic preset, path {args.path}, "
           f"{args.duration:g} s, seeds {' '.join(map(str, args.seeds))}", flush=True)
@@ -126,10 +135,10 @@ def main(argv: list[str] | None = None) -> int:
                 out, cpu = calibrate(rec, kind, args.refine_intrinsics)
                 err = errors(out, truth)
                 s = summary(err)
-                rows.append((seed, f"{kind} corners", s, cpu))
+                rows.append((seed, f"{kind}", s, cpu))
                 if kind == "calibration":
                     met &= s[0] <= TARGET_MM and s[1] <= TARGET_DEG
-                print(f"seed {seed}, {kind} corners: {cpu:.0f} CPU s; per marker (position mm, rotation deg, size mm): "
+                print(f"seed {seed}, {kind}: {cpu:.0f} CPU s; per marker (position mm, rotation deg, size mm): "
                       + ", ".join(f"{face} {1e3 * p:.2f} {r:.3f} {1e3 * z:+.2f}" for face, (p, r, z) in err.items()),
                       flush=True)
         print(f"\n{'seed':>4}  {'layout':22s} {'max mm':>7} {'max deg':>8} {'mean mm':>8} {'mean deg':>9} {'CPU s':>6}")

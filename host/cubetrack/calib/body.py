@@ -10,7 +10,9 @@ over multi-camera instants as in the extrinsics refinement (:mod:`cubetrack.cali
 frames closer in time (``body_max_span_s``), each corner's noise growing with its frame's time from
 its instant (``body_motion_noise_px_per_s``: the constant-velocity motion between the frames misses
 turns and vibration), the corners measured by the template fit (:mod:`cubetrack.calib.marker_fit`),
-with the markers free, held near the nominal layout by priors (``body_position_sigma_m``,
+or (``body_knot_s`` > 0) on a continuous-time trajectory of the body (:class:`Trajectory`: each
+corner at the pose interpolated to its row's time, no velocity assumed), with the markers free,
+held near the nominal layout by priors (``body_position_sigma_m``,
 ``body_rotation_sigma_deg``, ``body_size_sigma``), the cameras refined too but held near the given
 extrinsics (``body_camera_sigma_m``, ``body_camera_sigma_deg``), and (``refine_intrinsics``) the
 intrinsics near camera_info.
@@ -31,8 +33,17 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from cubetrack.calib.bundle import BundleAdjustmentParams, Refinement, layout_with, rms_px, start_refinement
-from cubetrack.calib.solver import PosePrior
+from cubetrack.calib.bundle import (
+    BundleAdjustmentParams,
+    CubeFrame,
+    FrameCorners,
+    Refinement,
+    _frame_corners,
+    layout_with,
+    rms_px,
+    start_refinement,
+)
+from cubetrack.calib.solver import Freedom, Observations, PosePrior, corner_residuals_px, interpolated_poses, solve
 from cubetrack.core.cameras import CameraExtrinsics, CameraIntrinsics, ClockSample
 from cubetrack.core.errors import CalibrationError
 from cubetrack.core.geometry import invert_T, make_T, rotation_angle
@@ -40,6 +51,7 @@ from cubetrack.core.layout import CubeLayout
 from cubetrack.core.progress import Progress
 from cubetrack.core.records import Frame
 from cubetrack.detect.detector import DetectorParams
+from cubetrack.estimate.reprojection import moved_pose
 
 log = logging.getLogger(__name__)
 
@@ -48,7 +60,8 @@ METHOD = "body-refined"  # CameraExtrinsics.method of the cameras a body calibra
 
 @dataclass(frozen=True, slots=True)
 class MarkerResult:
-    """One calibrated marker: ``corners`` observed (in ``instants`` instants), their RMS
+    """One calibrated marker: ``corners`` observed (in ``instants`` instants, or frames on a
+    continuous-time trajectory), their RMS
     reprojection error (px), and how far the result is from the nominal layout (both in the
     result's body frame): ``shift_m`` (centre), ``turn_deg`` (orientation), ``size_m`` against
     ``nominal_size_m``."""
@@ -68,7 +81,8 @@ class MarkerResult:
 class BodyCalibrationReport:
     """What :func:`calibrate_body` found: the calibrated ``layout`` of ``robot`` (body frame = the
     ``nominal`` layout's best fit), per-marker results, the cameras as refined alongside
-    (``extrinsics``, ``intrinsics``), the instants used and the warnings issued."""
+    (``extrinsics``, ``intrinsics``), the instants used (on a continuous-time trajectory: the
+    instants whose frames it follows, and the ``frames`` it explains), the warnings issued."""
 
     robot: str
     layout: CubeLayout
@@ -78,6 +92,7 @@ class BodyCalibrationReport:
     extrinsics: dict[str, CameraExtrinsics]
     intrinsics: dict[str, CameraIntrinsics]
     warnings: tuple[str, ...] = field(default_factory=tuple)
+    frames: int = 0
 
 
 def best_fit_transform(points_from: np.ndarray, points_to: np.ndarray) -> np.ndarray:
@@ -148,16 +163,125 @@ def calibrate_body(frames: Mapping[str, Iterable[Frame]], extrinsics: Mapping[st
                                      calibration_corners=edge_corners)
     T_given = ref.model.T_cams.copy()
     camera_prior = PosePrior(T_given, params.body_camera_sigma_m, np.radians(params.body_camera_sigma_deg))
+    free = ref.freedom(camera_prior=camera_prior, intrinsics=params.refine_intrinsics, body=True)
+    trajectory = Trajectory.start(ref) if params.body_knot_s > 0 else None
     for done in range(params.rounds + 1):
         if progress is not None:
             progress("body calibration: solves", done, params.rounds + 1)
+        if trajectory is not None:
+            if done:
+                trajectory.rematch()
+            trajectory.solve(free)
+            continue
         if done:
             ref.update_velocities()
             ref.rematch()
-        ref.solve(ref.freedom(camera_prior=camera_prior, intrinsics=params.refine_intrinsics, body=True))
+        ref.solve(free)
     _fix_gauge(ref, layout)
-    ref.update_velocities()
-    return _report(ref, robot, layout, extrinsics, intrinsics, warn, warnings)
+    if trajectory is None:
+        ref.update_velocities()
+        obs, frames = ref.observations(), 0
+        sample = obs.inst
+    else:
+        obs, frames = trajectory.observations(), len(trajectory.frames)
+        sample = np.repeat(np.arange(frames), [4 * len(s.markers) for s in trajectory.sets])
+    return _report(ref, obs, sample, frames, robot, layout, extrinsics, intrinsics, warn, warnings)
+
+
+@dataclass(eq=False)
+class Trajectory:
+    """The body's continuous-time trajectory through a refinement's frames (``body_knot_s`` > 0):
+    body poses at knots ``times_s`` (K,) spaced ``body_knot_s`` apart within pieces of the
+    recording where the frames follow each other within ``body_max_span_s`` (``first`` (K,):
+    whether a knot starts a piece), each corner seen at the pose interpolated to the time its
+    row was exposed, the knots tied by the solver's smoothness prior (``body_accel_sigma_m_s2``,
+    ``body_angular_accel_sigma_rad_s2``). The frames are every frame of the refinement's
+    instants, each with its corners matched (``sets``) at the trajectory's pose. From
+    :meth:`start` on, ``ref.model``'s body poses are the knots' (its instants no longer apply)."""
+
+    ref: Refinement
+    times_s: np.ndarray
+    first: np.ndarray
+    frames: list[CubeFrame]
+    sets: list[FrameCorners]
+
+    @classmethod
+    def start(cls, ref: Refinement) -> Trajectory:
+        """Knots over the instants' frames, started from the instants' poses moved with their
+        velocities, and the frames matched at them."""
+        params = ref.params
+        if len(ref.robots) != 1:
+            raise CalibrationError(f"a body trajectory follows one robot, not {len(ref.robots)}")
+        frames = sorted({id(f): f for i in ref.instants for f in i.frames}.values(), key=lambda f: (f.time_s, f.camera))
+        t = np.array([f.time_s for f in frames])
+        margin = max(ref.readout_s.values(), default=0.0) / 2 + params.body_knot_s
+        breaks = np.flatnonzero(np.diff(t) > params.body_max_span_s) + 1
+        times, first = [], []
+        for piece in np.split(t, breaks):
+            n = int(np.ceil((piece[-1] - piece[0] + 2 * margin) / params.body_knot_s)) + 1
+            times.append(piece[0] - margin + params.body_knot_s * np.arange(n))
+            first.append(np.arange(n) == 0)
+        times_s = np.concatenate(times)
+        inst_t = np.array([i.time_s for i in ref.instants])
+        near = np.abs(times_s[:, None] - inst_t[None, :]).argmin(axis=1)
+        knots = np.array([moved_pose(ref.model.T_bodies[k], ref.vel[k], ref.angvel[k], tk - inst_t[k])
+                          for k, tk in zip(near, times_s)])
+        ref.model = ref.model.replace(T_bodies=knots)
+        trajectory = cls(ref, times_s, np.concatenate(first), frames, [])
+        trajectory.rematch()
+        return trajectory
+
+    def _knot(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The knot before each time (its piece's last-but-one at most) and the fraction to the next."""
+        k = np.clip(np.searchsorted(self.times_s, t, side="right") - 1, 0, len(self.times_s) - 2)
+        last = np.r_[self.first[1:], True]  # a piece's last knot: the next knot starts a piece
+        k = np.where(last[k], k - 1, k)
+        return k, (t - self.times_s[k]) / (self.times_s[k + 1] - self.times_s[k])
+
+    def pose_at(self, time_s: float) -> np.ndarray:
+        """The body's pose (4, 4) at ``time_s`` on the trajectory."""
+        k, alpha = self._knot(np.array([time_s]))
+        R, p = interpolated_poses(self.ref.model.T_bodies[k], self.ref.model.T_bodies[k + 1], alpha)
+        return make_T(R[0], p[0])
+
+    def rematch(self) -> None:
+        """Every frame's detections matched to the body's markers at the trajectory's pose (frames
+        where nothing matches are left out)."""
+        ref = self.ref
+        intrinsics, T_world_cam, layout = ref.intrinsics(), ref.T_world_cam(), ref.layout(ref.robots[0])
+        pairs = [(f, _frame_corners(f, layout, intrinsics[f.camera], T_world_cam[f.camera], ref.params,
+                                    self.pose_at(f.time_s))) for f in self.frames]
+        pairs = [(f, s) for f, s in pairs if s is not None]
+        if not pairs:
+            raise CalibrationError("no cube sightings fit the body's trajectory")
+        self.frames, self.sets = [f for f, _ in pairs], [s for _, s in pairs]
+
+    def observations(self) -> Observations:
+        """The solver's observations: every matched corner at the time its row was exposed (as
+        :meth:`Refinement.observations` times them) on the trajectory."""
+        ref = self.ref
+        cam_index = {c: i for i, c in enumerate(ref.cameras)}
+        cam = np.concatenate([np.full(4 * len(s.markers), cam_index[s.camera]) for s in self.sets])
+        marker = np.concatenate([np.repeat(s.markers, 4) for s in self.sets])
+        pixels = np.vstack([s.corners_px.reshape(-1, 2) for s in self.sets])
+        height = np.array([ref.given[s.camera].height for s in self.sets for _ in range(4 * len(s.markers))], float)
+        row_s = np.array([ref.readout_s.get(s.camera, 0.0) for s in self.sets for _ in range(4 * len(s.markers))]) / height
+        times = np.concatenate([np.full(4 * len(s.markers), s.time_s) for s in self.sets])
+        k, alpha = self._knot(times + (pixels[:, 1] - (height - 1) / 2.0) * row_s)
+        n, K = len(cam), len(self.times_s)
+        inner = np.flatnonzero(~self.first[1:-1] & ~self.first[2:]) + 1  # knots with both neighbours in their piece
+        return Observations(cam, k, marker, np.tile(np.arange(4), n // 4), pixels, np.tile(np.eye(3), (n, 1, 1)),
+                            np.zeros((n, 3)), np.zeros(K, int), 1, np.zeros(0, int), np.zeros((0, 3)),
+                            np.zeros((0, 2)), knot_alpha=alpha,
+                            knot_triples=np.column_stack([inner - 1, inner, inner + 1]),
+                            knot_spacing_s=self.ref.params.body_knot_s)
+
+    def solve(self, free: Freedom) -> None:
+        """Solve the knots, markers and cameras (``free``; no motion noise: nothing is extrapolated)."""
+        p = self.ref.params
+        free = dataclasses.replace(free, motion_noise_px_per_s=0.0, accel_sigma_m_s2=p.body_accel_sigma_m_s2,
+                                   angular_accel_sigma_rad_s2=p.body_angular_accel_sigma_rad_s2)
+        self.ref.model = solve(self.observations(), self.ref.model, free)
 
 
 def _fix_gauge(ref: Refinement, nominal: CubeLayout) -> None:
@@ -169,9 +293,12 @@ def _fix_gauge(ref: Refinement, nominal: CubeLayout) -> None:
                                   T_bodies=np.einsum("kij,jl->kil", ref.model.T_bodies, invert_T(G)))
 
 
-def _report(ref: Refinement, robot: str, nominal: CubeLayout, extrinsics: Mapping[str, CameraExtrinsics],
-            intrinsics: Mapping[str, CameraIntrinsics], warn, warnings: list[str]) -> BodyCalibrationReport:
-    obs, r, _rw = ref.residuals()
+def _report(ref: Refinement, obs: Observations, sample: np.ndarray, frames: int, robot: str, nominal: CubeLayout,
+            extrinsics: Mapping[str, CameraExtrinsics], intrinsics: Mapping[str, CameraIntrinsics], warn,
+            warnings: list[str]) -> BodyCalibrationReport:
+    """The report; ``obs``: the final observations, ``sample`` (N,) each corner's instant (or,
+    on a trajectory, frame: ``frames`` of them)."""
+    r = corner_residuals_px(obs, ref.model)
     calibrated = ref.layout(robot)
     results = []
     for g, (m, n) in enumerate(zip(calibrated.markers, nominal.markers)):
@@ -179,12 +306,12 @@ def _report(ref: Refinement, robot: str, nominal: CubeLayout, extrinsics: Mappin
         if not mine.any():
             warn(f"marker {m.face} (id {m.marker_id}) was never seen by two cameras at once: kept as the layout has it")
         results.append(MarkerResult(
-            m.face, m.marker_id, int(mine.sum()), len(np.unique(obs.inst[mine])), rms_px(r[mine]),
+            m.face, m.marker_id, int(mine.sum()), len(np.unique(sample[mine])), rms_px(r[mine]),
             float(np.linalg.norm(m.T_cube_marker[:3, 3] - n.T_cube_marker[:3, 3])),
             rotation_angle(m.T_cube_marker[:3, :3], n.T_cube_marker[:3, :3], "deg"), m.size_m, n.size_m))
     refined = dict(extrinsics)
     for c, T in ref.T_world_cam().items():
-        n_inst = len(np.unique(obs.inst[obs.cam == ref.cameras.index(c)]))
+        n_inst = len(np.unique(sample[obs.cam == ref.cameras.index(c)]))
         refined[c] = CameraExtrinsics(T, n_inst, 0.0, 0.0, METHOD)
     return BodyCalibrationReport(robot, calibrated, nominal, tuple(results), len(ref.instants), refined,
-                                 {**dict(intrinsics), **ref.intrinsics()}, tuple(warnings))
+                                 {**dict(intrinsics), **ref.intrinsics()}, tuple(warnings), frames)

@@ -131,6 +131,9 @@ class BundleAdjustmentParams:
     body_camera_sigma_deg: float = param(0.3, "calibrate-body: ... and this rotation sigma, degrees")
     body_max_span_s: float = param(0.08, "calibrate-body: max_span_s of the body calibration's instants (shorter: the body's motion between the frames of an instant is modelled as constant velocity, which misses sharp turns and vibration; measured in docs/calibration.md)")
     body_motion_noise_px_per_s: float = param(25.0, "calibrate-body: a corner's noise grows by this many pixels per second of its frame's time from its instant (the constant-velocity motion between an instant's frames misses turns and vibration; 0 = not at all)")
+    body_knot_s: float = param(0.0, "calibrate-body: > 0: the body's pose is a continuous-time trajectory with knots this many seconds apart (each corner at the pose interpolated to its row's time, the knots tied by the body_accel sigmas) instead of one pose per instant moved with a fitted velocity; 0 = instants")
+    body_accel_sigma_m_s2: float = param(10.0, "calibrate-body trajectory: the body's acceleration between knots (1 sigma of the knots' second difference over the squared spacing), m/s^2")
+    body_angular_accel_sigma_rad_s2: float = param(100.0, "calibrate-body trajectory: the body's angular acceleration between knots (1 sigma), rad/s^2 (the robot's wobble reaches tens)")
     body_edge_corners: bool = param(True, "calibrate-body: re-measure the body's marker corners by the calibration's edge fit (as the world marker's) and then by fitting each marker's whole image (cubetrack.calib.marker_fit; about 70 ms per marker seen, docs/calibration.md has the measured errors)")
 
     def __post_init__(self) -> None:
@@ -139,7 +142,9 @@ class BundleAdjustmentParams:
                        "gauge_prior_position_m", "gauge_prior_rotation_deg", "height_sigma_m",
                        "intrinsics_focal_sigma", "intrinsics_principal_sigma_px", "intrinsics_k1_sigma",
                        "intrinsics_k2_sigma", "body_position_sigma_m", "body_rotation_sigma_deg", "body_size_sigma",
-                       "body_camera_sigma_m", "body_camera_sigma_deg", "body_max_span_s")
+                       "body_camera_sigma_m", "body_camera_sigma_deg", "body_max_span_s", "body_accel_sigma_m_s2",
+                       "body_angular_accel_sigma_rad_s2")
+        check(self.body_knot_s >= 0, f"body_knot_s must not be negative, got {self.body_knot_s}")
         check(self.upright_sigma_deg >= 0, f"upright_sigma_deg must not be negative, got {self.upright_sigma_deg}")
         check(self.body_motion_noise_px_per_s >= 0,
               f"body_motion_noise_px_per_s must not be negative, got {self.body_motion_noise_px_per_s}")

@@ -16,6 +16,15 @@ marker ``m`` seen by camera ``c`` at instant ``k``::
     pixel = project(K_c, dist_c, R_c^T (X - t_c))   OpenCV's lens model (cv2.projectPoints)
 
 and of a static world point ``X`` (a world marker's or a board's corner) just the last line.
+With a continuous-time trajectory (``Observations.knot_alpha``, the body calibration's) the body
+poses are knots on a time grid instead of instants, and a corner exposed at the fraction ``α``
+of the way from knot ``k`` to knot ``k + 1`` sees the body at the interpolated pose::
+
+    R = exp(α log(R_{k+1} R_k^T)) R_k,   t = (1 - α) t_k + α t_{k+1}
+
+(no velocity assumed); the knots are tied by a smoothness prior on the second differences of
+their positions and rotations (``Freedom.accel_sigma_m_s2``, ``angular_accel_sigma_rad_s2``),
+which also carries the trajectory across knots no corner sees.
 Residuals are pixel errors over their noise, a soft-L1 loss over all of them; for ground robots
 the body's height against one height per robot and its tilt from world up; and priors: camera
 poses (a weak gauge prior, or the extrinsics a body calibration starts from), intrinsics (the
@@ -56,6 +65,9 @@ class Observations:
     frame's, ``exp(ω dt)`` and ``v dt``. ``robot`` (K,) of each instant, ``robots`` how many.
     World points: ``world_cam`` (M,), ``world_points`` (M, 3) metres, ``world_pixels`` (M, 2).
     ``dt_s`` (N,): each body corner's time from its instant (seconds; None: all at the instant).
+    A continuous-time trajectory: ``knot_alpha`` (N,) where between knot ``inst`` and the next
+    the corner was exposed (0..1; ``motion_R``/``motion_t`` are then unused), ``knot_triples``
+    (S, 3) consecutive knots the smoothness prior ties, ``knot_spacing_s`` their spacing.
     """
 
     cam: np.ndarray
@@ -71,6 +83,9 @@ class Observations:
     world_points: np.ndarray
     world_pixels: np.ndarray
     dt_s: np.ndarray | None = None
+    knot_alpha: np.ndarray | None = None
+    knot_triples: np.ndarray | None = None
+    knot_spacing_s: float = 0.0
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -140,7 +155,10 @@ class Freedom:
     corner's noise grows with its time from the instant, ``sqrt(corner_noise_px^2 + (motion_noise_px_per_s
     dt)^2)``: the constant-velocity motion between an instant's frames misses turns and vibration);
     ground robots: ``height_sigma_m``
-    (0 = no common height), ``upright_sigma_rad`` (0 = no upright prior); ``max_nfev``."""
+    (0 = no common height), ``upright_sigma_rad`` (0 = no upright prior); ``max_nfev``; a
+    continuous-time trajectory's smoothness: ``accel_sigma_m_s2``, ``angular_accel_sigma_rad_s2``
+    (1 sigma of the second difference of the knots' positions and rotations over the squared
+    knot spacing)."""
 
     cameras: bool = True
     camera_prior: PosePrior | None = None
@@ -154,6 +172,8 @@ class Freedom:
     upright_sigma_rad: float = 0.0
     max_nfev: int = 60
     motion_noise_px_per_s: float = 0.0
+    accel_sigma_m_s2: float = 10.0
+    angular_accel_sigma_rad_s2: float = 100.0
 
 
 def apply_increments(T0: np.ndarray, x: np.ndarray) -> np.ndarray:
@@ -213,10 +233,29 @@ def body_points(obs: Observations, model: Model) -> np.ndarray:
     return P * model.scales[model.marker_robot[obs.marker]][:, None]
 
 
+def corner_body_poses(obs: Observations, model: Model) -> tuple[np.ndarray, np.ndarray]:
+    """(N, 3, 3) rotations and (N, 3) positions of the body when each corner was exposed: its
+    instant's pose moved by ``motion_R``/``motion_t``, or (``knot_alpha``) interpolated between
+    two knots of the trajectory."""
+    R0, p0 = model.T_bodies[obs.inst, :3, :3], model.T_bodies[obs.inst, :3, 3]
+    if obs.knot_alpha is None:
+        return obs.motion_R @ R0, p0 + obs.motion_t
+    return interpolated_poses(model.T_bodies[obs.inst], model.T_bodies[obs.inst + 1], obs.knot_alpha)
+
+
+def interpolated_poses(T0: np.ndarray, T1: np.ndarray, alpha: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(n, 3, 3) rotations and (n, 3) positions the fractions ``alpha`` (n,) of the way from the
+    poses T0 to T1 (n, 4, 4): ``exp(α log(R1 R0^T)) R0`` and ``(1 - α) p0 + α p1``."""
+    al = np.asarray(alpha, float)[:, None]
+    R0, p0 = T0[:, :3, :3], T0[:, :3, 3]
+    step = Rotation.from_matrix(T1[:, :3, :3] @ np.transpose(R0, (0, 2, 1))).as_rotvec()
+    return Rotation.from_rotvec(al * step).as_matrix() @ R0, (1 - al) * p0 + al * T1[:, :3, 3]
+
+
 def corner_residuals_px(obs: Observations, model: Model) -> np.ndarray:
     """(N, 2) body-corner reprojection errors in pixels (NaN behind a camera)."""
-    a = np.einsum("nij,nj->ni", model.T_bodies[obs.inst, :3, :3], body_points(obs, model))
-    X = np.einsum("nij,nj->ni", obs.motion_R, a) + model.T_bodies[obs.inst, :3, 3] + obs.motion_t
+    R, p = corner_body_poses(obs, model)
+    X = np.einsum("nij,nj->ni", R, body_points(obs, model)) + p
     return _projected(model, obs.cam, X, False)[0] - obs.pixels
 
 
@@ -346,9 +385,9 @@ def solve(obs: Observations, model: Model, free: Freedom) -> Model:
             q = np.einsum("nij,nj->ni", T_m[:, :3, :3], local)  # R_m s u
             scale = m.scales[m.marker_robot[obs.marker]]
             P = (q + T_m[:, :3, 3]) * scale[:, None]
-            Rk = m.T_bodies[obs.inst, :3, :3]
-            a = np.einsum("nij,nj->ni", Rk, P)
-            X = np.einsum("nij,nj->ni", obs.motion_R, a) + m.T_bodies[obs.inst, :3, 3] + obs.motion_t
+            Rt, pt = corner_body_poses(obs, m)
+            a = np.einsum("nij,nj->ni", Rt, P)  # the body corner, world axes
+            X = a + pt
             px, dX, dI = _projected(m, obs.cam, X, with_jac)
             front = np.isfinite(px[:, 0])
             r = np.where(front[:, None], (px - obs.pixels) / corner_sigma, _BEHIND_PX)
@@ -357,9 +396,16 @@ def solve(obs: Observations, model: Model, free: Freedom) -> Model:
                 A = dX / corner_sigma[:, :, None] * front[:, None, None]
                 dI = dI * front[:, None, None]
                 parts = cam_parts(obs.cam, X, A, dI, corner_sigma[:, :, None])
-                parts.append((L.bodies + 6 * obs.inst[:, None] + np.arange(6),
-                              np.concatenate([A, -(A @ obs.motion_R) @ skew(a)], axis=2)))
-                B = A @ obs.motion_R @ Rk  # d r / d P
+                if obs.knot_alpha is None:  # X = exp(ω dt) R_k P + ...: d X / d δθ_k = -exp(ω dt) [R_k P]x
+                    a_k = np.einsum("nji,nj->ni", obs.motion_R, a)
+                    parts.append((L.bodies + 6 * obs.inst[:, None] + np.arange(6),
+                                  np.concatenate([A, -(A @ obs.motion_R) @ skew(a_k)], axis=2)))
+                else:  # the interpolated pose takes (1 - α) of knot k's increment and α of knot k + 1's (first order)
+                    dpose = np.concatenate([A, -A @ skew(a)], axis=2)
+                    al = obs.knot_alpha[:, None, None]
+                    parts.append((L.bodies + 6 * obs.inst[:, None] + np.arange(6), (1 - al) * dpose))
+                    parts.append((L.bodies + 6 * (obs.inst[:, None] + 1) + np.arange(6), al * dpose))
+                B = A @ Rt  # d r / d P
                 if free.free_scale:
                     unscaled = P / scale[:, None]
                     parts.append((L.scales + obs.robot[obs.inst][:, None], B @ unscaled[:, :, None]))
@@ -381,6 +427,18 @@ def solve(obs: Observations, model: Model, free: Freedom) -> Model:
                                   dI * front[:, None, None], sigma_w)
             block(r, parts)
         k_idx = np.arange(L.K)
+        # a continuous-time trajectory: its knots' second differences
+        if obs.knot_triples is not None and len(obs.knot_triples):
+            i, j, k = obs.knot_triples.T
+            s = np.r_[np.full(3, free.accel_sigma_m_s2), np.full(3, free.angular_accel_sigma_rad_s2)]
+            s = s * obs.knot_spacing_s ** 2
+            Tb = m.T_bodies
+            step_ij = pose_offsets(Tb[j], Tb[i])
+            step_jk = pose_offsets(Tb[k], Tb[j])
+            eye = np.broadcast_to(np.diag(1.0 / s), (len(i), 6, 6))
+            block((step_jk - step_ij) / s, [(L.bodies + 6 * i[:, None] + np.arange(6), eye),
+                                             (L.bodies + 6 * j[:, None] + np.arange(6), -2 * eye),
+                                             (L.bodies + 6 * k[:, None] + np.arange(6), eye)])
         # ground robots: one height per robot, body z near world up
         if free.height_sigma_m > 0:
             h = heights0 + x[L.heights:L.heights + L.R]

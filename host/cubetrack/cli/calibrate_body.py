@@ -63,7 +63,8 @@ def run(args: argparse.Namespace) -> int:
                                   robot=args.robot, extrinsics_path=args.extrinsics, progress=StderrProgress())
     report = result.report
     errors = placement_errors(report.layout, truth) if truth is not None else {}
-    print(f"robot {report.robot}: {report.instants} multi-camera instants; wrote {args.out} "
+    followed = f", {report.frames} frames on its continuous-time trajectory" if report.frames else ""
+    print(f"robot {report.robot}: {report.instants} multi-camera instants{followed}; wrote {args.out} "
           f"({result.run_record_path.name})")
     header = (f"{'face':<8} {'id':>4} {'corners':>7} {'rms px':>6} {'shift mm':>8} {'turn deg':>8} "
               f"{'size mm':>8} {'nominal':>8}")
