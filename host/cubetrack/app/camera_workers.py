@@ -16,10 +16,11 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 import multiprocessing
 import signal
 import time
-from collections.abc import Callable, Mapping, Sequence
+from collections.abc import Callable, Mapping, MutableSequence, Sequence
 from dataclasses import dataclass
 from multiprocessing.connection import Connection, wait
 
@@ -40,6 +41,7 @@ FORECAST_EVERY_S = 0.01  # the tracker's process sends a new forecast at most th
 BEHIND_S = 0.015  # a worker process whose oldest waiting frame is older than this takes the freshest first
 IN_FLIGHT = 4  # results a worker process may have sent that the fusion has not taken yet
 MESSAGES_PER_TAKE = 64  # messages read from one worker process per take(), so that no process starves another
+HOLD_S = 0.004  # a result newer than a frame some worker process is working on waits at most this long for it
 
 
 @dataclass(frozen=True, slots=True)
@@ -96,6 +98,39 @@ class WorkerUpdate:
     before_clock: int
 
 
+class HeldResults:
+    """Results on their way to the fusion, held back while an older frame is still in work, so
+    that the fusion gets them in capture order (a sighting older than one fused before is folded
+    in exactly, but that costs re-applying every newer one). A result waits at most ``hold_s``."""
+
+    def __init__(self, hold_s: float = HOLD_S):
+        self.hold_s = hold_s
+        self._held: list[tuple[float, FrameResult]] = []  # (due at the latest, time.monotonic(); result)
+
+    def __len__(self) -> int:
+        return len(self._held)
+
+    def wait_s(self, now: float) -> float:
+        """Seconds until the first held result is due whatever is in work (inf: none held)."""
+        return max(0.0, min((until for until, _ in self._held), default=math.inf) - now)
+
+    def due(self, results: Sequence[FrameResult], working_s: float, now: float, *,
+            everything: bool = False) -> list[FrameResult]:
+        """Add ``results`` (come at ``now``) and take the ones to fuse now, oldest capture first:
+        those older than ``working_s`` (the oldest capture time of a frame in work, inf: none);
+        every one once one has waited ``hold_s``, or with ``everything``."""
+        self._held += [(now + self.hold_s, r) for r in results]
+        self._held.sort(key=lambda h: h[1].job.capture_time_s)
+        n = 0
+        if everything or any(until <= now for until, _ in self._held):
+            n = len(self._held)
+        while n < len(self._held) and self._held[n][1].job.capture_time_s < working_s:
+            n += 1
+        due = [r for _, r in self._held[:n]]
+        del self._held[:n]
+        return due
+
+
 class CameraProcesses:
     """``count`` camera worker processes over ``urls`` (see the module doc), with the part of
     :class:`~cubetrack.source.streams.LiveCameras`' interface the live loop uses (``urls``,
@@ -114,10 +149,16 @@ class CameraProcesses:
         self._before_clock: dict[int, int] = {}  # per worker process
         self._lanes: list[tuple[Connection, multiprocessing.Process]] = []
         self._open: dict[Connection, int] = {}  # the pipes of processes that have not finished -> lane
+        self._held = HeldResults()
         context = multiprocessing.get_context("spawn")  # fork would copy this process's threads' locks
-        for share in share_cameras(self.urls, count):
+        shares = share_cameras(self.urls, count)
+        # per lane: the capture time of the frame its process is working on (inf: none), in shared memory:
+        # read when results are taken, never waited for
+        self._working = context.RawArray("d", [math.inf] * len(shares))
+        for lane, share in enumerate(shares):
             parent, child = context.Pipe()
-            process = context.Process(target=_worker_main, args=(child, share, source, make_tracker, views, clock),
+            process = context.Process(target=_worker_main, args=(child, share, source, make_tracker, views, clock,
+                                                                 self._working, lane),
                                       daemon=True, name="cubetrack-camera-worker")
             process.start()
             child.close()
@@ -127,38 +168,53 @@ class CameraProcesses:
             self._told.append(0)
 
     def take(self, timeout_s: float = 0.0) -> tuple[list[FrameResult], list[ClockReading]]:
-        """The results and clock samples that came (arrival order per process), waiting up to
-        ``timeout_s`` for the first. Raises :class:`SourceError` when a worker process failed."""
+        """The results and clock samples that came, waiting up to ``timeout_s`` for the first.
+        Results come oldest capture first; one newer than a frame that a worker process is working
+        on is held back until that frame's result has come too, ``HOLD_S`` at most, so that the
+        fusion gets both in capture order instead of folding the older one in late (which costs
+        re-applying every newer sighting). Raises :class:`SourceError` when a worker process failed."""
+        timeout_s = min(timeout_s, self._held.wait_s(time.monotonic()))  # wake when a held result is due
         results: list[FrameResult] = []
         clocks: list[ClockReading] = []
-        if not self._open:
-            return results, clocks
-        for conn in wait(list(self._open), timeout_s):
-            lane = self._open[conn]
-            for _ in range(MESSAGES_PER_TAKE):
-                try:
-                    kind, payload = conn.recv()
-                except (EOFError, OSError):
-                    del self._open[conn]
-                    raise SourceError("a camera worker process ended unexpectedly "
-                                      f"(exit code {self._lanes[lane][1].exitcode})") from None
-                if kind == "result":
-                    results.append(payload)
-                    self._taken[lane] += 1
-                elif kind == "clock":
-                    clocks.append(payload)
-                elif kind == "update":
-                    self._stats.update(payload.cameras)
-                    self._before_clock[lane] = payload.before_clock
-                elif kind == "failed":
-                    del self._open[conn]
-                    raise SourceError(f"a camera worker process failed: {payload}")
-                if kind == "done":
-                    del self._open[conn]
-                    break
-                if not conn.poll():
-                    break
-        return results, clocks
+        ready = wait(list(self._open), timeout_s) if self._open else []
+        working = math.inf
+        for _ in range(4):
+            for conn in ready:
+                self._read(conn, results, clocks)
+            # a process marks its frame done only once its result is in the pipe: whatever is not
+            # in work now has been read, or is read in the next round
+            working = min((self._working[lane] for lane in self._open.values()), default=math.inf)
+            ready = [conn for conn in self._open if conn.poll()]
+            if not ready:
+                break
+        return self._held.due(results, working, time.monotonic(), everything=not self._open), clocks
+
+    def _read(self, conn: Connection, results: list[FrameResult], clocks: list[ClockReading]) -> None:
+        """Up to ``MESSAGES_PER_TAKE`` messages of one worker process."""
+        lane = self._open[conn]
+        for _ in range(MESSAGES_PER_TAKE):
+            try:
+                kind, payload = conn.recv()
+            except (EOFError, OSError):
+                del self._open[conn]
+                raise SourceError("a camera worker process ended unexpectedly "
+                                  f"(exit code {self._lanes[lane][1].exitcode})") from None
+            if kind == "result":
+                results.append(payload)
+                self._taken[lane] += 1
+            elif kind == "clock":
+                clocks.append(payload)
+            elif kind == "update":
+                self._stats.update(payload.cameras)
+                self._before_clock[lane] = payload.before_clock
+            elif kind == "failed":
+                del self._open[conn]
+                raise SourceError(f"a camera worker process failed: {payload}")
+            if kind == "done":
+                del self._open[conn]
+                break
+            if not conn.poll():
+                break
 
     def forecast(self, forecast: Forecast | None) -> None:
         """Hand every worker process the fusion's newest forecast, and how many of its results
@@ -182,7 +238,7 @@ class CameraProcesses:
         return sum(self._before_clock.values())
 
     def pending(self) -> int:
-        return sum(conn.poll() for conn in self._open)
+        return sum(conn.poll() for conn in self._open) + len(self._held)
 
     @property
     def running(self) -> bool:
@@ -214,13 +270,13 @@ class CameraProcesses:
 
 
 def _worker_main(conn: Connection, urls: dict[str, str], source: SourceParams, make_tracker: Callable[[], Tracker],
-                 views: bool, clock: Callable[[], float]) -> None:
+                 views: bool, clock: Callable[[], float], working: MutableSequence[float], lane: int) -> None:
     """A camera worker process: its cameras' frames in, results out, until None comes (Ctrl-C
     is the tracker's process's business: it ends the session, then this process)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     cv2.setNumThreads(1)
     try:
-        _work_cameras(conn, urls, source, make_tracker(), views, clock)
+        _work_cameras(conn, urls, source, make_tracker(), views, clock, working, lane)
     except (EOFError, BrokenPipeError):
         pass
     except Exception as exc:  # a bug or a broken camera source: the tracker's process re-raises it
@@ -229,7 +285,7 @@ def _worker_main(conn: Connection, urls: dict[str, str], source: SourceParams, m
 
 
 def _work_cameras(conn: Connection, urls: dict[str, str], source: SourceParams, tracker: Tracker, views: bool,
-                  clock: Callable[[], float]) -> None:
+                  clock: Callable[[], float], working: MutableSequence[float], lane: int) -> None:
     tracker.forecast = Forecast({}, frozenset(r.name for r in tracker.robots))
     live = LiveCameras(urls, source, clock=clock, thread=False)  # read on this thread, between frames
     live.start()
@@ -259,12 +315,14 @@ def _work_cameras(conn: Connection, urls: dict[str, str], source: SourceParams, 
                 tracker.add_clock_sample(event.camera, event.sample)
                 conn.send(("clock", event))
             elif (job := tracker.admit(event, hold=False)) is not None:
+                working[lane] = job.capture_time_s  # results newer than this wait for it (CameraProcesses.take)
                 result = tracker.worker.work(job)
                 if result.outcome is not FrameOutcome.CORRUPT:  # counted (and logged) by the fusion's tracker
                     tracker.count(result)  # when this camera's whole frame was last searched
                 if not views:
                     job = dataclasses.replace(job, frame=dataclasses.replace(job.frame, jpeg=b""))
                 conn.send(("result", FrameResult(job, result.outcome, result.sightings, result.error)))
+                working[lane] = math.inf  # after the send: the result is in the pipe by now
                 sent += 1
             if time.monotonic() >= next_update:
                 next_update = time.monotonic() + STATS_EVERY_S

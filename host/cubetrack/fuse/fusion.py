@@ -276,11 +276,13 @@ class FilterFusion:
         """Apply the robot's steps from ``start`` on in capture order (each on the state the one
         before left), keeping each step's poses with it."""
         history = self.history[robot]
+        sent = self._sent.get(robot)
         state = history[start].before
         for index in range(start, len(history)):
             step = history[index]
             step.before = state
-            state, step.poses, outcome = self._apply(state, history, index, now_s)
+            # a step whose poses already left (re-applied after a late sighting) gives none again
+            state, step.poses, outcome = self._apply(state, history, index, now_s, sent is None or step.key > sent)
             if step.outcome:
                 self.stats[step.outcome] -= 1
                 self.stats["replayed sighting"] += 1
@@ -323,10 +325,10 @@ class FilterFusion:
         return [corner_set((m,), intrinsics, sighting.T_world_cam, sighting.camera,
                            t + (float(np.mean(m.detection.corners_px[:, 1])) - middle) * row_s) for m in matches]
 
-    def _apply(self, state: RobotState, history: list[HistoryStep], index: int,
-               now_s: float) -> tuple[RobotState, list[TrackedPose], str]:
+    def _apply(self, state: RobotState, history: list[HistoryStep], index: int, now_s: float,
+               due: bool) -> tuple[RobotState, list[TrackedPose], str]:
         """One step of capture-order processing: the sighting ``history[index]`` on ``state``.
-        Returns the new state, the poses it gives and its outcome (a stats key)."""
+        Returns the new state, the poses it gives (none unless ``due``) and its outcome (a stats key)."""
         sighting = history[index].sighting
         robot, t = sighting.robot, sighting.capture_time_s
         if state.filter is not None and t - state.last_accepted_s > self.params.lost_after_s:
@@ -334,7 +336,7 @@ class FilterFusion:
             state = RobotState(None, state.last_accepted_s, state.rejections)
         if state.filter is None:
             window = history[max(0, index + 1 - self.START_WINDOW): index + 1]
-            return self._start(state, sighting, [s.sighting for s in window], now_s)
+            return self._start(state, sighting, [s.sighting for s in window], now_s, due)
         f = state.filter.copy()
         f.predict(t)
         corners = self._corners(sighting, f.T_world_cube)
@@ -351,6 +353,8 @@ class FilterFusion:
                 log.info("%s: %d sightings rejected in a row; track restarts", robot, rejections)
                 return RobotState(None, state.last_accepted_s, rejections), [], "rejected sighting"
             return RobotState(f, state.last_accepted_s, rejections), [], "rejected sighting"
+        if not due:
+            return RobotState(f, t, 0), [], outcome
         markers = tuple(f"{sighting.camera}:{face}" for c in corners for face in c.faces)
         return RobotState(f, t, 0), [pose_record(sighting, f, now_s, (sighting.camera,), markers)], outcome
 
@@ -374,8 +378,8 @@ class FilterFusion:
                        f.angular_velocity_rad_s)
         return (g, corners) if g.update(corners).accepted else None
 
-    def _start(self, state: RobotState, sighting: CubeSighting, recent: list[CubeSighting],
-               now_s: float) -> tuple[RobotState, list[TrackedPose], str]:
+    def _start(self, state: RobotState, sighting: CubeSighting, recent: list[CubeSighting], now_s: float,
+               due: bool) -> tuple[RobotState, list[TrackedPose], str]:
         """Start a track from a joint fit of pose and velocity over the recent sightings.
 
         Every recent single-camera estimate is tried as the starting guess (one may be a flipped
@@ -402,6 +406,8 @@ class FilterFusion:
         solution, sets = best
         f = PoseFilter(fp, t, solution.T_world_cube, solution.covariance, solution.velocity_m_s,
                        solution.angular_velocity_rad_s)
+        if not due:
+            return RobotState(f, t, 0), [], "track start"
         cameras = tuple(sorted({s.camera for s in sets}))
         markers = tuple(f"{s.camera}:{face}" for s in sets for face in s.faces)
         return RobotState(f, t, 0), [pose_record(sighting, f, now_s, cameras, markers)], "track start"
