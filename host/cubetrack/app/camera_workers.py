@@ -23,6 +23,7 @@ import time
 from collections.abc import Callable, Mapping, MutableSequence, Sequence
 from dataclasses import dataclass
 from multiprocessing.connection import Connection, wait
+from multiprocessing.reduction import ForkingPickler
 
 import cv2
 import numpy as np
@@ -40,6 +41,7 @@ FORECAST_SPAN_S = 0.1  # the motion in a forecast: from the fusion's predictions
 FORECAST_EVERY_S = 0.01  # the tracker's process sends a new forecast at most this often
 BEHIND_S = 0.015  # a worker process whose oldest waiting frame is older than this takes the freshest first
 IN_FLIGHT = 4  # results a worker process may have sent that the fusion has not taken yet
+WAKE = "wake"  # the message to a worker process that may wait for its results to be taken
 MESSAGES_PER_TAKE = 64  # messages read from one worker process per take(), so that no process starves another
 HOLD_S = 0.004  # a result newer than a frame some worker process is working on waits at most this long for it
 
@@ -143,8 +145,7 @@ class CameraProcesses:
                  count: int, *, views: bool = False, clock: Callable[[], float] = time.time):
         self.urls = dict(urls)
         self.count = count
-        self._taken: list[int] = []  # per lane: results taken by the fusion
-        self._told: list[int] = []  # per lane: the count of taken results it was last sent
+        self._told: list[int] = []  # per lane: the count of taken results when it was last sent a message
         self._stats = {name: CameraStats(url=url) for name, url in self.urls.items()}
         self._before_clock: dict[int, int] = {}  # per worker process
         self._lanes: list[tuple[Connection, multiprocessing.Process]] = []
@@ -152,19 +153,19 @@ class CameraProcesses:
         self._held = HeldResults()
         context = multiprocessing.get_context("spawn")  # fork would copy this process's threads' locks
         shares = share_cameras(self.urls, count)
-        # per lane: the capture time of the frame its process is working on (inf: none), in shared memory:
-        # read when results are taken, never waited for
+        # per lane, in shared memory (written by one side, read by the other, never waited for): the capture
+        # time of the frame its process is working on (inf: none), and how many of its results were taken
         self._working = context.RawArray("d", [math.inf] * len(shares))
+        self._taken = context.RawArray("q", len(shares))
         for lane, share in enumerate(shares):
             parent, child = context.Pipe()
             process = context.Process(target=_worker_main, args=(child, share, source, make_tracker, views, clock,
-                                                                 self._working, lane),
+                                                                 self._working, self._taken, lane),
                                       daemon=True, name="cubetrack-camera-worker")
             process.start()
             child.close()
             self._open[parent] = len(self._lanes)
             self._lanes.append((parent, process))
-            self._taken.append(0)
             self._told.append(0)
 
     def take(self, timeout_s: float = 0.0) -> tuple[list[FrameResult], list[ClockReading]]:
@@ -217,16 +218,22 @@ class CameraProcesses:
                 break
 
     def forecast(self, forecast: Forecast | None) -> None:
-        """Hand every worker process the fusion's newest forecast, and how many of its results
-        the fusion has taken (a worker process keeps at most ``IN_FLIGHT`` beyond that: when the
-        fusion is behind, frames wait in the source, where each camera keeps only its newest).
-        None: no new forecast; only the processes whose results were taken since are told."""
+        """Hand every worker process the fusion's newest forecast (None: no new one). A worker
+        process keeps at most ``IN_FLIGHT`` results that the fusion has not taken (when the fusion
+        is behind, frames wait in the source, where each camera keeps only its newest); it reads
+        how many were taken from shared memory, so only one that may be waiting for that count
+        (``IN_FLIGHT`` taken since its last message: a process that waits sends nothing more, and
+        :meth:`take` reads all it sent) is sent a message to wake it."""
+        message = None if forecast is None else bytes(ForkingPickler.dumps(forecast))  # pickled once for all
         for conn, lane in self._open.items():
-            if forecast is None and self._taken[lane] == self._told[lane]:
+            if message is None and self._taken[lane] - self._told[lane] < IN_FLIGHT:
                 continue
             self._told[lane] = self._taken[lane]
             try:
-                conn.send((forecast, self._taken[lane]))
+                if message is None:
+                    conn.send(WAKE)
+                else:
+                    conn.send_bytes(message)
             except OSError:  # the process ended: take() reports it
                 pass
 
@@ -270,13 +277,14 @@ class CameraProcesses:
 
 
 def _worker_main(conn: Connection, urls: dict[str, str], source: SourceParams, make_tracker: Callable[[], Tracker],
-                 views: bool, clock: Callable[[], float], working: MutableSequence[float], lane: int) -> None:
+                 views: bool, clock: Callable[[], float], working: MutableSequence[float],
+                 taken: Sequence[int], lane: int) -> None:
     """A camera worker process: its cameras' frames in, results out, until None comes (Ctrl-C
     is the tracker's process's business: it ends the session, then this process)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     cv2.setNumThreads(1)
     try:
-        _work_cameras(conn, urls, source, make_tracker(), views, clock, working, lane)
+        _work_cameras(conn, urls, source, make_tracker(), views, clock, working, taken, lane)
     except (EOFError, BrokenPipeError):
         pass
     except Exception as exc:  # a bug or a broken camera source: the tracker's process re-raises it
@@ -285,14 +293,15 @@ def _worker_main(conn: Connection, urls: dict[str, str], source: SourceParams, m
 
 
 def _work_cameras(conn: Connection, urls: dict[str, str], source: SourceParams, tracker: Tracker, views: bool,
-                  clock: Callable[[], float], working: MutableSequence[float], lane: int) -> None:
+                  clock: Callable[[], float], working: MutableSequence[float], taken: Sequence[int],
+                  lane: int) -> None:
     tracker.forecast = Forecast({}, frozenset(r.name for r in tracker.robots))
     live = LiveCameras(urls, source, clock=clock, thread=False)  # read on this thread, between frames
     live.start()
     live.wake_on(conn)
     next_update = time.monotonic() + STATS_EVERY_S
     stopping = False
-    sent = taken = 0
+    sent = 0
     try:
         while True:
             while conn.poll():
@@ -300,10 +309,9 @@ def _work_cameras(conn: Connection, urls: dict[str, str], source: SourceParams, 
                 if message is None:
                     stopping = True
                     live.stop()
-                else:
-                    forecast, taken = message
-                    tracker.forecast = forecast or tracker.forecast
-            room = stopping or sent - taken < IN_FLIGHT
+                elif isinstance(message, Forecast):  # else a wake: the count taken changed
+                    tracker.forecast = message
+            room = stopping or sent - taken[lane] < IN_FLIGHT
             # in arrival order: the fusion gets fewer late sightings to fold in (each costs re-applying the
             # newer ones) than freshest-first would give it; freshest first only once behind
             event = live.get(0 if stopping else 0.05, frames=room,  # or until a message comes
