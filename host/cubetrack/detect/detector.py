@@ -222,22 +222,24 @@ def _cv_parameters(p: DetectorParams) -> cv2.aruco.DetectorParameters:
 
 
 _ROI_MARGIN_PX = 16  # refine_corners_edges: float copy of the quads' region plus this
-_NEXT = [1, 2, 3, 0]  # side i of a quad runs from corner i to corner i + 1
-_PREV = [3, 0, 1, 2]
-_NEXT_I = np.array(_NEXT)
-_PREV_I = np.array(_PREV)
+# side i of a quad runs from corner i to corner i + 1; x.take(_NEXT_I, axis=1) is x[:, _NEXT_I]
+# at a fifth of the cost (no fancy-indexing machinery for a handful of markers)
+_NEXT_I = np.array([1, 2, 3, 0])
+_PREV_I = np.array([3, 0, 1, 2])
 
 
 def _quad_checks(quads: np.ndarray, min_area_px2: float) -> tuple[np.ndarray, np.ndarray]:
     """For (N, 4, 2) quads: which are finite, strictly convex, clockwise in the image (y down)
-    and larger than ``min_area_px2``, and their shoelace areas (px^2)."""
-    following = quads[:, _NEXT_I]                                      # corner i + 1 of each corner i
+    and larger than ``min_area_px2``, and their shoelace areas (px^2; 0 for a non-finite quad)."""
+    finite = np.isfinite(quads).all(axis=(1, 2))
+    if not finite.all():   # zeros instead: no invalid-value warnings, and a zero area fails below
+        quads = np.where(finite[:, None, None], quads, 0.0)
+    following = quads.take(_NEXT_I, axis=1)                             # corner i + 1 of each corner i
     e = following - quads                                               # edge i: corner i -> i+1
-    e_next = e[:, _NEXT_I]
+    e_next = e.take(_NEXT_I, axis=1)
     turns = e[..., 0] * e_next[..., 1] - e[..., 1] * e_next[..., 0]     # > 0: a right turn (clockwise)
     area = 0.5 * np.abs((quads[..., 0] * following[..., 1] - quads[..., 1] * following[..., 0]).sum(axis=1))
-    with np.errstate(invalid="ignore"):
-        ok = np.isfinite(quads).all(axis=(1, 2)) & (turns.min(axis=1) > 0.0) & (area > max(min_area_px2, 0.0))
+    ok = finite & (turns.min(axis=1) > 0.0) & (area > max(min_area_px2, 0.0))
     return ok, area
 
 
@@ -344,7 +346,7 @@ def refine_corners_edges(gray: np.ndarray, corners_px: np.ndarray, modules: int 
         # only the region around the quads, as float (cv2.remap of an 8-bit image rounds its
         # samples: a ~0.03 px edge bias); the margin covers the sampling half-width and the moves
         if good.any():
-            xy = c_in.reshape(-1, 4, 2)[good].reshape(-1, 2)
+            xy = c_in.reshape(-1, 2) if good.all() else c_in.reshape(-1, 4, 2)[good].reshape(-1, 2)
             (x0, y0), (x1, y1) = xy.min(axis=0).tolist(), xy.max(axis=0).tolist()
             x0, y0 = max(int(x0) - _ROI_MARGIN_PX, 0), max(int(y0) - _ROI_MARGIN_PX, 0)
             x1, y1 = int(x1) + _ROI_MARGIN_PX + 2, int(y1) + _ROI_MARGIN_PX + 2
@@ -352,6 +354,7 @@ def refine_corners_edges(gray: np.ndarray, corners_px: np.ndarray, modules: int 
             z_in = z_in - origin
         img = img.astype(np.float32)
     inv_modules = 1.0 / np.asarray(modules, dtype=np.float64).reshape(-1, 1)
+    width_per_side = 0.4 * inv_modules      # half-width 0.8 module = 0.4 x (sum of two neighbouring sides) / modules
     lens = None
     if K is not None and dist is not None and np.any(np.asarray(dist) != 0.0):
         K = np.array(K, dtype=np.float64)
@@ -367,18 +370,21 @@ def refine_corners_edges(gray: np.ndarray, corners_px: np.ndarray, modules: int 
     if focus_px is None:
         focus_px = _PEAK_WINDOW_PX if peak else _EDGE_FOCUS_PX
     t, powers_t, unit, unit_mid, step, across = _edge_sampling(samples_along, samples_across, tuple(span))
-    ones_t, k = powers_t[:, 0], len(t)
+    ones_t, k, moments_t = powers_t[:, 0], len(t), powers_t.T
     z = z0
     side_px = None  # the initial quad's side lengths (pinhole image)
+    fitted = np.ones(z.shape, dtype=bool)   # per side and corner: the fit held (a failed marker's
+    # corners restart from the initial ones, so the next iteration samples finite positions)
     # few numpy calls per iteration, each over every marker, side and sample at once: they, not
     # the arithmetic, are the cost; sums over samples are matrix products with constant vectors
     for _ in range(iterations):
-        v = z[:, _NEXT_I] - z                                           # side i: corner i -> i+1
+        v = z.take(_NEXT_I, axis=1) - z                                 # side i: corner i -> i+1
         length = np.abs(v)                                              # (M, 4) px
         if side_px is None:
             side_px = length
         n = v * (-1j / np.maximum(length, 1e-9))                        # outward unit normal (clockwise, y down)
-        w = np.minimum(np.maximum((length[:, _NEXT_I] + length[:, _PREV_I]) * (0.4 * inv_modules), 1.5), 4.0)
+        w = np.minimum(np.maximum((length.take(_NEXT_I, axis=1) + length.take(_PREV_I, axis=1)) * width_per_side,
+                                  1.5), 4.0)
         p = (z[..., None] + t * v[..., None])[..., None] + unit * (w * n)[..., None, None]   # (M, 4, k, m)
         if lens is not None:
             p = _distort_c(p, *lens)
@@ -416,22 +422,23 @@ def refine_corners_edges(gray: np.ndarray, corners_px: np.ndarray, modules: int 
                 resid2 *= resid2
                 rms2 = (weight * resid2) @ ones_t / np.maximum(s0, 1e-12)
                 weight = weight * (resid2 <= np.maximum(6.25 * rms2, 0.01)[..., None])
-            s0, s1, s2 = (powers_t.T @ weight.reshape(-1, k).T).reshape(3, -1, 4)   # (M, 4) each
-            sy, sty = (powers_t.T[:2] @ (weight * off).reshape(-1, k).T).reshape(2, -1, 4)
+            s0, s1, s2 = (moments_t @ weight.reshape(-1, k).T).reshape(3, -1, 4)   # (M, 4) each
+            sy, sty = (moments_t[:2] @ (weight * off).reshape(-1, k).T).reshape(2, -1, 4)
             den = s0 * s2 - s1 * s1
-            den = np.where(den > 1e-12, den, np.nan)                    # < 2 usable points: no line
+            den[den <= 1e-12] = np.nan                                  # < 2 usable points: no line
             b = (s0 * sty - s1 * sy) / den
             a = (sy - b * s1) / s0
         # side i is the line P + s D; corner i = side i-1 meets side i
         P, D = z + a * n, v + b * n
-        P1, D1 = P[:, _PREV_I], D[:, _PREV_I]
+        P1, D1 = P.take(_PREV_I, axis=1), D.take(_PREV_I, axis=1)
         s = ((P - P1).conj() * D).imag / (D1.conj() * D).imag
         z = P1 + s * D1
-        good &= ((length > 4.0) & (np.sign(weight) @ ones_t >= 3.0) & np.isfinite(z)).all(axis=1)
-        z = np.where(good[:, None], z, z0)
+        fitted &= (length > 4.0) & (np.sign(weight) @ ones_t >= 3.0) & np.isfinite(z)
+        z = np.where(fitted, z, z0)
+    good &= fitted.all(axis=1)
     if lens is not None:
         z = _distort_c(z, *lens)
-        side_px = np.abs(z_in[:, _NEXT_I] - z_in)
+        side_px = np.abs(z_in.take(_NEXT_I, axis=1) - z_in)
     # a corner moving more than two modules (at least 3 px) is a failed fit
     moved = np.abs(z - z_in).max(axis=1)
     good &= moved <= np.maximum(0.5 * side_px.sum(axis=1) * inv_modules[:, 0], 3.0)   # 2 x mean side
@@ -463,6 +470,8 @@ class Detector:
         dicts = [aruco_dictionary(n) for n in names]
         self._detector = cv2.aruco.ArucoDetector(dicts, _cv_parameters(self.params))
         self._region_detector = cv2.aruco.ArucoDetector(dicts, _cv_parameters(self.params))
+        self._region_params = _cv_parameters(self.params)   # perimeter rates set per region size
+        self._region_scale = 1.0                            # the scale _region_detector has now
         self._offset_px = (APRILTAG_PIXEL_OFFSET_PX
                            if self.params.corner_refinement is CornerRefinement.APRILTAG else 0.0)
         self._modules = tuple(d.markerSize + 2 for d in dicts)  # cells across, with a 1-bit border
@@ -499,10 +508,12 @@ class Detector:
         x0, y0, x1, y1 = box
         crop = np.ascontiguousarray(gray[y0:y1, x0:x1])
         scale = max(gray.shape) / max(crop.shape)
-        cv_params = _cv_parameters(self.params)
-        cv_params.minMarkerPerimeterRate = self.params.min_marker_perimeter_rate * scale
-        cv_params.maxMarkerPerimeterRate = self.params.max_marker_perimeter_rate * scale
-        self._region_detector.setDetectorParameters(cv_params)
+        if scale != self._region_scale:
+            cv_params = self._region_params
+            cv_params.minMarkerPerimeterRate = self.params.min_marker_perimeter_rate * scale
+            cv_params.maxMarkerPerimeterRate = self.params.max_marker_perimeter_rate * scale
+            self._region_detector.setDetectorParameters(cv_params)
+            self._region_scale = scale
         return self._detect(crop, self._region_detector, np.array([x0, y0], dtype=float))
 
     def _detect(self, gray: np.ndarray, detector, offset_px: np.ndarray) -> tuple[Detection, ...]:

@@ -214,6 +214,35 @@ def test_edge_refinement_of_an_8_bit_image_in_a_region_equals_the_float_image(sc
     np.testing.assert_allclose(a, b, atol=1e-9)
 
 
+def test_edge_refinement_of_several_markers_equals_each_alone_and_a_failure_stays_apart():
+    """One vectorised call over a frame's markers: a marker whose fit fails (a flat patch, NaN
+    corners) gets NaN and leaves the others' corners as they are when refined alone."""
+    gray = _two_markers_image()
+    quads = [d.corners_px for d in Detector(DetectorParams(corner_refinement=CornerRefinement.NONE)).detect(gray)]
+    flat = np.array([[500.0, 40.0], [560.0, 40.0], [560.0, 100.0], [500.0, 100.0]])
+    nan = np.full((4, 2), np.nan)
+    together = refine_corners_edges(gray, np.array([quads[0], flat, quads[1], nan]), 6)
+    assert np.isnan(together[[1, 3]]).all() and np.isfinite(together[[0, 2]]).all()
+    for i, quad in ((0, quads[0]), (2, quads[1])):
+        np.testing.assert_allclose(together[i], refine_corners_edges(gray, quad, 6), atol=1e-9)
+
+
+def test_region_searches_of_different_sizes_each_see_their_own_perimeter_limits():
+    """The region detector's perimeter limits follow each region's size (kept between calls of
+    one size): alternating sizes give what a fresh detector gives for each."""
+    gray = _two_markers_image()
+    large, small = (250, 150, 420, 320), (290, 190, 370, 270)
+    det = Detector()
+    first = [det.detect(gray, [box]) for box in (large, small, large, small)]
+    fresh = [Detector().detect(gray, [box]) for box in (large, small)]
+    for found, expected in zip(first, fresh * 2):
+        assert [d.marker_id for d in found] == [d.marker_id for d in expected] == [3]
+        np.testing.assert_array_equal(found[0].corners_px, expected[0].corners_px)
+    tiny_limits = Detector(DetectorParams(min_marker_perimeter_rate=0.5))
+    assert tiny_limits.detect(gray, [large]) == ()      # 0.5 x 640 = 320 px: too large for the marker
+    assert tiny_limits.detect(gray, [small]) == ()
+
+
 def _two_markers_image() -> np.ndarray:
     rng = np.random.default_rng(7)
     gray = np.full((480, 640), 200, np.uint8)
