@@ -30,6 +30,7 @@ import cv2
 from cubetrack.app.tracker import FrameJob, FrameResult, FrameWorker
 from cubetrack.core.errors import SourceError
 from cubetrack.core.params import check, param
+from cubetrack.core.records import Frame
 
 
 @enum.unique
@@ -89,7 +90,8 @@ class FramePool:
         self.depth = depth
         self.submitted = 0  # jobs handed to workers so far
         self._event = threading.Event()
-        self._wake = wake or self._event.set
+        # worker processes' results are read by the caller's wait() or poll() unless it has a wake
+        self._wake = wake or (self._event.set if kind is WorkerKind.THREAD else _nothing)
         self._lock = threading.Lock()
         self._done: deque[FrameResult] = deque()
         self._idle: deque = deque()  # one entry per free job slot: its lane (worker process), or None (threads)
@@ -103,6 +105,7 @@ class FramePool:
             self._idle.extend([None] * (count * depth))
             self._lanes: list[_ProcessLane] = []
         else:
+            self.local_worker = make_worker()  # unpacks the results (it holds what their messages leave out)
             context = multiprocessing.get_context("spawn")  # fork would copy this process's threads' locks
             self._lanes = [_ProcessLane(context, make_worker, self, depth, threaded=wake is not None)
                            for _ in range(count)]
@@ -160,14 +163,23 @@ class FramePool:
             self._event.wait(timeout_s)
             self._event.clear()
             return
-        open_lanes = {lane.conn: lane for lane in self._lanes if not lane.closing}
-        for conn in connection_wait(list(open_lanes), timeout_s):
-            lane = open_lanes[conn]
+        lanes = [lane for lane in self._lanes if not lane.closing]
+        if len(lanes) == 1:  # one pipe: poll it (connection_wait sets up a selector on every call)
+            ready = lanes if lanes[0].conn.poll(timeout_s) else []
+        else:
+            by_conn = {lane.conn: lane for lane in lanes}
+            ready = [by_conn[conn] for conn in connection_wait(list(by_conn), timeout_s)]
+        self._read(ready)
+
+    def poll(self) -> None:
+        """Without a ``wake``: read the worker processes' messages that are already there (never blocks)."""
+        self._read([lane for lane in self._lanes if not lane.closing])
+
+    def _read(self, lanes: list[_ProcessLane]) -> None:
+        for lane in lanes:
             try:
-                while True:
+                while lane.conn.poll():
                     lane.receive()
-                    if not conn.poll():
-                        break
             except (EOFError, OSError):
                 lane.ended()
 
@@ -238,7 +250,9 @@ class _ProcessLane:
 
     def send(self, job: FrameJob) -> None:
         self.jobs.append(job)
-        self.conn.send(job)
+        f = job.frame
+        self.conn.send((f.camera, f.seq, f.device_time_s, f.host_time_s, f.jpeg, job.capture_time_s, job.regions,
+                        tuple(job.estimate_robots)))
 
     def receive(self) -> None:
         """Take one message of the worker process (blocks until one comes)."""
@@ -249,8 +263,7 @@ class _ProcessLane:
             self.started = True
             self.pool._lane_ready(self)
             return
-        outcome, sightings, error = message
-        self.pool._finished(FrameResult(self.jobs.popleft(), outcome, sightings, error), self)
+        self.pool._finished(self.pool.local_worker.unpack(self.jobs.popleft(), message), self)
 
     def ended(self) -> None:
         if not self.closing:
@@ -281,17 +294,23 @@ class _ProcessLane:
 
 
 def _process_main(conn: Connection, make_worker: Callable[[], FrameWorker]) -> None:
-    """A worker process: jobs in, results (without the job, which the other side keeps) out,
-    until None comes."""
+    """A worker process: jobs in (plain values, :meth:`_ProcessLane.send`), results out, packed
+    (:meth:`FrameWorker.pack`: without the job, which the other side keeps), until None comes."""
     cv2.setNumThreads(1)
     try:
         worker = make_worker()
         conn.send("ready")
-        while (job := conn.recv()) is not None:
-            result = worker.work(job)
-            conn.send((result.outcome, result.sightings, result.error))
+        while (message := conn.recv()) is not None:
+            camera, seq, device_time_s, host_time_s, jpeg, capture_time_s, regions, estimate_robots = message
+            job = FrameJob(Frame(camera, seq, device_time_s, host_time_s, jpeg), capture_time_s, regions,
+                           frozenset(estimate_robots))
+            conn.send(worker.pack(worker.work(job)))
     except (EOFError, KeyboardInterrupt):
         pass
+
+
+def _nothing() -> None:
+    pass
 
 
 def by_capture_time(results: list[FrameResult]) -> list[FrameResult]:

@@ -22,6 +22,7 @@ from cubetrack.app.outputs import open_outputs
 from cubetrack.app.parallel import FramePool, WorkerKind
 from cubetrack.app.tracker import FrameJob, FrameResult, FrameWorker, StageParams, Tracker, TrackStats
 from cubetrack.core.cameras import CameraExtrinsics, CameraIntrinsics, ClockSample, WorldConfig
+from cubetrack.core.errors import ConfigError
 from cubetrack.core.layout import CubeLayout
 from cubetrack.core.progress import Progress
 from cubetrack.core.records import Frame
@@ -32,10 +33,10 @@ from cubetrack.sink.base import Outputs, Sink
 
 log = logging.getLogger(__name__)
 
-__all__ = ["TrackResult", "recording_intrinsics", "track_frames", "track_recording"]
+__all__ = ["TrackResult", "recording_intrinsics", "replay_workers", "track_frames", "track_recording"]
 
 
-REPLAY_LAG = 4  # a replay plans each frame with the fusion as it was this many frames earlier (2 per worker on 2 cores)
+REPLAY_LAG = 4  # a replay plans each frame with the fusion as it was this many frames earlier
 MIN_FRAMES_FOR_WORKERS = 600  # shorter replays are done on one thread (worker processes take 1-2 s to start)
 
 
@@ -54,8 +55,10 @@ def track_frames(frames: Iterable[Frame], intrinsics: Mapping[str, CameraIntrins
     the progress.
 
     The per-frame work (decode, detection, per-camera estimates) runs on ``pool``'s workers
-    (:func:`replay_pool`; None: on this thread) while this thread plans and fuses; until they
-    have started, and whenever none is free, this thread does it. So that the result does not
+    (:func:`replay_pool`; None: on this thread) while this thread plans and fuses: a worker's
+    free slot takes the newest planned job, and this thread does the oldest job no worker has
+    when it needs its result, or would otherwise wait for a worker's (until the workers have
+    started, it does them all). So that the result does not
     depend on how many workers there are or how fast each is, every frame is planned (its
     detection regions, the estimates asked for) with the fusion exactly as it was after the
     frames up to ``REPLAY_LAG`` frames before it, and the results are fused in frame order: a
@@ -70,15 +73,34 @@ def track_frames(frames: Iterable[Frame], intrinsics: Mapping[str, CameraIntrins
                    key=lambda item: (item[0], item[1]))
     next_trip = 0
     planned: deque[tuple[FrameJob | None, float]] = deque()  # in order, with the time each became available
+    unsent: deque[FrameJob] = deque()  # planned jobs neither done here nor handed to a worker, oldest first
     done: dict[FrameJob, FrameResult] = {}
 
+    def hand_out() -> None:
+        """Free worker slots take the newest unsent jobs (this thread will want the oldest first)."""
+        if pool is None:
+            return
+        if not pool.idle():
+            pool.poll()  # results that came free a slot
+        while unsent and pool.idle():
+            pool.submit(unsent.pop())
+
     def fuse_oldest() -> None:
+        """Fuse the oldest planned frame; rather than wait for a worker's result, this thread does
+        the oldest job no worker has."""
         job, now_s = planned.popleft()
         if job is None:
             return
         while job not in done:
-            pool.wait(1.0)
-            done.update((r.job, r) for r in pool.take())
+            if pool is not None:
+                done.update((r.job, r) for r in pool.take())
+                if job in done:
+                    break
+            if unsent:
+                todo = unsent.popleft()
+                done[todo] = tracker.worker.work(todo)
+            else:
+                pool.wait(1.0)
         for pose in tracker.fuse(done.pop(job), now_s):
             output.pose(pose)
 
@@ -88,12 +110,10 @@ def track_frames(frames: Iterable[Frame], intrinsics: Mapping[str, CameraIntrins
             fuse_oldest()
 
     def schedule(job: FrameJob | None, now_s: float) -> None:
-        """Hand a planned frame's work to a worker (or do it), to be fused ``REPLAY_LAG`` frames later."""
+        """Queue a planned frame's work (for a worker or this thread), to be fused ``REPLAY_LAG`` frames later."""
         if job is not None:
-            if pool is not None and pool.idle():
-                pool.submit(job)
-            else:  # no worker process (yet): this thread does the work
-                done[job] = tracker.worker.work(job)
+            unsent.append(job)
+            hand_out()
         planned.append((job, now_s))
 
     for i, frame in enumerate(frames, start=1):
@@ -116,15 +136,24 @@ def track_frames(frames: Iterable[Frame], intrinsics: Mapping[str, CameraIntrins
     return tracker.stats
 
 
+def replay_workers() -> int:
+    """Frame worker processes a replay starts here by default: one per core beyond the first,
+    whose thread plans, fuses and does the jobs no worker has (so one on two cores, where that
+    replays faster than one thread on a quiet machine: docs/live.md)."""
+    return (os.cpu_count() or 1) - 1
+
+
 def replay_pool(intrinsics: Mapping[str, CameraIntrinsics], world: WorldConfig, layouts: Mapping[str, CubeLayout],
-                extrinsics: Mapping[str, CameraExtrinsics] | None, params: StageParams, workers: int) -> FramePool:
+                extrinsics: Mapping[str, CameraExtrinsics] | None, params: StageParams, workers: int,
+                depth: int | None = None) -> FramePool:
     """``workers`` frame worker processes for :func:`track_frames` with these arguments, each
-    with room for its share of the ``REPLAY_LAG`` frames planned ahead (they start in the
-    background; close the pool when done)."""
+    taking up to ``depth`` jobs at a time (default: their share of the ``REPLAY_LAG`` - 1 frames
+    planned ahead but the oldest, which the replay's thread does when no worker has it). They
+    start in the background; close the pool when done."""
     robots = tuple(RobotConfig(name, layout) for name, layout in layouts.items())
     T_world_cam = {name: e.T_world_cam for name, e in (extrinsics or {}).items()}
     make_worker = functools.partial(FrameWorker, dict(intrinsics), world, robots, T_world_cam, params)
-    return FramePool(make_worker, workers, WorkerKind.PROCESS, depth=-(-REPLAY_LAG // workers))
+    return FramePool(make_worker, workers, WorkerKind.PROCESS, depth=depth or -(-(REPLAY_LAG - 1) // workers))
 
 
 @dataclass(frozen=True, slots=True)
@@ -142,16 +171,16 @@ def track_recording(config: TrackerConfig, recording: Recording,
                     extrinsics: dict[str, CameraExtrinsics] | None, out_dir: str | Path,
                     params: StageParams | None = None, progress: Progress | None = None,
                     sinks: Sequence[Sink] = (), *, extrinsics_path: str | Path | None = None,
-                    workers: int = 0) -> TrackResult:
+                    workers: int | None = None) -> TrackResult:
     """Replay a recording through the tracker, writing ``<out_dir>/<robot>.tum`` and ``.jsonl``,
     feeding ``sinks`` (other outputs) the same poses, and recording how in ``<out_dir>/run.json``
     (``extrinsics_path``: where ``extrinsics`` were read, for that record). ``params`` None: the
-    config's sections. ``workers``: frame worker processes (0: one per core beyond the one this
-    thread's planning and fusion need, so none on two cores, where three busy processes replay
-    slower than one thread (docs/live.md); recordings of fewer than ``MIN_FRAMES_FOR_WORKERS``
-    frames are replayed on one thread); the poses are the same
-    whatever their number (:func:`track_frames`)."""
-    workers = workers or max(1, (os.cpu_count() or 1) - 1)
+    config's sections. ``workers``: frame worker processes beside this thread (None:
+    :func:`replay_workers`; 0, and for recordings of fewer than ``MIN_FRAMES_FOR_WORKERS``
+    frames: none, one thread); the poses are the same whatever their number (:func:`track_frames`)."""
+    workers = replay_workers() if workers is None else workers
+    if workers < 0:
+        raise ConfigError(f"frame worker processes must not be negative, got {workers}")
     params = params or config_params(config).stages
     cameras = recording.camera_names
     clock = {c: recording.clock_samples(c) for c in cameras}
@@ -166,10 +195,10 @@ def track_recording(config: TrackerConfig, recording: Recording,
         {"config": config.path, "recording": recording.path, "extrinsics": extrinsics_path})
     total = sum(len(recording.index(c)) for c in cameras)
     if total < MIN_FRAMES_FOR_WORKERS:
-        workers = 1
+        workers = 0
     layouts = {r.name: r.layout for r in config.robots}
     outputs, files = open_outputs(config, intrinsics, extrinsics, out_dir, sinks)
-    pool = replay_pool(intrinsics, config.world, layouts, extrinsics, params, workers) if workers > 1 else None
+    pool = replay_pool(intrinsics, config.world, layouts, extrinsics, params, workers) if workers else None
     try:
         stats = track_frames(recording.merged_frames(), intrinsics, config.world, layouts, extrinsics, outputs,
                              params, clock_samples=clock, progress=progress, frame_count=total, pool=pool)

@@ -116,6 +116,9 @@ class FrameOutcome(enum.Enum):
     NO_CAMERA_POSE = "no camera pose"  # world-marker mode: the frame showed no world marker
 
 
+_OUTCOMES = tuple(FrameOutcome)
+
+
 @dataclass(frozen=True, slots=True, eq=False)
 class FrameResult:
     """What the per-frame work made of a :class:`FrameJob`: a sighting per robot seen."""
@@ -179,6 +182,31 @@ class FrameWorker:
             sightings.append(CubeSighting(frame.camera, robot.name, frame.seq, job.capture_time_s, frame.host_time_s,
                                           mine, estimate, T_world_cam, intrinsics))
         return FrameResult(job, outcome, tuple(sightings))
+
+    def pack(self, result: FrameResult) -> tuple:
+        """``result`` without its job, in plain values that pickle fast (for a pipe): what
+        :meth:`unpack` turns back into the same result in a worker made with the same arguments.
+        The intrinsics and calibrated camera poses, which both sides hold, stay out; a sighting's
+        detections go as ids, one corner array, areas and dictionaries."""
+        sightings = []
+        for s in result.sightings:
+            d = s.detections
+            T_world_cam = None if s.T_world_cam is self.T_world_cam.get(s.camera) else s.T_world_cam
+            sightings.append((s.robot, tuple(x.marker_id for x in d), np.array([x.corners_px for x in d]),
+                              tuple(x.area_px2 for x in d), tuple(x.dictionary for x in d), s.estimate, T_world_cam))
+        return _OUTCOMES.index(result.outcome), tuple(sightings), result.error
+
+    def unpack(self, job: FrameJob, packed: tuple) -> FrameResult:
+        """The :class:`FrameResult` of ``job`` that :meth:`pack` packed."""
+        outcome, packed_sightings, error = packed
+        frame = job.frame
+        sightings = tuple(
+            CubeSighting(frame.camera, robot, frame.seq, job.capture_time_s, frame.host_time_s,
+                         tuple(map(Detection, ids, corners, areas, dictionaries)), estimate,
+                         self.T_world_cam[frame.camera] if T_world_cam is None else T_world_cam,
+                         self.intrinsics[frame.camera])
+            for robot, ids, corners, areas, dictionaries, estimate, T_world_cam in packed_sightings)
+        return FrameResult(job, _OUTCOMES[outcome], sightings, error)
 
     def _detect(self, gray: np.ndarray, regions: tuple[Box, ...] | None) -> tuple[tuple[Detection, ...], FrameOutcome]:
         """Detections in the regions (cut to the image), or in the whole frame (also when the

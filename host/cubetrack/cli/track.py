@@ -41,6 +41,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--out", required=True, type=Path, metavar="DIR", help="output folder")
     p.add_argument("--duration", type=float, metavar="S", help="--live: stop after this many seconds (default: Ctrl-C)")
     p.add_argument("--record", type=Path, metavar="REC", help="--live: also record the session into this folder")
+    p.add_argument("--replay-workers", type=int, metavar="N",
+                   help="--recording: frame worker processes beside the thread that plans and fuses (default: one "
+                        "per core beyond the first; 0: one thread; the poses are the same either way)")
     p.add_argument("--status-every", type=float, default=2.0, metavar="S",
                    help="--live: seconds between status lines (default %(default)s)")
     add_output_arguments(p)
@@ -62,6 +65,9 @@ def run(args: argparse.Namespace) -> int:
 
     if not args.live and (args.duration is not None or args.record is not None or args.dashboard is not None):
         raise ConfigError("--duration, --record and --dashboard go with --live (a replay runs to the end of its recording)")
+    if args.replay_workers is not None and (args.live or args.replay_workers < 0):
+        raise ConfigError("--replay-workers goes with --recording and must not be negative, "
+                          f"got {args.replay_workers}" + (" with --live" if args.live else ""))
     if args.duration is not None and not args.duration > 0:
         raise ConfigError(f"--duration must be a positive number of seconds, got {args.duration}")
     if not args.status_every > 0:
@@ -83,7 +89,7 @@ def run(args: argparse.Namespace) -> int:
         if args.live:
             return _run_live(args, config, extrinsics, settings, sinks)
         result = track_recording(config, recording, extrinsics, args.out, settings.stages, StderrProgress(), sinks,
-                                 extrinsics_path=args.extrinsics)
+                                 extrinsics_path=args.extrinsics, workers=args.replay_workers)
     finally:
         close_sinks(sinks)
     s = result.stats

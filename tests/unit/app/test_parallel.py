@@ -97,3 +97,40 @@ def test_auto_takes_camera_processes_for_many_cameras_unless_recording_or_on_one
     chosen = LiveParams(worker_kind=WorkerKind.PROCESS)
     assert chosen.kind_for(16, recording=False) is WorkerKind.PROCESS
     assert LiveParams(worker_kind=WorkerKind.CAMERA_PROCESS).kind_for(3, recording=True) is WorkerKind.THREAD
+
+
+def test_a_packed_result_comes_back_whole_through_pickle(scenes):
+    """What a worker process sends (FrameWorker.pack) is unpacked into the result it made: every
+    detection's id, corners, area and dictionary, the estimate, the error; the camera pose and
+    intrinsics are the unpacking side's own (calibrated) or the frame's (world-marker mode)."""
+    import dataclasses
+    import pickle
+
+    from cubetrack.app.tracker import CameraPoseSource, TrackParams
+
+    uncalibrated = dataclasses.replace(StageParams(), track=TrackParams(camera_poses=CameraPoseSource.WORLD_MARKER))
+    for params in (StageParams(), uncalibrated):
+        sender = FrameWorker(INTRINSICS, WORLD, (RED, BLUE), T_WORLD_CAM, params)
+        receiver = FrameWorker(INTRINSICS, WORLD, (RED, BLUE), T_WORLD_CAM, params)
+        sightings = 0
+        for job in jobs(scenes):
+            result = sender.work(job)
+            back = receiver.unpack(job, pickle.loads(pickle.dumps(sender.pack(result))))
+            assert (back.job, back.outcome, back.error) == (job, result.outcome, result.error)
+            assert len(back.sightings) == len(result.sightings)
+            for a, b in zip(back.sightings, result.sightings):
+                assert (a.camera, a.robot, a.seq, a.capture_time_s, a.arrival_time_s) == \
+                    (b.camera, b.robot, b.seq, b.capture_time_s, b.arrival_time_s)
+                assert [(d.marker_id, d.corners_px.tobytes(), d.area_px2, d.dictionary) for d in a.detections] == \
+                    [(d.marker_id, d.corners_px.tobytes(), d.area_px2, d.dictionary) for d in b.detections]
+                assert (a.estimate is None) == (b.estimate is None)
+                if a.estimate is not None:
+                    assert a.estimate.T_world_cube.tobytes() == b.estimate.T_world_cube.tobytes()
+                assert a.T_world_cam.tobytes() == b.T_world_cam.tobytes() and a.intrinsics is receiver.intrinsics[a.camera]
+                if params is uncalibrated:
+                    assert a.T_world_cam is not receiver.T_world_cam.get(a.camera)
+                else:
+                    assert a.T_world_cam is receiver.T_world_cam[a.camera]
+                sightings += 1
+        assert sightings >= 4
+    assert back.outcome is FrameOutcome.CORRUPT and back.error  # the last job: the corrupt JPEG

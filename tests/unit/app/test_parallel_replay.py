@@ -62,14 +62,59 @@ def started_pool(replay, workers):
 def test_worker_processes_replay_bit_for_bit_what_one_thread_replays(replay):
     stats, poses = run(replay)
     assert len(poses) > 50 and stats.region_detections > 0  # the plans (regions) depend on the fusion
-    for workers in (2, 3):
+    for workers in (1, 2, 3):
         with started_pool(replay, workers) as pool:
-            assert pool.depth * workers >= REPLAY_LAG  # every frame planned ahead fits in the workers
+            assert pool.depth * workers >= REPLAY_LAG - 1  # every frame planned ahead but the oldest fits in the workers
             again, poses_again = run(replay, pool)
-            assert pool.submitted > 0.8 * len(replay["frames"])  # the workers did the work (this thread: the frames held for the clock)
+            assert pool.submitted > 0.5 * len(replay["frames"])  # the workers did most of the work
         assert poses_again == poses, workers
         assert (again.frames, again.poses, again.region_detections, again.estimates) == \
             (stats.frames, stats.poses, stats.region_detections, stats.estimates)
+
+
+class SlowPool:
+    """A pool of one worker slot whose job is done only when the replay waits for it (a worker
+    far slower than the replay's thread); it keeps the jobs it got."""
+
+    def __init__(self, worker):
+        self.worker, self.jobs, self.busy, self.ready = worker, [], None, []
+
+    def idle(self):
+        return int(self.busy is None)
+
+    def submit(self, job):
+        self.jobs.append(job)
+        self.busy = job
+
+    def poll(self):
+        pass
+
+    def wait(self, timeout_s):
+        self.ready.append(self.worker.work(self.busy))
+        self.busy = None
+
+    def take(self):
+        out, self.ready = self.ready, []
+        return out
+
+
+def test_the_replay_does_the_oldest_jobs_itself_rather_than_wait_for_a_slow_worker(replay):
+    from cubetrack.app.tracker import FrameWorker
+    from cubetrack.io.config import RobotConfig
+
+    stats, poses = run(replay)
+    robots = tuple(RobotConfig(name, layout) for name, layout in replay["layouts"].items())
+    worker = FrameWorker(replay["intrinsics"], replay["world"], robots,
+                         {name: e.T_world_cam for name, e in replay["extrinsics"].items()}, replay["params"])
+    pool = SlowPool(worker)
+    again, poses_again = run(replay, pool)
+    assert poses_again == poses and again.region_detections == stats.region_detections
+    # the slot took the newest planned job each time it was free; this thread did the REPLAY_LAG - 1
+    # jobs planned after it before waiting for it (deterministic here: no timing involved), so the
+    # worker got about one job in REPLAY_LAG
+    jobs, frames = len(pool.jobs), len(replay["frames"])
+    assert 0.8 * frames / REPLAY_LAG < jobs < 1.2 * frames / REPLAY_LAG, (jobs, frames)
+    assert pool.busy is None and pool.take() == []  # every result the worker made was fused
 
 
 def test_a_worker_process_that_dies_ends_the_replay_with_one_clear_error(replay):
