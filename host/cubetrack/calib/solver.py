@@ -45,7 +45,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 from scipy.optimize import least_squares
-from scipy.sparse import coo_matrix
+from scipy.sparse import coo_matrix, diags
+from scipy.sparse.linalg import spsolve
 from scipy.spatial.transform import Rotation
 
 from cubetrack.core.layout import marker_corners_m
@@ -480,7 +481,45 @@ def solve(obs: Observations, model: Model, free: Freedom) -> Model:
         J = coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(row, L.n))
         return r_all, J.tocsr()
 
+    if obs.knot_alpha is not None:  # thousands of knots: sparse direct steps (lsmr would crawl)
+        return unpack(levenberg_marquardt(evaluate, np.zeros(L.n), free.f_scale_px / sigma, free.max_nfev))
     result = least_squares(lambda x: evaluate(x, False)[0], np.zeros(L.n), jac=lambda x: evaluate(x, True)[1],
                            method="trf", loss="soft_l1", f_scale=free.f_scale_px / sigma,
                            x_scale=np.full(L.n, 1e-3), max_nfev=free.max_nfev, tr_solver="lsmr")
     return unpack(result.x)
+
+
+def soft_l1_cost(r: np.ndarray, f_scale: float) -> float:
+    """scipy's soft-L1 loss of residuals ``r``: sum of ``f^2 (2 sqrt(1 + (r/f)^2) - 2)`` / 2."""
+    return float(np.sum(f_scale ** 2 * (np.sqrt(1 + (r / f_scale) ** 2) - 1)))
+
+
+def levenberg_marquardt(evaluate, x0: np.ndarray, f_scale: float, max_iterations: int) -> np.ndarray:
+    """Minimise the soft-L1 cost of ``evaluate(x, with_jac) -> (residuals, sparse Jacobian or
+    None)`` from ``x0``: Levenberg-Marquardt steps on the reweighted normal equations (weights
+    ``1 / sqrt(1 + (r/f)^2)``, the loss's), each solved by a sparse LU factorisation; stops when
+    a step lowers the cost by less than 1e-9 of it, or after ``max_iterations`` evaluations of the
+    Jacobian."""
+    x = x0
+    r, J = evaluate(x, True)
+    cost, damping = soft_l1_cost(r, f_scale), 1e-4
+    for _ in range(max_iterations):
+        w = 1.0 / np.sqrt(1 + (r / f_scale) ** 2)
+        JtW = J.T.multiply(w).tocsr()
+        A, g = (JtW @ J).tocsc(), JtW @ r
+        diag = A.diagonal() + 1e-12
+        while True:
+            step = spsolve(A + diags(damping * diag, format="csc"), -g)
+            r_new = evaluate(x + step, False)[0]
+            new_cost = soft_l1_cost(r_new, f_scale) if np.isfinite(r_new).all() else np.inf
+            if new_cost < cost:
+                break
+            damping *= 10
+            if damping > 1e8:
+                return x
+        x, done = x + step, cost - new_cost < 1e-9 * cost
+        cost, damping = new_cost, max(damping / 10, 1e-7)
+        if done:
+            break
+        r, J = evaluate(x, True)
+    return x
