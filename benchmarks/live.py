@@ -22,10 +22,11 @@ RSS. Then it reports:
   --record the recorded session; the two must agree within 10 %;
 - on the same frames (the first --speed-frames of that recording), in this run: the
   naive loop (``cv2.imdecode`` colour + default ``ArucoDetector`` + ``solvePnP`` per marker, one
-  thread) and our tracker replaying them as fast as it can as ``cubetrack track --recording``
-  does (one frame worker process per core, started before the clock runs; this thread plans
-  and fuses), with the CPU per frame of both sides, and with the live run's processed rate:
-  the throughput ratios against the naive loop;
+  thread), our tracker on one thread, and ours replaying them as fast as it can as ``cubetrack
+  track --recording`` does here (one frame worker process per core beyond the first, started
+  before the clock runs; this thread plans, fuses and does the jobs no worker has), with the CPU
+  per frame of both sides, and with the live run's processed rate: the throughput ratios
+  against the naive loop (--speed-rounds N: N interleaved rounds, medians);
 - the machine's core count (``nproc``);
 - with --outputs (issue 10): a second live session on the same cameras with every output on
   (``--zenoh --ros2 --vrpn --foxglove --mcap``, servers on free loopback ports, no client
@@ -39,15 +40,18 @@ live accuracy within 10 % of the offline replay's. The last line lists the targe
     .venv/bin/python benchmarks/live.py [--cameras 16] [--fps 30] [--duration 60] [--out DIR]
     .venv/bin/python benchmarks/live.py --quick        # 2 cameras x 10 fps for 5 s (the CI smoke run)
     .venv/bin/python benchmarks/live.py --outputs      # and the cost of every output (issue 10)
+    .venv/bin/python benchmarks/live.py --speed-only --speed-rounds 5 --out /tmp/lb16   # naive / ours only
 
---out keeps the recording, the calibration, the live poses and ``live_report.json`` (a recording
-made with the same parameters is reused). Exit code 0 for a completed run (this is a report).
+--out keeps the recording, the calibration, the live poses and ``live_report.json``
+(``speed_report.json`` with --speed-only; a recording made with the same parameters is reused).
+Exit code 0 for a completed run (this is a report).
 """
 
 from __future__ import annotations
 
 import argparse
 import contextlib
+import itertools
 import json
 import os
 import re
@@ -62,6 +66,7 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 REPORT_FILE = "live_report.json"
+SPEED_REPORT_FILE = "speed_report.json"  # --speed-only
 TARGET_DROPPED = 0.01
 TARGET_P95_MS, TARGET_P99_MS = 15.0, 30.0
 TARGET_SPEED = 2.0
@@ -81,6 +86,11 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--warmup", type=float, default=5.0, help="seconds before the RSS 'start' sample (default 5)")
     p.add_argument("--speed-frames", type=int, default=1500, help="frames of the session for the naive-loop "
                    "comparison (default 1500)")
+    p.add_argument("--speed-rounds", type=int, default=1,
+                   help="rounds of the same-frames comparison, interleaved (medians reported; default 1)")
+    p.add_argument("--speed-only", action="store_true",
+                   help="only the same-frames comparison (naive / one thread / ours), on the recording of --out "
+                        "made with the same parameters (or a new one): no live run, no accuracy")
     p.add_argument("--seed", type=int, default=7, help="scene seed (default 7)")
     p.add_argument("--out", type=Path, help="keep everything here (default: a temporary folder, deleted)")
     p.add_argument("--quick", action="store_true", help="smoke run: 2 cameras x 10 fps, 5 s, small recording")
@@ -94,10 +104,12 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--tracker-arg", action="append", default=[], metavar="ARG",
                    help="extra argument for `cubetrack track` (repeatable)")
     args = p.parse_args(argv)
+    if args.speed_only and (args.record or args.outputs):
+        p.error("--speed-only replays the simulated recording: no --record or --outputs")
     if args.quick:
         args.cameras, args.fps, args.duration, args.recording_s = 2, 10.0, 5.0, 3.0
         args.warmup, args.speed_frames = 1.5, 60
-    for name in ("cameras", "fps", "duration", "recording_s", "speed_frames"):
+    for name in ("cameras", "fps", "duration", "recording_s", "speed_frames", "speed_rounds"):
         if not getattr(args, name) > 0:
             p.error(f"--{name.replace('_', '-')} must be positive")
     return args
@@ -412,13 +424,17 @@ def accuracy(args: argparse.Namespace, rec: Path, work: Path, live: dict) -> dic
 # --------------------------------------------------------------------------- the same frames, naive and ours
 
 
-def speed(args: argparse.Namespace, rec: Path, work: Path, live: dict) -> dict:
-    """The naive loop (one thread) and our tracker (one thread frame by frame, then the replay with
-    its frame worker processes as fast as it goes) over the same frames (:func:`replayed`), in memory."""
+def speed(args: argparse.Namespace, rec: Path, work: Path, live: dict | None) -> dict:
+    """The naive loop (one thread), our tracker on one thread frame by frame, and ours as
+    ``cubetrack track --recording`` replays here (its frame worker processes, started before the
+    clock runs, and its thread planning, fusing and doing the jobs no worker has) over the same
+    frames (:func:`replayed`), in memory: --speed-rounds rounds, interleaved; the figures are
+    the medians over the rounds (each round's in ``rounds``). ``live``: the live run, for the
+    live processed / naive ratio (None: --speed-only)."""
     import cv2
 
     from cubetrack.app.config import load_config, recording_intrinsics
-    from cubetrack.app.track import replay_pool, track_frames
+    from cubetrack.app.track import replay_pool, replay_workers, track_frames
     from cubetrack.app.tracker import Tracker
     from cubetrack.core.layout import marker_corners_m
     from cubetrack.io.config import read_extrinsics
@@ -427,9 +443,11 @@ def speed(args: argparse.Namespace, rec: Path, work: Path, live: dict) -> dict:
     config_path, recording_path = replayed(args, rec, work)
     config, settings = load_config(config_path)
     recording = Recording.open(recording_path)
-    frames = list(recording.merged_frames())[: args.speed_frames]
+    frames = list(itertools.islice(recording.merged_frames(), args.speed_frames))
     intrinsics = recording_intrinsics(config, recording)
     extrinsics = read_extrinsics(rec / "extrinsics.toml")
+    layouts = {r.name: r.layout for r in config.robots}
+    clock = {c: recording.clock_samples(c) for c in recording.camera_names}
 
     cv2.setNumThreads(1)
     sizes = {config.world.marker_id: config.world.marker_size_m}
@@ -438,59 +456,78 @@ def speed(args: argparse.Namespace, rec: Path, work: Path, live: dict) -> dict:
             sizes.setdefault(m.marker_id, m.size_m)
     objects = {i: marker_corners_m(s).astype(np.float64) for i, s in sizes.items()}
     detector = cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_4X4_50))
-    t0 = time.perf_counter()
-    for frame in frames:
-        img = cv2.imdecode(np.frombuffer(frame.jpeg, np.uint8), cv2.IMREAD_COLOR)
-        corners, ids, _ = detector.detectMarkers(img)
-        if ids is None:
-            continue
-        intr = intrinsics[frame.camera]
-        for c, marker_id in zip(corners, ids.reshape(-1)):
-            if int(marker_id) in objects:
-                cv2.solvePnP(objects[int(marker_id)], c.reshape(4, 2), intr.K, intr.dist,
-                             flags=cv2.SOLVEPNP_IPPE_SQUARE)
-    naive_fps = len(frames) / (time.perf_counter() - t0)
 
-    tracker = Tracker(intrinsics, config.world, config.robots, extrinsics, settings.stages)
-    work_ms, fuse_ms = [], []  # one thread, frame by frame: the processing part of the latency budget
-    t0 = time.perf_counter()
-    for frame in frames:
-        job = tracker.admit(frame)
-        if job is None:
-            continue
-        t1 = time.perf_counter()
-        result = tracker.worker.work(job)
-        t2 = time.perf_counter()
-        tracker.fuse(result, frame.host_time_s)
-        work_ms.append((t2 - t1) * 1000.0)
-        fuse_ms.append((time.perf_counter() - t2) * 1000.0)
-    inline_fps = len(frames) / (time.perf_counter() - t0)
+    def naive() -> float:
+        t0 = time.perf_counter()
+        for frame in frames:
+            img = cv2.imdecode(np.frombuffer(frame.jpeg, np.uint8), cv2.IMREAD_COLOR)
+            corners, ids, _ = detector.detectMarkers(img)
+            if ids is None:
+                continue
+            intr = intrinsics[frame.camera]
+            for c, marker_id in zip(corners, ids.reshape(-1)):
+                if int(marker_id) in objects:
+                    cv2.solvePnP(objects[int(marker_id)], c.reshape(4, 2), intr.K, intr.dist,
+                                 flags=cv2.SOLVEPNP_IPPE_SQUARE)
+        return len(frames) / (time.perf_counter() - t0)
 
-    # ours as `cubetrack track --recording` runs it: worker processes (started before the clock
-    # runs) doing the per-frame work while this thread plans and fuses (cubetrack.app.track)
-    workers = settings.live.worker_count
-    layouts = {r.name: r.layout for r in config.robots}
-    clock = {c: recording.clock_samples(c) for c in recording.camera_names}
-    with replay_pool(intrinsics, config.world, layouts, extrinsics, settings.stages, workers) as pool:
-        while not pool.all_started:
-            pool.wait(0.2)
-            pool.take()  # raises if a worker process failed to start
-        pids = pool.process_ids
-        cpu0, main0, t0 = sum(process_cpu_rss(p)[0] for p in pids), time.process_time(), time.perf_counter()
-        track_frames(frames, intrinsics, config.world, layouts, extrinsics, _NoSink(), settings.stages,
-                     clock_samples=clock, pool=pool)
-        wall = time.perf_counter() - t0
-        main_ms, workers_ms = ((time.process_time() - main0) / len(frames) * 1000.0,
-                               (sum(process_cpu_rss(p)[0] for p in pids) - cpu0) / len(frames) * 1000.0)
-    pool_fps = len(frames) / wall
-    # ours: as `track --recording` runs on this machine (worker processes only for the cores beyond one)
-    replay_workers = max(1, (os.cpu_count() or 1) - 1)
-    ours_fps = pool_fps if replay_workers > 1 else inline_fps
-    return {"frames": len(frames), "naive_fps": naive_fps, "ours_fps": ours_fps, "ratio": ours_fps / naive_fps,
-            "pool_fps": pool_fps, "replay_workers": replay_workers,
-            "inline_fps": inline_fps, "work_ms": percentiles(np.array(work_ms)),
-            "fuse_ms": percentiles(np.array(fuse_ms)), "live_ratio": live["processed_fps"] / naive_fps,
-            "workers": workers, "ours_cpu_ms": {"main": main_ms, "workers": workers_ms}}
+    def inline() -> tuple[float, list[float], list[float]]:
+        """One thread, frame by frame: the processing part of the latency budget."""
+        tracker = Tracker(intrinsics, config.world, config.robots, extrinsics, settings.stages)
+        work_ms, fuse_ms = [], []
+        t0 = time.perf_counter()
+        for frame in frames:
+            job = tracker.admit(frame)
+            if job is None:
+                continue
+            t1 = time.perf_counter()
+            result = tracker.worker.work(job)
+            t2 = time.perf_counter()
+            tracker.fuse(result, frame.host_time_s)
+            work_ms.append((t2 - t1) * 1000.0)
+            fuse_ms.append((time.perf_counter() - t2) * 1000.0)
+        return len(frames) / (time.perf_counter() - t0), work_ms, fuse_ms
+
+    workers = replay_workers()
+
+    def ours() -> tuple[float, float, float, int]:
+        """frames/s, CPU ms per frame of this process and of the worker processes, jobs they did."""
+        pool = replay_pool(intrinsics, config.world, layouts, extrinsics, settings.stages, workers) \
+            if workers else None
+        with pool or contextlib.nullcontext():
+            while pool is not None and not pool.all_started:
+                pool.wait(0.2)
+                pool.take()  # raises if a worker process failed to start
+            pids = pool.process_ids if pool is not None else []
+            cpu0, main0, t0 = sum(process_cpu_rss(p)[0] for p in pids), time.process_time(), time.perf_counter()
+            track_frames(frames, intrinsics, config.world, layouts, extrinsics, _NoSink(), settings.stages,
+                         clock_samples=clock, pool=pool)
+            wall = time.perf_counter() - t0
+            main_ms, workers_ms = ((time.process_time() - main0) / len(frames) * 1000.0,
+                                   (sum(process_cpu_rss(p)[0] for p in pids) - cpu0) / len(frames) * 1000.0)
+        return len(frames) / wall, main_ms, workers_ms, pool.submitted if pool is not None else 0
+
+    rounds = []
+    for k in range(args.speed_rounds):
+        print(f"  speed round {k + 1} of {args.speed_rounds} ...", file=sys.stderr, flush=True)
+        naive_fps = naive()
+        inline_fps, work_ms, fuse_ms = inline()
+        ours_fps, main_ms, workers_ms, jobs = ours()
+        rounds.append({"naive_fps": naive_fps, "inline_fps": inline_fps, "ours_fps": ours_fps,
+                       "ratio": ours_fps / naive_fps, "inline_ratio": inline_fps / naive_fps,
+                       "ours_cpu_ms": {"main": main_ms, "workers": workers_ms}, "worker_jobs": jobs,
+                       "load_average": os.getloadavg()[0]})
+
+    def median(key, sub=None) -> float:
+        return float(np.median([r[key][sub] if sub else r[key] for r in rounds]))
+
+    naive_fps = median("naive_fps")
+    return {"frames": len(frames), "naive_fps": naive_fps, "ours_fps": median("ours_fps"), "ratio": median("ratio"),
+            "inline_fps": median("inline_fps"), "inline_ratio": median("inline_ratio"), "replay_workers": workers,
+            "work_ms": percentiles(np.array(work_ms)), "fuse_ms": percentiles(np.array(fuse_ms)),
+            "live_ratio": live["processed_fps"] / naive_fps if live is not None else None,
+            "ours_cpu_ms": {"main": median("ours_cpu_ms", "main"), "workers": median("ours_cpu_ms", "workers")},
+            "worker_jobs": median("worker_jobs"), "rounds": rounds}
 
 
 class _NoSink:
@@ -499,6 +536,23 @@ class _NoSink:
 
 
 # --------------------------------------------------------------------------- report
+
+
+def print_speed(sp: dict) -> None:
+    """The same-frames lines of the report."""
+    cpu, rounds = sp["ours_cpu_ms"], len(sp["rounds"])
+    how = "one thread" if not sp["replay_workers"] else f"{sp['replay_workers']} frame worker process(es) + its thread"
+    live = "" if sp["live_ratio"] is None else f"; live processed / naive {sp['live_ratio']:.2f}"
+    print(f"  same {sp['frames']} frames ({'median of ' + str(rounds) + ' rounds' if rounds > 1 else 'one round'}, "
+          f"load average {min(r['load_average'] for r in sp['rounds']):.1f}-"
+          f"{max(r['load_average'] for r in sp['rounds']):.1f}): naive loop {sp['naive_fps']:.1f} frames/s "
+          f"(one thread), ours {sp['ours_fps']:.1f} frames/s (as track --recording replays here: {how}; CPU per frame "
+          f"{cpu['main']:.2f} ms in its thread (planning, fusing, {1 - sp['worker_jobs'] / sp['frames']:.0%} of the "
+          f"frames' work) + {cpu['workers']:.2f} ms in the workers), one thread {sp['inline_fps']:.1f}: "
+          f"ratio {sp['ratio']:.2f} (one thread {sp['inline_ratio']:.2f}){live}")
+    w, f = sp["work_ms"], sp["fuse_ms"]
+    print(f"  per frame, one thread: decode + detect + estimate p50 {w['p50']:.2f} ms p95 {w['p95']:.2f} ms; "
+          f"fusion p50 {f['p50']:.2f} ms p95 {f['p95']:.2f} ms")
 
 
 def print_report(args: argparse.Namespace, report: dict) -> list[str]:
@@ -526,16 +580,7 @@ def print_report(args: argparse.Namespace, report: dict) -> list[str]:
           f"(detection ratio {acc['live']['detection_ratio']:.3f}); offline replay of the same frames "
           f"{acc['offline']['pos_cm']:.2f} cm / {acc['offline']['rot_deg']:.2f} deg; live/offline "
           f"{acc['pos_ratio']:.2f} / {acc['rot_ratio']:.2f}")
-    cpu = sp["ours_cpu_ms"]
-    print(f"  same {sp['frames']} frames: naive loop {sp['naive_fps']:.1f} frames/s (one thread), ours "
-          f"{sp['ours_fps']:.1f} frames/s (as track --recording replays here: "
-          f"{'one thread' if sp['replay_workers'] == 1 else str(sp['replay_workers']) + ' worker processes'}; "
-          f"one thread {sp['inline_fps']:.1f}, {sp['workers']} worker processes {sp['pool_fps']:.1f} with CPU per "
-          f"frame {cpu['main']:.2f} ms planning and fusing + {cpu['workers']:.2f} ms in the workers): "
-          f"ratio {sp['ratio']:.2f}; live processed / naive {sp['live_ratio']:.2f}")
-    w, f = sp["work_ms"], sp["fuse_ms"]
-    print(f"  per frame, one thread: decode + detect + estimate p50 {w['p50']:.2f} ms p95 {w['p95']:.2f} ms; "
-          f"fusion p50 {f['p50']:.2f} ms p95 {f['p95']:.2f} ms")
+    print_speed(sp)
     failures = []
     if live["dropped_fraction"] > TARGET_DROPPED:
         failures.append(f"dropped {live['dropped_fraction'] * 100:.1f} % > {TARGET_DROPPED * 100:g} %")
@@ -567,6 +612,19 @@ def main(argv: list[str] | None = None) -> int:
         work.mkdir(parents=True, exist_ok=True)
         print(f"preparing {args.cameras} cameras x {args.fps:g} fps ...", file=sys.stderr, flush=True)
         rec = ensure_recording(args, work)
+        if args.speed_only:
+            load = os.getloadavg()
+            sp = speed(args, rec, work, None)
+            print(f"same-frames comparison: {args.cameras} cameras x {args.fps:g} fps recording, "
+                  f"nproc {os.cpu_count()} (load average before {load[0]:.1f})")
+            print_speed(sp)
+            if not sp["ratio"] >= TARGET_SPEED:
+                print(f"SUMMARY: throughput ours/naive {sp['ratio']:.2f} < {TARGET_SPEED:g}")
+            else:
+                print("SUMMARY: throughput target met")
+            (work / SPEED_REPORT_FILE).write_text(json.dumps({"nproc": os.cpu_count(), "speed": sp}, indent=2)
+                                                 + "\n", encoding="utf-8")
+            return 0
         print(f"tracking live for {args.duration:g} s ...", file=sys.stderr, flush=True)
         load = os.getloadavg()
         live = run_live(args, rec, work)
