@@ -33,6 +33,7 @@ from cubetrack.source.clock import ClockFitMethod, ClockSync
 
 log = logging.getLogger(__name__)
 
+_NO_ROTATION = np.zeros(3)  # (and no translation) for cv2.projectPoints of camera-frame points
 HELD_FRAMES = 32  # per camera, waiting for the first clock round trip (about 4 s at 7.5 fps)
 
 
@@ -271,6 +272,7 @@ class Tracker:
             self.T_world_cam = {name: e.T_world_cam for name, e in (extrinsics or {}).items()}
         else:
             self.T_world_cam = {}
+        self.T_cam_world = {name: invert_T(T) for name, T in self.T_world_cam.items()}
         self.worker = FrameWorker(intrinsics, world, robots, self.T_world_cam, params)
         self.fusion: Fusion
         if params.fusion.method is FusionMethod.FILTER:
@@ -399,7 +401,7 @@ class Tracker:
                 or self.frames_since_full[camera] + 1 >= track.full_frame_every):
             return None
         intrinsics = self.intrinsics[camera]
-        T_cam_world = invert_T(self.T_world_cam[camera])
+        T_cam_world = self.T_cam_world[camera]
         width, height = intrinsics.width, intrinsics.height
         boxes = []
         for robot in self.robots:
@@ -407,11 +409,12 @@ class Tracker:
             if T_world_cube is None:
                 return None
             pc = transform_points(T_cam_world @ T_world_cube, self.cube_points_m[robot.name])
-            if np.any(pc[:, 2] <= 0.05):
+            nearest_m = float(pc[:, 2].min())
+            if nearest_m <= 0.05:
                 return None
-            px, _ = cv2.projectPoints(pc, np.zeros(3), np.zeros(3), intrinsics.K, intrinsics.dist)
+            px, _ = cv2.projectPoints(pc, _NO_ROTATION, _NO_ROTATION, intrinsics.K, intrinsics.dist)
             px = px.reshape(-1, 2)
-            grow = float(intrinsics.K[0, 0]) * track.roi_margin_m / float(pc[:, 2].min()) + 8.0
+            grow = float(intrinsics.K[0, 0]) * track.roi_margin_m / nearest_m + 8.0
             x0, y0 = np.floor(px.min(axis=0) - grow).astype(int)
             x1, y1 = np.ceil(px.max(axis=0) + grow).astype(int)
             x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, width), min(y1, height)
