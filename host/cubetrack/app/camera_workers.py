@@ -28,8 +28,9 @@ from multiprocessing.reduction import ForkingPickler
 import cv2
 import numpy as np
 
-from cubetrack.app.tracker import FrameOutcome, FrameResult, Tracker
+from cubetrack.app.tracker import FrameJob, FrameOutcome, FrameResult, Tracker
 from cubetrack.core.errors import SourceError
+from cubetrack.core.records import Frame
 from cubetrack.estimate.reprojection import moved_pose
 from cubetrack.fuse.base import Fusion
 from cubetrack.source.streams import CameraStats, ClockReading, LiveCameras, SourceParams
@@ -43,7 +44,7 @@ BEHIND_S = 0.015  # a worker process whose oldest waiting frame is older than th
 IN_FLIGHT = 4  # results a worker process may have sent that the fusion has not taken yet
 WAKE = "wake"  # the message to a worker process that may wait for its results to be taken
 MESSAGES_PER_TAKE = 64  # messages read from one worker process per take(), so that no process starves another
-HOLD_S = 0.004  # a result newer than a frame some worker process is working on waits at most this long for it
+HOLD_S = 0.002  # a result newer than a frame some worker process is working on waits at most this long for it
 
 
 @dataclass(frozen=True, slots=True)
@@ -302,6 +303,15 @@ def _work_cameras(conn: Connection, urls: dict[str, str], source: SourceParams, 
     next_update = time.monotonic() + STATS_EVERY_S
     stopping = False
     sent = 0
+    job = None  # the next frame's, admitted before the result of the one before it went
+
+    def admitted(event: Frame | ClockReading | None) -> FrameJob | None:
+        if isinstance(event, ClockReading):
+            tracker.add_clock_sample(event.camera, event.sample)
+            conn.send(("clock", event))
+            return None
+        return None if event is None else tracker.admit(event, hold=False)
+
     try:
         while True:
             while conn.poll():
@@ -311,26 +321,30 @@ def _work_cameras(conn: Connection, urls: dict[str, str], source: SourceParams, 
                     live.stop()
                 elif isinstance(message, Forecast):  # else a wake: the count taken changed
                     tracker.forecast = message
-            room = stopping or sent - taken[lane] < IN_FLIGHT
-            # in arrival order: the fusion gets fewer late sightings to fold in (each costs re-applying the
-            # newer ones) than freshest-first would give it; freshest first only once behind
-            event = live.get(0 if stopping else 0.05, frames=room,  # or until a message comes
-                             newest_first_after_s=BEHIND_S)
-            if event is None:
-                if stopping:
+            if job is None:
+                room = stopping or sent - taken[lane] < IN_FLIGHT
+                # in arrival order: the fusion gets fewer late sightings to fold in (each costs re-applying the
+                # newer ones) than freshest-first would give it; freshest first only once behind
+                event = live.get(0 if stopping else 0.05, frames=room,  # or until a message comes
+                                 newest_first_after_s=BEHIND_S)
+                if event is None and stopping:
                     break
-            elif isinstance(event, ClockReading):
-                tracker.add_clock_sample(event.camera, event.sample)
-                conn.send(("clock", event))
-            elif (job := tracker.admit(event, hold=False)) is not None:
+                job = admitted(event)
+            if job is not None:
                 working[lane] = job.capture_time_s  # results newer than this wait for it (CameraProcesses.take)
                 result = tracker.worker.work(job)
                 if result.outcome is not FrameOutcome.CORRUPT:  # counted (and logged) by the fusion's tracker
                     tracker.count(result)  # when this camera's whole frame was last searched
-                if not views:
-                    job = dataclasses.replace(job, frame=dataclasses.replace(job.frame, jpeg=b""))
-                conn.send(("result", FrameResult(job, result.outcome, result.sightings, result.error)))
-                working[lane] = math.inf  # after the send: the result is in the pipe by now
+                done = job if views else dataclasses.replace(job, frame=dataclasses.replace(job.frame, jpeg=b""))
+                # the next frame, if one has come, is in work before this result goes: were it older, the
+                # tracker's process holds this result for it rather than folding it in late
+                job = None
+                if stopping or sent + 1 - taken[lane] < IN_FLIGHT:
+                    while (event := live.get(0, newest_first_after_s=BEHIND_S)) is not None:
+                        if (job := admitted(event)) is not None:
+                            break
+                working[lane] = math.inf if job is None else job.capture_time_s
+                conn.send(("result", FrameResult(done, result.outcome, result.sightings, result.error)))
                 sent += 1
             if time.monotonic() >= next_update:
                 next_update = time.monotonic() + STATS_EVERY_S
