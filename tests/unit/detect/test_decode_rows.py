@@ -1,0 +1,62 @@
+"""decode_gray(rows=...): only the top of a sequential JPEG is decoded, with the full decode's
+pixels; anything else is decoded in full; broken data still fails with ImageError."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from cubetrack.core.errors import ImageError
+from cubetrack.detect.detector import decode_gray
+
+
+def _scene(height: int = 240, width: int = 320, colour: bool = False) -> np.ndarray:
+    rng = np.random.default_rng(3)
+    yy, xx = np.mgrid[0:height, 0:width]
+    base = (128 + 60 * np.sin(xx / 9.0) * np.cos(yy / 13.0) + rng.normal(0, 12, (height, width))).clip(0, 255)
+    if not colour:
+        return base.astype(np.uint8)
+    return np.dstack([base, np.roll(base, 7, axis=1), 255 - base]).astype(np.uint8)
+
+
+def _jpeg(image: np.ndarray, *params: int) -> bytes:
+    ok, buf = cv2.imencode(".jpg", image, [cv2.IMWRITE_JPEG_QUALITY, 85, *params])
+    assert ok
+    return buf.tobytes()
+
+
+@pytest.mark.parametrize("kind, mcu_rows", [
+    ("gray", 8), ("colour 4:2:0", 16), ("colour 4:4:4", 8), ("gray, restart markers", 8)])
+def test_the_top_rows_are_the_full_decodes(kind, mcu_rows):
+    params = {"colour 4:2:0": [cv2.IMWRITE_JPEG_SAMPLING_FACTOR, cv2.IMWRITE_JPEG_SAMPLING_FACTOR_420],
+              "colour 4:4:4": [cv2.IMWRITE_JPEG_SAMPLING_FACTOR, cv2.IMWRITE_JPEG_SAMPLING_FACTOR_444],
+              "gray, restart markers": [cv2.IMWRITE_JPEG_RST_INTERVAL, 3]}.get(kind, [])
+    data = _jpeg(_scene(colour=kind.startswith("colour")), *params)
+    full = decode_gray(data)
+    assert full.shape == (240, 320)
+    for rows in (1, 8, 9, 100, 240 - mcu_rows):
+        top = decode_gray(data, rows=rows)
+        expected_rows = -(-rows // mcu_rows) * mcu_rows
+        assert top.shape == (expected_rows, 320), (rows, top.shape)
+        np.testing.assert_array_equal(top, full[:expected_rows])
+    for rows in (240 - mcu_rows + 1, 240, 10_000):   # into the last MCU row or beyond: the whole image
+        np.testing.assert_array_equal(decode_gray(data, rows=rows), full)
+
+
+def test_a_progressive_jpeg_is_decoded_in_full():
+    data = _jpeg(_scene(), cv2.IMWRITE_JPEG_PROGRESSIVE, 1)
+    np.testing.assert_array_equal(decode_gray(data, rows=40), decode_gray(data))
+
+
+def test_broken_data_fails_as_without_rows():
+    data = _jpeg(_scene())
+    with pytest.raises(ImageError, match="cam1 frame 3: truncated JPEG"):
+        decode_gray(data[: len(data) // 2], "cam1 frame 3", rows=40)
+    with pytest.raises(ImageError, match="empty image data"):
+        decode_gray(b"", rows=40)
+    header_only = data[:200] + b"\xff\xd9"
+    with pytest.raises(ImageError):
+        decode_gray(header_only, rows=40)
+    with pytest.raises(ImageError, match="not a decodable"):
+        decode_gray(b"\xff\xd8 not a jpeg at all" + b"\xff\xd9", rows=40)
