@@ -138,13 +138,17 @@ class CameraProcesses:
     """``count`` camera worker processes over ``urls`` (see the module doc), with the part of
     :class:`~cubetrack.source.streams.LiveCameras`' interface the live loop uses (``urls``,
     :meth:`stats`, :meth:`pending`, :meth:`stop`). ``make_tracker`` builds each process's
-    tracker (picklable: a ``functools.partial``). Wait for and take what came with :meth:`take`
+    tracker (picklable: a ``functools.partial``); its results come as ``FrameWorker.pack`` packs
+    them, and ``unpack`` (e.g. the ``FrameWorker.unpack`` of a tracker made with the same
+    arguments) turns them back into results. Wait for and take what came with :meth:`take`
     (on the caller's thread: no thread of this process reads the pipes, so none competes with
     the fusion for the GIL); send each new :class:`Forecast` with :meth:`forecast`."""
 
     def __init__(self, urls: Mapping[str, str], source: SourceParams, make_tracker: Callable[[], Tracker],
-                 count: int, *, views: bool = False, clock: Callable[[], float] = time.time):
+                 count: int, unpack: Callable[[FrameJob, tuple], FrameResult], *, views: bool = False,
+                 clock: Callable[[], float] = time.time):
         self.urls = dict(urls)
+        self._unpack = unpack  # a result as FrameWorker.pack sent it -> the FrameResult
         self.count = count
         self._told: list[int] = []  # per lane: the count of taken results when it was last sent a message
         self._stats = {name: CameraStats(url=url) for name, url in self.urls.items()}
@@ -202,7 +206,7 @@ class CameraProcesses:
                 raise SourceError("a camera worker process ended unexpectedly "
                                   f"(exit code {self._lanes[lane][1].exitcode})") from None
             if kind == "result":
-                results.append(payload)
+                results.append(self._unpack(*payload))
                 self._taken[lane] += 1
             elif kind == "clock":
                 clocks.append(payload)
@@ -344,7 +348,7 @@ def _work_cameras(conn: Connection, urls: dict[str, str], source: SourceParams, 
                         if (job := admitted(event)) is not None:
                             break
                 working[lane] = math.inf if job is None else job.capture_time_s
-                conn.send(("result", FrameResult(done, result.outcome, result.sightings, result.error)))
+                conn.send(("result", (done, tracker.worker.pack(result))))  # plain values: pickled fast
                 sent += 1
             if time.monotonic() >= next_update:
                 next_update = time.monotonic() + STATS_EVERY_S

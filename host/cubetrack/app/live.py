@@ -377,8 +377,8 @@ def track_live(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
         pool = None
         make_tracker = functools.partial(Tracker, intrinsics, config.world, config.robots, extrinsics, params,
                                          synced_cameras=frozenset(urls))
-        live = CameraProcesses(urls, source, make_tracker, live_params.worker_count, views=outputs.wants_views,
-                               clock=clock)
+        live = CameraProcesses(urls, source, make_tracker, live_params.worker_count, tracker.worker.unpack,
+                               views=outputs.wants_views, clock=clock)
     else:
         make_worker = functools.partial(FrameWorker, intrinsics, config.world, config.robots, tracker.T_world_cam,
                                         params)
