@@ -17,6 +17,8 @@ from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
+import cv2
+
 from cubetrack.app.config import config_params, parameter_tables, recording_intrinsics
 from cubetrack.app.outputs import open_outputs
 from cubetrack.app.parallel import FramePool, WorkerKind
@@ -199,10 +201,14 @@ def track_recording(config: TrackerConfig, recording: Recording,
     layouts = {r.name: r.layout for r in config.robots}
     outputs, files = open_outputs(config, intrinsics, extrinsics, out_dir, sinks)
     pool = replay_pool(intrinsics, config.world, layouts, extrinsics, params, workers) if workers else None
+    opencv_threads = cv2.getNumThreads()
+    if pool is not None:
+        cv2.setNumThreads(1)  # the worker processes have the other cores (each runs OpenCV on one thread)
     try:
         stats = track_frames(recording.merged_frames(), intrinsics, config.world, layouts, extrinsics, outputs,
                              params, clock_samples=clock, progress=progress, frame_count=total, pool=pool)
     finally:
+        cv2.setNumThreads(opencv_threads)
         if pool is not None:
             pool.close()
         outputs.close()
