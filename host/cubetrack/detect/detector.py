@@ -31,7 +31,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from PIL import Image
+from PIL import Image, JpegImagePlugin
 
 from cubetrack.core.errors import DetectionError, ImageError, ParamsError
 from cubetrack.core.geometry import undistort_points
@@ -633,9 +633,9 @@ _SEQUENTIAL_SOF = (0xC0, 0xC1)   # baseline and extended sequential, Huffman-cod
 _STANDALONE_MARKERS = frozenset((0x01, *range(0xD0, 0xD9)))   # TEM, RSTn, SOI: no length field
 
 
-def _sequential_frame_header(data: bytes) -> tuple[int, int, int, int] | None:
+def _sequential_frame_header(data: bytes) -> tuple[int, int, int, int, int] | None:
     """A sequential 8-bit JPEG's frame header: (offset of its SOF marker, height, width, MCU
-    height in rows), or None (another kind of JPEG, a height given later by DNL, or data that
+    height in rows, components), or None (another kind of JPEG, a height given later by DNL, or data that
     does not parse: the caller decodes it in full, where errors are reported)."""
     i, end = 2, min(len(data), 65536)
     while i + 4 <= end:
@@ -657,7 +657,7 @@ def _sequential_frame_header(data: bytes) -> tuple[int, int, int, int] | None:
                 return None
             # one component: its scan's MCU is one 8 x 8 block; interleaved: 8 x the largest vertical sampling
             v_max = 1 if components == 1 else max(data[i + 11 + 3 * c] & 0x0F for c in range(components))
-            return i, height, width, 8 * max(v_max, 1)
+            return i, height, width, 8 * max(v_max, 1), components
         if 0xC0 <= marker <= 0xCF and marker not in (0xC4, 0xC8, 0xCC) or marker in (0xDA, 0xD9):
             return None           # progressive, lossless or arithmetic-coded; or no frame header first
         i += 2 + length
@@ -676,15 +676,16 @@ def _decode_top_rows(data: bytes, rows: int) -> np.ndarray | None:
     header = _sequential_frame_header(data)
     if header is None:
         return None
-    sof, height, width, mcu_rows = header
+    sof, height, width, mcu_rows, components = header
     keep = -(-max(int(rows), 1) // mcu_rows) * mcu_rows
     if keep >= height:
         return None
     patched = bytearray(data)
     patched[sof + 5:sof + 7] = keep.to_bytes(2, "big")
     try:
-        with Image.open(io.BytesIO(patched), formats=["JPEG"]) as image:
-            image.draft("L", image.size)    # grayscale straight from the decoder (luma only)
+        with JpegImagePlugin.JpegImageFile(io.BytesIO(patched)) as image:
+            if components > 1:
+                image.draft("L", image.size)  # grayscale straight from the decoder (luma only)
             if image.mode != "L":
                 return None
             gray = np.asarray(image)
