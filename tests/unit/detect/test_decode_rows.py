@@ -60,3 +60,25 @@ def test_broken_data_fails_as_without_rows():
         decode_gray(header_only, rows=40)
     with pytest.raises(ImageError, match="not a decodable"):
         decode_gray(b"\xff\xd8 not a jpeg at all" + b"\xff\xd9", rows=40)
+
+
+def test_mangled_jpegs_decode_or_fail_with_an_image_error():
+    """Bytes of a frame overwritten at random (header and data): the top-rows decode gives the
+    full decode's top rows or falls back to it, and every failure is an ImageError."""
+    data = _jpeg(_scene(colour=True), cv2.IMWRITE_JPEG_SAMPLING_FACTOR, cv2.IMWRITE_JPEG_SAMPLING_FACTOR_420)
+    rng = np.random.default_rng(11)
+    outcomes = set()
+    for _ in range(150):
+        mangled = bytearray(data)
+        for at in rng.integers(2, min(len(data) - 2, 700 if rng.random() < 0.7 else len(data) - 2), size=3):
+            mangled[at] = int(rng.integers(0, 256))
+        mangled = bytes(mangled)
+        try:
+            top = decode_gray(mangled, rows=60)
+        except ImageError:
+            outcomes.add("error")
+            continue
+        full = decode_gray(mangled)
+        np.testing.assert_array_equal(top, full[: len(top)])
+        outcomes.add("decoded")
+    assert outcomes == {"decoded", "error"}
