@@ -31,7 +31,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from PIL import Image, JpegImagePlugin
+from PIL import JpegImagePlugin
 
 from cubetrack.core.errors import DetectionError, ImageError, ParamsError
 from cubetrack.core.geometry import undistort_points
