@@ -82,3 +82,34 @@ def test_mangled_jpegs_decode_or_fail_with_an_image_error():
         np.testing.assert_array_equal(top, full[: len(top)])
         outcomes.add("decoded")
     assert outcomes == {"decoded", "error"}
+
+
+def test_a_region_search_finding_nothing_searches_the_whole_decoded_frame():
+    """The frame worker decodes a region frame only down to the regions' lowest edge; when the
+    regions find nothing, the full-frame search gets the whole frame (here: a marker below them)."""
+    from pathlib import Path
+
+    from cubetrack.app.tracker import FrameJob, FrameOutcome, FrameWorker, StageParams
+    from cubetrack.core.cameras import CameraIntrinsics, WorldConfig
+    from cubetrack.core.layout import paper_cube_layout
+    from cubetrack.core.records import Frame
+    from cubetrack.io.config import RobotConfig
+
+    gray = np.full((480, 640), 200, np.uint8)
+    dictionary = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_4X4_50)
+    gray[380:440, 300:360] = cv2.aruco.generateImageMarker(dictionary, 1, 60)
+    jpeg = _jpeg(cv2.GaussianBlur(gray, (0, 0), 0.8))
+    intrinsics = CameraIntrinsics(K=np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]]), dist=np.zeros(5),
+                                  width=640, height=480)
+    robot = RobotConfig("red", paper_cube_layout(cube_size_m=0.11, marker_id=1), Path("red.toml"))
+    worker = FrameWorker({"cam1": intrinsics}, WorldConfig("DICT_4X4_50", 0, 0.25), (robot,),
+                         {"cam1": np.eye(4)}, StageParams())
+    frame = Frame("cam1", 1, 0.0, 0.0, jpeg)
+    below = worker.work(FrameJob(frame, 0.0, ((260, 340, 400, 476),), frozenset()))
+    above = worker.work(FrameJob(frame, 0.0, ((100, 40, 200, 120),), frozenset()))
+    assert below.outcome is FrameOutcome.REGIONS and above.outcome is FrameOutcome.FULL_FRAME
+    for result in (below, above):
+        (sighting,) = result.sightings
+        assert [d.marker_id for d in sighting.detections] == [1]
+    np.testing.assert_allclose(above.sightings[0].detections[0].corners_px,
+                               below.sightings[0].detections[0].corners_px, atol=1e-6)
