@@ -41,6 +41,7 @@ class WorkerKind(enum.Enum):
     CAMERA_PROCESS = "camera-process"
 
 
+_WAITING, _STARTED, _RECLAIMED = 0, 1, 2  # a job's claim flag (_ProcessLane)
 CAMERA_PROCESSES_FROM = 12  # [live] worker_kind = "auto": camera worker processes from this many cameras on
 
 
@@ -153,8 +154,12 @@ class FramePool:
             self.submitted += 1
         if lane is None:
             self._jobs.put(job)
-        else:
+            return
+        try:
             lane.send(job)
+        except OSError:  # the worker process is gone (BrokenPipeError)
+            lane.ended()
+            raise self._failure or SourceError("a frame worker process ended unexpectedly") from None
 
     def wait(self, timeout_s: float) -> None:
         """Without a ``wake`` of the caller's: wait up to ``timeout_s`` for a result or a started
@@ -183,6 +188,11 @@ class FramePool:
             except (EOFError, OSError):
                 lane.ended()
 
+    def reclaim(self, job: FrameJob) -> bool:
+        """Take a submitted job back if its worker process has not started it (then no result
+        comes for it: the caller does it); False with threads or once started."""
+        return any(lane.reclaim(job) for lane in self._lanes)
+
     def take(self) -> list[FrameResult]:
         """Every result ready now (completion order)."""
         with self._lock:
@@ -198,12 +208,14 @@ class FramePool:
             self._idle.extend([lane] * lane.depth)
         self._wake()
 
-    def _finished(self, result: FrameResult | BaseException, lane: _ProcessLane | None = None) -> None:
+    def _finished(self, result: FrameResult | BaseException | None, lane: _ProcessLane | None = None) -> None:
+        """A worker's answer: a result, a failure, or None for a job taken back (its slot is free)."""
         with self._lock:
             if isinstance(result, BaseException):
                 self._failure = self._failure or result
             else:
-                self._done.append(result)
+                if result is not None:
+                    self._done.append(result)
                 self._idle.append(lane)
         self._wake()
 
@@ -234,13 +246,18 @@ class _ProcessLane:
     def __init__(self, context, make_worker: Callable[[], FrameWorker], pool: FramePool, depth: int,
                  threaded: bool):
         self.conn, child = context.Pipe()
-        self.process = context.Process(target=_process_main, args=(child, make_worker), daemon=True,
-                                       name="cubetrack-frame-worker")
+        # one flag per job on the way (a ring): whether the worker started it (_STARTED) or the
+        # pool's caller took it back (_RECLAIMED, :meth:`FramePool.reclaim`) first
+        self.claims, self.claim_lock = context.RawArray("b", depth + 1), context.Lock()
+        self.process = context.Process(target=_process_main, args=(child, make_worker, self.claims, self.claim_lock),
+                                       daemon=True, name="cubetrack-frame-worker")
         self.process.start()
         child.close()
         self.pool = pool
         self.depth = depth
         self.jobs: deque[FrameJob] = deque()  # sent, in order; the worker answers in the same order
+        self.tickets: dict[FrameJob, int] = {}  # sent job -> its claim flag
+        self.sent = 0
         self.started = False
         self.closing = False
         self.reader = None
@@ -249,10 +266,25 @@ class _ProcessLane:
             self.reader.start()
 
     def send(self, job: FrameJob) -> None:
+        ticket = self.sent % len(self.claims)  # free: at most depth jobs are on the way
+        self.sent += 1
+        self.claims[ticket] = _WAITING
         self.jobs.append(job)
+        self.tickets[job] = ticket
         f = job.frame
-        self.conn.send((f.camera, f.seq, f.device_time_s, f.host_time_s, f.jpeg, job.capture_time_s, job.regions,
-                        tuple(job.estimate_robots)))
+        self.conn.send((ticket, f.camera, f.seq, f.device_time_s, f.host_time_s, f.jpeg, job.capture_time_s,
+                        job.regions, tuple(job.estimate_robots)))
+
+    def reclaim(self, job: FrameJob) -> bool:
+        """Take ``job`` back unless the worker has started it (its answer will be None)."""
+        ticket = self.tickets.get(job)
+        if ticket is None:
+            return False
+        with self.claim_lock:
+            if self.claims[ticket] != _WAITING:
+                return False
+            self.claims[ticket] = _RECLAIMED
+        return True
 
     def receive(self) -> None:
         """Take one message of the worker process (blocks until one comes)."""
@@ -263,7 +295,12 @@ class _ProcessLane:
             self.started = True
             self.pool._lane_ready(self)
             return
-        self.pool._finished(self.pool.local_worker.unpack(self.jobs.popleft(), message), self)
+        job = self.jobs.popleft()
+        del self.tickets[job]
+        if message is None:  # taken back before the worker started it
+            self.pool._finished(None, self)
+        else:
+            self.pool._finished(self.pool.local_worker.unpack(job, message), self)
 
     def ended(self) -> None:
         if not self.closing:
@@ -293,15 +330,22 @@ class _ProcessLane:
             self.reader.join(5.0)
 
 
-def _process_main(conn: Connection, make_worker: Callable[[], FrameWorker]) -> None:
+def _process_main(conn: Connection, make_worker: Callable[[], FrameWorker], claims, claim_lock) -> None:
     """A worker process: jobs in (plain values, :meth:`_ProcessLane.send`), results out, packed
-    (:meth:`FrameWorker.pack`: without the job, which the other side keeps), until None comes."""
+    (:meth:`FrameWorker.pack`: without the job, which the other side keeps; None for a job taken
+    back before it started), until None comes."""
     cv2.setNumThreads(1)
     try:
         worker = make_worker()
         conn.send("ready")
         while (message := conn.recv()) is not None:
-            camera, seq, device_time_s, host_time_s, jpeg, capture_time_s, regions, estimate_robots = message
+            ticket, camera, seq, device_time_s, host_time_s, jpeg, capture_time_s, regions, estimate_robots = message
+            with claim_lock:
+                mine = claims[ticket] == _WAITING
+                claims[ticket] = _STARTED if mine else claims[ticket]
+            if not mine:
+                conn.send(None)
+                continue
             job = FrameJob(Frame(camera, seq, device_time_s, host_time_s, jpeg), capture_time_s, regions,
                            frozenset(estimate_robots))
             conn.send(worker.pack(worker.work(job)))

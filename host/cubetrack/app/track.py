@@ -59,8 +59,8 @@ def track_frames(frames: Iterable[Frame], intrinsics: Mapping[str, CameraIntrins
     The per-frame work (decode, detection, per-camera estimates) runs on ``pool``'s workers
     (:func:`replay_pool`; None: on this thread) while this thread plans and fuses: a worker's
     free slot takes the newest planned job, and this thread does the oldest job no worker has
-    when it needs its result, or would otherwise wait for a worker's (until the workers have
-    started, it does them all). So that the result does not
+    when it needs its result, or would otherwise wait for a worker's, and takes a job back that
+    its worker has not started yet (until the workers have started, it does them all). So that the result does not
     depend on how many workers there are or how fast each is, every frame is planned (its
     detection regions, the estimates asked for) with the fusion exactly as it was after the
     frames up to ``REPLAY_LAG`` frames before it, and the results are fused in frame order: a
@@ -89,7 +89,7 @@ def track_frames(frames: Iterable[Frame], intrinsics: Mapping[str, CameraIntrins
 
     def fuse_oldest() -> None:
         """Fuse the oldest planned frame; rather than wait for a worker's result, this thread does
-        the oldest job no worker has."""
+        the oldest job no worker has, or takes that frame's job back if its worker has not started it."""
         job, now_s = planned.popleft()
         if job is None:
             return
@@ -101,6 +101,8 @@ def track_frames(frames: Iterable[Frame], intrinsics: Mapping[str, CameraIntrins
             if unsent:
                 todo = unsent.popleft()
                 done[todo] = tracker.worker.work(todo)
+            elif pool.reclaim(job):  # its worker had not started it (busy, or not given a core)
+                done[job] = tracker.worker.work(job)
             else:
                 pool.wait(1.0)
         for pose in tracker.fuse(done.pop(job), now_s):

@@ -134,3 +134,34 @@ def test_a_packed_result_comes_back_whole_through_pickle(scenes):
                 sightings += 1
         assert sightings >= 4
     assert back.outcome is FrameOutcome.CORRUPT and back.error  # the last job: the corrupt JPEG
+
+
+def test_a_job_its_worker_has_not_started_is_taken_back(scenes):
+    """FramePool.reclaim: jobs queued at a worker process that has not started them come back
+    (the worker answers None and frees their slots; no result comes); a job it started or
+    finished does not."""
+    todo = jobs(scenes)[:3]
+    with FramePool(MAKE_WORKER, 1, WorkerKind.PROCESS, depth=3) as pool:
+        while not pool.all_started:
+            pool.wait(0.5)
+        first = todo[0]
+        pool.submit(first)
+        while pool.busy():
+            pool.wait(0.5)
+        assert [r.job for r in pool.take()] == [first] and not pool.reclaim(first)  # done already
+        os.kill(pool.process_ids[0], signal.SIGSTOP)  # the worker cannot start anything now
+        try:
+            for job in todo[1:]:
+                pool.submit(job)
+            assert pool.idle() == 1
+            assert pool.reclaim(todo[2]) and pool.reclaim(todo[1]) and not pool.reclaim(todo[1])
+        finally:
+            os.kill(pool.process_ids[0], signal.SIGCONT)
+        deadline = time.monotonic() + 60
+        while pool.busy() and time.monotonic() < deadline:
+            pool.wait(0.5)
+        assert pool.idle() == 3 and pool.take() == []  # both slots free again, no result for either
+        pool.submit(todo[1])  # the worker goes on with new jobs
+        while pool.busy() and time.monotonic() < deadline:
+            pool.wait(0.5)
+        assert [r.job for r in pool.take()] == [todo[1]]

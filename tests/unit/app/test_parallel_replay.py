@@ -89,6 +89,9 @@ class SlowPool:
     def poll(self):
         pass
 
+    def reclaim(self, job):
+        return False  # the worker started it
+
     def wait(self, timeout_s):
         self.ready.append(self.worker.work(self.busy))
         self.busy = None
