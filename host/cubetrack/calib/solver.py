@@ -46,7 +46,7 @@ import cv2
 import numpy as np
 from scipy.optimize import least_squares
 from scipy.sparse import coo_matrix, diags
-from scipy.sparse.linalg import spsolve
+from scipy.sparse.linalg import splu
 from scipy.spatial.transform import Rotation
 
 from cubetrack.core.layout import marker_corners_m
@@ -482,7 +482,9 @@ def solve(obs: Observations, model: Model, free: Freedom) -> Model:
         return r_all, J.tocsr()
 
     if obs.knot_alpha is not None:  # thousands of knots: sparse direct steps (lsmr would crawl)
-        return unpack(levenberg_marquardt(evaluate, np.zeros(L.n), free.f_scale_px / sigma, free.max_nfev))
+        knots = np.arange(L.bodies, L.bodies + 6 * L.K)
+        order = np.r_[knots, np.setdiff1d(np.arange(L.n), knots)]  # the banded knots first, the few shared last
+        return unpack(levenberg_marquardt(evaluate, np.zeros(L.n), free.f_scale_px / sigma, free.max_nfev, order))
     result = least_squares(lambda x: evaluate(x, False)[0], np.zeros(L.n), jac=lambda x: evaluate(x, True)[1],
                            method="trf", loss="soft_l1", f_scale=free.f_scale_px / sigma,
                            x_scale=np.full(L.n, 1e-3), max_nfev=free.max_nfev, tr_solver="lsmr")
@@ -494,22 +496,28 @@ def soft_l1_cost(r: np.ndarray, f_scale: float) -> float:
     return float(np.sum(f_scale ** 2 * (np.sqrt(1 + (r / f_scale) ** 2) - 1)))
 
 
-def levenberg_marquardt(evaluate, x0: np.ndarray, f_scale: float, max_iterations: int) -> np.ndarray:
+def levenberg_marquardt(evaluate, x0: np.ndarray, f_scale: float, max_iterations: int,
+                        order: np.ndarray) -> np.ndarray:
     """Minimise the soft-L1 cost of ``evaluate(x, with_jac) -> (residuals, sparse Jacobian or
     None)`` from ``x0``: Levenberg-Marquardt steps on the reweighted normal equations (weights
-    ``1 / sqrt(1 + (r/f)^2)``, the loss's), each solved by a sparse LU factorisation; stops when
-    a step lowers the cost by less than 1e-9 of it, or after ``max_iterations`` evaluations of the
-    Jacobian."""
+    ``1 / sqrt(1 + (r/f)^2)``, the loss's), each solved by a sparse LU factorisation of the
+    unknowns in ``order`` without pivoting (the matrix is positive definite; a banded block first
+    and the unknowns every residual may share last keep the factors as sparse as the matrix);
+    stops when a step lowers the cost by less than 1e-9 of it, or after ``max_iterations``
+    evaluations of the Jacobian."""
     x = x0
     r, J = evaluate(x, True)
     cost, damping = soft_l1_cost(r, f_scale), 1e-4
     for _ in range(max_iterations):
         w = 1.0 / np.sqrt(1 + (r / f_scale) ** 2)
         JtW = J.T.multiply(w).tocsr()
-        A, g = (JtW @ J).tocsc(), JtW @ r
+        A, g = (JtW @ J).tocsr()[order][:, order], (JtW @ r)[order]
         diag = A.diagonal() + 1e-12
         while True:
-            step = spsolve(A + diags(damping * diag, format="csc"), -g)
+            lu = splu((A + diags(damping * diag)).tocsc(), permc_spec="NATURAL", diag_pivot_thresh=0.0,
+                      options={"SymmetricMode": True})
+            step = np.empty_like(x)
+            step[order] = lu.solve(-g)
             r_new = evaluate(x + step, False)[0]
             new_cost = soft_l1_cost(r_new, f_scale) if np.isfinite(r_new).all() else np.inf
             if new_cost < cost:
