@@ -425,12 +425,14 @@ def accuracy(args: argparse.Namespace, rec: Path, work: Path, live: dict) -> dic
 
 
 def speed(args: argparse.Namespace, rec: Path, work: Path, live: dict | None) -> dict:
-    """The naive loop (one thread), our tracker on one thread frame by frame, and ours as
-    ``cubetrack track --recording`` replays here (its frame worker processes, started before the
-    clock runs, and its thread planning, fusing and doing the jobs no worker has) over the same
-    frames (:func:`replayed`), in memory: --speed-rounds rounds, interleaved; the figures are
-    the medians over the rounds (each round's in ``rounds``). ``live``: the live run, for the
-    live processed / naive ratio (None: --speed-only)."""
+    """The naive loop (one thread), our tracker on one thread frame by frame (without the clock
+    round trips: the latency budget's processing part), the replay on one thread (``track
+    --recording --replay-workers 0``) and ours as ``cubetrack track --recording`` replays here
+    (its frame worker processes, started before the clock runs, and its thread planning, fusing
+    and doing the jobs no worker has) over the same frames (:func:`replayed`), in memory:
+    --speed-rounds rounds, interleaved; the figures are the medians over the rounds (each
+    round's in ``rounds``). ``live``: the live run, for the live processed / naive ratio (None:
+    --speed-only)."""
     import cv2
 
     from cubetrack.app.config import load_config, recording_intrinsics
@@ -488,10 +490,9 @@ def speed(args: argparse.Namespace, rec: Path, work: Path, live: dict | None) ->
             fuse_ms.append((time.perf_counter() - t2) * 1000.0)
         return len(frames) / (time.perf_counter() - t0), work_ms, fuse_ms
 
-    workers = replay_workers()
-
-    def ours() -> tuple[float, float, float, int]:
-        """frames/s, CPU ms per frame of this process and of the worker processes, jobs they did."""
+    def ours(workers: int) -> tuple[float, float, float, int]:
+        """The replay with ``workers`` frame worker processes (0: one thread): frames/s, CPU ms per
+        frame of this process and of the worker processes, jobs they did."""
         pool = replay_pool(intrinsics, config.world, layouts, extrinsics, settings.stages, workers) \
             if workers else None
         with pool or contextlib.nullcontext():
@@ -507,14 +508,18 @@ def speed(args: argparse.Namespace, rec: Path, work: Path, live: dict | None) ->
                                    (sum(process_cpu_rss(p)[0] for p in pids) - cpu0) / len(frames) * 1000.0)
         return len(frames) / wall, main_ms, workers_ms, pool.submitted if pool is not None else 0
 
+    workers = replay_workers()
     rounds = []
     for k in range(args.speed_rounds):
         print(f"  speed round {k + 1} of {args.speed_rounds} ...", file=sys.stderr, flush=True)
         naive_fps = naive()
         inline_fps, work_ms, fuse_ms = inline()
-        ours_fps, main_ms, workers_ms, jobs = ours()
+        one_thread_fps = ours(0)[0] if workers else None
+        ours_fps, main_ms, workers_ms, jobs = ours(workers)
+        one_thread_fps = one_thread_fps or ours_fps
         rounds.append({"naive_fps": naive_fps, "inline_fps": inline_fps, "ours_fps": ours_fps,
-                       "ratio": ours_fps / naive_fps, "inline_ratio": inline_fps / naive_fps,
+                       "one_thread_fps": one_thread_fps, "ratio": ours_fps / naive_fps,
+                       "one_thread_ratio": one_thread_fps / naive_fps, "inline_ratio": inline_fps / naive_fps,
                        "ours_cpu_ms": {"main": main_ms, "workers": workers_ms}, "worker_jobs": jobs,
                        "load_average": os.getloadavg()[0]})
 
@@ -524,6 +529,7 @@ def speed(args: argparse.Namespace, rec: Path, work: Path, live: dict | None) ->
     naive_fps = median("naive_fps")
     return {"frames": len(frames), "naive_fps": naive_fps, "ours_fps": median("ours_fps"), "ratio": median("ratio"),
             "inline_fps": median("inline_fps"), "inline_ratio": median("inline_ratio"), "replay_workers": workers,
+            "one_thread_fps": median("one_thread_fps"), "one_thread_ratio": median("one_thread_ratio"),
             "work_ms": percentiles(np.array(work_ms)), "fuse_ms": percentiles(np.array(fuse_ms)),
             "live_ratio": live["processed_fps"] / naive_fps if live is not None else None,
             "ours_cpu_ms": {"main": median("ours_cpu_ms", "main"), "workers": median("ours_cpu_ms", "workers")},
@@ -548,8 +554,10 @@ def print_speed(sp: dict) -> None:
           f"{max(r['load_average'] for r in sp['rounds']):.1f}): naive loop {sp['naive_fps']:.1f} frames/s "
           f"(one thread), ours {sp['ours_fps']:.1f} frames/s (as track --recording replays here: {how}; CPU per frame "
           f"{cpu['main']:.2f} ms in its thread (planning, fusing, {1 - sp['worker_jobs'] / sp['frames']:.0%} of the "
-          f"frames' work) + {cpu['workers']:.2f} ms in the workers), one thread {sp['inline_fps']:.1f}: "
-          f"ratio {sp['ratio']:.2f} (one thread {sp['inline_ratio']:.2f}){live}")
+          f"frames' work) + {cpu['workers']:.2f} ms in the workers), the replay on one thread "
+          f"{sp['one_thread_fps']:.1f}, one thread frame by frame without clock round trips {sp['inline_fps']:.1f}: "
+          f"ratio {sp['ratio']:.2f} (replay on one thread {sp['one_thread_ratio']:.2f}, frame by frame "
+          f"{sp['inline_ratio']:.2f}){live}")
     w, f = sp["work_ms"], sp["fuse_ms"]
     print(f"  per frame, one thread: decode + detect + estimate p50 {w['p50']:.2f} ms p95 {w['p95']:.2f} ms; "
           f"fusion p50 {f['p50']:.2f} ms p95 {f['p95']:.2f} ms")
