@@ -28,6 +28,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import sys
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 
@@ -156,8 +157,11 @@ def calibrate_body(frames: Mapping[str, Iterable[Frame]], extrinsics: Mapping[st
         warnings.append(message)
         log.warning("%s", message)
 
+    # a trajectory follows every instant's frames (max_instants spreads instants over a recording)
+    instants = dataclasses.replace(params, max_span_s=params.body_max_span_s,
+                                   max_instants=sys.maxsize if params.body_knot_s > 0 else params.max_instants)
     ref, _cameras = start_refinement(frames, extrinsics, intrinsics, {robot: layout}, clock_samples=clock_samples,
-                                     params=dataclasses.replace(params, max_span_s=params.body_max_span_s),
+                                     params=instants,
                                      detector_params=detector_params, progress=progress,
                                      frame_count=frame_count, warn=warn, readout_s=readout_s,
                                      calibration_corners=edge_corners)
