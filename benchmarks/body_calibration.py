@@ -16,7 +16,7 @@ and with ``--compare-instants`` with the instants model (``body_knot_s = 0``: on
 instant, moved with a fitted velocity) instead of the body's continuous-time trajectory. CPU seconds of each calibrate-body (its child process), the core count and the load average are
 printed.
 
-    .venv/bin/python benchmarks/body_calibration.py [--seeds 44 45] [--duration 60] [--out DIR]
+    .venv/bin/python benchmarks/body_calibration.py [--seeds 44 45 46] [--duration 60] [--out DIR]
                                                     [--path sharp] [--compare] [--compare-instants]
                                                     [--refine-intrinsics]
 
@@ -107,7 +107,7 @@ def summary(err: dict[str, tuple[float, float, float]]) -> tuple[float, float, f
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--seeds", type=int, nargs="+", default=[44, 45], help="simulation seeds (default: 44 45)")
+    ap.add_argument("--seeds", type=int, nargs="+", default=[44, 45, 46], help="simulation seeds (default: 44 45 46)")
     ap.add_argument("--duration", type=float, default=60.0, help="seconds of driving (default: 60)")
     ap.add_argument("--path", default="sharp", choices=("sharp", "figure8", "rectangle"),
                     help="the robot's path (default: sharp, the realistic preset's)")

@@ -6,12 +6,13 @@ turned by a degree, printed slightly small, and the faces are not quite square. 
 takes the layout as exact, so every such error becomes a pose error that changes with the face
 in view. :func:`calibrate_body` estimates each marker's pose on the body and its size from the
 body's sightings in a tracking recording — a bundle adjustment (:mod:`cubetrack.calib.solver`)
-over multi-camera instants as in the extrinsics refinement (:mod:`cubetrack.calib.bundle`) but of
-frames closer in time (``body_max_span_s``), each corner's noise growing with its frame's time from
-its instant (``body_motion_noise_px_per_s``: the constant-velocity motion between the frames misses
-turns and vibration), the corners measured by the template fit (:mod:`cubetrack.calib.marker_fit`),
-or (``body_knot_s`` > 0) on a continuous-time trajectory of the body (:class:`Trajectory`: each
-corner at the pose interpolated to its row's time, no velocity assumed), with the markers free,
+over the frames of multi-camera instants as in the extrinsics refinement
+(:mod:`cubetrack.calib.bundle`) but of frames closer in time (``body_max_span_s``), the corners
+measured by the template fit (:mod:`cubetrack.calib.marker_fit`), on a continuous-time trajectory
+of the body (``body_knot_s`` > 0, the default; :class:`Trajectory`: each corner at the pose
+interpolated to its row's time, no velocity assumed) or (``body_knot_s`` = 0) one pose per
+instant, moved to each frame's time with a fitted velocity, each corner's noise growing with its
+frame's time from its instant (``body_motion_noise_px_per_s``), with the markers free,
 held near the nominal layout by priors (``body_position_sigma_m``,
 ``body_rotation_sigma_deg``, ``body_size_sigma``), the cameras refined too but held near the given
 extrinsics (``body_camera_sigma_m``, ``body_camera_sigma_deg``), and (``refine_intrinsics``) the
