@@ -1,6 +1,6 @@
-"""`cubetrack calibrate-body` on a continuous-time trajectory of the body (``[bundle_adjustment]
-body_knot_s``), end to end: a short realistic simulation (sharp turns, rolling shutter, wobble,
-a wide-angle lens, a hand-built cube), rendered JPEGs, the CLI, the layout file it writes.
+"""`cubetrack calibrate-body` on a continuous-time trajectory of the body (the default,
+``[bundle_adjustment] body_knot_s``), end to end: a short realistic simulation (sharp turns,
+rolling shutter, wobble, a wide-angle lens, a hand-built cube), rendered JPEGs, the CLI, the layout file it writes.
 
 Short for CI: 6 s of driving and the detector's corners (``body_edge_corners = false``; the
 template fit costs about a minute more here). The bound is loose (every marker's rotation error
@@ -25,9 +25,9 @@ def scene(tmp_path_factory):
 
 def test_calibrate_body_follows_the_trajectory(scene, tmp_path, monkeypatch, capsys):
     monkeypatch.setattr(cli_main, "COMMANDS", {"calibrate-body": "calibrate_body"})
-    config = scene / "config_trajectory.toml"  # beside the recording's: it names cube.toml relative to itself
+    config = scene / "config_detector_corners.toml"  # beside the recording's: it names cube.toml relative to itself
     config.write_text((scene / "config.toml").read_text()
-                      + "\n[bundle_adjustment]\nbody_knot_s = 0.025\nbody_edge_corners = false\n")
+                      + "\n[bundle_adjustment]\nbody_edge_corners = false\n")
     out = tmp_path / "body.toml"
     assert cli_main.main(["calibrate-body", "--config", str(config), "--extrinsics", str(scene / "true_extrinsics.toml"),
                           "--recording", str(scene), "--out", str(out), "--truth", str(scene / "true_cube.toml")]) == 0
