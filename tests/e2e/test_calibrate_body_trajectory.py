@@ -1,6 +1,7 @@
 """`cubetrack calibrate-body` on a continuous-time trajectory of the body (the default,
 ``[bundle_adjustment] body_knot_s``), end to end: a short realistic simulation (sharp turns,
-rolling shutter, wobble, a wide-angle lens, a hand-built cube), rendered JPEGs, the CLI, the layout file it writes.
+rolling shutter, wobble, a wide-angle lens, a hand-built cube), rendered JPEGs, the CLI, the
+layout file it writes.
 
 Short for CI: 6 s of driving and the detector's corners (``body_edge_corners = false``; the
 template fit costs about a minute more here). The bound is loose (every marker's rotation error
