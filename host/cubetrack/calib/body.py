@@ -228,7 +228,9 @@ class Trajectory:
             first.append(np.arange(n) == 0)
         times_s = np.concatenate(times)
         inst_t = np.array([i.time_s for i in ref.instants])
-        near = np.abs(times_s[:, None] - inst_t[None, :]).argmin(axis=1)
+        after = np.searchsorted(inst_t, times_s).clip(0, len(inst_t) - 1)  # the instants are in time order
+        before = (after - 1).clip(0)
+        near = np.where(np.abs(times_s - inst_t[before]) < np.abs(times_s - inst_t[after]), before, after)
         knots = np.array([moved_pose(ref.model.T_bodies[k], ref.vel[k], ref.angvel[k], tk - inst_t[k])
                           for k, tk in zip(near, times_s)])
         ref.model = ref.model.replace(T_bodies=knots)
