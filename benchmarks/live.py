@@ -23,8 +23,8 @@ RSS. Then it reports:
 - on the same frames (the first --speed-frames of that recording), in this run: the
   naive loop (``cv2.imdecode`` colour + default ``ArucoDetector`` + ``solvePnP`` per marker, one
   thread), our tracker on one thread, and ours replaying them as fast as it can as ``cubetrack
-  track --recording`` does here (one frame worker process per core beyond the first, started
-  before the clock runs; this thread plans, fuses and does the jobs no worker has), with the CPU
+  track --recording`` does here (one frame worker process per idle core beyond the first,
+  started before the clock runs; this thread plans, fuses and does the jobs no worker has), with the CPU
   per frame of both sides, and with the live run's processed rate: the throughput ratios
   against the naive loop (--speed-rounds N: N interleaved rounds, medians);
 - the machine's core count (``nproc``);

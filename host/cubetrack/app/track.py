@@ -12,6 +12,7 @@ from __future__ import annotations
 import functools
 import logging
 import os
+import time
 from collections import deque
 from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
@@ -140,11 +141,34 @@ def track_frames(frames: Iterable[Frame], intrinsics: Mapping[str, CameraIntrins
     return tracker.stats
 
 
-def replay_workers() -> int:
-    """Frame worker processes a replay starts here by default: one per core beyond the first,
-    whose thread plans, fuses and does the jobs no worker has (so one on two cores, where that
-    replays faster than one thread on a quiet machine: docs/live.md)."""
-    return (os.cpu_count() or 1) - 1
+def replay_workers(sample_s: float = 0.2) -> int:
+    """Frame worker processes a replay starts here by default: one per idle core beyond the
+    first (the replay's thread plans, fuses and does the jobs no worker has), the idle cores
+    measured over ``sample_s`` from /proc/stat (elsewhere: every core counts as idle). On two
+    cores: one worker when both are idle, where that replays about 1.4x as fast as one thread,
+    none when other work keeps about a core busy, where a worker makes the replay slower
+    (docs/live.md)."""
+    cores = os.cpu_count() or 1
+    if cores == 1:
+        return 0
+    before = _cpu_idle_busy()
+    time.sleep(sample_s)
+    after = _cpu_idle_busy()
+    if before is None or after is None or after == before:
+        return cores - 1
+    idle, busy = after[0] - before[0], after[1] - before[1]
+    return min(cores - 1, max(0, round(cores * idle / max(idle + busy, 1)) - 1))
+
+
+def _cpu_idle_busy() -> tuple[int, int] | None:
+    """All cores' idle and busy clock ticks since boot (the first line of /proc/stat), or None."""
+    try:
+        with open("/proc/stat", encoding="ascii") as f:
+            ticks = [int(v) for v in f.readline().split()[1:]]
+    except (OSError, ValueError):
+        return None
+    idle = ticks[3] + (ticks[4] if len(ticks) > 4 else 0)  # idle + iowait
+    return idle, sum(ticks[:8]) - idle  # user nice system idle iowait irq softirq steal (guest is in user)
 
 
 def replay_pool(intrinsics: Mapping[str, CameraIntrinsics], world: WorldConfig, layouts: Mapping[str, CubeLayout],
@@ -182,8 +206,7 @@ def track_recording(config: TrackerConfig, recording: Recording,
     config's sections. ``workers``: frame worker processes beside this thread (None:
     :func:`replay_workers`; 0, and for recordings of fewer than ``MIN_FRAMES_FOR_WORKERS``
     frames: none, one thread); the poses are the same whatever their number (:func:`track_frames`)."""
-    workers = replay_workers() if workers is None else workers
-    if workers < 0:
+    if workers is not None and workers < 0:
         raise ConfigError(f"frame worker processes must not be negative, got {workers}")
     params = params or config_params(config).stages
     cameras = recording.camera_names
@@ -200,6 +223,8 @@ def track_recording(config: TrackerConfig, recording: Recording,
     total = sum(len(recording.index(c)) for c in cameras)
     if total < MIN_FRAMES_FOR_WORKERS:
         workers = 0
+    elif workers is None:
+        workers = replay_workers()
     layouts = {r.name: r.layout for r in config.robots}
     outputs, files = open_outputs(config, intrinsics, extrinsics, out_dir, sinks)
     pool = replay_pool(intrinsics, config.world, layouts, extrinsics, params, workers) if workers else None

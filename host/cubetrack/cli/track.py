@@ -43,7 +43,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--record", type=Path, metavar="REC", help="--live: also record the session into this folder")
     p.add_argument("--replay-workers", type=int, metavar="N",
                    help="--recording: frame worker processes beside the thread that plans and fuses (default: one "
-                        "per core beyond the first; 0: one thread; the poses are the same either way)")
+                        "per idle core beyond the first, measured at the start; 0: one thread; the poses are the "
+                        "same either way)")
     p.add_argument("--status-every", type=float, default=2.0, metavar="S",
                    help="--live: seconds between status lines (default %(default)s)")
     add_output_arguments(p)

@@ -125,3 +125,21 @@ def test_a_worker_process_that_dies_ends_the_replay_with_one_clear_error(replay)
         os.kill(pool.process_ids[0], signal.SIGKILL)
         with pytest.raises(SourceError, match="frame worker process ended unexpectedly"):
             run(replay, pool)
+
+
+@pytest.mark.parametrize(("cores", "idle", "busy", "workers"), [
+    (2, 200, 0, 1),  # both cores idle: one worker beside the replay's thread
+    (2, 90, 110, 0),  # another job keeps a core busy: none (a worker would slow the replay)
+    (2, 160, 40, 1),
+    (4, 400, 0, 3),
+    (4, 200, 200, 1),
+    (1, 100, 0, 0),
+    (2, None, None, 1),  # no /proc/stat: every core counts as idle
+])
+def test_a_replay_takes_a_worker_per_idle_core_beyond_the_first(monkeypatch, cores, idle, busy, workers):
+    from cubetrack.app import track
+
+    samples = iter([(1000, 5000), None if idle is None else (1000 + idle, 5000 + busy)])
+    monkeypatch.setattr(track.os, "cpu_count", lambda: cores)
+    monkeypatch.setattr(track, "_cpu_idle_busy", lambda: next(samples))
+    assert track.replay_workers(sample_s=0.0) == workers
