@@ -7,7 +7,8 @@ camera_info folder. Corrupt frames are skipped and counted. Stage parameters com
 config's [detector], [estimator], [fusion], [filter] and [track] sections; --fusion overrides
 the fusion method and --uncalibrated the [track] camera_poses (the rest of each section is kept).
 Live reading is tuned by the [source] section. DIR/run.json records the version, the resolved
-parameters and the inputs.
+parameters and the inputs. A replay does the per-frame work on a worker process per idle core
+beyond the first (--replay-workers N sets it); its poses are the same, bit for bit, either way.
 
 Live: poses are written (and flushed) as they come; a status line on stderr shows poses/s per
 robot, frames/s per camera and the latency. Runs for --duration seconds or until Ctrl-C (the
