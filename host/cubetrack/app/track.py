@@ -64,8 +64,9 @@ def track_frames(frames: Iterable[Frame], intrinsics: Mapping[str, CameraIntrins
     its worker has not started yet (until the workers have started, it does them all). So that the result does not
     depend on how many workers there are or how fast each is, every frame is planned (its
     detection regions, the estimates asked for) with the fusion exactly as it was after the
-    frames up to ``REPLAY_LAG`` frames before it, and the results are fused in frame order: a
-    replay is the same, bit for bit, with one thread or any number of workers, run after run.
+    frames up to ``REPLAY_LAG`` frames before it, and the results are fused in capture order
+    within each window of ``REPLAY_LAG`` planned frames: a replay is the same, bit for bit, with
+    one thread or any number of workers, run after run.
     """
     clock_samples = clock_samples or {}
     synced = frozenset(c for c, samples in clock_samples.items() if samples)
@@ -88,10 +89,15 @@ def track_frames(frames: Iterable[Frame], intrinsics: Mapping[str, CameraIntrins
         while unsent and pool.idle():
             pool.submit(unsent.pop())
 
-    def fuse_oldest() -> None:
-        """Fuse the oldest planned frame; rather than wait for a worker's result, this thread does
-        the oldest job no worker has, or takes that frame's job back if its worker has not started it."""
-        job, now_s = planned.popleft()
+    def fuse_first_captured() -> None:
+        """Fuse the planned frame captured first (frames come in arrival order: taking the
+        ``REPLAY_LAG`` planned ones in capture order, fewer sightings reach the fusion late, to be
+        folded in by re-applying the newer ones); rather than wait for a worker's result, this
+        thread does the oldest job no worker has, or takes that frame's job back if its worker has
+        not started it."""
+        first = min(range(len(planned)), key=lambda i: _capture_order(planned[i][0]))
+        job, now_s = planned[first]
+        del planned[first]
         if job is None:
             return
         while job not in done:
@@ -112,7 +118,7 @@ def track_frames(frames: Iterable[Frame], intrinsics: Mapping[str, CameraIntrins
     def make_room() -> None:
         """Before a frame is planned: fuse what is ``REPLAY_LAG`` frames older."""
         if len(planned) == REPLAY_LAG:
-            fuse_oldest()
+            fuse_first_captured()
 
     def schedule(job: FrameJob | None, now_s: float) -> None:
         """Queue a planned frame's work (for a worker or this thread), to be fused ``REPLAY_LAG`` frames later."""
@@ -135,7 +141,7 @@ def track_frames(frames: Iterable[Frame], intrinsics: Mapping[str, CameraIntrins
         if progress is not None:
             progress("track", i, frame_count)
     while planned:
-        fuse_oldest()
+        fuse_first_captured()
     for pose in tracker.finish():
         output.pose(pose)
     return tracker.stats
@@ -169,6 +175,14 @@ def _cpu_idle_busy() -> tuple[int, int] | None:
         return None
     idle = ticks[3] + (ticks[4] if len(ticks) > 4 else 0)  # idle + iowait
     return idle, sum(ticks[:8]) - idle  # user nice system idle iowait irq softirq steal (guest is in user)
+
+
+def _capture_order(job: FrameJob | None) -> tuple[float, str, int]:
+    """Sort key of a planned frame: capture time, then camera and sequence number (a frame not
+    planned, None, first: it is only dropped)."""
+    if job is None:
+        return (float("-inf"), "", 0)
+    return (job.capture_time_s, job.frame.camera, job.frame.seq)
 
 
 def replay_pool(intrinsics: Mapping[str, CameraIntrinsics], world: WorldConfig, layouts: Mapping[str, CubeLayout],
