@@ -20,7 +20,7 @@ RSS. Then it reports:
   scored, the robot teleports there) and against the offline replay (``cubetrack track
   --recording``) of the same frames: the simulated recording the emulator serves, or with
   --record the recorded session; the two must agree within 10 %;
-- on the same frames (the first --speed-frames of that recording), in this run: the
+- on the same frames (all of that recording, or its first --speed-frames), in this run: the
   naive loop (``cv2.imdecode`` colour + default ``ArucoDetector`` + ``solvePnP`` per marker, one
   thread), our tracker on one thread, and ours replaying them as fast as it can as ``cubetrack
   track --recording`` does here (one frame worker process per idle core beyond the first,
@@ -84,8 +84,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--recording-s", type=float, default=20.0,
                    help="seconds of simulated recording, looped by the emulator (default 20)")
     p.add_argument("--warmup", type=float, default=5.0, help="seconds before the RSS 'start' sample (default 5)")
-    p.add_argument("--speed-frames", type=int, default=1500, help="frames of the session for the naive-loop "
-                   "comparison (default 1500)")
+    p.add_argument("--speed-frames", type=int, help="frames of the session for the naive-loop comparison "
+                   "(default: the whole recording, as `track --recording` replays it; its first seconds, where "
+                   "the track starts and the cameras' clocks are first read, weigh more in a shorter part)")
     p.add_argument("--speed-rounds", type=int, default=1,
                    help="rounds of the same-frames comparison, interleaved (medians reported; default 1)")
     p.add_argument("--speed-only", action="store_true",
@@ -110,7 +111,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
         args.cameras, args.fps, args.duration, args.recording_s = 2, 10.0, 5.0, 3.0
         args.warmup, args.speed_frames = 1.5, 60
     for name in ("cameras", "fps", "duration", "recording_s", "speed_frames", "speed_rounds"):
-        if not getattr(args, name) > 0:
+        if getattr(args, name) is not None and not getattr(args, name) > 0:
             p.error(f"--{name.replace('_', '-')} must be positive")
     return args
 
