@@ -150,6 +150,37 @@ def _median(values: list[float]) -> float | None:
     return statistics.median(values) if values else None
 
 
+class SessionMedian:
+    """The median of a whole session's latencies (seconds) in fixed memory: counts in bins 0.5 %
+    wide on a log scale from 10 µs to 1000 s (values at or below 10 µs count as 0, those above in
+    the top bin, about 1000 s), so a session of hours does not keep a float per pose (a list did: +25 MB in 10
+    minutes at 16 cameras x 30 fps). :meth:`median` is within 0.25 % of the exact median."""
+
+    LOW_S, HIGH_S, STEP = 1e-5, 1e3, 1.005
+    _LOG_STEP = math.log(STEP)
+    BINS = 2 + math.ceil(math.log(HIGH_S / LOW_S) / _LOG_STEP)
+
+    def __init__(self) -> None:
+        self.counts = [0] * self.BINS
+        self.count = 0
+
+    def add(self, value_s: float) -> None:
+        i = 0 if value_s <= self.LOW_S else min(self.BINS - 1, 1 + int(math.log(value_s / self.LOW_S) / self._LOG_STEP))
+        self.counts[i] += 1
+        self.count += 1
+
+    def median(self) -> float | None:
+        """The middle bin's centre (None before any value)."""
+        if not self.count:
+            return None
+        seen, half = 0, self.count / 2.0
+        for i, n in enumerate(self.counts):
+            seen += n
+            if seen >= half:
+                break
+        return 0.0 if i == 0 else self.LOW_S * self.STEP ** (i - 0.5)
+
+
 HEALTH_EVERY_S = 1.0  # camera health snapshots for the outputs, per camera
 
 
@@ -278,8 +309,7 @@ def track_live(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
     tracker = Tracker(intrinsics, config.world, config.robots, extrinsics, params, synced_cameras=frozenset(urls))
     recorder = _Recorder(record_to, config, urls) if record_to is not None else None
     outputs, files = open_outputs(config, intrinsics, extrinsics, out_dir, sinks)
-    latencies: list[float] = []
-    arrival_latencies: list[float] = []
+    latencies, arrival_latencies = SessionMedian(), SessionMedian()
     interrupted = False
     started = time.monotonic()
     robots = [r.name for r in config.robots]
@@ -296,9 +326,9 @@ def track_live(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
         for pose in poses:
             outputs.pose(pose)
             if not pose.predicted:
-                latencies.append(pose.latency_s)
+                latencies.add(pose.latency_s)
             if pose.arrival_latency_s is not None:
-                arrival_latencies.append(pose.arrival_latency_s)
+                arrival_latencies.add(pose.arrival_latency_s)
         rates.add_poses(poses)
 
     def take_events() -> None:
@@ -435,7 +465,7 @@ def track_live(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
             recorder.close()
     return LiveResult(tracker.stats, live.stats(), files.outputs,
                       recorder.path if recorder else None, time.monotonic() - started, interrupted,
-                      _median(latencies), _median(arrival_latencies))
+                      latencies.median(), arrival_latencies.median())
 
 
 def record_live(config: TrackerConfig, out: str | Path, source: SourceParams | None = None, *,
