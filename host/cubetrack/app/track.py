@@ -15,7 +15,7 @@ import os
 import time
 from collections import deque
 from collections.abc import Iterable, Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
@@ -29,16 +29,19 @@ from cubetrack.core.errors import ConfigError
 from cubetrack.core.layout import CubeLayout
 from cubetrack.core.progress import Progress
 from cubetrack.core.records import Frame
+from cubetrack.fuse.fusion import FilterFusion, FusionMethod
+from cubetrack.fuse.smoother import smoothed_poses
 from cubetrack.io.config import RobotConfig, TrackerConfig
 from cubetrack.io.recording import Recording
 from cubetrack.io.run import RUN_FILE, write_run_record
-from cubetrack.sink.base import Outputs, Sink
+from cubetrack.sink.base import FileSink, Outputs, Sink
 
 log = logging.getLogger(__name__)
 
 __all__ = ["TrackResult", "recording_intrinsics", "replay_workers", "track_frames", "track_recording"]
 
 
+SMOOTHED_DIR = "smoothed"  # track_recording(smooth=True) writes <out>/smoothed/<robot>.tum and .jsonl
 REPLAY_LAG = 4  # a replay plans each frame with the fusion as it was this many frames earlier
 MIN_FRAMES_FOR_WORKERS = 600  # shorter replays are done on one thread (worker processes take 1-2 s to start)
 
@@ -47,9 +50,12 @@ def track_frames(frames: Iterable[Frame], intrinsics: Mapping[str, CameraIntrins
                  layouts: Mapping[str, CubeLayout], extrinsics: Mapping[str, CameraExtrinsics] | None,
                  output: Sink | Outputs, params: StageParams = StageParams(), *,
                  clock_samples: Mapping[str, Sequence[ClockSample]] | None = None,
-                 progress: Progress | None = None, frame_count: int = 0, pool: FramePool | None = None) -> TrackStats:
+                 progress: Progress | None = None, frame_count: int = 0, pool: FramePool | None = None,
+                 smoothed: Sink | None = None) -> TrackStats:
     """Track ``frames`` (in host arrival order, as a live run receives them) and hand every fused
-    pose to ``output``; returns the run's counters.
+    pose to ``output``; returns the run's counters. ``smoothed`` (the filter fusion only): after the
+    last frame, also hand it every robot's poses smoothed over the whole recording
+    (:mod:`cubetrack.fuse.smoother`); ``output``'s poses are the same with or without it.
 
     ``layouts``: robot -> cube layout; ``extrinsics`` None with ``[track] camera_poses =
     world-marker``. ``clock_samples`` (camera -> its ``/time`` round trips) are fed in as they
@@ -73,6 +79,10 @@ def track_frames(frames: Iterable[Frame], intrinsics: Mapping[str, CameraIntrins
     robots = tuple(RobotConfig(name, layout) for name, layout in layouts.items())
     tracker = Tracker(dict(intrinsics), world, robots, dict(extrinsics) if extrinsics is not None else None,
                       params, synced)
+    if smoothed is not None:
+        if not isinstance(tracker.fusion, FilterFusion):
+            raise ConfigError(f"smoothing needs [fusion] method = filter, not {params.fusion.method.value}")
+        tracker.fusion.keep_trail()
     trips = sorted(((s.host_recv_s, camera, s) for camera, samples in clock_samples.items() for s in samples),
                    key=lambda item: (item[0], item[1]))
     next_trip = 0
@@ -144,6 +154,12 @@ def track_frames(frames: Iterable[Frame], intrinsics: Mapping[str, CameraIntrins
         fuse_first_captured()
     for pose in tracker.finish():
         output.pose(pose)
+    if smoothed is not None:
+        for i, robot in enumerate(layouts, start=1):
+            for pose in smoothed_poses(tracker.fusion, robot, tracker.last_now_s):
+                smoothed.pose(pose)
+            if progress is not None:
+                progress("smooth", i, len(layouts))
     return tracker.stats
 
 
@@ -201,28 +217,34 @@ def replay_pool(intrinsics: Mapping[str, CameraIntrinsics], world: WorldConfig, 
 @dataclass(frozen=True, slots=True)
 class TrackResult:
     """What :func:`track_recording` produced: the stats, the files per robot, the frames skipped
-    by reason, and the run record."""
+    by reason, the run record, and the smoothed poses' files per robot (with ``smooth``)."""
 
     stats: TrackStats
     outputs: dict[str, tuple[Path, Path]]
     skipped: dict[str, int]
     run_record: Path
+    smoothed: dict[str, tuple[Path, Path]] = field(default_factory=dict)
 
 
 def track_recording(config: TrackerConfig, recording: Recording,
                     extrinsics: dict[str, CameraExtrinsics] | None, out_dir: str | Path,
                     params: StageParams | None = None, progress: Progress | None = None,
                     sinks: Sequence[Sink] = (), *, extrinsics_path: str | Path | None = None,
-                    workers: int | None = None) -> TrackResult:
+                    workers: int | None = None, smooth: bool = False) -> TrackResult:
     """Replay a recording through the tracker, writing ``<out_dir>/<robot>.tum`` and ``.jsonl``,
     feeding ``sinks`` (other outputs) the same poses, and recording how in ``<out_dir>/run.json``
-    (``extrinsics_path``: where ``extrinsics`` were read, for that record). ``params`` None: the
+    (``extrinsics_path``: where ``extrinsics`` were read, for that record). ``smooth``: also
+    write every robot's poses smoothed over the whole recording to
+    ``<out_dir>/smoothed/<robot>.tum`` and ``.jsonl`` (each JSONL line ``"smoothed": true``; the
+    filter fusion only), the causal files unchanged. ``params`` None: the
     config's sections. ``workers``: frame worker processes beside this thread (None:
     :func:`replay_workers`; 0, and for recordings of fewer than ``MIN_FRAMES_FOR_WORKERS``
     frames: none, one thread); the poses are the same whatever their number (:func:`track_frames`)."""
     if workers is not None and workers < 0:
         raise ConfigError(f"frame worker processes must not be negative, got {workers}")
     params = params or config_params(config).stages
+    if smooth and params.fusion.method is not FusionMethod.FILTER:
+        raise ConfigError(f"smoothing needs [fusion] method = filter, not {params.fusion.method.value}")
     cameras = recording.camera_names
     clock = {c: recording.clock_samples(c) for c in cameras}
     for camera in cameras:
@@ -233,7 +255,8 @@ def track_recording(config: TrackerConfig, recording: Recording,
     out_dir = Path(out_dir)
     run_record = write_run_record(
         out_dir / RUN_FILE, "track", parameter_tables(params),
-        {"config": config.path, "recording": recording.path, "extrinsics": extrinsics_path})
+        {"config": config.path, "recording": recording.path, "extrinsics": extrinsics_path},
+        {"smoothed": SMOOTHED_DIR} if smooth else None)
     total = sum(len(recording.index(c)) for c in cameras)
     if total < MIN_FRAMES_FOR_WORKERS:
         workers = 0
@@ -241,19 +264,23 @@ def track_recording(config: TrackerConfig, recording: Recording,
         workers = replay_workers()
     layouts = {r.name: r.layout for r in config.robots}
     outputs, files = open_outputs(config, intrinsics, extrinsics, out_dir, sinks)
+    smoothed = FileSink(out_dir / SMOOTHED_DIR, tuple(layouts)) if smooth else None
     pool = replay_pool(intrinsics, config.world, layouts, extrinsics, params, workers) if workers else None
     opencv_threads = cv2.getNumThreads()
     if pool is not None:
         cv2.setNumThreads(1)  # the worker processes have the other cores (each runs OpenCV on one thread)
     try:
         stats = track_frames(recording.merged_frames(), intrinsics, config.world, layouts, extrinsics, outputs,
-                             params, clock_samples=clock, progress=progress, frame_count=total, pool=pool)
+                             params, clock_samples=clock, progress=progress, frame_count=total, pool=pool,
+                             smoothed=smoothed)
     finally:
         cv2.setNumThreads(opencv_threads)
         if pool is not None:
             pool.close()
         outputs.close()
+        if smoothed is not None:
+            smoothed.close()
     skipped = dict(recording.skipped)
     if stats.corrupt_frames:
         skipped["corrupt frame"] = stats.corrupt_frames
-    return TrackResult(stats, files.outputs, skipped, run_record)
+    return TrackResult(stats, files.outputs, skipped, run_record, smoothed.outputs if smoothed is not None else {})

@@ -10,12 +10,20 @@ Live reading is tuned by the [source] section. DIR/run.json records the version,
 parameters and the inputs. A replay does the per-frame work on a worker process per idle core
 beyond the first (--replay-workers N sets it); its poses are the same, bit for bit, either way.
 
+--smooth (replay, filter fusion): also write DIR/smoothed/<robot>.tum and .jsonl, every pose
+estimated from the sightings before and after it (a Rauch-Tung-Striebel smoother over the
+filter's states; each JSONL line says "smoothed": true, run.json names the folder) - the best
+trajectory of a recording, e.g. as ground truth for SLAM; the causal DIR/<robot>.tum (what live
+tracking gives) is written as without it. Costs about 2 KB of memory per sighting and a little
+CPU after the replay (docs/tracking.md).
+
 Live: poses are written (and flushed) as they come; a status line on stderr shows poses/s per
 robot, frames/s per camera and the latency. Runs for --duration seconds or until Ctrl-C (the
 outputs are kept either way); --record REC also records the session for replay.
 
 Examples:
   cubetrack track --config rec/config.toml --extrinsics rec/extrinsics.toml --recording rec --out out
+  cubetrack track --config rec/config.toml --extrinsics rec/extrinsics.toml --recording rec --out out --smooth
   cubetrack track --config lab.toml --extrinsics extrinsics.toml --live --out out --record sessions/run1
 """
 
@@ -46,6 +54,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="--recording: frame worker processes beside the thread that plans and fuses (default: one "
                         "per idle core beyond the first, measured at the start; 0: one thread; the poses are the "
                         "same either way)")
+    p.add_argument("--smooth", action="store_true",
+                   help="--recording: also write DIR/smoothed/<robot>.tum and .jsonl, each pose from the sightings "
+                        "before and after it (offline smoother; [fusion] method = filter); DIR/<robot>.tum stays the "
+                        "causal track")
     p.add_argument("--status-every", type=float, default=2.0, metavar="S",
                    help="--live: seconds between status lines (default %(default)s)")
     add_output_arguments(p)
@@ -67,6 +79,8 @@ def run(args: argparse.Namespace) -> int:
 
     if not args.live and (args.duration is not None or args.record is not None or args.dashboard is not None):
         raise ConfigError("--duration, --record and --dashboard go with --live (a replay runs to the end of its recording)")
+    if args.smooth and args.live:
+        raise ConfigError("--smooth goes with --recording (it smooths a whole recording after its replay)")
     if args.replay_workers is not None and (args.live or args.replay_workers < 0):
         raise ConfigError("--replay-workers goes with --recording and must not be negative, "
                           f"got {args.replay_workers}" + (" with --live" if args.live else ""))
@@ -91,13 +105,15 @@ def run(args: argparse.Namespace) -> int:
         if args.live:
             return _run_live(args, config, extrinsics, settings, sinks)
         result = track_recording(config, recording, extrinsics, args.out, settings.stages, StderrProgress(), sinks,
-                                 extrinsics_path=args.extrinsics, workers=args.replay_workers)
+                                 extrinsics_path=args.extrinsics, workers=args.replay_workers, smooth=args.smooth)
     finally:
         close_sinks(sinks)
     s = result.stats
     print(f"frames: {s.frames}" + "".join(f", {reason}: {n}" for reason, n in result.skipped.items()))
     for robot, (tum, jsonl) in result.outputs.items():
         print(f"{robot}: {s.poses[robot]} poses -> {tum}, {jsonl}")
+    for robot, (tum, jsonl) in result.smoothed.items():
+        print(f"{robot}: smoothed poses -> {tum}, {jsonl}")
     return 0
 
 

@@ -24,6 +24,7 @@ import functools
 from dataclasses import dataclass
 from typing import Sequence
 
+import cv2
 import numpy as np
 
 from cubetrack.core.errors import ParamsError
@@ -82,6 +83,12 @@ class UpdateResult:
     accepted: bool
     rms_px: float
     points: int
+
+
+def transition(dt_s: float) -> np.ndarray:
+    """The error state's transition over ``dt_s`` seconds of constant velocity (``δp += dt δv``,
+    ``δθ += dt δω``): what :meth:`PoseFilter.predict` applies to the covariance."""
+    return _IDENTITY + dt_s * _RATES
 
 
 @functools.lru_cache(maxsize=8)
@@ -172,11 +179,29 @@ class PoseFilter:
         if dt == 0.0:
             return
         self._set_pose(self.predicted(time_s))
-        F = _IDENTITY + dt * _RATES
+        F = transition(dt)
         A, B, C = _motion_noise(self.params, self.time_s <= self.turning_until_s)
         adt = abs(dt)
         self.P = F @ self.P @ F.T + (adt**3 / 3.0) * A + (dt * dt / 2.0) * B + adt * C
         self.time_s = time_s
+
+    def error_from(self, other: PoseFilter) -> np.ndarray:
+        """The error state ``[δp, δθ, δv, δω]`` (12,) that moves ``other``'s state to this one's
+        (``R = exp(δθ) R_other``, the rest differences)."""
+        return np.concatenate([self.position_m - other.position_m,
+                               cv2.Rodrigues(self.R_world_cube @ other.R_world_cube.T)[0].ravel(),
+                               self.velocity_m_s - other.velocity_m_s,
+                               self.angular_velocity_rad_s - other.angular_velocity_rad_s])
+
+    def moved(self, delta: np.ndarray, covariance: np.ndarray) -> PoseFilter:
+        """A snapshot of this filter with its state moved by the error state ``delta`` (12,) and
+        ``covariance`` (12x12) as its covariance (a smoother's correction)."""
+        moved = self.copy()
+        moved._set_pose(perturbed(self.T_world_cube, delta[_POSE]))
+        moved.velocity_m_s = self.velocity_m_s + delta[_VELOCITY]
+        moved.angular_velocity_rad_s = self.angular_velocity_rad_s + delta[_ANGULAR_VELOCITY]
+        moved.P = (covariance + covariance.T) / 2.0
+        return moved
 
     def _solve(self, sets: Sequence[CornerSet]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Gauss-Newton on prior + Huber-weighted corner residuals: (δ (12,), information, the

@@ -188,7 +188,19 @@ class HistoryStep:
     sighting: CubeSighting
     before: RobotState
     outcome: str = ""
-    poses: list[TrackedPose] = field(default_factory=list)  # what applying it gave
+    poses: list[TrackedPose] = field(default_factory=list)  # what applying it gave, due
+    pose: TrackedPose | None = None  # its pose, due or not, while the fusion keeps a trail
+
+
+@dataclass(frozen=True, slots=True)
+class TrailStep:
+    """One sighting of a robot as capture-order processing finally applied it (kept for offline
+    smoothing, :mod:`cubetrack.fuse.smoother`): its outcome (a ``stats`` key), the state after it
+    and the pose it gave (None: it gave none)."""
+
+    outcome: str
+    state: RobotState
+    pose: TrackedPose | None
 
 
 class FilterFusion:
@@ -197,6 +209,9 @@ class FilterFusion:
     ``history`` (robot -> the last ``history_s`` of :class:`HistoryStep` in capture order),
     ``stats`` (counters of the outcomes of capture-order processing, plus ``late sighting``,
     ``replayed sighting`` and ``too late sighting``).
+
+    With :meth:`keep_trail` it also keeps every sighting's final state and pose, for
+    :func:`cubetrack.fuse.smoother.smoothed_poses` (offline; off by default).
 
     A late sighting is put in its place in the history at once, and the steps from there on are
     re-applied when the robot's state is next needed for a pose (its next newest sighting, or
@@ -216,6 +231,27 @@ class FilterFusion:
         self._stale: dict[str, int] = {}  # robot -> first history index whose step must be re-applied
         self._sent: dict[str, tuple[float, str, int]] = {}  # robot -> key of the newest step whose poses left
         self.stats: Counter[str] = Counter()
+        self._trails: dict[str, list[TrailStep]] | None = None  # robot -> steps no late sighting can reach
+
+    def keep_trail(self) -> None:
+        """From now on keep each sighting's final filter state and pose (about 2 KB a sighting:
+        for recordings) for :meth:`trail`."""
+        if self._trails is None:
+            self._trails = {r: [] for r in self.layouts}
+
+    def trail(self, robot: str, now_s: float) -> list[TrailStep]:
+        """The robot's sightings since :meth:`keep_trail`, in capture order, each as processing
+        every sighting received in capture order applies it (pending late ones are folded in)."""
+        if self._trails is None:
+            raise ParamsError("the fusion keeps no trail: call keep_trail() before the sightings")
+        self.settled_state(robot, now_s)
+        return self._trails[robot] + self._trail_steps(robot, len(self.history[robot]))
+
+    def _trail_steps(self, robot: str, n: int) -> list[TrailStep]:
+        """The robot's first ``n`` history steps as trail steps."""
+        history = self.history[robot]
+        after = [step.before for step in history[1:]] + [self.state[robot]]
+        return [TrailStep(step.outcome, state, step.pose) for step, state in zip(history[:n], after)]
 
     def needs_estimate(self, robot: str) -> bool:
         """A per-camera estimate is only needed to start a track: not while one runs."""
@@ -282,7 +318,9 @@ class FilterFusion:
             step = history[index]
             step.before = state
             # a step whose poses already left (re-applied after a late sighting) gives none again
-            state, step.poses, outcome = self._apply(state, history, index, now_s, sent is None or step.key > sent)
+            due = sent is None or step.key > sent
+            state, step.pose, outcome = self._apply(state, history, index, now_s, due or self._trails is not None)
+            step.poses = [step.pose] if due and step.pose is not None else []
             if step.outcome:
                 self.stats[step.outcome] -= 1
                 self.stats["replayed sighting"] += 1
@@ -307,6 +345,8 @@ class FilterFusion:
         oldest = keys[-1][0] - self.params.history_s - self.params.init_window_s
         n = bisect.bisect_left(keys, (oldest,))
         if n > 0:
+            if self._trails is not None:
+                self._trails[robot] += self._trail_steps(robot, n)
             del history[:n], keys[:n]
 
     def _corners(self, sighting: CubeSighting, T_world_cube: np.ndarray) -> list[CornerSet]:
@@ -326,9 +366,9 @@ class FilterFusion:
                            t + (float(np.mean(m.detection.corners_px[:, 1])) - middle) * row_s) for m in matches]
 
     def _apply(self, state: RobotState, history: list[HistoryStep], index: int, now_s: float,
-               due: bool) -> tuple[RobotState, list[TrackedPose], str]:
+               record: bool) -> tuple[RobotState, TrackedPose | None, str]:
         """One step of capture-order processing: the sighting ``history[index]`` on ``state``.
-        Returns the new state, the poses it gives (none unless ``due``) and its outcome (a stats key)."""
+        Returns the new state, the pose it gives (None unless ``record``) and its outcome (a stats key)."""
         sighting = history[index].sighting
         robot, t = sighting.robot, sighting.capture_time_s
         if state.filter is not None and t - state.last_accepted_s > self.params.lost_after_s:
@@ -336,7 +376,7 @@ class FilterFusion:
             state = RobotState(None, state.last_accepted_s, state.rejections)
         if state.filter is None:
             window = history[max(0, index + 1 - self.START_WINDOW): index + 1]
-            return self._start(state, sighting, [s.sighting for s in window], now_s, due)
+            return self._start(state, sighting, [s.sighting for s in window], now_s, record)
         f = state.filter.copy()
         f.predict(t)
         corners = self._corners(sighting, f.T_world_cube)
@@ -351,12 +391,12 @@ class FilterFusion:
             rejections = state.rejections + 1
             if rejections >= self.params.max_rejections:
                 log.info("%s: %d sightings rejected in a row; track restarts", robot, rejections)
-                return RobotState(None, state.last_accepted_s, rejections), [], "rejected sighting"
-            return RobotState(f, state.last_accepted_s, rejections), [], "rejected sighting"
-        if not due:
-            return RobotState(f, t, 0), [], outcome
+                return RobotState(None, state.last_accepted_s, rejections), None, "rejected sighting"
+            return RobotState(f, state.last_accepted_s, rejections), None, "rejected sighting"
+        if not record:
+            return RobotState(f, t, 0), None, outcome
         markers = tuple(f"{sighting.camera}:{face}" for c in corners for face in c.faces)
-        return RobotState(f, t, 0), [pose_record(sighting, f, now_s, (sighting.camera,), markers)], outcome
+        return RobotState(f, t, 0), pose_record(sighting, f, now_s, (sighting.camera,), markers), outcome
 
     def _reacquire(self, sighting: CubeSighting, f: PoseFilter) -> tuple[PoseFilter, list[CornerSet]] | None:
         """The other hypothesis for a sighting the predicted pose ``f`` does not explain: the
@@ -379,7 +419,7 @@ class FilterFusion:
         return (g, corners) if g.update(corners).accepted else None
 
     def _start(self, state: RobotState, sighting: CubeSighting, recent: list[CubeSighting], now_s: float,
-               due: bool) -> tuple[RobotState, list[TrackedPose], str]:
+               record: bool) -> tuple[RobotState, TrackedPose | None, str]:
         """Start a track from a joint fit of pose and velocity over the recent sightings.
 
         Every recent single-camera estimate is tried as the starting guess (one may be a flipped
@@ -388,7 +428,7 @@ class FilterFusion:
         t = sighting.capture_time_s
         window = [s for s in recent if 0.0 <= t - s.capture_time_s <= self.params.init_window_s]
         if len({s.capture_time_s for s in window}) < 3 or len({s.camera for s in window}) < 2:
-            return state, [], "sighting before track start"  # three sightings from two cameras: pose and velocity
+            return state, None, "sighting before track start"  # three sightings from two cameras: pose and velocity
         fp = self.filter_params
         best = None
         for guess in {id(s.estimate): s.estimate for s in window if s.estimate is not None}.values():
@@ -402,12 +442,12 @@ class FilterFusion:
             if best is None or (solution.points, -solution.rms_px) > (best[0].points, -best[0].rms_px):
                 best = (solution, sets)
         if best is None:
-            return state, [], "failed track start"
+            return state, None, "failed track start"
         solution, sets = best
         f = PoseFilter(fp, t, solution.T_world_cube, solution.covariance, solution.velocity_m_s,
                        solution.angular_velocity_rad_s)
-        if not due:
-            return RobotState(f, t, 0), [], "track start"
+        if not record:
+            return RobotState(f, t, 0), None, "track start"
         cameras = tuple(sorted({s.camera for s in sets}))
         markers = tuple(f"{s.camera}:{face}" for s in sets for face in s.faces)
-        return RobotState(f, t, 0), [pose_record(sighting, f, now_s, cameras, markers)], "track start"
+        return RobotState(f, t, 0), pose_record(sighting, f, now_s, cameras, markers), "track start"
