@@ -349,7 +349,7 @@ def test_the_dashboard_guides_a_calibration_in_the_browser(lab, tmp_path):
         if browser is not None:
             browser.close()
         code = dash.stop()
-    assert code in (0, -15), "".join(dash.lines)[-3000:]
+    assert code == 0, "".join(dash.lines)[-3000:]  # SIGTERM stops it as Ctrl-C does (test_dashboard_exit.py)
 
 
 def test_track_live_shows_its_session_and_a_stalled_camera_turns_red_within_two_seconds(lab, tmp_path):

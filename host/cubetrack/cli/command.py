@@ -4,6 +4,9 @@ command modules, and the one error boundary.
 A command module has a docstring (its ``--help`` text), ``HELP`` (one line), ``add_arguments``
 and ``run(args) -> int``. Known errors (:class:`cubetrack.core.errors.CubetrackError`) print one line
 and exit 1; Ctrl-C exits 130; anything else is a bug: its traceback is logged and the exit code is 2.
+SIGTERM and SIGHUP (``kill``, a service manager, a closed terminal) stop a command as Ctrl-C does, so
+that what it opened is closed and its temporary folders are removed (unless the signal is ignored,
+e.g. under ``nohup``).
 """
 
 from __future__ import annotations
@@ -11,7 +14,9 @@ from __future__ import annotations
 import argparse
 import importlib
 import logging
+import signal
 import sys
+import threading
 from collections.abc import Mapping
 
 from cubetrack.core.errors import CubetrackError
@@ -39,6 +44,7 @@ def run_command(parser: argparse.ArgumentParser, argv: list[str] | None) -> int:
     args = parser.parse_args(argv)
     level = (logging.WARNING, logging.INFO, logging.DEBUG)[min(args.verbose, 2)]
     logging.basicConfig(level=level, format="%(levelname)s %(name)s: %(message)s")
+    stop_signals = _stop_like_ctrl_c()
     try:
         return int(args._run(args) or 0)
     except CubetrackError as exc:
@@ -50,3 +56,18 @@ def run_command(parser: argparse.ArgumentParser, argv: list[str] | None) -> int:
     except Exception:  # a bug, not bad input: keep the traceback for the report
         logging.getLogger(parser.prog).exception("%s %s: unexpected error (please report it)", parser.prog, args.command)
         return 2
+    finally:
+        for number, handler in stop_signals.items():
+            signal.signal(number, handler)
+
+
+def _stop_like_ctrl_c() -> dict[int, object]:
+    """Make SIGTERM and SIGHUP raise KeyboardInterrupt in the main thread (where they are not
+    ignored); returns the handlers they had, to put back."""
+    if threading.current_thread() is not threading.main_thread():
+        return {}
+    previous = {}
+    for number in (signal.SIGTERM, signal.SIGHUP):
+        if signal.getsignal(number) is signal.SIG_DFL:
+            previous[number] = signal.signal(number, signal.default_int_handler)
+    return previous
