@@ -29,7 +29,7 @@ from cubetrack.core.errors import ConfigError
 from cubetrack.core.layout import CubeLayout
 from cubetrack.core.progress import Progress
 from cubetrack.core.records import Frame
-from cubetrack.fuse.fusion import FilterFusion, FusionMethod
+from cubetrack.fuse.fusion import FusionMethod
 from cubetrack.fuse.smoother import smoothed_poses
 from cubetrack.io.config import RobotConfig, TrackerConfig
 from cubetrack.io.recording import Recording
@@ -74,14 +74,14 @@ def track_frames(frames: Iterable[Frame], intrinsics: Mapping[str, CameraIntrins
     within each window of ``REPLAY_LAG`` planned frames: a replay is the same, bit for bit, with
     one thread or any number of workers, run after run.
     """
+    if smoothed is not None:
+        _check_smoothable(params)
     clock_samples = clock_samples or {}
     synced = frozenset(c for c, samples in clock_samples.items() if samples)
     robots = tuple(RobotConfig(name, layout) for name, layout in layouts.items())
     tracker = Tracker(dict(intrinsics), world, robots, dict(extrinsics) if extrinsics is not None else None,
                       params, synced)
     if smoothed is not None:
-        if not isinstance(tracker.fusion, FilterFusion):
-            raise ConfigError(f"smoothing needs [fusion] method = filter, not {params.fusion.method.value}")
         tracker.fusion.keep_trail()
     trips = sorted(((s.host_recv_s, camera, s) for camera, samples in clock_samples.items() for s in samples),
                    key=lambda item: (item[0], item[1]))
@@ -161,6 +161,12 @@ def track_frames(frames: Iterable[Frame], intrinsics: Mapping[str, CameraIntrins
             if progress is not None:
                 progress("smooth", i, len(layouts))
     return tracker.stats
+
+
+def _check_smoothable(params: StageParams) -> None:
+    """Only the filter fusion's tracks can be smoothed (the paper's fusions keep no state)."""
+    if params.fusion.method is not FusionMethod.FILTER:
+        raise ConfigError(f"smoothing (--smooth) needs [fusion] method = filter, not {params.fusion.method.value}")
 
 
 def replay_workers(sample_s: float = 0.2) -> int:
@@ -243,8 +249,8 @@ def track_recording(config: TrackerConfig, recording: Recording,
     if workers is not None and workers < 0:
         raise ConfigError(f"frame worker processes must not be negative, got {workers}")
     params = params or config_params(config).stages
-    if smooth and params.fusion.method is not FusionMethod.FILTER:
-        raise ConfigError(f"smoothing needs [fusion] method = filter, not {params.fusion.method.value}")
+    if smooth:
+        _check_smoothable(params)
     cameras = recording.camera_names
     clock = {c: recording.clock_samples(c) for c in cameras}
     for camera in cameras:

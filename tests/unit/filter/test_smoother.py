@@ -1,0 +1,163 @@
+"""The offline smoother over FilterFusion's tracks (cubetrack.fuse.smoother): closer to the truth
+than the causal filter, split where the filter did not go on from the state before, and the
+causal poses unchanged by keeping what it needs."""
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+from test_filter_fusion import run, same_pose
+from test_joint_and_filter import CAMS, INTR, LAYOUT, detections
+
+from cubetrack.core.errors import ParamsError
+from cubetrack.core.geometry import R_from_quat_xyzw, make_T, rotation_angle
+from cubetrack.core.records import CubeSighting
+from cubetrack.estimate.pose import estimate_cube
+from cubetrack.fuse.fusion import FilterFusion, FusionParams, RobotState, TrailStep
+from cubetrack.fuse.smoother import segments, smoothed_poses
+
+
+def weaving(t):
+    """A cube driving at 0.3 m/s along x while it weaves (yaw 25° at 0.5 Hz, sideways 5 cm)."""
+    yaw = 0.45 * np.sin(np.pi * t)
+    return make_T(Rotation.from_euler("z", yaw).as_matrix(), [-0.4 + 0.3 * t, 0.1 + 0.05 * np.sin(np.pi * t), 0.305])
+
+
+def sightings(truth, t_end, rng, noise_px=0.8, t_start=0.0):
+    """Three unsynchronised 7.5 fps cameras seeing ``truth`` with noisy corners, in capture order."""
+    out = []
+    for k, cam in enumerate(CAMS):
+        for n, t in enumerate(np.arange(t_start + k * 0.044, t_end, 1 / 7.5)):
+            dets = detections(truth(t), CAMS[cam], rng, noise_px=noise_px)
+            est = estimate_cube(dets, LAYOUT, INTR, CAMS[cam], camera=cam, robot="bot", seq=n,
+                                capture_time_s=t, arrival_time_s=t + 0.05)
+            out.append(CubeSighting(cam, "bot", n, t, t + 0.05, dets, est, CAMS[cam], INTR))
+    return sorted(out, key=lambda s: (s.capture_time_s, s.camera))
+
+
+def errors(poses, truth):
+    """Position (m) and rotation (deg) errors of each pose against ``truth`` at its time."""
+    pos = np.array([np.linalg.norm(p.position_m - truth(p.time_s)[:3, 3]) for p in poses])
+    rot = np.array([rotation_angle(R_from_quat_xyzw(p.quaternion_xyzw), truth(p.time_s)[:3, :3], "deg")
+                    for p in poses])
+    return pos, rot
+
+
+def rms(a):
+    return float(np.sqrt(np.mean(np.square(a))))
+
+
+def tracked(items, params=FusionParams()):
+    """(causal poses, smoothed poses, fusion) of the sightings fed on time."""
+    fusion = FilterFusion({"bot": LAYOUT}, params)
+    fusion.keep_trail()
+    causal = run(fusion, items)
+    return causal, smoothed_poses(fusion, "bot", items[-1].arrival_time_s), fusion
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_smoothed_poses_are_closer_to_the_truth_than_the_filters(seed):
+    items = sightings(weaving, 4.0, np.random.default_rng(seed))
+    causal, smoothed, fusion = tracked(items)
+    assert fusion.stats["accepted sighting"] > 0.9 * len(items)
+    assert [p.time_s for p in smoothed] == [p.time_s for p in causal]  # one pose per sighting, as the filter's
+    assert all(p.extra == {"smoothed": True} for p in smoothed) and not any(p.extra for p in causal)
+    (pos_f, rot_f), (pos_s, rot_s) = errors(causal, weaving), errors(smoothed, weaving)
+    assert rms(pos_s) < 0.75 * rms(pos_f)
+    assert rms(rot_s) < 0.75 * rms(rot_f)
+    for p, q in zip(smoothed, causal):  # the rest of the record is the sighting's
+        assert p.cameras == q.cameras and p.markers == q.markers and p.covariance.shape == (6, 6)
+    # the smoother's covariance is no larger than the filter's (it has more sightings)
+    assert np.median([np.trace(p.covariance) / np.trace(q.covariance) for p, q in zip(smoothed, causal)]) < 0.8
+    assert smoothed[-1].position_m.tolist() == causal[-1].position_m.tolist()  # the last state: nothing after it
+
+
+def test_keeping_the_trail_changes_no_causal_pose():
+    items = sightings(weaving, 2.0, np.random.default_rng(2))
+    jittered = sorted(items, key=lambda s: s.capture_time_s + np.random.default_rng(s.seq).exponential(0.08))
+    plain = run(FilterFusion({"bot": LAYOUT}), jittered)
+    kept = FilterFusion({"bot": LAYOUT})
+    kept.keep_trail()
+    with_trail = run(kept, jittered)
+    assert kept.stats["late sighting"] > 5
+    assert len(plain) == len(with_trail)
+    for a, b in zip(plain, with_trail):
+        same_pose(a, b)
+
+
+def test_late_sightings_are_smoothed_as_in_capture_order():
+    """The trail is what capture-order processing finally made of every sighting, whatever the
+    arrival order: the smoothed poses equal those of the sightings fed in capture order."""
+    items = sightings(weaving, 2.5, np.random.default_rng(3))
+    arrived = sorted(items, key=lambda s: s.capture_time_s + np.random.default_rng(s.seq + 7).exponential(0.08))
+    late = FilterFusion({"bot": LAYOUT})
+    late.keep_trail()
+    run(late, arrived)
+    assert late.stats["late sighting"] > 5
+    _, expected, _ = tracked(items)
+    got = smoothed_poses(late, "bot", items[-1].arrival_time_s)
+    assert len(got) == len(expected)
+    for a, b in zip(got, expected):
+        np.testing.assert_allclose(a.position_m, b.position_m, atol=1e-12)
+        np.testing.assert_allclose(a.quaternion_xyzw, b.quaternion_xyzw, atol=1e-12)
+
+
+def turn_in_place(t):
+    """Weaving, then from 1.5 s the cube is suddenly 70° further round (a flip no motion model
+    predicts: the filter re-acquires from the camera's own pose)."""
+    T = weaving(t)
+    if t >= 1.5:
+        T = make_T(Rotation.from_euler("z", 70, degrees=True).as_matrix() @ T[:3, :3], T[:3, 3])
+    return T
+
+
+def test_segments_break_at_a_re_acquisition():
+    items = sightings(turn_in_place, 3.0, np.random.default_rng(4), noise_px=0.4)
+    causal, smoothed, fusion = tracked(items)
+    trail = fusion.trail("bot", 3.0)
+    assert fusion.stats["re-acquired sighting"] >= 1
+    parts = segments(trail)
+    assert len(parts) >= 2
+    for part in parts[1:]:
+        assert part[0].outcome in ("re-acquired sighting", "track start")
+    first = [p for p in parts[0] if p.pose is not None]
+    last_before = first[-1].state.filter
+    smoothed_before = next(p for p in smoothed if p.time_s == last_before.time_s)
+    # a segment's last state has nothing after it in its segment: smoothing leaves it as filtered
+    np.testing.assert_array_equal(smoothed_before.position_m, last_before.position_m)
+    # and the poses before the flip are not dragged towards it
+    before = [p for p in smoothed if p.time_s < 1.5]
+    assert max(errors(before, turn_in_place)[1]) < 3.0
+    pos_f, _ = errors([p for p in causal if p.time_s < 1.5], turn_in_place)
+    assert rms(errors(before, turn_in_place)[0]) < rms(pos_f)
+
+
+def test_segments_break_at_a_lost_track():
+    rng = np.random.default_rng(5)
+    items = sightings(weaving, 1.5, rng) + sightings(weaving, 3.5, rng, t_start=2.5)  # unseen 1.5-2.5 s
+    items.sort(key=lambda s: (s.capture_time_s, s.camera))
+    causal, smoothed, fusion = tracked(items)
+    parts = segments(fusion.trail("bot", 3.5))
+    assert len(parts) == 2 and parts[1][0].outcome == "track start"
+    assert max(s.state.filter.time_s for s in parts[0]) < 1.5 < 2.5 <= parts[1][0].state.filter.time_s
+    times = np.array([p.time_s for p in smoothed])
+    assert not np.any((times > 1.5) & (times < 2.5))  # nothing invented while unseen
+
+
+def test_segments_follow_the_outcomes():
+    f = object()  # segments only look at whether a step has a filter state
+    state, lost = RobotState(f), RobotState(None)
+    outcomes = [("sighting before track start", lost), ("track start", state), ("accepted sighting", state),
+                ("rejected sighting", state), ("accepted sighting", state), ("re-acquired sighting", state),
+                ("accepted sighting", state), ("rejected sighting", lost), ("accepted sighting", state),
+                ("track start", state)]
+    trail = [TrailStep(outcome, s, None) for outcome, s in outcomes]
+    parts = segments(trail)
+    index = {id(s): i for i, s in enumerate(trail)}
+    assert [[index[id(s)] for s in part] for part in parts] == [[1, 2, 3, 4], [5, 6], [8], [9]]
+
+
+def test_a_fusion_without_a_trail_refuses_to_give_one():
+    fusion = FilterFusion({"bot": LAYOUT})
+    with pytest.raises(ParamsError, match="keep_trail"):
+        fusion.trail("bot", 0.0)
+
