@@ -26,10 +26,8 @@ from cubetrack.app.outputs import open_outputs
 from cubetrack.app.tracker import FrameJob, FrameOutcome, FrameResult, StageParams, Tracker, TrackStats
 from cubetrack.app.worker import SIGHTINGS_KEY, WORKERS_KEY
 from cubetrack.core.cameras import CameraExtrinsics
-from cubetrack.core.records import CameraHealth, CubeSighting, Frame, TrackedPose
+from cubetrack.core.records import CameraHealth, Frame, TrackedPose
 from cubetrack.core.sighting_wire import SightingMessage, SightingWireError, decode_sighting
-from cubetrack.estimate.match import body_detections
-from cubetrack.estimate.pose import estimate_cube
 from cubetrack.io.config import TrackerConfig
 from cubetrack.sink.base import Sink
 from cubetrack.sink.zenoh_session import ZenohEndpoints, open_session
@@ -75,27 +73,17 @@ class FuseResult:
 
 def frame_result(tracker: Tracker, message: SightingMessage) -> FrameResult | None:
     """The per-frame work's result a sighting message stands for (None: a camera the fusion
-    has no intrinsics or pose for). Estimates are made here, for the robots whose fusion asks."""
+    has no intrinsics or pose for): the tracker's :meth:`~cubetrack.app.tracker.FrameWorker.sightings`
+    of the message's detections, with estimates for the robots whose fusion asks."""
     camera = message.camera
-    frame = Frame(camera, message.seq, message.device_time_s, message.arrival_time_s, b"")
-    job = FrameJob(frame, message.capture_time_s, None, frozenset())
     T_world_cam = message.T_world_cam if message.T_world_cam is not None else tracker.T_world_cam.get(camera)
     if camera not in tracker.intrinsics or T_world_cam is None:
         return None
-    intrinsics = tracker.intrinsics[camera]
-    sightings = []
-    for robot in tracker.robots:
-        mine = body_detections(message.detections, robot.layout)
-        if not mine:
-            continue
-        estimate = None
-        if tracker.fusion.needs_estimate(robot.name):
-            estimate = estimate_cube(mine, robot.layout, intrinsics, T_world_cam, camera=camera, robot=robot.name,
-                                     seq=message.seq, capture_time_s=message.capture_time_s,
-                                     arrival_time_s=message.arrival_time_s, params=tracker.params.estimator)
-        sightings.append(CubeSighting(camera, robot.name, message.seq, message.capture_time_s, message.arrival_time_s,
-                                      mine, estimate, T_world_cam, intrinsics))
-    return FrameResult(job, FrameOutcome(message.outcome), tuple(sightings))
+    frame = Frame(camera, message.seq, message.device_time_s, message.arrival_time_s, b"")
+    job = FrameJob(frame, message.capture_time_s, None,
+                   frozenset(r.name for r in tracker.robots if tracker.fusion.needs_estimate(r.name)))
+    sightings = tracker.worker.sightings(job, message.detections, T_world_cam)
+    return FrameResult(job, FrameOutcome(message.outcome), sightings)
 
 
 def camera_health(message: SightingMessage, previous: CameraHealth | None, now_s: float) -> CameraHealth:

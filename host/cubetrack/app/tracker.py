@@ -165,6 +165,15 @@ class FrameWorker:
         T_world_cam = self.camera_pose(frame, detections)
         if T_world_cam is None:
             return FrameResult(job, FrameOutcome.NO_CAMERA_POSE)
+        return FrameResult(job, outcome, self.sightings(job, detections, T_world_cam))
+
+    def sightings(self, job: FrameJob, detections: tuple[Detection, ...],
+                  T_world_cam: np.ndarray) -> tuple[CubeSighting, ...]:
+        """The sightings of a frame's detections, seen from ``T_world_cam``: each robot's own
+        detections and, for the robots in ``job.estimate_robots``, its per-camera estimate. The
+        rest of :meth:`work`, and all of it for detections made elsewhere (a ``cubetrack worker``'s
+        message, :func:`cubetrack.app.fusion_service.frame_result`)."""
+        frame = job.frame
         intrinsics = self.intrinsics[frame.camera]
         sightings = []
         for robot in self.robots:
@@ -181,7 +190,7 @@ class FrameWorker:
                 )
             sightings.append(CubeSighting(frame.camera, robot.name, frame.seq, job.capture_time_s, frame.host_time_s,
                                           mine, estimate, T_world_cam, intrinsics))
-        return FrameResult(job, outcome, tuple(sightings))
+        return tuple(sightings)
 
     def pack(self, result: FrameResult) -> tuple:
         """``result`` without its job, in plain values that pickle fast (for a pipe): what

@@ -261,3 +261,39 @@ def test_each_robot_gets_its_own_detections_and_poses(scenes):
         assert len(mine) >= 10 and t.stats.poses[robot] == len(mine)
         for p in mine[-5:]:
             assert_near_truth(p)
+
+
+# --------------------------------------------------------------------------- a cubetrack worker's message
+
+
+def test_a_workers_message_gives_the_fusion_what_its_own_per_frame_work_gives(scenes):
+    """``cubetrack fuse`` turns a worker's message (corners, no image) into the sightings the
+    tracker's own per-frame work makes of the frame, estimates included exactly where the fusion
+    asks for them: before the filter tracks the robots (both), and while it tracks them (none)."""
+    from cubetrack.app.fusion_service import frame_result
+    from cubetrack.app.tracker import FrameJob
+    from cubetrack.app.worker import sighting_message
+    from cubetrack.core.sighting_wire import decode_sighting, encode_sighting
+    from cubetrack.source.clock import ClockSync
+    from cubetrack.source.streams import CameraStats
+
+    t = tracker(FILTER)
+    frame = stream(scenes["both"], 0, 1)[0]
+    for asks in ({"red", "blue"}, set()):
+        assert {r.name for r in t.robots if t.fusion.needs_estimate(r.name)} == asks
+        job = FrameJob(frame, capture_time(frame.camera, 0), None, frozenset())  # a worker's: no estimates
+        message = decode_sighting(encode_sighting(sighting_message(t.worker.work(job), ClockSync(), CameraStats(),
+                                                                   with_pose=False)))
+        fused = frame_result(t, message)
+        own = t.worker.work(FrameJob(frame, job.capture_time_s, None, frozenset(asks)))
+        assert fused.job.estimate_robots == frozenset(asks) and fused.outcome is own.outcome
+        assert [s.robot for s in fused.sightings] == [s.robot for s in own.sightings] == ["red", "blue"]
+        for a, b in zip(fused.sightings, own.sightings):
+            assert (a.camera, a.seq, a.capture_time_s, a.arrival_time_s) == (b.camera, b.seq, b.capture_time_s,
+                                                                              b.arrival_time_s)
+            assert [d.marker_id for d in a.detections] == [d.marker_id for d in b.detections]
+            assert all(np.array_equal(x.corners_px, y.corners_px) for x, y in zip(a.detections, b.detections))
+            assert (a.estimate is None) == (b.estimate is None) == (a.robot not in asks)
+            if a.estimate is not None:
+                assert np.array_equal(a.estimate.T_world_cube, b.estimate.T_world_cube)
+        run(t, stream(scenes["both"], 0, 16))  # now the filter tracks both robots
