@@ -27,7 +27,7 @@ from cubetrack.cli.main import main
 from cubetrack.evaluate.metrics import evaluate
 from cubetrack.io.recording import Recording
 from cubetrack.io.trajectory import Trajectory, read_tum
-from cubetrack.source.clock import fit_round_trips
+from cubetrack.source.clock import ClockSyncParams, fit_round_trips
 from tests.helpers.scene import simulated_scene
 
 pytestmark = pytest.mark.slow
@@ -48,17 +48,20 @@ def live_run(scene):
     stdout, stderr = io.StringIO(), io.StringIO()
     with Emulator(rec, host="127.0.0.1", port=0) as emu:
         config = write_live_config(rec / "config.toml", emu.urls, work / "live_config.toml")
+        started = time.time()
         with contextlib.redirect_stdout(stdout), contextlib.redirect_stderr(stderr):
             rc = main(["track", "--config", str(config), "--extrinsics", str(work / "extrinsics.toml"), "--live",
                        "--out", str(out), "--duration", str(emu.timeline.period_s + 2.0), "--record", str(session),
                        "--status-every", "1"])
+        ended = time.time()
         assert emu.wait_finished(0)  # the session outlasted the replay
         truth = read_tum(rec / "ground_truth.tum")
         shift_s = emu.unix_time(float(truth.times_s[0])) - float(truth.times_s[0])
         urls = dict(emu.urls)
     assert rc == 0, stderr.getvalue()
     return {"out": out, "session": session, "config": config, "shift_s": shift_s, "urls": urls,
-            "truth": shift_trajectory(truth, shift_s), "stdout": stdout.getvalue(), "stderr": stderr.getvalue()}
+            "truth": shift_trajectory(truth, shift_s), "stdout": stdout.getvalue(), "stderr": stderr.getvalue(),
+            "started": started, "ended": ended}
 
 
 def test_live_poses_are_as_accurate_as_the_offline_replay(scene, live_run):
@@ -73,12 +76,29 @@ def test_live_poses_are_as_accurate_as_the_offline_replay(scene, live_run):
     assert live.poses_total >= 0.8 * offline.poses_total
     lines = [json.loads(line) for line in (live_run["out"] / "robot.jsonl").read_text().splitlines()]
     assert len(lines) == live.poses_total and lines[0]["robot"] == "robot"
-    # every pose: capture -> output, and arrival -> output, shorter by the transfer time (about
-    # nothing here: the emulator sends a frame at its capture time) up to the clock sync's error
-    assert all(p["arrival_latency"] > 0 and p["latency"] > 0 for p in lines)
-    assert abs(np.median([p["latency"] - p["arrival_latency"] for p in lines])) < 0.002
     times = [p["time"] for p in lines]
     assert times == sorted(times)  # late sightings folded in, no pose out of capture order
+
+
+def test_every_live_pose_carries_consistent_latencies(live_run):
+    """Each pose's stamps, rebuilt from its fields (capture = time, output = time + latency,
+    arrival = output - arrival_latency), are in the order they happen: capture <= arrival <=
+    output, each output inside the session and no earlier than the pose written before it. Only
+    the order: how long each step takes depends on the machine's load (benchmarks/live.py
+    measures it). The capture time is the camera's clock mapped to the host's, so it may lie
+    after the arrival by the clock sync's error: at most half the slowest round trip the sync
+    trusts ([source] clock max_round_trip_s)."""
+    lines = [json.loads(line) for line in (live_run["out"] / "robot.jsonl").read_text().splitlines()]
+    assert lines and all("latency" in p and "arrival_latency" in p for p in lines)
+    capture = np.array([p["time"] for p in lines])
+    output = capture + np.array([p["latency"] for p in lines])
+    arrival = output - np.array([p["arrival_latency"] for p in lines])
+    sync_error_s = ClockSyncParams().max_round_trip_s / 2
+    rounding_s = 2e-6  # the file's microseconds
+    assert np.all(arrival <= output + rounding_s) and np.all(capture <= output + rounding_s)
+    assert np.all(capture <= arrival + sync_error_s)  # arrival -> pose <= capture -> pose, up to the sync
+    assert np.all(np.diff(output) >= -rounding_s)  # written as made
+    assert live_run["started"] < output[0] and output[-1] < live_run["ended"]
 
 
 def test_status_lines_and_summary_are_printed(live_run):
@@ -140,8 +160,10 @@ def test_poses_predicted_to_now_at_a_fixed_rate(scene, tmp_path):
     fused = [p for p in poses if not p.get("predicted")]
     assert fused and all(started < p["time"] < ended and p["latency"] == 0.0 for p in predicted)
     times = np.array([p["time"] for p in predicted])
-    assert 20 < len(times) <= 50 * (ended - started) + 1  # never more often than asked
-    assert 0.018 < np.median(np.diff(times)) < 0.05
+    assert 20 < len(times) <= 50 * (ended - started) + 1
+    # never more often than asked: one pose per tick of the rate's grid at the most (how close to
+    # every tick a loaded machine comes is a timing, not checked here)
+    assert np.all(np.diff(np.floor((times + 1e-6) * 50.0)) >= 1)  # (+1 us: the file's times are rounded to it)
     # each prediction lies near the fused pose that followed it (the cube moves under 1 m/s)
     fused_t = np.array([p["time"] for p in fused])
     fused_p = np.array([p["position"] for p in fused])
