@@ -30,7 +30,11 @@ Every scene is tracked these ways (the same frames for each):
   scene is rendered again for the session's duration plus ``--body-drive`` seconds, 60 by
   default, and only the frames after the session's end calibrate the body; the scored session
   plays no part), the remedy for the realistic preset's hand-built cube that ``cube.toml`` calls
-  nominal.
+  nominal;
+- **ours smoothed** (and **ours + body smoothed** with ``--body``): the same replay's poses
+  smoothed over the whole recording (``cubetrack track --smooth``: a Rauch-Tung-Striebel smoother
+  over the filter's states, :mod:`cubetrack.fuse.smoother`), what a user who records a session
+  gets offline; the rows above are causal (each pose from the sightings up to its time, as live).
 
 and scored with :func:`cubetrack.evaluate.evaluate`: position and rotation RMSE against the ground
 truth interpolated to each pose's own time (the paper's eq. 7 takes the nearest ground-truth
@@ -97,13 +101,19 @@ TARGET_RATIO = 5.0
 TARGET_SPEED = 1.0
 
 OURS, PAPER, OUR_MEAN, REFINED, BODY = "ours", "paper_mean", "our_mean", "ours_refined", "ours_body"
+SMOOTHED, BODY_SMOOTHED = "ours_smoothed", "ours_body_smoothed"
+SMOOTHED_OF = {OURS: SMOOTHED, BODY: BODY_SMOOTHED}  # a method -> its poses smoothed (the same replay)
 LABELS = {
     OURS: "ours (filter, robust cal)",
+    SMOOTHED: "ours smoothed (offline)",
     REFINED: "ours + refine",
     BODY: "ours + calibrate-body",
+    BODY_SMOOTHED: "ours + body, smoothed",
     PAPER: "paper mean (CMA, arrival)",
     OUR_MEAN: "our mean (robust, capture)",
 }
+RATIO_KEYS = ((OURS, "ratio"), (SMOOTHED, "ratio_smoothed"), (REFINED, "ratio_refined"), (BODY, "ratio_body"),
+              (BODY_SMOOTHED, "ratio_body_smoothed"))  # our methods with targets, their RMSE ratio's key
 COMPLETE_FILE = "bench-complete.json"
 REPORT_FILE = "accuracy_report.json"
 ROBUST_EXTRINSICS_FILE = "extrinsics_robust.toml"
@@ -184,11 +194,12 @@ MISSING = {"pos_cm": math.nan, "rot_deg": math.nan, "pos_cm_eq7": math.nan, "rot
            "far": math.nan, "far_count": 0, "poses": 0, "scored": 0, "rate_hz": 0.0, "max_cm": math.nan}  # a method that produced nothing
 
 
-def score(track_result, robot: str, truth) -> dict:
+def score(tum: Path, truth) -> dict:
+    """The scores of one TUM trajectory against the truth."""
     from cubetrack.evaluate.metrics import evaluate
     from cubetrack.io.trajectory import read_tum
 
-    traj = read_tum(track_result.outputs[robot][0])
+    traj = read_tum(tum)
     if len(traj) == 0:
         return dict(MISSING)
     s = evaluate(traj, truth)
@@ -273,12 +284,14 @@ def run_scene(work: str, preset: str, config_index: int, seed: int, duration: fl
         out["body"].update(seconds=time.monotonic() - t_body, drive_s=body_drive_s)
     out["calibration"]["robust"] = calibration_error(ours_ext, true_extrinsics)
     out["calibration"]["cma"] = calibration_error(cma_ext, true_extrinsics)
-    for key, (params, extrinsics) in variants.items():
-        result = track_recording(config, Recording.open(rec), extrinsics, rec / "track" / key, params)
-        out["methods"][key] = score(result, robot, truth)
     if body_drive_s > 0:
-        result = track_recording(config_body, Recording.open(rec), ours_ext, rec / "track" / BODY, base)
-        out["methods"][BODY] = score(result, robot, truth)
+        variants[BODY] = (base, ours_ext)
+    for key, (params, extrinsics) in variants.items():
+        result = track_recording(config_body if key == BODY else config, Recording.open(rec), extrinsics,
+                                 rec / "track" / key, params, smooth=key in SMOOTHED_OF)
+        out["methods"][key] = score(result.outputs[robot][0], truth)
+        if key in SMOOTHED_OF:
+            out["methods"][SMOOTHED_OF[key]] = score(result.smoothed[robot][0], truth)
     t3 = time.monotonic()
     out["distance_m"] = camera_distances(rec)
     out["seconds"] = {"render": render_s, "reused": reused, "calibrate": t2 - t1, "track": t3 - t2,
@@ -522,7 +535,7 @@ def build_report(scenes: list[dict], seeds: list[int], methods: list[str]) -> di
         ratios = [s["methods"][PAPER]["pos_cm"] / s["methods"][OURS]["pos_cm"] for s in mine]
         row["ratio"] = _agg(ratios)
         row["ratio_per_seed"] = ratios
-        for method, key in ((REFINED, "ratio_refined"), (BODY, "ratio_body")):
+        for method, key in RATIO_KEYS[1:]:
             if method in methods:
                 row[key] = _agg([s["methods"][PAPER]["pos_cm"] / s["methods"].get(method, MISSING)["pos_cm"] for s in mine])
         rows[f"{preset} {name}"] = row
@@ -617,7 +630,7 @@ def print_report(report: dict, speed: dict | None, methods: list[str], duration:
                   f"{n_mm:.2f} mm / {n_deg:.2f}°, calibrated {c_mm:.2f} mm / {c_deg:.2f}°")
     p()
     failures = []
-    for method, ratio_key in ((OURS, "ratio"), (REFINED, "ratio_refined"), (BODY, "ratio_body")):
+    for method, ratio_key in RATIO_KEYS:
         if method not in methods:
             continue
         fails, lines = _worst_failures(report, method, ratio_key)
@@ -683,7 +696,8 @@ def main(argv: list[str] | None = None) -> int:
     speed_frames = args.speed_frames if args.speed_frames is not None else (30 if args.quick else None)
     if args.refine and not refine_available():
         ap.error("--refine needs cubetrack.calib.bundle, which is not installed")
-    methods = [OURS] + ([REFINED] if args.refine else []) + ([BODY] if args.body else []) + [PAPER, OUR_MEAN]
+    methods = ([OURS, SMOOTHED] + ([REFINED] if args.refine else []) + ([BODY, BODY_SMOOTHED] if args.body else [])
+               + [PAPER, OUR_MEAN])
 
     kept = args.out is not None
     work = args.out if kept else Path(tempfile.mkdtemp(prefix="cubetrack-accuracy-"))

@@ -234,7 +234,7 @@ class FilterFusion:
         self._trails: dict[str, list[TrailStep]] | None = None  # robot -> steps no late sighting can reach
 
     def keep_trail(self) -> None:
-        """From now on keep each sighting's final filter state and pose (about 2 KB a sighting:
+        """From now on keep each sighting's final filter state and pose (about 3 KB a sighting:
         for recordings) for :meth:`trail`."""
         if self._trails is None:
             self._trails = {r: [] for r in self.layouts}
