@@ -5,6 +5,7 @@ bad input refused with one line."""
 import hashlib
 import json
 
+import numpy as np
 import pytest
 
 from cubetrack.cli.main import main
@@ -68,3 +69,27 @@ def test_smooth_refuses_what_it_cannot_smooth(rec, tmp_path, capsys, extra, need
     err = capsys.readouterr().err.strip()
     assert needle in err and len(err.splitlines()) == 1
     assert not (tmp_path / "o").exists()  # nothing written
+
+
+def test_a_fixed_lag_from_the_config_gives_smoothed_poses_that_late(rec, tmp_path, capsys):
+    config = rec / "config_lag.toml"  # beside the original: its relative paths still hold
+    config.write_text((rec / "config.toml").read_text() + "\n[filter]\nsmooth_lag_s = 0.05\n")
+    assert main(["track", "--config", str(config), "--extrinsics", str(rec / "true_extrinsics.toml"),
+                 "--recording", str(rec), "--out", str(tmp_path / "lag"), "--replay-workers", "0"]) == 0
+    assert track(rec, tmp_path / "causal") == 0
+    lines = [json.loads(line) for line in (tmp_path / "lag" / "robot.jsonl").read_text().splitlines()]
+    causal = [json.loads(line) for line in (tmp_path / "causal" / "robot.jsonl").read_text().splitlines()]
+    # the causal poses and a few more (a sighting accepted once a late one was folded in, still within the lag)
+    times = [line["time"] for line in lines]
+    assert times == sorted(times) and {line["time"] for line in causal} <= set(times)
+    assert len(times) <= len(causal) + 5
+    assert all(line["smoothed"] is True for line in lines)
+    assert read_run_record(tmp_path / "lag")["parameters"]["filter"]["smooth_lag_s"] == 0.05
+    # each pose waits for a sighting captured over 0.05 s later (but the last ones, which leave at the end)
+    late = {line["time"]: line["latency"] for line in lines}
+    waited = [late[c["time"]] - c["latency"] for c in causal]
+    assert np.median(waited) > 0.05  # latencies compare loosely: a causal pose may leave late itself
+    lagged = score(tmp_path / "lag" / "robot.tum", rec, capsys)
+    plain = score(tmp_path / "causal" / "robot.tum", rec, capsys)
+    assert lagged["position_rmse_m"] < 0.8 * plain["position_rmse_m"]
+    assert lagged["rotation_rmse_deg"] < 0.9 * plain["rotation_rmse_deg"]

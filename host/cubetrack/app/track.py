@@ -156,7 +156,7 @@ def track_frames(frames: Iterable[Frame], intrinsics: Mapping[str, CameraIntrins
         output.pose(pose)
     if smoothed is not None:
         for i, robot in enumerate(layouts, start=1):
-            for pose in smoothed_poses(tracker.fusion, robot, tracker.last_now_s):
+            for pose in smoothed_poses(tracker.fusion.trail(robot, tracker.last_now_s), tracker.last_now_s):
                 smoothed.pose(pose)
             if progress is not None:
                 progress("smooth", i, len(layouts))

@@ -65,6 +65,9 @@ class FilterParams:
     init_angular_velocity_sigma: float = param(3.0, "angular velocity uncertainty (1 sigma) at track start, rad/s "
                                                "(robots turn at up to 3.5 rad/s: a tighter prior pulls a start in a turn "
                                                "towards no turn)")
+    smooth_lag_s: float = param(0.0, "fixed-lag smoothing: each pose leaves once sightings this many seconds newer have "
+                                "been applied, smoothed over them (more accurate, this much later; at most [fusion] "
+                                "history_s; docs/tracking.md); 0: at once, from the sightings up to its time")
 
     def __post_init__(self) -> None:
         for name in ("accel_noise", "angular_accel_noise", "yaw_accel_noise", "steady_yaw_accel_noise",
@@ -74,6 +77,8 @@ class FilterParams:
                 raise ParamsError(f"{name} must be positive")
         if self.iterations < 1:
             raise ParamsError("iterations must be at least 1")
+        if not self.smooth_lag_s >= 0:
+            raise ParamsError(f"smooth_lag_s must not be negative, got {self.smooth_lag_s}")
 
 
 @dataclass(frozen=True, slots=True)

@@ -47,6 +47,7 @@ from cubetrack.estimate.pose import estimate_cube
 from cubetrack.estimate.reprojection import CornerSet, corner_set
 from cubetrack.fuse.corner_filter import FilterParams, PoseFilter
 from cubetrack.fuse.multi_view_fit import solve_joint
+from cubetrack.fuse.smoother import TrailStep, smoothed_poses
 
 log = logging.getLogger(__name__)
 
@@ -192,17 +193,6 @@ class HistoryStep:
     pose: TrackedPose | None = None  # its pose, due or not, while the fusion keeps a trail
 
 
-@dataclass(frozen=True, slots=True)
-class TrailStep:
-    """One sighting of a robot as capture-order processing finally applied it (kept for offline
-    smoothing, :mod:`cubetrack.fuse.smoother`): its outcome (a ``stats`` key), the state after it
-    and the pose it gave (None: it gave none)."""
-
-    outcome: str
-    state: RobotState
-    pose: TrackedPose | None
-
-
 class FilterFusion:
     """A :class:`~cubetrack.fuse.base.Fusion`: corner-level filtering of every robot (see the module
     doc). Visible state: ``state`` (robot -> :class:`RobotState` after its newest sighting),
@@ -211,7 +201,9 @@ class FilterFusion:
     ``replayed sighting`` and ``too late sighting``).
 
     With :meth:`keep_trail` it also keeps every sighting's final state and pose, for
-    :func:`cubetrack.fuse.smoother.smoothed_poses` (offline; off by default).
+    :func:`cubetrack.fuse.smoother.smoothed_poses` (offline; off by default). With the filter's
+    ``smooth_lag_s`` each pose leaves once a sighting that much newer has been applied, smoothed
+    over the sightings up to then (:mod:`cubetrack.fuse.smoother`; 0, the default: at once).
 
     A late sighting is put in its place in the history at once, and the steps from there on are
     re-applied when the robot's state is next needed for a pose (its next newest sighting, or
@@ -232,6 +224,9 @@ class FilterFusion:
         self._sent: dict[str, tuple[float, str, int]] = {}  # robot -> key of the newest step whose poses left
         self.stats: Counter[str] = Counter()
         self._trails: dict[str, list[TrailStep]] | None = None  # robot -> steps no late sighting can reach
+        if filter_params.smooth_lag_s > params.history_s:
+            raise ParamsError(f"[filter] smooth_lag_s ({filter_params.smooth_lag_s}) must not exceed [fusion] "
+                              f"history_s ({params.history_s}): the steps it waits for are kept that long")
 
     def keep_trail(self) -> None:
         """From now on keep each sighting's final filter state and pose (about 3 KB a sighting:
@@ -245,13 +240,16 @@ class FilterFusion:
         if self._trails is None:
             raise ParamsError("the fusion keeps no trail: call keep_trail() before the sightings")
         self.settled_state(robot, now_s)
-        return self._trails[robot] + self._trail_steps(robot, len(self.history[robot]))
+        return self._trails[robot] + self._trail_steps(robot, 0, len(self.history[robot]))
 
-    def _trail_steps(self, robot: str, n: int) -> list[TrailStep]:
-        """The robot's first ``n`` history steps as trail steps."""
+    def _trail_steps(self, robot: str, start: int, stop: int) -> list[TrailStep]:
+        """The robot's history steps ``start:stop`` as trail steps (each with the filter after it)."""
         history = self.history[robot]
-        after = [step.before for step in history[1:]] + [self.state[robot]]
-        return [TrailStep(step.outcome, state, step.pose) for step, state in zip(history[:n], after)]
+        after = [step.before.filter for step in history[start + 1: stop + 1]]
+        if stop >= len(history):
+            after.append(self.state[robot].filter)
+        return [TrailStep(step.outcome, f, step.pose, step.sighting.arrival_time_s)
+                for step, f in zip(history[start:stop], after)]
 
     def needs_estimate(self, robot: str) -> bool:
         """A per-camera estimate is only needed to start a track: not while one runs."""
@@ -288,7 +286,7 @@ class FilterFusion:
         history.append(HistoryStep(key, sighting, self.state[robot]))
         keys.append(key)
         self._apply_from(robot, self._stale.pop(robot, len(history) - 1), now_s)
-        poses = self._due_poses(robot)
+        poses = self._due_poses(robot, now_s)
         self._forget(robot)
         return poses
 
@@ -305,7 +303,7 @@ class FilterFusion:
         poses = []
         for robot in self.history:
             self.settled_state(robot, now_s)
-            poses += self._due_poses(robot)
+            poses += self._due_poses(robot, now_s, final=True)
         return poses
 
     def _apply_from(self, robot: str, start: int, now_s: float) -> None:
@@ -328,16 +326,23 @@ class FilterFusion:
             step.outcome = outcome
         self.state[robot] = state
 
-    def _due_poses(self, robot: str) -> list[TrackedPose]:
-        """The poses of the robot's steps after the last one whose poses left, in capture order."""
+    def _due_poses(self, robot: str, now_s: float, final: bool = False) -> list[TrackedPose]:
+        """The poses of the robot's steps after the last one whose poses left, in capture order;
+        with ``smooth_lag_s`` only those of steps more than that older than the newest (``final``:
+        all), smoothed over the steps after them."""
         history, keys = self.history[robot], self._keys[robot]
         sent = self._sent.get(robot)
+        start = 0 if sent is None else bisect.bisect_right(keys, sent)
+        lag_s = self.filter_params.smooth_lag_s
+        stop = len(history) if final or lag_s == 0 or not keys else bisect.bisect_left(keys, (keys[-1][0] - lag_s,))
         poses = []
-        for step in history[0 if sent is None else bisect.bisect_right(keys, sent):]:
+        for step in history[start:stop]:
             if step.poses:
                 poses += step.poses
                 self._sent[robot] = step.key
-        return poses
+        if lag_s == 0 or not poses:
+            return poses
+        return smoothed_poses(self._trail_steps(robot, start, len(history)), now_s, stop - start)
 
     def _forget(self, robot: str) -> None:
         """Drop the steps no late sighting can reach any more (nor a track start's window)."""
@@ -346,7 +351,7 @@ class FilterFusion:
         n = bisect.bisect_left(keys, (oldest,))
         if n > 0:
             if self._trails is not None:
-                self._trails[robot] += self._trail_steps(robot, n)
+                self._trails[robot] += self._trail_steps(robot, 0, n)
             del history[:n], keys[:n]
 
     def _corners(self, sighting: CubeSighting, T_world_cube: np.ndarray) -> list[CornerSet]:

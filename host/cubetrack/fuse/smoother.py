@@ -1,5 +1,5 @@
-"""Offline smoothing of the filter fusion's tracks: each pose from every sighting of the recording,
-before and after it, not only the earlier ones.
+"""Smoothing of the filter fusion's tracks: each pose from the sightings before and after it, not
+only the earlier ones (a whole recording offline, or a fixed lag live).
 
 A Rauch-Tung-Striebel smoother over the states of :class:`~cubetrack.fuse.fusion.FilterFusion`'s
 filter (:class:`~cubetrack.fuse.corner_filter.PoseFilter`), run backwards over each track segment
@@ -13,23 +13,36 @@ noise, the turning level included) and the next smoothed state ``x_k+1|s``,
 
 A rejected sighting is a step without an update (its state is the prediction). A segment ends
 where the filter did not go on from the state before: a track start, a re-acquisition (the track
-went on from a camera's own pose), a track lost. The fusion keeps what this needs only when asked
-(:meth:`~cubetrack.fuse.fusion.FilterFusion.keep_trail`), so live tracking pays nothing for it.
+went on from a camera's own pose), a track lost. The fusion keeps what a whole recording needs
+only when asked (:meth:`~cubetrack.fuse.fusion.FilterFusion.keep_trail`), so live tracking pays
+nothing for it.
 """
 
 from __future__ import annotations
 
 import dataclasses
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
 from cubetrack.core.geometry import quat_xyzw_from_R
 from cubetrack.core.records import TrackedPose
 from cubetrack.fuse.corner_filter import PoseFilter, transition
-from cubetrack.fuse.fusion import FilterFusion, TrailStep
 
 CONTINUING = frozenset({"accepted sighting", "rejected sighting"})  # outcomes that go on from the state before
+
+
+@dataclass(frozen=True, slots=True)
+class TrailStep:
+    """One sighting of a robot as capture-order processing finally applied it: its outcome (a
+    fusion ``stats`` key), the filter after it (None: no track), the pose it gave (None: none)
+    and when the sighting arrived (host clock, seconds)."""
+
+    outcome: str
+    filter: PoseFilter | None
+    pose: TrackedPose | None
+    arrival_time_s: float
 
 
 def rts(filters: Sequence[PoseFilter]) -> list[PoseFilter]:
@@ -45,33 +58,34 @@ def rts(filters: Sequence[PoseFilter]) -> list[PoseFilter]:
     return smoothed[::-1]
 
 
-def segments(trail: Sequence[TrailStep]) -> list[list[TrailStep]]:
-    """The trail split where the filter did not go on from the state before (track start,
-    re-acquisition, lost track); steps without a filter state are left out."""
-    out: list[list[TrailStep]] = []
-    previous: TrailStep | None = None
-    for step in trail:
-        if step.state.filter is not None:
-            if previous is not None and previous.state.filter is not None and step.outcome in CONTINUING:
-                out[-1].append(step)
+def segments(trail: Sequence[TrailStep]) -> list[list[int]]:
+    """The indices of the trail's steps, split where the filter did not go on from the state
+    before (track start, re-acquisition, lost track); steps without a filter are left out."""
+    out: list[list[int]] = []
+    for i, step in enumerate(trail):
+        if step.filter is not None:
+            if i > 0 and trail[i - 1].filter is not None and step.outcome in CONTINUING:
+                out[-1].append(i)
             else:
-                out.append([step])
-        previous = step
+                out.append([i])
     return out
 
 
-def smoothed_poses(fusion: FilterFusion, robot: str, now_s: float) -> list[TrackedPose]:
-    """The robot's poses (one per sighting that gave one, in capture order) from the smoothed
-    states of every sighting since ``fusion.keep_trail()``; ``now_s``: the host time they are
-    output (their ``latency_s`` counts to it). Each is flagged ``"smoothed": true`` in ``extra``."""
-    trail = fusion.trail(robot, now_s)
+def smoothed_poses(trail: Sequence[TrailStep], now_s: float, count: int | None = None) -> list[TrackedPose]:
+    """The poses of the trail's first ``count`` steps (None: all) that gave one, in order, from
+    their states smoothed over the whole trail; ``now_s``: the host time they are output (their
+    latencies count to it). Each is flagged ``"smoothed": true`` in ``extra``."""
+    count = len(trail) if count is None else count
     poses = []
     for segment in segments(trail):
-        for step, f in zip(segment, rts([step.state.filter for step in segment])):
-            if step.pose is not None:
+        if segment[0] >= count:
+            break
+        for i, f in zip(segment, rts([trail[i].filter for i in segment])):
+            pose = trail[i].pose
+            if i < count and pose is not None:
                 poses.append(dataclasses.replace(
-                    step.pose, position_m=f.position_m.copy(), quaternion_xyzw=quat_xyzw_from_R(f.R_world_cube),
+                    pose, position_m=f.position_m.copy(), quaternion_xyzw=quat_xyzw_from_R(f.R_world_cube),
                     velocity_m_s=f.velocity_m_s.copy(), angular_velocity_rad_s=f.angular_velocity_rad_s.copy(),
-                    covariance=f.pose_covariance, latency_s=max(0.0, now_s - f.time_s), arrival_latency_s=None,
-                    extra={**step.pose.extra, "smoothed": True}))
+                    covariance=f.pose_covariance, latency_s=max(0.0, now_s - f.time_s),
+                    arrival_latency_s=max(0.0, now_s - trail[i].arrival_time_s), extra={**pose.extra, "smoothed": True}))
     return poses

@@ -2,6 +2,8 @@
 than the causal filter, split where the filter did not go on from the state before, and the
 causal poses unchanged by keeping what it needs."""
 
+import re
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -12,8 +14,9 @@ from cubetrack.core.errors import ParamsError
 from cubetrack.core.geometry import R_from_quat_xyzw, make_T, rotation_angle
 from cubetrack.core.records import CubeSighting
 from cubetrack.estimate.pose import estimate_cube
-from cubetrack.fuse.fusion import FilterFusion, FusionParams, RobotState, TrailStep
-from cubetrack.fuse.smoother import segments, smoothed_poses
+from cubetrack.fuse.corner_filter import FilterParams
+from cubetrack.fuse.fusion import FilterFusion, FusionParams
+from cubetrack.fuse.smoother import TrailStep, segments, smoothed_poses
 
 
 def weaving(t):
@@ -51,7 +54,11 @@ def tracked(items, params=FusionParams()):
     fusion = FilterFusion({"bot": LAYOUT}, params)
     fusion.keep_trail()
     causal = run(fusion, items)
-    return causal, smoothed_poses(fusion, "bot", items[-1].arrival_time_s), fusion
+    return causal, smoothed(fusion, items[-1].arrival_time_s), fusion
+
+
+def smoothed(fusion, now_s):
+    return smoothed_poses(fusion.trail("bot", now_s), now_s)
 
 
 @pytest.mark.parametrize("seed", [0, 1])
@@ -61,6 +68,7 @@ def test_smoothed_poses_are_closer_to_the_truth_than_the_filters(seed):
     assert fusion.stats["accepted sighting"] > 0.9 * len(items)
     assert [p.time_s for p in smoothed] == [p.time_s for p in causal]  # one pose per sighting, as the filter's
     assert all(p.extra == {"smoothed": True} for p in smoothed) and not any(p.extra for p in causal)
+    assert all(p.latency_s >= items[-1].arrival_time_s - p.time_s - 1e-9 for p in smoothed)  # out at the end
     (pos_f, rot_f), (pos_s, rot_s) = errors(causal, weaving), errors(smoothed, weaving)
     assert rms(pos_s) < 0.75 * rms(pos_f)
     assert rms(rot_s) < 0.75 * rms(rot_f)
@@ -94,7 +102,7 @@ def test_late_sightings_are_smoothed_as_in_capture_order():
     run(late, arrived)
     assert late.stats["late sighting"] > 5
     _, expected, _ = tracked(items)
-    got = smoothed_poses(late, "bot", items[-1].arrival_time_s)
+    got = smoothed(late, items[-1].arrival_time_s)
     assert len(got) == len(expected)
     for a, b in zip(got, expected):
         np.testing.assert_allclose(a.position_m, b.position_m, atol=1e-12)
@@ -115,12 +123,12 @@ def test_segments_break_at_a_re_acquisition():
     causal, smoothed, fusion = tracked(items)
     trail = fusion.trail("bot", 3.0)
     assert fusion.stats["re-acquired sighting"] >= 1
-    parts = segments(trail)
+    parts = [[trail[i] for i in part] for part in segments(trail)]
     assert len(parts) >= 2
     for part in parts[1:]:
         assert part[0].outcome in ("re-acquired sighting", "track start")
     first = [p for p in parts[0] if p.pose is not None]
-    last_before = first[-1].state.filter
+    last_before = first[-1].filter
     smoothed_before = next(p for p in smoothed if p.time_s == last_before.time_s)
     # a segment's last state has nothing after it in its segment: smoothing leaves it as filtered
     np.testing.assert_array_equal(smoothed_before.position_m, last_before.position_m)
@@ -136,24 +144,22 @@ def test_segments_break_at_a_lost_track():
     items = sightings(weaving, 1.5, rng) + sightings(weaving, 3.5, rng, t_start=2.5)  # unseen 1.5-2.5 s
     items.sort(key=lambda s: (s.capture_time_s, s.camera))
     causal, smoothed, fusion = tracked(items)
-    parts = segments(fusion.trail("bot", 3.5))
+    trail = fusion.trail("bot", 3.5)
+    parts = [[trail[i] for i in part] for part in segments(trail)]
     assert len(parts) == 2 and parts[1][0].outcome == "track start"
-    assert max(s.state.filter.time_s for s in parts[0]) < 1.5 < 2.5 <= parts[1][0].state.filter.time_s
+    assert max(s.filter.time_s for s in parts[0]) < 1.5 < 2.5 <= parts[1][0].filter.time_s
     times = np.array([p.time_s for p in smoothed])
     assert not np.any((times > 1.5) & (times < 2.5))  # nothing invented while unseen
 
 
 def test_segments_follow_the_outcomes():
-    f = object()  # segments only look at whether a step has a filter state
-    state, lost = RobotState(f), RobotState(None)
+    state, lost = object(), None  # segments only look at whether a step has a filter
     outcomes = [("sighting before track start", lost), ("track start", state), ("accepted sighting", state),
                 ("rejected sighting", state), ("accepted sighting", state), ("re-acquired sighting", state),
                 ("accepted sighting", state), ("rejected sighting", lost), ("accepted sighting", state),
                 ("track start", state)]
-    trail = [TrailStep(outcome, s, None) for outcome, s in outcomes]
-    parts = segments(trail)
-    index = {id(s): i for i, s in enumerate(trail)}
-    assert [[index[id(s)] for s in part] for part in parts] == [[1, 2, 3, 4], [5, 6], [8], [9]]
+    trail = [TrailStep(outcome, f, None, 0.0) for outcome, f in outcomes]
+    assert segments(trail) == [[1, 2, 3, 4], [5, 6], [8], [9]]
 
 
 def test_a_fusion_without_a_trail_refuses_to_give_one():
@@ -161,3 +167,47 @@ def test_a_fusion_without_a_trail_refuses_to_give_one():
     with pytest.raises(ParamsError, match="keep_trail"):
         fusion.trail("bot", 0.0)
 
+
+
+def lagged_run(items, lag_s, arrived=None):
+    """(poses, [(the newest capture time applied when each left, pose)]) with ``smooth_lag_s``."""
+    fusion = FilterFusion({"bot": LAYOUT}, filter_params=FilterParams(smooth_lag_s=lag_s))
+    left, newest = [], -np.inf
+    for s in arrived or items:
+        newest = max(newest, s.capture_time_s)
+        left += [(newest, p) for p in fusion.add(s, s.arrival_time_s)]
+    left += [(np.inf, p) for p in fusion.flush(items[-1].arrival_time_s)]
+    return [p for _, p in left], left
+
+
+@pytest.mark.parametrize("seed", [6, 7])
+def test_a_fixed_lag_gives_each_pose_that_late_and_closer_to_the_truth(seed):
+    items = sightings(weaving, 4.0, np.random.default_rng(seed))
+    causal = run(FilterFusion({"bot": LAYOUT}), items)
+    poses, left = lagged_run(items, 0.15)
+    assert [p.time_s for p in poses] == [p.time_s for p in causal]  # the same poses, each once, in capture order
+    assert all(p.time_s < newest - 0.15 for newest, p in left if newest < np.inf)  # none before 0.15 s of newer
+    assert sum(newest == np.inf for newest, _ in left) <= 8  # the session's last 0.15 s leave at its end
+    assert all(p.extra == {"smoothed": True} for p in poses)
+    assert all(p.latency_s > 0.15 + 0.05 for newest, p in left if newest < np.inf)  # arrival 50 ms after capture
+    (pos_f, rot_f), (pos_l, rot_l) = errors(causal, weaving), errors(poses, weaving)
+    _, whole, _ = tracked(items)
+    pos_s, rot_s = errors(whole, weaving)
+    assert rms(pos_l) < 0.8 * rms(pos_f) and rms(rot_l) < 0.85 * rms(rot_f)
+    assert rms(pos_s) <= rms(pos_l) * 1.05  # the whole recording knows at least as much
+
+
+def test_a_fixed_lag_with_late_sightings_still_gives_each_pose_once_in_capture_order():
+    items = sightings(weaving, 3.0, np.random.default_rng(8))
+    arrived = sorted(items, key=lambda s: s.capture_time_s + np.random.default_rng(s.seq + 11).exponential(0.08))
+    poses, left = lagged_run(items, 0.1, arrived)
+    times = [p.time_s for p in poses]
+    assert times == sorted(times) and len(set(times)) == len(times) > 0.8 * len(items)
+    assert all(p.time_s < newest - 0.1 for newest, p in left if newest < np.inf)
+
+
+@pytest.mark.parametrize("lag_s,history_s,needle", [(-0.1, 0.5, "must not be negative"),
+                                                    (0.6, 0.5, "must not exceed [fusion] history_s")])
+def test_a_fixed_lag_out_of_range_is_refused(lag_s, history_s, needle):
+    with pytest.raises(ParamsError, match=re.escape(needle)):
+        FilterFusion({"bot": LAYOUT}, FusionParams(history_s=history_s), FilterParams(smooth_lag_s=lag_s))
