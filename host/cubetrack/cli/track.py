@@ -16,6 +16,8 @@ filter's states; each JSONL line says "smoothed": true, run.json names the folde
 trajectory of a recording, e.g. as ground truth for SLAM; the causal DIR/<robot>.tum (what live
 tracking gives) is written as without it. Costs about 3 KB of memory per sighting (90 MB a
 minute at 16 cameras x 30 fps) and about 10 % more fusion CPU, after the replay (docs/tracking.md).
+Live (or in a replay), [filter] smooth_lag_s = 0.05 in the config gives every pose smoothed over
+the sightings of the next 0.05 s, that much later: most of the offline gain (docs/tracking.md).
 
 Live: poses are written (and flushed) as they come; a status line on stderr shows poses/s per
 robot, frames/s per camera and the latency. Runs for --duration seconds or until Ctrl-C (the
