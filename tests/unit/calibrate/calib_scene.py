@@ -13,7 +13,9 @@ from pathlib import Path
 
 import numpy as np
 from scenes import Camera, look_at, marker_corners_px, marker_on_paper
+from scipy.spatial.transform import Rotation
 
+from cubetrack.calib.bundle import layout_with
 from cubetrack.core.cameras import CameraExtrinsics, CameraIntrinsics, WorldBoard, WorldConfig
 from cubetrack.core.geometry import make_T
 from cubetrack.core.layout import paper_cube_layout, write_layout
@@ -110,3 +112,14 @@ def write_scene(root: Path, frames: int = 30, cameras=None, seed: int = 1,
     write_toml(doc, root / "config.toml")
     write_extrinsics({n: CameraExtrinsics(T) for n, T in cameras.items()}, root / "truth.toml")
     return root / "config.toml", rec, root / "truth.toml"
+
+
+def hand_built_cube(seed: int):
+    """The paper's cube as a hand-built one: every marker turned by about a degree and shifted by
+    about a millimetre, printed 1 % small. (nominal layout, true marker poses (5, 4, 4), true layout)."""
+    layout = paper_cube_layout()
+    rng = np.random.default_rng(seed)
+    true_markers = np.array([make_T(Rotation.from_rotvec(np.radians(rng.normal(0, 1, 3))).as_matrix(), [0, 0, 0])
+                             @ m.T_cube_marker for m in layout.markers])
+    true_markers[:, :3, 3] += rng.normal(0, 1e-3, (5, 3))
+    return layout, true_markers, layout_with(layout, true_markers, np.array([m.size_m for m in layout.markers]) * 0.99)

@@ -8,6 +8,7 @@ its corners exact at each frame's own time. No instant of two cameras has the bo
 constant velocity between them is wrong; the trajectory needs neither."""
 
 import numpy as np
+from calib_scene import hand_built_cube
 from scenes import look_at
 from scipy.spatial.transform import Rotation
 
@@ -16,7 +17,6 @@ from cubetrack.calib.body import placement_errors
 from cubetrack.calib.bundle import layout_with
 from cubetrack.calib.solver import BodyPrior, Freedom, Model, Observations, corner_residuals_px, solve
 from cubetrack.core.geometry import make_T
-from cubetrack.core.layout import paper_cube_layout
 
 KNOT_S = 1 / 60
 ANGULAR_ACCEL = 40.0  # rad/s^2
@@ -30,13 +30,7 @@ def _pose(t: float) -> np.ndarray:
 
 def _scene(duration_s: float = 0.5):
     """(observations on knots, true model with the knots at the true poses, the true layout)."""
-    layout = paper_cube_layout()
-    rng = np.random.default_rng(3)
-    # a hand-built cube: every marker off by about a millimetre and a degree
-    true_markers = np.array([make_T(Rotation.from_rotvec(np.radians(rng.normal(0, 1, 3))).as_matrix(), [0, 0, 0])
-                             @ m.T_cube_marker for m in layout.markers])
-    true_markers[:, :3, 3] += rng.normal(0, 1e-3, (5, 3))
-    truth = layout_with(layout, true_markers, np.array([m.size_m for m in layout.markers]) * 0.99)
+    layout, true_markers, truth = hand_built_cube(3)  # every marker off by about a millimetre and a degree
     T_cams = np.array([look_at([2.2 * np.cos(a), 2.2 * np.sin(a), 1.0], [0.1, 0.05, 0.3])
                        for a in np.radians([10, 130, 250])])
     K = np.tile([[520.0, 0, 320], [0, 520, 240], [0, 0, 1]], (3, 1, 1))
