@@ -89,13 +89,12 @@ def capture_sightings(rec: Path) -> dict:
     from cubetrack.app import tracker as tracker_module
     from cubetrack.app.calibrate import calibrate_recording
     from cubetrack.app.track import track_recording
-    from cubetrack.app.tracker import StageParams
     from cubetrack.io.config import read_tracker_config
     from cubetrack.io.recording import Recording
 
     config = read_tracker_config(rec / "config.toml")
     extrinsics = calibrate_recording(config, Recording.open(rec / "calibration")).extrinsics
-    params = StageParams.from_config(config)
+    params = stage_params(rec)
     got: list = []
 
     class Recorded(tracker_module.FilterFusion):
@@ -105,7 +104,15 @@ def capture_sightings(rec: Path) -> dict:
 
     with mock.patch.object(tracker_module, "FilterFusion", Recorded):
         track_recording(config, Recording.open(rec), extrinsics, rec / CACHE / "track", params, workers=0)
-    return {"sightings": got, "layouts": {r.name: r.layout for r in config.robots}, "params": params}
+    return {"sightings": got, "layouts": {r.name: r.layout for r in config.robots}}
+
+
+def stage_params(rec: Path):
+    """The default configuration's stage parameters for ``rec`` (its config.toml)."""
+    from cubetrack.app.tracker import StageParams
+    from cubetrack.io.config import read_tracker_config
+
+    return StageParams.from_config(read_tracker_config(rec / "config.toml"))
 
 
 def cached(path: Path, make):
@@ -338,7 +345,8 @@ def run_rows(scenes: list[dict], label: str, corners_key: str, sigma: float, tun
         best = min(results, key=lambda r: mean_scores(r[1])["rot_deg"])
         rows.append({"corners": label, "sigma_px": sigma, "layout": layout_name,
                      "default": {"mean": mean_scores(default[1]), "scenes": default[1]},
-                     "tuned": {"setting": best[0], "mean": mean_scores(best[1]), "scenes": best[1]}})
+                     "tuned": {"setting": best[0], "mean": mean_scores(best[1]), "scenes": best[1]},
+                     "grid": [{"setting": o, "mean": mean_scores(per)} for o, per in results]})
         say(f"  {label} sigma {sigma:g} {layout_name}: rotation {rows[-1]['default']['mean']['rot_deg']:.3f}° "
             f"(tuned {rows[-1]['tuned']['mean']['rot_deg']:.3f}° with {best[0] or 'the defaults'})")
     return rows
@@ -408,6 +416,7 @@ def load_scene(bench, args, config_index: int) -> dict:
         for f in cache.glob("*.pkl"):
             f.unlink()
     sc = cached(cache / "sightings.pkl", lambda: capture_sightings(rec))
+    sc["params"] = stage_params(rec)  # the current code's (a cached older one may lack new fields)
     say(f"  {len(sc['sightings'])} sightings")
     sc["oracle"] = cached(cache / "oracle.pkl", lambda: oracle_corners(rec, sc["sightings"]))
     if not args.no_template:
