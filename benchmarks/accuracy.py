@@ -34,7 +34,9 @@ Every scene is tracked these ways (the same frames for each):
 - **ours smoothed** (and **ours + body smoothed** with ``--body``): the same replay's poses
   smoothed over the whole recording (``cubetrack track --smooth``: a Rauch-Tung-Striebel smoother
   over the filter's states, :mod:`cubetrack.fuse.smoother`), what a user who records a session
-  gets offline; the rows above are causal (each pose from the sightings up to its time, as live).
+  gets offline; the rows above are causal (each pose from the sightings up to its time, as live);
+- **ours, fixed lag** (``--lag S``): ours with ``[filter] smooth_lag_s = S``, each pose smoothed
+  over the sightings of the next S seconds, what a live user gets who waits that long.
 
 and scored with :func:`cubetrack.evaluate.evaluate`: position and rotation RMSE against the ground
 truth interpolated to each pose's own time (the paper's eq. 7 takes the nearest ground-truth
@@ -55,7 +57,7 @@ at least the naive rate).
 
     .venv/bin/python benchmarks/accuracy.py [--duration 30] [--seeds 101 202 303] [--jobs 2]
                                             [--presets clean realistic] [--out DIR] [--quick] [--refine] [--body]
-                                            [--body-drive 60]
+                                            [--body-drive 60] [--lag 0.05]
 
 The exit code is 0 for a completed run (this is a report); the last line lists failing targets.
 ``--out`` keeps the recordings and writes ``accuracy_report.json``; an existing complete
@@ -101,19 +103,20 @@ TARGET_RATIO = 5.0
 TARGET_SPEED = 1.0
 
 OURS, PAPER, OUR_MEAN, REFINED, BODY = "ours", "paper_mean", "our_mean", "ours_refined", "ours_body"
-SMOOTHED, BODY_SMOOTHED = "ours_smoothed", "ours_body_smoothed"
+SMOOTHED, BODY_SMOOTHED, LAGGED = "ours_smoothed", "ours_body_smoothed", "ours_lag"
 SMOOTHED_OF = {OURS: SMOOTHED, BODY: BODY_SMOOTHED}  # a method -> its poses smoothed (the same replay)
 LABELS = {
     OURS: "ours (filter, robust cal)",
     SMOOTHED: "ours smoothed (offline)",
+    LAGGED: "ours, fixed lag (--lag)",
     REFINED: "ours + refine",
     BODY: "ours + calibrate-body",
     BODY_SMOOTHED: "ours + body, smoothed",
     PAPER: "paper mean (CMA, arrival)",
     OUR_MEAN: "our mean (robust, capture)",
 }
-RATIO_KEYS = ((OURS, "ratio"), (SMOOTHED, "ratio_smoothed"), (REFINED, "ratio_refined"), (BODY, "ratio_body"),
-              (BODY_SMOOTHED, "ratio_body_smoothed"))  # our methods with targets, their RMSE ratio's key
+RATIO_KEYS = ((OURS, "ratio"), (SMOOTHED, "ratio_smoothed"), (LAGGED, "ratio_lag"), (REFINED, "ratio_refined"),
+              (BODY, "ratio_body"), (BODY_SMOOTHED, "ratio_body_smoothed"))  # our methods with targets, their RMSE ratio's key
 COMPLETE_FILE = "bench-complete.json"
 REPORT_FILE = "accuracy_report.json"
 ROBUST_EXTRINSICS_FILE = "extrinsics_robust.toml"
@@ -228,9 +231,10 @@ def calibration_error(extrinsics: dict, truth: dict) -> tuple[float, float]:
 
 
 def run_scene(work: str, preset: str, config_index: int, seed: int, duration: float, calibration_frames: int,
-              workers: int, refine: bool, body_drive_s: float = 0.0) -> dict:
+              workers: int, refine: bool, body_drive_s: float = 0.0, lag_s: float = 0.0) -> dict:
     """Simulate (or reuse) one scene, calibrate it both ways, track it every way, score it
-    (``body_drive_s`` > 0: also with the body calibrated from a drive of that many seconds)."""
+    (``body_drive_s`` > 0: also with the body calibrated from a drive of that many seconds;
+    ``lag_s`` > 0: also with that fixed lag)."""
     from cubetrack.app.calibrate import calibrate_recording
     from cubetrack.app.track import track_recording
     from cubetrack.app.tracker import StageParams, Timestamps
@@ -286,6 +290,9 @@ def run_scene(work: str, preset: str, config_index: int, seed: int, duration: fl
     out["calibration"]["cma"] = calibration_error(cma_ext, true_extrinsics)
     if body_drive_s > 0:
         variants[BODY] = (base, ours_ext)
+    if lag_s > 0:
+        variants[LAGGED] = (dataclasses.replace(base, filter=dataclasses.replace(base.filter, smooth_lag_s=lag_s)),
+                            ours_ext)
     for key, (params, extrinsics) in variants.items():
         result = track_recording(config_body if key == BODY else config, Recording.open(rec), extrinsics,
                                  rec / "track" / key, params, smooth=key in SMOOTHED_OF)
@@ -679,6 +686,8 @@ def main(argv: list[str] | None = None) -> int:
                     "session's end of the scene rendered for --duration + --body-drive seconds)")
     ap.add_argument("--body-drive", type=float, default=60.0, help="seconds of driving that --body calibrates the body "
                     "from (default 60)")
+    ap.add_argument("--lag", type=float, default=0.0, metavar="S", help="also report ours with [filter] "
+                    "smooth_lag_s = S (each pose smoothed over the next S seconds of sightings, as live; default 0: not)")
     ap.add_argument("--speed-rounds", type=int, default=None, help="interleaved speed rounds (default 5; "
                     "--quick: 2)")
     ap.add_argument("--speed-frames", type=int, default=None, help="frames per recording in the speed "
@@ -696,8 +705,10 @@ def main(argv: list[str] | None = None) -> int:
     speed_frames = args.speed_frames if args.speed_frames is not None else (30 if args.quick else None)
     if args.refine and not refine_available():
         ap.error("--refine needs cubetrack.calib.bundle, which is not installed")
-    methods = ([OURS, SMOOTHED] + ([REFINED] if args.refine else []) + ([BODY, BODY_SMOOTHED] if args.body else [])
-               + [PAPER, OUR_MEAN])
+    if args.lag < 0:
+        ap.error(f"--lag must not be negative, got {args.lag}")
+    methods = ([OURS, SMOOTHED] + ([LAGGED] if args.lag > 0 else []) + ([REFINED] if args.refine else [])
+               + ([BODY, BODY_SMOOTHED] if args.body else []) + [PAPER, OUR_MEAN])
 
     kept = args.out is not None
     work = args.out if kept else Path(tempfile.mkdtemp(prefix="cubetrack-accuracy-"))
@@ -723,7 +734,7 @@ def main(argv: list[str] | None = None) -> int:
                   file=sys.stderr, flush=True)
 
         call = [(str(work), preset, ci, seed, duration, calibration_frames, workers, args.refine,
-                 args.body_drive if args.body else 0.0)
+                 args.body_drive if args.body else 0.0, args.lag)
                 for preset, ci, seed in jobs]
         print(f"{len(jobs)} scenes, {n_jobs} at a time, in {work} ...", file=sys.stderr, flush=True)
         if n_jobs == 1:
