@@ -9,6 +9,7 @@ from __future__ import annotations
 import json
 import math
 import os
+import shutil
 import tempfile
 from pathlib import Path
 
@@ -43,8 +44,21 @@ SOI, EOI = b"\xff\xd8", b"\xff\xd9"
 B = mjpeg.BOUNDARY
 
 
+_SCRATCH: list[Path] = []
+
+
 def scratch() -> Path:
-    return Path(tempfile.mkdtemp(prefix="cubetrack-prop-"))
+    # hypothesis runs each test many times in one function-scoped fixture: a folder per example,
+    # all removed when the module is done
+    _SCRATCH.append(Path(tempfile.mkdtemp(prefix="cubetrack-prop-")))
+    return _SCRATCH[-1]
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _remove_scratch():
+    yield
+    while _SCRATCH:
+        shutil.rmtree(_SCRATCH.pop(), ignore_errors=True)
 
 
 def split(data: bytes, cuts: list[int]) -> list[bytes]:
