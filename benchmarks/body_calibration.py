@@ -16,9 +16,15 @@ and with ``--compare-instants`` with the instants model (``body_knot_s = 0``: on
 instant, moved with a fitted velocity) instead of the body's continuous-time trajectory. CPU seconds of each calibrate-body (its child process), the core count and the load average are
 printed.
 
+``--extrinsics calibrated`` starts calibrate-body from the extrinsics a user has instead of the
+truth: ``cubetrack calibrate`` on 200 frames per camera of the world marker (the simulation's
+empty-arena recording, rendered for the same seed into DIR/seed<N>_world), as
+benchmarks/accuracy.py's scenes get theirs; ``--extrinsics refined`` adds ``--refine-with`` the
+recording. Their errors against the truth are printed per camera.
+
     .venv/bin/python benchmarks/body_calibration.py [--seeds 44 45 46] [--duration 60] [--out DIR]
                                                     [--path sharp] [--compare] [--compare-instants]
-                                                    [--refine-intrinsics]
+                                                    [--refine-intrinsics] [--extrinsics true|calibrated|refined]
 
 ``--out`` keeps the recordings (DIR/seed<N>) and reuses a complete one made with the same
 parameters; without it they go to a temporary folder. A 60 s recording takes a few minutes to
@@ -41,6 +47,7 @@ from pathlib import Path
 import numpy as np
 
 TARGET_MM, TARGET_DEG = 0.5, 0.2
+CALIBRATION_FRAMES = 200  # per camera, as benchmarks/accuracy.py renders them
 CUBETRACK = [sys.executable, "-m", "cubetrack.cli.main"]
 
 
@@ -59,10 +66,11 @@ def run(command: list[str]) -> None:
                          + " | ".join(done.stderr.strip().splitlines()[-3:]))
 
 
-def simulate(rec: Path, seed: int, duration_s: float, path: str) -> None:
-    """The realistic recording (reused when complete and made with the same parameters)."""
+def simulate(rec: Path, seed: int, duration_s: float, path: str, calibration_frames: int = 0) -> None:
+    """The realistic recording (reused when complete and made with the same parameters); with
+    ``calibration_frames``, also its empty-arena recording ``rec/calibration`` for ``cubetrack calibrate``."""
     args = ["--realistic", "--duration", f"{duration_s:g}", "--seed", str(seed), "--path", path,
-            "--calibration-frames", "0"]
+            "--calibration-frames", str(calibration_frames)]
     stamp = rec / "benchmark_args.txt"
     if (rec / "recording.json").is_file() and stamp.is_file() and stamp.read_text() == " ".join(args):
         print(f"seed {seed}: reusing {rec}", flush=True)
@@ -73,21 +81,49 @@ def simulate(rec: Path, seed: int, duration_s: float, path: str) -> None:
     print(f"seed {seed}: simulated {duration_s:g} s in {time.monotonic() - t0:.0f} s", flush=True)
 
 
+def extrinsics_for(rec: Path, seed: int, path: str, which: str) -> Path:
+    """The extrinsics calibrate-body starts from: the simulation's truth, or (``calibrated``) what
+    ``cubetrack calibrate`` makes of 200 frames per camera of the world marker, as
+    benchmarks/accuracy.py's scenes get theirs, or (``refined``) that with ``--refine-with`` the
+    recording. The world marker's recording is rendered on its own (``rec`` + ``_world``: the
+    same seed, so the same cameras, lens and camera_info; its 1 s of driving is not used), so
+    the driving recording is reused as it is."""
+    if which == "true":
+        return rec / "true_extrinsics.toml"
+    world = rec.with_name(rec.name + "_world")
+    world.mkdir(exist_ok=True)
+    simulate(world, seed, 1.0, path, CALIBRATION_FRAMES)
+    for same in ("true_extrinsics.toml", "true_cube.toml"):
+        if (world / same).read_bytes() != (rec / same).read_bytes():
+            raise SystemExit(f"{world / same} differs from {rec / same}: not the same scene")
+    out = rec / f"extrinsics_{which}.toml"
+    run(["calibrate", "--config", str(rec / "config.toml"), "--recording", str(world / "calibration"),
+         "--out", str(out), *(["--refine-with", str(rec)] if which == "refined" else [])])
+    from cubetrack.calib.extrinsics import extrinsics_errors
+    from cubetrack.io.config import read_extrinsics
+
+    errs = extrinsics_errors(read_extrinsics(out), read_extrinsics(rec / "true_extrinsics.toml"))
+    print(f"seed {seed}: {which} extrinsics against the truth (position mm, rotation deg): "
+          + ", ".join(f"{cam} {1e3 * p:.1f} {r:.3f}" for cam, (p, r) in errs.items()), flush=True)
+    return out
+
+
 # the calibrations compared: name -> [bundle_adjustment] settings over the recording's config
 KINDS = {"calibration": "", "detector": "body_edge_corners = false", "instants": "body_knot_s = 0.0"}
 
 
-def calibrate(rec: Path, kind: str, refine_intrinsics: bool) -> tuple[Path, float]:
+def calibrate(rec: Path, kind: str, refine_intrinsics: bool, extrinsics: Path) -> tuple[Path, float]:
     """calibrate-body on ``rec`` as ``kind`` says (:data:`KINDS`: the default, the detector's
-    corners, or instants instead of the body's continuous-time trajectory); the layout written and
-    the child's CPU seconds."""
+    corners, or instants instead of the body's continuous-time trajectory), starting from
+    ``extrinsics``; the layout written and the child's CPU seconds."""
     config = rec / "config.toml"
     if KINDS[kind]:
         config = rec / f"config_{kind}.toml"
         config.write_text((rec / "config.toml").read_text() + f"\n[bundle_adjustment]\n{KINDS[kind]}\n")
-    out = rec / f"body_{kind}{'_intrinsics' if refine_intrinsics else ''}.toml"
+    tag = extrinsics.stem.removeprefix("extrinsics_") if extrinsics.name.startswith("extrinsics_") else ""
+    out = rec / f"body_{kind}{'_intrinsics' if refine_intrinsics else ''}{'_' + tag if tag else ''}.toml"
     cpu0 = child_cpu_s()
-    run(["calibrate-body", "--config", str(config), "--extrinsics", str(rec / "true_extrinsics.toml"),
+    run(["calibrate-body", "--config", str(config), "--extrinsics", str(extrinsics),
          "--recording", str(rec), "--out", str(out), *(["--refine-intrinsics"] if refine_intrinsics else [])])
     return out, child_cpu_s() - cpu0
 
@@ -116,11 +152,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--compare-instants", action="store_true",
                     help="also calibrate with instants (body_knot_s = 0) instead of the body's trajectory")
     ap.add_argument("--refine-intrinsics", action="store_true", help="calibrate-body --refine-intrinsics")
+    ap.add_argument("--extrinsics", choices=("true", "calibrated", "refined"), default="true",
+                    help="the extrinsics calibrate-body starts from: the simulation's truth (default), cubetrack "
+                    "calibrate's from 200 frames of the world marker (as a user gets them), or those refined with "
+                    "the recording (calibrate --refine-with)")
     args = ap.parse_args(argv)
     kinds = ["calibration", *(["detector"] if args.compare else []), *(["instants"] if args.compare_instants else [])]
     print(f"body calibration benchmark: {os.cpu_count()} cores, load average "
           f"{' '.join(f'{x:.1f}' for x in os.getloadavg())}; realistic preset, path {args.path}, "
-          f"{args.duration:g} s, seeds {' '.join(map(str, args.seeds))}", flush=True)
+          f"{args.duration:g} s, seeds {' '.join(map(str, args.seeds))}, {args.extrinsics} extrinsics", flush=True)
     with tempfile.TemporaryDirectory(prefix="body-bench-") as tmp:
         base = args.out or Path(tmp)
         rows, met = [], True
@@ -128,11 +168,12 @@ def main(argv: list[str] | None = None) -> int:
             rec = base / f"seed{seed}"
             rec.mkdir(parents=True, exist_ok=True)
             simulate(rec, seed, args.duration, args.path)
+            extrinsics = extrinsics_for(rec, seed, args.path, args.extrinsics)
             truth = rec / "true_cube.toml"
             nominal = errors(rec / "cube.toml", truth)
             rows.append((seed, "nominal layout", summary(nominal), 0.0))
             for kind in kinds:
-                out, cpu = calibrate(rec, kind, args.refine_intrinsics)
+                out, cpu = calibrate(rec, kind, args.refine_intrinsics, extrinsics)
                 err = errors(out, truth)
                 s = summary(err)
                 rows.append((seed, f"{kind}", s, cpu))
