@@ -21,7 +21,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from cubetrack.app.config import config_params
-from cubetrack.app.live import HEALTH_EVERY_S, live_intrinsics
+from cubetrack.app.live import HEALTH_EVERY_S, idle_wait_s, live_intrinsics
 from cubetrack.app.outputs import open_outputs
 from cubetrack.app.tracker import FrameJob, FrameOutcome, FrameResult, StageParams, Tracker, TrackStats
 from cubetrack.app.worker import SIGHTINGS_KEY, WORKERS_KEY
@@ -117,6 +117,7 @@ def run_fusion(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
     bad = duplicates = 0
     interrupted = False
     started = time.monotonic()
+    idle_s = idle_wait_s(params)
 
     def receive(sample) -> None:  # a Zenoh thread
         inbox.append(bytes(sample.payload))
@@ -182,9 +183,11 @@ def run_fusion(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
         try:
             while not ((stop is not None and stop.is_set())
                        or (duration_s is not None and time.monotonic() - started >= duration_s)):
-                wake.wait(0.1)
+                wake.wait(idle_s)
                 wake.clear()
                 fuse_inbox()
+                now_s = clock()
+                emit(tracker.release(now_s), now_s)  # a fixed lag's poses whose time is up, sightings or not
                 if status is not None and time.monotonic() >= next_status:
                     next_status += status_every_s
                     status(line())

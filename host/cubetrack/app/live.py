@@ -182,6 +182,7 @@ class SessionMedian:
 
 
 HEALTH_EVERY_S = 1.0  # camera health snapshots for the outputs, per camera
+IDLE_WAIT_S = 0.1  # a live loop waits at most this long for work between its periodic duties
 
 
 class _Health:
@@ -269,6 +270,14 @@ def _session_over(started: float, duration_s: float | None, stop: threading.Even
     return duration_s is not None and time.monotonic() - started >= duration_s
 
 
+def idle_wait_s(params: StageParams) -> float:
+    """How long a live loop waits for work at most: ``IDLE_WAIT_S``, or with a fixed lag half its
+    ``smooth_margin_s`` (so a held pose whose time is up leaves within that of it, even while no
+    frame comes)."""
+    fp = params.filter
+    return IDLE_WAIT_S if fp.smooth_lag_s == 0 else min(IDLE_WAIT_S, max(0.005, fp.smooth_margin_s / 2))
+
+
 def predicted_poses(fusion: Fusion, robots: Sequence[str], now_s: float) -> list[TrackedPose]:
     """Each tracked robot's pose predicted to ``now_s`` by the fusion's motion model (none for a
     robot that is not tracked or no longer seen; none from fusions without a motion model)."""
@@ -299,7 +308,9 @@ def track_live(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
     per camera); frames of a camera whose clock is not known yet are given up (counted). Each
     pose's latencies are taken when it is handed to the outputs. With ``[fusion]
     output_rate_hz``, each tracked robot's pose predicted to now is output at that rate as well.
-    ``sinks``: other outputs, fed the same poses."""
+    With ``[filter] smooth_lag_s``, poses held for it leave once their time is up on this clock
+    (:meth:`~cubetrack.app.tracker.Tracker.release`), frames or not. ``sinks``: other outputs,
+    fed the same poses."""
     settings = config_params(config)
     params = params or settings.stages
     source = source or settings.source
@@ -314,6 +325,7 @@ def track_live(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
     started = time.monotonic()
     robots = [r.name for r in config.robots]
     tick_s = 1.0 / params.fusion.output_rate_hz if params.fusion.output_rate_hz > 0 else None
+    idle_s = idle_wait_s(params)
     wake = threading.Event()
 
     def emit(poses: list[TrackedPose], now_s: float) -> None:
@@ -426,8 +438,10 @@ def track_live(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
         next_tick = clock()
         try:
             while not _session_over(started, duration_s, stop):
-                step(0.1 if tick_s is None else min(0.1, max(0.0, next_tick - clock())))
-                if tick_s is not None and (now_s := clock()) >= next_tick:
+                step(idle_s if tick_s is None else min(idle_s, max(0.0, next_tick - clock())))
+                now_s = clock()
+                emit(tracker.release(now_s), now_s)
+                if tick_s is not None and now_s >= next_tick:
                     next_tick = (math.floor(now_s / tick_s) + 1) * tick_s  # the next tick of the rate's grid
                     emit(predicted_poses(tracker.fusion, robots, now_s), now_s)
                 if status is not None and time.monotonic() >= next_status:

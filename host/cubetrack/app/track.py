@@ -122,7 +122,10 @@ def track_frames(frames: Iterable[Frame], intrinsics: Mapping[str, CameraIntrins
                 done[job] = tracker.worker.work(job)
             else:
                 pool.wait(1.0)
-        for pose in tracker.fuse(done.pop(job), now_s):
+        poses = tracker.fuse(done.pop(job), now_s)
+        # a fixed lag's poses whose time is up once every frame that came before this one did is fused
+        poses += tracker.release(min((t for _, t in planned), default=now_s))
+        for pose in poses:
             output.pose(pose)
 
     def make_room() -> None:

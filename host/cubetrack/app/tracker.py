@@ -387,6 +387,17 @@ class Tracker:
             self.stats.poses[pose.robot] += 1
         return poses
 
+    def release(self, now_s: float) -> list[TrackedPose]:
+        """Poses the fusion held back whose time is up at host time ``now_s`` though what they
+        wait for has not come (a fixed lag's poses of a robot no camera sees any more). Call it
+        once every frame that had arrived by ``now_s`` has been fused: live after each batch of
+        results and while none comes, in a replay with the arrival time of the first frame not
+        yet fused."""
+        poses = self.fusion.release(now_s)
+        for pose in poses:
+            self.stats.poses[pose.robot] += 1
+        return poses
+
     def count(self, result: FrameResult) -> bool:
         """Count what the per-frame work found (and when the camera's whole frame was last
         searched); False for a corrupt JPEG (logged)."""

@@ -30,3 +30,7 @@ class Fusion(Protocol):
 
     def flush(self, now_s: float) -> list[TrackedPose]:
         """Poses still held back (the end of a session)."""
+
+    def release(self, now_s: float) -> list[TrackedPose]:
+        """Poses held back whose time is up at host time ``now_s`` though what they wait for has
+        not come (called after each frame, and live also while none comes)."""

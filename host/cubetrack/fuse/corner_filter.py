@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -68,6 +69,9 @@ class FilterParams:
     smooth_lag_s: float = param(0.0, "fixed-lag smoothing: each pose leaves once sightings this many seconds newer have "
                                 "been applied, smoothed over them (more accurate, this much later; at most [fusion] "
                                 "history_s; docs/tracking.md); 0: at once, from the sightings up to its time")
+    smooth_margin_s: float = param(0.2, "fixed-lag smoothing: a pose still held this long after its smooth_lag_s (on "
+                                   "the host clock: its robot left every camera's view, a camera stalled) leaves "
+                                   "anyway, smoothed over the sightings there are, seconds")
 
     def __post_init__(self) -> None:
         for name in ("accel_noise", "angular_accel_noise", "yaw_accel_noise", "steady_yaw_accel_noise",
@@ -77,8 +81,9 @@ class FilterParams:
                 raise ParamsError(f"{name} must be positive")
         if self.iterations < 1:
             raise ParamsError("iterations must be at least 1")
-        if not self.smooth_lag_s >= 0:
-            raise ParamsError(f"smooth_lag_s must not be negative, got {self.smooth_lag_s}")
+        for name in ("smooth_lag_s", "smooth_margin_s"):
+            if not 0 <= getattr(self, name) < math.inf:
+                raise ParamsError(f"{name} must be a non-negative number of seconds, got {getattr(self, name)}")
 
 
 @dataclass(frozen=True, slots=True)

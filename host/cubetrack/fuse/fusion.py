@@ -32,6 +32,7 @@ from __future__ import annotations
 import bisect
 import enum
 import logging
+import math
 from collections import Counter
 from dataclasses import dataclass, field
 
@@ -136,6 +137,10 @@ class LatestEstimateFusion:
         """Nothing is held back: every estimate was fused when it came."""
         return []
 
+    def release(self, now_s: float) -> list[TrackedPose]:
+        """None: nothing waits for a later sighting."""
+        return []
+
     def fuse(self, estimate: CameraEstimate, now_s: float) -> TrackedPose:
         """Fuse ``estimate`` with every other camera's latest estimate of the same robot."""
         self.latest[(estimate.robot, estimate.camera)] = estimate
@@ -203,7 +208,8 @@ class FilterFusion:
     With :meth:`keep_trail` it also keeps every sighting's final state and pose, for
     :func:`cubetrack.fuse.smoother.smoothed_poses` (offline; off by default). With the filter's
     ``smooth_lag_s`` each pose leaves once a sighting that much newer has been applied, smoothed
-    over the sightings up to then (:mod:`cubetrack.fuse.smoother`; 0, the default: at once).
+    over the sightings up to then (:mod:`cubetrack.fuse.smoother`; 0, the default: at once), or
+    at the latest with :meth:`release` once its time is up on the host clock.
 
     A late sighting is put in its place in the history at once, and the steps from there on are
     re-applied when the robot's state is next needed for a pose (its next newest sighting, or
@@ -248,7 +254,7 @@ class FilterFusion:
         after = [step.before.filter for step in history[start + 1: stop + 1]]
         if stop >= len(history):
             after.append(self.state[robot].filter)
-        return [TrailStep(step.outcome, f, step.pose, step.sighting.arrival_time_s)
+        return [TrailStep(step.outcome, f, step.pose, step.sighting.arrival_time_s, step.key[0])
                 for step, f in zip(history[start:stop], after)]
 
     def needs_estimate(self, robot: str) -> bool:
@@ -286,7 +292,7 @@ class FilterFusion:
         history.append(HistoryStep(key, sighting, self.state[robot]))
         keys.append(key)
         self._apply_from(robot, self._stale.pop(robot, len(history) - 1), now_s)
-        poses = self._due_poses(robot, now_s)
+        poses = self._due_poses(robot, now_s, keys[-1][0] - self.filter_params.smooth_lag_s)
         self._forget(robot)
         return poses
 
@@ -303,7 +309,29 @@ class FilterFusion:
         poses = []
         for robot in self.history:
             self.settled_state(robot, now_s)
-            poses += self._due_poses(robot, now_s, final=True)
+            poses += self._due_poses(robot, now_s, math.inf)
+        return poses
+
+    def release(self, now_s: float) -> list[TrackedPose]:
+        """With ``smooth_lag_s``: the poses whose time is up at ``now_s`` (host clock) though no
+        sighting that much newer came (the robot left every camera's view, a camera stalled):
+        every one captured more than ``smooth_lag_s + smooth_margin_s`` before ``now_s``, smoothed
+        over the sightings there are (late ones pending folded in first). A sighting that comes
+        after its pose left is folded in as a late one and gives no second pose. Without the lag:
+        none (each pose left with its sighting)."""
+        fp = self.filter_params
+        if fp.smooth_lag_s == 0:
+            return []
+        before_s = now_s - fp.smooth_lag_s - fp.smooth_margin_s
+        poses = []
+        for robot, keys in self._keys.items():
+            sent = self._sent.get(robot)
+            start, stop = 0 if sent is None else bisect.bisect_right(keys, sent), bisect.bisect_left(keys, (before_s,))
+            if any(step.poses for step in self.history[robot][start:stop]) or (robot in self._stale and stop > start):
+                self.settled_state(robot, now_s)
+                due = self._due_poses(robot, now_s, before_s)
+                self.stats["pose released before its lag"] += len(due)
+                poses += due
         return poses
 
     def _apply_from(self, robot: str, start: int, now_s: float) -> None:
@@ -326,15 +354,15 @@ class FilterFusion:
             step.outcome = outcome
         self.state[robot] = state
 
-    def _due_poses(self, robot: str, now_s: float, final: bool = False) -> list[TrackedPose]:
+    def _due_poses(self, robot: str, now_s: float, before_s: float) -> list[TrackedPose]:
         """The poses of the robot's steps after the last one whose poses left, in capture order;
-        with ``smooth_lag_s`` only those of steps more than that older than the newest (``final``:
-        all), smoothed over the steps after them."""
+        with ``smooth_lag_s`` only those of steps captured before ``before_s``, smoothed over the
+        steps after them."""
         history, keys = self.history[robot], self._keys[robot]
         sent = self._sent.get(robot)
         start = 0 if sent is None else bisect.bisect_right(keys, sent)
         lag_s = self.filter_params.smooth_lag_s
-        stop = len(history) if final or lag_s == 0 or not keys else bisect.bisect_left(keys, (keys[-1][0] - lag_s,))
+        stop = len(history) if lag_s == 0 else bisect.bisect_left(keys, (before_s,))
         poses = []
         for step in history[start:stop]:
             if step.poses:
@@ -342,7 +370,7 @@ class FilterFusion:
                 self._sent[robot] = step.key
         if lag_s == 0 or not poses:
             return poses
-        return smoothed_poses(self._trail_steps(robot, start, len(history)), now_s, stop - start)
+        return smoothed_poses(self._trail_steps(robot, start, len(history)), now_s, stop - start, lag_s)
 
     def _forget(self, robot: str) -> None:
         """Drop the steps no late sighting can reach any more (nor a track start's window)."""

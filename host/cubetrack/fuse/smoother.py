@@ -36,13 +36,14 @@ CONTINUING = frozenset({"accepted sighting", "rejected sighting"})  # outcomes t
 @dataclass(frozen=True, slots=True)
 class TrailStep:
     """One sighting of a robot as capture-order processing finally applied it: its outcome (a
-    fusion ``stats`` key), the filter after it (None: no track), the pose it gave (None: none)
-    and when the sighting arrived (host clock, seconds)."""
+    fusion ``stats`` key), the filter after it (None: no track), the pose it gave (None: none),
+    when the sighting arrived and when it was captured (host clock, seconds)."""
 
     outcome: str
     filter: PoseFilter | None
     pose: TrackedPose | None
     arrival_time_s: float
+    capture_time_s: float
 
 
 def rts(filters: Sequence[PoseFilter]) -> list[PoseFilter]:
@@ -71,11 +72,15 @@ def segments(trail: Sequence[TrailStep]) -> list[list[int]]:
     return out
 
 
-def smoothed_poses(trail: Sequence[TrailStep], now_s: float, count: int | None = None) -> list[TrackedPose]:
+def smoothed_poses(trail: Sequence[TrailStep], now_s: float, count: int | None = None,
+                   lag_s: float | None = None) -> list[TrackedPose]:
     """The poses of the trail's first ``count`` steps (None: all) that gave one, in order, from
     their states smoothed over the whole trail; ``now_s``: the host time they are output (their
-    latencies count to it). Each is flagged ``"smoothed": true`` in ``extra``."""
+    latencies count to it). Each is flagged ``"smoothed": true`` in ``extra``; with a fixed lag
+    ``lag_s``, also ``"smooth_lag_s"``: the capture time the trail covers after the pose, at most
+    ``lag_s`` (less for a pose that left before a sighting that much newer came)."""
     count = len(trail) if count is None else count
+    newest_s = trail[-1].capture_time_s if trail else 0.0
     poses = []
     for segment in segments(trail):
         if segment[0] >= count:
@@ -87,5 +92,7 @@ def smoothed_poses(trail: Sequence[TrailStep], now_s: float, count: int | None =
                     pose, position_m=f.position_m.copy(), quaternion_xyzw=quat_xyzw_from_R(f.R_world_cube),
                     velocity_m_s=f.velocity_m_s.copy(), angular_velocity_rad_s=f.angular_velocity_rad_s.copy(),
                     covariance=f.pose_covariance, latency_s=max(0.0, now_s - f.time_s),
-                    arrival_latency_s=max(0.0, now_s - trail[i].arrival_time_s), extra={**pose.extra, "smoothed": True}))
+                    arrival_latency_s=max(0.0, now_s - trail[i].arrival_time_s), extra={**pose.extra, "smoothed": True}
+                    if lag_s is None else {**pose.extra, "smoothed": True,
+                                           "smooth_lag_s": round(min(lag_s, newest_s - pose.time_s), 4)}))
     return poses

@@ -158,7 +158,7 @@ def test_segments_follow_the_outcomes():
                 ("rejected sighting", state), ("accepted sighting", state), ("re-acquired sighting", state),
                 ("accepted sighting", state), ("rejected sighting", lost), ("accepted sighting", state),
                 ("track start", state)]
-    trail = [TrailStep(outcome, f, None, 0.0) for outcome, f in outcomes]
+    trail = [TrailStep(outcome, f, None, 0.0, 0.0) for outcome, f in outcomes]
     assert segments(trail) == [[1, 2, 3, 4], [5, 6], [8], [9]]
 
 
@@ -188,7 +188,10 @@ def test_a_fixed_lag_gives_each_pose_that_late_and_closer_to_the_truth(seed):
     assert [p.time_s for p in poses] == [p.time_s for p in causal]  # the same poses, each once, in capture order
     assert all(p.time_s < newest - 0.15 for newest, p in left if newest < np.inf)  # none before 0.15 s of newer
     assert sum(newest == np.inf for newest, _ in left) <= 8  # the session's last 0.15 s leave at its end
-    assert all(p.extra == {"smoothed": True} for p in poses)
+    # each says its lag: the setting, or at the session's end what there was after it
+    assert all(p.extra == {"smoothed": True, "smooth_lag_s": 0.15} for newest, p in left if newest < np.inf)
+    assert all(p.extra["smooth_lag_s"] == round(items[-1].capture_time_s - p.time_s, 4) < 0.15
+               for newest, p in left if newest == np.inf)
     assert all(p.latency_s > 0.15 + 0.05 for newest, p in left if newest < np.inf)  # arrival 50 ms after capture
     (pos_f, rot_f), (pos_l, rot_l) = errors(causal, weaving), errors(poses, weaving)
     _, whole, _ = tracked(items)
@@ -206,8 +209,70 @@ def test_a_fixed_lag_with_late_sightings_still_gives_each_pose_once_in_capture_o
     assert all(p.time_s < newest - 0.1 for newest, p in left if newest < np.inf)
 
 
-@pytest.mark.parametrize("lag_s,history_s,needle", [(-0.1, 0.5, "must not be negative"),
-                                                    (0.6, 0.5, "must not exceed [fusion] history_s")])
-def test_a_fixed_lag_out_of_range_is_refused(lag_s, history_s, needle):
+@pytest.mark.parametrize("lag_s,margin_s,history_s,needle", [
+    (-0.1, 0.2, 0.5, "smooth_lag_s must be a non-negative number of seconds"),
+    (0.6, 0.2, 0.5, "must not exceed [fusion] history_s"),
+    (0.05, -0.01, 0.5, "smooth_margin_s must be a non-negative number of seconds"),
+    (0.05, float("inf"), 0.5, "smooth_margin_s must be a non-negative number of seconds"),
+    (0.05, float("nan"), 0.5, "smooth_margin_s must be a non-negative number of seconds")])
+def test_a_fixed_lag_out_of_range_is_refused(lag_s, margin_s, history_s, needle):
     with pytest.raises(ParamsError, match=re.escape(needle)):
-        FilterFusion({"bot": LAYOUT}, FusionParams(history_s=history_s), FilterParams(smooth_lag_s=lag_s))
+        FilterFusion({"bot": LAYOUT}, FusionParams(history_s=history_s),
+                     FilterParams(smooth_lag_s=lag_s, smooth_margin_s=margin_s))
+
+
+def clocked_run(fusion, items, end_s, arrived=None, tick_s=0.01):
+    """[(now, pose)]: the sightings added as they arrive (``arrived``: (arrival, sighting) pairs,
+    default each at its own arrival time) and :meth:`FilterFusion.release` every ``tick_s`` of
+    host time up to ``end_s``, as the live loop does."""
+    queue = sorted(arrived or [(s.arrival_time_s, s) for s in items], key=lambda a: a[0])
+    out = []
+    for now in np.arange(0.0, end_s, tick_s):
+        while queue and queue[0][0] <= now:
+            out += [(now, p) for p in fusion.add(queue.pop(0)[1], now)]
+        out += [(now, p) for p in fusion.release(now)]
+    return out
+
+
+def test_a_robot_seen_no_more_gets_its_held_poses_within_lag_and_margin():
+    """Three cameras see the robot until 2 s, then none does: its last poses leave by the host
+    clock once ``smooth_lag_s + smooth_margin_s`` have passed since their capture (not at the
+    session's end), each once, smoothed over what came after them; a sighting that arrives after
+    its pose left is folded in as a late one and gives no second pose."""
+    lag_s, margin_s, tick_s = 0.1, 0.15, 0.01
+    items = sightings(weaving, 2.0, np.random.default_rng(9))
+    withheld = items[-2]  # captured just before the last one, but it arrives at 2.5 s
+    fusion = FilterFusion({"bot": LAYOUT}, filter_params=FilterParams(smooth_lag_s=lag_s, smooth_margin_s=margin_s))
+    out = clocked_run(fusion, items, 3.0, [(s.arrival_time_s, s) for s in items if s is not withheld]
+                      + [(2.5, withheld)], tick_s)
+    assert fusion.flush(3.0) == []  # nothing was left for the session's end
+    assert fusion.stats["late sighting"] == 1
+    causal = run(FilterFusion({"bot": LAYOUT}), [s for s in items if s is not withheld])
+    assert [p.time_s for _, p in out] == [p.time_s for p in causal]  # each pose once, in capture order
+    assert all(now <= p.time_s + lag_s + margin_s + tick_s + 1e-9 for now, p in out)  # on time
+    early = [(now, p) for now, p in out if p.extra["smooth_lag_s"] < lag_s]
+    last_s = max(s.capture_time_s for s in items if s is not withheld)
+    assert len(early) >= 2 and fusion.stats["pose released before its lag"] == len(early)
+    for now, p in early:  # the last lag's poses, when their time was up, smoothed over what came after them
+        assert p.time_s > last_s - lag_s and now >= p.time_s + lag_s + margin_s - 1e-9
+        assert p.extra["smooth_lag_s"] == round(last_s - p.time_s, 4)
+        assert p.latency_s == pytest.approx(now - p.time_s)
+    assert early[-1][1].time_s == last_s
+
+
+def test_release_gives_nothing_before_its_time_nor_without_a_lag():
+    items = sightings(weaving, 1.0, np.random.default_rng(10))
+    for lag_s in (0.0, 0.1):
+        fusion = FilterFusion({"bot": LAYOUT}, filter_params=FilterParams(smooth_lag_s=lag_s, smooth_margin_s=0.2))
+        poses = [p for s in items for p in fusion.add(s, s.arrival_time_s)]
+        last_s = items[-1].capture_time_s
+        causal = run(FilterFusion({"bot": LAYOUT}), items)
+        held = causal[len(poses):]  # the last lag's
+        assert len(held) == sum(p.time_s >= last_s - lag_s for p in causal) if lag_s else held == []
+        first_s = held[0].time_s if held else last_s
+        assert fusion.release(first_s + lag_s + 0.2 - 0.001) == []  # not before its time
+        first = fusion.release(first_s + lag_s + 0.2 + 0.001)
+        assert len(first) == (1 if held else 0)  # the oldest, whose time is up; the others' is not
+        out = first + fusion.release(last_s + lag_s + 0.2 + 0.001)
+        assert [p.time_s for p in out] == [p.time_s for p in held] and (len(out) >= 2 or lag_s == 0)
+        assert fusion.release(last_s + 10.0) == [] and fusion.flush(last_s + 10.0) == []  # none twice

@@ -12,7 +12,7 @@ from cubetrack.core.records import CubeSighting
 from cubetrack.fuse.base import Fusion
 from cubetrack.fuse.fusion import FilterFusion, FusionParams, LatestEstimateFusion
 
-PROTOCOL = ("needs_estimate", "add", "predicted_pose", "flush")
+PROTOCOL = ("needs_estimate", "add", "predicted_pose", "flush", "release")
 
 
 def fusions():
@@ -42,4 +42,4 @@ def test_latest_estimate_fusion_answers_at_once_and_holds_nothing_back():
     poses = fusion.add(sighting, 10.07)
     assert len(poses) == 1 and poses[0].position_m[0] == pytest.approx(0.5)
     assert fusion.predicted_pose("bot", 10.1) is None  # no motion model, even with a track
-    assert fusion.flush(10.2) == []
+    assert fusion.flush(10.2) == [] and fusion.release(10.2) == []
