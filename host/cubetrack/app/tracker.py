@@ -157,7 +157,8 @@ class FrameWorker:
     def work(self, job: FrameJob) -> FrameResult:
         frame = job.frame
         try:
-            detections, outcome = self._detect(frame.jpeg, f"{frame.camera} frame {frame.seq}", job.regions)
+            detections, outcome = self._detect(frame.jpeg, f"{frame.camera} frame {frame.seq}", job.regions,
+                                               self.intrinsics[frame.camera])
         except ImageError as exc:
             return FrameResult(job, FrameOutcome.CORRUPT, error=str(exc))
         if not detections:
@@ -217,8 +218,8 @@ class FrameWorker:
             for robot, ids, corners, areas, dictionaries, estimate, T_world_cam in packed_sightings)
         return FrameResult(job, _OUTCOMES[outcome], sightings, error)
 
-    def _detect(self, jpeg: bytes, source: str,
-                regions: tuple[Box, ...] | None) -> tuple[tuple[Detection, ...], FrameOutcome]:
+    def _detect(self, jpeg: bytes, source: str, regions: tuple[Box, ...] | None,
+                lens: CameraIntrinsics) -> tuple[tuple[Detection, ...], FrameOutcome]:
         """Detections in the regions (cut to the image; the frame decoded only down to their lowest
         edge, ``decode_gray(rows=...)``), or in the whole frame (also when the regions find
         nothing). ImageError: the frame does not decode."""
@@ -227,10 +228,10 @@ class FrameWorker:
             height, width = gray.shape
             regions = tuple(box for box in ((x0, y0, min(x1, width), min(y1, height)) for x0, y0, x1, y1 in regions)
                             if box[2] - box[0] >= 16 and box[3] - box[1] >= 16)
-            found = self.detector.detect(gray, regions)
+            found = self.detector.detect(gray, regions, lens)
             if found or not regions:
                 return found, FrameOutcome.REGIONS
-        return self.detector.detect(decode_gray(jpeg, source)), FrameOutcome.FULL_FRAME
+        return self.detector.detect(decode_gray(jpeg, source), lens=lens), FrameOutcome.FULL_FRAME
 
 
 @dataclass(slots=True)

@@ -1,0 +1,296 @@
+"""A marker's corners measured by fitting its whole image: the template fit's shared core.
+
+Edge fits (:func:`cubetrack.detect.detector.refine_corners_edges`) locate each side of the
+black border from the brightness profile across it. A profile also holds the cells next to the
+border and, on an obliquely seen marker, they are within a pixel or two of the edge: under the
+lens's blur a white cell beside the one-module border pulls the edge, by an amount that depends
+on the marker's pattern and on how foreshortened it is (4-7x the template fit's corner error on
+the realistic simulation, docs/tracking.md "What better corners would buy").
+
+A template fit instead predicts the whole marker image — its cells (from the dictionary), its
+black border and a white margin, through the homography its corners give and the camera's lens
+model, averaged over each pixel's area, blurred by a Gaussian of fitted width, times a
+brightness that may vary linearly across the marker plus an offset — and moves the four corners
+(in the undistorted image) until the prediction matches the pixels in least squares. Every
+cell's edge then helps, none biases.
+
+This module holds what every template fit shares — the marker's template image
+(:func:`marker_template`), the square's homography (:func:`square_homography`), the lens
+mapping (:func:`distort_px`, :class:`LensMap`) and the pixels a fit compares
+(:func:`marker_region`) — and the tracking-time fit, :func:`fast_template_corners`: Gauss-Newton
+on the 8 corner coordinates and the blur with the brightness model solved jointly, the Jacobian
+at pixel level (the template's gradient images resampled like the prediction, times the
+homography mapping's analytic derivative at the pixel centre), the lens undistortion read from
+a per-camera map. The body calibration's fit (:func:`cubetrack.calib.marker_fit.template_fitted_corners`,
+finite differences through ``scipy.optimize.least_squares``, 5-6x the CPU) uses the same core.
+"""
+
+from __future__ import annotations
+
+import functools
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from cubetrack.core.cameras import CameraIntrinsics
+from cubetrack.core.geometry import undistort_points
+
+TEMPLATE_RES = 16  # template samples per module
+TEMPLATE_PAD = 2   # modules of white around the marker in the template image
+REGION_PAD_PX = 3  # pixels beyond the fitted region that the blur reads
+_TEMPLATE_SHIFT = TEMPLATE_PAD * TEMPLATE_RES - 0.5  # module coordinate 0 in template samples
+_BLUR_STEP_PX = 0.05  # the blur's derivative: a forward difference of this much sigma
+_BLUR_RANGE_PX = (0.3, 3.0)  # the fast fit keeps its blur sigma within this range
+_CONVERGED_PX = 1e-3  # the fast fit stops once no corner moves more than this in an iteration
+
+
+def distort_px(points_px: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:
+    """Where ideal pinhole image points (..., 2) of ``K`` lie in the distorted image."""
+    Kinv = np.linalg.inv(K)
+    xy = points_px.reshape(-1, 2) @ Kinv[:2, :2].T + Kinv[:2, 2]
+    rays = np.concatenate([xy, np.ones((len(xy), 1))], axis=1).reshape(-1, 1, 3)
+    out, _ = cv2.projectPoints(rays, np.zeros(3), np.zeros(3), K, dist)
+    return out.reshape(points_px.shape)
+
+
+@functools.lru_cache(maxsize=64)
+def marker_template(dictionary: str, marker_id: int, white_modules: float) -> tuple[np.ndarray, int]:
+    """The marker ``marker_id`` of the OpenCV dictionary named ``dictionary`` in module units
+    (``TEMPLATE_RES`` samples per module, ``TEMPLATE_PAD`` modules around it), two images (2, n,
+    n): its reflectance (cells, border and ``white_modules`` of white margin; 0 beyond) and the
+    indicator of what lies beyond the margin; slightly smoothed so that a fit's objective is
+    smooth. Also the modules across (border included)."""
+    d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, dictionary))
+    modules = d.markerSize + 2
+    cells = cv2.aruco.generateImageMarker(d, marker_id, modules, borderBits=1).astype(np.float32) / 255.0
+    side = (modules + 2 * TEMPLATE_PAD) * TEMPLATE_RES
+    at = (np.arange(side) + 0.5) / TEMPLATE_RES - TEMPLATE_PAD  # module coordinate of each sample
+    near = (at > -white_modules) & (at < modules + white_modules)
+    image = np.zeros((side, side, 2), np.float32)
+    image[..., 0] = near[:, None] & near[None, :]
+    image[..., 1] = 1.0 - image[..., 0]
+    inner = slice(TEMPLATE_PAD * TEMPLATE_RES, (TEMPLATE_PAD + modules) * TEMPLATE_RES)
+    image[inner, inner, 0] = np.kron(cells, np.ones((TEMPLATE_RES, TEMPLATE_RES), np.float32))
+    image = np.ascontiguousarray(cv2.GaussianBlur(image, (0, 0), 0.7).transpose(2, 0, 1))
+    image.setflags(write=False)
+    return image, modules
+
+
+@functools.lru_cache(maxsize=64)
+def _template_gradients(dictionary: str, marker_id: int, white_modules: float) -> np.ndarray:
+    """(4, n, n) float32: d/dx and d/dy (per template sample) of :func:`marker_template`'s
+    reflectance image, then of its beyond-the-margin image."""
+    template, _ = marker_template(dictionary, marker_id, white_modules)
+    out = np.array([g for k in (0, 1) for g in np.gradient(template[k])[::-1]], np.float32)
+    out.setflags(write=False)
+    return out
+
+
+_SQUARE = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
+
+
+def _homography_system(corners: np.ndarray, side: float) -> np.ndarray:
+    """The 8x8 matrix of the homography from the square of ``side`` to ``corners`` (h22 = 1)."""
+    A = np.zeros((8, 8))
+    for i, ((x, y), (u, v)) in enumerate(zip(_SQUARE * side, np.asarray(corners, float))):
+        A[2 * i] = [x, y, 1.0, 0.0, 0.0, 0.0, -u * x, -u * y]
+        A[2 * i + 1] = [0.0, 0.0, 0.0, x, y, 1.0, -v * x, -v * y]
+    return A
+
+
+def square_homography(corners: np.ndarray, side: float) -> np.ndarray:
+    """The 3x3 homography taking the square (0, 0), (side, 0), (side, side), (0, side) to the
+    (4, 2) ``corners`` (float64 throughout, unlike cv2.getPerspectiveTransform)."""
+    return np.append(np.linalg.solve(_homography_system(corners, side), np.asarray(corners, float).ravel()),
+                     1.0).reshape(3, 3)
+
+
+def square_homography_derivatives(corners: np.ndarray, side: float) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`square_homography` and its derivatives (8, 3, 3) by the corners' 8 coordinates
+    (x0, y0, x1, ...): differentiating ``A h = c`` by a corner coordinate leaves
+    ``A dh = e_k w_i``, ``w_i`` the homogeneous scale at that corner."""
+    A_inv = np.linalg.inv(_homography_system(corners, side))
+    h = np.append(A_inv @ np.asarray(corners, float).ravel(), 1.0)
+    w = np.repeat(_SQUARE * side @ h[6:8] + 1.0, 2)
+    dH = np.zeros((8, 9))
+    dH[:, :8] = (A_inv * w).T
+    return h.reshape(3, 3), dH.reshape(8, 3, 3)
+
+
+class LensMap:
+    """A camera's lens undistortion as a per-pixel map: the ideal pinhole pixel (of the same
+    ``K``) of every pixel centre of its image (``intrinsics.width`` x ``height``) and a one-pixel
+    border, float32, read bilinearly (``cv2.remap``) at any point; :func:`lens_map` caches one per
+    camera. Without intrinsics, the identity (the image taken as undistorted)."""
+
+    def __init__(self, intrinsics: CameraIntrinsics | None):
+        self.intrinsics = intrinsics
+        if intrinsics is None:
+            self.K, self.dist, self.map = np.eye(3), np.zeros(5), None
+            return
+        self.K, self.dist = np.asarray(intrinsics.K, float), np.asarray(intrinsics.dist, float).ravel()
+        xs, ys = np.meshgrid(np.arange(-1.0, intrinsics.width + 1.0), np.arange(-1.0, intrinsics.height + 1.0))
+        self.map = undistort_points(np.stack([xs, ys], axis=-1), self.K, self.dist, self.K).astype(np.float32)
+
+    def undistort(self, points_px: np.ndarray) -> np.ndarray:
+        """Ideal pinhole pixels (..., 2) of distorted ones (within the image and its border),
+        float64."""
+        if self.map is None:
+            return np.asarray(points_px, np.float64)
+        pts = np.asarray(points_px, np.float32).reshape(-1, 1, 2) + 1.0
+        out = cv2.remap(self.map, pts[..., 0], pts[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        return out.astype(np.float64).reshape(np.shape(points_px))
+
+
+@functools.lru_cache(maxsize=16)
+def lens_map(intrinsics: CameraIntrinsics | None) -> LensMap:
+    """The cached :class:`LensMap` of a camera (intrinsics are compared by identity: a tracker
+    keeps one object per camera)."""
+    return LensMap(intrinsics)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class MarkerRegion:
+    """The pixels a template fit of one marker compares, with everything the fit needs of them.
+
+    ``start_px`` (4, 2): the starting corners, undistorted; ``modules``: modules across the
+    marker; ``origin``: the region's top-left pixel (x, y) and ``shape`` (ny, nx) its size;
+    ``samples_px`` (ny s, nx s, 2): undistorted positions of the ``s`` x ``s`` samples of each
+    pixel's area; ``centres_px`` (n, 2): undistorted centres of the n compared pixels (those
+    whose centre lies on the marker or within ``margin`` modules of it), ``fitted`` (ny nx,)
+    marks them, ``pixels`` (n,) are their values and ``gradient`` (n, 2) their position across
+    the region (for the brightness's linear variation)."""
+
+    start_px: np.ndarray
+    modules: int
+    origin: tuple[int, int]
+    shape: tuple[int, int]
+    samples_px: np.ndarray
+    centres_px: np.ndarray
+    fitted: np.ndarray
+    pixels: np.ndarray
+    gradient: np.ndarray
+
+
+def marker_region(gray: np.ndarray, corners_px: np.ndarray, modules: int, K: np.ndarray, dist: np.ndarray,
+                  undistort: Callable[[np.ndarray], np.ndarray], supersample: int,
+                  margin_modules: float) -> MarkerRegion | None:
+    """The region a template fit of the marker near ``corners_px`` (distorted, TL TR BR BL)
+    compares (see :class:`MarkerRegion`), with lens ``K``, ``dist`` and ``undistort`` (distorted
+    -> ideal pinhole pixels of ``K``, e.g. :func:`cubetrack.core.geometry.undistort_points` or
+    :meth:`LensMap.undistort`); None when the corners do not undistort or the marker with its
+    margin and the blur's reach is not wholly inside the image."""
+    start = undistort_points(np.asarray(corners_px, float).reshape(4, 2), K, dist, K)
+    if not np.isfinite(start).all():
+        return None
+    m = margin_modules
+    ring = np.array([[-m, -m], [modules + m, -m], [modules + m, modules + m], [-m, modules + m]])
+    H0 = square_homography(start, modules)
+    ring_px = distort_px(cv2.perspectiveTransform(ring.reshape(-1, 1, 2), H0).reshape(-1, 2), K, dist)
+    if not np.isfinite(ring_px).all():
+        return None
+    x0, y0 = np.floor(ring_px.min(axis=0)).astype(int) - REGION_PAD_PX
+    x1, y1 = np.ceil(ring_px.max(axis=0)).astype(int) + REGION_PAD_PX + 1
+    if x0 < 0 or y0 < 0 or x1 > gray.shape[1] or y1 > gray.shape[0]:
+        return None
+    ny, nx = y1 - y0, x1 - x0
+    s = supersample
+    sub = (np.arange(s) + 0.5) / s - 0.5
+    xs, ys = np.meshgrid((x0 + np.arange(nx)[:, None] + sub).ravel(), (y0 + np.arange(ny)[:, None] + sub).ravel())
+    samples = undistort(np.stack([xs, ys], axis=-1))
+    cx, cy = np.meshgrid(x0 + np.arange(nx, dtype=float), y0 + np.arange(ny, dtype=float))
+    centres = undistort(np.stack([cx.ravel(), cy.ravel()], axis=1))
+    inside = np.column_stack([centres, np.ones(len(centres))]) @ np.linalg.inv(H0).T
+    inside = inside[:, :2] / inside[:, 2:3]
+    fitted = ((inside > -m) & (inside < modules + m)).all(axis=1)
+    gradient = np.column_stack([(cx.ravel()[fitted] - cx.mean()) / nx, (cy.ravel()[fitted] - cy.mean()) / ny])
+    return MarkerRegion(start, modules, (int(x0), int(y0)), (int(ny), int(nx)), samples, centres[fitted], fitted,
+                        gray[y0:y1, x0:x1].astype(np.float64).ravel()[fitted], gradient)
+
+
+def photometric_columns(predicted: np.ndarray, gradient: np.ndarray) -> np.ndarray:
+    """The brightness model's design matrix (n, 5) from the predicted reflectance and beyond-margin
+    images (n, 2) of the compared pixels: offset, the marker's brightness and its gradient across
+    the region, the brightness beyond the margin."""
+    P = predicted[:, 0]
+    return np.column_stack([np.ones_like(P), P, P * gradient[:, 0], P * gradient[:, 1], predicted[:, 1]])
+
+
+@dataclass(frozen=True, slots=True)
+class TemplateFitSettings:
+    """What every template fit of a marker is told.
+
+    ``supersample``: samples per pixel along each axis (pixel area); ``white_modules``: the
+    white margin every marker has around its black border at least (modules; beyond it the fit
+    assumes some uniform brightness of its own); ``margin_modules``: how much of that margin is
+    fitted (modules); ``start_blur_px``: the blur (Gaussian sigma, px) the fit starts from;
+    ``max_move_px``: a corner moving farther than this from its start is a failed fit."""
+
+    supersample: int = 3
+    white_modules: float = 1.0
+    margin_modules: float = 0.5
+    start_blur_px: float = 0.8
+    max_move_px: float = 1.5
+
+
+def fast_template_corners(gray: np.ndarray, corners_px: np.ndarray, dictionary: str, marker_id: int,
+                          lens: LensMap, iterations: int = 3,
+                          settings: TemplateFitSettings = TemplateFitSettings()) -> np.ndarray | None:
+    """The (4, 2) corners (TL TR BR BL, px in ``gray``) of marker ``marker_id`` of ``dictionary``
+    near ``corners_px`` (the edge fit's), re-measured by the template fit (module docstring):
+    ``iterations`` Gauss-Newton steps through ``lens``. None when the marker with its
+    margin is not wholly inside the image, the fit diverges or a corner would move more than
+    ``settings.max_move_px``."""
+    template, modules = marker_template(dictionary, marker_id, settings.white_modules)
+    grads = _template_gradients(dictionary, marker_id, settings.white_modules)
+    region = marker_region(gray, corners_px, modules, lens.K, lens.dist, lens.undistort, settings.supersample,
+                           settings.margin_modules)
+    if region is None:
+        return None
+    ny, nx = region.shape
+    s = settings.supersample
+    samples = np.column_stack([region.samples_px.reshape(-1, 2), np.ones(ny * s * nx * s)])
+    centres = np.column_stack([region.centres_px, np.ones(len(region.centres_px))])
+    images = (template[0], template[1], *grads)
+    border = (0.0, 1.0, 0.0, 0.0, 0.0, 0.0)
+    p = np.zeros(8)
+    blur = settings.start_blur_px
+    try:
+        for _ in range(iterations):
+            H, dH = square_homography_derivatives(region.start_px + p.reshape(4, 2), modules)
+            H_inv = np.linalg.inv(H)
+            U = samples @ H_inv.T
+            mx = (TEMPLATE_RES * U[:, 0] / U[:, 2] + _TEMPLATE_SHIFT).astype(np.float32).reshape(ny * s, nx * s)
+            my = (TEMPLATE_RES * U[:, 1] / U[:, 2] + _TEMPLATE_SHIFT).astype(np.float32).reshape(ny * s, nx * s)
+            resampled = np.stack([cv2.remap(im, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                                            borderValue=b) for im, b in zip(images, border)], axis=-1)
+            area = np.ascontiguousarray(resampled.reshape(ny, s, nx, s, 6).mean(axis=(1, 3)))
+            predicted = cv2.GaussianBlur(area, (0, 0), blur, borderType=cv2.BORDER_REPLICATE).reshape(ny * nx, 6)
+            predicted = predicted[region.fitted].astype(np.float64)
+            wider = cv2.GaussianBlur(area[..., :2], (0, 0), blur + _BLUR_STEP_PX, borderType=cv2.BORDER_REPLICATE)
+            wider = wider.reshape(ny * nx, 2)[region.fitted].astype(np.float64)
+            A = photometric_columns(predicted[:, :2], region.gradient)
+            coef, *_ = np.linalg.lstsq(A, region.pixels, rcond=None)
+            r = region.pixels - A @ coef
+            # d(template sample coordinates)/d(corner coordinates) at the compared pixels' centres
+            Uc = centres @ H_inv.T
+            dU = np.einsum("nj,kij->nki", centres, -H_inv @ dH @ H_inv)  # (n, 8, 3)
+            w = Uc[:, 2:3]
+            dmx = (dU[:, :, 0] - (Uc[:, 0:1] / w) * dU[:, :, 2]) / w * TEMPLATE_RES
+            dmy = (dU[:, :, 1] - (Uc[:, 1:2] / w) * dU[:, :, 2]) / w * TEMPLATE_RES
+            gain = coef[1] + coef[2] * region.gradient[:, 0] + coef[3] * region.gradient[:, 1]
+            J = (gain[:, None] * (predicted[:, 2:3] * dmx + predicted[:, 3:4] * dmy)
+                 + coef[4] * (predicted[:, 4:5] * dmx + predicted[:, 5:6] * dmy))
+            J_blur = (photometric_columns(wider, region.gradient) - A) @ coef / _BLUR_STEP_PX
+            delta, *_ = np.linalg.lstsq(np.column_stack([J, J_blur, A]), r, rcond=None)
+            p = p + delta[:8]
+            blur = float(np.clip(blur + delta[8], *_BLUR_RANGE_PX))
+            if not np.isfinite(p).all() or np.abs(delta[:8]).max() < _CONVERGED_PX:
+                break
+    except np.linalg.LinAlgError:
+        return None
+    if not np.isfinite(p).all() or np.abs(p).max() > settings.max_move_px:
+        return None
+    return distort_px(region.start_px + p.reshape(4, 2), lens.K, lens.dist)
