@@ -48,7 +48,7 @@ from cubetrack.estimate.pose import estimate_cube
 from cubetrack.estimate.reprojection import CornerSet, corner_set
 from cubetrack.fuse.corner_filter import FilterParams, PoseFilter
 from cubetrack.fuse.multi_view_fit import solve_joint
-from cubetrack.fuse.smoother import TrailStep, smoothed_poses
+from cubetrack.fuse.smoother import Gains, TrailStep, smoothed_poses
 
 log = logging.getLogger(__name__)
 
@@ -228,6 +228,7 @@ class FilterFusion:
         self._keys: dict[str, list[tuple[float, str, int]]] = {r: [] for r in layouts}
         self._stale: dict[str, int] = {}  # robot -> first history index whose step must be re-applied
         self._sent: dict[str, tuple[float, str, int]] = {}  # robot -> key of the newest step whose poses left
+        self._gains = {r: Gains() for r in layouts}  # robot -> the fixed lag's smoother gains, from pass to pass
         self.stats: Counter[str] = Counter()
         self._trails: dict[str, list[TrailStep]] | None = None  # robot -> steps no late sighting can reach
         if filter_params.smooth_lag_s > params.history_s:
@@ -370,7 +371,8 @@ class FilterFusion:
                 self._sent[robot] = step.key
         if lag_s == 0 or not poses:
             return poses
-        return smoothed_poses(self._trail_steps(robot, start, len(history)), now_s, stop - start, lag_s)
+        return smoothed_poses(self._trail_steps(robot, start, len(history)), now_s, stop - start, lag_s,
+                              self._gains[robot])
 
     def _forget(self, robot: str) -> None:
         """Drop the steps no late sighting can reach any more (nor a track start's window)."""

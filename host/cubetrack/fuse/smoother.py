@@ -46,15 +46,42 @@ class TrailStep:
     capture_time_s: float
 
 
-def rts(filters: Sequence[PoseFilter]) -> list[PoseFilter]:
+def gain(f: PoseFilter, after: PoseFilter) -> tuple[np.ndarray, PoseFilter]:
+    """The smoother's gain ``G`` from state ``f`` to the next one, ``after``, and ``f`` predicted
+    to ``after``'s time (``x_k+1|k``, ``P_k+1|k``)."""
+    predicted = f.copy()
+    predicted.predict(after.time_s)
+    return np.linalg.solve(predicted.P, transition(after.time_s - f.time_s) @ f.P).T, predicted  # P_pred symmetric
+
+
+class Gains:
+    """The gain and prediction of each pair of consecutive filter states, kept from one backward
+    pass to the next: a fixed lag runs one pass per pose over nearly the same states. They depend
+    on the pair alone (states are snapshots nothing changes); each pass keeps only the pairs it used."""
+
+    def __init__(self) -> None:
+        self._kept: dict[tuple[int, int], tuple] = {}  # (id, id) -> (the pair, G, prediction): held, so ids stay unique
+        self._used: dict[tuple[int, int], tuple] = {}
+
+    def of(self, f: PoseFilter, after: PoseFilter) -> tuple[np.ndarray, PoseFilter]:
+        key = (id(f), id(after))
+        entry = self._kept.get(key)
+        if entry is None or entry[0] is not f or entry[1] is not after:
+            entry = (f, after, *gain(f, after))
+        self._used[key] = entry
+        return entry[2], entry[3]
+
+    def pass_done(self) -> None:
+        self._kept, self._used = self._used, {}
+
+
+def rts(filters: Sequence[PoseFilter], gains: Gains | None = None) -> list[PoseFilter]:
     """The smoothed states of one track segment: ``filters[k + 1]`` is ``filters[k]`` predicted to
-    its time and then updated (or not: a rejected sighting)."""
+    its time and then updated (or not: a rejected sighting). ``gains``: those of an earlier pass."""
     smoothed = [filters[-1]]
-    for f in reversed(filters[:-1]):
+    for f, following in zip(reversed(filters[:-1]), reversed(filters[1:])):
         after = smoothed[-1]
-        predicted = f.copy()
-        predicted.predict(after.time_s)
-        G = np.linalg.solve(predicted.P, transition(after.time_s - f.time_s) @ f.P).T  # P_pred symmetric
+        G, predicted = gain(f, following) if gains is None else gains.of(f, following)
         smoothed.append(f.moved(G @ after.error_from(predicted), f.P + G @ (after.P - predicted.P) @ G.T))
     return smoothed[::-1]
 
@@ -73,19 +100,20 @@ def segments(trail: Sequence[TrailStep]) -> list[list[int]]:
 
 
 def smoothed_poses(trail: Sequence[TrailStep], now_s: float, count: int | None = None,
-                   lag_s: float | None = None) -> list[TrackedPose]:
+                   lag_s: float | None = None, gains: Gains | None = None) -> list[TrackedPose]:
     """The poses of the trail's first ``count`` steps (None: all) that gave one, in order, from
     their states smoothed over the whole trail; ``now_s``: the host time they are output (their
     latencies count to it). Each is flagged ``"smoothed": true`` in ``extra``; with a fixed lag
     ``lag_s``, also ``"smooth_lag_s"``: the capture time the trail covers after the pose, at most
-    ``lag_s`` (less for a pose that left before a sighting that much newer came)."""
+    ``lag_s`` (less for a pose that left before a sighting that much newer came). ``gains``: kept
+    from the last call over (mostly) the same trail, and for the next."""
     count = len(trail) if count is None else count
     newest_s = trail[-1].capture_time_s if trail else 0.0
     poses = []
     for segment in segments(trail):
         if segment[0] >= count:
             break
-        for i, f in zip(segment, rts([trail[i].filter for i in segment])):
+        for i, f in zip(segment, rts([trail[i].filter for i in segment], gains)):
             pose = trail[i].pose
             if i < count and pose is not None:
                 poses.append(dataclasses.replace(
@@ -95,4 +123,6 @@ def smoothed_poses(trail: Sequence[TrailStep], now_s: float, count: int | None =
                     arrival_latency_s=max(0.0, now_s - trail[i].arrival_time_s), extra={**pose.extra, "smoothed": True}
                     if lag_s is None else {**pose.extra, "smoothed": True,
                                            "smooth_lag_s": round(min(lag_s, newest_s - pose.time_s), 4)}))
+    if gains is not None:
+        gains.pass_done()
     return poses
