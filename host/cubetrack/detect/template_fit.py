@@ -44,6 +44,7 @@ _TEMPLATE_SHIFT = TEMPLATE_PAD * TEMPLATE_RES - 0.5  # module coordinate 0 in te
 _BLUR_STEP_PX = 0.05  # the blur's derivative: a forward difference of this much sigma
 _BLUR_RANGE_PX = (0.3, 3.0)  # the fast fit keeps its blur sigma within this range
 _CONVERGED_PX = 1e-3  # the fast fit stops once no corner moves more than this in an iteration
+_REMAP_ROW = 4096  # LensMap.undistort reads the map for this many points per cv2.remap row
 
 
 def distort_px(points_px: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:
@@ -139,9 +140,13 @@ class LensMap:
         float64."""
         if self.map is None:
             return np.asarray(points_px, np.float64)
-        pts = np.asarray(points_px, np.float32).reshape(-1, 1, 2) + 1.0
+        flat = np.asarray(points_px, np.float32).reshape(-1, 2) + 1.0
+        n = len(flat)  # remap takes at most 32767 rows and columns: rows of _REMAP_ROW points
+        pts = np.zeros((-(-n // _REMAP_ROW) * _REMAP_ROW, 2), np.float32)
+        pts[:n] = flat
+        pts = pts.reshape(-1, _REMAP_ROW, 2)
         out = cv2.remap(self.map, pts[..., 0], pts[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
-        return out.astype(np.float64).reshape(np.shape(points_px))
+        return out.reshape(-1, 2)[:n].astype(np.float64).reshape(np.shape(points_px))
 
 
 @functools.lru_cache(maxsize=16)
@@ -289,7 +294,7 @@ def fast_template_corners(gray: np.ndarray, corners_px: np.ndarray, dictionary: 
             blur = float(np.clip(blur + delta[8], *_BLUR_RANGE_PX))
             if not np.isfinite(p).all() or np.abs(delta[:8]).max() < _CONVERGED_PX:
                 break
-    except np.linalg.LinAlgError:
+    except (np.linalg.LinAlgError, cv2.error):  # a degenerate homography; a region OpenCV refuses
         return None
     if not np.isfinite(p).all() or np.abs(p).max() > settings.max_move_px:
         return None
