@@ -36,7 +36,12 @@ Every scene is tracked these ways (the same frames for each):
   over the filter's states, :mod:`cubetrack.fuse.smoother`), what a user who records a session
   gets offline; the rows above are causal (each pose from the sightings up to its time, as live);
 - **ours, fixed lag** (``--lag S``): ours with ``[filter] smooth_lag_s = S``, each pose smoothed
-  over the sightings of the next S seconds, what a live user gets who waits that long.
+  over the sightings of the next S seconds, what a live user gets who waits that long;
+- **ours + template** (``--template``): ours with ``[detector] corner_refinement = "template"``
+  and nothing else changed (the nominal ``cube.toml``, the config's filter): what flipping the
+  switch alone gives; with ``--body`` also **ours + body + template**: the calibrated body,
+  template corners and a filter that trusts them (``[filter] corner_noise_px = 0.05``,
+  ``angular_accel_noise = 5``: docs/tracking.md), smoothed too, and with ``--lag`` that lag.
 
 and scored with :func:`cubetrack.evaluate.evaluate`: position and rotation RMSE against the ground
 truth interpolated to each pose's own time (the paper's eq. 7 takes the nearest ground-truth
@@ -57,11 +62,12 @@ at least the naive rate).
 
     .venv/bin/python benchmarks/accuracy.py [--duration 30] [--seeds 101 202 303] [--jobs 2]
                                             [--presets clean realistic] [--out DIR] [--quick] [--refine] [--body]
-                                            [--body-drive 60] [--lag 0.05]
+                                            [--body-drive 60] [--lag 0.05] [--template]
 
 The exit code is 0 for a completed run (this is a report); the last line lists failing targets.
 ``--out`` keeps the recordings and writes ``accuracy_report.json``; an existing complete
-recording made with the same parameters is reused.
+recording made with the same parameters is reused, and so is a body calibrated by the same
+code from the same drive and extrinsics (the scene's ``track/calibrated_body.toml``).
 """
 
 from __future__ import annotations
@@ -104,7 +110,12 @@ TARGET_SPEED = 1.0
 
 OURS, PAPER, OUR_MEAN, REFINED, BODY = "ours", "paper_mean", "our_mean", "ours_refined", "ours_body"
 SMOOTHED, BODY_SMOOTHED, LAGGED = "ours_smoothed", "ours_body_smoothed", "ours_lag"
-SMOOTHED_OF = {OURS: SMOOTHED, BODY: BODY_SMOOTHED}  # a method -> its poses smoothed (the same replay)
+TEMPLATE, BODY_TEMPLATE = "ours_template", "ours_body_template"
+BODY_TEMPLATE_SMOOTHED, BODY_TEMPLATE_LAG = "ours_body_template_smoothed", "ours_body_template_lag"
+SMOOTHED_OF = {OURS: SMOOTHED, BODY: BODY_SMOOTHED, BODY_TEMPLATE: BODY_TEMPLATE_SMOOTHED}  # a method -> its poses
+# smoothed (the same replay)
+WITH_BODY = (BODY, BODY_TEMPLATE, BODY_TEMPLATE_LAG)  # the methods tracked with the calibrated body
+TRUSTING_FILTER = {"corner_noise_px": 0.05, "angular_accel_noise": 5.0}  # for template corners and a calibrated body
 LABELS = {
     OURS: "ours (filter, robust cal)",
     SMOOTHED: "ours smoothed (offline)",
@@ -112,11 +123,17 @@ LABELS = {
     REFINED: "ours + refine",
     BODY: "ours + calibrate-body",
     BODY_SMOOTHED: "ours + body, smoothed",
+    TEMPLATE: "ours + template",
+    BODY_TEMPLATE: "ours + body + template",
+    BODY_TEMPLATE_SMOOTHED: "ours + body + tmpl, smoothed",
+    BODY_TEMPLATE_LAG: "ours + body + tmpl, lag",
     PAPER: "paper mean (CMA, arrival)",
     OUR_MEAN: "our mean (robust, capture)",
 }
 RATIO_KEYS = ((OURS, "ratio"), (SMOOTHED, "ratio_smoothed"), (LAGGED, "ratio_lag"), (REFINED, "ratio_refined"),
-              (BODY, "ratio_body"), (BODY_SMOOTHED, "ratio_body_smoothed"))  # our methods with targets, their RMSE ratio's key
+              (BODY, "ratio_body"), (BODY_SMOOTHED, "ratio_body_smoothed"), (TEMPLATE, "ratio_template"),
+              (BODY_TEMPLATE, "ratio_body_template"), (BODY_TEMPLATE_SMOOTHED, "ratio_body_template_smoothed"),
+              (BODY_TEMPLATE_LAG, "ratio_body_template_lag"))  # our methods with targets, their RMSE ratio's key
 COMPLETE_FILE = "bench-complete.json"
 REPORT_FILE = "accuracy_report.json"
 ROBUST_EXTRINSICS_FILE = "extrinsics_robust.toml"
@@ -231,14 +248,16 @@ def calibration_error(extrinsics: dict, truth: dict) -> tuple[float, float]:
 
 
 def run_scene(work: str, preset: str, config_index: int, seed: int, duration: float, calibration_frames: int,
-              workers: int, refine: bool, body_drive_s: float = 0.0, lag_s: float = 0.0) -> dict:
+              workers: int, refine: bool, body_drive_s: float = 0.0, lag_s: float = 0.0,
+              template: bool = False) -> dict:
     """Simulate (or reuse) one scene, calibrate it both ways, track it every way, score it
     (``body_drive_s`` > 0: also with the body calibrated from a drive of that many seconds;
-    ``lag_s`` > 0: also with that fixed lag)."""
+    ``lag_s`` > 0: also with that fixed lag; ``template``: also with template corners)."""
     from cubetrack.app.calibrate import calibrate_recording
     from cubetrack.app.track import track_recording
     from cubetrack.app.tracker import StageParams, Timestamps
     from cubetrack.calib.extrinsics import CalibrationMethod, CalibrationParams
+    from cubetrack.detect.detector import CornerRefinement
     from cubetrack.fuse.fusion import FusionMethod
     from cubetrack.io.config import read_extrinsics, read_tracker_config, write_extrinsics
     from cubetrack.io.recording import Recording
@@ -293,8 +312,18 @@ def run_scene(work: str, preset: str, config_index: int, seed: int, duration: fl
     if lag_s > 0:
         variants[LAGGED] = (dataclasses.replace(base, filter=dataclasses.replace(base.filter, smooth_lag_s=lag_s)),
                             ours_ext)
+    if template:
+        templated = dataclasses.replace(base, detector=dataclasses.replace(
+            base.detector, corner_refinement=CornerRefinement.TEMPLATE))
+        variants[TEMPLATE] = (templated, ours_ext)
+        if body_drive_s > 0:
+            trusting = dataclasses.replace(templated, filter=dataclasses.replace(base.filter, **TRUSTING_FILTER))
+            variants[BODY_TEMPLATE] = (trusting, ours_ext)
+            if lag_s > 0:
+                variants[BODY_TEMPLATE_LAG] = (dataclasses.replace(trusting, filter=dataclasses.replace(
+                    trusting.filter, smooth_lag_s=lag_s)), ours_ext)
     for key, (params, extrinsics) in variants.items():
-        result = track_recording(config_body if key == BODY else config, Recording.open(rec), extrinsics,
+        result = track_recording(config_body if key in WITH_BODY else config, Recording.open(rec), extrinsics,
                                  rec / "track" / key, params, smooth=key in SMOOTHED_OF)
         out["methods"][key] = score(result.outputs[robot][0], truth)
         if key in SMOOTHED_OF:
@@ -355,17 +384,45 @@ def calibrated_body(config, drive: Path, rec: Path, extrinsics: dict, robot: str
     cube as built (``rec``'s ``true_cube.toml``)."""
     from cubetrack.app.calibrate import calibrate_recording_body
     from cubetrack.calib.body import placement_errors
-    from cubetrack.core.layout import read_layout
+    from cubetrack.core.layout import read_layout, write_layout
     from cubetrack.io.recording import Recording
 
-    report = calibrate_recording_body(config, Recording.open(drive), extrinsics, robot)
-    robots = tuple(dataclasses.replace(r, layout=report.layout) if r.name == robot else r for r in config.robots)
+    cached, key = rec / "track" / BODY_CACHE_FILE, body_cache_key(drive, extrinsics)
+    key_file = cached.with_suffix(".key")
+    if cached.exists() and key_file.exists() and key_file.read_text(encoding="utf-8") == key:
+        layout, reused = read_layout(cached), True
+    else:
+        layout, reused = calibrate_recording_body(config, Recording.open(drive), extrinsics, robot).layout, False
+        write_layout(layout, cached)
+        key_file.write_text(key, encoding="utf-8")
+    robots = tuple(dataclasses.replace(r, layout=layout) if r.name == robot else r for r in config.robots)
     truth = read_layout(rec / "true_cube.toml")
     nominal = next(r.layout for r in config.robots if r.name == robot)
     worst = {name: (max(e[0] for e in errs.values()) * 1000.0, max(e[1] for e in errs.values()))
              for name, errs in (("nominal", placement_errors(nominal, truth)),
-                                ("calibrated", placement_errors(report.layout, truth)))}
-    return dataclasses.replace(config, robots=robots), {"placement_worst_mm_deg": worst}
+                                ("calibrated", placement_errors(layout, truth)))}
+    return dataclasses.replace(config, robots=robots), {"placement_worst_mm_deg": worst, "reused": reused}
+
+
+BODY_CACHE_FILE = "calibrated_body.toml"
+
+
+def body_cache_key(drive: Path, extrinsics: dict) -> str:
+    """What a cached calibrated body depends on: the drive (its completeness marker), the
+    extrinsics it started from and the package code that calibrates it (every module of calib/,
+    detect/, estimate/, core/, fuse/, app/calibrate.py and io/), as one SHA-256."""
+    import hashlib
+
+    host = Path(__file__).resolve().parents[1] / "host" / "cubetrack"
+    digest = hashlib.sha256()
+    for name in sorted(extrinsics):
+        digest.update(name.encode() + np.asarray(extrinsics[name].T_world_cam, float).tobytes())
+    for path in sorted((*(p for d in ("calib", "detect", "estimate", "core", "fuse", "io")
+                          for p in (host / d).glob("*.py")), host / "app" / "calibrate.py")):
+        digest.update(path.read_bytes())
+    marker = drive.parent / drive.name.removesuffix("_after") / COMPLETE_FILE
+    digest.update(marker.read_bytes() if marker.exists() else b"")
+    return digest.hexdigest()
 
 
 # --------------------------------------------------------------------------------- speed
@@ -632,7 +689,8 @@ def print_report(report: dict, speed: dict | None, methods: list[str], duration:
             if info is not None:
                 worst = info["placement_worst_mm_deg"]
                 (n_mm, n_deg), (c_mm, c_deg) = worst["nominal"], worst["calibrated"]
-                p(f"{'':<18} calibrate-body seed {sd} (a separate {info['drive_s']:g} s drive): {info['seconds']:.0f} s; "
+                how = "reused" if info.get("reused") else f"{info['seconds']:.0f} s"
+                p(f"{'':<18} calibrate-body seed {sd} (a separate {info['drive_s']:g} s drive): {how}; "
                   f"worst marker placement nominal "
                   f"{n_mm:.2f} mm / {n_deg:.2f}°, calibrated {c_mm:.2f} mm / {c_deg:.2f}°")
     p()
@@ -688,6 +746,8 @@ def main(argv: list[str] | None = None) -> int:
                     "from (default 60)")
     ap.add_argument("--lag", type=float, default=0.0, metavar="S", help="also report ours with [filter] "
                     "smooth_lag_s = S (each pose smoothed over the next S seconds of sightings, as live; default 0: not)")
+    ap.add_argument("--template", action="store_true", help="also report ours with [detector] corner_refinement = "
+                    "template (and, with --body, the calibrated body, template corners and a filter that trusts them)")
     ap.add_argument("--speed-rounds", type=int, default=None, help="interleaved speed rounds (default 5; "
                     "--quick: 2)")
     ap.add_argument("--speed-frames", type=int, default=None, help="frames per recording in the speed "
@@ -708,7 +768,9 @@ def main(argv: list[str] | None = None) -> int:
     if args.lag < 0:
         ap.error(f"--lag must not be negative, got {args.lag}")
     methods = ([OURS, SMOOTHED] + ([LAGGED] if args.lag > 0 else []) + ([REFINED] if args.refine else [])
-               + ([BODY, BODY_SMOOTHED] if args.body else []) + [PAPER, OUR_MEAN])
+               + ([BODY, BODY_SMOOTHED] if args.body else []) + ([TEMPLATE] if args.template else [])
+               + ([BODY_TEMPLATE, BODY_TEMPLATE_SMOOTHED] if args.template and args.body else [])
+               + ([BODY_TEMPLATE_LAG] if args.template and args.body and args.lag > 0 else []) + [PAPER, OUR_MEAN])
 
     kept = args.out is not None
     work = args.out if kept else Path(tempfile.mkdtemp(prefix="cubetrack-accuracy-"))
@@ -734,7 +796,7 @@ def main(argv: list[str] | None = None) -> int:
                   file=sys.stderr, flush=True)
 
         call = [(str(work), preset, ci, seed, duration, calibration_frames, workers, args.refine,
-                 args.body_drive if args.body else 0.0, args.lag)
+                 args.body_drive if args.body else 0.0, args.lag, args.template)
                 for preset, ci, seed in jobs]
         print(f"{len(jobs)} scenes, {n_jobs} at a time, in {work} ...", file=sys.stderr, flush=True)
         if n_jobs == 1:

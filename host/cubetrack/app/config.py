@@ -11,11 +11,14 @@ a config or a path, so they run without any file on disk.
 from __future__ import annotations
 
 import dataclasses
+import logging
 import typing
 from collections.abc import Iterable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
+
+import numpy as np
 
 from cubetrack.app.parallel import LiveParams
 from cubetrack.app.tracker import StageParams
@@ -23,12 +26,20 @@ from cubetrack.calib.bundle import BundleAdjustmentParams
 from cubetrack.calib.extrinsics import CalibrationParams
 from cubetrack.core.cameras import CameraIntrinsics
 from cubetrack.core.errors import ConfigError
+from cubetrack.core.layout import CubeLayout, face_T_cube_marker
 from cubetrack.core.params import params_from_table, params_to_table
+from cubetrack.detect.detector import CornerRefinement
 from cubetrack.io.camera_info import read_camera_info
-from cubetrack.io.config import TrackerConfig, camera_intrinsics_path, read_tracker_config
+from cubetrack.io.config import RobotConfig, TrackerConfig, camera_intrinsics_path, read_tracker_config
 from cubetrack.io.recording import Recording
 from cubetrack.sink.dashboard.state import DashboardParams
 from cubetrack.source.streams import SourceParams
+
+log = logging.getLogger(__name__)
+
+# [filter] corner_noise_px below this trusts the corners more than the edge fit measures them
+# (0.08-0.35 px by view angle; its best setting is 0.2): docs/tracking.md "What better corners would buy"
+TRUSTING_CORNER_NOISE_PX = 0.2
 
 
 @dataclass(frozen=True, slots=True)
@@ -65,8 +76,45 @@ def config_params(config: TrackerConfig) -> ConfigParams:
         known = ("world", "cameras", "robots", *SECTIONS)
         raise ConfigError(f"{config.path}: unknown section(s) {', '.join(unknown)}; known: {', '.join(known)}")
     hints = typing.get_type_hints(ConfigParams)
-    return ConfigParams(**{name: params_from_table(hints[name], config.section(name), f"{config.path}: [{name}]")
-                           for name in SECTIONS})
+    params = ConfigParams(**{name: params_from_table(hints[name], config.section(name), f"{config.path}: [{name}]")
+                             for name in SECTIONS})
+    for warning in corner_trust_warnings(params, config.robots):
+        log.warning("%s: %s", config.path, warning)
+    return params
+
+
+def corner_trust_warnings(params: StageParams, robots: Iterable[RobotConfig]) -> list[str]:
+    """One line per way the ``[filter]`` trusts the corners more than they deserve: a
+    ``corner_noise_px`` below :data:`TRUSTING_CORNER_NOISE_PX` with the edge fit's corners, or with
+    template corners on a cube whose layout is as designed (not calibrated: a marker placed 1 mm off
+    then reads as a turned cube; realistic rotation 2.3° against 1.6°, docs/tracking.md)."""
+    noise = params.filter.corner_noise_px
+    if noise >= TRUSTING_CORNER_NOISE_PX:
+        return []
+    refinement = params.detector.corner_refinement
+    if refinement is not CornerRefinement.TEMPLATE:
+        return [(f"[filter] corner_noise_px = {noise:g} trusts the corners more than [detector] corner_refinement = "
+                 f"{refinement.value} measures them; use corner_refinement = \"template\" (with a calibrated body) "
+                 f"or corner_noise_px >= {TRUSTING_CORNER_NOISE_PX:g}")]
+    return [(f"[filter] corner_noise_px = {noise:g} trusts the corners, but robot {r.name}'s cube layout is as "
+             f"designed, not calibrated: markers a millimetre off read as a turned cube; run cubetrack calibrate-body "
+             f"or use corner_noise_px >= {TRUSTING_CORNER_NOISE_PX:g}") for r in robots if is_as_designed(r.layout)]
+
+
+def is_as_designed(layout: CubeLayout) -> bool:
+    """Whether every marker of ``layout`` sits exactly (1 µm, 1e-6 rad) on the centre of its named
+    face of a cube (the layouts people write and ``cubetrack simulate`` writes; ``calibrate-body``'s
+    are measured, never exact); False for a layout with a face not named after a cube face."""
+    for marker in layout.markers:
+        T = marker.T_cube_marker
+        try:
+            designed = face_T_cube_marker(marker.face, 2.0 * float(np.linalg.norm(T[:3, 3])))
+        except ConfigError:
+            return False
+        if not np.allclose(T[:3, :3], designed[:3, :3], atol=1e-6) or not np.allclose(T[:3, 3], designed[:3, 3],
+                                                                                        atol=1e-6):
+            return False
+    return True
 
 
 def load_config(path: str | Path) -> tuple[TrackerConfig, ConfigParams]:
