@@ -5,6 +5,7 @@ error."""
 
 from __future__ import annotations
 
+import dataclasses
 import heapq
 import os
 import signal
@@ -48,7 +49,7 @@ def run(replay, pool=None):
     stats = track_frames(replay["frames"], replay["intrinsics"], replay["world"], replay["layouts"],
                          replay["extrinsics"], out, replay["params"], clock_samples=replay["clock"], pool=pool)
     return stats, [(p.robot, p.time_s, p.position_m.tobytes(), p.quaternion_xyzw.tobytes(), p.latency_s,
-                    p.cameras, p.markers) for p in out.poses]
+                    p.cameras, p.markers, p.extra) for p in out.poses]
 
 
 def started_pool(replay, workers):
@@ -71,6 +72,22 @@ def test_worker_processes_replay_bit_for_bit_what_one_thread_replays(replay):
         assert poses_again == poses, workers
         assert (again.frames, again.poses, again.region_detections, again.estimates) == \
             (stats.frames, stats.poses, stats.region_detections, stats.estimates)
+
+
+def test_a_fixed_lag_whose_poses_leave_on_time_replays_the_same_with_workers(replay):
+    """With a fixed lag and no margin, most poses leave on time during the replay (before a
+    sighting that much newer has come); the release's "now" is the arrival time of the first frame
+    not yet fused, not a worker's timing: a worker process gives the same poses, bit for bit."""
+    params = replay["params"]
+    lagged = {**replay, "params": dataclasses.replace(
+        params, filter=dataclasses.replace(params.filter, smooth_lag_s=0.05, smooth_margin_s=0.0))}
+    stats, poses = run(lagged)
+    on_time = [p for p in poses if p[-1]["smooth_lag_s"] < 0.05]
+    assert len(poses) > 50 and len(on_time) > 0.5 * len(poses)
+    with started_pool(lagged, 1) as pool:
+        again, poses_again = run(lagged, pool)
+        assert pool.submitted > 0.5 * len(replay["frames"])
+    assert poses_again == poses and again.poses == stats.poses
 
 
 class SlowPool:
