@@ -753,6 +753,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--speed-frames", type=int, default=None, help="frames per recording in the speed "
                     "measurement (default: all; --quick: 30)")
     ap.add_argument("--no-speed", action="store_true", help="skip the speed measurement")
+    ap.add_argument("--configs", type=int, nargs="+", choices=range(len(CONFIGS)), default=None, metavar="I",
+                    help="only these configurations (0-3, in the table's order: " + "; ".join(
+                        f"{i} {c[0]}" for i, c in enumerate(CONFIGS)) + "; default: all)")
     ap.add_argument("--presets", nargs="+", choices=PRESETS, default=list(PRESETS),
                     help="simulator presets (default: both; --quick: realistic in the 3 cams 1.0 m and 5 cams "
                     "configurations only)")
@@ -779,7 +782,8 @@ def main(argv: list[str] | None = None) -> int:
     code = code_version()  # at the start: the scenes import the code as it is now
     presets = [p for p in PRESETS if p in args.presets]
     jobs = [(preset, ci, seed) for seed in seeds for preset in presets for ci in range(len(CONFIGS))
-            if not (args.quick and preset == REALISTIC and ci not in QUICK_REALISTIC)]
+            if not (args.quick and preset == REALISTIC and ci not in QUICK_REALISTIC)
+            and (args.configs is None or ci in args.configs)]
     jobs.sort(key=lambda j: (-CONFIGS[j[1]][1], j[0] != REALISTIC))  # the longest first: 5 cameras, realistic
     n_jobs = max(1, min(args.jobs, len(jobs)))
     workers = max(1, (os.cpu_count() or 1) // n_jobs)
