@@ -187,7 +187,7 @@ def marker_region(gray: np.ndarray, corners_px: np.ndarray, modules: int, K: np.
     -> ideal pinhole pixels of ``K``, e.g. :func:`cubetrack.core.geometry.undistort_points` or
     :meth:`LensMap.undistort`); None when the corners do not undistort or the marker with its
     margin and the blur's reach is not wholly inside the image."""
-    start = undistort_points(np.asarray(corners_px, float).reshape(4, 2), K, dist, K)
+    start = undistort(np.asarray(corners_px, float).reshape(4, 2))
     if not np.isfinite(start).all():
         return None
     m = margin_modules
@@ -213,6 +213,12 @@ def marker_region(gray: np.ndarray, corners_px: np.ndarray, modules: int, K: np.
     gradient = np.column_stack([(cx.ravel()[fitted] - cx.mean()) / nx, (cy.ravel()[fitted] - cy.mean()) / ny])
     return MarkerRegion(start, modules, (int(x0), int(y0)), (int(ny), int(nx)), samples, centres[fitted], fitted,
                         gray[y0:y1, x0:x1].astype(np.float64).ravel()[fitted], gradient)
+
+
+def _least_squares(A: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """argmin |A x - b| for a tall, well-posed A (n, <= 14): the normal equations, several times
+    cheaper than ``np.linalg.lstsq``'s SVD at this size; LinAlgError when A is rank-deficient."""
+    return np.linalg.solve(A.T @ A, A.T @ b)
 
 
 def photometric_columns(predicted: np.ndarray, gradient: np.ndarray) -> np.ndarray:
@@ -277,7 +283,7 @@ def fast_template_corners(gray: np.ndarray, corners_px: np.ndarray, dictionary: 
             wider = cv2.GaussianBlur(area[..., :2], (0, 0), blur + _BLUR_STEP_PX, borderType=cv2.BORDER_REPLICATE)
             wider = wider.reshape(ny * nx, 2)[region.fitted].astype(np.float64)
             A = photometric_columns(predicted[:, :2], region.gradient)
-            coef, *_ = np.linalg.lstsq(A, region.pixels, rcond=None)
+            coef = _least_squares(A, region.pixels)
             r = region.pixels - A @ coef
             # d(template sample coordinates)/d(corner coordinates) at the compared pixels' centres
             Uc = centres @ H_inv.T
@@ -289,7 +295,7 @@ def fast_template_corners(gray: np.ndarray, corners_px: np.ndarray, dictionary: 
             J = (gain[:, None] * (predicted[:, 2:3] * dmx + predicted[:, 3:4] * dmy)
                  + coef[4] * (predicted[:, 4:5] * dmx + predicted[:, 5:6] * dmy))
             J_blur = (photometric_columns(wider, region.gradient) - A) @ coef / _BLUR_STEP_PX
-            delta, *_ = np.linalg.lstsq(np.column_stack([J, J_blur, A]), r, rcond=None)
+            delta = _least_squares(np.column_stack([J, J_blur, A]), r)
             p = p + delta[:8]
             blur = float(np.clip(blur + delta[8], *_BLUR_RANGE_PX))
             if not np.isfinite(p).all() or np.abs(delta[:8]).max() < _CONVERGED_PX:
