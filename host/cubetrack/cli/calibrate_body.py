@@ -30,7 +30,8 @@ HELP = "calibrate each marker's pose on a robot's body from a tracking recording
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", required=True, type=Path, metavar="CFG", help="tracker config (TOML)")
     p.add_argument("--extrinsics", required=True, type=Path, metavar="EXTRINSICS",
-                   help="camera extrinsics (cubetrack calibrate)")
+                   help="camera extrinsics (cubetrack calibrate; not yet --refine-with, which takes the nominal "
+                   "layout as exact: refine afterwards with the calibrated one)")
     p.add_argument("--recording", required=True, type=Path, metavar="REC",
                    help="tracking recording: the robot driving where several cameras see it")
     p.add_argument("--out", required=True, type=Path, metavar="LAYOUT", help="calibrated layout TOML to write")
