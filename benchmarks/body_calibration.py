@@ -25,6 +25,7 @@ recording. Their errors against the truth are printed per camera.
     .venv/bin/python benchmarks/body_calibration.py [--seeds 44 45 46] [--duration 60] [--out DIR]
                                                     [--path sharp] [--compare] [--compare-instants]
                                                     [--refine-intrinsics] [--extrinsics true|calibrated|refined]
+                                                    [--cameras N] [--height M] [--tilt DEG]
 
 ``--out`` keeps the recordings (DIR/seed<N>) and reuses a complete one made with the same
 parameters; without it they go to a temporary folder. A 60 s recording takes a few minutes to
@@ -42,6 +43,7 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -66,10 +68,11 @@ def run(command: list[str]) -> None:
                          + " | ".join(done.stderr.strip().splitlines()[-3:]))
 
 
-def simulate(rec: Path, seed: int, duration_s: float, path: str, calibration_frames: int = 0) -> None:
-    """The realistic recording (reused when complete and made with the same parameters); with
-    ``calibration_frames``, also its empty-arena recording ``rec/calibration`` for ``cubetrack calibrate``."""
-    args = ["--realistic", "--duration", f"{duration_s:g}", "--seed", str(seed), "--path", path,
+def simulate(rec: Path, seed: int, duration_s: float, scene: Sequence[str], calibration_frames: int = 0) -> None:
+    """The realistic recording of ``scene`` (simulate options: the path, cameras, height, tilt;
+    reused when complete and made with the same parameters); with ``calibration_frames``, also
+    its empty-arena recording ``rec/calibration`` for ``cubetrack calibrate``."""
+    args = ["--realistic", "--duration", f"{duration_s:g}", "--seed", str(seed), *scene,
             "--calibration-frames", str(calibration_frames)]
     stamp = rec / "benchmark_args.txt"
     if (rec / "recording.json").is_file() and stamp.is_file() and stamp.read_text() == " ".join(args):
@@ -81,7 +84,7 @@ def simulate(rec: Path, seed: int, duration_s: float, path: str, calibration_fra
     print(f"seed {seed}: simulated {duration_s:g} s in {time.monotonic() - t0:.0f} s", flush=True)
 
 
-def extrinsics_for(rec: Path, seed: int, path: str, which: str) -> Path:
+def extrinsics_for(rec: Path, seed: int, scene: Sequence[str], which: str) -> Path:
     """The extrinsics calibrate-body starts from: the simulation's truth, or (``calibrated``) what
     ``cubetrack calibrate`` makes of 200 frames per camera of the world marker, as
     benchmarks/accuracy.py's scenes get theirs, or (``refined``) that with ``--refine-with`` the
@@ -92,7 +95,7 @@ def extrinsics_for(rec: Path, seed: int, path: str, which: str) -> Path:
         return rec / "true_extrinsics.toml"
     world = rec.with_name(rec.name + "_world")
     world.mkdir(exist_ok=True)
-    simulate(world, seed, 1.0, path, CALIBRATION_FRAMES)
+    simulate(world, seed, 1.0, scene, CALIBRATION_FRAMES)
     for same in ("true_extrinsics.toml", "true_cube.toml"):
         if (world / same).read_bytes() != (rec / same).read_bytes():
             raise SystemExit(f"{world / same} differs from {rec / same}: not the same scene")
@@ -147,6 +150,9 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--duration", type=float, default=60.0, help="seconds of driving (default: 60)")
     ap.add_argument("--path", default="sharp", choices=("sharp", "figure8", "rectangle"),
                     help="the robot's path (default: sharp, the realistic preset's)")
+    ap.add_argument("--cameras", type=int, help="simulate --cameras (default: the simulator's, 3)")
+    ap.add_argument("--height", type=float, help="simulate --height, metres (default: the simulator's, 1.0)")
+    ap.add_argument("--tilt", type=float, help="simulate --tilt, degrees (default: the simulator's, 30)")
     ap.add_argument("--out", type=Path, help="keep the recordings here (and reuse complete ones)")
     ap.add_argument("--compare", action="store_true", help="also calibrate with the detector's corners")
     ap.add_argument("--compare-instants", action="store_true",
@@ -157,18 +163,22 @@ def main(argv: list[str] | None = None) -> int:
                     "calibrate's from 200 frames of the world marker (as a user gets them), or those refined with "
                     "the recording (calibrate --refine-with)")
     args = ap.parse_args(argv)
+    scene = ["--path", args.path, *(["--cameras", str(args.cameras)] if args.cameras else []),
+             *(["--height", f"{args.height:g}"] if args.height is not None else []),
+             *(["--tilt", f"{args.tilt:g}"] if args.tilt is not None else [])]
     kinds = ["calibration", *(["detector"] if args.compare else []), *(["instants"] if args.compare_instants else [])]
     print(f"body calibration benchmark: {os.cpu_count()} cores, load average "
           f"{' '.join(f'{x:.1f}' for x in os.getloadavg())}; realistic preset, path {args.path}, "
-          f"{args.duration:g} s, seeds {' '.join(map(str, args.seeds))}, {args.extrinsics} extrinsics", flush=True)
+          f"{args.duration:g} s, seeds {' '.join(map(str, args.seeds))}, {args.extrinsics} extrinsics, "
+          f"scene {' '.join(scene)}", flush=True)
     with tempfile.TemporaryDirectory(prefix="body-bench-") as tmp:
         base = args.out or Path(tmp)
         rows, met = [], True
         for seed in args.seeds:
             rec = base / f"seed{seed}"
             rec.mkdir(parents=True, exist_ok=True)
-            simulate(rec, seed, args.duration, args.path)
-            extrinsics = extrinsics_for(rec, seed, args.path, args.extrinsics)
+            simulate(rec, seed, args.duration, scene)
+            extrinsics = extrinsics_for(rec, seed, scene, args.extrinsics)
             truth = rec / "true_cube.toml"
             nominal = errors(rec / "cube.toml", truth)
             rows.append((seed, "nominal layout", summary(nominal), 0.0))

@@ -4,6 +4,7 @@ same seed beside the driving recording) rather than the simulation's truth. A sh
 scene through the real CLI; the one-minute figures are the benchmark's (docs/calibration.md)."""
 
 import importlib
+import tomllib
 from pathlib import Path
 
 import numpy as np
@@ -25,12 +26,15 @@ def bench():
 def test_calibrated_extrinsics_come_from_the_world_marker_recording(bench, tmp_path, capsys):
     rec = tmp_path / "seed3"
     rec.mkdir()
-    bench.simulate(rec, 3, 0.5, "sharp")
-    assert bench.extrinsics_for(rec, 3, "sharp", "true") == rec / "true_extrinsics.toml"
+    scene = ["--path", "sharp", "--height", "0.8"]
+    bench.simulate(rec, 3, 0.5, scene)
+    assert bench.extrinsics_for(rec, 3, scene, "true") == rec / "true_extrinsics.toml"
 
-    path = bench.extrinsics_for(rec, 3, "sharp", "calibrated")
+    path = bench.extrinsics_for(rec, 3, scene, "calibrated")
     assert path.parent == rec and path.is_file()
     world = tmp_path / "seed3_world"
+    for folder in (rec, world):  # the scene's options reach both renders
+        assert tomllib.loads((folder / "simulation.toml").read_text())["params"]["height_m"] == 0.8
     assert len((world / "calibration" / "cam1" / "index.csv").read_text().splitlines()) == bench.CALIBRATION_FRAMES + 1
     truth = read_extrinsics(rec / "true_extrinsics.toml")
     calibrated = read_extrinsics(path)
@@ -45,5 +49,5 @@ def test_calibrated_extrinsics_come_from_the_world_marker_recording(bench, tmp_p
     truth_text = (rec / "true_extrinsics.toml").read_text()
     (rec / "true_extrinsics.toml").write_text(truth_text.replace("0.", "0.0", 1))
     with pytest.raises(SystemExit, match="not the same scene"):
-        bench.extrinsics_for(rec, 3, "sharp", "calibrated")
+        bench.extrinsics_for(rec, 3, scene, "calibrated")
     assert "reusing" in capsys.readouterr().out
