@@ -216,9 +216,16 @@ def marker_region(gray: np.ndarray, corners_px: np.ndarray, modules: int, K: np.
 
 
 def _least_squares(A: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """argmin |A x - b| for a tall, well-posed A (n, <= 14): the normal equations, several times
-    cheaper than ``np.linalg.lstsq``'s SVD at this size; LinAlgError when A is rank-deficient."""
-    return np.linalg.solve(A.T @ A, A.T @ b)
+    """argmin |A x - b| for a tall A (n, <= 14) by the normal equations (several times cheaper than
+    ``np.linalg.lstsq``'s SVD at this size); a column that vanishes (no pixel of the region lies
+    beyond the marker's margin) gets 0, as the least-norm solution gives it. LinAlgError when the
+    rest is rank-deficient."""
+    N = A.T @ A
+    norms = np.sqrt(np.diag(N))
+    kept = norms > 1e-9 * norms.max()
+    x = np.zeros(A.shape[1])
+    x[kept] = np.linalg.solve(N[np.ix_(kept, kept)], (A.T @ b)[kept])
+    return x
 
 
 def photometric_columns(predicted: np.ndarray, gradient: np.ndarray) -> np.ndarray:
