@@ -36,7 +36,8 @@ def _pose(t: float) -> np.ndarray:
     return make_T(R, [0.4 * np.cos(heading), 0.4 * np.sin(heading), 0.3 + 0.015 * np.sin(1.9 * t)])
 
 
-def _scene():
+def _scene(seen=lambda face, t: True):
+    """The scene; ``seen(face, t)``: whether a marker facing a camera at time t is detected."""
     layout, _true_markers, truth = hand_built_cube(11)
     T_cams = {f"cam{c + 1}": look_at([2.2 * np.cos(a), 2.2 * np.sin(a), 1.0], [0.0, 0.0, 0.3])
               for c, a in enumerate(np.radians([10, 130, 250]))}
@@ -49,7 +50,7 @@ def _scene():
             for g, m in enumerate(truth.markers):
                 T_wm = T @ m.T_cube_marker
                 to_camera = T_cam[:3, 3] - T_wm[:3, 3]
-                if T_wm[:3, 2] @ to_camera < 0.25 * np.linalg.norm(to_camera):
+                if T_wm[:3, 2] @ to_camera < 0.25 * np.linalg.norm(to_camera) or not seen(m.face, t):
                     continue
                 X = (T_wm[:3, :3] @ (UNIT_CORNERS * m.size_m).T).T + T_wm[:3, 3]
                 px = project(X @ T_cam_world[:3, :3].T + T_cam_world[:3, 3], K, np.zeros(5))[0]
