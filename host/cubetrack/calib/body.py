@@ -60,8 +60,8 @@ log = logging.getLogger(__name__)
 METHOD = "body-refined"  # CameraExtrinsics.method of the cameras a body calibration refined
 # a marker seen in fewer frames (instants) than this is named in a warning: its placement rests on
 # those few views (the realistic preset with cameras 0.8 m high: a top marker seen in 3 frames came
-# out 0.21 deg off, the other markers within 0.07 deg; docs/calibration.md)
-FEW_VIEWS = 20
+# out 0.21 deg off, one seen in 19 frames 0.03 deg; docs/calibration.md)
+FEW_VIEWS = 10
 
 
 @dataclass(frozen=True, slots=True)

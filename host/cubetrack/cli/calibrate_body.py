@@ -13,7 +13,7 @@ refine_intrinsics; `cubetrack defaults --section bundle_adjustment`). See docs/c
 Prints one line per marker: corners seen, RMS reprojection error, and how far the result is
 from the nominal layout (shift, turn, size); with --truth (e.g. a simulation's true_cube.toml)
 also the error of each marker's placement. A marker never seen by two cameras at once, or seen
-in fewer than 20 frames, is named in a warning: drive where the cameras see it more.
+in fewer than 10 frames, is named in a warning: drive where the cameras see it more.
 
 Example:
   cubetrack calibrate-body --config rec/config.toml --extrinsics extrinsics.toml --recording rec \\
