@@ -59,8 +59,8 @@ log = logging.getLogger(__name__)
 
 METHOD = "body-refined"  # CameraExtrinsics.method of the cameras a body calibration refined
 # a marker seen in fewer frames (instants) than this is named in a warning: its placement rests on
-# those few views (the realistic preset with cameras 0.8 m high: a top marker seen in 3 frames came
-# out 0.21 deg off, one seen in 19 frames 0.03 deg; docs/calibration.md)
+# those few views (the realistic preset with cameras 0.8 m high: the top marker seen in 3, 4, 8 and
+# 19 frames came out 0.21, 0.18, 0.11 and 0.03 deg off; docs/calibration.md)
 FEW_VIEWS = 10
 
 
