@@ -149,10 +149,11 @@ class LensMap:
         return out.reshape(-1, 2)[:n].astype(np.float64).reshape(np.shape(points_px))
 
 
-@functools.lru_cache(maxsize=16)
+@functools.lru_cache(maxsize=64)
 def lens_map(intrinsics: CameraIntrinsics | None) -> LensMap:
     """The cached :class:`LensMap` of a camera (intrinsics are compared by identity: a tracker
-    keeps one object per camera)."""
+    keeps one object per camera). Room for 64 cameras (a VGA map is 2.5 MB): a process with more
+    cameras than the cache holds would rebuild a map on nearly every frame."""
     return LensMap(intrinsics)
 
 
