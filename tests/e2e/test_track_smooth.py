@@ -10,6 +10,7 @@ import pytest
 
 from cubetrack.cli.main import main
 from cubetrack.io.run import read_run_record
+from tests.helpers.scene import simulated_recording
 from cubetrack.io.trajectory import read_tum
 
 pytestmark = pytest.mark.slow
@@ -17,10 +18,7 @@ pytestmark = pytest.mark.slow
 
 @pytest.fixture(scope="module")
 def rec(tmp_path_factory):
-    rec = tmp_path_factory.mktemp("smooth") / "rec"
-    assert main(["simulate", "--out", str(rec), "--cameras", "3", "--duration", "5", "--seed", "8",
-                 "--calibration-frames", "1", "--workers", "1"]) == 0
-    return rec
+    return simulated_recording(tmp_path_factory.mktemp("smooth") / "rec", duration_s=5)
 
 
 def track(rec, out, *extra):

@@ -9,6 +9,7 @@ import pytest
 
 from cubetrack.cli.main import main
 from cubetrack.io.run import read_run_record
+from tests.helpers.scene import simulated_recording
 
 pytestmark = pytest.mark.slow
 
@@ -18,10 +19,7 @@ TRUSTING = "\n[filter]\ncorner_noise_px = 0.05\nangular_accel_noise = 5.0\n"
 
 @pytest.fixture(scope="module")
 def rec(tmp_path_factory):
-    rec = tmp_path_factory.mktemp("template") / "rec"
-    assert main(["simulate", "--out", str(rec), "--cameras", "3", "--duration", "4", "--seed", "8",
-                 "--calibration-frames", "1", "--workers", "1"]) == 0
-    return rec
+    return simulated_recording(tmp_path_factory.mktemp("template") / "rec", duration_s=4)
 
 
 def track(rec, out, *sections, capsys):

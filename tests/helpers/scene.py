@@ -6,6 +6,16 @@ from __future__ import annotations
 from pathlib import Path
 
 
+def simulated_recording(rec: Path, duration_s: float, seed: int = 8, cameras: int = 3) -> Path:
+    """A short simulated recording in ``rec`` (one calibration frame, one render worker: for tests
+    that replay it with ``cubetrack track``)."""
+    from cubetrack.cli.main import main
+
+    assert main(["simulate", "--out", str(rec), "--cameras", str(cameras), "--duration", str(duration_s),
+                 "--seed", str(seed), "--calibration-frames", "1", "--workers", "1"]) == 0
+    return rec
+
+
 def simulated_scene(work: Path, duration_s: float, seed: int, calibration_frames: int) -> tuple[Path, Path]:
     """``(work, rec)``: the recording in ``work/rec``, extrinsics in ``work/extrinsics.toml``, the
     offline replay's poses in ``work/offline``."""
