@@ -168,7 +168,8 @@ class DetectorParams:
         0.6, "fraction of the dictionary's maximum correctable bits that may be corrected (0..1)",
     )
     detect_inverted_marker: bool = param(
-        False, "also detect white-on-black (inverted) markers",
+        False, "also detect white-on-black (inverted) markers: the image and its negative are searched (twice the "
+        "detection's CPU), so every corner refinement works on both (docs/detection.md)",
     )
     april_tag_quad_decimate: float = param(
         0.0, "apriltag refinement only: image decimation for quad search (0 = off; 2 halves its cost)",
