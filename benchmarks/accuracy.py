@@ -167,8 +167,9 @@ def sim_params(preset: str, cameras: int, height: float, tilt: float, seed: int,
                calibration_frames: int):
     from cubetrack.simulate import SimulationParams
 
-    common = dict(cameras=cameras, height_m=height, tilt_deg=tilt, seed=seed, duration_s=duration, drop_rate=DROP_RATE,
-                  jpeg_quality=80, cube_size_m=0.11, marker_size_m=0.08, calibration_frames=calibration_frames)
+    common = {"cameras": cameras, "height_m": height, "tilt_deg": tilt, "seed": seed, "duration_s": duration,
+              "drop_rate": DROP_RATE, "jpeg_quality": 80, "cube_size_m": 0.11, "marker_size_m": 0.08,
+              "calibration_frames": calibration_frames}
     if preset == RIG:   # its own frame rate, image size, inverted markers with distinct ids
         return SimulationParams.rig(**common)
     make = SimulationParams.realistic if preset == REALISTIC else SimulationParams

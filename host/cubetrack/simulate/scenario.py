@@ -34,7 +34,16 @@ from cubetrack.simulate.motion import (
     plan_people,
 )
 from cubetrack.simulate.params import SimulationParams
-from cubetrack.simulate.render import BLACK_ALBEDO, WHITE_ALBEDO, Floor, MarkerTexture, Quad, Solid, box_faces, project_points
+from cubetrack.simulate.render import (
+    BLACK_ALBEDO,
+    WHITE_ALBEDO,
+    Floor,
+    MarkerTexture,
+    Quad,
+    Solid,
+    box_faces,
+    project_points,
+)
 from cubetrack.simulate.timing import DeviceClock, make_clock
 
 ROBOT_ALBEDO = 0.15
