@@ -42,3 +42,17 @@ def test_markers_dropped_after_detection_are_counted_by_reason():
     assert too_small.detections == () and too_small.dropped == {DROP_QUAD: 1}
     both = Detector(DetectorParams(min_area_px2=1e6, detect_inverted_marker=True), [DICT])
     assert both.find(np.concatenate([image, 255 - image], axis=1)).dropped == {DROP_QUAD: 2}
+
+
+def test_the_run_summary_sums_the_drops_and_is_loud_when_no_pose_came_of_them():
+    from cubetrack.app.tracker import TrackStats
+    from cubetrack.cli.track import dropped_line
+
+    stats = TrackStats()
+    assert dropped_line(stats) == "markers dropped after detection: none"
+    stats.dropped_detections.update({DROP_QUAD: 2})
+    stats.dropped_detections.update({DROP_QUAD: 1, "edge fit failed": 4})
+    line = dropped_line(stats)
+    assert "edge fit failed: 4" in line and f"{DROP_QUAD}: 3" in line and "WARNING" in line
+    stats.poses["robot"] += 1
+    assert "WARNING" not in dropped_line(stats)
