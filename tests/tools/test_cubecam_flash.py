@@ -221,8 +221,8 @@ def test_neither_builder_installed(tools, capfd, tmp_path):
     tools.remove("arduino-cli")
     tools.remove("pio")
     rc = main(tools.args("--port", "/dev/ttyUSB0", *no_pio(tmp_path)))
-    assert_one_line_error(rc, capfd.readouterr().err, "arduino-cli not found", "install.sh",
-                          "pip install platformio==6.2.0")
+    assert_one_line_error(rc, capfd.readouterr().err, "neither arduino-cli nor PlatformIO (pio) is installed",
+                          f"`{sys.executable} -m pip install platformio==6.2.0`")
 
 
 @pytest.mark.parametrize("builder", ["arduino-cli", "auto"])
@@ -377,6 +377,36 @@ def test_dry_run_of_one_builder_without_tools(tmp_path, capsys, monkeypatch):
                                      str(REPO / "firmware" / "cubecam")]
     assert lines[1].endswith("(password from stdin or a prompt)")
     assert len(lines) == 2
+
+
+def test_dry_run_on_a_machine_without_either_tool_prints_the_one_install_command(tmp_path):
+    env = {"PATH": "/usr/bin:/bin"}  # no arduino-cli; --pio hides the venv's own pio
+    done = run_cubecam("flash", "--port", "/dev/ttyUSB0", "--dry-run", *no_pio(tmp_path), env=env)
+    assert_one_line_error(done.returncode, done.stderr, "neither arduino-cli nor PlatformIO (pio) is installed")
+    assert done.stdout == ""  # no plan naming tools that are not there
+    command = shlex.split(done.stderr.split("`")[1])
+    assert command == [sys.executable, "-m", "pip", "install", "platformio==6.2.0"]
+    check = subprocess.run([*command[:4], "--dry-run", *command[4:]], check=False, capture_output=True, text=True,
+                           timeout=300)
+    assert check.returncode == 0 and "platformio" in check.stdout.lower()  # a command pip takes as it is
+
+
+def test_the_flash_extra_pins_platformio_and_dry_run_then_builds_the_platformio_command_line(monkeypatch, capsys):
+    import tomllib
+    from importlib import metadata
+
+    extras = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["optional-dependencies"]
+    assert extras["flash"] == ["platformio==6.2.0"] and "cubetrack[flash]" in extras["test"]
+    assert 'platformio==6.2.0; extra == "flash"' in metadata.requires("cubetrack")  # the installed metadata
+    pio = Path(sys.executable).parent / "pio"  # where `pip install 'cubetrack[flash]'` put it
+    version = subprocess.run([str(pio), "--version"], check=False, capture_output=True, text=True, timeout=120)
+    assert version.stdout.strip().endswith("version 6.2.0")
+    monkeypatch.setenv("PATH", "/usr/bin:/bin")  # no arduino-cli
+    assert main(["flash", "--port", "/dev/ttyUSB0", "--dry-run"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    plan = [shlex.split(line) for line in lines[lines.index("# platformio") + 1:]]
+    assert plan == [[str(pio), "run", "-d", str(REPO), "-e", "spresense"],
+                    [str(pio), "run", "-d", str(REPO), "-e", "spresense", "-t", "upload", "--upload-port", "/dev/ttyUSB0"]]
 
 
 def test_all_without_boards(monkeypatch, capsys):
