@@ -30,6 +30,7 @@ import numpy as np
 
 from cubetrack.app.tracker import FrameJob, FrameOutcome, FrameResult, Tracker
 from cubetrack.core.errors import SourceError
+from cubetrack.core.lifetime import end_with_parent
 from cubetrack.core.records import Frame
 from cubetrack.estimate.reprojection import moved_pose
 from cubetrack.fuse.base import Fusion
@@ -287,6 +288,7 @@ def _worker_main(conn: Connection, urls: dict[str, str], source: SourceParams, m
     """A camera worker process: its cameras' frames in, results out, until None comes (Ctrl-C
     is the tracker's process's business: it ends the session, then this process)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    end_with_parent()
     cv2.setNumThreads(1)
     try:
         _work_cameras(conn, urls, source, make_tracker(), views, clock, working, taken, lane)

@@ -9,6 +9,7 @@ serves from its ``--ready-file``.
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 import tempfile
@@ -44,6 +45,7 @@ class EmulatedCameras:
         stderr = open(Path(self._tmp.name) / "stderr.txt", "w+b")
         command = [sys.executable, "-m", "cubecam", "emulate", "--recording", str(self.recording),
                    "--bind", "127.0.0.1", "--port", "0", "--exit-at-end", "--ready-file", str(ready),
+                   "--parent-pid", str(os.getpid()),
                    *self.extra_args]
         try:
             self._process = subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,

@@ -228,6 +228,11 @@ def camera_pose(azimuth_rad: float, p: SimulationParams, rng: np.random.Generato
     return make_T(R, position)
 
 
+
+def robot_names(p: SimulationParams) -> tuple[str, ...]:
+    """The simulated robots' names: ``robot`` alone, else ``robot1``, ``robot2``, ..."""
+    return (ROBOT_NAME,) if p.robots == 1 else tuple(f"robot{k + 1}" for k in range(p.robots))
+
 def build_scene(p: SimulationParams) -> Scene:
     """The arena for a parameter set; raises SimulationError when a camera cannot see the whole
     world marker (calibration would be impossible)."""
@@ -248,7 +253,7 @@ def build_scene(p: SimulationParams) -> Scene:
             terrain = Terrain(1e-3 * p.floor_bumps_mm, 1e-3 * p.bounce_mm, math.radians(p.wobble_deg),
                               (p.robot_size_m[0], p.robot_size_m[1]), rng_for(p.seed, STREAM_FLOOR),
                               rng_for(p.seed, STREAM_VIBRATION, k))
-        robots.append(SimRobot(ROBOT_NAME if p.robots == 1 else f"robot{k + 1}", layout, path,
+        robots.append(SimRobot(robot_names(p)[k], layout, path,
                                built_layout(layout, p, rng_for(p.seed, STREAM_BUILD, k)), terrain))
     cameras = []
     for i in range(p.cameras):

@@ -453,13 +453,16 @@ def _bind_pair(host: str, port: int) -> tuple[socket.socket, socket.socket]:
 
 
 class VrpnSink(Sink):
-    """Serves every robot as a VRPN tracker (module doc); the server starts in the constructor."""
+    """Serves every robot as a VRPN tracker (module doc); the server starts in the constructor
+    with ``robots`` (the configured ones) as its trackers, so that a client that connects before
+    the session finds them and has its pings answered."""
 
     name = "vrpn"
 
-    def __init__(self, params: VrpnParams = VrpnParams()):
+    def __init__(self, params: VrpnParams = VrpnParams(), robots: tuple[str, ...] = ()):
         self.server = VrpnServer(params)
         self.trackers: dict[str, str] = {}
+        self._announce(robots)
         where = f"{params.host}:{self.server.port}"
         self.where = f"VRPN trackers <robot>@{where}"
         if not is_loopback_host(params.host):
@@ -471,9 +474,12 @@ class VrpnSink(Sink):
     def port(self) -> int:
         return self.server.port
 
-    def open(self, session: SessionInfo) -> None:
-        self.trackers = identifiers(list(session.robots), "robot")
+    def _announce(self, robots: tuple[str, ...]) -> None:
+        self.trackers = identifiers(list(robots), "robot")
         self.server.add_senders(list(self.trackers.values()))
+
+    def open(self, session: SessionInfo) -> None:
+        self._announce(tuple(session.robots))
         host = self.server.params.host
         log.info("VRPN trackers: %s", ", ".join(f"{t}@{host}:{self.port}" for t in self.trackers.values()))
 

@@ -60,6 +60,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                    help="one address per camera, all on --port: a comma list (127.0.0.11,127.0.0.12) "
                         "or 'auto' (--bind, then the next addresses)")
     p.add_argument("--loop", action="store_true", help="start over after the last frame (clocks and frame numbers keep counting)")
+    p.add_argument("--parent-pid", type=int, metavar="PID",
+                   help="end when process PID (the one starting this emulator) ends, even by SIGKILL")
     p.add_argument("--exit-at-end", action="store_true", help="stop after the last frame (without --loop)")
     p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
     p.add_argument("--ready-file", metavar="FILE",
@@ -110,6 +112,10 @@ def write_ready_file(path: str, emu) -> None:
 def run(args: argparse.Namespace) -> int:
     from cubecam.emulator import Emulator, Faults, skipped_summary
 
+    if args.parent_pid is not None:
+        from cubetrack.core.lifetime import end_with_parent
+
+        end_with_parent(args.parent_pid)
     faults = Faults(latency_s=args.latency, jitter_s=args.jitter, drop_rate=args.drop_rate,
                     bandwidth_bytes_per_s=args.bandwidth, disconnect_every_s=args.disconnect_every,
                     stall_after_s=args.stall_after, stall_for_s=args.stall_for,
