@@ -42,6 +42,14 @@ from cubetrack.core.errors import ConfigError, ParamsError
 from cubetrack.core.params import param
 from cubetrack.core.records import Frame
 from cubetrack.source.http_get import HttpError, HttpGet
+from cubetrack.source.reasons import (
+    broken_frames_reason,
+    closed_reason,
+    connection_reason,
+    content_type_reason,
+    http_status_reason,
+    timeout_reason,
+)
 
 log = logging.getLogger(__name__)
 
@@ -431,7 +439,8 @@ class CameraStats:
 
 
 class _StreamEnded(Exception):
-    """The server ended the stream or answered something that is not a stream."""
+    """The server ended the stream, answered something that is not a stream, or went silent; the
+    message is the whole reason (:mod:`cubetrack.source.reasons`)."""
 
 
 _STREAM, _CLOCK, _WAKE = "stream", "clock", "wake"
@@ -740,7 +749,7 @@ class LiveCameras:
                 what = "connect" if not camera.stream.connected else (
                     "the answer" if camera.stream.head is None else "the next bytes")
                 limit = p.connect_timeout_s if what == "connect" else p.read_timeout_s
-                self._stream_lost(camera, TimeoutError(f"timed out ({what}, {limit:g} s)"))
+                self._stream_lost(camera, _StreamEnded(timeout_reason(what, limit, camera.url)))
             due = min(due, camera.deadline if camera.stream is not None else camera.reconnect_at)
             if camera.poll is None and now >= camera.poll_at:
                 self._start_poll(camera, now)
@@ -786,7 +795,7 @@ class LiveCameras:
                     camera.deadline = time.monotonic() + self.params.read_timeout_s
                     self._parts(camera, data, get.received_s)
                 if get.ended:
-                    raise _StreamEnded("the camera closed the stream")
+                    raise _StreamEnded(closed_reason(camera.url))
                 if not get.filled:
                     return
         except BlockingIOError:  # nothing more to read now
@@ -797,10 +806,10 @@ class LiveCameras:
     def _stream_started(self, camera: _Camera, get: HttpGet) -> None:
         status, headers = get.head
         if status != 200:
-            raise _StreamEnded(f"HTTP {status}")
+            raise _StreamEnded(http_status_reason(status, camera.url))
         ctype = headers.get("content-type", "")
         if not ctype.lower().startswith("multipart/"):
-            raise _StreamEnded(f"not a multipart stream (Content-Type {ctype!r})")
+            raise _StreamEnded(content_type_reason(ctype, camera.url))
         p = self.params
         camera.parser = MjpegParser(boundary_from_content_type(ctype), p.max_header_bytes, p.max_part_bytes)
         camera.reported = Counter()
@@ -818,7 +827,7 @@ class LiveCameras:
     def _report_bad(self, camera: _Camera) -> None:
         bad = camera.parser.bad
         if bad != camera.reported:
-            self._count(camera.name, bad_parts=bad - camera.reported)
+            self._count(camera.name, bad_parts=bad - camera.reported, last_error=broken_frames_reason(bad))
             camera.reported = Counter(bad)
 
     def _stream_lost(self, camera: _Camera, exc: BaseException) -> None:
@@ -831,10 +840,7 @@ class LiveCameras:
             camera.parser.close()  # a part in progress when the connection ended is counted
             self._report_bad(camera)
             camera.parser = None
-        reason = _describe(exc)
-        if isinstance(exc, OSError):  # name the peer, as "cannot connect" messages usually do
-            u = urlsplit(camera.url)
-            reason = f"connection to host={u.hostname!r}, port={u.port or 80}: {reason}"
+        reason = str(exc) if isinstance(exc, _StreamEnded) else connection_reason(exc, camera.url)
         self._count(camera.name, connected=False, last_error=reason)
         if camera.got_frame:  # the connection worked: start the back-off again
             camera.backoff = p.backoff_initial_s

@@ -13,7 +13,8 @@ A camera's status (:func:`camera_status`):
 
 ``ok``       frames arrive;
 ``waiting``  nothing heard yet (no health snapshot, connecting, or connected without a frame so far);
-``down``     not connected: the reason is the source's last error (refused, timed out, ...);
+``down``     not connected, or connected with only broken frames so far: the reason is the source's
+             last error, one line saying what to check (:mod:`cubetrack.source.reasons`);
 ``stale``    connected but no frame for ``stale_after_s``: the reason says for how long.
 
 ``down`` and ``stale`` are shown red. Statuses are recomputed by :meth:`DashboardState.tick`
@@ -115,8 +116,8 @@ def camera_status(health: CameraHealth | None, last_frame_s: float | None, now_s
         if not (health.last_error or health.reconnects or health.frames):
             return "waiting", "connecting"  # the session has just started
         return "down", health.last_error or "not connected"
-    if last_frame_s is None:
-        return "waiting", "connected, no frame yet"
+    if last_frame_s is None:  # connected: broken frames only is as bad as no camera
+        return ("down", health.last_error) if health.bad and health.last_error else ("waiting", "connected, no frame yet")
     age_s = now_s - last_frame_s
     if age_s > stale_after_s:
         reason = f"no frame for {age_s:.1f} s"
