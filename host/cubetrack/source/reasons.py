@@ -81,8 +81,8 @@ def closed_reason(url: str) -> str:
     return f"{where_of(url)} closed the stream — is the node restarting?"
 
 
-def broken_frames_reason(bad: Mapping[str, int]) -> str:
+def broken_frames_reason(bad: Mapping[str, int], url: str) -> str:
     """Broken stream parts of a connection (why -> how many), e.g. frames that are not whole JPEGs."""
     why, _ = max(bad.items(), key=lambda item: item[1])
-    return (f"{sum(bad.values())} broken frame(s) on this connection ({why}) — restart the node; "
-            f"if it goes on, reseat its camera board")
+    return (f"{where_of(url)} sent {sum(bad.values())} broken frame(s) on this connection ({why}) — restart "
+            f"the node; if it goes on, reseat its camera board")

@@ -827,7 +827,7 @@ class LiveCameras:
     def _report_bad(self, camera: _Camera) -> None:
         bad = camera.parser.bad
         if bad != camera.reported:
-            self._count(camera.name, bad_parts=bad - camera.reported, last_error=broken_frames_reason(bad))
+            self._count(camera.name, bad_parts=bad - camera.reported, last_error=broken_frames_reason(bad, camera.url))
             camera.reported = Counter(bad)
 
     def _stream_lost(self, camera: _Camera, exc: BaseException) -> None:
