@@ -126,6 +126,10 @@ class Browser:
         self.eval(f"document.querySelector({selector!r}).click()")
 
     def screenshot(self, path: Path) -> None:
+        """The page as it is once every streaming camera's tile shows its frame (the shots in
+        docs/ show the tiles as a user sees them a moment after opening the page)."""
+        self.wait_for("[...document.querySelectorAll('.tile[data-status=ok] .frame img')]"
+                      ".every(i => !i.hidden && i.complete && i.naturalWidth > 0)", 15)
         data = self.call("Page.captureScreenshot", format="png", captureBeyondViewport=True)["data"]
         path.write_bytes(base64.b64decode(data))
         if os.environ.get("CUBETRACK_SCREENSHOTS"):
