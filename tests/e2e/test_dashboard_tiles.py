@@ -8,16 +8,15 @@ every other tile is red with one line saying what to check."""
 
 from __future__ import annotations
 
-import http.server
 import shutil
 import socket
-import threading
 import time
 
 import pytest
 
 from tests.e2e.test_dashboard import Browser, api, cubetrack, emulator
 from tests.helpers.scene import simulated_recording
+from tests.helpers.webpage import WebPage
 
 pytestmark = pytest.mark.slow
 
@@ -30,19 +29,6 @@ document.addEventListener("load", (e) => {
     window.firstImageMs[tile.dataset.camera] = performance.now();
 }, true);"""
 RAW = ("Errno", "Error", "host=", "port=", "Traceback", "HTTPConnectionPool", "Exception")
-
-
-class _Page(http.server.BaseHTTPRequestHandler):
-    def do_GET(self) -> None:  # a web page where the stream should be (a router's, a node's index)
-        body = b"<html><body>login</body></html>"
-        self.send_response(200)
-        self.send_header("Content-Type", "text/html")
-        self.send_header("Content-Length", str(len(body)))
-        self.end_headers()
-        self.wfile.write(body)
-
-    def log_message(self, *args: object) -> None:
-        pass
 
 
 @pytest.fixture(scope="module")
@@ -61,10 +47,9 @@ def lab(tmp_path_factory):
     silent = socket.socket()
     silent.bind(("127.0.0.1", 0))
     silent.listen(16)  # connections complete in the kernel's queue; nobody answers
-    page = http.server.ThreadingHTTPServer(("127.0.0.1", 0), _Page)
-    threading.Thread(target=page.serve_forever, daemon=True).start()
+    page = WebPage()
     down = {"refused": "http://127.0.0.1:9/stream", "silent": f"http://127.0.0.1:{silent.getsockname()[1]}/stream",
-            "broken": broken_served["urls"]["broken"], "webpage": f"http://127.0.0.1:{page.server_address[1]}/stream"}
+            "broken": broken_served["urls"]["broken"], "webpage": page.url}
     config = write_live_config(rec / "config.toml", served["urls"], work / "lab.toml")
     info = (rec / "camera_info" / "cam1.yaml").as_posix()
     with config.open("a", encoding="utf-8") as f:
@@ -74,8 +59,7 @@ def lab(tmp_path_factory):
     emu.stop()
     broken.stop()
     silent.close()
-    page.shutdown()
-    page.server_close()
+    page.close()
 
 
 def test_every_streaming_camera_shows_its_image_and_every_other_says_what_to_check(lab, tmp_path):

@@ -4,9 +4,7 @@ naming the address and what to check, none an exception's own wording."""
 
 from __future__ import annotations
 
-import http.server
 import socket
-import threading
 
 import pytest
 from conftest import FPS, collect
@@ -14,6 +12,7 @@ from conftest import FPS, collect
 from cubecam.emulator import Emulator, Faults
 from cubetrack.source.reasons import broken_frames_reason, connection_reason
 from cubetrack.source.streams import LiveCameras, SourceParams
+from tests.helpers.webpage import WebPage
 
 FAST = SourceParams(connect_timeout_s=1.0, read_timeout_s=1.0, backoff_initial_s=0.05, backoff_max_s=0.4,
                     clock_period_s=0.25)
@@ -50,29 +49,10 @@ def test_a_server_that_takes_the_connection_and_never_answers():
     assert reason == f"127.0.0.1:{port} took the connection but did not answer within 1 s — is it a camera node?"
 
 
-class _Page(http.server.BaseHTTPRequestHandler):
-    def do_GET(self) -> None:  # a web page where the stream should be
-        body = b"<html><body>a router's login page</body></html>"
-        self.send_response(200)
-        self.send_header("Content-Type", "text/html; charset=utf-8")
-        self.send_header("Content-Length", str(len(body)))
-        self.end_headers()
-        self.wfile.write(body)
-
-    def log_message(self, *args: object) -> None:
-        pass
-
-
 def test_a_web_page_instead_of_a_stream():
-    server = http.server.ThreadingHTTPServer(("127.0.0.1", 0), _Page)
-    threading.Thread(target=server.serve_forever, daemon=True).start()
-    try:
-        port = server.server_address[1]
-        reason = last_error(f"http://127.0.0.1:{port}/stream")
-    finally:
-        server.shutdown()
-        server.server_close()
-    assert_actionable(reason, f"127.0.0.1:{port}")
+    with WebPage() as page:
+        reason = last_error(page.url)
+    assert_actionable(reason, f"127.0.0.1:{page.port}")
     assert "'text/html', not an MJPEG stream" in reason
 
 
