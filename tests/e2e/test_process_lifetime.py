@@ -136,13 +136,13 @@ def start(kind: str, lab: dict, out: Path) -> tuple[Command, int]:
         cmd = Command(["dashboard", "--config", str(configs["process"]), "--extrinsics", extrinsics, "--out", str(out),
                        "--port", "0"], lab["work"])
         cmd.wait_line(r"^dashboard: http")
-        return cmd, 0
+        return cmd, 2  # two frame worker processes
     bus = f"tcp/127.0.0.1:{free_port()}"
     if kind == "worker":
         cmd = Command(["worker", "--config", str(configs["camera-process"]), "--extrinsics", extrinsics,
                        "--bus-connect", bus, "--status-every", "1"], lab["work"])
         cmd.wait_line(r"^worker:")
-        return cmd, 0
+        return cmd, 0  # its cameras are read by threads
     cmd = Command(["fuse", "--config", str(configs["camera-process"]), "--extrinsics", extrinsics, "--out", str(out),
                    "--bus-listen", bus, "--status-every", "1", *vrpn], lab["work"])
     cmd.wait_line(r"^fusing into")
@@ -159,6 +159,7 @@ def test_no_process_of_ours_outlives_a_stopped_command(lab, tmp_path, kind, numb
     try:
         time.sleep(2.0)  # worker processes start in the background
         running = family(cmd.mark)
+        print(f"{kind}: {len(running)} processes: " + "; ".join(c[:90] for c in running.values()))
         assert cmd.proc.pid in running and len(running) >= 1 + children, running
         cmd.proc.send_signal(number)
         code = cmd.proc.wait(60)
