@@ -20,7 +20,6 @@ from cubetrack.core.cameras import CameraIntrinsics
 from cubetrack.core.errors import CameraInfoError
 from cubetrack.io.files import atomic_write
 
-
 _MAX_NUMBERS = 64  # more than any camera matrix or distortion model holds
 
 
