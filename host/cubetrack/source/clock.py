@@ -131,7 +131,7 @@ class ClockSync:
     def fit(self) -> ClockFit:
         if self._fit is None:
             if len(self._trips) >= self.params.min_samples:
-                s, d, r = (np.array(v) for v in zip(*self._trips))
+                s, d, r = (np.array(v) for v in zip(*self._trips, strict=True))
                 self._fit = fit_round_trips(s, d, r, self.params.fastest_fraction)
             elif self._arrivals:  # refitted per frame until a round trip comes: one array, few numpy calls
                 arrivals = np.array(self._arrivals)

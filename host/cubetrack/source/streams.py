@@ -33,8 +33,8 @@ import socket
 import threading
 import time
 from collections import Counter, deque
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field, replace
-from typing import Callable, Iterable, Mapping
 from urllib.parse import urljoin, urlsplit
 
 from cubetrack.core.cameras import ClockSample
@@ -426,7 +426,7 @@ class CameraStats:
     def bad(self) -> int:
         return sum(self.bad_parts.values())
 
-    def copy(self) -> "CameraStats":
+    def copy(self) -> CameraStats:
         return replace(self, bad_parts=Counter(self.bad_parts), clock_failures=Counter(self.clock_failures))
 
 
@@ -517,7 +517,7 @@ class LiveCameras:
 
     # --- lifecycle ---
 
-    def start(self) -> "LiveCameras":
+    def start(self) -> LiveCameras:
         if self._selector is not None:
             return self
         self._selector = selectors.DefaultSelector()
@@ -559,7 +559,7 @@ class LiveCameras:
     def stopped(self) -> bool:
         return self._stop.is_set()
 
-    def __enter__(self) -> "LiveCameras":
+    def __enter__(self) -> LiveCameras:
         return self.start()
 
     def __exit__(self, *exc: object) -> None:
