@@ -33,10 +33,10 @@ import cv2
 import numpy as np
 from PIL import JpegImagePlugin
 
+from cubetrack.core.cameras import CameraIntrinsics
 from cubetrack.core.errors import DetectionError, ImageError, ParamsError
 from cubetrack.core.geometry import shoelace_area, undistort_points
 from cubetrack.core.params import param
-from cubetrack.core.cameras import CameraIntrinsics
 from cubetrack.core.records import Detection
 from cubetrack.detect.template_fit import distort_px, fast_template_corners, lens_map
 
@@ -424,9 +424,10 @@ def refine_corners_edges(gray: np.ndarray, corners_px: np.ndarray, modules: int 
         # side only), then once more without points beyond 2.5 sigma of that line
         for robust in (False, True):
             if robust:
-                resid2 = off - (a[..., None] + b[..., None] * t)
+                # a, b, s0: bound by the first (robust=False) pass
+                resid2 = off - (a[..., None] + b[..., None] * t)  # noqa: F821
                 resid2 *= resid2
-                rms2 = (weight * resid2) @ ones_t / np.maximum(s0, 1e-12)
+                rms2 = (weight * resid2) @ ones_t / np.maximum(s0, 1e-12)  # noqa: F821
                 weight = weight * (resid2 <= np.maximum(6.25 * rms2, 0.01)[..., None])
             s0, s1, s2 = (moments_t @ weight.reshape(-1, k).T).reshape(3, -1, 4)   # (M, 4) each
             sy, sty = (moments_t[:2] @ (weight * off).reshape(-1, k).T).reshape(2, -1, 4)
