@@ -256,7 +256,7 @@ class FilterFusion:
         if stop >= len(history):
             after.append(self.state[robot].filter)
         return [TrailStep(step.outcome, f, step.pose, step.sighting.arrival_time_s, step.key[0])
-                for step, f in zip(history[start:stop], after)]
+                for step, f in zip(history[start:stop], after, strict=True)]
 
     def needs_estimate(self, robot: str) -> bool:
         """A per-camera estimate is only needed to start a track: not while one runs."""
