@@ -242,9 +242,18 @@ class FoxgloveSink(Sink):
     def _send_static(self, time_s: float) -> None:
         """Camera transforms, calibrations and frusta, the robots' cubes (re-sent so late viewers
         get them)."""
-        from foxglove.messages import (CameraCalibration, CubePrimitive, FrameTransform, FrameTransforms,
-                                       LinePrimitive, LinePrimitiveLineType, Point3, SceneEntity, SceneUpdate,
-                                       TextPrimitive)
+        from foxglove.messages import (
+            CameraCalibration,
+            CubePrimitive,
+            FrameTransform,
+            FrameTransforms,
+            LinePrimitive,
+            LinePrimitiveLineType,
+            Point3,
+            SceneEntity,
+            SceneUpdate,
+            TextPrimitive,
+        )
 
         world = self.params.world_frame
         transforms = []
@@ -306,8 +315,14 @@ class FoxgloveSink(Sink):
             self._send_static(t)
 
     def camera_view(self, view: CameraView) -> None:
-        from foxglove.messages import (CompressedImage, ImageAnnotations, Point2, PointsAnnotation,
-                                       PointsAnnotationType, TextAnnotation)
+        from foxglove.messages import (
+            CompressedImage,
+            ImageAnnotations,
+            Point2,
+            PointsAnnotation,
+            PointsAnnotationType,
+            TextAnnotation,
+        )
 
         cid = self.camera_ids.get(view.camera)
         if cid is None:

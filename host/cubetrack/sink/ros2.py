@@ -76,7 +76,7 @@ TOPIC_QOS = rmw_zenoh.Qos(depth=10)
 class _Publisher:
     """One ROS 2 publisher on Zenoh: its key, token, GID and sequence numbers."""
 
-    def __init__(self, sink: "Ros2Sink", topic: str, ros_type: cdr.RosType, qos: rmw_zenoh.Qos, entity_id: int):
+    def __init__(self, sink: Ros2Sink, topic: str, ros_type: cdr.RosType, qos: rmw_zenoh.Qos, entity_id: int):
         import zenoh
 
         p = sink.params
