@@ -133,7 +133,7 @@ def placement_errors(layout: CubeLayout, truth: CubeLayout, aligned: bool = True
         layout = moved_layout(layout, best_fit_transform(layout.corners_m.reshape(-1, 3), truth.corners_m.reshape(-1, 3)))
     return {m.face: (float(np.linalg.norm(m.T_cube_marker[:3, 3] - t.T_cube_marker[:3, 3])),
                      rotation_angle(m.T_cube_marker[:3, :3], t.T_cube_marker[:3, :3], "deg"), m.size_m - t.size_m)
-            for m, t in zip(layout.markers, truth.markers)}
+            for m, t in zip(layout.markers, truth.markers, strict=True)}
 
 
 def calibrate_body(frames: Mapping[str, Iterable[Frame]], extrinsics: Mapping[str, CameraExtrinsics],
@@ -240,7 +240,7 @@ class Trajectory:
         before = (after - 1).clip(0)
         near = np.where(np.abs(times_s - inst_t[before]) < np.abs(times_s - inst_t[after]), before, after)
         knots = np.array([moved_pose(ref.model.T_bodies[k], ref.vel[k], ref.angvel[k], tk - inst_t[k])
-                          for k, tk in zip(near, times_s)])
+                          for k, tk in zip(near, times_s, strict=True)])
         ref.model = ref.model.replace(T_bodies=knots)
         trajectory = cls(ref, times_s, np.concatenate(first), frames, [])
         trajectory.rematch()
@@ -316,7 +316,7 @@ def _report(ref: Refinement, obs: Observations, sample: np.ndarray, frames: int,
     r = corner_residuals_px(obs, ref.model)
     calibrated = ref.layout(robot)
     results = []
-    for g, (m, n) in enumerate(zip(calibrated.markers, nominal.markers)):
+    for g, (m, n) in enumerate(zip(calibrated.markers, nominal.markers, strict=True)):
         mine = obs.marker == g
         views = len(np.unique(sample[mine]))
         if not mine.any():

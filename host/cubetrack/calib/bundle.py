@@ -31,7 +31,7 @@ Steps (:func:`adjust_extrinsics`, which takes frames and clock samples held anyw
 memory; ``cubetrack.app.calibrate.adjust_recording_extrinsics`` feeds it recording folders):
 
 1. Per camera frame of the tracking recording: cube detections, a single-camera cube estimate
-   (:func:`cubetrack.estimate.estimate_cube`) with the prior extrinsics, and the faces matched to
+   (:func:`cubetrack.estimate.pose.estimate_cube`) with the prior extrinsics, and the faces matched to
    detections by :func:`cubetrack.estimate.match.match_faces` at that estimate. Frames are grouped into
    instants, each starting from its best-seen camera's estimate; the cube poses are solved with
    the prior cameras held (twice: the second time with velocities from the first).
@@ -330,7 +330,7 @@ def cube_frames(frames: Mapping[str, Iterable[Frame]], layouts: Mapping[str, Cub
     ``frame_count`` (all cameras' frames) only sizes the progress.
 
     ``lenses`` (camera -> intrinsics): the cube corners are measured for the body calibration:
-    as the world marker's are for calibration (:func:`cubetrack.detect.refine_corners_edges` with
+    as the world marker's are for calibration (:func:`cubetrack.detect.detector.refine_corners_edges` with
     :data:`cubetrack.calib.extrinsics.EDGE_FIT` and the camera's lens model: sides straight in
     the undistorted image, edge points from the gradient's peak), then by fitting the whole marker
     image (:func:`cubetrack.calib.marker_fit.template_fitted_corners`: no bias on obliquely seen
@@ -379,9 +379,9 @@ def _edge_fitted(gray: np.ndarray, detections: Sequence[Detection], lens: Camera
     several would exceed cv2.remap's row length)."""
     corners = [edge_fitted_corners(gray, d.corners_px, d.dictionary, lens, min_contrast) for d in detections]
     corners = [c if np.isnan(c).any() else template_fitted_corners(gray, c, d.dictionary, d.marker_id, lens)
-               for d, c in zip(detections, corners)]
+               for d, c in zip(detections, corners, strict=True)]
     return tuple(Detection(d.marker_id, c, shoelace_area(c), d.dictionary)
-                 for d, c in zip(detections, corners) if not np.isnan(c).any())
+                 for d, c in zip(detections, corners, strict=True) if not np.isnan(c).any())
 
 
 def _frame_corners(frame: CubeFrame, layout: CubeLayout, intrinsics: CameraIntrinsics, T_world_cam: np.ndarray,
@@ -455,7 +455,7 @@ def layout_with(layout: CubeLayout, T_body_markers: np.ndarray, sizes_m: np.ndar
     """``layout`` with its markers (same faces, ids, dictionary) at ``T_body_markers`` (M, 4, 4)
     and of sides ``sizes_m`` (M,)."""
     return CubeLayout(layout.dictionary, tuple(LayoutMarker(m.face, m.marker_id, float(s), np.array(T, float))
-                                               for m, T, s in zip(layout.markers, T_body_markers, sizes_m)))
+                                               for m, T, s in zip(layout.markers, T_body_markers, sizes_m, strict=True)))
 
 
 def _intrinsics_arrays(intrinsics: Sequence[CameraIntrinsics]) -> tuple[np.ndarray, np.ndarray]:

@@ -12,7 +12,7 @@ Two methods, selected by :class:`CalibrationParams` (``[calibration] method``):
     The camera and the marker do not move during calibration, so the marker's corners are the
     same in every frame; the per-frame pose noise averages out, but a systematic corner bias
     does not (``cv-facts.md`` §5). So: (1) every detection's corners are re-measured from the
-    marker's four edges with the camera's lens model (:func:`cubetrack.detect.refine_corners_edges`
+    marker's four edges with the camera's lens model (:func:`cubetrack.detect.detector.refine_corners_edges`
     with :data:`EDGE_FIT`: sub-pixel edge points, one straight line per edge in undistorted
     coordinates, corners = line intersections) — free of the inward bias of OpenCV's corners
     (``[calibration] corner_refinement`` may pick another of the detector's methods); (2) frames
@@ -70,7 +70,7 @@ from cubetrack.estimate.pose import marker_pose
 log = logging.getLogger(__name__)
 
 
-class CalibrationMethod(str, enum.Enum):
+class CalibrationMethod(str, enum.Enum):  # noqa: UP042 (StrEnum would change str() of a member)
     CMA = "cma"
     ROBUST = "robust"
 
@@ -214,7 +214,7 @@ class CalibrationReport:
 
 def world_detector(world: WorldConfig, detector_params: DetectorParams | None = None,
                    corner_refinement: CornerRefinement | None = None) -> Detector:
-    """A :class:`cubetrack.detect.Detector` for the world reference's dictionaries, with the
+    """A :class:`cubetrack.detect.detector.Detector` for the world reference's dictionaries, with the
     config's ``[detector]`` settings (``detector_params``; None = the defaults) and, when given,
     another ``corner_refinement``."""
     params = dataclasses.replace(detector_params or DetectorParams(), dictionary=world.dictionary)
@@ -275,7 +275,7 @@ def edge_fitted_corners(gray: np.ndarray, corners_px: np.ndarray, dictionary: st
 def _marker_poses(detection: Detection, size_m: float,
                   intrinsics: CameraIntrinsics) -> list[tuple[np.ndarray, float]]:
     """Both planar solutions ``(T_cam_marker, rms reprojection error px)``, best first, from
-    :func:`cubetrack.estimate.marker_pose` (each refined by Levenberg-Marquardt on the
+    :func:`cubetrack.estimate.marker.marker_pose` (each refined by Levenberg-Marquardt on the
     reprojection error: IPPE's closed form is not the least-squares optimum)."""
     mp = marker_pose(detection, size_m, intrinsics)
     if mp is None:
@@ -302,7 +302,7 @@ def collect_sightings(
     Returns (sightings, frames decoded, skipped frames by reason). Corrupt frames are skipped
     and counted, never fatal. The robust method measures the corners with
     ``params.corner_refinement``; with ``edge`` (the default) the detector's unrefined quad is
-    fitted by :func:`cubetrack.detect.refine_corners_edges` with the camera's lens model.
+    fitted by :func:`cubetrack.detect.detector.refine_corners_edges` with the camera's lens model.
     """
     detector, refine = calibration_detector(world, params, detector_params)
     sightings: list[Sighting] = []
@@ -379,7 +379,7 @@ def calibrate_robust(
         log.warning("world marker pose is ambiguous (reprojection %.3f vs %.3f px): the marker is "
                     "small or seen nearly head-on in this camera", poses[0][1], poses[1][1])
     per_frame = []
-    for s, k in zip(sightings, keep):
+    for s, k in zip(sightings, keep, strict=True):
         if not k:
             continue
         candidates = [s.T_world_cam] + ([s.T_world_cam_alt] if s.T_world_cam_alt is not None else [])
@@ -401,7 +401,7 @@ def calibrate_camera(
 ) -> CameraCalibration:
     """Calibrate one camera from its frames; CalibrationError when it saw the world marker in
     fewer than ``params.min_samples`` frames. ``detector_params``: the ``[detector]`` settings
-    (:class:`cubetrack.detect.DetectorParams`, its dictionary replaced by the world's). A world
+    (:class:`cubetrack.detect.detector.DetectorParams`, its dictionary replaced by the world's). A world
     reference of more than the one marker (more markers, a board) is measured and solved by
     :mod:`cubetrack.calib.reference`."""
     if not world.single_marker:
