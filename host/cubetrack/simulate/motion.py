@@ -364,7 +364,7 @@ def plan_people(count: int, duration_s: float, cameras_xy: np.ndarray, robot_xy_
                 times = np.linspace(t, t + duration, 60)
                 walk = start + ((times - t) / duration)[:, None] * (end - start)
                 if all(np.linalg.norm(robot_xy_at(tk) - w, axis=1).min() >= _PERSON_ROBOT_CLEARANCE_M
-                       for tk, w in zip(times, walk)):
+                       for tk, w in zip(times, walk, strict=True)):
                     crossing = Crossing(t, t + duration, start, end)
                     break
                 t += 0.5  # wait for the robot to pass

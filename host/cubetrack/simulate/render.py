@@ -302,7 +302,7 @@ def _clip_in_front(p: np.ndarray, near: float) -> np.ndarray:
     """Image points (x, y) of a polygon given as homogeneous rows (x z, y z, z), clipped to
     depth ``z >= near``."""
     out = []
-    for a, b in zip(p, np.roll(p, -1, axis=0)):
+    for a, b in zip(p, np.roll(p, -1, axis=0), strict=True):
         if a[2] >= near:
             out.append(a)
         if (a[2] >= near) != (b[2] >= near):

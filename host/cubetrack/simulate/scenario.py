@@ -160,7 +160,7 @@ class Scene:
             solids.append(Solid(self._shaded(box_faces(mast_T, (side, side, p.mast_height_m), MAST_ALBEDO))))
         T_cube = T_robot @ self.T_robot_cube()
         faces, decals = [], []
-        for m, b in zip(layout.markers, (built or layout).markers):
+        for m, b in zip(layout.markers, (built or layout).markers, strict=True):
             T = T_cube @ m.T_cube_marker
             shade = self.shade(T[:3, 2])
             faces.append(Quad(T, (p.cube_size_m, p.cube_size_m), WHITE_ALBEDO, shade=shade))
@@ -265,7 +265,7 @@ def build_scene(p: SimulationParams) -> Scene:
                        readout_s=1e-3 * p.readout_ms)
         cameras.append(CameraSetup(name, intrinsics, T_world_cam, clock, phase, light, info, 1e-3 * p.readout_ms))
     for marker_id in sorted({p.world_marker_id, *(i for r in robots for i in r.layout.ids)}):
-        MarkerTexture(p.dictionary, marker_id).cells  # unknown dictionary or id: SimulationError
+        MarkerTexture(p.dictionary, marker_id).cells  # noqa: B018 (unknown dictionary or id: SimulationError)
     light_world = None
     if p.face_shading > 0:
         azimuth = float(rng_for(p.seed, STREAM_LIGHT).uniform(0.0, 2.0 * math.pi))

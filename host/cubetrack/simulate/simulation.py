@@ -190,7 +190,7 @@ def _frame_jobs(scene: Scene, index: int, captures: tuple[CaptureTruth, ...], mo
         times = np.array([c.capture_host_s for c in delivered])
         gains = gains * auto_exposure_gains(p, times, captures[0].capture_host_s, captures[-1].capture_host_s,
                                             rng_for(p.seed, exposure_stream, index))
-    return [_FrameJob(index, c, float(g), moving, stream) for c, g in zip(delivered, gains)]
+    return [_FrameJob(index, c, float(g), moving, stream) for c, g in zip(delivered, gains, strict=True)]
 
 
 class _FrameMaker:
@@ -264,7 +264,7 @@ def _write_frames(writer: RecordingWriter, scene: Scene, jobs: list[_FrameJob], 
             write(job, make(job), done)
         return
     with ThreadPoolExecutor(max_workers=workers) as pool:
-        for done, (job, jpeg) in enumerate(zip(jobs, pool.map(make, jobs)), start=1):
+        for done, (job, jpeg) in enumerate(zip(jobs, pool.map(make, jobs), strict=True), start=1):
             write(job, jpeg, done)
 
 
