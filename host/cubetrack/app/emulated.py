@@ -38,7 +38,7 @@ class EmulatedCameras:
         self._process: subprocess.Popen | None = None
         self._tmp: tempfile.TemporaryDirectory | None = None
 
-    def __enter__(self) -> "EmulatedCameras":
+    def __enter__(self) -> EmulatedCameras:
         self._tmp = tempfile.TemporaryDirectory(prefix="cubetrack-emulator-")
         ready = Path(self._tmp.name) / "ready.json"
         stderr = open(Path(self._tmp.name) / "stderr.txt", "w+b")
