@@ -14,9 +14,8 @@ import re
 import tomllib
 from pathlib import Path
 
-from cubetrack.io.config import write_toml
-
 from cubecam.errors import CubecamError
+from cubetrack.io.config import write_toml
 
 log = logging.getLogger(__name__)
 

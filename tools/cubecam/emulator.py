@@ -38,7 +38,7 @@ from pathlib import Path
 from cubecam import __version__, mjpeg
 from cubecam.errors import EmulatorError
 from cubecam.replay import CameraTrack, Timeline, jpeg_size, load_images, load_recording
-from cubecam.request import RequestParser, ParseStatus, Route, RouteDecision, route
+from cubecam.request import ParseStatus, RequestParser, Route, RouteDecision, route
 
 log = logging.getLogger(__name__)
 
@@ -80,7 +80,7 @@ class Faults:
     corrupt_kind: str = "jpeg"
     seed: int | None = None
 
-    def check(self) -> "Faults":
+    def check(self) -> Faults:
         def bad(what: str) -> EmulatorError:
             return EmulatorError(what)
 
@@ -134,7 +134,7 @@ class _TokenBucket:
 class _Camera:
     """One emulated node: its listening socket, newest frame and counters."""
 
-    def __init__(self, emu: "Emulator", index: int, track: CameraTrack, address: str, port: int):
+    def __init__(self, emu: Emulator, index: int, track: CameraTrack, address: str, port: int):
         self.emu = emu
         self.index = index
         self.track = track
@@ -208,7 +208,7 @@ class _Camera:
         while not stop.is_set():
             try:
                 conn, _ = self.sock.accept()
-            except (socket.timeout, BlockingIOError):
+            except (TimeoutError, BlockingIOError):
                 continue
             except OSError:
                 if stop.is_set():
@@ -263,7 +263,7 @@ class _Camera:
             conn.settimeout(min(left, 0.25))
             try:
                 data = conn.recv(1024)
-            except socket.timeout:
+            except TimeoutError:
                 continue
             if not data:
                 return None
@@ -430,7 +430,7 @@ class _Camera:
                 try:
                     if conn.recv(4096) == b"":
                         raise _Stopped()  # the client gave up
-                except socket.timeout:
+                except TimeoutError:
                     pass
             raise _Stopped()
         finally:
@@ -519,7 +519,7 @@ class Emulator:
             places = [(host, port + i if port else 0) for i in range(len(tracks))]
             if port and port + len(tracks) - 1 > 65535:
                 raise EmulatorError(f"ports {port}..{port + len(tracks) - 1} run past 65535")
-        self._cameras = [_Camera(self, i, t, a, p) for i, (t, (a, p)) in enumerate(zip(tracks, places))]
+        self._cameras = [_Camera(self, i, t, a, p) for i, (t, (a, p)) in enumerate(zip(tracks, places, strict=True))]
         self._stop = threading.Event()
         self.finished = threading.Event()  # set when a non-looping replay released its last frame
         self._threads: list[threading.Thread] = []
@@ -536,7 +536,7 @@ class Emulator:
 
     # --- lifecycle ---
 
-    def start(self) -> "Emulator":
+    def start(self) -> Emulator:
         if self._start_mono is not None:
             return self
         try:
@@ -580,7 +580,7 @@ class Emulator:
         for t in self._threads:
             t.join(timeout=2.0)
 
-    def __enter__(self) -> "Emulator":
+    def __enter__(self) -> Emulator:
         return self.start()
 
     def __exit__(self, *exc: object) -> None:

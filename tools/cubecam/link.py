@@ -15,8 +15,8 @@ import logging
 import re
 import time
 from collections import Counter, deque
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 from cubecam import improv
 from cubecam.errors import ImprovError, ProvisionError, SerialDeviceError
@@ -96,7 +96,7 @@ class NodeLink:
         self._secrets: set[str] = set()  # sent on this link: never shown again (a board may echo them)
 
     @classmethod
-    def open(cls, device: str, on_log: Callable[[str], None] | None = None) -> "NodeLink":
+    def open(cls, device: str, on_log: Callable[[str], None] | None = None) -> NodeLink:
         return cls(open_serial(device), device, on_log)
 
     def close(self) -> None:
@@ -105,7 +105,7 @@ class NodeLink:
         except Exception:  # closing a vanished port may fail; nothing to do about it
             pass
 
-    def __enter__(self) -> "NodeLink":
+    def __enter__(self) -> NodeLink:
         return self
 
     def __exit__(self, *exc: object) -> None:

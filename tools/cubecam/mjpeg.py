@@ -18,8 +18,9 @@ many bytes instead of scanning for the boundary.
 from __future__ import annotations
 
 import re
+from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import BinaryIO, Iterator
+from typing import BinaryIO
 
 BOUNDARY = "cubecam-mjpeg-boundary"
 PART_DELIMITER = f"\r\n--{BOUNDARY}\r\n".encode("ascii")

@@ -45,8 +45,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def request_from_args(args: argparse.Namespace):
-    from cubecam.provision import ProvisionRequest, read_password
     from cubecam.errors import ProvisionError
+    from cubecam.provision import ProvisionRequest, read_password
 
     if args.open:
         if args.password_file:
