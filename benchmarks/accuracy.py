@@ -492,7 +492,7 @@ class SpeedCase:
             if ids is None:
                 continue
             k, dist = K[frame.camera]
-            for c, marker_id in zip(corners, ids.reshape(-1)):
+            for c, marker_id in zip(corners, ids.reshape(-1), strict=True):
                 obj = objects.get(int(marker_id))
                 if obj is None:
                     continue
@@ -671,12 +671,12 @@ def print_report(report: dict, speed: dict | None, methods: list[str], duration:
         p(f"{'':<18} camera-cube {d[0]:.1f}-{d[2]:.1f} m (median {d[1]:.1f}); calibration error {cal_text}")
         per = " ".join(f"s{sd}: {o['pos_cm']:.2f}/{pm['pos_cm']:.2f}"
                        for sd, o, pm in zip(row["seeds"], row["methods"][OURS]["per_seed"],
-                                            row["methods"][PAPER]["per_seed"]))
+                                            row["methods"][PAPER]["per_seed"], strict=True))
         p(f"{'':<18} per seed, ours/paper-mean cm: {per}")
         eq7 = row["methods"][OURS]
         p(f"{'':<18} ours against the nearest ground-truth sample (eq. 7), worst: {fmt(eq7['pos_cm_eq7'][2], '.2f')} cm / "
           f"{fmt(eq7['rot_deg_eq7'][2], '.2f')}°")
-        for sd, info in zip(row["seeds"], row["refine"]):
+        for sd, info in zip(row["seeds"], row["refine"], strict=True):
             if info is None:
                 continue
             if "error" in info:
@@ -685,7 +685,7 @@ def print_report(report: dict, speed: dict | None, methods: list[str], duration:
                 moved = f", moved: {', '.join(info['moved'])}" if info["moved"] else ""
                 p(f"{'':<18} refine seed {sd}: {info['instants']} instants, {info['seconds']:.0f} s, "
                   f"{len(info['warnings'])} warning(s){moved}")
-        for sd, info in zip(row["seeds"], row["body"]):
+        for sd, info in zip(row["seeds"], row["body"], strict=True):
             if info is not None:
                 worst = info["placement_worst_mm_deg"]
                 (n_mm, n_deg), (c_mm, c_deg) = worst["nominal"], worst["calibrated"]

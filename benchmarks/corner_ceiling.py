@@ -246,7 +246,7 @@ def replaced(sightings: list, corners: dict, sigma_px: float, seed: int, params)
     out = []
     for k, (s, now_s) in enumerate(sightings):
         detections = []
-        for d, (c, _) in zip(s.detections, corners[k]):
+        for d, (c, _) in zip(s.detections, corners[k], strict=True):
             c = d.corners_px if c is None else c
             if sigma_px > 0:
                 c = c + rng.normal(0.0, sigma_px, c.shape)
@@ -336,7 +336,7 @@ def run_rows(scenes: list[dict], label: str, corners_key: str, sigma: float, tun
         grid = [{}]
         if tune:
             names = list(TUNE_GRID)
-            grid += [dict(zip(names, values)) for values in itertools.product(*TUNE_GRID.values())]
+            grid += [dict(zip(names, values, strict=True)) for values in itertools.product(*TUNE_GRID.values())]
         results = []
         for overrides in grid:
             per_scene = [score(replay(new, layouts, sc["params"], overrides), sc["truth"]) for new, layouts, sc in sets]

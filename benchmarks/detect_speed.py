@@ -58,7 +58,7 @@ def naive_frame(jpeg: bytes, detector, K: np.ndarray, dist: np.ndarray, obj: np.
     corners, ids, _rejected = detector.detectMarkers(image)
     out = []
     if ids is not None:
-        for c, marker_id in zip(corners, ids.ravel()):
+        for c, marker_id in zip(corners, ids.ravel(), strict=True):
             _ok, rvec, tvec = cv2.solvePnP(obj, c.reshape(4, 1, 2), K, dist, flags=cv2.SOLVEPNP_IPPE_SQUARE)
             out.append((int(marker_id), c.reshape(4, 2).astype(float), rvec, tvec))
     return out
@@ -151,14 +151,14 @@ def main(argv: list[str] | None = None) -> int:
     print(f"ratio naive/ours (frame-rate ratio, >= 1.0 is the target): {naive_ms / ours_ms:.2f}")
 
     naive_err, ours_err = [], []
-    for f, found, (dets, _est) in zip(frames, results["naive"], results["ours"]):
+    for f, found, (dets, _est) in zip(frames, results["naive"], results["ours"], strict=True):
         truth = true_corners(sim, f.camera, f.seq)
         cube_ids = set(layout.ids)
         naive_err += corner_errors([c for i, c, _r, _t in found if i in cube_ids], truth)
         ours_err += corner_errors([d.corners_px for d in dets if d.marker_id in cube_ids
                                    and d.dictionary == layout.dictionary], truth)
     position_mm = []
-    for f, (_dets, est) in zip(frames, results["ours"]):
+    for f, (_dets, est) in zip(frames, results["ours"], strict=True):
         if est is not None:
             capture = next(c for c in sim.camera(f.camera).captures if c.seq == f.seq)
             position_mm.append(1000.0 * np.linalg.norm(est.T_world_cube[:3, 3]

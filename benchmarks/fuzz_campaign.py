@@ -37,10 +37,10 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
 
 REPO = Path(__file__).resolve().parents[1]
 PY_CORPUS = REPO / "tests" / "corpus"
@@ -175,7 +175,7 @@ def target_http_request(data: bytes) -> None:
 
 def _write_files(folder: Path, names: tuple[str, ...], data: bytes) -> None:
     pieces = data.split(FILE_SEPARATOR)
-    for name, piece in zip(names, pieces + [b""] * len(names)):
+    for name, piece in zip(names, pieces + [b""] * len(names), strict=True):
         (folder / name).parent.mkdir(parents=True, exist_ok=True)
         (folder / name).write_bytes(piece)
 

@@ -69,7 +69,7 @@ def table(title: str, rows: dict[str, tuple], paper: dict[str, tuple], unit: str
     for name, values in rows.items():
         ref = paper.get(name, (None,) * 3)
         cells = "".join(
-            f"{v:>8.2f}{unit} ({r:>5.1f})" if r is not None else f"{v:>8.2f}{unit}        " for v, r in zip(values, ref)
+            f"{v:>8.2f}{unit} ({r:>5.1f})" if r is not None else f"{v:>8.2f}{unit}        " for v, r in zip(values, ref, strict=True)
         )
         lines.append(f"{name:<26}{cells}")
     return "\n".join(lines)

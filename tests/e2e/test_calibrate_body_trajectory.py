@@ -36,7 +36,7 @@ def test_calibrate_body_follows_the_trajectory(scene, tmp_path, monkeypatch, cap
     assert "frames on its continuous-time trajectory" in printed, printed
     truth = read_layout(scene / "true_cube.toml")
     before, after = placement_errors(read_layout(scene / "cube.toml"), truth), placement_errors(read_layout(out), truth)
-    for face, (pos_m, rot_deg, _size_m) in after.items():
+    for face, (_pos_m, rot_deg, _size_m) in after.items():
         assert rot_deg < 0.5 * before[face][1], (face, after[face], before[face])
     assert np.mean([e[0] for e in after.values()]) < 0.5 * np.mean([e[0] for e in before.values()])
 

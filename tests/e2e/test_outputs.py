@@ -20,8 +20,8 @@ import pytest
 REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO / "tests" / "unit" / "sink"))  # the consumers written for the unit tests
 
-from sink_helpers import free_port, open_router, peer  # noqa: E402
 from foxglove_client import LiveClient, decode, read_mcap  # noqa: E402
+from sink_helpers import free_port, open_router, peer  # noqa: E402
 from vrpn_client import TrackerClient  # noqa: E402
 
 from cubetrack.cli.main import main  # noqa: E402
@@ -153,7 +153,7 @@ def test_the_demo_serves_vrpn_ros2_zenoh_foxglove_and_writes_mcap(demo):
     predicted = [[p for p in m.points if p.outline_color.g < 0.9] for m in notes]  # orange, not green
     detected = [[p for p in m.points if p.outline_color.g >= 0.9] for m in notes]
     assert any(predicted) and all(len(p) % 5 == 0 for p in predicted)  # the predicted cube's five markers
-    assert all(len(d) == len(m.texts) for d, m in zip(detected, notes))  # each detected marker with its id
+    assert all(len(d) == len(m.texts) for d, m in zip(detected, notes, strict=True))  # each detected marker with its id
 
 
 def test_the_official_foxglove_client_sees_every_channel_with_a_message_of_each(demo):

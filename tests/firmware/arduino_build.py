@@ -202,7 +202,7 @@ def build_sketch(core: str, workdir: Path, jobs: int = 2) -> tuple[BuildResult, 
         return source, subprocess.run(build.compile_command(source, obj), capture_output=True, text=True)
 
     with ThreadPoolExecutor(max_workers=jobs) as pool:
-        results = list(pool.map(run, zip(sources, objects)))
+        results = list(pool.map(run, zip(sources, objects, strict=True)))
     failed = [f"{s}:\n{r.stderr[-4000:]}" for s, r in results if r.returncode != 0]
     if failed:
         pytest.fail(f"{core}: compile errors\n" + "\n".join(failed))

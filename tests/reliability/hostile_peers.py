@@ -128,7 +128,7 @@ def _accept(kind: str, server: socket.socket) -> None:
     while not stop.is_set():
         try:
             conn, _ = server.accept()
-        except socket.timeout:
+        except TimeoutError:
             continue
         threading.Thread(target=_connection, args=(kind, conn), daemon=True).start()
 

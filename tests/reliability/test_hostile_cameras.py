@@ -7,6 +7,7 @@ the reader's memory stays bounded while gigabytes arrive, and stop() still retur
 
 from __future__ import annotations
 
+import itertools
 import subprocess
 import sys
 import time
@@ -84,11 +85,11 @@ def test_hostile_cameras_never_stall_the_good_one_or_exhaust_memory(peers, tmp_p
     sent = {line.split()[1]: int(line.split()[2]) for line in out.splitlines() if line.startswith("sent ")}
 
     print(f"\nhostile peers: {sum(sent.values()) / 1e9:.2f} GB sent in {WINDOW_S:.0f} s; good camera {len(good_arrivals)} "
-          f"frames, longest gap {max(b - a for a, b in zip(good_arrivals, good_arrivals[1:])):.2f} s; reader peak "
+          f"frames, longest gap {max(b - a for a, b in itertools.pairwise(good_arrivals)):.2f} s; reader peak "
           f"{peak / 1e6:.1f} MB traced; stop() {stop_s:.2f} s")
     # the good camera never stalled
     assert len(good_arrivals) >= 0.5 * FPS * WINDOW_S, (len(good_arrivals), stats["good"])
-    gaps = [b - a for a, b in zip(good_arrivals, good_arrivals[1:])]
+    gaps = [b - a for a, b in itertools.pairwise(good_arrivals)]
     assert max(gaps) < 1.5, max(gaps)
     assert good_clock >= 4
     # no hostile byte became a frame; every misbehaviour was seen for what it is

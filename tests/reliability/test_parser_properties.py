@@ -6,6 +6,7 @@ coverage-guided for millions of inputs; tests/reliability/test_fuzz_corpora.py r
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 import os
@@ -63,7 +64,7 @@ def _remove_scratch():
 
 def split(data: bytes, cuts: list[int]) -> list[bytes]:
     bounds = sorted({0, len(data), *(c % (len(data) + 1) for c in cuts)})
-    return [data[a:b] for a, b in zip(bounds, bounds[1:])]
+    return [data[a:b] for a, b in itertools.pairwise(bounds)]
 
 
 # --- MJPEG parts ---------------------------------------------------------------------------------
@@ -105,7 +106,7 @@ def test_any_stream_of_parts_reads_back_exactly_however_it_is_cut(parts, cuts, l
     got = [part for piece in split(data, cuts) for part in parser.feed(piece)]
     assert [(g.seq, g.device_time_s, g.jpeg) for g in got] == [
         (p["seq"], float(mjpeg.format_timestamp(p["micros"])), p["jpeg"]) for p in parts]
-    for g, p in zip(got, parts):
+    for g, p in zip(got, parts, strict=True):
         assert {k: g.headers[k] for k in p["extra"]} == {k: v.strip() for k, v in p["extra"].items()}
     parser.close()
     assert not parser.bad
@@ -226,11 +227,11 @@ def test_a_recording_reads_back_what_was_written(rows, samples):
     rec = Recording.open(folder)
     got = list(rec.frames("cam"))
     assert [f.seq for f in got] == [r[0] for r in rows]
-    assert all(abs(f.device_time_s - r[1]) <= 1e-6 and abs(f.host_time_s - r[2]) <= 1e-6 for f, r in zip(got, rows))
+    assert all(abs(f.device_time_s - r[1]) <= 1e-6 and abs(f.host_time_s - r[2]) <= 1e-6 for f, r in zip(got, rows, strict=True))
     assert [f.jpeg for f in got] == [SOI + bytes([r[0] % 256]) + EOI for r in rows]
     back = rec.clock_samples("cam")
     assert len(back) == len(samples) and all(
-        abs(a - b) <= 1e-6 for s, t in zip(back, samples) for a, b in zip((s.host_send_s, s.device_time_s, s.host_recv_s), t))
+        abs(a - b) <= 1e-6 for s, t in zip(back, samples, strict=True) for a, b in zip((s.host_send_s, s.device_time_s, s.host_recv_s), t, strict=True))
     assert not rec.skipped
 
 

@@ -57,7 +57,7 @@ class FakeBoard:
         self.path = os.ttyname(self.slave)
         self._thread = threading.Thread(target=self._run, daemon=True, name="fakeboard")
 
-    def __enter__(self) -> "FakeBoard":
+    def __enter__(self) -> FakeBoard:
         self._booted_at = time.monotonic() + self.boot_delay_s
         self._thread.start()
         return self

@@ -10,12 +10,12 @@ import time
 from pathlib import Path
 
 import pytest
+from fakeboard import FakeBoard
+from toolcheck import CUBECAM, REPO, assert_one_line_error, run_cubecam
 
 from cubecam import boards
 from cubecam.cli import COMMANDS, main
 from cubecam.testdata import CameraSpec, write_recording
-from fakeboard import FakeBoard
-from toolcheck import CUBECAM, REPO, assert_one_line_error, run_cubecam
 
 
 def test_top_level_help_lists_every_command():

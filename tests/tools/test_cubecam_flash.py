@@ -16,12 +16,12 @@ import sys
 from pathlib import Path
 
 import pytest
+from fakeboard import FakeBoard
+from toolcheck import REPO, assert_one_line_error, run_cubecam
 
 from cubecam import boards
 from cubecam.cli import main
 from cubecam.flash import FQBN, GS2200_GIT_URL, PACKAGE_INDEX_URL
-from fakeboard import FakeBoard
-from toolcheck import REPO, assert_one_line_error, run_cubecam
 
 PIO = shutil.which("pio") or str(Path(sys.executable).parent / "pio")
 VENDOR_CORE = REPO.parent / "shared" / "vendor" / "spresense" / "core-3.4.4"

@@ -30,7 +30,7 @@ def test_layout_toml_round_trip(tmp_path):
     write_layout(layout, tmp_path / "cube.toml")
     back = read_layout(tmp_path / "cube.toml")
     assert [m.face for m in back.markers] == list(FACES)
-    for a, b in zip(layout.markers, back.markers):
+    for a, b in zip(layout.markers, back.markers, strict=True):
         np.testing.assert_allclose(a.T_cube_marker, b.T_cube_marker, atol=1e-9)
 
 

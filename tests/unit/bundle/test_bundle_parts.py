@@ -98,8 +98,8 @@ class Scene:
 
 
 def _pose_errors(Ts, Ts_true):
-    return (max(np.linalg.norm(T[:3, 3] - U[:3, 3]) for T, U in zip(Ts, Ts_true)),
-            max(rotation_angle(T[:3, :3], U[:3, :3], "deg") for T, U in zip(Ts, Ts_true)))
+    return (max(np.linalg.norm(T[:3, 3] - U[:3, 3]) for T, U in zip(Ts, Ts_true, strict=True)),
+            max(rotation_angle(T[:3, :3], U[:3, :3], "deg") for T, U in zip(Ts, Ts_true, strict=True)))
 
 
 def test_project_jacobian_matches_finite_differences():

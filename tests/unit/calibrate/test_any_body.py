@@ -35,7 +35,7 @@ def crate() -> CubeLayout:
 def body_solid(layout: CubeLayout, T_world_body: np.ndarray) -> Solid:
     faces, decals = [], []
     half = np.array(SIZE) / 2
-    for m, name in zip(layout.markers, layout.marker_dictionaries):
+    for m, name in zip(layout.markers, layout.marker_dictionaries, strict=True):
         T = T_world_body @ m.T_cube_marker
         axis = int(np.argmax(np.abs(m.T_cube_marker[:3, 2])))
         in_plane = np.abs(m.T_cube_marker[:3, :2]).T @ (2 * half)  # the face's extent along the marker's x, y
@@ -82,7 +82,7 @@ def test_the_tracker_stages_estimate_a_crate_of_two_dictionaries(yaw_deg):
         assert (layout.marker_dictionaries[match.marker], marker.marker_id) == (match.detection.dictionary,
                                                                                 match.detection.marker_id)
     seen_as = [np.linalg.inv(T_world_cam) @ T_world_body @ m.T_cube_marker for m in layout.markers]
-    facing = {m.face for m, T in zip(layout.markers, seen_as) if T[:3, 2] @ T[:3, 3] / np.linalg.norm(T[:3, 3]) < -0.5}
+    facing = {m.face for m, T in zip(layout.markers, seen_as, strict=True) if T[:3, 2] @ T[:3, 3] / np.linalg.norm(T[:3, 3]) < -0.5}
     assert {m.face for m in matches} == facing  # every face seen within 60 deg of head-on
     est = estimate_cube(detections, layout, LENS, T_world_cam, camera="c", robot="crate", seq=0,
                         capture_time_s=0.0, arrival_time_s=0.0)

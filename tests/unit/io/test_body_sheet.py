@@ -58,7 +58,7 @@ def decoded(svg: str, dictionaries) -> dict[tuple[str, int], np.ndarray]:
         params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
         detector = cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name)), params)
         corners, ids, _ = detector.detectMarkers(image)
-        for c, i in zip(corners, [] if ids is None else ids.ravel()):
+        for c, i in zip(corners, [] if ids is None else ids.ravel(), strict=True):
             out[(name, int(i))] = c.reshape(4, 2) * 25.4 / DPI  # pixel centres -> mm (offset below)
     return out
 
@@ -72,8 +72,8 @@ def check_sheet(svg: str, layout: CubeLayout) -> None:
     OpenCV decodes it in the raster, corner for corner where the SVG put it."""
     drawn = markers_in(svg)
     assert sorted((d["dictionary"], d["id"]) for d in drawn) == sorted(
-        (name, m.marker_id) for name, m in zip(layout.marker_dictionaries, layout.markers))
-    for d, m in zip(drawn, layout.markers):
+        (name, m.marker_id) for name, m in zip(layout.marker_dictionaries, layout.markers, strict=True))
+    for d, m in zip(drawn, layout.markers, strict=True):
         sides = np.linalg.norm(np.roll(d["mm"], -1, axis=0) - d["mm"], axis=1)
         assert np.allclose(sides, 1000 * m.size_m, atol=1e-6), (m.face, sides)
         diagonals = np.linalg.norm(d["mm"][2] - d["mm"][0]), np.linalg.norm(d["mm"][3] - d["mm"][1])
@@ -157,7 +157,7 @@ def test_make_body_cli_writes_the_sheet_and_a_layout_that_reads_back(tmp_path, m
     assert [(m.face, m.marker_id, m.size_m) for m in layout.markers] == [
         (m.face, m.marker_id, m.size_m) for m in expected.markers]
     assert [m.size_m for m in layout.markers] == [0.15, 0.112, 0.112, 0.112, 0.112]
-    for a, b in zip(layout.markers, expected.markers):
+    for a, b in zip(layout.markers, expected.markers, strict=True):
         assert np.allclose(a.T_cube_marker, b.T_cube_marker, atol=1e-9)
     check_sheet(out.with_suffix(".svg").read_text(), layout)
     assert out.with_suffix(".pdf").read_bytes().startswith(b"%PDF")

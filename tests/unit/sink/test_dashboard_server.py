@@ -177,7 +177,7 @@ def test_the_tile_jpeg_is_scaled_down_with_the_overlay_drawn(server, rendered):
 
     def edge_points(quads):
         quads = np.asarray(quads, float)
-        return [a + t * (b - a) for q in quads for a, b in zip(q, np.roll(q, -1, axis=0)) for t in (0.3, 0.7)]
+        return [a + t * (b - a) for q in quads for a, b in zip(q, np.roll(q, -1, axis=0), strict=True) for t in (0.3, 0.7)]
 
     green = lambda p: p[1] > 150 and p[1] - max(p[0], p[2]) > 60
     orange = lambda p: p[2] > 150 and p[2] - p[0] > 90

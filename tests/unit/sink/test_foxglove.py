@@ -7,8 +7,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from sink_helpers import INTRINSICS, tracked
 from foxglove_client import LiveClient, read_mcap
+from sink_helpers import INTRINSICS, tracked
 
 from cubetrack.core.records import CameraHealth, CameraView, Detection
 from cubetrack.sink.base import OutputError

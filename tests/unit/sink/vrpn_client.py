@@ -58,7 +58,7 @@ def connect(port: int, mode: str = "lob", rcvbuf: int | None = None, timeout_s: 
                 sock, _ = listener.accept()
                 sock.settimeout(timeout_s)
                 return sock
-            except socket.timeout:
+            except TimeoutError:
                 continue
         raise TimeoutError("the VRPN server never called back")
     finally:

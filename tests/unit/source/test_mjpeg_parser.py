@@ -3,6 +3,8 @@ every way a part can be broken, and arbitrary splits of the stream into reads.""
 
 from __future__ import annotations
 
+import itertools
+
 import cv2
 import numpy as np
 import pytest
@@ -187,7 +189,7 @@ def test_any_split_into_reads_gives_the_same_parts(cuts):
     bounds = sorted(set([0, len(data), *cuts]))
     parser = MjpegParser(B)
     parts = []
-    for a, b in zip(bounds, bounds[1:]):
+    for a, b in itertools.pairwise(bounds):
         parts += parser.feed(data[a:b])
     assert [p.seq for p in parts] == [10, 11, 12, 13] and not parser.bad
 
