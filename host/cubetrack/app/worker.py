@@ -200,7 +200,8 @@ def chosen_cameras(config: TrackerConfig, cameras: Sequence[str]) -> list[str]:
     known = [c.name for c in config.cameras]
     unknown = [c for c in cameras if c not in known]
     if unknown:
-        raise ConfigError(f"{config.path}: no camera {', '.join(unknown)} (the config has {', '.join(known) or 'none'})")
+        raise ConfigError(f"{config.path}: no camera {', '.join(unknown)} (the config has "
+                          f"{', '.join(known) or 'none'})")
     return list(cameras) or known
 
 
