@@ -119,7 +119,8 @@ def moved_layout(layout: CubeLayout, T_new_old: np.ndarray) -> CubeLayout:
 def _check_same_markers(a: CubeLayout, b: CubeLayout, what: str) -> None:
     if [(m.face, m.marker_id) for m in a.markers] != [(m.face, m.marker_id) for m in b.markers]:
         raise CalibrationError(f"{what} has other markers (faces and ids) than the layout: "
-                               f"{[(m.face, m.marker_id) for m in b.markers]} vs {[(m.face, m.marker_id) for m in a.markers]}")
+                               f"{[(m.face, m.marker_id) for m in b.markers]} vs "
+                               f"{[(m.face, m.marker_id) for m in a.markers]}")
 
 
 def placement_errors(layout: CubeLayout, truth: CubeLayout, aligned: bool = True

@@ -100,41 +100,77 @@ METHOD = "refined"  # CameraExtrinsics.method of a camera after bundle adjustmen
 class BundleAdjustmentParams:
     """The ``[bundle_adjustment]`` section: how :func:`adjust_extrinsics` selects observations and solves."""
 
-    max_span_s: float = param(0.1, "frames of different cameras whose capture times (host clock) lie within this many seconds form one instant")
+    max_span_s: float = param(0.1, "frames of different cameras whose capture times (host clock) lie within this many "
+                                   "seconds form one instant")
     min_cameras: int = param(2, "an instant needs cube corners from at least this many cameras")
     max_instants: int = param(400, "at most this many instants are used (evenly spread over the recording)")
     corner_noise_px: float = param(0.5, "cube corner noise (1 sigma), pixels")
     world_corner_noise_px: float = param(0.5, "noise (1 sigma) of the world marker's averaged corners, pixels")
     f_scale_px: float = param(1.5, "residuals beyond this are down-weighted (soft-L1 loss), pixels")
-    association_gate_px: float = param(12.0, "a detection joins a cube face if its corners lie within this many pixels (or half a marker side) of the predicted face")
-    velocity_window_s: float = param(0.3, "velocities of an instant are fitted to the instants within this many seconds")
-    moved_position_m: float = param(0.02, "a camera whose cube-consensus pose is farther than this from its calibration has moved, metres")
+    association_gate_px: float = param(12.0, "a detection joins a cube face if its corners lie within this many pixels "
+                                             "(or half a marker side) of the predicted face")
+    velocity_window_s: float = param(0.3, "velocities of an instant are fitted to the instants within "
+                                          "this many seconds")
+    moved_position_m: float = param(0.02, "a camera whose cube-consensus pose is farther than this from its "
+                                          "calibration has moved, metres")
     moved_rotation_deg: float = param(0.5, "... or turned by more than this, degrees")
-    gauge_prior_position_m: float = param(0.1, "relative solve: weak prior on each camera's position (holds the gauge), metres")
+    gauge_prior_position_m: float = param(0.1, "relative solve: weak prior on each camera's position (holds "
+                                               "the gauge), metres")
     gauge_prior_rotation_deg: float = param(3.0, "relative solve: weak prior on each camera's rotation, degrees")
-    planar_motion: bool = param(True, "each robot's cube stays at one height above the floor the world marker lies on (ground robots, level floor): fixes the world frame's tilt far better than one marker; false for robots that climb")
+    planar_motion: bool = param(True, "each robot's cube stays at one height above the floor the world marker lies on "
+                                      "(ground robots, level floor): fixes the world frame's tilt far better than one "
+                                      "marker; false for robots that climb")
     height_sigma_m: float = param(0.002, "planar motion: spread (1 sigma) of the cube's height along the path, metres")
-    upright_sigma_deg: float = param(1.0, "spread (1 sigma) of each cube's tilt from world up (ground robots: the estimator's upright prior); 0 = no such prior, degrees")
-    free_cube_scale: bool = param(False, "absolute solves: estimate each cube's scale too, so the world marker sets the scale (measured worse on simulations: the obliquely seen marker's scale is less sure than the cube's): a corner bias of 0.01 px on a 20 px cube marker changes its apparent size by 0.1 %, which moves every camera radially by 2 mm")
-    world_samples: int = param(60, "world-marker sightings averaged per camera of the calibration recording (the first N found)")
+    upright_sigma_deg: float = param(1.0, "spread (1 sigma) of each cube's tilt from world up (ground robots: the "
+                                          "estimator's upright prior); 0 = no such prior, degrees")
+    free_cube_scale: bool = param(False, "absolute solves: estimate each cube's scale too, so the world marker sets "
+                                         "the scale (measured worse on simulations: the obliquely seen marker's scale "
+                                         "is less sure than the cube's): a corner bias of 0.01 px on a 20 px cube "
+                                         "marker changes its apparent size by 0.1 %, which moves every camera "
+                                         "radially by 2 mm")
+    world_samples: int = param(60, "world-marker sightings averaged per camera of the calibration recording "
+                                   "(the first N found)")
     rounds: int = param(2, "absolute solves, each after re-matching faces and re-estimating velocities")
     max_nfev: int = param(60, "function evaluations per least-squares solve")
-    refine_intrinsics: bool = param(False, "absolute solves: refine each camera's focal lengths, principal point, k1 and k2 too, held near its camera_info by the intrinsics_* sigmas")
-    intrinsics_focal_sigma: float = param(0.005, "refined intrinsics: the camera_info focal lengths' uncertainty (1 sigma), relative")
-    intrinsics_principal_sigma_px: float = param(4.0, "refined intrinsics: the camera_info principal point's uncertainty (1 sigma), pixels")
+    refine_intrinsics: bool = param(False, "absolute solves: refine each camera's focal lengths, principal point, k1 "
+                                           "and k2 too, held near its camera_info by the intrinsics_* sigmas")
+    intrinsics_focal_sigma: float = param(0.005, "refined intrinsics: the camera_info focal lengths' uncertainty (1 "
+                                                 "sigma), relative")
+    intrinsics_principal_sigma_px: float = param(4.0, "refined intrinsics: the camera_info principal point's "
+                                                      "uncertainty (1 sigma), pixels")
     intrinsics_k1_sigma: float = param(0.01, "refined intrinsics: the camera_info k1's uncertainty (1 sigma)")
     intrinsics_k2_sigma: float = param(0.03, "refined intrinsics: the camera_info k2's uncertainty (1 sigma)")
-    body_position_sigma_m: float = param(0.003, "calibrate-body: how far a marker may be from its nominal place (1 sigma), metres")
-    body_rotation_sigma_deg: float = param(2.0, "calibrate-body: how far a marker may be turned from its nominal pose (1 sigma), degrees")
-    body_size_sigma: float = param(0.02, "calibrate-body: a marker's printed size against its nominal size (1 sigma), relative")
-    body_camera_sigma_m: float = param(0.01, "calibrate-body: cameras are refined too, held near the given extrinsics with this position sigma, metres")
+    body_position_sigma_m: float = param(0.003, "calibrate-body: how far a marker may be from its nominal place "
+                                                "(1 sigma), metres")
+    body_rotation_sigma_deg: float = param(2.0, "calibrate-body: how far a marker may be turned from its nominal pose "
+                                                "(1 sigma), degrees")
+    body_size_sigma: float = param(0.02, "calibrate-body: a marker's printed size against its nominal size (1 "
+                                         "sigma), relative")
+    body_camera_sigma_m: float = param(0.01, "calibrate-body: cameras are refined too, held near the given extrinsics "
+                                             "with this position sigma, metres")
     body_camera_sigma_deg: float = param(0.3, "calibrate-body: ... and this rotation sigma, degrees")
-    body_max_span_s: float = param(0.08, "calibrate-body: max_span_s of the body calibration's instants (shorter: the body's motion between the frames of an instant is modelled as constant velocity, which misses sharp turns and vibration; measured in docs/calibration.md)")
-    body_motion_noise_px_per_s: float = param(25.0, "calibrate-body: a corner's noise grows by this many pixels per second of its frame's time from its instant (the constant-velocity motion between an instant's frames misses turns and vibration; 0 = not at all)")
-    body_knot_s: float = param(0.05, "calibrate-body: the body's pose is a continuous-time trajectory with knots this many seconds apart (each corner at the pose interpolated to its row's time, the knots tied by the body_accel sigmas; measured in docs/calibration.md); 0 = one pose per instant moved with a fitted velocity (body_motion_noise_px_per_s applies only then)")
-    body_accel_sigma_m_s2: float = param(10.0, "calibrate-body trajectory: the body's acceleration between knots (1 sigma of the knots' second difference over the squared spacing), m/s^2")
-    body_angular_accel_sigma_rad_s2: float = param(100.0, "calibrate-body trajectory: the body's angular acceleration between knots (1 sigma), rad/s^2 (the robot's wobble reaches tens)")
-    body_edge_corners: bool = param(True, "calibrate-body: re-measure the body's marker corners by the calibration's edge fit (as the world marker's) and then by fitting each marker's whole image (cubetrack.calib.marker_fit; about 70 ms per marker seen, docs/calibration.md has the measured errors)")
+    body_max_span_s: float = param(0.08, "calibrate-body: max_span_s of the body calibration's instants (shorter: the "
+                                         "body's motion between the frames of an instant is modelled as constant "
+                                         "velocity, which misses sharp turns and vibration; measured in "
+                                         "docs/calibration.md)")
+    body_motion_noise_px_per_s: float = param(25.0, "calibrate-body: a corner's noise grows by this many pixels per "
+                                                    "second of its frame's time from its instant (the "
+                                                    "constant-velocity motion between an instant's frames misses turns "
+                                                    "and vibration; 0 = not at all)")
+    body_knot_s: float = param(0.05, "calibrate-body: the body's pose is a continuous-time trajectory with knots this "
+                                     "many seconds apart (each corner at the pose interpolated to its row's time, the "
+                                     "knots tied by the body_accel sigmas; measured in docs/calibration.md); 0 = one "
+                                     "pose per instant moved with a fitted velocity (body_motion_noise_px_per_s "
+                                     "applies only then)")
+    body_accel_sigma_m_s2: float = param(10.0, "calibrate-body trajectory: the body's acceleration between knots (1 "
+                                               "sigma of the knots' second difference over the squared spacing), m/s^2")
+    body_angular_accel_sigma_rad_s2: float = param(100.0, "calibrate-body trajectory: the body's angular acceleration "
+                                                          "between knots (1 sigma), rad/s^2 (the robot's "
+                                                          "wobble reaches tens)")
+    body_edge_corners: bool = param(True, "calibrate-body: re-measure the body's marker corners by the calibration's "
+                                          "edge fit (as the world marker's) and then by fitting each marker's whole "
+                                          "image (cubetrack.calib.marker_fit; about 70 ms per marker seen, "
+                                          "docs/calibration.md has the measured errors)")
 
     def __post_init__(self) -> None:
         check_positive(self, "max_span_s", "corner_noise_px", "world_corner_noise_px", "f_scale_px",
