@@ -97,7 +97,8 @@ def _keys(table: Any, where: str, allowed: set[str]) -> dict:
         raise ConfigError(f"{where} must be a table")
     unknown = set(table) - allowed
     if unknown:
-        raise ConfigError(f"{where} has unknown key(s) {', '.join(sorted(unknown))}; known: {', '.join(sorted(allowed))}")
+        raise ConfigError(f"{where} has unknown key(s) {', '.join(sorted(unknown))}; known: "
+                          f"{', '.join(sorted(allowed))}")
     return table
 
 
@@ -117,7 +118,8 @@ def _world(table: Any, where: str) -> WorldConfig:
         w = f"{where}: world.markers[{i}]"
         row = _keys(row, w, {"id", "size", "dictionary", "position", "quaternion_xyzw"})
         if "id" not in row or "position" not in row:
-            raise ConfigError(f"{w} needs an id and a position (and quaternion_xyzw unless it lies flat like the world marker)")
+            raise ConfigError(f"{w} needs an id and a position (and quaternion_xyzw unless it lies flat like "
+                              "the world marker)")
         markers.append(WorldMarker(_count(row["id"], w, "id"), _number(row.get("size", size), w, "size (metres)"),
                                    _pose(row, w), _dictionary(row, w, dictionary)))
     board = None
