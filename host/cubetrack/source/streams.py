@@ -53,13 +53,17 @@ _EOI = b"\xff\xd9"
 class SourceParams:
     """The ``[source]`` section of the tracker config: how live cameras are read."""
 
-    connect_timeout_s: float = param(2.0, "a camera that does not accept the connection within this is retried, seconds")
+    connect_timeout_s: float = param(2.0, "a camera that does not accept the connection within this is "
+                                          "retried, seconds")
     read_timeout_s: float = param(3.0, "a stream that sends nothing for this long is dropped and reconnected, seconds")
-    backoff_initial_s: float = param(0.25, "first wait before reconnecting a lost stream, seconds (doubles per failure)")
+    backoff_initial_s: float = param(0.25, "first wait before reconnecting a lost stream, seconds "
+                                           "(doubles per failure)")
     backoff_max_s: float = param(5.0, "longest wait between reconnection attempts, seconds")
     clock_period_s: float = param(1.0, "interval between /time round trips per camera, seconds")
     clock_timeout_s: float = param(0.5, "a /time round trip not answered within this is dropped, seconds")
-    frames_per_camera: int = param(1, "frames of one camera waiting for the consumer; a newer frame pushes the oldest out (dropped, counted): when the host is behind, only the freshest frames are processed")
+    frames_per_camera: int = param(1, "frames of one camera waiting for the consumer; a newer frame pushes the oldest "
+                                      "out (dropped, counted): when the host is behind, only the freshest "
+                                      "frames are processed")
     max_header_bytes: int = param(2048, "a part whose headers are longer than this is skipped, bytes")
     max_part_bytes: int = param(4 * 1024 * 1024, "a part whose JPEG is larger than this is skipped, bytes")
     read_chunk_bytes: int = param(65536, "largest single socket read, bytes")
