@@ -243,7 +243,8 @@ class NodeLink:
         self.send_rpc(improv.Command.GET_DEVICE_INFO)
         frame = self.wait_frame(_result_or_error(improv.Command.GET_DEVICE_INFO), time.monotonic() + timeout_s)
         if frame is None:
-            raise SerialDeviceError(f"{self.device}: no answer to Improv device info in {timeout_s:g} s ({self._heard()})")
+            raise SerialDeviceError(f"{self.device}: no answer to Improv device info in {timeout_s:g} s "
+                                    f"({self._heard()})")
         if frame.type == improv.FrameType.ERROR_STATE:
             raise ProvisionError(f"{self.device}: device info refused: {_error_text(frame)}")
         strings = _decode_result(frame, self.device)
@@ -258,7 +259,8 @@ class NodeLink:
         while True:
             frame = self.wait_frame(_result_or_error(improv.Command.GET_WIFI_NETWORKS), deadline)
             if frame is None:
-                raise SerialDeviceError(f"{self.device}: Wi-Fi scan did not finish in {timeout_s:g} s ({self._heard()})")
+                raise SerialDeviceError(f"{self.device}: Wi-Fi scan did not finish in {timeout_s:g} s "
+                                        f"({self._heard()})")
             if frame.type == improv.FrameType.ERROR_STATE:
                 raise ProvisionError(f"{self.device}: scan refused: {_error_text(frame)}")
             strings = _decode_result(frame, self.device)

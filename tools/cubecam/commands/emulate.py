@@ -59,7 +59,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--addresses", metavar="LIST",
                    help="one address per camera, all on --port: a comma list (127.0.0.11,127.0.0.12) "
                         "or 'auto' (--bind, then the next addresses)")
-    p.add_argument("--loop", action="store_true", help="start over after the last frame (clocks and frame numbers keep counting)")
+    p.add_argument("--loop", action="store_true", help="start over after the last frame (clocks and frame "
+                                                       "numbers keep counting)")
     p.add_argument("--exit-at-end", action="store_true", help="stop after the last frame (without --loop)")
     p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
     p.add_argument("--ready-file", metavar="FILE",

@@ -35,7 +35,8 @@ def add_provision_options(p: argparse.ArgumentParser, ssid_required: bool) -> No
     p.add_argument("--config", metavar="CFG", help="tracker config TOML to add the camera to (created if missing)")
     p.add_argument("--boot-timeout", type=float, default=15.0, metavar="S", help="wait this long for the node to answer (default 15)")
     p.add_argument("--join-timeout", type=float, default=45.0, metavar="S", help="wait this long for it to join (default 45)")
-    p.add_argument("--reboot", action="store_true", help="reboot the node afterwards and check it comes back provisioned")
+    p.add_argument("--reboot", action="store_true", help="reboot the node afterwards and check it comes "
+                                                         "back provisioned")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
