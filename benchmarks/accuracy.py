@@ -674,8 +674,8 @@ def print_report(report: dict, speed: dict | None, methods: list[str], duration:
                                             row["methods"][PAPER]["per_seed"], strict=True))
         p(f"{'':<18} per seed, ours/paper-mean cm: {per}")
         eq7 = row["methods"][OURS]
-        p(f"{'':<18} ours against the nearest ground-truth sample (eq. 7), worst: {fmt(eq7['pos_cm_eq7'][2], '.2f')} cm / "
-          f"{fmt(eq7['rot_deg_eq7'][2], '.2f')}°")
+        p(f"{'':<18} ours against the nearest ground-truth sample (eq. 7), worst: "
+          f"{fmt(eq7['pos_cm_eq7'][2], '.2f')} cm / {fmt(eq7['rot_deg_eq7'][2], '.2f')}°")
         for sd, info in zip(row["seeds"], row["refine"], strict=True):
             if info is None:
                 continue
@@ -745,7 +745,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--body-drive", type=float, default=60.0, help="seconds of driving that --body calibrates the body "
                     "from (default 60)")
     ap.add_argument("--lag", type=float, default=0.0, metavar="S", help="also report ours with [filter] "
-                    "smooth_lag_s = S (each pose smoothed over the next S seconds of sightings, as live; default 0: not)")
+                    "smooth_lag_s = S (each pose smoothed over the next S seconds of sightings, as "
+                    "live; default 0: not)")
     ap.add_argument("--template", action="store_true", help="also report ours with [detector] corner_refinement = "
                     "template (and, with --body, the calibrated body, template corners and a filter that trusts them)")
     ap.add_argument("--speed-rounds", type=int, default=None, help="interleaved speed rounds (default 5; "

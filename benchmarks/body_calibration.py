@@ -196,7 +196,8 @@ def main(argv: list[str] | None = None) -> int:
         for seed, what, (pmax, rmax, pmean, rmean), cpu in rows:
             print(f"{seed:>4}  {what:22s} {pmax:7.2f} {rmax:8.3f} {pmean:8.2f} {rmean:9.3f} {cpu:6.0f}")
     print(f"load average at the end {' '.join(f'{x:.1f}' for x in os.getloadavg())}")
-    print(f"target (every marker within {TARGET_MM} mm and {TARGET_DEG} deg, every seed): {'met' if met else 'NOT met'}")
+    print(f"target (every marker within {TARGET_MM} mm and {TARGET_DEG} deg, every seed): "
+          f"{'met' if met else 'NOT met'}")
     return 0
 
 

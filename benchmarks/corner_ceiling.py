@@ -364,14 +364,15 @@ def print_report(report: dict) -> None:
         t = report["template_cpu_ms"]
         print(f"\ntemplate fit CPU per marker: median {t['median']:.1f} ms, mean {t['mean']:.1f} ms, "
               f"p90 {t['p90']:.1f} ms over {t['markers']} markers ({t['failed']} failed, edge corners kept)")
-    print("\n| corners | sigma px | layout | rotation | roll/pitch | yaw | position cm | tuned: rotation / roll-pitch / yaw | tuned setting |")
+    print("\n| corners | sigma px | layout | rotation | roll/pitch | yaw | position cm | tuned: rotation / roll-pitch "
+          "/ yaw | tuned setting |")
     print("| --- | --- | --- | --- | --- | --- | --- | --- | --- |")
     for r in report["rows"]:
         d, t = r["default"]["mean"], r["tuned"]["mean"]
         setting = ", ".join(f"{k} {v:g}" for k, v in r["tuned"]["setting"].items()) or "defaults"
-        print(f"| {r['corners']} | {r['sigma_px']:g} | {r['layout']} | {d['rot_deg']:.3f}° | {d['rollpitch_deg']:.3f}° | "
-              f"{d['yaw_deg']:.3f}° | {d['pos_cm']:.3f} | {t['rot_deg']:.3f}° / {t['rollpitch_deg']:.3f}° / "
-              f"{t['yaw_deg']:.3f}° | {setting} |")
+        print(f"| {r['corners']} | {r['sigma_px']:g} | {r['layout']} | {d['rot_deg']:.3f}° | "
+              f"{d['rollpitch_deg']:.3f}° | {d['yaw_deg']:.3f}° | {d['pos_cm']:.3f} | {t['rot_deg']:.3f}° / "
+              f"{t['rollpitch_deg']:.3f}° / {t['yaw_deg']:.3f}° | {setting} |")
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:

@@ -372,8 +372,9 @@ def stage_costs(args: argparse.Namespace) -> int:
         per_call = float(np.median(times)) / len(recorded)
         print(f"  {key:<40} {len(recorded) / micro_frames:6.2f} calls/frame {per_call * 1e6:8.1f} us/call "
               f"{per_call * len(recorded) / micro_frames * 1000.0:7.3f} ms/frame")
-    print(f"poses: {len(poses)}; replay {'bit-identical across rounds' if len(digests) == 1 else 'DIFFERS across rounds'}"
-          f" (sha256 {min(digests)[:16]})")
+    print(f"poses: {len(poses)}; replay "
+          f"{'bit-identical across rounds' if len(digests) == 1 else 'DIFFERS across rounds'} (sha256 "
+          f"{min(digests)[:16]})")
     return 0 if len(digests) == 1 else 1
 
 

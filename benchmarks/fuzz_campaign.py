@@ -495,7 +495,8 @@ def build_firmware_fuzzers(build_dir: Path, jobs: int) -> dict[str, Path]:
     result = subprocess.run(["make", "-C", str(FIRMWARE_DIR), f"-j{jobs}", f"BUILD={build_dir}", "fuzz"],
                             capture_output=True, text=True)
     if result.returncode != 0:
-        raise SystemExit(f"fuzz_campaign: make -C firmware fuzz failed:\n{result.stdout[-3000:]}{result.stderr[-3000:]}")
+        raise SystemExit("fuzz_campaign: make -C firmware fuzz "
+                         f"failed:\n{result.stdout[-3000:]}{result.stderr[-3000:]}")
     return firmware_fuzzers(build_dir)
 
 
@@ -694,7 +695,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--max-seconds", type=int, metavar="S", help="stop each target after S seconds as well")
     p.add_argument("--build-dir", type=Path, default=FIRMWARE_DIR / "build", metavar="DIR",
                    help="where make builds the firmware fuzzers (default firmware/build)")
-    p.add_argument("--work", type=Path, metavar="DIR", help="working corpora and logs (default: a new temporary folder)")
+    p.add_argument("--work", type=Path, metavar="DIR", help="working corpora and logs (default: a new "
+                                                            "temporary folder)")
     p.add_argument("--save", action="store_true", help="merge new coverage and crash inputs into the saved corpora")
     p.add_argument("--replay", action="store_true", help="only run every saved input once (what CI does)")
     p.add_argument("--seed", action="store_true", help="add the seed inputs to the saved corpora and exit")

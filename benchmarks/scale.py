@@ -215,9 +215,10 @@ def main(argv: list[str] | None = None) -> int:
     rate = args.target_cameras * args.fps
     per_message_s = fuse_s + t["cpu_per_message_s"] - decode_s
     mean_bytes = statistics.mean(len(m) for m in messages)
-    print(f"{args.target_cameras} cameras x {args.fps:g} fps: {rate:.0f} messages/s, {rate * mean_bytes / 1e6:.2f} MB/s "
-          f"of sightings; one fusion process needs {rate * per_message_s:.2f} cores "
-          f"(ceiling {1 / per_message_s:.0f} messages/s = {1 / per_message_s / args.fps:.0f} cameras at {args.fps:g} fps)")
+    print(f"{args.target_cameras} cameras x {args.fps:g} fps: {rate:.0f} messages/s, "
+          f"{rate * mean_bytes / 1e6:.2f} MB/s of sightings; one fusion process needs {rate * per_message_s:.2f} cores "
+          f"(ceiling {1 / per_message_s:.0f} messages/s = {1 / per_message_s / args.fps:.0f} cameras at "
+          f"{args.fps:g} fps)")
     tmp.cleanup()
     return 0
 

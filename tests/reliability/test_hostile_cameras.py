@@ -84,9 +84,10 @@ def test_hostile_cameras_never_stall_the_good_one_or_exhaust_memory(peers, tmp_p
     out, _ = proc.communicate(timeout=10)
     sent = {line.split()[1]: int(line.split()[2]) for line in out.splitlines() if line.startswith("sent ")}
 
-    print(f"\nhostile peers: {sum(sent.values()) / 1e9:.2f} GB sent in {WINDOW_S:.0f} s; good camera {len(good_arrivals)} "
-          f"frames, longest gap {max(b - a for a, b in itertools.pairwise(good_arrivals)):.2f} s; reader peak "
-          f"{peak / 1e6:.1f} MB traced; stop() {stop_s:.2f} s")
+    print(f"\nhostile peers: {sum(sent.values()) / 1e9:.2f} GB sent in {WINDOW_S:.0f} s; good camera "
+          f"{len(good_arrivals)} frames, longest gap "
+          f"{max(b - a for a, b in itertools.pairwise(good_arrivals)):.2f} s; reader peak {peak / 1e6:.1f} MB traced; "
+          f"stop() {stop_s:.2f} s")
     # the good camera never stalled
     assert len(good_arrivals) >= 0.5 * FPS * WINDOW_S, (len(good_arrivals), stats["good"])
     gaps = [b - a for a, b in itertools.pairwise(good_arrivals)]
