@@ -131,7 +131,8 @@ def placement_errors(layout: CubeLayout, truth: CubeLayout, aligned: bool = True
     body is not); else compare as written."""
     _check_same_markers(layout, truth, "the true layout")
     if aligned:
-        layout = moved_layout(layout, best_fit_transform(layout.corners_m.reshape(-1, 3), truth.corners_m.reshape(-1, 3)))
+        layout = moved_layout(layout, best_fit_transform(layout.corners_m.reshape(-1, 3),
+                                                         truth.corners_m.reshape(-1, 3)))
     return {m.face: (float(np.linalg.norm(m.T_cube_marker[:3, 3] - t.T_cube_marker[:3, 3])),
                      rotation_angle(m.T_cube_marker[:3, :3], t.T_cube_marker[:3, :3], "deg"), m.size_m - t.size_m)
             for m, t in zip(layout.markers, truth.markers, strict=True)}
@@ -281,7 +282,8 @@ class Trajectory:
         marker = np.concatenate([np.repeat(s.markers, 4) for s in self.sets])
         pixels = np.vstack([s.corners_px.reshape(-1, 2) for s in self.sets])
         height = np.array([ref.given[s.camera].height for s in self.sets for _ in range(4 * len(s.markers))], float)
-        row_s = np.array([ref.readout_s.get(s.camera, 0.0) for s in self.sets for _ in range(4 * len(s.markers))]) / height
+        row_s = np.array([ref.readout_s.get(s.camera, 0.0)
+                          for s in self.sets for _ in range(4 * len(s.markers))]) / height
         times = np.concatenate([np.full(4 * len(s.markers), s.time_s) for s in self.sets])
         k, alpha = self._knot(times + (pixels[:, 1] - (height - 1) / 2.0) * row_s)
         n, K = len(cam), len(self.times_s)

@@ -372,7 +372,8 @@ def cube_frames(frames: Mapping[str, Iterable[Frame]], layouts: Mapping[str, Cub
     image (:func:`cubetrack.calib.marker_fit.template_fitted_corners`: no bias on obliquely seen
     markers); detections whose edges cannot be fitted (``edge_min_contrast``) or whose template
     fit fails are dropped."""
-    detector = Detector(detector_params or DetectorParams(), [name for lay in layouts.values() for name in lay.dictionaries])
+    detector = Detector(detector_params or DetectorParams(),
+                        [name for lay in layouts.values() for name in lay.dictionaries])
     out, done = [], 0
     for camera, camera_frames in frames.items():
         seen: list[tuple[int, float, tuple[tuple[str, tuple[Detection, ...]], ...]]] = []
@@ -490,8 +491,9 @@ _OPENCV_DIST_LENGTHS = (5, 8, 12, 14)  # distortion vector lengths cv2.projectPo
 def layout_with(layout: CubeLayout, T_body_markers: np.ndarray, sizes_m: np.ndarray) -> CubeLayout:
     """``layout`` with its markers (same faces, ids, dictionary) at ``T_body_markers`` (M, 4, 4)
     and of sides ``sizes_m`` (M,)."""
+    markers = zip(layout.markers, T_body_markers, sizes_m, strict=True)
     return CubeLayout(layout.dictionary, tuple(LayoutMarker(m.face, m.marker_id, float(s), np.array(T, float))
-                                               for m, T, s in zip(layout.markers, T_body_markers, sizes_m, strict=True)))
+                                               for m, T, s in markers))
 
 
 def _intrinsics_arrays(intrinsics: Sequence[CameraIntrinsics]) -> tuple[np.ndarray, np.ndarray]:
@@ -594,7 +596,8 @@ class Refinement:
             wc.append(np.full(len(points), cam_index[name]))
             wp.append(points)
             wx.append(px)
-        return Observations(np.concatenate(cam), inst_a, np.concatenate(marker), np.tile(np.arange(4), len(inst_a) // 4),
+        return Observations(np.concatenate(cam), inst_a, np.concatenate(marker),
+                            np.tile(np.arange(4), len(inst_a) // 4),
                             np.vstack(pixels), Rotation.from_rotvec(self.angvel[inst_a] * dt[:, None]).as_matrix(),
                             self.vel[inst_a] * dt[:, None],
                             np.array([self.robots.index(i.robot) for i in self.instants], dtype=int), len(self.robots),
@@ -634,7 +637,8 @@ class Refinement:
             sets = []
             for f in instant.frames:
                 T = moved_pose(self.model.T_bodies[k], self.vel[k], self.angvel[k], f.time_s - instant.time_s)
-                s = _frame_corners(f, layouts[instant.robot], intrinsics[f.camera], T_world_cam[f.camera], self.params, T)
+                s = _frame_corners(f, layouts[instant.robot], intrinsics[f.camera], T_world_cam[f.camera],
+                                   self.params, T)
                 if s is not None:
                     sets.append((f, s))
             if len({f.camera for f, _ in sets}) >= self.params.min_cameras:
@@ -833,7 +837,8 @@ def adjust_extrinsics(frames: Mapping[str, Iterable[Frame]], extrinsics: Mapping
     used = ref.cameras
 
     # 1. the relative solve: cube corners only, the gauge held by weak priors on the cameras
-    gauge = PosePrior(ref.model.T_cams.copy(), params.gauge_prior_position_m, np.radians(params.gauge_prior_rotation_deg))
+    gauge = PosePrior(ref.model.T_cams.copy(), params.gauge_prior_position_m,
+                      np.radians(params.gauge_prior_rotation_deg))
     ref.solve(ref.freedom(camera_prior=gauge))
     G, consistent, moved = _align(ref.T_world_cam(), T_prior, params)
     if moved and len(consistent) < 2:
