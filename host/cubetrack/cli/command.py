@@ -54,7 +54,8 @@ def run_command(parser: argparse.ArgumentParser, argv: list[str] | None) -> int:
         print(f"{parser.prog} {args.command}: interrupted", file=sys.stderr)
         return 130
     except Exception:  # a bug, not bad input: keep the traceback for the report
-        logging.getLogger(parser.prog).exception("%s %s: unexpected error (please report it)", parser.prog, args.command)
+        logging.getLogger(parser.prog).exception("%s %s: unexpected error (please report it)",
+                                                 parser.prog, args.command)
         return 2
     finally:
         for number, handler in stop_signals.items():

@@ -137,7 +137,8 @@ def _run_live(args: argparse.Namespace, config, extrinsics, settings, sinks) -> 
     def status(s) -> None:
         print(f"track: {s.line()}", file=sys.stderr, flush=True)
 
-    print(f"tracking live into {args.out}" + ("" if args.duration else " (Ctrl-C to stop)"), file=sys.stderr, flush=True)
+    print(f"tracking live into {args.out}" + ("" if args.duration else " (Ctrl-C to stop)"),
+          file=sys.stderr, flush=True)
     result = track_live(config, extrinsics, args.out, params, duration_s=args.duration, record_to=args.record,
                         status=status, status_every_s=args.status_every, source=settings.source,
                         sinks=sinks)
