@@ -10,11 +10,11 @@ spectral densities). About the world's z axis the angular acceleration noise has
 turning one (``yaw_accel_noise``) from a sharp turn (yaw rate above ``sharp_turn_rad_s``) until
 ``turn_hold_s`` after the last, the steady one (``steady_yaw_accel_noise``) otherwise, so a robot
 that turns sharply is followed through its turns and one that does not gets a smoother heading.
-The level is part of the state (a function of the sightings in capture order). Update: an iterated EKF (Gauss-Newton on the prior plus the reprojection
-error of every matched corner of one camera frame), with Huber weights per coordinate, so one
-camera's weak monocular depth is constrained by the prediction instead of being trusted. A
-frame whose residual after the update is above ``gate_rms_px`` is rejected (outlier gating),
-and the state is left unchanged.
+The level is part of the state (a function of the sightings in capture order). Update: an
+iterated EKF (Gauss-Newton on the prior plus the reprojection error of every matched corner of one
+camera frame), with Huber weights per coordinate, so one camera's weak monocular depth is
+constrained by the prediction instead of being trusted. A frame whose residual after the update is
+above ``gate_rms_px`` is rejected (outlier gating), and the state is left unchanged.
 """
 
 from __future__ import annotations

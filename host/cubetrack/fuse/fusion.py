@@ -117,7 +117,8 @@ def fuse_poses(positions_m: np.ndarray, Rs: np.ndarray, weights: np.ndarray) -> 
 
 
 class LatestEstimateFusion:
-    """A :class:`~cubetrack.fuse.base.Fusion`. Keeps each camera's latest estimate per robot and fuses them on every new estimate.
+    """A :class:`~cubetrack.fuse.base.Fusion`. Keeps each camera's latest estimate per robot and fuses
+    them on every new estimate.
 
     State: ``latest[(robot, camera)]`` — visible and small. Feed estimates in arrival order.
     """
