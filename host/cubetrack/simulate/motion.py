@@ -110,7 +110,8 @@ class SharpPath:
         # speed, at which the yaw rate v k stays within turn_rate_rad_s and the yaw acceleration
         # v^2 dk/ds within the wheels' limit; braking and accelerating happen on the straights
         turn_limit = np.minimum(turn_rate_rad_s / np.maximum(np.abs(curvature), 1e-12),
-                                np.sqrt(self.yaw_accel_limit_rad_s2 / np.maximum(np.abs(np.gradient(curvature, ds)), 1e-12)))
+                                np.sqrt(self.yaw_accel_limit_rad_s2
+                                        / np.maximum(np.abs(np.gradient(curvature, ds)), 1e-12)))
         limit = np.minimum(speed_m_s, self._per_turn_minimum(turn_limit, np.abs(curvature) > _SHARP_STRAIGHT_CURVATURE))
         v = self._speed_profile(limit, accel_m_s2, ds)
         # time along the path: constant acceleration between profile points

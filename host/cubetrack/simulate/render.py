@@ -262,8 +262,10 @@ class View:
         lo, hi = b[:, :2].min(axis=0), b[:, 2:].max(axis=0)
         # the box's corners and edge points, distorted where they lie near the image
         edge = np.linspace(0.0, 1.0, 33)
-        ring = np.concatenate([np.column_stack([lo[0] + edge * (hi[0] - lo[0]), np.full(33, y)]) for y in (lo[1], hi[1])]
-                              + [np.column_stack([np.full(33, x), lo[1] + edge * (hi[1] - lo[1])]) for x in (lo[0], hi[0])])
+        ring = np.concatenate([np.column_stack([lo[0] + edge * (hi[0] - lo[0]), np.full(33, y)])
+                               for y in (lo[1], hi[1])]
+                              + [np.column_stack([np.full(33, x), lo[1] + edge * (hi[1] - lo[1])])
+                                 for x in (lo[0], hi[0])])
         limit = 2.0 * max(self.width, self.height) / min(self.K[0, 0], self.K[1, 1])
         ring = np.clip(ring, -limit, limit)
         uv, _ = cv2.projectPoints(np.column_stack([ring, np.ones(len(ring))]), np.zeros(3), np.zeros(3), self.K,

@@ -338,7 +338,8 @@ def simulate(params: SimulationParams, out: str | Path, progress: Progress | Non
         ground_truths = {}
         for k, robot in enumerate(scene.robots):
             poses = [position_quat_from_T(scene.T_world_cube(t - start, k)) for t in times]
-            ground_truths[robot.name] = Trajectory(times, np.array([q[0] for q in poses]), np.array([q[1] for q in poses]))
+            ground_truths[robot.name] = Trajectory(times, np.array([q[0] for q in poses]),
+                                                   np.array([q[1] for q in poses]))
         write_tum(next(iter(ground_truths.values())), writer.ground_truth_path)
         if len(scene.robots) > 1:
             (out / GROUND_TRUTH_DIR).mkdir(exist_ok=True)
