@@ -3,15 +3,20 @@
 Channels (foxglove-sdk well-known schemas, protobuf; names made topic-safe by
 :func:`cubetrack.sink.names.identifiers`):
 
-| topic | schema | what |
-| --- | --- | --- |
-| ``/robots/<r>/pose`` | ``foxglove.PoseInFrame`` | the cube frame in ``world`` |
-| ``/tf`` | ``foxglove.FrameTransforms`` | world -> ``<r>`` at every pose; world -> ``<c>_optical_frame`` of each calibrated camera (at the start and every ``static_every_s``) |
-| ``/scene`` | ``foxglove.SceneUpdate`` | entity ``robot/<r>``: a cube of the layout's size in the frame ``<r>`` (frame-locked: it moves with ``/tf``); entity ``camera/<c>``: the camera's field of view as a frustum ``frustum_depth_m`` deep, with its name; both at the start and every ``static_every_s`` |
-| ``/cameras/<c>/image`` | ``foxglove.CompressedImage`` | the JPEG as received (live sessions that hand out views) |
-| ``/cameras/<c>/annotations`` | ``foxglove.ImageAnnotations`` | detected markers (green outlines, ids) and the predicted cube's markers (orange) |
-| ``/cameras/<c>/calibration`` | ``foxglove.CameraCalibration`` | intrinsics, so the image and 3D panels line up |
-| ``/cameras/<c>/health`` | JSON (schema ``cubetrack.CameraHealth``) | the camera's health snapshot |
+- ``/robots/<r>/pose`` (``foxglove.PoseInFrame``): the cube frame in ``world``
+- ``/tf`` (``foxglove.FrameTransforms``): world -> ``<r>`` at every pose; world ->
+  ``<c>_optical_frame`` of each calibrated camera (at the start and every ``static_every_s``)
+- ``/scene`` (``foxglove.SceneUpdate``): entity ``robot/<r>``: a cube of the layout's size in the
+  frame ``<r>`` (frame-locked: it moves with ``/tf``); entity ``camera/<c>``: the camera's field of
+  view as a frustum ``frustum_depth_m`` deep, with its name; both at the start and every
+  ``static_every_s``
+- ``/cameras/<c>/image`` (``foxglove.CompressedImage``): the JPEG as received (live sessions that
+  hand out views)
+- ``/cameras/<c>/annotations`` (``foxglove.ImageAnnotations``): detected markers (green outlines,
+  ids) and the predicted cube's markers (orange)
+- ``/cameras/<c>/calibration`` (``foxglove.CameraCalibration``): intrinsics, so the image and 3D
+  panels line up
+- ``/cameras/<c>/health`` (JSON, schema ``cubetrack.CameraHealth``): the camera's health snapshot
 
 Where a view carries no predicted corners, the cube is projected from the robot's latest
 fused pose. The live server binds 127.0.0.1 unless another address is given. With both a server

@@ -1,15 +1,18 @@
 """Poses, velocities, robot status and camera health as JSON on Zenoh.
 
 Key expressions (``<prefix>`` default ``cubetrack``; robot and camera names made key-safe by
-:func:`cubetrack.sink.names.identifiers`, the real names are inside the JSON):
+:func:`cubetrack.sink.names.identifiers`, the real names are inside the JSON), each value JSON (encoding
+``application/json``):
 
-| key | JSON (encoding ``application/json``) |
-| --- | --- |
-| ``<prefix>/robots/<r>/pose`` | the JSONL object of contracts §5 (time, robot, position, quaternion_xyzw, cameras, markers, latency, ...) |
-| ``<prefix>/robots/<r>/velocity`` | ``{"time", "robot", "frame": "world", "linear_m_s": [3], "angular_rad_s": [3]}`` when the fusion estimates it |
-| ``<prefix>/robots/<r>/status`` | ``{"time", "robot", "tracking", "poses_per_s", "last_pose_time", "cameras"}`` about once a second |
-| ``<prefix>/cameras/<c>/health`` | a :class:`cubetrack.core.records.CameraHealth` (NaN -> null) |
-| ``<prefix>/session`` | world marker, cameras (pose in the world, intrinsics), robots and the key names; also answered as a query |
+- ``<prefix>/robots/<r>/pose``: the JSONL object of contracts §5 (time, robot, position,
+  quaternion_xyzw, cameras, markers, latency, ...)
+- ``<prefix>/robots/<r>/velocity``: ``{"time", "robot", "frame": "world", "linear_m_s": [3],
+  "angular_rad_s": [3]}`` when the fusion estimates it
+- ``<prefix>/robots/<r>/status``: ``{"time", "robot", "tracking", "poses_per_s", "last_pose_time",
+  "cameras"}`` about once a second
+- ``<prefix>/cameras/<c>/health``: a :class:`cubetrack.core.records.CameraHealth` (NaN -> null)
+- ``<prefix>/session``: world marker, cameras (pose in the world, intrinsics), robots and the key
+  names; also answered as a query
 
 ``tracking`` turns false when a robot's last pose is older than ``lost_after_s``; status is
 sent with poses and with camera health (live sessions), so a lost robot is reported as such.
