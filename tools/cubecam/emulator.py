@@ -299,13 +299,14 @@ class _Camera:
         ip = self.address
         if conn is not None and ip in ("0.0.0.0", "::", ""):
             ip = conn.getsockname()[0]
+        interval_s = self.track.frame_interval_s
         return {
             "name": self.name,
             "firmware_version": FIRMWARE_VERSION,
             "uptime_ms": self.emu.device_now_us(self.index) // 1000,
             "ip": ip,
             "rssi": EMULATED_RSSI_DBM,
-            "fps": {"configured": round(1.0 / self.track.frame_interval_s, 1) if self.track.frame_interval_s > 0 else 0.0,
+            "fps": {"configured": round(1.0 / interval_s, 1) if interval_s > 0 else 0.0,
                     "measured": round(self.measured_fps(), 3)},
             "frames_sent": self.frames_sent,
             "frames_dropped": self.frames_dropped,
@@ -482,7 +483,8 @@ class Emulator:
     ``fps``). Construct (reads and checks the frames), then :meth:`start` or use as a context
     manager. ``port`` is the first camera's port (0: any free port per camera), the next
     cameras get port+1, ...; with ``addresses`` each camera binds its own address instead, all
-    on ``port`` (``"auto"``: ``host``, then the next addresses). ``skipped`` counts the frames left out (reason -> count)."""
+    on ``port`` (``"auto"``: ``host``, then the next addresses). ``skipped`` counts the frames left
+    out (reason -> count)."""
 
     def __init__(self, recording: str | Path | None = None, *, images: str | Path | None = None,
                  fps: float | None = None, name: str | None = None, host: str = "127.0.0.1", port: int = 0,

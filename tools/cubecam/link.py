@@ -127,7 +127,8 @@ class NodeLink:
             waiting = self.port.in_waiting
             data = self.port.read(max(1, min(waiting, 4096)))
         except Exception as exc:  # SerialException on a vanished port, OSError EIO on a pty
-            raise SerialDeviceError(f"{self.device}: the port went away ({_reason(exc)}); was the board unplugged?") from None
+            raise SerialDeviceError(
+                f"{self.device}: the port went away ({_reason(exc)}); was the board unplugged?") from None
         now = time.monotonic()
         if data:
             self.bytes_seen += len(data)
@@ -166,7 +167,8 @@ class NodeLink:
         return f"{self.bytes_seen} bytes were received" + (f", bad Improv frames: {bad}" if bad else "")
 
     def wait_frame(self, accept: Callable[[improv.Frame], bool], deadline: float,
-                   retry: Callable[[], None] | None = None, retry_every_s: float = STATE_RETRY_S) -> improv.Frame | None:
+                   retry: Callable[[], None] | None = None,
+                   retry_every_s: float = STATE_RETRY_S) -> improv.Frame | None:
         """The first frame that ``accept`` takes (others are dropped) before the monotonic
         ``deadline``; None on timeout. ``retry`` is called now and every ``retry_every_s``."""
         next_retry = time.monotonic()
@@ -352,7 +354,9 @@ def _result_or_error(command: improv.Command) -> Callable[[improv.Frame], bool]:
 
 def _error_text(frame: improv.Frame) -> str:
     err = improv.decode_error(frame)
-    return improv.ERROR_TEXT.get(err, f"error {int(err):#04x}") if isinstance(err, improv.Error) else f"error {err:#04x}"
+    if isinstance(err, improv.Error):
+        return improv.ERROR_TEXT.get(err, f"error {int(err):#04x}")
+    return f"error {err:#04x}"
 
 
 def _decode_result(frame: improv.Frame, device: str) -> list[str]:

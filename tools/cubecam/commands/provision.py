@@ -33,8 +33,10 @@ def add_provision_options(p: argparse.ArgumentParser, ssid_required: bool) -> No
     p.add_argument("--mode", choices=("station", "ap"), help="join a network (station) or open one (ap)")
     p.add_argument("--ip", metavar="dhcp|A.B.C.D/P,GW", help="dhcp, or a static address/prefix and gateway")
     p.add_argument("--config", metavar="CFG", help="tracker config TOML to add the camera to (created if missing)")
-    p.add_argument("--boot-timeout", type=float, default=15.0, metavar="S", help="wait this long for the node to answer (default 15)")
-    p.add_argument("--join-timeout", type=float, default=45.0, metavar="S", help="wait this long for it to join (default 45)")
+    p.add_argument("--boot-timeout", type=float, default=15.0, metavar="S",
+                   help="wait this long for the node to answer (default 15)")
+    p.add_argument("--join-timeout", type=float, default=45.0, metavar="S",
+                   help="wait this long for it to join (default 45)")
     p.add_argument("--reboot", action="store_true", help="reboot the node afterwards and check it comes "
                                                          "back provisioned")
 
