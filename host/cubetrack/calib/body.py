@@ -195,12 +195,12 @@ def calibrate_body(frames: Mapping[str, Iterable[Frame]], extrinsics: Mapping[st
     _fix_gauge(ref, layout)
     if trajectory is None:
         ref.update_velocities()
-        obs, frames = ref.observations(), 0
+        obs, frame_count = ref.observations(), 0
         sample = obs.inst
     else:
-        obs, frames = trajectory.observations(), len(trajectory.frames)
-        sample = np.repeat(np.arange(frames), [4 * len(s.markers) for s in trajectory.sets])
-    return _report(ref, obs, sample, frames, robot, layout, extrinsics, intrinsics, warn, warnings)
+        obs, frame_count = trajectory.observations(), len(trajectory.frames)
+        sample = np.repeat(np.arange(frame_count), [4 * len(s.markers) for s in trajectory.sets])
+    return _report(ref, obs, sample, frame_count, robot, layout, extrinsics, intrinsics, warn, warnings)
 
 
 @dataclass(eq=False)
@@ -266,9 +266,9 @@ class Trajectory:
         where nothing matches are left out)."""
         ref = self.ref
         intrinsics, T_world_cam, layout = ref.intrinsics(), ref.T_world_cam(), ref.layout(ref.robots[0])
-        pairs = [(f, _frame_corners(f, layout, intrinsics[f.camera], T_world_cam[f.camera], ref.params,
+        found = [(f, _frame_corners(f, layout, intrinsics[f.camera], T_world_cam[f.camera], ref.params,
                                     self.pose_at(f.time_s))) for f in self.frames]
-        pairs = [(f, s) for f, s in pairs if s is not None]
+        pairs = [(f, s) for f, s in found if s is not None]
         if not pairs:
             raise CalibrationError("no cube sightings fit the body's trajectory")
         self.frames, self.sets = [f for f, _ in pairs], [s for _, s in pairs]

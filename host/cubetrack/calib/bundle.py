@@ -374,7 +374,8 @@ def cube_frames(frames: Mapping[str, Iterable[Frame]], layouts: Mapping[str, Cub
     fit fails are dropped."""
     detector = Detector(detector_params or DetectorParams(),
                         [name for lay in layouts.values() for name in lay.dictionaries])
-    out, done = [], 0
+    out: list[CubeFrame] = []
+    done = 0
     for camera, camera_frames in frames.items():
         seen: list[tuple[int, float, tuple[tuple[str, tuple[Detection, ...]], ...]]] = []
         device_s, host_s = [], []
@@ -390,7 +391,7 @@ def cube_frames(frames: Mapping[str, Iterable[Frame]], layouts: Mapping[str, Cub
                 log.warning("%s; skipped", exc)
                 continue
             detections = detector.detect(gray)
-            robots = []
+            robots: list[tuple[str, tuple[Detection, ...]]] = []
             for robot, lay in layouts.items():
                 mine = body_detections(detections, lay)
                 if mine and lenses is not None and camera in lenses:
@@ -402,9 +403,9 @@ def cube_frames(frames: Mapping[str, Iterable[Frame]], layouts: Mapping[str, Cub
         if not device_s:
             continue
         fit = _clock_fit(camera, (clock_samples or {}).get(camera, ()), device_s, host_s)
-        for seq, device_time_s, robots in seen:
+        for seq, device_time_s, seen_robots in seen:
             t = fit.to_host(device_time_s)
-            out.extend(CubeFrame(camera, robot, seq, t, mine) for robot, mine in robots)
+            out.extend(CubeFrame(camera, robot, seq, t, mine) for robot, mine in seen_robots)
     out.sort(key=lambda f: (f.time_s, f.camera))
     return out
 
@@ -691,8 +692,8 @@ def make_instants(frames: Sequence[CubeFrame], layouts: Mapping[str, CubeLayout]
         if progress is not None:
             progress("bundle adjustment: instants", done, len(groups))
         layout = layouts[group[0].robot]
-        pairs = [(f, _frame_corners(f, layout, intrinsics[f.camera], T_world_cam[f.camera], params)) for f in group]
-        pairs = [(f, s) for f, s in pairs if s is not None]
+        found = [(f, _frame_corners(f, layout, intrinsics[f.camera], T_world_cam[f.camera], params)) for f in group]
+        pairs = [(f, s) for f, s in found if s is not None]
         if len({f.camera for f, _ in pairs}) < params.min_cameras:
             continue
         t_ref = float(np.mean([f.time_s for f, _ in pairs]))
@@ -748,8 +749,12 @@ def world_marker_terms(observations: Mapping[str, WorldMarkerObservation], world
     """The solver's world points of the ``cameras`` that have a world-marker observation: the
     marker's four corners (world frame), or the reference's points, and their averaged pixels."""
     marker = marker_corners_m(world.marker_size_m)
-    return {c: (marker if observations[c].points_world_m is None else observations[c].points_world_m,
-                observations[c].corners_px) for c in cameras if c in observations}
+    terms: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    for c in cameras:
+        if c in observations:
+            points_m = observations[c].points_world_m
+            terms[c] = (marker if points_m is None else points_m, observations[c].corners_px)
+    return terms
 
 
 def start_refinement(frames: Mapping[str, Iterable[Frame]], extrinsics: Mapping[str, CameraExtrinsics],
@@ -837,7 +842,7 @@ def adjust_extrinsics(frames: Mapping[str, Iterable[Frame]], extrinsics: Mapping
     used = ref.cameras
 
     # 1. the relative solve: cube corners only, the gauge held by weak priors on the cameras
-    gauge = PosePrior(ref.model.T_cams.copy(), params.gauge_prior_position_m,
+    gauge: PosePrior | None = PosePrior(ref.model.T_cams.copy(), params.gauge_prior_position_m,
                       np.radians(params.gauge_prior_rotation_deg))
     ref.solve(ref.freedom(camera_prior=gauge))
     G, consistent, moved = _align(ref.T_world_cam(), T_prior, params)

@@ -40,6 +40,7 @@ import logging
 from collections import Counter
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -80,7 +81,7 @@ class CalibrationMethod(str, enum.Enum):  # noqa: UP042 (StrEnum would change st
 # edge points from the gradient's peak with a narrow window (focus='peak'), which a narrow white
 # margin's outer edge does not pull inward (measured: marker size bias +0.001 px, -0.02 px with
 # the detector's tent). Camera positions in `cubetrack simulate` calibrations: docs/calibration.md.
-EDGE_FIT = dict(iterations=3, samples_along=64, samples_across=65, span=(0.12, 0.88), focus="peak")
+EDGE_FIT: dict[str, Any] = dict(iterations=3, samples_along=64, samples_across=65, span=(0.12, 0.88), focus="peak")
 
 
 @dataclass(frozen=True, slots=True)
@@ -154,8 +155,9 @@ def cma_pose(T_world_cams: Sequence[np.ndarray]) -> np.ndarray:
         if quat.value is not None and float(np.dot(q, quat.value)) < 0.0:
             q = -q
         quat.update(q)
-    q = quat.value / np.linalg.norm(quat.value)
-    return make_T(R_from_quat_xyzw(q), position.value)
+    mean_q, mean_position = quat.value, position.value
+    assert mean_q is not None and mean_position is not None  # at least one sample (checked above)
+    return make_T(R_from_quat_xyzw(mean_q / np.linalg.norm(mean_q)), mean_position)
 
 
 def pose_spread(T_world_cams: Sequence[np.ndarray], T_ref: np.ndarray) -> tuple[float, float]:

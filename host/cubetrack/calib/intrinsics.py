@@ -154,8 +154,11 @@ def calibrate_intrinsics(
             f"only {len(objs)} of {len(images)} images show the {params.squares_x}x{params.squares_y} "
             f"{params.dictionary} ChArUco board with at least {params.min_corners} corners; need "
             f"{params.min_views} (corners found: {found}). Check --board, --dictionary and --legacy")
+    assert size is not None  # set by every used view, and there are min_views of them
     try:
-        rms, K, dist, rvecs, tvecs, std_intr, _, _ = cv2.calibrateCameraExtended(objs, imgs, size, None, None)
+        # OpenCV's stubs do not allow None for the cameraMatrix and distCoeffs outputs; OpenCV does
+        rms, K, dist, rvecs, tvecs, std_intr, _, _ = cv2.calibrateCameraExtended(  # type: ignore[call-overload]
+            objs, imgs, size, None, None)
     except cv2.error as exc:
         raise CalibrationError(f"calibration failed: {str(exc).strip().splitlines()[-1]}") from None
     if not (np.all(np.isfinite(K)) and np.all(np.isfinite(dist)) and K[0, 0] > 0 and K[1, 1] > 0):

@@ -45,7 +45,7 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 from scipy.optimize import least_squares
-from scipy.sparse import coo_matrix, diags
+from scipy.sparse import coo_matrix, csr_matrix, diags
 from scipy.sparse.linalg import splu
 from scipy.spatial.transform import Rotation
 
@@ -220,7 +220,7 @@ def project(points_cam: np.ndarray, K: np.ndarray, dist: np.ndarray,
         zero = np.zeros(3)
         uv, J = cv2.projectPoints(points_cam[front].astype(np.float64), zero, zero, K, dist)
         pixels[front] = uv.reshape(-1, 2)
-        if with_jac:
+        if jac is not None:  # with_jac
             J = J.reshape(-1, 2, J.shape[1])
             jac[front] = J[:, :, 3:]  # d/d tvec = d/d point; then f, c, dist
     return pixels, jac, front
@@ -267,7 +267,8 @@ def world_residuals_px(obs: Observations, model: Model) -> np.ndarray:
     return _projected(model, obs.world_cam, obs.world_points, False)[0] - obs.world_pixels
 
 
-def _projected(model: Model, cam: np.ndarray, X: np.ndarray, with_jac: bool):
+def _projected(model: Model, cam: np.ndarray, X: np.ndarray,
+               with_jac: bool) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
     """Pixels (N, 2) of world points X seen by cameras ``cam``; with ``with_jac`` also
     d pixel / d X (N, 2, 3) and d pixel / d [fx, fy, cx, cy, dist...] (N, 2, 4 + D)."""
     Rc = model.T_cams[cam, :3, :3]
@@ -280,7 +281,7 @@ def _projected(model: Model, cam: np.ndarray, X: np.ndarray, with_jac: bool):
         rows = np.flatnonzero(cam == c)
         px, J, _front = project(pc[rows], model.K[c], model.dist[c], with_jac)
         pixels[rows] = px
-        if with_jac:
+        if dX is not None and dI is not None and J is not None:  # with_jac
             dX[rows] = J[:, :, :3] @ model.T_cams[c, :3, :3].T
             dI[rows] = J[:, :, 3:]
     return pixels, dX, dI
@@ -309,7 +310,8 @@ def _columns(obs: Observations, model: Model, free: Freedom) -> _Layout:
              R if free.height_sigma_m > 0 else 0, R if free.free_scale else 0,
              7 * G if free.body is not None else 0]
     starts = np.concatenate([[0], np.cumsum(sizes)])
-    return _Layout(C, K, G, R, *(int(s) for s in starts[:6]), int(starts[6]))
+    cams, intr, bodies, heights, scales, markers, n = (int(s) for s in starts)
+    return _Layout(C, K, G, R, cams, intr, bodies, heights, scales, markers, n)
 
 
 def solve(obs: Observations, model: Model, free: Freedom) -> Model:
@@ -345,7 +347,7 @@ def solve(obs: Observations, model: Model, free: Freedom) -> Model:
             changes["sizes_m"] = model.sizes_m * (1 + d[:, 6])
         return model.replace(**changes)
 
-    def evaluate(x: np.ndarray, with_jac: bool):
+    def evaluate(x: np.ndarray, with_jac: bool) -> tuple[np.ndarray, csr_matrix | None]:
         m = unpack(x)
         res: list[np.ndarray] = []
         rows: list[np.ndarray] = []
@@ -367,7 +369,8 @@ def solve(obs: Observations, model: Model, free: Freedom) -> Model:
                     vals.append(v.ravel())
             row += n * k
 
-        def cam_parts(cam: np.ndarray, X: np.ndarray, A: np.ndarray, dI: np.ndarray, scale: float) -> list:
+        def cam_parts(cam: np.ndarray, X: np.ndarray, A: np.ndarray, dI: np.ndarray,
+                      scale: float | np.ndarray) -> list:
             parts = []
             if free.cameras:
                 y = X - m.T_cams[cam, :3, 3]
@@ -393,7 +396,7 @@ def solve(obs: Observations, model: Model, free: Freedom) -> Model:
             front = np.isfinite(px[:, 0])
             r = np.where(front[:, None], (px - obs.pixels) / corner_sigma, _BEHIND_PX)
             parts = []
-            if with_jac:
+            if dX is not None and dI is not None:  # with_jac
                 A = dX / corner_sigma[:, :, None] * front[:, None, None]
                 dI = dI * front[:, None, None]
                 parts = cam_parts(obs.cam, X, A, dI, corner_sigma[:, :, None])
@@ -423,7 +426,7 @@ def solve(obs: Observations, model: Model, free: Freedom) -> Model:
             front = np.isfinite(px[:, 0])
             r = np.where(front[:, None], (px - obs.world_pixels) / sigma_w, _BEHIND_PX)
             parts = []
-            if with_jac:
+            if dX is not None and dI is not None:  # with_jac
                 parts = cam_parts(obs.world_cam, obs.world_points, dX / sigma_w * front[:, None, None],
                                   dI * front[:, None, None], sigma_w)
             block(r, parts)
@@ -452,28 +455,28 @@ def solve(obs: Observations, model: Model, free: Freedom) -> Model:
                   [(L.bodies + 6 * k_idx[:, None] + 3 + np.arange(3), -skew(up)[:, :2, :] / free.upright_sigma_rad)])
         # priors
         if free.cameras and free.camera_prior is not None:
-            p = free.camera_prior
-            s = np.r_[np.full(3, p.sigma_m), np.full(3, p.sigma_rad)]
+            cp = free.camera_prior
+            s = np.r_[np.full(3, cp.sigma_m), np.full(3, cp.sigma_rad)]
             c_idx = np.arange(L.C)
-            block(pose_offsets(m.T_cams, p.T) / s,
+            block(pose_offsets(m.T_cams, cp.T) / s,
                   [(L.cams + 6 * c_idx[:, None] + np.arange(6), np.broadcast_to(np.diag(1.0 / s), (L.C, 6, 6)))])
         if free.intrinsics is not None:
-            p = free.intrinsics
-            fp = p.K[:, [0, 1], [0, 1]]
-            s = np.column_stack([p.focal_rel * fp, np.full((L.C, 2), p.principal_px), np.full(L.C, p.k1),
-                                 np.full(L.C, p.k2)])
+            ip = free.intrinsics
+            fp = ip.K[:, [0, 1], [0, 1]]
+            s = np.column_stack([ip.focal_rel * fp, np.full((L.C, 2), ip.principal_px), np.full(L.C, ip.k1),
+                                 np.full(L.C, ip.k2)])
             value = np.column_stack([m.K[:, 0, 0], m.K[:, 1, 1], m.K[:, 0, 2], m.K[:, 1, 2], m.dist[:, :2]])
-            prior = np.column_stack([fp, p.K[:, 0, 2], p.K[:, 1, 2], p.dist[:, :2]])
+            prior = np.column_stack([fp, ip.K[:, 0, 2], ip.K[:, 1, 2], ip.dist[:, :2]])
             d = np.column_stack([f0, fmean0, fmean0, np.ones(L.C), np.ones(L.C)]) / s
             c_idx = np.arange(L.C)
             block((value - prior) / s, [(L.intr + 6 * c_idx[:, None] + np.arange(6), d[:, :, None] * np.eye(6))])
         if free.body is not None:
-            p = free.body
-            s = np.r_[np.full(3, p.sigma_m), np.full(3, p.sigma_rad), p.size_rel]
-            offsets = np.column_stack([pose_offsets(m.T_body_markers, p.T), m.sizes_m / p.sizes_m - 1.0])
+            bp = free.body
+            s = np.r_[np.full(3, bp.sigma_m), np.full(3, bp.sigma_rad), bp.size_rel]
+            offsets = np.column_stack([pose_offsets(m.T_body_markers, bp.T), m.sizes_m / bp.sizes_m - 1.0])
             g_idx = np.arange(L.G)
             d = np.tile(1.0 / s, (L.G, 1))
-            d[:, 6] *= model.sizes_m / p.sizes_m
+            d[:, 6] *= model.sizes_m / bp.sizes_m
             block(offsets / s, [(L.markers + 7 * g_idx[:, None] + np.arange(7), d[:, :, None] * np.eye(7))])
         r_all = np.concatenate(res)
         if not with_jac:
@@ -485,7 +488,16 @@ def solve(obs: Observations, model: Model, free: Freedom) -> Model:
         knots = np.arange(L.bodies, L.bodies + 6 * L.K)
         order = np.r_[knots, np.setdiff1d(np.arange(L.n), knots)]  # the banded knots first, the few shared last
         return unpack(levenberg_marquardt(evaluate, np.zeros(L.n), free.f_scale_px / sigma, free.max_nfev, order))
-    result = least_squares(lambda x: evaluate(x, False)[0], np.zeros(L.n), jac=lambda x: evaluate(x, True)[1],
+
+    def residuals(x: np.ndarray) -> np.ndarray:
+        return evaluate(x, False)[0]
+
+    def jacobian(x: np.ndarray) -> csr_matrix:
+        J = evaluate(x, True)[1]
+        assert J is not None  # with_jac
+        return J
+
+    result = least_squares(residuals, np.zeros(L.n), jac=jacobian,
                            method="trf", loss="soft_l1", f_scale=free.f_scale_px / sigma,
                            x_scale=np.full(L.n, 1e-3), max_nfev=free.max_nfev, tr_solver="lsmr")
     return unpack(result.x)
