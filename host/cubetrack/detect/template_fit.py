@@ -144,8 +144,8 @@ class LensMap:
         n = len(flat)  # remap takes at most 32767 rows and columns: rows of _REMAP_ROW points
         pts = np.zeros((-(-n // _REMAP_ROW) * _REMAP_ROW, 2), np.float32)
         pts[:n] = flat
-        pts = pts.reshape(-1, _REMAP_ROW, 2)
-        out = cv2.remap(self.map, pts[..., 0], pts[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        rows = pts.reshape(-1, _REMAP_ROW, 2)
+        out = cv2.remap(self.map, rows[..., 0], rows[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         return out.reshape(-1, 2)[:n].astype(np.float64).reshape(np.shape(points_px))
 
 
