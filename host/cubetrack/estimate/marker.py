@@ -196,7 +196,8 @@ def marker_pose(detection: Detection, size_m: float, intrinsics: CameraIntrinsic
     candidates = _ippe_square_candidates(obj, img, intrinsics)
     raw = [(e, T) for e, T in zip(_scores(candidates, obj, img, intrinsics), candidates, strict=True) if e < np.inf]
     solutions = []
-    for err, T in _distinct(sorted(raw, key=lambda s: s[0]))[:2]:
+    for raw_err, T in _distinct(sorted(raw, key=lambda s: s[0]))[:2]:
+        err: float | None = raw_err
         if polish:
             T = _polish(obj, img, T, intrinsics)
             err = score(T)
