@@ -50,7 +50,7 @@ def _matrix(value: object, n: int, path: Path, key: str) -> np.ndarray:
     return arr
 
 
-def _opencv_matrix(loader: yaml.SafeLoader, node: yaml.Node) -> dict:
+def _opencv_matrix(loader: yaml.SafeLoader, node: yaml.MappingNode) -> dict:
     return loader.construct_mapping(node, deep=True)
 
 

@@ -217,17 +217,17 @@ def read_tracker_config(path: str | Path) -> TrackerConfig:
         raise ConfigError(f"{where}: robot names must be unique")
     world = _world(doc.get("world"), where)
     owner: dict[tuple[str, int], str] = {}
-    for key, what in world_marker_keys(world):
-        if key in owner:
-            raise ConfigError(f"{where}: {what} uses {key[0]} id {key[1]}, already used by {owner[key]}")
-        owner[key] = what
+    for marker_key, what in world_marker_keys(world):
+        if marker_key in owner:
+            raise ConfigError(f"{where}: {what} uses {marker_key[0]} id {marker_key[1]}, already used by "
+                              f"{owner[marker_key]}")
+        owner[marker_key] = what
     for r in robots:
-        for key in sorted(r.layout.keys):
-            marker_id = key[1]
-            if key in owner:
-                raise ConfigError(f"{where}: robot {r.name!r} uses {key[0]} id {marker_id}, already used by "
-                                  f"{owner[key]}; every robot needs ids of its own")
-            owner[key] = f"robot {r.name!r}"
+        for marker_key in sorted(r.layout.keys):
+            if marker_key in owner:
+                raise ConfigError(f"{where}: robot {r.name!r} uses {marker_key[0]} id {marker_key[1]}, already used "
+                                  f"by {owner[marker_key]}; every robot needs ids of its own")
+            owner[marker_key] = f"robot {r.name!r}"
     sections = {}
     for name, table in doc.items():
         if name in ("world", "cameras", "robots", "outputs"):
