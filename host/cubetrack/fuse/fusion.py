@@ -403,10 +403,12 @@ class FilterFusion:
         if not matches:
             return []
         if intrinsics.readout_s <= 0:
-            return [corner_set(matches, intrinsics, sighting.T_world_cam, sighting.camera, t)]
-        row_s, middle = intrinsics.readout_s / intrinsics.height, (intrinsics.height - 1) / 2.0
-        return [corner_set((m,), intrinsics, sighting.T_world_cam, sighting.camera,
-                           t + (float(np.mean(m.detection.corners_px[:, 1])) - middle) * row_s) for m in matches]
+            sets = [corner_set(matches, intrinsics, sighting.T_world_cam, sighting.camera, t)]
+        else:
+            row_s, middle = intrinsics.readout_s / intrinsics.height, (intrinsics.height - 1) / 2.0
+            sets = [corner_set((m,), intrinsics, sighting.T_world_cam, sighting.camera,
+                               t + (float(np.mean(m.detection.corners_px[:, 1])) - middle) * row_s) for m in matches]
+        return [s for s in sets if s is not None]  # (none is: each has matches)
 
     def _apply(self, state: RobotState, history: list[HistoryStep], index: int, now_s: float,
                record: bool) -> tuple[RobotState, TrackedPose | None, str]:

@@ -113,7 +113,8 @@ def smoothed_poses(trail: Sequence[TrailStep], now_s: float, count: int | None =
     for segment in segments(trail):
         if segment[0] >= count:
             break
-        for i, f in zip(segment, rts([trail[i].filter for i in segment], gains), strict=True):
+        filters = [f for i in segment if (f := trail[i].filter) is not None]  # (all are: segments())
+        for i, f in zip(segment, rts(filters, gains), strict=True):
             pose = trail[i].pose
             if i < count and pose is not None:
                 poses.append(dataclasses.replace(
