@@ -495,7 +495,7 @@ class Renderer:
         equally, or per final row with ``row_weights`` (rows, samples)."""
         v, s = self.view, self.view.s
         sx0, sy0, sx1, sy1 = fx0 * s, fy0 * s, fx1 * s, fy1 * s
-        if not v.distorted:
+        if v.map_x is None or v.map_y is None:  # not distorted
             base = self._canvas[sy0:sy1, sx0:sx1]
             origin = (v.canvas_origin[0] + sx0, v.canvas_origin[1] + sy0)
             mx = my = None
@@ -510,16 +510,17 @@ class Renderer:
             base = self._canvas[by0:by1, bx0:bx1]
             origin = (v.canvas_origin[0] + bx0, v.canvas_origin[1] + by0)
             mx, my = mx - np.float32(bx0), my - np.float32(by0)
-        acc = None
+        acc: np.ndarray | None = None
         for k, solids in enumerate(solids_per_sample):
-            patch = base.copy()
+            patch: np.ndarray = base.copy()
             for solid in solids:
                 draw_solid(patch, origin, v, solid)
-            if mx is not None:
+            if mx is not None and my is not None:
                 patch = cv2.remap(patch, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
             if row_weights is not None:
                 patch *= np.repeat(row_weights[:, k].astype(np.float32), s)[:, None]
             acc = patch if acc is None else acc + patch
+        assert acc is not None  # at least one sample
         if row_weights is None:
             acc /= np.float32(len(solids_per_sample))
         if s == 1:

@@ -137,10 +137,10 @@ class Scene:
             T = self.T_world_robot(t_s, k)
             groups.append((T[:3, 3], lambda T=T, robot=robot: self.robot_solids_at(T, robot.layout, robot.true_layout)))
         for person in self.people:
-            T = person.T_world_person(t_s)
-            if T is not None:
-                centre = T[:3, 3] + [0.0, 0.0, PERSON_BODY_M[2] / 2]
-                groups.append((centre, lambda T=T, person=person: self.person_solids_at(T, person.albedo)))
+            T_person = person.T_world_person(t_s)
+            if T_person is not None:
+                centre = T_person[:3, 3] + [0.0, 0.0, PERSON_BODY_M[2] / 2]
+                groups.append((centre, lambda T=T_person, person=person: self.person_solids_at(T, person.albedo)))
         order = sorted(range(len(groups)), key=lambda k: -float(np.linalg.norm(groups[k][0] - camera_position_m)))
         return tuple(solid for k in order for solid in groups[k][1]())
 

@@ -237,10 +237,10 @@ class _FrameMaker:
                                   for solid in self.scene.robot_solids_at(self.scene.T_world_robot(t, k),
                                                                           self.scene.robots[k].layout)])
             corners.append(pts)
-        corners = np.array(corners)
-        if np.any(view.depth(corners.reshape(-1, 3)) <= 0.05):
+        stacked = np.array(corners)
+        if np.any(view.depth(stacked.reshape(-1, 3)) <= 0.05):
             return 1e-4
-        uv = view.project(corners.reshape(-1, 3)).reshape(len(times), -1, 2)
+        uv = view.project(stacked.reshape(-1, 3)).reshape(len(times), -1, 2)
         speed = float(np.linalg.norm(np.diff(uv, axis=0), axis=2).max()) / _PROBE_S
         return float(np.clip(_MAX_STEP_PX / max(speed, 1e-9), 1e-4, max(p.exposure_s, 1e-3)))
 
@@ -255,6 +255,7 @@ def _write_frames(writer: RecordingWriter, scene: Scene, jobs: list[_FrameJob], 
     """Render jobs (in parallel threads: OpenCV and NumPy release the GIL) and write them in order."""
     def write(job: _FrameJob, jpeg: bytes, done: int) -> None:
         c = job.capture
+        assert c.arrival_host_s is not None  # jobs are delivered frames only
         writer.add_frame(scene.cameras[job.camera].name, c.seq, c.device_time_s, c.arrival_host_s, jpeg)
         if progress is not None:
             progress(f"simulate {stage}", done, len(jobs))
@@ -311,7 +312,7 @@ def simulate(params: SimulationParams, out: str | Path, progress: Progress | Non
         for i, c in enumerate(scene.cameras):
             cal_plans[i] = plan_captures(p, c.clock, c.capture_phase_s, rng_for(p.seed, STREAM_CAL_TIMING, i),
                                          cal_start, start - _GAP_BEFORE_RECORDING_S, p.calibration_frames)
-            got = [x.arrival_host_s for x in cal_plans[i] if x.delivered]
+            got = [x.arrival_host_s for x in cal_plans[i] if x.arrival_host_s is not None]  # delivered
             if len(got) < p.calibration_frames:
                 log.warning("%s: only %d of %d calibration frames arrive at drop_rate %g",
                             c.name, len(got), p.calibration_frames, p.drop_rate)
