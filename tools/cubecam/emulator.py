@@ -37,7 +37,7 @@ from pathlib import Path
 
 from cubecam import __version__, mjpeg
 from cubecam.errors import EmulatorError
-from cubecam.replay import CameraTrack, Timeline, jpeg_size, load_images, load_recording
+from cubecam.replay import CameraTrack, Release, Timeline, jpeg_size, load_images, load_recording
 from cubecam.request import ParseStatus, RequestParser, Route, RouteDecision, route
 
 log = logging.getLogger(__name__)
@@ -148,7 +148,7 @@ class _Camera:
         self.frames_dropped = 0
         self.clients = 0
         self.streaming = 0
-        self.released = deque(maxlen=64)  # monotonic release times, for the measured rate
+        self.released: deque[float] = deque(maxlen=64)  # monotonic release times, for the measured rate
         self.connections: set[socket.socket] = set()
         self.bucket = (_TokenBucket(emu.faults.bandwidth_bytes_per_s)
                        if emu.faults.bandwidth_bytes_per_s else None)
@@ -494,7 +494,7 @@ class Emulator:
             raise EmulatorError("give either a recording folder or an image folder")
         if images is not None:
             tracks, self.skipped = load_images(images, fps if fps is not None else 10.0, name)
-        else:
+        elif recording is not None:
             tracks, self.skipped = load_recording(recording)
         if not 1 <= max_clients <= 64:
             raise EmulatorError(f"max clients must be 1..64, got {max_clients}")
@@ -531,10 +531,10 @@ class Emulator:
         self._unix_minus_mono = 0.0
         for cam in self._cameras:
             try:
-                first = cam.track.frames[0].path.read_bytes()
+                first_jpeg = cam.track.frames[0].path.read_bytes()
             except OSError:
-                first = b""
-            cam.width, cam.height = jpeg_size(first) or (0, 0)
+                first_jpeg = b""
+            cam.width, cam.height = jpeg_size(first_jpeg) or (0, 0)
 
     # --- lifecycle ---
 
@@ -659,7 +659,7 @@ class Emulator:
         assert self._start_mono is not None
         stop = self._stop
         sources = [self.timeline.releases(i) for i in range(len(self._cameras))]
-        heap: list[tuple[float, int, object]] = []
+        heap: list[tuple[float, int, Release]] = []
         for i, src in enumerate(sources):
             r = next(src, None)
             if r is not None:

@@ -84,7 +84,7 @@ class NodeLink:
 
     def __init__(self, port, device: str | None = None, on_log: Callable[[str], None] | None = None):
         self.port = port
-        self.device = device or getattr(port, "port", "serial port")
+        self.device: str = device or getattr(port, "port", None) or "serial port"
         self.on_log = on_log or (lambda text: log.info("%s: %s", self.device, text))
         self.parser = improv.Parser()
         self.frames: deque[improv.Frame] = deque()
@@ -257,7 +257,7 @@ class NodeLink:
         """Networks the node sees: one RPC result per network, then an empty one."""
         self.send_rpc(improv.Command.GET_WIFI_NETWORKS)
         deadline = time.monotonic() + timeout_s
-        out = []
+        out: list[Network] = []
         while True:
             frame = self.wait_frame(_result_or_error(improv.Command.GET_WIFI_NETWORKS), deadline)
             if frame is None:

@@ -134,9 +134,9 @@ def read_response_head(f: BinaryIO, limit: int = 8192) -> tuple[int, dict[str, s
     if len(status_line) < 2 or not status_line[0].startswith("HTTP/1."):
         raise StreamFormatError(f"bad status line {lines[0]!r}")
     headers = {}
-    for line in lines[1:]:
-        if line:
-            name, _, value = line.partition(":")
+    for text in lines[1:]:
+        if text:
+            name, _, value = text.partition(":")
             headers[name.strip().lower()] = value.strip()
     return int(status_line[1]), headers, raw
 

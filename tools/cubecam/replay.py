@@ -21,6 +21,7 @@ import logging
 import re
 import statistics
 from collections import Counter
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -240,7 +241,7 @@ def load_images(folder: str | Path, fps: float, name: str | None = None) -> tupl
         raise EmulatorError(str(exc)) from None
     skipped: Counter[str] = Counter()
     files = sorted(p for p in folder.iterdir() if p.suffix.lower() in _JPEG_SUFFIXES and p.is_file())
-    frames = []
+    frames: list[SourceFrame] = []
     for path in files:
         if not looks_like_jpeg(path):
             skipped["corrupt frame file"] += 1
@@ -281,7 +282,7 @@ class Timeline:
         """Camera's device clock when the replay has run ``elapsed_s`` (never below 0)."""
         return max(0.0, self.tracks[camera].clock.device(self.start_host_s + elapsed_s))
 
-    def releases(self, camera: int):
+    def releases(self, camera: int) -> Iterator[Release]:
         """Frames of one camera in release order (endless when looping)."""
         track = self.tracks[camera]
         seq_span = track.frames[-1].seq - track.frames[0].seq + 1
