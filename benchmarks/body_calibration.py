@@ -30,7 +30,7 @@ recording. Their errors against the truth are printed per camera.
 ``--out`` keeps the recordings (DIR/seed<N>) and reuses a complete one made with the same
 parameters; without it they go to a temporary folder. A 60 s recording takes a few minutes to
 render on one core, each calibration a few CPU minutes: this is a script, not a CI test
-(tests/unit/calibrate/test_marker_fit.py and tests/unit/bundle/test_body_calibration.py are).
+(tests/unit/calib/test_marker_fit.py and tests/unit/calib/test_body_calibration.py are).
 The exit code is 0 for a completed run; the last line says whether every seed met the target.
 """
 

@@ -1,6 +1,6 @@
 """Issue 15 item 5: a world reference beyond one marker — several floor markers at known poses,
 or a ChArUco board as the world frame — in the config's [world] section, used by the extrinsic
-calibration. Rendered recordings (tests/unit/calibrate/calib_scene.py: the simulator's exact
+calibration. Rendered recordings (tests/unit/calib/calib_scene.py: the simulator's exact
 renderer) of the three cameras of the calibration tests, true poses known by construction."""
 
 import cv2
