@@ -25,6 +25,7 @@ import logging
 import math
 import time
 from dataclasses import asdict, dataclass
+from typing import Any
 
 import numpy as np
 
@@ -89,7 +90,7 @@ class ZenohJsonSink(Sink):
         self.robot_ids: dict[str, str] = {}
         self.camera_ids: dict[str, str] = {}
         self.status: dict[str, _RobotStatus] = {}
-        self.publishers: dict[str, object] = {}
+        self.publishers: dict[str, Any] = {}  # zenoh publishers
         self.session_doc: bytes = b"{}"
         self.queryable = None
 
@@ -110,8 +111,9 @@ class ZenohJsonSink(Sink):
         self.status = {robot: _RobotStatus() for robot in session.robots}
         cameras = []
         for c in session.cameras:
-            entry = {"name": c.name, "health_key": f"{self.prefix}/cameras/{self.camera_ids[c.name]}/health",
-                     "position": None, "quaternion_xyzw": None, "intrinsics": None}
+            entry: dict[str, Any] = {"name": c.name,
+                                     "health_key": f"{self.prefix}/cameras/{self.camera_ids[c.name]}/health",
+                                     "position": None, "quaternion_xyzw": None, "intrinsics": None}
             if c.T_world_cam is not None:
                 position, quaternion = position_quat_from_T(c.T_world_cam)
                 entry["position"], entry["quaternion_xyzw"] = position.tolist(), quaternion.tolist()

@@ -30,6 +30,7 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -290,6 +291,7 @@ class DashboardState:
                 return
             cam.view_announced_s = now_s
             data = self.view_meta(cam)
+        assert data is not None  # cam.view was just set
         self.events.publish("view", {"camera": view.camera, **data})
 
     def pose(self, pose: TrackedPose) -> None:
@@ -361,7 +363,7 @@ class DashboardState:
     def session_json(self) -> dict:
         with self._lock:
             s = self.session
-            out = {"state": self.session_state, "started_s": self.session_started_s,
+            out: dict[str, Any] = {"state": self.session_state, "started_s": self.session_started_s,
                    "cameras": list(self._cameras), "robots": list(self._robots)}
             if s is not None:
                 out["world"] = {"dictionary": s.world.dictionary, "marker_id": s.world.marker_id,
@@ -439,7 +441,7 @@ class DashboardState:
         trail = trail[::-1][::step][::-1]  # keep the newest point
         out = {"name": robot.name, "trail": [[t, x, y] for t, x, y, _ in trail],
                "seen_by": sorted(c for c, s in robot.seen_s.items() if now_s - s <= self.params.seen_within_s)}
-        if pose is None:
+        if pose is None or robot.T_world_cube is None:  # (set together)
             return {**out, "time_s": None, "position_m": None, "yaw_deg": None, "quaternion_xyzw": None,
                     "age_s": None, "predicted": False}
         R = robot.T_world_cube[:3, :3]
