@@ -61,6 +61,7 @@ class EmulatedCameras:
         return self
 
     def _wait_ready(self, ready: Path) -> None:
+        assert self._process is not None  # started by __enter__
         deadline = time.monotonic() + START_TIMEOUT_S
         while not ready.exists():
             code = self._process.poll()
@@ -79,6 +80,7 @@ class EmulatedCameras:
 
     def wait_finished(self, timeout_s: float) -> bool:
         """Wait until the replay has ended (the emulator exits after its last frame)."""
+        assert self._process is not None, "wait_finished() inside the with block"
         try:
             self._process.wait(timeout_s)
         except subprocess.TimeoutExpired:

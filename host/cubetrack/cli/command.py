@@ -18,6 +18,7 @@ import signal
 import sys
 import threading
 from collections.abc import Mapping
+from typing import Any
 
 from cubetrack.core.errors import CubetrackError
 
@@ -62,12 +63,12 @@ def run_command(parser: argparse.ArgumentParser, argv: list[str] | None) -> int:
             signal.signal(number, handler)
 
 
-def _stop_like_ctrl_c() -> dict[int, object]:
+def _stop_like_ctrl_c() -> dict[int, Any]:
     """Make SIGTERM and SIGHUP raise KeyboardInterrupt in the main thread (where they are not
     ignored); returns the handlers they had, to put back."""
     if threading.current_thread() is not threading.main_thread():
         return {}
-    previous = {}
+    previous: dict[int, Any] = {}  # signal number -> its handler, as signal.signal returned it
     for number in (signal.SIGTERM, signal.SIGHUP):
         if signal.getsignal(number) is signal.SIG_DFL:
             previous[number] = signal.signal(number, signal.default_int_handler)
