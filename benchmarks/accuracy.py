@@ -210,8 +210,9 @@ def camera_distances(rec: Path) -> tuple[float, float, float]:
     return float(d.min()), float(np.median(d)), float(d.max())
 
 
+# a method that produced nothing
 MISSING = {"pos_cm": math.nan, "rot_deg": math.nan, "pos_cm_eq7": math.nan, "rot_deg_eq7": math.nan, "dr": 0.0,
-           "far": math.nan, "far_count": 0, "poses": 0, "scored": 0, "rate_hz": 0.0, "max_cm": math.nan}  # a method that produced nothing
+           "far": math.nan, "far_count": 0, "poses": 0, "scored": 0, "rate_hz": 0.0, "max_cm": math.nan}
 
 
 def score(tum: Path, truth) -> dict:
@@ -593,15 +594,17 @@ def build_report(scenes: list[dict], seeds: list[int], methods: list[str]) -> di
                "refine": [s.get("refine") for s in mine], "body": [s.get("body") for s in mine]}
         for m in methods:
             per = [s["methods"].get(m, MISSING) for s in mine]
-            row["methods"][m] = {k: _agg([p[k] for p in per]) for k in ("pos_cm", "rot_deg", "pos_cm_eq7", "rot_deg_eq7",
-                                                                        "dr", "far", "rate_hz", "max_cm")}
+            row["methods"][m] = {k: _agg([p[k] for p in per])
+                                 for k in ("pos_cm", "rot_deg", "pos_cm_eq7", "rot_deg_eq7",
+                                           "dr", "far", "rate_hz", "max_cm")}
             row["methods"][m]["per_seed"] = per
         ratios = [s["methods"][PAPER]["pos_cm"] / s["methods"][OURS]["pos_cm"] for s in mine]
         row["ratio"] = _agg(ratios)
         row["ratio_per_seed"] = ratios
         for method, key in RATIO_KEYS[1:]:
             if method in methods:
-                row[key] = _agg([s["methods"][PAPER]["pos_cm"] / s["methods"].get(method, MISSING)["pos_cm"] for s in mine])
+                row[key] = _agg([s["methods"][PAPER]["pos_cm"] / s["methods"].get(method, MISSING)["pos_cm"]
+                                 for s in mine])
         rows[f"{preset} {name}"] = row
     return {"seeds": seeds, "configs": rows}
 

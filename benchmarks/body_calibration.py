@@ -13,7 +13,8 @@ errors for reference. Each recording is calibrated with the calibration's corner
 default: edge fit, then the template fit of :mod:`cubetrack.calib.marker_fit`) and, with
 ``--compare``, with the detector's corners (``[bundle_adjustment] body_edge_corners = false``),
 and with ``--compare-instants`` with the instants model (``body_knot_s = 0``: one body pose per
-instant, moved with a fitted velocity) instead of the body's continuous-time trajectory. CPU seconds of each calibrate-body (its child process), the core count and the load average are
+instant, moved with a fitted velocity) instead of the body's continuous-time trajectory. CPU
+seconds of each calibrate-body (its child process), the core count and the load average are
 printed.
 
 ``--extrinsics calibrated`` starts calibrate-body from the extrinsics a user has instead of the

@@ -446,7 +446,8 @@ def calibrated_body(bench, args, rec: Path, config_index: int, robot: str) -> di
     full = rec.with_name(rec.name + "_drive")
     bench.ensure_recording(bench.sim_params(bench.REALISTIC, cameras, height, tilt, args.seed,
                                             args.duration + args.body_drive, 0), full, 2)
-    drive = bench.later_part(full, rec.with_name(rec.name + "_drive_after"), bench.read_sim_start_s(full) + args.duration)
+    drive = bench.later_part(full, rec.with_name(rec.name + "_drive_after"),
+                             bench.read_sim_start_s(full) + args.duration)
     config = read_tracker_config(rec / "config.toml")
     extrinsics = calibrate_recording(config, Recording.open(rec / "calibration")).extrinsics
     config_body, info = bench.calibrated_body(config, drive, rec, extrinsics, robot)

@@ -155,7 +155,8 @@ def transport(messages: list[bytes], workers: int, cameras: int, fps: float, dur
 
     subscriber = session.declare_subscriber(f"{SIGHTINGS_KEY}/*", receive)
     context = multiprocessing.get_context("spawn")
-    procs = [context.Process(target=publish, args=(port, w, cameras, fps, duration_s, messages)) for w in range(workers)]
+    procs = [context.Process(target=publish, args=(port, w, cameras, fps, duration_s, messages))
+             for w in range(workers)]
     for p in procs:
         p.start()
     cpu0, wall0 = time.process_time(), time.monotonic()
@@ -170,7 +171,8 @@ def transport(messages: list[bytes], workers: int, cameras: int, fps: float, dur
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--workers", type=int, default=2, help="publisher processes (default 2)")
     p.add_argument("--cameras", type=int, default=8, help="cameras per publisher (default 8)")
     p.add_argument("--fps", type=float, default=30.0, help="frames/s per camera (default 30)")
