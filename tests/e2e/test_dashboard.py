@@ -227,7 +227,8 @@ def api(url: str, path: str):
 def test_the_dashboard_guides_a_calibration_in_the_browser(lab, tmp_path):
     work, shots = lab["work"], tmp_path
     out, extrinsics = work / "dash", work / "extrinsics.toml"
-    dash = cubetrack("-v", "dashboard", "--config", str(lab["config"]), "--extrinsics", str(extrinsics), "--out", str(out),
+    dash = cubetrack("-v", "dashboard", "--config", str(lab["config"]), "--extrinsics", str(extrinsics),
+                     "--out", str(out),
                      "--port", "0", "--duration", "240", cwd=work)
     browser = None
     try:

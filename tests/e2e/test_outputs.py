@@ -30,7 +30,8 @@ pytestmark = pytest.mark.slow
 NODE_CLIENT = REPO / "tests" / "e2e" / "foxglove_client"
 NODE_TOPICS = ("/robots/robot/pose", "/tf", "/scene", "/cameras/cam1/image", "/cameras/cam1/annotations",
                "/cameras/cam1/calibration", "/cameras/cam1/health")
-POSE_KEY = "0/robot/pose/geometry_msgs::msg::dds_::PoseStamped_/RIHS01_10f3786d7d40fd2b54367835614bff85d4ad3b5dab62bf8bca0cc232d73b4cd8"
+POSE_KEY = ("0/robot/pose/geometry_msgs::msg::dds_::PoseStamped_/"
+            "RIHS01_10f3786d7d40fd2b54367835614bff85d4ad3b5dab62bf8bca0cc232d73b4cd8")
 
 
 def retry(make, timeout_s=120.0):
@@ -193,7 +194,8 @@ def test_track_takes_outputs_from_the_config(demo, capsys):
     code, out, _, _ = demo
     demo_dir = out / "demo"
     config = demo_dir / "rec" / "with_outputs.toml"  # beside the original: its relative paths still hold
-    config.write_text((demo_dir / "rec" / "config.toml").read_text() + '\n[[outputs]]\ntype = "mcap"\npath = "replay.mcap"\n')
+    config.write_text((demo_dir / "rec" / "config.toml").read_text()
+                      + '\n[[outputs]]\ntype = "mcap"\npath = "replay.mcap"\n')
     assert main(["track", "--config", str(config), "--extrinsics", str(demo_dir / "extrinsics.toml"),
                  "--recording", str(demo_dir / "rec"), "--out", str(out / "replay")]) == 0
     assert "output: MCAP file" in capsys.readouterr().err

@@ -143,7 +143,8 @@ def global_functions(text: str) -> list[tuple[int, str]]:
             scopes.append("namespace")
         elif re.search(r"\b(class|struct|union|enum)\b", head) and "(" not in head:
             scopes.append("type")
-        elif not scopes and re.search(r"\)\s*(const\s*)?$", head) and words and words[0] not in ("if", "for", "while", "switch"):
+        elif (not scopes and re.search(r"\)\s*(const\s*)?$", head) and words
+              and words[0] not in ("if", "for", "while", "switch")):
             first_char = head_start + len(head) - len(head.lstrip())
             found.append((code.count("\n", 0, first_char) + 1, " ".join(words) + ";"))
             scopes.append("function")

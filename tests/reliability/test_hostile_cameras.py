@@ -105,7 +105,8 @@ def test_hostile_cameras_never_stall_the_good_one_or_exhaust_memory(peers, tmp_p
         assert stats[kind].connects == 0  # the response head never completes
     assert stats["trickle_head"].clock_failures["no answer"] >= 2  # 1 s per byte > the /time timeout
     # gigabytes arrived, memory did not follow
-    flood = sum(sent[k] for k in ("endless_header", "many_headers", "endless_part_header", "huge_part", "huge_part_no_length"))
+    flood = sum(sent[k] for k in ("endless_header", "many_headers", "endless_part_header", "huge_part",
+                                  "huge_part_no_length"))
     assert flood > 100e6, sent
     assert peak < 40e6, f"peak traced memory {peak / 1e6:.1f} MB while {flood / 1e6:.0f} MB arrived"
     # trickling peers do not hold stop() hostage beyond one read timeout

@@ -168,7 +168,8 @@ class FakeBoard:
                 improv.Command.GET_DEVICE_INFO, ["cubecam", "0.0-fake", "Spresense", self.settings["name"]])))
         elif command == improv.Command.GET_WIFI_NETWORKS:
             for ssid, rssi, secured in (("lab", -48, "YES"), ("guest", -71, "NO")):
-                self._write(self._frame(improv.encode_rpc_result(improv.Command.GET_WIFI_NETWORKS, [ssid, str(rssi), secured])))
+                networks = [ssid, str(rssi), secured]
+                self._write(self._frame(improv.encode_rpc_result(improv.Command.GET_WIFI_NETWORKS, networks)))
             self._write(self._frame(improv.encode_rpc_result(improv.Command.GET_WIFI_NETWORKS, [])))
         elif command == improv.Command.WIFI_SETTINGS:
             ssid, password = strings

@@ -35,7 +35,8 @@ def test_console_script_is_installed():
 @pytest.mark.parametrize("command, options", [
     ("emulate", ["--recording", "--images", "--port", "--addresses", "--loop", "--latency", "--jitter", "--drop-rate",
                  "--bandwidth", "--disconnect-every", "--stall-after", "--corrupt-every"]),
-    ("provision", ["--port", "--ssid", "--password-file", "--name", "--quality", "--fps", "--mode", "--ip", "--config"]),
+    ("provision", ["--port", "--ssid", "--password-file", "--name", "--quality", "--fps", "--mode", "--ip",
+                   "--config"]),
     ("monitor", ["DEV", "--duration"]),
     ("list", ["--no-names"]),
     ("flash", ["--port", "--all", "--builder", "--dry-run", "--burn-bootloader", "--sketch", "--project", "--ssid",

@@ -68,7 +68,8 @@ def test_lengths_count_def_to_last_line(tmp_path):
     """The measure itself: a method and a nested function are named by their owners and measured
     from ``def`` to their last line."""
     body = "\n".join(f"        x{i} = {i}" for i in range(MAX_LINES))
-    source = f"class A:\n    def long(self):\n        def inner():\n            pass\n{body}\n\ndef short():\n    pass\n"
+    source = (f"class A:\n    def long(self):\n        def inner():\n            pass\n{body}\n\n"
+              "def short():\n    pass\n")
     path = tmp_path / "m.py"
     path.write_text(source)
     assert function_lengths(path) == {"A.long": MAX_LINES + 3, "A.long.inner": 2, "short": 2}

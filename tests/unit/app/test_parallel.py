@@ -126,7 +126,8 @@ def test_a_packed_result_comes_back_whole_through_pickle(scenes):
                 assert (a.estimate is None) == (b.estimate is None)
                 if a.estimate is not None:
                     assert a.estimate.T_world_cube.tobytes() == b.estimate.T_world_cube.tobytes()
-                assert a.T_world_cam.tobytes() == b.T_world_cam.tobytes() and a.intrinsics is receiver.intrinsics[a.camera]
+                assert a.T_world_cam.tobytes() == b.T_world_cam.tobytes()
+                assert a.intrinsics is receiver.intrinsics[a.camera]
                 if params is uncalibrated:
                     assert a.T_world_cam is not receiver.T_world_cam.get(a.camera)
                 else:

@@ -292,7 +292,8 @@ def test_a_workers_message_gives_the_fusion_what_its_own_per_frame_work_gives(sc
             assert (a.camera, a.seq, a.capture_time_s, a.arrival_time_s) == (b.camera, b.seq, b.capture_time_s,
                                                                               b.arrival_time_s)
             assert [d.marker_id for d in a.detections] == [d.marker_id for d in b.detections]
-            assert all(np.array_equal(x.corners_px, y.corners_px) for x, y in zip(a.detections, b.detections, strict=True))
+            assert all(np.array_equal(x.corners_px, y.corners_px)
+                       for x, y in zip(a.detections, b.detections, strict=True))
             assert (a.estimate is None) == (b.estimate is None) == (a.robot not in asks)
             if a.estimate is not None:
                 assert np.array_equal(a.estimate.T_world_cube, b.estimate.T_world_cube)

@@ -138,7 +138,8 @@ def test_filter_drops_a_bad_face_and_rejects_a_garbage_sighting():
     assert len(good.faces) >= 2
     bad = good.normalized.copy()
     bad[:4] += 25.0 / 520.0  # the first face's corners 25 px off: a misread marker
-    result = f.update([CornerSet(good.camera, 0.0, good.T_cam_world, good.focal_px, good.points_cube_m, bad, good.faces)])
+    result = f.update([CornerSet(good.camera, 0.0, good.T_cam_world, good.focal_px, good.points_cube_m, bad,
+                                 good.faces)])
     assert result.accepted and result.points == 4 * (len(good.faces) - 1)
     assert np.linalg.norm(f.position_m - truth[:3, 3]) < 0.003
     before = f.T_world_cube.copy()

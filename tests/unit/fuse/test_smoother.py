@@ -76,7 +76,8 @@ def test_smoothed_poses_are_closer_to_the_truth_than_the_filters(seed):
     for p, q in zip(smoothed, causal, strict=True):  # the rest of the record is the sighting's
         assert p.cameras == q.cameras and p.markers == q.markers and p.covariance.shape == (6, 6)
     # the smoother's covariance is no larger than the filter's (it has more sightings)
-    assert np.median([np.trace(p.covariance) / np.trace(q.covariance) for p, q in zip(smoothed, causal, strict=True)]) < 0.8
+    ratios = [np.trace(p.covariance) / np.trace(q.covariance) for p, q in zip(smoothed, causal, strict=True)]
+    assert np.median(ratios) < 0.8
     assert smoothed[-1].position_m.tolist() == causal[-1].position_m.tolist()  # the last state: nothing after it
 
 
@@ -105,7 +106,8 @@ def test_gains_kept_from_pass_to_pass_change_no_smoothed_pose():
         if n == 19:  # a state replaced, as a late sighting's re-application does
             f = part[5].filter
             part[5] = dataclasses.replace(part[5], filter=f.moved(np.full(12, 1e-3), f.P))
-        for kept, fresh in zip(smoothed_poses(part, 2.0, 4, 0.1, gains), smoothed_poses(part, 2.0, 4, 0.1), strict=True):
+        for kept, fresh in zip(smoothed_poses(part, 2.0, 4, 0.1, gains), smoothed_poses(part, 2.0, 4, 0.1),
+                               strict=True):
             assert kept.position_m.tolist() == fresh.position_m.tolist()
             assert kept.covariance.tolist() == fresh.covariance.tolist() and kept.extra == fresh.extra
 

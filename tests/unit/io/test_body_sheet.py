@@ -119,7 +119,8 @@ def test_a_repeated_id_cube_decodes_five_times():
 def test_folding_the_net_puts_every_marker_back_on_its_face():
     """The net is the box unfolded: each face's unfold transform is rigid and lays the face in the
     top's plane, outside side up; a marker's printed corners, folded back, are its layout corners."""
-    layout = box_layout((0.30, 0.20, 0.15), distinct_ids=True, faces=("top", "front", "left", "back", "right", "bottom"))
+    layout = box_layout((0.30, 0.20, 0.15), distinct_ids=True,
+                        faces=("top", "front", "left", "back", "right", "bottom"))
     half = box_half_sizes(layout)
     assert np.allclose(half, [0.15, 0.10, 0.075])
     U = unfold_transforms(half)
@@ -166,7 +167,8 @@ def test_make_body_cli_writes_the_sheet_and_a_layout_that_reads_back(tmp_path, m
     assert cli_main.main(args) == 1
     assert "already exist" in capsys.readouterr().err
     assert out.with_suffix(".toml").read_bytes() == before
-    for bad, message in ((["--preset", "box"], "needs --size"), (["--preset", "box", "--size", "0.1", "0.1", "0.1", "--marker-size", "0.2"], "does not fit"),
+    for bad, message in ((["--preset", "box"], "needs --size"),
+                         (["--preset", "box", "--size", "0.1", "0.1", "0.1", "--marker-size", "0.2"], "does not fit"),
                          (["--marker-size", "0.2"], "must be positive and fit the cube side"),
                          (["--dictionary", "DICT_NOPE"], "DICT_NOPE")):
         assert cli_main.main(["make-body", "--out", str(tmp_path / "x")] + bad) == 1

@@ -88,7 +88,8 @@ def test_a_stalled_stream_times_out_and_is_reconnected(images, caplog):
     assert frames[-1].host_time_s - frames[0].host_time_s > 2.0  # ... and frames resumed after it
 
 
-@pytest.mark.parametrize("kind,reason", [("jpeg", "not a whole JPEG"), ("truncate", "part shorter than its Content-Length")])
+@pytest.mark.parametrize("kind,reason", [("jpeg", "not a whole JPEG"),
+                                         ("truncate", "part shorter than its Content-Length")])
 def test_corrupt_parts_are_skipped_and_counted_and_the_rest_delivered(images, kind, reason):
     faults = Faults(corrupt_every=3, corrupt_kind=kind, seed=3)
     with Emulator(images=images, fps=FPS, name="cam1", loop=True, faults=faults) as emu:

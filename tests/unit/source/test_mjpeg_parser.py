@@ -142,8 +142,10 @@ def test_boundary_from_content_type(content_type, boundary):
 def test_servers_that_repeat_dashes_or_omit_the_first_crlf_are_read():
     # mjpg-streamer style: header says boundary=--myboundary, body uses "--myboundary" lines
     body = b"--myboundary\r\n" + headers_part(
-        [b"Content-Type: image/jpeg", b"Content-Length: %d" % len(JPEGS[0]), b"X-Timestamp: 1.5"], JPEGS[0])[:-len(DELIM)]
-    body += b"\r\n--myboundary\r\n" + headers_part([b"Content-Length: %d" % len(JPEGS[1]), b"X-Timestamp: 1.6"], JPEGS[1])
+        [b"Content-Type: image/jpeg", b"Content-Length: %d" % len(JPEGS[0]), b"X-Timestamp: 1.5"],
+        JPEGS[0])[:-len(DELIM)]
+    body += b"\r\n--myboundary\r\n" + headers_part([b"Content-Length: %d" % len(JPEGS[1]), b"X-Timestamp: 1.6"],
+                                                  JPEGS[1])
     parser = MjpegParser(boundary_from_content_type("multipart/x-mixed-replace;boundary=--myboundary"))
     assert [p.device_time_s for p in parser.feed(body)] == [1.5, 1.6]
 
