@@ -16,9 +16,6 @@ ALLOWED = {
     "host/cubetrack/app/track.py:track_frames": "one of the five run loops issue 23 moves onto the session runtime",
     "host/cubetrack/app/fusion_service.py:run_fusion":
         "one of the five run loops issue 23 moves onto the session runtime",
-    "host/cubetrack/calib/bundle.py:adjust_extrinsics": "to split: the bundle adjustment's setup, solve and report",
-    "host/cubetrack/calib/solver.py:solve": "to split: the nested evaluate closes over a dozen of solve's arrays",
-    "host/cubetrack/calib/solver.py:solve.evaluate": "to split with solve (above)",
     "host/cubetrack/detect/detector.py:refine_corners_edges":
         "one vectorised pass over every side of every quad; its steps share a dozen (M, 4, k) arrays",
     "host/cubetrack/simulate/params.py:SimulationParams.__post_init__":

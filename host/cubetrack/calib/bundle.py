@@ -843,7 +843,7 @@ def adjust_extrinsics(frames: Mapping[str, Iterable[Frame]], extrinsics: Mapping
 
     # 1. the relative solve: cube corners only, the gauge held by weak priors on the cameras
     gauge: PosePrior | None = PosePrior(ref.model.T_cams.copy(), params.gauge_prior_position_m,
-                      np.radians(params.gauge_prior_rotation_deg))
+                                        np.radians(params.gauge_prior_rotation_deg))
     ref.solve(ref.freedom(camera_prior=gauge))
     G, consistent, moved = _align(ref.T_world_cam(), T_prior, params)
     if moved and len(consistent) < 2:
@@ -874,7 +874,17 @@ def adjust_extrinsics(frames: Mapping[str, Iterable[Frame]], extrinsics: Mapping
         ref.solve(ref.freedom(camera_prior=gauge, intrinsics=params.refine_intrinsics,
                               free_scale=params.free_cube_scale and bool(world_terms)), world_terms)
 
-    # report
+    return _adjustment_report(ref, extrinsics, intrinsics, cameras, T_prior, moved, world_terms, warn, warnings)
+
+
+def _adjustment_report(ref: Refinement, extrinsics: Mapping[str, CameraExtrinsics],
+                       intrinsics: Mapping[str, CameraIntrinsics], cameras: Sequence[str],
+                       T_prior: Mapping[str, np.ndarray], moved: Sequence[str],
+                       world_terms: dict[str, tuple[np.ndarray, np.ndarray]], warn: Callable[[str], None],
+                       warnings: list[str]) -> BundleAdjustmentReport:
+    """The refined extrinsics and each camera's residuals after the last solve (see
+    :func:`adjust_extrinsics`); a moved camera is also warned about."""
+    used = ref.cameras
     ref.update_velocities()
     obs, r, rw = ref.residuals(world_terms)
     refined = dict(extrinsics)
