@@ -231,7 +231,8 @@ def api(url: str, path: str):
 def test_the_dashboard_guides_a_calibration_in_the_browser(lab, tmp_path):
     work, shots = lab["work"], tmp_path
     out, extrinsics = work / "dash", work / "extrinsics.toml"
-    dash = cubetrack("-v", "dashboard", "--config", str(lab["config"]), "--extrinsics", str(extrinsics), "--out", str(out),
+    dash = cubetrack("-v", "dashboard", "--config", str(lab["config"]), "--extrinsics", str(extrinsics),
+                     "--out", str(out),
                      "--port", "0", "--duration", "240", cwd=work)
     browser = None
     try:
@@ -369,7 +370,8 @@ def test_track_live_shows_its_session_and_a_stalled_camera_turns_red_within_two_
     config = tmp_path / "lab.toml"
     text = lab["config"].read_text(encoding="utf-8")
     info = (lab["rec"] / "camera_info" / "cam1.yaml").as_posix()
-    config.write_text(text + f'\n[[cameras]]\nname = "cam5"\nurl = "{stall_served["urls"]["cam5"]}"\ncamera_info = "{info}"\n',
+    config.write_text(text + '\n[[cameras]]\nname = "cam5"\nurl = '
+                             f'"{stall_served["urls"]["cam5"]}"\ncamera_info = "{info}"\n',
                       encoding="utf-8")
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

@@ -16,12 +16,12 @@ import sys
 from pathlib import Path
 
 import pytest
+from fakeboard import FakeBoard
+from toolcheck import REPO, assert_one_line_error, run_cubecam
 
 from cubecam import boards
 from cubecam.cli import main
 from cubecam.flash import FQBN, GS2200_GIT_URL, PACKAGE_INDEX_URL
-from fakeboard import FakeBoard
-from toolcheck import REPO, assert_one_line_error, run_cubecam
 
 PIO = shutil.which("pio") or str(Path(sys.executable).parent / "pio")
 VENDOR_CORE = REPO.parent / "shared" / "vendor" / "spresense" / "core-3.4.4"
@@ -174,7 +174,8 @@ def test_auto_detect_prefers_arduino_cli_with_sonys_board_package(tools, capfd, 
 def test_auto_detect_uses_platformio_when_arduino_cli_lacks_the_board_package(tools, capfd):
     tools.answer("arduino-cli", ["core", "list"], json.dumps({"platforms": None}))
     assert main(tools.args("--port", "/dev/ttyUSB0")) == 0
-    assert tools.runs("pio") == stripped([tools.pio_run(), tools.pio_run("-t", "upload", "--upload-port", "/dev/ttyUSB0")])
+    assert tools.runs("pio") == stripped([tools.pio_run(),
+                                          tools.pio_run("-t", "upload", "--upload-port", "/dev/ttyUSB0")])
     assert tools.runs("arduino-cli") == []
     assert "building with platformio (arduino-cli lacks Sony's board package" in capfd.readouterr().err
 
@@ -471,7 +472,8 @@ def test_platformio_ini_pins_every_package():
         return url
 
     assert pinned(opts["platform"]) == "https://github.com/maxgerhardt/platform-sonyspresense.git"
-    packages = {name.strip(): pinned(url.strip()) for name, _, url in (p.partition("@") for p in opts["platform_packages"])}
+    packages = {name.strip(): pinned(url.strip())
+                for name, _, url in (p.partition("@") for p in opts["platform_packages"])}
     assert set(packages) == {"framework-arduinosonyspresense", "tool-arduinosonyspresensesdk", "tool-spresense"}
     assert [pinned(dep) for dep in opts["lib_deps"]] == ["https://github.com/TomonobuHayakawa/GS2200-WiFi.git"]
     assert opts["lib_deps"][0].endswith("#6126fb4f885e33aa6fe5399996493cf8ed21fe92")

@@ -53,7 +53,8 @@ BOOTLOADER_PROGRAMMER = "sfutools"  # programmers.txt: "Spresense Firmware Updat
 GS2200_LIBRARY = "GS2200"  # library.properties name of TomonobuHayakawa/GS2200-WiFi
 GS2200_GIT_URL = "https://github.com/TomonobuHayakawa/GS2200-WiFi.git#6126fb4f885e33aa6fe5399996493cf8ed21fe92"
 ARDUINO_CLI_INSTALL = ("mkdir -p ~/.local/bin && curl -fsSL "
-                       "https://raw.githubusercontent.com/arduino/arduino-cli/master/install.sh | BINDIR=~/.local/bin sh")
+                       "https://raw.githubusercontent.com/arduino/arduino-cli/master/install.sh | "
+                       "BINDIR=~/.local/bin sh")
 
 # --- PlatformIO ---
 

@@ -3,7 +3,8 @@
 Each worker process owns a share of the cameras end to end: it reads their streams and
 ``/time`` round trips on its one thread, between frames (:class:`~cubetrack.source.streams.LiveCameras`
 without a thread of its own: non-blocking sockets; frames in arrival order, the freshest first
-once behind, each camera's newest only), stamps capture times with its own clock fits, plans each frame and does the per-frame work
+once behind, each camera's newest only), stamps capture times with its own clock fits, plans each
+frame and does the per-frame work
 (decode, detection, per-camera estimates) with a :class:`~cubetrack.app.tracker.Tracker` of its
 own, whose plans come from a :class:`Forecast`: each robot's motion as the fusion predicts it,
 sent by the tracker's process after every batch of fused results. Results go back over a pipe

@@ -39,7 +39,7 @@ class EmulatedCameras:
         self._process: subprocess.Popen | None = None
         self._tmp: tempfile.TemporaryDirectory | None = None
 
-    def __enter__(self) -> "EmulatedCameras":
+    def __enter__(self) -> EmulatedCameras:
         self._tmp = tempfile.TemporaryDirectory(prefix="cubetrack-emulator-")
         ready = Path(self._tmp.name) / "ready.json"
         stderr = open(Path(self._tmp.name) / "stderr.txt", "w+b")
@@ -63,6 +63,7 @@ class EmulatedCameras:
         return self
 
     def _wait_ready(self, ready: Path) -> None:
+        assert self._process is not None  # started by __enter__
         deadline = time.monotonic() + START_TIMEOUT_S
         while not ready.exists():
             code = self._process.poll()
@@ -81,6 +82,7 @@ class EmulatedCameras:
 
     def wait_finished(self, timeout_s: float) -> bool:
         """Wait until the replay has ended (the emulator exits after its last frame)."""
+        assert self._process is not None, "wait_finished() inside the with block"
         try:
             self._process.wait(timeout_s)
         except subprocess.TimeoutExpired:

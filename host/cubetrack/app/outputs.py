@@ -5,10 +5,10 @@ Outputs come from the config's ``[[outputs]]`` tables and from command-line flag
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
-from typing import Sequence
 
 from cubetrack.core.cameras import CameraExtrinsics, CameraIntrinsics
 from cubetrack.core.errors import ConfigError

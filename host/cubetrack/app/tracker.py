@@ -143,7 +143,8 @@ class FrameWorker:
         self.robots = robots
         self.T_world_cam = T_world_cam
         self.params = params
-        self.detector = Detector(params.detector, [world.dictionary, *(d for r in robots for d in r.layout.dictionaries)])
+        self.detector = Detector(params.detector,
+                                 [world.dictionary, *(d for r in robots for d in r.layout.dictionaries)])
 
     def camera_pose(self, frame: Frame, detections) -> np.ndarray | None:
         """T_world_cam for this frame: calibrated, or from the frame's own world marker."""

@@ -25,10 +25,10 @@ import logging
 import math
 import re
 from collections import Counter
+from collections.abc import Iterable, Iterator
 from dataclasses import dataclass
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
-from typing import Iterable, Iterator
 
 from cubetrack.core.cameras import ClockSample
 from cubetrack.core.errors import RecordingError
@@ -88,7 +88,7 @@ class Recording:
         self._missing: set[tuple[str, str]] = set()  # (camera, file) already counted as missing
 
     @classmethod
-    def open(cls, path: str | Path) -> "Recording":
+    def open(cls, path: str | Path) -> Recording:
         """Open a recording folder, checking ``recording.json``."""
         path = Path(path)
         meta_path = path / "recording.json"
@@ -260,7 +260,7 @@ class RecordingWriter:
             "format": FORMAT,
             "version": VERSION,
             "cameras": [{"name": c.name, "source": c.source} for c in self.cameras],
-            "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+            "created": datetime.now(UTC).isoformat(timespec="seconds"),
         }
         self._index: dict[str, LineFile] = {}
         self._clock: dict[str, LineFile] = {}
@@ -313,7 +313,7 @@ class RecordingWriter:
         for f in (*self._index.values(), *self._clock.values()):
             f.close()
 
-    def __enter__(self) -> "RecordingWriter":
+    def __enter__(self) -> RecordingWriter:
         return self
 
     def __exit__(self, *exc: object) -> None:

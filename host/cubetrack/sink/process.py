@@ -7,7 +7,8 @@ runs a set of outputs in a child process instead; the pipeline's side only pickl
 pipe (from the :class:`~cubetrack.sink.base.Decoupled` thread :class:`Outputs` gives it, so a
 full pipe costs the pipeline nothing: the oldest items are dropped and counted there). Items go
 in batches (at most one per ``BATCH_WINDOW_S``: an item after a quiet spell goes at once, and what
-follows it within the window waits for the next batch: one wake-up, one pickle and one write for several), each record as a compact tuple of plain values (:func:`pack`): pickling
+follows it within the window waits for the next batch: one wake-up, one pickle and one write for
+several), each record as a compact tuple of plain values (:func:`pack`): pickling
 the frozen dataclasses and their small numpy arrays as objects cost ten times more.
 
 The child builds its outputs with ``factory`` (a picklable callable returning the sinks, e.g. a

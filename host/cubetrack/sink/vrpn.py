@@ -345,9 +345,9 @@ class VrpnServer:
                 client.outbox.appendleft(COOKIE)
                 client.queued_bytes += COOKIE_SIZE
         with self.lock:
-            error = self._send_queued(client)
-        if error is not None:
-            self._drop(client, error)
+            failure = self._send_queued(client)
+        if failure is not None:
+            self._drop(client, failure)
 
     def _send_queued(self, client: _Client) -> str | None:
         """Send what ``client`` has queued until its socket would block (with the lock held, by
@@ -420,10 +420,10 @@ class VrpnServer:
                 name = body[4:4 + n].split(b"\x00")[0].decode("ascii", "replace")
                 (client.senders if type_id == SENDER_DESCRIPTION else client.types)[sender] = name
             elif client.types.get(type_id) == PING:
-                name = client.senders.get(sender)
-                if name in self.senders:
+                pinged = client.senders.get(sender)
+                if pinged in self.senders:
                     with self.lock:
-                        self._queue(client, self._framed(client, self.senders.index(name), TYPES.index(PONG), b"",
+                        self._queue(client, self._framed(client, self.senders.index(pinged), TYPES.index(PONG), b"",
                                                          seconds + micros * 1e-6))
 
 

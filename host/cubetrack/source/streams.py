@@ -33,8 +33,8 @@ import socket
 import threading
 import time
 from collections import Counter, deque
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field, replace
-from typing import Callable, Iterable, Mapping
 from urllib.parse import urljoin, urlsplit
 
 from cubetrack.core.cameras import ClockSample
@@ -61,13 +61,17 @@ _EOI = b"\xff\xd9"
 class SourceParams:
     """The ``[source]`` section of the tracker config: how live cameras are read."""
 
-    connect_timeout_s: float = param(2.0, "a camera that does not accept the connection within this is retried, seconds")
+    connect_timeout_s: float = param(2.0, "a camera that does not accept the connection within this is "
+                                          "retried, seconds")
     read_timeout_s: float = param(3.0, "a stream that sends nothing for this long is dropped and reconnected, seconds")
-    backoff_initial_s: float = param(0.25, "first wait before reconnecting a lost stream, seconds (doubles per failure)")
+    backoff_initial_s: float = param(0.25, "first wait before reconnecting a lost stream, seconds "
+                                           "(doubles per failure)")
     backoff_max_s: float = param(5.0, "longest wait between reconnection attempts, seconds")
     clock_period_s: float = param(1.0, "interval between /time round trips per camera, seconds")
     clock_timeout_s: float = param(0.5, "a /time round trip not answered within this is dropped, seconds")
-    frames_per_camera: int = param(1, "frames of one camera waiting for the consumer; a newer frame pushes the oldest out (dropped, counted): when the host is behind, only the freshest frames are processed")
+    frames_per_camera: int = param(1, "frames of one camera waiting for the consumer; a newer frame pushes the oldest "
+                                      "out (dropped, counted): when the host is behind, only the freshest "
+                                      "frames are processed")
     max_header_bytes: int = param(2048, "a part whose headers are longer than this is skipped, bytes")
     max_part_bytes: int = param(4 * 1024 * 1024, "a part whose JPEG is larger than this is skipped, bytes")
     read_chunk_bytes: int = param(65536, "largest single socket read, bytes")
@@ -434,7 +438,7 @@ class CameraStats:
     def bad(self) -> int:
         return sum(self.bad_parts.values())
 
-    def copy(self) -> "CameraStats":
+    def copy(self) -> CameraStats:
         return replace(self, bad_parts=Counter(self.bad_parts), clock_failures=Counter(self.clock_failures))
 
 
@@ -526,7 +530,7 @@ class LiveCameras:
 
     # --- lifecycle ---
 
-    def start(self) -> "LiveCameras":
+    def start(self) -> LiveCameras:
         if self._selector is not None:
             return self
         self._selector = selectors.DefaultSelector()
@@ -568,7 +572,7 @@ class LiveCameras:
     def stopped(self) -> bool:
         return self._stop.is_set()
 
-    def __enter__(self) -> "LiveCameras":
+    def __enter__(self) -> LiveCameras:
         return self.start()
 
     def __exit__(self, *exc: object) -> None:

@@ -102,7 +102,7 @@ def test_topics_keys_attachments_and_payloads_follow_rmw_zenoh(router, session_i
     assert str(static.key_expr) == f"0/tf_static/tf2_msgs::msg::dds_::TFMessage_/{TF_HASH}"
     assert set(samples) == {pose_key, odom_key, tf_key}
     gids = set()
-    for key, received in samples.items():
+    for received in samples.values():
         assert len(received) == 3
         for n, sample in enumerate(received, start=1):
             raw = sample.attachment.to_bytes()

@@ -29,7 +29,8 @@ def test_time_answers_are_parsed(body, value):
     assert parse_time_answer(body) == value
 
 
-@pytest.mark.parametrize("body", [b"", b"hello", b"-1.5", b"nan", b"1e9", b"12:30:00", b"1.2.3", b"\xff\xfe", b"9" * 40])
+@pytest.mark.parametrize("body", [b"", b"hello", b"-1.5", b"nan", b"1e9", b"12:30:00", b"1.2.3", b"\xff\xfe",
+                                  b"9" * 40])
 def test_garbage_time_answers_are_refused(body):
     with pytest.raises((ValueError, UnicodeDecodeError)):
         parse_time_answer(body)

@@ -5,6 +5,7 @@ stays bounded, and stop() wakes blocked reads."""
 from __future__ import annotations
 
 import http.server
+import itertools
 import logging
 import statistics
 import threading
@@ -82,12 +83,13 @@ def test_a_stalled_stream_times_out_and_is_reconnected(images, caplog):
     lost = [r.getMessage() for r in caplog.records if "stream lost" in r.getMessage()]
     assert lost and all("stopped for 0.5 s" in m for m in lost)
     assert all("reconnecting in 0.05 s" in m for m in lost)  # each connection worked: no growing back-off
-    first_gap = max(b.host_time_s - a.host_time_s for a, b in zip(frames, frames[1:]))
+    first_gap = max(b.host_time_s - a.host_time_s for a, b in itertools.pairwise(frames))
     assert first_gap >= 0.5  # the stall was seen ...
     assert frames[-1].host_time_s - frames[0].host_time_s > 2.0  # ... and frames resumed after it
 
 
-@pytest.mark.parametrize("kind,reason", [("jpeg", "not a whole JPEG"), ("truncate", "part shorter than its Content-Length")])
+@pytest.mark.parametrize("kind,reason", [("jpeg", "not a whole JPEG"),
+                                         ("truncate", "part shorter than its Content-Length")])
 def test_corrupt_parts_are_skipped_and_counted_and_the_rest_delivered(images, kind, reason):
     faults = Faults(corrupt_every=3, corrupt_kind=kind, seed=3)
     with Emulator(images=images, fps=FPS, name="cam1", loop=True, faults=faults) as emu:
