@@ -16,11 +16,11 @@ import pytest
 REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO / "tests" / "unit" / "sink"))  # the consumers written for the unit tests
 
-from sink_helpers import free_port
-from vrpn_client import PingWatcher
+from sink_helpers import free_port  # noqa: E402
+from vrpn_client import PingWatcher  # noqa: E402
 
-from cubecam.emulator import Emulator
-from cubetrack.app.demo import write_live_config
+from cubecam.emulator import Emulator  # noqa: E402
+from cubetrack.app.demo import write_live_config  # noqa: E402
 
 pytestmark = pytest.mark.slow
 

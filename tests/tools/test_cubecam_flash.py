@@ -406,8 +406,8 @@ def test_the_flash_extra_pins_platformio_and_dry_run_then_builds_the_platformio_
     assert main(["flash", "--port", "/dev/ttyUSB0", "--dry-run"]) == 0
     lines = capsys.readouterr().out.splitlines()
     plan = [shlex.split(line) for line in lines[lines.index("# platformio") + 1:]]
-    assert plan == [[str(pio), "run", "-d", str(REPO), "-e", "spresense"],
-                    [str(pio), "run", "-d", str(REPO), "-e", "spresense", "-t", "upload", "--upload-port", "/dev/ttyUSB0"]]
+    build = [str(pio), "run", "-d", str(REPO), "-e", "spresense"]
+    assert plan == [build, [*build, "-t", "upload", "--upload-port", "/dev/ttyUSB0"]]
 
 
 def test_all_without_boards(monkeypatch, capsys):

@@ -370,7 +370,8 @@ def platform_installed(platform: str, project: Path, core: Path | None = None) -
 def check_pio(pio: str | None) -> str:
     """A working ``pio``, or FlashError saying how to get one."""
     if pio is None:
-        raise FlashError(f"PlatformIO (pio) not found: install it with `{pio_install_command()}` or give its path with --pio")
+        raise FlashError(f"PlatformIO (pio) not found: install it with `{pio_install_command()}` "
+                         "or give its path with --pio")
     query([pio, "--version"])
     return pio
 

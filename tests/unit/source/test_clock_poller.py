@@ -96,4 +96,5 @@ def test_a_server_answering_garbage_gives_no_clock_sample_and_every_failure_is_c
     assert stats.clock_samples == 0
     assert stats.clock_failures["garbage answer"] >= 3 and stats.clock_failures["no answer"] >= 1
     # its "stream" is no stream: the same round robin answers it with text, HTTP 500 or too late
-    assert stats.reconnects >= 1 and any(why in stats.last_error for why in ("not an MJPEG stream", "HTTP 500", "did not answer within"))
+    assert stats.reconnects >= 1 and any(
+        why in stats.last_error for why in ("not an MJPEG stream", "HTTP 500", "did not answer within"))

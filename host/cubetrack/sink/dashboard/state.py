@@ -123,7 +123,9 @@ def camera_status(health: CameraHealth | None, last_frame_s: float | None, now_s
             return "waiting", "connecting"  # the session has just started
         return "down", health.last_error or "not connected"
     if last_frame_s is None:  # connected: broken frames only is as bad as no camera
-        return ("down", health.last_error) if health.bad and health.last_error else ("waiting", "connected, no frame yet")
+        if health.bad and health.last_error:
+            return "down", health.last_error
+        return "waiting", "connected, no frame yet"
     age_s = now_s - last_frame_s
     if age_s > stale_after_s:
         reason = f"no frame for {age_s:.1f} s"
