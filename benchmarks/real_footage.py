@@ -118,7 +118,7 @@ def charuco_reference(data: Path = DATA) -> dict[int, Instant]:
             dirs = np.column_stack([xy, np.ones(len(xy))]) @ T_world_cam[:3, :3].T
             dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
             cams.setdefault(sync, set()).add(cam)
-            for corner_id, d in zip(ids.ravel().tolist(), dirs):
+            for corner_id, d in zip(ids.ravel().tolist(), dirs, strict=True):
                 seen.setdefault(sync, {}).setdefault(corner_id, []).append((T_world_cam[:3, 3], d))
     out = {}
     for sync, corners in seen.items():
@@ -221,7 +221,8 @@ def main(argv: list[str] | None = None) -> int:
         import_caliscope(args.data, work)
     reference = charuco_reference(args.data)
     rms = np.array([i.rms_m for i in reference.values()]) * 1000.0
-    print(f"reference: {len(reference)} instants, rigid-fit RMS median {np.median(rms):.2f} mm, max {rms.max():.2f} mm; "
+    print(f"reference: {len(reference)} instants, rigid-fit RMS median {np.median(rms):.2f} mm, "
+          f"max {rms.max():.2f} mm; "
           f"cores {os.cpu_count()}")
     runs: dict[str, dict] = {"default (filter)": {}, "mean fusion": {"fusion": {"method": "mean"}}}
     if args.set:

@@ -45,7 +45,7 @@ def scene():
     ok, rvec, tvec = cv2.solvePnP(obj, corners, intr.K, intr.dist)
     assert ok and len(ids) >= 8
     truth = {int(i): cv2.projectPoints(np.asarray(c), rvec, tvec, intr.K, intr.dist)[0].reshape(4, 2)
-             for i, c in zip(cv_board.getIds().ravel(), cv_board.getObjPoints())}
+             for i, c in zip(cv_board.getIds().ravel(), cv_board.getObjPoints(), strict=True)}
     return gray, intr, b.dictionary, truth
 
 

@@ -33,7 +33,7 @@ from __future__ import annotations
 import csv
 import logging
 import tomllib
-from collections.abc import Mapping
+from collections.abc import Iterable, Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -104,6 +104,7 @@ def _matrix(table: Mapping[str, Any], key: str, shape: tuple[int, ...], where: s
 def _camera_tables(doc: Mapping[str, Any]) -> dict[int, Mapping[str, Any]]:
     """Camera id -> table, from ``[cameras.N]`` (camera_array.toml) or ``[cam_N]`` (config.toml)."""
     cams = doc.get("cameras")
+    items: Iterable[tuple[str, Any]]
     if isinstance(cams, dict):
         items = cams.items()
     else:

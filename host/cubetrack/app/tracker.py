@@ -23,9 +23,10 @@ from cubetrack.core.errors import ConfigError, ImageError
 from cubetrack.core.geometry import invert_T, transform_points
 from cubetrack.core.params import check, param
 from cubetrack.core.records import CubeSighting, Detection, Frame, TrackedPose
-from cubetrack.detect.detector import Box, DetectResult, Detector, DetectorParams, decode_gray
+from cubetrack.detect.detector import Box, Detector, DetectorParams, DetectResult, decode_gray
 from cubetrack.estimate.match import body_detections
-from cubetrack.estimate.pose import EstimatorParams, estimate_cube, world_marker_pose
+from cubetrack.estimate.params import EstimatorParams
+from cubetrack.estimate.pose import estimate_cube, world_marker_pose
 from cubetrack.fuse.base import Fusion
 from cubetrack.fuse.corner_filter import FilterParams
 from cubetrack.fuse.fusion import FilterFusion, FusionMethod, FusionParams, LatestEstimateFusion
@@ -145,7 +146,8 @@ class FrameWorker:
         self.robots = robots
         self.T_world_cam = T_world_cam
         self.params = params
-        self.detector = Detector(params.detector, [world.dictionary, *(d for r in robots for d in r.layout.dictionaries)])
+        self.detector = Detector(params.detector,
+                                 [world.dictionary, *(d for r in robots for d in r.layout.dictionaries)])
 
     def camera_pose(self, frame: Frame, detections) -> np.ndarray | None:
         """T_world_cam for this frame: calibrated, or from the frame's own world marker."""
@@ -292,7 +294,8 @@ class Tracker:
         self.worker = FrameWorker(intrinsics, world, robots, self.T_world_cam, params)
         self.fusion: Fusion
         if params.fusion.method is FusionMethod.FILTER:
-            self.fusion = FilterFusion({r.name: r.layout for r in robots}, params.fusion, params.filter, params.estimator)
+            self.fusion = FilterFusion({r.name: r.layout for r in robots}, params.fusion, params.filter,
+                                       params.estimator)
         else:
             self.fusion = LatestEstimateFusion(params.fusion)
         # what plans each frame (regions, estimates): the fusion itself, or in a camera worker

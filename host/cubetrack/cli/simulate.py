@@ -67,6 +67,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         if hint is bool:
             kwargs["action"] = argparse.BooleanOptionalAction
         elif typing.get_origin(hint) is tuple:
+            assert isinstance(default, tuple)  # a tuple field's default
             kwargs.update(type=float, nargs=len(default) if f.name != "distortion" else "+",
                           metavar="X")
         elif f.name == "path":
@@ -104,8 +105,9 @@ def _show(value: typing.Any) -> str:
 def params_from_args(args: argparse.Namespace) -> SimulationParams:
     """The scenario from the parsed options (options not given keep their defaults, or the
     realistic preset's with --realistic)."""
-    given = dict(REALISTIC) if getattr(args, "realistic", False) or getattr(args, "rig", False) else {}
-    if getattr(args, "rig", False):
+    rig = getattr(args, "rig", False)
+    given: dict[str, typing.Any] = dict(REALISTIC) if getattr(args, "realistic", False) or rig else {}
+    if rig:
         given.update(RIG)
     for f, _ in _fields():
         value = getattr(args, f.name, None)

@@ -420,12 +420,14 @@ class Detector:
         quads = np.asarray(corners, dtype=np.float64).reshape(-1, 4, 2) + self._offset_px
         fit_failed = np.zeros(len(ids), dtype=bool)
         if self.params.corner_refinement in (CornerRefinement.EDGE, CornerRefinement.TEMPLATE):
-            modules = self._modules[0] if len(self._modules) == 1 else np.take(self._modules, dict_indices)
+            modules: int | np.ndarray = (self._modules[0] if len(self._modules) == 1
+                                         else np.asarray(self._modules)[dict_indices])
             quads = refine_corners_edges(gray, quads, modules, self.params.edge_iterations)  # NaN: failed
-            fit_failed = ~np.isfinite(quads).all(axis=(1, 2))
+            fit_failed = np.asarray(~np.isfinite(quads).all(axis=(1, 2)))
         valid, areas = _quad_checks(quads, self.params.min_area_px2)
         if not valid.all():
-            for reason, n in ((DROP_EDGE_FIT, int(fit_failed.sum())), (DROP_QUAD, int((~valid & ~fit_failed).sum()))):
+            for reason, n in ((DROP_EDGE_FIT, int(fit_failed.sum())),
+                              (DROP_QUAD, int((~valid & ~fit_failed).sum()))):
                 if n:
                     dropped[reason] += n
             log.debug("dropped detections of ids %s (edge refinement failed, or not a convex quad)",

@@ -22,7 +22,8 @@ def test_marker_normals_point_out_of_the_cube_and_sit_on_its_faces():
 
 
 def test_distinct_ids():
-    assert sorted(m.marker_id for m in paper_cube_layout(marker_id=10, distinct_ids=True).markers) == [10, 11, 12, 13, 14]
+    layout = paper_cube_layout(marker_id=10, distinct_ids=True)
+    assert sorted(m.marker_id for m in layout.markers) == [10, 11, 12, 13, 14]
 
 
 def test_layout_toml_round_trip(tmp_path):
@@ -30,7 +31,7 @@ def test_layout_toml_round_trip(tmp_path):
     write_layout(layout, tmp_path / "cube.toml")
     back = read_layout(tmp_path / "cube.toml")
     assert [m.face for m in back.markers] == list(FACES)
-    for a, b in zip(layout.markers, back.markers):
+    for a, b in zip(layout.markers, back.markers, strict=True):
         np.testing.assert_allclose(a.T_cube_marker, b.T_cube_marker, atol=1e-9)
 
 
@@ -66,7 +67,8 @@ def test_a_config_whose_world_marker_is_a_body_marker_of_another_dictionary_is_r
     layout = paper_cube_layout(dictionary="DICT_4X4_1000", marker_id=0)
     write_layout(layout, tmp_path / "cube.toml")
     (tmp_path / "config.toml").write_text('[[robots]]\nname = "bot"\nlayout = "cube.toml"\n')
-    with pytest.raises(ConfigError, match=r"robot 'bot' \(DICT_4X4_1000 id 0\) and the world marker \(DICT_4X4_50 id 0\)"):
+    collision = r"robot 'bot' \(DICT_4X4_1000 id 0\) and the world marker \(DICT_4X4_50 id 0\)"
+    with pytest.raises(ConfigError, match=collision):
         read_tracker_config(tmp_path / "config.toml")
     write_layout(paper_cube_layout(dictionary="DICT_4X4_1000", marker_id=60), tmp_path / "cube.toml")
     assert read_tracker_config(tmp_path / "config.toml").robots[0].layout.ids == {60}
