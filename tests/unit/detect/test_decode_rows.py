@@ -113,3 +113,24 @@ def test_a_region_search_finding_nothing_searches_the_whole_decoded_frame():
         assert [d.marker_id for d in sighting.detections] == [1]
     np.testing.assert_allclose(above.sightings[0].detections[0].corners_px,
                                below.sightings[0].detections[0].corners_px, atol=1e-6)
+
+
+@pytest.mark.parametrize("colour", [False, True])
+def test_the_decode_gives_opencvs_grayscale_pixels(colour):
+    """simplejpeg's libjpeg-turbo gives the pixels cv2.imdecode(IMREAD_GRAYSCALE) gave before it,
+    byte for byte: no result downstream changes with the decoder."""
+    data = _jpeg(_scene(colour=colour), cv2.IMWRITE_JPEG_SAMPLING_FACTOR, cv2.IMWRITE_JPEG_SAMPLING_FACTOR_420)
+    expected = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_GRAYSCALE)
+    gray = decode_gray(data)
+    assert gray.dtype == np.uint8 and gray.flags.c_contiguous
+    np.testing.assert_array_equal(gray, expected)
+    top = decode_gray(data, rows=50)
+    assert top.shape == (64 if colour else 56, 320)   # MCU rows of 16 (4:2:0) or 8 (gray)
+    np.testing.assert_array_equal(top, expected[:len(top)])
+
+
+def test_other_formats_still_decode():
+    image = _scene()
+    ok, png = cv2.imencode(".png", image)
+    assert ok
+    np.testing.assert_array_equal(decode_gray(png.tobytes(), rows=10), image)
