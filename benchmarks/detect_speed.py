@@ -25,8 +25,9 @@ fresh tracker per round, so detection searches the regions the tracker's own for
 prints the thread CPU time per frame of each stage (decode, OpenCV's search, the edge refinement,
 the per-camera estimate, planning, fusion; median of rounds), the estimate/ functions the fusion
 calls (in place, then each alone on the calls it made in the first ``--micro-frames`` frames),
-the naive loop on the same frames as the ratio, and whether the poses were bit-identical across
-rounds (exit 1 if not). Frames are stamped by their arrival times (clock.csv is not used).
+the naive loop on the same frames as the ratio, the frames whose regions were empty (every robot
+predicted out of the camera's view) and what decoding them cost, and whether the poses were
+bit-identical across rounds (exit 1 if not). Frames are stamped by their arrival times (clock.csv is not used).
 
     nice -n 19 .venv/bin/python benchmarks/detect_speed.py --stages --recording /tmp/lb16q/rec_c16_f30_d20_s7 \
         --frames 600 --rounds 3
@@ -294,7 +295,7 @@ def stage_costs(args: argparse.Namespace) -> int:
         hooks.wrap(tracker.worker.detector, "find", "detect")
         for module, attr in _FUSION_HOOKS + _WORKER_HOOKS:
             hooks.wrap(importlib.import_module(module), attr, f"{module.rsplit('.', 1)[1]}.{attr}")
-        cpu = {"plan": 0.0, "work": 0.0, "fuse": 0.0}
+        cpu = {"plan": 0.0, "work": 0.0, "fuse": 0.0, "decode_empty": 0.0, "empty_frames": 0.0}
         poses = []
         clock = time.thread_time
         try:
@@ -306,8 +307,12 @@ def stage_costs(args: argparse.Namespace) -> int:
                 cpu["plan"] += t1 - t0
                 if job is None:
                     continue
+                decoded_s = hooks.cpu_s["decode"]
                 result = tracker.worker.work(job)
                 t2 = clock()
+                if job.regions == ():   # every robot predicted out of view: nothing to search
+                    cpu["empty_frames"] += 1
+                    cpu["decode_empty"] += hooks.cpu_s["decode"] - decoded_s
                 poses += tracker.fuse(result, frame.host_time_s)
                 cpu["work"] += t2 - t1
                 cpu["fuse"] += clock() - t2
@@ -352,6 +357,9 @@ def stage_costs(args: argparse.Namespace) -> int:
               + " ".join(f"{c[key] / n * 1000.0:.3f}" for c in rounds))
     print(f"{'total (ours, one thread)':<34} {total:12.3f}")
     print(f"{'naive loop (same frames)':<34} {naive:12.3f}          ratio naive/ours {naive / total:.2f}")
+    print(f"frames whose regions are empty (every robot predicted out of view): "
+          f"{rounds[0]['empty_frames']:.0f} of {n}; decoding them costs {ms([c['decode_empty'] for c in rounds]):.3f} "
+          f"ms/frame (of all frames), what skipping their decode would save")
     inside = [k for k in rounds[0] if "." in k]
     print("in place (inclusive, incl. timer overhead):")
     for key in inside:

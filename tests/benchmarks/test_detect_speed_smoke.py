@@ -46,6 +46,10 @@ def test_stages_report_every_stage_and_a_bit_identical_replay(capsys):
     assert all(value >= 0.0 for value in stages) and ms("decode (JPEG -> gray)") > 0.0
     assert abs(sum(stages) - ms("total (ours, one thread)")) <= 0.1 * ms("total (ours, one thread)") + 0.01
     assert ms("naive loop (same frames)") > 0.0
+    empty = re.search(r"^frames whose regions are empty .*: (\d+) of (\d+); decoding them costs ([0-9.]+) ms/frame",
+                      text, re.MULTILINE)
+    assert empty, text
+    assert int(empty.group(1)) <= int(empty.group(2)) and float(empty.group(3)) <= ms("decode (JPEG -> gray)")
     # the fusion ran (a track started) and its estimate/ calls were timed alone
     for name in ("fusion.match_faces", "corner_filter.reprojection_jacobian_px",
                  "corner_filter.reprojection_residuals_px"):

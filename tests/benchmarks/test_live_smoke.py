@@ -21,7 +21,7 @@ def test_quick_run_prints_and_saves_a_complete_report(tmp_path):
     assert run.returncode == 0, run.stderr[-3000:]
     lines = run.stdout.splitlines()
     for start in ("live benchmark: 2 cameras x 10 fps", "  command: ", "  after the first ", "  frames/s: offered",
-                  "  CPU: ",
+                  "  CPU: ", "  CPU per frame: naive loop ",
                   "  arrival -> pose ms: p50", "  RSS: ", "  accuracy vs ground truth: live",
                   "  same ", "  per frame, one thread: ", "  outputs: files only ", "SUMMARY: "):
         assert sum(line.startswith(start) for line in lines) == 1, start
@@ -49,6 +49,11 @@ def test_quick_run_prints_and_saves_a_complete_report(tmp_path):
     for part in ("work_ms", "fuse_ms"):
         assert 0 < speed[part]["p50"] <= speed[part]["p95"], part
     assert math.isclose(speed["ratio"], speed["ours_fps"] / speed["naive_fps"])
+    # CPU per frame beside the throughput: ours as replayed and the live run's, against the naive loop's
+    assert speed["naive_cpu_ms"] > 0 and speed["corner_refinement"] == "edge"
+    assert math.isclose(speed["live_cpu_ratio"], live["cpu_ms_per_frame"] / speed["naive_cpu_ms"])
+    assert math.isclose(speed["cpu_ratio"], (speed["ours_cpu_ms"]["main"] + speed["ours_cpu_ms"]["workers"])
+                        / speed["naive_cpu_ms"], rel_tol=0.2)   # the median of rounds of each
     assert doc["failures"] == [] or lines[-1].startswith("SUMMARY: ") and "missed" in lines[-1]
     # --outputs: a second session with every output on, compared with the first (pose files only)
     out = doc["outputs"]
@@ -60,3 +65,19 @@ def test_quick_run_prints_and_saves_a_complete_report(tmp_path):
     assert math.isclose(out["cpu_ratio"], out["all_outputs"]["cpu_ms_per_frame"] / live["cpu_ms_per_frame"])
     # the live poses and the offline replay are kept in --out
     assert (tmp_path / "live" / "robot.jsonl").exists() and (tmp_path / "offline" / "robot.tum").exists()
+
+
+def test_template_speed_only_run_uses_template_corners_and_its_target(tmp_path):
+    """--template: ours runs with [detector] corner_refinement = "template" (the config it loaded
+    says so) and is held to the template throughput target (2.5), not the default one (4)."""
+    command = [sys.executable, str(ROOT / "benchmarks" / "live.py"), "--quick", "--speed-only", "--template",
+               "--out", str(tmp_path)]
+    run = subprocess.run(command, check=False, capture_output=True, text=True, timeout=900, cwd=ROOT)
+    assert run.returncode == 0, run.stderr[-3000:]
+    speed = json.loads((tmp_path / "speed_report.json").read_text(encoding="utf-8"))["speed"]
+    assert speed["corner_refinement"] == "template"
+    assert 'corner_refinement = "template"' in (tmp_path / "template_config.toml").read_text(encoding="utf-8")
+    lines = run.stdout.splitlines()
+    assert "template corners" in lines[0]
+    assert any(line.startswith("  CPU per frame: naive loop ") for line in lines)
+    assert lines[-1] == "SUMMARY: throughput target met" if speed["ratio"] >= 2.5 else "< 2.5" in lines[-1]
