@@ -7,7 +7,9 @@ the board's chessboard corners (on the negated image: the board is printed inver
 instant (caliscope's ``sync_index``: one frame per camera, a few ms apart) every corner seen by two
 or more cameras is triangulated (linear least squares on undistorted rays, the calibration's
 cameras), and the board's corner grid is fitted to them rigidly (Kabsch). An instant counts when
-at least 6 corners triangulate and the rigid fit's RMS residual is below 3 mm (typically ~1 mm).
+at least 6 corners triangulate and the rigid fit's RMS residual is below 3 mm (typically ~1 mm);
+every instant at which two or more cameras see board markers counts for the share of instants
+with a pose.
 
 Scoring (:func:`score`): an instant has a pose when the tracker output one between its first and
 its last camera frame (1 ms slack); the instant's last such pose is compared with the reference
@@ -40,12 +42,14 @@ TIME_SLACK_S = 0.001
 
 @dataclass(frozen=True)
 class Instant:
-    """One sync index: its frames' time span (s), the board's reference pose in the world (body
-    frame of ``cubetrack import``'s board layout), the cameras that saw corners, the fit's RMS (m)."""
+    """One sync index at which two or more cameras see board markers: its frames' time span (s),
+    the board's reference pose in the world (body frame of ``cubetrack import``'s board layout;
+    None where too few corners triangulate or the rigid fit is off), how many cameras saw markers,
+    the fit's RMS (m)."""
 
     t0_s: float
     t1_s: float
-    T_world_body: np.ndarray
+    T_world_body: np.ndarray | None
     cameras: int
     rms_m: float
 
@@ -111,26 +115,28 @@ def charuco_reference(data: Path = DATA) -> dict[int, Instant]:
         for k, (sync, _index, t) in enumerate(sorted(cam_rows)):
             times.setdefault(sync, []).append(t)
             gray = frames[k]
-            corners, ids, _, _ = detector.detectBoard(255 - gray if rig.inverted else gray)
+            corners, ids, _, marker_ids = detector.detectBoard(255 - gray if rig.inverted else gray)
+            if marker_ids is not None and len(marker_ids):
+                cams.setdefault(sync, set()).add(cam)
             if ids is None or len(ids) < 2:
                 continue
             xy = cv2.undistortPoints(corners.reshape(-1, 1, 2), intr.K, intr.dist).reshape(-1, 2)
             dirs = np.column_stack([xy, np.ones(len(xy))]) @ T_world_cam[:3, :3].T
             dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
-            cams.setdefault(sync, set()).add(cam)
             for corner_id, d in zip(ids.ravel().tolist(), dirs, strict=True):
                 seen.setdefault(sync, {}).setdefault(corner_id, []).append((T_world_cam[:3, 3], d))
     out = {}
-    for sync, corners in seen.items():
+    for sync, seen_by in cams.items():
+        if len(seen_by) < 2:
+            continue
+        corners = seen.get(sync, {})
         ids = [c for c, rays in corners.items() if len(rays) >= 2]
-        if len(ids) < MIN_CORNERS:
-            continue
-        points = np.array([_triangulate(corners[c]) for c in ids])
-        T_world_cv, rms = _rigid_fit(grid_cv[ids], points)
-        if rms > MAX_FIT_RMS_M:
-            continue
-        out[sync] = Instant(min(times[sync]), max(times[sync]), T_world_cv @ np.linalg.inv(T_body_cv),
-                            len(cams[sync]), rms)
+        T_world_body, rms = None, float("nan")
+        if len(ids) >= MIN_CORNERS:
+            T_world_cv, rms = _rigid_fit(grid_cv[ids], np.array([_triangulate(corners[c]) for c in ids]))
+            if rms <= MAX_FIT_RMS_M:
+                T_world_body = T_world_cv @ np.linalg.inv(T_body_cv)
+        out[sync] = Instant(min(times[sync]), max(times[sync]), T_world_body, len(seen_by), rms)
     return out
 
 
@@ -144,8 +150,8 @@ def read_tum(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
 
 @dataclass(frozen=True)
 class Score:
-    instants: int          # reference instants (>= 2 cameras saw the board)
-    with_pose: int
+    instants: int          # instants at which >= 2 cameras saw board markers
+    with_pose: int         # of those, the ones with a pose (errors: where the reference has a pose)
     position_mm: np.ndarray
     rotation_deg: np.ndarray
 
@@ -165,23 +171,25 @@ class Score:
 def score(tum: Path, reference: Mapping[int, Instant]) -> Score:
     """Score a TUM trajectory against ``reference`` (module docstring)."""
     times, positions, quats = read_tum(tum)
-    syncs = sorted(reference)
+    syncs = sorted(s for s, i in reference.items() if i.T_world_body is not None)
     ref_t = np.array([0.5 * (reference[s].t0_s + reference[s].t1_s) for s in syncs])
-    ref_p = np.array([reference[s].T_world_body[:3, 3] for s in syncs])
-    ref_r = Rotation.from_matrix(np.array([reference[s].T_world_body[:3, :3] for s in syncs]))
-    slerp = Slerp(ref_t, ref_r)
+    ref_T = np.array([reference[s].T_world_body for s in syncs])
+    ref_p, slerp = ref_T[:, :3, 3], Slerp(ref_t, Rotation.from_matrix(ref_T[:, :3, :3]))
     pos_err, rot_err = [], []
-    for s in syncs:
-        inst = reference[s]
+    with_pose = 0
+    for _sync, inst in sorted(reference.items()):
         inside = np.flatnonzero((times >= inst.t0_s - TIME_SLACK_S) & (times <= inst.t1_s + TIME_SLACK_S))
         if not len(inside):
+            continue
+        with_pose += 1
+        if inst.T_world_body is None:
             continue
         i = inside[-1]
         t = float(np.clip(times[i], ref_t[0], ref_t[-1]))
         p_ref = np.array([np.interp(t, ref_t, ref_p[:, k]) for k in range(3)])
         pos_err.append(1000.0 * np.linalg.norm(positions[i] - p_ref))
         rot_err.append(np.degrees((slerp([t])[0].inv() * Rotation.from_quat(quats[i])).magnitude()))
-    return Score(len(syncs), len(pos_err), np.array(pos_err), np.array(rot_err))
+    return Score(len(reference), with_pose, np.array(pos_err), np.array(rot_err))
 
 
 def track(work: Path, name: str, sections: Mapping[str, Mapping[str, object]] | None = None) -> Path:
@@ -220,9 +228,9 @@ def main(argv: list[str] | None = None) -> int:
     if not (work / "config.toml").exists():
         import_caliscope(args.data, work)
     reference = charuco_reference(args.data)
-    rms = np.array([i.rms_m for i in reference.values()]) * 1000.0
-    print(f"reference: {len(reference)} instants, rigid-fit RMS median {np.median(rms):.2f} mm, "
-          f"max {rms.max():.2f} mm; "
+    rms = np.array([i.rms_m for i in reference.values() if i.T_world_body is not None]) * 1000.0
+    print(f"{len(reference)} instants with >= 2 cameras seeing the board, {len(rms)} with a reference pose: rigid-fit "
+          f"RMS median {np.median(rms):.2f} mm, max {rms.max():.2f} mm; "
           f"cores {os.cpu_count()}")
     runs: dict[str, dict] = {"default (filter)": {}, "mean fusion": {"fusion": {"method": "mean"}}}
     if args.set:
