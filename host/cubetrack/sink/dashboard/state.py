@@ -6,8 +6,9 @@ processed frames, each robot's poses. The workflow around the session (``cubetra
 adds *panels*: JSON documents such as the calibration steps or the recording controls. Every
 change is also published as an event (:class:`EventHub`) for the page's event stream.
 
-Every part has one JSON form (:meth:`DashboardState.camera_json`, :meth:`DashboardState.topview_json`,
-...); the page shows nothing else, so whatever it shows can be read from the JSON endpoints too.
+Every part has one JSON form (:meth:`DashboardState.camera_json`,
+:func:`cubetrack.sink.dashboard.server.topview_json`, ...); the page shows nothing else, so whatever
+it shows can be read from the JSON endpoints too.
 
 A camera's status (:func:`camera_status`):
 
