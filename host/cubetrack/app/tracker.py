@@ -24,7 +24,8 @@ from cubetrack.core.params import check, param
 from cubetrack.core.records import CubeSighting, Detection, Frame, TrackedPose
 from cubetrack.detect.detector import Box, Detector, DetectorParams, decode_gray
 from cubetrack.estimate.match import body_detections
-from cubetrack.estimate.pose import EstimatorParams, estimate_cube, world_marker_pose
+from cubetrack.estimate.params import EstimatorParams
+from cubetrack.estimate.pose import estimate_cube, world_marker_pose
 from cubetrack.fuse.base import Fusion
 from cubetrack.fuse.corner_filter import FilterParams
 from cubetrack.fuse.fusion import FilterFusion, FusionMethod, FusionParams, LatestEstimateFusion

@@ -56,9 +56,13 @@ import dataclasses
 import logging
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.spatial.transform import Rotation
+
+if TYPE_CHECKING:
+    from cubetrack.source.clock import ClockFit
 
 from cubetrack.calib.extrinsics import (
     CalibrationMethod,
@@ -339,7 +343,8 @@ def _reference_observation(camera: str, frames: Iterable[Frame], world: WorldCon
     return WorldMarkerObservation(camera, averaged.pixels, max(averaged.frames.values()), averaged.points_world_m)
 
 
-def _clock_fit(camera: str, samples: Sequence[ClockSample], device_s: Sequence[float], host_s: Sequence[float]):
+def _clock_fit(camera: str, samples: Sequence[ClockSample], device_s: Sequence[float],
+               host_s: Sequence[float]) -> ClockFit:
     """Device -> host clock of one camera over the whole recording (offline: not causal): the
     usable ``/time`` round trips, else the frames' arrival times (``device_s``, ``host_s``)."""
     from cubetrack.source.clock import ClockSyncParams, fit_arrivals, fit_round_trips

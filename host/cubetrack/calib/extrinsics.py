@@ -65,8 +65,8 @@ from cubetrack.detect.detector import (
     decode_gray,
     refine_corners_edges,
 )
+from cubetrack.estimate.marker import marker_pose
 from cubetrack.estimate.match import detections_of
-from cubetrack.estimate.pose import marker_pose
 
 log = logging.getLogger(__name__)
 

@@ -41,6 +41,7 @@ marker's size relatively.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
@@ -106,7 +107,7 @@ class Model:
     marker_robot: np.ndarray
     scales: np.ndarray
 
-    def replace(self, **changes) -> Model:
+    def replace(self, **changes: Any) -> Model:
         values = {name: getattr(self, name) for name in self.__slots__}
         values.update(changes)
         return Model(**values)

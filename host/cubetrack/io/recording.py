@@ -25,10 +25,11 @@ import logging
 import math
 import re
 from collections import Counter
-from collections.abc import Iterable, Iterator
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
 from datetime import UTC, datetime
 from pathlib import Path
+from typing import Any
 
 from cubetrack.core.cameras import ClockSample
 from cubetrack.core.errors import RecordingError
@@ -140,7 +141,8 @@ class Recording:
             raise RecordingError(f"{index_path}: empty index (no frames recorded for {camera})")
         return rows
 
-    def _read_rows(self, path: Path, header: tuple[str, ...], parse, reason: str) -> list:
+    def _read_rows(self, path: Path, header: tuple[str, ...], parse: Callable[[list[str]], Any],
+                   reason: str) -> list:
         """The rows of a CSV file that must start with ``header``, each through ``parse`` (None:
         a broken row, skipped and counted under ``reason``)."""
         rows = []
