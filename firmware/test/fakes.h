@@ -91,7 +91,7 @@ struct Network : cubecam::Network {
     uint16_t opened_port = 0;
     bool fail_open = false;
     size_t accept_limit = 0xFFFF;  // bytes taken per write
-    WriteStatus write_status = WriteStatus::Ok;
+    WriteStatus write_status = WriteStatus::Ok;  // Busy: a message waits; poll() first
     size_t max_write_seen = 0;
     size_t writes = 0;
     int close_all_calls = 0;
@@ -109,6 +109,7 @@ struct Network : cubecam::Network {
         conns[cid].open = false;
     }
     void event(NetEventKind kind) { events.push_back({kind, 0, 0}); }
+    void fail(uint8_t cid) { events.push_back({NetEventKind::Failed, cid, 0}); }
 
     uint16_t open_server(uint16_t port) override {
         opened_port = fail_open ? 0 : port;

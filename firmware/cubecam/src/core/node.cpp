@@ -333,6 +333,12 @@ void Node::on_improv_frame() {
         return;
     }
     case improv::Command::GetWifiNetworks: {
+        if (server_.client_count() > 0) {
+            // AT+WS holds the module for seconds: every stream would stall.
+            log('W', "improv", "no Wi-Fi scan while HTTP clients are connected; answering an empty list");
+            send_result(improv::Command::GetWifiNetworks, 0, 0);
+            return;
+        }
         ScanEntry found[12];
         size_t count = hw_.wifi.scan(found, sizeof found / sizeof found[0]);
         for (size_t i = 0; i < count; ++i) {
