@@ -46,7 +46,9 @@ struct Camera : cubecam::Camera {
         ++seq;
         capture_us = at_us;
     }
+    uint32_t empty = 0;
     uint32_t latest_seq() override { return seq; }
+    uint32_t empty_frames() override { return empty; }
     bool acquire_latest(Frame& f) override {
         if (seq == 0) return false;
         for (int i = 0; i < kLeases; ++i) {

@@ -57,7 +57,7 @@ struct Rig {
     fake::Camera camera;
     fake::Network net;
     HttpServer server{net, camera, clock};
-    NodeStatus status{"cam1", "0.1.0", {10, 0, 0, 5}, -50, 150, 14900, 70, 640, 480, ""};
+    NodeStatus status{"cam1", "0.1.0", {10, 0, 0, 5}, -50, 150, 14900, 70, 640, 480, "", 0};
 
     ServeResult serve(int times = 1) {
         ServeResult r = {false, false};

@@ -236,3 +236,28 @@ TEST_CASE("the camera stops delivering frames; the node restarts it and streamin
     REQUIRE(b.run_until([&] { return video_driver().queued_buffers() == spresense::kCameraBuffers - 1; }, 2000));
     check_no_violations();
 }
+
+TEST_CASE("frames that overflow the JPEG buffer are counted and a run of them latches an error and restarts the camera") {
+    Joined j;
+    Board& b = j.board;
+    REQUIRE(video_driver().opens() == 1);
+    std::vector<uint8_t> too_big = fake::jpeg(700000, 3);  // larger than any buffer the node asks for
+    for (uint32_t i = 0; i < kEmptyFrameRun; ++i) {
+        REQUIRE(video_driver().capture(too_big));
+        // The camera thread takes it (empty: the JPEG did not fit) before the next one.
+        for (int t = 0; t < 2000 && b.camera.empty_frames() == i; ++t) {
+            std::this_thread::sleep_for(std::chrono::milliseconds(1));
+        }
+        REQUIRE(b.camera.empty_frames() == i + 1);
+        b.run_until([] { return false; }, 20);
+    }
+    REQUIRE(b.run_until([] { return video_driver().opens() == 2; }, 200));
+    CHECK(hostlib::serial_output().find("[E][node] camera:") != std::string::npos);
+    uint8_t cid = http_get("/status");
+    REQUIRE(b.run_until([cid] { return !module().peer(cid).open; }));
+    const std::string& reply = module().peer(cid).received;
+    CHECK(reply.find("\"frames_empty\":") != std::string::npos);
+    CHECK(reply.find("\"frames_empty\":0") == std::string::npos);
+    CHECK(reply.find("\"last_error\":\"\"") == std::string::npos);
+    check_no_violations();
+}

@@ -31,6 +31,8 @@ class Camera {
 public:
     // Sequence number of the newest captured frame, 0 before the first one.
     virtual uint32_t latest_seq() = 0;
+    // Frames that arrived empty since boot: the JPEG did not fit its buffer.
+    virtual uint32_t empty_frames() = 0;
     // Lend the newest frame. False when there is none yet or no free lease.
     virtual bool acquire_latest(Frame& out) = 0;
     virtual void release(int lease) = 0;

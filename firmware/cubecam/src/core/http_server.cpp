@@ -310,6 +310,7 @@ void HttpServer::write_status_json(TextBuf& out, const NodeStatus& st) {
     out.add(",\"measured\":").add_fixed(st.fps_measured_milli, 3).add('}');
     out.add(",\"frames_sent\":").add_uint(frames_sent_);
     out.add(",\"frames_dropped\":").add_uint(frames_dropped_);
+    out.add(",\"frames_empty\":").add_uint(st.frames_empty);
     out.add(",\"clients\":").add_uint(streaming_count());
     out.add(",\"jpeg_quality\":").add_uint(st.jpeg_quality);
     out.add(",\"width\":").add_uint(st.width);

@@ -32,6 +32,7 @@ struct NodeStatus {
     uint16_t width;
     uint16_t height;
     const char* last_error;        // "" when none
+    uint32_t frames_empty;         // frames that overflowed the JPEG buffer since boot
 };
 
 struct ServeResult {

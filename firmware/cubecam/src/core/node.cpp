@@ -51,6 +51,9 @@ Node::Node(const Hardware& hw)
       camera_seq_(0),
       camera_seen_ms_(0),
       camera_restarts_(0),
+      camera_empty_(0),
+      empty_run_(0),
+      empty_restart_done_(false),
       leds_(0xFF) {
     settings_defaults(running_);
     edited_ = running_;
@@ -146,6 +149,7 @@ void Node::measure_fps(uint32_t now) {
 }
 
 void Node::watch_camera(uint32_t now) {
+    watch_empty_frames();
     uint32_t seq = hw_.camera.latest_seq();
     if (seq != camera_seq_) {
         camera_seq_ = seq;
@@ -169,6 +173,20 @@ void Node::watch_camera(uint32_t now) {
     log('W', "camera", "no frame for 5 s; camera restarted");
 }
 
+void Node::watch_empty_frames() {
+    uint32_t empty = hw_.camera.empty_frames();
+    if (hw_.camera.latest_seq() != camera_seq_) empty_run_ = 0;  // a whole frame came since
+    empty_run_ += empty - camera_empty_;
+    camera_empty_ = empty;
+    if (empty_run_ < kEmptyFrameRun || empty_restart_done_) return;
+    CameraRestart r = hw_.camera.restart();
+    if (r == CameraRestart::Busy) return;  // a client still sends the last whole frame
+    empty_restart_done_ = true;
+    empty_run_ = 0;
+    set_error(r == CameraRestart::Failed ? "camera: frames overflow the JPEG buffer, and it did not start again"
+                                         : "camera: frames overflow the JPEG buffer (lower jpeg_quality); restarted");
+}
+
 NodeStatus Node::status() const {
     NodeStatus st;
     st.name = running_.name;
@@ -181,6 +199,7 @@ NodeStatus Node::status() const {
     st.width = kFrameWidth;
     st.height = kFrameHeight;
     st.last_error = last_error_;
+    st.frames_empty = hw_.camera.empty_frames();
     return st;
 }
 

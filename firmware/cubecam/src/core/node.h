@@ -42,6 +42,9 @@ const uint32_t kFpsWindowMs = 2000;
 // frame the node gives up and latches an error.
 const uint32_t kCameraStallMs = 5000;
 const uint8_t kMaxCameraRestarts = 3;
+// This many frames in a row that arrived empty (the JPEG overflowed its
+// buffer) latch an error and restart the camera once.
+const uint32_t kEmptyFrameRun = 10;
 
 class Node : private ConsoleHost, private LineSink {
 public:
@@ -84,6 +87,7 @@ private:
     void drop_network();
     void measure_fps(uint32_t now);
     void watch_camera(uint32_t now);
+    void watch_empty_frames();
     NodeStatus status() const;
 
     Hardware hw_;
@@ -105,6 +109,9 @@ private:
     uint32_t camera_seq_;
     uint32_t camera_seen_ms_;
     uint8_t camera_restarts_;
+    uint32_t camera_empty_;      // empty frames seen so far
+    uint32_t empty_run_;         // of them since the last whole frame
+    bool empty_restart_done_;    // the one restart a run of them gets
     uint8_t leds_;
 };
 
