@@ -261,3 +261,17 @@ TEST_CASE("frames that overflow the JPEG buffer are counted and a run of them la
     CHECK(reply.find("\"last_error\":\"\"") == std::string::npos);
     check_no_violations();
 }
+
+TEST_CASE("a static address is set without starting the DHCP client first") {
+    Settings s = station("lab", kPassphrase);
+    const char ip[] = "192.168.1.77/24,192.168.1.1";
+    REQUIRE(settings_set(s, "ip", ip, strlen(ip)).ok());
+    Joined j(s);
+    const auto& cmds = module().commands;
+    CHECK(std::find(cmds.begin(), cmds.end(), "AT+NDHCP=1") == cmds.end());
+    CHECK(std::find(cmds.begin(), cmds.end(), "AT+NSET=192.168.1.77,255.255.255.0,192.168.1.1") != cmds.end());
+    uint8_t cid = http_get("/status");
+    REQUIRE(j.board.run_until([cid] { return !module().peer(cid).open; }));
+    CHECK(module().peer(cid).received.find("\"ip\":\"192.168.1.77\"") != std::string::npos);
+    check_no_violations();
+}

@@ -254,13 +254,22 @@ void Node::on_link_event(LinkEvent ev, uint32_t now) {
 // ---- serial: Improv frames at the start of a line, console otherwise ----
 
 void Node::pump_serial(uint32_t now) {
-    if (framer_.expired(now)) {
+    uint8_t in[64];
+    size_t n = hw_.serial.read(in, sizeof in);
+    // A frame stalls only if no byte came: bytes that waited in the UART while
+    // the loop was blocked (a join step) continue it.
+    if (n == 0 && framer_.expired(now)) {
         // A slow human typing "I..." is console input; a stalled frame is dropped.
         if (framer_.in_magic()) feed_console(framer_.held(), framer_.held_len());
         framer_.reset();
     }
-    uint8_t in[64];
-    size_t n = hw_.serial.read(in, sizeof in);
+    for (int chunk = 1; n > 0; ++chunk) {
+        feed_serial(in, n, now);
+        n = chunk < kSerialChunksPerPass ? hw_.serial.read(in, sizeof in) : 0;
+    }
+}
+
+void Node::feed_serial(const uint8_t* in, size_t n, uint32_t now) {
     for (size_t i = 0; i < n; ++i) {
         uint8_t b = in[i];
         if (framer_.held_len() == 0 && !(at_line_start_ && b == 'I')) {

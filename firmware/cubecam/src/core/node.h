@@ -42,6 +42,9 @@ const uint32_t kFpsWindowMs = 2000;
 // frame the node gives up and latches an error.
 const uint32_t kCameraStallMs = 5000;
 const uint8_t kMaxCameraRestarts = 3;
+// Serial input taken per loop pass, in reads of 64 bytes: 512 bytes, more
+// than an Improv frame (a Wi-Fi RPC is at most 106 bytes) or a console line.
+const int kSerialChunksPerPass = 8;
 // This many frames in a row that arrived empty (the JPEG overflowed its
 // buffer) latch an error and restart the camera once.
 const uint32_t kEmptyFrameRun = 10;
@@ -73,6 +76,7 @@ private:
     void line(const char* text);
 
     void pump_serial(uint32_t now);
+    void feed_serial(const uint8_t* in, size_t n, uint32_t now);
     void feed_console(const uint8_t* bytes, size_t n);
     void on_improv_frame();
     void on_wifi_settings(const improv::Rpc& rpc);

@@ -102,8 +102,13 @@ void Gs2200Module::use_fast_clock() {
 
 bool Gs2200Module::start_join(const Settings& s) {
     bool ap = s.mode == WifiMode::AccessPoint;
+    bool own = !s.ip.dhcp;
     TWIFI_Params params = {ap ? ATCMD_MODE_LIMITED_AP : ATCMD_MODE_STATION, ATCMD_PSAVE_DEFAULT};
-    if (telit_.begin(params) != 0 || !configure(s, ap)) return false;
+    // A static station address goes to begin(), which sets it (AT+NSET)
+    // instead of starting DHCP (AT+NDHCP=1) that we would have to stop again.
+    TWIFI_Adress adrs;
+    if (ap || own) addresses(s, adrs);
+    if (telit_.begin(params, ap || !own, adrs) != 0 || !configure(ap, own, adrs)) return false;
     join_failed_ = false;
     next_status_ms_ = clock_.millis();
     // Our own AT+WPAPSK and AT+WA: the library's (AtCmd_WPAPSK, which
@@ -117,30 +122,31 @@ bool Gs2200Module::start_join(const Settings& s) {
     return true;
 }
 
+// The node's own address, mask and gateway (an access point serves DHCP from
+// 192.168.1.1/24 unless the settings give an address).
+void Gs2200Module::addresses(const Settings& s, TWIFI_Adress& out) {
+    static const uint8_t kDefaultAp[4] = {192, 168, 1, 1};
+    bool own = !s.ip.dhcp;
+    uint8_t m[4];
+    uint8_t prefix = own ? s.ip.prefix : 24;
+    uint32_t bits = prefix >= 32 ? 0xFFFFFFFFu : ~(0xFFFFFFFFu >> prefix);
+    for (int i = 0; i < 4; ++i) m[i] = static_cast<uint8_t>(bits >> (24 - 8 * i));
+    TextBuf a(out.device, sizeof out.device), k(out.subnet, sizeof out.subnet), g(out.gateway, sizeof out.gateway);
+    a.add_ipv4(own ? s.ip.address : kDefaultAp);
+    k.add_ipv4(m);
+    g.add_ipv4(own ? s.ip.gateway : kDefaultAp);
+}
+
 // After begin(): radio awake, addresses, no old association. begin() turns
-// 802.11 power save on (AT+WRXPS=1); streaming wants the radio awake.
-bool Gs2200Module::configure(const Settings& s, bool ap) {
+// 802.11 power save on (AT+WRXPS=1); streaming wants the radio awake. It
+// also forces the regulatory domain to TELEC (Japan): docs/firmware.md.
+bool Gs2200Module::configure(bool ap, bool own, TWIFI_Adress& adrs) {
     if (AtCmd_WRXPS(0) != ATCMD_RESP_OK || AtCmd_WRXACTIVE(1) != ATCMD_RESP_OK) return false;
-    bool ok = true;
-    if (ap || !s.ip.dhcp) {
-        // An access point needs an address of its own to serve DHCP from.
-        static const uint8_t kDefaultAp[4] = {192, 168, 1, 1};
-        bool own = !s.ip.dhcp;
-        char addr[16], mask[16], gw[16];
-        uint8_t m[4];
-        uint8_t prefix = own ? s.ip.prefix : 24;
-        uint32_t bits = prefix >= 32 ? 0xFFFFFFFFu : ~(0xFFFFFFFFu >> prefix);
-        for (int i = 0; i < 4; ++i) m[i] = static_cast<uint8_t>(bits >> (24 - 8 * i));
-        TextBuf a(addr, sizeof addr), k(mask, sizeof mask), g(gw, sizeof gw);
-        a.add_ipv4(own ? s.ip.address : kDefaultAp);
-        k.add_ipv4(m);
-        g.add_ipv4(own ? s.ip.gateway : kDefaultAp);
-        if (!ap) ok = AtCmd_NDHCP(0) == ATCMD_RESP_OK;
-        ok = ok && AtCmd_NSET(addr, mask, gw) == ATCMD_RESP_OK;
-    } else {
-        ok = AtCmd_NDHCP(1) == ATCMD_RESP_OK;
-    }
-    return ok && AtCmd_WD() == ATCMD_RESP_OK;
+    // begin() sets no address for an access point, and leaves the DHCP client
+    // of a static station as the module had it.
+    if (ap && AtCmd_NSET(adrs.device, adrs.subnet, adrs.gateway) != ATCMD_RESP_OK) return false;
+    if (!ap && own && AtCmd_NDHCP(0) != ATCMD_RESP_OK) return false;
+    return AtCmd_WD() == ATCMD_RESP_OK;
 }
 
 bool Gs2200Module::send_key(const Settings& s) {

@@ -74,7 +74,8 @@ private:
     void use_fast_clock();
     // AT+WPAPSK, or AT+WPAPSK with a stand-in and AT+WPSK with the key.
     bool send_key(const Settings& s);
-    bool configure(const Settings& s, bool ap);
+    static void addresses(const Settings& s, TWIFI_Adress& out);
+    bool configure(bool ap, bool own, TWIFI_Adress& adrs);
     // Reads one message (the data-ready line is high): an event for poll()
     // (data copied to buf), the reply to a command, or something else.
     Message read_message(NetEvent& ev, uint8_t* buf, uint16_t cap, ATCMD_RESP_E& reply);
