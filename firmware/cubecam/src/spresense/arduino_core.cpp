@@ -7,16 +7,7 @@ namespace spresense {
 
 uint32_t ArduinoClock::millis() { return static_cast<uint32_t>(::millis()); }
 
-ArduinoClock::ArduinoClock() : last_low_us_(0), high_us_(0) {}
-
-uint64_t ArduinoClock::micros() {
-    uint64_t raw = ::micros();
-    if (sizeof(::micros()) >= sizeof(uint64_t)) return raw;
-    uint32_t low = static_cast<uint32_t>(raw);
-    if (low < last_low_us_) high_us_ += 1ull << 32;
-    last_low_us_ = low;
-    return high_us_ | low;
-}
+uint64_t ArduinoClock::micros() { return ::micros(); }
 
 size_t UartSerial::read(uint8_t* buf, size_t cap) {
     size_t n = 0;

@@ -9,19 +9,14 @@
 namespace cubecam {
 namespace spresense {
 
-// millis() and micros() of the Spresense core 3.x are 64-bit (uint64_t), so
-// the device clock never wraps. A core whose micros() is unsigned long (32
-// bits, wrapping every 71.6 minutes) is extended to 64 bits here; loop()
-// reads the clock far more often than that. The core's deadlines use the low
-// 32 bits of millis(), compared with wrap-around.
+// millis() and micros() of the Spresense core are 64-bit (uint64_t: Arduino.h
+// of 2.6.0, the set PlatformIO pins, 3.2.0 and 3.4.4), so the device clock
+// never wraps. The core's deadlines use the low 32 bits of
+// millis(), compared with wrap-around.
 class ArduinoClock : public Clock {
 public:
-    ArduinoClock();
     uint32_t millis();
     uint64_t micros();
-private:
-    uint32_t last_low_us_;
-    uint64_t high_us_;
 };
 
 // USB serial (UART1 through the CP2102N), shared by Improv, console and logs,
