@@ -3,7 +3,8 @@
 Each worker process owns a share of the cameras end to end: it reads their streams and
 ``/time`` round trips on its one thread, between frames (:class:`~cubetrack.source.streams.LiveCameras`
 without a thread of its own: non-blocking sockets; frames in arrival order, the freshest first
-once behind, each camera's newest only), stamps capture times with its own clock fits, plans each frame and does the per-frame work
+once behind, each camera's newest only), stamps capture times with its own clock fits, plans each
+frame and does the per-frame work
 (decode, detection, per-camera estimates) with a :class:`~cubetrack.app.tracker.Tracker` of its
 own, whose plans come from a :class:`Forecast`: each robot's motion as the fusion predicts it,
 sent by the tracker's process after every batch of fused results. Results go back over a pipe
@@ -30,6 +31,7 @@ import numpy as np
 
 from cubetrack.app.tracker import FrameJob, FrameOutcome, FrameResult, Tracker
 from cubetrack.core.errors import SourceError
+from cubetrack.core.lifetime import end_with_parent
 from cubetrack.core.records import Frame
 from cubetrack.estimate.reprojection import moved_pose
 from cubetrack.fuse.base import Fusion
@@ -287,6 +289,7 @@ def _worker_main(conn: Connection, urls: dict[str, str], source: SourceParams, m
     """A camera worker process: its cameras' frames in, results out, until None comes (Ctrl-C
     is the tracker's process's business: it ends the session, then this process)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    end_with_parent()
     cv2.setNumThreads(1)
     try:
         _work_cameras(conn, urls, source, make_tracker(), views, clock, working, taken, lane)

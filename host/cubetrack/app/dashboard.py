@@ -280,7 +280,8 @@ class DashboardApp:
         self.step = "check"
         self.target = settings.calibration.samples
         self.samples = {c: 0 for c in self.urls}
-        self.marker = {c: (-math.inf, -math.inf, None) for c in self.urls}  # camera -> (checked, seen (host s), side px)
+        # camera -> (checked, seen (host s), side px)
+        self.marker = {c: (-math.inf, -math.inf, None) for c in self.urls}
         self.results: dict[str, dict] = {}
         self.refined: dict[str, dict] = {}
         self.warnings: list[str] = []
@@ -346,7 +347,8 @@ class DashboardApp:
         """One live session; returns whether Ctrl-C ended it. A session that cannot start (e.g.
         its folder cannot be written) is reported on the page and the plain watch session follows."""
         if plan.kind == "record":
-            write_run_record(plan.out_dir / RUN_FILE, "dashboard", parameter_tables(self._stage_params(plan.extrinsics)),
+            write_run_record(plan.out_dir / RUN_FILE, "dashboard",
+                             parameter_tables(self._stage_params(plan.extrinsics)),
                              {"config": self.config.path, "extrinsics": self.extrinsics_path
                               if self.extrinsics_path.exists() else None}, {"cameras": dict(self.urls)})
         try:

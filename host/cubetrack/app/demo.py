@@ -17,9 +17,9 @@ from __future__ import annotations
 
 import dataclasses
 import threading
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Sequence
 
 from cubetrack.app.calibrate import run_calibration
 from cubetrack.app.config import config_params, parameter_tables

@@ -1,6 +1,6 @@
-"""Live tracking and recording from camera nodes over HTTP: :class:`cubetrack.source.LiveCameras`
+"""Live tracking and recording from camera nodes over HTTP: :class:`cubetrack.source.streams.LiveCameras`
 feeding the same :class:`cubetrack.app.tracker.Tracker` that replays recordings
-(:func:`cubetrack.app.tracker.track_recording`); only the source differs.
+(:func:`cubetrack.app.track.track_recording`); only the source differs.
 
 - :func:`track_live`: the config's camera URLs -> ``<out>/<robot>.tum`` and ``.jsonl``, written
   and flushed as poses come, optionally recording the session as it goes;
@@ -22,9 +22,9 @@ import shutil
 import statistics
 import threading
 import time
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Sequence
 
 from cubetrack.app.camera_workers import FORECAST_EVERY_S, CameraProcesses, forecast_of
 from cubetrack.app.config import config_params
@@ -174,7 +174,7 @@ class SessionMedian:
         if not self.count:
             return None
         seen, half = 0, self.count / 2.0
-        for i, n in enumerate(self.counts):
+        for i, n in enumerate(self.counts):  # noqa: B007 (i: the bin found, read after the loop)
             seen += n
             if seen >= half:
                 break

@@ -1,6 +1,6 @@
 """``cubetrack worker``: the per-camera half of tracking, published on Zenoh (docs/scaling.md).
 
-A worker reads its cameras (:class:`cubetrack.source.LiveCameras`), stamps each frame with its
+A worker reads its cameras (:class:`cubetrack.source.streams.LiveCameras`), stamps each frame with its
 capture time through the camera's ``/time`` round trips and does the tracker's per-frame work
 (:meth:`cubetrack.app.tracker.FrameWorker.work`: decode, detect, the camera's pose), then
 publishes one sighting message per frame (:mod:`cubetrack.core.sighting_wire`) under
@@ -200,7 +200,8 @@ def chosen_cameras(config: TrackerConfig, cameras: Sequence[str]) -> list[str]:
     known = [c.name for c in config.cameras]
     unknown = [c for c in cameras if c not in known]
     if unknown:
-        raise ConfigError(f"{config.path}: no camera {', '.join(unknown)} (the config has {', '.join(known) or 'none'})")
+        raise ConfigError(f"{config.path}: no camera {', '.join(unknown)} (the config has "
+                          f"{', '.join(known) or 'none'})")
     return list(cameras) or known
 
 

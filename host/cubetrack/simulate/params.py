@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, fields
+from typing import Any
 
 from cubetrack.core.errors import SimulationError
 from cubetrack.core.params import param
@@ -207,7 +208,7 @@ class SimulationParams:
             raise bad("height_m", f"cameras must be at least 0.1 m above the cube's top ({top:.3f} m)")
 
     @classmethod
-    def realistic(cls, **changes) -> SimulationParams:
+    def realistic(cls, **changes: Any) -> SimulationParams:
         """The realistic preset (:data:`REALISTIC`: every effect of real cameras and robots on),
         with ``changes`` applied on top (e.g. ``cameras=5, seed=3`` or ``readout_ms=0``)."""
         return cls(**{**REALISTIC, **changes})
