@@ -4,6 +4,7 @@
 
 #include <stdio.h>
 #include <stdlib.h>
+#include <string.h>
 
 #include "core/wpa.h"
 #include "hostlib.h"
@@ -73,6 +74,7 @@ void Gs2200m::power_on() {
     on_command_hook = nullptr;
     peers_.clear();
     retired_.clear();
+    unreported_.clear();
     serial_ = 0;
     last_us_ = now_us();
     advancing_ = false;
@@ -210,6 +212,16 @@ uint8_t Gs2200m::exchange(uint8_t mosi, uint32_t clock_hz) {
     return b;
 }
 
+void Gs2200m::report_end(const std::string& msg) {
+    for (const char* word : {"DISCONNECT ", "ERROR: SOCKET FAILURE "}) {
+        size_t n = strlen(word);
+        if (msg.compare(0, n, word) != 0 || msg.size() <= n) continue;
+        uint8_t cid = static_cast<uint8_t>(strtol(msg.substr(n, 1).c_str(), nullptr, 16));
+        auto it = std::find(unreported_.begin(), unreported_.end(), cid);
+        if (it != unreported_.end()) unreported_.erase(it);
+    }
+}
+
 void Gs2200m::queue_header(uint8_t type, uint16_t len, uint8_t pending) {
     uint8_t h[8] = {0xA5, type, 0, 0, pending, static_cast<uint8_t>(len), static_cast<uint8_t>(len >> 8), 0};
     h[7] = checksum(h);
@@ -266,6 +278,7 @@ void Gs2200m::on_header(const uint8_t* h) {
         }
         std::string msg = pending_.front();
         pending_.pop_front();
+        report_end(msg);
         size_t n = msg.size() < len ? msg.size() : len;
         if (n > kMaxRead) n = kMaxRead;
         if (n < msg.size()) pending_.push_front(msg.substr(n));
@@ -459,8 +472,12 @@ std::string Gs2200m::scan() const {
     return s + "No.Of AP Found:" + std::to_string(networks.size()) + "\r\n" + kOk;
 }
 
+// A CID is given to a new connection only once the MCU has read the message
+// that ended its last one (assumed: the module could not otherwise tell the
+// MCU which connection a later message or write is about).
 uint8_t Gs2200m::free_cid() const {
     for (uint8_t cid = 0; cid < 16; ++cid) {
+        if (std::find(unreported_.begin(), unreported_.end(), cid) != unreported_.end()) continue;
         auto it = peers_.find(cid);
         if (it == peers_.end() || !it->second.open) return cid;
     }
@@ -514,6 +531,7 @@ void Gs2200m::client_close(uint8_t cid) {
     c.open = false;
     c.closing = false;
     c.tx.clear();
+    unreported_.push_back(cid);
     queue_message(std::string("DISCONNECT ") + hex_digit(cid) + "\r\n");
 }
 
@@ -526,6 +544,7 @@ void Gs2200m::client_reset(uint8_t cid, bool socket_failure) {
     c.open = false;
     c.closing = false;
     c.tx.clear();
+    unreported_.push_back(cid);
     queue_message(std::string(socket_failure ? "ERROR: SOCKET FAILURE " : "DISCONNECT ") + hex_digit(cid) + "\r\n");
 }
 

@@ -130,6 +130,7 @@ private:
     std::string scan() const;
     void queue_message(const std::string& text) { pending_.push_back(text); }
     void queue_header(uint8_t type, uint16_t len, uint8_t pending);
+    void report_end(const std::string& msg);  // the MCU read msg: a cid it ended is free again
     void close_cid(int cid, bool graceful);
     uint8_t free_cid() const;
     void reset_framing();
@@ -167,6 +168,7 @@ private:
     int server_cid_;
     std::map<uint8_t, TcpPeer> peers_;
     std::vector<TcpPeer> retired_;  // connections whose cid was reused
+    std::vector<uint8_t> unreported_;  // cids whose end the MCU has not read yet
     size_t serial_;
 };
 

@@ -48,12 +48,14 @@ uint8_t data_ready_pin();
 void set_reset_pin(uint8_t pin);
 
 // SPI5 as the SPI library sees it: clock of the current transaction. Each
-// byte moved costs virtual time: 8 clock periods plus kSpiByteOverheadNs for
-// the one SPI5.transfer() call per byte of GS2200Hal.cpp (Write_Data,
-// Read_Data). The overhead is an assumption (a call and a busy-wait on the
-// SPI status register at 156 MHz; no board measurement): about 1.3 us a byte
-// at 8 MHz, 2.3 us at 4 MHz.
-const uint64_t kSpiByteOverheadNs = 300;
+// byte moved costs virtual time: 8 clock periods plus kSpiByteOverheadNs, the
+// software around the one SPI5.transfer() call per byte of GS2200Hal.cpp
+// (Write_Data, Read_Data): SPI.cpp's transfer() calls the NuttX driver's
+// SPI_SETBITS and a one-byte SPI_EXCHANGE, which waits for the byte. The
+// overhead is an assumption (0.5-1 us at 156 MHz, the middle taken; no board
+// measurement): 1.7 us a byte at 8 MHz, 2.7 us at 4 MHz. docs/firmware.md,
+// "Streaming budget".
+const uint64_t kSpiByteOverheadNs = 700;
 uint32_t spi_clock_hz();
 void spi_power_on();
 

@@ -330,6 +330,9 @@ void random_schedule(unsigned seed) {
     // A request is answered, or its connection ended (the module failed the answer, or all slots were taken).
     for (size_t c : others) {
         const hostlib::TcpPeer& p = module().connection(c);
+        CAPTURE(c);
+        CAPTURE(p.open);
+        CAPTURE(p.received.substr(0, 40));
         CHECK((p.received.compare(0, 9, "HTTP/1.1 ") == 0 || (p.received.empty() && !p.open)));
     }
     check_link_kept();
