@@ -525,27 +525,23 @@ void Gs2200m::client_send(uint8_t cid, const std::string& bytes) {
     }
 }
 
-void Gs2200m::client_close(uint8_t cid) {
-    advance();
-    TcpPeer& c = peers_[cid];
-    c.open = false;
-    c.closing = false;
-    c.tx.clear();
-    unreported_.push_back(cid);
-    queue_message(std::string("DISCONNECT ") + hex_digit(cid) + "\r\n");
-}
+void Gs2200m::client_close(uint8_t cid) { end_client(cid, "DISCONNECT "); }
 
 // The Telit AT guide lists "ERROR: SOCKET FAILURE <CID>" among the
 // asynchronous messages; the library matches its prefix only
 // (GS2200AtCmd.cpp, AtCmd_checkResponse).
 void Gs2200m::client_reset(uint8_t cid, bool socket_failure) {
+    end_client(cid, socket_failure ? "ERROR: SOCKET FAILURE " : "DISCONNECT ");
+}
+
+void Gs2200m::end_client(uint8_t cid, const char* message) {
     advance();
     TcpPeer& c = peers_[cid];
     c.open = false;
     c.closing = false;
     c.tx.clear();
     unreported_.push_back(cid);
-    queue_message(std::string(socket_failure ? "ERROR: SOCKET FAILURE " : "DISCONNECT ") + hex_digit(cid) + "\r\n");
+    queue_message(message + std::string(1, hex_digit(cid)) + "\r\n");
 }
 
 void Gs2200m::set_drain(uint8_t cid, double bytes_per_s) {

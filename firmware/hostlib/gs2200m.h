@@ -130,7 +130,8 @@ private:
     std::string scan() const;
     void queue_message(const std::string& text) { pending_.push_back(text); }
     void queue_header(uint8_t type, uint16_t len, uint8_t pending);
-    void report_end(const std::string& msg);  // the MCU read msg: a cid it ended is free again
+    void report_end(const std::string& msg);
+    void end_client(uint8_t cid, const char* message);  // the client's side ended it  // the MCU read msg: a cid it ended is free again
     void close_cid(int cid, bool graceful);
     uint8_t free_cid() const;
     void reset_framing();
