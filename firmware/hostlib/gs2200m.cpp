@@ -59,6 +59,7 @@ Gs2200m::Gs2200m() { power_on(); }
 
 void Gs2200m::power_on() {
     ignore_write_requests = 0;
+    wedged = false;
     fail_bulk_writes = 0;
     default_drain_bytes_per_s = 1e6;
     commands.clear();
@@ -119,6 +120,7 @@ void Gs2200m::reset_line(bool asserted) {
     advance();
     if (asserted && !in_reset_) {
         in_reset_ = true;
+        wedged = false;
         ++resets_;
         associated_ = false;
         close_cid(-1, false);
@@ -176,7 +178,7 @@ void Gs2200m::advance() {
 // it between the two halves of a WRITE_REQUEST, gs2200m_hal_write).
 bool Gs2200m::data_ready() {
     advance();
-    if (in_reset_) return false;
+    if (in_reset_ || wedged) return false;
     return !out_.empty() || !pending_.empty();
 }
 
@@ -186,7 +188,7 @@ void Gs2200m::next_write(const void* data, uint16_t len) {
 
 uint8_t Gs2200m::exchange(uint8_t mosi, uint32_t clock_hz) {
     advance();
-    if (in_reset_) return 0x00;
+    if (in_reset_ || wedged) return 0x00;
     if (payload_expected_ > 0) {
         payload_.push_back(static_cast<char>(mosi));
         if (--payload_expected_ == 0) {

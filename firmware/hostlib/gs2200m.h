@@ -94,6 +94,9 @@ public:
     int fail_bulk_writes;
     // The next n WRITE requests get no answer (the data-ready line stays low).
     int ignore_write_requests;
+    // The module hangs: it answers nothing and its data-ready line stays low
+    // until its reset line is pulsed (the 20 s SPI timeouts of issue 24, 4).
+    bool wedged;
     // Called with each AT command as it arrives, before the module replies
     // (a scripted scenario puts an event between a command and its reply).
     std::function<void(const std::string&)> on_command_hook;

@@ -388,3 +388,22 @@ TEST_CASE("random: 200 seeded schedules of events keep the link and every part w
     }
     for (unsigned seed = 1; seed <= 200; ++seed) random_schedule(seed);
 }
+
+TEST_CASE("a module that stops answering is given up after 5 s of silence and a failed AT, then reset") {
+    Joined j;
+    Sensor sensor(2, 20000, 1000, 100);
+    uint8_t viewer = stream_client();
+    run_for(j.board, sensor, 1000);
+    REQUIRE(whole_parts(viewer, sensor) > 0);
+    REQUIRE(module().resets() == 1);
+    module().wedged = true;
+    run_for(j.board, sensor, 4000);  // refusals and silence below kLinkSilenceMs: not yet lost
+    CHECK(hostlib::serial_output().find("network lost") == std::string::npos);
+    run_for(j.board, sensor, 3000);
+    CHECK(hostlib::serial_output().find("[W][link] network lost; reconnecting") != std::string::npos);
+    REQUIRE(j.board.run_until([] { return module().resets() == 2 && module().listening(); }, 20000));
+    uint8_t cid = http_get("/status");
+    REQUIRE(j.board.run_until([cid] { return !module().peer(cid).open; }));
+    CHECK(module().peer(cid).received.find("HTTP/1.1 200") == 0);
+    check_no_violations();
+}
