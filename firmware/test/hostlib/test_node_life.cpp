@@ -275,3 +275,16 @@ TEST_CASE("a static address is set without starting the DHCP client first") {
     CHECK(module().peer(cid).received.find("\"ip\":\"192.168.1.77\"") != std::string::npos);
     check_no_violations();
 }
+
+TEST_CASE("Improv provisioning of a fresh board touches no SPI before the module is set up") {
+    PowerOn power;
+    Board b(nullptr);
+    b.boot();
+    b.run_until([] { return false; }, 50);
+    hostlib::serial_input(fake::improv_rpc(improv::Command::WifiSettings, {"lab", kPassphrase}));
+    REQUIRE(b.run_until([] { return module().listening(); }));
+    // The library's ConsoleLog lines of a bus that was never begun ("SPI WRITE: Timeout ...").
+    CHECK(hostlib::serial_output().find("Timeout") == std::string::npos);
+    CHECK(module().resets() == 1);
+    check_no_violations();
+}
