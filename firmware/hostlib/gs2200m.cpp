@@ -64,6 +64,7 @@ void Gs2200m::power_on() {
     default_drain_bytes_per_s = 1e6;
     commands.clear();
     command_us.clear();
+    failing_commands.clear();
     bulk_clock_hz.clear();
     bulk_sizes.clear();
     refused_writes = 0;
@@ -340,7 +341,8 @@ void Gs2200m::on_command(const std::string& cmd) {
     commands.push_back(cmd);
     command_us.push_back(now_us());
     if (on_command_hook) on_command_hook(cmd);
-    std::string reply = answer(cmd);
+    bool fail = std::find(failing_commands.begin(), failing_commands.end(), cmd) != failing_commands.end();
+    std::string reply = fail ? kError : answer(cmd);
     std::string text = echo_ ? cmd + "\r\n" + reply : reply;
     uint64_t delay_us = cmd == "AT+WS" ? 13 * 150000 : 1000;
     at(now_us() + delay_us, [this, text] { queue_message(text); });

@@ -90,6 +90,8 @@ public:
     void reboot();
     // A message nobody asked for now: a late "OK" of an earlier command.
     void late_reply() { queue_message("OK\r\n"); }
+    // Commands answered ERROR (exactly these texts, without "\r\n").
+    std::vector<std::string> failing_commands;
     // The next bulk write fails in the module (it answers <ESC>F, the data is lost).
     int fail_bulk_writes;
     // The next n WRITE requests get no answer (the data-ready line stays low).

@@ -288,3 +288,18 @@ TEST_CASE("Improv provisioning of a fresh board touches no SPI before the module
     CHECK(module().resets() == 1);
     check_no_violations();
 }
+
+TEST_CASE("a set-up command the module refuses fails the join instead of going unnoticed") {
+    PowerOn power;
+    module().failing_commands = {"AT+WRXPS=0"};  // power save would stay on
+    Settings s = station("lab", kPassphrase);
+    Board b(&s);
+    b.boot();
+    b.run_until([] { return false; }, 3000);
+    CHECK_FALSE(module().listening());
+    CHECK(std::find(module().commands.begin(), module().commands.end(), "AT+WA=lab") == module().commands.end());
+    module().failing_commands.clear();
+    REQUIRE(b.run_until([] { return module().listening(); }));
+    CHECK_FALSE(module().power_save());
+    check_no_violations();
+}
