@@ -389,7 +389,7 @@ TEST_CASE("random: 200 seeded schedules of events keep the link and every part w
     for (unsigned seed = 1; seed <= 200; ++seed) random_schedule(seed);
 }
 
-TEST_CASE("a module that stops answering is given up after 5 s of silence and a failed AT, then reset") {
+TEST_CASE("a module that stops answering is given up after 5 s of silence and a failed AT and then reset") {
     Joined j;
     Sensor sensor(2, 20000, 1000, 100);
     uint8_t viewer = stream_client();
