@@ -65,6 +65,7 @@ void Gs2200m::power_on() {
     commands.clear();
     command_us.clear();
     failing_commands.clear();
+    reply_delay_us = 1000;
     bulk_clock_hz.clear();
     bulk_sizes.clear();
     refused_writes = 0;
@@ -344,7 +345,7 @@ void Gs2200m::on_command(const std::string& cmd) {
     bool fail = std::find(failing_commands.begin(), failing_commands.end(), cmd) != failing_commands.end();
     std::string reply = fail ? kError : answer(cmd);
     std::string text = echo_ ? cmd + "\r\n" + reply : reply;
-    uint64_t delay_us = cmd == "AT+WS" ? 13 * 150000 : 1000;
+    uint64_t delay_us = cmd == "AT+WS" ? 13 * 150000 : reply_delay_us;
     at(now_us() + delay_us, [this, text] { queue_message(text); });
 }
 

@@ -90,6 +90,8 @@ public:
     void reboot();
     // A message nobody asked for now: a late "OK" of an earlier command.
     void late_reply() { queue_message("OK\r\n"); }
+    // Time from a command to its reply (AT+WS: 13 channels x 150 ms instead).
+    uint64_t reply_delay_us;
     // Commands answered ERROR (exactly these texts, without "\r\n").
     std::vector<std::string> failing_commands;
     // The next bulk write fails in the module (it answers <ESC>F, the data is lost).

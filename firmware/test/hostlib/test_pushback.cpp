@@ -320,6 +320,8 @@ void random_schedule(unsigned seed) {
     std::mt19937 rng(seed);
     auto uniform = [&](double lo, double hi) { return std::uniform_real_distribution<double>(lo, hi)(rng); };
     Sensor sensor(4, 8000, 3000, 50);
+    // Slow replies: more events land between a command and its reply.
+    module().reply_delay_us = static_cast<uint64_t>(uniform(500, 20000));
     std::vector<uint8_t> streams;                // cids
     std::vector<size_t> stream_serials, others;  // connections
     auto new_stream = [&](double rate) {
