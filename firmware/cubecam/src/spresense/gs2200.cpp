@@ -106,7 +106,7 @@ bool Gs2200Module::start_join(const Settings& s) {
     TWIFI_Params params = {ap ? ATCMD_MODE_LIMITED_AP : ATCMD_MODE_STATION, ATCMD_PSAVE_DEFAULT};
     // A static station address goes to begin(), which sets it (AT+NSET)
     // instead of starting DHCP (AT+NDHCP=1) that we would have to stop again.
-    TWIFI_Adress adrs;
+    TWIFI_Adress adrs = TWIFI_Adress();  // empty strings unless an address is set below
     if (ap || own) addresses(s, adrs);
     if (telit_.begin(params, ap || !own, adrs) != 0 || !configure(ap, own, adrs)) return false;
     join_failed_ = false;
