@@ -16,7 +16,7 @@ ALLOWED = {
     "host/cubetrack/app/track.py:track_frames": "one of the five run loops issue 23 moves onto the session runtime",
     "host/cubetrack/app/fusion_service.py:run_fusion":
         "one of the five run loops issue 23 moves onto the session runtime",
-    "host/cubetrack/detect/detector.py:refine_corners_edges":
+    "host/cubetrack/detect/edge_fit.py:refine_corners_edges":
         "one vectorised pass over every side of every quad; its steps share a dozen (M, 4, k) arrays",
     "host/cubetrack/simulate/params.py:SimulationParams.__post_init__":
         "hand-written validation that issue 23 moves to param() and the check helpers",

@@ -34,7 +34,16 @@ from cubetrack.simulate.motion import (
     plan_people,
 )
 from cubetrack.simulate.params import SimulationParams
-from cubetrack.simulate.render import WHITE_ALBEDO, Floor, MarkerTexture, Quad, Solid, box_faces, project_points
+from cubetrack.simulate.render import (
+    BLACK_ALBEDO,
+    WHITE_ALBEDO,
+    Floor,
+    MarkerTexture,
+    Quad,
+    Solid,
+    box_faces,
+    project_points,
+)
 from cubetrack.simulate.timing import DeviceClock, make_clock
 
 ROBOT_ALBEDO = 0.15
@@ -162,9 +171,10 @@ class Scene:
         for m, b in zip(layout.markers, (built or layout).markers, strict=True):
             T = T_cube @ m.T_cube_marker
             shade = self.shade(T[:3, 2])
-            faces.append(Quad(T, (p.cube_size_m, p.cube_size_m), WHITE_ALBEDO, shade=shade))
+            faces.append(Quad(T, (p.cube_size_m, p.cube_size_m), BLACK_ALBEDO if p.inverted_markers else WHITE_ALBEDO,
+                              shade=shade))
             decals.append(Quad(T_cube @ b.T_cube_marker, (b.size_m, b.size_m),
-                               texture=MarkerTexture(layout.dictionary, b.marker_id), shade=shade))
+                               texture=MarkerTexture(layout.dictionary, b.marker_id, p.inverted_markers), shade=shade))
         # the face without a marker (the bottom) is never seen from above; the cube is closed anyway
         solids.append(Solid(tuple(faces), tuple(decals)))
         return tuple(solids)

@@ -398,7 +398,10 @@ def _write_session_files(out: Path, scene: Scene) -> None:
     for c in scene.cameras:
         write_camera_info(c.intrinsics, out / TRUE_CAMERA_INFO_DIR / f"{c.name}.yaml")
     cameras = [CameraConfig(c.name, "", out / "camera_info" / f"{c.name}.yaml") for c in scene.cameras]
-    write_toml(tracker_config_to_table(scene.world, cameras, robots, relative_to=out), out / CONFIG_FILE)
+    config = tracker_config_to_table(scene.world, cameras, robots, relative_to=out)
+    if p.inverted_markers:
+        config["detector"] = {"detect_inverted_marker": True}
+    write_toml(config, out / CONFIG_FILE)
     write_extrinsics({c.name: CameraExtrinsics(c.T_world_cam, method="ground truth (simulated)")
                       for c in scene.cameras}, out / TRUE_EXTRINSICS_FILE)
     truth = {}
