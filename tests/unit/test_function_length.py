@@ -20,7 +20,6 @@ ALLOWED = {
         "one vectorised pass over every side of every quad; its steps share a dozen (M, 4, k) arrays",
     "host/cubetrack/simulate/params.py:SimulationParams.__post_init__":
         "hand-written validation that issue 23 moves to param() and the check helpers",
-    "host/cubetrack/simulate/simulation.py:simulate": "to split: scene setup, the frame jobs and the writing",
 }
 
 

@@ -229,6 +229,11 @@ class SimulationParams:
         return self.robot_size_m[2] + self.mast_height_m + self.cube_size_m / 2.0
 
     @property
+    def robot_names(self) -> tuple[str, ...]:
+        """The simulated robots' names: ``robot`` alone, else ``robot1``, ``robot2``, ..."""
+        return ("robot",) if self.robots == 1 else tuple(f"robot{k + 1}" for k in range(self.robots))
+
+    @property
     def cube_top_m(self) -> float:
         """Height of the cube's top face above the floor, metres."""
         return self.robot_size_m[2] + self.mast_height_m + self.cube_size_m

@@ -53,7 +53,6 @@ WALL_ALBEDO = 0.6
 HEAD_ALBEDO = 0.35
 MAST_SIDE_M = 0.03
 LIGHT_ELEVATION_DEG = 50.0  # the directional light of face_shading comes from this high up
-ROBOT_NAME = "robot"  # the name of a lone robot; several are robot1, robot2, ...
 
 # Independent random streams: (seed, purpose, index) -> Generator. Adding a camera or changing
 # one stage's use of randomness leaves the other streams unchanged.
@@ -238,11 +237,6 @@ def camera_pose(azimuth_rad: float, p: SimulationParams, rng: np.random.Generato
     return make_T(R, position)
 
 
-
-def robot_names(p: SimulationParams) -> tuple[str, ...]:
-    """The simulated robots' names: ``robot`` alone, else ``robot1``, ``robot2``, ..."""
-    return (ROBOT_NAME,) if p.robots == 1 else tuple(f"robot{k + 1}" for k in range(p.robots))
-
 def build_scene(p: SimulationParams) -> Scene:
     """The arena for a parameter set; raises SimulationError when a camera cannot see the whole
     world marker (calibration would be impossible)."""
@@ -263,7 +257,7 @@ def build_scene(p: SimulationParams) -> Scene:
             terrain = Terrain(1e-3 * p.floor_bumps_mm, 1e-3 * p.bounce_mm, math.radians(p.wobble_deg),
                               (p.robot_size_m[0], p.robot_size_m[1]), rng_for(p.seed, STREAM_FLOOR),
                               rng_for(p.seed, STREAM_VIBRATION, k))
-        robots.append(SimRobot(robot_names(p)[k], layout, path,
+        robots.append(SimRobot(p.robot_names[k], layout, path,
                                built_layout(layout, p, rng_for(p.seed, STREAM_BUILD, k)), terrain))
     cameras = []
     for i in range(p.cameras):
