@@ -94,10 +94,11 @@ def share_cameras(urls: Mapping[str, str], count: int) -> list[dict[str, str]]:
 
 @dataclass(frozen=True, slots=True)
 class WorkerUpdate:
-    """What a worker process reports besides results: its cameras' counters and the frames it
-    gave up before their camera's clock was known (since it started)."""
+    """What a camera worker process reports besides results: its cameras' counters, the frames it
+    admitted and those it gave up before their camera's clock was known (since it started)."""
 
     cameras: dict[str, CameraStats]
+    frames: int
     before_clock: int
 
 
@@ -152,7 +153,7 @@ class CameraProcesses:
         self.count = count
         self._told: list[int] = []  # per lane: the count of taken results when it was last sent a message
         self._stats = {name: CameraStats(url=url) for name, url in self.urls.items()}
-        self._before_clock: dict[int, int] = {}  # per worker process
+        self._counts: dict[int, tuple[int, int]] = {}  # per worker process: frames admitted, given up before clock
         self._lanes: list[tuple[Connection, multiprocessing.Process]] = []
         self._open: dict[Connection, int] = {}  # the pipes of processes that have not finished -> lane
         self._held = HeldResults()
@@ -212,7 +213,7 @@ class CameraProcesses:
                 clocks.append(payload)
             elif kind == "update":
                 self._stats.update(payload.cameras)
-                self._before_clock[lane] = payload.before_clock
+                self._counts[lane] = (payload.frames, payload.before_clock)
             elif kind == "failed":
                 del self._open[conn]
                 raise SourceError(f"a camera worker process failed: {payload}")
@@ -245,9 +246,10 @@ class CameraProcesses:
     def stats(self) -> dict[str, CameraStats]:
         return {name: s.copy() for name, s in self._stats.items()}
 
-    def before_clock(self) -> int:
-        """Frames given up before their camera's clock was known, so far."""
-        return sum(self._before_clock.values())
+    def frame_counts(self) -> tuple[int, int]:
+        """Frames the worker processes admitted, and those they gave up before their camera's
+        clock was known, so far."""
+        return sum(f for f, _ in self._counts.values()), sum(b for _, b in self._counts.values())
 
     def pending(self) -> int:
         return sum(conn.poll() for conn in self._open) + len(self._held)
@@ -300,7 +302,7 @@ def _worker_main(conn: Connection, urls: dict[str, str], source: SourceParams, m
 def _work_cameras(conn: Connection, urls: dict[str, str], source: SourceParams, tracker: Tracker, views: bool,
                   clock: Callable[[], float], working: MutableSequence[float], taken: Sequence[int],
                   lane: int) -> None:
-    tracker.forecast = Forecast({}, frozenset(r.name for r in tracker.robots))
+    forecast = Forecast({}, frozenset(r.name for r in tracker.robots))  # until the fusion sends one
     live = LiveCameras(urls, source, clock=clock, thread=False)  # read on this thread, between frames
     live.start()
     live.wake_on(conn)
@@ -314,7 +316,7 @@ def _work_cameras(conn: Connection, urls: dict[str, str], source: SourceParams, 
             tracker.add_clock_sample(event.camera, event.sample)
             conn.send(("clock", event))
             return None
-        return None if event is None else tracker.admit(event, hold=False)
+        return None if event is None else tracker.admit(event, hold=False, forecast=forecast)
 
     try:
         while True:
@@ -324,7 +326,7 @@ def _work_cameras(conn: Connection, urls: dict[str, str], source: SourceParams, 
                     stopping = True
                     live.stop()
                 elif isinstance(message, Forecast):  # else a wake: the count taken changed
-                    tracker.forecast = message
+                    forecast = message
             if job is None:
                 room = stopping or sent - taken[lane] < IN_FLIGHT
                 # in arrival order: the fusion gets fewer late sightings to fold in (each costs re-applying the
@@ -360,4 +362,4 @@ def _work_cameras(conn: Connection, urls: dict[str, str], source: SourceParams, 
 
 
 def _update(live: LiveCameras, tracker: Tracker) -> WorkerUpdate:
-    return WorkerUpdate(live.stats(), tracker.stats.frames_before_clock_sync)
+    return WorkerUpdate(live.stats(), tracker.stats.frames, tracker.stats.frames_before_clock_sync)

@@ -40,7 +40,7 @@ from pathlib import Path
 import numpy as np
 
 from cubetrack.app.calibrate import CalibrationRun, run_calibration
-from cubetrack.app.config import ConfigParams, parameter_tables
+from cubetrack.app.config import ConfigParams
 from cubetrack.app.live import track_live
 from cubetrack.app.tracker import CameraPoseSource
 from cubetrack.calib.extrinsics import CalibrationReport, world_detector
@@ -53,7 +53,7 @@ from cubetrack.detect.detector import DetectorParams, decode_gray
 from cubetrack.estimate.match import detections_of
 from cubetrack.io.config import TrackerConfig, write_extrinsics
 from cubetrack.io.recording import Recording
-from cubetrack.io.run import RUN_FILE, run_record_beside, write_run_record
+from cubetrack.io.run import run_record_beside
 from cubetrack.sink.base import Sink
 from cubetrack.sink.dashboard.server import (
     TRAJECTORY_FILES,
@@ -345,14 +345,12 @@ class DashboardApp:
     def _run_session(self, plan: SessionPlan, stop: threading.Event) -> bool:
         """One live session; returns whether Ctrl-C ended it. A session that cannot start (e.g.
         its folder cannot be written) is reported on the page and the plain watch session follows."""
-        if plan.kind == "record":
-            write_run_record(plan.out_dir / RUN_FILE, "dashboard", parameter_tables(self._stage_params(plan.extrinsics)),
-                             {"config": self.config.path, "extrinsics": self.extrinsics_path
-                              if self.extrinsics_path.exists() else None}, {"cameras": dict(self.urls)})
         try:
             result = track_live(self.config, plan.extrinsics or None, plan.out_dir, self._stage_params(plan.extrinsics),
                                 self.settings.source, stop=stop, record_to=plan.record_to,
-                                sinks=[DashboardSink(self.server), _Watcher(self, plan)])
+                                sinks=[DashboardSink(self.server), _Watcher(self, plan)], live_params=self.settings.live,
+                                extrinsics_path=self.extrinsics_path if self.extrinsics_path.exists() else None,
+                                command="dashboard")
         except CubetrackError as exc:
             log.error("dashboard: the %s session failed: %s", plan.kind, exc)
             with self._lock:

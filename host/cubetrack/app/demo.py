@@ -17,9 +17,9 @@ from __future__ import annotations
 
 import dataclasses
 import threading
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Sequence
 
 from cubetrack.app.calibrate import run_calibration
 from cubetrack.app.config import config_params, parameter_tables
@@ -49,11 +49,12 @@ END_GRACE_S = 1.5  # after the replay's last frame: its transfer, the clock poll
 
 @dataclass(frozen=True, slots=True)
 class LiveDemo:
-    """The live part: its score against the ground truth moved to the live clock, the session's
-    result, the clock shift (live Unix time minus recorded host time) and the files."""
+    """The live part: its score against the ground truth moved to the live clock (None: Ctrl-C or
+    SIGTERM ended the session before the replay did), the session's result, the clock shift (live
+    Unix time minus recorded host time) and the files."""
 
     method: str
-    score: EvaluationResult
+    score: EvaluationResult | None
     result: LiveResult
     clock_shift_s: float
     config_path: Path
@@ -63,7 +64,8 @@ class LiveDemo:
 @dataclass(frozen=True, slots=True)
 class DemoResult:
     """Calibration errors per camera (position m, rotation deg), offline scores per fusion
-    method, and the live part (None with ``live=False``)."""
+    method (none when the live part was stopped by Ctrl-C or SIGTERM: the demo ends there), and
+    the live part (None with ``live=False``)."""
 
     out_dir: Path
     calibration_errors: dict[str, tuple[float, float]]
@@ -97,8 +99,6 @@ def run_live_demo(rec_dir: Path, config_path: Path, extrinsics, out_dir: Path, p
     live_dir = out_dir / "live"
     with EmulatedCameras(rec_dir) as emu:
         live_config = read_tracker_config(write_live_config(config_path, emu.urls, live_dir / "config.toml"))
-        write_run_record(live_dir / "track" / RUN_FILE, "track", parameter_tables(params),
-                         {"config": live_config.path}, {"cameras": dict(emu.urls)})
         stop = threading.Event()
         span_s = emu.period_s
 
@@ -119,7 +119,7 @@ def run_live_demo(rec_dir: Path, config_path: Path, extrinsics, out_dir: Path, p
     truth_path = live_dir / "ground_truth_live.tum"
     write_tum(live_truth, truth_path)
     robot = live_config.robots[0].name
-    score = evaluate(read_tum(result.outputs[robot][0]), live_truth)
+    score = None if result.interrupted else evaluate(read_tum(result.outputs[robot][0]), live_truth)
     return LiveDemo(params.fusion.method.value, score, result, shift_s, live_dir / "config.toml", truth_path)
 
 
@@ -130,7 +130,8 @@ def run_demo(out_dir: Path, sim: SimulationParams, methods: tuple[FusionMethod, 
     emulator (``live``), then replay it offline with each fusion method; evaluate everything.
     ``out_dir/run.json`` records the version, the scenario and the resolved parameters; each
     output inside has its own run record. ``sinks`` (other outputs) are fed the live session, or
-    with ``live=False`` the last offline replay."""
+    with ``live=False`` the last offline replay. Ctrl-C or SIGTERM during the live part end the
+    demo after it, like the end of the replay would, but without the offline replays."""
     rec_dir = out_dir / "rec"
     simulate(sim, rec_dir, progress=progress)
     config = read_tracker_config(rec_dir / "config.toml")
@@ -144,7 +145,9 @@ def run_demo(out_dir: Path, sim: SimulationParams, methods: tuple[FusionMethod, 
     base = settings.stages
     live_part = (run_live_demo(rec_dir, rec_dir / "config.toml", report.extrinsics, out_dir, base, status, sinks)
                  if live else None)
-    scores = {}
+    scores: dict[str, EvaluationResult] = {}
+    if live_part is not None and live_part.result.interrupted:
+        return DemoResult(out_dir, errors, scores, live_part)
     for method in methods:
         params = dataclasses.replace(base, fusion=dataclasses.replace(base.fusion, method=method))
         result = track_recording(config, Recording.open(rec_dir), report.extrinsics, out_dir / "track" / method.value,

@@ -13,6 +13,7 @@ import enum
 import logging
 from collections import Counter, deque
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import cv2
 import numpy as np
@@ -35,6 +36,16 @@ log = logging.getLogger(__name__)
 
 _NO_ROTATION = np.zeros(3)  # (and no translation) for cv2.projectPoints of camera-frame points
 HELD_FRAMES = 32  # per camera, waiting for the first clock round trip (about 4 s at 7.5 fps)
+
+
+class Forecaster(Protocol):
+    """What plans a frame (:meth:`Tracker.plan`): where each robot will be, and which robots' fusion
+    asks for per-camera estimates. A :class:`~cubetrack.fuse.base.Fusion` is one; so is the
+    :class:`~cubetrack.app.camera_workers.Forecast` a camera worker process is sent."""
+
+    def predicted_pose(self, robot: str, time_s: float) -> np.ndarray | None: ...
+
+    def needs_estimate(self, robot: str) -> bool: ...
 
 
 @enum.unique
@@ -291,9 +302,6 @@ class Tracker:
             self.fusion = FilterFusion({r.name: r.layout for r in robots}, params.fusion, params.filter)
         else:
             self.fusion = LatestEstimateFusion(params.fusion)
-        # what plans each frame (regions, estimates): the fusion itself, or in a camera worker
-        # process a forecast sent by the fusion (cubetrack.app.camera_workers.Forecast)
-        self.forecast = self.fusion
         self.clocks = {name: ClockSync() for name in intrinsics}
         self.synced_cameras = synced_cameras
         self.held: dict[str, deque[Frame]] = {}  # frames waiting for their camera's first round trip
@@ -342,11 +350,11 @@ class Tracker:
             return []
         return self.fuse(self.worker.work(job), frame.host_time_s if now_s is None else now_s)
 
-    def admit(self, frame: Frame, hold: bool = True) -> FrameJob | None:
-        """Count a frame and plan its per-frame work (:meth:`plan`); None when there is nothing to
-        do now: a camera without intrinsics, or a polled camera whose clock is not known yet (the
-        frame is held for :meth:`add_clock_sample`, or with ``hold=False`` given up and counted,
-        as live tracking does: a frame that waited for the clock is stale)."""
+    def admit(self, frame: Frame, hold: bool = True, forecast: Forecaster | None = None) -> FrameJob | None:
+        """Count a frame and plan its per-frame work (:meth:`plan`, with ``forecast``); None when
+        there is nothing to do now: a camera without intrinsics, or a polled camera whose clock is
+        not known yet (the frame is held for :meth:`add_clock_sample`, or with ``hold=False`` given
+        up and counted, as live tracking does: a frame that waited for the clock is stale)."""
         self.stats.frames += 1
         if frame.camera not in self.intrinsics:
             return None
@@ -360,17 +368,20 @@ class Tracker:
                 self.stats.frames_before_clock_sync += 1  # the oldest is given up
             held.append(frame)
             return None
-        return self.plan(frame, capture_time_s)
+        return self.plan(frame, capture_time_s, forecast)
 
     def _track(self, frame: Frame, capture_time_s: float, now_s: float) -> list[TrackedPose]:
         """Detection, estimation and fusion of a frame whose capture time is known, in turn."""
         return self.fuse(self.worker.work(self.plan(frame, capture_time_s)), now_s)
 
-    def plan(self, frame: Frame, capture_time_s: float) -> FrameJob:
+    def plan(self, frame: Frame, capture_time_s: float, forecast: Forecaster | None = None) -> FrameJob:
         """The per-frame work order of a frame whose capture time is known: the regions where
-        the fusion predicts the robots, and the robots whose fusion wants an estimate."""
-        return FrameJob(frame, capture_time_s, self._regions(frame.camera, capture_time_s),
-                        frozenset(r.name for r in self.robots if self.forecast.needs_estimate(r.name)))
+        ``forecast`` predicts the robots, and the robots whose fusion wants an estimate.
+        ``forecast`` None: this tracker's own fusion; a camera worker process, which has no
+        fusion, gives the fusion's latest :class:`cubetrack.app.camera_workers.Forecast`."""
+        forecast = self.fusion if forecast is None else forecast
+        return FrameJob(frame, capture_time_s, self._regions(frame.camera, capture_time_s, forecast),
+                        frozenset(r.name for r in self.robots if forecast.needs_estimate(r.name)))
 
     def fuse(self, result: FrameResult, now_s: float) -> list[TrackedPose]:
         """Count what the per-frame work found and fuse its sightings (``now_s``: the host time
@@ -416,7 +427,7 @@ class Tracker:
             self.stats.frames_without_camera_pose += 1
         return True
 
-    def _regions(self, camera: str, time_s: float) -> tuple[Box, ...] | None:
+    def _regions(self, camera: str, time_s: float, forecast: Forecaster) -> tuple[Box, ...] | None:
         """Image boxes (x0, y0, x1, y1) around every robot's predicted cube, or None when the
         full frame must be searched (a robot not predicted, a full search due, region search off)."""
         track = self.params.track
@@ -428,7 +439,7 @@ class Tracker:
         width, height = intrinsics.width, intrinsics.height
         boxes = []
         for robot in self.robots:
-            T_world_cube = self.forecast.predicted_pose(robot.name, time_s)
+            T_world_cube = forecast.predicted_pose(robot.name, time_s)
             if T_world_cube is None:
                 return None
             pc = transform_points(T_cam_world @ T_world_cube, self.cube_points_m[robot.name])

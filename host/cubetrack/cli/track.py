@@ -68,6 +68,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     import dataclasses
+    import sys
 
     from cubetrack.app.config import load_config
     from cubetrack.app.outputs import close_sinks
@@ -116,30 +117,28 @@ def run(args: argparse.Namespace) -> int:
         print(f"{robot}: {s.poses[robot]} poses -> {tum}, {jsonl}")
     for robot, (tum, jsonl) in result.smoothed.items():
         print(f"{robot}: smoothed poses -> {tum}, {jsonl}")
+    if result.ended_by is not None:
+        print(f"track: {result.ended_by}: the replay stopped early; the poses of the frames taken so far are saved "
+              f"(run.json says how it ended)", file=sys.stderr)
+        return 130
     return 0
 
 
 def _run_live(args: argparse.Namespace, config, extrinsics, settings, sinks) -> int:
     import sys
 
-    from cubetrack.app.config import parameter_tables
     from cubetrack.app.live import live_camera_urls, live_intrinsics, track_live
-    from cubetrack.io.run import RUN_FILE, write_run_record
 
     live_camera_urls(config), live_intrinsics(config)  # a bad config fails before the session starts
-    sections = parameter_tables(settings)
-    write_run_record(args.out / RUN_FILE, "track", {**parameter_tables(settings.stages), "source": sections["source"]},
-                     {"config": config.path, "extrinsics": args.extrinsics, "recorded_to": args.record},
-                     {"cameras": {c.name: c.url for c in config.cameras}})
     params = settings.stages
 
     def status(s) -> None:
         print(f"track: {s.line()}", file=sys.stderr, flush=True)
 
     print(f"tracking live into {args.out}" + ("" if args.duration else " (Ctrl-C to stop)"), file=sys.stderr, flush=True)
-    result = track_live(config, extrinsics, args.out, params, duration_s=args.duration, record_to=args.record,
-                        status=status, status_every_s=args.status_every, source=settings.source,
-                        sinks=sinks)
+    result = track_live(config, extrinsics, args.out, params, settings.source, duration_s=args.duration,
+                        record_to=args.record, status=status, status_every_s=args.status_every, sinks=sinks,
+                        live_params=settings.live, extrinsics_path=args.extrinsics)
     s = result.stats
     latency = "-" if result.latency_s is None else f"{result.latency_s * 1000:.0f} ms"
     print(f"{'interrupted; ' if result.interrupted else ''}tracked live for {result.duration_s:.1f} s: "
