@@ -31,7 +31,7 @@ from cubetrack.app.tracker import FrameJob, FrameOutcome, FrameResult, StagePara
 from cubetrack.app.worker import SIGHTINGS_KEY, WORKERS_KEY
 from cubetrack.core.cameras import CameraExtrinsics
 from cubetrack.core.records import CameraHealth, Frame
-from cubetrack.core.sighting_wire import SightingMessage, SightingWireError, decode_sighting
+from cubetrack.io.sighting_wire import SightingMessage, SightingWireError, decode_sighting
 from cubetrack.io.config import TrackerConfig
 from cubetrack.io.run import RUN_FILE
 from cubetrack.sink.base import Sink

@@ -3,7 +3,7 @@
 A worker reads its cameras (:class:`cubetrack.source.LiveCameras`), stamps each frame with its
 capture time through the camera's ``/time`` round trips and does the tracker's per-frame work
 (:meth:`cubetrack.app.tracker.FrameWorker.work`: decode, detect, the camera's pose), then
-publishes one sighting message per frame (:mod:`cubetrack.core.sighting_wire`) under
+publishes one sighting message per frame (:mod:`cubetrack.io.sighting_wire`) under
 ``cubetrack/sightings/<camera>``. The fusion (:mod:`cubetrack.app.fusion_service`) subscribes to
 ``cubetrack/sightings/*``. A worker holds no fusion state, so detection searches whole frames
 (there is no prediction to search around) and per-camera estimates are made by the fusion, from
@@ -44,7 +44,7 @@ from cubetrack.app.tracker import CameraPoseSource, FrameResult, StageParams, Tr
 from cubetrack.core.cameras import CameraExtrinsics
 from cubetrack.core.errors import ConfigError
 from cubetrack.core.records import Frame
-from cubetrack.core.sighting_wire import SightingMessage, WireClock, WireHealth, encode_sighting
+from cubetrack.io.sighting_wire import SightingMessage, WireClock, WireHealth, encode_sighting
 from cubetrack.io.config import TrackerConfig
 from cubetrack.sink.zenoh_session import ZenohEndpoints, open_session
 from cubetrack.source.clock import ClockSync

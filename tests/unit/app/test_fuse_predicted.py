@@ -31,7 +31,7 @@ from cubetrack.app.worker import (
     sighting_message,
     worker_endpoints,
 )
-from cubetrack.core.sighting_wire import encode_sighting
+from cubetrack.io.sighting_wire import encode_sighting
 from cubetrack.io.config import read_extrinsics
 from cubetrack.io.recording import Recording
 from cubetrack.io.trajectory import read_tum

@@ -273,7 +273,7 @@ def test_a_workers_message_gives_the_fusion_what_its_own_per_frame_work_gives(sc
     from cubetrack.app.fusion_service import frame_result
     from cubetrack.app.tracker import FrameJob
     from cubetrack.app.worker import sighting_message
-    from cubetrack.core.sighting_wire import decode_sighting, encode_sighting
+    from cubetrack.io.sighting_wire import decode_sighting, encode_sighting
     from cubetrack.source.clock import ClockSync
     from cubetrack.source.streams import CameraStats
 
