@@ -28,11 +28,12 @@ from multiprocessing.reduction import ForkingPickler
 import cv2
 import numpy as np
 
-from cubetrack.app.tracker import FrameJob, FrameOutcome, FrameResult, Tracker
+from cubetrack.app.tracker import Tracker
 from cubetrack.core.errors import SourceError
-from cubetrack.core.records import Frame
+from cubetrack.core.records import Frame, FrameJob, FrameOutcome, FrameResult
 from cubetrack.estimate.reprojection import moved_pose
 from cubetrack.fuse.base import Fusion
+from cubetrack.io.frame_wire import pack_result
 from cubetrack.source.streams import CameraStats, ClockReading, LiveCameras, SourceParams
 
 log = logging.getLogger(__name__)
@@ -139,9 +140,9 @@ class CameraProcesses:
     """``count`` camera worker processes over ``urls`` (see the module doc), with the part of
     :class:`~cubetrack.source.streams.LiveCameras`' interface the live loop uses (``urls``,
     :meth:`stats`, :meth:`pending`, :meth:`stop`). ``make_tracker`` builds each process's
-    tracker (picklable: a ``functools.partial``); its results come as ``FrameWorker.pack`` packs
-    them, and ``unpack`` (e.g. the ``FrameWorker.unpack`` of a tracker made with the same
-    arguments) turns them back into results. Wait for and take what came with :meth:`take`
+    tracker (picklable: a ``functools.partial``); its results come as
+    :func:`cubetrack.io.frame_wire.pack_result` packs them, and ``unpack`` (``unpack_result`` with
+    the intrinsics and camera poses of a tracker made with the same arguments) turns them back. Wait for and take what came with :meth:`take`
     (on the caller's thread: no thread of this process reads the pipes, so none competes with
     the fusion for the GIL); send each new :class:`Forecast` with :meth:`forecast`."""
 
@@ -149,7 +150,7 @@ class CameraProcesses:
                  count: int, unpack: Callable[[FrameJob, tuple], FrameResult], *, views: bool = False,
                  clock: Callable[[], float] = time.time):
         self.urls = dict(urls)
-        self._unpack = unpack  # a result as FrameWorker.pack sent it -> the FrameResult
+        self._unpack = unpack  # (job, a result as pack_result sent it) -> the FrameResult
         self.count = count
         self._told: list[int] = []  # per lane: the count of taken results when it was last sent a message
         self._stats = {name: CameraStats(url=url) for name, url in self.urls.items()}
@@ -350,7 +351,7 @@ def _work_cameras(conn: Connection, urls: dict[str, str], source: SourceParams, 
                         if (job := admitted(event)) is not None:
                             break
                 working[lane] = math.inf if job is None else job.capture_time_s
-                conn.send(("result", (done, tracker.worker.pack(result))))  # plain values: pickled fast
+                conn.send(("result", (done, pack_result(result, tracker.T_world_cam))))  # plain values: pickled fast
                 sent += 1
             if time.monotonic() >= next_update:
                 next_update = time.monotonic() + STATS_EVERY_S

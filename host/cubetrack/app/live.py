@@ -32,12 +32,13 @@ from cubetrack.app.config import config_params, parameter_tables
 from cubetrack.app.outputs import open_outputs
 from cubetrack.app.parallel import FramePool, LiveParams, WorkerKind, by_capture_time
 from cubetrack.app.session import PoseStream, RunSpec, Session, idle_wait_s
-from cubetrack.app.tracker import FrameResult, FrameWorker, StageParams, Tracker, TrackStats
+from cubetrack.app.tracker import FrameWorker, StageParams, Tracker, TrackStats
 from cubetrack.core.cameras import CameraExtrinsics, CameraIntrinsics, ClockSample
 from cubetrack.core.errors import ConfigError
-from cubetrack.core.records import CameraHealth, CameraView, Frame, TrackedPose
+from cubetrack.core.records import CameraHealth, CameraView, Frame, FrameResult, TrackedPose
 from cubetrack.io.camera_info import read_camera_info
 from cubetrack.io.config import TrackerConfig
+from cubetrack.io.frame_wire import unpack_result
 from cubetrack.io.recording import CameraEntry, RecordingWriter
 from cubetrack.io.run import RUN_FILE
 from cubetrack.sink.base import Outputs, Sink
@@ -306,8 +307,9 @@ class _CameraProcessFeed:
         arguments ``stream``'s tracker was made with)."""
         tracker = stream.tracker
         self.stream, self.tracker, self.fused, self.clock = stream, tracker, fused, clock
-        self.live = CameraProcesses(urls, source, make_tracker, live_params.worker_count, tracker.worker.unpack,
-                                    views=views, clock=clock)
+        unpack = functools.partial(unpack_result, intrinsics=tracker.intrinsics, T_world_cam=tracker.T_world_cam)
+        self.live = CameraProcesses(urls, source, make_tracker, live_params.worker_count, unpack, views=views,
+                                    clock=clock)
         self.next_forecast_s = 0.0
 
     def step(self, timeout_s: float) -> None:

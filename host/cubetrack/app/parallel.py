@@ -27,10 +27,11 @@ from typing import Callable
 
 import cv2
 
-from cubetrack.app.tracker import FrameJob, FrameResult, FrameWorker
+from cubetrack.app.tracker import FrameWorker
 from cubetrack.core.errors import SourceError
 from cubetrack.core.params import check, param
-from cubetrack.core.records import Frame
+from cubetrack.core.records import Frame, FrameJob, FrameResult
+from cubetrack.io.frame_wire import pack_result, unpack_result
 
 
 @enum.unique
@@ -300,7 +301,8 @@ class _ProcessLane:
         if message is None:  # taken back before the worker started it
             self.pool._finished(None, self)
         else:
-            self.pool._finished(self.pool.local_worker.unpack(job, message), self)
+            local = self.pool.local_worker
+            self.pool._finished(unpack_result(job, message, local.intrinsics, local.T_world_cam), self)
 
     def ended(self) -> None:
         if not self.closing:
@@ -348,7 +350,7 @@ def _process_main(conn: Connection, make_worker: Callable[[], FrameWorker], clai
                 continue
             job = FrameJob(Frame(camera, seq, device_time_s, host_time_s, jpeg), capture_time_s, regions,
                            frozenset(estimate_robots))
-            conn.send(worker.pack(worker.work(job)))
+            conn.send(pack_result(worker.work(job), worker.T_world_cam))
     except (EOFError, KeyboardInterrupt):
         pass
 

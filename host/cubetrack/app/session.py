@@ -32,10 +32,10 @@ from pathlib import Path
 from types import FrameType
 from typing import Any
 
-from cubetrack.app.tracker import FrameResult, StageParams, Tracker, TrackStats
+from cubetrack.app.tracker import StageParams, Tracker, TrackStats
 from cubetrack.core.cameras import ClockSample
 from cubetrack.core.geometry import quat_xyzw_from_R
-from cubetrack.core.records import TrackedPose
+from cubetrack.core.records import FrameResult, TrackedPose
 from cubetrack.fuse.base import Fusion
 from cubetrack.io.run import write_run_record
 from cubetrack.sink.base import Outputs

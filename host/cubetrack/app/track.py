@@ -24,12 +24,12 @@ from cubetrack.app.config import config_params, parameter_tables, recording_intr
 from cubetrack.app.outputs import open_outputs
 from cubetrack.app.parallel import FramePool, WorkerKind
 from cubetrack.app.session import RunSpec, Session
-from cubetrack.app.tracker import FrameJob, FrameResult, FrameWorker, StageParams, Tracker, TrackStats
+from cubetrack.app.tracker import FrameWorker, StageParams, Tracker, TrackStats
 from cubetrack.core.cameras import CameraExtrinsics, CameraIntrinsics, ClockSample, WorldConfig
 from cubetrack.core.errors import ConfigError
 from cubetrack.core.layout import CubeLayout
 from cubetrack.core.progress import Progress
-from cubetrack.core.records import Frame
+from cubetrack.core.records import Frame, FrameJob, FrameResult
 from cubetrack.fuse.fusion import FusionMethod
 from cubetrack.fuse.smoother import smoothed_poses
 from cubetrack.io.config import RobotConfig, TrackerConfig

@@ -22,7 +22,7 @@ from cubetrack.core.cameras import CameraExtrinsics, CameraIntrinsics, ClockSamp
 from cubetrack.core.errors import ConfigError, ImageError
 from cubetrack.core.geometry import invert_T, transform_points
 from cubetrack.core.params import check, param
-from cubetrack.core.records import CubeSighting, Detection, Frame, TrackedPose
+from cubetrack.core.records import CubeSighting, Detection, Frame, FrameJob, FrameOutcome, FrameResult, TrackedPose
 from cubetrack.detect.detector import Box, Detector, DetectorParams, decode_gray
 from cubetrack.estimate.match import body_detections
 from cubetrack.estimate.pose import EstimatorParams, estimate_cube, world_marker_pose
@@ -108,39 +108,6 @@ class StageParams:
         return config_params(config).stages
 
 
-@dataclass(frozen=True, slots=True, eq=False)
-class FrameJob:
-    """One frame's per-frame work order, decided by the tracker (the workflow layer) from the
-    fusion's state: where detection looks (``regions``; None = the whole frame) and which robots'
-    per-camera estimates the fusion asks for."""
-
-    frame: Frame
-    capture_time_s: float
-    regions: tuple[Box, ...] | None
-    estimate_robots: frozenset[str]
-
-
-@enum.unique
-class FrameOutcome(enum.Enum):
-    REGIONS = "regions"  # detection searched only the regions (and found something, or had none)
-    FULL_FRAME = "full frame"  # the whole frame was searched
-    CORRUPT = "corrupt"  # the JPEG did not decode
-    NO_CAMERA_POSE = "no camera pose"  # world-marker mode: the frame showed no world marker
-
-
-_OUTCOMES = tuple(FrameOutcome)
-
-
-@dataclass(frozen=True, slots=True, eq=False)
-class FrameResult:
-    """What the per-frame work made of a :class:`FrameJob`: a sighting per robot seen."""
-
-    job: FrameJob
-    outcome: FrameOutcome
-    sightings: tuple[CubeSighting, ...] = ()
-    error: str = ""
-
-
 class FrameWorker:
     """The per-frame work: decode, detect (in the job's regions, else the whole frame), the
     camera's pose, each robot's own detections and, where asked, its per-camera estimate. Holds
@@ -203,31 +170,6 @@ class FrameWorker:
             sightings.append(CubeSighting(frame.camera, robot.name, frame.seq, job.capture_time_s, frame.host_time_s,
                                           mine, estimate, T_world_cam, intrinsics))
         return tuple(sightings)
-
-    def pack(self, result: FrameResult) -> tuple:
-        """``result`` without its job, in plain values that pickle fast (for a pipe): what
-        :meth:`unpack` turns back into the same result in a worker made with the same arguments.
-        The intrinsics and calibrated camera poses, which both sides hold, stay out; a sighting's
-        detections go as ids, one corner array, areas and dictionaries."""
-        sightings = []
-        for s in result.sightings:
-            d = s.detections
-            T_world_cam = None if s.T_world_cam is self.T_world_cam.get(s.camera) else s.T_world_cam
-            sightings.append((s.robot, tuple(x.marker_id for x in d), np.array([x.corners_px for x in d]),
-                              tuple(x.area_px2 for x in d), tuple(x.dictionary for x in d), s.estimate, T_world_cam))
-        return _OUTCOMES.index(result.outcome), tuple(sightings), result.error
-
-    def unpack(self, job: FrameJob, packed: tuple) -> FrameResult:
-        """The :class:`FrameResult` of ``job`` that :meth:`pack` packed."""
-        outcome, packed_sightings, error = packed
-        frame = job.frame
-        sightings = tuple(
-            CubeSighting(frame.camera, robot, frame.seq, job.capture_time_s, frame.host_time_s,
-                         tuple(map(Detection, ids, corners, areas, dictionaries)), estimate,
-                         self.T_world_cam[frame.camera] if T_world_cam is None else T_world_cam,
-                         self.intrinsics[frame.camera])
-            for robot, ids, corners, areas, dictionaries, estimate, T_world_cam in packed_sightings)
-        return FrameResult(job, _OUTCOMES[outcome], sightings, error)
 
     def _detect(self, jpeg: bytes, source: str, regions: tuple[Box, ...] | None,
                 lens: CameraIntrinsics) -> tuple[tuple[Detection, ...], FrameOutcome]:

@@ -40,12 +40,12 @@ from typing import Any
 from cubetrack.app.config import config_params
 from cubetrack.app.live import live_camera_urls, live_intrinsics
 from cubetrack.app.session import Session
-from cubetrack.app.tracker import CameraPoseSource, FrameResult, StageParams, Tracker, TrackStats
+from cubetrack.app.tracker import CameraPoseSource, StageParams, Tracker, TrackStats
 from cubetrack.core.cameras import CameraExtrinsics
 from cubetrack.core.errors import ConfigError
-from cubetrack.core.records import Frame
-from cubetrack.io.sighting_wire import SightingMessage, WireClock, WireHealth, encode_sighting
+from cubetrack.core.records import Frame, FrameResult
 from cubetrack.io.config import TrackerConfig
+from cubetrack.io.sighting_wire import SightingMessage, WireClock, WireHealth, encode_sighting
 from cubetrack.sink.zenoh_session import ZenohEndpoints, open_session
 from cubetrack.source.clock import ClockSync
 from cubetrack.source.streams import CameraStats, ClockReading, LiveCameras, SourceParams

@@ -6,8 +6,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cubetrack.app.tracker import FrameOutcome
-from cubetrack.core.records import Detection
+from cubetrack.core.records import Detection, FrameOutcome
 from cubetrack.io.sighting_wire import (
     CLOCK_METHOD_CODES,
     OUTCOME_CODES,

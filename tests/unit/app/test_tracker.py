@@ -271,8 +271,8 @@ def test_a_workers_message_gives_the_fusion_what_its_own_per_frame_work_gives(sc
     tracker's own per-frame work makes of the frame, estimates included exactly where the fusion
     asks for them: before the filter tracks the robots (both), and while it tracks them (none)."""
     from cubetrack.app.fusion_service import frame_result
-    from cubetrack.app.tracker import FrameJob
     from cubetrack.app.worker import sighting_message
+    from cubetrack.core.records import FrameJob
     from cubetrack.io.sighting_wire import decode_sighting, encode_sighting
     from cubetrack.source.clock import ClockSync
     from cubetrack.source.streams import CameraStats

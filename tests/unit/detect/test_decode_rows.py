@@ -89,10 +89,10 @@ def test_a_region_search_finding_nothing_searches_the_whole_decoded_frame():
     regions find nothing, the full-frame search gets the whole frame (here: a marker below them)."""
     from pathlib import Path
 
-    from cubetrack.app.tracker import FrameJob, FrameOutcome, FrameWorker, StageParams
+    from cubetrack.app.tracker import FrameWorker, StageParams
     from cubetrack.core.cameras import CameraIntrinsics, WorldConfig
     from cubetrack.core.layout import paper_cube_layout
-    from cubetrack.core.records import Frame
+    from cubetrack.core.records import Frame, FrameJob, FrameOutcome
     from cubetrack.io.config import RobotConfig
 
     gray = np.full((480, 640), 200, np.uint8)
