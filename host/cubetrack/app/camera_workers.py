@@ -26,20 +26,17 @@ from multiprocessing.connection import Connection, wait
 from multiprocessing.reduction import ForkingPickler
 
 import cv2
-import numpy as np
 
 from cubetrack.app.tracker import Tracker
 from cubetrack.core.errors import SourceError
 from cubetrack.core.records import Frame, FrameJob, FrameOutcome, FrameResult
-from cubetrack.estimate.reprojection import moved_pose
-from cubetrack.fuse.base import Fusion
+from cubetrack.fuse.forecast import Forecast
 from cubetrack.io.frame_wire import pack_result
 from cubetrack.source.streams import CameraStats, ClockReading, LiveCameras, SourceParams
 
 log = logging.getLogger(__name__)
 
 STATS_EVERY_S = 0.5  # a worker process sends its cameras' counters this often
-FORECAST_SPAN_S = 0.1  # the motion in a forecast: from the fusion's predictions this far apart
 FORECAST_EVERY_S = 0.01  # the tracker's process sends a new forecast at most this often
 BEHIND_S = 0.015  # a worker process whose oldest waiting frame is older than this takes the freshest first
 IN_FLIGHT = 4  # results a worker process may have sent that the fusion has not taken yet
@@ -48,45 +45,7 @@ MESSAGES_PER_TAKE = 64  # messages read from one worker process per take(), so t
 HOLD_S = 0.002  # a result newer than a frame some worker process is working on waits at most this long for it
 
 
-@dataclass(frozen=True, slots=True)
-class Forecast:
-    """What a worker process plans frames with: per tracked robot its predicted pose at
-    ``time_s`` with constant world-frame linear and angular velocity (the filter's motion
-    model), and the robots whose fusion asks for per-camera estimates. Duck-types the two
-    :class:`~cubetrack.fuse.base.Fusion` methods that planning uses."""
-
-    motions: Mapping[str, tuple[float, np.ndarray, np.ndarray, np.ndarray]]  # time_s, T_world_cube, v, w
-    estimate_robots: frozenset[str]
-
-    def predicted_pose(self, robot: str, time_s: float) -> np.ndarray | None:
-        motion = self.motions.get(robot)
-        if motion is None:
-            return None
-        t0, T, v, w = motion
-        return moved_pose(T, v, w, time_s - t0)
-
-    def needs_estimate(self, robot: str) -> bool:
-        return robot in self.estimate_robots
-
-
-def forecast_of(fusion: Fusion, robots: Sequence[str], now_s: float) -> Forecast:
-    """The fusion's predictions at ``now_s`` and ``FORECAST_SPAN_S`` later, as a :class:`Forecast`."""
-    motions = {}
-    for robot in robots:
-        T0 = fusion.predicted_pose(robot, now_s)
-        if T0 is None:
-            continue
-        T1 = fusion.predicted_pose(robot, now_s + FORECAST_SPAN_S)
-        if T1 is None:
-            v = w = np.zeros(3)
-        else:
-            v = (T1[:3, 3] - T0[:3, 3]) / FORECAST_SPAN_S
-            w = cv2.Rodrigues(T1[:3, :3] @ T0[:3, :3].T)[0].reshape(3) / FORECAST_SPAN_S
-        motions[robot] = (now_s, T0, v, w)
-    return Forecast(motions, frozenset(r for r in robots if fusion.needs_estimate(r)))
-
-
-def share_cameras(urls: Mapping[str, str], count: int) -> list[dict[str, str]]:
+def deal_cameras(urls: Mapping[str, str], count: int) -> list[dict[str, str]]:
     """The cameras dealt round-robin to ``count`` worker processes (none left empty)."""
     names = list(urls)
     shares = [{name: urls[name] for name in names[k::count]} for k in range(min(count, len(names)))]
@@ -159,7 +118,7 @@ class CameraProcesses:
         self._open: dict[Connection, int] = {}  # the pipes of processes that have not finished -> lane
         self._held = HeldResults()
         context = multiprocessing.get_context("spawn")  # fork would copy this process's threads' locks
-        shares = share_cameras(self.urls, count)
+        shares = deal_cameras(self.urls, count)
         # per lane, in shared memory (written by one side, read by the other, never waited for): the capture
         # time of the frame its process is working on (inf: none), and how many of its results were taken
         self._working = context.RawArray("d", [math.inf] * len(shares))

@@ -21,7 +21,7 @@ for the drive), and write what it writes (the extrinsics and their run record in
 calibration folder). Around it, this module adds what a person at the cameras needs: whether
 each camera sees the world marker now (:class:`_Watcher` searches the newest frames for it),
 the samples collected so far, each camera's reprojection error on its own recording
-(:func:`world_marker_reprojection`) and a verdict with advice (:func:`calibration_advice`).
+(:func:`cubetrack.calib.check.world_marker_reprojection`) and a verdict with advice (:func:`calibration_advice`).
 """
 
 from __future__ import annotations
@@ -37,18 +37,15 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
-
 from cubetrack.app.calibrate import CalibrationRun, run_calibration
 from cubetrack.app.config import ConfigParams
 from cubetrack.app.live import track_live
 from cubetrack.app.tracker import CameraPoseSource
+from cubetrack.calib.check import world_marker_reprojection
 from cubetrack.calib.extrinsics import CalibrationReport, world_detector
 from cubetrack.core.cameras import CameraExtrinsics, CameraIntrinsics, WorldConfig
 from cubetrack.core.errors import CalibrationError, ConfigError, CubetrackError, ImageError, RecordingError
-from cubetrack.core.geometry import invert_T, transform_points
-from cubetrack.core.layout import marker_corners_m
-from cubetrack.core.records import CameraView, Detection, Frame, TrackedPose
+from cubetrack.core.records import CameraView, Detection, TrackedPose
 from cubetrack.detect.detector import DetectorParams, decode_gray
 from cubetrack.estimate.match import detections_of
 from cubetrack.io.config import TrackerConfig, write_extrinsics
@@ -69,39 +66,6 @@ log = logging.getLogger(__name__)
 
 
 # --- judging a calibration ---------------------------------------------------------------------
-
-
-def world_marker_reprojection(frames: Iterable[Frame], T_world_cam: np.ndarray, intrinsics: CameraIntrinsics,
-                              world: WorldConfig, detector_params: DetectorParams | None = None,
-                              max_frames: int = 30) -> tuple[float, float, int]:
-    """How well a calibrated camera pose explains the camera's own frames: (RMS distance in
-    pixels between the world marker's detected corners and their projection through
-    ``T_world_cam``, the marker's mean apparent side in pixels, frames used). The first
-    ``max_frames`` frames that show the marker once are used; (NaN, NaN, 0) when none does."""
-    import cv2
-
-    corners_world = marker_corners_m(world.marker_size_m)  # the world frame is the marker's
-    T_cam_world = invert_T(T_world_cam)
-    projected, _ = cv2.projectPoints(transform_points(T_cam_world, corners_world), np.zeros(3), np.zeros(3),
-                                     intrinsics.K, intrinsics.dist)
-    projected = projected.reshape(4, 2)
-    detector = world_detector(world, detector_params)
-    errors, sides = [], []
-    for frame in frames:
-        if len(sides) >= max_frames:
-            break
-        try:
-            gray = decode_gray(frame.jpeg, f"{frame.camera} frame {frame.seq}")
-        except ImageError:
-            continue
-        found = detections_of(detector.detect(gray), world.dictionary, (world.marker_id,))
-        if len(found) != 1:
-            continue
-        errors.append(np.sum((found[0].corners_px - projected) ** 2, axis=1))
-        sides.append(math.sqrt(found[0].area_px2))
-    if not sides:
-        return math.nan, math.nan, 0
-    return float(np.sqrt(np.mean(errors))), float(np.mean(sides)), len(sides)
 
 
 def calibration_advice(spread_cm: float, spread_deg: float, reprojection_px: float, marker_side_px: float,

@@ -27,7 +27,7 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 
-from cubetrack.app.camera_workers import FORECAST_EVERY_S, CameraProcesses, forecast_of
+from cubetrack.app.camera_workers import FORECAST_EVERY_S, CameraProcesses
 from cubetrack.app.config import config_params, parameter_tables
 from cubetrack.app.outputs import open_outputs
 from cubetrack.app.parallel import FramePool, LiveParams, WorkerKind, by_capture_time
@@ -36,6 +36,7 @@ from cubetrack.app.tracker import FrameWorker, StageParams, Tracker, TrackStats
 from cubetrack.core.cameras import CameraExtrinsics, CameraIntrinsics, ClockSample
 from cubetrack.core.errors import ConfigError
 from cubetrack.core.records import CameraHealth, CameraView, Frame, FrameResult, TrackedPose
+from cubetrack.fuse.forecast import forecast_of
 from cubetrack.io.camera_info import read_camera_info
 from cubetrack.io.config import TrackerConfig
 from cubetrack.io.frame_wire import unpack_result

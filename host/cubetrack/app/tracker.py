@@ -41,7 +41,7 @@ HELD_FRAMES = 32  # per camera, waiting for the first clock round trip (about 4 
 class Forecaster(Protocol):
     """What plans a frame (:meth:`Tracker.plan`): where each robot will be, and which robots' fusion
     asks for per-camera estimates. A :class:`~cubetrack.fuse.base.Fusion` is one; so is the
-    :class:`~cubetrack.app.camera_workers.Forecast` a camera worker process is sent."""
+    :class:`~cubetrack.fuse.forecast.Forecast` a camera worker process is sent."""
 
     def predicted_pose(self, robot: str, time_s: float) -> np.ndarray | None: ...
 
@@ -320,7 +320,7 @@ class Tracker:
         """The per-frame work order of a frame whose capture time is known: the regions where
         ``forecast`` predicts the robots, and the robots whose fusion wants an estimate.
         ``forecast`` None: this tracker's own fusion; a camera worker process, which has no
-        fusion, gives the fusion's latest :class:`cubetrack.app.camera_workers.Forecast`."""
+        fusion, gives the fusion's latest :class:`cubetrack.fuse.forecast.Forecast`."""
         forecast = self.fusion if forecast is None else forecast
         return FrameJob(frame, capture_time_s, self._regions(frame.camera, capture_time_s, forecast),
                         frozenset(r.name for r in self.robots if forecast.needs_estimate(r.name)))

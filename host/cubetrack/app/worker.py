@@ -44,6 +44,7 @@ from cubetrack.app.tracker import CameraPoseSource, StageParams, Tracker, TrackS
 from cubetrack.core.cameras import CameraExtrinsics
 from cubetrack.core.errors import ConfigError
 from cubetrack.core.records import Frame, FrameResult
+from cubetrack.fuse.forecast import NO_FORECAST
 from cubetrack.io.config import TrackerConfig
 from cubetrack.io.sighting_wire import SightingMessage, WireClock, WireHealth, encode_sighting
 from cubetrack.sink.zenoh_session import ZenohEndpoints, open_session
@@ -294,19 +295,6 @@ class ZenohWorker:
         return (f"{elapsed_s:5.0f}s published {self.published} | "
                 + (" ".join(f"{n} {s.frames} frames{'' if s.connected else ' (down)'}"
                             for n, s in self.camera_stats().items() if n in self.readers) or "no camera claimed"))
-
-
-class _NoForecast:
-    """A worker's plan for every frame: no prediction (search the whole frame), no estimates."""
-
-    def predicted_pose(self, robot: str, time_s: float) -> None:
-        return None
-
-    def needs_estimate(self, robot: str) -> bool:
-        return False
-
-
-NO_FORECAST = _NoForecast()
 
 
 def run_worker(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | None, cameras: Sequence[str],
