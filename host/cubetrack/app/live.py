@@ -454,15 +454,18 @@ def record_live(config: TrackerConfig, out: str | Path, source: SourceParams | N
                 overwrite: bool = False, clock: Callable[[], float] = time.time) -> LiveResult:
     """Record the config's cameras into the recording folder ``out`` (contracts §3: frames,
     ``index.csv``, ``clock.csv``, ``recording.json`` with the source URLs, and ``camera_info/``
-    copied from the config where it names one). Rows are flushed as they come, so whatever
-    ends the session (``duration_s``, ``stop``, Ctrl-C, SIGTERM), everything recorded so far is kept."""
+    copied from the config where it names one) and ``run.json`` (the session runtime's record). Rows
+    are flushed as they come, so whatever ends the session (``duration_s``, ``stop``, Ctrl-C,
+    SIGTERM), everything recorded so far is kept."""
     source = source or source_params(config)
     urls = live_camera_urls(config)
     recorder = _Recorder(out, config, urls, overwrite)
     live = LiveCameras(urls, source, on_frame=recorder.frame, on_clock=recorder.clock, queue=False, clock=clock)
     rates = _Rates(list(urls), [])
     session = Session(duration_s=duration_s, stop=stop, status_every_s=status_every_s,
-                      status=None if status is None else lambda: status(rates.snapshot(live.stats(), live.pending(), {})))
+                      status=None if status is None else lambda: status(rates.snapshot(live.stats(), live.pending(), {})),
+                      record=RunSpec(recorder.path / RUN_FILE, "record", {"source": source}, {"config": config.path},
+                                     {"cameras": urls}))
 
     def step(timeout_s: float) -> None:
         session.stop_event.wait(timeout_s)
@@ -478,5 +481,6 @@ def record_live(config: TrackerConfig, out: str | Path, source: SourceParams | N
         recorder.close()
     if live.failure is not None:
         raise live.failure
+    session.finish({"frames": recorder.frames})
     return LiveResult(None, live.stats(), {}, recorder.path, session.elapsed_s, session.interrupted, None,
                       ended_by=session.ended_by)
