@@ -49,11 +49,6 @@ from cubetrack.source.streams import CameraStats, ClockReading, LiveCameras, Sou
 log = logging.getLogger(__name__)
 
 
-def source_params(config: TrackerConfig) -> SourceParams:
-    """The ``[source]`` section of a tracker config (read by :func:`cubetrack.app.config.config_params`)."""
-    return config_params(config).source
-
-
 def live_camera_urls(config: TrackerConfig) -> dict[str, str]:
     """Camera name -> stream URL; every camera of a live config needs one."""
     if not config.cameras:
@@ -457,7 +452,7 @@ def record_live(config: TrackerConfig, out: str | Path, source: SourceParams | N
     copied from the config where it names one) and ``run.json`` (the session runtime's record). Rows
     are flushed as they come, so whatever ends the session (``duration_s``, ``stop``, Ctrl-C,
     SIGTERM), everything recorded so far is kept."""
-    source = source or source_params(config)
+    source = source or config_params(config).source
     urls = live_camera_urls(config)
     recorder = _Recorder(out, config, urls, overwrite)
     live = LiveCameras(urls, source, on_frame=recorder.frame, on_clock=recorder.clock, queue=False, clock=clock)
