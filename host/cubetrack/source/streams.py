@@ -38,8 +38,8 @@ from typing import Callable, Iterable, Mapping
 from urllib.parse import urljoin, urlsplit
 
 from cubetrack.core.cameras import ClockSample
-from cubetrack.core.errors import ConfigError, ParamsError
-from cubetrack.core.params import param
+from cubetrack.core.errors import ConfigError
+from cubetrack.core.params import check, check_at_least, check_positive, param
 from cubetrack.core.records import Frame
 from cubetrack.source.http_get import HttpError, HttpGet
 
@@ -65,16 +65,10 @@ class SourceParams:
     read_chunk_bytes: int = param(65536, "largest single socket read, bytes")
 
     def __post_init__(self) -> None:
-        for name in ("connect_timeout_s", "read_timeout_s", "backoff_initial_s", "backoff_max_s",
-                     "clock_period_s", "clock_timeout_s"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                raise ParamsError(f"{name} must be a positive number of seconds, got {v!r}")
-        if self.backoff_max_s < self.backoff_initial_s:
-            raise ParamsError("backoff_max_s must not be below backoff_initial_s")
-        for name in ("frames_per_camera", "max_header_bytes", "max_part_bytes", "read_chunk_bytes"):
-            if getattr(self, name) < 1:
-                raise ParamsError(f"{name} must be at least 1")
+        check_positive(self, "connect_timeout_s", "read_timeout_s", "backoff_initial_s", "backoff_max_s",
+                       "clock_period_s", "clock_timeout_s", unit="seconds")
+        check(self.backoff_max_s >= self.backoff_initial_s, "backoff_max_s must not be below backoff_initial_s")
+        check_at_least(self, 1, "frames_per_camera", "max_header_bytes", "max_part_bytes", "read_chunk_bytes")
 
 
 # --- the MJPEG part parser -------------------------------------------------------------------
