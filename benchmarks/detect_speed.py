@@ -291,7 +291,7 @@ def stage_costs(args: argparse.Namespace) -> int:
         hooks = _Hooks()
         for module, attr, key in _FRAME_HOOKS:
             hooks.wrap(importlib.import_module(module), attr, key)
-        hooks.wrap(tracker.worker.detector, "detect", "detect")
+        hooks.wrap(tracker.processor.detector, "detect", "detect")
         for module, attr in _FUSION_HOOKS + _WORKER_HOOKS:
             hooks.wrap(importlib.import_module(module), attr, f"{module.rsplit('.', 1)[1]}.{attr}")
         cpu = {"plan": 0.0, "work": 0.0, "fuse": 0.0}
@@ -306,7 +306,7 @@ def stage_costs(args: argparse.Namespace) -> int:
                 cpu["plan"] += t1 - t0
                 if job is None:
                     continue
-                result = tracker.worker.work(job)
+                result = tracker.processor.work(job)
                 t2 = clock()
                 poses += tracker.fuse(result, frame.host_time_s)
                 cpu["work"] += t2 - t1

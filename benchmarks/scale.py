@@ -1,7 +1,7 @@
 """Issue 13's benchmark: what one fusion process can take from many workers over Zenoh.
 
 1. A simulated recording (``cubetrack simulate``, its true extrinsics) is run through the
-   workers' per-frame work in this process (:meth:`Tracker.admit`, :meth:`FrameWorker.work`,
+   workers' per-frame work in this process (:meth:`Tracker.admit`, :meth:`FrameProcessor.work`,
    :func:`cubetrack.app.worker.sighting_message`): the sighting messages a worker would publish.
    Reported: bytes per message (frames with and without the cube), and the per-frame work's CPU.
 2. The fusion's CPU per message, in this process: decode + rebuild + :meth:`Tracker.fuse`
@@ -47,9 +47,9 @@ def make_messages(rec_dir: Path) -> tuple[list[bytes], float, object, object]:
     from cubetrack.app.config import load_config
     from cubetrack.app.tracker import Tracker
     from cubetrack.app.worker import sighting_message
-    from cubetrack.io.sighting_wire import encode_sighting
     from cubetrack.io.config import read_extrinsics
     from cubetrack.io.recording import Recording
+    from cubetrack.io.sighting_wire import encode_sighting
     from cubetrack.source.streams import CameraStats
 
     config, settings = load_config(rec_dir / "config.toml")
@@ -67,7 +67,7 @@ def make_messages(rec_dir: Path) -> tuple[list[bytes], float, object, object]:
         if job is None:
             continue
         job = dataclasses.replace(job, regions=None, estimate_robots=frozenset())
-        result = tracker.worker.work(job)
+        result = tracker.processor.work(job)
         messages.append(encode_sighting(sighting_message(result, tracker.clocks[frame.camera], CameraStats(), False)))
     return messages, (time.process_time() - cpu) / max(1, len(frames)), config, extrinsics
 

@@ -298,7 +298,7 @@ def _work_cameras(conn: Connection, urls: dict[str, str], source: SourceParams, 
                 job = admitted(event)
             if job is not None:
                 working[lane] = job.capture_time_s  # results newer than this wait for it (CameraProcesses.take)
-                result = tracker.worker.work(job)
+                result = tracker.processor.work(job)
                 if result.outcome is not FrameOutcome.CORRUPT:  # counted (and logged) by the fusion's tracker
                     tracker.count(result)  # when this camera's whole frame was last searched
                 done = job if views else dataclasses.replace(job, frame=dataclasses.replace(job.frame, jpeg=b""))

@@ -78,7 +78,7 @@ class FuseResult:
 
 def frame_result(tracker: Tracker, message: SightingMessage) -> FrameResult | None:
     """The per-frame work's result a sighting message stands for (None: a camera the fusion
-    has no intrinsics or pose for): the tracker's :meth:`~cubetrack.app.tracker.FrameWorker.sightings`
+    has no intrinsics or pose for): the tracker's :meth:`~cubetrack.app.tracker.FrameProcessor.sightings`
     of the message's detections, with estimates for the robots whose fusion asks."""
     camera = message.camera
     T_world_cam = message.T_world_cam if message.T_world_cam is not None else tracker.T_world_cam.get(camera)
@@ -87,7 +87,7 @@ def frame_result(tracker: Tracker, message: SightingMessage) -> FrameResult | No
     frame = Frame(camera, message.seq, message.device_time_s, message.arrival_time_s, b"")
     job = FrameJob(frame, message.capture_time_s, None,
                    frozenset(r.name for r in tracker.robots if tracker.fusion.needs_estimate(r.name)))
-    sightings = tracker.worker.sightings(job, message.detections, T_world_cam)
+    sightings = tracker.processor.sightings(job, message.detections, T_world_cam)
     return FrameResult(job, FrameOutcome(message.outcome), sightings)
 
 

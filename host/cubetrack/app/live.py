@@ -32,7 +32,7 @@ from cubetrack.app.config import config_params, parameter_tables
 from cubetrack.app.outputs import open_outputs
 from cubetrack.app.parallel import FramePool, LiveParams, WorkerKind, by_capture_time
 from cubetrack.app.session import PoseStream, RunSpec, Session, idle_wait_s
-from cubetrack.app.tracker import FrameWorker, StageParams, Tracker, TrackStats
+from cubetrack.app.tracker import FrameProcessor, StageParams, Tracker, TrackStats
 from cubetrack.core.cameras import CameraExtrinsics, CameraIntrinsics, ClockSample
 from cubetrack.core.errors import ConfigError
 from cubetrack.core.records import CameraHealth, CameraView, Frame, FrameResult, TrackedPose
@@ -245,7 +245,7 @@ class _FramePoolFeed:
         tracker = stream.tracker
         self.stream, self.tracker, self.fused = stream, tracker, fused
         self.wake = threading.Event()
-        make_worker = functools.partial(FrameWorker, tracker.intrinsics, tracker.world, tracker.robots,
+        make_worker = functools.partial(FrameProcessor, tracker.intrinsics, tracker.world, tracker.robots,
                                         tracker.T_world_cam, tracker.params)
         self.pool = FramePool(make_worker, live_params.worker_count, live_params.worker_kind, self.wake.set)
         self.live = LiveCameras(urls, source, on_frame=recorder.frame if recorder else None,
@@ -276,7 +276,7 @@ class _FramePoolFeed:
                 if pool.ready:
                     pool.submit(job)
                 else:
-                    self.fused(self.tracker.worker.work(job))
+                    self.fused(self.tracker.processor.work(job))
 
     def working(self) -> bool:
         """Work that had arrived when the session ended is still being done."""

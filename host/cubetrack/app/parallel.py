@@ -2,7 +2,7 @@
 
 The tracker (:class:`~cubetrack.app.tracker.Tracker`) splits a frame's work in three: ``admit``
 plans it from the fusion's state (capture time, the regions where detection looks, which robots
-need an estimate), a :class:`~cubetrack.app.tracker.FrameWorker` does it (decode, detection,
+need an estimate), a :class:`~cubetrack.app.tracker.FrameProcessor` does it (decode, detection,
 per-camera estimates: no shared state), and ``fuse`` hands the sightings to the fusion. A
 :class:`FramePool` runs the middle part on worker processes (the job, JPEG included, pickled
 through a pipe, the result pickled back) or threads (OpenCV releases the GIL in decoding and
@@ -27,7 +27,7 @@ from typing import Callable
 
 import cv2
 
-from cubetrack.app.tracker import FrameWorker
+from cubetrack.app.tracker import FrameProcessor
 from cubetrack.core.errors import SourceError
 from cubetrack.core.params import check, param
 from cubetrack.core.records import Frame, FrameJob, FrameResult
@@ -85,7 +85,7 @@ class FramePool:
     the first is ready, :attr:`ready` is False and the consumer does the work itself. Use as a
     context manager; :meth:`close` ends the workers."""
 
-    def __init__(self, make_worker: Callable[[], FrameWorker], count: int, kind: WorkerKind,
+    def __init__(self, make_worker: Callable[[], FrameProcessor], count: int, kind: WorkerKind,
                  wake: Callable[[], None] | None = None, depth: int = 1):
         self.kind = kind
         self.count = count
@@ -220,7 +220,7 @@ class FramePool:
                 self._idle.append(lane)
         self._wake()
 
-    def _thread_loop(self, worker: FrameWorker) -> None:
+    def _thread_loop(self, worker: FrameProcessor) -> None:
         while (job := self._jobs.get()) is not None:
             try:
                 result = worker.work(job)
@@ -244,7 +244,7 @@ class _ProcessLane:
     results. With ``threaded``, a thread in this process waits for its results; without, the
     pool's :meth:`FramePool.wait` reads them on the caller's thread (no GIL hand-offs)."""
 
-    def __init__(self, context, make_worker: Callable[[], FrameWorker], pool: FramePool, depth: int,
+    def __init__(self, context, make_worker: Callable[[], FrameProcessor], pool: FramePool, depth: int,
                  threaded: bool):
         self.conn, child = context.Pipe()
         # one flag per job on the way (a ring): whether the worker started it (_STARTED) or the
@@ -332,9 +332,9 @@ class _ProcessLane:
             self.reader.join(5.0)
 
 
-def _process_main(conn: Connection, make_worker: Callable[[], FrameWorker], claims, claim_lock) -> None:
+def _process_main(conn: Connection, make_worker: Callable[[], FrameProcessor], claims, claim_lock) -> None:
     """A worker process: jobs in (plain values, :meth:`_ProcessLane.send`), results out, packed
-    (:meth:`FrameWorker.pack`: without the job, which the other side keeps; None for a job taken
+    (:meth:`FrameProcessor.pack`: without the job, which the other side keeps; None for a job taken
     back before it started), until None comes."""
     cv2.setNumThreads(1)
     try:

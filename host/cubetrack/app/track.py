@@ -24,7 +24,7 @@ from cubetrack.app.config import config_params, parameter_tables, recording_intr
 from cubetrack.app.outputs import open_outputs
 from cubetrack.app.parallel import FramePool, WorkerKind
 from cubetrack.app.session import RunSpec, Session
-from cubetrack.app.tracker import FrameWorker, StageParams, Tracker, TrackStats
+from cubetrack.app.tracker import FrameProcessor, StageParams, Tracker, TrackStats
 from cubetrack.core.cameras import CameraExtrinsics, CameraIntrinsics, ClockSample, WorldConfig
 from cubetrack.core.errors import ConfigError
 from cubetrack.core.layout import CubeLayout
@@ -101,9 +101,9 @@ class _Replay:
                     break
             if self.unsent:
                 todo = self.unsent.popleft()
-                done[todo] = self.tracker.worker.work(todo)
+                done[todo] = self.tracker.processor.work(todo)
             elif pool is not None and pool.reclaim(job):  # its worker had not started it (busy, or not given a core)
-                done[job] = self.tracker.worker.work(job)
+                done[job] = self.tracker.processor.work(job)
             elif pool is not None:
                 pool.wait(1.0)
         return done.pop(job)
@@ -254,7 +254,7 @@ def replay_pool(intrinsics: Mapping[str, CameraIntrinsics], world: WorldConfig, 
     start in the background; close the pool when done."""
     robots = tuple(RobotConfig(name, layout) for name, layout in layouts.items())
     T_world_cam = {name: e.T_world_cam for name, e in (extrinsics or {}).items()}
-    make_worker = functools.partial(FrameWorker, dict(intrinsics), world, robots, T_world_cam, params)
+    make_worker = functools.partial(FrameProcessor, dict(intrinsics), world, robots, T_world_cam, params)
     return FramePool(make_worker, workers, WorkerKind.PROCESS, depth=depth or -(-(REPLAY_LAG - 1) // workers))
 
 

@@ -108,7 +108,7 @@ class StageParams:
         return config_params(config).stages
 
 
-class FrameWorker:
+class FrameProcessor:
     """The per-frame work: decode, detect (in the job's regions, else the whole frame), the
     camera's pose, each robot's own detections and, where asked, its per-camera estimate. Holds
     no fusion state, so any number of workers run in threads or processes (one per thread: a
@@ -238,7 +238,7 @@ class Tracker:
         else:
             self.T_world_cam = {}
         self.T_cam_world = {name: invert_T(T) for name, T in self.T_world_cam.items()}
-        self.worker = FrameWorker(intrinsics, world, robots, self.T_world_cam, params)
+        self.processor = FrameProcessor(intrinsics, world, robots, self.T_world_cam, params)
         self.fusion: Fusion
         if params.fusion.method is FusionMethod.FILTER:
             self.fusion = FilterFusion({r.name: r.layout for r in robots}, params.fusion, params.filter)
@@ -290,7 +290,7 @@ class Tracker:
         job = self.admit(frame)
         if job is None:
             return []
-        return self.fuse(self.worker.work(job), frame.host_time_s if now_s is None else now_s)
+        return self.fuse(self.processor.work(job), frame.host_time_s if now_s is None else now_s)
 
     def admit(self, frame: Frame, hold: bool = True, forecast: Forecaster | None = None) -> FrameJob | None:
         """Count a frame and plan its per-frame work (:meth:`plan`, with ``forecast``); None when
@@ -314,7 +314,7 @@ class Tracker:
 
     def _track(self, frame: Frame, capture_time_s: float, now_s: float) -> list[TrackedPose]:
         """Detection, estimation and fusion of a frame whose capture time is known, in turn."""
-        return self.fuse(self.worker.work(self.plan(frame, capture_time_s)), now_s)
+        return self.fuse(self.processor.work(self.plan(frame, capture_time_s)), now_s)
 
     def plan(self, frame: Frame, capture_time_s: float, forecast: Forecaster | None = None) -> FrameJob:
         """The per-frame work order of a frame whose capture time is known: the regions where

@@ -2,7 +2,7 @@
 
 A worker reads its cameras (:class:`cubetrack.source.LiveCameras`), stamps each frame with its
 capture time through the camera's ``/time`` round trips and does the tracker's per-frame work
-(:meth:`cubetrack.app.tracker.FrameWorker.work`: decode, detect, the camera's pose), then
+(:meth:`cubetrack.app.tracker.FrameProcessor.work`: decode, detect, the camera's pose), then
 publishes one sighting message per frame (:mod:`cubetrack.io.sighting_wire`) under
 ``cubetrack/sightings/<camera>``. The fusion (:mod:`cubetrack.app.fusion_service`) subscribes to
 ``cubetrack/sightings/*``. A worker holds no fusion state, so detection searches whole frames
@@ -282,7 +282,7 @@ class ZenohWorker:
         if isinstance(event, ClockReading):
             self.tracker.add_clock_sample(event.camera, event.sample)
         elif (job := self.tracker.admit(event, hold=False, forecast=NO_FORECAST)) is not None:
-            result = self.tracker.worker.work(job)
+            result = self.tracker.processor.work(job)
             live, publisher, _ = self.readers[camera]
             message = sighting_message(result, self.tracker.clocks[camera], live.stats()[camera], self.with_pose)
             publisher.put(encode_sighting(message))

@@ -61,7 +61,7 @@ def worker_messages(config, params, extrinsics, rec: Recording) -> list[tuple[fl
             k += 1
         job = tracker.admit(frame, hold=False, forecast=NO_FORECAST)
         if job is not None:
-            result = tracker.worker.work(job)
+            result = tracker.processor.work(job)
             message = sighting_message(result, tracker.clocks[frame.camera], CameraStats(connected=True), False)
             out.append((frame.host_time_s, frame.camera, encode_sighting(message)))
     return out

@@ -15,12 +15,12 @@ import test_tracker
 from test_tracker import BLUE, INTRINSICS, RED, T_WORLD_CAM, WORLD
 
 from cubetrack.app.parallel import CAMERA_PROCESSES_FROM, FramePool, LiveParams, WorkerKind
-from cubetrack.app.tracker import FrameWorker, StageParams
+from cubetrack.app.tracker import FrameProcessor, StageParams
 from cubetrack.core.errors import SourceError
 from cubetrack.core.records import Frame, FrameJob, FrameOutcome
 
 scenes = test_tracker.scenes  # the rendered frames of the tracker's tests (a fixture)
-MAKE_WORKER = functools.partial(FrameWorker, INTRINSICS, WORLD, (RED, BLUE), T_WORLD_CAM, StageParams())
+MAKE_WORKER = functools.partial(FrameProcessor, INTRINSICS, WORLD, (RED, BLUE), T_WORLD_CAM, StageParams())
 
 
 def jobs(scenes) -> list[FrameJob]:
@@ -111,8 +111,8 @@ def test_a_packed_result_comes_back_whole_through_pickle(scenes):
 
     uncalibrated = dataclasses.replace(StageParams(), track=TrackParams(camera_poses=CameraPoseSource.WORLD_MARKER))
     for params in (StageParams(), uncalibrated):
-        sender = FrameWorker(INTRINSICS, WORLD, (RED, BLUE), T_WORLD_CAM, params)
-        receiver = FrameWorker(INTRINSICS, WORLD, (RED, BLUE), T_WORLD_CAM, params)
+        sender = FrameProcessor(INTRINSICS, WORLD, (RED, BLUE), T_WORLD_CAM, params)
+        receiver = FrameProcessor(INTRINSICS, WORLD, (RED, BLUE), T_WORLD_CAM, params)
         sightings = 0
         for job in jobs(scenes):
             result = sender.work(job)
