@@ -33,7 +33,8 @@ def world_marker_reprojection(frames: Iterable[Frame], T_world_cam: np.ndarray, 
                                      intrinsics.K, intrinsics.dist)
     projected = projected.reshape(4, 2)
     detector = world_detector(world, detector_params)
-    errors, sides = [], []
+    errors: list[np.ndarray] = []
+    sides: list[float] = []
     for frame in frames:
         if len(sides) >= max_frames:
             break
