@@ -22,11 +22,10 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from cubetrack.app.calibrate import run_calibration
-from cubetrack.app.config import config_params, parameter_tables
+from cubetrack.app.config import ConfigParams, config_params, parameter_tables
 from cubetrack.app.emulated import EmulatedCameras
 from cubetrack.app.live import LiveResult, LiveStatus, track_live
 from cubetrack.app.track import track_recording
-from cubetrack.app.tracker import StageParams
 from cubetrack.calib.extrinsics import extrinsics_errors
 from cubetrack.core.progress import Progress
 from cubetrack.evaluate.metrics import EvaluationResult, evaluate
@@ -90,7 +89,7 @@ def write_live_config(config_path: Path, urls: dict[str, str], out: Path) -> Pat
     return out
 
 
-def run_live_demo(rec_dir: Path, config_path: Path, extrinsics, out_dir: Path, params: StageParams,
+def run_live_demo(rec_dir: Path, config_path: Path, extrinsics, out_dir: Path, settings: ConfigParams,
                   status: Callable[[LiveStatus], None] | None = None, sinks: Sequence[Sink] = ()) -> LiveDemo:
     """Serve ``rec_dir`` with the emulator on 127.0.0.1 (ephemeral ports), track it live over HTTP
     until the replay has ended, and score the result against the ground truth on the live clock."""
@@ -110,7 +109,8 @@ def run_live_demo(rec_dir: Path, config_path: Path, extrinsics, out_dir: Path, p
         watcher = threading.Thread(target=end_with_the_replay, name="cubetrack-demo-end", daemon=True)
         watcher.start()
         try:
-            result = track_live(live_config, extrinsics, live_dir / "track", params, stop=stop, status=status,
+            result = track_live(live_config, extrinsics, live_dir / "track", settings.stages, settings.source,
+                                live_params=settings.live, stop=stop, status=status,
                                 duration_s=span_s + 30.0, sinks=sinks)
         finally:
             stop.set()
@@ -120,7 +120,7 @@ def run_live_demo(rec_dir: Path, config_path: Path, extrinsics, out_dir: Path, p
     write_tum(live_truth, truth_path)
     robot = live_config.robots[0].name
     score = None if result.interrupted else evaluate(read_tum(result.outputs[robot][0]), live_truth)
-    return LiveDemo(params.fusion.method.value, score, result, shift_s, live_dir / "config.toml", truth_path)
+    return LiveDemo(settings.stages.fusion.method.value, score, result, shift_s, live_dir / "config.toml", truth_path)
 
 
 def run_demo(out_dir: Path, sim: SimulationParams, methods: tuple[FusionMethod, ...] = tuple(FusionMethod),
@@ -143,7 +143,7 @@ def run_demo(out_dir: Path, sim: SimulationParams, methods: tuple[FusionMethod, 
     errors = extrinsics_errors(report.extrinsics, read_extrinsics(rec_dir / "true_extrinsics.toml"))
     truth = read_tum(rec_dir / "ground_truth.tum")
     base = settings.stages
-    live_part = (run_live_demo(rec_dir, rec_dir / "config.toml", report.extrinsics, out_dir, base, status, sinks)
+    live_part = (run_live_demo(rec_dir, rec_dir / "config.toml", report.extrinsics, out_dir, settings, status, sinks)
                  if live else None)
     scores: dict[str, EvaluationResult] = {}
     if live_part is not None and live_part.result.interrupted:

@@ -103,7 +103,7 @@ def run(args: argparse.Namespace) -> int:
     else:
         extrinsics = read_extrinsics(args.extrinsics)
     recording = None if args.live else Recording.open(args.recording)
-    sinks = add_dashboard(args, output_sinks_from_args(args, config), config, args.out)
+    sinks = add_dashboard(args, output_sinks_from_args(args, config), config, args.out, settings.dashboard)
     try:
         if args.live:
             return _run_live(args, config, extrinsics, settings, sinks)

@@ -122,3 +122,25 @@ def test_an_ignored_signal_stays_ignored():
         assert seen == [signal.SIG_IGN] and signal.getsignal(signal.SIGHUP) is signal.SIG_IGN
     finally:
         signal.signal(signal.SIGHUP, previous)
+
+
+def test_track_live_resolves_its_config_once(tmp_path, capsys, caplog):
+    """`track --live --dashboard` reads the config's sections once: a config warning is logged once
+    (the live loop and the dashboard were each resolving the config again: the warning came three
+    times). Cameras at an address nobody serves, for a second."""
+    import logging
+
+    from cubetrack.app.demo import write_live_config
+    from cubetrack.cli.main import main
+    from tests.helpers.scene import simulated_recording
+
+    rec = simulated_recording(tmp_path / "rec", 0.3)
+    config = write_live_config(rec / "config.toml", {c: "http://127.0.0.1:9/stream" for c in ("cam1", "cam2", "cam3")},
+                               tmp_path / "lab.toml")
+    config.write_text(config.read_text() + "\n[filter]\ncorner_noise_px = 0.05\n")  # trusts the edge fit too much
+    caplog.set_level(logging.WARNING, logger="cubetrack.app.config")
+    assert main(["track", "--config", str(config), "--extrinsics", str(rec / "true_extrinsics.toml"), "--live",
+                 "--duration", "1", "--out", str(tmp_path / "out"), "--dashboard", "127.0.0.1:0"]) == 0
+    warnings = [r for r in caplog.records if "corner_noise_px = 0.05 trusts" in r.getMessage()]
+    assert len(warnings) == 1, [r.getMessage() for r in warnings]
+    assert read_run_record(tmp_path / "out")["session"]["ended"] == "duration"
