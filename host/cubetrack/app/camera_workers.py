@@ -1,15 +1,17 @@
 """Camera worker processes for live tracking (``[live] worker_kind = "camera-process"``).
 
 Each worker process owns a share of the cameras end to end: it reads their streams and
-``/time`` round trips on its one thread, between frames (:class:`~cubetrack.source.streams.LiveCameras`
-without a thread of its own: non-blocking sockets; frames in arrival order, the freshest first
-once behind, each camera's newest only), stamps capture times with its own clock fits, plans each frame and does the per-frame work
+``/time`` round trips on its one thread, between frames
+(:class:`~cubetrack.source.streams.LiveCameras` without a thread of its own: non-blocking
+sockets; frames in arrival order, the freshest first once behind, each camera's newest only),
+stamps capture times with its own clock fits, plans each frame and does the per-frame work
 (decode, detection, per-camera estimates) with a :class:`~cubetrack.app.tracker.Tracker` of its
-own, whose plans come from a :class:`Forecast`: each robot's motion as the fusion predicts it,
-sent by the tracker's process after every batch of fused results. Results go back over a pipe
-without the JPEG (unless an output shows camera frames), with the clock samples and the
-cameras' counters; the tracker's process only fuses them, in one ordered consumer. No JPEG
-crosses processes, and the GIL of one process no longer limits the per-frame work.
+own, whose plans come from a :class:`~cubetrack.fuse.forecast.Forecast`: each robot's motion as
+the fusion predicts it, sent by the tracker's process after every batch of fused results. Results
+go back over a pipe without the JPEG (unless an output shows camera frames), with the clock
+samples and the cameras' counters; the tracker's process only fuses them, in one ordered
+consumer. No JPEG crosses processes, and the GIL of one process no longer limits the per-frame
+work.
 """
 
 from __future__ import annotations
@@ -101,9 +103,10 @@ class CameraProcesses:
     :meth:`stats`, :meth:`pending`, :meth:`stop`). ``make_tracker`` builds each process's
     tracker (picklable: a ``functools.partial``); its results come as
     :func:`cubetrack.io.frame_wire.pack_result` packs them, and ``unpack`` (``unpack_result`` with
-    the intrinsics and camera poses of a tracker made with the same arguments) turns them back. Wait for and take what came with :meth:`take`
-    (on the caller's thread: no thread of this process reads the pipes, so none competes with
-    the fusion for the GIL); send each new :class:`Forecast` with :meth:`forecast`."""
+    the intrinsics and camera poses of a tracker made with the same arguments) turns them back.
+    Wait for and take what came with :meth:`take` (on the caller's thread: no thread of this
+    process reads the pipes, so none competes with the fusion for the GIL); send each new
+    :class:`~cubetrack.fuse.forecast.Forecast` with :meth:`forecast`."""
 
     def __init__(self, urls: Mapping[str, str], source: SourceParams, make_tracker: Callable[[], Tracker],
                  count: int, unpack: Callable[[FrameJob, tuple], FrameResult], *, views: bool = False,

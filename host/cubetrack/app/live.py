@@ -293,8 +293,8 @@ class _FramePoolFeed:
 class _CameraProcessFeed:
     """Camera worker processes (:mod:`cubetrack.app.camera_workers`) read the cameras and do the
     per-frame work; this thread takes their clock samples and results, oldest capture first, and
-    sends back, at most every ``FORECAST_EVERY_S``, the fusion's new :class:`Forecast` for them to
-    plan frames with."""
+    sends back, at most every ``FORECAST_EVERY_S``, the fusion's new
+    :class:`~cubetrack.fuse.forecast.Forecast` for them to plan frames with."""
 
     def __init__(self, stream: PoseStream, make_tracker: Callable[[], Tracker], urls: dict[str, str],
                  source: SourceParams, live_params: LiveParams, views: bool, fused: Callable[[FrameResult], None],
@@ -432,7 +432,8 @@ def _attach_live_ticks(session: Session, stream: PoseStream, live: LiveCameras |
     session.every(HEALTH_EVERY_S, send_health)
     if status is not None:
         session.every(session.status_every_s, lambda: status(rates.snapshot(
-            live.stats(), live.pending(), dict(stream.tracker.stats.poses))), first_s=session.started + session.status_every_s)
+            live.stats(), live.pending(), dict(stream.tracker.stats.poses))),
+            first_s=session.started + session.status_every_s)
 
 
 def _log_late_sightings(tracker: Tracker) -> None:
@@ -458,7 +459,8 @@ def record_live(config: TrackerConfig, out: str | Path, source: SourceParams | N
     live = LiveCameras(urls, source, on_frame=recorder.frame, on_clock=recorder.clock, queue=False, clock=clock)
     rates = _Rates(list(urls), [])
     session = Session(duration_s=duration_s, stop=stop, status_every_s=status_every_s,
-                      status=None if status is None else lambda: status(rates.snapshot(live.stats(), live.pending(), {})),
+                      status=None if status is None else lambda: status(
+                          rates.snapshot(live.stats(), live.pending(), {})),
                       record=RunSpec(recorder.path / RUN_FILE, "record", {"source": source}, {"config": config.path},
                                      {"cameras": urls}))
 

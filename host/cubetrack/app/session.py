@@ -83,7 +83,10 @@ class _Tick:
         now = self.clock()
         if now < self.next_s:
             return
-        self.next_s = (math.floor(now / self.period_s) + 1) * self.period_s if self.grid else self.next_s + self.period_s
+        if self.grid:
+            self.next_s = (math.floor(now / self.period_s) + 1) * self.period_s
+        else:
+            self.next_s += self.period_s
         self.action()
 
 

@@ -1,6 +1,6 @@
 """``cubetrack worker``: the per-camera half of tracking, published on Zenoh (docs/scaling.md).
 
-A worker reads its cameras (:class:`cubetrack.source.LiveCameras`), stamps each frame with its
+A worker reads its cameras (:class:`cubetrack.source.streams.LiveCameras`), stamps each frame with its
 capture time through the camera's ``/time`` round trips and does the tracker's per-frame work
 (:meth:`cubetrack.app.tracker.FrameProcessor.work`: decode, detect, the camera's pose), then
 publishes one sighting message per frame (:mod:`cubetrack.io.sighting_wire`) under
@@ -203,7 +203,8 @@ def chosen_cameras(config: TrackerConfig, cameras: Sequence[str]) -> list[str]:
     known = [c.name for c in config.cameras]
     unknown = [c for c in cameras if c not in known]
     if unknown:
-        raise ConfigError(f"{config.path}: no camera {', '.join(unknown)} (the config has {', '.join(known) or 'none'})")
+        raise ConfigError(f"{config.path}: no camera {', '.join(unknown)} "
+                          f"(the config has {', '.join(known) or 'none'})")
     return list(cameras) or known
 
 
@@ -317,7 +318,8 @@ def run_worker(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
     intrinsics = {n: i for n, i in live_intrinsics(config).items() if n in names}
     tracker = Tracker(intrinsics, config.world, config.robots, extrinsics, params, synced_cameras=frozenset(urls))
     zenoh = open_session(endpoints, "worker")
-    worker = ZenohWorker(zenoh, tracker, urls, source, clock, params.track.camera_poses is CameraPoseSource.WORLD_MARKER)
+    with_pose = params.track.camera_poses is CameraPoseSource.WORLD_MARKER
+    worker = ZenohWorker(zenoh, tracker, urls, source, clock, with_pose)
     session = Session(duration_s=duration_s, stop=stop, status_every_s=status_every_s,
                       status=None if status is None else lambda: status(worker.line(session.elapsed_s)))
     tokens = [zenoh.liveliness().declare_token(f"{WORKERS_KEY}/{worker.me}")]

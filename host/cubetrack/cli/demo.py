@@ -81,7 +81,8 @@ def run(args: argparse.Namespace) -> int:
         print(f"\nlive tracking over HTTP ({args.out / 'live'}): emulated cameras on 127.0.0.1, {lr.duration_s:.1f} s, "
               f"median latency {latency}; {cams}")
         if live.score is None:
-            print(f"{lr.ended_by}: the live session stopped early; its poses are saved in {args.out / 'live' / 'track'} "
+            print(f"{lr.ended_by}: the live session stopped early; its poses are saved in "
+                  f"{args.out / 'live' / 'track'} "
                   f"(run.json there says how it ended); not scored, and the offline replay was not run",
                   file=sys.stderr)
             return 130
