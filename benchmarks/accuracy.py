@@ -210,8 +210,9 @@ def camera_distances(rec: Path) -> tuple[float, float, float]:
     return float(d.min()), float(np.median(d)), float(d.max())
 
 
+# a method that produced nothing
 MISSING = {"pos_cm": math.nan, "rot_deg": math.nan, "pos_cm_eq7": math.nan, "rot_deg_eq7": math.nan, "dr": 0.0,
-           "far": math.nan, "far_count": 0, "poses": 0, "scored": 0, "rate_hz": 0.0, "max_cm": math.nan}  # a method that produced nothing
+           "far": math.nan, "far_count": 0, "poses": 0, "scored": 0, "rate_hz": 0.0, "max_cm": math.nan}
 
 
 def score(tum: Path, truth) -> dict:
@@ -492,7 +493,7 @@ class SpeedCase:
             if ids is None:
                 continue
             k, dist = K[frame.camera]
-            for c, marker_id in zip(corners, ids.reshape(-1)):
+            for c, marker_id in zip(corners, ids.reshape(-1), strict=True):
                 obj = objects.get(int(marker_id))
                 if obj is None:
                     continue
@@ -593,15 +594,17 @@ def build_report(scenes: list[dict], seeds: list[int], methods: list[str]) -> di
                "refine": [s.get("refine") for s in mine], "body": [s.get("body") for s in mine]}
         for m in methods:
             per = [s["methods"].get(m, MISSING) for s in mine]
-            row["methods"][m] = {k: _agg([p[k] for p in per]) for k in ("pos_cm", "rot_deg", "pos_cm_eq7", "rot_deg_eq7",
-                                                                        "dr", "far", "rate_hz", "max_cm")}
+            row["methods"][m] = {k: _agg([p[k] for p in per])
+                                 for k in ("pos_cm", "rot_deg", "pos_cm_eq7", "rot_deg_eq7",
+                                           "dr", "far", "rate_hz", "max_cm")}
             row["methods"][m]["per_seed"] = per
         ratios = [s["methods"][PAPER]["pos_cm"] / s["methods"][OURS]["pos_cm"] for s in mine]
         row["ratio"] = _agg(ratios)
         row["ratio_per_seed"] = ratios
         for method, key in RATIO_KEYS[1:]:
             if method in methods:
-                row[key] = _agg([s["methods"][PAPER]["pos_cm"] / s["methods"].get(method, MISSING)["pos_cm"] for s in mine])
+                row[key] = _agg([s["methods"][PAPER]["pos_cm"] / s["methods"].get(method, MISSING)["pos_cm"]
+                                 for s in mine])
         rows[f"{preset} {name}"] = row
     return {"seeds": seeds, "configs": rows}
 
@@ -671,12 +674,12 @@ def print_report(report: dict, speed: dict | None, methods: list[str], duration:
         p(f"{'':<18} camera-cube {d[0]:.1f}-{d[2]:.1f} m (median {d[1]:.1f}); calibration error {cal_text}")
         per = " ".join(f"s{sd}: {o['pos_cm']:.2f}/{pm['pos_cm']:.2f}"
                        for sd, o, pm in zip(row["seeds"], row["methods"][OURS]["per_seed"],
-                                            row["methods"][PAPER]["per_seed"]))
+                                            row["methods"][PAPER]["per_seed"], strict=True))
         p(f"{'':<18} per seed, ours/paper-mean cm: {per}")
         eq7 = row["methods"][OURS]
-        p(f"{'':<18} ours against the nearest ground-truth sample (eq. 7), worst: {fmt(eq7['pos_cm_eq7'][2], '.2f')} cm / "
-          f"{fmt(eq7['rot_deg_eq7'][2], '.2f')}°")
-        for sd, info in zip(row["seeds"], row["refine"]):
+        p(f"{'':<18} ours against the nearest ground-truth sample (eq. 7), worst: "
+          f"{fmt(eq7['pos_cm_eq7'][2], '.2f')} cm / {fmt(eq7['rot_deg_eq7'][2], '.2f')}°")
+        for sd, info in zip(row["seeds"], row["refine"], strict=True):
             if info is None:
                 continue
             if "error" in info:
@@ -685,7 +688,7 @@ def print_report(report: dict, speed: dict | None, methods: list[str], duration:
                 moved = f", moved: {', '.join(info['moved'])}" if info["moved"] else ""
                 p(f"{'':<18} refine seed {sd}: {info['instants']} instants, {info['seconds']:.0f} s, "
                   f"{len(info['warnings'])} warning(s){moved}")
-        for sd, info in zip(row["seeds"], row["body"]):
+        for sd, info in zip(row["seeds"], row["body"], strict=True):
             if info is not None:
                 worst = info["placement_worst_mm_deg"]
                 (n_mm, n_deg), (c_mm, c_deg) = worst["nominal"], worst["calibrated"]
@@ -745,7 +748,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--body-drive", type=float, default=60.0, help="seconds of driving that --body calibrates the body "
                     "from (default 60)")
     ap.add_argument("--lag", type=float, default=0.0, metavar="S", help="also report ours with [filter] "
-                    "smooth_lag_s = S (each pose smoothed over the next S seconds of sightings, as live; default 0: not)")
+                    "smooth_lag_s = S (each pose smoothed over the next S seconds of sightings, as "
+                    "live; default 0: not)")
     ap.add_argument("--template", action="store_true", help="also report ours with [detector] corner_refinement = "
                     "template (and, with --body, the calibrated body, template corners and a filter that trusts them)")
     ap.add_argument("--speed-rounds", type=int, default=None, help="interleaved speed rounds (default 5; "

@@ -13,7 +13,8 @@ errors for reference. Each recording is calibrated with the calibration's corner
 default: edge fit, then the template fit of :mod:`cubetrack.calib.marker_fit`) and, with
 ``--compare``, with the detector's corners (``[bundle_adjustment] body_edge_corners = false``),
 and with ``--compare-instants`` with the instants model (``body_knot_s = 0``: one body pose per
-instant, moved with a fitted velocity) instead of the body's continuous-time trajectory. CPU seconds of each calibrate-body (its child process), the core count and the load average are
+instant, moved with a fitted velocity) instead of the body's continuous-time trajectory. CPU
+seconds of each calibrate-body (its child process), the core count and the load average are
 printed.
 
 ``--extrinsics calibrated`` starts calibrate-body from the extrinsics a user has instead of the
@@ -30,7 +31,7 @@ recording. Their errors against the truth are printed per camera.
 ``--out`` keeps the recordings (DIR/seed<N>) and reuses a complete one made with the same
 parameters; without it they go to a temporary folder. A 60 s recording takes a few minutes to
 render on one core, each calibration a few CPU minutes: this is a script, not a CI test
-(tests/unit/calibrate/test_marker_fit.py and tests/unit/bundle/test_body_calibration.py are).
+(tests/unit/calib/test_marker_fit.py and tests/unit/calib/test_body_calibration.py are).
 The exit code is 0 for a completed run; the last line says whether every seed met the target.
 """
 
@@ -196,7 +197,8 @@ def main(argv: list[str] | None = None) -> int:
         for seed, what, (pmax, rmax, pmean, rmean), cpu in rows:
             print(f"{seed:>4}  {what:22s} {pmax:7.2f} {rmax:8.3f} {pmean:8.2f} {rmean:9.3f} {cpu:6.0f}")
     print(f"load average at the end {' '.join(f'{x:.1f}' for x in os.getloadavg())}")
-    print(f"target (every marker within {TARGET_MM} mm and {TARGET_DEG} deg, every seed): {'met' if met else 'NOT met'}")
+    print(f"target (every marker within {TARGET_MM} mm and {TARGET_DEG} deg, every seed): "
+          f"{'met' if met else 'NOT met'}")
     return 0
 
 

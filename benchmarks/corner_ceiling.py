@@ -246,7 +246,7 @@ def replaced(sightings: list, corners: dict, sigma_px: float, seed: int, params)
     out = []
     for k, (s, now_s) in enumerate(sightings):
         detections = []
-        for d, (c, _) in zip(s.detections, corners[k]):
+        for d, (c, _) in zip(s.detections, corners[k], strict=True):
             c = d.corners_px if c is None else c
             if sigma_px > 0:
                 c = c + rng.normal(0.0, sigma_px, c.shape)
@@ -336,7 +336,7 @@ def run_rows(scenes: list[dict], label: str, corners_key: str, sigma: float, tun
         grid = [{}]
         if tune:
             names = list(TUNE_GRID)
-            grid += [dict(zip(names, values)) for values in itertools.product(*TUNE_GRID.values())]
+            grid += [dict(zip(names, values, strict=True)) for values in itertools.product(*TUNE_GRID.values())]
         results = []
         for overrides in grid:
             per_scene = [score(replay(new, layouts, sc["params"], overrides), sc["truth"]) for new, layouts, sc in sets]
@@ -364,14 +364,15 @@ def print_report(report: dict) -> None:
         t = report["template_cpu_ms"]
         print(f"\ntemplate fit CPU per marker: median {t['median']:.1f} ms, mean {t['mean']:.1f} ms, "
               f"p90 {t['p90']:.1f} ms over {t['markers']} markers ({t['failed']} failed, edge corners kept)")
-    print("\n| corners | sigma px | layout | rotation | roll/pitch | yaw | position cm | tuned: rotation / roll-pitch / yaw | tuned setting |")
+    print("\n| corners | sigma px | layout | rotation | roll/pitch | yaw | position cm | tuned: rotation / roll-pitch "
+          "/ yaw | tuned setting |")
     print("| --- | --- | --- | --- | --- | --- | --- | --- | --- |")
     for r in report["rows"]:
         d, t = r["default"]["mean"], r["tuned"]["mean"]
         setting = ", ".join(f"{k} {v:g}" for k, v in r["tuned"]["setting"].items()) or "defaults"
-        print(f"| {r['corners']} | {r['sigma_px']:g} | {r['layout']} | {d['rot_deg']:.3f}° | {d['rollpitch_deg']:.3f}° | "
-              f"{d['yaw_deg']:.3f}° | {d['pos_cm']:.3f} | {t['rot_deg']:.3f}° / {t['rollpitch_deg']:.3f}° / "
-              f"{t['yaw_deg']:.3f}° | {setting} |")
+        print(f"| {r['corners']} | {r['sigma_px']:g} | {r['layout']} | {d['rot_deg']:.3f}° | "
+              f"{d['rollpitch_deg']:.3f}° | {d['yaw_deg']:.3f}° | {d['pos_cm']:.3f} | {t['rot_deg']:.3f}° / "
+              f"{t['rollpitch_deg']:.3f}° / {t['yaw_deg']:.3f}° | {setting} |")
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
@@ -445,7 +446,8 @@ def calibrated_body(bench, args, rec: Path, config_index: int, robot: str) -> di
     full = rec.with_name(rec.name + "_drive")
     bench.ensure_recording(bench.sim_params(bench.REALISTIC, cameras, height, tilt, args.seed,
                                             args.duration + args.body_drive, 0), full, 2)
-    drive = bench.later_part(full, rec.with_name(rec.name + "_drive_after"), bench.read_sim_start_s(full) + args.duration)
+    drive = bench.later_part(full, rec.with_name(rec.name + "_drive_after"),
+                             bench.read_sim_start_s(full) + args.duration)
     config = read_tracker_config(rec / "config.toml")
     extrinsics = calibrate_recording(config, Recording.open(rec / "calibration")).extrinsics
     config_body, info = bench.calibrated_body(config, drive, rec, extrinsics, robot)

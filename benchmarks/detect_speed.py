@@ -58,7 +58,7 @@ def naive_frame(jpeg: bytes, detector, K: np.ndarray, dist: np.ndarray, obj: np.
     corners, ids, _rejected = detector.detectMarkers(image)
     out = []
     if ids is not None:
-        for c, marker_id in zip(corners, ids.ravel()):
+        for c, marker_id in zip(corners, ids.ravel(), strict=True):
             _ok, rvec, tvec = cv2.solvePnP(obj, c.reshape(4, 1, 2), K, dist, flags=cv2.SOLVEPNP_IPPE_SQUARE)
             out.append((int(marker_id), c.reshape(4, 2).astype(float), rvec, tvec))
     return out
@@ -151,14 +151,14 @@ def main(argv: list[str] | None = None) -> int:
     print(f"ratio naive/ours (frame-rate ratio, >= 1.0 is the target): {naive_ms / ours_ms:.2f}")
 
     naive_err, ours_err = [], []
-    for f, found, (dets, _est) in zip(frames, results["naive"], results["ours"]):
+    for f, found, (dets, _est) in zip(frames, results["naive"], results["ours"], strict=True):
         truth = true_corners(sim, f.camera, f.seq)
         cube_ids = set(layout.ids)
         naive_err += corner_errors([c for i, c, _r, _t in found if i in cube_ids], truth)
         ours_err += corner_errors([d.corners_px for d in dets if d.marker_id in cube_ids
                                    and d.dictionary == layout.dictionary], truth)
     position_mm = []
-    for f, (_dets, est) in zip(frames, results["ours"]):
+    for f, (_dets, est) in zip(frames, results["ours"], strict=True):
         if est is not None:
             capture = next(c for c in sim.camera(f.camera).captures if c.seq == f.seq)
             position_mm.append(1000.0 * np.linalg.norm(est.T_world_cube[:3, 3]
@@ -372,8 +372,9 @@ def stage_costs(args: argparse.Namespace) -> int:
         per_call = float(np.median(times)) / len(recorded)
         print(f"  {key:<40} {len(recorded) / micro_frames:6.2f} calls/frame {per_call * 1e6:8.1f} us/call "
               f"{per_call * len(recorded) / micro_frames * 1000.0:7.3f} ms/frame")
-    print(f"poses: {len(poses)}; replay {'bit-identical across rounds' if len(digests) == 1 else 'DIFFERS across rounds'}"
-          f" (sha256 {min(digests)[:16]})")
+    print(f"poses: {len(poses)}; replay "
+          f"{'bit-identical across rounds' if len(digests) == 1 else 'DIFFERS across rounds'} (sha256 "
+          f"{min(digests)[:16]})")
     return 0 if len(digests) == 1 else 1
 
 

@@ -37,10 +37,10 @@ import subprocess
 import sys
 import tempfile
 import time
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Callable
 
 REPO = Path(__file__).resolve().parents[1]
 PY_CORPUS = REPO / "tests" / "corpus"
@@ -175,7 +175,7 @@ def target_http_request(data: bytes) -> None:
 
 def _write_files(folder: Path, names: tuple[str, ...], data: bytes) -> None:
     pieces = data.split(FILE_SEPARATOR)
-    for name, piece in zip(names, pieces + [b""] * len(names)):
+    for name, piece in zip(names, pieces + [b""] * len(names), strict=True):
         (folder / name).parent.mkdir(parents=True, exist_ok=True)
         (folder / name).write_bytes(piece)
 
@@ -289,15 +289,16 @@ class PythonTarget:
 
 
 PY_TARGETS: dict[str, PythonTarget] = {
-    "mjpeg": PythonTarget(target_mjpeg, ("cubetrack.source.streams",),
-                          ("cubetrack.source.mjpeg.MjpegParser", "cubetrack.source.streams:boundary_from_content_type")),
-    "time_answer": PythonTarget(target_time_answer, ("cubetrack.source.streams", "cubecam.mjpeg"),
-                                ("cubetrack.source.streams:parse_time_answer",), max_len=64),
+    "mjpeg": PythonTarget(target_mjpeg, ("cubetrack.source.mjpeg",),
+                          ("cubetrack.source.mjpeg:MjpegParser", "cubetrack.source.mjpeg:boundary_from_content_type")),
+    "time_answer": PythonTarget(target_time_answer, ("cubetrack.source.time_poll", "cubecam.mjpeg"),
+                                ("cubetrack.source.time_poll:parse_time_answer",), max_len=64),
     "cubecam_improv": PythonTarget(target_improv, ("cubecam.improv",), ("cubecam.improv:Parser",
                            "cubecam.improv:decode_state", "cubecam.improv:decode_error",
                            "cubecam.improv:_decode_command_frame", "cubecam.improv:_split_strings")),
     "http_request": PythonTarget(target_http_request, ("cubecam.request",),
-                                 ("cubecam.request:RequestParser", "cubecam.request:route", "cubecam.request:parse_fps")),
+                                 ("cubecam.request:RequestParser", "cubecam.request:route",
+                                  "cubecam.request:parse_fps")),
     "recording": PythonTarget(target_recording, ("cubetrack.io.recording",),
                               ("cubetrack.io.recording:Recording", "cubetrack.io.recording:_parse_index_row",
                                "cubetrack.io.recording:check_camera_name")),
@@ -329,7 +330,8 @@ def python_seeds() -> dict[str, list[bytes]]:
     jpegs = [synthetic_jpeg(i, 16, 16, quality=30) for i in range(2)]
     stream = mjpeg.PART_DELIMITER + b"".join(
         mjpeg.part_header(len(j), i + 1, 1_000_000 * (i + 1)) + j + mjpeg.PART_DELIMITER for i, j in enumerate(jpegs))
-    no_length = mjpeg.PART_DELIMITER + b"Content-Type: image/jpeg\r\nX-Timestamp: 2.5\r\n\r\n" + jpegs[0] + mjpeg.PART_DELIMITER
+    no_length = (mjpeg.PART_DELIMITER + b"Content-Type: image/jpeg\r\nX-Timestamp: 2.5\r\n\r\n" + jpegs[0]
+                 + mjpeg.PART_DELIMITER)
     truncated = (mjpeg.PART_DELIMITER + mjpeg.part_header(len(jpegs[0]) + 50, 3, 7) + jpegs[0]
                  + mjpeg.PART_DELIMITER + mjpeg.part_header(len(jpegs[1]), 4, 8) + jpegs[1])
     wifi = improv.encode_wifi_settings("lab", "correct horse") + b"\n"
@@ -338,7 +340,8 @@ def python_seeds() -> dict[str, list[bytes]]:
               + b"\nset fps 15\nOK\n" + improv.encode_error_state(improv.Error.UNABLE_TO_CONNECT)[:-1] + b"\x00\n")
     meta = json.dumps({"format": "cubetrack.recording", "version": 1, "cameras": [{"name": "cam", "source": "x"}],
                        "created": "2025-01-01T00:00:00+00:00"}).encode()
-    index = b"seq,device_time,host_time,file\n1,100.000000,1700000000.030000,00000001.jpg\n2,100.1,1700000000.13,00000002.jpg\n"
+    index = (b"seq,device_time,host_time,file\n1,100.000000,1700000000.030000,00000001.jpg\n"
+             b"2,100.1,1700000000.13,00000002.jpg\n")
     clock = b"host_send,device_time,host_recv\n1699999999.998,100.0,1700000000.002\n"
     K = np.array([[500.0, 0, 319.5], [0, 501.0, 239.5], [0, 0, 1]])
     intr = CameraIntrinsics(640, 480, K, np.array([0.1, -0.2, 0.001, 0.002, 0.05]), "cam1")
@@ -356,7 +359,8 @@ def python_seeds() -> dict[str, list[bytes]]:
         "time_answer": [b"12.345678", b"0.000000", b" 5.5\n", b"999999999999.999999999", b"abc"],
         "cubecam_improv": [b"\x00" + serial, b"\x3f" + serial, b"\xc3" + wifi[:20], b"\x05" + wifi],
         "http_request": [b"\x00GET /stream?fps=7.5 HTTP/1.1\r\nHost: cam\r\n\r\n", b"\x03GET /time HTTP/1.0\n\n",
-                         b"\xffPOST /status HTTP/1.1\r\nContent-Length: 3\r\n\r\nabc", b"\x01\r\nGET / HTTP/1.1\r\n\r\n"],
+                         b"\xffPOST /status HTTP/1.1\r\nContent-Length: 3\r\n\r\nabc",
+                         b"\x01\r\nGET / HTTP/1.1\r\n\r\n"],
         "recording": [FILE_SEPARATOR.join((meta, index, clock)), FILE_SEPARATOR.join((meta, index))],
         "config": [bytes([i]) + config[name] for i, name in enumerate(_CONFIG_FILES)],
         "camera_info": [ros, path.read_bytes()],
@@ -369,7 +373,8 @@ def firmware_seeds() -> dict[str, list[bytes]]:
     from cubecam import improv
 
     frames = [improv.encode_rpc(improv.Command.GET_CURRENT_STATE), improv.encode_rpc(improv.Command.GET_DEVICE_INFO),
-              improv.encode_wifi_settings("lab", "correct horse battery"), improv.encode_rpc(improv.Command.GET_WIFI_NETWORKS),
+              improv.encode_wifi_settings("lab", "correct horse battery"),
+              improv.encode_rpc(improv.Command.GET_WIFI_NETWORKS),
               improv.encode_rpc(improv.Command.HOSTNAME, ["cam1"])]
     return {
         "http": [b"\x10GET /stream?fps=5 HTTP/1.1\r\nHost: cam\r\n\r\n", b"\x01GET /capture HTTP/1.0\r\n\r\n",
@@ -421,7 +426,8 @@ def line_coverage(name: str, inputs: list[bytes]) -> tuple[int, int]:
             continue
         codes += _code_objects(obj)
     wanted = set(codes)
-    lines = {(c.co_filename, line) for c in codes for _, _, line in c.co_lines() if line is not None and line != c.co_firstlineno}
+    lines = {(c.co_filename, line) for c in codes for _, _, line in c.co_lines()
+             if line is not None and line != c.co_firstlineno}
     hit: set[tuple[str, int]] = set()
 
     def local(frame, event, arg):
@@ -495,7 +501,8 @@ def build_firmware_fuzzers(build_dir: Path, jobs: int) -> dict[str, Path]:
     result = subprocess.run(["make", "-C", str(FIRMWARE_DIR), f"-j{jobs}", f"BUILD={build_dir}", "fuzz"],
                             capture_output=True, text=True)
     if result.returncode != 0:
-        raise SystemExit(f"fuzz_campaign: make -C firmware fuzz failed:\n{result.stdout[-3000:]}{result.stderr[-3000:]}")
+        raise SystemExit("fuzz_campaign: make -C firmware fuzz "
+                         f"failed:\n{result.stdout[-3000:]}{result.stderr[-3000:]}")
     return firmware_fuzzers(build_dir)
 
 
@@ -660,7 +667,8 @@ def replay_python_result(name: str) -> Result:
     """Every saved input of a Python target once, in this process, with its line coverage."""
     start = time.monotonic()
     inputs, failures = replay_python(name)
-    result = Result(name, "python", inputs, time.monotonic() - start, corpus=inputs, crashes=[f.input for f in failures])
+    result = Result(name, "python", inputs, time.monotonic() - start, corpus=inputs,
+                    crashes=[f.input for f in failures])
     hit, total = line_coverage(name, [p.read_bytes() for p in corpus_files(PY_CORPUS / name)])
     result.coverage = f"{hit}/{total} lines ({100 * hit / max(total, 1):.0f}%)"
     for f in failures:
@@ -688,13 +696,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--only", metavar="LIST", help="comma list of targets (default: all; see --list)")
     p.add_argument("--skip-firmware", action="store_true", help="only the Python targets")
     p.add_argument("--skip-python", action="store_true", help="only the firmware targets")
-    p.add_argument("--python-runs", type=int, default=1_000_000, metavar="N", help="executions per Python target (default 1e6)")
+    p.add_argument("--python-runs", type=int, default=1_000_000, metavar="N",
+                   help="executions per Python target (default 1e6)")
     p.add_argument("--firmware-runs", type=int, default=10_000_000, metavar="N",
                    help="executions per firmware target (default 1e7)")
     p.add_argument("--max-seconds", type=int, metavar="S", help="stop each target after S seconds as well")
     p.add_argument("--build-dir", type=Path, default=FIRMWARE_DIR / "build", metavar="DIR",
                    help="where make builds the firmware fuzzers (default firmware/build)")
-    p.add_argument("--work", type=Path, metavar="DIR", help="working corpora and logs (default: a new temporary folder)")
+    p.add_argument("--work", type=Path, metavar="DIR", help="working corpora and logs (default: a new "
+                                                            "temporary folder)")
     p.add_argument("--save", action="store_true", help="merge new coverage and crash inputs into the saved corpora")
     p.add_argument("--replay", action="store_true", help="only run every saved input once (what CI does)")
     p.add_argument("--seed", action="store_true", help="add the seed inputs to the saved corpora and exit")
@@ -736,7 +746,8 @@ def main(argv: list[str] | None = None) -> int:
         if args.replay:
             jobs.append(functools.partial(replay_python_result, name))
         else:
-            jobs.append(functools.partial(run_python_target, name, args.python_runs, work_root, args.save, args.max_seconds))
+            jobs.append(functools.partial(run_python_target, name, args.python_runs, work_root, args.save,
+                                          args.max_seconds))
     for name, binary in firmware.items():
         if args.replay:
             jobs.append(functools.partial(replay_firmware, name, binary, work_root))

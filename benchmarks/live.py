@@ -468,7 +468,7 @@ def speed(args: argparse.Namespace, rec: Path, work: Path, live: dict | None) ->
             if ids is None:
                 continue
             intr = intrinsics[frame.camera]
-            for c, marker_id in zip(corners, ids.reshape(-1)):
+            for c, marker_id in zip(corners, ids.reshape(-1), strict=True):
                 if int(marker_id) in objects:
                     cv2.solvePnP(objects[int(marker_id)], c.reshape(4, 2), intr.K, intr.dist,
                                  flags=cv2.SOLVEPNP_IPPE_SQUARE)

@@ -53,7 +53,8 @@ def run_scene(work: Path, cameras: int, height: float, tilt: float, seed: int, d
             params = dataclasses.replace(
                 base,
                 fusion=dataclasses.replace(base.fusion, method=method),
-                track=TrackParams(camera_poses=CameraPoseSource.EXTRINSICS if calibrated else CameraPoseSource.WORLD_MARKER),
+                track=TrackParams(camera_poses=CameraPoseSource.EXTRINSICS if calibrated
+                                  else CameraPoseSource.WORLD_MARKER),
             )
             result = track_recording(config, Recording.open(rec), extrinsics if calibrated else None,
                                      rec / "track" / f"{'cal' if calibrated else 'raw'}_{method.value}", params)
@@ -69,7 +70,8 @@ def table(title: str, rows: dict[str, tuple], paper: dict[str, tuple], unit: str
     for name, values in rows.items():
         ref = paper.get(name, (None,) * 3)
         cells = "".join(
-            f"{v:>8.2f}{unit} ({r:>5.1f})" if r is not None else f"{v:>8.2f}{unit}        " for v, r in zip(values, ref)
+            f"{v:>8.2f}{unit} ({r:>5.1f})" if r is not None else f"{v:>8.2f}{unit}        "
+            for v, r in zip(values, ref, strict=True)
         )
         lines.append(f"{name:<26}{cells}")
     return "\n".join(lines)
@@ -89,7 +91,8 @@ def main(argv: list[str] | None = None) -> int:
     for cameras in (3, 5):
         for height, tilt in HEIGHTS:
             for seed in args.seeds:
-                print(f"scene: {cameras} cameras at {height} m / {tilt:.0f}°, seed {seed} ...", file=sys.stderr, flush=True)
+                print(f"scene: {cameras} cameras at {height} m / {tilt:.0f}°, seed {seed} ...", file=sys.stderr,
+                      flush=True)
                 for key, value in run_scene(work, cameras, height, tilt, seed, args.duration).items():
                     scores.setdefault((cameras, height) + key, []).append(value)
 

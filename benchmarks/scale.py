@@ -155,7 +155,8 @@ def transport(messages: list[bytes], workers: int, cameras: int, fps: float, dur
 
     subscriber = session.declare_subscriber(f"{SIGHTINGS_KEY}/*", receive)
     context = multiprocessing.get_context("spawn")
-    procs = [context.Process(target=publish, args=(port, w, cameras, fps, duration_s, messages)) for w in range(workers)]
+    procs = [context.Process(target=publish, args=(port, w, cameras, fps, duration_s, messages))
+             for w in range(workers)]
     for p in procs:
         p.start()
     cpu0, wall0 = time.process_time(), time.monotonic()
@@ -170,7 +171,8 @@ def transport(messages: list[bytes], workers: int, cameras: int, fps: float, dur
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0], formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--workers", type=int, default=2, help="publisher processes (default 2)")
     p.add_argument("--cameras", type=int, default=8, help="cameras per publisher (default 8)")
     p.add_argument("--fps", type=float, default=30.0, help="frames/s per camera (default 30)")
@@ -215,9 +217,10 @@ def main(argv: list[str] | None = None) -> int:
     rate = args.target_cameras * args.fps
     per_message_s = fuse_s + t["cpu_per_message_s"] - decode_s
     mean_bytes = statistics.mean(len(m) for m in messages)
-    print(f"{args.target_cameras} cameras x {args.fps:g} fps: {rate:.0f} messages/s, {rate * mean_bytes / 1e6:.2f} MB/s "
-          f"of sightings; one fusion process needs {rate * per_message_s:.2f} cores "
-          f"(ceiling {1 / per_message_s:.0f} messages/s = {1 / per_message_s / args.fps:.0f} cameras at {args.fps:g} fps)")
+    print(f"{args.target_cameras} cameras x {args.fps:g} fps: {rate:.0f} messages/s, "
+          f"{rate * mean_bytes / 1e6:.2f} MB/s of sightings; one fusion process needs {rate * per_message_s:.2f} cores "
+          f"(ceiling {1 / per_message_s:.0f} messages/s = {1 / per_message_s / args.fps:.0f} cameras at "
+          f"{args.fps:g} fps)")
     tmp.cleanup()
     return 0
 

@@ -249,7 +249,7 @@ def run(args: argparse.Namespace, work: Path) -> dict:
                   "--fps", str(args.fps), "--calibration-frames", "0", "--seed", str(args.seed), "--force")
     singles = one_camera_recordings(rec, work)
     names = list(singles)
-    plan = dict(zip(names[:-1], fault_plan(args.cameras, args.fault_period, args.fps, args.seed)))
+    plan = dict(zip(names[:-1], fault_plan(args.cameras, args.fault_period, args.fps, args.seed), strict=True))
     if args.no_faults:
         plan = {name: ("clean", Faults(seed=args.seed)) for name in plan}
     read_timeout_s = config_params(read_tracker_config(rec / "config.toml")).source.read_timeout_s

@@ -50,7 +50,8 @@ def main() -> None:
             for i, part in enumerate(mjpeg.iter_parts(response)):
                 arrived = time.time()
                 captured = part.timestamp_s + offset
-                print(f"frame {part.frame:4d}  captured {captured:.3f}  arrived after {(arrived - captured) * 1000:5.1f} ms")
+                print(f"frame {part.frame:4d}  captured {captured:.3f}  arrived after "
+                      f"{(arrived - captured) * 1000:5.1f} ms")
                 if i == 9:
                     break
             conn.close()

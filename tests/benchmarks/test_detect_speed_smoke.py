@@ -46,14 +46,15 @@ def test_stages_report_every_stage_and_a_bit_identical_replay(capsys):
     stages = [ms(label) for label in labels]
     # every stage ran on this scene (the filter plans regions, refines edges and asks for estimates), so
     # each stage's timer counted something: a hook that timed nothing (a stage renamed or skipped) reports 0
-    assert all(value > 0.0 for value in stages), dict(zip(labels, stages))
+    assert all(value > 0.0 for value in stages), dict(zip(labels, stages, strict=True))
     for label in labels:  # each share is the stage's part of the total, as printed
         share = re.search(rf"^{re.escape(label)}\s+[0-9.]+\s+([0-9.]+)%", text, re.MULTILINE)
         assert share and abs(float(share.group(1)) - 100 * ms(label) / ms("total (ours, one thread)")) < 0.2, label
     assert abs(sum(stages) - ms("total (ours, one thread)")) <= 0.1 * ms("total (ours, one thread)") + 0.01
     assert ms("naive loop (same frames)") > 0.0
     # the fusion ran (a track started) and its estimate/ calls were timed alone
-    for name in ("fusion.match_faces", "corner_filter.reprojection_jacobian_px", "corner_filter.reprojection_residuals_px"):
+    for name in ("fusion.match_faces", "corner_filter.reprojection_jacobian_px",
+                 "corner_filter.reprojection_residuals_px"):
         assert re.search(rf"^  {re.escape(name)}\s+[0-9.]+ calls/frame\s+[0-9.]+ us/call", text, re.MULTILINE), name
     assert re.search(r"^poses: [1-9][0-9]*; replay bit-identical across rounds", text, re.MULTILINE), text
     assert (tracker_module.decode_gray, detector_module.refine_corners_edges,

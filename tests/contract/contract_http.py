@@ -90,7 +90,7 @@ class StreamClient:
         finally:
             self.sock.close()
 
-    def __enter__(self) -> "StreamClient":
+    def __enter__(self) -> StreamClient:
         return self
 
     def __exit__(self, *exc: object) -> None:

@@ -3,6 +3,7 @@ several clients, and "newest frame only" for a slow client."""
 
 from __future__ import annotations
 
+import itertools
 import re
 import socket
 import time
@@ -65,10 +66,10 @@ def test_frame_numbers_and_timestamps_increase(node):
         parts = [c.next_part() for _ in range(12)]
     frames = [p.frame for p in parts]
     stamps = [p.timestamp_s for p in parts]
-    assert all(b > a for a, b in zip(frames, frames[1:])), frames
-    assert all(b > a for a, b in zip(stamps, stamps[1:])), stamps
+    assert all(b > a for a, b in itertools.pairwise(frames)), frames
+    assert all(b > a for a, b in itertools.pairwise(stamps)), stamps
     # a fast local client misses nothing at 10 fps: frame spacing is one period
-    steps = [b - a for a, b in zip(stamps, stamps[1:])]
+    steps = [b - a for a, b in itertools.pairwise(stamps)]
     assert abs(sorted(steps)[len(steps) // 2] - 1.0 / node.fps) < 0.02, steps
 
 
@@ -88,7 +89,7 @@ def test_fps_query_caps_the_rate(node):
     with StreamClient(node.host, node.port, "/stream?fps=2") as c:
         parts = [c.next_part() for _ in range(4)]
     stamps = [p.timestamp_s for p in parts]
-    gaps = [b - a for a, b in zip(stamps, stamps[1:])]
+    gaps = [b - a for a, b in itertools.pairwise(stamps)]
     assert all(0.35 < g < 0.8 for g in gaps), gaps
 
 
@@ -119,5 +120,5 @@ def test_a_slow_client_skips_to_the_newest_frame(node):
                 stale_bytes += len(part.jpeg)
             assert len(seq) <= 40, seq
     assert stale_bytes <= IN_FLIGHT_LIMIT, f"{stale_bytes} bytes of old frames queued for a slow client: {seq}"
-    assert any(b - a > 1 for a, b in zip(seq, seq[1:])), f"frames were not skipped: {seq}"
-    assert all(b > a for a, b in zip(seq, seq[1:])), seq
+    assert any(b - a > 1 for a, b in itertools.pairwise(seq)), f"frames were not skipped: {seq}"
+    assert all(b > a for a, b in itertools.pairwise(seq)), seq

@@ -30,13 +30,14 @@ def test_calibrate_body_follows_the_trajectory(scene, tmp_path, monkeypatch, cap
     config.write_text((scene / "config.toml").read_text()
                       + "\n[bundle_adjustment]\nbody_edge_corners = false\n")
     out = tmp_path / "body.toml"
-    assert cli_main.main(["calibrate-body", "--config", str(config), "--extrinsics", str(scene / "true_extrinsics.toml"),
+    assert cli_main.main(["calibrate-body", "--config", str(config),
+                          "--extrinsics", str(scene / "true_extrinsics.toml"),
                           "--recording", str(scene), "--out", str(out), "--truth", str(scene / "true_cube.toml")]) == 0
     printed = capsys.readouterr().out
     assert "frames on its continuous-time trajectory" in printed, printed
     truth = read_layout(scene / "true_cube.toml")
     before, after = placement_errors(read_layout(scene / "cube.toml"), truth), placement_errors(read_layout(out), truth)
-    for face, (pos_m, rot_deg, _size_m) in after.items():
+    for face, (_pos_m, rot_deg, _size_m) in after.items():
         assert rot_deg < 0.5 * before[face][1], (face, after[face], before[face])
     assert np.mean([e[0] for e in after.values()]) < 0.5 * np.mean([e[0] for e in before.values()])
 
@@ -46,7 +47,8 @@ def test_bad_trajectory_setting_is_one_line(scene, tmp_path, monkeypatch, capsys
     config = scene / "config_bad_knots.toml"
     config.write_text((scene / "config.toml").read_text() + "\n[bundle_adjustment]\nbody_knot_s = -0.02\n")
     out = tmp_path / "body.toml"
-    assert cli_main.main(["calibrate-body", "--config", str(config), "--extrinsics", str(scene / "true_extrinsics.toml"),
+    assert cli_main.main(["calibrate-body", "--config", str(config),
+                          "--extrinsics", str(scene / "true_extrinsics.toml"),
                           "--recording", str(scene), "--out", str(out)]) != 0
     err = capsys.readouterr().err
     assert "body_knot_s" in err and err.count("\n") == 1, err

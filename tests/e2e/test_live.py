@@ -120,7 +120,7 @@ def test_the_clock_shift_agrees_with_the_shift_seen_through_the_device_clocks(sc
                                 False, camera)
         s = session.clock_samples(camera)
         to_live = fit_round_trips(*(np.array(v) for v in zip(*((x.host_send_s, x.device_time_s, x.host_recv_s)
-                                                              for x in s))))
+                                                              for x in s), strict=True)))
         d = np.array([f.device_time_s for f in session.index(camera)])
         through_devices = np.median(to_live.to_host(d) - to_recorded.host(d))
         assert abs(through_devices - live_run["shift_s"]) < 0.002, camera

@@ -20,8 +20,8 @@ import pytest
 REPO = Path(__file__).resolve().parents[2]
 sys.path.insert(0, str(REPO / "tests" / "unit" / "sink"))  # the consumers written for the unit tests
 
-from sink_helpers import free_port, open_router, peer  # noqa: E402
 from foxglove_client import LiveClient, decode, read_mcap  # noqa: E402
+from sink_helpers import free_port, open_router, peer  # noqa: E402
 from vrpn_client import TrackerClient  # noqa: E402
 
 from cubetrack.cli.main import main  # noqa: E402
@@ -30,7 +30,8 @@ pytestmark = pytest.mark.slow
 NODE_CLIENT = REPO / "tests" / "e2e" / "foxglove_client"
 NODE_TOPICS = ("/robots/robot/pose", "/tf", "/scene", "/cameras/cam1/image", "/cameras/cam1/annotations",
                "/cameras/cam1/calibration", "/cameras/cam1/health")
-POSE_KEY = "0/robot/pose/geometry_msgs::msg::dds_::PoseStamped_/RIHS01_10f3786d7d40fd2b54367835614bff85d4ad3b5dab62bf8bca0cc232d73b4cd8"
+POSE_KEY = ("0/robot/pose/geometry_msgs::msg::dds_::PoseStamped_/"
+            "RIHS01_10f3786d7d40fd2b54367835614bff85d4ad3b5dab62bf8bca0cc232d73b4cd8")
 
 
 def retry(make, timeout_s=120.0):
@@ -153,7 +154,7 @@ def test_the_demo_serves_vrpn_ros2_zenoh_foxglove_and_writes_mcap(demo):
     predicted = [[p for p in m.points if p.outline_color.g < 0.9] for m in notes]  # orange, not green
     detected = [[p for p in m.points if p.outline_color.g >= 0.9] for m in notes]
     assert any(predicted) and all(len(p) % 5 == 0 for p in predicted)  # the predicted cube's five markers
-    assert all(len(d) == len(m.texts) for d, m in zip(detected, notes))  # each detected marker with its id
+    assert all(len(d) == len(m.texts) for d, m in zip(detected, notes, strict=True))  # each detected marker with its id
 
 
 def test_the_official_foxglove_client_sees_every_channel_with_a_message_of_each(demo):
@@ -193,7 +194,8 @@ def test_track_takes_outputs_from_the_config(demo, capsys):
     code, out, _, _ = demo
     demo_dir = out / "demo"
     config = demo_dir / "rec" / "with_outputs.toml"  # beside the original: its relative paths still hold
-    config.write_text((demo_dir / "rec" / "config.toml").read_text() + '\n[[outputs]]\ntype = "mcap"\npath = "replay.mcap"\n')
+    config.write_text((demo_dir / "rec" / "config.toml").read_text()
+                      + '\n[[outputs]]\ntype = "mcap"\npath = "replay.mcap"\n')
     assert main(["track", "--config", str(config), "--extrinsics", str(demo_dir / "extrinsics.toml"),
                  "--recording", str(demo_dir / "rec"), "--out", str(out / "replay")]) == 0
     assert "output: MCAP file" in capsys.readouterr().err

@@ -74,7 +74,8 @@ def scaled_run(scene):
         codes = [p.returncode for p in (*workers, fuse)]
         shift_s, period_s = emu.clock_shift_s, emu.period_s
     assert codes == [0, 0, 0], outs
-    return {"out": work / "fused", "cameras": cameras, "shift_s": shift_s, "period_s": period_s, "workers": outs[:2], "fuse": outs[2]}
+    return {"out": work / "fused", "cameras": cameras, "shift_s": shift_s, "period_s": period_s,
+            "workers": outs[:2], "fuse": outs[2]}
 
 
 def test_fused_poses_match_the_offline_replay(scene, scaled_run):
@@ -136,8 +137,8 @@ def test_the_fusion_counts_and_skips_what_is_not_a_sighting(scene, tmp_path):
     from cubetrack.app.config import load_config
     from cubetrack.app.fusion_service import run_fusion
     from cubetrack.app.worker import fuse_endpoints, sighting_key, worker_endpoints
-    from cubetrack.io.sighting_wire import SightingMessage, encode_sighting
     from cubetrack.io.config import read_extrinsics
+    from cubetrack.io.sighting_wire import SightingMessage, encode_sighting
     from cubetrack.sink.zenoh_session import open_session
 
     work, rec = scene
@@ -178,7 +179,8 @@ class Bus:
         self.stamped: dict[str, list[float]] = {}  # camera -> the frame's arrival at its worker (Unix s)
         self.board = ClaimBoard()
         locator = (f"tcp/127.0.0.1:{port}",)
-        self.session = open_session(fuse_endpoints(listen=locator) if hub else worker_endpoints(connect=locator), "test")
+        endpoints = fuse_endpoints(listen=locator) if hub else worker_endpoints(connect=locator)
+        self.session = open_session(endpoints, "test")
 
         def sighting(sample) -> None:
             message = decode_sighting(bytes(sample.payload))

@@ -10,8 +10,8 @@ import pytest
 
 from cubetrack.cli.main import main
 from cubetrack.io.run import read_run_record
-from tests.helpers.scene import simulated_recording
 from cubetrack.io.trajectory import read_tum
+from tests.helpers.scene import simulated_recording
 
 pytestmark = pytest.mark.slow
 

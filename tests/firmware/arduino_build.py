@@ -143,7 +143,8 @@ def global_functions(text: str) -> list[tuple[int, str]]:
             scopes.append("namespace")
         elif re.search(r"\b(class|struct|union|enum)\b", head) and "(" not in head:
             scopes.append("type")
-        elif not scopes and re.search(r"\)\s*(const\s*)?$", head) and words and words[0] not in ("if", "for", "while", "switch"):
+        elif (not scopes and re.search(r"\)\s*(const\s*)?$", head) and words
+              and words[0] not in ("if", "for", "while", "switch")):
             first_char = head_start + len(head) - len(head.lstrip())
             found.append((code.count("\n", 0, first_char) + 1, " ".join(words) + ";"))
             scopes.append("function")
@@ -202,7 +203,7 @@ def build_sketch(core: str, workdir: Path, jobs: int = 2) -> tuple[BuildResult, 
         return source, subprocess.run(build.compile_command(source, obj), capture_output=True, text=True)
 
     with ThreadPoolExecutor(max_workers=jobs) as pool:
-        results = list(pool.map(run, zip(sources, objects)))
+        results = list(pool.map(run, zip(sources, objects, strict=True)))
     failed = [f"{s}:\n{r.stderr[-4000:]}" for s, r in results if r.returncode != 0]
     if failed:
         pytest.fail(f"{core}: compile errors\n" + "\n".join(failed))

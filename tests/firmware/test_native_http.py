@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import itertools
 import json
 import re
 import socket
@@ -143,7 +144,7 @@ def test_time_is_the_device_clock_and_answers_at_once(node):
         assert code == 200 and headers["content-type"] == "text/plain"
         assert TIMESTAMP.match(body.decode())
         samples.append((t0, float(body), t1))
-    for (a0, d0, a1), (b0, d1, b1) in zip(samples, samples[1:]):
+    for (a0, d0, a1), (b0, d1, b1) in itertools.pairwise(samples):
         assert d1 > d0
         # device time advances like host time, within the round trips
         assert (b0 - a1) - 0.01 <= d1 - d0 <= (b1 - a0) + 0.01
@@ -211,7 +212,7 @@ def test_stream_parts_follow_the_contract(node):
     assert frames == sorted(frames) and len(set(frames)) == len(frames)
     assert all(TIMESTAMP.match(h["X-Timestamp"]) for h, _ in parts)
     # X-Timestamp is the capture time: 1/30 s per captured frame
-    for (f0, t0), (f1, t1) in zip(zip(frames, stamps), zip(frames[1:], stamps[1:])):
+    for (f0, t0), (f1, t1) in itertools.pairwise(zip(frames, stamps, strict=True)):
         assert abs((t1 - t0) - (f1 - f0) / 30.0) < 0.002
     for _, body in parts:
         assert body[:2] == b"\xff\xd8" and body[-2:] == b"\xff\xd9"
@@ -257,7 +258,7 @@ def test_stream_rate_cap(node):
         reader.close()
     frames = [int(h["X-Frame"]) for h, _ in parts]
     assert 0.8 < elapsed < 1.6  # 5 intervals of 0.2 s after the first frame
-    assert all(b - a >= 5 for a, b in zip(frames, frames[1:]))
+    assert all(b - a >= 5 for a, b in itertools.pairwise(frames))
 
 
 def test_two_clients_at_once(node):
@@ -322,10 +323,10 @@ def test_slow_client_gets_newest_frames_and_fast_client_is_not_held_back(node):
     # node held up by the slow client would send it next to none; the bounds leave room for a
     # loaded test machine delaying this reader) ...
     assert len(fast_frames) >= 25
-    gaps = sorted(b - a for a, b in zip(fast_frames, fast_frames[1:]))
+    gaps = sorted(b - a for a, b in itertools.pairwise(fast_frames))
     assert gaps[len(gaps) // 2] == 1
     # ... while the slow one finished the frame it had begun, then jumped to the newest.
-    assert max(b - a for a, b in zip(slow_frames, slow_frames[1:])) >= 20
+    assert max(b - a for a, b in itertools.pairwise(slow_frames)) >= 20
     assert status_json(node)["frames_dropped"] >= 20
 
 

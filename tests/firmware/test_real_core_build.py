@@ -9,7 +9,15 @@ import re
 import subprocess
 
 import pytest
-from arduino_build import CORES, SKETCH_DIR, CoreBuild, build_sketch, global_functions, preprocess_sketch, require_vendor
+from arduino_build import (
+    CORES,
+    SKETCH_DIR,
+    CoreBuild,
+    build_sketch,
+    global_functions,
+    preprocess_sketch,
+    require_vendor,
+)
 
 
 @pytest.mark.parametrize("core", CORES)

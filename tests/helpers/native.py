@@ -134,7 +134,7 @@ class NativeNode:
             cmd += ["--fail-ssid", ssid]
         return cmd
 
-    def start(self) -> "NativeNode":
+    def start(self) -> NativeNode:
         self._tmp = tempfile.TemporaryDirectory(prefix="cubecam-native-")
         if self.settings_path is None:
             self.settings_path = Path(self._tmp.name) / "settings.bin"
@@ -214,7 +214,7 @@ class NativeNode:
             self._tmp = None
         return code
 
-    def __enter__(self) -> "NativeNode":
+    def __enter__(self) -> NativeNode:
         return self.start()
 
     def __exit__(self, *exc: object) -> None:

@@ -50,7 +50,7 @@ def board_scene():
     # OpenCV's board frame has y down and z into the board; markers have y up and z out.
     T_cam_world = T_cam_board @ make_T(np.diag([1.0, -1.0, -1.0]), [0, 0, 0])
     centres = {int(i): np.asarray(c).reshape(4, 3).mean(axis=0)
-               for i, c in zip(board.getIds().ravel(), board.getObjPoints())}
+               for i, c in zip(board.getIds().ravel(), board.getObjPoints(), strict=True)}
     return gray, intr, T_cam_board, T_cam_world, centres
 
 

@@ -68,7 +68,8 @@ def _parts(kind: str, conn: socket.socket, length: int) -> None:
     seq = 0
     while not stop.wait(0.05):
         seq += 1
-        head = f"Content-Type: image/jpeg\r\nContent-Length: {length}\r\nX-Timestamp: {seq}.000000\r\nX-Frame: {seq}\r\n\r\n"
+        head = (f"Content-Type: image/jpeg\r\nContent-Length: {length}\r\nX-Timestamp: {seq}.000000\r\n"
+                f"X-Frame: {seq}\r\n\r\n")
         _send(kind, conn, head.encode() + JPEG + DELIM)
 
 
@@ -128,7 +129,7 @@ def _accept(kind: str, server: socket.socket) -> None:
     while not stop.is_set():
         try:
             conn, _ = server.accept()
-        except socket.timeout:
+        except TimeoutError:
             continue
         threading.Thread(target=_connection, args=(kind, conn), daemon=True).start()
 

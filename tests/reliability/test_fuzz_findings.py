@@ -20,7 +20,8 @@ from cubetrack.io.recording import Recording
 INDEX_HEADER = b"seq,device_time,host_time,file\n"
 CLOCK_HEADER = b"host_send,device_time,host_recv\n"
 ROS_K = "camera_matrix: {data: [500, 0, 320, 0, 500, 240, 0, 0, 1]}\n"
-OPENCV_K = "camera_matrix: !!opencv-matrix\n  rows: 3\n  cols: 3\n  dt: d\n  data: [500, 0, 320, 0, 500, 240, 0, 0, 1]\n"
+OPENCV_K = ("camera_matrix: !!opencv-matrix\n  rows: 3\n  cols: 3\n  dt: d\n"
+            "  data: [500, 0, 320, 0, 500, 240, 0, 0, 1]\n")
 
 
 def recording(tmp_path: Path, index: bytes = INDEX_HEADER + b"1,1.0,2.0,a.jpg\n", clock: bytes | None = None,
@@ -140,7 +141,8 @@ def test_malformed_cube_layouts_are_config_errors(tmp_path, layout, message):
         read_layout(tmp_path / "cube.toml")
 
 
-@pytest.mark.parametrize("extra", ['samples = "x"', "samples = inf", 'spread_position_m = "x"', "spread_rotation_deg = [1]"])
+@pytest.mark.parametrize("extra", ['samples = "x"', "samples = inf", 'spread_position_m = "x"',
+                                   "spread_rotation_deg = [1]"])
 def test_malformed_extrinsics_are_config_errors(tmp_path, extra):
     path = tmp_path / "e.toml"
     path.write_text(f"[cam1]\nposition = [0, 0, 1]\nquaternion_xyzw = [0, 0, 0, 1]\n{extra}\n")

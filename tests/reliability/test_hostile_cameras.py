@@ -7,6 +7,7 @@ the reader's memory stays bounded while gigabytes arrive, and stop() still retur
 
 from __future__ import annotations
 
+import itertools
 import subprocess
 import sys
 import time
@@ -83,12 +84,13 @@ def test_hostile_cameras_never_stall_the_good_one_or_exhaust_memory(peers, tmp_p
     out, _ = proc.communicate(timeout=10)
     sent = {line.split()[1]: int(line.split()[2]) for line in out.splitlines() if line.startswith("sent ")}
 
-    print(f"\nhostile peers: {sum(sent.values()) / 1e9:.2f} GB sent in {WINDOW_S:.0f} s; good camera {len(good_arrivals)} "
-          f"frames, longest gap {max(b - a for a, b in zip(good_arrivals, good_arrivals[1:])):.2f} s; reader peak "
-          f"{peak / 1e6:.1f} MB traced; stop() {stop_s:.2f} s")
+    print(f"\nhostile peers: {sum(sent.values()) / 1e9:.2f} GB sent in {WINDOW_S:.0f} s; good camera "
+          f"{len(good_arrivals)} frames, longest gap "
+          f"{max(b - a for a, b in itertools.pairwise(good_arrivals)):.2f} s; reader peak {peak / 1e6:.1f} MB traced; "
+          f"stop() {stop_s:.2f} s")
     # the good camera never stalled
     assert len(good_arrivals) >= 0.5 * FPS * WINDOW_S, (len(good_arrivals), stats["good"])
-    gaps = [b - a for a, b in zip(good_arrivals, good_arrivals[1:])]
+    gaps = [b - a for a, b in itertools.pairwise(good_arrivals)]
     assert max(gaps) < 1.5, max(gaps)
     assert good_clock >= 4
     # no hostile byte became a frame; every misbehaviour was seen for what it is
@@ -103,7 +105,8 @@ def test_hostile_cameras_never_stall_the_good_one_or_exhaust_memory(peers, tmp_p
         assert stats[kind].connects == 0  # the response head never completes
     assert stats["trickle_head"].clock_failures["no answer"] >= 2  # 1 s per byte > the /time timeout
     # gigabytes arrived, memory did not follow
-    flood = sum(sent[k] for k in ("endless_header", "many_headers", "endless_part_header", "huge_part", "huge_part_no_length"))
+    flood = sum(sent[k] for k in ("endless_header", "many_headers", "endless_part_header", "huge_part",
+                                  "huge_part_no_length"))
     assert flood > 100e6, sent
     assert peak < 40e6, f"peak traced memory {peak / 1e6:.1f} MB while {flood / 1e6:.0f} MB arrived"
     # trickling peers do not hold stop() hostage beyond one read timeout

@@ -6,6 +6,7 @@ coverage-guided for millions of inputs; tests/reliability/test_fuzz_corpora.py r
 
 from __future__ import annotations
 
+import itertools
 import json
 import math
 import os
@@ -64,7 +65,7 @@ def _remove_scratch():
 
 def split(data: bytes, cuts: list[int]) -> list[bytes]:
     bounds = sorted({0, len(data), *(c % (len(data) + 1) for c in cuts)})
-    return [data[a:b] for a, b in zip(bounds, bounds[1:])]
+    return [data[a:b] for a, b in itertools.pairwise(bounds)]
 
 
 # --- MJPEG parts ---------------------------------------------------------------------------------
@@ -106,7 +107,7 @@ def test_any_stream_of_parts_reads_back_exactly_however_it_is_cut(parts, cuts, l
     got = [part for piece in split(data, cuts) for part in parser.feed(piece)]
     assert [(g.seq, g.device_time_s, g.jpeg) for g in got] == [
         (p["seq"], float(mjpeg.format_timestamp(p["micros"])), p["jpeg"]) for p in parts]
-    for g, p in zip(got, parts):
+    for g, p in zip(got, parts, strict=True):
         assert {k: g.headers[k] for k in p["extra"]} == {k: v.strip() for k, v in p["extra"].items()}
     parser.close()
     assert not parser.bad
@@ -187,7 +188,8 @@ utf8_strings = st.text(max_size=60).filter(lambda s: len(s.encode()) <= 60)
 @FAST
 @given(command=st.sampled_from(list(improv.Command)), strings=st.lists(utf8_strings, max_size=4))
 def test_rpc_and_rpc_results_round_trip(command, strings):
-    for encode, decode in ((improv.encode_rpc, improv.decode_rpc), (improv.encode_rpc_result, improv.decode_rpc_result)):
+    for encode, decode in ((improv.encode_rpc, improv.decode_rpc),
+                           (improv.encode_rpc_result, improv.decode_rpc_result)):
         frame = improv.Parser().feed(encode(command, strings) + b"\n")[0]
         assert decode(frame) == (command, strings)
 
@@ -215,7 +217,8 @@ finite_times = st.floats(0, 2e9, allow_nan=False, allow_infinity=False)
 
 
 @FAST
-@given(rows=st.lists(st.tuples(st.integers(0, 10**8), finite_times, finite_times), min_size=1, max_size=12, unique_by=lambda r: r[0]),
+@given(rows=st.lists(st.tuples(st.integers(0, 10**8), finite_times, finite_times), min_size=1, max_size=12,
+                    unique_by=lambda r: r[0]),
        samples=st.lists(st.tuples(finite_times, finite_times, finite_times), max_size=5))
 def test_a_recording_reads_back_what_was_written(rows, samples):
     folder = scratch() / "rec"
@@ -227,11 +230,13 @@ def test_a_recording_reads_back_what_was_written(rows, samples):
     rec = Recording.open(folder)
     got = list(rec.frames("cam"))
     assert [f.seq for f in got] == [r[0] for r in rows]
-    assert all(abs(f.device_time_s - r[1]) <= 1e-6 and abs(f.host_time_s - r[2]) <= 1e-6 for f, r in zip(got, rows))
+    assert all(abs(f.device_time_s - r[1]) <= 1e-6 and abs(f.host_time_s - r[2]) <= 1e-6
+               for f, r in zip(got, rows, strict=True))
     assert [f.jpeg for f in got] == [SOI + bytes([r[0] % 256]) + EOI for r in rows]
     back = rec.clock_samples("cam")
     assert len(back) == len(samples) and all(
-        abs(a - b) <= 1e-6 for s, t in zip(back, samples) for a, b in zip((s.host_send_s, s.device_time_s, s.host_recv_s), t))
+        abs(a - b) <= 1e-6 for s, t in zip(back, samples, strict=True)
+        for a, b in zip((s.host_send_s, s.device_time_s, s.host_recv_s), t, strict=True))
     assert not rec.skipped
 
 
@@ -359,7 +364,8 @@ def test_extrinsics_read_back(cams):
 
 @FAST
 @given(size=st.tuples(st.integers(1, 8000), st.integers(1, 8000)), f=st.tuples(st.floats(1, 1e4), st.floats(1, 1e4)),
-       c=st.tuples(st.floats(-1e4, 1e4), st.floats(-1e4, 1e4)), dist=st.lists(st.floats(-10, 10), min_size=5, max_size=5))
+       c=st.tuples(st.floats(-1e4, 1e4), st.floats(-1e4, 1e4)),
+       dist=st.lists(st.floats(-10, 10), min_size=5, max_size=5))
 def test_camera_info_reads_back_what_was_written(size, f, c, dist):
     K = np.array([[f[0], 0.0, c[0]], [0.0, f[1], c[1]], [0.0, 0.0, 1.0]])
     intr = CameraIntrinsics(size[0], size[1], K, np.array(dist), "cam")
@@ -371,14 +377,16 @@ def test_camera_info_reads_back_what_was_written(size, f, c, dist):
 
 
 yaml_values = st.recursive(st.one_of(st.integers(), st.floats(), st.text(max_size=6), st.booleans(), st.none()),
-                           lambda inner: st.lists(inner, max_size=10) | st.dictionaries(st.text(max_size=5), inner, max_size=3),
+                           lambda inner: st.lists(inner, max_size=10)
+                           | st.dictionaries(st.text(max_size=5), inner, max_size=3),
                            max_leaves=20)
 info_keys = st.sampled_from(["image_width", "image_height", "camera_matrix", "distortion_coefficients",
                              "distortion_model", "camera_name", "data"])
 
 
 @FAST
-@given(doc=st.dictionaries(info_keys, yaml_values, max_size=6), matrix=st.dictionaries(info_keys, yaml_values, max_size=2),
+@given(doc=st.dictionaries(info_keys, yaml_values, max_size=6),
+       matrix=st.dictionaries(info_keys, yaml_values, max_size=2),
        opencv=st.booleans())
 def test_arbitrary_camera_info_documents_give_only_camera_info_errors(doc, matrix, opencv):
     path = scratch() / "cam.yaml"

@@ -57,7 +57,7 @@ class FakeBoard:
         self.path = os.ttyname(self.slave)
         self._thread = threading.Thread(target=self._run, daemon=True, name="fakeboard")
 
-    def __enter__(self) -> "FakeBoard":
+    def __enter__(self) -> FakeBoard:
         self._booted_at = time.monotonic() + self.boot_delay_s
         self._thread.start()
         return self
@@ -168,7 +168,8 @@ class FakeBoard:
                 improv.Command.GET_DEVICE_INFO, ["cubecam", "0.0-fake", "Spresense", self.settings["name"]])))
         elif command == improv.Command.GET_WIFI_NETWORKS:
             for ssid, rssi, secured in (("lab", -48, "YES"), ("guest", -71, "NO")):
-                self._write(self._frame(improv.encode_rpc_result(improv.Command.GET_WIFI_NETWORKS, [ssid, str(rssi), secured])))
+                networks = [ssid, str(rssi), secured]
+                self._write(self._frame(improv.encode_rpc_result(improv.Command.GET_WIFI_NETWORKS, networks)))
             self._write(self._frame(improv.encode_rpc_result(improv.Command.GET_WIFI_NETWORKS, [])))
         elif command == improv.Command.WIFI_SETTINGS:
             ssid, password = strings

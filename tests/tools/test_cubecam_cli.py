@@ -10,12 +10,12 @@ import time
 from pathlib import Path
 
 import pytest
+from fakeboard import FakeBoard
+from toolcheck import CUBECAM, REPO, assert_one_line_error, run_cubecam
 
 from cubecam import boards
 from cubecam.cli import COMMANDS, main
 from cubecam.testdata import CameraSpec, write_recording
-from fakeboard import FakeBoard
-from toolcheck import CUBECAM, REPO, assert_one_line_error, run_cubecam
 
 
 def test_top_level_help_lists_every_command():
@@ -35,7 +35,8 @@ def test_console_script_is_installed():
 @pytest.mark.parametrize("command, options", [
     ("emulate", ["--recording", "--images", "--port", "--addresses", "--loop", "--latency", "--jitter", "--drop-rate",
                  "--bandwidth", "--disconnect-every", "--stall-after", "--corrupt-every"]),
-    ("provision", ["--port", "--ssid", "--password-file", "--name", "--quality", "--fps", "--mode", "--ip", "--config"]),
+    ("provision", ["--port", "--ssid", "--password-file", "--name", "--quality", "--fps", "--mode", "--ip",
+                   "--config"]),
     ("monitor", ["DEV", "--duration"]),
     ("list", ["--no-names"]),
     ("flash", ["--port", "--all", "--builder", "--dry-run", "--burn-bootloader", "--sketch", "--project", "--ssid",

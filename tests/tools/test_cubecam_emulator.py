@@ -21,6 +21,8 @@ from cubecam.replay import Timeline, load_recording
 from cubecam.testdata import CameraSpec, write_images, write_recording
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "contract"))
+import itertools
+
 from contract_http import StreamClient, get  # noqa: E402
 
 
@@ -134,7 +136,7 @@ def test_loop_keeps_clocks_and_frame_numbers_counting(tmp_path):
     frames = [p.frame for p in parts]
     stamps = [p.timestamp_s for p in parts]
     assert frames == list(range(1, 15))
-    assert all(b > a for a, b in zip(stamps, stamps[1:]))
+    assert all(b > a for a, b in itertools.pairwise(stamps))
     assert stamps[6] - stamps[5] == pytest.approx(0.1, abs=1e-6)  # the loop seam keeps the frame period
 
 
@@ -225,7 +227,7 @@ def test_bandwidth_cap_limits_bytes_per_second_and_skips_frames(tmp_path):
     received = sum(len(p.jpeg) + len(p.raw_header) for p in parts)
     assert received / elapsed == pytest.approx(cap, rel=0.3)
     frames = [p.frame for p in parts]
-    assert all(b - a >= 2 for a, b in zip(frames, frames[1:])), frames  # newest only: ~3 of 10 frames
+    assert all(b - a >= 2 for a, b in itertools.pairwise(frames)), frames  # newest only: ~3 of 10 frames
 
 
 def test_disconnect_every_cuts_the_stream(images):
@@ -252,7 +254,7 @@ def test_stall_for_a_while_then_resumes_with_the_newest_frame(images):
     with Emulator(images=images, fps=10, loop=True, faults=Faults(stall_after_s=0.3, stall_for_s=0.6)) as emu:
         with StreamClient(*host_port(emu.urls["img"])) as c:
             parts = [c.next_part() for _ in range(8)]
-    gaps = [b.timestamp_s - a.timestamp_s for a, b in zip(parts, parts[1:])]
+    gaps = [b.timestamp_s - a.timestamp_s for a, b in itertools.pairwise(parts)]
     assert max(gaps) >= 0.5, gaps  # the silence shows as a jump in capture time
 
 
@@ -260,7 +262,7 @@ def test_corrupt_jpeg_parts_keep_the_framing(images):
     with Emulator(images=images, fps=20, loop=True, faults=Faults(corrupt_every=3, seed=2)) as emu:
         parts = first_parts(emu.urls["img"], 9)
     decoded = [cv2.imdecode(np.frombuffer(p.jpeg, np.uint8), cv2.IMREAD_COLOR) for p in parts]
-    broken = [i for i, (p, img) in enumerate(zip(parts, decoded))
+    broken = [i for i, (p, img) in enumerate(zip(parts, decoded, strict=True))
               if img is None or p.jpeg[-2:] != b"\xff\xd9"]
     assert broken == [2, 5, 8]
 

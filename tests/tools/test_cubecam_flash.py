@@ -16,12 +16,12 @@ import sys
 from pathlib import Path
 
 import pytest
+from fakeboard import FakeBoard
+from toolcheck import REPO, assert_one_line_error, run_cubecam
 
 from cubecam import boards
 from cubecam.cli import main
 from cubecam.flash import FQBN, GS2200_GIT_URL, PACKAGE_INDEX_URL
-from fakeboard import FakeBoard
-from toolcheck import REPO, assert_one_line_error, run_cubecam
 
 PIO = shutil.which("pio") or str(Path(sys.executable).parent / "pio")
 VENDOR_CORE = REPO.parent / "shared" / "vendor" / "spresense" / "core-3.4.4"
@@ -174,7 +174,8 @@ def test_auto_detect_prefers_arduino_cli_with_sonys_board_package(tools, capfd, 
 def test_auto_detect_uses_platformio_when_arduino_cli_lacks_the_board_package(tools, capfd):
     tools.answer("arduino-cli", ["core", "list"], json.dumps({"platforms": None}))
     assert main(tools.args("--port", "/dev/ttyUSB0")) == 0
-    assert tools.runs("pio") == stripped([tools.pio_run(), tools.pio_run("-t", "upload", "--upload-port", "/dev/ttyUSB0")])
+    assert tools.runs("pio") == stripped([tools.pio_run(),
+                                          tools.pio_run("-t", "upload", "--upload-port", "/dev/ttyUSB0")])
     assert tools.runs("arduino-cli") == []
     assert "building with platformio (arduino-cli lacks Sony's board package" in capfd.readouterr().err
 
@@ -221,8 +222,8 @@ def test_neither_builder_installed(tools, capfd, tmp_path):
     tools.remove("arduino-cli")
     tools.remove("pio")
     rc = main(tools.args("--port", "/dev/ttyUSB0", *no_pio(tmp_path)))
-    assert_one_line_error(rc, capfd.readouterr().err, "arduino-cli not found", "install.sh",
-                          "pip install platformio==6.2.0")
+    assert_one_line_error(rc, capfd.readouterr().err, "neither arduino-cli nor PlatformIO (pio) is installed",
+                          f"`{sys.executable} -m pip install platformio==6.2.0`")
 
 
 @pytest.mark.parametrize("builder", ["arduino-cli", "auto"])
@@ -379,6 +380,36 @@ def test_dry_run_of_one_builder_without_tools(tmp_path, capsys, monkeypatch):
     assert len(lines) == 2
 
 
+def test_dry_run_on_a_machine_without_either_tool_prints_the_one_install_command(tmp_path):
+    env = {"PATH": "/usr/bin:/bin"}  # no arduino-cli; --pio hides the venv's own pio
+    done = run_cubecam("flash", "--port", "/dev/ttyUSB0", "--dry-run", *no_pio(tmp_path), env=env)
+    assert_one_line_error(done.returncode, done.stderr, "neither arduino-cli nor PlatformIO (pio) is installed")
+    assert done.stdout == ""  # no plan naming tools that are not there
+    command = shlex.split(done.stderr.split("`")[1])
+    assert command == [sys.executable, "-m", "pip", "install", "platformio==6.2.0"]
+    check = subprocess.run([*command[:4], "--dry-run", *command[4:]], check=False, capture_output=True, text=True,
+                           timeout=300)
+    assert check.returncode == 0 and "platformio" in check.stdout.lower()  # a command pip takes as it is
+
+
+def test_the_flash_extra_pins_platformio_and_dry_run_then_builds_the_platformio_command_line(monkeypatch, capsys):
+    import tomllib
+    from importlib import metadata
+
+    extras = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["optional-dependencies"]
+    assert extras["flash"] == ["platformio==6.2.0"] and "cubetrack[flash]" in extras["test"]
+    assert 'platformio==6.2.0; extra == "flash"' in metadata.requires("cubetrack")  # the installed metadata
+    pio = Path(sys.executable).parent / "pio"  # where `pip install 'cubetrack[flash]'` put it
+    version = subprocess.run([str(pio), "--version"], check=False, capture_output=True, text=True, timeout=120)
+    assert version.stdout.strip().endswith("version 6.2.0")
+    monkeypatch.setenv("PATH", "/usr/bin:/bin")  # no arduino-cli
+    assert main(["flash", "--port", "/dev/ttyUSB0", "--dry-run"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    plan = [shlex.split(line) for line in lines[lines.index("# platformio") + 1:]]
+    build = [str(pio), "run", "-d", str(REPO), "-e", "spresense"]
+    assert plan == [build, [*build, "-t", "upload", "--upload-port", "/dev/ttyUSB0"]]
+
+
 def test_all_without_boards(monkeypatch, capsys):
     monkeypatch.setattr(boards, "attached_boards", list)
     rc = main(["flash", "--all", "--dry-run"])
@@ -441,7 +472,8 @@ def test_platformio_ini_pins_every_package():
         return url
 
     assert pinned(opts["platform"]) == "https://github.com/maxgerhardt/platform-sonyspresense.git"
-    packages = {name.strip(): pinned(url.strip()) for name, _, url in (p.partition("@") for p in opts["platform_packages"])}
+    packages = {name.strip(): pinned(url.strip())
+                for name, _, url in (p.partition("@") for p in opts["platform_packages"])}
     assert set(packages) == {"framework-arduinosonyspresense", "tool-arduinosonyspresensesdk", "tool-spresense"}
     assert [pinned(dep) for dep in opts["lib_deps"]] == ["https://github.com/TomonobuHayakawa/GS2200-WiFi.git"]
     assert opts["lib_deps"][0].endswith("#6126fb4f885e33aa6fe5399996493cf8ed21fe92")

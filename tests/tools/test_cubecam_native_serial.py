@@ -10,11 +10,11 @@ import urllib.request
 from pathlib import Path
 
 import pytest
+from toolcheck import assert_one_line_error
 
 from cubecam.boards import query_name
 from cubecam.cli import main
 from cubecam.testdata import write_images
-from toolcheck import assert_one_line_error
 
 REPO = Path(__file__).resolve().parents[2]
 if not (REPO / "tests" / "helpers" / "native.py").exists():  # fail, never skip: the firmware half would go unseen

@@ -11,11 +11,11 @@ import time
 import tomllib
 
 import pytest
+from fakeboard import FakeBoard
+from toolcheck import assert_one_line_error, run_cubecam
 
 from cubecam import link
 from cubecam.cli import main
-from fakeboard import FakeBoard
-from toolcheck import assert_one_line_error, run_cubecam
 
 PASSWORD = "correct-horse-battery"
 

@@ -12,9 +12,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-from cubetrack.cli import command
-
 from cubecam import __version__
+from cubetrack.cli import command
 
 COMMANDS = {
     "emulate": "emulate",

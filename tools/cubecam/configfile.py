@@ -14,9 +14,8 @@ import re
 import tomllib
 from pathlib import Path
 
-from cubetrack.io.config import write_toml
-
 from cubecam.errors import CubecamError
+from cubetrack.io.config import write_toml
 
 log = logging.getLogger(__name__)
 
@@ -54,7 +53,7 @@ def set_camera(path: str | Path, name: str, url: str) -> str:
     if index is None:
         expected.setdefault("cameras", []).append({"name": name, "url": url})
         sep = "" if not text or text.endswith("\n\n") else ("\n" if text.endswith("\n") else "\n\n")
-        new_text = text + sep + f"[[cameras]]\nname = {_toml_string(name)}\nurl = {_toml_string(url)}\n"
+        new_text: str | None = text + sep + f"[[cameras]]\nname = {_toml_string(name)}\nurl = {_toml_string(url)}\n"
         outcome = "added"
     else:
         expected["cameras"][index]["url"] = url
@@ -65,7 +64,7 @@ def set_camera(path: str | Path, name: str, url: str) -> str:
     except tomllib.TOMLDecodeError:
         ok = False
     try:
-        if ok:
+        if ok and new_text is not None:  # (ok: it is)
             tmp = path.with_name(path.name + ".part")
             tmp.write_text(new_text, encoding="utf-8")
             tmp.replace(path)

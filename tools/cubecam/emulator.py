@@ -37,8 +37,8 @@ from pathlib import Path
 
 from cubecam import __version__, mjpeg
 from cubecam.errors import EmulatorError
-from cubecam.replay import CameraTrack, Timeline, jpeg_size, load_images, load_recording
-from cubecam.request import RequestParser, ParseStatus, Route, RouteDecision, route
+from cubecam.replay import CameraTrack, Release, Timeline, jpeg_size, load_images, load_recording
+from cubecam.request import ParseStatus, RequestParser, Route, RouteDecision, route
 
 log = logging.getLogger(__name__)
 
@@ -80,7 +80,7 @@ class Faults:
     corrupt_kind: str = "jpeg"
     seed: int | None = None
 
-    def check(self) -> "Faults":
+    def check(self) -> Faults:
         def bad(what: str) -> EmulatorError:
             return EmulatorError(what)
 
@@ -134,7 +134,7 @@ class _TokenBucket:
 class _Camera:
     """One emulated node: its listening socket, newest frame and counters."""
 
-    def __init__(self, emu: "Emulator", index: int, track: CameraTrack, address: str, port: int):
+    def __init__(self, emu: Emulator, index: int, track: CameraTrack, address: str, port: int):
         self.emu = emu
         self.index = index
         self.track = track
@@ -148,7 +148,7 @@ class _Camera:
         self.frames_dropped = 0
         self.clients = 0
         self.streaming = 0
-        self.released = deque(maxlen=64)  # monotonic release times, for the measured rate
+        self.released: deque[float] = deque(maxlen=64)  # monotonic release times, for the measured rate
         self.connections: set[socket.socket] = set()
         self.bucket = (_TokenBucket(emu.faults.bandwidth_bytes_per_s)
                        if emu.faults.bandwidth_bytes_per_s else None)
@@ -208,7 +208,7 @@ class _Camera:
         while not stop.is_set():
             try:
                 conn, _ = self.sock.accept()
-            except (socket.timeout, BlockingIOError):
+            except (TimeoutError, BlockingIOError):
                 continue
             except OSError:
                 if stop.is_set():
@@ -263,7 +263,7 @@ class _Camera:
             conn.settimeout(min(left, 0.25))
             try:
                 data = conn.recv(1024)
-            except socket.timeout:
+            except TimeoutError:
                 continue
             if not data:
                 return None
@@ -299,13 +299,14 @@ class _Camera:
         ip = self.address
         if conn is not None and ip in ("0.0.0.0", "::", ""):
             ip = conn.getsockname()[0]
+        interval_s = self.track.frame_interval_s
         return {
             "name": self.name,
             "firmware_version": FIRMWARE_VERSION,
             "uptime_ms": self.emu.device_now_us(self.index) // 1000,
             "ip": ip,
             "rssi": EMULATED_RSSI_DBM,
-            "fps": {"configured": round(1.0 / self.track.frame_interval_s, 1) if self.track.frame_interval_s > 0 else 0.0,
+            "fps": {"configured": round(1.0 / interval_s, 1) if interval_s > 0 else 0.0,
                     "measured": round(self.measured_fps(), 3)},
             "frames_sent": self.frames_sent,
             "frames_dropped": self.frames_dropped,
@@ -430,7 +431,7 @@ class _Camera:
                 try:
                     if conn.recv(4096) == b"":
                         raise _Stopped()  # the client gave up
-                except socket.timeout:
+                except TimeoutError:
                     pass
             raise _Stopped()
         finally:
@@ -482,7 +483,8 @@ class Emulator:
     ``fps``). Construct (reads and checks the frames), then :meth:`start` or use as a context
     manager. ``port`` is the first camera's port (0: any free port per camera), the next
     cameras get port+1, ...; with ``addresses`` each camera binds its own address instead, all
-    on ``port`` (``"auto"``: ``host``, then the next addresses). ``skipped`` counts the frames left out (reason -> count)."""
+    on ``port`` (``"auto"``: ``host``, then the next addresses). ``skipped`` counts the frames left
+    out (reason -> count)."""
 
     def __init__(self, recording: str | Path | None = None, *, images: str | Path | None = None,
                  fps: float | None = None, name: str | None = None, host: str = "127.0.0.1", port: int = 0,
@@ -492,7 +494,7 @@ class Emulator:
             raise EmulatorError("give either a recording folder or an image folder")
         if images is not None:
             tracks, self.skipped = load_images(images, fps if fps is not None else 10.0, name)
-        else:
+        elif recording is not None:
             tracks, self.skipped = load_recording(recording)
         if not 1 <= max_clients <= 64:
             raise EmulatorError(f"max clients must be 1..64, got {max_clients}")
@@ -519,7 +521,7 @@ class Emulator:
             places = [(host, port + i if port else 0) for i in range(len(tracks))]
             if port and port + len(tracks) - 1 > 65535:
                 raise EmulatorError(f"ports {port}..{port + len(tracks) - 1} run past 65535")
-        self._cameras = [_Camera(self, i, t, a, p) for i, (t, (a, p)) in enumerate(zip(tracks, places))]
+        self._cameras = [_Camera(self, i, t, a, p) for i, (t, (a, p)) in enumerate(zip(tracks, places, strict=True))]
         self._stop = threading.Event()
         self.finished = threading.Event()  # set when a non-looping replay released its last frame
         self._threads: list[threading.Thread] = []
@@ -529,14 +531,14 @@ class Emulator:
         self._unix_minus_mono = 0.0
         for cam in self._cameras:
             try:
-                first = cam.track.frames[0].path.read_bytes()
+                first_jpeg = cam.track.frames[0].path.read_bytes()
             except OSError:
-                first = b""
-            cam.width, cam.height = jpeg_size(first) or (0, 0)
+                first_jpeg = b""
+            cam.width, cam.height = jpeg_size(first_jpeg) or (0, 0)
 
     # --- lifecycle ---
 
-    def start(self) -> "Emulator":
+    def start(self) -> Emulator:
         if self._start_mono is not None:
             return self
         try:
@@ -580,7 +582,7 @@ class Emulator:
         for t in self._threads:
             t.join(timeout=2.0)
 
-    def __enter__(self) -> "Emulator":
+    def __enter__(self) -> Emulator:
         return self.start()
 
     def __exit__(self, *exc: object) -> None:
@@ -657,7 +659,7 @@ class Emulator:
         assert self._start_mono is not None
         stop = self._stop
         sources = [self.timeline.releases(i) for i in range(len(self._cameras))]
-        heap: list[tuple[float, int, object]] = []
+        heap: list[tuple[float, int, Release]] = []
         for i, src in enumerate(sources):
             r = next(src, None)
             if r is not None:

@@ -53,14 +53,36 @@ BOOTLOADER_PROGRAMMER = "sfutools"  # programmers.txt: "Spresense Firmware Updat
 GS2200_LIBRARY = "GS2200"  # library.properties name of TomonobuHayakawa/GS2200-WiFi
 GS2200_GIT_URL = "https://github.com/TomonobuHayakawa/GS2200-WiFi.git#6126fb4f885e33aa6fe5399996493cf8ed21fe92"
 ARDUINO_CLI_INSTALL = ("mkdir -p ~/.local/bin && curl -fsSL "
-                       "https://raw.githubusercontent.com/arduino/arduino-cli/master/install.sh | BINDIR=~/.local/bin sh")
+                       "https://raw.githubusercontent.com/arduino/arduino-cli/master/install.sh | "
+                       "BINDIR=~/.local/bin sh")
 
 # --- PlatformIO ---
 
 ENV = "spresense"
 PLATFORM_NAME = "sonyspresense"
 PLATFORM_URL = "https://github.com/maxgerhardt/platform-sonyspresense.git"
-PIO_INSTALL = "pip install platformio==6.2.0"
+
+
+def platformio_requirement() -> str:
+    """PlatformIO as the ``flash`` extra of the installed cubetrack pins it (pyproject.toml),
+    e.g. ``platformio==6.2.0``; plain ``platformio`` when the package metadata is not there."""
+    from importlib import metadata
+
+    try:
+        requires = metadata.requires("cubetrack") or []
+    except metadata.PackageNotFoundError:
+        requires = []
+    for requirement in requires:
+        spec, _, marker = requirement.partition(";")
+        if spec.strip().startswith("platformio") and 'extra == "flash"' in marker:
+            return spec.strip()
+    return "platformio"
+
+
+def pio_install_command() -> str:
+    """The one command that installs PlatformIO where :func:`find_tool` finds it: beside the
+    Python this tool runs on (the same as ``pip install 'cubetrack[flash]'`` in that environment)."""
+    return f"{shlex.quote(sys.executable)} -m pip install {platformio_requirement()}"
 
 
 def default_project() -> Path:
@@ -229,10 +251,15 @@ def read_loader_files(folder: Path) -> LoaderFiles:
                        wanted.get("DownloadURL", ""))
 
 
-def missing_arduino_cli(alternative: bool) -> FlashError:
-    also = f"; or install PlatformIO (`{PIO_INSTALL}`)" if alternative else "; or use --builder platformio"
+def missing_arduino_cli() -> FlashError:
     return FlashError(f"arduino-cli not found: install it with `{ARDUINO_CLI_INSTALL}` "
-                      f"(or give its path with --arduino-cli){also}")
+                      f"(or give its path with --arduino-cli); or use --builder platformio")
+
+
+def no_builder() -> FlashError:
+    """Neither arduino-cli nor PlatformIO: the one command that fixes it (PlatformIO at the pinned version)."""
+    return FlashError(f"neither arduino-cli nor PlatformIO (pio) is installed: run `{pio_install_command()}` "
+                      f"(PlatformIO as cubetrack's flash extra pins it; arduino-cli instead: docs/hardware.md)")
 
 
 def missing_board_package() -> FlashError:
@@ -255,7 +282,7 @@ def choose_builder(requested: str, cli: str | None, pio: str | None) -> tuple[st
             raise missing_board_package()
         return PlatformIO.name, f"arduino-cli lacks Sony's board package {PLATFORM_ID}"
     if pio is None:
-        raise missing_arduino_cli(alternative=True)
+        raise no_builder()
     return PlatformIO.name, "arduino-cli not found"
 
 
@@ -343,7 +370,8 @@ def platform_installed(platform: str, project: Path, core: Path | None = None) -
 def check_pio(pio: str | None) -> str:
     """A working ``pio``, or FlashError saying how to get one."""
     if pio is None:
-        raise FlashError(f"PlatformIO (pio) not found: install it with `{PIO_INSTALL}` or give its path with --pio")
+        raise FlashError(f"PlatformIO (pio) not found: install it with `{pio_install_command()}` "
+                         "or give its path with --pio")
     query([pio, "--version"])
     return pio
 

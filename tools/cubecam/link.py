@@ -15,8 +15,8 @@ import logging
 import re
 import time
 from collections import Counter, deque
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 from cubecam import improv
 from cubecam.errors import ImprovError, ProvisionError, SerialDeviceError
@@ -84,7 +84,7 @@ class NodeLink:
 
     def __init__(self, port, device: str | None = None, on_log: Callable[[str], None] | None = None):
         self.port = port
-        self.device = device or getattr(port, "port", "serial port")
+        self.device: str = device or getattr(port, "port", None) or "serial port"
         self.on_log = on_log or (lambda text: log.info("%s: %s", self.device, text))
         self.parser = improv.Parser()
         self.frames: deque[improv.Frame] = deque()
@@ -96,7 +96,7 @@ class NodeLink:
         self._secrets: set[str] = set()  # sent on this link: never shown again (a board may echo them)
 
     @classmethod
-    def open(cls, device: str, on_log: Callable[[str], None] | None = None) -> "NodeLink":
+    def open(cls, device: str, on_log: Callable[[str], None] | None = None) -> NodeLink:
         return cls(open_serial(device), device, on_log)
 
     def close(self) -> None:
@@ -105,7 +105,7 @@ class NodeLink:
         except Exception:  # closing a vanished port may fail; nothing to do about it
             pass
 
-    def __enter__(self) -> "NodeLink":
+    def __enter__(self) -> NodeLink:
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -127,7 +127,8 @@ class NodeLink:
             waiting = self.port.in_waiting
             data = self.port.read(max(1, min(waiting, 4096)))
         except Exception as exc:  # SerialException on a vanished port, OSError EIO on a pty
-            raise SerialDeviceError(f"{self.device}: the port went away ({_reason(exc)}); was the board unplugged?") from None
+            raise SerialDeviceError(
+                f"{self.device}: the port went away ({_reason(exc)}); was the board unplugged?") from None
         now = time.monotonic()
         if data:
             self.bytes_seen += len(data)
@@ -166,7 +167,8 @@ class NodeLink:
         return f"{self.bytes_seen} bytes were received" + (f", bad Improv frames: {bad}" if bad else "")
 
     def wait_frame(self, accept: Callable[[improv.Frame], bool], deadline: float,
-                   retry: Callable[[], None] | None = None, retry_every_s: float = STATE_RETRY_S) -> improv.Frame | None:
+                   retry: Callable[[], None] | None = None,
+                   retry_every_s: float = STATE_RETRY_S) -> improv.Frame | None:
         """The first frame that ``accept`` takes (others are dropped) before the monotonic
         ``deadline``; None on timeout. ``retry`` is called now and every ``retry_every_s``."""
         next_retry = time.monotonic()
@@ -243,7 +245,8 @@ class NodeLink:
         self.send_rpc(improv.Command.GET_DEVICE_INFO)
         frame = self.wait_frame(_result_or_error(improv.Command.GET_DEVICE_INFO), time.monotonic() + timeout_s)
         if frame is None:
-            raise SerialDeviceError(f"{self.device}: no answer to Improv device info in {timeout_s:g} s ({self._heard()})")
+            raise SerialDeviceError(f"{self.device}: no answer to Improv device info in {timeout_s:g} s "
+                                    f"({self._heard()})")
         if frame.type == improv.FrameType.ERROR_STATE:
             raise ProvisionError(f"{self.device}: device info refused: {_error_text(frame)}")
         strings = _decode_result(frame, self.device)
@@ -254,11 +257,12 @@ class NodeLink:
         """Networks the node sees: one RPC result per network, then an empty one."""
         self.send_rpc(improv.Command.GET_WIFI_NETWORKS)
         deadline = time.monotonic() + timeout_s
-        out = []
+        out: list[Network] = []
         while True:
             frame = self.wait_frame(_result_or_error(improv.Command.GET_WIFI_NETWORKS), deadline)
             if frame is None:
-                raise SerialDeviceError(f"{self.device}: Wi-Fi scan did not finish in {timeout_s:g} s ({self._heard()})")
+                raise SerialDeviceError(f"{self.device}: Wi-Fi scan did not finish in {timeout_s:g} s "
+                                        f"({self._heard()})")
             if frame.type == improv.FrameType.ERROR_STATE:
                 raise ProvisionError(f"{self.device}: scan refused: {_error_text(frame)}")
             strings = _decode_result(frame, self.device)
@@ -350,7 +354,9 @@ def _result_or_error(command: improv.Command) -> Callable[[improv.Frame], bool]:
 
 def _error_text(frame: improv.Frame) -> str:
     err = improv.decode_error(frame)
-    return improv.ERROR_TEXT.get(err, f"error {int(err):#04x}") if isinstance(err, improv.Error) else f"error {err:#04x}"
+    if isinstance(err, improv.Error):
+        return improv.ERROR_TEXT.get(err, f"error {int(err):#04x}")
+    return f"error {err:#04x}"
 
 
 def _decode_result(frame: improv.Frame, device: str) -> list[str]:

@@ -18,8 +18,9 @@ many bytes instead of scanning for the boundary.
 from __future__ import annotations
 
 import re
+from collections.abc import Iterator
 from dataclasses import dataclass
-from typing import BinaryIO, Iterator
+from typing import BinaryIO
 
 BOUNDARY = "cubecam-mjpeg-boundary"
 PART_DELIMITER = f"\r\n--{BOUNDARY}\r\n".encode("ascii")
@@ -133,9 +134,9 @@ def read_response_head(f: BinaryIO, limit: int = 8192) -> tuple[int, dict[str, s
     if len(status_line) < 2 or not status_line[0].startswith("HTTP/1."):
         raise StreamFormatError(f"bad status line {lines[0]!r}")
     headers = {}
-    for line in lines[1:]:
-        if line:
-            name, _, value = line.partition(":")
+    for text in lines[1:]:
+        if text:
+            name, _, value = text.partition(":")
             headers[name.strip().lower()] = value.strip()
     return int(status_line[1]), headers, raw
 

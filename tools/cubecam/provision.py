@@ -94,7 +94,8 @@ def check_ip(text: str) -> str:
         iface = ipaddress.IPv4Interface(f"{m.group(1)}/{m.group(2)}")
         gateway = ipaddress.IPv4Address(m.group(3))
     except ValueError:
-        raise ProvisionError(f"--ip {text!r}: use dhcp or a.b.c.d/prefix,gateway (e.g. 192.168.1.21/24,192.168.1.1)") from None
+        raise ProvisionError(
+            f"--ip {text!r}: use dhcp or a.b.c.d/prefix,gateway (e.g. 192.168.1.21/24,192.168.1.1)") from None
     if gateway not in iface.network:
         raise ProvisionError(f"--ip {text!r}: gateway {gateway} is outside {iface.network}")
     return text

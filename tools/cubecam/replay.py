@@ -16,17 +16,18 @@ numbers keep counting up, as a node's do.
 
 from __future__ import annotations
 
+import itertools
 import logging
 import re
 import statistics
 from collections import Counter
+from collections.abc import Iterator
 from dataclasses import dataclass
 from pathlib import Path
 
+from cubecam.errors import EmulatorError
 from cubetrack.core.errors import RecordingError
 from cubetrack.io.recording import Recording, check_camera_name
-
-from cubecam.errors import EmulatorError
 
 log = logging.getLogger(__name__)
 
@@ -113,7 +114,7 @@ def looks_like_jpeg(path: Path) -> bool:
 
 
 def _median_interval(times: list[float]) -> float:
-    steps = [b - a for a, b in zip(times, times[1:]) if b > a]
+    steps = [b - a for a, b in itertools.pairwise(times) if b > a]
     return statistics.median(steps) if steps else 0.1
 
 
@@ -127,14 +128,14 @@ def _least_squares(x: list[float], y: list[float]) -> tuple[float, float] | None
     sxx = sum((v - mx) ** 2 for v in x)
     if sxx < 1e-6:
         return None
-    slope = sum((a - mx) * (b - my) for a, b in zip(x, y)) / sxx
+    slope = sum((a - mx) * (b - my) for a, b in zip(x, y, strict=True)) / sxx
     return my - slope * mx, slope
 
 
 def _envelope_points(device_s: list[float], host_s: list[float]) -> tuple[list[float], list[float]]:
     """The fastest arrival in each of up to 10 stretches of time: arrival delays only ever add,
     so these points follow the capture clock more closely than all points do."""
-    pairs = sorted(zip(device_s, host_s))
+    pairs = sorted(zip(device_s, host_s, strict=True))
     chunks = min(10, len(pairs) // 5)
     if chunks < 3:
         return [d for d, _ in pairs], [h for _, h in pairs]
@@ -153,7 +154,7 @@ def fit_clock(device_s: list[float], host_s: list[float], lower_envelope: bool, 
     if not _MIN_SLOPE <= rate <= _MAX_SLOPE:
         log.warning("%s: fitted clock rate %.6f is implausible; replaying without drift", where, rate)
         rate = 1.0
-    residuals = [h - rate * d for d, h in zip(device_s, host_s)]
+    residuals = [h - rate * d for d, h in zip(device_s, host_s, strict=True)]
     offset = min(residuals) if lower_envelope else sum(residuals) / len(residuals)
     return ClockMap(offset, rate)
 
@@ -240,7 +241,7 @@ def load_images(folder: str | Path, fps: float, name: str | None = None) -> tupl
         raise EmulatorError(str(exc)) from None
     skipped: Counter[str] = Counter()
     files = sorted(p for p in folder.iterdir() if p.suffix.lower() in _JPEG_SUFFIXES and p.is_file())
-    frames = []
+    frames: list[SourceFrame] = []
     for path in files:
         if not looks_like_jpeg(path):
             skipped["corrupt frame file"] += 1
@@ -281,7 +282,7 @@ class Timeline:
         """Camera's device clock when the replay has run ``elapsed_s`` (never below 0)."""
         return max(0.0, self.tracks[camera].clock.device(self.start_host_s + elapsed_s))
 
-    def releases(self, camera: int):
+    def releases(self, camera: int) -> Iterator[Release]:
         """Frames of one camera in release order (endless when looping)."""
         track = self.tracks[camera]
         seq_span = track.frames[-1].seq - track.frames[0].seq + 1

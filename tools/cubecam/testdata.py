@@ -81,6 +81,7 @@ def write_recording(path: str | Path, cameras: list[CameraSpec], frames: int = 2
                     w.add_clock_sample(cam.name, ClockSample(send, cam.boot_offset_s + k / cam.rate, recv))
             for name in names[-1 - cam.corrupt_files:-1] if cam.corrupt_files else []:
                 (path / cam.name / name).write_bytes(b"\xff\xd8\xff\xe0 truncated garbage")
-            for name in names[-1 - cam.corrupt_files - cam.missing_files:-1 - cam.corrupt_files] if cam.missing_files else []:
+            missing = names[-1 - cam.corrupt_files - cam.missing_files:-1 - cam.corrupt_files]
+            for name in missing if cam.missing_files else []:
                 (path / cam.name / name).unlink()
     return path

@@ -31,6 +31,7 @@ import cv2
 
 from cubetrack.app.tracker import Tracker
 from cubetrack.core.errors import SourceError
+from cubetrack.core.lifetime import end_with_parent
 from cubetrack.core.records import Frame, FrameJob, FrameOutcome, FrameResult
 from cubetrack.fuse.forecast import Forecast
 from cubetrack.io.frame_wire import pack_result
@@ -252,6 +253,7 @@ def _worker_main(conn: Connection, urls: dict[str, str], source: SourceParams, m
     """A camera worker process: its cameras' frames in, results out, until None comes (Ctrl-C
     is the tracker's process's business: it ends the session, then this process)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    end_with_parent()
     cv2.setNumThreads(1)
     try:
         _work_cameras(conn, urls, source, make_tracker(), views, clock, working, taken, lane)

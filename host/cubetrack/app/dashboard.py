@@ -244,7 +244,8 @@ class DashboardApp:
         self.step = "check"
         self.target = settings.calibration.samples
         self.samples = {c: 0 for c in self.urls}
-        self.marker = {c: (-math.inf, -math.inf, None) for c in self.urls}  # camera -> (checked, seen (host s), side px)
+        # camera -> (checked, seen (host s), side px)
+        self.marker = {c: (-math.inf, -math.inf, None) for c in self.urls}
         self.results: dict[str, dict] = {}
         self.refined: dict[str, dict] = {}
         self.warnings: list[str] = []
@@ -312,7 +313,8 @@ class DashboardApp:
         try:
             result = track_live(self.config, plan.extrinsics or None, plan.out_dir, self._stage_params(plan.extrinsics),
                                 self.settings.source, stop=stop, record_to=plan.record_to,
-                                sinks=[DashboardSink(self.server), _Watcher(self, plan)], live_params=self.settings.live,
+                                sinks=[DashboardSink(self.server), _Watcher(self, plan)],
+                                live_params=self.settings.live,
                                 extrinsics_path=self.extrinsics_path if self.extrinsics_path.exists() else None,
                                 command="dashboard")
         except CubetrackError as exc:

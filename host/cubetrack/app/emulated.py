@@ -9,6 +9,7 @@ serves from its ``--ready-file``.
 from __future__ import annotations
 
 import json
+import os
 import subprocess
 import sys
 import tempfile
@@ -38,12 +39,13 @@ class EmulatedCameras:
         self._process: subprocess.Popen | None = None
         self._tmp: tempfile.TemporaryDirectory | None = None
 
-    def __enter__(self) -> "EmulatedCameras":
+    def __enter__(self) -> EmulatedCameras:
         self._tmp = tempfile.TemporaryDirectory(prefix="cubetrack-emulator-")
         ready = Path(self._tmp.name) / "ready.json"
         stderr = open(Path(self._tmp.name) / "stderr.txt", "w+b")
         command = [sys.executable, "-m", "cubecam", "emulate", "--recording", str(self.recording),
                    "--bind", "127.0.0.1", "--port", "0", "--exit-at-end", "--ready-file", str(ready),
+                   "--parent-pid", str(os.getpid()),
                    *self.extra_args]
         try:
             self._process = subprocess.Popen(command, stdin=subprocess.DEVNULL, stdout=subprocess.DEVNULL,
@@ -61,6 +63,7 @@ class EmulatedCameras:
         return self
 
     def _wait_ready(self, ready: Path) -> None:
+        assert self._process is not None  # started by __enter__
         deadline = time.monotonic() + START_TIMEOUT_S
         while not ready.exists():
             code = self._process.poll()
@@ -79,6 +82,7 @@ class EmulatedCameras:
 
     def wait_finished(self, timeout_s: float) -> bool:
         """Wait until the replay has ended (the emulator exits after its last frame)."""
+        assert self._process is not None, "wait_finished() inside the with block"
         try:
             self._process.wait(timeout_s)
         except subprocess.TimeoutExpired:

@@ -94,7 +94,7 @@ def write_body(layout: CubeLayout, out: str | Path, title: str, *, pdf: bool = F
     atomic_write(paths.svg, svg)
     if paths.layout is not None:
         write_toml(layout_to_table(layout), paths.layout)
-    if paths.pdf is not None:
+    if paths.pdf is not None and pdf_bytes is not None:  # (both with pdf)
         paths.pdf.write_bytes(pdf_bytes)
     return paths
 

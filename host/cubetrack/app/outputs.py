@@ -5,10 +5,10 @@ Outputs come from the config's ``[[outputs]]`` tables and from command-line flag
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 from functools import partial
 from pathlib import Path
-from typing import Sequence
 
 from cubetrack.core.cameras import CameraExtrinsics, CameraIntrinsics
 from cubetrack.core.errors import ConfigError
@@ -107,7 +107,7 @@ def _zenoh_endpoints(spec: OutputSpec, ros: bool):
                                                       config_file)
 
 
-def _sink(spec: OutputSpec, default_domain_id: int) -> Sink:
+def _sink(spec: OutputSpec, default_domain_id: int, robots: tuple[str, ...]) -> Sink:
     table, where = spec.table, spec.where
     if spec.type == "zenoh":
         from cubetrack.sink.zenoh_json import ZenohJsonParams, ZenohJsonSink
@@ -132,7 +132,7 @@ def _sink(spec: OutputSpec, default_domain_id: int) -> Sink:
         from cubetrack.sink.vrpn import VrpnParams, VrpnSink
 
         host, port = parse_address(str(table.get("address", "")), DEFAULT_ADDRESSES["vrpn"], where)
-        return VrpnSink(VrpnParams(host=host, port=port))
+        return VrpnSink(VrpnParams(host=host, port=port), robots)
     return _foxglove_sink([spec])
 
 
@@ -171,9 +171,10 @@ def _grouped(specs: list[OutputSpec]) -> list[list[OutputSpec]]:
     return [[s] for s in specs]
 
 
-def output_sinks(specs: list[OutputSpec], default_domain_id: int = 0) -> list[Sink]:
+def output_sinks(specs: list[OutputSpec], default_domain_id: int = 0, robots: tuple[str, ...] = ()) -> list[Sink]:
     """Start every output (servers bind, sessions open now, so a bad address fails before the
-    session); on an error the ones already started are closed again."""
+    session; the configured ``robots`` are announced at once, e.g. as VRPN trackers); on an error
+    the ones already started are closed again."""
     for spec in specs:
         if spec.table.get("type") not in OUTPUT_KEYS:
             raise ConfigError(f"{spec.where}: type must be one of {', '.join(OUTPUT_KEYS)}, "
@@ -185,20 +186,20 @@ def output_sinks(specs: list[OutputSpec], default_domain_id: int = 0) -> list[Si
     sinks: list[Sink] = []
     try:
         for group in _grouped(specs):
-            sinks.append(_sink(group[0], default_domain_id) if len(group) == 1 else _foxglove_sink(group))
+            sinks.append(_sink(group[0], default_domain_id, robots) if len(group) == 1 else _foxglove_sink(group))
     except BaseException:
         close_sinks(sinks)
         raise
     return sinks
 
 
-def start_outputs(specs: list[OutputSpec], default_domain_id: int = 0) -> list[Sink]:
+def start_outputs(specs: list[OutputSpec], default_domain_id: int = 0, robots: tuple[str, ...] = ()) -> list[Sink]:
     """The outputs a tracking session runs, all together in a process of their own
     (:class:`~cubetrack.sink.process.OutputProcess`), so that their work does not take the
     tracker's process's CPU; none for no specs. A bad output fails here, before the session."""
     from cubetrack.sink.process import OutputProcess
 
-    return [OutputProcess(partial(output_sinks, specs, default_domain_id))] if specs else []
+    return [OutputProcess(partial(output_sinks, specs, default_domain_id, robots))] if specs else []
 
 
 def close_sinks(sinks: Sequence[Sink]) -> None:

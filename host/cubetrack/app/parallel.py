@@ -20,15 +20,16 @@ import os
 import queue
 import threading
 from collections import deque
+from collections.abc import Callable
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
 from multiprocessing.connection import wait as connection_wait
-from typing import Callable
 
 import cv2
 
 from cubetrack.app.tracker import FrameProcessor
 from cubetrack.core.errors import SourceError
+from cubetrack.core.lifetime import end_with_parent
 from cubetrack.core.params import check, param
 from cubetrack.core.records import Frame, FrameJob, FrameResult
 from cubetrack.io.frame_wire import pack_result, unpack_result
@@ -336,6 +337,7 @@ def _process_main(conn: Connection, make_worker: Callable[[], FrameProcessor], c
     """A worker process: jobs in (plain values, :meth:`_ProcessLane.send`), results out, packed
     (:meth:`FrameProcessor.pack`: without the job, which the other side keeps; None for a job taken
     back before it started), until None comes."""
+    end_with_parent()
     cv2.setNumThreads(1)
     try:
         worker = make_worker()

@@ -25,7 +25,8 @@ from cubetrack.core.params import check, param
 from cubetrack.core.records import CubeSighting, Detection, Frame, FrameJob, FrameOutcome, FrameResult, TrackedPose
 from cubetrack.detect.detector import Box, Detector, DetectorParams, decode_gray
 from cubetrack.estimate.match import body_detections
-from cubetrack.estimate.pose import EstimatorParams, estimate_cube, world_marker_pose
+from cubetrack.estimate.params import EstimatorParams
+from cubetrack.estimate.pose import estimate_cube, world_marker_pose
 from cubetrack.fuse.base import Fusion
 from cubetrack.fuse.corner_filter import FilterParams
 from cubetrack.fuse.fusion import FilterFusion, FusionMethod, FusionParams, LatestEstimateFusion
@@ -121,7 +122,8 @@ class FrameProcessor:
         self.robots = robots
         self.T_world_cam = T_world_cam
         self.params = params
-        self.detector = Detector(params.detector, [world.dictionary, *(d for r in robots for d in r.layout.dictionaries)])
+        self.detector = Detector(params.detector,
+                                 [world.dictionary, *(d for r in robots for d in r.layout.dictionaries)])
 
     def camera_pose(self, frame: Frame, detections) -> np.ndarray | None:
         """T_world_cam for this frame: calibrated, or from the frame's own world marker."""

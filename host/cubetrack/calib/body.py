@@ -119,7 +119,8 @@ def moved_layout(layout: CubeLayout, T_new_old: np.ndarray) -> CubeLayout:
 def _check_same_markers(a: CubeLayout, b: CubeLayout, what: str) -> None:
     if [(m.face, m.marker_id) for m in a.markers] != [(m.face, m.marker_id) for m in b.markers]:
         raise CalibrationError(f"{what} has other markers (faces and ids) than the layout: "
-                               f"{[(m.face, m.marker_id) for m in b.markers]} vs {[(m.face, m.marker_id) for m in a.markers]}")
+                               f"{[(m.face, m.marker_id) for m in b.markers]} vs "
+                               f"{[(m.face, m.marker_id) for m in a.markers]}")
 
 
 def placement_errors(layout: CubeLayout, truth: CubeLayout, aligned: bool = True
@@ -130,10 +131,11 @@ def placement_errors(layout: CubeLayout, truth: CubeLayout, aligned: bool = True
     body is not); else compare as written."""
     _check_same_markers(layout, truth, "the true layout")
     if aligned:
-        layout = moved_layout(layout, best_fit_transform(layout.corners_m.reshape(-1, 3), truth.corners_m.reshape(-1, 3)))
+        layout = moved_layout(layout, best_fit_transform(layout.corners_m.reshape(-1, 3),
+                                                         truth.corners_m.reshape(-1, 3)))
     return {m.face: (float(np.linalg.norm(m.T_cube_marker[:3, 3] - t.T_cube_marker[:3, 3])),
                      rotation_angle(m.T_cube_marker[:3, :3], t.T_cube_marker[:3, :3], "deg"), m.size_m - t.size_m)
-            for m, t in zip(layout.markers, truth.markers)}
+            for m, t in zip(layout.markers, truth.markers, strict=True)}
 
 
 def calibrate_body(frames: Mapping[str, Iterable[Frame]], extrinsics: Mapping[str, CameraExtrinsics],
@@ -193,12 +195,12 @@ def calibrate_body(frames: Mapping[str, Iterable[Frame]], extrinsics: Mapping[st
     _fix_gauge(ref, layout)
     if trajectory is None:
         ref.update_velocities()
-        obs, frames = ref.observations(), 0
+        obs, frame_count = ref.observations(), 0
         sample = obs.inst
     else:
-        obs, frames = trajectory.observations(), len(trajectory.frames)
-        sample = np.repeat(np.arange(frames), [4 * len(s.markers) for s in trajectory.sets])
-    return _report(ref, obs, sample, frames, robot, layout, extrinsics, intrinsics, warn, warnings)
+        obs, frame_count = trajectory.observations(), len(trajectory.frames)
+        sample = np.repeat(np.arange(frame_count), [4 * len(s.markers) for s in trajectory.sets])
+    return _report(ref, obs, sample, frame_count, robot, layout, extrinsics, intrinsics, warn, warnings)
 
 
 @dataclass(eq=False)
@@ -240,7 +242,7 @@ class Trajectory:
         before = (after - 1).clip(0)
         near = np.where(np.abs(times_s - inst_t[before]) < np.abs(times_s - inst_t[after]), before, after)
         knots = np.array([moved_pose(ref.model.T_bodies[k], ref.vel[k], ref.angvel[k], tk - inst_t[k])
-                          for k, tk in zip(near, times_s)])
+                          for k, tk in zip(near, times_s, strict=True)])
         ref.model = ref.model.replace(T_bodies=knots)
         trajectory = cls(ref, times_s, np.concatenate(first), frames, [])
         trajectory.rematch()
@@ -264,9 +266,9 @@ class Trajectory:
         where nothing matches are left out)."""
         ref = self.ref
         intrinsics, T_world_cam, layout = ref.intrinsics(), ref.T_world_cam(), ref.layout(ref.robots[0])
-        pairs = [(f, _frame_corners(f, layout, intrinsics[f.camera], T_world_cam[f.camera], ref.params,
+        found = [(f, _frame_corners(f, layout, intrinsics[f.camera], T_world_cam[f.camera], ref.params,
                                     self.pose_at(f.time_s))) for f in self.frames]
-        pairs = [(f, s) for f, s in pairs if s is not None]
+        pairs = [(f, s) for f, s in found if s is not None]
         if not pairs:
             raise CalibrationError("no cube sightings fit the body's trajectory")
         self.frames, self.sets = [f for f, _ in pairs], [s for _, s in pairs]
@@ -280,7 +282,8 @@ class Trajectory:
         marker = np.concatenate([np.repeat(s.markers, 4) for s in self.sets])
         pixels = np.vstack([s.corners_px.reshape(-1, 2) for s in self.sets])
         height = np.array([ref.given[s.camera].height for s in self.sets for _ in range(4 * len(s.markers))], float)
-        row_s = np.array([ref.readout_s.get(s.camera, 0.0) for s in self.sets for _ in range(4 * len(s.markers))]) / height
+        row_s = np.array([ref.readout_s.get(s.camera, 0.0)
+                          for s in self.sets for _ in range(4 * len(s.markers))]) / height
         times = np.concatenate([np.full(4 * len(s.markers), s.time_s) for s in self.sets])
         k, alpha = self._knot(times + (pixels[:, 1] - (height - 1) / 2.0) * row_s)
         n, K = len(cam), len(self.times_s)
@@ -316,7 +319,7 @@ def _report(ref: Refinement, obs: Observations, sample: np.ndarray, frames: int,
     r = corner_residuals_px(obs, ref.model)
     calibrated = ref.layout(robot)
     results = []
-    for g, (m, n) in enumerate(zip(calibrated.markers, nominal.markers)):
+    for g, (m, n) in enumerate(zip(calibrated.markers, nominal.markers, strict=True)):
         mine = obs.marker == g
         views = len(np.unique(sample[mine]))
         if not mine.any():

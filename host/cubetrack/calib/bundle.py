@@ -31,7 +31,7 @@ Steps (:func:`adjust_extrinsics`, which takes frames and clock samples held anyw
 memory; ``cubetrack.app.calibrate.adjust_recording_extrinsics`` feeds it recording folders):
 
 1. Per camera frame of the tracking recording: cube detections, a single-camera cube estimate
-   (:func:`cubetrack.estimate.estimate_cube`) with the prior extrinsics, and the faces matched to
+   (:func:`cubetrack.estimate.pose.estimate_cube`) with the prior extrinsics, and the faces matched to
    detections by :func:`cubetrack.estimate.match.match_faces` at that estimate. Frames are grouped into
    instants, each starting from its best-seen camera's estimate; the cube poses are solved with
    the prior cameras held (twice: the second time with velocities from the first).
@@ -56,9 +56,13 @@ import dataclasses
 import logging
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
 from scipy.spatial.transform import Rotation
+
+if TYPE_CHECKING:
+    from cubetrack.source.clock import ClockFit
 
 from cubetrack.calib.extrinsics import (
     CalibrationMethod,
@@ -100,41 +104,77 @@ METHOD = "refined"  # CameraExtrinsics.method of a camera after bundle adjustmen
 class BundleAdjustmentParams:
     """The ``[bundle_adjustment]`` section: how :func:`adjust_extrinsics` selects observations and solves."""
 
-    max_span_s: float = param(0.1, "frames of different cameras whose capture times (host clock) lie within this many seconds form one instant")
+    max_span_s: float = param(0.1, "frames of different cameras whose capture times (host clock) lie within this many "
+                                   "seconds form one instant")
     min_cameras: int = param(2, "an instant needs cube corners from at least this many cameras")
     max_instants: int = param(400, "at most this many instants are used (evenly spread over the recording)")
     corner_noise_px: float = param(0.5, "cube corner noise (1 sigma), pixels")
     world_corner_noise_px: float = param(0.5, "noise (1 sigma) of the world marker's averaged corners, pixels")
     f_scale_px: float = param(1.5, "residuals beyond this are down-weighted (soft-L1 loss), pixels")
-    association_gate_px: float = param(12.0, "a detection joins a cube face if its corners lie within this many pixels (or half a marker side) of the predicted face")
-    velocity_window_s: float = param(0.3, "velocities of an instant are fitted to the instants within this many seconds")
-    moved_position_m: float = param(0.02, "a camera whose cube-consensus pose is farther than this from its calibration has moved, metres")
+    association_gate_px: float = param(12.0, "a detection joins a cube face if its corners lie within this many pixels "
+                                             "(or half a marker side) of the predicted face")
+    velocity_window_s: float = param(0.3, "velocities of an instant are fitted to the instants within "
+                                          "this many seconds")
+    moved_position_m: float = param(0.02, "a camera whose cube-consensus pose is farther than this from its "
+                                          "calibration has moved, metres")
     moved_rotation_deg: float = param(0.5, "... or turned by more than this, degrees")
-    gauge_prior_position_m: float = param(0.1, "relative solve: weak prior on each camera's position (holds the gauge), metres")
+    gauge_prior_position_m: float = param(0.1, "relative solve: weak prior on each camera's position (holds "
+                                               "the gauge), metres")
     gauge_prior_rotation_deg: float = param(3.0, "relative solve: weak prior on each camera's rotation, degrees")
-    planar_motion: bool = param(True, "each robot's cube stays at one height above the floor the world marker lies on (ground robots, level floor): fixes the world frame's tilt far better than one marker; false for robots that climb")
+    planar_motion: bool = param(True, "each robot's cube stays at one height above the floor the world marker lies on "
+                                      "(ground robots, level floor): fixes the world frame's tilt far better than one "
+                                      "marker; false for robots that climb")
     height_sigma_m: float = param(0.002, "planar motion: spread (1 sigma) of the cube's height along the path, metres")
-    upright_sigma_deg: float = param(1.0, "spread (1 sigma) of each cube's tilt from world up (ground robots: the estimator's upright prior); 0 = no such prior, degrees")
-    free_cube_scale: bool = param(False, "absolute solves: estimate each cube's scale too, so the world marker sets the scale (measured worse on simulations: the obliquely seen marker's scale is less sure than the cube's): a corner bias of 0.01 px on a 20 px cube marker changes its apparent size by 0.1 %, which moves every camera radially by 2 mm")
-    world_samples: int = param(60, "world-marker sightings averaged per camera of the calibration recording (the first N found)")
+    upright_sigma_deg: float = param(1.0, "spread (1 sigma) of each cube's tilt from world up (ground robots: the "
+                                          "estimator's upright prior); 0 = no such prior, degrees")
+    free_cube_scale: bool = param(False, "absolute solves: estimate each cube's scale too, so the world marker sets "
+                                         "the scale (measured worse on simulations: the obliquely seen marker's scale "
+                                         "is less sure than the cube's): a corner bias of 0.01 px on a 20 px cube "
+                                         "marker changes its apparent size by 0.1 %, which moves every camera "
+                                         "radially by 2 mm")
+    world_samples: int = param(60, "world-marker sightings averaged per camera of the calibration recording "
+                                   "(the first N found)")
     rounds: int = param(2, "absolute solves, each after re-matching faces and re-estimating velocities")
     max_nfev: int = param(60, "function evaluations per least-squares solve")
-    refine_intrinsics: bool = param(False, "absolute solves: refine each camera's focal lengths, principal point, k1 and k2 too, held near its camera_info by the intrinsics_* sigmas")
-    intrinsics_focal_sigma: float = param(0.005, "refined intrinsics: the camera_info focal lengths' uncertainty (1 sigma), relative")
-    intrinsics_principal_sigma_px: float = param(4.0, "refined intrinsics: the camera_info principal point's uncertainty (1 sigma), pixels")
+    refine_intrinsics: bool = param(False, "absolute solves: refine each camera's focal lengths, principal point, k1 "
+                                           "and k2 too, held near its camera_info by the intrinsics_* sigmas")
+    intrinsics_focal_sigma: float = param(0.005, "refined intrinsics: the camera_info focal lengths' uncertainty (1 "
+                                                 "sigma), relative")
+    intrinsics_principal_sigma_px: float = param(4.0, "refined intrinsics: the camera_info principal point's "
+                                                      "uncertainty (1 sigma), pixels")
     intrinsics_k1_sigma: float = param(0.01, "refined intrinsics: the camera_info k1's uncertainty (1 sigma)")
     intrinsics_k2_sigma: float = param(0.03, "refined intrinsics: the camera_info k2's uncertainty (1 sigma)")
-    body_position_sigma_m: float = param(0.003, "calibrate-body: how far a marker may be from its nominal place (1 sigma), metres")
-    body_rotation_sigma_deg: float = param(2.0, "calibrate-body: how far a marker may be turned from its nominal pose (1 sigma), degrees")
-    body_size_sigma: float = param(0.02, "calibrate-body: a marker's printed size against its nominal size (1 sigma), relative")
-    body_camera_sigma_m: float = param(0.01, "calibrate-body: cameras are refined too, held near the given extrinsics with this position sigma, metres")
+    body_position_sigma_m: float = param(0.003, "calibrate-body: how far a marker may be from its nominal place "
+                                                "(1 sigma), metres")
+    body_rotation_sigma_deg: float = param(2.0, "calibrate-body: how far a marker may be turned from its nominal pose "
+                                                "(1 sigma), degrees")
+    body_size_sigma: float = param(0.02, "calibrate-body: a marker's printed size against its nominal size (1 "
+                                         "sigma), relative")
+    body_camera_sigma_m: float = param(0.01, "calibrate-body: cameras are refined too, held near the given extrinsics "
+                                             "with this position sigma, metres")
     body_camera_sigma_deg: float = param(0.3, "calibrate-body: ... and this rotation sigma, degrees")
-    body_max_span_s: float = param(0.08, "calibrate-body: max_span_s of the body calibration's instants (shorter: the body's motion between the frames of an instant is modelled as constant velocity, which misses sharp turns and vibration; measured in docs/calibration.md)")
-    body_motion_noise_px_per_s: float = param(25.0, "calibrate-body: a corner's noise grows by this many pixels per second of its frame's time from its instant (the constant-velocity motion between an instant's frames misses turns and vibration; 0 = not at all)")
-    body_knot_s: float = param(0.05, "calibrate-body: the body's pose is a continuous-time trajectory with knots this many seconds apart (each corner at the pose interpolated to its row's time, the knots tied by the body_accel sigmas; measured in docs/calibration.md); 0 = one pose per instant moved with a fitted velocity (body_motion_noise_px_per_s applies only then)")
-    body_accel_sigma_m_s2: float = param(10.0, "calibrate-body trajectory: the body's acceleration between knots (1 sigma of the knots' second difference over the squared spacing), m/s^2")
-    body_angular_accel_sigma_rad_s2: float = param(100.0, "calibrate-body trajectory: the body's angular acceleration between knots (1 sigma), rad/s^2 (the robot's wobble reaches tens)")
-    body_edge_corners: bool = param(True, "calibrate-body: re-measure the body's marker corners by the calibration's edge fit (as the world marker's) and then by fitting each marker's whole image (cubetrack.calib.marker_fit; about 70 ms per marker seen, docs/calibration.md has the measured errors)")
+    body_max_span_s: float = param(0.08, "calibrate-body: max_span_s of the body calibration's instants (shorter: the "
+                                         "body's motion between the frames of an instant is modelled as constant "
+                                         "velocity, which misses sharp turns and vibration; measured in "
+                                         "docs/calibration.md)")
+    body_motion_noise_px_per_s: float = param(25.0, "calibrate-body: a corner's noise grows by this many pixels per "
+                                                    "second of its frame's time from its instant (the "
+                                                    "constant-velocity motion between an instant's frames misses turns "
+                                                    "and vibration; 0 = not at all)")
+    body_knot_s: float = param(0.05, "calibrate-body: the body's pose is a continuous-time trajectory with knots this "
+                                     "many seconds apart (each corner at the pose interpolated to its row's time, the "
+                                     "knots tied by the body_accel sigmas; measured in docs/calibration.md); 0 = one "
+                                     "pose per instant moved with a fitted velocity (body_motion_noise_px_per_s "
+                                     "applies only then)")
+    body_accel_sigma_m_s2: float = param(10.0, "calibrate-body trajectory: the body's acceleration between knots (1 "
+                                               "sigma of the knots' second difference over the squared spacing), m/s^2")
+    body_angular_accel_sigma_rad_s2: float = param(100.0, "calibrate-body trajectory: the body's angular acceleration "
+                                                          "between knots (1 sigma), rad/s^2 (the robot's "
+                                                          "wobble reaches tens)")
+    body_edge_corners: bool = param(True, "calibrate-body: re-measure the body's marker corners by the calibration's "
+                                          "edge fit (as the world marker's) and then by fitting each marker's whole "
+                                          "image (cubetrack.calib.marker_fit; about 70 ms per marker seen, "
+                                          "docs/calibration.md has the measured errors)")
 
     def __post_init__(self) -> None:
         check_positive(self, "max_span_s", "corner_noise_px", "world_corner_noise_px", "f_scale_px",
@@ -303,7 +343,8 @@ def _reference_observation(camera: str, frames: Iterable[Frame], world: WorldCon
     return WorldMarkerObservation(camera, averaged.pixels, max(averaged.frames.values()), averaged.points_world_m)
 
 
-def _clock_fit(camera: str, samples: Sequence[ClockSample], device_s: Sequence[float], host_s: Sequence[float]):
+def _clock_fit(camera: str, samples: Sequence[ClockSample], device_s: Sequence[float],
+               host_s: Sequence[float]) -> ClockFit:
     """Device -> host clock of one camera over the whole recording (offline: not causal): the
     usable ``/time`` round trips, else the frames' arrival times (``device_s``, ``host_s``)."""
     from cubetrack.source.clock import ClockSyncParams, fit_arrivals, fit_round_trips
@@ -330,14 +371,16 @@ def cube_frames(frames: Mapping[str, Iterable[Frame]], layouts: Mapping[str, Cub
     ``frame_count`` (all cameras' frames) only sizes the progress.
 
     ``lenses`` (camera -> intrinsics): the cube corners are measured for the body calibration:
-    as the world marker's are for calibration (:func:`cubetrack.detect.refine_corners_edges` with
+    as the world marker's are for calibration (:func:`cubetrack.detect.detector.refine_corners_edges` with
     :data:`cubetrack.calib.extrinsics.EDGE_FIT` and the camera's lens model: sides straight in
     the undistorted image, edge points from the gradient's peak), then by fitting the whole marker
     image (:func:`cubetrack.calib.marker_fit.template_fitted_corners`: no bias on obliquely seen
     markers); detections whose edges cannot be fitted (``edge_min_contrast``) or whose template
     fit fails are dropped."""
-    detector = Detector(detector_params or DetectorParams(), [name for lay in layouts.values() for name in lay.dictionaries])
-    out, done = [], 0
+    detector = Detector(detector_params or DetectorParams(),
+                        [name for lay in layouts.values() for name in lay.dictionaries])
+    out: list[CubeFrame] = []
+    done = 0
     for camera, camera_frames in frames.items():
         seen: list[tuple[int, float, tuple[tuple[str, tuple[Detection, ...]], ...]]] = []
         device_s, host_s = [], []
@@ -353,7 +396,7 @@ def cube_frames(frames: Mapping[str, Iterable[Frame]], layouts: Mapping[str, Cub
                 log.warning("%s; skipped", exc)
                 continue
             detections = detector.detect(gray)
-            robots = []
+            robots: list[tuple[str, tuple[Detection, ...]]] = []
             for robot, lay in layouts.items():
                 mine = body_detections(detections, lay)
                 if mine and lenses is not None and camera in lenses:
@@ -365,9 +408,9 @@ def cube_frames(frames: Mapping[str, Iterable[Frame]], layouts: Mapping[str, Cub
         if not device_s:
             continue
         fit = _clock_fit(camera, (clock_samples or {}).get(camera, ()), device_s, host_s)
-        for seq, device_time_s, robots in seen:
+        for seq, device_time_s, seen_robots in seen:
             t = fit.to_host(device_time_s)
-            out.extend(CubeFrame(camera, robot, seq, t, mine) for robot, mine in robots)
+            out.extend(CubeFrame(camera, robot, seq, t, mine) for robot, mine in seen_robots)
     out.sort(key=lambda f: (f.time_s, f.camera))
     return out
 
@@ -379,9 +422,9 @@ def _edge_fitted(gray: np.ndarray, detections: Sequence[Detection], lens: Camera
     several would exceed cv2.remap's row length)."""
     corners = [edge_fitted_corners(gray, d.corners_px, d.dictionary, lens, min_contrast) for d in detections]
     corners = [c if np.isnan(c).any() else template_fitted_corners(gray, c, d.dictionary, d.marker_id, lens)
-               for d, c in zip(detections, corners)]
+               for d, c in zip(detections, corners, strict=True)]
     return tuple(Detection(d.marker_id, c, shoelace_area(c), d.dictionary)
-                 for d, c in zip(detections, corners) if not np.isnan(c).any())
+                 for d, c in zip(detections, corners, strict=True) if not np.isnan(c).any())
 
 
 def _frame_corners(frame: CubeFrame, layout: CubeLayout, intrinsics: CameraIntrinsics, T_world_cam: np.ndarray,
@@ -454,8 +497,9 @@ _OPENCV_DIST_LENGTHS = (5, 8, 12, 14)  # distortion vector lengths cv2.projectPo
 def layout_with(layout: CubeLayout, T_body_markers: np.ndarray, sizes_m: np.ndarray) -> CubeLayout:
     """``layout`` with its markers (same faces, ids, dictionary) at ``T_body_markers`` (M, 4, 4)
     and of sides ``sizes_m`` (M,)."""
+    markers = zip(layout.markers, T_body_markers, sizes_m, strict=True)
     return CubeLayout(layout.dictionary, tuple(LayoutMarker(m.face, m.marker_id, float(s), np.array(T, float))
-                                               for m, T, s in zip(layout.markers, T_body_markers, sizes_m)))
+                                               for m, T, s in markers))
 
 
 def _intrinsics_arrays(intrinsics: Sequence[CameraIntrinsics]) -> tuple[np.ndarray, np.ndarray]:
@@ -558,7 +602,8 @@ class Refinement:
             wc.append(np.full(len(points), cam_index[name]))
             wp.append(points)
             wx.append(px)
-        return Observations(np.concatenate(cam), inst_a, np.concatenate(marker), np.tile(np.arange(4), len(inst_a) // 4),
+        return Observations(np.concatenate(cam), inst_a, np.concatenate(marker),
+                            np.tile(np.arange(4), len(inst_a) // 4),
                             np.vstack(pixels), Rotation.from_rotvec(self.angvel[inst_a] * dt[:, None]).as_matrix(),
                             self.vel[inst_a] * dt[:, None],
                             np.array([self.robots.index(i.robot) for i in self.instants], dtype=int), len(self.robots),
@@ -598,7 +643,8 @@ class Refinement:
             sets = []
             for f in instant.frames:
                 T = moved_pose(self.model.T_bodies[k], self.vel[k], self.angvel[k], f.time_s - instant.time_s)
-                s = _frame_corners(f, layouts[instant.robot], intrinsics[f.camera], T_world_cam[f.camera], self.params, T)
+                s = _frame_corners(f, layouts[instant.robot], intrinsics[f.camera], T_world_cam[f.camera],
+                                   self.params, T)
                 if s is not None:
                     sets.append((f, s))
             if len({f.camera for f, _ in sets}) >= self.params.min_cameras:
@@ -651,8 +697,8 @@ def make_instants(frames: Sequence[CubeFrame], layouts: Mapping[str, CubeLayout]
         if progress is not None:
             progress("bundle adjustment: instants", done, len(groups))
         layout = layouts[group[0].robot]
-        pairs = [(f, _frame_corners(f, layout, intrinsics[f.camera], T_world_cam[f.camera], params)) for f in group]
-        pairs = [(f, s) for f, s in pairs if s is not None]
+        found = [(f, _frame_corners(f, layout, intrinsics[f.camera], T_world_cam[f.camera], params)) for f in group]
+        pairs = [(f, s) for f, s in found if s is not None]
         if len({f.camera for f, _ in pairs}) < params.min_cameras:
             continue
         t_ref = float(np.mean([f.time_s for f, _ in pairs]))
@@ -708,8 +754,12 @@ def world_marker_terms(observations: Mapping[str, WorldMarkerObservation], world
     """The solver's world points of the ``cameras`` that have a world-marker observation: the
     marker's four corners (world frame), or the reference's points, and their averaged pixels."""
     marker = marker_corners_m(world.marker_size_m)
-    return {c: (marker if observations[c].points_world_m is None else observations[c].points_world_m,
-                observations[c].corners_px) for c in cameras if c in observations}
+    terms: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+    for c in cameras:
+        if c in observations:
+            points_m = observations[c].points_world_m
+            terms[c] = (marker if points_m is None else points_m, observations[c].corners_px)
+    return terms
 
 
 def start_refinement(frames: Mapping[str, Iterable[Frame]], extrinsics: Mapping[str, CameraExtrinsics],
@@ -797,7 +847,8 @@ def adjust_extrinsics(frames: Mapping[str, Iterable[Frame]], extrinsics: Mapping
     used = ref.cameras
 
     # 1. the relative solve: cube corners only, the gauge held by weak priors on the cameras
-    gauge = PosePrior(ref.model.T_cams.copy(), params.gauge_prior_position_m, np.radians(params.gauge_prior_rotation_deg))
+    gauge: PosePrior | None = PosePrior(ref.model.T_cams.copy(), params.gauge_prior_position_m,
+                                        np.radians(params.gauge_prior_rotation_deg))
     ref.solve(ref.freedom(camera_prior=gauge))
     G, consistent, moved = _align(ref.T_world_cam(), T_prior, params)
     if moved and len(consistent) < 2:
@@ -828,7 +879,17 @@ def adjust_extrinsics(frames: Mapping[str, Iterable[Frame]], extrinsics: Mapping
         ref.solve(ref.freedom(camera_prior=gauge, intrinsics=params.refine_intrinsics,
                               free_scale=params.free_cube_scale and bool(world_terms)), world_terms)
 
-    # report
+    return _adjustment_report(ref, extrinsics, intrinsics, cameras, T_prior, moved, world_terms, warn, warnings)
+
+
+def _adjustment_report(ref: Refinement, extrinsics: Mapping[str, CameraExtrinsics],
+                       intrinsics: Mapping[str, CameraIntrinsics], cameras: Sequence[str],
+                       T_prior: Mapping[str, np.ndarray], moved: Sequence[str],
+                       world_terms: dict[str, tuple[np.ndarray, np.ndarray]], warn: Callable[[str], None],
+                       warnings: list[str]) -> BundleAdjustmentReport:
+    """The refined extrinsics and each camera's residuals after the last solve (see
+    :func:`adjust_extrinsics`); a moved camera is also warned about."""
+    used = ref.cameras
     ref.update_velocities()
     obs, r, rw = ref.residuals(world_terms)
     refined = dict(extrinsics)

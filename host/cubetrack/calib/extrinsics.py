@@ -12,7 +12,7 @@ Two methods, selected by :class:`CalibrationParams` (``[calibration] method``):
     The camera and the marker do not move during calibration, so the marker's corners are the
     same in every frame; the per-frame pose noise averages out, but a systematic corner bias
     does not (``cv-facts.md`` §5). So: (1) every detection's corners are re-measured from the
-    marker's four edges with the camera's lens model (:func:`cubetrack.detect.refine_corners_edges`
+    marker's four edges with the camera's lens model (:func:`cubetrack.detect.detector.refine_corners_edges`
     with :data:`EDGE_FIT`: sub-pixel edge points, one straight line per edge in undistorted
     coordinates, corners = line intersections) — free of the inward bias of OpenCV's corners
     (``[calibration] corner_refinement`` may pick another of the detector's methods); (2) frames
@@ -40,6 +40,7 @@ import logging
 from collections import Counter
 from collections.abc import Callable, Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass, field
+from typing import Any
 
 import numpy as np
 
@@ -64,13 +65,13 @@ from cubetrack.detect.detector import (
     decode_gray,
     refine_corners_edges,
 )
+from cubetrack.estimate.marker import marker_pose
 from cubetrack.estimate.match import detections_of
-from cubetrack.estimate.pose import marker_pose
 
 log = logging.getLogger(__name__)
 
 
-class CalibrationMethod(str, enum.Enum):
+class CalibrationMethod(str, enum.Enum):  # noqa: UP042 (StrEnum would change str() of a member)
     CMA = "cma"
     ROBUST = "robust"
 
@@ -80,7 +81,7 @@ class CalibrationMethod(str, enum.Enum):
 # edge points from the gradient's peak with a narrow window (focus='peak'), which a narrow white
 # margin's outer edge does not pull inward (measured: marker size bias +0.001 px, -0.02 px with
 # the detector's tent). Camera positions in `cubetrack simulate` calibrations: docs/calibration.md.
-EDGE_FIT = dict(iterations=3, samples_along=64, samples_across=65, span=(0.12, 0.88), focus="peak")
+EDGE_FIT: dict[str, Any] = dict(iterations=3, samples_along=64, samples_across=65, span=(0.12, 0.88), focus="peak")
 
 
 @dataclass(frozen=True, slots=True)
@@ -154,8 +155,9 @@ def cma_pose(T_world_cams: Sequence[np.ndarray]) -> np.ndarray:
         if quat.value is not None and float(np.dot(q, quat.value)) < 0.0:
             q = -q
         quat.update(q)
-    q = quat.value / np.linalg.norm(quat.value)
-    return make_T(R_from_quat_xyzw(q), position.value)
+    mean_q, mean_position = quat.value, position.value
+    assert mean_q is not None and mean_position is not None  # at least one sample (checked above)
+    return make_T(R_from_quat_xyzw(mean_q / np.linalg.norm(mean_q)), mean_position)
 
 
 def pose_spread(T_world_cams: Sequence[np.ndarray], T_ref: np.ndarray) -> tuple[float, float]:
@@ -214,7 +216,7 @@ class CalibrationReport:
 
 def world_detector(world: WorldConfig, detector_params: DetectorParams | None = None,
                    corner_refinement: CornerRefinement | None = None) -> Detector:
-    """A :class:`cubetrack.detect.Detector` for the world reference's dictionaries, with the
+    """A :class:`cubetrack.detect.detector.Detector` for the world reference's dictionaries, with the
     config's ``[detector]`` settings (``detector_params``; None = the defaults) and, when given,
     another ``corner_refinement``."""
     params = dataclasses.replace(detector_params or DetectorParams(), dictionary=world.dictionary)
@@ -275,7 +277,7 @@ def edge_fitted_corners(gray: np.ndarray, corners_px: np.ndarray, dictionary: st
 def _marker_poses(detection: Detection, size_m: float,
                   intrinsics: CameraIntrinsics) -> list[tuple[np.ndarray, float]]:
     """Both planar solutions ``(T_cam_marker, rms reprojection error px)``, best first, from
-    :func:`cubetrack.estimate.marker_pose` (each refined by Levenberg-Marquardt on the
+    :func:`cubetrack.estimate.marker.marker_pose` (each refined by Levenberg-Marquardt on the
     reprojection error: IPPE's closed form is not the least-squares optimum)."""
     mp = marker_pose(detection, size_m, intrinsics)
     if mp is None:
@@ -302,7 +304,7 @@ def collect_sightings(
     Returns (sightings, frames decoded, skipped frames by reason). Corrupt frames are skipped
     and counted, never fatal. The robust method measures the corners with
     ``params.corner_refinement``; with ``edge`` (the default) the detector's unrefined quad is
-    fitted by :func:`cubetrack.detect.refine_corners_edges` with the camera's lens model.
+    fitted by :func:`cubetrack.detect.detector.refine_corners_edges` with the camera's lens model.
     """
     detector, refine = calibration_detector(world, params, detector_params)
     sightings: list[Sighting] = []
@@ -379,7 +381,7 @@ def calibrate_robust(
         log.warning("world marker pose is ambiguous (reprojection %.3f vs %.3f px): the marker is "
                     "small or seen nearly head-on in this camera", poses[0][1], poses[1][1])
     per_frame = []
-    for s, k in zip(sightings, keep):
+    for s, k in zip(sightings, keep, strict=True):
         if not k:
             continue
         candidates = [s.T_world_cam] + ([s.T_world_cam_alt] if s.T_world_cam_alt is not None else [])
@@ -401,7 +403,7 @@ def calibrate_camera(
 ) -> CameraCalibration:
     """Calibrate one camera from its frames; CalibrationError when it saw the world marker in
     fewer than ``params.min_samples`` frames. ``detector_params``: the ``[detector]`` settings
-    (:class:`cubetrack.detect.DetectorParams`, its dictionary replaced by the world's). A world
+    (:class:`cubetrack.detect.detector.DetectorParams`, its dictionary replaced by the world's). A world
     reference of more than the one marker (more markers, a board) is measured and solved by
     :mod:`cubetrack.calib.reference`."""
     if not world.single_marker:

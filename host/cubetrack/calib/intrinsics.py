@@ -14,9 +14,9 @@ Pixel convention: OpenCV's, (0, 0) = centre of the top-left pixel.
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Sequence
 
 import numpy as np
 
@@ -154,14 +154,17 @@ def calibrate_intrinsics(
             f"only {len(objs)} of {len(images)} images show the {params.squares_x}x{params.squares_y} "
             f"{params.dictionary} ChArUco board with at least {params.min_corners} corners; need "
             f"{params.min_views} (corners found: {found}). Check --board, --dictionary and --legacy")
+    assert size is not None  # set by every used view, and there are min_views of them
     try:
-        rms, K, dist, rvecs, tvecs, std_intr, _, _ = cv2.calibrateCameraExtended(objs, imgs, size, None, None)
+        # OpenCV's stubs do not allow None for the cameraMatrix and distCoeffs outputs; OpenCV does
+        rms, K, dist, rvecs, tvecs, std_intr, _, _ = cv2.calibrateCameraExtended(  # type: ignore[call-overload]
+            objs, imgs, size, None, None)
     except cv2.error as exc:
         raise CalibrationError(f"calibration failed: {str(exc).strip().splitlines()[-1]}") from None
     if not (np.all(np.isfinite(K)) and np.all(np.isfinite(dist)) and K[0, 0] > 0 and K[1, 1] > 0):
         raise CalibrationError("calibration diverged (non-finite or negative focal length); add views "
                                "that show the board at different angles and positions")
-    for k, obj, img, rvec, tvec in zip(used, objs, imgs, rvecs, tvecs):
+    for k, obj, img, rvec, tvec in zip(used, objs, imgs, rvecs, tvecs, strict=True):
         proj, _ = cv2.projectPoints(obj, rvec, tvec, K, dist)
         err = float(np.sqrt(np.mean(np.sum((proj.reshape(-1, 2) - img.reshape(-1, 2)) ** 2, axis=1))))
         views[k] = ViewResult(views[k].name, views[k].corners, True, "", err)

@@ -89,7 +89,9 @@ def template_fitted_corners(gray: np.ndarray, corners_px: np.ndarray, dictionary
         return region.pixels - A @ coef
 
     try:
-        result = least_squares(residuals, np.r_[np.zeros(8), params.start_blur_px], method="trf", diff_step=1e-3,
+        # scipy-stubs types diff_step as an array; scipy takes a scalar too (its docs: array_like)
+        result = least_squares(residuals, np.r_[np.zeros(8), params.start_blur_px], method="trf",
+                               diff_step=1e-3,  # type: ignore[arg-type]
                                x_scale=np.full(9, 0.1), xtol=1e-3, max_nfev=params.max_nfev)
     except (np.linalg.LinAlgError, ValueError):
         return failed

@@ -85,7 +85,7 @@ def board_markers(board: WorldBoard) -> tuple[WorldMarker, ...]:
     cv_board.setLegacyPattern(board.legacy_pattern)
     T = board.T_world_board @ board.T_board_opencv
     out = []
-    for marker_id, corners in zip(cv_board.getIds().ravel(), cv_board.getObjPoints()):
+    for marker_id, corners in zip(np.asarray(cv_board.getIds()).ravel(), cv_board.getObjPoints(), strict=True):
         c = transform_points(T, np.asarray(corners, float).reshape(4, 3))  # TL TR BR BL
         x = (c[1] - c[0]) / np.linalg.norm(c[1] - c[0])
         y = (c[0] - c[3]) / np.linalg.norm(c[0] - c[3])
@@ -135,8 +135,8 @@ def average_reference(sightings: Sequence[ReferenceSighting], threshold_px: floa
     ``min_frames`` frames are left out. CalibrationError when none is left."""
     seen: dict[str, tuple[np.ndarray, list[np.ndarray]]] = {}
     for s in sightings:
-        for name, (points, pixels) in s.targets.items():
-            seen.setdefault(name, (points, []))[1].append(pixels)
+        for name, (target_points, target_pixels) in s.targets.items():
+            seen.setdefault(name, (target_points, []))[1].append(target_pixels)
     points, pixels, frames = [], [], {}
     for name, (world_points, corners) in sorted(seen.items()):
         if len(corners) < min_frames:
@@ -168,7 +168,7 @@ def pnp_pose(points_world_m: np.ndarray, pixels: np.ndarray, intrinsics: CameraI
     except cv2.error as exc:
         raise CalibrationError(f"no camera pose from {len(obj)} reference points: {str(exc).strip()[-80:]}") from None
     best = None
-    for rvec, tvec in zip(rvecs[:n], tvecs[:n]):
+    for rvec, tvec in zip(rvecs[:n], tvecs[:n], strict=True):
         rvec, tvec = cv2.solvePnPRefineLM(obj, img, K, dist, rvec.copy(), tvec.copy())
         proj, _ = cv2.projectPoints(obj, rvec, tvec, K, dist)
         rms = float(np.sqrt(np.mean(np.sum((proj.reshape(-1, 2) - img) ** 2, axis=1))))

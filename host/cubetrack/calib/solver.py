@@ -41,11 +41,12 @@ marker's size relatively.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import cv2
 import numpy as np
 from scipy.optimize import least_squares
-from scipy.sparse import coo_matrix, diags
+from scipy.sparse import coo_matrix, csr_matrix, diags
 from scipy.sparse.linalg import splu
 from scipy.spatial.transform import Rotation
 
@@ -106,7 +107,7 @@ class Model:
     marker_robot: np.ndarray
     scales: np.ndarray
 
-    def replace(self, **changes) -> Model:
+    def replace(self, **changes: Any) -> Model:
         values = {name: getattr(self, name) for name in self.__slots__}
         values.update(changes)
         return Model(**values)
@@ -220,7 +221,7 @@ def project(points_cam: np.ndarray, K: np.ndarray, dist: np.ndarray,
         zero = np.zeros(3)
         uv, J = cv2.projectPoints(points_cam[front].astype(np.float64), zero, zero, K, dist)
         pixels[front] = uv.reshape(-1, 2)
-        if with_jac:
+        if jac is not None:  # with_jac
             J = J.reshape(-1, 2, J.shape[1])
             jac[front] = J[:, :, 3:]  # d/d tvec = d/d point; then f, c, dist
     return pixels, jac, front
@@ -267,7 +268,8 @@ def world_residuals_px(obs: Observations, model: Model) -> np.ndarray:
     return _projected(model, obs.world_cam, obs.world_points, False)[0] - obs.world_pixels
 
 
-def _projected(model: Model, cam: np.ndarray, X: np.ndarray, with_jac: bool):
+def _projected(model: Model, cam: np.ndarray, X: np.ndarray,
+               with_jac: bool) -> tuple[np.ndarray, np.ndarray | None, np.ndarray | None]:
     """Pixels (N, 2) of world points X seen by cameras ``cam``; with ``with_jac`` also
     d pixel / d X (N, 2, 3) and d pixel / d [fx, fy, cx, cy, dist...] (N, 2, 4 + D)."""
     Rc = model.T_cams[cam, :3, :3]
@@ -280,7 +282,7 @@ def _projected(model: Model, cam: np.ndarray, X: np.ndarray, with_jac: bool):
         rows = np.flatnonzero(cam == c)
         px, J, _front = project(pc[rows], model.K[c], model.dist[c], with_jac)
         pixels[rows] = px
-        if with_jac:
+        if dX is not None and dI is not None and J is not None:  # with_jac
             dX[rows] = J[:, :, :3] @ model.T_cams[c, :3, :3].T
             dI[rows] = J[:, :, 3:]
     return pixels, dX, dI
@@ -309,23 +311,87 @@ def _columns(obs: Observations, model: Model, free: Freedom) -> _Layout:
              R if free.height_sigma_m > 0 else 0, R if free.free_scale else 0,
              7 * G if free.body is not None else 0]
     starts = np.concatenate([[0], np.cumsum(sizes)])
-    return _Layout(C, K, G, R, *(int(s) for s in starts[:6]), int(starts[6]))
+    cams, intr, bodies, heights, scales, markers, n = (int(s) for s in starts)
+    return _Layout(C, K, G, R, cams, intr, bodies, heights, scales, markers, n)
 
 
 def solve(obs: Observations, model: Model, free: Freedom) -> Model:
     """Least-squares ``model`` for ``obs`` with the blocks and priors ``free`` gives (see the
     module docstring); returns the solved model (fixed blocks as they came)."""
-    L = _columns(obs, model, free)
-    sigma, sigma_w = free.corner_noise_px, free.world_noise_px
-    heights0 = np.array([np.median(model.T_bodies[obs.robot == j, 2, 3]) if (obs.robot == j).any() else 0.0
-                         for j in range(L.R)])
-    corner_sigma = np.full((len(obs.cam), 1), sigma)  # (N, 1) each body corner's noise
-    if free.motion_noise_px_per_s > 0 and obs.dt_s is not None:
-        corner_sigma = np.hypot(sigma, free.motion_noise_px_per_s * obs.dt_s)[:, None]
-    f0 = model.K[:, [0, 1], [0, 1]]  # (C, 2)
-    fmean0 = f0.mean(axis=1)
+    problem = _Problem(obs, model, free)
+    L, sigma = problem.L, free.corner_noise_px
+    if obs.knot_alpha is not None:  # thousands of knots: sparse direct steps (lsmr would crawl)
+        knots = np.arange(L.bodies, L.bodies + 6 * L.K)
+        order = np.r_[knots, np.setdiff1d(np.arange(L.n), knots)]  # the banded knots first, the few shared last
+        return problem.unpack(levenberg_marquardt(problem.evaluate, np.zeros(L.n), free.f_scale_px / sigma,
+                                                  free.max_nfev, order))
 
-    def unpack(x: np.ndarray) -> Model:
+    def residuals(x: np.ndarray) -> np.ndarray:
+        return problem.evaluate(x, False)[0]
+
+    def jacobian(x: np.ndarray) -> csr_matrix:
+        J = problem.evaluate(x, True)[1]
+        assert J is not None  # with_jac
+        return J
+
+    result = least_squares(residuals, np.zeros(L.n), jac=jacobian,
+                           method="trf", loss="soft_l1", f_scale=free.f_scale_px / sigma,
+                           x_scale=np.full(L.n, 1e-3), max_nfev=free.max_nfev, tr_solver="lsmr")
+    return problem.unpack(result.x)
+
+
+class _Blocks:
+    """The residuals of one evaluation and, ``with_jac``, their sparse Jacobian, block by block."""
+
+    def __init__(self, with_jac: bool):
+        self.with_jac = with_jac
+        self.res: list[np.ndarray] = []
+        self.rows: list[np.ndarray] = []
+        self.cols: list[np.ndarray] = []
+        self.vals: list[np.ndarray] = []
+        self.row = 0
+
+    def add(self, r: np.ndarray, parts: list[tuple[np.ndarray, np.ndarray]]) -> None:
+        """Residuals r (n, k) and their Jacobian parts: (columns (n, w), values (n, k, w))."""
+        n, k = r.shape
+        self.res.append(r.ravel())
+        if self.with_jac:
+            base = self.row + k * np.arange(n)[:, None] + np.arange(k)[None, :]  # (n, k)
+            for c, v in parts:
+                w = c.shape[1]
+                self.rows.append(np.broadcast_to(base[:, :, None], (n, k, w)).ravel())
+                self.cols.append(np.broadcast_to(c[:, None, :], (n, k, w)).ravel())
+                self.vals.append(v.ravel())
+        self.row += n * k
+
+    def result(self, columns: int) -> tuple[np.ndarray, csr_matrix | None]:
+        r_all = np.concatenate(self.res)
+        if not self.with_jac:
+            return r_all, None
+        J = coo_matrix((np.concatenate(self.vals), (np.concatenate(self.rows), np.concatenate(self.cols))),
+                       shape=(self.row, columns))
+        return r_all, J.tocsr()
+
+
+class _Problem:
+    """One solve's least-squares problem: the parameter vector's layout (:class:`_Layout`), the
+    model it moves (:meth:`unpack`) and its weighted residuals and Jacobian (:meth:`evaluate`)."""
+
+    def __init__(self, obs: Observations, model: Model, free: Freedom):
+        self.obs, self.model, self.free = obs, model, free
+        self.L = L = _columns(obs, model, free)
+        sigma = free.corner_noise_px
+        self.heights0 = np.array([np.median(model.T_bodies[obs.robot == j, 2, 3]) if (obs.robot == j).any() else 0.0
+                                  for j in range(L.R)])
+        corner_sigma = np.full((len(obs.cam), 1), sigma)  # (N, 1) each body corner's noise
+        if free.motion_noise_px_per_s > 0 and obs.dt_s is not None:
+            corner_sigma = np.hypot(sigma, free.motion_noise_px_per_s * obs.dt_s)[:, None]
+        self.corner_sigma = corner_sigma
+        self.f0 = model.K[:, [0, 1], [0, 1]]  # (C, 2)
+        self.fmean0 = self.f0.mean(axis=1)
+
+    def unpack(self, x: np.ndarray) -> Model:
+        model, free, L, f0, fmean0 = self.model, self.free, self.L, self.f0, self.fmean0
         changes = {"T_bodies": apply_increments(model.T_bodies, x[L.bodies:L.bodies + 6 * L.K].reshape(L.K, 6))}
         if free.cameras:
             changes["T_cams"] = apply_increments(model.T_cams, x[L.cams:L.cams + 6 * L.C].reshape(L.C, 6))
@@ -345,150 +411,144 @@ def solve(obs: Observations, model: Model, free: Freedom) -> Model:
             changes["sizes_m"] = model.sizes_m * (1 + d[:, 6])
         return model.replace(**changes)
 
-    def evaluate(x: np.ndarray, with_jac: bool):
-        m = unpack(x)
-        res: list[np.ndarray] = []
-        rows: list[np.ndarray] = []
-        cols: list[np.ndarray] = []
-        vals: list[np.ndarray] = []
-        row = 0
+    def evaluate(self, x: np.ndarray, with_jac: bool) -> tuple[np.ndarray, csr_matrix | None]:
+        """The weighted residuals at ``x`` and, ``with_jac``, their sparse Jacobian."""
+        m = self.unpack(x)
+        blocks = _Blocks(with_jac)
+        self._body_corners(m, blocks)
+        self._world_points(m, blocks)
+        self._trajectory(m, blocks)
+        self._ground(m, x, blocks)
+        self._priors(m, blocks)
+        return blocks.result(self.L.n)
 
-        def block(r: np.ndarray, parts: list[tuple[np.ndarray, np.ndarray]]) -> None:
-            """Residuals r (n, k) and their Jacobian parts: (columns (n, w), values (n, k, w))."""
-            nonlocal row
-            n, k = r.shape
-            res.append(r.ravel())
-            if with_jac:
-                base = row + k * np.arange(n)[:, None] + np.arange(k)[None, :]  # (n, k)
-                for c, v in parts:
-                    w = c.shape[1]
-                    rows.append(np.broadcast_to(base[:, :, None], (n, k, w)).ravel())
-                    cols.append(np.broadcast_to(c[:, None, :], (n, k, w)).ravel())
-                    vals.append(v.ravel())
-            row += n * k
+    def _cam_parts(self, m: Model, cam: np.ndarray, X: np.ndarray, A: np.ndarray, dI: np.ndarray,
+                   scale: float | np.ndarray) -> list:
+        """Jacobian parts of the cameras' poses and intrinsics (those that are free)."""
+        free, L, f0, fmean0 = self.free, self.L, self.f0, self.fmean0
+        parts = []
+        if free.cameras:
+            y = X - m.T_cams[cam, :3, 3]
+            parts.append((L.cams + 6 * cam[:, None] + np.arange(6), np.concatenate([-A, A @ skew(y)], axis=2)))
+        if free.intrinsics is not None:
+            Jd = np.stack([dI[:, :, 0] * f0[cam, 0, None], dI[:, :, 1] * f0[cam, 1, None],
+                           dI[:, :, 2] * fmean0[cam, None], dI[:, :, 3] * fmean0[cam, None],
+                           dI[:, :, 4], dI[:, :, 5]], axis=2) / scale
+            parts.append((L.intr + 6 * cam[:, None] + np.arange(6), Jd))
+        return parts
 
-        def cam_parts(cam: np.ndarray, X: np.ndarray, A: np.ndarray, dI: np.ndarray, scale: float) -> list:
-            parts = []
-            if free.cameras:
-                y = X - m.T_cams[cam, :3, 3]
-                parts.append((L.cams + 6 * cam[:, None] + np.arange(6), np.concatenate([-A, A @ skew(y)], axis=2)))
-            if free.intrinsics is not None:
-                Jd = np.stack([dI[:, :, 0] * f0[cam, 0, None], dI[:, :, 1] * f0[cam, 1, None],
-                               dI[:, :, 2] * fmean0[cam, None], dI[:, :, 3] * fmean0[cam, None],
-                               dI[:, :, 4], dI[:, :, 5]], axis=2) / scale
-                parts.append((L.intr + 6 * cam[:, None] + np.arange(6), Jd))
-            return parts
+    def _body_corners(self, m: Model, blocks: _Blocks) -> None:
+        obs, free, L, corner_sigma = self.obs, self.free, self.L, self.corner_sigma
+        if not len(obs.cam):
+            return
+        T_m = m.T_body_markers[obs.marker]
+        local = UNIT_CORNERS[obs.corner] * m.sizes_m[obs.marker][:, None]
+        q = np.einsum("nij,nj->ni", T_m[:, :3, :3], local)  # R_m s u
+        scale = m.scales[m.marker_robot[obs.marker]]
+        P = (q + T_m[:, :3, 3]) * scale[:, None]
+        Rt, pt = corner_body_poses(obs, m)
+        a = np.einsum("nij,nj->ni", Rt, P)  # the body corner, world axes
+        X = a + pt
+        px, dX, dI = _projected(m, obs.cam, X, blocks.with_jac)
+        front = np.isfinite(px[:, 0])
+        r = np.where(front[:, None], (px - obs.pixels) / corner_sigma, _BEHIND_PX)
+        parts = []
+        if dX is not None and dI is not None:  # with_jac
+            A = dX / corner_sigma[:, :, None] * front[:, None, None]
+            dI = dI * front[:, None, None]
+            parts = self._cam_parts(m, obs.cam, X, A, dI, corner_sigma[:, :, None])
+            if obs.knot_alpha is None:  # X = exp(ω dt) R_k P + ...: d X / d δθ_k = -exp(ω dt) [R_k P]x
+                a_k = np.einsum("nji,nj->ni", obs.motion_R, a)
+                parts.append((L.bodies + 6 * obs.inst[:, None] + np.arange(6),
+                              np.concatenate([A, -(A @ obs.motion_R) @ skew(a_k)], axis=2)))
+            else:  # the interpolated pose takes (1 - α) of knot k's increment and α of knot k + 1's (first order)
+                dpose = np.concatenate([A, -A @ skew(a)], axis=2)
+                al = obs.knot_alpha[:, None, None]
+                parts.append((L.bodies + 6 * obs.inst[:, None] + np.arange(6), (1 - al) * dpose))
+                parts.append((L.bodies + 6 * (obs.inst[:, None] + 1) + np.arange(6), al * dpose))
+            B = A @ Rt  # d r / d P
+            if free.free_scale:
+                unscaled = P / scale[:, None]
+                parts.append((L.scales + obs.robot[obs.inst][:, None], B @ unscaled[:, :, None]))
+            if free.body is not None:
+                Bs = B * scale[:, None, None]
+                unit = np.einsum("nij,nj->ni", T_m[:, :3, :3], UNIT_CORNERS[obs.corner])
+                size0 = self.model.sizes_m[obs.marker]
+                Jm = np.concatenate([Bs, -Bs @ skew(q), (Bs @ unit[:, :, None]) * size0[:, None, None]], axis=2)
+                parts.append((L.markers + 7 * obs.marker[:, None] + np.arange(7), Jm))
+        blocks.add(r, parts)
 
-        # body corners
-        if len(obs.cam):
-            T_m = m.T_body_markers[obs.marker]
-            local = UNIT_CORNERS[obs.corner] * m.sizes_m[obs.marker][:, None]
-            q = np.einsum("nij,nj->ni", T_m[:, :3, :3], local)  # R_m s u
-            scale = m.scales[m.marker_robot[obs.marker]]
-            P = (q + T_m[:, :3, 3]) * scale[:, None]
-            Rt, pt = corner_body_poses(obs, m)
-            a = np.einsum("nij,nj->ni", Rt, P)  # the body corner, world axes
-            X = a + pt
-            px, dX, dI = _projected(m, obs.cam, X, with_jac)
-            front = np.isfinite(px[:, 0])
-            r = np.where(front[:, None], (px - obs.pixels) / corner_sigma, _BEHIND_PX)
-            parts = []
-            if with_jac:
-                A = dX / corner_sigma[:, :, None] * front[:, None, None]
-                dI = dI * front[:, None, None]
-                parts = cam_parts(obs.cam, X, A, dI, corner_sigma[:, :, None])
-                if obs.knot_alpha is None:  # X = exp(ω dt) R_k P + ...: d X / d δθ_k = -exp(ω dt) [R_k P]x
-                    a_k = np.einsum("nji,nj->ni", obs.motion_R, a)
-                    parts.append((L.bodies + 6 * obs.inst[:, None] + np.arange(6),
-                                  np.concatenate([A, -(A @ obs.motion_R) @ skew(a_k)], axis=2)))
-                else:  # the interpolated pose takes (1 - α) of knot k's increment and α of knot k + 1's (first order)
-                    dpose = np.concatenate([A, -A @ skew(a)], axis=2)
-                    al = obs.knot_alpha[:, None, None]
-                    parts.append((L.bodies + 6 * obs.inst[:, None] + np.arange(6), (1 - al) * dpose))
-                    parts.append((L.bodies + 6 * (obs.inst[:, None] + 1) + np.arange(6), al * dpose))
-                B = A @ Rt  # d r / d P
-                if free.free_scale:
-                    unscaled = P / scale[:, None]
-                    parts.append((L.scales + obs.robot[obs.inst][:, None], B @ unscaled[:, :, None]))
-                if free.body is not None:
-                    Bs = B * scale[:, None, None]
-                    unit = np.einsum("nij,nj->ni", T_m[:, :3, :3], UNIT_CORNERS[obs.corner])
-                    size0 = model.sizes_m[obs.marker]
-                    Jm = np.concatenate([Bs, -Bs @ skew(q), (Bs @ unit[:, :, None]) * size0[:, None, None]], axis=2)
-                    parts.append((L.markers + 7 * obs.marker[:, None] + np.arange(7), Jm))
-            block(r, parts)
-        # world points
-        if len(obs.world_cam) and (free.cameras or free.intrinsics is not None):
-            px, dX, dI = _projected(m, obs.world_cam, obs.world_points, with_jac)
-            front = np.isfinite(px[:, 0])
-            r = np.where(front[:, None], (px - obs.world_pixels) / sigma_w, _BEHIND_PX)
-            parts = []
-            if with_jac:
-                parts = cam_parts(obs.world_cam, obs.world_points, dX / sigma_w * front[:, None, None],
-                                  dI * front[:, None, None], sigma_w)
-            block(r, parts)
+    def _world_points(self, m: Model, blocks: _Blocks) -> None:
+        obs, free, sigma_w = self.obs, self.free, self.free.world_noise_px
+        if not (len(obs.world_cam) and (free.cameras or free.intrinsics is not None)):
+            return
+        px, dX, dI = _projected(m, obs.world_cam, obs.world_points, blocks.with_jac)
+        front = np.isfinite(px[:, 0])
+        r = np.where(front[:, None], (px - obs.world_pixels) / sigma_w, _BEHIND_PX)
+        parts = []
+        if dX is not None and dI is not None:  # with_jac
+            parts = self._cam_parts(m, obs.world_cam, obs.world_points, dX / sigma_w * front[:, None, None],
+                                    dI * front[:, None, None], sigma_w)
+        blocks.add(r, parts)
+
+    def _trajectory(self, m: Model, blocks: _Blocks) -> None:
+        """A continuous-time trajectory: its knots' second differences."""
+        obs, free, L = self.obs, self.free, self.L
+        if obs.knot_triples is None or not len(obs.knot_triples):
+            return
+        i, j, k = obs.knot_triples.T
+        s = np.r_[np.full(3, free.accel_sigma_m_s2), np.full(3, free.angular_accel_sigma_rad_s2)]
+        s = s * obs.knot_spacing_s ** 2
+        Tb = m.T_bodies
+        step_ij = pose_offsets(Tb[j], Tb[i])
+        step_jk = pose_offsets(Tb[k], Tb[j])
+        eye = np.broadcast_to(np.diag(1.0 / s), (len(i), 6, 6))
+        blocks.add((step_jk - step_ij) / s, [(L.bodies + 6 * i[:, None] + np.arange(6), eye),
+                                              (L.bodies + 6 * j[:, None] + np.arange(6), -2 * eye),
+                                              (L.bodies + 6 * k[:, None] + np.arange(6), eye)])
+
+    def _ground(self, m: Model, x: np.ndarray, blocks: _Blocks) -> None:
+        """Ground robots: one height per robot, body z near world up."""
+        obs, free, L = self.obs, self.free, self.L
         k_idx = np.arange(L.K)
-        # a continuous-time trajectory: its knots' second differences
-        if obs.knot_triples is not None and len(obs.knot_triples):
-            i, j, k = obs.knot_triples.T
-            s = np.r_[np.full(3, free.accel_sigma_m_s2), np.full(3, free.angular_accel_sigma_rad_s2)]
-            s = s * obs.knot_spacing_s ** 2
-            Tb = m.T_bodies
-            step_ij = pose_offsets(Tb[j], Tb[i])
-            step_jk = pose_offsets(Tb[k], Tb[j])
-            eye = np.broadcast_to(np.diag(1.0 / s), (len(i), 6, 6))
-            block((step_jk - step_ij) / s, [(L.bodies + 6 * i[:, None] + np.arange(6), eye),
-                                             (L.bodies + 6 * j[:, None] + np.arange(6), -2 * eye),
-                                             (L.bodies + 6 * k[:, None] + np.arange(6), eye)])
-        # ground robots: one height per robot, body z near world up
         if free.height_sigma_m > 0:
-            h = heights0 + x[L.heights:L.heights + L.R]
+            h = self.heights0 + x[L.heights:L.heights + L.R]
             r = ((m.T_bodies[:, 2, 3] - h[obs.robot]) / free.height_sigma_m)[:, None]
             ones = np.full((L.K, 1, 1), 1.0 / free.height_sigma_m)
-            block(r, [(L.bodies + 6 * k_idx[:, None] + 2, ones), (L.heights + obs.robot[:, None], -ones)])
+            blocks.add(r, [(L.bodies + 6 * k_idx[:, None] + 2, ones), (L.heights + obs.robot[:, None], -ones)])
         if free.upright_sigma_rad > 0:
             up = m.T_bodies[:, :3, 2]
-            block(up[:, :2] / free.upright_sigma_rad,
-                  [(L.bodies + 6 * k_idx[:, None] + 3 + np.arange(3), -skew(up)[:, :2, :] / free.upright_sigma_rad)])
-        # priors
+            blocks.add(up[:, :2] / free.upright_sigma_rad,
+                       [(L.bodies + 6 * k_idx[:, None] + 3 + np.arange(3),
+                         -skew(up)[:, :2, :] / free.upright_sigma_rad)])
+
+    def _priors(self, m: Model, blocks: _Blocks) -> None:
+        """The priors on the cameras' poses, their intrinsics and the markers on the body."""
+        free, L = self.free, self.L
         if free.cameras and free.camera_prior is not None:
-            p = free.camera_prior
-            s = np.r_[np.full(3, p.sigma_m), np.full(3, p.sigma_rad)]
+            cp = free.camera_prior
+            s = np.r_[np.full(3, cp.sigma_m), np.full(3, cp.sigma_rad)]
             c_idx = np.arange(L.C)
-            block(pose_offsets(m.T_cams, p.T) / s,
-                  [(L.cams + 6 * c_idx[:, None] + np.arange(6), np.broadcast_to(np.diag(1.0 / s), (L.C, 6, 6)))])
+            blocks.add(pose_offsets(m.T_cams, cp.T) / s,
+                       [(L.cams + 6 * c_idx[:, None] + np.arange(6), np.broadcast_to(np.diag(1.0 / s), (L.C, 6, 6)))])
         if free.intrinsics is not None:
-            p = free.intrinsics
-            fp = p.K[:, [0, 1], [0, 1]]
-            s = np.column_stack([p.focal_rel * fp, np.full((L.C, 2), p.principal_px), np.full(L.C, p.k1),
-                                 np.full(L.C, p.k2)])
+            ip = free.intrinsics
+            fp = ip.K[:, [0, 1], [0, 1]]
+            s = np.column_stack([ip.focal_rel * fp, np.full((L.C, 2), ip.principal_px), np.full(L.C, ip.k1),
+                                 np.full(L.C, ip.k2)])
             value = np.column_stack([m.K[:, 0, 0], m.K[:, 1, 1], m.K[:, 0, 2], m.K[:, 1, 2], m.dist[:, :2]])
-            prior = np.column_stack([fp, p.K[:, 0, 2], p.K[:, 1, 2], p.dist[:, :2]])
-            d = np.column_stack([f0, fmean0, fmean0, np.ones(L.C), np.ones(L.C)]) / s
+            prior = np.column_stack([fp, ip.K[:, 0, 2], ip.K[:, 1, 2], ip.dist[:, :2]])
+            d = np.column_stack([self.f0, self.fmean0, self.fmean0, np.ones(L.C), np.ones(L.C)]) / s
             c_idx = np.arange(L.C)
-            block((value - prior) / s, [(L.intr + 6 * c_idx[:, None] + np.arange(6), d[:, :, None] * np.eye(6))])
+            blocks.add((value - prior) / s, [(L.intr + 6 * c_idx[:, None] + np.arange(6), d[:, :, None] * np.eye(6))])
         if free.body is not None:
-            p = free.body
-            s = np.r_[np.full(3, p.sigma_m), np.full(3, p.sigma_rad), p.size_rel]
-            offsets = np.column_stack([pose_offsets(m.T_body_markers, p.T), m.sizes_m / p.sizes_m - 1.0])
+            bp = free.body
+            s = np.r_[np.full(3, bp.sigma_m), np.full(3, bp.sigma_rad), bp.size_rel]
+            offsets = np.column_stack([pose_offsets(m.T_body_markers, bp.T), m.sizes_m / bp.sizes_m - 1.0])
             g_idx = np.arange(L.G)
             d = np.tile(1.0 / s, (L.G, 1))
-            d[:, 6] *= model.sizes_m / p.sizes_m
-            block(offsets / s, [(L.markers + 7 * g_idx[:, None] + np.arange(7), d[:, :, None] * np.eye(7))])
-        r_all = np.concatenate(res)
-        if not with_jac:
-            return r_all, None
-        J = coo_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(row, L.n))
-        return r_all, J.tocsr()
-
-    if obs.knot_alpha is not None:  # thousands of knots: sparse direct steps (lsmr would crawl)
-        knots = np.arange(L.bodies, L.bodies + 6 * L.K)
-        order = np.r_[knots, np.setdiff1d(np.arange(L.n), knots)]  # the banded knots first, the few shared last
-        return unpack(levenberg_marquardt(evaluate, np.zeros(L.n), free.f_scale_px / sigma, free.max_nfev, order))
-    result = least_squares(lambda x: evaluate(x, False)[0], np.zeros(L.n), jac=lambda x: evaluate(x, True)[1],
-                           method="trf", loss="soft_l1", f_scale=free.f_scale_px / sigma,
-                           x_scale=np.full(L.n, 1e-3), max_nfev=free.max_nfev, tr_solver="lsmr")
-    return unpack(result.x)
+            d[:, 6] *= self.model.sizes_m / bp.sizes_m
+            blocks.add(offsets / s, [(L.markers + 7 * g_idx[:, None] + np.arange(7), d[:, :, None] * np.eye(7))])
 
 
 def soft_l1_cost(r: np.ndarray, f_scale: float) -> float:

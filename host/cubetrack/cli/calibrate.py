@@ -17,8 +17,8 @@ docs/calibration.md.
 
 With --refine-with REC the calibrated poses are then refined by a bundle adjustment over the
 cube corners of a tracking recording REC (instants where several cameras saw the cube) and
-the world marker's averaged corners ([bundle_adjustment] section); --out gets the refined poses. Per-camera residuals are
-printed, and a camera that moved after the calibration recording is named with how far.
+the world marker's averaged corners ([bundle_adjustment] section); --out gets the refined poses.
+Per-camera residuals are printed, and a camera that moved after the calibration recording is named with how far.
 
 Example:
   cubetrack calibrate --config rec/config.toml --recording rec/calibration --out extrinsics.toml

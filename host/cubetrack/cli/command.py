@@ -18,6 +18,7 @@ import signal
 import sys
 import threading
 from collections.abc import Mapping
+from typing import Any
 
 from cubetrack.core.errors import CubetrackError
 
@@ -54,19 +55,20 @@ def run_command(parser: argparse.ArgumentParser, argv: list[str] | None) -> int:
         print(f"{parser.prog} {args.command}: interrupted", file=sys.stderr)
         return 130
     except Exception:  # a bug, not bad input: keep the traceback for the report
-        logging.getLogger(parser.prog).exception("%s %s: unexpected error (please report it)", parser.prog, args.command)
+        logging.getLogger(parser.prog).exception("%s %s: unexpected error (please report it)",
+                                                 parser.prog, args.command)
         return 2
     finally:
         for number, handler in stop_signals.items():
             signal.signal(number, handler)
 
 
-def _stop_like_ctrl_c() -> dict[int, object]:
+def _stop_like_ctrl_c() -> dict[int, Any]:
     """Make SIGTERM and SIGHUP raise KeyboardInterrupt in the main thread (where they are not
     ignored); returns the handlers they had, to put back."""
     if threading.current_thread() is not threading.main_thread():
         return {}
-    previous = {}
+    previous: dict[int, Any] = {}  # signal number -> its handler, as signal.signal returned it
     for number in (signal.SIGTERM, signal.SIGHUP):
         if signal.getsignal(number) is signal.SIG_DFL:
             previous[number] = signal.signal(number, signal.default_int_handler)

@@ -46,7 +46,8 @@ DEFAULT_ADDRESS = ("127.0.0.1", 8770)
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", required=True, type=Path, help="tracker config TOML (cameras with url and camera_info)")
     p.add_argument("--extrinsics", type=Path, metavar="FILE",
-                   help="camera poses: loaded when the file exists, written by the page's Save (default OUT/extrinsics.toml)")
+                   help="camera poses: loaded when the file exists, written by the page's Save (default "
+                        "OUT/extrinsics.toml)")
     p.add_argument("--out", type=Path, default=Path("cubetrack-dashboard"), metavar="DIR",
                    help="folder for recorded sessions and calibrations (default ./%(default)s)")
     p.add_argument("--bind", default=DEFAULT_ADDRESS[0], metavar="ADDR",

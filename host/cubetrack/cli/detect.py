@@ -50,7 +50,7 @@ def run(args: argparse.Namespace) -> int:
     from cubetrack.core.errors import DetectionError
     from cubetrack.core.params import params_with
     from cubetrack.detect.detector import Detector, DetectorParams, read_gray
-    from cubetrack.estimate.pose import marker_pose
+    from cubetrack.estimate.marker import marker_pose
     from cubetrack.io.camera_info import read_camera_info
 
     names = args.dictionary or [DetectorParams().dictionary]

@@ -45,7 +45,7 @@ def run(args: argparse.Namespace) -> int:
     if args.max_time_diff is not None:
         params = params_with(params, "--max-time-diff", max_time_diff_s=args.max_time_diff)
     truth = read_tum(args.ground_truth)
-    estimates = {label: read_tum(path) for label, path in zip(labels, args.estimate)}
+    estimates = {label: read_tum(path) for label, path in zip(labels, args.estimate, strict=True)}
     results = {label: evaluate(traj, truth, params) for label, traj in estimates.items()}
     if args.json:
         print(json.dumps({label: r.as_dict() for label, r in results.items()}, indent=2))

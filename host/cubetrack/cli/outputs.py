@@ -59,9 +59,9 @@ def flag_output_specs(args: argparse.Namespace):
     return [OutputSpec(table, Path.cwd(), flag) for flag, table in tables]
 
 
-def output_sinks_from_args(args: argparse.Namespace, config=None) -> list:
+def output_sinks_from_args(args: argparse.Namespace, config=None, robots: tuple[str, ...] = ()) -> list:
     """Start the outputs of the config (``[[outputs]]``) and of the flags; ROS_DOMAIN_ID from the
-    environment is the default domain."""
+    environment is the default domain; ``robots`` (default: the config's) are announced from the start."""
     from cubetrack.app.outputs import config_output_specs, merge_outputs, start_outputs
     from cubetrack.core.errors import ConfigError
 
@@ -69,7 +69,8 @@ def output_sinks_from_args(args: argparse.Namespace, config=None) -> list:
     if not domain.isdigit():
         raise ConfigError(f"ROS_DOMAIN_ID must be a number, got {domain!r}")
     specs = merge_outputs(config_output_specs(config) if config is not None else [], flag_output_specs(args))
-    sinks = start_outputs(specs, int(domain))
+    robots = robots or (tuple(r.name for r in config.robots) if config is not None else ())
+    sinks = start_outputs(specs, int(domain), robots)
     for sink in sinks:
         print(f"output: {sink.where}", file=sys.stderr, flush=True)
     return sinks

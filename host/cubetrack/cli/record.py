@@ -23,7 +23,8 @@ HELP = "record the config's live cameras into a recording folder"
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--config", required=True, type=Path, help="tracker config TOML (cameras with url)")
-    p.add_argument("--out", required=True, type=Path, metavar="REC", help="recording folder to write (must not hold one)")
+    p.add_argument("--out", required=True, type=Path, metavar="REC",
+                   help="recording folder to write (must not hold one)")
     p.add_argument("--duration", type=float, metavar="S", help="stop after this many seconds (default: until Ctrl-C)")
 
 

@@ -64,6 +64,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         if hint is bool:
             kwargs["action"] = argparse.BooleanOptionalAction
         elif typing.get_origin(hint) is tuple:
+            assert isinstance(default, tuple)  # a tuple field's default
             kwargs.update(type=float, nargs=len(default) if f.name != "distortion" else "+",
                           metavar="X")
         elif f.name == "path":
@@ -101,7 +102,7 @@ def _show(value: typing.Any) -> str:
 def params_from_args(args: argparse.Namespace) -> SimulationParams:
     """The scenario from the parsed options (options not given keep their defaults, or the
     realistic preset's with --realistic)."""
-    given = dict(REALISTIC) if getattr(args, "realistic", False) else {}
+    given: dict[str, typing.Any] = dict(REALISTIC) if getattr(args, "realistic", False) else {}
     for f, _ in _fields():
         value = getattr(args, f.name, None)
         if value is not None:

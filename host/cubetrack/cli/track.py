@@ -81,7 +81,8 @@ def run(args: argparse.Namespace) -> int:
     from cubetrack.io.recording import Recording
 
     if not args.live and (args.duration is not None or args.record is not None or args.dashboard is not None):
-        raise ConfigError("--duration, --record and --dashboard go with --live (a replay runs to the end of its recording)")
+        raise ConfigError("--duration, --record and --dashboard go with --live (a replay runs to the end "
+                          "of its recording)")
     if args.smooth and args.live:
         raise ConfigError("--smooth goes with --recording (it smooths a whole recording after its replay)")
     if args.replay_workers is not None and (args.live or args.replay_workers < 0):
@@ -135,7 +136,8 @@ def _run_live(args: argparse.Namespace, config, extrinsics, settings, sinks) -> 
     def status(s) -> None:
         print(f"track: {s.line()}", file=sys.stderr, flush=True)
 
-    print(f"tracking live into {args.out}" + ("" if args.duration else " (Ctrl-C to stop)"), file=sys.stderr, flush=True)
+    print(f"tracking live into {args.out}" + ("" if args.duration else " (Ctrl-C to stop)"),
+          file=sys.stderr, flush=True)
     result = track_live(config, extrinsics, args.out, params, settings.source, duration_s=args.duration,
                         record_to=args.record, status=status, status_every_s=args.status_every, sinks=sinks,
                         live_params=settings.live, extrinsics_path=args.extrinsics)

@@ -130,7 +130,8 @@ class WorldConfig:
 
     def reference_markers(self) -> tuple[WorldMarker, ...]:
         """The single markers of the reference: the world marker (when used) at the origin, then ``markers``."""
-        origin = (WorldMarker(self.marker_id, self.marker_size_m, np.eye(4), self.dictionary),) if self.origin_marker else ()
+        origin = ((WorldMarker(self.marker_id, self.marker_size_m, np.eye(4), self.dictionary),)
+                  if self.origin_marker else ())
         return origin + self.markers
 
     @property

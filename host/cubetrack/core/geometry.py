@@ -19,6 +19,7 @@ import math
 
 import cv2
 import numpy as np
+from numpy.typing import ArrayLike
 from scipy.spatial.transform import Rotation
 
 _ANGLE_UNITS = {"rad": 1.0, "deg": np.pi / 180.0}
@@ -34,7 +35,7 @@ def to_radians(angle: float | np.ndarray, unit: str = "rad") -> float | np.ndarr
         raise ValueError(f"unknown angle unit {unit!r}; use 'rad' or 'deg'") from None
 
 
-def make_T(R: np.ndarray, t: np.ndarray) -> np.ndarray:
+def make_T(R: np.ndarray, t: ArrayLike) -> np.ndarray:
     """4x4 pose from a 3x3 rotation matrix and a translation (metres)."""
     T = _EYE4.copy()
     T[:3, :3] = R
@@ -139,7 +140,7 @@ def rotation_angle(R_a: np.ndarray, R_b: np.ndarray, unit: str = "rad") -> float
     cos = (np.trace(R) - 1.0) / 2.0
     sin = 0.5 * math.sqrt((R[2, 1] - R[1, 2]) ** 2 + (R[0, 2] - R[2, 0]) ** 2 + (R[1, 0] - R[0, 1]) ** 2)
     angle = math.atan2(sin, cos)  # accurate for small angles too, unlike arccos(cos)
-    return angle / to_radians(1.0, unit)
+    return angle / float(to_radians(1.0, unit))
 
 
 def shoelace_area(points_px: np.ndarray) -> float:

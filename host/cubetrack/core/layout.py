@@ -115,7 +115,7 @@ class CubeLayout:
         object.__setattr__(self, "_indices", indices)
         object.__setattr__(self, "ids", frozenset(indices))
         names = tuple(m.dictionary or self.dictionary for m in self.markers)
-        keys = list(zip(names, (m.marker_id for m in self.markers)))
+        keys = list(zip(names, (m.marker_id for m in self.markers), strict=True))
         object.__setattr__(self, "marker_dictionaries", names)
         object.__setattr__(self, "dictionaries", tuple(dict.fromkeys((self.dictionary, *names))))
         object.__setattr__(self, "keys", frozenset(keys))

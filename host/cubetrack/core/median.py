@@ -30,7 +30,7 @@ class SessionMedian:
             return None
         seen, half = 0, self.count / 2.0
         i = 0
-        for i, n in enumerate(self.counts):
+        for i, n in enumerate(self.counts):  # noqa: B007 (i: the bin found, read after the loop)
             seen += n
             if seen >= half:
                 break

@@ -23,7 +23,10 @@ from typing import Any, TypeVar
 
 from cubetrack.core.errors import ConfigError, CubetrackError, ParamsError
 
-P = TypeVar("P")
+if typing.TYPE_CHECKING:
+    from _typeshed import DataclassInstance
+
+P = TypeVar("P", bound="DataclassInstance")  # a params dataclass
 
 
 def param(default: Any, doc: str) -> Any:

@@ -7,7 +7,8 @@ from __future__ import annotations
 
 import sys
 import time
-from typing import Callable, TextIO
+from collections.abc import Callable
+from typing import TextIO
 
 Progress = Callable[[str, int, int], None]
 """``progress(stage, done, total)``; ``total`` may be 0 when unknown."""

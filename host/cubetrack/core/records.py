@@ -11,6 +11,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from cubetrack.core.cameras import CameraIntrinsics
+
 
 @dataclass(frozen=True, slots=True, eq=False)
 class Frame:
@@ -144,7 +146,7 @@ class CubeSighting:
     detections: tuple[Detection, ...]
     estimate: CameraEstimate | None
     T_world_cam: np.ndarray
-    intrinsics: object
+    intrinsics: CameraIntrinsics
 
 
 @dataclass(frozen=True, slots=True)

@@ -33,10 +33,10 @@ import cv2
 import numpy as np
 from PIL import JpegImagePlugin
 
+from cubetrack.core.cameras import CameraIntrinsics
 from cubetrack.core.errors import DetectionError, ImageError, ParamsError
 from cubetrack.core.geometry import shoelace_area, undistort_points
 from cubetrack.core.params import param
-from cubetrack.core.cameras import CameraIntrinsics
 from cubetrack.core.records import Detection
 from cubetrack.detect.template_fit import distort_px, fast_template_corners, lens_map
 
@@ -344,10 +344,11 @@ def refine_corners_edges(gray: np.ndarray, corners_px: np.ndarray, modules: int 
     c_in = np.ascontiguousarray(corners_px, dtype=np.float64)
     single = c_in.ndim == 2
     z_in = c_in.view(np.complex128).reshape(-1, 4)                     # (M, 4) x + iy (a view)
-    good = np.isfinite(z_in).all(axis=1)
+    # numpy's stubs type .all(axis=1) as a bool or an array; along an axis it is an array
+    good: np.ndarray = np.isfinite(z_in).all(axis=1)  # type: ignore[assignment]
     if not good.all():
         z_in = np.where(good[:, None], z_in, 0.0)
-    origin = 0.0
+    origin: complex = 0.0
     if img.dtype != np.float32:
         # only the region around the quads, as float (cv2.remap of an 8-bit image rounds its
         # samples: a ~0.03 px edge bias); the margin covers the sampling half-width and the moves
@@ -378,7 +379,7 @@ def refine_corners_edges(gray: np.ndarray, corners_px: np.ndarray, modules: int 
     t, powers_t, unit, unit_mid, step, across = _edge_sampling(samples_along, samples_across, tuple(span))
     ones_t, k, moments_t = powers_t[:, 0], len(t), powers_t.T
     z = z0
-    side_px = None  # the initial quad's side lengths (pinhole image)
+    side_px = np.abs(z.take(_NEXT_I, axis=1) - z)  # the initial quad's side lengths (pinhole image)
     fitted = np.ones(z.shape, dtype=bool)   # per side and corner: the fit held (a failed marker's
     # corners restart from the initial ones, so the next iteration samples finite positions)
     # few numpy calls per iteration, each over every marker, side and sample at once: they, not
@@ -386,8 +387,6 @@ def refine_corners_edges(gray: np.ndarray, corners_px: np.ndarray, modules: int 
     for _ in range(iterations):
         v = z.take(_NEXT_I, axis=1) - z                                 # side i: corner i -> i+1
         length = np.abs(v)                                              # (M, 4) px
-        if side_px is None:
-            side_px = length
         n = v * (-1j / np.maximum(length, 1e-9))                        # outward unit normal (clockwise, y down)
         w = np.minimum(np.maximum((length.take(_NEXT_I, axis=1) + length.take(_PREV_I, axis=1)) * width_per_side,
                                   1.5), 4.0)
@@ -395,7 +394,8 @@ def refine_corners_edges(gray: np.ndarray, corners_px: np.ndarray, modules: int 
         if lens is not None:
             p = _distort_c(p, *lens)
         xy = p.view(np.float64).reshape(1, -1, 2).astype(np.float32)  # interleaved x, y: one map
-        prof = cv2.remap(img, xy, None, cv2.INTER_LINEAR,
+        # map1 holds both coordinates, so map2 is None (OpenCV's stubs do not allow None there)
+        prof = cv2.remap(img, xy, None, cv2.INTER_LINEAR,  # type: ignore[call-overload]
                          borderMode=cv2.BORDER_REPLICATE).reshape(p.shape).astype(np.float64)
         # edge point along n from the rising gradient (see focus)
         g = np.maximum(prof @ step, 0.0)                                # (M, 4, k, m-1) differences
@@ -422,11 +422,14 @@ def refine_corners_edges(gray: np.ndarray, corners_px: np.ndarray, modules: int 
         weight = mass * ((mass > 1e-6) & (prof[..., -1] - prof[..., 0] > min_contrast))
         # each side: off = a + b t by weighted least squares (edge points scatter across the
         # side only), then once more without points beyond 2.5 sigma of that line
+        a: np.ndarray  # a, b, s0: bound by the first (robust=False) pass
+        b: np.ndarray
+        s0: np.ndarray
         for robust in (False, True):
             if robust:
-                resid2 = off - (a[..., None] + b[..., None] * t)
+                resid2 = off - (a[..., None] + b[..., None] * t)  # noqa: F821 (see above)
                 resid2 *= resid2
-                rms2 = (weight * resid2) @ ones_t / np.maximum(s0, 1e-12)
+                rms2 = (weight * resid2) @ ones_t / np.maximum(s0, 1e-12)  # noqa: F821 (see above)
                 weight = weight * (resid2 <= np.maximum(6.25 * rms2, 0.01)[..., None])
             s0, s1, s2 = (moments_t @ weight.reshape(-1, k).T).reshape(3, -1, 4)   # (M, 4) each
             sy, sty = (moments_t[:2] @ (weight * off).reshape(-1, k).T).reshape(2, -1, 4)

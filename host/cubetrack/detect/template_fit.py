@@ -95,7 +95,7 @@ _SQUARE = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
 def _homography_system(corners: np.ndarray, side: float) -> np.ndarray:
     """The 8x8 matrix of the homography from the square of ``side`` to ``corners`` (h22 = 1)."""
     A = np.zeros((8, 8))
-    for i, ((x, y), (u, v)) in enumerate(zip(_SQUARE * side, np.asarray(corners, float))):
+    for i, ((x, y), (u, v)) in enumerate(zip(_SQUARE * side, np.asarray(corners, float), strict=True)):
         A[2 * i] = [x, y, 1.0, 0.0, 0.0, 0.0, -u * x, -u * y]
         A[2 * i + 1] = [0.0, 0.0, 0.0, x, y, 1.0, -v * x, -v * y]
     return A
@@ -144,8 +144,8 @@ class LensMap:
         n = len(flat)  # remap takes at most 32767 rows and columns: rows of _REMAP_ROW points
         pts = np.zeros((-(-n // _REMAP_ROW) * _REMAP_ROW, 2), np.float32)
         pts[:n] = flat
-        pts = pts.reshape(-1, _REMAP_ROW, 2)
-        out = cv2.remap(self.map, pts[..., 0], pts[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+        rows = pts.reshape(-1, _REMAP_ROW, 2)
+        out = cv2.remap(self.map, rows[..., 0], rows[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         return out.reshape(-1, 2)[:n].astype(np.float64).reshape(np.shape(points_px))
 
 
@@ -284,7 +284,7 @@ def fast_template_corners(gray: np.ndarray, corners_px: np.ndarray, dictionary: 
             mx = (TEMPLATE_RES * U[:, 0] / U[:, 2] + _TEMPLATE_SHIFT).astype(np.float32).reshape(ny * s, nx * s)
             my = (TEMPLATE_RES * U[:, 1] / U[:, 2] + _TEMPLATE_SHIFT).astype(np.float32).reshape(ny * s, nx * s)
             resampled = np.stack([cv2.remap(im, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
-                                            borderValue=b) for im, b in zip(images, border)], axis=-1)
+                                            borderValue=b) for im, b in zip(images, border, strict=True)], axis=-1)
             area = np.ascontiguousarray(resampled.reshape(ny, s, nx, s, 6).mean(axis=(1, 3)))
             predicted = cv2.GaussianBlur(area, (0, 0), blur, borderType=cv2.BORDER_REPLICATE).reshape(ny * nx, 6)
             predicted = predicted[region.fitted].astype(np.float64)

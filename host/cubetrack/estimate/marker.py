@@ -104,7 +104,7 @@ def _ippe_square_candidates(obj_m: np.ndarray, img_px: np.ndarray,
         # errs: RMS reprojection errors of the solutions in normalised image units
         suspect = len(rvecs) < 2 or errs is None or not float(np.min(errs)) <= trusted
         run: list[np.ndarray] = []
-        for rvec, tvec in zip(rvecs, tvecs):
+        for rvec, tvec in zip(rvecs, tvecs, strict=True):
             rx, ry, rz = rvec.ravel().tolist()
             tx, ty, tz = tvec.ravel().tolist()
             if not math.isfinite(rx + ry + rz + tx + ty + tz):
@@ -194,9 +194,10 @@ def marker_pose(detection: Detection, size_m: float, intrinsics: CameraIntrinsic
         return err if math.isfinite(err) else None
 
     candidates = _ippe_square_candidates(obj, img, intrinsics)
-    raw = [(e, T) for e, T in zip(_scores(candidates, obj, img, intrinsics), candidates) if e < np.inf]
+    raw = [(e, T) for e, T in zip(_scores(candidates, obj, img, intrinsics), candidates, strict=True) if e < np.inf]
     solutions = []
-    for err, T in _distinct(sorted(raw, key=lambda s: s[0]))[:2]:
+    for raw_err, T in _distinct(sorted(raw, key=lambda s: s[0]))[:2]:
+        err: float | None = raw_err
         if polish:
             T = _polish(obj, img, T, intrinsics)
             err = score(T)

@@ -214,7 +214,7 @@ def _match_by_prediction(detections: Sequence[Detection], layout: CubeLayout, in
     ids = layout.marker_ids.tolist()
     by_dictionary = len(layout.dictionaries) > 1
     out: list[FaceMatch] = []
-    for det, row in zip(detections, distances):
+    for det, row in zip(detections, distances, strict=True):
         best, k = math.inf, -1
         for j, distance in enumerate(row):
             if (distance < best and free[j] and ids[j] == det.marker_id

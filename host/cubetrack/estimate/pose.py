@@ -36,7 +36,7 @@ import numpy as np
 from cubetrack.core.cameras import CameraIntrinsics
 from cubetrack.core.geometry import T_from_rvec_tvec, invert_T, rvec_tvec_from_T
 from cubetrack.core.layout import CubeLayout
-from cubetrack.core.records import CameraEstimate, Detection, MarkerPose
+from cubetrack.core.records import CameraEstimate, Detection, FaceObservation, MarkerPose
 from cubetrack.estimate.marker import in_front, marker_pose, reprojection_rms_px
 from cubetrack.estimate.match import FaceMatch, detections_of, match_faces
 from cubetrack.estimate.params import EstimatorParams
@@ -97,7 +97,7 @@ def _joint_pose(faces: Sequence[FaceMatch], intrinsics: CameraIntrinsics, T_worl
 
     def seeds():
         for f in faces:
-            yield T_cam_world @ f.observation.T_world_cube
+            yield T_cam_world @ _observed(f).T_world_cube
         try:
             ok, rvec, tvec = cv2.solvePnP(obj, img, intrinsics.K, intrinsics.dist, flags=cv2.SOLVEPNP_SQPNP)
         except cv2.error:
@@ -156,7 +156,8 @@ def estimate_cube(detections: Iterable[Detection], layout: CubeLayout, intrinsic
     faces = match_faces(detections, layout, intrinsics, T_world_cam, params=params)
     if not faces:
         return None
-    T_world_cube, err = faces[0].observation.T_world_cube, faces[0].observation.marker_pose.reprojection_error_px
+    first = _observed(faces[0])
+    T_world_cube, err = first.T_world_cube, first.marker_pose.reprojection_error_px
     used = faces[:1]
     if len(faces) >= 2 and params.joint_pnp:
         with_prior = params.use_upright_prior or layout.has_repeated_ids
@@ -178,6 +179,12 @@ def estimate_cube(detections: Iterable[Detection], layout: CubeLayout, intrinsic
     return CameraEstimate(
         camera=camera, robot=robot, seq=int(seq), capture_time_s=float(capture_time_s),
         arrival_time_s=float(arrival_time_s), T_world_cube=T_world_cube,
-        area_px2=float(sum(f.observation.area_px2 for f in used)), faces=tuple(f.observation for f in used),
+        area_px2=float(sum(_observed(f).area_px2 for f in used)), faces=tuple(_observed(f) for f in used),
         reprojection_error_px=float(err),
     )
+
+
+def _observed(face: FaceMatch) -> FaceObservation:
+    """The face's own single-marker observation, which every face matched without a prediction has."""
+    assert face.observation is not None, f"face {face.face} was matched by a prediction"
+    return face.observation

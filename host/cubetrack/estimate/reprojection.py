@@ -119,11 +119,10 @@ def reprojection_residuals_px(T_world_cube: np.ndarray, sets: Sequence[CornerSet
     from ``t_ref_s`` to each set's time (without velocities: the still cube). Corners behind a
     camera give a large residual (1000 px; a NaN one, e.g. of a corner that did not undistort,
     too)."""
-    moving = velocity_m_s is not None and angular_velocity_rad_s is not None
     out = []
     for s in sets:
-        T = (moved_pose(T_world_cube, velocity_m_s, angular_velocity_rad_s, s.time_s - t_ref_s) if moving
-             else T_world_cube)
+        T = (moved_pose(T_world_cube, velocity_m_s, angular_velocity_rad_s, s.time_s - t_ref_s)
+             if velocity_m_s is not None and angular_velocity_rad_s is not None else T_world_cube)
         out.append(_residuals(s, T[:3, :3], T[:3, 3])[3].ravel())
     if not out:
         return np.zeros(0)
@@ -132,7 +131,7 @@ def reprojection_residuals_px(T_world_cube: np.ndarray, sets: Sequence[CornerSet
 
 
 # (q @ _NEG_SKEW).reshape(3, 3) is -[q]x: a row vector a times it is q x a
-_NEG_SKEW = np.zeros((3, 3, 3))
+_NEG_SKEW: np.ndarray = np.zeros((3, 3, 3))
 _NEG_SKEW[0, 1, 2], _NEG_SKEW[0, 2, 1] = 1.0, -1.0
 _NEG_SKEW[1, 2, 0], _NEG_SKEW[1, 0, 2] = 1.0, -1.0
 _NEG_SKEW[2, 0, 1], _NEG_SKEW[2, 1, 0] = 1.0, -1.0
@@ -160,9 +159,10 @@ def reprojection_jacobian_px(T_world_cube: np.ndarray, sets: Sequence[CornerSet]
     residuals, jacobians = [], []
     for s in sets:
         R, p = R0, p0
-        if moving:
+        if velocity_m_s is not None and angular_velocity_rad_s is not None:  # moving
             dt = s.time_s - t_ref_s
-            step = R_from_rotvec(angular_velocity_rad_s * dt)
+            rotvec = angular_velocity_rad_s * dt
+            step = R_from_rotvec(rotvec)
             R, p = step @ R0, p0 + velocity_m_s * dt
         q, uv, scale, r = _residuals(s, R, p)
         R_cw = s.T_cam_world[:3, :3]
@@ -170,7 +170,7 @@ def reprojection_jacobian_px(T_world_cube: np.ndarray, sets: Sequence[CornerSet]
         d_pw = (R_cw[:2] - uv[:, :, None] * R_cw[2]) * scale[:, None, None]
         d_theta = d_pw @ (q @ _NEG_SKEW).reshape(-1, 3, 3)  # a^T (-[q]x) = q x a, row by row
         if moving:
-            blocks = [d_pw, d_theta @ step, d_pw * dt, d_theta @ (so3_left_jacobian(angular_velocity_rad_s * dt) * dt)]
+            blocks = [d_pw, d_theta @ step, d_pw * dt, d_theta @ (so3_left_jacobian(rotvec) * dt)]
         else:
             blocks = [d_pw, d_theta]
         residuals.append(r.ravel())

@@ -33,8 +33,10 @@ from cubetrack.io.trajectory import Trajectory
 class EvaluationParams:
     """How an estimate is scored against ground truth."""
 
-    detection_timeout_s: float = param(0.5, "seconds without an estimate after which the robot counts as lost (paper: 0.5 s)")
-    max_time_diff_s: float = param(0.02, "seconds; estimates farther than this from any ground-truth sample are not scored")
+    detection_timeout_s: float = param(0.5, "seconds without an estimate after which the robot counts as "
+                                            "lost (paper: 0.5 s)")
+    max_time_diff_s: float = param(0.02, "seconds; estimates farther than this from any ground-truth "
+                                         "sample are not scored")
 
     def __post_init__(self) -> None:
         check_positive(self, "detection_timeout_s", "max_time_diff_s")

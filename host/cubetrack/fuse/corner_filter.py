@@ -10,19 +10,19 @@ spectral densities). About the world's z axis the angular acceleration noise has
 turning one (``yaw_accel_noise``) from a sharp turn (yaw rate above ``sharp_turn_rad_s``) until
 ``turn_hold_s`` after the last, the steady one (``steady_yaw_accel_noise``) otherwise, so a robot
 that turns sharply is followed through its turns and one that does not gets a smoother heading.
-The level is part of the state (a function of the sightings in capture order). Update: an iterated EKF (Gauss-Newton on the prior plus the reprojection
-error of every matched corner of one camera frame), with Huber weights per coordinate, so one
-camera's weak monocular depth is constrained by the prediction instead of being trusted. A
-frame whose residual after the update is above ``gate_rms_px`` is rejected (outlier gating),
-and the state is left unchanged.
+The level is part of the state (a function of the sightings in capture order). Update: an
+iterated EKF (Gauss-Newton on the prior plus the reprojection error of every matched corner of one
+camera frame), with Huber weights per coordinate, so one camera's weak monocular depth is
+constrained by the prediction instead of being trusted. A frame whose residual after the update is
+above ``gate_rms_px`` is rejected (outlier gating), and the state is left unchanged.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import functools
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import cv2
 import numpy as np
@@ -48,25 +48,31 @@ class FilterParams:
     """The motion model and measurement model of :class:`PoseFilter`."""
 
     accel_noise: float = param(0.5, "white-noise acceleration spectral density, m/s^2/sqrt(Hz)")
-    angular_accel_noise: float = param(0.5, "white-noise angular acceleration spectral density about the world's x and y "
-                                       "axes (tilting), rad/s^2/sqrt(Hz)")
+    angular_accel_noise: float = param(0.5, "white-noise angular acceleration spectral density about the "
+                                       "world's x and y axes (tilting), rad/s^2/sqrt(Hz)")
     yaw_accel_noise: float = param(5.0, "white-noise angular acceleration spectral density about the world's z axis "
-                                   "while the robot turns sharply (robots turn sharply, they tilt little), rad/s^2/sqrt(Hz)")
-    steady_yaw_accel_noise: float = param(3.0, "the same once it has not turned sharply for turn_hold_s, rad/s^2/sqrt(Hz)")
+                                   "while the robot turns sharply (robots turn sharply, they tilt little), "
+                                   "rad/s^2/sqrt(Hz)")
+    steady_yaw_accel_noise: float = param(3.0, "the same once it has not turned sharply for turn_hold_s, "
+                                               "rad/s^2/sqrt(Hz)")
     sharp_turn_rad_s: float = param(2.0, "a yaw rate above this is a sharp turn, rad/s")
     turn_hold_s: float = param(3.0, "the turning noise holds this long after the last sharp turn, seconds")
     corner_noise_px: float = param(0.5, "corner measurement noise (1 sigma), pixels")
     huber_px: float = param(1.5, "corner residuals beyond this are down-weighted (Huber), pixels")
-    gate_rms_px: float = param(2.0, "a camera frame whose RMS residual after the update exceeds this is rejected, pixels")
-    face_gate_px: float = param(1.2, "a face whose corners stay farther off than this (RMS) after the update is left out, pixels")
-    iterations: int = param(2, "Gauss-Newton iterations of each update (the prediction starts close: more change nothing measurable)")
+    gate_rms_px: float = param(2.0, "a camera frame whose RMS residual after the update exceeds this is "
+                                    "rejected, pixels")
+    face_gate_px: float = param(1.2, "a face whose corners stay farther off than this (RMS) after the update is "
+                                     "left out, pixels")
+    iterations: int = param(2, "Gauss-Newton iterations of each update (the prediction starts close: more change "
+                               "nothing measurable)")
     init_velocity_sigma: float = param(0.5, "velocity uncertainty (1 sigma) at track start, m/s")
     init_angular_velocity_sigma: float = param(3.0, "angular velocity uncertainty (1 sigma) at track start, rad/s "
-                                               "(robots turn at up to 3.5 rad/s: a tighter prior pulls a start in a turn "
-                                               "towards no turn)")
-    smooth_lag_s: float = param(0.0, "fixed-lag smoothing: each pose leaves once sightings this many seconds newer have "
-                                "been applied, smoothed over them (more accurate, this much later; at most [fusion] "
-                                "history_s; docs/tracking.md); 0: at once, from the sightings up to its time")
+                                               "(robots turn at up to 3.5 rad/s: a tighter prior pulls a "
+                                               "start in a turn towards no turn)")
+    smooth_lag_s: float = param(0.0, "fixed-lag smoothing: each pose leaves once sightings this many "
+                                "seconds newer have been applied, smoothed over them (more accurate, this much later; "
+                                "at most [fusion] history_s; docs/tracking.md); 0: at once, from the "
+                                "sightings up to its time")
     smooth_margin_s: float = param(0.2, "fixed-lag smoothing: a pose still held this long after its smooth_lag_s (on "
                                    "the host clock: its robot left every camera's view, a camera stalled) leaves "
                                    "anyway, smoothed over the sightings there are, seconds")

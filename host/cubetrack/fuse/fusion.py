@@ -68,19 +68,26 @@ class FusionParams:
     method: FusionMethod = param(
         FusionMethod.FILTER, "filter (default: corner-level constant-velocity filter) | mean | weighted | gaussian "
         "(the paper's eqs. 2, 4, 6)")
-    window_s: float = param(0.2, "paper methods: a camera's latest estimate joins the fusion only if it is at most this many seconds older than the newest")
-    history_s: float = param(0.5, "filter: a sighting up to this many seconds older than the newest one is folded in exactly (the newer ones are re-applied after it); older ones are dropped, counted")
-    lost_after_s: float = param(0.5, "filter: a robot with no accepted sighting for this many seconds is reported as not seen and its track restarts")
-    output_rate_hz: float = param(0.0, "filter, live tracking: also emit each tracked robot's pose predicted to the current host time at this rate, for control loops (0: only at each sighting)")
-    association_gate_px: float = param(12.0, "filter: a detection joins a face only if its corners lie within this many pixels (or half a marker side) of the predicted face")
-    max_view_angle_deg: float = param(70.0, "filter: a face seen more obliquely than this (the angle between its normal and "
-                                      "the camera's ray to it at the predicted pose) is left out: its corners are 2-3 "
-                                      "times noisier than a face's seen head-on")
-    init_window_s: float = param(0.3, "filter: a track starts from a joint fit of pose and velocity over the sightings of the last this many seconds (at least three, from two cameras)")
+    window_s: float = param(0.2, "paper methods: a camera's latest estimate joins the fusion only if it is at most "
+                                 "this many seconds older than the newest")
+    history_s: float = param(0.5, "filter: a sighting up to this many seconds older than the newest one is folded in "
+                                  "exactly (the newer ones are re-applied after it); older ones are dropped, counted")
+    lost_after_s: float = param(0.5, "filter: a robot with no accepted sighting for this many seconds is reported as "
+                                     "not seen and its track restarts")
+    output_rate_hz: float = param(0.0, "filter, live tracking: also emit each tracked robot's pose predicted to the "
+                                       "current host time at this rate, for control loops (0: only at each sighting)")
+    association_gate_px: float = param(12.0, "filter: a detection joins a face only if its corners lie within this "
+                                             "many pixels (or half a marker side) of the predicted face")
+    max_view_angle_deg: float = param(70.0, "filter: a face seen more obliquely than this (the angle "
+                                      "between its normal and the camera's ray to it at the predicted pose) is left "
+                                      "out: its corners are 2-3 times noisier than a face's seen head-on")
+    init_window_s: float = param(0.3, "filter: a track starts from a joint fit of pose and velocity over the sightings "
+                                      "of the last this many seconds (at least three, from two cameras)")
     max_rejections: int = param(3, "filter: this many rejected sightings in a row restart the track")
-    reacquire_m: float = param(0.1, "filter: a sighting the tracked pose does not explain is re-examined against its own "
-                               "camera's cube pose (other faces, a flip); if that pose is within this many metres of the "
-                               "prediction and explains the corners, the track goes on from it at once")
+    reacquire_m: float = param(0.1, "filter: a sighting the tracked pose does not explain is re-examined "
+                               "against its own camera's cube pose (other faces, a flip); if that pose is within this "
+                               "many metres of the prediction and explains the corners, the track goes "
+                               "on from it at once")
 
     def __post_init__(self) -> None:
         check_positive(self, "window_s", "lost_after_s", "association_gate_px", "init_window_s", "reacquire_m")
@@ -109,7 +116,8 @@ def fuse_poses(positions_m: np.ndarray, Rs: np.ndarray, weights: np.ndarray) -> 
 
 
 class LatestEstimateFusion:
-    """A :class:`~cubetrack.fuse.base.Fusion`. Keeps each camera's latest estimate per robot and fuses them on every new estimate.
+    """A :class:`~cubetrack.fuse.base.Fusion`. Keeps each camera's latest estimate per robot and fuses
+    them on every new estimate.
 
     State: ``latest[(robot, camera)]`` — visible and small. Feed estimates in arrival order.
     """
@@ -255,7 +263,7 @@ class FilterFusion:
         if stop >= len(history):
             after.append(self.state[robot].filter)
         return [TrailStep(step.outcome, f, step.pose, step.sighting.arrival_time_s, step.key[0])
-                for step, f in zip(history[start:stop], after)]
+                for step, f in zip(history[start:stop], after, strict=True)]
 
     def needs_estimate(self, robot: str) -> bool:
         """A per-camera estimate is only needed to start a track: not while one runs."""
@@ -394,10 +402,12 @@ class FilterFusion:
         if not matches:
             return []
         if intrinsics.readout_s <= 0:
-            return [corner_set(matches, intrinsics, sighting.T_world_cam, sighting.camera, t)]
-        row_s, middle = intrinsics.readout_s / intrinsics.height, (intrinsics.height - 1) / 2.0
-        return [corner_set((m,), intrinsics, sighting.T_world_cam, sighting.camera,
-                           t + (float(np.mean(m.detection.corners_px[:, 1])) - middle) * row_s) for m in matches]
+            sets = [corner_set(matches, intrinsics, sighting.T_world_cam, sighting.camera, t)]
+        else:
+            row_s, middle = intrinsics.readout_s / intrinsics.height, (intrinsics.height - 1) / 2.0
+            sets = [corner_set((m,), intrinsics, sighting.T_world_cam, sighting.camera,
+                               t + (float(np.mean(m.detection.corners_px[:, 1])) - middle) * row_s) for m in matches]
+        return [s for s in sets if s is not None]  # (none is: each has matches)
 
     def _apply(self, state: RobotState, history: list[HistoryStep], index: int, now_s: float,
                record: bool) -> tuple[RobotState, TrackedPose | None, str]:

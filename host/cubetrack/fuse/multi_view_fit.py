@@ -9,8 +9,8 @@ of several cameras.
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Sequence
 
 import numpy as np
 from scipy.optimize import least_squares
@@ -52,7 +52,7 @@ def solve_joint(sets: Sequence[CornerSet], T_init: np.ndarray, t_ref_s: float,
     n = 6 if velocity_sigma is None else 12
 
     def residuals(x: np.ndarray) -> np.ndarray:
-        if n == 6:
+        if velocity_sigma is None:  # n == 6
             return reprojection_residuals_px(perturbed(T_init, x[:6]), sets) / corner_noise_px
         v, w = x[6:9], x[9:12]
         r = reprojection_residuals_px(perturbed(T_init, x[:6]), sets, t_ref_s, v, w) / corner_noise_px
@@ -80,7 +80,8 @@ def solve_joint(sets: Sequence[CornerSet], T_init: np.ndarray, t_ref_s: float,
         return None
     if not np.all(np.isfinite(result.x)):
         return None
-    J = result.jac  # of residuals in units of corner_noise_px: J^T J is the information
+    # of residuals in units of corner_noise_px (dense: finite differences): J^T J is the information
+    J = np.asarray(result.jac)
     try:
         covariance = np.linalg.inv(J.T @ J)
     except np.linalg.LinAlgError:

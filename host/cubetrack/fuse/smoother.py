@@ -79,7 +79,7 @@ def rts(filters: Sequence[PoseFilter], gains: Gains | None = None) -> list[PoseF
     """The smoothed states of one track segment: ``filters[k + 1]`` is ``filters[k]`` predicted to
     its time and then updated (or not: a rejected sighting). ``gains``: those of an earlier pass."""
     smoothed = [filters[-1]]
-    for f, following in zip(reversed(filters[:-1]), reversed(filters[1:])):
+    for f, following in zip(reversed(filters[:-1]), reversed(filters[1:]), strict=True):
         after = smoothed[-1]
         G, predicted = gain(f, following) if gains is None else gains.of(f, following)
         smoothed.append(f.moved(G @ after.error_from(predicted), f.P + G @ (after.P - predicted.P) @ G.T))
@@ -113,7 +113,8 @@ def smoothed_poses(trail: Sequence[TrailStep], now_s: float, count: int | None =
     for segment in segments(trail):
         if segment[0] >= count:
             break
-        for i, f in zip(segment, rts([trail[i].filter for i in segment], gains)):
+        filters = [f for i in segment if (f := trail[i].filter) is not None]  # (all are: segments())
+        for i, f in zip(segment, rts(filters, gains), strict=True):
             pose = trail[i].pose
             if i < count and pose is not None:
                 poses.append(dataclasses.replace(

@@ -140,7 +140,7 @@ class _Svg:
         """A marker whose cell (column i, row j) spans [i, i+1] x [j, j+1] before ``matrix`` (the
         SVG matrix(a b c d e f) mapping cells to millimetres)."""
         n = bits.shape[0]
-        white = " ".join(f"M{i} {j}h1v1h-1z" for j, i in zip(*np.nonzero(bits)))
+        white = " ".join(f"M{i} {j}h1v1h-1z" for j, i in zip(*np.nonzero(bits), strict=True))
         m = " ".join(f"{v:.6f}" for v in matrix)
         self.items.append(f'<g class="marker" data-id="{marker_id}" data-dictionary="{escape(dictionary)}" '
                           f'data-cells="{n}" transform="matrix({m})">'
@@ -229,7 +229,7 @@ def _draw_net(svg: _Svg, layout: CubeLayout, half: np.ndarray, cells: Cells) -> 
     for edge in _outer_edges(outlines):
         if not any(_same_edge(edge, base) for base in tab_bases):  # a tab's base is folded, not cut
             svg.polyline(edge + offset, False, **CUT)
-    for m, dictionary in zip(layout.markers, layout.marker_dictionaries):
+    for m, dictionary in zip(layout.markers, layout.marker_dictionaries, strict=True):
         corners = sheet(_face_of(m.T_cube_marker[:3, 2]), m.corners_cube_m()) + offset
         bits = cells[(dictionary, m.marker_id)]
         svg.marker(bits, _cell_matrix(corners, bits.shape[0]), m.marker_id, dictionary)
@@ -279,7 +279,7 @@ def _draw_tiles(svg: _Svg, layout: CubeLayout, cells: Cells) -> tuple[float, flo
     x = y = _PAGE_MARGIN_MM
     row_height = width = 0.0
     y += 8.0
-    for m, dictionary in zip(layout.markers, layout.marker_dictionaries):
+    for m, dictionary in zip(layout.markers, layout.marker_dictionaries, strict=True):
         bits = cells[(dictionary, m.marker_id)]
         side = 1000.0 * m.size_m
         margin = max(5.0, _LOOSE_MARGIN_CELLS * side / bits.shape[0])

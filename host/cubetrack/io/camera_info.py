@@ -20,7 +20,6 @@ from cubetrack.core.cameras import CameraIntrinsics
 from cubetrack.core.errors import CameraInfoError
 from cubetrack.io.files import atomic_write
 
-
 _MAX_NUMBERS = 64  # more than any camera matrix or distortion model holds
 
 
@@ -51,7 +50,7 @@ def _matrix(value: object, n: int, path: Path, key: str) -> np.ndarray:
     return arr
 
 
-def _opencv_matrix(loader: yaml.SafeLoader, node: yaml.Node) -> dict:
+def _opencv_matrix(loader: yaml.SafeLoader, node: yaml.MappingNode) -> dict:
     return loader.construct_mapping(node, deep=True)
 
 

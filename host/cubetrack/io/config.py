@@ -97,7 +97,8 @@ def _keys(table: Any, where: str, allowed: set[str]) -> dict:
         raise ConfigError(f"{where} must be a table")
     unknown = set(table) - allowed
     if unknown:
-        raise ConfigError(f"{where} has unknown key(s) {', '.join(sorted(unknown))}; known: {', '.join(sorted(allowed))}")
+        raise ConfigError(f"{where} has unknown key(s) {', '.join(sorted(unknown))}; known: "
+                          f"{', '.join(sorted(allowed))}")
     return table
 
 
@@ -117,7 +118,8 @@ def _world(table: Any, where: str) -> WorldConfig:
         w = f"{where}: world.markers[{i}]"
         row = _keys(row, w, {"id", "size", "dictionary", "position", "quaternion_xyzw"})
         if "id" not in row or "position" not in row:
-            raise ConfigError(f"{w} needs an id and a position (and quaternion_xyzw unless it lies flat like the world marker)")
+            raise ConfigError(f"{w} needs an id and a position (and quaternion_xyzw unless it lies flat like "
+                              "the world marker)")
         markers.append(WorldMarker(_count(row["id"], w, "id"), _number(row.get("size", size), w, "size (metres)"),
                                    _pose(row, w), _dictionary(row, w, dictionary)))
     board = None
@@ -215,17 +217,17 @@ def read_tracker_config(path: str | Path) -> TrackerConfig:
         raise ConfigError(f"{where}: robot names must be unique")
     world = _world(doc.get("world"), where)
     owner: dict[tuple[str, int], str] = {}
-    for key, what in world_marker_keys(world):
-        if key in owner:
-            raise ConfigError(f"{where}: {what} uses {key[0]} id {key[1]}, already used by {owner[key]}")
-        owner[key] = what
+    for marker_key, what in world_marker_keys(world):
+        if marker_key in owner:
+            raise ConfigError(f"{where}: {what} uses {marker_key[0]} id {marker_key[1]}, already used by "
+                              f"{owner[marker_key]}")
+        owner[marker_key] = what
     for r in robots:
-        for key in sorted(r.layout.keys):
-            marker_id = key[1]
-            if key in owner:
-                raise ConfigError(f"{where}: robot {r.name!r} uses {key[0]} id {marker_id}, already used by "
-                                  f"{owner[key]}; every robot needs ids of its own")
-            owner[key] = f"robot {r.name!r}"
+        for marker_key in sorted(r.layout.keys):
+            if marker_key in owner:
+                raise ConfigError(f"{where}: robot {r.name!r} uses {marker_key[0]} id {marker_key[1]}, already used "
+                                  f"by {owner[marker_key]}; every robot needs ids of its own")
+            owner[marker_key] = f"robot {r.name!r}"
     sections = {}
     for name, table in doc.items():
         if name in ("world", "cameras", "robots", "outputs"):

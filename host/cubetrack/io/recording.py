@@ -25,10 +25,11 @@ import logging
 import math
 import re
 from collections import Counter
+from collections.abc import Callable, Iterable, Iterator
 from dataclasses import dataclass
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
-from typing import Iterable, Iterator
+from typing import Any
 
 from cubetrack.core.cameras import ClockSample
 from cubetrack.core.errors import RecordingError
@@ -88,7 +89,7 @@ class Recording:
         self._missing: set[tuple[str, str]] = set()  # (camera, file) already counted as missing
 
     @classmethod
-    def open(cls, path: str | Path) -> "Recording":
+    def open(cls, path: str | Path) -> Recording:
         """Open a recording folder, checking ``recording.json``."""
         path = Path(path)
         meta_path = path / "recording.json"
@@ -140,7 +141,8 @@ class Recording:
             raise RecordingError(f"{index_path}: empty index (no frames recorded for {camera})")
         return rows
 
-    def _read_rows(self, path: Path, header: tuple[str, ...], parse, reason: str) -> list:
+    def _read_rows(self, path: Path, header: tuple[str, ...], parse: Callable[[list[str]], Any],
+                   reason: str) -> list:
         """The rows of a CSV file that must start with ``header``, each through ``parse`` (None:
         a broken row, skipped and counted under ``reason``)."""
         rows = []
@@ -260,7 +262,7 @@ class RecordingWriter:
             "format": FORMAT,
             "version": VERSION,
             "cameras": [{"name": c.name, "source": c.source} for c in self.cameras],
-            "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+            "created": datetime.now(UTC).isoformat(timespec="seconds"),
         }
         self._index: dict[str, LineFile] = {}
         self._clock: dict[str, LineFile] = {}
@@ -313,7 +315,7 @@ class RecordingWriter:
         for f in (*self._index.values(), *self._clock.values()):
             f.close()
 
-    def __enter__(self) -> "RecordingWriter":
+    def __enter__(self) -> RecordingWriter:
         return self
 
     def __exit__(self, *exc: object) -> None:

@@ -19,7 +19,7 @@ import json
 import platform
 import sys
 from collections.abc import Mapping
-from datetime import datetime, timezone
+from datetime import UTC, datetime
 from pathlib import Path
 from typing import Any
 
@@ -65,7 +65,7 @@ def run_record(command: str, parameters: Mapping[str, Any], inputs: Mapping[str,
         "format": FORMAT,
         "version": VERSION,
         "command": command,
-        "created": datetime.now(timezone.utc).isoformat(timespec="seconds"),
+        "created": datetime.now(UTC).isoformat(timespec="seconds"),
         "versions": _versions(),
         "parameters": {name: p if isinstance(p, Mapping) else params_to_table(p) for name, p in parameters.items()},
         "inputs": {name: _input(path) for name, path in inputs.items() if path is not None},

@@ -79,7 +79,7 @@ def format_tum_line(time_s: float, position_m: np.ndarray, q_xyzw: np.ndarray) -
 def write_tum(trajectory: Trajectory, path: str | Path) -> None:
     """Write a whole trajectory as TUM."""
     with Path(path).open("w", encoding="utf-8") as f:
-        for t, p, q in zip(trajectory.times_s, trajectory.positions_m, trajectory.quats_xyzw):
+        for t, p, q in zip(trajectory.times_s, trajectory.positions_m, trajectory.quats_xyzw, strict=True):
             f.write(format_tum_line(t, p, q))
 
 
@@ -136,7 +136,7 @@ class PoseWriter:
         for f in self._files:
             f.close()
 
-    def __enter__(self) -> "PoseWriter":
+    def __enter__(self) -> PoseWriter:
         return self
 
     def __exit__(self, *exc: object) -> None:

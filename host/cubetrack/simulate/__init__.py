@@ -28,7 +28,7 @@ __all__ = ["SimulationParams", "SimulationResult", "SimulatedCamera", "simulate"
 
 
 def simulate(params: SimulationParams, out: str | Path, progress: Progress | None = None,
-             overwrite: bool = False, workers: int | None = None) -> "SimulationResult":
+             overwrite: bool = False, workers: int | None = None) -> SimulationResult:
     """Render a simulated session into the recording folder ``out``; see
     :func:`cubetrack.simulate.simulation.simulate`."""
     from cubetrack.simulate.simulation import simulate as _simulate

@@ -110,7 +110,8 @@ class SharpPath:
         # speed, at which the yaw rate v k stays within turn_rate_rad_s and the yaw acceleration
         # v^2 dk/ds within the wheels' limit; braking and accelerating happen on the straights
         turn_limit = np.minimum(turn_rate_rad_s / np.maximum(np.abs(curvature), 1e-12),
-                                np.sqrt(self.yaw_accel_limit_rad_s2 / np.maximum(np.abs(np.gradient(curvature, ds)), 1e-12)))
+                                np.sqrt(self.yaw_accel_limit_rad_s2
+                                        / np.maximum(np.abs(np.gradient(curvature, ds)), 1e-12)))
         limit = np.minimum(speed_m_s, self._per_turn_minimum(turn_limit, np.abs(curvature) > _SHARP_STRAIGHT_CURVATURE))
         v = self._speed_profile(limit, accel_m_s2, ds)
         # time along the path: constant acceleration between profile points
@@ -364,7 +365,7 @@ def plan_people(count: int, duration_s: float, cameras_xy: np.ndarray, robot_xy_
                 times = np.linspace(t, t + duration, 60)
                 walk = start + ((times - t) / duration)[:, None] * (end - start)
                 if all(np.linalg.norm(robot_xy_at(tk) - w, axis=1).min() >= _PERSON_ROBOT_CLEARANCE_M
-                       for tk, w in zip(times, walk)):
+                       for tk, w in zip(times, walk, strict=True)):
                     crossing = Crossing(t, t + duration, start, end)
                     break
                 t += 0.5  # wait for the robot to pass

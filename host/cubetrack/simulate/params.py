@@ -15,6 +15,7 @@ any preset can switch single effects on or off.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 from cubetrack.core.params import check, check_between, check_finite, check_non_negative, check_positive, param
 
@@ -148,7 +149,8 @@ class SimulationParams:
         check_between(self, 1, 16, "cameras")
         check_between(self, 1, 100, "jpeg_quality")
         check_between(self, 0, 100_000, "calibration_frames")
-        check(0 < self.robot_spacing < 1, f"robot_spacing must be between 0 and 1 (exclusive), got {self.robot_spacing}")
+        check(0 < self.robot_spacing < 1,
+              f"robot_spacing must be between 0 and 1 (exclusive), got {self.robot_spacing}")
         check(0 < self.tilt_deg < 90, f"tilt_deg must be between 0 and 90 degrees (exclusive), got {self.tilt_deg}")
         check(16 <= self.image_width_px <= 4096 and 16 <= self.image_height_px <= 4096,
               f"image size must be 16..4096 pixels per side, got {self.image_width_px} x {self.image_height_px}")
@@ -179,7 +181,7 @@ class SimulationParams:
               f"cube's top ({top:.3f} m)")
 
     @classmethod
-    def realistic(cls, **changes) -> SimulationParams:
+    def realistic(cls, **changes: Any) -> SimulationParams:
         """The realistic preset (:data:`REALISTIC`: every effect of real cameras and robots on),
         with ``changes`` applied on top (e.g. ``cameras=5, seed=3`` or ``readout_ms=0``)."""
         return cls(**{**REALISTIC, **changes})

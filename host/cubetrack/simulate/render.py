@@ -262,8 +262,10 @@ class View:
         lo, hi = b[:, :2].min(axis=0), b[:, 2:].max(axis=0)
         # the box's corners and edge points, distorted where they lie near the image
         edge = np.linspace(0.0, 1.0, 33)
-        ring = np.concatenate([np.column_stack([lo[0] + edge * (hi[0] - lo[0]), np.full(33, y)]) for y in (lo[1], hi[1])]
-                              + [np.column_stack([np.full(33, x), lo[1] + edge * (hi[1] - lo[1])]) for x in (lo[0], hi[0])])
+        ring = np.concatenate([np.column_stack([lo[0] + edge * (hi[0] - lo[0]), np.full(33, y)])
+                               for y in (lo[1], hi[1])]
+                              + [np.column_stack([np.full(33, x), lo[1] + edge * (hi[1] - lo[1])])
+                                 for x in (lo[0], hi[0])])
         limit = 2.0 * max(self.width, self.height) / min(self.K[0, 0], self.K[1, 1])
         ring = np.clip(ring, -limit, limit)
         uv, _ = cv2.projectPoints(np.column_stack([ring, np.ones(len(ring))]), np.zeros(3), np.zeros(3), self.K,
@@ -302,7 +304,7 @@ def _clip_in_front(p: np.ndarray, near: float) -> np.ndarray:
     """Image points (x, y) of a polygon given as homogeneous rows (x z, y z, z), clipped to
     depth ``z >= near``."""
     out = []
-    for a, b in zip(p, np.roll(p, -1, axis=0)):
+    for a, b in zip(p, np.roll(p, -1, axis=0), strict=True):
         if a[2] >= near:
             out.append(a)
         if (a[2] >= near) != (b[2] >= near):
@@ -493,7 +495,7 @@ class Renderer:
         equally, or per final row with ``row_weights`` (rows, samples)."""
         v, s = self.view, self.view.s
         sx0, sy0, sx1, sy1 = fx0 * s, fy0 * s, fx1 * s, fy1 * s
-        if not v.distorted:
+        if v.map_x is None or v.map_y is None:  # not distorted
             base = self._canvas[sy0:sy1, sx0:sx1]
             origin = (v.canvas_origin[0] + sx0, v.canvas_origin[1] + sy0)
             mx = my = None
@@ -508,16 +510,17 @@ class Renderer:
             base = self._canvas[by0:by1, bx0:bx1]
             origin = (v.canvas_origin[0] + bx0, v.canvas_origin[1] + by0)
             mx, my = mx - np.float32(bx0), my - np.float32(by0)
-        acc = None
+        acc: np.ndarray | None = None
         for k, solids in enumerate(solids_per_sample):
-            patch = base.copy()
+            patch: np.ndarray = base.copy()
             for solid in solids:
                 draw_solid(patch, origin, v, solid)
-            if mx is not None:
+            if mx is not None and my is not None:
                 patch = cv2.remap(patch, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
             if row_weights is not None:
                 patch *= np.repeat(row_weights[:, k].astype(np.float32), s)[:, None]
             acc = patch if acc is None else acc + patch
+        assert acc is not None  # at least one sample
         if row_weights is None:
             acc /= np.float32(len(solids_per_sample))
         if s == 1:

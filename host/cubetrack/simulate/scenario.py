@@ -137,10 +137,10 @@ class Scene:
             T = self.T_world_robot(t_s, k)
             groups.append((T[:3, 3], lambda T=T, robot=robot: self.robot_solids_at(T, robot.layout, robot.true_layout)))
         for person in self.people:
-            T = person.T_world_person(t_s)
-            if T is not None:
-                centre = T[:3, 3] + [0.0, 0.0, PERSON_BODY_M[2] / 2]
-                groups.append((centre, lambda T=T, person=person: self.person_solids_at(T, person.albedo)))
+            T_person = person.T_world_person(t_s)
+            if T_person is not None:
+                centre = T_person[:3, 3] + [0.0, 0.0, PERSON_BODY_M[2] / 2]
+                groups.append((centre, lambda T=T_person, person=person: self.person_solids_at(T, person.albedo)))
         order = sorted(range(len(groups)), key=lambda k: -float(np.linalg.norm(groups[k][0] - camera_position_m)))
         return tuple(solid for k in order for solid in groups[k][1]())
 
@@ -160,7 +160,7 @@ class Scene:
             solids.append(Solid(self._shaded(box_faces(mast_T, (side, side, p.mast_height_m), MAST_ALBEDO))))
         T_cube = T_robot @ self.T_robot_cube()
         faces, decals = [], []
-        for m, b in zip(layout.markers, (built or layout).markers):
+        for m, b in zip(layout.markers, (built or layout).markers, strict=True):
             T = T_cube @ m.T_cube_marker
             shade = self.shade(T[:3, 2])
             faces.append(Quad(T, (p.cube_size_m, p.cube_size_m), WHITE_ALBEDO, shade=shade))
@@ -228,6 +228,11 @@ def camera_pose(azimuth_rad: float, p: SimulationParams, rng: np.random.Generato
     return make_T(R, position)
 
 
+
+def robot_names(p: SimulationParams) -> tuple[str, ...]:
+    """The simulated robots' names: ``robot`` alone, else ``robot1``, ``robot2``, ..."""
+    return (ROBOT_NAME,) if p.robots == 1 else tuple(f"robot{k + 1}" for k in range(p.robots))
+
 def build_scene(p: SimulationParams) -> Scene:
     """The arena for a parameter set; raises SimulationError when a camera cannot see the whole
     world marker (calibration would be impossible)."""
@@ -248,7 +253,7 @@ def build_scene(p: SimulationParams) -> Scene:
             terrain = Terrain(1e-3 * p.floor_bumps_mm, 1e-3 * p.bounce_mm, math.radians(p.wobble_deg),
                               (p.robot_size_m[0], p.robot_size_m[1]), rng_for(p.seed, STREAM_FLOOR),
                               rng_for(p.seed, STREAM_VIBRATION, k))
-        robots.append(SimRobot(ROBOT_NAME if p.robots == 1 else f"robot{k + 1}", layout, path,
+        robots.append(SimRobot(robot_names(p)[k], layout, path,
                                built_layout(layout, p, rng_for(p.seed, STREAM_BUILD, k)), terrain))
     cameras = []
     for i in range(p.cameras):
@@ -265,7 +270,7 @@ def build_scene(p: SimulationParams) -> Scene:
                        readout_s=1e-3 * p.readout_ms)
         cameras.append(CameraSetup(name, intrinsics, T_world_cam, clock, phase, light, info, 1e-3 * p.readout_ms))
     for marker_id in sorted({p.world_marker_id, *(i for r in robots for i in r.layout.ids)}):
-        MarkerTexture(p.dictionary, marker_id).cells  # unknown dictionary or id: SimulationError
+        MarkerTexture(p.dictionary, marker_id).cells  # noqa: B018 (unknown dictionary or id: SimulationError)
     light_world = None
     if p.face_shading > 0:
         azimuth = float(rng_for(p.seed, STREAM_LIGHT).uniform(0.0, 2.0 * math.pi))

@@ -190,7 +190,7 @@ def _frame_jobs(scene: Scene, index: int, captures: tuple[CaptureTruth, ...], mo
         times = np.array([c.capture_host_s for c in delivered])
         gains = gains * auto_exposure_gains(p, times, captures[0].capture_host_s, captures[-1].capture_host_s,
                                             rng_for(p.seed, exposure_stream, index))
-    return [_FrameJob(index, c, float(g), moving, stream) for c, g in zip(delivered, gains)]
+    return [_FrameJob(index, c, float(g), moving, stream) for c, g in zip(delivered, gains, strict=True)]
 
 
 class _FrameMaker:
@@ -237,10 +237,10 @@ class _FrameMaker:
                                   for solid in self.scene.robot_solids_at(self.scene.T_world_robot(t, k),
                                                                           self.scene.robots[k].layout)])
             corners.append(pts)
-        corners = np.array(corners)
-        if np.any(view.depth(corners.reshape(-1, 3)) <= 0.05):
+        stacked = np.array(corners)
+        if np.any(view.depth(stacked.reshape(-1, 3)) <= 0.05):
             return 1e-4
-        uv = view.project(corners.reshape(-1, 3)).reshape(len(times), -1, 2)
+        uv = view.project(stacked.reshape(-1, 3)).reshape(len(times), -1, 2)
         speed = float(np.linalg.norm(np.diff(uv, axis=0), axis=2).max()) / _PROBE_S
         return float(np.clip(_MAX_STEP_PX / max(speed, 1e-9), 1e-4, max(p.exposure_s, 1e-3)))
 
@@ -255,6 +255,7 @@ def _write_frames(writer: RecordingWriter, scene: Scene, jobs: list[_FrameJob], 
     """Render jobs (in parallel threads: OpenCV and NumPy release the GIL) and write them in order."""
     def write(job: _FrameJob, jpeg: bytes, done: int) -> None:
         c = job.capture
+        assert c.arrival_host_s is not None  # jobs are delivered frames only
         writer.add_frame(scene.cameras[job.camera].name, c.seq, c.device_time_s, c.arrival_host_s, jpeg)
         if progress is not None:
             progress(f"simulate {stage}", done, len(jobs))
@@ -264,7 +265,7 @@ def _write_frames(writer: RecordingWriter, scene: Scene, jobs: list[_FrameJob], 
             write(job, make(job), done)
         return
     with ThreadPoolExecutor(max_workers=workers) as pool:
-        for done, (job, jpeg) in enumerate(zip(jobs, pool.map(make, jobs)), start=1):
+        for done, (job, jpeg) in enumerate(zip(jobs, pool.map(make, jobs), strict=True), start=1):
             write(job, jpeg, done)
 
 
@@ -311,7 +312,7 @@ def simulate(params: SimulationParams, out: str | Path, progress: Progress | Non
         for i, c in enumerate(scene.cameras):
             cal_plans[i] = plan_captures(p, c.clock, c.capture_phase_s, rng_for(p.seed, STREAM_CAL_TIMING, i),
                                          cal_start, start - _GAP_BEFORE_RECORDING_S, p.calibration_frames)
-            got = [x.arrival_host_s for x in cal_plans[i] if x.delivered]
+            got = [x.arrival_host_s for x in cal_plans[i] if x.arrival_host_s is not None]  # delivered
             if len(got) < p.calibration_frames:
                 log.warning("%s: only %d of %d calibration frames arrive at drop_rate %g",
                             c.name, len(got), p.calibration_frames, p.drop_rate)
@@ -338,7 +339,8 @@ def simulate(params: SimulationParams, out: str | Path, progress: Progress | Non
         ground_truths = {}
         for k, robot in enumerate(scene.robots):
             poses = [position_quat_from_T(scene.T_world_cube(t - start, k)) for t in times]
-            ground_truths[robot.name] = Trajectory(times, np.array([q[0] for q in poses]), np.array([q[1] for q in poses]))
+            ground_truths[robot.name] = Trajectory(times, np.array([q[0] for q in poses]),
+                                                   np.array([q[1] for q in poses]))
         write_tum(next(iter(ground_truths.values())), writer.ground_truth_path)
         if len(scene.robots) > 1:
             (out / GROUND_TRUTH_DIR).mkdir(exist_ok=True)

@@ -315,7 +315,7 @@ class Outputs:
         for sink in self.sinks:
             sink.close()
 
-    def __enter__(self) -> "Outputs":
+    def __enter__(self) -> Outputs:
         return self
 
     def __exit__(self, *exc: object) -> None:

@@ -3,15 +3,20 @@
 Channels (foxglove-sdk well-known schemas, protobuf; names made topic-safe by
 :func:`cubetrack.sink.names.identifiers`):
 
-| topic | schema | what |
-| --- | --- | --- |
-| ``/robots/<r>/pose`` | ``foxglove.PoseInFrame`` | the cube frame in ``world`` |
-| ``/tf`` | ``foxglove.FrameTransforms`` | world -> ``<r>`` at every pose; world -> ``<c>_optical_frame`` of each calibrated camera (at the start and every ``static_every_s``) |
-| ``/scene`` | ``foxglove.SceneUpdate`` | entity ``robot/<r>``: a cube of the layout's size in the frame ``<r>`` (frame-locked: it moves with ``/tf``); entity ``camera/<c>``: the camera's field of view as a frustum ``frustum_depth_m`` deep, with its name; both at the start and every ``static_every_s`` |
-| ``/cameras/<c>/image`` | ``foxglove.CompressedImage`` | the JPEG as received (live sessions that hand out views) |
-| ``/cameras/<c>/annotations`` | ``foxglove.ImageAnnotations`` | detected markers (green outlines, ids) and the predicted cube's markers (orange) |
-| ``/cameras/<c>/calibration`` | ``foxglove.CameraCalibration`` | intrinsics, so the image and 3D panels line up |
-| ``/cameras/<c>/health`` | JSON (schema ``cubetrack.CameraHealth``) | the camera's health snapshot |
+- ``/robots/<r>/pose`` (``foxglove.PoseInFrame``): the cube frame in ``world``
+- ``/tf`` (``foxglove.FrameTransforms``): world -> ``<r>`` at every pose; world ->
+  ``<c>_optical_frame`` of each calibrated camera (at the start and every ``static_every_s``)
+- ``/scene`` (``foxglove.SceneUpdate``): entity ``robot/<r>``: a cube of the layout's size in the
+  frame ``<r>`` (frame-locked: it moves with ``/tf``); entity ``camera/<c>``: the camera's field of
+  view as a frustum ``frustum_depth_m`` deep, with its name; both at the start and every
+  ``static_every_s``
+- ``/cameras/<c>/image`` (``foxglove.CompressedImage``): the JPEG as received (live sessions that
+  hand out views)
+- ``/cameras/<c>/annotations`` (``foxglove.ImageAnnotations``): detected markers (green outlines,
+  ids) and the predicted cube's markers (orange)
+- ``/cameras/<c>/calibration`` (``foxglove.CameraCalibration``): intrinsics, so the image and 3D
+  panels line up
+- ``/cameras/<c>/health`` (JSON, schema ``cubetrack.CameraHealth``): the camera's health snapshot
 
 Where a view carries no predicted corners, the cube is projected from the robot's latest
 fused pose. The live server binds 127.0.0.1 unless another address is given. With both a server
@@ -27,9 +32,11 @@ import math
 import time
 from dataclasses import dataclass, fields
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
+from cubetrack.core.cameras import CameraIntrinsics
 from cubetrack.core.geometry import T_from_position_quat, invert_T, position_quat_from_T, transform_points
 from cubetrack.core.params import check
 from cubetrack.core.records import CameraHealth, CameraView, TrackedPose
@@ -107,6 +114,8 @@ def _colour(rgba):
 
 def frustum_points_cam(camera: CameraSetup, depth_m: float) -> np.ndarray:
     """The four image corners back-projected ``depth_m`` in front of the camera (optical frame)."""
+    if camera.intrinsics is None:
+        raise ValueError(f"camera {camera.name} has no intrinsics: no frustum")
     K = np.asarray(camera.intrinsics.K, float)
     w, h = camera.intrinsics.width, camera.intrinsics.height
     pixels = np.array([[0, 0, 1], [w, 0, 1], [w, h, 1], [0, h, 1]], float)
@@ -119,17 +128,17 @@ def project(camera: CameraSetup, points_world: np.ndarray) -> np.ndarray | None:
     when any is behind it or the camera is not calibrated."""
     if camera.T_world_cam is None or camera.intrinsics is None:
         return None
-    return _Projector(camera).pixels(points_world)
+    return _Projector(camera.T_world_cam, camera.intrinsics).pixels(points_world)
 
 
 class _Projector:
     """Pixels of world points in one calibrated camera (with its distortion), its constants
     computed once."""
 
-    def __init__(self, camera: CameraSetup):
-        self.T_cam_world = invert_T(camera.T_world_cam)
-        self.K = np.asarray(camera.intrinsics.K, float)
-        self.dist = np.asarray(camera.intrinsics.dist, float)
+    def __init__(self, T_world_cam: np.ndarray, intrinsics: CameraIntrinsics):
+        self.T_cam_world = invert_T(T_world_cam)
+        self.K = np.asarray(intrinsics.K, float)
+        self.dist = np.asarray(intrinsics.dist, float)
 
     def pixels(self, points_world: np.ndarray) -> np.ndarray | None:
         """(N, 2) pixel positions, None when any point is behind the camera."""
@@ -196,11 +205,13 @@ class FoxgloveSink(Sink):
         self.projectors: dict[str, _Projector] = {}
         self.last_pose: dict[str, TrackedPose] = {}
         self.cube_world_m: dict[str, np.ndarray] = {}  # marker corners at the last pose, once a view needed them
-        self.channels: dict[str, object] = {}
+        self.channels: dict[str, Any] = {}  # foxglove-sdk channels (no common base class)
         self.static_sent_s = -math.inf
 
     @property
     def port(self) -> int:
+        if self.server is None:
+            raise ValueError("no WebSocket server (an MCAP file only, or closed)")
         return self.server.port
 
     def _channel(self, topic: str, kind: str):
@@ -220,7 +231,7 @@ class FoxgloveSink(Sink):
         self.robots = identifiers(list(session.robots), "robot")
         self.camera_ids = identifiers([c.name for c in session.cameras], "camera")
         self.cameras = {c.name: c for c in session.cameras}
-        self.projectors = {c.name: _Projector(c) for c in session.cameras
+        self.projectors = {c.name: _Projector(c.T_world_cam, c.intrinsics) for c in session.cameras
                            if c.T_world_cam is not None and c.intrinsics is not None}
         for robot, layout in session.robots.items():
             corners = layout.corners_m.reshape(-1, 4, 3)
@@ -242,9 +253,18 @@ class FoxgloveSink(Sink):
     def _send_static(self, time_s: float) -> None:
         """Camera transforms, calibrations and frusta, the robots' cubes (re-sent so late viewers
         get them)."""
-        from foxglove.messages import (CameraCalibration, CubePrimitive, FrameTransform, FrameTransforms,
-                                       LinePrimitive, LinePrimitiveLineType, Point3, SceneEntity, SceneUpdate,
-                                       TextPrimitive)
+        from foxglove.messages import (
+            CameraCalibration,
+            CubePrimitive,
+            FrameTransform,
+            FrameTransforms,
+            LinePrimitive,
+            LinePrimitiveLineType,
+            Point3,
+            SceneEntity,
+            SceneUpdate,
+            TextPrimitive,
+        )
 
         world = self.params.world_frame
         transforms = []
@@ -306,8 +326,14 @@ class FoxgloveSink(Sink):
             self._send_static(t)
 
     def camera_view(self, view: CameraView) -> None:
-        from foxglove.messages import (CompressedImage, ImageAnnotations, Point2, PointsAnnotation,
-                                       PointsAnnotationType, TextAnnotation)
+        from foxglove.messages import (
+            CompressedImage,
+            ImageAnnotations,
+            Point2,
+            PointsAnnotation,
+            PointsAnnotationType,
+            TextAnnotation,
+        )
 
         cid = self.camera_ids.get(view.camera)
         if cid is None:

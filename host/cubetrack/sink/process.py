@@ -7,7 +7,8 @@ runs a set of outputs in a child process instead; the pipeline's side only pickl
 pipe (from the :class:`~cubetrack.sink.base.Decoupled` thread :class:`Outputs` gives it, so a
 full pipe costs the pipeline nothing: the oldest items are dropped and counted there). Items go
 in batches (at most one per ``BATCH_WINDOW_S``: an item after a quiet spell goes at once, and what
-follows it within the window waits for the next batch: one wake-up, one pickle and one write for several), each record as a compact tuple of plain values
+follows it within the window waits for the next batch: one wake-up, one pickle and one write for
+several), each record as a compact tuple of plain values
 (:func:`cubetrack.io.output_wire.pack_output`): pickling
 the frozen dataclasses and their small numpy arrays as objects cost ten times more.
 
@@ -18,7 +19,8 @@ them waits for a peer (each server queues per client and drops for a slow one, Z
 congestion, MCAP writes to a file), and a thread per output would cost a wake-up and a lock
 hand-over per output and item, more than most of them spend on the item (benchmarks/outputs.py).
 If the child falls behind, the pipe's queue in the tracker drops the oldest items and counts
-them. It ignores Ctrl-C (the tracker closes it) and ends when the tracker's process goes away.
+them. It ignores Ctrl-C (the tracker closes it) and ends when the tracker's process goes away
+(:func:`cubetrack.core.lifetime.end_with_parent`; its outputs are closed then, as on SIGTERM).
 """
 
 from __future__ import annotations
@@ -30,6 +32,7 @@ from collections.abc import Callable
 from multiprocessing.connection import Connection
 
 from cubetrack.core.errors import ConfigError, CubetrackError
+from cubetrack.core.lifetime import end_with_parent
 from cubetrack.io.output_wire import pack_output, unpack_output
 from cubetrack.sink.base import OutputError, Outputs, Sink
 
@@ -40,9 +43,15 @@ CLOSE_TIMEOUT_S = 30.0  # the child delivers what it holds (up to 5 s per output
 BATCH_WINDOW_S = 0.004  # at most one pipe write per this long; an item waits at most this long
 
 
+def _exit(signum: int, frame: object) -> None:
+    raise SystemExit(0)
+
+
 def serve_outputs(factory: Callable[[], list[Sink]], conn: Connection, log_level: int) -> None:
     """The child process: build the outputs, say where they are, then pass on what arrives."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
+    signal.signal(signal.SIGTERM, _exit)  # as when the tracker closes it: outputs closed, files whole
+    end_with_parent()
     logging.basicConfig(level=log_level, format="%(levelname)s %(name)s: %(message)s")
     try:
         sinks = factory()

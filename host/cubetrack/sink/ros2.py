@@ -25,6 +25,7 @@ import logging
 import math
 import time
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -76,7 +77,7 @@ TOPIC_QOS = rmw_zenoh.Qos(depth=10)
 class _Publisher:
     """One ROS 2 publisher on Zenoh: its key, token, GID and sequence numbers."""
 
-    def __init__(self, sink: "Ros2Sink", topic: str, ros_type: cdr.RosType, qos: rmw_zenoh.Qos, entity_id: int):
+    def __init__(self, sink: Ros2Sink, topic: str, ros_type: cdr.RosType, qos: rmw_zenoh.Qos, entity_id: int):
         import zenoh
 
         p = sink.params
@@ -91,7 +92,8 @@ class _Publisher:
         else:
             self.key = topic.strip("/")
         self.sequence = 0
-        options = dict(reliability=zenoh.Reliability.RELIABLE, congestion_control=zenoh.CongestionControl.DROP)
+        options: dict[str, Any] = dict(reliability=zenoh.Reliability.RELIABLE,
+                                       congestion_control=zenoh.CongestionControl.DROP)
         if self.rmw and qos.durability == rmw_zenoh.TRANSIENT_LOCAL:
             from zenoh import ext
 
@@ -166,6 +168,7 @@ class Ros2Sink(Sink):
                  ", ".join(pub.topic for pub in self.publishers))
 
     def _send_static(self, now_s: float) -> None:
+        assert self.tf_static is not None and self.static_payload is not None  # set by open()
         self.tf_static.put(self.static_payload)
         self.static_sent_s = now_s
 
@@ -180,6 +183,7 @@ class Ros2Sink(Sink):
                                                                              pose.angular_velocity_rad_s)
         odom_pub.put(cdr.odometry(pose.time_s, world, frame, pose.position_m, pose.quaternion_xyzw,
                                   _finite(pose.covariance), _finite(linear), _finite(angular)))
+        assert self.tf is not None  # set by open(), which names the robots
         self.tf.put(cdr.tf_message([cdr.Transform(pose.time_s, world, frame, pose.position_m,
                                                   pose.quaternion_xyzw)]))
         now = time.time()

@@ -345,9 +345,9 @@ class VrpnServer:
                 client.outbox.appendleft(COOKIE)
                 client.queued_bytes += COOKIE_SIZE
         with self.lock:
-            error = self._send_queued(client)
-        if error is not None:
-            self._drop(client, error)
+            failure = self._send_queued(client)
+        if failure is not None:
+            self._drop(client, failure)
 
     def _send_queued(self, client: _Client) -> str | None:
         """Send what ``client`` has queued until its socket would block (with the lock held, by
@@ -420,10 +420,10 @@ class VrpnServer:
                 name = body[4:4 + n].split(b"\x00")[0].decode("ascii", "replace")
                 (client.senders if type_id == SENDER_DESCRIPTION else client.types)[sender] = name
             elif client.types.get(type_id) == PING:
-                name = client.senders.get(sender)
-                if name in self.senders:
+                pinged = client.senders.get(sender)
+                if pinged in self.senders:
                     with self.lock:
-                        self._queue(client, self._framed(client, self.senders.index(name), TYPES.index(PONG), b"",
+                        self._queue(client, self._framed(client, self.senders.index(pinged), TYPES.index(PONG), b"",
                                                          seconds + micros * 1e-6))
 
 
@@ -453,13 +453,16 @@ def _bind_pair(host: str, port: int) -> tuple[socket.socket, socket.socket]:
 
 
 class VrpnSink(Sink):
-    """Serves every robot as a VRPN tracker (module doc); the server starts in the constructor."""
+    """Serves every robot as a VRPN tracker (module doc); the server starts in the constructor
+    with ``robots`` (the configured ones) as its trackers, so that a client that connects before
+    the session finds them and has its pings answered."""
 
     name = "vrpn"
 
-    def __init__(self, params: VrpnParams = VrpnParams()):
+    def __init__(self, params: VrpnParams = VrpnParams(), robots: tuple[str, ...] = ()):
         self.server = VrpnServer(params)
         self.trackers: dict[str, str] = {}
+        self._announce(robots)
         where = f"{params.host}:{self.server.port}"
         self.where = f"VRPN trackers <robot>@{where}"
         if not is_loopback_host(params.host):
@@ -471,9 +474,12 @@ class VrpnSink(Sink):
     def port(self) -> int:
         return self.server.port
 
-    def open(self, session: SessionInfo) -> None:
-        self.trackers = identifiers(list(session.robots), "robot")
+    def _announce(self, robots: tuple[str, ...]) -> None:
+        self.trackers = identifiers(list(robots), "robot")
         self.server.add_senders(list(self.trackers.values()))
+
+    def open(self, session: SessionInfo) -> None:
+        self._announce(tuple(session.robots))
         host = self.server.params.host
         log.info("VRPN trackers: %s", ", ".join(f"{t}@{host}:{self.port}" for t in self.trackers.values()))
 

@@ -1,15 +1,18 @@
 """Poses, velocities, robot status and camera health as JSON on Zenoh.
 
 Key expressions (``<prefix>`` default ``cubetrack``; robot and camera names made key-safe by
-:func:`cubetrack.sink.names.identifiers`, the real names are inside the JSON):
+:func:`cubetrack.sink.names.identifiers`, the real names are inside the JSON), each value JSON (encoding
+``application/json``):
 
-| key | JSON (encoding ``application/json``) |
-| --- | --- |
-| ``<prefix>/robots/<r>/pose`` | the JSONL object of contracts §5 (time, robot, position, quaternion_xyzw, cameras, markers, latency, ...) |
-| ``<prefix>/robots/<r>/velocity`` | ``{"time", "robot", "frame": "world", "linear_m_s": [3], "angular_rad_s": [3]}`` when the fusion estimates it |
-| ``<prefix>/robots/<r>/status`` | ``{"time", "robot", "tracking", "poses_per_s", "last_pose_time", "cameras"}`` about once a second |
-| ``<prefix>/cameras/<c>/health`` | a :class:`cubetrack.core.records.CameraHealth` (NaN -> null) |
-| ``<prefix>/session`` | world marker, cameras (pose in the world, intrinsics), robots and the key names; also answered as a query |
+- ``<prefix>/robots/<r>/pose``: the JSONL object of contracts §5 (time, robot, position,
+  quaternion_xyzw, cameras, markers, latency, ...)
+- ``<prefix>/robots/<r>/velocity``: ``{"time", "robot", "frame": "world", "linear_m_s": [3],
+  "angular_rad_s": [3]}`` when the fusion estimates it
+- ``<prefix>/robots/<r>/status``: ``{"time", "robot", "tracking", "poses_per_s", "last_pose_time",
+  "cameras"}`` about once a second
+- ``<prefix>/cameras/<c>/health``: a :class:`cubetrack.core.records.CameraHealth` (NaN -> null)
+- ``<prefix>/session``: world marker, cameras (pose in the world, intrinsics), robots and the key
+  names; also answered as a query
 
 ``tracking`` turns false when a robot's last pose is older than ``lost_after_s``; status is
 sent with poses and with camera health (live sessions), so a lost robot is reported as such.
@@ -22,6 +25,7 @@ import logging
 import math
 import time
 from dataclasses import asdict, dataclass
+from typing import Any
 
 import numpy as np
 
@@ -86,7 +90,7 @@ class ZenohJsonSink(Sink):
         self.robot_ids: dict[str, str] = {}
         self.camera_ids: dict[str, str] = {}
         self.status: dict[str, _RobotStatus] = {}
-        self.publishers: dict[str, object] = {}
+        self.publishers: dict[str, Any] = {}  # zenoh publishers
         self.session_doc: bytes = b"{}"
         self.queryable = None
 
@@ -107,8 +111,9 @@ class ZenohJsonSink(Sink):
         self.status = {robot: _RobotStatus() for robot in session.robots}
         cameras = []
         for c in session.cameras:
-            entry = {"name": c.name, "health_key": f"{self.prefix}/cameras/{self.camera_ids[c.name]}/health",
-                     "position": None, "quaternion_xyzw": None, "intrinsics": None}
+            entry: dict[str, Any] = {"name": c.name,
+                                     "health_key": f"{self.prefix}/cameras/{self.camera_ids[c.name]}/health",
+                                     "position": None, "quaternion_xyzw": None, "intrinsics": None}
             if c.T_world_cam is not None:
                 position, quaternion = position_quat_from_T(c.T_world_cam)
                 entry["position"], entry["quaternion_xyzw"] = position.tolist(), quaternion.tolist()

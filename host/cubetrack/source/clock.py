@@ -34,8 +34,10 @@ class ClockSyncParams:
 
     window: int = param(120, "number of most recent round trips (or arrivals) used for the fit")
     fastest_fraction: float = param(0.3, "fraction of the window's fastest round trips the line is fitted to (0..1]")
-    max_round_trip_s: float = param(0.05, "round trips slower than this are ignored (they bound the offset too loosely), seconds")
-    min_samples: int = param(1, "round trips needed before they are trusted over arrival times (one fast round trip already beats arrival times)")
+    max_round_trip_s: float = param(0.05, "round trips slower than this are ignored (they bound the offset too "
+                                          "loosely), seconds")
+    min_samples: int = param(1, "round trips needed before they are trusted over arrival times (one fast round trip "
+                                "already beats arrival times)")
 
     def __post_init__(self) -> None:
         if self.window < 2 or self.min_samples < 1 or not 0.0 < self.fastest_fraction <= 1.0:
@@ -131,7 +133,7 @@ class ClockSync:
     def fit(self) -> ClockFit:
         if self._fit is None:
             if len(self._trips) >= self.params.min_samples:
-                s, d, r = (np.array(v) for v in zip(*self._trips))
+                s, d, r = (np.array(v) for v in zip(*self._trips, strict=True))
                 self._fit = fit_round_trips(s, d, r, self.params.fastest_fraction)
             elif self._arrivals:  # refitted per frame until a round trip comes: one array, few numpy calls
                 arrivals = np.array(self._arrivals)

@@ -74,7 +74,7 @@ class HttpGet:
         self.filled = False
         try:
             self.sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
-            if self.kernel_stamps:
+            if self.kernel_stamps and _SO_TIMESTAMPNS is not None:  # (kernel_stamps: it is not None)
                 try:
                     self.sock.setsockopt(socket.SOL_SOCKET, _SO_TIMESTAMPNS, 1)
                 except OSError:

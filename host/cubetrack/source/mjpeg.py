@@ -79,6 +79,12 @@ class MjpegParser:
         self._buf.clear()
         self._state = self._SEEK
 
+    def _known_delim(self) -> bytes:
+        """The delimiter, known in every state after the first (taken from the first ``--`` line)."""
+        if self._delim is None:
+            raise AssertionError("the MJPEG delimiter is read before anything else")
+        return self._delim
+
     def feed(self, data: bytes) -> list[MjpegPart]:
         self._buf += data
         out: list[MjpegPart] = []
@@ -171,12 +177,12 @@ class MjpegParser:
                 return True
             return False
         if end == 0:  # a blank line right after the delimiter: an empty part, or one without headers
-            rest = bytes(buf[skip:skip + len(self._delim) + 2])
-            if len(rest) < len(self._delim) + 2 and (b"\r\n" + self._delim).startswith(rest):
+            rest = bytes(buf[skip:skip + len(self._known_delim()) + 2])
+            if len(rest) < len(self._known_delim()) + 2 and (b"\r\n" + self._known_delim()).startswith(rest):
                 return False  # wait: it may be the next delimiter
             del buf[:skip]
             self._state = self._SEEK
-            if not (rest.startswith(self._delim) or rest.startswith(b"\r\n" + self._delim)):
+            if not (rest.startswith(self._known_delim()) or rest.startswith(b"\r\n" + self._known_delim())):
                 self._bad("part without headers")
             return True
         raw = bytes(buf[:end])
@@ -207,7 +213,7 @@ class MjpegParser:
 
     def _find_delimiter(self, limit: int) -> int:
         """Index of ``\\n--boundary`` at a line start inside buf[:limit], searched once per byte."""
-        pattern = b"\n" + self._delim
+        pattern = b"\n" + self._known_delim()
         start = max(0, self._scanned - len(pattern))
         i = self._buf.find(pattern, start, limit)
         self._scanned = max(self._scanned, limit)
@@ -235,7 +241,7 @@ class MjpegParser:
         if cut < 0:
             if len(self._buf) > self.max_part_bytes:
                 self._bad("part too large")
-                del self._buf[: len(self._buf) - len(self._delim) - 4]
+                del self._buf[: len(self._buf) - len(self._known_delim()) - 4]
                 self._state = self._SEEK
                 return None, True
             return None, False

@@ -34,8 +34,8 @@ import socket
 import threading
 import time
 from collections import Counter, deque
+from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field, replace
-from typing import Callable, Iterable, Mapping
 from urllib.parse import urlsplit
 
 from cubetrack.core.cameras import ClockSample
@@ -44,6 +44,14 @@ from cubetrack.core.params import check, check_at_least, check_positive, param
 from cubetrack.core.records import Frame
 from cubetrack.source.http_get import HttpError, HttpGet
 from cubetrack.source.mjpeg import MjpegParser, boundary_from_content_type
+from cubetrack.source.reasons import (
+    broken_frames_reason,
+    closed_reason,
+    connection_reason,
+    content_type_reason,
+    http_status_reason,
+    timeout_reason,
+)
 from cubetrack.source.time_poll import _ClockPoll, time_url
 
 log = logging.getLogger(__name__)
@@ -52,13 +60,17 @@ log = logging.getLogger(__name__)
 class SourceParams:
     """The ``[source]`` section of the tracker config: how live cameras are read."""
 
-    connect_timeout_s: float = param(2.0, "a camera that does not accept the connection within this is retried, seconds")
+    connect_timeout_s: float = param(2.0, "a camera that does not accept the connection within this is "
+                                          "retried, seconds")
     read_timeout_s: float = param(3.0, "a stream that sends nothing for this long is dropped and reconnected, seconds")
-    backoff_initial_s: float = param(0.25, "first wait before reconnecting a lost stream, seconds (doubles per failure)")
+    backoff_initial_s: float = param(0.25, "first wait before reconnecting a lost stream, seconds "
+                                           "(doubles per failure)")
     backoff_max_s: float = param(5.0, "longest wait between reconnection attempts, seconds")
     clock_period_s: float = param(1.0, "interval between /time round trips per camera, seconds")
     clock_timeout_s: float = param(0.5, "a /time round trip not answered within this is dropped, seconds")
-    frames_per_camera: int = param(1, "frames of one camera waiting for the consumer; a newer frame pushes the oldest out (dropped, counted): when the host is behind, only the freshest frames are processed")
+    frames_per_camera: int = param(1, "frames of one camera waiting for the consumer; a newer frame pushes the oldest "
+                                      "out (dropped, counted): when the host is behind, only the freshest "
+                                      "frames are processed")
     max_header_bytes: int = param(2048, "a part whose headers are longer than this is skipped, bytes")
     max_part_bytes: int = param(4 * 1024 * 1024, "a part whose JPEG is larger than this is skipped, bytes")
     read_chunk_bytes: int = param(65536, "largest single socket read, bytes")
@@ -102,12 +114,13 @@ class CameraStats:
     def bad(self) -> int:
         return sum(self.bad_parts.values())
 
-    def copy(self) -> "CameraStats":
+    def copy(self) -> CameraStats:
         return replace(self, bad_parts=Counter(self.bad_parts), clock_failures=Counter(self.clock_failures))
 
 
 class _StreamEnded(Exception):
-    """The server ended the stream or answered something that is not a stream."""
+    """The server ended the stream, answered something that is not a stream, or went silent; the
+    message is the whole reason (:mod:`cubetrack.source.reasons`)."""
 
 
 _STREAM, _CLOCK, _WAKE = "stream", "clock", "wake"
@@ -193,7 +206,7 @@ class LiveCameras:
 
     # --- lifecycle ---
 
-    def start(self) -> "LiveCameras":
+    def start(self) -> LiveCameras:
         if self._selector is not None:
             return self
         self._selector = selectors.DefaultSelector()
@@ -235,7 +248,7 @@ class LiveCameras:
     def stopped(self) -> bool:
         return self._stop.is_set()
 
-    def __enter__(self) -> "LiveCameras":
+    def __enter__(self) -> LiveCameras:
         return self.start()
 
     def __exit__(self, *exc: object) -> None:
@@ -416,7 +429,7 @@ class LiveCameras:
                 what = "connect" if not camera.stream.connected else (
                     "the answer" if camera.stream.head is None else "the next bytes")
                 limit = p.connect_timeout_s if what == "connect" else p.read_timeout_s
-                self._stream_lost(camera, TimeoutError(f"timed out ({what}, {limit:g} s)"))
+                self._stream_lost(camera, _StreamEnded(timeout_reason(what, limit, camera.url)))
             due = min(due, camera.deadline if camera.stream is not None else camera.reconnect_at)
             if camera.poll is None and now >= camera.poll_at:
                 self._start_poll(camera, now)
@@ -462,7 +475,7 @@ class LiveCameras:
                     camera.deadline = time.monotonic() + self.params.read_timeout_s
                     self._parts(camera, data, get.received_s)
                 if get.ended:
-                    raise _StreamEnded("the camera closed the stream")
+                    raise _StreamEnded(closed_reason(camera.url))
                 if not get.filled:
                     return
         except BlockingIOError:  # nothing more to read now
@@ -473,10 +486,10 @@ class LiveCameras:
     def _stream_started(self, camera: _Camera, get: HttpGet) -> None:
         status, headers = get.head
         if status != 200:
-            raise _StreamEnded(f"HTTP {status}")
+            raise _StreamEnded(http_status_reason(status, camera.url))
         ctype = headers.get("content-type", "")
         if not ctype.lower().startswith("multipart/"):
-            raise _StreamEnded(f"not a multipart stream (Content-Type {ctype!r})")
+            raise _StreamEnded(content_type_reason(ctype, camera.url))
         p = self.params
         camera.parser = MjpegParser(boundary_from_content_type(ctype), p.max_header_bytes, p.max_part_bytes)
         camera.reported = Counter()
@@ -494,7 +507,7 @@ class LiveCameras:
     def _report_bad(self, camera: _Camera) -> None:
         bad = camera.parser.bad
         if bad != camera.reported:
-            self._count(camera.name, bad_parts=bad - camera.reported)
+            self._count(camera.name, bad_parts=bad - camera.reported, last_error=broken_frames_reason(bad, camera.url))
             camera.reported = Counter(bad)
 
     def _stream_lost(self, camera: _Camera, exc: BaseException) -> None:
@@ -507,10 +520,7 @@ class LiveCameras:
             camera.parser.close()  # a part in progress when the connection ended is counted
             self._report_bad(camera)
             camera.parser = None
-        reason = _describe(exc)
-        if isinstance(exc, OSError):  # name the peer, as "cannot connect" messages usually do
-            u = urlsplit(camera.url)
-            reason = f"connection to host={u.hostname!r}, port={u.port or 80}: {reason}"
+        reason = str(exc) if isinstance(exc, _StreamEnded) else connection_reason(exc, camera.url)
         self._count(camera.name, connected=False, last_error=reason)
         if camera.got_frame:  # the connection worked: start the back-off again
             camera.backoff = p.backoff_initial_s

@@ -100,6 +100,6 @@ def test_tracking_runs_on_frames_in_memory(session):
                          files["adjusted"].extrinsics, out, memory["settings"].stages, clock_samples=memory["clock"])
     assert stats.frames == files["track"].stats.frames and stats.poses == files["track"].stats.poses
     assert len(out.poses) == len(files["poses"]) > 20
-    for mine, theirs in zip(out.poses, files["poses"]):
+    for mine, theirs in zip(out.poses, files["poses"], strict=True):
         assert (mine.robot, mine.time_s) == (theirs.robot, theirs.time_s)
         np.testing.assert_array_equal(mine.position_m, theirs.position_m)

@@ -120,7 +120,7 @@ def test_a_packed_result_comes_back_whole_through_pickle(scenes):
             back = unpack_result(job, packed, receiver.intrinsics, receiver.T_world_cam)
             assert (back.job, back.outcome, back.error) == (job, result.outcome, result.error)
             assert len(back.sightings) == len(result.sightings)
-            for a, b in zip(back.sightings, result.sightings):
+            for a, b in zip(back.sightings, result.sightings, strict=True):
                 assert (a.camera, a.robot, a.seq, a.capture_time_s, a.arrival_time_s) == \
                     (b.camera, b.robot, b.seq, b.capture_time_s, b.arrival_time_s)
                 assert [(d.marker_id, d.corners_px.tobytes(), d.area_px2, d.dictionary) for d in a.detections] == \
@@ -128,7 +128,8 @@ def test_a_packed_result_comes_back_whole_through_pickle(scenes):
                 assert (a.estimate is None) == (b.estimate is None)
                 if a.estimate is not None:
                     assert a.estimate.T_world_cube.tobytes() == b.estimate.T_world_cube.tobytes()
-                assert a.T_world_cam.tobytes() == b.T_world_cam.tobytes() and a.intrinsics is receiver.intrinsics[a.camera]
+                assert a.T_world_cam.tobytes() == b.T_world_cam.tobytes()
+                assert a.intrinsics is receiver.intrinsics[a.camera]
                 if params is uncalibrated:
                     assert a.T_world_cam is not receiver.T_world_cam.get(a.camera)
                 else:

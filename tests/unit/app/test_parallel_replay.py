@@ -66,7 +66,8 @@ def test_worker_processes_replay_bit_for_bit_what_one_thread_replays(replay):
     assert len(poses) > 50 and stats.region_detections > 0  # the plans (regions) depend on the fusion
     for workers in (1, 2, 3):
         with started_pool(replay, workers) as pool:
-            assert pool.depth * workers >= REPLAY_LAG - 1  # every frame planned ahead but the oldest fits in the workers
+            # every frame planned ahead but the oldest fits in the workers
+            assert pool.depth * workers >= REPLAY_LAG - 1
             again, poses_again = run(replay, pool)
             assert pool.submitted > 0.5 * len(replay["frames"])  # the workers did most of the work
         assert poses_again == poses, workers
@@ -163,7 +164,8 @@ def test_a_replay_takes_a_worker_per_idle_core_beyond_the_first(monkeypatch, cor
     assert track.replay_workers(sample_s=0.0) == workers
 
 
-def test_frames_that_arrive_out_of_capture_order_within_the_replay_window_are_fused_in_capture_order(replay, monkeypatch):
+def test_frames_that_arrive_out_of_capture_order_within_the_replay_window_are_fused_in_capture_order(
+        replay, monkeypatch):
     """Pairs of frames of two cameras handed over in the reverse of their capture order (their
     arrival times swapped, no clock round trip between them) reach the fusion in capture order:
     each is fused as the robot's newest (and gives its pose), not folded in late."""

@@ -39,7 +39,7 @@ def test_round_trip_is_bit_exact(pose):
     for name in ("camera", "seq", "device_time_s", "capture_time_s", "arrival_time_s", "outcome", "clock", "health"):
         assert getattr(got, name) == getattr(sent, name), name
     assert len(got.detections) == len(sent.detections)
-    for a, b in zip(got.detections, sent.detections):
+    for a, b in zip(got.detections, sent.detections, strict=True):
         assert (a.marker_id, a.area_px2, a.dictionary) == (b.marker_id, b.area_px2, b.dictionary)
         assert np.array_equal(a.corners_px, b.corners_px) and a.corners_px.shape == (4, 2)
     if pose:

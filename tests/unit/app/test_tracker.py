@@ -65,7 +65,7 @@ def stream(jpegs: dict[str, bytes], first: int, count: int) -> list[Frame]:
     names = sorted(jpegs)
     out = []
     for j in range(first, first + count):
-        for k, cam in enumerate(names):
+        for cam in names:
             t = capture_time(cam, j)
             out.append(Frame(cam, j, t - CLOCK_OFFSET_S, t + LATENCY_S, jpegs[cam]))
     return out
@@ -288,11 +288,12 @@ def test_a_workers_message_gives_the_fusion_what_its_own_per_frame_work_gives(sc
         own = t.processor.work(FrameJob(frame, job.capture_time_s, None, frozenset(asks)))
         assert fused.job.estimate_robots == frozenset(asks) and fused.outcome is own.outcome
         assert [s.robot for s in fused.sightings] == [s.robot for s in own.sightings] == ["red", "blue"]
-        for a, b in zip(fused.sightings, own.sightings):
+        for a, b in zip(fused.sightings, own.sightings, strict=True):
             assert (a.camera, a.seq, a.capture_time_s, a.arrival_time_s) == (b.camera, b.seq, b.capture_time_s,
                                                                               b.arrival_time_s)
             assert [d.marker_id for d in a.detections] == [d.marker_id for d in b.detections]
-            assert all(np.array_equal(x.corners_px, y.corners_px) for x, y in zip(a.detections, b.detections))
+            assert all(np.array_equal(x.corners_px, y.corners_px)
+                       for x, y in zip(a.detections, b.detections, strict=True))
             assert (a.estimate is None) == (b.estimate is None) == (a.robot not in asks)
             if a.estimate is not None:
                 assert np.array_equal(a.estimate.T_world_cube, b.estimate.T_world_cube)

@@ -235,7 +235,7 @@ def test_region_searches_of_different_sizes_each_see_their_own_perimeter_limits(
     det = Detector()
     first = [det.detect(gray, [box]) for box in (large, small, large, small)]
     fresh = [Detector().detect(gray, [box]) for box in (large, small)]
-    for found, expected in zip(first, fresh * 2):
+    for found, expected in zip(first, fresh * 2, strict=True):
         assert [d.marker_id for d in found] == [d.marker_id for d in expected] == [3]
         np.testing.assert_array_equal(found[0].corners_px, expected[0].corners_px)
     tiny_limits = Detector(DetectorParams(min_marker_perimeter_rate=0.5))
@@ -274,7 +274,7 @@ def test_regions_are_searched_once_each_and_merged_where_they_overlap():
     # two boxes over marker 3 overlap: one search, one detection; marker 5's box is apart
     both = det.detect(gray, [(60, 280, 160, 380), (250, 150, 340, 320), (320, 150, 420, 320)])
     assert [d.marker_id for d in both] == [3, 5]  # sorted as a whole-image search
-    for d, f in zip(both, full):
+    for d, f in zip(both, full, strict=True):
         np.testing.assert_allclose(d.corners_px, f.corners_px, atol=1e-6)
     # each half alone cuts the marker: found in neither
     assert det.detect(gray, [(250, 150, 330, 320)]) == ()

@@ -38,7 +38,8 @@ def ideal_samples(dist: tuple[float, ...]) -> np.ndarray:
     """(H SAMPLES, W SAMPLES, 3): where each render sample lies in the ideal pinhole image, homogeneous."""
     lens = camera(dist)
     offsets = (np.arange(SAMPLES) + 0.5) / SAMPLES - 0.5
-    xs, ys = np.meshgrid(np.add.outer(np.arange(WIDTH), offsets).ravel(), np.add.outer(np.arange(HEIGHT), offsets).ravel())
+    xs, ys = np.meshgrid(np.add.outer(np.arange(WIDTH), offsets).ravel(),
+                         np.add.outer(np.arange(HEIGHT), offsets).ravel())
     ideal = undistort_points(np.stack([xs, ys], axis=-1), lens.K, lens.dist, lens.K)
     return np.concatenate([ideal, np.ones(ideal.shape[:2] + (1,))], axis=-1)
 

@@ -33,7 +33,7 @@ def test_board_markers_agree_with_the_board_pose_at_least_as_well_as_the_edge_fi
     ok, rvec, tvec = cv2.solvePnP(obj, img, lens.K, lens.dist)
     assert ok and len(obj) == 24
     reference = {int(i): cv2.projectPoints(np.asarray(o, float).reshape(4, 3), rvec, tvec, lens.K, lens.dist)[0]
-                 .reshape(4, 2) for i, o in zip(board.getIds().ravel(), board.getObjPoints())}
+                 .reshape(4, 2) for i, o in zip(board.getIds().ravel(), board.getObjPoints(), strict=True)}
     edge = corners(gray, "DICT_6X6_250", CornerRefinement.EDGE)
     template = corners(gray, "DICT_6X6_250", CornerRefinement.TEMPLATE, lens)
     assert sorted(template) == sorted(edge) == sorted(reference)  # all 17 markers, none lost
@@ -62,6 +62,6 @@ def test_every_marker_gets_a_sane_fit(photo, dictionary, count, calibrated):
     refined = Detector(DetectorParams(dictionary=dictionary, corner_refinement=CornerRefinement.TEMPLATE)).detect(
         gray, lens=lens)
     assert len(refined) == len(found) == count
-    moved = np.array([np.abs(a.corners_px - b.corners_px).max() for a, b in zip(found, refined)])
+    moved = np.array([np.abs(a.corners_px - b.corners_px).max() for a, b in zip(found, refined, strict=True)])
     assert (moved > 0).all()  # every fit succeeded
     assert moved.max() < 1.5 and np.median(moved) < 0.5  # measured: medians 0.29, 0.23, 0.19; max 1.43 px

@@ -226,7 +226,7 @@ def test_upright_prior_resolves_the_planar_flip():
     top = [m for m in distinct.markers if m.face == "top"][0]
     rng = np.random.default_rng(7)
     raw_flips = chosen_flips = same_id_right = 0
-    for k in range(60):
+    for _k in range(60):
         T_world_cube = T_world_cube_at(rng.uniform(-0.3, 0.3), rng.uniform(-0.3, 0.3), rng.uniform(0, 360))
         T_world_cam = look_at([2.4, 0.0, 2.0], [0.0, 0.0, 0.2])
         T_cam_marker = invert_T(T_world_cam) @ T_world_cube @ top.T_cube_marker

@@ -70,7 +70,7 @@ def test_without_a_prediction_it_is_identify_faces_over_the_marker_poses():
     faces = identify_faces(poses, SAME_ID, T_world_cam)
     matches = match_faces(detections, SAME_ID, DISTORTED, T_world_cam)
     assert len(faces) == 3 and [m.face for m in matches] == [f.face for f in faces]
-    for m, f in zip(matches, faces):
+    for m, f in zip(matches, faces, strict=True):
         np.testing.assert_array_equal(m.observation.T_world_cube, f.T_world_cube)
         np.testing.assert_array_equal(m.observation.marker_pose.T_cam_marker, f.marker_pose.T_cam_marker)
 

@@ -58,7 +58,7 @@ def decoded(svg: str, dictionaries) -> dict[tuple[str, int], np.ndarray]:
         params.cornerRefinementMethod = cv2.aruco.CORNER_REFINE_SUBPIX
         detector = cv2.aruco.ArucoDetector(cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name)), params)
         corners, ids, _ = detector.detectMarkers(image)
-        for c, i in zip(corners, [] if ids is None else ids.ravel()):
+        for c, i in zip(corners, [] if ids is None else ids.ravel(), strict=True):
             out[(name, int(i))] = c.reshape(4, 2) * 25.4 / DPI  # pixel centres -> mm (offset below)
     return out
 
@@ -72,8 +72,8 @@ def check_sheet(svg: str, layout: CubeLayout) -> None:
     OpenCV decodes it in the raster, corner for corner where the SVG put it."""
     drawn = markers_in(svg)
     assert sorted((d["dictionary"], d["id"]) for d in drawn) == sorted(
-        (name, m.marker_id) for name, m in zip(layout.marker_dictionaries, layout.markers))
-    for d, m in zip(drawn, layout.markers):
+        (name, m.marker_id) for name, m in zip(layout.marker_dictionaries, layout.markers, strict=True))
+    for d, m in zip(drawn, layout.markers, strict=True):
         sides = np.linalg.norm(np.roll(d["mm"], -1, axis=0) - d["mm"], axis=1)
         assert np.allclose(sides, 1000 * m.size_m, atol=1e-6), (m.face, sides)
         diagonals = np.linalg.norm(d["mm"][2] - d["mm"][0]), np.linalg.norm(d["mm"][3] - d["mm"][1])
@@ -119,7 +119,8 @@ def test_a_repeated_id_cube_decodes_five_times():
 def test_folding_the_net_puts_every_marker_back_on_its_face():
     """The net is the box unfolded: each face's unfold transform is rigid and lays the face in the
     top's plane, outside side up; a marker's printed corners, folded back, are its layout corners."""
-    layout = box_layout((0.30, 0.20, 0.15), distinct_ids=True, faces=("top", "front", "left", "back", "right", "bottom"))
+    layout = box_layout((0.30, 0.20, 0.15), distinct_ids=True,
+                        faces=("top", "front", "left", "back", "right", "bottom"))
     half = box_half_sizes(layout)
     assert np.allclose(half, [0.15, 0.10, 0.075])
     U = unfold_transforms(half)
@@ -157,7 +158,7 @@ def test_make_body_cli_writes_the_sheet_and_a_layout_that_reads_back(tmp_path, m
     assert [(m.face, m.marker_id, m.size_m) for m in layout.markers] == [
         (m.face, m.marker_id, m.size_m) for m in expected.markers]
     assert [m.size_m for m in layout.markers] == [0.15, 0.112, 0.112, 0.112, 0.112]
-    for a, b in zip(layout.markers, expected.markers):
+    for a, b in zip(layout.markers, expected.markers, strict=True):
         assert np.allclose(a.T_cube_marker, b.T_cube_marker, atol=1e-9)
     check_sheet(out.with_suffix(".svg").read_text(), layout)
     assert out.with_suffix(".pdf").read_bytes().startswith(b"%PDF")
@@ -166,7 +167,8 @@ def test_make_body_cli_writes_the_sheet_and_a_layout_that_reads_back(tmp_path, m
     assert cli_main.main(args) == 1
     assert "already exist" in capsys.readouterr().err
     assert out.with_suffix(".toml").read_bytes() == before
-    for bad, message in ((["--preset", "box"], "needs --size"), (["--preset", "box", "--size", "0.1", "0.1", "0.1", "--marker-size", "0.2"], "does not fit"),
+    for bad, message in ((["--preset", "box"], "needs --size"),
+                         (["--preset", "box", "--size", "0.1", "0.1", "0.1", "--marker-size", "0.2"], "does not fit"),
                          (["--marker-size", "0.2"], "must be positive and fit the cube side"),
                          (["--dictionary", "DICT_NOPE"], "DICT_NOPE")):
         assert cli_main.main(["make-body", "--out", str(tmp_path / "x")] + bad) == 1

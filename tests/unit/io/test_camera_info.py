@@ -31,7 +31,8 @@ def test_rolling_shutter_readout_round_trip_and_bad_values(tmp_path):
     assert read_camera_info(tmp_path / "c.yaml").readout_s == 0.03
     text = (tmp_path / "c.yaml").read_text()
     for bad in ("-0.01", "'fast'", "2.0"):
-        (tmp_path / "bad.yaml").write_text(text.replace("rolling_shutter_readout_s: 0.03", f"rolling_shutter_readout_s: {bad}"))
+        (tmp_path / "bad.yaml").write_text(text.replace("rolling_shutter_readout_s: 0.03",
+                                                        f"rolling_shutter_readout_s: {bad}"))
         with pytest.raises(CameraInfoError, match="bad.yaml: rolling_shutter_readout_s"):
             read_camera_info(tmp_path / "bad.yaml")
 

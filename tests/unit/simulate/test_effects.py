@@ -165,7 +165,7 @@ def test_built_cube_is_off_by_millimetres_and_a_degree():
     shifts, turns, tilts, scales = [], [], [], []
     for seed in range(40):
         built = built_layout(nominal, p, np.random.default_rng(seed))
-        for m, b in zip(nominal.markers, built.markers):
+        for m, b in zip(nominal.markers, built.markers, strict=True):
             T = np.linalg.inv(m.T_cube_marker) @ b.T_cube_marker  # the built marker in the nominal one's frame
             shifts.append(np.linalg.norm(T[:2, 3]) * 1e3)
             turns.append(math.degrees(math.atan2(T[1, 0], T[0, 0])))

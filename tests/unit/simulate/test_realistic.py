@@ -52,12 +52,12 @@ def test_frames_show_the_built_cube_each_row_at_its_own_instant(realistic_sessio
     for cam in result.cameras:
         row_s = cam.readout_s / cam.intrinsics.height
         captures = [c for c in cam.captures if c.delivered]
-        for frame, capture in zip(rec.frames(cam.name), captures):
+        for frame, capture in zip(rec.frames(cam.name), captures, strict=True):
             image = cv2.imdecode(np.frombuffer(frame.jpeg, np.uint8), cv2.IMREAD_GRAYSCALE)
             corners, ids, _ = detector.detectMarkers(image)
             if ids is None:
                 continue
-            for c, i in zip(corners, ids.ravel()):
+            for c, i in zip(corners, ids.ravel(), strict=True):
                 if i != 1:
                     continue
                 c = c.reshape(4, 2).astype(float)

@@ -89,9 +89,9 @@ def test_cube_markers_are_detected_where_the_truth_projects_them(session):
     for cam in session.cameras:
         seen = 0
         frames = list(rec.frames(cam.name))
-        for frame, capture in zip(frames, [c for c in cam.captures if c.delivered]):
+        for frame, capture in zip(frames, [c for c in cam.captures if c.delivered], strict=True):
             corners, ids, _ = detector.detectMarkers(_decode(frame.jpeg))
-            cube = [] if ids is None else [c.reshape(4, 2) for c, i in zip(corners, ids.ravel()) if i == 1]
+            cube = [] if ids is None else [c.reshape(4, 2) for c, i in zip(corners, ids.ravel(), strict=True) if i == 1]
             seen += bool(cube)
             T_world_cube = session.T_world_cube(capture.capture_host_s)
             truths = [project_points(cam.intrinsics, cam.T_world_cam,
@@ -162,7 +162,7 @@ def test_same_seed_same_bytes_other_seed_other_frames(tmp_path):
     jpgs = sorted((a.path / "cam1").glob("*.jpg"))
     other = sorted((c.path / "cam1").glob("*.jpg"))
     assert jpgs and other
-    assert all(x.read_bytes() != y.read_bytes() for x, y in zip(jpgs, other))
+    assert all(x.read_bytes() != y.read_bytes() for x, y in zip(jpgs, other, strict=True))
     assert (a.path / "ground_truth.tum").read_bytes() != (c.path / "ground_truth.tum").read_bytes()
 
 

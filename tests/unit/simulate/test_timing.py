@@ -25,7 +25,7 @@ def test_index_rows_follow_the_capture_truth(session):
         rows = rec.index(cam.name)
         delivered = [c for c in cam.captures if c.delivered]
         assert [r.seq for r in rows] == [c.seq for c in delivered]
-        for row, c in zip(rows, delivered):
+        for row, c in zip(rows, delivered, strict=True):
             assert row.device_time_s == pytest.approx(c.device_time_s, abs=US)
             assert row.host_time_s == pytest.approx(c.arrival_host_s, abs=US)
             # the stamp is the capture instant on the device clock

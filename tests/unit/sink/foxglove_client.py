@@ -63,7 +63,8 @@ class LiveClient:
         deadline = time.monotonic() + timeout_s
         while not until(self):
             if time.monotonic() > deadline:
-                raise TimeoutError(f"have {sorted(self.messages)} of {sorted(c['topic'] for c in self.channels.values())}")
+                raise TimeoutError(f"have {sorted(self.messages)} of "
+                                   f"{sorted(c['topic'] for c in self.channels.values())}")
             self.ws.settimeout(max(0.05, deadline - time.monotonic()))
             try:
                 opcode, data = self.ws.recv_data()

@@ -177,7 +177,8 @@ def test_the_tile_jpeg_is_scaled_down_with_the_overlay_drawn(server, rendered):
 
     def edge_points(quads):
         quads = np.asarray(quads, float)
-        return [a + t * (b - a) for q in quads for a, b in zip(q, np.roll(q, -1, axis=0)) for t in (0.3, 0.7)]
+        return [a + t * (b - a) for q in quads for a, b in zip(q, np.roll(q, -1, axis=0), strict=True)
+                for t in (0.3, 0.7)]
 
     green = lambda p: p[1] > 150 and p[1] - max(p[0], p[2]) > 60
     orange = lambda p: p[2] > 150 and p[2] - p[0] > 90
@@ -215,7 +216,8 @@ def test_floor_footprint_of_a_camera_looking_straight_down_is_its_image_on_the_f
     T = make_T(np.diag([1.0, -1.0, -1.0]), [0.5, 0.0, 2.0])  # optical z down, 2 m above the floor
     fov = np.array(floor_footprint(T, INTRINSICS, range_m=10.0))
     # 640 x 480 px at f = 500 px from 2 m: 2.56 m x 1.92 m centred below the camera
-    assert fov[:, 0].min() == pytest.approx(0.5 - 1.28, abs=0.01) and fov[:, 0].max() == pytest.approx(0.5 + 1.28, abs=0.01)
+    assert fov[:, 0].min() == pytest.approx(0.5 - 1.28, abs=0.01)
+    assert fov[:, 0].max() == pytest.approx(0.5 + 1.28, abs=0.01)
     assert fov[:, 1].min() == pytest.approx(-0.96, abs=0.01) and fov[:, 1].max() == pytest.approx(0.96, abs=0.01)
     near = np.array(floor_footprint(T, INTRINSICS, range_m=1.0))
     assert np.hypot(near[:, 0] - 0.5, near[:, 1]).max() == pytest.approx(1.0)

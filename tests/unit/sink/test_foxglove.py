@@ -7,8 +7,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 import pytest
-from sink_helpers import INTRINSICS, tracked
 from foxglove_client import LiveClient, read_mcap
+from sink_helpers import INTRINSICS, tracked
 
 from cubetrack.core.records import CameraHealth, CameraView, Detection
 from cubetrack.sink.base import OutputError
@@ -163,7 +163,8 @@ def test_the_layout_in_docs_is_the_generated_one_and_names_real_channels():
 
     walk(json.loads(text))
     demo_topics = {"/robots/robot/pose", "/scene", "/tf",
-                   *(f"/cameras/cam{i}/{k}" for i in (1, 2, 3) for k in ("image", "annotations", "calibration", "health"))}
+                   *(f"/cameras/cam{i}/{k}" for i in (1, 2, 3)
+                     for k in ("image", "annotations", "calibration", "health"))}
     assert topics and topics <= demo_topics
     assert {"/scene", "/robots/robot/pose", "/cameras/cam1/image", "/cameras/cam3/health"} <= topics
 

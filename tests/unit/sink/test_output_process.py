@@ -89,7 +89,7 @@ def test_items_cross_the_pipe_as_compact_tuples_and_come_back_equal():
         if isinstance(a, float) and math.isnan(a):
             return isinstance(b, float) and math.isnan(b)
         if isinstance(a, tuple):
-            return type(b) is tuple and len(a) == len(b) and all(same(x, y) for x, y in zip(a, b))
+            return type(b) is tuple and len(a) == len(b) and all(same(x, y) for x, y in zip(a, b, strict=True))
         if isinstance(a, dict):
             return a.keys() == b.keys() and all(same(a[k], b[k]) for k in a)
         if hasattr(a, "__slots__"):

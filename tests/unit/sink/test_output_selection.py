@@ -5,8 +5,14 @@ import argparse
 import pytest
 from sink_helpers import free_port
 
-from cubetrack.app.outputs import (OutputSpec, close_sinks, config_output_specs, merge_outputs, output_sinks,
-                                   parse_address)
+from cubetrack.app.outputs import (
+    OutputSpec,
+    close_sinks,
+    config_output_specs,
+    merge_outputs,
+    output_sinks,
+    parse_address,
+)
 from cubetrack.cli.outputs import add_output_arguments, flag_output_specs
 from cubetrack.core.errors import ConfigError
 from cubetrack.core.layout import paper_cube_layout, write_layout

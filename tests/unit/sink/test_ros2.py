@@ -102,7 +102,7 @@ def test_topics_keys_attachments_and_payloads_follow_rmw_zenoh(router, session_i
     assert str(static.key_expr) == f"0/tf_static/tf2_msgs::msg::dds_::TFMessage_/{TF_HASH}"
     assert set(samples) == {pose_key, odom_key, tf_key}
     gids = set()
-    for key, received in samples.items():
+    for received in samples.values():
         assert len(received) == 3
         for n, sample in enumerate(received, start=1):
             raw = sample.attachment.to_bytes()
@@ -222,6 +222,61 @@ def test_a_late_subscriber_still_gets_the_static_transforms(router, session_info
         sink.close()
     msg = JAZZY.deserialize_cdr(sample.payload.to_bytes(), "tf2_msgs/msg/TFMessage")
     assert len(msg.transforms) == 2
+
+
+@pytest.mark.parametrize("durability", ["volatile", "transient_local"])
+def test_a_late_subscriber_gets_from_our_volatile_topics_what_rmw_zenohs_advanced_publisher_gives(
+        router, session_info, durability):
+    """rmw_zenoh declares every publisher as a zenoh-ext advanced publisher; for a VOLATILE topic
+    with default options: no cache, no publisher detection, no sample-miss detection
+    (rmw_publisher_data.cpp 3e19ec73). We declare a plain publisher there. A subscription that
+    joins late, declared as rmw_zenoh declares a VOLATILE one (an advanced subscriber without
+    history) or a TRANSIENT_LOCAL one (history with late-publisher detection, recovery;
+    rmw_subscription_data.cpp 04df82fd), gets the same from both: nothing sent before it joined,
+    everything after."""
+    from zenoh import CongestionControl, Reliability, ext
+
+    sink = ros_sink(router)
+    theirs = peer(router)
+    rmw_key = "0/their/pose/geometry_msgs::msg::dds_::PoseStamped_/" + POSE_HASH
+    rmw_publisher = ext.declare_advanced_publisher(theirs, rmw_key, reliability=Reliability.RELIABLE,
+                                                   congestion_control=CongestionControl.DROP)
+    late = peer(router)
+    got: queue.Queue = queue.Queue()
+    try:
+        sink.open(session_info)
+        wait_connected(late, sink.zenoh)
+        wait_connected(late, theirs)
+        for i in range(5):  # before anyone listens
+            sink.pose(tracked("robot 1!", i))
+            rmw_publisher.put(bytes([i]))
+        time.sleep(0.3)
+        options = {} if durability == "volatile" else {
+            "history": ext.HistoryConfig(detect_late_publishers=True, max_samples=10),
+            "recovery": ext.RecoveryConfig(heartbeat=True), "subscriber_detection": True}
+        subs = [ext.declare_advanced_subscriber(late, key, got.put, **options)
+                for key in ("0/robot_1/pose/**", rmw_key)]
+        time.sleep(1.0)  # any history would have been queried and answered by now
+        for i in range(5, 8):
+            sink.pose(tracked("robot 1!", i))
+            rmw_publisher.put(bytes([i]))
+        samples = []
+        while len(samples) < 6:
+            samples.append(got.get(timeout=10))
+        time.sleep(0.5)
+        while not got.empty():
+            samples.append(got.get())
+        for sub in subs:
+            sub.undeclare()
+    finally:
+        rmw_publisher.undeclare()
+        late.close()
+        theirs.close()
+        sink.close()
+    ours = [unpack(s.attachment.to_bytes())[0] for s in samples if str(s.key_expr).startswith("0/robot_1/")]
+    rmw = [s.payload.to_bytes()[0] for s in samples if str(s.key_expr) == rmw_key]
+    assert ours == [6, 7, 8]  # sequence numbers: the 6th to 8th poses, none of the first five
+    assert rmw == [5, 6, 7]
 
 
 def test_humble_keys_carry_no_type_hash(router, session_info):

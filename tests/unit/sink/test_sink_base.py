@@ -10,7 +10,8 @@ from cubetrack.sink.base import Decoupled, FileSink, Outputs, Sink
 
 
 def pose(i: int, robot: str = "r1") -> TrackedPose:
-    return TrackedPose(robot, 100.0 + i, np.array([i, 0.0, 0.0]), np.array([0.0, 0.0, 0.0, 1.0]), ("cam1",), ("top",), 0.01)
+    return TrackedPose(robot, 100.0 + i, np.array([i, 0.0, 0.0]), np.array([0.0, 0.0, 0.0, 1.0]), ("cam1",),
+                       ("top",), 0.01)
 
 
 class Gate(Sink):

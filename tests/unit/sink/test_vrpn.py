@@ -2,11 +2,12 @@
 
 import socket
 import struct
+import time
 
 import numpy as np
 import pytest
 from sink_helpers import tracked
-from vrpn_client import TrackerClient, connect, recv_exact
+from vrpn_client import PingWatcher, TrackerClient, connect, recv_exact
 
 from cubetrack.sink.base import OutputError
 from cubetrack.sink.vrpn import VrpnParams, VrpnSink, parse_lob_request
@@ -18,6 +19,43 @@ def sink(session_info):
     sink.open(session_info)
     yield sink
     sink.close()
+
+
+def test_configured_robots_are_trackers_and_pings_are_answered_before_the_session_opens(session_info):
+    sink = VrpnSink(VrpnParams(port=0), robots=("robot 1!", "2nd"))  # the server starts, no session yet
+    watcher = PingWatcher(sink.port, "robot_1")
+    try:
+        assert _wait(lambda: watcher.pong_at is not None)
+        assert set(watcher.described_at) == {"robot_1", "robot_2nd"}  # found by name at once
+        sink.open(session_info)
+        sink.pose(tracked("robot 1!", 0))
+        assert _wait(lambda: watcher.poses)
+    finally:
+        watcher.close()
+        sink.close()
+    # answered at the first ping after the call-back (pings go once a second); nothing printed
+    assert watcher.pong_at - watcher.connected_at < 1.5 and not watcher.warnings and not watcher.errors
+    assert [sender for sender, _, _ in watcher.poses] == ["robot_1"]  # the session's first pose
+    assert watcher.poses[0][1] == pytest.approx(tracked("robot 1!", 0).time_s, abs=1e-6)
+
+
+def test_a_sink_without_configured_robots_names_none_until_the_session_opens(session_info):
+    sink = VrpnSink(VrpnParams(port=0))
+    try:
+        assert sink.server.senders == []
+        sink.open(session_info)
+        assert sink.server.senders == ["robot_1", "robot_2nd"]
+    finally:
+        sink.close()
+
+
+def _wait(predicate, timeout_s: float = 5.0) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.01)
+    return False
 
 
 def clients_of(sink) -> int:

@@ -16,7 +16,8 @@ from cubetrack.sink.zenoh_session import ZenohEndpoints, is_loopback, json_endpo
 
 def collect(session, keys: str) -> queue.Queue:
     got: queue.Queue = queue.Queue()
-    session.declare_subscriber(keys, lambda s: got.put((str(s.key_expr), str(s.encoding), json.loads(s.payload.to_bytes()))))
+    session.declare_subscriber(
+        keys, lambda s: got.put((str(s.key_expr), str(s.encoding), json.loads(s.payload.to_bytes()))))
     return got
 
 

@@ -58,7 +58,7 @@ def connect(port: int, mode: str = "lob", rcvbuf: int | None = None, timeout_s: 
                 sock, _ = listener.accept()
                 sock.settimeout(timeout_s)
                 return sock
-            except socket.timeout:
+            except TimeoutError:
                 continue
         raise TimeoutError("the VRPN server never called back")
     finally:
@@ -145,3 +145,116 @@ class TrackerClient:
 
     def close(self) -> None:
         self.sock.close()
+
+
+PING_WARN_AFTER_S = 3.0  # facts §10: a warning a second once the first unanswered ping is 3 s old
+PING_ERROR_AFTER_S = 10.0  # ... and an error a second from 10 s on
+LOB_FIRST_WAIT_S, LOB_RESEND_S = 1.0, 2.0  # facts §3.2: wait 1 s for the call-back, then re-send every 2 s
+
+
+class PingWatcher:
+    """A client that starts as a C++ ``vrpn_Tracker_Remote`` (``vrpn_print_devices``) does, before
+    or after its server: its ping cycle starts at once (facts §10), it asks by UDP to be called back
+    until the server does (facts §3.2), pings every second until a pong comes from its tracker's
+    sender, and counts the lines the C++ client would print for the missing pong (``warnings``,
+    ``errors``, each with its time). It keeps when each sender was described and every report.
+    Runs on a thread until :meth:`close`."""
+
+    def __init__(self, port: int, tracker: str):
+        self.port, self.tracker = port, tracker
+        self.started = time.monotonic()
+        self.connected_at: float | None = None
+        self.pong_at: float | None = None
+        self.described_at: dict[str, float] = {}  # sender name -> when its description arrived
+        self.warnings: list[float] = []
+        self.errors: list[float] = []
+        self.poses: list[tuple[str, float, bytes]] = []  # (sender, header time, body) of Pos_Quat reports
+        self.last_ping = -1e9
+        self.stop = threading.Event()
+        self.thread = threading.Thread(target=self._run, daemon=True)
+        self.thread.start()
+
+    def _run(self) -> None:
+        with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as listener:
+            listener.bind(("127.0.0.1", 0))
+            listener.listen(1)
+            listener.settimeout(0.05)
+            sock = self._connected(listener)
+            if sock is not None:
+                with sock:
+                    self._serve(sock)
+
+    def _connected(self, listener: socket.socket) -> socket.socket | None:
+        """The call-back connection, cookies swapped and this client described (None: stopped)."""
+        request = b"127.0.0.1 %d\x00" % listener.getsockname()[1]
+        next_request = self.started
+        while not self.stop.is_set():
+            self._ping_clock(None)
+            now = time.monotonic()
+            if now >= next_request:
+                with socket.socket(socket.AF_INET, socket.SOCK_DGRAM) as udp:
+                    udp.sendto(request, ("127.0.0.1", self.port))
+                next_request = now + (LOB_FIRST_WAIT_S if next_request == self.started else LOB_RESEND_S)
+            try:
+                sock, _ = listener.accept()
+            except TimeoutError:
+                continue
+            sock.settimeout(5.0)
+            sock.sendall(CLIENT_COOKIE)
+            recv_exact(sock, 24)
+            sock.sendall(b"".join([describe(-1, i, n, 0) for i, n in enumerate(["VRPN Control", self.tracker])]
+                                  + [describe(-2, i, n, 0) for i, n in enumerate(CLIENT_TYPES)]))
+            sock.settimeout(0.05)
+            self.connected_at = time.monotonic()
+            return sock
+        return None
+
+    def _ping_clock(self, sock: socket.socket | None) -> None:
+        """The C++ ``client_mainloop``: once a second while no pong came, a ping (when connected)
+        and, past 3 s (10 s) since the cycle began, a warning (an error)."""
+        now = time.monotonic()
+        if self.pong_at is not None or now - self.last_ping < 1.0:
+            return
+        self.last_ping = now
+        if sock is not None:
+            sock.sendall(frame(1, CLIENT_TYPES.index("vrpn_Base ping_message"), b"", 0))
+        age = now - self.started
+        if age >= PING_ERROR_AFTER_S:
+            self.errors.append(now)
+        elif age >= PING_WARN_AFTER_S:
+            self.warnings.append(now)
+
+    def _serve(self, sock: socket.socket) -> None:
+        inbox = b""
+        senders: dict[int, str] = {}
+        types: dict[int, str] = {}
+        while not self.stop.is_set():
+            self._ping_clock(sock)
+            try:
+                data = sock.recv(65536)
+            except TimeoutError:
+                continue
+            except OSError:
+                return
+            if not data:
+                return
+            inbox += data
+            while len(inbox) >= 24:
+                length, sec, usec, sender, type_id, _ = struct.unpack_from(">IIIiiI", inbox)
+                total = 24 + (length - 24) + (-(length - 24) % 8)
+                if len(inbox) < total:
+                    break
+                body, inbox = inbox[24:length], inbox[total:]
+                if type_id in (-1, -2):
+                    name = body[4:4 + struct.unpack(">I", body[:4])[0] - 1].decode()
+                    (senders if type_id == -1 else types)[sender] = name
+                    if type_id == -1:
+                        self.described_at.setdefault(name, time.monotonic())
+                elif types.get(type_id) == "vrpn_Base pong_message" and senders.get(sender) == self.tracker:
+                    self.pong_at = self.pong_at or time.monotonic()
+                elif types.get(type_id) == "vrpn_Tracker Pos_Quat":
+                    self.poses.append((senders.get(sender, "?"), sec + usec * 1e-6, body))
+
+    def close(self) -> None:
+        self.stop.set()
+        self.thread.join(5)

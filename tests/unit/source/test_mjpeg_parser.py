@@ -3,6 +3,8 @@ every way a part can be broken, and arbitrary splits of the stream into reads.""
 
 from __future__ import annotations
 
+import itertools
+
 import cv2
 import numpy as np
 import pytest
@@ -140,8 +142,10 @@ def test_boundary_from_content_type(content_type, boundary):
 def test_servers_that_repeat_dashes_or_omit_the_first_crlf_are_read():
     # mjpg-streamer style: header says boundary=--myboundary, body uses "--myboundary" lines
     body = b"--myboundary\r\n" + headers_part(
-        [b"Content-Type: image/jpeg", b"Content-Length: %d" % len(JPEGS[0]), b"X-Timestamp: 1.5"], JPEGS[0])[:-len(DELIM)]
-    body += b"\r\n--myboundary\r\n" + headers_part([b"Content-Length: %d" % len(JPEGS[1]), b"X-Timestamp: 1.6"], JPEGS[1])
+        [b"Content-Type: image/jpeg", b"Content-Length: %d" % len(JPEGS[0]), b"X-Timestamp: 1.5"],
+        JPEGS[0])[:-len(DELIM)]
+    body += b"\r\n--myboundary\r\n" + headers_part([b"Content-Length: %d" % len(JPEGS[1]), b"X-Timestamp: 1.6"],
+                                                  JPEGS[1])
     parser = MjpegParser(boundary_from_content_type("multipart/x-mixed-replace;boundary=--myboundary"))
     assert [p.device_time_s for p in parser.feed(body)] == [1.5, 1.6]
 
@@ -187,7 +191,7 @@ def test_any_split_into_reads_gives_the_same_parts(cuts):
     bounds = sorted(set([0, len(data), *cuts]))
     parser = MjpegParser(B)
     parts = []
-    for a, b in zip(bounds, bounds[1:]):
+    for a, b in itertools.pairwise(bounds):
         parts += parser.feed(data[a:b])
     assert [p.seq for p in parts] == [10, 11, 12, 13] and not parser.bad
 

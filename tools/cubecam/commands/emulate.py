@@ -59,20 +59,28 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--addresses", metavar="LIST",
                    help="one address per camera, all on --port: a comma list (127.0.0.11,127.0.0.12) "
                         "or 'auto' (--bind, then the next addresses)")
-    p.add_argument("--loop", action="store_true", help="start over after the last frame (clocks and frame numbers keep counting)")
+    p.add_argument("--loop", action="store_true", help="start over after the last frame (clocks and frame "
+                                                       "numbers keep counting)")
+    p.add_argument("--parent-pid", type=int, metavar="PID",
+                   help="end when process PID (the one starting this emulator) ends, even by SIGKILL")
     p.add_argument("--exit-at-end", action="store_true", help="stop after the last frame (without --loop)")
     p.add_argument("--duration", type=float, metavar="S", help="stop after S seconds")
     p.add_argument("--ready-file", metavar="FILE",
                    help="once serving, write FILE (JSON): each camera's URL, the replay's period (s) and "
                         "clock_shift_s, what moves a recorded host time onto this machine's Unix time "
                         "(for programs that start the emulator and score against a recorded ground truth)")
-    p.add_argument("--max-clients", type=int, default=4, metavar="N", help="clients served at once per camera; more get 503 (default 4, as the node)")
-    p.add_argument("--jpeg-quality", type=int, default=80, metavar="Q", help="JPEG quality reported in /status (default 80)")
+    p.add_argument("--max-clients", type=int, default=4, metavar="N",
+                   help="clients served at once per camera; more get 503 (default 4, as the node)")
+    p.add_argument("--jpeg-quality", type=int, default=80, metavar="Q",
+                   help="JPEG quality reported in /status (default 80)")
     f = p.add_argument_group("faults")
-    f.add_argument("--latency", type=float, default=0.0, metavar="S", help="added delay of every answer and stream part, seconds")
+    f.add_argument("--latency", type=float, default=0.0, metavar="S",
+                   help="added delay of every answer and stream part, seconds")
     f.add_argument("--jitter", type=float, default=0.0, metavar="S", help="random extra delay in [0, S] seconds")
-    f.add_argument("--drop-rate", type=float, default=0.0, metavar="P", help="probability a frame is lost at capture (gap in X-Frame)")
-    f.add_argument("--bandwidth", type=_bytes_per_s, metavar="B", help="bytes per second per camera, shared by its clients (e.g. 100k)")
+    f.add_argument("--drop-rate", type=float, default=0.0, metavar="P",
+                   help="probability a frame is lost at capture (gap in X-Frame)")
+    f.add_argument("--bandwidth", type=_bytes_per_s, metavar="B",
+                   help="bytes per second per camera, shared by its clients (e.g. 100k)")
     f.add_argument("--disconnect-every", type=float, metavar="S", help="cut each stream connection after S seconds")
     f.add_argument("--stall-after", type=float, metavar="S", help="a stream connection goes silent after S seconds")
     f.add_argument("--stall-for", type=float, metavar="S", help="... for S seconds (default: until the client leaves)")
@@ -110,6 +118,10 @@ def write_ready_file(path: str, emu) -> None:
 def run(args: argparse.Namespace) -> int:
     from cubecam.emulator import Emulator, Faults, skipped_summary
 
+    if args.parent_pid is not None:
+        from cubetrack.core.lifetime import end_with_parent
+
+        end_with_parent(args.parent_pid)
     faults = Faults(latency_s=args.latency, jitter_s=args.jitter, drop_rate=args.drop_rate,
                     bandwidth_bytes_per_s=args.bandwidth, disconnect_every_s=args.disconnect_every,
                     stall_after_s=args.stall_after, stall_for_s=args.stall_for,

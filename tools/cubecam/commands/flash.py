@@ -13,8 +13,10 @@ once, then uploaded board by board; --burn-bootloader first installs Sony's boot
 board (needed once per board and board-package version). Before anything runs, the tool, the
 board package, the GS2200-WiFi library and the bootloader files (or the PlatformIO platform) are
 checked; a missing one stops with the commands that install it. --dry-run prints the commands
-of both builders (or of --builder) and runs nothing. A board that fails does not stop the others;
-each is reported, and the exit status is 1 when any failed. With several boards, --name is
+of both builders (or of --builder) and runs nothing; with neither tool installed it prints the one
+command that installs PlatformIO at the pinned version (as `pip install 'cubetrack[flash]'` does).
+A board that fails does not stop the others; each is reported, and the exit status is 1 when any
+failed. With several boards, --name is
 refused (each node keeps its own).
 """
 
@@ -107,7 +109,7 @@ def _check(builder, args: argparse.Namespace, ports: list[str], cli: str | None,
 
     if isinstance(builder, ArduinoCli):
         if cli is None:
-            raise missing_arduino_cli(alternative=False)
+            raise missing_arduino_cli()
         check_arduino_cli(builder, ports, args.burn_bootloader, not args.no_bootloader_check)
     else:
         check_pio(pio)
@@ -121,7 +123,7 @@ def _say(text: str) -> None:
 def run(args: argparse.Namespace) -> int:
     from cubecam.boards import attached_boards
     from cubecam.errors import CubecamError, FlashError
-    from cubecam.flash import BUILDERS, choose_builder, find_tool, run_command
+    from cubecam.flash import BUILDERS, choose_builder, find_tool, no_builder, run_command
 
     if args.all:
         ports = [b.device for b in attached_boards()]
@@ -134,6 +136,8 @@ def run(args: argparse.Namespace) -> int:
     cli = find_tool("arduino-cli", args.arduino_cli)
     pio = find_tool("pio", args.pio)
     if args.dry_run:
+        if args.builder == "auto" and cli is None and pio is None:
+            raise no_builder()  # the plan would name tools this machine does not have
         names = BUILDERS if args.builder == "auto" else (args.builder,)
         for name in names:
             if len(names) > 1:

@@ -21,6 +21,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def describe_frame(frame) -> str:
     from cubecam import improv
+    from cubecam.errors import ImprovError
 
     try:
         if frame.type == improv.FrameType.CURRENT_STATE:
@@ -35,7 +36,7 @@ def describe_frame(frame) -> str:
         if frame.type == improv.FrameType.RPC:
             command, _ = improv.decode_rpc(frame)
             return f"[improv] command {command}"  # strings left out: they may hold a password
-    except improv.ImprovError as exc:
+    except ImprovError as exc:
         return f"[improv] malformed frame: {exc}"
     return f"[improv] frame type {frame.type}"
 

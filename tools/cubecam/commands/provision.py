@@ -33,9 +33,12 @@ def add_provision_options(p: argparse.ArgumentParser, ssid_required: bool) -> No
     p.add_argument("--mode", choices=("station", "ap"), help="join a network (station) or open one (ap)")
     p.add_argument("--ip", metavar="dhcp|A.B.C.D/P,GW", help="dhcp, or a static address/prefix and gateway")
     p.add_argument("--config", metavar="CFG", help="tracker config TOML to add the camera to (created if missing)")
-    p.add_argument("--boot-timeout", type=float, default=15.0, metavar="S", help="wait this long for the node to answer (default 15)")
-    p.add_argument("--join-timeout", type=float, default=45.0, metavar="S", help="wait this long for it to join (default 45)")
-    p.add_argument("--reboot", action="store_true", help="reboot the node afterwards and check it comes back provisioned")
+    p.add_argument("--boot-timeout", type=float, default=15.0, metavar="S",
+                   help="wait this long for the node to answer (default 15)")
+    p.add_argument("--join-timeout", type=float, default=45.0, metavar="S",
+                   help="wait this long for it to join (default 45)")
+    p.add_argument("--reboot", action="store_true", help="reboot the node afterwards and check it comes "
+                                                         "back provisioned")
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
@@ -45,8 +48,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def request_from_args(args: argparse.Namespace):
-    from cubecam.provision import ProvisionRequest, read_password
     from cubecam.errors import ProvisionError
+    from cubecam.provision import ProvisionRequest, read_password
 
     if args.open:
         if args.password_file:

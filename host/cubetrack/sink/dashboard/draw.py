@@ -117,7 +117,7 @@ def annotated_jpeg(view: CameraView, overlay: dict, width_px: int, quality: int)
         cv2.polylines(img, [pts(overlay["world_marker"])], True, CYAN, 1, cv2.LINE_AA)
     if overlay["axes"] is not None:
         origin, *tips = pts(overlay["axes"])
-        for tip, colour in zip(tips, AXIS_COLOURS):
+        for tip, colour in zip(tips, AXIS_COLOURS, strict=True):
             cv2.arrowedLine(img, tuple(int(v) for v in origin), tuple(int(v) for v in tip), colour, 2, cv2.LINE_AA,
                             tipLength=0.15)
     for squares in overlay["cubes"].values():

@@ -41,6 +41,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from importlib import resources
 from pathlib import Path
+from typing import Any
 from urllib.parse import quote, unquote, urlsplit
 
 from cubetrack.core.errors import CubetrackError
@@ -95,7 +96,7 @@ def topview_json(state: DashboardState, range_m: float) -> dict:
     marker = [[-half, half], [half, half], [half, -half], [-half, -half]]
     cameras = []
     for setup, status, name in state.camera_setups():
-        cam = {"name": name, "status": status, "position_m": None, "fov": []}
+        cam: dict[str, Any] = {"name": name, "status": status, "position_m": None, "fov": []}
         if setup is not None and setup.T_world_cam is not None:
             T = setup.T_world_cam
             cam["position_m"] = [float(v) for v in T[:3, 3]]
@@ -152,7 +153,8 @@ class _Handler(http.server.BaseHTTPRequestHandler):
     server_version = "cubetrack-dashboard"
 
     def setup(self) -> None:
-        self.timeout = self.server.dashboard.state.params.client_timeout_s
+        # socketserver reads self.timeout in setup(); typeshed declares it a class variable only
+        self.timeout = self.server.dashboard.state.params.client_timeout_s  # type: ignore[misc]
         super().setup()
 
     def log_message(self, format: str, *args) -> None:  # the default writes every request to stderr

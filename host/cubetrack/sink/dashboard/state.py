@@ -13,7 +13,8 @@ A camera's status (:func:`camera_status`):
 
 ``ok``       frames arrive;
 ``waiting``  nothing heard yet (no health snapshot, connecting, or connected without a frame so far);
-``down``     not connected: the reason is the source's last error (refused, timed out, ...);
+``down``     not connected, or connected with only broken frames so far: the reason is the source's
+             last error, one line saying what to check (:mod:`cubetrack.source.reasons`);
 ``stale``    connected but no frame for ``stale_after_s``: the reason says for how long.
 
 ``down`` and ``stale`` are shown red. Statuses are recomputed by :meth:`DashboardState.tick`
@@ -30,6 +31,7 @@ import time
 from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
@@ -51,17 +53,21 @@ class DashboardParams:
     stale_after_s: float = param(1.0, "a connected camera whose newest frame is older than this is shown red, seconds")
     trail_s: float = param(10.0, "top view: each robot's trail covers this many seconds")
     trail_points: int = param(200, "top view: at most this many points of a trail are sent to the page")
-    seen_within_s: float = param(1.0, "a camera sees a robot while it took part in one of its poses within this, seconds")
+    seen_within_s: float = param(1.0, "a camera sees a robot while it took part in one of its poses "
+                                      "within this, seconds")
     views_per_s: float = param(5.0, "camera tiles: at most this many new frames per second are announced per camera")
     poses_per_s: float = param(10.0, "top view: at most this many pose updates per second are announced per robot")
-    floor_range_m: float = param(4.0, "top view: a camera's field of view is drawn on the floor up to this distance, metres")
+    floor_range_m: float = param(4.0, "top view: a camera's field of view is drawn on the floor up to this "
+                                      "distance, metres")
     tick_s: float = param(0.25, "camera statuses are recomputed this often, seconds")
     max_clients: int = param(32, "HTTP connections served at once; more are answered 503")
-    client_timeout_s: float = param(10.0, "a client that sends its request or reads the event stream slower than this is dropped, seconds")
+    client_timeout_s: float = param(10.0, "a client that sends its request or reads the event stream slower than this "
+                                          "is dropped, seconds")
     min_marker_side_px: float = param(
         30.0, "calibration: the world marker should appear at least this wide in a camera (square root of its pixel "
         "area); smaller: move the camera closer or print a bigger marker, pixels")
-    max_spread_cm: float = param(1.0, "calibration: a camera whose per-frame poses scatter more than this is poor, centimetres")
+    max_spread_cm: float = param(1.0, "calibration: a camera whose per-frame poses scatter more than this is "
+                                      "poor, centimetres")
     max_spread_deg: float = param(0.5, "calibration: ... or more than this, degrees")
     max_reprojection_px: float = param(
         1.0, "calibration: a camera whose detected world-marker corners lie farther (RMS) than this from where its "
@@ -69,7 +75,8 @@ class DashboardParams:
     min_inlier_fraction: float = param(
         0.7, "calibration: a camera whose calibration kept fewer than this fraction of its world-marker sightings "
         "(the others were outliers) is poor")
-    check_frames: int = param(30, "calibration: frames of each camera's calibration recording the reprojection error is measured on")
+    check_frames: int = param(30, "calibration: frames of each camera's calibration recording the reprojection "
+                                  "error is measured on")
     check_every_s: float = param(0.5, "outside the collection, each camera's newest frame is searched for the "
                                  "world marker this often, seconds")
     drive_instants: int = param(150, "calibration, drive step: instants to collect before refining: sightings of one "
@@ -115,7 +122,9 @@ def camera_status(health: CameraHealth | None, last_frame_s: float | None, now_s
         if not (health.last_error or health.reconnects or health.frames):
             return "waiting", "connecting"  # the session has just started
         return "down", health.last_error or "not connected"
-    if last_frame_s is None:
+    if last_frame_s is None:  # connected: broken frames only is as bad as no camera
+        if health.bad and health.last_error:
+            return "down", health.last_error
         return "waiting", "connected, no frame yet"
     age_s = now_s - last_frame_s
     if age_s > stale_after_s:
@@ -285,6 +294,7 @@ class DashboardState:
                 return
             cam.view_announced_s = now_s
             data = self.view_meta(cam)
+        assert data is not None  # cam.view was just set
         self.events.publish("view", {"camera": view.camera, **data})
 
     def pose(self, pose: TrackedPose) -> None:
@@ -356,7 +366,7 @@ class DashboardState:
     def session_json(self) -> dict:
         with self._lock:
             s = self.session
-            out = {"state": self.session_state, "started_s": self.session_started_s,
+            out: dict[str, Any] = {"state": self.session_state, "started_s": self.session_started_s,
                    "cameras": list(self._cameras), "robots": list(self._robots)}
             if s is not None:
                 out["world"] = {"dictionary": s.world.dictionary, "marker_id": s.world.marker_id,
@@ -434,7 +444,7 @@ class DashboardState:
         trail = trail[::-1][::step][::-1]  # keep the newest point
         out = {"name": robot.name, "trail": [[t, x, y] for t, x, y, _ in trail],
                "seen_by": sorted(c for c, s in robot.seen_s.items() if now_s - s <= self.params.seen_within_s)}
-        if pose is None:
+        if pose is None or robot.T_world_cube is None:  # (set together)
             return {**out, "time_s": None, "position_m": None, "yaw_deg": None, "quaternion_xyzw": None,
                     "age_s": None, "predicted": False}
         R = robot.T_world_cube[:3, :3]

@@ -73,10 +73,11 @@ def test_smoothed_poses_are_closer_to_the_truth_than_the_filters(seed):
     (pos_f, rot_f), (pos_s, rot_s) = errors(causal, weaving), errors(smoothed, weaving)
     assert rms(pos_s) < 0.75 * rms(pos_f)
     assert rms(rot_s) < 0.75 * rms(rot_f)
-    for p, q in zip(smoothed, causal):  # the rest of the record is the sighting's
+    for p, q in zip(smoothed, causal, strict=True):  # the rest of the record is the sighting's
         assert p.cameras == q.cameras and p.markers == q.markers and p.covariance.shape == (6, 6)
     # the smoother's covariance is no larger than the filter's (it has more sightings)
-    assert np.median([np.trace(p.covariance) / np.trace(q.covariance) for p, q in zip(smoothed, causal)]) < 0.8
+    ratios = [np.trace(p.covariance) / np.trace(q.covariance) for p, q in zip(smoothed, causal, strict=True)]
+    assert np.median(ratios) < 0.8
     assert smoothed[-1].position_m.tolist() == causal[-1].position_m.tolist()  # the last state: nothing after it
 
 
@@ -89,7 +90,7 @@ def test_keeping_the_trail_changes_no_causal_pose():
     with_trail = run(kept, jittered)
     assert kept.stats["late sighting"] > 5
     assert len(plain) == len(with_trail)
-    for a, b in zip(plain, with_trail):
+    for a, b in zip(plain, with_trail, strict=True):
         same_pose(a, b)
 
 
@@ -105,7 +106,8 @@ def test_gains_kept_from_pass_to_pass_change_no_smoothed_pose():
         if n == 19:  # a state replaced, as a late sighting's re-application does
             f = part[5].filter
             part[5] = dataclasses.replace(part[5], filter=f.moved(np.full(12, 1e-3), f.P))
-        for kept, fresh in zip(smoothed_poses(part, 2.0, 4, 0.1, gains), smoothed_poses(part, 2.0, 4, 0.1)):
+        for kept, fresh in zip(smoothed_poses(part, 2.0, 4, 0.1, gains), smoothed_poses(part, 2.0, 4, 0.1),
+                               strict=True):
             assert kept.position_m.tolist() == fresh.position_m.tolist()
             assert kept.covariance.tolist() == fresh.covariance.tolist() and kept.extra == fresh.extra
 
@@ -122,7 +124,7 @@ def test_late_sightings_are_smoothed_as_in_capture_order():
     _, expected, _ = tracked(items)
     got = smoothed(late, items[-1].arrival_time_s)
     assert len(got) == len(expected)
-    for a, b in zip(got, expected):
+    for a, b in zip(got, expected, strict=True):
         np.testing.assert_allclose(a.position_m, b.position_m, atol=1e-12)
         np.testing.assert_allclose(a.quaternion_xyzw, b.quaternion_xyzw, atol=1e-12)
 

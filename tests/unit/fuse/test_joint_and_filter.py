@@ -101,7 +101,7 @@ def test_joint_fit_estimates_velocity_from_sightings_spread_in_time():
     v_true = np.array([0.25, -0.1, 0.0])
     T0 = cube_pose()
     sets = []
-    for k, (cam, t) in enumerate([("cam1", -0.2), ("cam2", -0.13), ("cam3", -0.07), ("cam1", 0.0)]):
+    for cam, t in [("cam1", -0.2), ("cam2", -0.13), ("cam3", -0.07), ("cam1", 0.0)]:
         T = make_T(T0[:3, :3], T0[:3, 3] + v_true * t)
         sets.append(corner_set(T, cam, rng, t=t))
     sol = solve_joint(sets, cube_pose(x=0.12, y=-0.18), 0.0, velocity_sigma=(0.5, 1.0))
@@ -138,7 +138,8 @@ def test_filter_drops_a_bad_face_and_rejects_a_garbage_sighting():
     assert len(good.faces) >= 2
     bad = good.normalized.copy()
     bad[:4] += 25.0 / 520.0  # the first face's corners 25 px off: a misread marker
-    result = f.update([CornerSet(good.camera, 0.0, good.T_cam_world, good.focal_px, good.points_cube_m, bad, good.faces)])
+    result = f.update([CornerSet(good.camera, 0.0, good.T_cam_world, good.focal_px, good.points_cube_m, bad,
+                                 good.faces)])
     assert result.accepted and result.points == 4 * (len(good.faces) - 1)
     assert np.linalg.norm(f.position_m - truth[:3, 3]) < 0.003
     before = f.T_world_cube.copy()
@@ -183,7 +184,7 @@ def test_motion_jacobian_matches_finite_differences():
     rng = np.random.default_rng(7)
     T = cube_pose()
     v, w = np.array([0.2, -0.1, 0.0]), np.array([0.1, 0.3, -1.5])
-    sets = [corner_set(moved_pose(T, v, w, t), c, rng, t=t) for c, t in zip(CAMS, (-0.08, 0.0, 0.11))]
+    sets = [corner_set(moved_pose(T, v, w, t), c, rng, t=t) for c, t in zip(CAMS, (-0.08, 0.0, 0.11), strict=True)]
     r, J = reprojection_jacobian_px(T, sets, 0.0, v, w)
     assert J.shape == (len(r), 12)
     np.testing.assert_allclose(r, reprojection_residuals_px(T, sets, 0.0, v, w), atol=1e-9)

@@ -32,7 +32,8 @@ def _render(corners_ideal: np.ndarray, intrinsics: CameraIntrinsics, blur_px: fl
     margin = 1
     cells = cv2.aruco.generateImageMarker(d, MARKER_ID, modules, borderBits=1).astype(np.float32) / 255
     tex = np.ones(((modules + 2 * margin) * res,) * 2, np.float32)
-    tex[margin * res:(margin + modules) * res, margin * res:(margin + modules) * res] = np.kron(cells, np.ones((res, res)))
+    inside = slice(margin * res, (margin + modules) * res)
+    tex[inside, inside] = np.kron(cells, np.ones((res, res)))
     # texture pixel j has marker coordinate (j + 0.5) / res - margin (modules)
     T_tex = np.array([[res, 0, margin * res - 0.5], [0, res, margin * res - 0.5], [0, 0, 1.0]])
     H = square_homography(corners_ideal, modules)                      # marker modules -> ideal px

@@ -54,7 +54,8 @@ def test_cma_pose_needs_samples():
 
 def test_pose_spread_by_hand():
     ref = np.eye(4)
-    Ts = [make_T(np.eye(3), [0.03, 0.0, 0.0]), make_T(Rotation.from_euler("z", 2, degrees=True).as_matrix(), [0.0, 0.04, 0.0])]
+    Ts = [make_T(np.eye(3), [0.03, 0.0, 0.0]),
+          make_T(Rotation.from_euler("z", 2, degrees=True).as_matrix(), [0.0, 0.04, 0.0])]
     spread_m, spread_deg = pose_spread(Ts, ref)
     assert spread_m == pytest.approx(np.sqrt((0.03**2 + 0.04**2) / 2))
     assert spread_deg == pytest.approx(np.sqrt(2.0**2 / 2))

@@ -52,12 +52,15 @@ class Scene:
         self.dist = np.tile([-0.3, 0.1, 0.0, 0.0, 0.0], (3, 1))
         # a hand-built cube: every marker a few mm / a degree off its nominal place, 1 % small
         self.nominal = np.array([m.T_cube_marker for m in layout.markers])
-        self.T_markers = np.array([make_T(R_from_rotvec(rng.normal(0, 0.015, 3)) @ T[:3, :3], T[:3, 3] + rng.normal(0, 0.0015, 3))
+        self.T_markers = np.array([make_T(R_from_rotvec(rng.normal(0, 0.015, 3)) @ T[:3, :3],
+                                          T[:3, 3] + rng.normal(0, 0.0015, 3))
                                    for T in self.nominal])
         self.sizes = np.full(5, 0.08) * (1 - rng.uniform(0.005, 0.015, 5))
         self.T_bodies = np.array([make_T(Rotation.from_euler("zx", [0.3 * k, 0.15 * np.sin(k)]).as_matrix(),
-                                         [0.6 * np.sin(0.08 * k), 0.4 * np.sin(0.16 * k), 0.35]) for k in range(instants)])
-        true = Model(self.T_cams, self.K, self.dist, self.T_bodies, self.T_markers, self.sizes, np.zeros(5, int), np.ones(1))
+                                         [0.6 * np.sin(0.08 * k), 0.4 * np.sin(0.16 * k), 0.35])
+                                  for k in range(instants)])
+        true = Model(self.T_cams, self.K, self.dist, self.T_bodies, self.T_markers, self.sizes, np.zeros(5, int),
+                     np.ones(1))
         self.true = true
         cam, inst, marker, corner = [], [], [], []
         for k, T_body in enumerate(self.T_bodies):
@@ -75,7 +78,8 @@ class Scene:
         world_cam = np.repeat(np.arange(3), 4)
         n = len(cam)
         self.obs = Observations(cam, inst, marker, corner, np.zeros((n, 2)), np.tile(np.eye(3), (n, 1, 1)),
-                                np.zeros((n, 3)), np.zeros(instants, int), 1, world_cam, world_points, np.zeros((12, 2)))
+                                np.zeros((n, 3)), np.zeros(instants, int), 1, world_cam, world_points,
+                                np.zeros((12, 2)))
         from cubetrack.calib.solver import corner_residuals_px, world_residuals_px
         self.obs = Observations(cam, inst, marker, corner, corner_residuals_px(self.obs, true), self.obs.motion_R,
                                 self.obs.motion_t, self.obs.robot, 1, world_cam, world_points,
@@ -98,8 +102,8 @@ class Scene:
 
 
 def _pose_errors(Ts, Ts_true):
-    return (max(np.linalg.norm(T[:3, 3] - U[:3, 3]) for T, U in zip(Ts, Ts_true)),
-            max(rotation_angle(T[:3, :3], U[:3, :3], "deg") for T, U in zip(Ts, Ts_true)))
+    return (max(np.linalg.norm(T[:3, 3] - U[:3, 3]) for T, U in zip(Ts, Ts_true, strict=True)),
+            max(rotation_angle(T[:3, :3], U[:3, :3], "deg") for T, U in zip(Ts, Ts_true, strict=True)))
 
 
 def test_project_jacobian_matches_finite_differences():

@@ -47,7 +47,7 @@ def _scene(seen=lambda face, t: True):
         for seq, t in enumerate(np.arange(c * 0.031, DURATION_S, 1 / FPS)):
             T = _pose(t)
             detections = []
-            for g, m in enumerate(truth.markers):
+            for m in truth.markers:
                 T_wm = T @ m.T_cube_marker
                 to_camera = T_cam[:3, 3] - T_wm[:3, 3]
                 if T_wm[:3, 2] @ to_camera < 0.25 * np.linalg.norm(to_camera) or not seen(m.face, t):

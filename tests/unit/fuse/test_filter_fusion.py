@@ -220,7 +220,8 @@ def test_rolling_shutter_row_times_are_modelled_when_the_readout_is_known():
     errors = {}
     every_face = FusionParams(max_view_angle_deg=80.0)
     for told in (0.0, 0.03):
-        poses = run(FilterFusion({"bot": LAYOUT}, every_face), rolling_shutter_sightings(0.03, told, np.random.default_rng(7)))
+        poses = run(FilterFusion({"bot": LAYOUT}, every_face),
+                    rolling_shutter_sightings(0.03, told, np.random.default_rng(7)))
         late = [p for p in poses if p.time_s > 0.4]  # after the track has settled
         assert len(late) > 12
         rot = [rotation_angle(Rotation.from_quat(p.quaternion_xyzw).as_matrix(), turning(p.time_s)[:3, :3])
@@ -263,7 +264,8 @@ def test_a_track_that_loses_lock_re_acquires_from_the_next_sighting():
         R = Rotation.from_quat(p.quaternion_xyzw).as_matrix()
         assert rotation_angle(R, bumped(p.time_s)[:3, :3], "deg") < 3.0
     elsewhere = make_T(np.eye(3), bumped(2.05)[:3, 3] + [0.3, 0.0, 0.0])
-    stray = CubeSighting("cam1", "bot", 1, 2.05, 2.1, detections(elsewhere, CAMS["cam1"], rng), None, CAMS["cam1"], INTR)
+    stray = CubeSighting("cam1", "bot", 1, 2.05, 2.1, detections(elsewhere, CAMS["cam1"], rng), None, CAMS["cam1"],
+                         INTR)
     assert fusion.add(stray, 2.1) == [] and fusion.stats["rejected sighting"] >= 1
 
 
@@ -300,7 +302,8 @@ def test_a_track_started_in_a_sharp_turn_is_as_good_from_its_first_pose():
     first pose is 1.0-1.3 deg off, the later ones 0.2-0.7)."""
     first = []
     for seed in range(4):
-        poses = run(FilterFusion({"bot": LAYOUT}), rolling_shutter_sightings(0.0, 0.0, np.random.default_rng(seed), 0.8))
+        poses = run(FilterFusion({"bot": LAYOUT}),
+                    rolling_shutter_sightings(0.0, 0.0, np.random.default_rng(seed), 0.8))
         first.append([rotation_angle(Rotation.from_quat(p.quaternion_xyzw).as_matrix(), turning(p.time_s)[:3, :3])
                       for p in poses[:3]])
     first = np.degrees(first)

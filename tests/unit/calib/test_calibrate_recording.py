@@ -112,7 +112,7 @@ def test_cli_writes_extrinsics_that_read_back(scene, tmp_path, cli, capsys):
     assert all(e.method == "robust" and 0 < e.samples <= 20 for e in ext.values())
     assert all(0 < e.spread_position_m < 0.01 and 0 < e.spread_rotation_deg < 0.5 for e in ext.values())
     truth = read_extrinsics(truth_path)
-    for name, (pos_m, rot_deg) in extrinsics_errors(ext, truth).items():
+    for pos_m, rot_deg in extrinsics_errors(ext, truth).values():
         assert pos_m < 0.01 and rot_deg < 0.2
     printed = capsys.readouterr().out
     assert "cam1" in printed and "4 corrupt JPEG" in printed and "away" in printed and "NOT CALIBRATED" in printed

@@ -35,7 +35,7 @@ def crate() -> CubeLayout:
 def body_solid(layout: CubeLayout, T_world_body: np.ndarray) -> Solid:
     faces, decals = [], []
     half = np.array(SIZE) / 2
-    for m, name in zip(layout.markers, layout.marker_dictionaries):
+    for m, name in zip(layout.markers, layout.marker_dictionaries, strict=True):
         T = T_world_body @ m.T_cube_marker
         axis = int(np.argmax(np.abs(m.T_cube_marker[:3, 2])))
         in_plane = np.abs(m.T_cube_marker[:3, :2]).T @ (2 * half)  # the face's extent along the marker's x, y
@@ -54,7 +54,8 @@ def test_layout_of_two_dictionaries_round_trips_and_tells_its_markers_apart(tmp_
     assert list(layout.indices_of(3, "DICT_4X4_50")) == [0] and not len(layout.indices_of(8, "DICT_5X5_100"))
     write_layout(layout, tmp_path / "crate.toml")
     back = read_layout(tmp_path / "crate.toml")
-    assert [(m.face, m.marker_id, m.size_m) for m in back.markers] == [(m.face, m.marker_id, m.size_m) for m in layout.markers]
+    assert ([(m.face, m.marker_id, m.size_m) for m in back.markers]
+            == [(m.face, m.marker_id, m.size_m) for m in layout.markers])
     assert back.marker_dictionaries == layout.marker_dictionaries
     assert "DICT_5X5_100" in (tmp_path / "crate.toml").read_text()
     # a world marker of the other dictionary with the body's id there: refused by the config check
@@ -82,7 +83,8 @@ def test_the_tracker_stages_estimate_a_crate_of_two_dictionaries(yaw_deg):
         assert (layout.marker_dictionaries[match.marker], marker.marker_id) == (match.detection.dictionary,
                                                                                 match.detection.marker_id)
     seen_as = [np.linalg.inv(T_world_cam) @ T_world_body @ m.T_cube_marker for m in layout.markers]
-    facing = {m.face for m, T in zip(layout.markers, seen_as) if T[:3, 2] @ T[:3, 3] / np.linalg.norm(T[:3, 3]) < -0.5}
+    facing = {m.face for m, T in zip(layout.markers, seen_as, strict=True)
+              if T[:3, 2] @ T[:3, 3] / np.linalg.norm(T[:3, 3]) < -0.5}
     assert {m.face for m in matches} == facing  # every face seen within 60 deg of head-on
     est = estimate_cube(detections, layout, LENS, T_world_cam, camera="c", robot="crate", seq=0,
                         capture_time_s=0.0, arrival_time_s=0.0)

@@ -22,7 +22,8 @@ def test_marker_normals_point_out_of_the_cube_and_sit_on_its_faces():
 
 
 def test_distinct_ids():
-    assert sorted(m.marker_id for m in paper_cube_layout(marker_id=10, distinct_ids=True).markers) == [10, 11, 12, 13, 14]
+    layout = paper_cube_layout(marker_id=10, distinct_ids=True)
+    assert sorted(m.marker_id for m in layout.markers) == [10, 11, 12, 13, 14]
 
 
 def test_layout_toml_round_trip(tmp_path):
@@ -30,7 +31,7 @@ def test_layout_toml_round_trip(tmp_path):
     write_layout(layout, tmp_path / "cube.toml")
     back = read_layout(tmp_path / "cube.toml")
     assert [m.face for m in back.markers] == list(FACES)
-    for a, b in zip(layout.markers, back.markers):
+    for a, b in zip(layout.markers, back.markers, strict=True):
         np.testing.assert_allclose(a.T_cube_marker, b.T_cube_marker, atol=1e-9)
 
 

@@ -48,7 +48,8 @@ def test_calibrate_body_bad_input_is_one_line_and_writes_nothing(scene, tmp_path
     monkeypatch.setattr(cli_main, "COMMANDS", {"calibrate-body": "calibrate_body"})
     nominal = scene / "cube.toml"
     before = nominal.read_bytes()
-    cases = (([str(nominal)], "is the nominal layout"), ([str(tmp_path / "b.toml"), "--robot", "nobody"], "no robot 'nobody'"))
+    cases = (([str(nominal)], "is the nominal layout"),
+             ([str(tmp_path / "b.toml"), "--robot", "nobody"], "no robot 'nobody'"))
     for (out, *extra), message in cases:
         assert _calibrate_body(scene, out, *extra) == 1
         err = capsys.readouterr().err

@@ -1,6 +1,6 @@
 """Issue 15 item 5: a world reference beyond one marker — several floor markers at known poses,
 or a ChArUco board as the world frame — in the config's [world] section, used by the extrinsic
-calibration. Rendered recordings (tests/unit/calibrate/calib_scene.py: the simulator's exact
+calibration. Rendered recordings (tests/unit/calib/calib_scene.py: the simulator's exact
 renderer) of the three cameras of the calibration tests, true poses known by construction."""
 
 import cv2
@@ -95,7 +95,8 @@ def test_a_charuco_board_is_the_world_frame(scenes):
 def test_a_camera_that_sees_no_reference_is_named(scenes, tmp_path):
     config_path, rec, _truth = scenes["board"]
     doc = tracker_config_to_table(WorldConfig(board=WorldBoard(5, 7, 0.06, 0.045, dictionary="DICT_5X5_100"),
-                                              origin_marker=False), [], [("robot", str(config_path.parent / "cube.toml"))])
+                                              origin_marker=False), [],
+                                  [("robot", str(config_path.parent / "cube.toml"))])
     write_toml(doc, tmp_path / "other.toml")
     with pytest.raises(CalibrationError, match="camera 'cam1': the world reference found in 0 of 12 frames") as exc:
         calibrate_recording(read_tracker_config(tmp_path / "other.toml"), Recording.open(rec))
@@ -125,8 +126,10 @@ def test_world_reference_config_round_trip_and_errors(tmp_path):
     assert config("[world]\nmarker_id = 5\n").world.single_marker  # the single-marker form as before
     bad = {
         "[world]\norigin_marker = false\n": "origin_marker = false needs",
-        "[[world.markers]]\nid = 0\nposition = [1.0, 0.0, 0.0]\n": "world marker 1 uses DICT_4X4_50 id 0, already used by the world marker",
-        "[[world.markers]]\nid = 1\nposition = [1.0, 0.0, 0.0]\n": "robot 'robot' uses DICT_4X4_50 id 1, already used by world marker 1",
+        "[[world.markers]]\nid = 0\nposition = [1.0, 0.0, 0.0]\n":
+            "world marker 1 uses DICT_4X4_50 id 0, already used by the world marker",
+        "[[world.markers]]\nid = 1\nposition = [1.0, 0.0, 0.0]\n":
+            "robot 'robot' uses DICT_4X4_50 id 1, already used by world marker 1",
         "[[world.markers]]\nid = 2\n": r"world.markers\[0\] needs an id and a position",
         "[[world.markers]]\nid = 2\nposition = [1.0, 0.0]\n": "position must be a list of 3 numbers",
         "[[world.markers]]\nid = 2\nposition = [1, 0, 0]\nquaternion_xyzw = [0, 0, 0, 0]\n": "must not be zero",
@@ -134,7 +137,8 @@ def test_world_reference_config_round_trip_and_errors(tmp_path):
         "[world.board]\nsquares = [5]\nsquare_size = 0.04\nmarker_size = 0.03\n": "squares must be",
         "[world.board]\nsquares = [5, 7]\nsquare_size = 0.04\nmarker_size = 0.05\n": "marker_size must be smaller",
         "[world.board]\nsquares = [5, 7]\nsquare_size = 0.04\nmarker_size = 0.03\nsize = 1\n": "unknown key",
-        "[world.board]\nsquares = [5, 7]\nsquare_size = 0.04\nmarker_size = 0.03\n": "the world board uses DICT_4X4_50 id 0",
+        "[world.board]\nsquares = [5, 7]\nsquare_size = 0.04\nmarker_size = 0.03\n":
+            "the world board uses DICT_4X4_50 id 0",
     }
     for text, message in bad.items():
         with pytest.raises(ConfigError, match=message) as exc:
