@@ -25,7 +25,9 @@ import time
 from collections.abc import Callable, Mapping, MutableSequence, Sequence
 from dataclasses import dataclass
 from multiprocessing.connection import Connection, wait
+from multiprocessing.process import BaseProcess
 from multiprocessing.reduction import ForkingPickler
+from typing import cast
 
 import cv2
 
@@ -118,7 +120,7 @@ class CameraProcesses:
         self._told: list[int] = []  # per lane: the count of taken results when it was last sent a message
         self._stats = {name: CameraStats(url=url) for name, url in self.urls.items()}
         self._counts: dict[int, tuple[int, int]] = {}  # per worker process: frames admitted, given up before clock
-        self._lanes: list[tuple[Connection, multiprocessing.Process]] = []
+        self._lanes: list[tuple[Connection, BaseProcess]] = []
         self._open: dict[Connection, int] = {}  # the pipes of processes that have not finished -> lane
         self._held = HeldResults()
         context = multiprocessing.get_context("spawn")  # fork would copy this process's threads' locks
@@ -147,7 +149,7 @@ class CameraProcesses:
         timeout_s = min(timeout_s, self._held.wait_s(time.monotonic()))  # wake when a held result is due
         results: list[FrameResult] = []
         clocks: list[ClockReading] = []
-        ready = wait(list(self._open), timeout_s) if self._open else []
+        ready = [cast(Connection, c) for c in wait(list(self._open), timeout_s)] if self._open else []
         working = math.inf
         for _ in range(4):
             for conn in ready:

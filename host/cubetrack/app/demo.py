@@ -27,6 +27,7 @@ from cubetrack.app.emulated import EmulatedCameras
 from cubetrack.app.live import LiveResult, LiveStatus, track_live
 from cubetrack.app.track import track_recording
 from cubetrack.calib.extrinsics import extrinsics_errors
+from cubetrack.core.errors import ConfigError
 from cubetrack.core.progress import Progress
 from cubetrack.evaluate.metrics import EvaluationResult, evaluate
 from cubetrack.fuse.fusion import FusionMethod
@@ -83,7 +84,9 @@ def write_live_config(config_path: Path, urls: dict[str, str], out: Path) -> Pat
     config = read_tracker_config(config_path)
     cameras = [CameraConfig(c.name, urls[c.name], c.camera_info.resolve() if c.camera_info else None)
                for c in config.cameras]
-    robots = [(r.name, str(r.layout_path.resolve())) for r in config.robots]
+    if any(r.layout_path is None for r in config.robots):
+        raise ConfigError(f"{config_path}: every robot of a live demo config needs its layout file")
+    robots = [(r.name, str(r.layout_path.resolve())) for r in config.robots if r.layout_path is not None]
     out.parent.mkdir(parents=True, exist_ok=True)
     write_toml(tracker_config_to_table(config.world, cameras, robots, config.sections), out)
     return out

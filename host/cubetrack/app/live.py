@@ -69,7 +69,7 @@ def live_intrinsics(config: TrackerConfig) -> dict[str, CameraIntrinsics]:
             f"{config.path}: camera(s) {', '.join(missing)} have no camera_info; live tracking takes intrinsics "
             'from the config only (there is no recording folder): add camera_info = "calib/<camera>.yaml" '
             "(ROS camera_info YAML, e.g. from cubetrack calibrate-intrinsics) to each [[cameras]] table")
-    return {c.name: read_camera_info(c.camera_info) for c in config.cameras}
+    return {c.name: read_camera_info(c.camera_info) for c in config.cameras if c.camera_info is not None}
 
 
 @dataclass(frozen=True, slots=True)
@@ -178,12 +178,12 @@ class _Health:
                 self.jpeg_bytes[name] = (s.bytes - size) // (s.frames - frames)
             self.counts[name] = (s.frames, s.bytes)
             fit = self.clocks[name].fit() if name in self.clocks else None
-            synced = fit is not None and fit.method is ClockFitMethod.ROUND_TRIP
+            synced = fit if fit is not None and fit.method is ClockFitMethod.ROUND_TRIP else None
             transfer = _median(self.transfer[name])
             self.transfer[name] = []
             out.append(CameraHealth(name, self.clock(), s.connected, (s.frames - frames) / dt, s.frames, s.dropped,
-                                    s.bad, s.reconnects, fit.offset_s if synced else math.nan,
-                                    fit.drift * 1e6 if synced else math.nan,
+                                    s.bad, s.reconnects, synced.offset_s if synced else math.nan,
+                                    synced.drift * 1e6 if synced else math.nan,
                                     math.nan if transfer is None else transfer, self.jpeg_bytes[name], s.last_error))
         return out
 

@@ -30,7 +30,7 @@ from cubetrack.core.errors import ConfigError
 from cubetrack.core.layout import CubeLayout
 from cubetrack.core.progress import Progress
 from cubetrack.core.records import Frame, FrameJob, FrameResult
-from cubetrack.fuse.fusion import FusionMethod
+from cubetrack.fuse.fusion import FilterFusion, FusionMethod
 from cubetrack.fuse.smoother import smoothed_poses
 from cubetrack.io.config import RobotConfig, TrackerConfig
 from cubetrack.io.recording import Recording
@@ -174,8 +174,9 @@ def track_frames(frames: Iterable[Frame], intrinsics: Mapping[str, CameraIntrins
     robots = tuple(RobotConfig(name, layout) for name, layout in layouts.items())
     tracker = Tracker(dict(intrinsics), world, robots, dict(extrinsics) if extrinsics is not None else None,
                       params, synced)
-    if smoothed is not None:
-        tracker.fusion.keep_trail()
+    trail = tracker.fusion if isinstance(tracker.fusion, FilterFusion) else None  # --smooth: the filter's
+    if smoothed is not None and trail is not None:
+        trail.keep_trail()
     replay = _Replay(tracker, output, pool, clock_samples)
     session = session or Session()
     numbered = enumerate(frames, start=1)
@@ -192,9 +193,9 @@ def track_frames(frames: Iterable[Frame], intrinsics: Mapping[str, CameraIntrins
     session.run(step, drained=replay.drain)
     for pose in tracker.finish():
         output.pose(pose)
-    if smoothed is not None:
+    if smoothed is not None and trail is not None:
         for i, robot in enumerate(layouts, start=1):
-            for pose in smoothed_poses(tracker.fusion.trail(robot, tracker.last_now_s), tracker.last_now_s):
+            for pose in smoothed_poses(trail.trail(robot, tracker.last_now_s), tracker.last_now_s):
                 smoothed.pose(pose)
             if progress is not None:
                 progress("smooth", i, len(layouts))

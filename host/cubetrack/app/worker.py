@@ -43,7 +43,7 @@ from cubetrack.app.session import Session
 from cubetrack.app.tracker import CameraPoseSource, StageParams, Tracker, TrackStats
 from cubetrack.core.cameras import CameraExtrinsics
 from cubetrack.core.errors import ConfigError
-from cubetrack.core.records import Frame, FrameResult
+from cubetrack.core.records import Detection, Frame, FrameResult
 from cubetrack.fuse.forecast import NO_FORECAST
 from cubetrack.io.config import TrackerConfig
 from cubetrack.io.sighting_wire import SightingMessage, WireClock, WireHealth, encode_sighting
@@ -172,7 +172,7 @@ def sighting_message(result: FrameResult, clock: ClockSync, stats: CameraStats, 
     """What a worker publishes for one frame's per-frame work: the detections of every robot's
     markers (corners, not the image), the camera pose where it came from the frame itself."""
     frame = result.job.frame
-    seen: dict[int, object] = {}
+    seen: dict[int, Detection] = {}
     for sighting in result.sightings:
         for d in sighting.detections:
             seen.setdefault(id(d), d)

@@ -106,7 +106,7 @@ def run(args: argparse.Namespace) -> int:
     recording = None if args.live else Recording.open(args.recording)
     sinks = add_dashboard(args, output_sinks_from_args(args, config), config, args.out, settings.dashboard)
     try:
-        if args.live:
+        if recording is None:
             return _run_live(args, config, extrinsics, settings, sinks)
         result = track_recording(config, recording, extrinsics, args.out, settings.stages, StderrProgress(), sinks,
                                  extrinsics_path=args.extrinsics, workers=args.replay_workers, smooth=args.smooth)
@@ -142,6 +142,8 @@ def _run_live(args: argparse.Namespace, config, extrinsics, settings, sinks) -> 
                         record_to=args.record, status=status, status_every_s=args.status_every, sinks=sinks,
                         live_params=settings.live, extrinsics_path=args.extrinsics)
     s = result.stats
+    if s is None:  # track_live always returns its counters (only record_live has none)
+        raise AssertionError("a live tracking session without counters")
     latency = "-" if result.latency_s is None else f"{result.latency_s * 1000:.0f} ms"
     print(f"{'interrupted; ' if result.interrupted else ''}tracked live for {result.duration_s:.1f} s: "
           f"frames: {s.frames}, before their camera's clock was known: {s.frames_before_clock_sync}, "

@@ -30,6 +30,7 @@ import multiprocessing
 import signal
 from collections.abc import Callable
 from multiprocessing.connection import Connection
+from multiprocessing.process import BaseProcess
 
 from cubetrack.core.errors import ConfigError, CubetrackError
 from cubetrack.core.lifetime import end_with_parent
@@ -89,7 +90,7 @@ class OutputProcess(Sink):
     def __init__(self, factory: Callable[[], list[Sink]]):
         context = multiprocessing.get_context("spawn")  # fork would copy the tracker's threads' locks
         self._conn, child = context.Pipe()
-        self._process = context.Process(target=serve_outputs, name="cubetrack-outputs", daemon=True,
+        self._process: BaseProcess | None = context.Process(target=serve_outputs, name="cubetrack-outputs", daemon=True,
                                         args=(factory, child, logging.getLogger().getEffectiveLevel()))
         self._process.start()
         child.close()
