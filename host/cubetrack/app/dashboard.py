@@ -245,7 +245,8 @@ class DashboardApp:
         self.target = settings.calibration.samples
         self.samples = {c: 0 for c in self.urls}
         # camera -> (checked, seen (host s), side px)
-        self.marker = {c: (-math.inf, -math.inf, None) for c in self.urls}
+        self.marker: dict[str, tuple[float, float, float | None]] = {
+            c: (-math.inf, -math.inf, None) for c in self.urls}
         self.results: dict[str, dict] = {}
         self.refined: dict[str, dict] = {}
         self.warnings: list[str] = []
@@ -334,10 +335,24 @@ class DashboardApp:
         self._plan = plan
         self._session_stop.set()
 
+    def _candidate(self) -> CalibrationRun:
+        """The calibration the page shows (there once a step past calibrating was reached)."""
+        if self.candidate is None:
+            raise DashboardError("no calibration to use yet: collect and calibrate first")
+        return self.candidate
+
+    def _calibration_folder(self) -> Path:
+        """This calibration's folder (made when collecting starts)."""
+        if self.calibration_dir is None:
+            raise DashboardError("no calibration started yet: start collecting first")
+        return self.calibration_dir
+
     def _session_ended(self, plan: SessionPlan) -> None:
         """After a collecting or driving session, compute from what it recorded."""
         with self._lock:
             if self._stop.is_set():
+                return
+            if plan.record_to is None:
                 return
             if plan.kind == "calibration" and self.step == "calibrating":
                 self._start_worker(self._calibrate, plan.record_to)
@@ -417,11 +432,11 @@ class DashboardApp:
             self.samples = {c: 0 for c in self.urls}
             self.results, self.refined, self.warnings, self.candidate, self.progress = {}, {}, [], None, None
             self._go("collecting", f"Collecting {samples} world-marker sightings per camera into "
-                     f"{self.calibration_dir / 'world'}; keep the cameras and the marker still.",
-                     SessionPlan("calibration", self._plan.out_dir, self.calibration_dir / "world",
+                     f"{self._calibration_folder() / 'world'}; keep the cameras and the marker still.",
+                     SessionPlan("calibration", self._plan.out_dir, self._calibration_folder() / "world",
                                  dict(self.extrinsics)))
             self._publish()
-            return {"recording": str(self.calibration_dir / "world"), "samples": samples}
+            return {"recording": str(self._calibration_folder() / "world"), "samples": samples}
 
     def _go(self, step: str, message: str, plan: SessionPlan | None = None) -> None:
         """Move the calibration to ``step``; ``plan`` (default: watching) runs next (caller holds the lock)."""
@@ -451,7 +466,7 @@ class DashboardApp:
     def _save(self, body: dict) -> dict:
         with self._lock:
             self._require("result", "refined")
-            run = self.candidate
+            run = self._candidate()
             kind = "refined" if self.step == "refined" else "calibration"
             target = self.extrinsics_path
             target.parent.mkdir(parents=True, exist_ok=True)
@@ -477,12 +492,12 @@ class DashboardApp:
         with self._lock:
             self._require("result", "refined")
             self.drive, self.refined = self._drive_counter(), {}
-            extrinsics = {**self.extrinsics, **self.candidate.report.extrinsics}
+            extrinsics = {**self.extrinsics, **self._candidate().report.extrinsics}
             self._go("driving", "Drive the robot around where several cameras see it; the frames go to "
-                     f"{self.calibration_dir / 'drive'}.",
-                     SessionPlan("drive", self._plan.out_dir, self.calibration_dir / "drive", extrinsics))
+                     f"{self._calibration_folder() / 'drive'}.",
+                     SessionPlan("drive", self._plan.out_dir, self._calibration_folder() / "drive", extrinsics))
             self._publish()
-            return {"recording": str(self.calibration_dir / "drive")}
+            return {"recording": str(self._calibration_folder() / "drive")}
 
     def _refine(self, body: dict) -> dict:
         with self._lock:
@@ -534,7 +549,7 @@ class DashboardApp:
     def _calibrate(self, recording_path: Path) -> None:
         try:
             recording, empty = recorded_cameras(recording_path)
-            run = run_calibration(self.config, recording, self.calibration_dir / "extrinsics.toml", self.settings,
+            run = run_calibration(self.config, recording, self._calibration_folder() / "extrinsics.toml", self.settings,
                                   allow_missing=True, progress=self._progress)
             results = {}
             for name in run.report.cameras:
@@ -557,20 +572,23 @@ class DashboardApp:
 
     def _refine_with(self, drive_path: Path) -> None:
         try:
-            run = run_calibration(self.config, recorded_cameras(self.calibration_dir / "world")[0],
-                                  self.calibration_dir / "refined.toml", self.settings,
+            run = run_calibration(self.config, recorded_cameras(self._calibration_folder() / "world")[0],
+                                  self._calibration_folder() / "refined.toml", self.settings,
                                   adjust_with=recorded_cameras(drive_path)[0], allow_missing=True,
                                   progress=self._progress)
         except CubetrackError as exc:
             return self._computed("result", f"Refinement failed: {exc}")
+        adjusted = run.adjusted
+        if adjusted is None:
+            return self._computed("result", "Refinement failed: the drive gave no bundle adjustment")
         refined = {name: {"shift_cm": 100 * r.shift_m, "shift_deg": r.shift_deg, "moved": r.moved,
                           "rms_px": r.rms_px, "world_rms_px": r.world_rms_px if math.isfinite(r.world_rms_px) else None,
                           "instants": r.instants}
-                   for name, r in run.adjusted.cameras.items()}
+                   for name, r in adjusted.cameras.items()}
         with self._lock:
-            self.candidate, self.refined, self.warnings = run, refined, list(run.adjusted.warnings)
+            self.candidate, self.refined, self.warnings = run, refined, list(adjusted.warnings)
             moved = [n for n, r in refined.items() if r["moved"]]
-            self._computed("refined", f"Refined with {run.adjusted.instants} instants. "
+            self._computed("refined", f"Refined with {adjusted.instants} instants. "
                            + (f"{', '.join(moved)} moved since the world-marker calibration. " if moved else "")
                            + "Save to use the refined poses.")
 

@@ -36,10 +36,11 @@ import time
 from collections import Counter, deque
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field, replace
+from typing import Any, cast
 from urllib.parse import urlsplit
 
 from cubetrack.core.cameras import ClockSample
-from cubetrack.core.errors import ConfigError
+from cubetrack.core.errors import ConfigError, SourceError
 from cubetrack.core.params import check, check_at_least, check_positive, param
 from cubetrack.core.records import Frame
 from cubetrack.source.http_get import HttpError, HttpGet
@@ -165,7 +166,7 @@ class LiveCameras:
     before it answers (for a process that does its per-frame work between reads).
     """
 
-    def __init__(self, cameras: Mapping[str, str] | Iterable, params: SourceParams = SourceParams(), *,
+    def __init__(self, cameras: Mapping[str, str] | Iterable[Any], params: SourceParams = SourceParams(), *,
                  on_frame: Callable[[Frame], None] | None = None,
                  on_clock: Callable[[str, ClockSample], None] | None = None,
                  queue: bool = True, clock: Callable[[], float] = time.time,
@@ -173,7 +174,7 @@ class LiveCameras:
         if isinstance(cameras, Mapping):
             urls = dict(cameras)
         else:
-            urls = {c.name: c.url for c in cameras}
+            urls = {c.name: c.url for c in cast(Iterable[Any], cameras)}  # records with name and url
         if not urls:
             raise ConfigError("no cameras to read")
         for name, url in urls.items():
@@ -236,7 +237,8 @@ class LiveCameras:
             self._close_all()
             return
         try:
-            self._waker[1].send(b"x")
+            if self._waker is not None:
+                self._waker[1].send(b"x")
         except OSError:
             pass
         for t in self._threads:
@@ -289,10 +291,16 @@ class LiveCameras:
                 self._queued_frames[item.camera] -= 1
             return item
 
+    def _loop(self) -> selectors.BaseSelector:
+        """The event loop's selector (there from :meth:`start` to :meth:`stop`)."""
+        if self._selector is None:
+            raise SourceError("the live source is not started")
+        return self._selector
+
     def wake_on(self, fileobj) -> None:
         """Without a thread: :meth:`get` also stops waiting when ``fileobj`` (e.g. a pipe from
         another process, read by the caller) has something to read."""
-        self._selector.register(fileobj, selectors.EVENT_READ, _WAKE)
+        self._loop().register(fileobj, selectors.EVENT_READ, _WAKE)
 
     def _read_for(self, timeout_s: float | None, frames: bool) -> None:
         """Without a thread: read what the sockets hold, then wait up to ``timeout_s`` for an event
@@ -398,10 +406,10 @@ class LiveCameras:
         """Read every socket that is ready (waiting up to ``timeout_s`` for one, less when a
         connection's deadline or a round trip is due sooner), then act on what is due."""
         wait = max(0.0, min(timeout_s, self._next_due - time.monotonic()))
-        for key, _mask in self._selector.select(wait):
+        for key, _mask in self._loop().select(wait):
             if key.data is None:  # the waker: stop() was called
                 try:
-                    key.fileobj.recv(64)
+                    cast(socket.socket, key.fileobj).recv(64)
                 except OSError:
                     pass
                 continue
@@ -439,11 +447,11 @@ class LiveCameras:
         self._next_due = due
 
     def _register(self, get: HttpGet, data: tuple[_Camera, str]) -> None:
-        self._selector.register(get.sock, get.events, data)
+        self._loop().register(get.sock, get.events, data)
 
     def _unregister(self, get: HttpGet) -> None:
         try:
-            self._selector.unregister(get.sock)
+            self._loop().unregister(get.sock)
         except (KeyError, ValueError):
             pass
         get.close()
@@ -461,13 +469,15 @@ class LiveCameras:
 
     def _on_stream(self, camera: _Camera) -> None:
         get = camera.stream
+        if get is None:
+            return
         try:
             for _ in range(READS_PER_EVENT):
                 was_connected = get.connected
                 data = get.handle()
                 if get.connected and not was_connected:  # the request went out: the answer is due
                     camera.deadline = time.monotonic() + self.params.read_timeout_s
-                    self._selector.modify(get.sock, get.events, (camera, _STREAM))
+                    self._loop().modify(get.sock, get.events, (camera, _STREAM))
                     return
                 if camera.parser is None and get.head is not None:
                     self._stream_started(camera, get)
@@ -484,6 +494,8 @@ class LiveCameras:
             self._stream_lost(camera, exc)
 
     def _stream_started(self, camera: _Camera, get: HttpGet) -> None:
+        if get.head is None:
+            return
         status, headers = get.head
         if status != 200:
             raise _StreamEnded(http_status_reason(status, camera.url))
@@ -498,6 +510,8 @@ class LiveCameras:
 
     def _parts(self, camera: _Camera, data: bytes, arrived_s: float) -> None:
         parser = camera.parser
+        if parser is None:
+            return
         for part in parser.feed(data):
             camera.seq = part.seq if part.seq is not None else camera.seq + 1
             self._put_frame(Frame(camera.name, camera.seq, part.device_time_s, arrived_s, part.jpeg))
@@ -505,6 +519,8 @@ class LiveCameras:
         self._report_bad(camera)
 
     def _report_bad(self, camera: _Camera) -> None:
+        if camera.parser is None:
+            return
         bad = camera.parser.bad
         if bad != camera.reported:
             self._count(camera.name, bad_parts=bad - camera.reported, last_error=broken_frames_reason(bad, camera.url))
@@ -540,6 +556,8 @@ class LiveCameras:
 
     def _on_clock(self, camera: _Camera) -> None:
         poll = camera.poll
+        if poll is None:
+            return
         try:
             sample = poll.handle()
         except BlockingIOError:
@@ -550,7 +568,7 @@ class LiveCameras:
             self._poll_done(camera, reason="garbage answer", detail=_describe(exc))
         else:
             if sample is None:
-                self._selector.modify(poll.get.sock, poll.get.events, (camera, _CLOCK))
+                self._loop().modify(poll.get.sock, poll.get.events, (camera, _CLOCK))
             else:
                 self._poll_done(camera)
                 self._put_clock(camera.name, sample)
