@@ -100,10 +100,11 @@ FPS = 7.5
 DROP_RATE = 0.05
 FAR_M = 0.05  # an output pose this far from the truth counts as invented
 
-CLEAN, REALISTIC = "clean", "realistic"
-PRESETS = (CLEAN, REALISTIC)
-QUICK_REALISTIC = (1, 3)  # --quick renders the realistic preset of these configurations only (it costs more)
-TARGETS = {CLEAN: (0.3, 0.5), REALISTIC: (1.0, 1.0)}  # preset -> (position RMSE cm, rotation RMSE °)
+CLEAN, REALISTIC, RIG = "clean", "realistic", "rig"
+PRESETS = (CLEAN, REALISTIC, RIG)
+DEFAULT_PRESETS = (CLEAN, REALISTIC)
+QUICK_REALISTIC = (1, 3)  # --quick renders the realistic and rig presets of these configurations only (they cost more)
+TARGETS = {CLEAN: (0.3, 0.5), REALISTIC: (1.0, 1.0), RIG: (1.0, 1.0)}  # preset -> (position RMSE cm, rotation RMSE °)
 TARGET_DR = 0.99
 TARGET_RATIO = 5.0
 TARGET_SPEED = 1.0
@@ -166,15 +167,18 @@ def sim_params(preset: str, cameras: int, height: float, tilt: float, seed: int,
                calibration_frames: int):
     from cubetrack.simulate import SimulationParams
 
+    common = {"cameras": cameras, "height_m": height, "tilt_deg": tilt, "seed": seed, "duration_s": duration,
+              "drop_rate": DROP_RATE, "jpeg_quality": 80, "cube_size_m": 0.11, "marker_size_m": 0.08,
+              "calibration_frames": calibration_frames}
+    if preset == RIG:   # its own frame rate, image size, inverted markers with distinct ids
+        return SimulationParams.rig(**common)
     make = SimulationParams.realistic if preset == REALISTIC else SimulationParams
-    return make(cameras=cameras, height_m=height, tilt_deg=tilt, seed=seed, duration_s=duration, fps=FPS,
-                drop_rate=DROP_RATE, jpeg_quality=80, cube_size_m=0.11, marker_size_m=0.08, distinct_ids=False,
-                calibration_frames=calibration_frames)
+    return make(**common, fps=FPS, distinct_ids=False)
 
 
 def scene_dir(work: Path, config_index: int, seed: int, preset: str = CLEAN) -> Path:
     _, cameras, height, tilt, _ = CONFIGS[config_index]
-    return work / f"{'real_' if preset == REALISTIC else ''}c{cameras}_h{height:g}_t{tilt:g}_s{seed}"
+    return work / f"{ {REALISTIC: 'real_', RIG: 'rig_'}.get(preset, '')}c{cameras}_h{height:g}_t{tilt:g}_s{seed}"
 
 
 def ensure_recording(params, rec: Path, workers: int) -> tuple[float, bool]:
@@ -760,9 +764,10 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--configs", type=int, nargs="+", choices=range(len(CONFIGS)), default=None, metavar="I",
                     help="only these configurations (0-3, in the table's order: " + "; ".join(
                         f"{i} {c[0]}" for i, c in enumerate(CONFIGS)) + "; default: all)")
-    ap.add_argument("--presets", nargs="+", choices=PRESETS, default=list(PRESETS),
-                    help="simulator presets (default: both; --quick: realistic in the 3 cams 1.0 m and 5 cams "
-                    "configurations only)")
+    ap.add_argument("--presets", nargs="+", choices=PRESETS, default=list(DEFAULT_PRESETS),
+                    help="simulator presets (default: clean and realistic; rig: the realistic preset with 1280x720 "
+                    "webcams at 6 fps and inverted markers with distinct ids, SimulationParams.rig(); --quick: "
+                    "realistic and rig in the 3 cams 1.0 m and 5 cams configurations only)")
     args = ap.parse_args(argv)
 
     duration = args.duration if args.duration is not None else (8.0 if args.quick else 30.0)
@@ -786,9 +791,9 @@ def main(argv: list[str] | None = None) -> int:
     code = code_version()  # at the start: the scenes import the code as it is now
     presets = [p for p in PRESETS if p in args.presets]
     jobs = [(preset, ci, seed) for seed in seeds for preset in presets for ci in range(len(CONFIGS))
-            if not (args.quick and preset == REALISTIC and ci not in QUICK_REALISTIC)
+            if not (args.quick and preset != CLEAN and ci not in QUICK_REALISTIC)
             and (args.configs is None or ci in args.configs)]
-    jobs.sort(key=lambda j: (-CONFIGS[j[1]][1], j[0] != REALISTIC))  # the longest first: 5 cameras, realistic
+    jobs.sort(key=lambda j: (-CONFIGS[j[1]][1], j[0] == CLEAN))  # the longest first: 5 cameras, realistic
     n_jobs = max(1, min(args.jobs, len(jobs)))
     workers = max(1, (os.cpu_count() or 1) // n_jobs)
     scenes = []

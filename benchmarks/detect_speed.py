@@ -291,7 +291,7 @@ def stage_costs(args: argparse.Namespace) -> int:
         hooks = _Hooks()
         for module, attr, key in _FRAME_HOOKS:
             hooks.wrap(importlib.import_module(module), attr, key)
-        hooks.wrap(tracker.processor.detector, "detect", "detect")
+        hooks.wrap(tracker.processor.detector, "find", "detect")
         for module, attr in _FUSION_HOOKS + _WORKER_HOOKS:
             hooks.wrap(importlib.import_module(module), attr, f"{module.rsplit('.', 1)[1]}.{attr}")
         cpu = {"plan": 0.0, "work": 0.0, "fuse": 0.0}

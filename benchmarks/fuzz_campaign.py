@@ -175,7 +175,8 @@ def target_http_request(data: bytes) -> None:
 
 def _write_files(folder: Path, names: tuple[str, ...], data: bytes) -> None:
     pieces = data.split(FILE_SEPARATOR)
-    for name, piece in zip(names, pieces + [b""] * len(names), strict=True):
+    # the pieces, padded with empty files, are longer than the names on purpose: zip stops at the names
+    for name, piece in zip(names, pieces + [b""] * len(names), strict=False):
         (folder / name).parent.mkdir(parents=True, exist_ok=True)
         (folder / name).write_bytes(piece)
 

@@ -44,6 +44,7 @@ struct EndlessCamera : Camera {
     }
     void release(int) {}
     CameraRestart restart() { return CameraRestart::Done; }  // never stalls
+    uint32_t empty_frames() { return 0; }
 };
 
 struct SinkNetwork : Network {
@@ -104,7 +105,7 @@ double core_seconds_per_frame(size_t size, int clients, int frames, uint64_t& wr
     SinkNetwork net;
     net.pending_accepts = clients;
     HttpServer server(net, camera, clock);
-    NodeStatus st = {"bench", "0", {127, 0, 0, 1}, -40, 300, 30000, 70, 640, 480, ""};
+    NodeStatus st = {"bench", "0", {127, 0, 0, 1}, -40, 300, 30000, 70, 640, 480, "", 0};
     while (server.streaming_count() < static_cast<size_t>(clients)) server.serve(st);
     uint32_t start = server.frames_sent();
     double t0 = cpu_seconds();

@@ -23,7 +23,8 @@ const unsigned long kSerialBaud = 115200;
 struct Board {
     cubecam::spresense::ArduinoClock clock;
     cubecam::spresense::UartSerial serial;
-    cubecam::spresense::EepromStorage storage;
+    cubecam::spresense::EepromFlash flash;
+    cubecam::SlotStorage storage;
     cubecam::spresense::BoardLeds leds;
     cubecam::spresense::BoardSystem system;
     cubecam::spresense::SpresenseCamera camera;
@@ -31,7 +32,8 @@ struct Board {
     cubecam::Node node;
 
     Board()
-        : system(kWatchdogMs),
+        : storage(flash),
+          system(kWatchdogMs),
           wifi(kWifiBoard, clock),
           node(cubecam::Hardware{camera, wifi, wifi, serial, storage, clock, leds, system, "CXD5602"}) {}
 };

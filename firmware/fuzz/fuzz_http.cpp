@@ -21,7 +21,7 @@ extern "C" int LLVMFuzzerTestOneInput(const uint8_t* data, size_t size) {
     fake::Camera camera;
     fake::Network net;
     HttpServer server(net, camera, clock);
-    NodeStatus st = {"fuzz", "0", {127, 0, 0, 1}, -40, 150, 15000, 70, 640, 480, ""};
+    NodeStatus st = {"fuzz", "0", {127, 0, 0, 1}, -40, 150, 15000, 70, 640, 480, "", 0};
     camera.capture(fake::jpeg(3000, 7), 1);
     net.connect(1);
     // The first byte chooses how the rest is cut into network reads.

@@ -22,6 +22,7 @@ std::vector<std::string> g_violations;
 std::string g_serial_out;
 std::string g_serial_in;
 uint8_t g_data_ready_pin = 27;
+uint8_t g_reset_pin = 28;
 uint8_t g_pin_modes[256];
 thread_local bool t_interrupts_off = false;
 
@@ -34,17 +35,27 @@ void power_on() {
     {
         std::lock_guard<std::mutex> lock(g_mutex);
         g_violations.clear();
+    }
+    g_data_ready_pin = 27;
+    g_reset_pin = 28;
+    mcu_reset();
+    module().power_on();
+}
+
+void mcu_reset() {
+    {
+        std::lock_guard<std::mutex> lock(g_mutex);
         g_serial_out.clear();
         g_serial_in.clear();
     }
-    g_data_ready_pin = 27;
     memset(g_pin_modes, 0xFF, sizeof g_pin_modes);
     spi_power_on();
-    module().power_on();
     video_driver().power_on();
 }
 
 void advance_ms(uint32_t ms) { g_now_us += static_cast<uint64_t>(ms) * 1000; }
+uint64_t now_us() { return g_now_us; }
+void advance_us(uint64_t us) { g_now_us += us; }
 
 void violation(const std::string& what) {
     std::lock_guard<std::mutex> lock(g_mutex);
@@ -67,6 +78,7 @@ void serial_input(const std::string& bytes) {
 }
 
 void set_data_ready_pin(uint8_t pin) { g_data_ready_pin = pin; }
+void set_reset_pin(uint8_t pin) { g_reset_pin = pin; }
 uint8_t data_ready_pin() { return g_data_ready_pin; }
 
 }  // namespace hostlib
@@ -83,8 +95,11 @@ void delayMicroseconds(unsigned int us) { hostlib::g_now_us += us; }
 void pinMode(uint8_t pin, uint8_t mode) { hostlib::g_pin_modes[pin] = mode; }
 
 void digitalWrite(uint8_t pin, uint8_t value) {
-    if (hostlib::g_pin_modes[pin] != OUTPUT) hostlib::violation("pin " + std::to_string(pin) + " written but not an output");
-    (void)value;
+    if (hostlib::g_pin_modes[pin] != OUTPUT) {
+        hostlib::violation("pin " + std::to_string(pin) + " written but not an output");
+        return;
+    }
+    if (pin == hostlib::g_reset_pin) hostlib::module().reset_line(value == LOW);
 }
 
 int digitalRead(uint8_t pin) {

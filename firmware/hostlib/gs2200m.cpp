@@ -1,7 +1,10 @@
 #include "gs2200m.h"
 
+#include <algorithm>
+
 #include <stdio.h>
 #include <stdlib.h>
+#include <string.h>
 
 #include "core/wpa.h"
 #include "hostlib.h"
@@ -16,6 +19,7 @@ const uint8_t kWriteRequest = 0x01;
 const uint8_t kReadRequest = 0x02;
 const uint8_t kDataFromMcu = 0x03;
 const uint8_t kWriteResponseOk = 0x11;
+const uint8_t kWriteResponseNok = 0x13;
 const uint8_t kReadResponseOk = 0x12;
 const uint8_t kReadResponseNok = 0x14;
 const uint8_t kDataToMcu = 0x15;
@@ -55,18 +59,42 @@ Gs2200m::Gs2200m() { power_on(); }
 
 void Gs2200m::power_on() {
     ignore_write_requests = 0;
+    wedged = false;
+    fail_bulk_writes = 0;
+    default_drain_bytes_per_s = 1e6;
     commands.clear();
+    command_us.clear();
+    failing_commands.clear();
+    reply_delay_us = 1000;
     bulk_clock_hz.clear();
     bulk_sizes.clear();
+    refused_writes = 0;
+    esc_f_sent = 0;
     networks.clear();
+    reset_framing();
+    pending_.clear();
+    schedule_.clear();
+    on_command_hook = nullptr;
+    peers_.clear();
+    retired_.clear();
+    unreported_.clear();
+    serial_ = 0;
+    last_us_ = now_us();
+    advancing_ = false;
+    in_reset_ = false;
+    boot_at_us_ = 0;
+    resets_ = 0;
+    reboot();
+}
+
+void Gs2200m::reset_framing() {
     header_len_ = 0;
     payload_expected_ = 0;
     payload_.clear();
     write_len_ = -1;
     payload_clock_hz_ = 0;
+    lookahead_.clear();
     out_.clear();
-    pending_.clear();
-    reboot();
 }
 
 void Gs2200m::reboot() {
@@ -80,18 +108,89 @@ void Gs2200m::reboot() {
     associated_ = false;
     joined_ssid_.clear();
     ip_ = "0.0.0.0";
-    server_cid_ = -1;
-    for (auto& p : peers_) p.second.open = false;
+    close_cid(-1, false);
     queue_message("\r\nSerial2WiFi APP\r\n");
 }
 
-bool Gs2200m::data_ready() const {
-    if (!out_.empty()) return true;
-    bool mid_write = header_len_ > 0 || payload_expected_ > 0 || write_len_ >= 0;
-    return !pending_.empty() && !mid_write;
+// The reset input of the module (EXT_RTC_RESET_IN, active low): Sony's board
+// code drives it from PIN_UART2_RTS on the iS110B v1.0a and from
+// PIN_EMMC_DATA3 on v1.0b/c (cxd56_gs2200m.c, gs2200m_reset), holds it 1 ms and
+// talks to the module 180 ms after release. Held low, the module is off: its
+// connections, association and every message it had for the MCU are gone.
+// Without a pulse the module keeps all of it across a reset of the MCU alone.
+void Gs2200m::reset_line(bool asserted) {
+    advance();
+    if (asserted && !in_reset_) {
+        in_reset_ = true;
+        wedged = false;
+        ++resets_;
+        associated_ = false;
+        close_cid(-1, false);
+        pending_.clear();
+        reset_framing();
+        boot_at_us_ = 0;
+    } else if (!asserted && in_reset_) {
+        in_reset_ = false;
+        boot_at_us_ = now_us() + kBootUs;
+    }
+}
+
+void Gs2200m::at(uint64_t at_us, std::function<void()> action) { schedule_.emplace(at_us, std::move(action)); }
+
+// The radio drains each connection's transmit buffer at its client's rate;
+// scheduled events fire; a released module boots.
+void Gs2200m::advance() {
+    if (advancing_) return;
+    advancing_ = true;
+    uint64_t now = now_us();
+    if (now < last_us_) last_us_ = now;
+    while (!schedule_.empty() && schedule_.begin()->first <= now) {
+        std::function<void()> action = schedule_.begin()->second;
+        schedule_.erase(schedule_.begin());
+        action();
+    }
+    if (boot_at_us_ != 0 && now >= boot_at_us_) {
+        boot_at_us_ = 0;
+        reboot();
+    }
+    double dt_s = static_cast<double>(now - last_us_) / 1e6;
+    last_us_ = now;
+    for (auto& p : peers_) {
+        TcpPeer& c = p.second;
+        if (c.tx.empty()) {
+            c.drain_credit = 0;
+        } else {
+            c.drain_credit += c.drain_bytes_per_s * dt_s;
+            size_t n = std::min(static_cast<size_t>(c.drain_credit), c.tx.size());
+            c.received.append(c.tx, 0, n);
+            c.tx.erase(0, n);
+            c.drain_credit -= static_cast<double>(n);
+        }
+        if (c.closing && c.tx.empty()) {
+            c.closing = false;
+            c.open = false;
+        }
+    }
+    advancing_ = false;
+}
+
+// GPIO37 is high whenever the module has a message for the MCU (GS2200Hal.cpp,
+// Get_GPIO37Status: "If GS2200 has data to transmit, it will set the GPIO37
+// high"), also while the MCU is in the middle of a write (Sony's driver checks
+// it between the two halves of a WRITE_REQUEST, gs2200m_hal_write).
+bool Gs2200m::data_ready() {
+    advance();
+    if (in_reset_ || wedged) return false;
+    return !out_.empty() || !pending_.empty();
+}
+
+void Gs2200m::next_write(const void* data, uint16_t len) {
+    lookahead_.assign(static_cast<const char*>(data), len);
 }
 
 uint8_t Gs2200m::exchange(uint8_t mosi, uint32_t clock_hz) {
+    advance();
+    if (in_reset_ || wedged) return 0x00;
     if (payload_expected_ > 0) {
         payload_.push_back(static_cast<char>(mosi));
         if (--payload_expected_ == 0) {
@@ -117,10 +216,38 @@ uint8_t Gs2200m::exchange(uint8_t mosi, uint32_t clock_hz) {
     return b;
 }
 
+void Gs2200m::report_end(const std::string& msg) {
+    for (const char* word : {"DISCONNECT ", "ERROR: SOCKET FAILURE "}) {
+        size_t n = strlen(word);
+        if (msg.compare(0, n, word) != 0 || msg.size() <= n) continue;
+        uint8_t cid = static_cast<uint8_t>(strtol(msg.substr(n, 1).c_str(), nullptr, 16));
+        auto it = std::find(unreported_.begin(), unreported_.end(), cid);
+        if (it != unreported_.end()) unreported_.erase(it);
+    }
+}
+
 void Gs2200m::queue_header(uint8_t type, uint16_t len, uint8_t pending) {
     uint8_t h[8] = {0xA5, type, 0, 0, pending, static_cast<uint8_t>(len), static_cast<uint8_t>(len >> 8), 0};
     h[7] = checksum(h);
     out_.insert(out_.end(), h, h + 8);
+}
+
+// Write refused (WRITE_RESPONSE_NOK, 0x13 in GS2200Hal.cpp and gs2200m.c):
+// * a message waits for the MCU: Sony's driver treats the data-ready line high
+//   during a WRITE_REQUEST as "gs2200m is busy" and reads first
+//   (gs2200m_hal_write); the library does not look, so it gets the refusal;
+// * the connection's transmit buffer has no room for the data (the brief's
+//   "NOK when full"; Sony's driver retries NOK every 10 ms, up to 100 times).
+//   The real module decides before it has seen the CID (a WRITE_REQUEST
+//   carries only a length); which connection's fullness refuses a write is not
+//   public. The fake refuses exactly the writes whose own connection is full,
+//   and learns the CID from the bytes the MCU is about to send (next_write).
+bool Gs2200m::refuse_write(uint16_t len) {
+    if (!pending_.empty()) return true;
+    if (lookahead_.size() != len || len < 7 || lookahead_[0] != kEsc || lookahead_[1] != 'Z') return false;
+    auto it = peers_.find(static_cast<uint8_t>(strtol(lookahead_.substr(2, 1).c_str(), nullptr, 16)));
+    if (it == peers_.end() || !it->second.open || it->second.closing) return false;
+    return it->second.tx.size() + (len - 7u) > kConnBufferBytes;
 }
 
 void Gs2200m::on_header(const uint8_t* h) {
@@ -131,6 +258,12 @@ void Gs2200m::on_header(const uint8_t* h) {
         if (ignore_write_requests > 0) {
             --ignore_write_requests;
             write_len_ = -1;
+            return;
+        }
+        if (refuse_write(len)) {
+            ++refused_writes;
+            write_len_ = -1;
+            queue_header(kWriteResponseNok, 0, 0);
             return;
         }
         write_len_ = len;
@@ -149,6 +282,7 @@ void Gs2200m::on_header(const uint8_t* h) {
         }
         std::string msg = pending_.front();
         pending_.pop_front();
+        report_end(msg);
         size_t n = msg.size() < len ? msg.size() : len;
         if (n > kMaxRead) n = kMaxRead;
         if (n < msg.size()) pending_.push_front(msg.substr(n));
@@ -174,6 +308,10 @@ void Gs2200m::on_payload(const std::string& payload) {
     on_command(payload.substr(0, payload.size() - 2));
 }
 
+// A bulk write the module cannot deliver (its connection is gone, or the
+// module fails it) is answered <ESC>F, with no CID: the failure reply at
+// completion of a data transfer (Telit AT guide, Table 6; Sony's driver,
+// _parse_pkt_in_s2). The data is lost.
 void Gs2200m::on_bulk(const std::string& payload, uint32_t clock_hz) {
     if (payload.size() < 7) {
         violation("GS2200M: bulk write shorter than its header");
@@ -186,13 +324,29 @@ void Gs2200m::on_bulk(const std::string& payload, uint32_t clock_hz) {
     bulk_clock_hz.push_back(clock_hz);
     bulk_sizes.push_back(payload.size() - 7);
     auto it = peers_.find(static_cast<uint8_t>(cid));
-    if (it != peers_.end() && it->second.open) it->second.received.append(payload, 7, std::string::npos);
+    bool deliverable = it != peers_.end() && it->second.open && !it->second.closing;
+    if (!deliverable || fail_bulk_writes > 0) {
+        if (deliverable) --fail_bulk_writes;
+        ++esc_f_sent;
+        queue_message(std::string(1, kEsc) + "F");
+        return;
+    }
+    it->second.tx.append(payload, 7, std::string::npos);
 }
 
+// Replies come after the module has worked on the command; messages that
+// arrive meanwhile go first (one queue to the MCU). Times are guesses (no
+// public figures) except the scan: AT+WS dwells on each of 13 channels
+// (Telit AT guide, AT+WST/AT+WS scan time, default 150 ms a channel).
 void Gs2200m::on_command(const std::string& cmd) {
     commands.push_back(cmd);
-    std::string reply = answer(cmd);
-    queue_message(echo_ ? cmd + "\r\n" + reply : reply);
+    command_us.push_back(now_us());
+    if (on_command_hook) on_command_hook(cmd);
+    bool fail = std::find(failing_commands.begin(), failing_commands.end(), cmd) != failing_commands.end();
+    std::string reply = fail ? kError : answer(cmd);
+    std::string text = echo_ ? cmd + "\r\n" + reply : reply;
+    uint64_t delay_us = cmd == "AT+WS" ? 13 * 150000 : reply_delay_us;
+    at(now_us() + delay_us, [this, text] { queue_message(text); });
 }
 
 std::string Gs2200m::answer(const std::string& cmd) {
@@ -230,7 +384,7 @@ std::string Gs2200m::answer(const std::string& cmd) {
     }
     if (cmd == "AT+WD") {
         associated_ = false;
-        close_cid(-1);
+        close_cid(-1, false);
         return kOk;
     }
     if (name == "AT+WPAPSK") {
@@ -251,15 +405,15 @@ std::string Gs2200m::answer(const std::string& cmd) {
     if (name == "AT+NSTCP") {
         if (!associated_) return kError;
         server_cid_ = free_cid();
-        peers_[static_cast<uint8_t>(server_cid_)] = TcpPeer{"", true};
+        peers_[static_cast<uint8_t>(server_cid_)] = TcpPeer{"", true, "", 0, 0, false, 0};
         return std::string("CONNECT ") + hex_digit(server_cid_) + "\r\n" + kOk;
     }
     if (name == "AT+NCLOSE") {
-        close_cid(static_cast<int>(strtol(args.c_str(), nullptr, 16)));
+        close_cid(static_cast<int>(strtol(args.c_str(), nullptr, 16)), true);
         return kOk;
     }
     if (cmd == "AT+NCLOSEALL") {
-        close_cid(-1);
+        close_cid(-1, true);
         return kOk;
     }
     if (cmd == "AT+WS") return scan();
@@ -323,8 +477,12 @@ std::string Gs2200m::scan() const {
     return s + "No.Of AP Found:" + std::to_string(networks.size()) + "\r\n" + kOk;
 }
 
+// A CID is given to a new connection only once the MCU has read the message
+// that ended its last one (assumed: the module could not otherwise tell the
+// MCU which connection a later message or write is about).
 uint8_t Gs2200m::free_cid() const {
     for (uint8_t cid = 0; cid < 16; ++cid) {
+        if (std::find(unreported_.begin(), unreported_.end(), cid) != unreported_.end()) continue;
         auto it = peers_.find(cid);
         if (it == peers_.end() || !it->second.open) return cid;
     }
@@ -332,20 +490,32 @@ uint8_t Gs2200m::free_cid() const {
     return 15;
 }
 
-void Gs2200m::close_cid(int cid) {
+// NCLOSE / NCLOSEALL end a connection after what it has buffered (graceful);
+// a disassociation, AT+WD or a reset ends it at once.
+void Gs2200m::close_cid(int cid, bool graceful) {
     for (auto& p : peers_) {
-        if (cid < 0 || p.first == cid) p.second.open = false;
+        if (cid >= 0 && p.first != cid) continue;
+        if (graceful && p.second.open && !p.second.tx.empty()) {
+            p.second.closing = true;
+        } else {
+            p.second.open = false;
+            p.second.closing = false;
+            p.second.tx.clear();
+        }
     }
     if (cid < 0 || cid == server_cid_) server_cid_ = -1;
 }
 
 uint8_t Gs2200m::client_connect() {
+    advance();
     if (server_cid_ < 0) {
         violation("test: a client connected while no server listens");
         return 0xFF;
     }
     uint8_t cid = free_cid();
-    peers_[cid] = TcpPeer{"", true};
+    auto old = peers_.find(cid);
+    if (old != peers_.end() && old->second.serial != 0) retired_.push_back(old->second);
+    peers_[cid] = TcpPeer{"", true, "", default_drain_bytes_per_s, 0, false, ++serial_};
     queue_message(std::string("CONNECT ") + hex_digit(server_cid_) + " " + hex_digit(cid) + " 192.168.1.50 50" +
                   std::to_string(10 + cid) + "\r\n");
     return cid;
@@ -360,16 +530,51 @@ void Gs2200m::client_send(uint8_t cid, const std::string& bytes) {
     }
 }
 
-void Gs2200m::client_close(uint8_t cid) {
-    peers_[cid].open = false;
-    queue_message(std::string("DISCONNECT ") + hex_digit(cid) + "\r\n");
+void Gs2200m::client_close(uint8_t cid) { end_client(cid, "DISCONNECT "); }
+
+// The Telit AT guide lists "ERROR: SOCKET FAILURE <CID>" among the
+// asynchronous messages; the library matches its prefix only
+// (GS2200AtCmd.cpp, AtCmd_checkResponse).
+void Gs2200m::client_reset(uint8_t cid, bool socket_failure) {
+    end_client(cid, socket_failure ? "ERROR: SOCKET FAILURE " : "DISCONNECT ");
 }
 
-const TcpPeer& Gs2200m::peer(uint8_t cid) const { return peers_.at(cid); }
+void Gs2200m::end_client(uint8_t cid, const char* message) {
+    advance();
+    TcpPeer& c = peers_[cid];
+    c.open = false;
+    c.closing = false;
+    c.tx.clear();
+    unreported_.push_back(cid);
+    queue_message(message + std::string(1, hex_digit(cid)) + "\r\n");
+}
+
+void Gs2200m::set_drain(uint8_t cid, double bytes_per_s) {
+    advance();
+    peers_[cid].drain_bytes_per_s = bytes_per_s;
+}
+
+TcpPeer& Gs2200m::peer(uint8_t cid) {
+    advance();
+    return peers_.at(cid);
+}
+
+const TcpPeer& Gs2200m::connection(size_t serial) {
+    advance();
+    for (const auto& p : peers_) {
+        if (p.second.serial == serial) return p.second;
+    }
+    for (const TcpPeer& p : retired_) {
+        if (p.serial == serial) return p;
+    }
+    violation("test: no client connection " + std::to_string(serial));
+    return retired_.at(0);
+}
 
 void Gs2200m::drop_association() {
+    advance();
     associated_ = false;
-    close_cid(-1);
+    close_cid(-1, false);
     queue_message("Disassociation Event\r\n");
 }
 

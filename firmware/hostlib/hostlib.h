@@ -23,6 +23,13 @@ void power_on();
 // delay.
 const uint64_t kTickUs = 10;
 void advance_ms(uint32_t ms);
+void advance_us(uint64_t us);
+uint64_t now_us();
+
+// The MCU alone restarts (watchdog, the console's reboot): pins, serial port,
+// SPI bus and camera driver start over; the Wi-Fi module keeps its state and
+// the clock runs on.
+void mcu_reset();
 
 // Rules of the layer beneath that the code above broke (each one line). On
 // the board each of these hangs or faults.
@@ -34,11 +41,21 @@ std::vector<std::string> violations();
 std::string serial_output();
 void serial_input(const std::string& bytes);
 
-// Data-ready line of the GS2200M (GPIO37 of the module), as the board routes it.
+// Data-ready line of the GS2200M (GPIO37 of the module) and its reset input,
+// as the board routes them (iS110B type A/B: 27 and 28, type C: 20 and 21).
 void set_data_ready_pin(uint8_t pin);
 uint8_t data_ready_pin();
+void set_reset_pin(uint8_t pin);
 
-// SPI5 as the SPI library sees it: clock of the current transaction.
+// SPI5 as the SPI library sees it: clock of the current transaction. Each
+// byte moved costs virtual time: 8 clock periods plus kSpiByteOverheadNs, the
+// software around the one SPI5.transfer() call per byte of GS2200Hal.cpp
+// (Write_Data, Read_Data): SPI.cpp's transfer() calls the NuttX driver's
+// SPI_SETBITS and a one-byte SPI_EXCHANGE, which waits for the byte. The
+// overhead is an assumption (0.5-1 us at 156 MHz, the middle taken; no board
+// measurement): 1.7 us a byte at 8 MHz, 2.7 us at 4 MHz. docs/firmware.md,
+// "Streaming budget".
+const uint64_t kSpiByteOverheadNs = 700;
 uint32_t spi_clock_hz();
 void spi_power_on();
 

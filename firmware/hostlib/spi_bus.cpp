@@ -6,6 +6,8 @@
 // is recorded as a violation instead of hanging the test. Bytes go to the
 // simulated GS2200M.
 #include <SPI.h>
+#include <stdint.h>
+#include <GS2200Hal.h>
 #include <pthread.h>
 
 #include <new>
@@ -19,7 +21,16 @@ pthread_t g_owner;
 bool g_locked = false;
 uint32_t g_clock_hz = 0;
 
+uint64_t g_spi_ns = 0;  // SPI time not yet added to the clock (below a microsecond)
+
 bool held_by_me() { return g_locked && pthread_equal(g_owner, pthread_self()); }
+
+uint8_t exchange(uint8_t mosi) {
+    g_spi_ns += 8000000000ull / (g_clock_hz ? g_clock_hz : 4000000u) + hostlib::kSpiByteOverheadNs;
+    hostlib::advance_us(g_spi_ns / 1000);
+    g_spi_ns %= 1000;
+    return hostlib::module().exchange(mosi, g_clock_hz);
+}
 
 }  // namespace
 
@@ -52,13 +63,13 @@ void SPIClass::endTransaction(void) {
 
 uint8_t SPIClass::transfer(uint8_t data) {
     if (ref_count_ == 0) return 0;
-    return hostlib::module().exchange(data, g_clock_hz);
+    return exchange(data);
 }
 
 void SPIClass::transfer(void* buf, size_t count) {
     if (ref_count_ == 0 || !buf || count == 0) return;
     uint8_t* p = static_cast<uint8_t*>(buf);
-    for (size_t i = 0; i < count; ++i) p[i] = hostlib::module().exchange(p[i], g_clock_hz);
+    for (size_t i = 0; i < count; ++i) p[i] = exchange(p[i]);
 }
 
 namespace hostlib {
@@ -73,3 +84,12 @@ void spi_power_on() {
 }
 
 }  // namespace hostlib
+
+// The library's WiFi_Write, wrapped at link time (-Wl,--wrap): the module
+// learns what the write will carry before it answers the WRITE_REQUEST (see
+// Gs2200m::refuse_write). The library code itself is unchanged.
+extern "C" SPI_RESP_STATUS_E __real__Z10WiFi_WritePKvt(const void* data, uint16_t len);
+extern "C" SPI_RESP_STATUS_E __wrap__Z10WiFi_WritePKvt(const void* data, uint16_t len) {
+    hostlib::module().next_write(data, len);
+    return __real__Z10WiFi_WritePKvt(data, len);
+}

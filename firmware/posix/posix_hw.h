@@ -41,6 +41,7 @@ public:
     void release(int lease);
     // The files never stop: there is nothing to restart.
     CameraRestart restart() { return CameraRestart::Done; }
+    uint32_t empty_frames() { return 0; }  // files are whole frames
     int leases_out() const { return leases_out_; }
 private:
     Clock& clock_;

@@ -46,7 +46,9 @@ struct Camera : cubecam::Camera {
         ++seq;
         capture_us = at_us;
     }
+    uint32_t empty = 0;
     uint32_t latest_seq() override { return seq; }
+    uint32_t empty_frames() override { return empty; }
     bool acquire_latest(Frame& f) override {
         if (seq == 0) return false;
         for (int i = 0; i < kLeases; ++i) {
@@ -91,7 +93,7 @@ struct Network : cubecam::Network {
     uint16_t opened_port = 0;
     bool fail_open = false;
     size_t accept_limit = 0xFFFF;  // bytes taken per write
-    WriteStatus write_status = WriteStatus::Ok;
+    WriteStatus write_status = WriteStatus::Ok;  // Busy: a message waits; poll() first
     size_t max_write_seen = 0;
     size_t writes = 0;
     int close_all_calls = 0;
@@ -109,6 +111,7 @@ struct Network : cubecam::Network {
         conns[cid].open = false;
     }
     void event(NetEventKind kind) { events.push_back({kind, 0, 0}); }
+    void fail(uint8_t cid) { events.push_back({NetEventKind::Failed, cid, 0}); }
 
     uint16_t open_server(uint16_t port) override {
         opened_port = fail_open ? 0 : port;

@@ -80,6 +80,18 @@ TEST_CASE("get and set round-trip, values keep their spaces") {
     CHECK(all.front() == "name=cubecam");
 }
 
+TEST_CASE("save refuses access-point mode without a password, which the module would make WPA2 anyway") {
+    Host h;
+    CHECK(run(h, "set mode ap\n") == std::vector<std::string>{"OK"});
+    std::vector<std::string> out = run(h, "save\n");
+    REQUIRE(out.size() == 1);
+    CHECK(out[0].compare(0, 6, "ERR 4 ") == 0);
+    CHECK(h.saves == 0);
+    CHECK(run(h, "set password hunter2hunter2\nsave\n").back() == "OK");
+    CHECK(h.saves == 1);
+    CHECK(run(h, "set mode station\nset password \nsave\n").back() == "OK");  // an open network is fine for a station
+}
+
 TEST_CASE("the password is write-only") {
     Host h;
     CHECK(run(h, "set password hunter2hunter2\n") == std::vector<std::string>{"OK"});

@@ -57,7 +57,7 @@ struct Rig {
     fake::Camera camera;
     fake::Network net;
     HttpServer server{net, camera, clock};
-    NodeStatus status{"cam1", "0.1.0", {10, 0, 0, 5}, -50, 150, 14900, 70, 640, 480, ""};
+    NodeStatus status{"cam1", "0.1.0", {10, 0, 0, 5}, -50, 150, 14900, 70, 640, 480, "", 0};
 
     ServeResult serve(int times = 1) {
         ServeResult r = {false, false};
@@ -288,6 +288,66 @@ TEST_CASE("a client that stops reading is dropped after the stall timeout") {
     r.serve();
     CHECK(r.server.client_count() == 0);
     CHECK(r.camera.out == 0);
+}
+
+TEST_CASE("a refused write is tried again later and less often while the module keeps refusing") {
+    Rig r;
+    r.request(1, "/stream");
+    r.serve(3);
+    r.camera.capture(fake::jpeg(8000, 1), 1);
+    r.net.accept_limit = 0;
+    size_t before = r.net.writes;
+    for (int ms = 0; ms < 1000; ++ms) {
+        r.serve();
+        r.clock.advance_ms(1);
+    }
+    // 5, 10, 20, 40, 80, then every 160 ms: 10 tries in a second, not 1000.
+    CHECK(r.net.writes - before >= 8);
+    CHECK(r.net.writes - before <= 12);
+    r.net.accept_limit = 0xFFFF;
+    for (int ms = 0; ms < 200; ++ms) {
+        r.serve();
+        r.clock.advance_ms(1);
+    }
+    std::string head;
+    std::vector<Part> parts;
+    REQUIRE(parse_stream(r.sent(1), head, parts));
+    REQUIRE(parts.size() == 1);
+    std::vector<uint8_t> frame = fake::jpeg(8000, 1);
+    CHECK(parts[0].body == std::string(frame.begin(), frame.end()));
+    CHECK(r.server.client_count() == 1);
+}
+
+TEST_CASE("a connection the module failed is closed and its slot and frame freed") {
+    Rig r;
+    r.request(1, "/stream");
+    r.request(2, "/stream");
+    r.serve(3);
+    r.camera.capture(fake::jpeg(30000, 1), 1);
+    r.serve();
+    REQUIRE(r.camera.out > 0);
+    r.net.fail(1);
+    r.serve(40);
+    CHECK(r.net.conns[1].closed_by_server);
+    CHECK_FALSE(r.net.conns[2].closed_by_server);
+    CHECK(r.server.client_count() == 1);
+    CHECK(r.camera.out == 0);
+}
+
+TEST_CASE("a busy module gets no write until its messages are read; a 503 waits for it too") {
+    Rig r;
+    for (uint8_t cid = 1; cid <= kMaxClients; ++cid) r.request(cid, "/status");
+    r.net.write_status = WriteStatus::Busy;
+    r.serve(4);
+    r.net.connect(9);
+    r.serve(3);
+    CHECK(r.sent(1).empty());
+    CHECK_FALSE(r.net.conns[9].closed_by_server);
+    r.net.write_status = WriteStatus::Ok;
+    r.serve(4);
+    CHECK(r.sent(1).find("HTTP/1.1 200 ") == 0);
+    CHECK(r.sent(9).find("HTTP/1.1 503 ") == 0);
+    CHECK(r.net.conns[9].closed_by_server);
 }
 
 TEST_CASE("/stream?fps=N caps one client's rate without counting drops") {

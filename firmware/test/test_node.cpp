@@ -120,6 +120,29 @@ TEST_CASE("Improv: state, device info and scan") {
     CHECK(frames[4].data == std::vector<uint8_t>{0x04, 0x00});
 }
 
+TEST_CASE("an Improv frame whose bytes waited in the UART while the loop was blocked is not cut") {
+    Board b;
+    Node node(b.hw);
+    node.boot();
+    b.serial.out.clear();
+    // 32 + 63 bytes of credentials: one frame of more than 64 bytes.
+    std::string frame = fake::improv_rpc(improv::Command::WifiSettings, {std::string(32, 's'), std::string(63, 'p')});
+    REQUIRE(frame.size() > 100);
+    b.serial.in = frame.substr(0, 40);
+    node.loop();
+    // A join step (AT commands) holds the loop for 2 s; the rest arrived meanwhile.
+    b.clock.advance_ms(2000);
+    b.serial.in += frame.substr(40);
+    node.loop();
+    node.loop();
+    std::vector<fake::DecodedFrame> frames;
+    std::vector<std::string> lines;
+    b.split(frames, lines);
+    REQUIRE(frames.size() >= 1);
+    CHECK(frames[0].data == std::vector<uint8_t>{0x03});  // PROVISIONING: the frame was taken whole
+    CHECK(b.wifi.joined_ssids == std::vector<std::string>{std::string(32, 's')});
+}
+
 TEST_CASE("Improv provisioning: joins, saves, answers PROVISIONED with the URL; password never printed") {
     Board b;
     Node node(b.hw);

@@ -24,6 +24,11 @@ SKETCH_DIR = REPO / "firmware" / "cubecam"
 VENDOR = REPO.parent / "shared" / "vendor" / "spresense"
 CORES = ("core-3.4.4", "core-3.2.0")
 SDK = "sdk-3.4.4-headers"
+# The set platformio.ini pins: the core at tag 2.6.0 and the SDK package 2.6.0 (its
+# release/ headers). Not in the vendored tree; docs/firmware.md, "PlatformIO", says how to
+# lay it out beside it. Each core is built against its own SDK headers.
+PLATFORMIO_CORE = "core-2.6.0"
+CORE_SDK = {"core-3.4.4": SDK, "core-3.2.0": SDK, PLATFORMIO_CORE: "sdk-2.6.0-headers"}
 # The board menu choices a cubecam node needs (boards.txt): MainCore with 1.5 MB for the
 # camera buffers, debug off.
 MENU = {"Core": "Main", "Memory": "1536", "Debug": "Disabled"}
@@ -90,7 +95,7 @@ class CoreBuild:
             "runtime.platform.path": str(self.core_dir),
             "runtime.ide.version": IDE_VERSION,
             "build.arch": "SPRESENSE",  # the platform folder's architecture, as the builder names it
-            "build.kernel": str(VENDOR / SDK),
+            "build.kernel": str(VENDOR / CORE_SDK[self.core]),
             "compiler.path": "",  # Debian's arm-none-eabi-g++ on PATH (the board package ships GCC 9)
             "compiler.warning_flags": platform["compiler.warning_flags.all"],
             "type_prefix": "",

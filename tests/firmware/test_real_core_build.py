@@ -10,7 +10,9 @@ import subprocess
 
 import pytest
 from arduino_build import (
+    CORE_SDK,
     CORES,
+    PLATFORMIO_CORE,
     SKETCH_DIR,
     CoreBuild,
     build_sketch,
@@ -20,9 +22,11 @@ from arduino_build import (
 )
 
 
-@pytest.mark.parametrize("core", CORES)
+@pytest.mark.parametrize("core", [*CORES, PLATFORMIO_CORE])
 def test_sketch_and_everything_under_it_compile_against_the_real_core(core, tmp_path):
-    require_vendor()
+    vendor = require_vendor()
+    if core == PLATFORMIO_CORE and not all((vendor / d).is_dir() for d in (core, CORE_SDK[core])):
+        pytest.skip(f"the PlatformIO set ({core}, {CORE_SDK[core]}) is not in {vendor}: docs/firmware.md, PlatformIO")
     result, sketch = build_sketch(core, tmp_path)
     expected = 1 + len(list((SKETCH_DIR / "src").rglob("*.cpp")))
     assert len(result.objects) == expected

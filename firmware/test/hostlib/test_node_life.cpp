@@ -2,156 +2,14 @@
 // (Camera.cpp's image buffers and threads, GS2200Hal / GS2200AtCmd /
 // TelitWiFi), on the host fakes of the layer beneath them (hostlib/). Each
 // case starts from power-on; pytest runs each in its own process.
-#include <doctest/doctest.h>
-#include <string.h>
-
-#include <algorithm>
-#include <chrono>
-#include <string>
-#include <thread>
-#include <vector>
-
-#include "core/node.h"
-#include "hostlib/gs2200m.h"
-#include "hostlib/hostlib.h"
-#include "hostlib/video_driver.h"
-#include "spresense/arduino_core.h"
-#include "spresense/camera.h"
-#include "spresense/gs2200.h"
-#include "test/fakes.h"
+#include "test/hostlib/node_board.h"
 
 namespace {
 
 using namespace cubecam;
+using namespace nodeboard;
 using hostlib::module;
 using hostlib::video_driver;
-
-const char kPassphrase[] = "correct horse battery staple";
-
-Settings station(const char* ssid, const char* password) {
-    Settings s;
-    settings_defaults(s);
-    strcpy(s.ssid, ssid);
-    strcpy(s.password, password);
-    return s;
-}
-
-// Ends the real camera (its threads) after everything holding its images is gone.
-struct CameraSession {
-    ~CameraSession() { theCamera.end(); }
-};
-
-// The node as cubecam.ino builds it; the settings record and LEDs are fakes.
-struct Board {
-    CameraSession session;
-    spresense::ArduinoClock clock;
-    spresense::UartSerial serial;
-    fake::Storage storage;
-    fake::Leds leds;
-    fake::System system;
-    spresense::SpresenseCamera camera;
-    spresense::Gs2200Module wifi;
-    Node node;
-
-    explicit Board(const Settings* s, ModuleType type = iS110B_TypeA)
-        : wifi(type, clock), node(Hardware{camera, wifi, wifi, serial, storage, clock, leds, system, "CXD5602"}) {
-        if (s) {
-            uint8_t rec[kSettingsRecordSize];
-            settings_encode(*s, rec);
-            storage.bytes.assign(rec, rec + sizeof rec);
-        }
-    }
-
-    // What setup() does.
-    void boot() {
-        node.boot();
-        const char* error = camera.begin(node.running());
-        if (error) node.set_error(error);
-    }
-
-    // Runs loop() (1 ms of device time per pass) until done() or the passes run out.
-    template <class Done>
-    bool run_until(Done done, int passes = 20000) {
-        for (int i = 0; i < passes; ++i) {
-            if (done()) return true;
-            node.loop();
-            hostlib::advance_ms(1);
-        }
-        return done();
-    }
-
-    // The sensor delivers a frame; waits until the camera callback published it.
-    void capture(const std::vector<uint8_t>& jpeg) {
-        uint32_t before = camera.latest_seq();
-        REQUIRE(video_driver().capture(jpeg));
-        for (int i = 0; i < 2000 && camera.latest_seq() == before; ++i) {
-            std::this_thread::sleep_for(std::chrono::milliseconds(1));
-        }
-        REQUIRE(camera.latest_seq() == before + 1);
-    }
-};
-
-void check_no_violations() {
-    for (const std::string& v : hostlib::violations()) FAIL_CHECK(v);
-}
-
-void check_secret_kept(const char* secret) {
-    CHECK(hostlib::serial_output().find(secret) == std::string::npos);
-}
-
-uint8_t http_get(const char* path) {
-    uint8_t cid = module().client_connect();
-    module().client_send(cid, std::string("GET ") + path + " HTTP/1.1\r\nHost: cubecam\r\n\r\n");
-    return cid;
-}
-
-// The JPEG bodies of a multipart stream, each as Content-Length says.
-std::vector<std::string> jpeg_parts(const std::string& stream) {
-    std::vector<std::string> parts;
-    const std::string key = "Content-Length: ";
-    for (size_t at = stream.find(key); at != std::string::npos; at = stream.find(key, at + 1)) {
-        size_t len = static_cast<size_t>(atol(stream.c_str() + at + key.size()));
-        size_t body = stream.find("\r\n\r\n", at);
-        if (body == std::string::npos || body + 4 + len > stream.size()) break;
-        parts.push_back(stream.substr(body + 4, len));
-    }
-    return parts;
-}
-
-std::vector<std::string> lines_of(const std::string& out) {
-    std::vector<fake::DecodedFrame> frames;
-    std::vector<std::string> lines;
-    fake::split_output(out, frames, lines);
-    return lines;
-}
-
-std::string text(const std::vector<uint8_t>& v) { return std::string(v.begin(), v.end()); }
-
-// Everything back to power-on, with two networks around.
-struct PowerOn {
-    PowerOn() {
-        hostlib::power_on();
-        module().networks = {{"lab", kPassphrase, -48, 6}, {"guest", "", -71, 11}};
-    }
-};
-
-// A node that booted with these settings and serves.
-struct Joined {
-    PowerOn power;
-    Board board;
-    explicit Joined(const Settings& s = station("lab", kPassphrase)) : board(&s) {
-        board.boot();
-        REQUIRE(board.run_until([] { return module().listening(); }));
-    }
-};
-
-// A client on /stream that has received `first`.
-uint8_t viewer_of(Board& b, const std::vector<uint8_t>& first) {
-    b.capture(first);
-    uint8_t cid = http_get("/stream");
-    REQUIRE(b.run_until([&] { return jpeg_parts(module().peer(cid).received).size() == 1; }));
-    return cid;
-}
 
 }  // namespace
 
@@ -355,10 +213,12 @@ TEST_CASE("a write the module does not answer is retried; streaming stays at the
 TEST_CASE("iS110B type C: the data-ready line on pin 20") {
     PowerOn power;
     hostlib::set_data_ready_pin(20);
+    hostlib::set_reset_pin(21);
     Settings s = station("lab", kPassphrase);
     Board b(&s, iS110B_TypeC);
     b.boot();
     CHECK(b.run_until([] { return module().listening(); }));
+    CHECK(module().resets() == 1);  // its reset input is D21 on that board
     check_no_violations();
 }
 
@@ -374,5 +234,72 @@ TEST_CASE("the camera stops delivering frames; the node restarts it and streamin
     REQUIRE(b.run_until([&] { return jpeg_parts(module().peer(viewer).received).size() == 2; }));
     CHECK(jpeg_parts(module().peer(viewer).received)[1] == text(fake::jpeg(26000, 2)));
     REQUIRE(b.run_until([&] { return video_driver().queued_buffers() == spresense::kCameraBuffers - 1; }, 2000));
+    check_no_violations();
+}
+
+TEST_CASE("frames that overflow the JPEG buffer are counted and a run of them latches an error and restarts the camera") {
+    Joined j;
+    Board& b = j.board;
+    REQUIRE(video_driver().opens() == 1);
+    std::vector<uint8_t> too_big = fake::jpeg(700000, 3);  // larger than any buffer the node asks for
+    for (uint32_t i = 0; i < kEmptyFrameRun; ++i) {
+        REQUIRE(video_driver().capture(too_big));
+        // The camera thread takes it (empty: the JPEG did not fit) before the next one.
+        for (int t = 0; t < 2000 && b.camera.empty_frames() == i; ++t) {
+            std::this_thread::sleep_for(std::chrono::milliseconds(1));
+        }
+        REQUIRE(b.camera.empty_frames() == i + 1);
+        b.run_until([] { return false; }, 20);
+    }
+    REQUIRE(b.run_until([] { return video_driver().opens() == 2; }, 200));
+    CHECK(hostlib::serial_output().find("[E][node] camera:") != std::string::npos);
+    uint8_t cid = http_get("/status");
+    REQUIRE(b.run_until([cid] { return !module().peer(cid).open; }));
+    const std::string& reply = module().peer(cid).received;
+    CHECK(reply.find("\"frames_empty\":") != std::string::npos);
+    CHECK(reply.find("\"frames_empty\":0") == std::string::npos);
+    CHECK(reply.find("\"last_error\":\"\"") == std::string::npos);
+    check_no_violations();
+}
+
+TEST_CASE("a static address is set without starting the DHCP client first") {
+    Settings s = station("lab", kPassphrase);
+    const char ip[] = "192.168.1.77/24,192.168.1.1";
+    REQUIRE(settings_set(s, "ip", ip, strlen(ip)).ok());
+    Joined j(s);
+    const auto& cmds = module().commands;
+    CHECK(std::find(cmds.begin(), cmds.end(), "AT+NDHCP=1") == cmds.end());
+    CHECK(std::find(cmds.begin(), cmds.end(), "AT+NSET=192.168.1.77,255.255.255.0,192.168.1.1") != cmds.end());
+    uint8_t cid = http_get("/status");
+    REQUIRE(j.board.run_until([cid] { return !module().peer(cid).open; }));
+    CHECK(module().peer(cid).received.find("\"ip\":\"192.168.1.77\"") != std::string::npos);
+    check_no_violations();
+}
+
+TEST_CASE("Improv provisioning of a fresh board touches no SPI before the module is set up") {
+    PowerOn power;
+    Board b(nullptr);
+    b.boot();
+    b.run_until([] { return false; }, 50);
+    hostlib::serial_input(fake::improv_rpc(improv::Command::WifiSettings, {"lab", kPassphrase}));
+    REQUIRE(b.run_until([] { return module().listening(); }));
+    // The library's ConsoleLog lines of a bus that was never begun ("SPI WRITE: Timeout ...").
+    CHECK(hostlib::serial_output().find("Timeout") == std::string::npos);
+    CHECK(module().resets() == 1);
+    check_no_violations();
+}
+
+TEST_CASE("a set-up command the module refuses fails the join instead of going unnoticed") {
+    PowerOn power;
+    module().failing_commands = {"AT+WRXPS=0"};  // power save would stay on
+    Settings s = station("lab", kPassphrase);
+    Board b(&s);
+    b.boot();
+    b.run_until([] { return false; }, 3000);
+    CHECK_FALSE(module().listening());
+    CHECK(std::find(module().commands.begin(), module().commands.end(), "AT+WA=lab") == module().commands.end());
+    module().failing_commands.clear();
+    REQUIRE(b.run_until([] { return module().listening(); }));
+    CHECK_FALSE(module().power_save());
     check_no_violations();
 }

@@ -23,7 +23,7 @@ from cubetrack.core.errors import ConfigError, ImageError
 from cubetrack.core.geometry import invert_T, transform_points
 from cubetrack.core.params import check, param
 from cubetrack.core.records import CubeSighting, Detection, Frame, FrameJob, FrameOutcome, FrameResult, TrackedPose
-from cubetrack.detect.detector import Box, Detector, DetectorParams, decode_gray
+from cubetrack.detect.detector import Box, Detector, DetectorParams, DetectResult, decode_gray
 from cubetrack.estimate.match import body_detections
 from cubetrack.estimate.params import EstimatorParams
 from cubetrack.estimate.pose import estimate_cube, world_marker_pose
@@ -137,16 +137,17 @@ class FrameProcessor:
     def work(self, job: FrameJob) -> FrameResult:
         frame = job.frame
         try:
-            detections, outcome = self._detect(frame.jpeg, f"{frame.camera} frame {frame.seq}", job.regions,
-                                               self.intrinsics[frame.camera])
+            found, outcome = self._detect(frame.jpeg, f"{frame.camera} frame {frame.seq}", job.regions,
+                                          self.intrinsics[frame.camera])
         except ImageError as exc:
             return FrameResult(job, FrameOutcome.CORRUPT, error=str(exc))
+        detections = found.detections
         if not detections:
-            return FrameResult(job, outcome)
+            return FrameResult(job, outcome, dropped=found.dropped)
         T_world_cam = self.camera_pose(frame, detections)
         if T_world_cam is None:
-            return FrameResult(job, FrameOutcome.NO_CAMERA_POSE)
-        return FrameResult(job, outcome, self.sightings(job, detections, T_world_cam))
+            return FrameResult(job, FrameOutcome.NO_CAMERA_POSE, dropped=found.dropped)
+        return FrameResult(job, outcome, self.sightings(job, detections, T_world_cam), dropped=found.dropped)
 
     def sightings(self, job: FrameJob, detections: tuple[Detection, ...],
                   T_world_cam: np.ndarray) -> tuple[CubeSighting, ...]:
@@ -174,7 +175,7 @@ class FrameProcessor:
         return tuple(sightings)
 
     def _detect(self, jpeg: bytes, source: str, regions: tuple[Box, ...] | None,
-                lens: CameraIntrinsics) -> tuple[tuple[Detection, ...], FrameOutcome]:
+                lens: CameraIntrinsics) -> tuple[DetectResult, FrameOutcome]:
         """Detections in the regions (cut to the image; the frame decoded only down to their lowest
         edge, ``decode_gray(rows=...)``), or in the whole frame (also when the regions find
         nothing). ImageError: the frame does not decode."""
@@ -183,10 +184,10 @@ class FrameProcessor:
             height, width = gray.shape
             regions = tuple(box for box in ((x0, y0, min(x1, width), min(y1, height)) for x0, y0, x1, y1 in regions)
                             if box[2] - box[0] >= 16 and box[3] - box[1] >= 16)
-            found = self.detector.detect(gray, regions, lens)
-            if found or not regions:
+            found = self.detector.find(gray, regions, lens)
+            if found.detections or not regions:
                 return found, FrameOutcome.REGIONS
-        return self.detector.detect(decode_gray(jpeg, source), lens=lens), FrameOutcome.FULL_FRAME
+        return self.detector.find(decode_gray(jpeg, source), lens=lens), FrameOutcome.FULL_FRAME
 
 
 @dataclass(slots=True)
@@ -198,6 +199,7 @@ class TrackStats:
     frames_without_camera_pose: int = 0
     frames_before_clock_sync: int = 0
     region_detections: int = 0  # frames searched only around the predicted cubes
+    dropped_detections: Counter = field(default_factory=Counter)  # markers found, then dropped: reason -> count
     estimates: Counter = field(default_factory=Counter)  # (robot, camera) -> count
     poses: Counter = field(default_factory=Counter)  # robot -> count
 
@@ -243,7 +245,8 @@ class Tracker:
         self.processor = FrameProcessor(intrinsics, world, robots, self.T_world_cam, params)
         self.fusion: Fusion
         if params.fusion.method is FusionMethod.FILTER:
-            self.fusion = FilterFusion({r.name: r.layout for r in robots}, params.fusion, params.filter)
+            self.fusion = FilterFusion({r.name: r.layout for r in robots}, params.fusion, params.filter,
+                                       params.estimator)
         else:
             self.fusion = LatestEstimateFusion(params.fusion)
         self.clocks = {name: ClockSync() for name in intrinsics}
@@ -358,6 +361,7 @@ class Tracker:
         """Count what the per-frame work found (and when the camera's whole frame was last
         searched); False for a corrupt JPEG (logged)."""
         frame = result.job.frame
+        self.stats.dropped_detections.update(result.dropped)
         if result.outcome is FrameOutcome.CORRUPT:
             self.stats.corrupt_frames += 1
             log.warning("skipping corrupt frame: %s", result.error)

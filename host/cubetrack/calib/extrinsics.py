@@ -63,8 +63,8 @@ from cubetrack.detect.detector import (
     DetectorParams,
     aruco_dictionary,
     decode_gray,
-    refine_corners_edges,
 )
+from cubetrack.detect.edge_fit import refine_corners_edges
 from cubetrack.estimate.marker import marker_pose
 from cubetrack.estimate.match import detections_of
 

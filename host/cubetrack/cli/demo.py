@@ -62,9 +62,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"live: {st.line()}", file=sys.stderr, flush=True)
 
     from cubetrack.app.outputs import close_sinks
-    from cubetrack.simulate.scenario import robot_names
-
-    sinks = add_dashboard(args, output_sinks_from_args(args, robots=robot_names(sim)),
+    sinks = add_dashboard(args, output_sinks_from_args(args, robots=sim.robot_names),
                           out_dir=args.out / "live" / "track")
     try:
         result = run_demo(args.out, sim, progress=StderrProgress(), live=not args.offline, status=status, sinks=sinks)

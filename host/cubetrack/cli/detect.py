@@ -8,6 +8,7 @@ quaternion_xyzw of the marker frame (x right, y up, z out of the marker), plus t
 
 Example:
   cubetrack detect board.jpg --camera-info cam.yml --dictionary DICT_6X6_250 --marker-size 0.02
+  cubetrack detect inverted-board.jpg --dictionary DICT_4X4_1000 --inverted   # white-on-black markers
 """
 
 from __future__ import annotations
@@ -30,6 +31,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--refinement", metavar="METHOD",
                         help="corner refinement; overrides [detector] corner_refinement "
                              "(`cubetrack defaults --section detector` lists the methods)")
+    parser.add_argument("--inverted", action="store_true",
+                        help="also find white-on-black (inverted) markers; sets [detector] detect_inverted_marker")
     parser.add_argument("--indent", type=int, default=2, help="JSON indentation (0: one line)")
 
 
@@ -57,6 +60,8 @@ def run(args: argparse.Namespace) -> int:
     params = params_with(DetectorParams(), "--dictionary", dictionary=names[0])
     if args.refinement:
         params = params_with(params, "--refinement", corner_refinement=args.refinement)
+    if args.inverted:
+        params = params_with(params, "--inverted", detect_inverted_marker=True)
     detector = Detector(params, dictionaries=names)
     intrinsics = read_camera_info(args.camera_info) if args.camera_info else None
     if intrinsics is not None and not (args.marker_size and args.marker_size > 0):
@@ -68,7 +73,8 @@ def run(args: argparse.Namespace) -> int:
             "%s: intrinsics are for %dx%d images, %s is %dx%d: poses will be wrong",
             args.camera_info, intrinsics.width, intrinsics.height, path, gray.shape[1], gray.shape[0])
     markers = []
-    for det in detector.detect(gray):
+    found = detector.find(gray, lens=intrinsics)
+    for det in found.detections:
         entry = {"dictionary": det.dictionary, "id": det.marker_id,
                  "corners_px": [[round(float(x), 4), round(float(y), 4)] for x, y in det.corners_px],
                  "area_px2": round(det.area_px2, 3)}
@@ -85,6 +91,7 @@ def run(args: argparse.Namespace) -> int:
         "marker_size_m": args.marker_size, "pose_frame": "camera optical (x right, y down, z forward)"
         if intrinsics is not None else None,
         "markers": markers,
+        "dropped": dict(found.dropped),
     }
     print(json.dumps(out, indent=args.indent or None))
     return 0

@@ -20,6 +20,7 @@ COMMANDS = {
     "calibrate-intrinsics": "calibrate_intrinsics",
     "calibrate-body": "calibrate_body",
     "make-body": "make_body",
+    "import": "import_rig",
     "track": "track",
     "record": "record",
     "worker": "worker",

@@ -24,7 +24,7 @@ import argparse
 import dataclasses
 import typing
 
-from cubetrack.simulate.params import PATHS, REALISTIC, SimulationParams
+from cubetrack.simulate.params import PATHS, REALISTIC, RIG, SimulationParams
 
 HELP = "render a simulated multi-camera recording with ground truth"
 
@@ -55,6 +55,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--realistic", action="store_true",
                         help="the realistic preset: every effect of real cameras and robots on (options given "
                              "explicitly still win; e.g. --readout-ms 0 switches the rolling shutter off)")
+    parser.add_argument("--rig", action="store_true",
+                        help="the real-rig preset: the realistic one plus 1280x720 webcams at 6 fps and inverted "
+                             "markers with distinct ids (docs/simulation.md)")
     group = parser.add_argument_group("scenario (units in the option descriptions)")
     for f, hint in _fields():
         default = f.default
@@ -102,7 +105,10 @@ def _show(value: typing.Any) -> str:
 def params_from_args(args: argparse.Namespace) -> SimulationParams:
     """The scenario from the parsed options (options not given keep their defaults, or the
     realistic preset's with --realistic)."""
-    given: dict[str, typing.Any] = dict(REALISTIC) if getattr(args, "realistic", False) else {}
+    rig = getattr(args, "rig", False)
+    given: dict[str, typing.Any] = dict(REALISTIC) if getattr(args, "realistic", False) or rig else {}
+    if rig:
+        given.update(RIG)
     for f, _ in _fields():
         value = getattr(args, f.name, None)
         if value is not None:

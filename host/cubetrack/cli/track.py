@@ -114,6 +114,7 @@ def run(args: argparse.Namespace) -> int:
         close_sinks(sinks)
     s = result.stats
     print(f"frames: {s.frames}" + "".join(f", {reason}: {n}" for reason, n in result.skipped.items()))
+    print(dropped_line(s))
     for robot, (tum, jsonl) in result.outputs.items():
         print(f"{robot}: {s.poses[robot]} poses -> {tum}, {jsonl}")
     for robot, (tum, jsonl) in result.smoothed.items():
@@ -123,6 +124,17 @@ def run(args: argparse.Namespace) -> int:
               f"(run.json says how it ended)", file=sys.stderr)
         return 130
     return 0
+
+
+def dropped_line(stats) -> str:
+    """The run summary's line on markers found and then dropped, per reason; loud when no pose came of them."""
+    dropped = stats.dropped_detections
+    if not dropped:
+        return "markers dropped after detection: none"
+    line = "markers dropped after detection: " + ", ".join(f"{r}: {n}" for r, n in sorted(dropped.items()))
+    if not sum(stats.poses.values()):
+        line += " -- WARNING: markers were found but none was kept, so there are no poses (docs/detection.md)"
+    return line
 
 
 def _run_live(args: argparse.Namespace, config, extrinsics, settings, sinks) -> int:
@@ -148,6 +160,7 @@ def _run_live(args: argparse.Namespace, config, extrinsics, settings, sinks) -> 
     print(f"{'interrupted; ' if result.interrupted else ''}tracked live for {result.duration_s:.1f} s: "
           f"frames: {s.frames}, before their camera's clock was known: {s.frames_before_clock_sync}, "
           f"corrupt frame: {s.corrupt_frames}, median latency {latency}")
+    print(dropped_line(s))
     for name, c in result.cameras.items():
         bad = "".join(f", {n} {why}" for why, n in sorted(c.bad_parts.items()))
         print(f"  {name}: {c.frames} frames, {c.dropped} dropped (tracker behind), {c.clock_samples} clock samples, "

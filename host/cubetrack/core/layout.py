@@ -20,9 +20,11 @@ right     -x          turned 90° counter-clockwise
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import cv2
 import numpy as np
 import tomli_w
 
@@ -260,3 +262,40 @@ def read_layout(path: str | Path) -> CubeLayout:
 def write_layout(layout: CubeLayout, path: str | Path) -> None:
     """Write a cube layout TOML file."""
     Path(path).write_text(tomli_w.dumps(layout_to_table(layout)), encoding="utf-8")
+
+
+def marker_bits(dictionary: str, marker_id: int) -> np.ndarray:
+    """The inner bit pattern (n, n) of marker ``marker_id`` of the OpenCV dictionary named
+    ``dictionary`` (1 = white); ConfigError for an unknown name or an id beyond the dictionary."""
+    value = getattr(cv2.aruco, dictionary, None) if dictionary.startswith("DICT_") else None
+    if not isinstance(value, int):
+        raise ConfigError(f"unknown marker dictionary {dictionary!r}")
+    d = cv2.aruco.getPredefinedDictionary(value)
+    if not 0 <= marker_id < len(d.bytesList):
+        raise ConfigError(f"{dictionary} has ids 0..{len(d.bytesList) - 1}, not {marker_id}")
+    n = d.markerSize
+    image = cv2.aruco.generateImageMarker(d, marker_id, n + 2, borderBits=1)
+    return (image[1:-1, 1:-1] > 127).astype(np.uint8)
+
+
+def pattern_collisions(owners: Mapping[tuple[str, int], str]) -> list[str]:
+    """Markers of different dictionaries that a detector could take for one another: for each pair
+    of ``owners`` keys ((dictionary, id) -> who uses it) of equal bit-grid size whose patterns, in
+    any of the four rotations, differ in no more bits than either dictionary corrects
+    (``maxCorrectionBits``), one line naming both. (Within one dictionary distinct ids never collide:
+    that is how dictionaries are made; DICT_4X4_50 id 0 and DICT_4X4_1000 id 0 are one pattern.)"""
+    keys = sorted(owners)
+    bits = {k: marker_bits(*k) for k in keys}
+    correct = {name: cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, name)).maxCorrectionBits
+               for name in {k[0] for k in keys}}
+    out = []
+    for i, a in enumerate(keys):
+        for b in keys[i + 1:]:
+            if a[0] == b[0] or bits[a].shape != bits[b].shape:
+                continue
+            distance = min(int(np.count_nonzero(np.rot90(bits[a], r) != bits[b])) for r in range(4))
+            if distance <= max(correct[a[0]], correct[b[0]]):
+                out.append(f"{owners[a]} ({a[0]} id {a[1]}) and {owners[b]} ({b[0]} id {b[1]}) are "
+                           f"{'the same marker' if distance == 0 else f'{distance} bit(s) apart'}: a detector "
+                           f"cannot tell them apart; choose other ids or one dictionary")
+    return out

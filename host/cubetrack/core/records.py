@@ -7,6 +7,7 @@ never modified after construction (stages build new records instead).
 from __future__ import annotations
 
 import enum
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -221,3 +222,4 @@ class FrameResult:
     outcome: FrameOutcome
     sightings: tuple[CubeSighting, ...] = ()
     error: str = ""
+    dropped: Mapping[str, int] = field(default_factory=dict)  # markers found, then dropped: reason -> count

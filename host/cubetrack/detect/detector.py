@@ -21,12 +21,12 @@ Conventions (docs/detection.md has the details and the measurements behind the d
 from __future__ import annotations
 
 import enum
-import functools
 import io
 import logging
 import warnings
-from collections.abc import Iterable, Sequence
-from dataclasses import dataclass
+from collections import Counter
+from collections.abc import Iterable, Mapping, Sequence
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import cv2
@@ -35,10 +35,11 @@ from PIL import JpegImagePlugin
 
 from cubetrack.core.cameras import CameraIntrinsics
 from cubetrack.core.errors import DetectionError, ImageError, ParamsError
-from cubetrack.core.geometry import shoelace_area, undistort_points
+from cubetrack.core.geometry import shoelace_area
 from cubetrack.core.params import param
 from cubetrack.core.records import Detection
-from cubetrack.detect.template_fit import distort_px, fast_template_corners, lens_map
+from cubetrack.detect.edge_fit import NEXT_I, refine_corners_edges
+from cubetrack.detect.template_fit import LensMap, fast_template_corners
 
 log = logging.getLogger(__name__)
 
@@ -167,7 +168,8 @@ class DetectorParams:
         0.6, "fraction of the dictionary's maximum correctable bits that may be corrected (0..1)",
     )
     detect_inverted_marker: bool = param(
-        False, "also detect white-on-black (inverted) markers",
+        False, "also detect white-on-black (inverted) markers: the image and its negative are searched (twice the "
+        "detection's CPU), so every corner refinement works on both (docs/detection.md)",
     )
     april_tag_quad_decimate: float = param(
         0.0, "apriltag refinement only: image decimation for quad search (0 = off; 2 halves its cost)",
@@ -230,17 +232,10 @@ def _cv_parameters(p: DetectorParams) -> cv2.aruco.DetectorParameters:
     cv.minMarkerDistanceRate = p.min_marker_distance_rate
     cv.minDistanceToBorder = p.min_distance_to_border_px
     cv.errorCorrectionRate = p.error_correction_rate
-    cv.detectInvertedMarker = p.detect_inverted_marker
+    cv.detectInvertedMarker = False  # Detector.find searches the negated image for inverted markers
     cv.aprilTagQuadDecimate = p.april_tag_quad_decimate
     cv.aprilTagQuadSigma = p.april_tag_quad_sigma
     return cv
-
-
-_ROI_MARGIN_PX = 16  # refine_corners_edges: float copy of the quads' region plus this
-# side i of a quad runs from corner i to corner i + 1; x.take(_NEXT_I, axis=1) is x[:, _NEXT_I]
-# at a fifth of the cost (no fancy-indexing machinery for a handful of markers)
-_NEXT_I = np.array([1, 2, 3, 0])
-_PREV_I = np.array([3, 0, 1, 2])
 
 
 def _quad_checks(quads: np.ndarray, min_area_px2: float) -> tuple[np.ndarray, np.ndarray]:
@@ -249,9 +244,9 @@ def _quad_checks(quads: np.ndarray, min_area_px2: float) -> tuple[np.ndarray, np
     finite = np.isfinite(quads).all(axis=(1, 2))
     if not finite.all():   # zeros instead: no invalid-value warnings, and a zero area fails below
         quads = np.where(finite[:, None, None], quads, 0.0)
-    following = quads.take(_NEXT_I, axis=1)                             # corner i + 1 of each corner i
+    following = quads.take(NEXT_I, axis=1)                             # corner i + 1 of each corner i
     e = following - quads                                               # edge i: corner i -> i+1
-    e_next = e.take(_NEXT_I, axis=1)
+    e_next = e.take(NEXT_I, axis=1)
     turns = e[..., 0] * e_next[..., 1] - e[..., 1] * e_next[..., 0]     # > 0: a right turn (clockwise)
     area = 0.5 * np.abs((quads[..., 0] * following[..., 1] - quads[..., 1] * following[..., 0]).sum(axis=1))
     ok = finite & (turns.min(axis=1) > 0.0) & (area > max(min_area_px2, 0.0))
@@ -265,203 +260,38 @@ def is_valid_quad(corners_px: np.ndarray, min_area_px2: float = 0.0) -> bool:
     return c.shape == (4, 2) and bool(_quad_checks(c[None], min_area_px2)[0][0])
 
 
-_EDGE_SPAN = (0.2, 0.8)       # the detector's edge samples: the middle 60 % of each side
-_EDGE_SAMPLES_ACROSS = 17     # profile samples across an edge
-_EDGE_FOCUS_PX = 3.0          # focus='tent': half-width of the tent that re-centres each edge point, px
-_PEAK_WINDOW_PX = 1.25        # focus='peak': half-width of the window around the gradient's peak, px
+@dataclass(frozen=True, slots=True)
+class DetectResult:
+    """One frame's detections, and how many markers OpenCV found that were then dropped, per
+    reason (``DROP_EDGE_FIT``, ``DROP_QUAD``): a run that finds markers and keeps none can say so."""
+
+    detections: tuple[Detection, ...]
+    dropped: Mapping[str, int] = field(default_factory=dict)
 
 
-def _distort_c(z: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:
-    """:func:`cubetrack.detect.template_fit.distort_px` on complex pixel positions x + iy."""
-    out = distort_px(np.stack([z.real, z.imag], axis=-1), K, dist)
-    return out[..., 0] + 1j * out[..., 1]
+DROP_EDGE_FIT = "edge fit failed"
+DROP_QUAD = "not a convex quad above min_area_px2"
 
 
-def _undistort_c(z: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:
-    """Where distorted complex pixel positions x + iy lie in the ideal pinhole image of the same
-    ``K`` (:func:`cubetrack.core.geometry.undistort_points`, iterated to 1e-12)."""
-    out = undistort_points(np.stack([z.real, z.imag], axis=-1), K, dist, K)
-    return out[..., 0] + 1j * out[..., 1]
-
-
-@functools.lru_cache(maxsize=8)
-def _edge_sampling(samples_along: int, samples_across: int, span: tuple[float, float]) -> tuple[np.ndarray, ...]:
-    """Sample positions of the edge fit: along a side (fractions t, and the powers 1, t, t^2
-    per row), across it (units of the half-width), the midpoints between those, the matrix
-    taking a profile to its differences (m, m-1), and the midpoints beside ones (m-1, 2: a
-    profile's moments in one product)."""
-    t = np.linspace(span[0], span[1], samples_along)
-    unit = np.linspace(-1.0, 1.0, samples_across)
-    unit_mid = 0.5 * (unit[1:] + unit[:-1])
-    step = np.eye(samples_across, samples_across - 1, -1) - np.eye(samples_across, samples_across - 1)
-    out = (t, np.stack([np.ones_like(t), t, t * t], axis=1), unit, unit_mid, step,
-           np.stack([unit_mid, np.ones_like(unit_mid)], axis=1))
-    for a in out:
-        a.setflags(write=False)
-    return out
-
-
-def refine_corners_edges(gray: np.ndarray, corners_px: np.ndarray, modules: int | np.ndarray,
-                         iterations: int = 2, *, K: np.ndarray | None = None,
-                         dist: np.ndarray | None = None, samples_along: int = 12,
-                         samples_across: int = _EDGE_SAMPLES_ACROSS, span: tuple[float, float] = _EDGE_SPAN,
-                         focus: str = "tent", focus_px: float | None = None,
-                         min_contrast: float = 8.0) -> np.ndarray:
-    """Refine marker corners by fitting a line to each side's outer edge (the ``edge`` method).
-
-    ``gray``: the image (8-bit: only the quads' region is converted to float, since an 8-bit
-    ``cv2.remap`` rounds its samples, a ~0.03 px edge bias; or float32); ``corners_px``: (4, 2)
-    or (M, 4, 2) initial corners (TL, TR, BR, BL, clockwise in the image); ``modules``: cells
-    across each marker including its black border (6 for a 4x4 dictionary).
-
-    Along each side, at ``samples_along`` places spread over ``span`` (fractions of its length),
-    the image is sampled across the edge at ``samples_across`` points (bilinear; half-width
-    0.8 module, clipped to [1.5, 4] px), and the positive (dark inside -> bright outside)
-    gradient locates the edge point. ``focus='tent'`` (the detector's): the gradient's centroid
-    over the whole profile, re-centred twice with a tent of half-width ``focus_px`` (3 px)
-    around it — steady under noise, and a second edge nearby (the outer edge of a narrow white
-    margin or of the cube) barely pulls it. ``focus='peak'`` (calibration's): the gradient's
-    peak, re-centred three times on the gradient within ``focus_px`` (1.25 px) of it — no pull
-    from a margin's outer edge even under blur (marker size bias ~0.001 px against ~0.02 px),
-    noisier per frame, so for averaging many frames. A profile is used when it brightens by more
-    than ``min_contrast`` grey levels from its inner to its outer end. Each side's edge points
-    get a weighted least-squares line (offset across the side against position along it), once
-    more without points beyond 2.5 sigma; neighbouring lines intersect in the corners. This
-    repeats ``iterations`` times, each sampling along the previous fit's sides.
-
-    With the camera's lens model (``K`` and plumb_bob ``dist``) the sides are straight lines in
-    the undistorted image, not in this one: the sampling runs along them there, each sample is
-    looked up at its distorted position, and the corners are mapped back. Without it the sides
-    are taken as straight in the image (exact for a pinhole camera; the detector's default).
-
-    Returns corners of the input's shape, in the input image; a marker whose fit fails (low
-    contrast, fewer than 3 edge points on a side, a degenerate quad, a corner moving more than
-    two modules) gets NaN corners, so the caller can keep its initial ones or drop the marker.
-    Vectorised over markers and sides (complex x + iy positions keep the numpy calls few: they,
-    not the arithmetic, are the cost at a few markers per frame).
-    """
-    img = np.asarray(gray)
-    c_in = np.ascontiguousarray(corners_px, dtype=np.float64)
-    single = c_in.ndim == 2
-    z_in = c_in.view(np.complex128).reshape(-1, 4)                     # (M, 4) x + iy (a view)
-    # numpy's stubs type .all(axis=1) as a bool or an array; along an axis it is an array
-    good: np.ndarray = np.isfinite(z_in).all(axis=1)  # type: ignore[assignment]
-    if not good.all():
-        z_in = np.where(good[:, None], z_in, 0.0)
-    origin: complex = 0.0
-    if img.dtype != np.float32:
-        # only the region around the quads, as float (cv2.remap of an 8-bit image rounds its
-        # samples: a ~0.03 px edge bias); the margin covers the sampling half-width and the moves
-        if good.any():
-            xy = c_in.reshape(-1, 2) if good.all() else c_in.reshape(-1, 4, 2)[good].reshape(-1, 2)
-            (x0, y0), (x1, y1) = xy.min(axis=0).tolist(), xy.max(axis=0).tolist()
-            x0, y0 = max(int(x0) - _ROI_MARGIN_PX, 0), max(int(y0) - _ROI_MARGIN_PX, 0)
-            x1, y1 = int(x1) + _ROI_MARGIN_PX + 2, int(y1) + _ROI_MARGIN_PX + 2
-            img, origin = img[y0:y1, x0:x1], complex(x0, y0)
-            z_in = z_in - origin
-        img = img.astype(np.float32)
-    inv_modules = 1.0 / np.asarray(modules, dtype=np.float64).reshape(-1, 1)
-    width_per_side = 0.4 * inv_modules      # half-width 0.8 module = 0.4 x (sum of two neighbouring sides) / modules
-    lens = None
-    if K is not None and dist is not None and np.any(np.asarray(dist) != 0.0):
-        K = np.array(K, dtype=np.float64)
-        K[0, 2] -= origin.real  # the region's own principal point
-        K[1, 2] -= origin.imag
-        lens = (K, np.asarray(dist, dtype=np.float64).reshape(-1))
-        z0 = _undistort_c(z_in, *lens)                                  # corners in the pinhole image
-    else:
-        z0 = z_in
-    if focus not in ("tent", "peak"):
-        raise ValueError(f"focus must be 'tent' or 'peak', got {focus!r}")
-    peak = focus == "peak"
-    if focus_px is None:
-        focus_px = _PEAK_WINDOW_PX if peak else _EDGE_FOCUS_PX
-    t, powers_t, unit, unit_mid, step, across = _edge_sampling(samples_along, samples_across, tuple(span))
-    ones_t, k, moments_t = powers_t[:, 0], len(t), powers_t.T
-    z = z0
-    side_px = np.abs(z.take(_NEXT_I, axis=1) - z)  # the initial quad's side lengths (pinhole image)
-    fitted = np.ones(z.shape, dtype=bool)   # per side and corner: the fit held (a failed marker's
-    # corners restart from the initial ones, so the next iteration samples finite positions)
-    # few numpy calls per iteration, each over every marker, side and sample at once: they, not
-    # the arithmetic, are the cost; sums over samples are matrix products with constant vectors
-    for _ in range(iterations):
-        v = z.take(_NEXT_I, axis=1) - z                                 # side i: corner i -> i+1
-        length = np.abs(v)                                              # (M, 4) px
-        n = v * (-1j / np.maximum(length, 1e-9))                        # outward unit normal (clockwise, y down)
-        w = np.minimum(np.maximum((length.take(_NEXT_I, axis=1) + length.take(_PREV_I, axis=1)) * width_per_side,
-                                  1.5), 4.0)
-        p = (z[..., None] + t * v[..., None])[..., None] + unit * (w * n)[..., None, None]   # (M, 4, k, m)
-        if lens is not None:
-            p = _distort_c(p, *lens)
-        xy = p.view(np.float64).reshape(1, -1, 2).astype(np.float32)  # interleaved x, y: one map
-        # map1 holds both coordinates, so map2 is None (OpenCV's stubs do not allow None there)
-        prof = cv2.remap(img, xy, None, cv2.INTER_LINEAR,  # type: ignore[call-overload]
-                         borderMode=cv2.BORDER_REPLICATE).reshape(p.shape).astype(np.float64)
-        # edge point along n from the rising gradient (see focus)
-        g = np.maximum(prof @ step, 0.0)                                # (M, 4, k, m-1) differences
-        wide = w[..., None]                                             # (M, 4, 1) half-width px
-        if peak:   # start at the gradient's peak; a hard window of +-focus_px around the edge point
-            mass = g @ across[:, 1]
-            smooth = g[..., :-2] + 2.0 * g[..., 1:-1] + g[..., 2:]       # a steadier peak
-            off = unit_mid[smooth.argmax(axis=-1) + 1] * wide
-            s_mid = (unit_mid * wide[..., None])                        # (M, 4, 1, m-1) px
-            for _focus in range(3):
-                d = s_mid - off[..., None]
-                gf = g * (np.abs(d) <= focus_px)
-                off = off + (gf * d) @ across[:, 1] / np.maximum(gf @ across[:, 1], 1e-12)
-        else:      # start at the centroid of the whole profile's gradient; a tent of half-width focus_px
-            moments = g @ across                                        # (M, 4, k, 2): sum g u, sum g
-            mass = moments[..., 1]
-            off = wide * moments[..., 0] / np.maximum(mass, 1e-12)      # (M, 4, k) px along n
-            s_mid = (unit_mid * wide[..., None])
-            for _focus in range(2):
-                # the centroid under tent weights focus_px - |d| (the scale cancels) around the last
-                gf = g * np.maximum(focus_px - np.abs(s_mid - off[..., None]), 0.0)
-                moments = gf @ across
-                off = wide * moments[..., 0] / np.maximum(moments[..., 1], 1e-12)
-        weight = mass * ((mass > 1e-6) & (prof[..., -1] - prof[..., 0] > min_contrast))
-        # each side: off = a + b t by weighted least squares (edge points scatter across the
-        # side only), then once more without points beyond 2.5 sigma of that line
-        a: np.ndarray  # a, b, s0: bound by the first (robust=False) pass
-        b: np.ndarray
-        s0: np.ndarray
-        for robust in (False, True):
-            if robust:
-                resid2 = off - (a[..., None] + b[..., None] * t)  # noqa: F821 (see above)
-                resid2 *= resid2
-                rms2 = (weight * resid2) @ ones_t / np.maximum(s0, 1e-12)  # noqa: F821 (see above)
-                weight = weight * (resid2 <= np.maximum(6.25 * rms2, 0.01)[..., None])
-            s0, s1, s2 = (moments_t @ weight.reshape(-1, k).T).reshape(3, -1, 4)   # (M, 4) each
-            sy, sty = (moments_t[:2] @ (weight * off).reshape(-1, k).T).reshape(2, -1, 4)
-            den = s0 * s2 - s1 * s1
-            den[den <= 1e-12] = np.nan                                  # < 2 usable points: no line
-            b = (s0 * sty - s1 * sy) / den
-            a = (sy - b * s1) / s0
-        # side i is the line P + s D; corner i = side i-1 meets side i
-        P, D = z + a * n, v + b * n
-        P1, D1 = P.take(_PREV_I, axis=1), D.take(_PREV_I, axis=1)
-        s = ((P - P1).conj() * D).imag / (D1.conj() * D).imag
-        z = P1 + s * D1
-        fitted &= (length > 4.0) & (np.sign(weight) @ ones_t >= 3.0) & np.isfinite(z)
-        z = np.where(fitted, z, z0)
-    good &= fitted.all(axis=1)
-    if lens is not None:
-        z = _distort_c(z, *lens)
-        side_px = np.abs(z_in.take(_NEXT_I, axis=1) - z_in)
-    # a corner moving more than two modules (at least 3 px) is a failed fit
-    moved = np.abs(z - z_in).max(axis=1)
-    good &= moved <= np.maximum(0.5 * side_px.sum(axis=1) * inv_modules[:, 0], 3.0)   # 2 x mean side
-    z = np.where(good[:, None], z + origin, complex(np.nan, np.nan))
-    c = z.view(np.float64).reshape(*z.shape, 2)
-    return c[0] if single else c
+def _lens_key(lens: CameraIntrinsics) -> tuple:
+    """What a lens map depends on, as a value (two equal intrinsics share a map)."""
+    return lens.width, lens.height, np.asarray(lens.K).tobytes(), np.asarray(lens.dist).tobytes()
 
 
 class Detector:
-    """A configured marker detector; ``detect`` / ``detect_jpeg`` may be called per frame.
+    """A configured marker detector; ``detect`` / ``find`` / ``detect_jpeg`` may be called per frame.
 
     ``dictionaries`` lists the dictionary names to search (e.g. the world marker's and the
     cubes'); None means ``params.dictionary``. Each Detection names its dictionary, so equal ids
     from different dictionaries stay apart. Not thread-safe: use one Detector per thread.
+
+    With ``detect_inverted_marker`` every search runs twice: on the image, for dark-on-white
+    markers, and on its negative, where white-on-black markers are dark-on-white — so every corner
+    refinement (OpenCV's, the edge fit, the template fit) sees the polarity it is made for. Twice
+    the detection's CPU.
+
+    The ``template`` refinement's lens maps (one per camera, :class:`LensMap`) belong to the
+    detector: built on a camera's first frame, kept while the detector lives.
     """
 
     def __init__(self, params: DetectorParams | None = None,
@@ -484,9 +314,15 @@ class Detector:
         self._offset_px = (APRILTAG_PIXEL_OFFSET_PX
                            if self.params.corner_refinement is CornerRefinement.APRILTAG else 0.0)
         self._modules = tuple(d.markerSize + 2 for d in dicts)  # cells across, with a 1-bit border
+        self._lens_maps: dict[tuple, LensMap] = {}
 
     def detect(self, gray: np.ndarray, regions: Sequence[Box] | None = None,
                lens: CameraIntrinsics | None = None) -> tuple[Detection, ...]:
+        """The detections of :meth:`find` (without its drop counts)."""
+        return self.find(gray, regions, lens).detections
+
+    def find(self, gray: np.ndarray, regions: Sequence[Box] | None = None,
+             lens: CameraIntrinsics | None = None) -> DetectResult:
         """Detect markers in an 8-bit single-channel image (H, W); sorted by dictionary, id, x.
 
         ``regions``: None searches the whole image. Otherwise only these boxes ``(x0, y0, x1,
@@ -497,28 +333,47 @@ class Detector:
         empty sequence searches nothing. ImageError for a box not inside the image.
 
         ``lens``: the camera's intrinsics, for the ``template`` refinement's lens model (None:
-        the image is taken as undistorted); the other refinements ignore it."""
+        the image is taken as undistorted); the other refinements ignore it.
+
+        Also counts, per reason, the markers OpenCV found that were dropped (:class:`DetectResult`)."""
         gray = _checked_gray(gray)
-        if regions is None:
-            found = self._detect(gray, self._detector, np.zeros(2))
-        else:
+        if regions is not None:
             height, width = gray.shape
             for box in regions:
                 x0, y0, x1, y1 = box
                 if not (0 <= x0 < x1 <= width and 0 <= y0 < y1 <= height):
                     raise ImageError(f"region {tuple(box)} is not inside the {width}x{height} image")
-            per_box = [self._detect_box(gray, box) for box in merged_boxes(regions)]
-            found = (per_box[0] if len(per_box) == 1  # sorted already
-                     else tuple(sorted((d for f in per_box for d in f), key=_detection_order)))
-        if self.params.corner_refinement is CornerRefinement.TEMPLATE:
-            return self._template_refined(gray, found, lens)
-        return found
+            regions = merged_boxes(regions)
+        images = (gray, 255 - gray) if self.params.detect_inverted_marker else (gray,)
+        found: list[Detection] = []
+        dropped: Counter[str] = Counter()
+        for image in images:
+            if regions is None:
+                kept = self._detect(image, self._detector, np.zeros(2), dropped)
+            else:
+                kept = tuple(d for box in regions for d in self._detect_box(image, box, dropped))
+            if self.params.corner_refinement is CornerRefinement.TEMPLATE:
+                kept = self._template_refined(image, kept, lens)
+            found.extend(kept)
+        if len(images) > 1 or regions is not None and len(regions) > 1:
+            found.sort(key=_detection_order)
+        return DetectResult(tuple(found), dict(dropped))
+
+    def _lens_map(self, lens: CameraIntrinsics | None) -> LensMap:
+        """This camera's :class:`LensMap`, built on first use."""
+        if lens is None:
+            return _NO_LENS
+        key = _lens_key(lens)
+        mapping = self._lens_maps.get(key)
+        if mapping is None:
+            mapping = self._lens_maps[key] = LensMap(lens)
+        return mapping
 
     def _template_refined(self, gray: np.ndarray, found: tuple[Detection, ...],
                           lens: CameraIntrinsics | None) -> tuple[Detection, ...]:
         """``found`` (edge-fitted) with each marker's corners re-measured by the template fit; a
         marker whose fit fails (too close to the image border, diverged) keeps its edge fit's."""
-        mapping = lens_map(lens)
+        mapping = self._lens_map(lens)
         out = []
         for d in found:
             corners = fast_template_corners(gray, d.corners_px, d.dictionary, d.marker_id, mapping,
@@ -536,8 +391,8 @@ class Detector:
         warnings.warn("Detector.detect_gray is deprecated; use Detector.detect(gray)", DeprecationWarning, stacklevel=2)
         return self.detect(gray)
 
-    def _detect_box(self, gray: np.ndarray, box: Box) -> tuple[Detection, ...]:
-        """Detections inside one box of ``gray`` (checked), as :meth:`detect` describes."""
+    def _detect_box(self, gray: np.ndarray, box: Box, dropped: Counter[str]) -> tuple[Detection, ...]:
+        """Detections inside one box of ``gray`` (checked), as :meth:`find` describes."""
         x0, y0, x1, y1 = box
         crop = np.ascontiguousarray(gray[y0:y1, x0:x1])
         scale = max(gray.shape) / max(crop.shape)
@@ -547,10 +402,12 @@ class Detector:
             cv_params.maxMarkerPerimeterRate = self.params.max_marker_perimeter_rate * scale
             self._region_detector.setDetectorParameters(cv_params)
             self._region_scale = scale
-        return self._detect(crop, self._region_detector, np.array([x0, y0], dtype=float))
+        return self._detect(crop, self._region_detector, np.array([x0, y0], dtype=float), dropped)
 
-    def _detect(self, gray: np.ndarray, detector, offset_px: np.ndarray) -> tuple[Detection, ...]:
-        """Run ``detector`` on ``gray``; refine, check and shift the corners by ``offset_px``.
+    def _detect(self, gray: np.ndarray, detector: cv2.aruco.ArucoDetector, offset_px: np.ndarray,
+                dropped: Counter[str]) -> tuple[Detection, ...]:
+        """Run ``detector`` on ``gray``; refine, check and shift the corners by ``offset_px``;
+        count what is dropped into ``dropped``.
 
         A marker whose edge refinement fails is dropped: OpenCV's unrefined corners can be pixels
         off on small, oblique markers, and downstream stages take corners as precise."""
@@ -561,11 +418,18 @@ class Detector:
         dict_indices = (np.zeros_like(ids) if dict_indices is None
                         else np.asarray(dict_indices).reshape(-1))
         quads = np.asarray(corners, dtype=np.float64).reshape(-1, 4, 2) + self._offset_px
+        fit_failed = np.zeros(len(ids), dtype=bool)
         if self.params.corner_refinement in (CornerRefinement.EDGE, CornerRefinement.TEMPLATE):
-            modules = self._modules[0] if len(self._modules) == 1 else np.take(self._modules, dict_indices)
+            modules: int | np.ndarray = (self._modules[0] if len(self._modules) == 1
+                                         else np.asarray(self._modules)[dict_indices])
             quads = refine_corners_edges(gray, quads, modules, self.params.edge_iterations)  # NaN: failed
+            fit_failed = np.asarray(~np.isfinite(quads).all(axis=(1, 2)))
         valid, areas = _quad_checks(quads, self.params.min_area_px2)
         if not valid.all():
+            for reason, n in ((DROP_EDGE_FIT, int(fit_failed.sum())),
+                              (DROP_QUAD, int((~valid & ~fit_failed).sum()))):
+                if n:
+                    dropped[reason] += n
             log.debug("dropped detections of ids %s (edge refinement failed, or not a convex quad)",
                       ids[~valid].tolist())
         quads += offset_px
@@ -582,6 +446,9 @@ class Detector:
         """Decode a JPEG to grayscale and detect; ImageError (naming ``source``) when it is empty,
         truncated or corrupt."""
         return self.detect(decode_gray(jpeg, source))
+
+
+_NO_LENS = LensMap(None)
 
 
 Box = tuple[int, int, int, int]  # x0, y0, x1, y1: pixels, end exclusive

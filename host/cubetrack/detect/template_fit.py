@@ -1,6 +1,6 @@
 """A marker's corners measured by fitting its whole image: the template fit's shared core.
 
-Edge fits (:func:`cubetrack.detect.detector.refine_corners_edges`) locate each side of the
+Edge fits (:func:`cubetrack.detect.edge_fit.refine_corners_edges`) locate each side of the
 black border from the brightness profile across it. A profile also holds the cells next to the
 border and, on an obliquely seen marker, they are within a pixel or two of the edge: under the
 lens's blur a white cell beside the one-module border pulls the edge, by an amount that depends
@@ -123,8 +123,9 @@ def square_homography_derivatives(corners: np.ndarray, side: float) -> tuple[np.
 class LensMap:
     """A camera's lens undistortion as a per-pixel map: the ideal pinhole pixel (of the same
     ``K``) of every pixel centre of its image (``intrinsics.width`` x ``height``) and a one-pixel
-    border, float32, read bilinearly (``cv2.remap``) at any point; :func:`lens_map` caches one per
-    camera. Without intrinsics, the identity (the image taken as undistorted)."""
+    border, float32, read bilinearly (``cv2.remap``) at any point; a
+    :class:`~cubetrack.detect.detector.Detector` keeps one per camera. Without intrinsics, the
+    identity (the image taken as undistorted)."""
 
     def __init__(self, intrinsics: CameraIntrinsics | None):
         self.intrinsics = intrinsics
@@ -147,14 +148,6 @@ class LensMap:
         rows = pts.reshape(-1, _REMAP_ROW, 2)
         out = cv2.remap(self.map, rows[..., 0], rows[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
         return out.reshape(-1, 2)[:n].astype(np.float64).reshape(np.shape(points_px))
-
-
-@functools.lru_cache(maxsize=64)
-def lens_map(intrinsics: CameraIntrinsics | None) -> LensMap:
-    """The cached :class:`LensMap` of a camera (intrinsics are compared by identity: a tracker
-    keeps one object per camera). Room for 64 cameras (a VGA map is 2.5 MB): a process with more
-    cameras than the cache holds would rebuild a map on nearly every frame."""
-    return LensMap(intrinsics)
 
 
 @dataclass(frozen=True, slots=True, eq=False)

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -58,6 +59,12 @@ class FilterParams:
     sharp_turn_rad_s: float = param(2.0, "a yaw rate above this is a sharp turn, rad/s")
     turn_hold_s: float = param(3.0, "the turning noise holds this long after the last sharp turn, seconds")
     corner_noise_px: float = param(0.5, "corner measurement noise (1 sigma), pixels")
+    camera_position_sigma_m: float = param(
+        0.002, "how far a calibrated camera may be from where its extrinsics put it (1 sigma per axis), metres: "
+        "every corner of one camera frame shares this error, so cameras that disagree by it are not read as "
+        "motion (docs/tracking.md \"Cameras that disagree\"; 0: cameras taken as exact)")
+    camera_rotation_sigma_deg: float = param(
+        0.1, "the same for the camera's orientation (1 sigma per axis), degrees (real calibrations leave 0.1-0.3)")
     huber_px: float = param(1.5, "corner residuals beyond this are down-weighted (Huber), pixels")
     gate_rms_px: float = param(2.0, "a camera frame whose RMS residual after the update exceeds this is "
                                     "rejected, pixels")
@@ -81,6 +88,8 @@ class FilterParams:
         check_positive(self, "accel_noise", "angular_accel_noise", "yaw_accel_noise", "steady_yaw_accel_noise",
                        "sharp_turn_rad_s", "turn_hold_s", "corner_noise_px", "huber_px", "gate_rms_px", "face_gate_px",
                        "init_velocity_sigma", "init_angular_velocity_sigma")
+        check_non_negative(self, "camera_position_sigma_m", unit="metres")
+        check_non_negative(self, "camera_rotation_sigma_deg", unit="degrees")
         check_at_least(self, 1, "iterations")
         check_non_negative(self, "smooth_lag_s", "smooth_margin_s", unit="seconds")
 
@@ -214,7 +223,8 @@ class PoseFilter:
 
     def _solve(self, sets: Sequence[CornerSet]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
         """Gauss-Newton on prior + Huber-weighted corner residuals: (δ (12,), information, the
-        pose moved by δ (4x4 ``T_world_cube``), residuals px there).
+        pose moved by δ (4x4 ``T_world_cube``), residuals px there, less what the cameras'
+        calibration error explains (:func:`calibration_discount`)).
 
         Corners taken at the filter's time see only the pose block of the state: their information
         adds to that block and their gradient to its rows. A set taken at another instant (a
@@ -226,17 +236,31 @@ class PoseFilter:
         delta = np.zeros(12)
         rhs = np.zeros(12)
         block = slice(0, 12) if any(s.time_s != self.time_s for s in sets) else _POSE
+        explained = np.zeros(sum(2 * len(s.points_cube_m) for s in sets))
         for _ in range(prm.iterations):
             r, H = reprojection_jacobian_px(*self._at(T, delta, sets, block))
-            a = np.abs(r)
+            a = np.abs(r - explained)
             weights = np.where(a <= prm.huber_px, 1.0, prm.huber_px / np.maximum(a, 1e-12)) / prm.corner_noise_px**2
             WH = weights[:, None] * H
             info = info_prior.copy()
-            info[block, block] += H.T @ WH
-            rhs[block] = WH.T @ (H @ delta[block] - r)
-            delta = np.linalg.solve(info, rhs)
+            info_add, grad = H.T @ WH, WH.T @ (H @ delta[block] - r)
+            discount = calibration_discount(prm, sets, T, H[:, _POSE], weights)
+            if discount is not None:
+                C = H.T @ (weights[:, None] * H[:, _POSE])     # (n, 6): H^T W H_pose
+                K, HtW_pose = discount
+                info_add = info_add - C @ K @ C.T
+                grad = grad - C @ (K @ grad[_POSE])
+            info[block, block] += info_add
+            rhs[block] = grad
+            step = np.linalg.solve(info, rhs) - delta
+            delta = delta + step
             T = perturbed(T0, delta[_POSE])
-        return delta, info, T, reprojection_residuals_px(*self._at(T, delta, sets, block))
+            if discount is not None:   # the calibration error that explains the residuals there
+                explained = H[:, _POSE] @ (K @ (HtW_pose @ (r + H @ step[block])))
+        r = reprojection_residuals_px(*self._at(T, delta, sets, block))
+        if discount is not None:
+            r = r - H[:, _POSE] @ (K @ (HtW_pose @ r))
+        return delta, info, T, r
 
     def _at(self, T: np.ndarray, delta: np.ndarray, sets: Sequence[CornerSet], block: slice) -> tuple:
         """The arguments of the reprojection functions for the state moved by ``delta`` (its pose
@@ -274,6 +298,36 @@ class PoseFilter:
         self.angular_velocity_rad_s = self.angular_velocity_rad_s + delta[_ANGULAR_VELOCITY]
         self._note_turn()
         return UpdateResult(True, rms, r.size // 2)
+
+
+def calibration_discount(params: FilterParams, sets: Sequence[CornerSet], T_world_cube: np.ndarray,
+                         H_pose: np.ndarray, weights: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """What one camera frame's corners tell about the pose, less what its camera's calibration
+    error could make them say: ``(K, H_pose^T W)``, with the corners' information becoming
+    ``H^T W H - C K C^T`` (``C = H^T W H_pose``), or None with the camera taken as exact.
+
+    A camera whose true pose is off from its extrinsics by ``ε = (δt, δφ)`` (world frame,
+    rotation about its centre ``c``) sees the body as if it had moved by ``δp = -δt + [p - c]× δφ``,
+    ``δθ = -δφ``: so every corner of its frame shares the error ``H_pose e``, ``e ~ N(0, Σ)`` with
+    ``Σ = σ_t² diag(I, 0) + σ_φ² A Aᵀ``, ``A = [[p - c]×; -I]``. The corners' covariance is then
+    ``W⁻¹ + H_pose Σ H_poseᵀ``, whose inverse (Woodbury) is ``W - W H_pose K H_poseᵀ W`` with
+    ``K = (Σ⁻¹ + H_poseᵀ W H_pose)⁻¹``; ``K H_poseᵀ W r`` is the error ``e`` that best explains
+    residuals ``r``. All sets of one update come from one camera (one frame); with several
+    cameras the first's centre is used."""
+    sigma_t, sigma_phi = params.camera_position_sigma_m, math.radians(params.camera_rotation_sigma_deg)
+    if sigma_t <= 0.0 or sigma_phi <= 0.0 or not sets:
+        return None
+    T_cw = sets[0].T_cam_world
+    d = T_world_cube[:3, 3] + T_cw[:3, :3].T @ T_cw[:3, 3]        # p - c
+    A = np.vstack([np.array([[0.0, -d[2], d[1]], [d[2], 0.0, -d[0]], [-d[1], d[0], 0.0]]), -np.eye(3)])
+    sigma = sigma_phi**2 * (A @ A.T)
+    sigma[:3, :3] += sigma_t**2 * np.eye(3)
+    HtW = (weights[:, None] * H_pose).T
+    try:
+        K = np.linalg.inv(np.linalg.inv(sigma) + HtW @ H_pose)
+    except np.linalg.LinAlgError:
+        return None
+    return K, HtW
 
 
 def _without_face(sets: Sequence[CornerSet], index: int) -> list[CornerSet]:

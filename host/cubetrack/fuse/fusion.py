@@ -38,12 +38,14 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from cubetrack.core.cameras import CameraIntrinsics
 from cubetrack.core.errors import ParamsError
-from cubetrack.core.geometry import mean_rotation, quat_xyzw_from_R
+from cubetrack.core.geometry import invert_T, mean_rotation, quat_xyzw_from_R
 from cubetrack.core.layout import CubeLayout
 from cubetrack.core.params import check, check_at_least, check_non_negative, check_positive, param
 from cubetrack.core.records import CameraEstimate, CubeSighting, TrackedPose
 from cubetrack.estimate.match import match_faces
+from cubetrack.estimate.params import EstimatorParams
 from cubetrack.estimate.pose import estimate_cube
 from cubetrack.estimate.reprojection import CornerSet, corner_set
 from cubetrack.fuse.corner_filter import FilterParams, PoseFilter
@@ -173,6 +175,26 @@ class LatestEstimateFusion:
         )
 
 
+GATE_SIGMAS = 3.0  # the association gate grows by this many standard deviations of the predicted corners
+
+
+def prediction_gate_px(covariance: np.ndarray, T_world_cube: np.ndarray, T_world_cam: np.ndarray,
+                       intrinsics: CameraIntrinsics, layout: CubeLayout) -> float:
+    """How far (``GATE_SIGMAS`` standard deviations, pixels) the corners of a body predicted at
+    ``T_world_cube`` with ``covariance`` (6x6, ``[δp (m), δθ (rad)]``) may be from where they
+    project: the largest position spread plus the largest rotation spread times the body's
+    farthest corner, over the body's depth in the camera, times the focal length."""
+    position_var = float(np.linalg.eigvalsh(covariance[:3, :3])[-1])
+    rotation_var = float(np.linalg.eigvalsh(covariance[3:6, 3:6])[-1])
+    reach_m = float(np.sqrt(np.max(np.sum(layout.corners_m.reshape(-1, 3) ** 2, axis=1))))
+    depth_m = float((invert_T(T_world_cam) @ T_world_cube[:, 3])[2])
+    if depth_m <= 1e-3:
+        return 0.0
+    focal_px = float(np.sqrt(intrinsics.K[0, 0] * intrinsics.K[1, 1]))
+    spread_m = np.sqrt(max(position_var, 0.0)) + reach_m * np.sqrt(max(rotation_var, 0.0))
+    return float(GATE_SIGMAS * focal_px * spread_m / depth_m)
+
+
 def pose_record(sighting: CubeSighting, f: PoseFilter, now_s: float, cameras: tuple[str, ...],
                 markers: tuple[str, ...]) -> TrackedPose:
     """The filter's state after ``sighting`` as a pose (with its velocities and pose covariance)."""
@@ -226,10 +248,13 @@ class FilterFusion:
     START_WINDOW = 64  # a track start looks at most at this many sightings (the newest)
 
     def __init__(self, layouts: dict[str, CubeLayout], params: FusionParams = FusionParams(),
-                 filter_params: FilterParams = FilterParams()):
+                 filter_params: FilterParams = FilterParams(), estimator_params: EstimatorParams | None = None):
+        """``estimator_params``: how a camera's own cube pose is found where the filter needs one
+        (re-acquiring a track), as the per-camera estimates are."""
         self.layouts = layouts
         self.params = params
         self.filter_params = filter_params
+        self.estimator_params = estimator_params or EstimatorParams()
         self.state: dict[str, RobotState] = {r: RobotState() for r in layouts}
         self.history: dict[str, list[HistoryStep]] = {r: [] for r in layouts}
         self._keys: dict[str, list[tuple[float, str, int]]] = {r: [] for r in layouts}
@@ -391,14 +416,21 @@ class FilterFusion:
                 self._trails[robot] += self._trail_steps(robot, 0, n)
             del history[:n], keys[:n]
 
-    def _corners(self, sighting: CubeSighting, T_world_cube: np.ndarray) -> list[CornerSet]:
+    def _corners(self, sighting: CubeSighting, T_world_cube: np.ndarray,
+                 covariance: np.ndarray | None = None) -> list[CornerSet]:
         """The sighting's corners matched to faces where ``T_world_cube`` projects them: one set,
         taken at the capture time; under a rolling shutter (the camera's ``readout_s``) one set
-        per face, taken when the rows of its corners were (their mean row's time)."""
+        per face, taken when the rows of its corners were (their mean row's time). ``covariance``
+        (6x6 over ``[δp, δθ]``): how uncertain that pose is, which widens the association gate
+        (:func:`prediction_gate_px`) of a body whose ids are all distinct (where an id repeats, the
+        gate is what tells its faces apart: it stays ``association_gate_px``)."""
         intrinsics, t = sighting.intrinsics, sighting.capture_time_s
-        matches = match_faces(sighting.detections, self.layouts[sighting.robot], intrinsics,
-                              sighting.T_world_cam, T_world_cube, gate_px=self.params.association_gate_px,
-                              max_view_angle_deg=self.params.max_view_angle_deg)
+        layout = self.layouts[sighting.robot]
+        gate_px = self.params.association_gate_px
+        if covariance is not None and not layout.has_repeated_ids:  # a repeated id's face is told by the gate
+            gate_px += prediction_gate_px(covariance, T_world_cube, sighting.T_world_cam, intrinsics, layout)
+        matches = match_faces(sighting.detections, layout, intrinsics, sighting.T_world_cam, T_world_cube,
+                              gate_px=gate_px, max_view_angle_deg=self.params.max_view_angle_deg)
         if not matches:
             return []
         if intrinsics.readout_s <= 0:
@@ -423,7 +455,7 @@ class FilterFusion:
             return self._start(state, sighting, [s.sighting for s in window], now_s, record)
         f = state.filter.copy()
         f.predict(t)
-        corners = self._corners(sighting, f.T_world_cube)
+        corners = self._corners(sighting, f.T_world_cube, f.pose_covariance)
         outcome = "accepted sighting"
         if not (corners and f.update(corners).accepted):
             again = self._reacquire(sighting, f)
@@ -451,7 +483,8 @@ class FilterFusion:
         estimate = sighting.estimate or estimate_cube(
             sighting.detections, self.layouts[sighting.robot], sighting.intrinsics, sighting.T_world_cam,
             camera=sighting.camera, robot=sighting.robot, seq=sighting.seq,
-            capture_time_s=sighting.capture_time_s, arrival_time_s=sighting.arrival_time_s)
+            capture_time_s=sighting.capture_time_s, arrival_time_s=sighting.arrival_time_s,
+            params=self.estimator_params)
         if estimate is None or np.linalg.norm(estimate.T_world_cube[:3, 3] - f.position_m) > self.params.reacquire_m:
             return None
         corners = self._corners(sighting, estimate.T_world_cube)

@@ -19,7 +19,7 @@ import tomli_w
 from cubetrack.core.cameras import CameraExtrinsics, WorldBoard, WorldConfig, WorldMarker
 from cubetrack.core.errors import ConfigError, RecordingError
 from cubetrack.core.geometry import T_from_position_quat, position_quat_from_T
-from cubetrack.core.layout import DEFAULT_DICTIONARY, CubeLayout, read_layout
+from cubetrack.core.layout import DEFAULT_DICTIONARY, CubeLayout, pattern_collisions, read_layout
 from cubetrack.core.params import read_toml
 from cubetrack.io.files import atomic_write
 from cubetrack.io.recording import check_camera_name
@@ -228,6 +228,9 @@ def read_tracker_config(path: str | Path) -> TrackerConfig:
                 raise ConfigError(f"{where}: robot {r.name!r} uses {marker_key[0]} id {marker_key[1]}, already used "
                                   f"by {owner[marker_key]}; every robot needs ids of its own")
             owner[marker_key] = f"robot {r.name!r}"
+    collisions = pattern_collisions(owner)
+    if collisions:
+        raise ConfigError(f"{where}: {collisions[0]}")
     sections = {}
     for name, table in doc.items():
         if name in ("world", "cameras", "robots", "outputs"):

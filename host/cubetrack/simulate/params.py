@@ -63,6 +63,9 @@ class SimulationParams:
     world_margin_m: float = param(0.03, "white paper margin around the world marker, metres")
     cube_marker_id: int = param(1, "id of the cube's markers (first id with distinct_ids)")
     distinct_ids: bool = param(False, "give each cube face its own id instead of the paper's one id on five faces")
+    inverted_markers: bool = param(False, "the cube's markers printed inverted: white cells and border on a black "
+                                          "face (the world marker stays dark on white); the config written asks the "
+                                          "detector for inverted markers")
     cube_size_m: float = param(0.11, "side of the cube, metres")
     marker_size_m: float = param(0.08, "side of each cube marker's black square, metres")
     robot_size_m: tuple[float, ...] = param((0.30, 0.25, 0.20), "robot body length, width, height, metres")
@@ -186,10 +189,22 @@ class SimulationParams:
         with ``changes`` applied on top (e.g. ``cameras=5, seed=3`` or ``readout_ms=0``)."""
         return cls(**{**REALISTIC, **changes})
 
+    @classmethod
+    def rig(cls, **changes) -> SimulationParams:
+        """The real-rig preset (:data:`RIG`: the realistic preset plus what the rigs of real
+        footage have: 1280 x 720 webcams at 6 fps, inverted markers with distinct ids), with
+        ``changes`` applied on top."""
+        return cls(**{**REALISTIC, **RIG, **changes})
+
     @property
     def cube_centre_height_m(self) -> float:
         """Height of the cube frame's origin above the floor, metres."""
         return self.robot_size_m[2] + self.mast_height_m + self.cube_size_m / 2.0
+
+    @property
+    def robot_names(self) -> tuple[str, ...]:
+        """The simulated robots' names: ``robot`` alone, else ``robot1``, ``robot2``, ..."""
+        return ("robot",) if self.robots == 1 else tuple(f"robot{k + 1}" for k in range(self.robots))
 
     @property
     def cube_top_m(self) -> float:
@@ -230,4 +245,20 @@ REALISTIC: dict[str, object] = {
     "people": 2,
     # fast motion: a denser ground truth (nearest-sample scoring)
     "ground_truth_hz": 1000.0,
+}
+
+
+# The real-rig preset on top of the realistic one (docs/simulation.md): what the rig of
+# ../shared/data/real/caliscope-4cam has that the realistic preset lacks (its README): 1280 x 720
+# webcams (focal length as its calibrated cameras', 640-900 px) at about 6 fps, free-running
+# (unsynchronised: each camera's own clock and capture phase, as every preset), markers printed
+# inverted, each with its own id. Free hand-held motion is not simulated (the robot's cube tilts
+# only with the floor and its vibration).
+RIG: dict[str, object] = {
+    "image_width_px": 1280,
+    "image_height_px": 720,
+    "focal_px": 760.0,
+    "fps": 6.0,
+    "inverted_markers": True,
+    "distinct_ids": True,
 }

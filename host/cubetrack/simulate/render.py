@@ -69,6 +69,7 @@ class MarkerTexture:
 
     dictionary: str
     marker_id: int
+    inverted: bool = False  # printed white-on-black: every cell and the border swap albedos
 
     @property
     def cells(self) -> int:
@@ -76,13 +77,13 @@ class MarkerTexture:
 
     def image(self, per_cell_x: int, per_cell_y: int) -> np.ndarray:
         """The albedo texture with ``per_cell_*`` texels per cell (float32, row 0 = marker top)."""
-        return _marker_texture(self.dictionary, self.marker_id, per_cell_x, per_cell_y)
+        return _marker_texture(self.dictionary, self.marker_id, per_cell_x, per_cell_y, self.inverted)
 
 
 @lru_cache(maxsize=256)
-def _marker_texture(dictionary: str, marker_id: int, cx: int, cy: int) -> np.ndarray:
+def _marker_texture(dictionary: str, marker_id: int, cx: int, cy: int, inverted: bool = False) -> np.ndarray:
     bits = _marker_bits(dictionary, marker_id)
-    tex = np.where(bits > 127, np.float32(WHITE_ALBEDO), np.float32(BLACK_ALBEDO))
+    tex = np.where((bits > 127) != inverted, np.float32(WHITE_ALBEDO), np.float32(BLACK_ALBEDO))
     return np.ascontiguousarray(np.repeat(np.repeat(tex, cy, axis=0), cx, axis=1))
 
 

@@ -34,7 +34,16 @@ from cubetrack.simulate.motion import (
     plan_people,
 )
 from cubetrack.simulate.params import SimulationParams
-from cubetrack.simulate.render import WHITE_ALBEDO, Floor, MarkerTexture, Quad, Solid, box_faces, project_points
+from cubetrack.simulate.render import (
+    BLACK_ALBEDO,
+    WHITE_ALBEDO,
+    Floor,
+    MarkerTexture,
+    Quad,
+    Solid,
+    box_faces,
+    project_points,
+)
 from cubetrack.simulate.timing import DeviceClock, make_clock
 
 ROBOT_ALBEDO = 0.15
@@ -44,7 +53,6 @@ WALL_ALBEDO = 0.6
 HEAD_ALBEDO = 0.35
 MAST_SIDE_M = 0.03
 LIGHT_ELEVATION_DEG = 50.0  # the directional light of face_shading comes from this high up
-ROBOT_NAME = "robot"  # the name of a lone robot; several are robot1, robot2, ...
 
 # Independent random streams: (seed, purpose, index) -> Generator. Adding a camera or changing
 # one stage's use of randomness leaves the other streams unchanged.
@@ -163,9 +171,10 @@ class Scene:
         for m, b in zip(layout.markers, (built or layout).markers, strict=True):
             T = T_cube @ m.T_cube_marker
             shade = self.shade(T[:3, 2])
-            faces.append(Quad(T, (p.cube_size_m, p.cube_size_m), WHITE_ALBEDO, shade=shade))
+            faces.append(Quad(T, (p.cube_size_m, p.cube_size_m), BLACK_ALBEDO if p.inverted_markers else WHITE_ALBEDO,
+                              shade=shade))
             decals.append(Quad(T_cube @ b.T_cube_marker, (b.size_m, b.size_m),
-                               texture=MarkerTexture(layout.dictionary, b.marker_id), shade=shade))
+                               texture=MarkerTexture(layout.dictionary, b.marker_id, p.inverted_markers), shade=shade))
         # the face without a marker (the bottom) is never seen from above; the cube is closed anyway
         solids.append(Solid(tuple(faces), tuple(decals)))
         return tuple(solids)
@@ -228,11 +237,6 @@ def camera_pose(azimuth_rad: float, p: SimulationParams, rng: np.random.Generato
     return make_T(R, position)
 
 
-
-def robot_names(p: SimulationParams) -> tuple[str, ...]:
-    """The simulated robots' names: ``robot`` alone, else ``robot1``, ``robot2``, ..."""
-    return (ROBOT_NAME,) if p.robots == 1 else tuple(f"robot{k + 1}" for k in range(p.robots))
-
 def build_scene(p: SimulationParams) -> Scene:
     """The arena for a parameter set; raises SimulationError when a camera cannot see the whole
     world marker (calibration would be impossible)."""
@@ -253,7 +257,7 @@ def build_scene(p: SimulationParams) -> Scene:
             terrain = Terrain(1e-3 * p.floor_bumps_mm, 1e-3 * p.bounce_mm, math.radians(p.wobble_deg),
                               (p.robot_size_m[0], p.robot_size_m[1]), rng_for(p.seed, STREAM_FLOOR),
                               rng_for(p.seed, STREAM_VIBRATION, k))
-        robots.append(SimRobot(robot_names(p)[k], layout, path,
+        robots.append(SimRobot(p.robot_names[k], layout, path,
                                built_layout(layout, p, rng_for(p.seed, STREAM_BUILD, k)), terrain))
     cameras = []
     for i in range(p.cameras):

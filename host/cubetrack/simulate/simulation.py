@@ -303,22 +303,10 @@ def simulate(params: SimulationParams, out: str | Path, progress: Progress | Non
              for i, c in enumerate(scene.cameras)]
     clock_plans = [plan_clock_samples(p, c.clock, rng_for(p.seed, STREAM_SYNC, i), start, end)
                    for i, c in enumerate(scene.cameras)]
-    cal_plans: list[tuple[CaptureTruth, ...]] = [() for _ in scene.cameras]
-    cal_clock_plans: list[tuple] = [() for _ in scene.cameras]
     if cal_dir is not None:
-        # long enough for the wanted number of frames even with drops and skips
-        span = p.calibration_frames / p.fps / max(0.2, 1.0 - p.drop_rate - 2 * p.spike_rate) * 1.5 + 5.0
-        cal_start = start - _GAP_BEFORE_RECORDING_S - span
-        for i, c in enumerate(scene.cameras):
-            cal_plans[i] = plan_captures(p, c.clock, c.capture_phase_s, rng_for(p.seed, STREAM_CAL_TIMING, i),
-                                         cal_start, start - _GAP_BEFORE_RECORDING_S, p.calibration_frames)
-            got = [x.arrival_host_s for x in cal_plans[i] if x.arrival_host_s is not None]  # delivered
-            if len(got) < p.calibration_frames:
-                log.warning("%s: only %d of %d calibration frames arrive at drop_rate %g",
-                            c.name, len(got), p.calibration_frames, p.drop_rate)
-            last = max(got, default=cal_start)
-            cal_clock_plans[i] = plan_clock_samples(p, c.clock, rng_for(p.seed, STREAM_CAL_SYNC, i),
-                                                    cal_start, last + 0.5)
+        cal_plans, cal_clock_plans = _calibration_plans(p, scene, start)
+    else:
+        cal_plans, cal_clock_plans = [() for _ in scene.cameras], [() for _ in scene.cameras]
 
     if workers is None:
         workers = min(4, os.cpu_count() or 1)
@@ -335,12 +323,7 @@ def simulate(params: SimulationParams, out: str | Path, progress: Progress | Non
         jobs = [job for i in range(len(scene.cameras))
                 for job in _frame_jobs(scene, i, plans[i], True, STREAM_IMAGE, STREAM_GAIN, STREAM_EXPOSURE)]
         _write_frames(writer, scene, jobs, make, workers, "recording", progress)
-        times = start + np.arange(int(round(p.duration_s * p.ground_truth_hz)) + 1) / p.ground_truth_hz
-        ground_truths = {}
-        for k, robot in enumerate(scene.robots):
-            poses = [position_quat_from_T(scene.T_world_cube(t - start, k)) for t in times]
-            ground_truths[robot.name] = Trajectory(times, np.array([q[0] for q in poses]),
-                                                   np.array([q[1] for q in poses]))
+        ground_truths = _ground_truths(p, scene)
         write_tum(next(iter(ground_truths.values())), writer.ground_truth_path)
         if len(scene.robots) > 1:
             (out / GROUND_TRUTH_DIR).mkdir(exist_ok=True)
@@ -367,6 +350,40 @@ def simulate(params: SimulationParams, out: str | Path, progress: Progress | Non
     return SimulationResult(out, cal_dir, out / CONFIG_FILE, p, cameras, scene.world, ground_truths, scene)
 
 
+def _calibration_plans(p: SimulationParams, scene: Scene, start: float
+                       ) -> tuple[list[tuple[CaptureTruth, ...]], list[tuple]]:
+    """Each camera's captures and clock samples of the empty-arena calibration recording, which
+    ends ``_GAP_BEFORE_RECORDING_S`` before the tracking recording's ``start``."""
+    cal_plans: list[tuple[CaptureTruth, ...]] = [() for _ in scene.cameras]
+    cal_clock_plans: list[tuple] = [() for _ in scene.cameras]
+    # long enough for the wanted number of frames even with drops and skips
+    span = p.calibration_frames / p.fps / max(0.2, 1.0 - p.drop_rate - 2 * p.spike_rate) * 1.5 + 5.0
+    cal_start = start - _GAP_BEFORE_RECORDING_S - span
+    for i, c in enumerate(scene.cameras):
+        cal_plans[i] = plan_captures(p, c.clock, c.capture_phase_s, rng_for(p.seed, STREAM_CAL_TIMING, i),
+                                     cal_start, start - _GAP_BEFORE_RECORDING_S, p.calibration_frames)
+        got = [x.arrival_host_s for x in cal_plans[i] if x.arrival_host_s is not None]  # delivered
+        if len(got) < p.calibration_frames:
+            log.warning("%s: only %d of %d calibration frames arrive at drop_rate %g",
+                        c.name, len(got), p.calibration_frames, p.drop_rate)
+        last = max(got, default=cal_start)
+        cal_clock_plans[i] = plan_clock_samples(p, c.clock, rng_for(p.seed, STREAM_CAL_SYNC, i),
+                                                cal_start, last + 0.5)
+    return cal_plans, cal_clock_plans
+
+
+def _ground_truths(p: SimulationParams, scene: Scene) -> dict[str, Trajectory]:
+    """Each robot's cube trajectory at ``ground_truth_hz`` over the tracking recording."""
+    start = p.start_unix_s
+    times = start + np.arange(int(round(p.duration_s * p.ground_truth_hz)) + 1) / p.ground_truth_hz
+    ground_truths = {}
+    for k, robot in enumerate(scene.robots):
+        poses = [position_quat_from_T(scene.T_world_cube(t - start, k)) for t in times]
+        ground_truths[robot.name] = Trajectory(times, np.array([q[0] for q in poses]),
+                                               np.array([q[1] for q in poses]))
+    return ground_truths
+
+
 def _write_session_files(out: Path, scene: Scene) -> None:
     """cube.toml, config.toml, true_extrinsics.toml, simulation.toml and the truth the tracker
     is not told: true_cube.toml (the cube as built) and true_camera_info/ (true intrinsics)."""
@@ -381,7 +398,10 @@ def _write_session_files(out: Path, scene: Scene) -> None:
     for c in scene.cameras:
         write_camera_info(c.intrinsics, out / TRUE_CAMERA_INFO_DIR / f"{c.name}.yaml")
     cameras = [CameraConfig(c.name, "", out / "camera_info" / f"{c.name}.yaml") for c in scene.cameras]
-    write_toml(tracker_config_to_table(scene.world, cameras, robots, relative_to=out), out / CONFIG_FILE)
+    config = tracker_config_to_table(scene.world, cameras, robots, relative_to=out)
+    if p.inverted_markers:
+        config["detector"] = {"detect_inverted_marker": True}
+    write_toml(config, out / CONFIG_FILE)
     write_extrinsics({c.name: CameraExtrinsics(c.T_world_cam, method="ground truth (simulated)")
                       for c in scene.cameras}, out / TRUE_EXTRINSICS_FILE)
     truth = {}

@@ -77,7 +77,8 @@ def serve_outputs(factory: Callable[[], list[Sink]], conn: Connection, log_level
             for item in batch:
                 kind, value = unpack_output(*item)
                 getattr(outputs, kind)(value)
-    finally:
+    finally:  # a SIGTERM (or the parent's death) while closing must not cut an MCAP file short
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
         outputs.close()  # each output says what it dropped
 
 

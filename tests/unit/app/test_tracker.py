@@ -82,9 +82,9 @@ class DetectorSpy:
         self.detector = detector
         self.calls: list[list | None] = []
 
-    def detect(self, gray, regions=None, lens=None):
+    def find(self, gray, regions=None, lens=None):
         self.calls.append(None if regions is None else list(regions))
-        return self.detector.detect(gray, regions, lens)
+        return self.detector.find(gray, regions, lens)
 
 
 def tracker(params: StageParams, robots=(RED, BLUE), extrinsics=EXTRINSICS, **kw) -> Tracker:

@@ -18,7 +18,8 @@ from cubetrack.calib.extrinsics import (
 from cubetrack.core.cameras import CameraIntrinsics, WorldConfig
 from cubetrack.core.geometry import rotation_angle, shoelace_area
 from cubetrack.core.records import Detection, Frame
-from cubetrack.detect.detector import CornerRefinement, Detector, DetectorParams, decode_gray, refine_corners_edges
+from cubetrack.detect.detector import CornerRefinement, Detector, DetectorParams, decode_gray
+from cubetrack.detect.edge_fit import refine_corners_edges
 
 INTR = CameraIntrinsics(640, 480, K, np.zeros(5))
 

@@ -11,7 +11,8 @@ from cubetrack.calib.extrinsics import EDGE_FIT
 from cubetrack.calib.marker_fit import TemplateFitParams, square_homography, template_fitted_corners
 from cubetrack.core.cameras import CameraIntrinsics
 from cubetrack.core.geometry import undistort_points
-from cubetrack.detect.detector import aruco_dictionary, refine_corners_edges
+from cubetrack.detect.detector import aruco_dictionary
+from cubetrack.detect.edge_fit import refine_corners_edges
 
 DICT, MARKER_ID, SIZE = "DICT_4X4_50", 1, (200, 150)
 SS = 6  # render samples per pixel along each axis

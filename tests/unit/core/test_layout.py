@@ -45,3 +45,30 @@ def test_bad_layout_names_the_file(tmp_path):
 def test_marker_bigger_than_cube_is_refused():
     with pytest.raises(ConfigError):
         paper_cube_layout(cube_size_m=0.05, marker_size_m=0.08)
+
+
+def test_markers_of_different_dictionaries_with_one_pattern_are_named():
+    from cubetrack.core.layout import marker_bits, pattern_collisions
+
+    assert np.array_equal(marker_bits("DICT_4X4_50", 0), marker_bits("DICT_4X4_1000", 0))
+    owners = {("DICT_4X4_50", 0): "the world marker", ("DICT_4X4_1000", 0): "robot 'board'",
+              ("DICT_4X4_1000", 7): "robot 'other'", ("DICT_5X5_50", 0): "robot 'big'"}
+    (line,) = pattern_collisions(owners)
+    assert "the world marker (DICT_4X4_50 id 0)" in line and "robot 'board' (DICT_4X4_1000 id 0)" in line
+    # the predefined 4x4 dictionaries share their first patterns
+    assert pattern_collisions({("DICT_4X4_50", 3): "a", ("DICT_4X4_100", 3): "b"})
+    with pytest.raises(ConfigError, match="ids 0..49"):
+        marker_bits("DICT_4X4_50", 50)
+
+
+def test_a_config_whose_world_marker_is_a_body_marker_of_another_dictionary_is_refused(tmp_path):
+    from cubetrack.io.config import read_tracker_config
+
+    layout = paper_cube_layout(dictionary="DICT_4X4_1000", marker_id=0)
+    write_layout(layout, tmp_path / "cube.toml")
+    (tmp_path / "config.toml").write_text('[[robots]]\nname = "bot"\nlayout = "cube.toml"\n')
+    collision = r"robot 'bot' \(DICT_4X4_1000 id 0\) and the world marker \(DICT_4X4_50 id 0\)"
+    with pytest.raises(ConfigError, match=collision):
+        read_tracker_config(tmp_path / "config.toml")
+    write_layout(paper_cube_layout(dictionary="DICT_4X4_1000", marker_id=60), tmp_path / "cube.toml")
+    assert read_tracker_config(tmp_path / "config.toml").robots[0].layout.ids == {60}

@@ -78,3 +78,17 @@ def test_bad_input_is_one_line_and_exit_1(files, capsys, make_args, needle):
     assert cli_main.main(make_args(files)) == 1
     err = capsys.readouterr().err
     assert needle in err and err.count("\n") == 1 and err.startswith("cubetrack detect: error:")
+
+
+def test_detect_inverted_finds_a_white_on_black_marker_with_its_pose(files, capsys):
+    folder, image, ros, _opencv = files
+    negative = folder / "negative.png"
+    cv2.imwrite(str(negative), 255 - cv2.imread(str(image), cv2.IMREAD_GRAYSCALE))
+    args = ["detect", str(negative), "--camera-info", str(ros), "--dictionary", "DICT_6X6_250", "--marker-size", "0.05"]
+    assert cli_main.main(args) == 0
+    assert json.loads(capsys.readouterr().out)["markers"] == []
+    assert cli_main.main([*args, "--inverted"]) == 0
+    out = json.loads(capsys.readouterr().out)
+    [marker] = out["markers"]
+    assert marker["id"] == 17 and out["dropped"] == {}
+    assert np.allclose(marker["pose"]["position"], T_CAM_MARKER[:3, 3], atol=2e-3)

@@ -27,8 +27,8 @@ from cubetrack.detect.detector import (
     dictionary_names,
     is_valid_quad,
     merged_boxes,
-    refine_corners_edges,
 )
+from cubetrack.detect.edge_fit import refine_corners_edges
 
 K = np.array([[520.0, 0.0, 319.5], [0.0, 520.0, 239.5], [0.0, 0.0, 1.0]])
 INTR = CameraIntrinsics(640, 480, K, np.zeros(5))

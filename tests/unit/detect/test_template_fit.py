@@ -17,7 +17,6 @@ from cubetrack.detect.template_fit import (
     LensMap,
     distort_px,
     fast_template_corners,
-    lens_map,
     square_homography,
     square_homography_derivatives,
 )
@@ -118,7 +117,7 @@ def test_a_marker_the_fit_cannot_frame_keeps_the_edge_fit_corners():
     image = render(oblique_square((25.0, 120.0), 18.0, 0.9, 3.0), lens)
     edge = detected_corners(image, CornerRefinement.EDGE, lens)
     np.testing.assert_array_equal(detected_corners(image, CornerRefinement.TEMPLATE, lens), edge)
-    assert fast_template_corners(image, edge, DICT, MARKER_ID, lens_map(lens)) is None
+    assert fast_template_corners(image, edge, DICT, MARKER_ID, LensMap(lens)) is None
 
 
 def test_homography_derivatives_match_finite_differences():
@@ -143,3 +142,20 @@ def test_lens_map_reads_the_undistortion(shape):
     for p, tolerance in ((np.rint(points), 2e-4), (points, 0.03)):
         np.testing.assert_allclose(mapping.undistort(p), undistort_points(p, lens.K, lens.dist, lens.K), atol=tolerance)
     np.testing.assert_array_equal(LensMap(None).undistort(points), points)
+
+
+def test_the_detector_owns_one_lens_map_per_camera():
+    """The template fit's lens maps live in the detector, keyed by the intrinsics' values: equal
+    intrinsics (another object, e.g. re-read from file) share one map; another camera gets its own;
+    another detector builds its own (no process-wide cache)."""
+    lens = camera()
+    image = render(oblique_square(*SCENES[0]), lens)
+    detector = Detector(DetectorParams(corner_refinement=CornerRefinement.TEMPLATE), [DICT])
+    first = detector.detect(image, lens=lens)
+    same = CameraIntrinsics(lens.width, lens.height, lens.K.copy(), lens.dist.copy())
+    np.testing.assert_array_equal(detector.detect(image, lens=same)[0].corners_px, first[0].corners_px)
+    assert len(detector._lens_maps) == 1
+    other = CameraIntrinsics(lens.width, lens.height, lens.K.copy(), np.zeros(5))
+    detector.detect(image, lens=other)
+    assert len(detector._lens_maps) == 2
+    assert not Detector(DetectorParams(corner_refinement=CornerRefinement.TEMPLATE))._lens_maps

@@ -245,3 +245,24 @@ def test_people_walk_through_the_view_and_hide_what_is_behind_them():
             assert (1.0 - p.face_shading) * person.albedo - 0.01 < image[v, u] < person.albedo + 0.01
             found = True
     assert found
+
+
+def test_an_inverted_marker_renders_white_on_black_where_the_detector_finds_it():
+    """inverted_markers: the marker texture's cells and border swap albedos on a black face; the
+    detector finds it (with detect_inverted_marker only) at its projected corners."""
+    from cubetrack.detect.detector import Detector, DetectorParams
+    from cubetrack.simulate.render import BLACK_ALBEDO, MarkerTexture, form_image
+
+    R = np.diag([1.0, -1.0, -1.0])
+    T_marker = T_WORLD_CAM @ make_T(R @ cv2.Rodrigues(np.array([0.3, -0.2, 0.1]))[0], [0.02, -0.01, 0.6])
+    face = Quad(T_marker @ make_T(np.eye(3), [0.0, 0.0, -1e-4]), (0.11, 0.11), BLACK_ALBEDO)
+    decal = Quad(T_marker, (0.08, 0.08), texture=MarkerTexture("DICT_4X4_50", 5, inverted=True))
+    albedo = Renderer(View(PINHOLE, T_WORLD_CAM, 4), Floor(np.full((8, 8), 0.5, np.float32), 4.0, 0.0),
+                      (Solid((face,), (decal,)),)).background
+    gray = form_image(albedo, np.ones_like(albedo), 0.6, 1.0, np.random.default_rng(0))
+    assert MarkerTexture("DICT_4X4_50", 5, inverted=True).image(1, 1)[0, 0] > 0.5   # the border is white
+    assert Detector(DetectorParams()).detect(gray) == ()
+    (found,) = Detector(DetectorParams(detect_inverted_marker=True)).detect(gray)
+    truth = project_points(PINHOLE, T_WORLD_CAM, (T_marker @ np.array(
+        [[-0.04, 0.04, 0, 1], [0.04, 0.04, 0, 1], [0.04, -0.04, 0, 1], [-0.04, -0.04, 0, 1]]).T).T[:, :3])
+    assert found.marker_id == 5 and np.abs(found.corners_px - truth).max() < 0.3

@@ -4,8 +4,14 @@ the session, a dead output process never reaching the pipeline."""
 import os
 import signal
 import socket
+import subprocess
+import sys
+import textwrap
+import time
+from pathlib import Path
 
 import pytest
+from foxglove_client import read_mcap
 from sink_helpers import free_port, tracked
 from vrpn_client import TrackerClient
 
@@ -71,6 +77,43 @@ def test_an_output_process_that_dies_stops_without_reaching_the_pipeline(tmp_pat
         decoupled._thread.join(10)
         assert decoupled.failed == "the outputs' process has ended"
     assert "output outputs process failed" in caplog.text
+
+
+def test_when_the_tracker_is_killed_the_output_process_ends_with_its_mcap_file_whole(tmp_path):
+    """A tracker process (here a script) feeds 20 poses to an MCAP output in its output process,
+    then is killed with SIGKILL: the output process ends by itself (cubetrack.core.lifetime) and
+    closes the file first, so all 20 poses read back."""
+    script = tmp_path / "tracker.py"
+    script.write_text(textwrap.dedent(f"""
+        import sys, time
+        from pathlib import Path
+        sys.path.insert(0, {str(Path(__file__).parent)!r})
+        from sink_helpers import tracked
+        from cubetrack.app.outputs import OutputSpec, start_outputs
+        from cubetrack.core.cameras import WorldConfig
+        from cubetrack.core.layout import paper_cube_layout
+        from cubetrack.sink.base import Outputs, SessionInfo
+
+        if __name__ == "__main__":  # (the output process is spawned: it imports this file)
+            (sink,) = start_outputs([OutputSpec({{"type": "mcap", "path": "s.mcap"}}, Path({str(tmp_path)!r}), "t")])
+            outputs = Outputs([sink])
+            outputs.open(SessionInfo(WorldConfig(), (), {{"robot": paper_cube_layout()}}))
+            for i in range(20):
+                outputs.pose(tracked("robot", i))
+            time.sleep(1.0)  # handed over
+            print(sink._process.pid, flush=True)
+            time.sleep(120)
+    """))
+    tracker = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, text=True)
+    child = int(tracker.stdout.readline())
+    tracker.kill()
+    tracker.wait()
+    deadline = time.monotonic() + 20
+    while Path(f"/proc/{child}").exists() and Path(f"/proc/{child}/stat").read_text().split(") ")[1][0] != "Z":
+        assert time.monotonic() < deadline, "the output process outlived its tracker"
+        time.sleep(0.1)
+    _, messages = read_mcap(tmp_path / "s.mcap")
+    assert len(messages["/robots/robot/pose"]) == 20
 
 
 def test_items_cross_the_pipe_as_compact_tuples_and_come_back_equal():

@@ -75,6 +75,8 @@ void Console::execute(const char* line, size_t len) {
         cmd_set(args, args_len);
         return;
     } else if (is(line, cmd, "save")) {
+        SettingResult whole = settings_check(host_.edited_settings());
+        if (!whole.ok()) return error(whole.code, whole.message);
         if (!host_.save_settings()) return error(kErrStorage, "could not write the settings to flash");
     } else if (is(line, cmd, "factory-reset")) {
         if (!host_.factory_reset()) return error(kErrStorage, "could not write the settings to flash");

@@ -31,6 +31,8 @@ class Camera {
 public:
     // Sequence number of the newest captured frame, 0 before the first one.
     virtual uint32_t latest_seq() = 0;
+    // Frames that arrived empty since boot: the JPEG did not fit its buffer.
+    virtual uint32_t empty_frames() = 0;
     // Lend the newest frame. False when there is none yet or no free lease.
     virtual bool acquire_latest(Frame& out) = 0;
     virtual void release(int lease) = 0;
@@ -46,6 +48,7 @@ enum class NetEventKind : uint8_t {
     Accepted,       // a client connected on `cid`
     Data,           // `len` bytes for `cid` were copied into the caller's buffer
     Closed,         // the peer of `cid` closed or reset
+    Failed,         // the module failed the connection `cid` (or data sent to it): close it
     LinkLost,       // the access point dropped us (disassociation)
     ModuleRebooted  // the Wi-Fi module restarted on its own
 };
@@ -56,7 +59,10 @@ struct NetEvent {
     uint16_t len;
 };
 
-enum class WriteStatus : uint8_t { Ok, ClientGone, LinkFailure };
+// Ok with 0 accepted: refused for now (the module's buffer is full); try
+// again later, paced. Busy: the module has a message waiting; poll() first,
+// then write again at once.
+enum class WriteStatus : uint8_t { Ok, Busy, ClientGone, LinkFailure };
 
 struct WriteResult {
     WriteStatus status;
@@ -71,7 +77,7 @@ public:
     // Closes the server and every client connection.
     virtual void close_all() = 0;
     // Returns at most one pending event without blocking. Data is copied into
-    // buf (at most cap bytes).
+    // buf (at most cap bytes). None only when nothing waits.
     virtual NetEvent poll(uint8_t* buf, uint16_t cap) = 0;
     virtual WriteResult write(uint8_t cid, const uint8_t* data, uint16_t len) = 0;
     virtual void close(uint8_t cid) = 0;

@@ -15,7 +15,7 @@ const int kEventsPerServe = 8;
 }  // namespace
 
 HttpServer::HttpServer(Network& net, Camera& camera, Clock& clock)
-    : net_(net), camera_(camera), clock_(clock), frames_sent_(0), frames_dropped_(0) {
+    : net_(net), camera_(camera), clock_(clock), rejected_head_(0), rejected_count_(0), frames_sent_(0), frames_dropped_(0) {
     for (size_t i = 0; i < kMaxClients; ++i) {
         slots_[i].state = SlotState::Free;
         slots_[i].lease = kNoLease;
@@ -54,6 +54,7 @@ void HttpServer::drop_all() {
     for (size_t i = 0; i < kMaxClients; ++i) {
         if (slots_[i].state != SlotState::Free) free_slot(slots_[i], false);
     }
+    rejected_count_ = 0;
 }
 
 ServeResult HttpServer::serve(const NodeStatus& status) {
@@ -66,16 +67,19 @@ ServeResult HttpServer::serve(const NodeStatus& status) {
         switch (ev.kind) {
         case NetEventKind::Accepted: on_accepted(ev.cid, now); break;
         case NetEventKind::Data: on_data(ev.cid, ev.len, status, now); break;
-        case NetEventKind::Closed: on_closed(ev.cid); break;
+        case NetEventKind::Closed: on_closed(ev.cid, false); break;
+        case NetEventKind::Failed: on_closed(ev.cid, true); break;
         case NetEventKind::LinkLost:
         case NetEventKind::ModuleRebooted: r.link_lost = true; return r;
         case NetEventKind::None: break;
         }
     }
+    send_rejections();
     for (size_t i = 0; i < kMaxClients; ++i) {
         Slot& s = slots_[i];
         if (s.state == SlotState::StreamWaiting) start_next_frame(s, now);
-        if (s.state == SlotState::Sending || s.state == SlotState::StreamSending) {
+        bool sending = s.state == SlotState::Sending || s.state == SlotState::StreamSending;
+        if (sending && deadline_reached(now, s.retry_at_ms)) {
             r.progressed |= pump(s, now, r.link_lost);
             if (r.link_lost) return r;
         } else if (s.state == SlotState::Reading && deadline_reached(now, s.deadline_ms)) {
@@ -99,13 +103,30 @@ void HttpServer::on_accepted(uint8_t cid, uint32_t now) {
         s.lease = kNoLease;
         s.seg_count = 0;
         s.deadline_ms = now + kRequestTimeoutMs;
+        s.retry_at_ms = now;
+        s.retry_ms = kFirstWriteRetryMs;
         return;
     }
-    // No free slot: answer 503 in one write, best effort, and hang up.
-    TextBuf out(reinterpret_cast<char*>(io_), sizeof io_);
-    write_error_response(out, 503);
-    net_.write(cid, io_, static_cast<uint16_t>(out.size()));
-    net_.close(cid);
+    // No free slot: a 503 once the module takes it (the oldest waiting one
+    // is dropped unanswered when more than kMaxClients wait).
+    if (rejected_count_ == kMaxClients) close_first_rejected();
+    rejected_[(rejected_head_ + rejected_count_++) % kMaxClients] = cid;
+}
+
+void HttpServer::close_first_rejected() {
+    net_.close(rejected_[rejected_head_]);
+    rejected_head_ = static_cast<uint8_t>((rejected_head_ + 1) % kMaxClients);
+    --rejected_count_;
+}
+
+void HttpServer::send_rejections() {
+    while (rejected_count_ > 0) {
+        TextBuf out(reinterpret_cast<char*>(io_), sizeof io_);
+        write_error_response(out, 503);
+        WriteResult w = net_.write(rejected_[rejected_head_], io_, static_cast<uint16_t>(out.size()));
+        if (w.status == WriteStatus::Busy) return;  // read what waits first
+        close_first_rejected();  // taken, refused or gone: the 503 was a best effort
+    }
 }
 
 void HttpServer::on_data(uint8_t cid, uint16_t len, const NodeStatus& status, uint32_t now) {
@@ -114,9 +135,11 @@ void HttpServer::on_data(uint8_t cid, uint16_t len, const NodeStatus& status, ui
     if (s->parser.feed(io_, len) != ParseStatus::Incomplete) respond(*s, status, now);
 }
 
-void HttpServer::on_closed(uint8_t cid) {
+// A peer that closed needs nothing more; a connection the module failed (a
+// lost chunk, a socket failure) is closed on our side too.
+void HttpServer::on_closed(uint8_t cid, bool close_connection) {
     Slot* s = find(cid);
-    if (s) free_slot(*s, false);
+    if (s) free_slot(*s, close_connection);
 }
 
 void HttpServer::queue(Slot& s, size_t text_len, const uint8_t* body, uint32_t body_len, const char* trailer,
@@ -231,16 +254,23 @@ bool HttpServer::pump(Slot& s, uint32_t now, bool& link_lost) {
         return false;
     }
     WriteResult w = net_.write(s.cid, io_, n);
+    if (w.status == WriteStatus::Busy) return false;  // the next serve() reads what waits first
     if (w.status != WriteStatus::Ok) {
         link_lost = w.status == WriteStatus::LinkFailure;
         free_slot(s, w.status == WriteStatus::ClientGone);
         return true;
     }
     if (w.accepted == 0) {
-        if (deadline_reached(now, s.deadline_ms)) free_slot(s, true);
+        if (deadline_reached(now, s.deadline_ms)) {
+            free_slot(s, true);
+            return true;
+        }
+        s.retry_at_ms = now + s.retry_ms;
+        s.retry_ms = s.retry_ms * 2 > kMaxWriteRetryMs ? kMaxWriteRetryMs : s.retry_ms * 2;
         return false;
     }
     s.deadline_ms = now + kStallTimeoutMs;
+    s.retry_ms = kFirstWriteRetryMs;
     uint32_t left = w.accepted;
     while (left > 0) {
         uint32_t in_seg = s.segs[s.seg_index].len - s.seg_offset;
@@ -280,6 +310,7 @@ void HttpServer::write_status_json(TextBuf& out, const NodeStatus& st) {
     out.add(",\"measured\":").add_fixed(st.fps_measured_milli, 3).add('}');
     out.add(",\"frames_sent\":").add_uint(frames_sent_);
     out.add(",\"frames_dropped\":").add_uint(frames_dropped_);
+    out.add(",\"frames_empty\":").add_uint(st.frames_empty);
     out.add(",\"clients\":").add_uint(streaming_count());
     out.add(",\"jpeg_quality\":").add_uint(st.jpeg_quality);
     out.add(",\"width\":").add_uint(st.width);

@@ -13,7 +13,12 @@ namespace cubecam {
 
 const size_t kClientTextCap = 1024;   // response head / small body / part header per client
 const uint32_t kRequestTimeoutMs = 5000;
-const uint32_t kStallTimeoutMs = 10000;
+const uint32_t kStallTimeoutMs = 10000;  // a client that takes no byte for this long is dropped
+// A write the module refused is tried again after 5 ms, then 10, 20... up to
+// 160 ms while it keeps refusing: a stalled client costs the others little
+// (each refusal holds the loop for the library's ~6 ms of retries).
+const uint32_t kFirstWriteRetryMs = 5;
+const uint32_t kMaxWriteRetryMs = 160;
 
 // What /status and / report besides the server's own counters.
 struct NodeStatus {
@@ -27,6 +32,7 @@ struct NodeStatus {
     uint16_t width;
     uint16_t height;
     const char* last_error;        // "" when none
+    uint32_t frames_empty;         // frames that overflowed the JPEG buffer since boot
 };
 
 struct ServeResult {
@@ -71,11 +77,16 @@ private:
         uint32_t fps_cap_tenths;
         uint32_t next_frame_ms;
         uint32_t deadline_ms;
+        uint32_t retry_at_ms;  // a refused write is tried again from then
+        uint32_t retry_ms;     // the wait after the next refusal
     };
 
     void on_accepted(uint8_t cid, uint32_t now);
+    // Answers 503 to the clients that found no free slot, once the module takes it.
+    void send_rejections();
+    void close_first_rejected();
     void on_data(uint8_t cid, uint16_t len, const NodeStatus& status, uint32_t now);
-    void on_closed(uint8_t cid);
+    void on_closed(uint8_t cid, bool close_connection);
     void respond(Slot& s, const NodeStatus& status, uint32_t now);
     void start_next_frame(Slot& s, uint32_t now);
     bool pump(Slot& s, uint32_t now, bool& link_lost);
@@ -91,6 +102,9 @@ private:
     Camera& camera_;
     Clock& clock_;
     Slot slots_[kMaxClients];
+    uint8_t rejected_[kMaxClients];  // cids waiting for their 503 (a ring)
+    uint8_t rejected_head_;
+    uint8_t rejected_count_;
     uint8_t io_[kNetChunk];
     uint32_t frames_sent_;
     uint32_t frames_dropped_;

@@ -51,6 +51,9 @@ Node::Node(const Hardware& hw)
       camera_seq_(0),
       camera_seen_ms_(0),
       camera_restarts_(0),
+      camera_empty_(0),
+      empty_run_(0),
+      empty_restart_done_(false),
       leds_(0xFF) {
     settings_defaults(running_);
     edited_ = running_;
@@ -146,6 +149,7 @@ void Node::measure_fps(uint32_t now) {
 }
 
 void Node::watch_camera(uint32_t now) {
+    watch_empty_frames();
     uint32_t seq = hw_.camera.latest_seq();
     if (seq != camera_seq_) {
         camera_seq_ = seq;
@@ -169,6 +173,20 @@ void Node::watch_camera(uint32_t now) {
     log('W', "camera", "no frame for 5 s; camera restarted");
 }
 
+void Node::watch_empty_frames() {
+    uint32_t empty = hw_.camera.empty_frames();
+    if (hw_.camera.latest_seq() != camera_seq_) empty_run_ = 0;  // a whole frame came since
+    empty_run_ += empty - camera_empty_;
+    camera_empty_ = empty;
+    if (empty_run_ < kEmptyFrameRun || empty_restart_done_) return;
+    CameraRestart r = hw_.camera.restart();
+    if (r == CameraRestart::Busy) return;  // a client still sends the last whole frame
+    empty_restart_done_ = true;
+    empty_run_ = 0;
+    set_error(r == CameraRestart::Failed ? "camera: frames overflow the JPEG buffer, and it did not start again"
+                                         : "camera: frames overflow the JPEG buffer (lower jpeg_quality); restarted");
+}
+
 NodeStatus Node::status() const {
     NodeStatus st;
     st.name = running_.name;
@@ -181,6 +199,7 @@ NodeStatus Node::status() const {
     st.width = kFrameWidth;
     st.height = kFrameHeight;
     st.last_error = last_error_;
+    st.frames_empty = hw_.camera.empty_frames();
     return st;
 }
 
@@ -235,13 +254,22 @@ void Node::on_link_event(LinkEvent ev, uint32_t now) {
 // ---- serial: Improv frames at the start of a line, console otherwise ----
 
 void Node::pump_serial(uint32_t now) {
-    if (framer_.expired(now)) {
+    uint8_t in[64];
+    size_t n = hw_.serial.read(in, sizeof in);
+    // A frame stalls only if no byte came: bytes that waited in the UART while
+    // the loop was blocked (a join step) continue it.
+    if (n == 0 && framer_.expired(now)) {
         // A slow human typing "I..." is console input; a stalled frame is dropped.
         if (framer_.in_magic()) feed_console(framer_.held(), framer_.held_len());
         framer_.reset();
     }
-    uint8_t in[64];
-    size_t n = hw_.serial.read(in, sizeof in);
+    for (int chunk = 1; n > 0; ++chunk) {
+        feed_serial(in, n, now);
+        n = chunk < kSerialChunksPerPass ? hw_.serial.read(in, sizeof in) : 0;
+    }
+}
+
+void Node::feed_serial(const uint8_t* in, size_t n, uint32_t now) {
     for (size_t i = 0; i < n; ++i) {
         uint8_t b = in[i];
         if (framer_.held_len() == 0 && !(at_line_start_ && b == 'I')) {
@@ -333,6 +361,12 @@ void Node::on_improv_frame() {
         return;
     }
     case improv::Command::GetWifiNetworks: {
+        if (server_.client_count() > 0) {
+            // AT+WS holds the module for seconds: every stream would stall.
+            log('W', "improv", "no Wi-Fi scan while HTTP clients are connected; answering an empty list");
+            send_result(improv::Command::GetWifiNetworks, 0, 0);
+            return;
+        }
         ScanEntry found[12];
         size_t count = hw_.wifi.scan(found, sizeof found / sizeof found[0]);
         for (size_t i = 0; i < count; ++i) {

@@ -42,6 +42,12 @@ const uint32_t kFpsWindowMs = 2000;
 // frame the node gives up and latches an error.
 const uint32_t kCameraStallMs = 5000;
 const uint8_t kMaxCameraRestarts = 3;
+// Serial input taken per loop pass, in reads of 64 bytes: 512 bytes, more
+// than an Improv frame (a Wi-Fi RPC is at most 106 bytes) or a console line.
+const int kSerialChunksPerPass = 8;
+// This many frames in a row that arrived empty (the JPEG overflowed its
+// buffer) latch an error and restart the camera once.
+const uint32_t kEmptyFrameRun = 10;
 
 class Node : private ConsoleHost, private LineSink {
 public:
@@ -70,6 +76,7 @@ private:
     void line(const char* text);
 
     void pump_serial(uint32_t now);
+    void feed_serial(const uint8_t* in, size_t n, uint32_t now);
     void feed_console(const uint8_t* bytes, size_t n);
     void on_improv_frame();
     void on_wifi_settings(const improv::Rpc& rpc);
@@ -84,6 +91,7 @@ private:
     void drop_network();
     void measure_fps(uint32_t now);
     void watch_camera(uint32_t now);
+    void watch_empty_frames();
     NodeStatus status() const;
 
     Hardware hw_;
@@ -105,6 +113,9 @@ private:
     uint32_t camera_seq_;
     uint32_t camera_seen_ms_;
     uint8_t camera_restarts_;
+    uint32_t camera_empty_;      // empty frames seen so far
+    uint32_t empty_run_;         // of them since the last whole frame
+    bool empty_restart_done_;    // the one restart a run of them gets
     uint8_t leds_;
 };
 

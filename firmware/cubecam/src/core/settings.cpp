@@ -296,6 +296,13 @@ SettingResult validate_passphrase(const char* v, size_t n) {
     return n == 0 ? invalid(f.rule) : check_text(f, v, n);
 }
 
+SettingResult settings_check(const Settings& s) {
+    if (s.mode == WifiMode::AccessPoint && s.password[0] == '\0') {
+        return invalid("mode ap needs a password (8-63 characters): the access point is always WPA2");
+    }
+    return SettingResult{0, ""};
+}
+
 SettingResult settings_set(Settings& s, const char* key, const char* v, size_t n) {
     const SettingField* f = find(key);
     return f ? set_field(s, *f, v, n) : kUnknownKey;

@@ -161,6 +161,9 @@ const uint8_t kErrUnknownKey = 3;
 const uint8_t kErrInvalidValue = 4;
 
 SettingResult settings_set(Settings& s, const char* key, const char* value, size_t value_len);
+// What no single field shows: access-point mode needs a password (the
+// GS2200 library's begin() sets WPA2 for an access point whatever we ask).
+SettingResult settings_check(const Settings& s);
 // Appends the value of key; a write-only field yields "(set)" or "(empty)", never itself.
 SettingResult settings_get(const Settings& s, const char* key, TextBuf& out);
 // Appends the console's hint for a key: "(station|ap)", "(1-100)", "(write-only)"...

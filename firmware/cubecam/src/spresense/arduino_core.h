@@ -9,8 +9,9 @@
 namespace cubecam {
 namespace spresense {
 
-// millis() and micros() of the Spresense core are 64-bit (uint64_t), so the
-// device clock never wraps. The core's deadlines use the low 32 bits of
+// millis() and micros() of the Spresense core are 64-bit (uint64_t: Arduino.h
+// of 2.6.0, the set PlatformIO pins, 3.2.0 and 3.4.4), so the device clock
+// never wraps. The core's deadlines use the low 32 bits of
 // millis(), compared with wrap-around.
 class ArduinoClock : public Clock {
 public:

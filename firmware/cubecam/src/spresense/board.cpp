@@ -4,6 +4,7 @@
 #include <EEPROM.h>
 #include <LowPower.h>
 #include <Watchdog.h>
+#include <string.h>
 
 namespace cubecam {
 namespace spresense {
@@ -12,21 +13,31 @@ namespace {
 
 const uint8_t kLedPins[4] = {LED0, LED1, LED2, LED3};
 
+// A whole settings slot, so that EEPROM.get/put move it in one file access.
+struct Slot {
+    uint8_t bytes[kSettingsSlotBytes];
+};
+
 }  // namespace
 
-bool EepromStorage::load(uint8_t* buf, size_t len) {
-    if (len > EEPROM.length()) return false;
-    for (size_t i = 0; i < len; ++i) buf[i] = EEPROM.read(static_cast<int>(i));
+bool EepromFlash::read(size_t offset, uint8_t* buf, size_t len) {
+    if (offset + len > EEPROM.length()) return false;
+    if (len == kSettingsSlotBytes) {
+        Slot slot;
+        EEPROM.get(static_cast<int>(offset), slot);
+        memcpy(buf, slot.bytes, len);
+        return true;
+    }
+    // Only the record of firmware before the slots is read this way, once.
+    for (size_t i = 0; i < len; ++i) buf[i] = EEPROM.read(static_cast<int>(offset + i));
     return true;
 }
 
-bool EepromStorage::store(const uint8_t* buf, size_t len) {
-    if (len > EEPROM.length()) return false;
-    // update() skips unchanged bytes; each call is a file write on the flash.
-    for (size_t i = 0; i < len; ++i) EEPROM.update(static_cast<int>(i), buf[i]);
-    for (size_t i = 0; i < len; ++i) {
-        if (EEPROM.read(static_cast<int>(i)) != buf[i]) return false;
-    }
+bool EepromFlash::write(size_t offset, const uint8_t* data, size_t len) {
+    if (len != kSettingsSlotBytes || offset + len > EEPROM.length()) return false;
+    Slot slot;
+    memcpy(slot.bytes, data, len);
+    EEPROM.put(static_cast<int>(offset), slot);
     return true;
 }
 

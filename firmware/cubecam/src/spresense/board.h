@@ -4,16 +4,19 @@
 #define CUBECAM_SPRESENSE_BOARD_H
 
 #include "../core/hal.h"
+#include "../core/settings_store.h"
 
 namespace cubecam {
 namespace spresense {
 
-// The settings record at offset 0 of the EEPROM emulation (a zero-filled
-// file on the SPI flash when new; the CRC tells it apart).
-class EepromStorage : public SettingsStorage {
+// The EEPROM emulation (a 4000-byte file on the SPI flash, zero-filled when
+// new) as the flash area of the settings slots (core/settings_store.h). A
+// slot is written with one EEPROM.put(): one fopen/fwrite/fclose of the file
+// (EEPROM.h), not one per byte as EEPROM.update() does.
+class EepromFlash : public FlashArea {
 public:
-    bool load(uint8_t* buf, size_t len);
-    bool store(const uint8_t* buf, size_t len);
+    bool read(size_t offset, uint8_t* buf, size_t len);
+    bool write(size_t offset, const uint8_t* data, size_t len);
 };
 
 // LED0..LED3 of the main board, active high.

@@ -22,9 +22,15 @@ CAM_VIDEO_FPS video_fps(FrameRate r) {
 }
 
 // The JPEG buffer is 640*480*2/divisor bytes (ImgBuff::calc_img_size in
-// Camera.cpp); a frame that does not fit is delivered empty. Higher quality
-// needs a bigger buffer: 87.7 kB up to 70, 122.9 kB up to 85, 153.6 kB above.
-int jpeg_divisor(uint8_t quality) { return quality <= 70 ? 7 : quality <= 85 ? 5 : 4; }
+// Camera.cpp); a frame that does not fit is delivered empty (counted in
+// /status). Sized for the worst frame at each quality: VGA noise, which no
+// scene exceeds, encoded 4:2:2 by libjpeg is 190.8 kB at quality 60 and
+// 272.5 kB at 80 (the ISX019's encoder is assumed no larger at the same
+// number; docs/firmware.md, "Camera buffers"). So 204.8 kB up to 60 and
+// 307.2 kB above: 3 x 307.2 = 921.6 kB of the 1536 KB MainCore RAM. Above 80
+// a frame of noise-like detail can still overflow: a divisor of 1 (614.4 kB)
+// times 3 buffers does not fit.
+int jpeg_divisor(uint8_t quality) { return quality <= 60 ? 3 : 2; }
 
 const char* camera_error(CamErr e) {
     switch (e) {
@@ -58,7 +64,7 @@ void HeldImage::drop() {
     image().~CamImage();
 }
 
-SpresenseCamera::SpresenseCamera() : seq_(0), latest_us_(0) {
+SpresenseCamera::SpresenseCamera() : seq_(0), empty_(0), latest_us_(0) {
     settings_defaults(settings_);
     pthread_mutex_init(&lock_, 0);
 }
@@ -75,7 +81,12 @@ const char* SpresenseCamera::begin(const Settings& s) {
 }
 
 void SpresenseCamera::on_frame(CamImage img) {
-    if (!img.isAvailable()) return;  // the JPEG did not fit its buffer
+    if (!img.isAvailable()) {
+        // The driver flags a JPEG that did not fit its buffer and the library
+        // hands it over with size 0 (Camera.cpp); counted, nothing published.
+        g_camera->empty_ = g_camera->empty_ + 1;
+        return;
+    }
     g_camera->publish(img, ::micros());
 }
 
@@ -91,6 +102,8 @@ void SpresenseCamera::publish(const CamImage& img, uint64_t captured_us) {
 }
 
 uint32_t SpresenseCamera::latest_seq() { return seq_; }
+
+uint32_t SpresenseCamera::empty_frames() { return empty_; }
 
 bool SpresenseCamera::acquire_latest(Frame& out) {
     for (size_t i = 0; i < kMaxClients; ++i) {

@@ -49,6 +49,7 @@ public:
     // (a string constant) or 0.
     const char* begin(const Settings& s);
     uint32_t latest_seq();
+    uint32_t empty_frames();
     bool acquire_latest(Frame& out);
     void release(int lease);
     CameraRestart restart();
@@ -64,6 +65,7 @@ private:
     pthread_mutex_t lock_;
     HeldImage latest_;
     volatile uint32_t seq_;
+    volatile uint32_t empty_;  // written by the camera thread only
     uint64_t latest_us_;
     HeldImage leased_[kMaxClients];
 };

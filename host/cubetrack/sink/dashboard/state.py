@@ -6,8 +6,9 @@ processed frames, each robot's poses. The workflow around the session (``cubetra
 adds *panels*: JSON documents such as the calibration steps or the recording controls. Every
 change is also published as an event (:class:`EventHub`) for the page's event stream.
 
-Every part has one JSON form (:meth:`DashboardState.camera_json`, :meth:`DashboardState.topview_json`,
-...); the page shows nothing else, so whatever it shows can be read from the JSON endpoints too.
+Every part has one JSON form (:meth:`DashboardState.camera_json`,
+:func:`cubetrack.sink.dashboard.server.topview_json`, ...); the page shows nothing else, so whatever
+it shows can be read from the JSON endpoints too.
 
 A camera's status (:func:`camera_status`):
 
@@ -15,7 +16,8 @@ A camera's status (:func:`camera_status`):
 ``waiting``  nothing heard yet (no health snapshot, connecting, or connected without a frame so far);
 ``down``     not connected, or connected with only broken frames so far: the reason is the source's
              last error, one line saying what to check (:mod:`cubetrack.source.reasons`);
-``stale``    connected but no frame for ``stale_after_s``: the reason says for how long.
+``stale``    connected but no frame for ``stale_after_s``: the reason says for how long, and the
+             last error or what to check.
 
 ``down`` and ``stale`` are shown red. Statuses are recomputed by :meth:`DashboardState.tick`
 (the server calls it four times a second), so a camera that stops sending turns red within
@@ -129,7 +131,8 @@ def camera_status(health: CameraHealth | None, last_frame_s: float | None, now_s
     age_s = now_s - last_frame_s
     if age_s > stale_after_s:
         reason = f"no frame for {age_s:.1f} s"
-        return "stale", reason + (f" (last error: {health.last_error})" if health.last_error else "")
+        return "stale", (f"{reason}; last error: {health.last_error}" if health.last_error
+                         else f"{reason} — is the node still on and in Wi-Fi range?")
     return "ok", ""
 
 
