@@ -13,7 +13,6 @@ MAX_LINES = 80
 ALLOWED = {
     "host/cubetrack/detect/edge_fit.py:refine_corners_edges":
         "one vectorised pass over every side of every quad; its steps share a dozen (M, 4, k) arrays",
-    "host/cubetrack/simulate/simulation.py:simulate": "to split: scene setup, the frame jobs and the writing",
 }
 
 

@@ -335,7 +335,7 @@ class _ProcessLane:
 
 def _process_main(conn: Connection, make_worker: Callable[[], FrameProcessor], claims, claim_lock) -> None:
     """A worker process: jobs in (plain values, :meth:`_ProcessLane.send`), results out, packed
-    (:meth:`FrameProcessor.pack`: without the job, which the other side keeps; None for a job taken
+    (:func:`cubetrack.io.frame_wire.pack_result`: without the job, which the other side keeps; None for a job taken
     back before it started), until None comes."""
     end_with_parent()
     cv2.setNumThreads(1)

@@ -35,7 +35,7 @@ def parse_time_answer(body: bytes) -> float:
 class _ClockPoll:
     """One ``/time`` round trip on an event loop: connect within ``timeout_s``, then the request
     and its answer within ``timeout_s``. :meth:`handle` returns the sample once the answer is
-    in; raises OSError / :class:`HttpError` (no answer) or ValueError (a garbage answer)."""
+    in; raises OSError / :class:`~cubetrack.source.http_get.HttpError` (no answer) or ValueError (a garbage answer)."""
 
     def __init__(self, url: str, timeout_s: float, clock: Callable[[], float]):
         self.get = HttpGet(url, {"Connection": "close"}, clock, read_bytes=256)
@@ -61,7 +61,7 @@ class _ClockPoll:
 def poll_time(url: str, timeout_s: float, clock: Callable[[], float] = time.time) -> ClockSample:
     """One ``/time`` round trip, waited for. The TCP connection is opened before ``host_send`` is
     taken, so the round trip brackets the request and its answer only. Raises OSError /
-    :class:`HttpError` / ValueError."""
+    :class:`~cubetrack.source.http_get.HttpError` / ValueError."""
     poll = _ClockPoll(url, timeout_s, clock)
     try:
         with selectors.DefaultSelector() as selector:
