@@ -292,7 +292,7 @@ def stage_costs(args: argparse.Namespace) -> int:
         hooks = _Hooks()
         for module, attr, key in _FRAME_HOOKS:
             hooks.wrap(importlib.import_module(module), attr, key)
-        hooks.wrap(tracker.worker.detector, "find", "detect")
+        hooks.wrap(tracker.processor.detector, "find", "detect")
         for module, attr in _FUSION_HOOKS + _WORKER_HOOKS:
             hooks.wrap(importlib.import_module(module), attr, f"{module.rsplit('.', 1)[1]}.{attr}")
         cpu = {"plan": 0.0, "work": 0.0, "fuse": 0.0, "decode_empty": 0.0, "empty_frames": 0.0}
@@ -308,7 +308,7 @@ def stage_costs(args: argparse.Namespace) -> int:
                 if job is None:
                     continue
                 decoded_s = hooks.cpu_s["decode"]
-                result = tracker.worker.work(job)
+                result = tracker.processor.work(job)
                 t2 = clock()
                 if job.regions == ():   # every robot predicted out of view: nothing to search
                     cpu["empty_frames"] += 1

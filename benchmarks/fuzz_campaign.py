@@ -75,12 +75,12 @@ def _chunks(data: bytes, step: int):
 
 
 def target_mjpeg(data: bytes) -> None:
-    """The MJPEG part reader of the live source (cubetrack.source.streams.MjpegParser).
+    """The MJPEG part reader of the live source (cubetrack.source.mjpeg.MjpegParser).
 
     Byte 0: bit 0 = boundary unknown (learnt from the stream), bits 1-7 = read size - 1.
     Properties: never raises; every part it returns is a whole JPEG of at most max_part_bytes
     taken from the input, with a finite non-negative time; its buffer stays bounded."""
-    from cubetrack.source.streams import MjpegParser
+    from cubetrack.source.mjpeg import MjpegParser
 
     if not data:
         return
@@ -103,7 +103,7 @@ def target_mjpeg(data: bytes) -> None:
 def target_time_answer(data: bytes) -> None:
     """The ``/time`` answer parser: a number >= 0 or ValueError; the node's format reads back."""
     from cubecam.mjpeg import format_timestamp
-    from cubetrack.source.streams import parse_time_answer
+    from cubetrack.source.time_poll import parse_time_answer
 
     try:
         value = parse_time_answer(data)
@@ -290,11 +290,10 @@ class PythonTarget:
 
 
 PY_TARGETS: dict[str, PythonTarget] = {
-    "mjpeg": PythonTarget(target_mjpeg, ("cubetrack.source.streams",),
-                          ("cubetrack.source.streams:MjpegParser",
-                           "cubetrack.source.streams:boundary_from_content_type")),
-    "time_answer": PythonTarget(target_time_answer, ("cubetrack.source.streams", "cubecam.mjpeg"),
-                                ("cubetrack.source.streams:parse_time_answer",), max_len=64),
+    "mjpeg": PythonTarget(target_mjpeg, ("cubetrack.source.mjpeg",),
+                          ("cubetrack.source.mjpeg:MjpegParser", "cubetrack.source.mjpeg:boundary_from_content_type")),
+    "time_answer": PythonTarget(target_time_answer, ("cubetrack.source.time_poll", "cubecam.mjpeg"),
+                                ("cubetrack.source.time_poll:parse_time_answer",), max_len=64),
     "cubecam_improv": PythonTarget(target_improv, ("cubecam.improv",), ("cubecam.improv:Parser",
                            "cubecam.improv:decode_state", "cubecam.improv:decode_error",
                            "cubecam.improv:_decode_command_frame", "cubecam.improv:_split_strings")),

@@ -509,7 +509,7 @@ def speed(args: argparse.Namespace, rec: Path, work: Path, live: dict | None) ->
             if job is None:
                 continue
             t1 = time.perf_counter()
-            result = tracker.worker.work(job)
+            result = tracker.processor.work(job)
             t2 = time.perf_counter()
             tracker.fuse(result, frame.host_time_s)
             work_ms.append((t2 - t1) * 1000.0)

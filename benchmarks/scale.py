@@ -1,7 +1,7 @@
 """Issue 13's benchmark: what one fusion process can take from many workers over Zenoh.
 
 1. A simulated recording (``cubetrack simulate``, its true extrinsics) is run through the
-   workers' per-frame work in this process (:meth:`Tracker.admit`, :meth:`FrameWorker.work`,
+   workers' per-frame work in this process (:meth:`Tracker.admit`, :meth:`FrameProcessor.work`,
    :func:`cubetrack.app.worker.sighting_message`): the sighting messages a worker would publish.
    Reported: bytes per message (frames with and without the cube), and the per-frame work's CPU.
 2. The fusion's CPU per message, in this process: decode + rebuild + :meth:`Tracker.fuse`
@@ -47,9 +47,9 @@ def make_messages(rec_dir: Path) -> tuple[list[bytes], float, object, object]:
     from cubetrack.app.config import load_config
     from cubetrack.app.tracker import Tracker
     from cubetrack.app.worker import sighting_message
-    from cubetrack.core.sighting_wire import encode_sighting
     from cubetrack.io.config import read_extrinsics
     from cubetrack.io.recording import Recording
+    from cubetrack.io.sighting_wire import encode_sighting
     from cubetrack.source.streams import CameraStats
 
     config, settings = load_config(rec_dir / "config.toml")
@@ -67,7 +67,7 @@ def make_messages(rec_dir: Path) -> tuple[list[bytes], float, object, object]:
         if job is None:
             continue
         job = dataclasses.replace(job, regions=None, estimate_robots=frozenset())
-        result = tracker.worker.work(job)
+        result = tracker.processor.work(job)
         messages.append(encode_sighting(sighting_message(result, tracker.clocks[frame.camera], CameraStats(), False)))
     return messages, (time.process_time() - cpu) / max(1, len(frames)), config, extrinsics
 
@@ -78,7 +78,7 @@ def fusion_cpu(messages: list[bytes], config, extrinsics, repeat: int) -> tuple[
     from cubetrack.app.fusion_service import frame_result
     from cubetrack.app.live import live_intrinsics
     from cubetrack.app.tracker import Tracker
-    from cubetrack.core.sighting_wire import decode_sighting
+    from cubetrack.io.sighting_wire import decode_sighting
 
     intrinsics = live_intrinsics(config)
     decode_s, fuse_s, poses = [], [], 0
@@ -103,7 +103,7 @@ def empty_cpu(messages: list[bytes], config, extrinsics) -> float:
     from cubetrack.app.fusion_service import frame_result
     from cubetrack.app.live import live_intrinsics
     from cubetrack.app.tracker import Tracker
-    from cubetrack.core.sighting_wire import decode_sighting, encode_sighting
+    from cubetrack.io.sighting_wire import decode_sighting, encode_sighting
 
     empty = [encode_sighting(dataclasses.replace(decode_sighting(m), detections=())) for m in messages] * 10
     tracker = Tracker(live_intrinsics(config), config.world, config.robots, extrinsics, config_params(config).stages)
@@ -138,7 +138,7 @@ def publish(port: int, worker: int, cameras: int, fps: float, duration_s: float,
 def transport(messages: list[bytes], workers: int, cameras: int, fps: float, duration_s: float) -> dict:
     """Publisher processes -> one subscriber here over loopback Zenoh."""
     from cubetrack.app.worker import SIGHTINGS_KEY, fuse_endpoints
-    from cubetrack.core.sighting_wire import decode_sighting
+    from cubetrack.io.sighting_wire import decode_sighting
     from cubetrack.sink.zenoh_session import open_session
 
     port = free_port()
@@ -195,7 +195,7 @@ def main(argv: list[str] | None = None) -> int:
             return code
     cores = os.cpu_count()
     messages, work_s, config, extrinsics = make_messages(rec)
-    from cubetrack.core.sighting_wire import decode_sighting
+    from cubetrack.io.sighting_wire import decode_sighting
 
     with_cube = [len(m) for m in messages if decode_sighting(m).detections]
     print(f"cores: {cores}; {len(messages)} sighting messages from {rec}")

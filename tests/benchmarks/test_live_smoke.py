@@ -1,7 +1,9 @@
 """Smoke run of benchmarks/live.py (issue 9's benchmark): 2 emulated cameras for a few seconds,
 the tracker live over HTTP in its own process. The targets are the benchmark's business (never
-a timing here): the report is complete and consistent, and the live run tracked the robot."""
+a timing here): the report is complete and consistent (its counts add up, its verdicts follow
+from its figures), and the live run tracked the robot."""
 
+import importlib.util
 import json
 import math
 import subprocess
@@ -13,6 +15,17 @@ import pytest
 pytestmark = pytest.mark.slow
 
 ROOT = Path(__file__).resolve().parents[2]
+
+
+def load_benchmark():
+    """benchmarks/live.py as a module (for its targets)."""
+    name = "cubetrack_benchmark_live"
+    if name not in sys.modules:
+        spec = importlib.util.spec_from_file_location(name, ROOT / "benchmarks" / "live.py")
+        module = importlib.util.module_from_spec(spec)
+        sys.modules[name] = module
+        spec.loader.exec_module(module)
+    return sys.modules[name]
 
 
 def test_quick_run_prints_and_saves_a_complete_report(tmp_path):
@@ -39,7 +52,7 @@ def test_quick_run_prints_and_saves_a_complete_report(tmp_path):
         p = live[kind]
         assert 0 <= p["p50"] <= p["p95"] <= p["p99"], kind
     assert live["poses"] > 0 and live["cpu_ms_per_frame"] > 0 and live["cpu_ms_per_frame_warm"] > 0
-    assert live["rss_end_mb"] > 0 and live["processed_fps_warm"] >= 0
+    assert live["rss_end_mb"] > 0 and live["processed_fps_warm"] > 0  # frames were processed after the warm-up
     assert math.isnan(live["offered_fps_warm"]) or live["offered_fps_warm"] > 0  # no status line after 1.5 s of 5
     for run in ("live", "offline"):
         assert 0 < acc[run]["pos_cm"] < 2.0 and 0 < acc[run]["rot_deg"] < 2.0, run
@@ -54,7 +67,20 @@ def test_quick_run_prints_and_saves_a_complete_report(tmp_path):
     assert math.isclose(speed["live_cpu_ratio"], live["cpu_ms_per_frame"] / speed["naive_cpu_ms"])
     assert math.isclose(speed["cpu_ratio"], (speed["ours_cpu_ms"]["main"] + speed["ours_cpu_ms"]["workers"])
                         / speed["naive_cpu_ms"], rel_tol=0.2)   # the median of rounds of each
-    assert doc["failures"] == [] or lines[-1].startswith("SUMMARY: ") and "missed" in lines[-1]
+    # the targets' verdicts follow from the report's own figures (which ones a loaded machine misses is
+    # the benchmark's business): each target is listed as missed exactly when its figure misses it
+    bench = load_benchmark()
+    a = live["arrival_ms"]
+    missed = {"dropped": live["dropped_fraction"] > bench.TARGET_DROPPED,
+              "p95 arrival->pose": not a["p95"] <= bench.TARGET_P95_MS,
+              "p99 arrival->pose": not a["p99"] <= bench.TARGET_P99_MS,
+              "throughput ours/naive": not speed["ratio"] >= bench.TARGET_SPEED,
+              "live CPU per frame / naive": not speed["live_cpu_ratio"] <= bench.TARGET_CPU,
+              "live accuracy": not max(acc["pos_ratio"], acc["rot_ratio"]) <= 1.0 + bench.TARGET_ACCURACY}
+    for name, miss in missed.items():
+        assert any(f.startswith(name) for f in doc["failures"]) == miss, (name, doc["failures"])
+    assert lines[-1] == "SUMMARY: all targets met" if not doc["failures"] else \
+        lines[-1].startswith(f"SUMMARY: {len(doc['failures'])} target(s) missed: ")
     # --outputs: a second session with every output on, compared with the first (pose files only)
     out = doc["outputs"]
     assert out["files_only"]["processed_fps"] == live["processed_fps"]

@@ -52,17 +52,28 @@ def test_paper_fusions_track_within_the_paper_floor(scene, method, capsys):
     assert main(["evaluate", "--estimate", str(out / "robot.tum"), "--ground-truth", str(rec / "ground_truth.tum"),
                  "--json"]) == 0
     score = json.loads(capsys.readouterr().out)["robot"]
+    # the paper's floor on its arena: 3.6-5.3 cm position RMSE for its mean fusion, its other two no
+    # better than a centimetre off that; on a clean simulation every one of the three must reach it
     assert score["detection_ratio"] >= 0.95
-    if method == "mean":
-        assert score["position_rmse_m"] <= 0.03
+    assert score["position_rmse_m"] <= 0.03 and score["rotation_rmse_deg"] <= 5.0
 
 
-def test_uncalibrated_mode_uses_each_frames_world_marker(scene):
+def test_uncalibrated_mode_uses_each_frames_world_marker(scene, capsys):
+    """No extrinsics at all: the poses can only be right if each frame's camera pose came from the
+    world marker in that frame (the run record says so and names no extrinsics)."""
     work, rec = scene
     out = work / "track-raw"
     assert main(["track", "--config", str(rec / "config.toml"), "--uncalibrated", "--recording", str(rec),
                  "--out", str(out)]) == 0
+    run = read_run_record(out)
+    assert run["parameters"]["track"]["camera_poses"] == "world-marker" and "extrinsics" not in run["inputs"]
+    capsys.readouterr()
+    assert main(["evaluate", "--estimate", str(out / "robot.tum"), "--ground-truth", str(rec / "ground_truth.tum"),
+                 "--json"]) == 0
+    score = json.loads(capsys.readouterr().out)["robot"]
     assert len(read_tum(out / "robot.tum")) > 50
+    # seed 7 gave 0.34 cm and 0.73 (frames in which the world marker is hidden give no pose)
+    assert score["detection_ratio"] >= 0.6 and score["position_rmse_m"] <= 0.01
 
 
 def test_calibration_records_how_it_was_made(scene):

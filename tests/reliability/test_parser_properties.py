@@ -36,7 +36,8 @@ from cubetrack.io.config import (
     write_toml,
 )
 from cubetrack.io.recording import CameraEntry, Recording, RecordingWriter
-from cubetrack.source.streams import MjpegParser, parse_time_answer
+from cubetrack.source.mjpeg import MjpegParser
+from cubetrack.source.time_poll import parse_time_answer
 
 # CUBETRACK_PROPERTY_EXAMPLES=2000 runs a longer search (docs/reliability.md); times are written with 6 decimals (1 us)
 FAST = settings(max_examples=int(os.environ.get("CUBETRACK_PROPERTY_EXAMPLES", "40")), deadline=None,

@@ -11,15 +11,8 @@ MAX_LINES = 80
 
 # "path:qualified name" -> why it is still longer than MAX_LINES
 ALLOWED = {
-    "host/cubetrack/app/live.py:track_live": "one of the five run loops issue 23 moves onto the session runtime",
-    "host/cubetrack/app/worker.py:run_worker": "one of the five run loops issue 23 moves onto the session runtime",
-    "host/cubetrack/app/track.py:track_frames": "one of the five run loops issue 23 moves onto the session runtime",
-    "host/cubetrack/app/fusion_service.py:run_fusion":
-        "one of the five run loops issue 23 moves onto the session runtime",
     "host/cubetrack/detect/edge_fit.py:refine_corners_edges":
         "one vectorised pass over every side of every quad; its steps share a dozen (M, 4, k) arrays",
-    "host/cubetrack/simulate/params.py:SimulationParams.__post_init__":
-        "hand-written validation that issue 23 moves to param() and the check helpers",
 }
 
 

@@ -1,16 +1,17 @@
 """Camera worker processes for live tracking (``[live] worker_kind = "camera-process"``).
 
 Each worker process owns a share of the cameras end to end: it reads their streams and
-``/time`` round trips on its one thread, between frames (:class:`~cubetrack.source.streams.LiveCameras`
-without a thread of its own: non-blocking sockets; frames in arrival order, the freshest first
-once behind, each camera's newest only), stamps capture times with its own clock fits, plans each
-frame and does the per-frame work
+``/time`` round trips on its one thread, between frames
+(:class:`~cubetrack.source.streams.LiveCameras` without a thread of its own: non-blocking
+sockets; frames in arrival order, the freshest first once behind, each camera's newest only),
+stamps capture times with its own clock fits, plans each frame and does the per-frame work
 (decode, detection, per-camera estimates) with a :class:`~cubetrack.app.tracker.Tracker` of its
-own, whose plans come from a :class:`Forecast`: each robot's motion as the fusion predicts it,
-sent by the tracker's process after every batch of fused results. Results go back over a pipe
-without the JPEG (unless an output shows camera frames), with the clock samples and the
-cameras' counters; the tracker's process only fuses them, in one ordered consumer. No JPEG
-crosses processes, and the GIL of one process no longer limits the per-frame work.
+own, whose plans come from a :class:`~cubetrack.fuse.forecast.Forecast`: each robot's motion as
+the fusion predicts it, sent by the tracker's process after every batch of fused results. Results
+go back over a pipe without the JPEG (unless an output shows camera frames), with the clock
+samples and the cameras' counters; the tracker's process only fuses them, in one ordered
+consumer. No JPEG crosses processes, and the GIL of one process no longer limits the per-frame
+work.
 """
 
 from __future__ import annotations
@@ -24,23 +25,23 @@ import time
 from collections.abc import Callable, Mapping, MutableSequence, Sequence
 from dataclasses import dataclass
 from multiprocessing.connection import Connection, wait
+from multiprocessing.process import BaseProcess
 from multiprocessing.reduction import ForkingPickler
+from typing import cast
 
 import cv2
-import numpy as np
 
-from cubetrack.app.tracker import FrameJob, FrameOutcome, FrameResult, Tracker
+from cubetrack.app.tracker import Tracker
 from cubetrack.core.errors import SourceError
 from cubetrack.core.lifetime import end_with_parent
-from cubetrack.core.records import Frame
-from cubetrack.estimate.reprojection import moved_pose
-from cubetrack.fuse.base import Fusion
+from cubetrack.core.records import Frame, FrameJob, FrameOutcome, FrameResult
+from cubetrack.fuse.forecast import Forecast
+from cubetrack.io.frame_wire import pack_result
 from cubetrack.source.streams import CameraStats, ClockReading, LiveCameras, SourceParams
 
 log = logging.getLogger(__name__)
 
 STATS_EVERY_S = 0.5  # a worker process sends its cameras' counters this often
-FORECAST_SPAN_S = 0.1  # the motion in a forecast: from the fusion's predictions this far apart
 FORECAST_EVERY_S = 0.01  # the tracker's process sends a new forecast at most this often
 BEHIND_S = 0.015  # a worker process whose oldest waiting frame is older than this takes the freshest first
 IN_FLIGHT = 4  # results a worker process may have sent that the fusion has not taken yet
@@ -49,45 +50,7 @@ MESSAGES_PER_TAKE = 64  # messages read from one worker process per take(), so t
 HOLD_S = 0.002  # a result newer than a frame some worker process is working on waits at most this long for it
 
 
-@dataclass(frozen=True, slots=True)
-class Forecast:
-    """What a worker process plans frames with: per tracked robot its predicted pose at
-    ``time_s`` with constant world-frame linear and angular velocity (the filter's motion
-    model), and the robots whose fusion asks for per-camera estimates. Duck-types the two
-    :class:`~cubetrack.fuse.base.Fusion` methods that planning uses."""
-
-    motions: Mapping[str, tuple[float, np.ndarray, np.ndarray, np.ndarray]]  # time_s, T_world_cube, v, w
-    estimate_robots: frozenset[str]
-
-    def predicted_pose(self, robot: str, time_s: float) -> np.ndarray | None:
-        motion = self.motions.get(robot)
-        if motion is None:
-            return None
-        t0, T, v, w = motion
-        return moved_pose(T, v, w, time_s - t0)
-
-    def needs_estimate(self, robot: str) -> bool:
-        return robot in self.estimate_robots
-
-
-def forecast_of(fusion: Fusion, robots: Sequence[str], now_s: float) -> Forecast:
-    """The fusion's predictions at ``now_s`` and ``FORECAST_SPAN_S`` later, as a :class:`Forecast`."""
-    motions = {}
-    for robot in robots:
-        T0 = fusion.predicted_pose(robot, now_s)
-        if T0 is None:
-            continue
-        T1 = fusion.predicted_pose(robot, now_s + FORECAST_SPAN_S)
-        if T1 is None:
-            v = w = np.zeros(3)
-        else:
-            v = (T1[:3, 3] - T0[:3, 3]) / FORECAST_SPAN_S
-            w = cv2.Rodrigues(T1[:3, :3] @ T0[:3, :3].T)[0].reshape(3) / FORECAST_SPAN_S
-        motions[robot] = (now_s, T0, v, w)
-    return Forecast(motions, frozenset(r for r in robots if fusion.needs_estimate(r)))
-
-
-def share_cameras(urls: Mapping[str, str], count: int) -> list[dict[str, str]]:
+def deal_cameras(urls: Mapping[str, str], count: int) -> list[dict[str, str]]:
     """The cameras dealt round-robin to ``count`` worker processes (none left empty)."""
     names = list(urls)
     shares = [{name: urls[name] for name in names[k::count]} for k in range(min(count, len(names)))]
@@ -96,10 +59,11 @@ def share_cameras(urls: Mapping[str, str], count: int) -> list[dict[str, str]]:
 
 @dataclass(frozen=True, slots=True)
 class WorkerUpdate:
-    """What a worker process reports besides results: its cameras' counters and the frames it
-    gave up before their camera's clock was known (since it started)."""
+    """What a camera worker process reports besides results: its cameras' counters, the frames it
+    admitted and those it gave up before their camera's clock was known (since it started)."""
 
     cameras: dict[str, CameraStats]
+    frames: int
     before_clock: int
 
 
@@ -140,26 +104,27 @@ class CameraProcesses:
     """``count`` camera worker processes over ``urls`` (see the module doc), with the part of
     :class:`~cubetrack.source.streams.LiveCameras`' interface the live loop uses (``urls``,
     :meth:`stats`, :meth:`pending`, :meth:`stop`). ``make_tracker`` builds each process's
-    tracker (picklable: a ``functools.partial``); its results come as ``FrameWorker.pack`` packs
-    them, and ``unpack`` (e.g. the ``FrameWorker.unpack`` of a tracker made with the same
-    arguments) turns them back into results. Wait for and take what came with :meth:`take`
-    (on the caller's thread: no thread of this process reads the pipes, so none competes with
-    the fusion for the GIL); send each new :class:`Forecast` with :meth:`forecast`."""
+    tracker (picklable: a ``functools.partial``); its results come as
+    :func:`cubetrack.io.frame_wire.pack_result` packs them, and ``unpack`` (``unpack_result`` with
+    the intrinsics and camera poses of a tracker made with the same arguments) turns them back.
+    Wait for and take what came with :meth:`take` (on the caller's thread: no thread of this
+    process reads the pipes, so none competes with the fusion for the GIL); send each new
+    :class:`~cubetrack.fuse.forecast.Forecast` with :meth:`forecast`."""
 
     def __init__(self, urls: Mapping[str, str], source: SourceParams, make_tracker: Callable[[], Tracker],
                  count: int, unpack: Callable[[FrameJob, tuple], FrameResult], *, views: bool = False,
                  clock: Callable[[], float] = time.time):
         self.urls = dict(urls)
-        self._unpack = unpack  # a result as FrameWorker.pack sent it -> the FrameResult
+        self._unpack = unpack  # (job, a result as pack_result sent it) -> the FrameResult
         self.count = count
         self._told: list[int] = []  # per lane: the count of taken results when it was last sent a message
         self._stats = {name: CameraStats(url=url) for name, url in self.urls.items()}
-        self._before_clock: dict[int, int] = {}  # per worker process
-        self._lanes: list[tuple[Connection, multiprocessing.Process]] = []
+        self._counts: dict[int, tuple[int, int]] = {}  # per worker process: frames admitted, given up before clock
+        self._lanes: list[tuple[Connection, BaseProcess]] = []
         self._open: dict[Connection, int] = {}  # the pipes of processes that have not finished -> lane
         self._held = HeldResults()
         context = multiprocessing.get_context("spawn")  # fork would copy this process's threads' locks
-        shares = share_cameras(self.urls, count)
+        shares = deal_cameras(self.urls, count)
         # per lane, in shared memory (written by one side, read by the other, never waited for): the capture
         # time of the frame its process is working on (inf: none), and how many of its results were taken
         self._working = context.RawArray("d", [math.inf] * len(shares))
@@ -184,7 +149,7 @@ class CameraProcesses:
         timeout_s = min(timeout_s, self._held.wait_s(time.monotonic()))  # wake when a held result is due
         results: list[FrameResult] = []
         clocks: list[ClockReading] = []
-        ready = wait(list(self._open), timeout_s) if self._open else []
+        ready = [cast(Connection, c) for c in wait(list(self._open), timeout_s)] if self._open else []
         working = math.inf
         for _ in range(4):
             for conn in ready:
@@ -214,7 +179,7 @@ class CameraProcesses:
                 clocks.append(payload)
             elif kind == "update":
                 self._stats.update(payload.cameras)
-                self._before_clock[lane] = payload.before_clock
+                self._counts[lane] = (payload.frames, payload.before_clock)
             elif kind == "failed":
                 del self._open[conn]
                 raise SourceError(f"a camera worker process failed: {payload}")
@@ -247,9 +212,10 @@ class CameraProcesses:
     def stats(self) -> dict[str, CameraStats]:
         return {name: s.copy() for name, s in self._stats.items()}
 
-    def before_clock(self) -> int:
-        """Frames given up before their camera's clock was known, so far."""
-        return sum(self._before_clock.values())
+    def frame_counts(self) -> tuple[int, int]:
+        """Frames the worker processes admitted, and those they gave up before their camera's
+        clock was known, so far."""
+        return sum(f for f, _ in self._counts.values()), sum(b for _, b in self._counts.values())
 
     def pending(self) -> int:
         return sum(conn.poll() for conn in self._open) + len(self._held)
@@ -303,7 +269,7 @@ def _worker_main(conn: Connection, urls: dict[str, str], source: SourceParams, m
 def _work_cameras(conn: Connection, urls: dict[str, str], source: SourceParams, tracker: Tracker, views: bool,
                   clock: Callable[[], float], working: MutableSequence[float], taken: Sequence[int],
                   lane: int) -> None:
-    tracker.forecast = Forecast({}, frozenset(r.name for r in tracker.robots))
+    forecast = Forecast({}, frozenset(r.name for r in tracker.robots))  # until the fusion sends one
     live = LiveCameras(urls, source, clock=clock, thread=False)  # read on this thread, between frames
     live.start()
     live.wake_on(conn)
@@ -317,7 +283,7 @@ def _work_cameras(conn: Connection, urls: dict[str, str], source: SourceParams, 
             tracker.add_clock_sample(event.camera, event.sample)
             conn.send(("clock", event))
             return None
-        return None if event is None else tracker.admit(event, hold=False)
+        return None if event is None else tracker.admit(event, hold=False, forecast=forecast)
 
     try:
         while True:
@@ -327,7 +293,7 @@ def _work_cameras(conn: Connection, urls: dict[str, str], source: SourceParams, 
                     stopping = True
                     live.stop()
                 elif isinstance(message, Forecast):  # else a wake: the count taken changed
-                    tracker.forecast = message
+                    forecast = message
             if job is None:
                 room = stopping or sent - taken[lane] < IN_FLIGHT
                 # in arrival order: the fusion gets fewer late sightings to fold in (each costs re-applying the
@@ -339,7 +305,7 @@ def _work_cameras(conn: Connection, urls: dict[str, str], source: SourceParams, 
                 job = admitted(event)
             if job is not None:
                 working[lane] = job.capture_time_s  # results newer than this wait for it (CameraProcesses.take)
-                result = tracker.worker.work(job)
+                result = tracker.processor.work(job)
                 if result.outcome is not FrameOutcome.CORRUPT:  # counted (and logged) by the fusion's tracker
                     tracker.count(result)  # when this camera's whole frame was last searched
                 done = job if views else dataclasses.replace(job, frame=dataclasses.replace(job.frame, jpeg=b""))
@@ -351,7 +317,7 @@ def _work_cameras(conn: Connection, urls: dict[str, str], source: SourceParams, 
                         if (job := admitted(event)) is not None:
                             break
                 working[lane] = math.inf if job is None else job.capture_time_s
-                conn.send(("result", (done, tracker.worker.pack(result))))  # plain values: pickled fast
+                conn.send(("result", (done, pack_result(result, tracker.T_world_cam))))  # plain values: pickled fast
                 sent += 1
             if time.monotonic() >= next_update:
                 next_update = time.monotonic() + STATS_EVERY_S
@@ -363,4 +329,4 @@ def _work_cameras(conn: Connection, urls: dict[str, str], source: SourceParams, 
 
 
 def _update(live: LiveCameras, tracker: Tracker) -> WorkerUpdate:
-    return WorkerUpdate(live.stats(), tracker.stats.frames_before_clock_sync)
+    return WorkerUpdate(live.stats(), tracker.stats.frames, tracker.stats.frames_before_clock_sync)

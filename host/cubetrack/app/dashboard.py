@@ -21,7 +21,7 @@ for the drive), and write what it writes (the extrinsics and their run record in
 calibration folder). Around it, this module adds what a person at the cameras needs: whether
 each camera sees the world marker now (:class:`_Watcher` searches the newest frames for it),
 the samples collected so far, each camera's reprojection error on its own recording
-(:func:`world_marker_reprojection`) and a verdict with advice (:func:`calibration_advice`).
+(:func:`cubetrack.calib.check.world_marker_reprojection`) and a verdict with advice (:func:`calibration_advice`).
 """
 
 from __future__ import annotations
@@ -37,23 +37,20 @@ from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
-
 from cubetrack.app.calibrate import CalibrationRun, run_calibration
-from cubetrack.app.config import ConfigParams, parameter_tables
+from cubetrack.app.config import ConfigParams
 from cubetrack.app.live import track_live
 from cubetrack.app.tracker import CameraPoseSource
+from cubetrack.calib.check import world_marker_reprojection
 from cubetrack.calib.extrinsics import CalibrationReport, world_detector
 from cubetrack.core.cameras import CameraExtrinsics, CameraIntrinsics, WorldConfig
 from cubetrack.core.errors import CalibrationError, ConfigError, CubetrackError, ImageError, RecordingError
-from cubetrack.core.geometry import invert_T, transform_points
-from cubetrack.core.layout import marker_corners_m
-from cubetrack.core.records import CameraView, Detection, Frame, TrackedPose
+from cubetrack.core.records import CameraView, Detection, TrackedPose
 from cubetrack.detect.detector import DetectorParams, decode_gray
 from cubetrack.estimate.match import detections_of
 from cubetrack.io.config import TrackerConfig, write_extrinsics
 from cubetrack.io.recording import Recording
-from cubetrack.io.run import RUN_FILE, run_record_beside, write_run_record
+from cubetrack.io.run import run_record_beside
 from cubetrack.sink.base import Sink
 from cubetrack.sink.dashboard.server import (
     TRAJECTORY_FILES,
@@ -69,39 +66,6 @@ log = logging.getLogger(__name__)
 
 
 # --- judging a calibration ---------------------------------------------------------------------
-
-
-def world_marker_reprojection(frames: Iterable[Frame], T_world_cam: np.ndarray, intrinsics: CameraIntrinsics,
-                              world: WorldConfig, detector_params: DetectorParams | None = None,
-                              max_frames: int = 30) -> tuple[float, float, int]:
-    """How well a calibrated camera pose explains the camera's own frames: (RMS distance in
-    pixels between the world marker's detected corners and their projection through
-    ``T_world_cam``, the marker's mean apparent side in pixels, frames used). The first
-    ``max_frames`` frames that show the marker once are used; (NaN, NaN, 0) when none does."""
-    import cv2
-
-    corners_world = marker_corners_m(world.marker_size_m)  # the world frame is the marker's
-    T_cam_world = invert_T(T_world_cam)
-    projected, _ = cv2.projectPoints(transform_points(T_cam_world, corners_world), np.zeros(3), np.zeros(3),
-                                     intrinsics.K, intrinsics.dist)
-    projected = projected.reshape(4, 2)
-    detector = world_detector(world, detector_params)
-    errors, sides = [], []
-    for frame in frames:
-        if len(sides) >= max_frames:
-            break
-        try:
-            gray = decode_gray(frame.jpeg, f"{frame.camera} frame {frame.seq}")
-        except ImageError:
-            continue
-        found = detections_of(detector.detect(gray), world.dictionary, (world.marker_id,))
-        if len(found) != 1:
-            continue
-        errors.append(np.sum((found[0].corners_px - projected) ** 2, axis=1))
-        sides.append(math.sqrt(found[0].area_px2))
-    if not sides:
-        return math.nan, math.nan, 0
-    return float(np.sqrt(np.mean(errors))), float(np.mean(sides)), len(sides)
 
 
 def calibration_advice(spread_cm: float, spread_deg: float, reprojection_px: float, marker_side_px: float,
@@ -281,7 +245,8 @@ class DashboardApp:
         self.target = settings.calibration.samples
         self.samples = {c: 0 for c in self.urls}
         # camera -> (checked, seen (host s), side px)
-        self.marker = {c: (-math.inf, -math.inf, None) for c in self.urls}
+        self.marker: dict[str, tuple[float, float, float | None]] = {
+            c: (-math.inf, -math.inf, None) for c in self.urls}
         self.results: dict[str, dict] = {}
         self.refined: dict[str, dict] = {}
         self.warnings: list[str] = []
@@ -346,15 +311,13 @@ class DashboardApp:
     def _run_session(self, plan: SessionPlan, stop: threading.Event) -> bool:
         """One live session; returns whether Ctrl-C ended it. A session that cannot start (e.g.
         its folder cannot be written) is reported on the page and the plain watch session follows."""
-        if plan.kind == "record":
-            write_run_record(plan.out_dir / RUN_FILE, "dashboard",
-                             parameter_tables(self._stage_params(plan.extrinsics)),
-                             {"config": self.config.path, "extrinsics": self.extrinsics_path
-                              if self.extrinsics_path.exists() else None}, {"cameras": dict(self.urls)})
         try:
             result = track_live(self.config, plan.extrinsics or None, plan.out_dir, self._stage_params(plan.extrinsics),
                                 self.settings.source, stop=stop, record_to=plan.record_to,
-                                sinks=[DashboardSink(self.server), _Watcher(self, plan)])
+                                sinks=[DashboardSink(self.server), _Watcher(self, plan)],
+                                live_params=self.settings.live,
+                                extrinsics_path=self.extrinsics_path if self.extrinsics_path.exists() else None,
+                                command="dashboard")
         except CubetrackError as exc:
             log.error("dashboard: the %s session failed: %s", plan.kind, exc)
             with self._lock:
@@ -372,10 +335,24 @@ class DashboardApp:
         self._plan = plan
         self._session_stop.set()
 
+    def _candidate(self) -> CalibrationRun:
+        """The calibration the page shows (there once a step past calibrating was reached)."""
+        if self.candidate is None:
+            raise DashboardError("no calibration to use yet: collect and calibrate first")
+        return self.candidate
+
+    def _calibration_folder(self) -> Path:
+        """This calibration's folder (made when collecting starts)."""
+        if self.calibration_dir is None:
+            raise DashboardError("no calibration started yet: start collecting first")
+        return self.calibration_dir
+
     def _session_ended(self, plan: SessionPlan) -> None:
         """After a collecting or driving session, compute from what it recorded."""
         with self._lock:
             if self._stop.is_set():
+                return
+            if plan.record_to is None:
                 return
             if plan.kind == "calibration" and self.step == "calibrating":
                 self._start_worker(self._calibrate, plan.record_to)
@@ -455,11 +432,11 @@ class DashboardApp:
             self.samples = {c: 0 for c in self.urls}
             self.results, self.refined, self.warnings, self.candidate, self.progress = {}, {}, [], None, None
             self._go("collecting", f"Collecting {samples} world-marker sightings per camera into "
-                     f"{self.calibration_dir / 'world'}; keep the cameras and the marker still.",
-                     SessionPlan("calibration", self._plan.out_dir, self.calibration_dir / "world",
+                     f"{self._calibration_folder() / 'world'}; keep the cameras and the marker still.",
+                     SessionPlan("calibration", self._plan.out_dir, self._calibration_folder() / "world",
                                  dict(self.extrinsics)))
             self._publish()
-            return {"recording": str(self.calibration_dir / "world"), "samples": samples}
+            return {"recording": str(self._calibration_folder() / "world"), "samples": samples}
 
     def _go(self, step: str, message: str, plan: SessionPlan | None = None) -> None:
         """Move the calibration to ``step``; ``plan`` (default: watching) runs next (caller holds the lock)."""
@@ -489,7 +466,7 @@ class DashboardApp:
     def _save(self, body: dict) -> dict:
         with self._lock:
             self._require("result", "refined")
-            run = self.candidate
+            run = self._candidate()
             kind = "refined" if self.step == "refined" else "calibration"
             target = self.extrinsics_path
             target.parent.mkdir(parents=True, exist_ok=True)
@@ -515,12 +492,12 @@ class DashboardApp:
         with self._lock:
             self._require("result", "refined")
             self.drive, self.refined = self._drive_counter(), {}
-            extrinsics = {**self.extrinsics, **self.candidate.report.extrinsics}
+            extrinsics = {**self.extrinsics, **self._candidate().report.extrinsics}
             self._go("driving", "Drive the robot around where several cameras see it; the frames go to "
-                     f"{self.calibration_dir / 'drive'}.",
-                     SessionPlan("drive", self._plan.out_dir, self.calibration_dir / "drive", extrinsics))
+                     f"{self._calibration_folder() / 'drive'}.",
+                     SessionPlan("drive", self._plan.out_dir, self._calibration_folder() / "drive", extrinsics))
             self._publish()
-            return {"recording": str(self.calibration_dir / "drive")}
+            return {"recording": str(self._calibration_folder() / "drive")}
 
     def _refine(self, body: dict) -> dict:
         with self._lock:
@@ -572,7 +549,7 @@ class DashboardApp:
     def _calibrate(self, recording_path: Path) -> None:
         try:
             recording, empty = recorded_cameras(recording_path)
-            run = run_calibration(self.config, recording, self.calibration_dir / "extrinsics.toml", self.settings,
+            run = run_calibration(self.config, recording, self._calibration_folder() / "extrinsics.toml", self.settings,
                                   allow_missing=True, progress=self._progress)
             results = {}
             for name in run.report.cameras:
@@ -595,20 +572,23 @@ class DashboardApp:
 
     def _refine_with(self, drive_path: Path) -> None:
         try:
-            run = run_calibration(self.config, recorded_cameras(self.calibration_dir / "world")[0],
-                                  self.calibration_dir / "refined.toml", self.settings,
+            run = run_calibration(self.config, recorded_cameras(self._calibration_folder() / "world")[0],
+                                  self._calibration_folder() / "refined.toml", self.settings,
                                   adjust_with=recorded_cameras(drive_path)[0], allow_missing=True,
                                   progress=self._progress)
         except CubetrackError as exc:
             return self._computed("result", f"Refinement failed: {exc}")
+        adjusted = run.adjusted
+        if adjusted is None:
+            return self._computed("result", "Refinement failed: the drive gave no bundle adjustment")
         refined = {name: {"shift_cm": 100 * r.shift_m, "shift_deg": r.shift_deg, "moved": r.moved,
                           "rms_px": r.rms_px, "world_rms_px": r.world_rms_px if math.isfinite(r.world_rms_px) else None,
                           "instants": r.instants}
-                   for name, r in run.adjusted.cameras.items()}
+                   for name, r in adjusted.cameras.items()}
         with self._lock:
-            self.candidate, self.refined, self.warnings = run, refined, list(run.adjusted.warnings)
+            self.candidate, self.refined, self.warnings = run, refined, list(adjusted.warnings)
             moved = [n for n, r in refined.items() if r["moved"]]
-            self._computed("refined", f"Refined with {run.adjusted.instants} instants. "
+            self._computed("refined", f"Refined with {adjusted.instants} instants. "
                            + (f"{', '.join(moved)} moved since the world-marker calibration. " if moved else "")
                            + "Save to use the refined poses.")
 

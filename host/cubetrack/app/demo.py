@@ -22,12 +22,12 @@ from dataclasses import dataclass
 from pathlib import Path
 
 from cubetrack.app.calibrate import run_calibration
-from cubetrack.app.config import config_params, parameter_tables
+from cubetrack.app.config import ConfigParams, config_params, parameter_tables
 from cubetrack.app.emulated import EmulatedCameras
 from cubetrack.app.live import LiveResult, LiveStatus, track_live
 from cubetrack.app.track import track_recording
-from cubetrack.app.tracker import StageParams
 from cubetrack.calib.extrinsics import extrinsics_errors
+from cubetrack.core.errors import ConfigError
 from cubetrack.core.progress import Progress
 from cubetrack.evaluate.metrics import EvaluationResult, evaluate
 from cubetrack.fuse.fusion import FusionMethod
@@ -49,11 +49,12 @@ END_GRACE_S = 1.5  # after the replay's last frame: its transfer, the clock poll
 
 @dataclass(frozen=True, slots=True)
 class LiveDemo:
-    """The live part: its score against the ground truth moved to the live clock, the session's
-    result, the clock shift (live Unix time minus recorded host time) and the files."""
+    """The live part: its score against the ground truth moved to the live clock (None: Ctrl-C or
+    SIGTERM ended the session before the replay did), the session's result, the clock shift (live
+    Unix time minus recorded host time) and the files."""
 
     method: str
-    score: EvaluationResult
+    score: EvaluationResult | None
     result: LiveResult
     clock_shift_s: float
     config_path: Path
@@ -63,7 +64,8 @@ class LiveDemo:
 @dataclass(frozen=True, slots=True)
 class DemoResult:
     """Calibration errors per camera (position m, rotation deg), offline scores per fusion
-    method, and the live part (None with ``live=False``)."""
+    method (none when the live part was stopped by Ctrl-C or SIGTERM: the demo ends there), and
+    the live part (None with ``live=False``)."""
 
     out_dir: Path
     calibration_errors: dict[str, tuple[float, float]]
@@ -82,13 +84,15 @@ def write_live_config(config_path: Path, urls: dict[str, str], out: Path) -> Pat
     config = read_tracker_config(config_path)
     cameras = [CameraConfig(c.name, urls[c.name], c.camera_info.resolve() if c.camera_info else None)
                for c in config.cameras]
-    robots = [(r.name, str(r.layout_path.resolve())) for r in config.robots]
+    if any(r.layout_path is None for r in config.robots):
+        raise ConfigError(f"{config_path}: every robot of a live demo config needs its layout file")
+    robots = [(r.name, str(r.layout_path.resolve())) for r in config.robots if r.layout_path is not None]
     out.parent.mkdir(parents=True, exist_ok=True)
     write_toml(tracker_config_to_table(config.world, cameras, robots, config.sections), out)
     return out
 
 
-def run_live_demo(rec_dir: Path, config_path: Path, extrinsics, out_dir: Path, params: StageParams,
+def run_live_demo(rec_dir: Path, config_path: Path, extrinsics, out_dir: Path, settings: ConfigParams,
                   status: Callable[[LiveStatus], None] | None = None, sinks: Sequence[Sink] = ()) -> LiveDemo:
     """Serve ``rec_dir`` with the emulator on 127.0.0.1 (ephemeral ports), track it live over HTTP
     until the replay has ended, and score the result against the ground truth on the live clock."""
@@ -97,8 +101,6 @@ def run_live_demo(rec_dir: Path, config_path: Path, extrinsics, out_dir: Path, p
     live_dir = out_dir / "live"
     with EmulatedCameras(rec_dir) as emu:
         live_config = read_tracker_config(write_live_config(config_path, emu.urls, live_dir / "config.toml"))
-        write_run_record(live_dir / "track" / RUN_FILE, "track", parameter_tables(params),
-                         {"config": live_config.path}, {"cameras": dict(emu.urls)})
         stop = threading.Event()
         span_s = emu.period_s
 
@@ -110,7 +112,8 @@ def run_live_demo(rec_dir: Path, config_path: Path, extrinsics, out_dir: Path, p
         watcher = threading.Thread(target=end_with_the_replay, name="cubetrack-demo-end", daemon=True)
         watcher.start()
         try:
-            result = track_live(live_config, extrinsics, live_dir / "track", params, stop=stop, status=status,
+            result = track_live(live_config, extrinsics, live_dir / "track", settings.stages, settings.source,
+                                live_params=settings.live, stop=stop, status=status,
                                 duration_s=span_s + 30.0, sinks=sinks)
         finally:
             stop.set()
@@ -119,8 +122,8 @@ def run_live_demo(rec_dir: Path, config_path: Path, extrinsics, out_dir: Path, p
     truth_path = live_dir / "ground_truth_live.tum"
     write_tum(live_truth, truth_path)
     robot = live_config.robots[0].name
-    score = evaluate(read_tum(result.outputs[robot][0]), live_truth)
-    return LiveDemo(params.fusion.method.value, score, result, shift_s, live_dir / "config.toml", truth_path)
+    score = None if result.interrupted else evaluate(read_tum(result.outputs[robot][0]), live_truth)
+    return LiveDemo(settings.stages.fusion.method.value, score, result, shift_s, live_dir / "config.toml", truth_path)
 
 
 def run_demo(out_dir: Path, sim: SimulationParams, methods: tuple[FusionMethod, ...] = tuple(FusionMethod),
@@ -130,7 +133,8 @@ def run_demo(out_dir: Path, sim: SimulationParams, methods: tuple[FusionMethod, 
     emulator (``live``), then replay it offline with each fusion method; evaluate everything.
     ``out_dir/run.json`` records the version, the scenario and the resolved parameters; each
     output inside has its own run record. ``sinks`` (other outputs) are fed the live session, or
-    with ``live=False`` the last offline replay."""
+    with ``live=False`` the last offline replay. Ctrl-C or SIGTERM during the live part end the
+    demo after it, like the end of the replay would, but without the offline replays."""
     rec_dir = out_dir / "rec"
     simulate(sim, rec_dir, progress=progress)
     config = read_tracker_config(rec_dir / "config.toml")
@@ -142,9 +146,11 @@ def run_demo(out_dir: Path, sim: SimulationParams, methods: tuple[FusionMethod, 
     errors = extrinsics_errors(report.extrinsics, read_extrinsics(rec_dir / "true_extrinsics.toml"))
     truth = read_tum(rec_dir / "ground_truth.tum")
     base = settings.stages
-    live_part = (run_live_demo(rec_dir, rec_dir / "config.toml", report.extrinsics, out_dir, base, status, sinks)
+    live_part = (run_live_demo(rec_dir, rec_dir / "config.toml", report.extrinsics, out_dir, settings, status, sinks)
                  if live else None)
-    scores = {}
+    scores: dict[str, EvaluationResult] = {}
+    if live_part is not None and live_part.result.interrupted:
+        return DemoResult(out_dir, errors, scores, live_part)
     for method in methods:
         params = dataclasses.replace(base, fusion=dataclasses.replace(base.fusion, method=method))
         result = track_recording(config, Recording.open(rec_dir), report.extrinsics, out_dir / "track" / method.value,

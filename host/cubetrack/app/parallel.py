@@ -2,7 +2,7 @@
 
 The tracker (:class:`~cubetrack.app.tracker.Tracker`) splits a frame's work in three: ``admit``
 plans it from the fusion's state (capture time, the regions where detection looks, which robots
-need an estimate), a :class:`~cubetrack.app.tracker.FrameWorker` does it (decode, detection,
+need an estimate), a :class:`~cubetrack.app.tracker.FrameProcessor` does it (decode, detection,
 per-camera estimates: no shared state), and ``fuse`` hands the sightings to the fusion. A
 :class:`FramePool` runs the middle part on worker processes (the job, JPEG included, pickled
 through a pipe, the result pickled back) or threads (OpenCV releases the GIL in decoding and
@@ -27,11 +27,12 @@ from multiprocessing.connection import wait as connection_wait
 
 import cv2
 
-from cubetrack.app.tracker import FrameJob, FrameResult, FrameWorker
+from cubetrack.app.tracker import FrameProcessor
 from cubetrack.core.errors import SourceError
 from cubetrack.core.lifetime import end_with_parent
 from cubetrack.core.params import check, param
-from cubetrack.core.records import Frame
+from cubetrack.core.records import Frame, FrameJob, FrameResult
+from cubetrack.io.frame_wire import pack_result, unpack_result
 
 
 @enum.unique
@@ -85,7 +86,7 @@ class FramePool:
     the first is ready, :attr:`ready` is False and the consumer does the work itself. Use as a
     context manager; :meth:`close` ends the workers."""
 
-    def __init__(self, make_worker: Callable[[], FrameWorker], count: int, kind: WorkerKind,
+    def __init__(self, make_worker: Callable[[], FrameProcessor], count: int, kind: WorkerKind,
                  wake: Callable[[], None] | None = None, depth: int = 1):
         self.kind = kind
         self.count = count
@@ -220,7 +221,7 @@ class FramePool:
                 self._idle.append(lane)
         self._wake()
 
-    def _thread_loop(self, worker: FrameWorker) -> None:
+    def _thread_loop(self, worker: FrameProcessor) -> None:
         while (job := self._jobs.get()) is not None:
             try:
                 result = worker.work(job)
@@ -244,7 +245,7 @@ class _ProcessLane:
     results. With ``threaded``, a thread in this process waits for its results; without, the
     pool's :meth:`FramePool.wait` reads them on the caller's thread (no GIL hand-offs)."""
 
-    def __init__(self, context, make_worker: Callable[[], FrameWorker], pool: FramePool, depth: int,
+    def __init__(self, context, make_worker: Callable[[], FrameProcessor], pool: FramePool, depth: int,
                  threaded: bool):
         self.conn, child = context.Pipe()
         # one flag per job on the way (a ring): whether the worker started it (_STARTED) or the
@@ -301,7 +302,8 @@ class _ProcessLane:
         if message is None:  # taken back before the worker started it
             self.pool._finished(None, self)
         else:
-            self.pool._finished(self.pool.local_worker.unpack(job, message), self)
+            local = self.pool.local_worker
+            self.pool._finished(unpack_result(job, message, local.intrinsics, local.T_world_cam), self)
 
     def ended(self) -> None:
         if not self.closing:
@@ -331,9 +333,9 @@ class _ProcessLane:
             self.reader.join(5.0)
 
 
-def _process_main(conn: Connection, make_worker: Callable[[], FrameWorker], claims, claim_lock) -> None:
+def _process_main(conn: Connection, make_worker: Callable[[], FrameProcessor], claims, claim_lock) -> None:
     """A worker process: jobs in (plain values, :meth:`_ProcessLane.send`), results out, packed
-    (:meth:`FrameWorker.pack`: without the job, which the other side keeps; None for a job taken
+    (:func:`cubetrack.io.frame_wire.pack_result`: without the job, which the other side keeps; None for a job taken
     back before it started), until None comes."""
     end_with_parent()
     cv2.setNumThreads(1)
@@ -350,7 +352,7 @@ def _process_main(conn: Connection, make_worker: Callable[[], FrameWorker], clai
                 continue
             job = FrameJob(Frame(camera, seq, device_time_s, host_time_s, jpeg), capture_time_s, regions,
                            frozenset(estimate_robots))
-            conn.send(worker.pack(worker.work(job)))
+            conn.send(pack_result(worker.work(job), worker.T_world_cam))
     except (EOFError, KeyboardInterrupt):
         pass
 

@@ -23,17 +23,18 @@ import cv2
 from cubetrack.app.config import config_params, parameter_tables, recording_intrinsics
 from cubetrack.app.outputs import open_outputs
 from cubetrack.app.parallel import FramePool, WorkerKind
-from cubetrack.app.tracker import FrameJob, FrameResult, FrameWorker, StageParams, Tracker, TrackStats
+from cubetrack.app.session import RunSpec, Session
+from cubetrack.app.tracker import FrameProcessor, StageParams, Tracker, TrackStats
 from cubetrack.core.cameras import CameraExtrinsics, CameraIntrinsics, ClockSample, WorldConfig
 from cubetrack.core.errors import ConfigError
 from cubetrack.core.layout import CubeLayout
 from cubetrack.core.progress import Progress
-from cubetrack.core.records import Frame
-from cubetrack.fuse.fusion import FusionMethod
+from cubetrack.core.records import Frame, FrameJob, FrameResult
+from cubetrack.fuse.fusion import FilterFusion, FusionMethod
 from cubetrack.fuse.smoother import smoothed_poses
 from cubetrack.io.config import RobotConfig, TrackerConfig
 from cubetrack.io.recording import Recording
-from cubetrack.io.run import RUN_FILE, write_run_record
+from cubetrack.io.run import RUN_FILE
 from cubetrack.sink.base import FileSink, Outputs, Sink
 
 log = logging.getLogger(__name__)
@@ -46,12 +47,102 @@ REPLAY_LAG = 4  # a replay plans each frame with the fusion as it was this many 
 MIN_FRAMES_FOR_WORKERS = 600  # shorter replays are done on one thread (worker processes take 1-2 s to start)
 
 
+class _Replay:
+    """The state of one replay (:func:`track_frames`): the frames planned and not fused yet, the
+    jobs not handed out, the results done; each frame planned with the fusion as it was
+    ``REPLAY_LAG`` frames before it, the planned ones fused in capture order."""
+
+    def __init__(self, tracker: Tracker, output: Sink | Outputs, pool: FramePool | None,
+                 clock_samples: Mapping[str, Sequence[ClockSample]]):
+        self.tracker, self.output, self.pool = tracker, output, pool
+        self.trips = sorted(((s.host_recv_s, camera, s) for camera, samples in clock_samples.items() for s in samples),
+                            key=lambda item: (item[0], item[1]))
+        self.next_trip = 0
+        self.planned: deque[tuple[FrameJob | None, float]] = deque()  # in order, with the time each became available
+        self.unsent: deque[FrameJob] = deque()  # planned jobs neither done here nor handed to a worker, oldest first
+        self.done: dict[FrameJob, FrameResult] = {}
+
+    def frame(self, frame: Frame) -> None:
+        """Take the round trips completed before ``frame`` arrived, exactly as a live run has them
+        (the frames held for a camera's first one are planned as they are released), then plan it."""
+        tracker = self.tracker
+        while self.next_trip < len(self.trips) and self.trips[self.next_trip][0] <= frame.host_time_s:
+            _, camera, sample = self.trips[self.next_trip]
+            for held, capture_time_s in tracker.released_frames(camera, sample):
+                self._make_room()
+                self._schedule(tracker.plan(held, capture_time_s), sample.host_recv_s)
+            self.next_trip += 1
+        self._make_room()
+        self._schedule(tracker.admit(frame), frame.host_time_s)
+
+    def drain(self) -> None:
+        """Fuse every planned frame."""
+        while self.planned:
+            self._fuse_first_captured()
+
+    def _hand_out(self) -> None:
+        """Free worker slots take the newest unsent jobs (this thread will want the oldest first)."""
+        pool = self.pool
+        if pool is None:
+            return
+        if not pool.idle():
+            pool.poll()  # results that came free a slot
+        while self.unsent and pool.idle():
+            pool.submit(self.unsent.pop())
+
+    def _result(self, job: FrameJob) -> FrameResult:
+        """``job``'s result: a worker's, else done here; rather than wait for a worker's, this thread
+        does the oldest job no worker has, or takes ``job`` back if its worker has not started it."""
+        done, pool = self.done, self.pool
+        while job not in done:
+            if pool is not None:
+                done.update((r.job, r) for r in pool.take())
+                if job in done:
+                    break
+            if self.unsent:
+                todo = self.unsent.popleft()
+                done[todo] = self.tracker.processor.work(todo)
+            elif pool is not None and pool.reclaim(job):  # its worker had not started it (busy, or not given a core)
+                done[job] = self.tracker.processor.work(job)
+            elif pool is not None:
+                pool.wait(1.0)
+        return done.pop(job)
+
+    def _fuse_first_captured(self) -> None:
+        """Fuse the planned frame captured first (frames come in arrival order: taking the
+        ``REPLAY_LAG`` planned ones in capture order, fewer sightings reach the fusion late, to be
+        folded in by re-applying the newer ones)."""
+        planned = self.planned
+        first = min(range(len(planned)), key=lambda i: _capture_order(planned[i][0]))
+        job, now_s = planned[first]
+        del planned[first]
+        if job is None:
+            return
+        poses = self.tracker.fuse(self._result(job), now_s)
+        # a fixed lag's poses whose time is up once every frame that came before this one did is fused
+        poses += self.tracker.release(min((t for _, t in planned), default=now_s))
+        for pose in poses:
+            self.output.pose(pose)
+
+    def _make_room(self) -> None:
+        """Before a frame is planned: fuse what is ``REPLAY_LAG`` frames older."""
+        if len(self.planned) == REPLAY_LAG:
+            self._fuse_first_captured()
+
+    def _schedule(self, job: FrameJob | None, now_s: float) -> None:
+        """Queue a planned frame's work (for a worker or this thread), to be fused ``REPLAY_LAG`` frames later."""
+        if job is not None:
+            self.unsent.append(job)
+            self._hand_out()
+        self.planned.append((job, now_s))
+
+
 def track_frames(frames: Iterable[Frame], intrinsics: Mapping[str, CameraIntrinsics], world: WorldConfig,
                  layouts: Mapping[str, CubeLayout], extrinsics: Mapping[str, CameraExtrinsics] | None,
-                 output: Sink | Outputs, params: StageParams = StageParams(), *,
+                 output: Sink | Outputs, params: StageParams | None = None, *,
                  clock_samples: Mapping[str, Sequence[ClockSample]] | None = None,
                  progress: Progress | None = None, frame_count: int = 0, pool: FramePool | None = None,
-                 smoothed: Sink | None = None) -> TrackStats:
+                 smoothed: Sink | None = None, session: Session | None = None) -> TrackStats:
     """Track ``frames`` (in host arrival order, as a live run receives them) and hand every fused
     pose to ``output``; returns the run's counters. ``smoothed`` (the filter fusion only): after the
     last frame, also hand it every robot's poses smoothed over the whole recording
@@ -61,7 +152,8 @@ def track_frames(frames: Iterable[Frame], intrinsics: Mapping[str, CameraIntrins
     world-marker``. ``clock_samples`` (camera -> its ``/time`` round trips) are fed in as they
     completed between the frames (by receive time), exactly as a live run has them; a camera
     with round trips has its first frames held until one arrives. ``frame_count`` only sizes
-    the progress.
+    the progress. ``session``: the runtime the replay's loop runs on (:mod:`cubetrack.app.session`;
+    None: one of its own): Ctrl-C or SIGTERM end the replay there, the frames taken so far fused.
 
     The per-frame work (decode, detection, per-camera estimates) runs on ``pool``'s workers
     (:func:`replay_pool`; None: on this thread) while this thread plans and fuses: a worker's
@@ -74,6 +166,7 @@ def track_frames(frames: Iterable[Frame], intrinsics: Mapping[str, CameraIntrins
     within each window of ``REPLAY_LAG`` planned frames: a replay is the same, bit for bit, with
     one thread or any number of workers, run after run.
     """
+    params = params or StageParams()
     if smoothed is not None:
         _check_smoothable(params)
     clock_samples = clock_samples or {}
@@ -81,85 +174,28 @@ def track_frames(frames: Iterable[Frame], intrinsics: Mapping[str, CameraIntrins
     robots = tuple(RobotConfig(name, layout) for name, layout in layouts.items())
     tracker = Tracker(dict(intrinsics), world, robots, dict(extrinsics) if extrinsics is not None else None,
                       params, synced)
-    if smoothed is not None:
-        tracker.fusion.keep_trail()
-    trips = sorted(((s.host_recv_s, camera, s) for camera, samples in clock_samples.items() for s in samples),
-                   key=lambda item: (item[0], item[1]))
-    next_trip = 0
-    planned: deque[tuple[FrameJob | None, float]] = deque()  # in order, with the time each became available
-    unsent: deque[FrameJob] = deque()  # planned jobs neither done here nor handed to a worker, oldest first
-    done: dict[FrameJob, FrameResult] = {}
+    trail = tracker.fusion if isinstance(tracker.fusion, FilterFusion) else None  # --smooth: the filter's
+    if smoothed is not None and trail is not None:
+        trail.keep_trail()
+    replay = _Replay(tracker, output, pool, clock_samples)
+    session = session or Session()
+    numbered = enumerate(frames, start=1)
 
-    def hand_out() -> None:
-        """Free worker slots take the newest unsent jobs (this thread will want the oldest first)."""
-        if pool is None:
+    def step(timeout_s: float) -> None:
+        item = next(numbered, None)
+        if item is None:
+            session.complete()
             return
-        if not pool.idle():
-            pool.poll()  # results that came free a slot
-        while unsent and pool.idle():
-            pool.submit(unsent.pop())
-
-    def fuse_first_captured() -> None:
-        """Fuse the planned frame captured first (frames come in arrival order: taking the
-        ``REPLAY_LAG`` planned ones in capture order, fewer sightings reach the fusion late, to be
-        folded in by re-applying the newer ones); rather than wait for a worker's result, this
-        thread does the oldest job no worker has, or takes that frame's job back if its worker has
-        not started it."""
-        first = min(range(len(planned)), key=lambda i: _capture_order(planned[i][0]))
-        job, now_s = planned[first]
-        del planned[first]
-        if job is None:
-            return
-        while job not in done:
-            if pool is not None:
-                done.update((r.job, r) for r in pool.take())
-                if job in done:
-                    break
-            if unsent:
-                todo = unsent.popleft()
-                done[todo] = tracker.worker.work(todo)
-            elif pool.reclaim(job):  # its worker had not started it (busy, or not given a core)
-                done[job] = tracker.worker.work(job)
-            else:
-                pool.wait(1.0)
-        poses = tracker.fuse(done.pop(job), now_s)
-        # a fixed lag's poses whose time is up once every frame that came before this one did is fused
-        poses += tracker.release(min((t for _, t in planned), default=now_s))
-        for pose in poses:
-            output.pose(pose)
-
-    def make_room() -> None:
-        """Before a frame is planned: fuse what is ``REPLAY_LAG`` frames older."""
-        if len(planned) == REPLAY_LAG:
-            fuse_first_captured()
-
-    def schedule(job: FrameJob | None, now_s: float) -> None:
-        """Queue a planned frame's work (for a worker or this thread), to be fused ``REPLAY_LAG`` frames later."""
-        if job is not None:
-            unsent.append(job)
-            hand_out()
-        planned.append((job, now_s))
-
-    for i, frame in enumerate(frames, start=1):
-        # round trips completed before this frame arrived, exactly as a live run has them; the
-        # frames held for a camera's first one are planned as they are released
-        while next_trip < len(trips) and trips[next_trip][0] <= frame.host_time_s:
-            _, camera, sample = trips[next_trip]
-            for held, capture_time_s in tracker.released_frames(camera, sample):
-                make_room()
-                schedule(tracker.plan(held, capture_time_s), sample.host_recv_s)
-            next_trip += 1
-        make_room()
-        schedule(tracker.admit(frame), frame.host_time_s)
+        replay.frame(item[1])
         if progress is not None:
-            progress("track", i, frame_count)
-    while planned:
-        fuse_first_captured()
+            progress("track", item[0], frame_count)
+
+    session.run(step, drained=replay.drain)
     for pose in tracker.finish():
         output.pose(pose)
-    if smoothed is not None:
+    if smoothed is not None and trail is not None:
         for i, robot in enumerate(layouts, start=1):
-            for pose in smoothed_poses(tracker.fusion.trail(robot, tracker.last_now_s), tracker.last_now_s):
+            for pose in smoothed_poses(trail.trail(robot, tracker.last_now_s), tracker.last_now_s):
                 smoothed.pose(pose)
             if progress is not None:
                 progress("smooth", i, len(layouts))
@@ -219,20 +255,22 @@ def replay_pool(intrinsics: Mapping[str, CameraIntrinsics], world: WorldConfig, 
     start in the background; close the pool when done."""
     robots = tuple(RobotConfig(name, layout) for name, layout in layouts.items())
     T_world_cam = {name: e.T_world_cam for name, e in (extrinsics or {}).items()}
-    make_worker = functools.partial(FrameWorker, dict(intrinsics), world, robots, T_world_cam, params)
+    make_worker = functools.partial(FrameProcessor, dict(intrinsics), world, robots, T_world_cam, params)
     return FramePool(make_worker, workers, WorkerKind.PROCESS, depth=depth or -(-(REPLAY_LAG - 1) // workers))
 
 
 @dataclass(frozen=True, slots=True)
 class TrackResult:
     """What :func:`track_recording` produced: the stats, the files per robot, the frames skipped
-    by reason, the run record, and the smoothed poses' files per robot (with ``smooth``)."""
+    by reason, the run record, the smoothed poses' files per robot (with ``smooth``), and the
+    signal that ended the replay early (Ctrl-C: ``SIGINT``; None: it ran to the end)."""
 
     stats: TrackStats
     outputs: dict[str, tuple[Path, Path]]
     skipped: dict[str, int]
     run_record: Path
     smoothed: dict[str, tuple[Path, Path]] = field(default_factory=dict)
+    ended_by: str | None = None
 
 
 def track_recording(config: TrackerConfig, recording: Recording,
@@ -262,10 +300,9 @@ def track_recording(config: TrackerConfig, recording: Recording,
                         camera)
     intrinsics = recording_intrinsics(config, recording)
     out_dir = Path(out_dir)
-    run_record = write_run_record(
-        out_dir / RUN_FILE, "track", parameter_tables(params),
-        {"config": config.path, "recording": recording.path, "extrinsics": extrinsics_path},
-        {"smoothed": SMOOTHED_DIR} if smooth else None)
+    run = RunSpec(out_dir / RUN_FILE, "track", parameter_tables(params),
+                  {"config": config.path, "recording": recording.path, "extrinsics": extrinsics_path},
+                  {"smoothed": SMOOTHED_DIR} if smooth else {})
     total = sum(len(recording.index(c)) for c in cameras)
     if total < MIN_FRAMES_FOR_WORKERS:
         workers = 0
@@ -279,9 +316,10 @@ def track_recording(config: TrackerConfig, recording: Recording,
     if pool is not None:
         cv2.setNumThreads(1)  # the worker processes have the other cores (each runs OpenCV on one thread)
     try:
+        session = Session(record=run)
         stats = track_frames(recording.merged_frames(), intrinsics, config.world, layouts, extrinsics, outputs,
                              params, clock_samples=clock, progress=progress, frame_count=total, pool=pool,
-                             smoothed=smoothed)
+                             smoothed=smoothed, session=session)
     finally:
         cv2.setNumThreads(opencv_threads)
         if pool is not None:
@@ -292,4 +330,6 @@ def track_recording(config: TrackerConfig, recording: Recording,
     skipped = dict(recording.skipped)
     if stats.corrupt_frames:
         skipped["corrupt frame"] = stats.corrupt_frames
-    return TrackResult(stats, files.outputs, skipped, run_record, smoothed.outputs if smoothed is not None else {})
+    session.finish({"frames": stats.frames, "of_frames": total, "poses": dict(stats.poses), "skipped": skipped})
+    return TrackResult(stats, files.outputs, skipped, run.path, smoothed.outputs if smoothed is not None else {},
+                       session.ended_by)

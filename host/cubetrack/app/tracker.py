@@ -12,8 +12,8 @@ from __future__ import annotations
 import enum
 import logging
 from collections import Counter, deque
-from collections.abc import Mapping
 from dataclasses import dataclass, field
+from typing import Protocol
 
 import cv2
 import numpy as np
@@ -22,7 +22,7 @@ from cubetrack.core.cameras import CameraExtrinsics, CameraIntrinsics, ClockSamp
 from cubetrack.core.errors import ConfigError, ImageError
 from cubetrack.core.geometry import invert_T, transform_points
 from cubetrack.core.params import check, param
-from cubetrack.core.records import CubeSighting, Detection, Frame, TrackedPose
+from cubetrack.core.records import CubeSighting, Detection, Frame, FrameJob, FrameOutcome, FrameResult, TrackedPose
 from cubetrack.detect.detector import Box, Detector, DetectorParams, DetectResult, decode_gray
 from cubetrack.estimate.match import body_detections
 from cubetrack.estimate.params import EstimatorParams
@@ -37,6 +37,16 @@ log = logging.getLogger(__name__)
 
 _NO_ROTATION = np.zeros(3)  # (and no translation) for cv2.projectPoints of camera-frame points
 HELD_FRAMES = 32  # per camera, waiting for the first clock round trip (about 4 s at 7.5 fps)
+
+
+class Forecaster(Protocol):
+    """What plans a frame (:meth:`Tracker.plan`): where each robot will be, and which robots' fusion
+    asks for per-camera estimates. A :class:`~cubetrack.fuse.base.Fusion` is one; so is the
+    :class:`~cubetrack.fuse.forecast.Forecast` a camera worker process is sent."""
+
+    def predicted_pose(self, robot: str, time_s: float) -> np.ndarray | None: ...
+
+    def needs_estimate(self, robot: str) -> bool: ...
 
 
 @enum.unique
@@ -99,41 +109,7 @@ class StageParams:
         return config_params(config).stages
 
 
-@dataclass(frozen=True, slots=True, eq=False)
-class FrameJob:
-    """One frame's per-frame work order, decided by the tracker (the workflow layer) from the
-    fusion's state: where detection looks (``regions``; None = the whole frame) and which robots'
-    per-camera estimates the fusion asks for."""
-
-    frame: Frame
-    capture_time_s: float
-    regions: tuple[Box, ...] | None
-    estimate_robots: frozenset[str]
-
-
-@enum.unique
-class FrameOutcome(enum.Enum):
-    REGIONS = "regions"  # detection searched only the regions (and found something, or had none)
-    FULL_FRAME = "full frame"  # the whole frame was searched
-    CORRUPT = "corrupt"  # the JPEG did not decode
-    NO_CAMERA_POSE = "no camera pose"  # world-marker mode: the frame showed no world marker
-
-
-_OUTCOMES = tuple(FrameOutcome)
-
-
-@dataclass(frozen=True, slots=True, eq=False)
-class FrameResult:
-    """What the per-frame work made of a :class:`FrameJob`: a sighting per robot seen."""
-
-    job: FrameJob
-    outcome: FrameOutcome
-    sightings: tuple[CubeSighting, ...] = ()
-    error: str = ""
-    dropped: Mapping[str, int] = field(default_factory=dict)  # markers found, then dropped: reason -> count
-
-
-class FrameWorker:
+class FrameProcessor:
     """The per-frame work: decode, detect (in the job's regions, else the whole frame), the
     camera's pose, each robot's own detections and, where asked, its per-camera estimate. Holds
     no fusion state, so any number of workers run in threads or processes (one per thread: a
@@ -197,31 +173,6 @@ class FrameWorker:
             sightings.append(CubeSighting(frame.camera, robot.name, frame.seq, job.capture_time_s, frame.host_time_s,
                                           mine, estimate, T_world_cam, intrinsics))
         return tuple(sightings)
-
-    def pack(self, result: FrameResult) -> tuple:
-        """``result`` without its job, in plain values that pickle fast (for a pipe): what
-        :meth:`unpack` turns back into the same result in a worker made with the same arguments.
-        The intrinsics and calibrated camera poses, which both sides hold, stay out; a sighting's
-        detections go as ids, one corner array, areas and dictionaries."""
-        sightings = []
-        for s in result.sightings:
-            d = s.detections
-            T_world_cam = None if s.T_world_cam is self.T_world_cam.get(s.camera) else s.T_world_cam
-            sightings.append((s.robot, tuple(x.marker_id for x in d), np.array([x.corners_px for x in d]),
-                              tuple(x.area_px2 for x in d), tuple(x.dictionary for x in d), s.estimate, T_world_cam))
-        return _OUTCOMES.index(result.outcome), tuple(sightings), result.error, result.dropped
-
-    def unpack(self, job: FrameJob, packed: tuple) -> FrameResult:
-        """The :class:`FrameResult` of ``job`` that :meth:`pack` packed."""
-        outcome, packed_sightings, error, dropped = packed
-        frame = job.frame
-        sightings = tuple(
-            CubeSighting(frame.camera, robot, frame.seq, job.capture_time_s, frame.host_time_s,
-                         tuple(map(Detection, ids, corners, areas, dictionaries)), estimate,
-                         self.T_world_cam[frame.camera] if T_world_cam is None else T_world_cam,
-                         self.intrinsics[frame.camera])
-            for robot, ids, corners, areas, dictionaries, estimate, T_world_cam in packed_sightings)
-        return FrameResult(job, _OUTCOMES[outcome], sightings, error, dropped)
 
     def _detect(self, jpeg: bytes, source: str, regions: tuple[Box, ...] | None,
                 lens: CameraIntrinsics) -> tuple[DetectResult, FrameOutcome]:
@@ -291,16 +242,13 @@ class Tracker:
         else:
             self.T_world_cam = {}
         self.T_cam_world = {name: invert_T(T) for name, T in self.T_world_cam.items()}
-        self.worker = FrameWorker(intrinsics, world, robots, self.T_world_cam, params)
+        self.processor = FrameProcessor(intrinsics, world, robots, self.T_world_cam, params)
         self.fusion: Fusion
         if params.fusion.method is FusionMethod.FILTER:
             self.fusion = FilterFusion({r.name: r.layout for r in robots}, params.fusion, params.filter,
                                        params.estimator)
         else:
             self.fusion = LatestEstimateFusion(params.fusion)
-        # what plans each frame (regions, estimates): the fusion itself, or in a camera worker
-        # process a forecast sent by the fusion (cubetrack.app.camera_workers.Forecast)
-        self.forecast = self.fusion
         self.clocks = {name: ClockSync() for name in intrinsics}
         self.synced_cameras = synced_cameras
         self.held: dict[str, deque[Frame]] = {}  # frames waiting for their camera's first round trip
@@ -347,13 +295,13 @@ class Tracker:
         job = self.admit(frame)
         if job is None:
             return []
-        return self.fuse(self.worker.work(job), frame.host_time_s if now_s is None else now_s)
+        return self.fuse(self.processor.work(job), frame.host_time_s if now_s is None else now_s)
 
-    def admit(self, frame: Frame, hold: bool = True) -> FrameJob | None:
-        """Count a frame and plan its per-frame work (:meth:`plan`); None when there is nothing to
-        do now: a camera without intrinsics, or a polled camera whose clock is not known yet (the
-        frame is held for :meth:`add_clock_sample`, or with ``hold=False`` given up and counted,
-        as live tracking does: a frame that waited for the clock is stale)."""
+    def admit(self, frame: Frame, hold: bool = True, forecast: Forecaster | None = None) -> FrameJob | None:
+        """Count a frame and plan its per-frame work (:meth:`plan`, with ``forecast``); None when
+        there is nothing to do now: a camera without intrinsics, or a polled camera whose clock is
+        not known yet (the frame is held for :meth:`add_clock_sample`, or with ``hold=False`` given
+        up and counted, as live tracking does: a frame that waited for the clock is stale)."""
         self.stats.frames += 1
         if frame.camera not in self.intrinsics:
             return None
@@ -367,17 +315,20 @@ class Tracker:
                 self.stats.frames_before_clock_sync += 1  # the oldest is given up
             held.append(frame)
             return None
-        return self.plan(frame, capture_time_s)
+        return self.plan(frame, capture_time_s, forecast)
 
     def _track(self, frame: Frame, capture_time_s: float, now_s: float) -> list[TrackedPose]:
         """Detection, estimation and fusion of a frame whose capture time is known, in turn."""
-        return self.fuse(self.worker.work(self.plan(frame, capture_time_s)), now_s)
+        return self.fuse(self.processor.work(self.plan(frame, capture_time_s)), now_s)
 
-    def plan(self, frame: Frame, capture_time_s: float) -> FrameJob:
+    def plan(self, frame: Frame, capture_time_s: float, forecast: Forecaster | None = None) -> FrameJob:
         """The per-frame work order of a frame whose capture time is known: the regions where
-        the fusion predicts the robots, and the robots whose fusion wants an estimate."""
-        return FrameJob(frame, capture_time_s, self._regions(frame.camera, capture_time_s),
-                        frozenset(r.name for r in self.robots if self.forecast.needs_estimate(r.name)))
+        ``forecast`` predicts the robots, and the robots whose fusion wants an estimate.
+        ``forecast`` None: this tracker's own fusion; a camera worker process, which has no
+        fusion, gives the fusion's latest :class:`cubetrack.fuse.forecast.Forecast`."""
+        forecast = self.fusion if forecast is None else forecast
+        return FrameJob(frame, capture_time_s, self._regions(frame.camera, capture_time_s, forecast),
+                        frozenset(r.name for r in self.robots if forecast.needs_estimate(r.name)))
 
     def fuse(self, result: FrameResult, now_s: float) -> list[TrackedPose]:
         """Count what the per-frame work found and fuse its sightings (``now_s``: the host time
@@ -424,7 +375,7 @@ class Tracker:
             self.stats.frames_without_camera_pose += 1
         return True
 
-    def _regions(self, camera: str, time_s: float) -> tuple[Box, ...] | None:
+    def _regions(self, camera: str, time_s: float, forecast: Forecaster) -> tuple[Box, ...] | None:
         """Image boxes (x0, y0, x1, y1) around every robot's predicted cube, or None when the
         full frame must be searched (a robot not predicted, a full search due, region search off)."""
         track = self.params.track
@@ -436,7 +387,7 @@ class Tracker:
         width, height = intrinsics.width, intrinsics.height
         boxes = []
         for robot in self.robots:
-            T_world_cube = self.forecast.predicted_pose(robot.name, time_s)
+            T_world_cube = forecast.predicted_pose(robot.name, time_s)
             if T_world_cube is None:
                 return None
             pc = transform_points(T_cam_world @ T_world_cube, self.cube_points_m[robot.name])

@@ -2,8 +2,8 @@
 
 A worker reads its cameras (:class:`cubetrack.source.streams.LiveCameras`), stamps each frame with its
 capture time through the camera's ``/time`` round trips and does the tracker's per-frame work
-(:meth:`cubetrack.app.tracker.FrameWorker.work`: decode, detect, the camera's pose), then
-publishes one sighting message per frame (:mod:`cubetrack.core.sighting_wire`) under
+(:meth:`cubetrack.app.tracker.FrameProcessor.work`: decode, detect, the camera's pose), then
+publishes one sighting message per frame (:mod:`cubetrack.io.sighting_wire`) under
 ``cubetrack/sightings/<camera>``. The fusion (:mod:`cubetrack.app.fusion_service`) subscribes to
 ``cubetrack/sightings/*``. A worker holds no fusion state, so detection searches whole frames
 (there is no prediction to search around) and per-camera estimates are made by the fusion, from
@@ -26,7 +26,6 @@ default); either may start first, restart, or come and go.
 
 from __future__ import annotations
 
-import dataclasses
 import hashlib
 import logging
 import os
@@ -36,14 +35,18 @@ import threading
 import time
 from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass
+from typing import Any
 
 from cubetrack.app.config import config_params
 from cubetrack.app.live import live_camera_urls, live_intrinsics
-from cubetrack.app.tracker import CameraPoseSource, FrameResult, StageParams, Tracker, TrackStats
+from cubetrack.app.session import Session
+from cubetrack.app.tracker import CameraPoseSource, StageParams, Tracker, TrackStats
 from cubetrack.core.cameras import CameraExtrinsics
 from cubetrack.core.errors import ConfigError
-from cubetrack.core.sighting_wire import SightingMessage, WireClock, WireHealth, encode_sighting
+from cubetrack.core.records import Detection, Frame, FrameResult
+from cubetrack.fuse.forecast import NO_FORECAST
 from cubetrack.io.config import TrackerConfig
+from cubetrack.io.sighting_wire import SightingMessage, WireClock, WireHealth, encode_sighting
 from cubetrack.sink.zenoh_session import ZenohEndpoints, open_session
 from cubetrack.source.clock import ClockSync
 from cubetrack.source.streams import CameraStats, ClockReading, LiveCameras, SourceParams
@@ -169,7 +172,7 @@ def sighting_message(result: FrameResult, clock: ClockSync, stats: CameraStats, 
     """What a worker publishes for one frame's per-frame work: the detections of every robot's
     markers (corners, not the image), the camera pose where it came from the frame itself."""
     frame = result.job.frame
-    seen: dict[int, object] = {}
+    seen: dict[int, Detection] = {}
     for sighting in result.sightings:
         for d in sighting.detections:
             seen.setdefault(id(d), d)
@@ -200,9 +203,99 @@ def chosen_cameras(config: TrackerConfig, cameras: Sequence[str]) -> list[str]:
     known = [c.name for c in config.cameras]
     unknown = [c for c in cameras if c not in known]
     if unknown:
-        raise ConfigError(f"{config.path}: no camera {', '.join(unknown)} (the config has "
-                          f"{', '.join(known) or 'none'})")
+        raise ConfigError(f"{config.path}: no camera {', '.join(unknown)} "
+                          f"(the config has {', '.join(known) or 'none'})")
     return list(cameras) or known
+
+
+class ZenohWorker:
+    """The cameras one ``cubetrack worker`` reads and publishes (see the module doc): each claimed
+    camera's reader, publisher and claim token, the per-frame work on this thread."""
+
+    def __init__(self, session: Any, tracker: Tracker, urls: dict[str, str], source: SourceParams,
+                 clock: Callable[[], float], with_pose: bool):
+        self.bus, self.tracker, self.urls, self.source, self.clock = session, tracker, urls, source, clock
+        self.with_pose = with_pose
+        self.me = worker_id()
+        self.board = ClaimBoard()
+        self.readers: dict[str, tuple[LiveCameras, Any, Any]] = {}  # camera -> its reader, publisher, claim token
+        self.last_stats: dict[str, CameraStats] = {}
+        self.claims: list[tuple[float, str, bool]] = []
+        self.wake = threading.Event()
+        self.published = 0
+        self.started = time.monotonic()
+        self.on_bus_s: float | None = None  # since when this worker has been connected to another Zenoh node
+
+    def take(self, camera: str) -> None:
+        token = self.bus.liveliness().declare_token(claim_key(camera, self.me))
+        live = LiveCameras({camera: self.urls[camera]}, self.source, clock=self.clock, wake=self.wake.set)
+        self.readers[camera] = (live, self.bus.declare_publisher(sighting_key(camera)), token)
+        live.start()
+        self.claims.append((time.monotonic() - self.started, camera, True))
+        log.info("worker %s: reading %s", self.me, camera)
+
+    def give_up(self, camera: str) -> None:
+        live, publisher, token = self.readers.pop(camera)
+        live.stop()
+        self.last_stats.update(live.stats())
+        publisher.undeclare()
+        token.undeclare()
+        self.claims.append((time.monotonic() - self.started, camera, False))
+        log.info("worker %s: no longer reading %s", self.me, camera)
+
+    def rebalance(self, names: Sequence[str]) -> None:
+        """An automatic worker's claims brought in line with its share (once it has been on the
+        bus for ``SETTLE_S``)."""
+        info = self.bus.info
+        if not (list(info.peers_zid()) or list(info.routers_zid())):
+            self.on_bus_s = None
+            return
+        self.on_bus_s = self.on_bus_s if self.on_bus_s is not None else time.monotonic()
+        if time.monotonic() - self.on_bus_s < SETTLE_S:
+            return
+        pool, holders = self.board.snapshot()
+        gained, lost = claim_changes(self.me, names, self.readers, pool, holders)
+        for camera in sorted(lost):
+            self.give_up(camera)
+        for camera in sorted(gained):
+            self.take(camera)
+
+    def rebalance_if_changed(self, names: Sequence[str]) -> None:
+        """:meth:`rebalance` as soon as a claim or pool token came or went."""
+        if self.board.changed.is_set():
+            self.board.changed.clear()
+            self.rebalance(names)
+
+    def step(self, timeout_s: float) -> None:
+        """One event of every camera read (waiting up to ``timeout_s`` when none had one)."""
+        busy = False
+        for camera, (live, _, _) in list(self.readers.items()):
+            if (event := live.get(0)) is not None:
+                self.handle(camera, event)
+                busy = True
+        if not busy:
+            self.wake.wait(timeout_s)
+            self.wake.clear()
+
+    def handle(self, camera: str, event: Frame | ClockReading) -> None:
+        """A clock sample to the camera's clock; a frame's per-frame work (whole frame, no
+        estimates: this worker holds no fusion) published as its sighting."""
+        if isinstance(event, ClockReading):
+            self.tracker.add_clock_sample(event.camera, event.sample)
+        elif (job := self.tracker.admit(event, hold=False, forecast=NO_FORECAST)) is not None:
+            result = self.tracker.processor.work(job)
+            live, publisher, _ = self.readers[camera]
+            message = sighting_message(result, self.tracker.clocks[camera], live.stats()[camera], self.with_pose)
+            publisher.put(encode_sighting(message))
+            self.published += 1
+
+    def camera_stats(self) -> dict[str, CameraStats]:
+        return self.last_stats | {n: s for live, _, _ in self.readers.values() for n, s in live.stats().items()}
+
+    def line(self, elapsed_s: float) -> str:
+        return (f"{elapsed_s:5.0f}s published {self.published} | "
+                + (" ".join(f"{n} {s.frames} frames{'' if s.connected else ' (down)'}"
+                            for n, s in self.camera_stats().items() if n in self.readers) or "no camera claimed"))
 
 
 def run_worker(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | None, cameras: Sequence[str],
@@ -212,122 +305,46 @@ def run_worker(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
                clock: Callable[[], float] = time.time) -> WorkerResult:
     """Read ``cameras`` of ``config`` live (none named: claim a share of the free cameras, see
     :func:`claim_changes`) and publish each frame's sighting on Zenoh until ``duration_s``,
-    ``stop`` or Ctrl-C. Frames of a camera whose clock is not known yet are given up (counted),
-    as in ``track --live``."""
-    settings = config_params(config)
-    params = params or settings.stages
-    source = source or settings.source
+    ``stop``, Ctrl-C or SIGTERM (the session runtime, :mod:`cubetrack.app.session`). Frames of a
+    camera whose clock is not known yet are given up (counted), as in ``track --live``."""
+    if params is None or source is None:
+        settings = config_params(config)
+        params, source = params or settings.stages, source or settings.source
     automatic = not cameras
     names = chosen_cameras(config, cameras)
     urls = {n: u for n, u in live_camera_urls(config).items() if n in names}
-    keys = {n: sighting_key(n) for n in names}
+    for n in names:
+        sighting_key(n)  # every name a key chunk, before anything starts
     intrinsics = {n: i for n, i in live_intrinsics(config).items() if n in names}
     tracker = Tracker(intrinsics, config.world, config.robots, extrinsics, params, synced_cameras=frozenset(urls))
+    zenoh = open_session(endpoints, "worker")
     with_pose = params.track.camera_poses is CameraPoseSource.WORLD_MARKER
-    me = worker_id()
-    board = ClaimBoard()
-    session = open_session(endpoints, "worker")
-    tokens = [session.liveliness().declare_token(f"{WORKERS_KEY}/{me}")]
-    readers: dict[str, tuple[LiveCameras, object, object]] = {}  # camera -> its reader, publisher, claim token
-    last_stats: dict[str, CameraStats] = {}
-    claims: list[tuple[float, str, bool]] = []
-    wake = threading.Event()
-    published = 0
-    interrupted = False
-    started = time.monotonic()
-    on_bus_s: float | None = None  # since when this worker has been connected to another Zenoh node
-    next_status = started + status_every_s
-    next_check = started
-
-    def take(camera: str) -> None:
-        token = session.liveliness().declare_token(claim_key(camera, me))
-        live = LiveCameras({camera: urls[camera]}, source, clock=clock, wake=wake.set)
-        readers[camera] = (live, session.declare_publisher(keys[camera]), token)
-        live.start()
-        claims.append((time.monotonic() - started, camera, True))
-        log.info("worker %s: reading %s", me, camera)
-
-    def give_up(camera: str) -> None:
-        live, publisher, token = readers.pop(camera)
-        live.stop()
-        last_stats.update(live.stats())
-        publisher.undeclare()
-        token.undeclare()
-        claims.append((time.monotonic() - started, camera, False))
-        log.info("worker %s: no longer reading %s", me, camera)
-
-    def rebalance() -> None:
-        nonlocal on_bus_s
-        info = session.info
-        if not (list(info.peers_zid()) or list(info.routers_zid())):
-            on_bus_s = None
-            return
-        on_bus_s = on_bus_s if on_bus_s is not None else time.monotonic()
-        if time.monotonic() - on_bus_s < SETTLE_S:
-            return
-        pool, holders = board.snapshot()
-        gained, lost = claim_changes(me, names, readers, pool, holders)
-        for camera in sorted(lost):
-            give_up(camera)
-        for camera in sorted(gained):
-            take(camera)
-
-    def handle(camera: str, event) -> None:
-        nonlocal published
-        if isinstance(event, ClockReading):
-            tracker.add_clock_sample(event.camera, event.sample)
-        elif (job := tracker.admit(event, hold=False)) is not None:
-            job = dataclasses.replace(job, regions=None, estimate_robots=frozenset())
-            result = tracker.worker.work(job)
-            live, publisher, _ = readers[camera]
-            message = sighting_message(result, tracker.clocks[camera], live.stats()[camera], with_pose)
-            publisher.put(encode_sighting(message))
-            published += 1
-
-    def camera_stats() -> dict[str, CameraStats]:
-        return last_stats | {n: s for live, _, _ in readers.values() for n, s in live.stats().items()}
-
+    worker = ZenohWorker(zenoh, tracker, urls, source, clock, with_pose)
+    session = Session(duration_s=duration_s, stop=stop, status_every_s=status_every_s,
+                      status=None if status is None else lambda: status(worker.line(session.elapsed_s)))
+    tokens = [zenoh.liveliness().declare_token(f"{WORKERS_KEY}/{worker.me}")]
+    watchers = []
     try:
         if automatic:
-            tokens.append(session.liveliness().declare_token(f"{POOL_KEY}/{me}"))
-            watchers = [session.liveliness().declare_subscriber(
-                f"{key}/**", lambda sample: board.token(str(sample.key_expr), not str(sample.kind).endswith("DELETE")),
-                history=True) for key in (POOL_KEY, CLAIMS_KEY)]
-            log.info("worker %s: claiming its share of %s", me, ", ".join(names))
+            tokens.append(zenoh.liveliness().declare_token(f"{POOL_KEY}/{worker.me}"))
+            watchers = [zenoh.liveliness().declare_subscriber(f"{key}/**", lambda sample: worker.board.token(
+                str(sample.key_expr), not str(sample.kind).endswith("DELETE")), history=True)
+                for key in (POOL_KEY, CLAIMS_KEY)]
+            session.every(CHECK_EVERY_S, lambda: worker.rebalance(names))
+            session.each_turn(lambda: worker.rebalance_if_changed(names))
+            log.info("worker %s: claiming its share of %s", worker.me, ", ".join(names))
         else:
-            watchers = []
             for camera in names:
-                take(camera)
-            log.info("worker %s: %s -> Zenoh %s/*", me, ", ".join(names), SIGHTINGS_KEY)
-        try:
-            while not ((stop is not None and stop.is_set())
-                       or (duration_s is not None and time.monotonic() - started >= duration_s)):
-                if automatic and (board.changed.is_set() or time.monotonic() >= next_check):
-                    board.changed.clear()
-                    next_check = time.monotonic() + CHECK_EVERY_S
-                    rebalance()
-                busy = False
-                for camera, (live, _, _) in list(readers.items()):
-                    if (event := live.get(0)) is not None:
-                        handle(camera, event)
-                        busy = True
-                if not busy:
-                    wake.wait(0.05 if automatic else 0.1)
-                    wake.clear()
-                if status is not None and time.monotonic() >= next_status:
-                    next_status += status_every_s
-                    status(f"{time.monotonic() - started:5.0f}s published {published} | "
-                           + (" ".join(f"{n} {s.frames} frames{'' if s.connected else ' (down)'}"
-                                       for n, s in camera_stats().items() if n in readers) or "no camera claimed"))
-        except KeyboardInterrupt:
-            interrupted = True
+                worker.take(camera)
+            log.info("worker %s: %s -> Zenoh %s/*", worker.me, ", ".join(names), SIGHTINGS_KEY)
+        session.run(worker.step, 0.05 if automatic else 0.1)
         for watcher in watchers:
             watcher.undeclare()
     finally:
-        for camera in list(readers):
-            give_up(camera)
+        for camera in list(worker.readers):
+            worker.give_up(camera)
         for token in tokens:
             token.undeclare()
-        session.close()
-    return WorkerResult(tracker.stats, published, camera_stats(), time.monotonic() - started, interrupted,
-                        tuple(claims))
+        zenoh.close()
+    return WorkerResult(tracker.stats, worker.published, worker.camera_stats(), session.elapsed_s,
+                        session.interrupted, tuple(worker.claims))

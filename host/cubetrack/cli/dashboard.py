@@ -63,13 +63,14 @@ def add_dashboard_argument(p: argparse.ArgumentParser) -> None:
                    help="also show the session in the web dashboard (default 127.0.0.1:8770) (docs/dashboard.md)")
 
 
-def add_dashboard(args: argparse.Namespace, sinks: list, config=None, out_dir: Path | None = None) -> list:
+def add_dashboard(args: argparse.Namespace, sinks: list, config=None, out_dir: Path | None = None,
+                  params=None) -> list:
     """``sinks`` and, with ``--dashboard``, a dashboard of the session (its page lists the
-    trajectory files of ``out_dir`` for download). When the dashboard cannot start, ``sinks``
-    are closed again before the error goes on."""
+    trajectory files of ``out_dir`` for download), run with ``params`` (the config's
+    ``[dashboard]`` as the command resolved it; None: the defaults). When the dashboard cannot
+    start, ``sinks`` are closed again before the error goes on."""
     if getattr(args, "dashboard", None) is None:
         return sinks
-    from cubetrack.app.config import config_params
     from cubetrack.app.outputs import close_sinks, parse_address
     from cubetrack.sink.dashboard.server import TRAJECTORY_FILES, DashboardServer, DashboardSink, folder_downloads
     from cubetrack.sink.dashboard.state import DashboardParams
@@ -77,8 +78,7 @@ def add_dashboard(args: argparse.Namespace, sinks: list, config=None, out_dir: P
     try:
         host, port = parse_address(args.dashboard, DEFAULT_ADDRESS, "--dashboard")
         urls = {c.name: c.url for c in config.cameras} if config is not None else None
-        params = config_params(config).dashboard if config is not None else DashboardParams()
-        server = DashboardServer(host, port, params, camera_urls=urls)
+        server = DashboardServer(host, port, params or DashboardParams(), camera_urls=urls)
     except BaseException:
         close_sinks(sinks)
         raise

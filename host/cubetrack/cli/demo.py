@@ -80,6 +80,12 @@ def run(args: argparse.Namespace) -> int:
         cams = ", ".join(f"{n} {c.frames} frames" + (f" ({c.bad} bad)" if c.bad else "") for n, c in lr.cameras.items())
         print(f"\nlive tracking over HTTP ({args.out / 'live'}): emulated cameras on 127.0.0.1, {lr.duration_s:.1f} s, "
               f"median latency {latency}; {cams}")
+        if live.score is None:
+            print(f"{lr.ended_by}: the live session stopped early; its poses are saved in "
+                  f"{args.out / 'live' / 'track'} "
+                  f"(run.json there says how it ended); not scored, and the offline replay was not run",
+                  file=sys.stderr)
+            return 130
         print(f"scored against {live.ground_truth_path} (the ground truth moved onto the live clock by "
               f"{live.clock_shift_s:+.3f} s):")
         print(format_table({f"live {live.method}": live.score}))

@@ -45,7 +45,8 @@ def run(args: argparse.Namespace) -> int:
     print(f"fusing into {args.out}" + ("" if args.duration else " (Ctrl-C to stop)"), file=sys.stderr, flush=True)
     try:
         result = run_fusion(config, extrinsics, args.out, bus(args, fuse_endpoints), settings.stages,
-                            duration_s=args.duration, status=status, status_every_s=args.status_every, sinks=sinks)
+                            duration_s=args.duration, status=status, status_every_s=args.status_every, sinks=sinks,
+                            extrinsics_path=args.extrinsics)
     finally:
         close_sinks(sinks)
     print(f"{'interrupted; ' if result.interrupted else ''}fused for {result.duration_s:.1f} s: "

@@ -34,20 +34,17 @@ def run(args: argparse.Namespace) -> int:
     from cubetrack.app.config import load_config
     from cubetrack.app.live import live_camera_urls, record_live
     from cubetrack.core.errors import ConfigError
-    from cubetrack.io.run import RUN_FILE, write_run_record
 
     if args.duration is not None and not args.duration > 0:
         raise ConfigError(f"--duration must be a positive number of seconds, got {args.duration}")
     config, settings = load_config(args.config)
-    urls = live_camera_urls(config)  # a config without urls fails before anything is written
+    live_camera_urls(config)  # a config without urls fails before anything is written
 
     def status(s) -> None:
         print(f"record: {s.line()}", file=sys.stderr, flush=True)
 
     print(f"recording into {args.out}" + ("" if args.duration else " (Ctrl-C to stop)"), file=sys.stderr, flush=True)
     result = record_live(config, args.out, settings.source, duration_s=args.duration, status=status)
-    write_run_record(args.out / RUN_FILE, "record", {"source": settings.source}, {"config": config.path},
-                     {"cameras": urls})
     print(f"{'interrupted; ' if result.interrupted else ''}recorded {result.duration_s:.1f} s into {result.recording}")
     for name, s in result.cameras.items():
         bad = "".join(f", {n} {why}" for why, n in sorted(s.bad_parts.items()))

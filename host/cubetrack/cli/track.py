@@ -68,6 +68,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     import dataclasses
+    import sys
 
     from cubetrack.app.config import load_config
     from cubetrack.app.outputs import close_sinks
@@ -103,9 +104,9 @@ def run(args: argparse.Namespace) -> int:
     else:
         extrinsics = read_extrinsics(args.extrinsics)
     recording = None if args.live else Recording.open(args.recording)
-    sinks = add_dashboard(args, output_sinks_from_args(args, config), config, args.out)
+    sinks = add_dashboard(args, output_sinks_from_args(args, config), config, args.out, settings.dashboard)
     try:
-        if args.live:
+        if recording is None:
             return _run_live(args, config, extrinsics, settings, sinks)
         result = track_recording(config, recording, extrinsics, args.out, settings.stages, StderrProgress(), sinks,
                                  extrinsics_path=args.extrinsics, workers=args.replay_workers, smooth=args.smooth)
@@ -118,6 +119,10 @@ def run(args: argparse.Namespace) -> int:
         print(f"{robot}: {s.poses[robot]} poses -> {tum}, {jsonl}")
     for robot, (tum, jsonl) in result.smoothed.items():
         print(f"{robot}: smoothed poses -> {tum}, {jsonl}")
+    if result.ended_by is not None:
+        print(f"track: {result.ended_by}: the replay stopped early; the poses of the frames taken so far are saved "
+              f"(run.json says how it ended)", file=sys.stderr)
+        return 130
     return 0
 
 
@@ -135,15 +140,9 @@ def dropped_line(stats) -> str:
 def _run_live(args: argparse.Namespace, config, extrinsics, settings, sinks) -> int:
     import sys
 
-    from cubetrack.app.config import parameter_tables
     from cubetrack.app.live import live_camera_urls, live_intrinsics, track_live
-    from cubetrack.io.run import RUN_FILE, write_run_record
 
     live_camera_urls(config), live_intrinsics(config)  # a bad config fails before the session starts
-    sections = parameter_tables(settings)
-    write_run_record(args.out / RUN_FILE, "track", {**parameter_tables(settings.stages), "source": sections["source"]},
-                     {"config": config.path, "extrinsics": args.extrinsics, "recorded_to": args.record},
-                     {"cameras": {c.name: c.url for c in config.cameras}})
     params = settings.stages
 
     def status(s) -> None:
@@ -151,10 +150,12 @@ def _run_live(args: argparse.Namespace, config, extrinsics, settings, sinks) -> 
 
     print(f"tracking live into {args.out}" + ("" if args.duration else " (Ctrl-C to stop)"),
           file=sys.stderr, flush=True)
-    result = track_live(config, extrinsics, args.out, params, duration_s=args.duration, record_to=args.record,
-                        status=status, status_every_s=args.status_every, source=settings.source,
-                        sinks=sinks)
+    result = track_live(config, extrinsics, args.out, params, settings.source, duration_s=args.duration,
+                        record_to=args.record, status=status, status_every_s=args.status_every, sinks=sinks,
+                        live_params=settings.live, extrinsics_path=args.extrinsics)
     s = result.stats
+    if s is None:  # track_live always returns its counters (only record_live has none)
+        raise AssertionError("a live tracking session without counters")
     latency = "-" if result.latency_s is None else f"{result.latency_s * 1000:.0f} ms"
     print(f"{'interrupted; ' if result.interrupted else ''}tracked live for {result.duration_s:.1f} s: "
           f"frames: {s.frames}, before their camera's clock was known: {s.frames_before_clock_sync}, "

@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import math
 import tomllib
 import types
 import typing
@@ -40,11 +41,54 @@ def check(condition: bool, message: str) -> None:
         raise ParamsError(message)
 
 
-def check_positive(params: Any, *names: str) -> None:
-    """Refuse any of the fields ``names`` of ``params`` that is not a positive number."""
+def check_positive(params: Any, *names: str, unit: str = "") -> None:
+    """Refuse any of the fields ``names`` of ``params`` that is not a positive number (with a
+    ``unit``, e.g. "seconds": also finite, and the message names the unit)."""
     for name in names:
         value = getattr(params, name)
-        check(value > 0, f"{name} must be positive, got {value}")
+        if unit:
+            check(_finite(value) and value > 0, f"{name} must be a positive number of {unit}, got {value!r}")
+        else:
+            check(value > 0, f"{name} must be positive, got {value}")
+
+
+def check_non_negative(params: Any, *names: str, unit: str = "") -> None:
+    """Refuse any of the fields ``names`` of ``params`` that is negative (with a ``unit``, e.g.
+    "seconds": also one that is not finite, and the message names the unit)."""
+    for name in names:
+        value = getattr(params, name)
+        if unit:
+            check(_finite(value) and value >= 0, f"{name} must be a non-negative number of {unit}, got {value}")
+        else:
+            check(value >= 0, f"{name} must not be negative, got {value}")
+
+
+def check_between(params: Any, low: float, high: float, *names: str) -> None:
+    """Refuse any of the fields ``names`` of ``params`` outside [``low``, ``high``]."""
+    for name in names:
+        value = getattr(params, name)
+        check(low <= value <= high, f"{name} must be between {low:g} and {high:g}, got {value}")
+
+
+def check_finite(params: Any) -> None:
+    """Refuse a float field that is not finite, or a tuple field holding anything but finite numbers."""
+    for f in dataclasses.fields(params):
+        value = getattr(params, f.name)
+        if isinstance(value, float):
+            check(math.isfinite(value), f"{f.name} must be a finite number, got {value}")
+        elif isinstance(value, tuple):
+            check(all(_finite(x) for x in value), f"{f.name} must be a list of finite numbers, got {value}")
+
+
+def check_at_least(params: Any, minimum: int, *names: str) -> None:
+    """Refuse any of the fields ``names`` of ``params`` below ``minimum``."""
+    for name in names:
+        value = getattr(params, name)
+        check(value >= minimum, f"{name} must be at least {minimum}, got {value}")
+
+
+def _finite(value: Any) -> bool:
+    return isinstance(value, (int, float)) and math.isfinite(value)
 
 
 def _coerce(value: Any, annotation: Any, where: str) -> Any:

@@ -6,6 +6,8 @@ never modified after construction (stages build new records instead).
 
 from __future__ import annotations
 
+import enum
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -190,3 +192,34 @@ class CameraView:
     jpeg: bytes
     detections: tuple[Detection, ...]
     predicted_corners_px: dict = field(default_factory=dict)
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class FrameJob:
+    """One frame's per-frame work order, decided by the tracker (:class:`cubetrack.app.tracker.Tracker`)
+    from the fusion's state: where detection looks (``regions``; None = the whole frame) and which
+    robots' per-camera estimates the fusion asks for."""
+
+    frame: Frame
+    capture_time_s: float
+    regions: tuple[tuple[int, int, int, int], ...] | None  # (x0, y0, x1, y1) image boxes
+    estimate_robots: frozenset[str]
+
+
+@enum.unique
+class FrameOutcome(enum.Enum):
+    REGIONS = "regions"  # detection searched only the regions (and found something, or had none)
+    FULL_FRAME = "full frame"  # the whole frame was searched
+    CORRUPT = "corrupt"  # the JPEG did not decode
+    NO_CAMERA_POSE = "no camera pose"  # world-marker mode: the frame showed no world marker
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class FrameResult:
+    """What the per-frame work made of a :class:`FrameJob`: a sighting per robot seen."""
+
+    job: FrameJob
+    outcome: FrameOutcome
+    sightings: tuple[CubeSighting, ...] = ()
+    error: str = ""
+    dropped: Mapping[str, int] = field(default_factory=dict)  # markers found, then dropped: reason -> count

@@ -81,12 +81,12 @@ def body_detections(detections: Iterable[Detection], layout: CubeLayout) -> tupl
 
 
 def match_faces(detections: Iterable[Detection], layout: CubeLayout, intrinsics: CameraIntrinsics,
-                T_world_cam: np.ndarray, T_world_body: np.ndarray | None = None, *,
+                T_world_cam: np.ndarray, T_world_cube: np.ndarray | None = None, *,
                 params: EstimatorParams | None = None, gate_px: float = 12.0,
                 max_view_angle_deg: float = 80.0) -> tuple[FaceMatch, ...]:
     """Match one camera frame's detections to the faces of the body ``layout`` describes.
 
-    ``T_world_cam``: the camera's pose; ``T_world_body``: the predicted body pose, or None (see
+    ``T_world_cam``: the camera's pose; ``T_world_cube``: the predicted body pose, or None (see
     the module doc for how each settles repeated ids and flips). Without a prediction the matches
     come largest first, each with its ``observation`` (``params``: the estimator's thresholds);
     with one, in detection order (``gate_px``, ``max_view_angle_deg``). A face is matched at
@@ -97,8 +97,8 @@ def match_faces(detections: Iterable[Detection], layout: CubeLayout, intrinsics:
     if not mine:
         return ()
     T_world_cam = _checked_camera_pose(T_world_cam)
-    if T_world_body is not None:
-        return _match_by_prediction(mine, layout, intrinsics, T_world_cam, np.asarray(T_world_body, dtype=float),
+    if T_world_cube is not None:
+        return _match_by_prediction(mine, layout, intrinsics, T_world_cam, np.asarray(T_world_cube, dtype=float),
                                     gate_px, max_view_angle_deg)
     params = params or EstimatorParams()
     poses: list[MarkerPose] = []
@@ -190,14 +190,14 @@ def _identify(marker_poses: Iterable[MarkerPose], layout: CubeLayout, T_world_ca
 
 
 def _match_by_prediction(detections: Sequence[Detection], layout: CubeLayout, intrinsics: CameraIntrinsics,
-                         T_world_cam: np.ndarray, T_world_body: np.ndarray, gate_px: float,
+                         T_world_cam: np.ndarray, T_world_cube: np.ndarray, gate_px: float,
                          max_view_angle_deg: float) -> tuple[FaceMatch, ...]:
     """Each detection, in order, takes the nearest unclaimed visible face with its id where
-    ``T_world_body`` projects the faces (see the module doc). Runs per sighting in the filter:
+    ``T_world_cube`` projects the faces (see the module doc). Runs per sighting in the filter:
     few numpy calls, and plain Python over the handful of faces."""
     R_wc = T_world_cam[:3, :3]
-    R_cb = R_wc.T @ T_world_body[:3, :3]
-    t_cb = (T_world_body[:3, 3] - T_world_cam[:3, 3]) @ R_wc
+    R_cb = R_wc.T @ T_world_cube[:3, :3]
+    t_cb = (T_world_cube[:3, 3] - T_world_cam[:3, 3]) @ R_wc
     corners_cam = layout.corners_m @ R_cb.T + t_cb                     # (M, 4, 3)
     # facing away, or seen so obliquely that its corners are poor: not a candidate (the view
     # angle's cosine -n.c / |c|, with c twice the face's centre: its diagonal's midpoint)

@@ -28,9 +28,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from cubetrack.core.errors import ParamsError
 from cubetrack.core.geometry import make_T
-from cubetrack.core.params import param
+from cubetrack.core.params import check_at_least, check_non_negative, check_positive, param
 from cubetrack.estimate.reprojection import (
     CornerSet,
     moved_pose,
@@ -86,19 +85,13 @@ class FilterParams:
                                    "anyway, smoothed over the sightings there are, seconds")
 
     def __post_init__(self) -> None:
-        for name in ("accel_noise", "angular_accel_noise", "yaw_accel_noise", "steady_yaw_accel_noise",
-                     "sharp_turn_rad_s", "turn_hold_s", "corner_noise_px", "huber_px", "gate_rms_px", "face_gate_px",
-                     "init_velocity_sigma", "init_angular_velocity_sigma"):
-            if not getattr(self, name) > 0:
-                raise ParamsError(f"{name} must be positive")
-        for name in ("camera_position_sigma_m", "camera_rotation_sigma_deg"):
-            if not 0 <= getattr(self, name) < math.inf:
-                raise ParamsError(f"{name} must be a non-negative number, got {getattr(self, name)}")
-        if self.iterations < 1:
-            raise ParamsError("iterations must be at least 1")
-        for name in ("smooth_lag_s", "smooth_margin_s"):
-            if not 0 <= getattr(self, name) < math.inf:
-                raise ParamsError(f"{name} must be a non-negative number of seconds, got {getattr(self, name)}")
+        check_positive(self, "accel_noise", "angular_accel_noise", "yaw_accel_noise", "steady_yaw_accel_noise",
+                       "sharp_turn_rad_s", "turn_hold_s", "corner_noise_px", "huber_px", "gate_rms_px", "face_gate_px",
+                       "init_velocity_sigma", "init_angular_velocity_sigma")
+        check_non_negative(self, "camera_position_sigma_m", unit="metres")
+        check_non_negative(self, "camera_rotation_sigma_deg", unit="degrees")
+        check_at_least(self, 1, "iterations")
+        check_non_negative(self, "smooth_lag_s", "smooth_margin_s", unit="seconds")
 
 
 @dataclass(frozen=True, slots=True)

@@ -42,7 +42,7 @@ from cubetrack.core.cameras import CameraIntrinsics
 from cubetrack.core.errors import ParamsError
 from cubetrack.core.geometry import invert_T, mean_rotation, quat_xyzw_from_R
 from cubetrack.core.layout import CubeLayout
-from cubetrack.core.params import param
+from cubetrack.core.params import check, check_at_least, check_non_negative, check_positive, param
 from cubetrack.core.records import CameraEstimate, CubeSighting, TrackedPose
 from cubetrack.estimate.match import match_faces
 from cubetrack.estimate.params import EstimatorParams
@@ -92,13 +92,12 @@ class FusionParams:
                                "on from it at once")
 
     def __post_init__(self) -> None:
-        for name in ("window_s", "lost_after_s", "association_gate_px", "init_window_s", "reacquire_m"):
-            if not getattr(self, name) > 0:
-                raise ParamsError(f"{name} must be positive, got {getattr(self, name)}")
-        if not 0 < self.max_view_angle_deg <= 90:
-            raise ParamsError(f"max_view_angle_deg must be in (0, 90], got {self.max_view_angle_deg}")
-        if self.history_s < 0 or self.output_rate_hz < 0 or self.max_rejections < 1:
-            raise ParamsError("history_s and output_rate_hz must not be negative, max_rejections >= 1")
+        check_positive(self, "window_s", "lost_after_s", "association_gate_px", "init_window_s", "reacquire_m")
+        check(0 < self.max_view_angle_deg <= 90,
+              f"max_view_angle_deg must be in (0, 90], got {self.max_view_angle_deg}")
+        check_non_negative(self, "history_s", unit="seconds")
+        check_non_negative(self, "output_rate_hz", unit="hertz")
+        check_at_least(self, 1, "max_rejections")
 
 
 def paper_weights(method: FusionMethod, areas_px2: np.ndarray) -> np.ndarray:

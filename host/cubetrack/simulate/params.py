@@ -2,7 +2,8 @@
 command line can build its options from the fields without loading OpenCV).
 
 Every field's ``doc`` gives its unit and meaning; ``cubetrack simulate --help`` shows them.
-Values are checked on construction and refused with :class:`cubetrack.core.errors.SimulationError`.
+Values are checked on construction and refused with :class:`cubetrack.core.errors.ParamsError`, as
+every params class's are (:mod:`cubetrack.core.params`).
 
 Two presets: the defaults are the *clean* preset (pinhole lens with exactly known intrinsics, a
 global shutter, a perfectly built cube on a robot that never tilts, nobody in the room);
@@ -13,14 +14,18 @@ any preset can switch single effects on or off.
 
 from __future__ import annotations
 
-import math
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 from typing import Any
 
-from cubetrack.core.errors import SimulationError
-from cubetrack.core.params import param
+from cubetrack.core.params import check, check_between, check_finite, check_non_negative, check_positive, param
 
 PATHS = ("figure8", "rectangle", "sharp")
+
+
+LIMITS = {"focal_spread": 0.1, "info_focal_error": 0.05, "info_k1_error": 0.1, "marker_undersize": 0.2,
+          "principal_offset_px": 50.0, "info_principal_error_px": 50.0, "marker_shift_mm": 5.0, "marker_turn_deg": 10.0,
+          "face_tilt_deg": 10.0, "wobble_deg": 10.0, "bounce_mm": 20.0, "floor_bumps_mm": 20.0,
+          "exposure_step": 1.0}  # the most each effect of the realistic preset may be set to
 
 
 @dataclass(frozen=True, slots=True)
@@ -123,92 +128,60 @@ class SimulationParams:
     ground_truth_hz: float = param(100.0, "rate of the ground-truth trajectory, samples per second")
 
     def __post_init__(self) -> None:
-        def bad(name: str, what: str) -> SimulationError:
-            return SimulationError(f"simulation parameter {name} = {getattr(self, name)!r}: {what}")
+        check_finite(self)
+        check_positive(self, "height_m", "distance_m", "focal_px", "world_marker_size_m", "cube_size_m",
+                       "marker_size_m", "speed_m_s", "duration_s", "fps", "clock_period_s", "accel_m_s2",
+                       "turn_rate_deg_s", "turn_radius_m", "ground_truth_hz")
+        check_non_negative(self, "position_jitter_m", "angle_jitter_deg", "world_margin_m", "mast_height_m",
+                           "capture_jitter_s", "exposure_s", "drift_ppm", "latency_ms", "latency_jitter_ms", "spike_ms",
+                           "rtt_ms", "slow_rtt_ms", "noise_std", "blur_px", "gain_jitter", "light_gradient",
+                           "vignetting", "start_unix_s", "principal_offset_px", "focal_spread", "readout_ms",
+                           "info_focal_error", "info_principal_error_px", "info_k1_error", "marker_shift_mm",
+                           "marker_turn_deg", "marker_undersize", "face_tilt_deg", "floor_bumps_mm", "bounce_mm",
+                           "wobble_deg", "exposure_steps_per_s", "exposure_step")
+        check_between(self, 0, 1, "spike_rate", "slow_rtt_rate", "vignetting", "face_shading")
+        check(0 <= self.drop_rate < 1, f"drop_rate must be at least 0 and below 1, got {self.drop_rate}")
+        check_between(self, 0, 8, "people")
+        for name, most in LIMITS.items():
+            check(getattr(self, name) <= most, f"{name} must be at most {most:g}, got {getattr(self, name)}")
+        period = f"the frame period {1.0 / self.fps:.4f} s"
+        check(self.readout_ms * 1e-3 + self.exposure_s < 1.0 / self.fps,
+              f"readout_ms ({self.readout_ms}) plus exposure must be shorter than {period}")
+        check(self.exposure_s < 1.0 / self.fps, f"exposure_s ({self.exposure_s}) must be shorter than {period}")
+        check_between(self, 1, 8, "robots", "supersample")
+        check_between(self, 1, 16, "cameras")
+        check_between(self, 1, 100, "jpeg_quality")
+        check_between(self, 0, 100_000, "calibration_frames")
+        check(0 < self.robot_spacing < 1,
+              f"robot_spacing must be between 0 and 1 (exclusive), got {self.robot_spacing}")
+        check(0 < self.tilt_deg < 90, f"tilt_deg must be between 0 and 90 degrees (exclusive), got {self.tilt_deg}")
+        check(16 <= self.image_width_px <= 4096 and 16 <= self.image_height_px <= 4096,
+              f"image size must be 16..4096 pixels per side, got {self.image_width_px} x {self.image_height_px}")
+        self._check_geometry()
 
-        for f in fields(self):
-            v = getattr(self, f.name)
-            if isinstance(v, float) and not math.isfinite(v):
-                raise bad(f.name, "must be a finite number")
-            if isinstance(v, tuple) and not all(isinstance(x, (int, float)) and math.isfinite(x) for x in v):
-                raise bad(f.name, "must be a list of finite numbers")
-        positive = ("height_m", "distance_m", "focal_px", "world_marker_size_m", "cube_size_m",
-                    "marker_size_m", "speed_m_s", "duration_s", "fps", "clock_period_s", "accel_m_s2",
-                    "turn_rate_deg_s", "turn_radius_m", "ground_truth_hz")
-        for name in positive:
-            if not getattr(self, name) > 0:
-                raise bad(name, "must be positive")
-        non_negative = ("position_jitter_m", "angle_jitter_deg", "world_margin_m", "mast_height_m",
-                        "capture_jitter_s", "exposure_s", "drift_ppm", "latency_ms", "latency_jitter_ms",
-                        "spike_ms", "rtt_ms", "slow_rtt_ms", "noise_std", "blur_px", "gain_jitter",
-                        "light_gradient", "vignetting", "start_unix_s", "principal_offset_px", "focal_spread",
-                        "readout_ms", "info_focal_error", "info_principal_error_px", "info_k1_error",
-                        "marker_shift_mm", "marker_turn_deg", "marker_undersize", "face_tilt_deg",
-                        "floor_bumps_mm", "bounce_mm", "wobble_deg", "exposure_steps_per_s", "exposure_step")
-        for name in non_negative:
-            if getattr(self, name) < 0:
-                raise bad(name, "must not be negative")
-        for name in ("spike_rate", "slow_rtt_rate", "vignetting", "face_shading"):
-            if not 0 <= getattr(self, name) <= 1:
-                raise bad(name, "must be between 0 and 1")
-        if not 0 <= self.drop_rate < 1:
-            raise bad("drop_rate", "must be at least 0 and below 1")
-        if not 0 <= self.people <= 8:
-            raise bad("people", "must be between 0 and 8")
-        limits = {"focal_spread": 0.1, "info_focal_error": 0.05, "info_k1_error": 0.1, "marker_undersize": 0.2,
-                  "principal_offset_px": 50.0, "info_principal_error_px": 50.0, "marker_shift_mm": 5.0,
-                  "marker_turn_deg": 10.0, "face_tilt_deg": 10.0, "wobble_deg": 10.0, "bounce_mm": 20.0,
-                  "floor_bumps_mm": 20.0, "exposure_step": 1.0}
-        for name, most in limits.items():
-            if getattr(self, name) > most:
-                raise bad(name, f"must be at most {most:g}")
-        if self.readout_ms * 1e-3 + self.exposure_s >= 1.0 / self.fps:
-            raise bad("readout_ms", f"readout plus exposure must be shorter than the frame period "
-                                    f"{1.0 / self.fps:.4f} s")
-        if not 1 <= self.robots <= 8:
-            raise bad("robots", "must be between 1 and 8")
-        if not 0 < self.robot_spacing < 1:
-            raise bad("robot_spacing", "must be between 0 and 1 (exclusive)")
-        if not 1 <= self.cameras <= 16:
-            raise bad("cameras", "must be between 1 and 16")
-        if not 0 < self.tilt_deg < 90:
-            raise bad("tilt_deg", "must be between 0 and 90 degrees (exclusive)")
-        if not (16 <= self.image_width_px <= 4096 and 16 <= self.image_height_px <= 4096):
-            raise bad("image_width_px", "image size must be 16..4096 pixels per side")
-        if len(self.distortion) not in (4, 5, 8):
-            raise bad("distortion", "needs 4, 5 or 8 plumb_bob/rational coefficients (k1 k2 p1 p2 [k3 ...])")
-        if not 1 <= self.supersample <= 8:
-            raise bad("supersample", "must be between 1 and 8")
-        if not self.marker_size_m <= self.cube_size_m:
-            raise bad("marker_size_m", f"must fit on the cube side ({self.cube_size_m} m)")
-        if len(self.robot_size_m) != 3 or min(self.robot_size_m) <= 0:
-            raise bad("robot_size_m", "needs three positive numbers: length width height")
-        if len(self.path_size_m) != 2 or min(self.path_size_m) <= 0:
-            raise bad("path_size_m", "needs two positive numbers: half-extent along x and y")
-        if self.path not in PATHS:
-            raise bad("path", f"must be one of {', '.join(PATHS)}")
-        if not 1 <= self.jpeg_quality <= 100:
-            raise bad("jpeg_quality", "must be between 1 and 100")
-        if self.world_marker_id < 0 or self.cube_marker_id < 0:
-            raise bad("cube_marker_id", "marker ids must not be negative")
+    def _check_geometry(self) -> None:
+        """What the scene's parts need of each other: lens, cube, robot, path, ids, clocks, cameras."""
+        check(len(self.distortion) in (4, 5, 8),
+              "distortion needs 4, 5 or 8 plumb_bob/rational coefficients (k1 k2 p1 p2 [k3 ...])")
+        check(self.marker_size_m <= self.cube_size_m,
+              f"marker_size_m ({self.marker_size_m}) must fit on the cube side ({self.cube_size_m} m)")
+        check(len(self.robot_size_m) == 3 and min(self.robot_size_m) > 0,
+              "robot_size_m needs three positive numbers: length width height")
+        check(len(self.path_size_m) == 2 and min(self.path_size_m) > 0,
+              "path_size_m needs two positive numbers: half-extent along x and y")
+        check(self.path in PATHS, f"path must be one of {', '.join(PATHS)}, got {self.path!r}")
+        check(self.world_marker_id >= 0 and self.cube_marker_id >= 0, "marker ids must not be negative")
         cube_ids = range(self.cube_marker_id, self.cube_marker_id + (5 if self.distinct_ids else 1) * self.robots)
-        if self.world_marker_id in cube_ids:
-            raise bad("world_marker_id", f"must differ from the cube's ids ({cube_ids.start}..{cube_ids.stop - 1})")
-        if self.exposure_s >= 1.0 / self.fps:
-            raise bad("exposure_s", f"must be shorter than the frame period {1.0 / self.fps:.4f} s")
-        if self.uptime_max_s < 60.0:
-            raise bad("uptime_max_s", "must be at least 60 seconds")
-        if not 0 <= self.calibration_frames <= 100_000:
-            raise bad("calibration_frames", "must be between 0 and 100000")
-        if not 0 <= self.seed < 2**63:
-            raise bad("seed", "must be a non-negative integer")
+        check(self.world_marker_id not in cube_ids,
+              f"world_marker_id must differ from the cube's ids ({cube_ids.start}..{cube_ids.stop - 1})")
+        check(self.uptime_max_s >= 60.0, f"uptime_max_s must be at least 60 seconds, got {self.uptime_max_s}")
+        check(0 <= self.seed < 2**63, f"seed must be a non-negative integer, got {self.seed}")
         reach = max(self.path_size_m) + 0.5
-        if self.distance_m <= reach:
-            raise bad("distance_m", f"must exceed the path's half-extent + 0.5 m ({reach:.2f} m): "
-                      "the robot would drive into a camera")
+        check(self.distance_m > reach, f"distance_m ({self.distance_m}) must exceed the path's half-extent + 0.5 m "
+              f"({reach:.2f} m): the robot would drive into a camera")
         top = self.cube_top_m
-        if self.height_m <= top + 0.1:
-            raise bad("height_m", f"cameras must be at least 0.1 m above the cube's top ({top:.3f} m)")
+        check(self.height_m > top + 0.1, f"height_m ({self.height_m}): cameras must be at least 0.1 m above the "
+              f"cube's top ({top:.3f} m)")
 
     @classmethod
     def realistic(cls, **changes: Any) -> SimulationParams:

@@ -8,7 +8,8 @@ pipe (from the :class:`~cubetrack.sink.base.Decoupled` thread :class:`Outputs` g
 full pipe costs the pipeline nothing: the oldest items are dropped and counted there). Items go
 in batches (at most one per ``BATCH_WINDOW_S``: an item after a quiet spell goes at once, and what
 follows it within the window waits for the next batch: one wake-up, one pickle and one write for
-several), each record as a compact tuple of plain values (:func:`pack`): pickling
+several), each record as a compact tuple of plain values
+(:func:`cubetrack.io.output_wire.pack_output`): pickling
 the frozen dataclasses and their small numpy arrays as objects cost ten times more.
 
 The child builds its outputs with ``factory`` (a picklable callable returning the sinks, e.g. a
@@ -29,12 +30,11 @@ import multiprocessing
 import signal
 from collections.abc import Callable
 from multiprocessing.connection import Connection
-
-import numpy as np
+from multiprocessing.process import BaseProcess
 
 from cubetrack.core.errors import ConfigError, CubetrackError
 from cubetrack.core.lifetime import end_with_parent
-from cubetrack.core.records import CameraHealth, CameraView, Detection, TrackedPose
+from cubetrack.io.output_wire import pack_output, unpack_output
 from cubetrack.sink.base import OutputError, Outputs, Sink
 
 log = logging.getLogger(__name__)
@@ -42,49 +42,6 @@ log = logging.getLogger(__name__)
 START_TIMEOUT_S = 60.0  # importing zenoh and foxglove-sdk on a loaded machine takes seconds
 CLOSE_TIMEOUT_S = 30.0  # the child delivers what it holds (up to 5 s per output) and closes MCAP files
 BATCH_WINDOW_S = 0.004  # at most one pipe write per this long; an item waits at most this long
-
-
-def _array(values: np.ndarray | None) -> bytes | None:
-    return None if values is None else np.ascontiguousarray(values, dtype=float).tobytes()
-
-
-def _unarray(data: bytes | None, *shape: int) -> np.ndarray | None:
-    return None if data is None else np.frombuffer(data).reshape(shape)
-
-
-def pack(kind: str, value: object) -> tuple:
-    """``(kind, fields)`` with the records' arrays as bytes: what crosses the pipe."""
-    if kind == "pose":
-        p = value
-        return kind, (p.robot, p.time_s, _array(p.position_m), _array(p.quaternion_xyzw), p.cameras, p.markers,
-                      p.latency_s, p.extra, _array(p.velocity_m_s), _array(p.angular_velocity_rad_s),
-                      _array(p.covariance), p.arrival_latency_s, p.predicted)
-    if kind == "camera_view":
-        v = value
-        return kind, (v.camera, v.seq, v.time_s, v.jpeg,
-                      tuple((d.marker_id, _array(d.corners_px), d.area_px2, d.dictionary) for d in v.detections),
-                      {robot: np.asarray(c, float) for robot, c in v.predicted_corners_px.items()})
-    if kind == "camera_health":
-        return kind, tuple(getattr(value, name) for name in CameraHealth.__slots__)
-    return kind, value
-
-
-def unpack(kind: str, fields) -> tuple[str, object]:
-    """The call :func:`pack` packed."""
-    if kind == "pose":
-        (robot, time_s, position, quaternion, cameras, markers, latency_s, extra, velocity, angular, covariance,
-         arrival_latency_s, predicted) = fields
-        return kind, TrackedPose(robot, time_s, _unarray(position, 3), _unarray(quaternion, 4), cameras, markers,
-                                 latency_s, extra, _unarray(velocity, 3), _unarray(angular, 3),
-                                 _unarray(covariance, 6, 6), arrival_latency_s, predicted)
-    if kind == "camera_view":
-        camera, seq, time_s, jpeg, detections, predicted = fields
-        return kind, CameraView(camera, seq, time_s, jpeg, tuple(
-            Detection(marker_id, _unarray(corners, 4, 2), area, dictionary)
-            for marker_id, corners, area, dictionary in detections), predicted)
-    if kind == "camera_health":
-        return kind, CameraHealth(*fields)
-    return kind, fields
 
 
 def _exit(signum: int, frame: object) -> None:
@@ -118,7 +75,7 @@ def serve_outputs(factory: Callable[[], list[Sink]], conn: Connection, log_level
             if batch is None:  # the session closes
                 break
             for item in batch:
-                kind, value = unpack(*item)
+                kind, value = unpack_output(*item)
                 getattr(outputs, kind)(value)
     finally:  # a SIGTERM (or the parent's death) while closing must not cut an MCAP file short
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
@@ -134,7 +91,7 @@ class OutputProcess(Sink):
     def __init__(self, factory: Callable[[], list[Sink]]):
         context = multiprocessing.get_context("spawn")  # fork would copy the tracker's threads' locks
         self._conn, child = context.Pipe()
-        self._process = context.Process(target=serve_outputs, name="cubetrack-outputs", daemon=True,
+        self._process: BaseProcess | None = context.Process(target=serve_outputs, name="cubetrack-outputs", daemon=True,
                                         args=(factory, child, logging.getLogger().getEffectiveLevel()))
         self._process.start()
         child.close()
@@ -158,7 +115,7 @@ class OutputProcess(Sink):
 
     def deliver(self, items: list[tuple[str, object]]) -> None:
         try:
-            self._conn.send([pack(kind, value) for kind, value in items])
+            self._conn.send([pack_output(kind, value) for kind, value in items])
         except (BrokenPipeError, OSError):
             raise OutputError("the outputs' process has ended") from None
 

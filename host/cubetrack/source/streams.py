@@ -5,16 +5,18 @@ Per camera two HTTP exchanges run, all cameras on one event loop (non-blocking s
 :mod:`selectors`; :mod:`cubetrack.source.http_get`), in a thread of its own or, for a process
 that does its per-frame work between reads, in the consumer's own thread:
 
-- the **stream**: ``GET <url>`` (the node's ``/stream``), the body handed to :class:`MjpegParser`
-  as each read returns, so a frame is never held back until the next one comes (see
+- the **stream**: ``GET <url>`` (the node's ``/stream``), the body handed to
+  :class:`~cubetrack.source.mjpeg.MjpegParser` as each read returns, so a frame is never held
+  back until the next one comes (see
   ``ecosystem-facts.md`` §8). Each part becomes a :class:`~cubetrack.core.records.Frame` stamped
   with the host time at which its last byte arrived (the kernel's receive time). A malformed
   part is skipped and counted, never fatal; a lost, refused or silent connection is retried
   with exponential back-off (logged);
 - the **clock**: ``GET /time`` about once a second (the URL derived from the stream URL),
   giving (host_send, device_time, host_recv) :class:`~cubetrack.core.cameras.ClockSample`
-  round trips. The TCP connection is opened before ``host_send`` is taken, so the round trip
-  brackets only the request and its answer. Timeouts and garbage answers are counted and dropped.
+  round trips (:mod:`cubetrack.source.time_poll`). The TCP connection is opened before
+  ``host_send`` is taken, so the round trip brackets only the request and its answer. Timeouts
+  and garbage answers are counted and dropped.
 
 :class:`LiveCameras` runs them for a set of cameras and merges everything into one bounded,
 queue in arrival order. When the consumer falls behind, each camera keeps only its
@@ -26,7 +28,6 @@ each one matters).
 from __future__ import annotations
 
 import logging
-import math
 import re
 import selectors
 import socket
@@ -35,13 +36,15 @@ import time
 from collections import Counter, deque
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field, replace
-from urllib.parse import urljoin, urlsplit
+from typing import Any, cast
+from urllib.parse import urlsplit
 
 from cubetrack.core.cameras import ClockSample
-from cubetrack.core.errors import ConfigError, ParamsError
-from cubetrack.core.params import param
+from cubetrack.core.errors import ConfigError, SourceError
+from cubetrack.core.params import check, check_at_least, check_positive, param
 from cubetrack.core.records import Frame
 from cubetrack.source.http_get import HttpError, HttpGet
+from cubetrack.source.mjpeg import MjpegParser, boundary_from_content_type
 from cubetrack.source.reasons import (
     broken_frames_reason,
     closed_reason,
@@ -50,12 +53,9 @@ from cubetrack.source.reasons import (
     http_status_reason,
     timeout_reason,
 )
+from cubetrack.source.time_poll import _ClockPoll, time_url
 
 log = logging.getLogger(__name__)
-
-_SOI = b"\xff\xd8"
-_EOI = b"\xff\xd9"
-
 
 @dataclass(frozen=True, slots=True)
 class SourceParams:
@@ -77,333 +77,10 @@ class SourceParams:
     read_chunk_bytes: int = param(65536, "largest single socket read, bytes")
 
     def __post_init__(self) -> None:
-        for name in ("connect_timeout_s", "read_timeout_s", "backoff_initial_s", "backoff_max_s",
-                     "clock_period_s", "clock_timeout_s"):
-            v = getattr(self, name)
-            if not (isinstance(v, (int, float)) and math.isfinite(v) and v > 0):
-                raise ParamsError(f"{name} must be a positive number of seconds, got {v!r}")
-        if self.backoff_max_s < self.backoff_initial_s:
-            raise ParamsError("backoff_max_s must not be below backoff_initial_s")
-        for name in ("frames_per_camera", "max_header_bytes", "max_part_bytes", "read_chunk_bytes"):
-            if getattr(self, name) < 1:
-                raise ParamsError(f"{name} must be at least 1")
-
-
-# --- the MJPEG part parser -------------------------------------------------------------------
-
-
-@dataclass(frozen=True, slots=True, eq=False)
-class MjpegPart:
-    """One whole, plausible part: X-Frame (None when the server sends none), X-Timestamp in
-    seconds, the JPEG bytes and the part headers (names lower-cased)."""
-
-    seq: int | None
-    device_time_s: float
-    jpeg: bytes
-    headers: dict[str, str]
-
-
-def boundary_from_content_type(content_type: str) -> str | None:
-    """The boundary of a ``multipart/x-mixed-replace;boundary=...`` Content-Type (quotes, spaces and
-    a leading ``--`` that some servers include are removed); None when there is none."""
-    m = re.search(r"""boundary\s*=\s*("([^"]*)"|[^;,\s]+)""", content_type, re.IGNORECASE)
-    if not m:
-        return None
-    value = m.group(2) if m.group(2) is not None else m.group(1)
-    value = value.strip().lstrip("-")
-    return value or None
-
-
-class MjpegParser:
-    """Incremental parser of a ``multipart/x-mixed-replace`` body (contracts §1 part layout).
-
-    :meth:`feed` takes bytes as they arrive and returns the parts completed by them. Parts are cut by
-    ``Content-Length`` (no wait for the next boundary); without one, by the next delimiter. Every
-    part is checked: headers within ``max_header_bytes`` and well formed, a Content-Length that is a
-    plausible number, X-Timestamp present and a number, the body a whole JPEG (SOI ... EOI) and not
-    cut short (a delimiter inside the declared length means the part was truncated: parsing resumes
-    at that delimiter, so the next part is not lost). A part failing any check is skipped and
-    counted in :attr:`bad` (reason -> count). ``boundary=None``: taken from the first ``--`` line.
-    """
-
-    _SEEK, _HEADERS, _BODY, _SCAN = range(4)
-
-    def __init__(self, boundary: str | None, max_header_bytes: int = 2048, max_part_bytes: int = 4 << 20):
-        self.max_header_bytes = max_header_bytes
-        self.max_part_bytes = max_part_bytes
-        self._delim = b"--" + boundary.encode("latin-1") if boundary else None
-        self._buf = bytearray()
-        self._state = self._SEEK
-        self._headers: dict[str, str] = {}
-        self._length = 0
-        self._scanned = 0  # bytes of the current body already searched for a delimiter
-        self.bad: Counter[str] = Counter()
-        self.parts = 0
-
-    @property
-    def in_part(self) -> bool:
-        """Whether a part has started (some of its headers came) and not yet completed."""
-        if self._state == self._HEADERS:
-            return bool(self._buf.strip())
-        return self._state != self._SEEK
-
-    def close(self) -> None:
-        """The stream ended: a part still in progress is counted as truncated."""
-        if self.in_part:
-            self._bad("part cut off by the end of the stream")
-        self._buf.clear()
-        self._state = self._SEEK
-
-    def feed(self, data: bytes) -> list[MjpegPart]:
-        self._buf += data
-        out: list[MjpegPart] = []
-        while True:
-            if self._state == self._SEEK:
-                if not self._seek():
-                    break
-            elif self._state == self._HEADERS:
-                if not self._read_headers():
-                    break
-            elif self._state == self._BODY:
-                part, progressed = self._read_body()
-                if part is not None:
-                    out.append(part)
-                if not progressed:
-                    break
-            else:
-                part, progressed = self._scan_body()
-                if part is not None:
-                    out.append(part)
-                if not progressed:
-                    break
-        return out
-
-    # --- states ---
-
-    def _bad(self, reason: str) -> None:
-        self.bad[reason] += 1
-        log.debug("skipping a stream part: %s", reason)
-
-    def _at_line_start(self, i: int) -> bool:
-        j = i
-        while j > 0 and self._buf[j - 1] == 0x2D:  # '-': some servers add dashes to the boundary
-            j -= 1
-        return j == 0 or self._buf[j - 1] == 0x0A
-
-    def _seek(self) -> bool:
-        buf = self._buf
-        if self._delim is None:  # no boundary in the Content-Type: the first "--" line defines it
-            m = re.search(rb"(?:^|\n)(--[^\r\n]{1,70})\r?\n", buf)
-            if m is None:
-                if len(buf) > self.max_header_bytes:
-                    del buf[: len(buf) - 80]
-                return False
-            self._delim = m.group(1).rstrip()
-        delim = self._delim
-        start = 0
-        while True:
-            i = buf.find(delim, start)
-            if i < 0:
-                keep = len(delim) + 4
-                if len(buf) > keep:
-                    del buf[: len(buf) - keep]
-                return False
-            if not self._at_line_start(i):
-                start = i + 1
-                continue
-            nl = buf.find(b"\n", i + len(delim))
-            if nl < 0:
-                if len(buf) - i > len(delim) + 80:  # no line end after the delimiter: not one
-                    start = i + 1
-                    continue
-                if i:
-                    del buf[:i]
-                return False
-            rest = bytes(buf[i + len(delim):nl]).strip()
-            if rest not in (b"", b"--"):  # a longer word that starts like the boundary
-                start = i + 1
-                continue
-            del buf[: nl + 1]
-            if rest == b"--":  # the close delimiter; a stream may still go on after it
-                continue
-            self._state = self._HEADERS
-            return True
-
-    def _read_headers(self) -> bool:
-        buf = self._buf
-        if buf.startswith(b"\r\n") or buf.startswith(b"\n"):
-            end, skip = 0, (2 if buf.startswith(b"\r\n") else 1)
-        else:
-            end = buf.find(b"\r\n\r\n", 0, self.max_header_bytes + 4)
-            skip = end + 4
-            if end < 0:
-                end = buf.find(b"\n\n", 0, self.max_header_bytes + 2)
-                skip = end + 2
-        if end < 0 or end > self.max_header_bytes:
-            if len(buf) > self.max_header_bytes or end > self.max_header_bytes:
-                self._bad("part headers too long")
-                self._state = self._SEEK
-                return True
-            return False
-        if end == 0:  # a blank line right after the delimiter: an empty part, or one without headers
-            rest = bytes(buf[skip:skip + len(self._delim) + 2])
-            if len(rest) < len(self._delim) + 2 and (b"\r\n" + self._delim).startswith(rest):
-                return False  # wait: it may be the next delimiter
-            del buf[:skip]
-            self._state = self._SEEK
-            if not (rest.startswith(self._delim) or rest.startswith(b"\r\n" + self._delim)):
-                self._bad("part without headers")
-            return True
-        raw = bytes(buf[:end])
-        del buf[:skip]
-        self._state = self._SEEK  # unless the headers pass
-        headers: dict[str, str] = {}
-        for line in raw.decode("latin-1").splitlines():
-            if not line.strip():
-                continue
-            name, sep, value = line.partition(":")
-            if not sep or not name.strip() or name != name.strip():
-                self._bad("malformed part header")
-                return True
-            headers[name.strip().lower()] = value.strip()
-        length = headers.get("content-length")
-        if length is not None:
-            if not length.isdigit() or not 0 < int(length) <= self.max_part_bytes:
-                self._bad("bad Content-Length")
-                return True
-            self._length = int(length)
-            self._state = self._BODY
-        else:
-            self._length = 0
-            self._state = self._SCAN
-        self._headers = headers
-        self._scanned = 0
-        return True
-
-    def _find_delimiter(self, limit: int) -> int:
-        """Index of ``\\n--boundary`` at a line start inside buf[:limit], searched once per byte."""
-        pattern = b"\n" + self._delim
-        start = max(0, self._scanned - len(pattern))
-        i = self._buf.find(pattern, start, limit)
-        self._scanned = max(self._scanned, limit)
-        if i < 0:
-            return -1
-        return i - 1 if i > 0 and self._buf[i - 1] == 0x0D else i
-
-    def _read_body(self) -> tuple[MjpegPart | None, bool]:
-        n = self._length
-        cut = self._find_delimiter(min(n, len(self._buf)))
-        if cut >= 0:  # the next part began inside this one's declared length: truncated
-            del self._buf[:cut]
-            self._bad("part shorter than its Content-Length")
-            self._state = self._SEEK
-            return None, True
-        if len(self._buf) < n:
-            return None, False
-        body = bytes(self._buf[:n])
-        del self._buf[:n]
-        self._state = self._SEEK
-        return self._finish(body), True
-
-    def _scan_body(self) -> tuple[MjpegPart | None, bool]:
-        cut = self._find_delimiter(len(self._buf))
-        if cut < 0:
-            if len(self._buf) > self.max_part_bytes:
-                self._bad("part too large")
-                del self._buf[: len(self._buf) - len(self._delim) - 4]
-                self._state = self._SEEK
-                return None, True
-            return None, False
-        body = bytes(self._buf[:cut])
-        del self._buf[:cut]
-        self._state = self._SEEK
-        return self._finish(body), True
-
-    def _finish(self, body: bytes) -> MjpegPart | None:
-        headers = self._headers
-        if not (body.startswith(_SOI) and body.rstrip(b"\r\n").endswith(_EOI)):
-            self._bad("not a whole JPEG")
-            return None
-        stamp = headers.get("x-timestamp")
-        if stamp is None:
-            self._bad("no X-Timestamp")
-            return None
-        try:
-            device_time_s = float(stamp)
-        except ValueError:
-            device_time_s = float("nan")
-        if not (math.isfinite(device_time_s) and device_time_s >= 0):
-            self._bad("bad X-Timestamp")
-            return None
-        seq_text = headers.get("x-frame")
-        if seq_text is not None and not seq_text.isdigit():
-            self._bad("bad X-Frame")
-            return None
-        self.parts += 1
-        return MjpegPart(int(seq_text) if seq_text is not None else None, device_time_s, body, headers)
-
-
-# --- the /time poller ------------------------------------------------------------------------
-
-
-def time_url(stream_url: str) -> str:
-    """The node's ``/time`` URL beside its stream URL (``http://h:p/stream?fps=5`` -> ``http://h:p/time``)."""
-    return urljoin(stream_url, "time")
-
-
-def parse_time_answer(body: bytes) -> float:
-    """Seconds from a ``/time`` body (``<seconds>.<microseconds>``); ValueError for anything else."""
-    text = body.decode("ascii").strip()
-    if not re.fullmatch(r"\d{1,12}(\.\d{1,9})?", text):
-        raise ValueError(f"not a time: {text[:40]!r}")
-    return float(text)
-
-
-class _ClockPoll:
-    """One ``/time`` round trip on an event loop: connect within ``timeout_s``, then the request
-    and its answer within ``timeout_s``. :meth:`handle` returns the sample once the answer is
-    in; raises OSError / :class:`HttpError` (no answer) or ValueError (a garbage answer)."""
-
-    def __init__(self, url: str, timeout_s: float, clock: Callable[[], float]):
-        self.get = HttpGet(url, {"Connection": "close"}, clock, read_bytes=256)
-        self.timeout_s = timeout_s
-        self.deadline = time.monotonic() + timeout_s
-        self.body = bytearray()
-
-    def handle(self) -> ClockSample | None:
-        was_connected = self.get.connected
-        self.body += self.get.handle()
-        if self.get.connected and not was_connected:  # the request went out: the answer's time starts
-            self.deadline = time.monotonic() + self.timeout_s
-        if len(self.body) > 128:
-            raise ValueError("answer longer than 128 bytes")
-        if not self.get.ended:
-            return None
-        status = self.get.head[0] if self.get.head else 0
-        if status != 200:
-            raise ValueError(f"HTTP {status}")
-        return ClockSample(self.get.sent_s, parse_time_answer(bytes(self.body)), self.get.received_s)
-
-
-def poll_time(url: str, timeout_s: float, clock: Callable[[], float] = time.time) -> ClockSample:
-    """One ``/time`` round trip, waited for. The TCP connection is opened before ``host_send`` is
-    taken, so the round trip brackets the request and its answer only. Raises OSError /
-    :class:`HttpError` / ValueError."""
-    poll = _ClockPoll(url, timeout_s, clock)
-    try:
-        with selectors.DefaultSelector() as selector:
-            selector.register(poll.get.sock, poll.get.events)
-            while True:
-                left = poll.deadline - time.monotonic()
-                if left <= 0:
-                    raise TimeoutError("timed out")
-                if selector.select(left):
-                    sample = poll.handle()
-                    if sample is not None:
-                        return sample
-                    selector.modify(poll.get.sock, poll.get.events)
-    finally:
-        poll.get.close()
+        check_positive(self, "connect_timeout_s", "read_timeout_s", "backoff_initial_s", "backoff_max_s",
+                       "clock_period_s", "clock_timeout_s", unit="seconds")
+        check(self.backoff_max_s >= self.backoff_initial_s, "backoff_max_s must not be below backoff_initial_s")
+        check_at_least(self, 1, "frames_per_camera", "max_header_bytes", "max_part_bytes", "read_chunk_bytes")
 
 
 # --- the live cameras ------------------------------------------------------------------------
@@ -489,7 +166,7 @@ class LiveCameras:
     before it answers (for a process that does its per-frame work between reads).
     """
 
-    def __init__(self, cameras: Mapping[str, str] | Iterable, params: SourceParams = SourceParams(), *,
+    def __init__(self, cameras: Mapping[str, str] | Iterable[Any], params: SourceParams = SourceParams(), *,
                  on_frame: Callable[[Frame], None] | None = None,
                  on_clock: Callable[[str, ClockSample], None] | None = None,
                  queue: bool = True, clock: Callable[[], float] = time.time,
@@ -497,7 +174,7 @@ class LiveCameras:
         if isinstance(cameras, Mapping):
             urls = dict(cameras)
         else:
-            urls = {c.name: c.url for c in cameras}
+            urls = {c.name: c.url for c in cast(Iterable[Any], cameras)}  # records with name and url
         if not urls:
             raise ConfigError("no cameras to read")
         for name, url in urls.items():
@@ -560,7 +237,8 @@ class LiveCameras:
             self._close_all()
             return
         try:
-            self._waker[1].send(b"x")
+            if self._waker is not None:
+                self._waker[1].send(b"x")
         except OSError:
             pass
         for t in self._threads:
@@ -613,10 +291,16 @@ class LiveCameras:
                 self._queued_frames[item.camera] -= 1
             return item
 
+    def _loop(self) -> selectors.BaseSelector:
+        """The event loop's selector (there from :meth:`start` to :meth:`stop`)."""
+        if self._selector is None:
+            raise SourceError("the live source is not started")
+        return self._selector
+
     def wake_on(self, fileobj) -> None:
         """Without a thread: :meth:`get` also stops waiting when ``fileobj`` (e.g. a pipe from
         another process, read by the caller) has something to read."""
-        self._selector.register(fileobj, selectors.EVENT_READ, _WAKE)
+        self._loop().register(fileobj, selectors.EVENT_READ, _WAKE)
 
     def _read_for(self, timeout_s: float | None, frames: bool) -> None:
         """Without a thread: read what the sockets hold, then wait up to ``timeout_s`` for an event
@@ -722,10 +406,10 @@ class LiveCameras:
         """Read every socket that is ready (waiting up to ``timeout_s`` for one, less when a
         connection's deadline or a round trip is due sooner), then act on what is due."""
         wait = max(0.0, min(timeout_s, self._next_due - time.monotonic()))
-        for key, _mask in self._selector.select(wait):
+        for key, _mask in self._loop().select(wait):
             if key.data is None:  # the waker: stop() was called
                 try:
-                    key.fileobj.recv(64)
+                    cast(socket.socket, key.fileobj).recv(64)
                 except OSError:
                     pass
                 continue
@@ -763,11 +447,11 @@ class LiveCameras:
         self._next_due = due
 
     def _register(self, get: HttpGet, data: tuple[_Camera, str]) -> None:
-        self._selector.register(get.sock, get.events, data)
+        self._loop().register(get.sock, get.events, data)
 
     def _unregister(self, get: HttpGet) -> None:
         try:
-            self._selector.unregister(get.sock)
+            self._loop().unregister(get.sock)
         except (KeyError, ValueError):
             pass
         get.close()
@@ -785,13 +469,15 @@ class LiveCameras:
 
     def _on_stream(self, camera: _Camera) -> None:
         get = camera.stream
+        if get is None:
+            return
         try:
             for _ in range(READS_PER_EVENT):
                 was_connected = get.connected
                 data = get.handle()
                 if get.connected and not was_connected:  # the request went out: the answer is due
                     camera.deadline = time.monotonic() + self.params.read_timeout_s
-                    self._selector.modify(get.sock, get.events, (camera, _STREAM))
+                    self._loop().modify(get.sock, get.events, (camera, _STREAM))
                     return
                 if camera.parser is None and get.head is not None:
                     self._stream_started(camera, get)
@@ -808,6 +494,8 @@ class LiveCameras:
             self._stream_lost(camera, exc)
 
     def _stream_started(self, camera: _Camera, get: HttpGet) -> None:
+        if get.head is None:
+            return
         status, headers = get.head
         if status != 200:
             raise _StreamEnded(http_status_reason(status, camera.url))
@@ -822,6 +510,8 @@ class LiveCameras:
 
     def _parts(self, camera: _Camera, data: bytes, arrived_s: float) -> None:
         parser = camera.parser
+        if parser is None:
+            return
         for part in parser.feed(data):
             camera.seq = part.seq if part.seq is not None else camera.seq + 1
             self._put_frame(Frame(camera.name, camera.seq, part.device_time_s, arrived_s, part.jpeg))
@@ -829,6 +519,8 @@ class LiveCameras:
         self._report_bad(camera)
 
     def _report_bad(self, camera: _Camera) -> None:
+        if camera.parser is None:
+            return
         bad = camera.parser.bad
         if bad != camera.reported:
             self._count(camera.name, bad_parts=bad - camera.reported, last_error=broken_frames_reason(bad, camera.url))
@@ -864,6 +556,8 @@ class LiveCameras:
 
     def _on_clock(self, camera: _Camera) -> None:
         poll = camera.poll
+        if poll is None:
+            return
         try:
             sample = poll.handle()
         except BlockingIOError:
@@ -874,7 +568,7 @@ class LiveCameras:
             self._poll_done(camera, reason="garbage answer", detail=_describe(exc))
         else:
             if sample is None:
-                self._selector.modify(poll.get.sock, poll.get.events, (camera, _CLOCK))
+                self._loop().modify(poll.get.sock, poll.get.events, (camera, _CLOCK))
             else:
                 self._poll_done(camera)
                 self._put_clock(camera.name, sample)

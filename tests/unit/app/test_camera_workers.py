@@ -4,8 +4,7 @@ is in work, so that the fusion gets them in capture order (cubetrack.app.camera_
 import math
 
 from cubetrack.app.camera_workers import HeldResults
-from cubetrack.app.tracker import FrameJob, FrameOutcome, FrameResult
-from cubetrack.core.records import Frame
+from cubetrack.core.records import Frame, FrameJob, FrameOutcome, FrameResult
 
 
 def result(capture_time_s, camera="cam1"):

@@ -15,12 +15,12 @@ import test_tracker
 from test_tracker import BLUE, INTRINSICS, RED, T_WORLD_CAM, WORLD
 
 from cubetrack.app.parallel import CAMERA_PROCESSES_FROM, FramePool, LiveParams, WorkerKind
-from cubetrack.app.tracker import FrameJob, FrameOutcome, FrameWorker, StageParams
+from cubetrack.app.tracker import FrameProcessor, StageParams
 from cubetrack.core.errors import SourceError
-from cubetrack.core.records import Frame
+from cubetrack.core.records import Frame, FrameJob, FrameOutcome
 
 scenes = test_tracker.scenes  # the rendered frames of the tracker's tests (a fixture)
-MAKE_WORKER = functools.partial(FrameWorker, INTRINSICS, WORLD, (RED, BLUE), T_WORLD_CAM, StageParams())
+MAKE_WORKER = functools.partial(FrameProcessor, INTRINSICS, WORLD, (RED, BLUE), T_WORLD_CAM, StageParams())
 
 
 def jobs(scenes) -> list[FrameJob]:
@@ -100,22 +100,24 @@ def test_auto_takes_camera_processes_for_many_cameras_unless_recording_or_on_one
 
 
 def test_a_packed_result_comes_back_whole_through_pickle(scenes):
-    """What a worker process sends (FrameWorker.pack) is unpacked into the result it made: every
+    """What a worker process sends (cubetrack.io.frame_wire.pack_result) is unpacked into the result it made: every
     detection's id, corners, area and dictionary, the estimate, the error; the camera pose and
     intrinsics are the unpacking side's own (calibrated) or the frame's (world-marker mode)."""
     import dataclasses
     import pickle
 
     from cubetrack.app.tracker import CameraPoseSource, TrackParams
+    from cubetrack.io.frame_wire import pack_result, unpack_result
 
     uncalibrated = dataclasses.replace(StageParams(), track=TrackParams(camera_poses=CameraPoseSource.WORLD_MARKER))
     for params in (StageParams(), uncalibrated):
-        sender = FrameWorker(INTRINSICS, WORLD, (RED, BLUE), T_WORLD_CAM, params)
-        receiver = FrameWorker(INTRINSICS, WORLD, (RED, BLUE), T_WORLD_CAM, params)
+        sender = FrameProcessor(INTRINSICS, WORLD, (RED, BLUE), T_WORLD_CAM, params)
+        receiver = FrameProcessor(INTRINSICS, WORLD, (RED, BLUE), T_WORLD_CAM, params)
         sightings = 0
         for job in jobs(scenes):
             result = sender.work(job)
-            back = receiver.unpack(job, pickle.loads(pickle.dumps(sender.pack(result))))
+            packed = pickle.loads(pickle.dumps(pack_result(result, sender.T_world_cam)))
+            back = unpack_result(job, packed, receiver.intrinsics, receiver.T_world_cam)
             assert (back.job, back.outcome, back.error) == (job, result.outcome, result.error)
             assert len(back.sightings) == len(result.sightings)
             for a, b in zip(back.sightings, result.sightings, strict=True):

@@ -5,9 +5,10 @@ among the processes. The processes themselves run end to end in tests/e2e/test_l
 import numpy as np
 import pytest
 
-from cubetrack.app.camera_workers import FORECAST_SPAN_S, Forecast, forecast_of, share_cameras
+from cubetrack.app.camera_workers import deal_cameras
 from cubetrack.core.geometry import R_from_rotvec, make_T
 from cubetrack.estimate.reprojection import moved_pose
+from cubetrack.fuse.forecast import FORECAST_SPAN_S, Forecast, forecast_of
 
 
 class ConstantVelocityFusion:
@@ -56,7 +57,7 @@ def test_an_empty_forecast_plans_whole_frames_and_asks_for_every_estimate():
 @pytest.mark.parametrize("count", [1, 2, 3, 16, 20])
 def test_every_camera_goes_to_exactly_one_process(count):
     urls = {f"cam{k}": f"http://127.0.0.1:{8000 + k}/stream" for k in range(1, 17)}
-    shares = share_cameras(urls, count)
+    shares = deal_cameras(urls, count)
     assert len(shares) == min(count, 16) and all(shares)
     seen = [name for share in shares for name in share]
     assert sorted(seen) == sorted(urls) and len(seen) == len(set(seen))

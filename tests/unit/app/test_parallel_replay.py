@@ -121,12 +121,12 @@ class SlowPool:
 
 
 def test_the_replay_does_the_oldest_jobs_itself_rather_than_wait_for_a_slow_worker(replay):
-    from cubetrack.app.tracker import FrameWorker
+    from cubetrack.app.tracker import FrameProcessor
     from cubetrack.io.config import RobotConfig
 
     stats, poses = run(replay)
     robots = tuple(RobotConfig(name, layout) for name, layout in replay["layouts"].items())
-    worker = FrameWorker(replay["intrinsics"], replay["world"], robots,
+    worker = FrameProcessor(replay["intrinsics"], replay["world"], robots,
                          {name: e.T_world_cam for name, e in replay["extrinsics"].items()}, replay["params"])
     pool = SlowPool(worker)
     again, poses_again = run(replay, pool)

@@ -1,4 +1,4 @@
-"""The sighting message (cubetrack.core.sighting_wire): bit-exact round trips, compactness, and
+"""The sighting message (cubetrack.io.sighting_wire): bit-exact round trips, compactness, and
 one-line refusals of anything that is not a version-1 sighting."""
 
 from __future__ import annotations
@@ -6,8 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from cubetrack.core.records import Detection
-from cubetrack.core.sighting_wire import (
+from cubetrack.core.records import Detection, FrameOutcome
+from cubetrack.io.sighting_wire import (
+    CLOCK_METHOD_CODES,
+    OUTCOME_CODES,
     SightingMessage,
     SightingWireError,
     WireClock,
@@ -15,6 +17,7 @@ from cubetrack.core.sighting_wire import (
     decode_sighting,
     encode_sighting,
 )
+from cubetrack.source.clock import ClockFitMethod
 
 
 def message(pose: bool = False, detections: int = 3) -> SightingMessage:
@@ -46,9 +49,23 @@ def test_round_trip_is_bit_exact(pose):
 
 
 def test_every_outcome_and_an_empty_frame_travel():
-    for outcome in ("regions", "full frame", "corrupt", "no camera pose"):
-        sent = SightingMessage("c", 0, 0.0, 1.0, 2.0, outcome, ())
-        assert decode_sighting(encode_sighting(sent)).outcome == outcome
+    for outcome in FrameOutcome:
+        sent = SightingMessage("c", 0, 0.0, 1.0, 2.0, outcome.value, ())
+        assert decode_sighting(encode_sighting(sent)).outcome == outcome.value
+
+
+def test_the_wire_codes_are_written_out_and_cover_every_enum_value():
+    """The outcome and clock-method bytes are the codes written in io/sighting_wire.py, not the
+    enums' order (reordering FrameOutcome or ClockFitMethod must not change a byte on the wire)."""
+    assert set(OUTCOME_CODES) == {o.value for o in FrameOutcome}
+    assert set(CLOCK_METHOD_CODES) == {m.value for m in ClockFitMethod}
+    for codes in (OUTCOME_CODES, CLOCK_METHOD_CODES):
+        assert sorted(codes.values()) == list(range(len(codes)))
+    assert OUTCOME_CODES == {"regions": 0, "full frame": 1, "corrupt": 2, "no camera pose": 3}  # version 1's bytes
+    assert CLOCK_METHOD_CODES == {"none": 0, "arrival": 1, "round-trip": 2}
+    data = encode_sighting(SightingMessage("c", 0, 0.0, 1.0, 2.0, "corrupt", (), WireClock("arrival")))
+    flags, method = data[5], data[5 + 1 + 8 + 24]  # after magic and version: flags, seq i64, three f64 times
+    assert (flags >> 1, method) == (2, 1)
 
 
 def test_compact_corners_not_images():

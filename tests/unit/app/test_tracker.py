@@ -89,7 +89,7 @@ class DetectorSpy:
 
 def tracker(params: StageParams, robots=(RED, BLUE), extrinsics=EXTRINSICS, **kw) -> Tracker:
     t = Tracker(INTRINSICS, WORLD, robots, extrinsics, params, **kw)
-    t.worker.detector = DetectorSpy(t.worker.detector)
+    t.processor.detector = DetectorSpy(t.processor.detector)
     return t
 
 
@@ -97,9 +97,9 @@ def run(t: Tracker, frames: list[Frame]) -> list[tuple[Frame, list, list]]:
     """Each frame with the detector calls it made and the poses it produced."""
     out = []
     for frame in frames:
-        before = len(t.worker.detector.calls)
+        before = len(t.processor.detector.calls)
         poses = t.process(frame)
-        out.append((frame, t.worker.detector.calls[before:], poses))
+        out.append((frame, t.processor.detector.calls[before:], poses))
     return out
 
 
@@ -131,14 +131,14 @@ def test_frames_of_a_polled_camera_wait_for_its_clock(scenes):
         else:
             assert {p.robot for p in poses} == {"red", "blue"}   # cam2 is not polled: stamped at once
     assert t.stats.frames_before_clock_sync == 2   # 34 held, the oldest 2 given up
-    held = len(t.worker.detector.calls)
+    held = len(t.processor.detector.calls)
     # a round trip too slow to bound the offset releases nothing
     slow = capture_time("cam1", 40)
     assert t.add_clock_sample("cam1", ClockSample(slow, slow + 0.1 - CLOCK_OFFSET_S, slow + 0.2)) == []
     # a fast one does: the 32 newest held frames, stamped with their true capture times
     send = capture_time("cam1", 40)
     released = t.add_clock_sample("cam1", ClockSample(send, send + 0.004 - CLOCK_OFFSET_S, send + 0.008))
-    assert len(t.worker.detector.calls) - held == 32
+    assert len(t.processor.detector.calls) - held == 32
     expected = {round(capture_time("cam1", j), 9) for j in range(2, 34)}
     assert {round(p.time_s, 9) for p in released} == expected
     assert {p.robot for p in released} == {"red", "blue"}
@@ -165,7 +165,7 @@ def test_corrupt_frames_are_counted_and_skipped(scenes):
         assert t.process(frame) == []
     assert t.process(good[1])                       # nothing lost: the next good frame still tracks
     assert (t.stats.frames, t.stats.corrupt_frames) == (5, 3)
-    assert len(t.worker.detector.calls) == 2               # corrupt frames never reach detection
+    assert len(t.processor.detector.calls) == 2               # corrupt frames never reach detection
 
 
 # --------------------------------------------------------------------------- camera poses
@@ -271,9 +271,9 @@ def test_a_workers_message_gives_the_fusion_what_its_own_per_frame_work_gives(sc
     tracker's own per-frame work makes of the frame, estimates included exactly where the fusion
     asks for them: before the filter tracks the robots (both), and while it tracks them (none)."""
     from cubetrack.app.fusion_service import frame_result
-    from cubetrack.app.tracker import FrameJob
     from cubetrack.app.worker import sighting_message
-    from cubetrack.core.sighting_wire import decode_sighting, encode_sighting
+    from cubetrack.core.records import FrameJob
+    from cubetrack.io.sighting_wire import decode_sighting, encode_sighting
     from cubetrack.source.clock import ClockSync
     from cubetrack.source.streams import CameraStats
 
@@ -282,10 +282,10 @@ def test_a_workers_message_gives_the_fusion_what_its_own_per_frame_work_gives(sc
     for asks in ({"red", "blue"}, set()):
         assert {r.name for r in t.robots if t.fusion.needs_estimate(r.name)} == asks
         job = FrameJob(frame, capture_time(frame.camera, 0), None, frozenset())  # a worker's: no estimates
-        message = decode_sighting(encode_sighting(sighting_message(t.worker.work(job), ClockSync(), CameraStats(),
+        message = decode_sighting(encode_sighting(sighting_message(t.processor.work(job), ClockSync(), CameraStats(),
                                                                    with_pose=False)))
         fused = frame_result(t, message)
-        own = t.worker.work(FrameJob(frame, job.capture_time_s, None, frozenset(asks)))
+        own = t.processor.work(FrameJob(frame, job.capture_time_s, None, frozenset(asks)))
         assert fused.job.estimate_robots == frozenset(asks) and fused.outcome is own.outcome
         assert [s.robot for s in fused.sightings] == [s.robot for s in own.sightings] == ["red", "blue"]
         for a, b in zip(fused.sightings, own.sightings, strict=True):

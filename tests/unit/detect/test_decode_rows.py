@@ -89,10 +89,10 @@ def test_a_region_search_finding_nothing_searches_the_whole_decoded_frame():
     regions find nothing, the full-frame search gets the whole frame (here: a marker below them)."""
     from pathlib import Path
 
-    from cubetrack.app.tracker import FrameJob, FrameOutcome, FrameWorker, StageParams
+    from cubetrack.app.tracker import FrameProcessor, StageParams
     from cubetrack.core.cameras import CameraIntrinsics, WorldConfig
     from cubetrack.core.layout import paper_cube_layout
-    from cubetrack.core.records import Frame
+    from cubetrack.core.records import Frame, FrameJob, FrameOutcome
     from cubetrack.io.config import RobotConfig
 
     gray = np.full((480, 640), 200, np.uint8)
@@ -102,7 +102,7 @@ def test_a_region_search_finding_nothing_searches_the_whole_decoded_frame():
     intrinsics = CameraIntrinsics(K=np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]]), dist=np.zeros(5),
                                   width=640, height=480)
     robot = RobotConfig("red", paper_cube_layout(cube_size_m=0.11, marker_id=1), Path("red.toml"))
-    worker = FrameWorker({"cam1": intrinsics}, WorldConfig("DICT_4X4_50", 0, 0.25), (robot,),
+    worker = FrameProcessor({"cam1": intrinsics}, WorldConfig("DICT_4X4_50", 0, 0.25), (robot,),
                          {"cam1": np.eye(4)}, StageParams())
     frame = Frame("cam1", 1, 0.0, 0.0, jpeg)
     below = worker.work(FrameJob(frame, 0.0, ((260, 340, 400, 476),), frozenset()))

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from cubetrack.app.config import config_params, is_as_designed, load_config
-from cubetrack.app.tracker import FrameWorker
+from cubetrack.app.tracker import FrameProcessor
 from cubetrack.core.cameras import WorldConfig
 from cubetrack.core.geometry import R_from_rotvec, make_T
 from cubetrack.core.layout import CubeLayout, LayoutMarker, paper_cube_layout, write_layout
@@ -43,7 +43,7 @@ def test_the_switch_reaches_the_detector_and_leaves_the_filter_as_it_was(tmp_pat
     config, params = load_config(config_file(tmp_path, paper_cube_layout(), TEMPLATE))
     assert params.detector.corner_refinement is CornerRefinement.TEMPLATE
     assert params.filter == FilterParams()  # no trusting filter behind the user's back
-    worker = FrameWorker({}, WorldConfig("DICT_4X4_50", 0, 0.25), config.robots, {}, params.stages)
+    worker = FrameProcessor({}, WorldConfig("DICT_4X4_50", 0, 0.25), config.robots, {}, params.stages)
     assert worker.detector.params.corner_refinement is CornerRefinement.TEMPLATE
 
 

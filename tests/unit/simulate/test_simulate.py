@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from cubetrack.cli.main import main
-from cubetrack.core.errors import SimulationError
+from cubetrack.core.errors import ParamsError, SimulationError
 from cubetrack.core.geometry import T_from_position_quat, rotation_angle
 from cubetrack.core.layout import read_layout
 from cubetrack.io.camera_info import read_camera_info
@@ -177,17 +177,17 @@ def test_distinct_ids_and_distortion(tmp_path):
 
 
 def test_bad_parameters_are_refused():
-    with pytest.raises(SimulationError, match="cameras"):
+    with pytest.raises(ParamsError, match="cameras"):
         SimulationParams(cameras=0)
-    with pytest.raises(SimulationError, match="tilt_deg"):
+    with pytest.raises(ParamsError, match="tilt_deg"):
         SimulationParams(tilt_deg=95.0)
     with pytest.raises(SimulationError, match="world marker"):
         build_scene(SimulationParams(tilt_deg=75.0))  # looks at the floor in front of itself
-    with pytest.raises(SimulationError, match="drive into a camera"):
+    with pytest.raises(ParamsError, match="drive into a camera"):
         SimulationParams(distance_m=1.0)
-    with pytest.raises(SimulationError, match="above the cube"):
+    with pytest.raises(ParamsError, match="above the cube"):
         SimulationParams(height_m=0.4)
-    with pytest.raises(SimulationError, match="differ from the cube"):
+    with pytest.raises(ParamsError, match="differ from the cube"):
         SimulationParams(world_marker_id=3, distinct_ids=True)
     with pytest.raises(SimulationError, match="dictionary"):
         build_scene(SimulationParams(dictionary="DICT_NOPE"))

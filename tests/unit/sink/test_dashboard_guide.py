@@ -18,8 +18,8 @@ from cubetrack.app.dashboard import (
     calibration_advice,
     missing_advice,
     recorded_cameras,
-    world_marker_reprojection,
 )
+from cubetrack.calib.check import world_marker_reprojection
 from cubetrack.core.cameras import WorldConfig
 from cubetrack.core.errors import CalibrationError
 from cubetrack.core.geometry import make_T

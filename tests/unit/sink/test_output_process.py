@@ -123,7 +123,8 @@ def test_items_cross_the_pipe_as_compact_tuples_and_come_back_equal():
     import numpy as np
 
     from cubetrack.core.records import CameraHealth, CameraView, Detection
-    from cubetrack.sink.process import pack, unpack
+    from cubetrack.io.output_wire import pack_output as pack
+    from cubetrack.io.output_wire import unpack_output as unpack
 
     def same(a, b) -> bool:
         if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):

@@ -1,6 +1,7 @@
 """The sink interface: outputs never block or break the pipeline, and lose only what they count."""
 
 import threading
+import time
 
 import numpy as np
 
@@ -123,16 +124,46 @@ class Batching(Sink):
         raise AssertionError("a batching sink is handed batches")
 
 
-def test_a_batching_sink_sends_a_lone_item_at_once_and_batches_what_follows_it():
+class _StoppedClock:
+    """``time`` for sink/base.py with the clock standing still and each sleep recorded and held
+    until the test lets it go: what the batching thread waits for is seen as state, not timed."""
+
+    def __init__(self):
+        self.sleeps: list[float] = []
+        self.go = threading.Event()
+
+    def monotonic(self) -> float:
+        return 1000.0
+
+    def sleep(self, seconds: float) -> None:
+        self.sleeps.append(seconds)
+        self.go.wait(10)
+
+    def __getattr__(self, name):
+        return getattr(time, name)
+
+
+def test_a_batching_sink_sends_a_lone_item_at_once_and_batches_what_follows_it(monkeypatch):
+    from cubetrack.sink import base
+
+    clock = _StoppedClock()
+    monkeypatch.setattr(base, "time", clock)
     inner = Batching()
     sink = Decoupled(inner)
     try:
         sink.pose(pose(0))
-        assert inner.delivered.wait(0.25), "a lone item after a quiet spell waited for the batching window"
+        assert inner.delivered.wait(10)
+        assert clock.sleeps == [], "a lone item after a quiet spell waited for the batching window"
         inner.delivered.clear()
-        sink.pose(pose(1))  # within the window of the first batch: these wait for the next one, together
-        sink.pose(pose(2))
-        assert inner.delivered.wait(5.0)
+        sink.pose(pose(1))  # within the window of the first batch (the clock stands still)
+        deadline = time.monotonic() + 10
+        while not clock.sleeps:  # the thread waits out the window ...
+            assert time.monotonic() < deadline
+            time.sleep(0.01)
+        sink.pose(pose(2))  # ... and what comes meanwhile joins the same batch
+        clock.go.set()
+        assert inner.delivered.wait(10)
     finally:
+        clock.go.set()
         sink.close()
-    assert inner.batches == [[100.0], [101.0, 102.0]]
+    assert inner.batches == [[100.0], [101.0, 102.0]] and clock.sleeps == [Batching.batch_window_s]

@@ -11,7 +11,8 @@ import pytest
 from conftest import FPS, collect
 
 from cubecam.emulator import Emulator
-from cubetrack.source.streams import LiveCameras, SourceParams, parse_time_answer, poll_time, time_url
+from cubetrack.source.streams import LiveCameras, SourceParams
+from cubetrack.source.time_poll import parse_time_answer, poll_time, time_url
 
 
 @pytest.mark.parametrize("stream,expected", [

@@ -26,6 +26,14 @@ FAST = SourceParams(connect_timeout_s=1.0, read_timeout_s=1.0, backoff_initial_s
                     clock_period_s=0.25)
 
 
+def wait_until(condition, timeout_s: float = 20.0) -> None:
+    """Wait for a state (polled), never for a fixed time; fail after ``timeout_s``."""
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        assert time.monotonic() < deadline, "the state waited for never came"
+        time.sleep(0.02)
+
+
 def decodes(frame: Frame) -> bool:
     return cv2.imdecode(np.frombuffer(frame.jpeg, np.uint8), cv2.IMREAD_GRAYSCALE) is not None
 
@@ -108,7 +116,8 @@ def test_a_vanished_server_is_retried_with_backoff_until_it_comes_back(images, c
     with LiveCameras({"cam1": url}, FAST) as live:
         before, _ = collect(live, 3.0, until=lambda f, c: len(f) >= 3)
         emu.close()
-        time.sleep(1.5)
+        wait_until(lambda: (s := live.stats()["cam1"]) and not s.connected and s.reconnects >= 3
+                   and s.clock_failures["no answer"] >= 1)  # retried while the server is away
         down = live.stats()["cam1"]
         emu = Emulator(images=images, fps=FPS, name="cam1", loop=True, port=port).start()
         try:
@@ -137,7 +146,9 @@ def test_a_consumer_that_falls_behind_keeps_each_cameras_newest_frame_only(tmp_p
     woken = threading.Event()
     with Emulator(rec, loop=True) as emu:
         with LiveCameras(emu.urls, SourceParams(clock_period_s=0.25), wake=woken.set) as live:
-            time.sleep(2.0)  # nobody reads
+            # nobody reads, until both cameras' frames have been replaced and clock samples came
+            wait_until(lambda: all(s.dropped > 0 for s in live.stats().values())
+                       and sum(s.clock_samples for s in live.stats().values()) >= 4)
             assert woken.is_set()
             live.stop()
             clocks = []
@@ -164,7 +175,7 @@ def test_a_consumer_behind_gets_the_freshest_frame_first_one_keeping_up_the_olde
     rec = write_recording(tmp_path / "rec", [CameraSpec("a"), CameraSpec("b")], frames=30, fps=10.0)
     with Emulator(rec, loop=True) as emu:
         with LiveCameras(emu.urls, SourceParams(clock_period_s=0.25)) as live:
-            time.sleep(1.5)  # nobody reads: each camera's newest frame waits
+            wait_until(lambda: all(s.frames >= 2 for s in live.stats().values()))  # nobody reads: newest waits
             live.stop()
             while live.get(0, frames=False) is not None:  # the clock samples
                 pass

@@ -13,7 +13,7 @@ from hypothesis import strategies as st
 
 from cubecam import mjpeg
 from cubecam.testdata import synthetic_jpeg
-from cubetrack.source.streams import MjpegParser, boundary_from_content_type
+from cubetrack.source.mjpeg import MjpegParser, boundary_from_content_type
 
 B = mjpeg.BOUNDARY
 DELIM = mjpeg.PART_DELIMITER  # b"\r\n--<B>\r\n"

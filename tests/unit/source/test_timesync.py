@@ -32,14 +32,19 @@ def test_round_trip_fit_recovers_offset_and_drift_under_jitter_and_spikes():
     assert fit.drift == pytest.approx(DRIFT, abs=2e-5)
 
 
-def test_naive_all_sample_mean_would_be_biased_by_slow_round_trips():
-    # guards the reason for fitting the fastest trips: the plain midpoint mean is off by > 10 ms
+def test_slow_round_trips_do_not_move_the_fit():
+    """The fit rests on the fastest round trips: the same samples with the slow (asymmetric) ones
+    left out give the same clock mapping within 1 ms, although those slow trips pull the plain
+    midpoint mean more than 10 ms off (checked first: the scene is one where it matters)."""
     rng = np.random.default_rng(3)
     send, dev, recv = round_trips(rng)
     naive = np.mean((send + recv) / 2 - dev) - np.mean(device_to_host(dev) - dev)
-    robust = fit_round_trips(send, dev, recv)
-    assert abs(naive) > 0.01
-    assert abs(robust.to_host(100.0) - device_to_host(100.0)) < 0.003
+    assert abs(naive) > 0.01  # the slow trips bias an all-sample midpoint this much here
+    fast = np.arange(len(dev)) % 7 != 0  # round_trips' slow_every
+    with_slow, without = fit_round_trips(send, dev, recv), fit_round_trips(send[fast], dev[fast], recv[fast])
+    for d in (50.0, 100.0, 169.0):
+        assert abs(with_slow.to_host(d) - without.to_host(d)) < 0.001
+        assert abs(with_slow.to_host(d) - device_to_host(d)) < abs(naive) / 4
 
 
 def test_drift_is_followed_over_an_hour():

@@ -33,8 +33,13 @@ from cubetrack.core.records import Detection
 
 MAGIC = b"CTSG"
 VERSION = 1
-OUTCOMES = ("regions", "full frame", "corrupt", "no camera pose")
-CLOCK_METHODS = ("none", "arrival", "round-trip")
+# the wire code of each value the message carries as text (cubetrack.app.tracker.FrameOutcome and
+# cubetrack.source.clock.ClockFitMethod values; tests/unit/app/test_sighting_wire.py checks that every
+# value has one): written out, so that neither enum's order decides a byte on the wire
+OUTCOME_CODES = {"regions": 0, "full frame": 1, "corrupt": 2, "no camera pose": 3}
+CLOCK_METHOD_CODES = {"none": 0, "arrival": 1, "round-trip": 2}
+_OUTCOMES = {code: value for value, code in OUTCOME_CODES.items()}
+_CLOCK_METHODS = {code: value for value, code in CLOCK_METHOD_CODES.items()}
 
 _HEAD = struct.Struct("<4sBBq3dB3dB4I")
 _DETECTION = struct.Struct("<iB9d")
@@ -93,16 +98,16 @@ def _name(text: str, what: str) -> bytes:
 
 def encode_sighting(message: SightingMessage) -> bytes:
     """The message's bytes (see the module docstring)."""
-    if message.outcome not in OUTCOMES:
+    if message.outcome not in OUTCOME_CODES:
         raise SightingWireError(f"sighting message: unknown outcome {message.outcome!r}")
-    if message.clock.method not in CLOCK_METHODS:
+    if message.clock.method not in CLOCK_METHOD_CODES:
         raise SightingWireError(f"sighting message: unknown clock method {message.clock.method!r}")
     if len(message.detections) > 0xFFFF:
         raise SightingWireError(f"sighting message: {len(message.detections)} detections, at most 65535")
-    flags = (message.T_world_cam is not None) | OUTCOMES.index(message.outcome) << 1
+    flags = (message.T_world_cam is not None) | OUTCOME_CODES[message.outcome] << 1
     h, c = message.health, message.clock
     parts = [_HEAD.pack(MAGIC, VERSION, flags, message.seq, message.device_time_s, message.capture_time_s,
-                        message.arrival_time_s, CLOCK_METHODS.index(c.method), c.offset_s, c.drift, c.device_ref_s,
+                        message.arrival_time_s, CLOCK_METHOD_CODES[c.method], c.offset_s, c.drift, c.device_ref_s,
                         h.connected, *(min(v, 0xFFFFFFFF) for v in (h.frames, h.dropped, h.bad, h.reconnects))),
              _name(message.camera, "camera name")]
     if message.T_world_cam is not None:
@@ -152,7 +157,7 @@ def decode_sighting(data: bytes) -> SightingMessage:
     r = _Reader(data)
     (_, _, flags, seq, device_s, capture_s, arrival_s, method, offset_s, drift, ref_s, connected,
      frames, dropped, bad, reconnects) = r.take(_HEAD, "header")
-    if flags >> 3 or method >= len(CLOCK_METHODS):
+    if flags >> 3 or method not in _CLOCK_METHODS:
         raise SightingWireError(f"sighting message: unknown flags {flags:#x} or clock method {method}")
     camera = r.name("camera name")
     T_world_cam = None
@@ -170,6 +175,6 @@ def decode_sighting(data: bytes) -> SightingMessage:
         detections.append(Detection(marker_id, np.array(values[:8]).reshape(4, 2), values[8], dictionaries[index]))
     if r.at != len(data):
         raise SightingWireError(f"sighting message: {len(data) - r.at} bytes after its end")
-    return SightingMessage(camera, seq, device_s, capture_s, arrival_s, OUTCOMES[(flags >> 1) & 3], tuple(detections),
-                           WireClock(CLOCK_METHODS[method], offset_s, drift, ref_s),
+    return SightingMessage(camera, seq, device_s, capture_s, arrival_s, _OUTCOMES[(flags >> 1) & 3], tuple(detections),
+                           WireClock(_CLOCK_METHODS[method], offset_s, drift, ref_s),
                            WireHealth(bool(connected), frames, dropped, bad, reconnects), T_world_cam)

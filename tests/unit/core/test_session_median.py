@@ -1,9 +1,9 @@
-"""A live session's median latencies in fixed memory (cubetrack.app.live.SessionMedian)."""
+"""A live session's median latencies in fixed memory (cubetrack.core.median.SessionMedian)."""
 
 import random
 import statistics
 
-from cubetrack.app.live import SessionMedian
+from cubetrack.core.median import SessionMedian
 
 
 def test_the_session_median_is_within_a_quarter_percent_of_the_exact_one():

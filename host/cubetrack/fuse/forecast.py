@@ -1,0 +1,58 @@
+"""What a process without the fusion plans frames with: the fusion's predictions as a small
+picklable value (a camera worker process, :mod:`cubetrack.app.camera_workers`, is sent one after
+every batch of fused results; ``cubetrack worker`` plans with :data:`NO_FORECAST`)."""
+
+from __future__ import annotations
+
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from cubetrack.estimate.reprojection import moved_pose
+from cubetrack.fuse.base import Fusion
+
+FORECAST_SPAN_S = 0.1  # the motion in a forecast: from the fusion's predictions this far apart
+
+
+@dataclass(frozen=True, slots=True)
+class Forecast:
+    """What a worker process plans frames with: per tracked robot its predicted pose at
+    ``time_s`` with constant world-frame linear and angular velocity (the filter's motion
+    model), and the robots whose fusion asks for per-camera estimates. Duck-types the two
+    :class:`~cubetrack.fuse.base.Fusion` methods that planning uses
+    (:class:`cubetrack.app.tracker.Forecaster`)."""
+
+    motions: Mapping[str, tuple[float, np.ndarray, np.ndarray, np.ndarray]]  # time_s, T_world_cube, v, w
+    estimate_robots: frozenset[str]
+
+    def predicted_pose(self, robot: str, time_s: float) -> np.ndarray | None:
+        motion = self.motions.get(robot)
+        if motion is None:
+            return None
+        t0, T, v, w = motion
+        return moved_pose(T, v, w, time_s - t0)
+
+    def needs_estimate(self, robot: str) -> bool:
+        return robot in self.estimate_robots
+
+
+def forecast_of(fusion: Fusion, robots: Sequence[str], now_s: float) -> Forecast:
+    """The fusion's predictions at ``now_s`` and ``FORECAST_SPAN_S`` later, as a :class:`Forecast`."""
+    motions = {}
+    for robot in robots:
+        T0 = fusion.predicted_pose(robot, now_s)
+        if T0 is None:
+            continue
+        T1 = fusion.predicted_pose(robot, now_s + FORECAST_SPAN_S)
+        if T1 is None:
+            v = w = np.zeros(3)
+        else:
+            v = (T1[:3, 3] - T0[:3, 3]) / FORECAST_SPAN_S
+            w = cv2.Rodrigues(T1[:3, :3] @ T0[:3, :3].T)[0].reshape(3) / FORECAST_SPAN_S
+        motions[robot] = (now_s, T0, v, w)
+    return Forecast(motions, frozenset(r for r in robots if fusion.needs_estimate(r)))
+
+
+NO_FORECAST = Forecast({}, frozenset())  # no prediction (every frame searched whole), no estimates asked for
