@@ -167,7 +167,9 @@ def test_no_process_of_ours_outlives_a_stopped_command(lab, tmp_path, kind, numb
         # when it reaches end_with_parent; the demo's emulator would serve on for most of 20 s
         left = cmd.survivors(timeout_s=10.0)
         assert not left, f"still running after {number.name} of {kind}: {left}"
-        if number == signal.SIGTERM:  # ends as Ctrl-C does: exit status 0
-            assert code == 0, "".join(cmd.lines)[-3000:]
+        # SIGTERM ends as Ctrl-C does: a session stopped is a normal end (0), but a demo stopped in its
+        # live part is cut short, says what it saved and skips the replays (130, tests/e2e/test_demo.py)
+        if number == signal.SIGTERM:
+            assert code == (130 if kind == "demo" else 0), "".join(cmd.lines)[-3000:]
     finally:
         cmd.kill_all()
