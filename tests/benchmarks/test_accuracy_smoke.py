@@ -3,31 +3,18 @@ configuration in the clean preset and of two in the realistic one. The targets a
 business; here: the report is complete, and on every scene our tracker's errors are finite and
 below the paper's mean fusion's."""
 
-import importlib.util
 import json
 import math
-import sys
-from pathlib import Path
 
 import pytest
 
+from tests.helpers.benchmarks import load_benchmark
+
 pytestmark = pytest.mark.slow
-
-BENCHMARK = Path(__file__).resolve().parents[2] / "benchmarks" / "accuracy.py"
-
-
-def load_benchmark():
-    name = "cubetrack_benchmark_accuracy"
-    if name not in sys.modules:  # registered, so --jobs worker processes can unpickle its functions
-        spec = importlib.util.spec_from_file_location(name, BENCHMARK)
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[name] = module
-        spec.loader.exec_module(module)
-    return sys.modules[name]
 
 
 def test_quick_run_reports_every_configuration_and_beats_the_paper_mean(tmp_path, capsys):
-    bench = load_benchmark()
+    bench = load_benchmark("accuracy")
     assert bench.main(["--quick", "--duration", "6", "--jobs", "2", "--out", str(tmp_path)]) == 0
     text = capsys.readouterr().out
 

@@ -6,13 +6,14 @@ import json
 import math
 
 import pytest
-from test_accuracy_smoke import load_benchmark
+
+from tests.helpers.benchmarks import load_benchmark
 
 pytestmark = pytest.mark.slow
 
 
 def test_template_row_from_the_same_recording(tmp_path, capsys):
-    bench = load_benchmark()
+    bench = load_benchmark("accuracy")
     assert bench.main(["--quick", "--duration", "3", "--presets", "clean", "--configs", "1", "--template",
                        "--no-speed", "--out", str(tmp_path)]) == 0
     lines = capsys.readouterr().out.splitlines()

@@ -3,36 +3,22 @@ simulated recording: every stage and the estimate/ functions the fusion calls ar
 replay is bit-identical across rounds, every stage's timer counted its stage, and the timing hooks
 are gone afterwards. How fast each stage is stays the benchmark's business, never asserted here."""
 
-import importlib.util
 import re
-import sys
-from pathlib import Path
 
 import pytest
 
 import cubetrack.app.tracker as tracker_module
 import cubetrack.detect.detector as detector_module
 import cubetrack.fuse.corner_filter as corner_filter_module
+from tests.helpers.benchmarks import load_benchmark
 
 pytestmark = pytest.mark.slow
-
-BENCHMARK = Path(__file__).resolve().parents[2] / "benchmarks" / "detect_speed.py"
-
-
-def load_benchmark():
-    name = "cubetrack_benchmark_detect_speed"
-    if name not in sys.modules:
-        spec = importlib.util.spec_from_file_location(name, BENCHMARK)
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[name] = module
-        spec.loader.exec_module(module)
-    return sys.modules[name]
 
 
 def test_stages_report_every_stage_and_a_bit_identical_replay(capsys):
     originals = (tracker_module.decode_gray, detector_module.refine_corners_edges,
                  corner_filter_module.reprojection_jacobian_px)
-    bench = load_benchmark()
+    bench = load_benchmark("detect_speed")
     assert bench.main(["--stages", "--duration", "3", "--rounds", "2", "--micro-frames", "20"]) == 0
     text = capsys.readouterr().out
 

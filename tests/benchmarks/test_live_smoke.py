@@ -3,7 +3,6 @@ the tracker live over HTTP in its own process. The targets are the benchmark's b
 a timing here): the report is complete and consistent (its counts add up, its verdicts follow
 from its figures), and the live run tracked the robot."""
 
-import importlib.util
 import json
 import math
 import subprocess
@@ -12,20 +11,11 @@ from pathlib import Path
 
 import pytest
 
+from tests.helpers.benchmarks import load_benchmark
+
 pytestmark = pytest.mark.slow
 
 ROOT = Path(__file__).resolve().parents[2]
-
-
-def load_benchmark():
-    """benchmarks/live.py as a module (for its targets)."""
-    name = "cubetrack_benchmark_live"
-    if name not in sys.modules:
-        spec = importlib.util.spec_from_file_location(name, ROOT / "benchmarks" / "live.py")
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[name] = module
-        spec.loader.exec_module(module)
-    return sys.modules[name]
 
 
 def test_quick_run_prints_and_saves_a_complete_report(tmp_path):
@@ -69,7 +59,7 @@ def test_quick_run_prints_and_saves_a_complete_report(tmp_path):
                         / speed["naive_cpu_ms"], rel_tol=0.2)   # the median of rounds of each
     # the targets' verdicts follow from the report's own figures (which ones a loaded machine misses is
     # the benchmark's business): each target is listed as missed exactly when its figure misses it
-    bench = load_benchmark()
+    bench = load_benchmark("live")
     a = live["arrival_ms"]
     missed = {"dropped": live["dropped_fraction"] > bench.TARGET_DROPPED,
               "p95 arrival->pose": not a["p95"] <= bench.TARGET_P95_MS,

@@ -8,27 +8,17 @@ The conversion and the three replays run once per session (a few tens of seconds
 
 from __future__ import annotations
 
-import importlib.util
-import sys
 import tomllib
 from pathlib import Path
 
 import numpy as np
 import pytest
 
+from tests.helpers.benchmarks import load_benchmark
+
 ROOT = Path(__file__).resolve().parents[2]
 DATA = ROOT / ".." / "shared" / "data" / "real" / "caliscope-4cam"
 pytestmark = pytest.mark.skipif(not DATA.is_dir(), reason=f"{DATA} not present (the real footage is in ../shared)")
-
-
-def _benchmark():
-    name = "real_footage_benchmark"
-    if name not in sys.modules:
-        spec = importlib.util.spec_from_file_location(name, ROOT / "benchmarks" / "real_footage.py")
-        module = importlib.util.module_from_spec(spec)
-        sys.modules[name] = module
-        spec.loader.exec_module(module)
-    return sys.modules[name]
 
 
 @pytest.fixture(scope="session")
@@ -41,12 +31,12 @@ def imported(tmp_path_factory):
 
 @pytest.fixture(scope="session")
 def reference():
-    return _benchmark().charuco_reference(DATA)
+    return load_benchmark("real_footage").charuco_reference(DATA)
 
 
 @pytest.fixture(scope="session")
 def scores(imported, reference):
-    bench = _benchmark()
+    bench = load_benchmark("real_footage")
     _result, work = imported
     return {name: bench.score(bench.track(work, name, sections), reference)
             for name, sections in (("default", {}), ("mean", {"fusion": {"method": "mean"}}))}
