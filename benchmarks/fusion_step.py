@@ -230,8 +230,9 @@ def pose_difference(a: dict, b: dict) -> dict:
         return {"identical": False, "poses_equal_times": False, "max_position_mm": float("nan"),
                 "max_rotation_deg": float("nan")}
     dp = np.linalg.norm(np.array(a["positions_m"]) - np.array(b["positions_m"]), axis=1)
-    dots = np.abs(np.sum(np.array(a["quaternions_xyzw"]) * np.array(b["quaternions_xyzw"]), axis=1))
-    angles = 2.0 * np.degrees(np.arccos(np.clip(dots, -1.0, 1.0)))
+    qa, qb = np.array(a["quaternions_xyzw"]), np.array(b["quaternions_xyzw"])
+    chord = np.minimum(np.linalg.norm(qa - qb, axis=1), np.linalg.norm(qa + qb, axis=1))  # 2 sin(angle / 4)
+    angles = 4.0 * np.degrees(np.arcsin(np.minimum(chord / 2.0, 1.0)))  # exact near 0, unlike an arccos
     return {"identical": False, "poses_equal_times": True, "max_position_mm": float(1000.0 * dp.max()),
             "max_rotation_deg": float(angles.max())}
 
