@@ -198,10 +198,14 @@ class PoseFilter:
         if dt == 0.0:
             return
         self._set_pose(self.predicted(time_s))
-        F = transition(dt)
         A, B, C = _motion_noise(self.params, self.time_s <= self.turning_until_s)
         adt = abs(dt)
-        self.P = F @ self.P @ F.T + (adt**3 / 3.0) * A + (dt * dt / 2.0) * B + adt * C
+        # F P F^T with F = transition(dt) = I + dt [[0, I], [0, 0]]: F P adds dt x its velocity rows to
+        # its pose rows, (F P) F^T the same with the columns (two slice updates, not two 12x12 products)
+        P = self.P.copy()
+        P[_POSE] += dt * P[6:12]
+        P[:, _POSE] += dt * P[:, 6:12]
+        self.P = P + ((adt**3 / 3.0) * A + (dt * dt / 2.0) * B + adt * C)
         self.time_s = time_s
 
     def error_from(self, other: PoseFilter) -> np.ndarray:
