@@ -20,12 +20,12 @@ from typing import Any
 
 import numpy as np
 
-from cubetrack.app.parallel import LiveParams
 from cubetrack.app.tracker import StageParams
 from cubetrack.calib.bundle import BundleAdjustmentParams
 from cubetrack.calib.extrinsics import CalibrationParams
 from cubetrack.core.cameras import CameraIntrinsics
 from cubetrack.core.errors import ConfigError
+from cubetrack.core.frame_pool import LiveParams
 from cubetrack.core.layout import CubeLayout, face_T_cube_marker
 from cubetrack.core.params import params_from_table, params_to_table
 from cubetrack.detect.detector import CornerRefinement

@@ -30,11 +30,11 @@ from pathlib import Path
 from cubetrack.app.camera_workers import FORECAST_EVERY_S, CameraProcesses
 from cubetrack.app.config import config_params, parameter_tables
 from cubetrack.app.outputs import open_outputs
-from cubetrack.app.parallel import FramePool, LiveParams, WorkerKind, by_capture_time
 from cubetrack.app.session import PoseStream, RunSpec, Session, idle_wait_s
 from cubetrack.app.tracker import FrameProcessor, StageParams, Tracker, TrackStats
 from cubetrack.core.cameras import CameraExtrinsics, CameraIntrinsics, ClockSample
 from cubetrack.core.errors import ConfigError
+from cubetrack.core.frame_pool import FramePool, LiveParams, WorkerKind, by_capture_time
 from cubetrack.core.records import CameraHealth, CameraView, Frame, FrameResult, TrackedPose
 from cubetrack.fuse.forecast import forecast_of
 from cubetrack.io.camera_info import read_camera_info
@@ -365,7 +365,7 @@ def track_live(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
     (everything that arrived, including frames the tracker had to drop). Frames are stamped with
     their capture time through each camera's ``/time`` round trips, exactly as in a replay.
 
-    Per-frame work runs on ``[live] workers`` (:mod:`cubetrack.app.parallel`) or camera worker
+    Per-frame work runs on ``[live] workers`` (:mod:`cubetrack.core.frame_pool`) or camera worker
     processes (:mod:`cubetrack.app.camera_workers`); this thread is the one ordered consumer that
     fuses. Frames of a camera whose clock is not known yet are given up (counted). The runtime
     releases the poses a fixed lag held once their time is up and, with ``[fusion]
