@@ -24,7 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from cubetrack.app.config import config_params, parameter_tables
-from cubetrack.app.live import HEALTH_EVERY_S, live_intrinsics
+from cubetrack.app.live import live_intrinsics
 from cubetrack.app.outputs import open_outputs
 from cubetrack.app.session import PoseStream, RunSpec, Session, idle_wait_s
 from cubetrack.app.tracker import StageParams, Tracker, TrackStats
@@ -36,6 +36,7 @@ from cubetrack.io.run import RUN_FILE
 from cubetrack.io.sighting_wire import SightingMessage, SightingWireError, decode_sighting
 from cubetrack.sink.base import Sink
 from cubetrack.sink.zenoh_session import ZenohEndpoints, open_session
+from cubetrack.source.health import HEALTH_EVERY_S
 
 log = logging.getLogger(__name__)
 
