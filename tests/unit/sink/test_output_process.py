@@ -59,7 +59,7 @@ def test_a_bad_output_fails_before_the_session_with_its_one_line_reason(tmp_path
         with pytest.raises(OutputError) as err:
             start_outputs([spec({"type": "vrpn", "address": f"127.0.0.1:{port}"}, tmp_path)])
     assert str(port) in str(err.value) and "\n" not in str(err.value)
-    with pytest.raises(ConfigError, match=r"^lab.toml: outputs \(zenoh\): mode must be peer, client or router"):
+    with pytest.raises(ConfigError, match=r"^lab.toml: outputs \(zenoh\).mode: 'broker' is not one of 'peer'"):
         start_outputs([spec({"type": "zenoh", "mode": "broker"}, tmp_path)])
 
 
