@@ -123,3 +123,27 @@ def test_bad_camera_urls_are_one_line_naming_the_camera(url, needle):
     with pytest.raises(ConfigError, match="camera cam7") as info:
         parse_camera_url("cam7", url)
     assert needle in str(info.value) and "\n" not in str(info.value)
+
+
+def test_rtsp_goes_through_opencvs_ffmpeg_backend_with_no_new_dependency():
+    """The RTSP client is FFmpeg's (libavformat, bundled in opencv-contrib-python-headless): it
+    speaks RTSP to the camera's port; a server that hangs up is a one-line error at start."""
+    import socket
+    import threading
+
+    server = socket.create_server(("127.0.0.1", 0))
+    port = server.getsockname()[1]
+    requests: list[bytes] = []
+
+    def answer_once() -> None:
+        conn, _ = server.accept()
+        requests.append(conn.recv(1000))
+        conn.close()
+
+    threading.Thread(target=answer_once, daemon=True).start()
+    try:
+        with pytest.raises(SourceError, match=r"camera ipcam: cannot open rtsp://.* its RTSP port reachable"):
+            LiveCameras({"ipcam": f"rtsp://127.0.0.1:{port}/stream1"}, PARAMS).start()
+    finally:
+        server.close()
+    assert requests and requests[0].startswith(f"OPTIONS rtsp://127.0.0.1:{port}/stream1 RTSP/1.0".encode())
