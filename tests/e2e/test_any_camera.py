@@ -17,7 +17,6 @@ import math
 from collections import Counter
 from pathlib import Path
 
-import cv2
 import numpy as np
 import pytest
 import simplejpeg
@@ -33,6 +32,7 @@ from cubetrack.io.trajectory import read_tum
 from cubetrack.sink.base import Sink
 from tests.helpers.plain_mjpeg import PlainMjpegServer
 from tests.helpers.scene import simulated_scene
+from tests.helpers.webcams import paced_video
 
 pytestmark = pytest.mark.slow
 
@@ -56,17 +56,9 @@ class HealthTap(Sink):
 
 
 def write_video(track, release_of, path: Path) -> tuple[Path, float]:
-    """The camera's frames as an MJPEG AVI at its frame rate (a gap repeats the frame before) and
-    the host time its first frame is due."""
-    fps = 1.0 / track.frame_interval_s
+    """The camera's frames as a video at its frame rate, and the host time its first frame is due."""
     times = [release_of(f.device_time_s) for f in track.frames]
-    first = cv2.imread(str(track.frames[0].path))
-    writer = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*"MJPG"), fps, (first.shape[1], first.shape[0]))
-    for k in range(int((times[-1] - times[0]) * fps) + 1):
-        i = int(np.searchsorted(times, times[0] + k / fps + 0.25 / fps)) - 1
-        writer.write(cv2.imread(str(track.frames[max(i, 0)].path)))
-    writer.release()
-    return path, times[0]
+    return paced_video(times, [f.path for f in track.frames], 1.0 / track.frame_interval_s, path), times[0]
 
 
 @pytest.fixture(scope="module")
