@@ -31,9 +31,19 @@ on the mean over the scenes: in-sample, so an upper bound on what retuning buys)
 row: rotation RMSE, its roll/pitch (RMS of the world-frame error about x and y) and yaw (about z)
 parts, position RMSE, each the mean over the scenes, and per scene in the JSON report.
 
+``--floor`` (issue 26) also measures the floor each accuracy target is stated against: every
+sighting's camera frame alone, fitted (``cv2.solvePnP``, Levenberg-Marquardt from the true pose,
+so never a flipped solution) with the true camera (true intrinsics and lens, true pose) and the
+body as built, to the detected corners, the oracle corners and the template corners; scored
+against the truth at the frame's capture instant (RMS over sightings, all and split by one marker
+/ two or more). The tracker's filter pools several frames and cameras, so it can go below this
+floor where it trusts the corners; a per-instant fit cannot. ``--preset`` picks accuracy.py's
+preset of the scenes (default realistic).
+
     nice -n 19 .venv/bin/python benchmarks/corner_ceiling.py [--out /tmp/corner_ceiling] [--duration 15]
                                                               [--configs 1 3] [--sigmas 0 0.02 0.05 0.1 0.2]
                                                               [--body] [--no-template] [--no-tune] [--json FILE]
+                                                              [--floor] [--preset clean|realistic|rig]
 
 The process lowers its own priority (``os.nice``). The exit code is 0 for a completed run.
 """
@@ -309,13 +319,27 @@ def mean_scores(per_scene: list[dict]) -> dict:
 # --------------------------------------------------------------------------------- floor
 
 
-def floor_errors(truth: Truth, sightings: list, corners: dict | None) -> list[tuple[float, float, int]]:
+def true_markers(truth: Truth, sightings: list) -> list[list]:
+    """Per sighting, per detection: the true marker it shows (:meth:`Truth.nearest`), None when
+    none is within ``MATCH_PX``."""
+    out = []
+    for s, _ in sightings:
+        row = []
+        for d in s.detections:
+            rms, _, _, marker = truth.nearest(s.camera, s.seq, d)
+            row.append(marker if rms <= MATCH_PX else None)
+        out.append(row)
+    return out
+
+
+def floor_errors(truth: Truth, sightings: list, markers: list[list],
+                 corners: dict | None) -> list[tuple[float, float, int]]:
     """The floor (issue 26): per sighting that shows true markers, the error of a per-instant fit
     of that camera frame alone with the true camera (its true intrinsics, lens included, and true
     pose) and the body as built, started from the truth: position (m), rotation (°) against the
     truth at the frame's capture instant, and the markers fitted. ``corners``: per sighting, per
-    detection, the corners to fit (None, or a None entry: the detected ones); a detection that
-    shows no true marker within ``MATCH_PX`` is left out."""
+    detection, the corners to fit (None, or a None entry: the detected ones); ``markers``: the
+    true marker of each detection (:func:`true_markers`; None: left out)."""
     import cv2
 
     from cubetrack.core.geometry import invert_T, make_T, rotation_angle, transform_points
@@ -324,9 +348,8 @@ def floor_errors(truth: Truth, sightings: list, corners: dict | None) -> list[tu
     out = []
     for k, (s, _) in enumerate(sightings):
         obj, img = [], []
-        for i, d in enumerate(s.detections):
-            rms, _, _, marker = truth.nearest(s.camera, s.seq, d)
-            if rms > MATCH_PX:
+        for i, (d, marker) in enumerate(zip(s.detections, markers[k], strict=True)):
+            if marker is None:
                 continue
             given = None if corners is None else corners[k][i][0]
             obj.append(transform_points(marker.T_cube_marker, marker_corners_m(marker.size_m)))
@@ -365,7 +388,8 @@ def floor_report(scenes: list[dict], corner_sets: list[str]) -> dict:
     out = {}
     for sc in scenes:
         truth = Truth(sc["rec"])
-        out[sc["name"]] = {which: floor_summary(floor_errors(truth, sc["sightings"],
+        markers = true_markers(truth, sc["sightings"])
+        out[sc["name"]] = {which: floor_summary(floor_errors(truth, sc["sightings"], markers,
                                                               None if which == "edge" else sc[which]))
                            for which in corner_sets}
         say(f"  floor {sc['name']}: done")
