@@ -35,10 +35,10 @@ parts, position RMSE, each the mean over the scenes, and per scene in the JSON r
 sighting's camera frame alone, fitted (``cv2.solvePnP``, Levenberg-Marquardt from the true pose,
 so never a flipped solution) with the true camera (true intrinsics and lens, true pose) and the
 body as built, to the detected corners, the oracle corners and the template corners; scored
-against the truth at the frame's capture instant (RMS over sightings, all and split by one marker
-/ two or more). The tracker's filter pools several frames and cameras, so it can go below this
-floor where it trusts the corners; a per-instant fit cannot. ``--preset`` picks accuracy.py's
-preset of the scenes (default realistic).
+against the truth at the instant the fitted corners' rows were exposed (their mean row under the
+rolling shutter), RMS over sightings, all and split by one marker / two or more. The tracker's
+filter pools several frames and cameras, so it can go below this floor; a per-instant fit cannot.
+``--preset`` picks accuracy.py's preset of the scenes (default realistic).
 
     nice -n 19 .venv/bin/python benchmarks/corner_ceiling.py [--out /tmp/corner_ceiling] [--duration 15]
                                                               [--configs 1 3] [--sigmas 0 0.02 0.05 0.1 0.2]
@@ -337,7 +337,8 @@ def floor_errors(truth: Truth, sightings: list, markers: list[list],
     """The floor (issue 26): per sighting that shows true markers, the error of a per-instant fit
     of that camera frame alone with the true camera (its true intrinsics, lens included, and true
     pose) and the body as built, started from the truth: position (m), rotation (°) against the
-    truth at the frame's capture instant, and the markers fitted. ``corners``: per sighting, per
+    truth at the instant the fitted corners' rows were exposed (their mean row under the rolling
+    shutter; the frame's capture instant without one), and the markers fitted. ``corners``: per sighting, per
     detection, the corners to fit (None, or a None entry: the detected ones); ``markers``: the
     true marker of each detection (:func:`true_markers`; None: left out)."""
     import cv2
@@ -357,7 +358,8 @@ def floor_errors(truth: Truth, sightings: list, markers: list[list],
         if not obj:
             continue
         cam = truth.cameras[s.camera]
-        T_true = truth.scene.T_world_cube(truth.capture_s[(s.camera, s.seq)])
+        rows_s = (float(np.concatenate(img)[:, 1].mean()) - cam.reference_row) * cam.row_s  # the markers' rows
+        T_true = truth.scene.T_world_cube(truth.capture_s[(s.camera, s.seq)] + rows_s)
         T_cam_cube = invert_T(cam.T_world_cam) @ T_true
         rvec = cv2.Rodrigues(T_cam_cube[:3, :3])[0]
         tvec = T_cam_cube[:3, 3].reshape(3, 1).copy()

@@ -135,7 +135,10 @@ def main(argv: list[str] | None = None) -> int:
 
     def fit_with(module):
         def fit(m: dict):
-            lens = lenses.setdefault((module.__name__, m["camera"]), module.LensMap(m["intrinsics"]))
+            key = (module.__name__, m["camera"])
+            if key not in lenses:  # one lens map per camera and module, as a Detector keeps them
+                lenses[key] = module.LensMap(m["intrinsics"])
+            lens = lenses[key]
             return module.fast_template_corners(m["gray"], m["corners"], m["dictionary"], m["marker_id"], lens)
         return fit
 
