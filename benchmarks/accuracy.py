@@ -105,7 +105,8 @@ PRESETS = (CLEAN, REALISTIC, RIG, HAND)
 HAND_SPEED_M_S = 0.2  # the hand preset: the rig preset's body carried by hand (free 6-DoF) at this RMS speed
 DEFAULT_PRESETS = (CLEAN, REALISTIC)
 QUICK_REALISTIC = (1, 3)  # --quick renders the realistic and rig presets of these configurations only (they cost more)
-TARGETS = {CLEAN: (0.3, 0.5), REALISTIC: (1.0, 1.0), RIG: (1.0, 1.0), HAND: (1.0, 1.0)}  # preset -> (position RMSE cm, rotation RMSE °)
+# preset -> (position RMSE cm, rotation RMSE °)
+TARGETS = {CLEAN: (0.3, 0.5), REALISTIC: (1.0, 1.0), RIG: (1.0, 1.0), HAND: (1.0, 1.0)}
 TARGET_DR = 0.99
 TARGET_RATIO = 5.0
 TARGET_SPEED = 1.0
