@@ -182,7 +182,8 @@ def sim_params(preset: str, cameras: int, height: float, tilt: float, seed: int,
 
 def scene_dir(work: Path, config_index: int, seed: int, preset: str = CLEAN) -> Path:
     _, cameras, height, tilt, _ = CONFIGS[config_index]
-    return work / f"{ {REALISTIC: 'real_', RIG: 'rig_', HAND: 'hand_'}.get(preset, '')}c{cameras}_h{height:g}_t{tilt:g}_s{seed}"
+    prefix = {REALISTIC: "real_", RIG: "rig_", HAND: "hand_"}.get(preset, "")
+    return work / f"{prefix}c{cameras}_h{height:g}_t{tilt:g}_s{seed}"
 
 
 def ensure_recording(params, rec: Path, workers: int) -> tuple[float, bool]:

@@ -26,8 +26,8 @@ from cubetrack.simulate.imperfections import built_layout, calibrated_intrinsics
 from cubetrack.simulate.motion import (
     PERSON_BODY_M,
     PERSON_HEAD_M,
-    Person,
     HandPath,
+    Person,
     RobotPath,
     SharpPath,
     Terrain,
