@@ -12,7 +12,10 @@ it is: the tracker maps the moved stamps to the host clock as before). Scored as
 more than 5 cm off); the unmoved recording with both settings alongside, so a setting that costs
 accuracy where every stamp is right shows too.
 
-Usage: python benchmarks/stamp_offsets.py --scenes DIR [--offsets-ms 40 -25] [--only PATTERN]
+``--set filter.KEY=VALUE`` compares other [filter] settings instead (e.g. the hand-held scenes'
+motion: ``--set filter.angular_accel_noise=3.0 --offsets-ms``, no offsets: the unmoved recording only).
+
+Usage: python benchmarks/stamp_offsets.py --scenes DIR [--offsets-ms 40 -25] [--only PATTERN] [--set ...]
 """
 
 from __future__ import annotations
@@ -29,7 +32,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 import accuracy  # noqa: E402  (the scoring of the scenes it rendered)
 
-SWITCH = {"correction_time_sigma_s": 0.05}
+SWITCH = {"correction_time_sigma_s": 0.05}  # the [filter] settings compared with the defaults, unless --set
 
 
 def moved_stamps(rec: Path, out: Path, offsets_s: dict[str, float]) -> Path:
@@ -51,8 +54,8 @@ def moved_stamps(rec: Path, out: Path, offsets_s: dict[str, float]) -> Path:
     return out
 
 
-def track_scores(rec: Path, extrinsics: dict, truth, work: Path) -> dict[str, dict]:
-    """Scores of ``rec`` tracked with the defaults and with the time offsets estimated."""
+def track_scores(rec: Path, extrinsics: dict, truth, work: Path, switch: dict) -> dict[str, dict]:
+    """Scores of ``rec`` tracked with the defaults and with the [filter] settings ``switch``."""
     from cubetrack.app.track import track_recording
     from cubetrack.app.tracker import StageParams
     from cubetrack.io.config import read_tracker_config
@@ -60,9 +63,9 @@ def track_scores(rec: Path, extrinsics: dict, truth, work: Path) -> dict[str, di
 
     config = read_tracker_config(rec / "config.toml")
     base = StageParams.from_config(config)
-    switched = dataclasses.replace(base, filter=dataclasses.replace(base.filter, **SWITCH))
+    switched = dataclasses.replace(base, filter=dataclasses.replace(base.filter, **switch))
     out = {}
-    for name, params in (("default", base), ("time offsets", switched)):
+    for name, params in (("default", base), ("switched", switched)):
         result = track_recording(config, Recording.open(rec), extrinsics, work / name.replace(" ", "_"), params,
                                  workers=0)
         out[name] = accuracy.score(result.outputs[config.robots[0].name][0], truth)
@@ -73,11 +76,22 @@ def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scenes", type=Path, required=True, help="an accuracy.py --out folder (its rendered scenes "
                     "and their robust extrinsics, track/extrinsics_robust.toml)")
-    ap.add_argument("--offsets-ms", type=float, nargs="+", default=[40.0, -25.0],
+    ap.add_argument("--offsets-ms", type=float, nargs="*", default=[40.0, -25.0],
                     help="stamp offsets of the scene's first cameras, in order (default: 40 -25: the first camera "
                     "stamped 40 ms late, the second 25 ms early, the others right)")
     ap.add_argument("--only", default="", help="only scenes whose folder name contains this")
+    ap.add_argument("--set", action="append", default=[], metavar="filter.KEY=VALUE",
+                    help="a [filter] setting to compare with the defaults (repeat; default: "
+                    "filter.correction_time_sigma_s=0.05)")
     args = ap.parse_args(argv)
+    switch = dict(SWITCH)
+    if args.set:
+        switch = {}
+        for item in args.set:
+            key, _, value = item.partition("=")
+            if not key.startswith("filter.") or not value:
+                ap.error(f"--set takes filter.KEY=VALUE, got {item!r}")
+            switch[key.removeprefix("filter.")] = float(value)
     from cubetrack.io.config import read_extrinsics, read_tracker_config
     from cubetrack.io.trajectory import read_tum
 
@@ -85,16 +99,19 @@ def main(argv: list[str] | None = None) -> int:
                     and (p / "track" / accuracy.ROBUST_EXTRINSICS_FILE).exists())
     if not scenes:
         ap.error(f"no rendered scene with robust extrinsics in {args.scenes}")
-    print(f"offsets {args.offsets_ms} ms; cores {os.cpu_count()}; load {os.getloadavg()[0]:.1f}", flush=True)
+    print(f"offsets {args.offsets_ms} ms; switched: {switch}; cores {os.cpu_count()}; load {os.getloadavg()[0]:.1f}",
+          flush=True)
     for rec in scenes:
         cameras = [c.name for c in read_tracker_config(rec / "config.toml").cameras]
         offsets = {c: ms / 1000.0 for c, ms in zip(cameras, args.offsets_ms, strict=False)}
         extrinsics = read_extrinsics(rec / "track" / accuracy.ROBUST_EXTRINSICS_FILE)
         truth = read_tum(rec / "ground_truth.tum")
         work = args.scenes / "stamp_offsets" / rec.name
-        moved = moved_stamps(rec, work / "recording", offsets)
-        for label, scores in (("stamps right", track_scores(rec, extrinsics, truth, work / "right")),
-                              ("stamps moved", track_scores(moved, extrinsics, truth, work / "moved"))):
+        runs = [("stamps right", rec)]
+        if offsets:
+            runs.append(("stamps moved", moved_stamps(rec, work / "recording", offsets)))
+        for label, recording in runs:
+            scores = track_scores(recording, extrinsics, truth, work / label.replace(" ", "_"), switch)
             for name, s in scores.items():
                 print(f"{rec.name:<24} {label:<13} {name:<13} position RMSE {s['pos_cm']:.3f} cm, rotation RMSE "
                       f"{s['rot_deg']:.3f} deg, max {s['max_cm']:.2f} cm, detection ratio {s['dr']:.3f}, "
