@@ -255,8 +255,8 @@ REALISTIC: dict[str, object] = {
 # ../shared/data/real/caliscope-4cam has that the realistic preset lacks (its README): 1280 x 720
 # webcams (focal length as its calibrated cameras', 640-900 px) at about 6 fps, free-running
 # (unsynchronised: each camera's own clock and capture phase, as every preset), markers printed
-# inverted, each with its own id. Free hand-held motion is not simulated (the robot's cube tilts
-# only with the floor and its vibration).
+# inverted, each with its own id. Its board's free hand-held motion is ``path = "handheld"`` on top
+# (benchmarks/accuracy.py --presets hand).
 RIG: dict[str, object] = {
     "image_width_px": 1280,
     "image_height_px": 720,
