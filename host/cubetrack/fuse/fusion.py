@@ -34,6 +34,7 @@ import enum
 import logging
 import math
 from collections import Counter
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -44,7 +45,7 @@ from cubetrack.core.geometry import invert_T, mean_rotation, quat_xyzw_from_R
 from cubetrack.core.layout import CubeLayout
 from cubetrack.core.params import check, check_at_least, check_non_negative, check_positive, param
 from cubetrack.core.records import CameraEstimate, CubeSighting, TrackedPose
-from cubetrack.estimate.match import match_faces
+from cubetrack.estimate.match import FaceMatch, match_faces
 from cubetrack.estimate.params import EstimatorParams
 from cubetrack.estimate.pose import estimate_cube
 from cubetrack.estimate.reprojection import CornerSet, corner_set
@@ -203,6 +204,22 @@ def pose_record(sighting: CubeSighting, f: PoseFilter, now_s: float, cameras: tu
                        markers=markers, latency_s=max(0.0, now_s - f.time_s), velocity_m_s=f.velocity_m_s.copy(),
                        angular_velocity_rad_s=f.angular_velocity_rad_s.copy(), covariance=f.pose_covariance,
                        arrival_latency_s=max(0.0, now_s - sighting.arrival_time_s))
+
+
+def sighting_corner_sets(sighting: CubeSighting, matches: Sequence[FaceMatch]) -> list[CornerSet]:
+    """A sighting's matched faces as corner sets: one, taken at the capture time; under a rolling
+    shutter (the camera's ``readout_s``) one per face, taken when the rows of its corners were
+    (their mean row's time); none when nothing matched."""
+    if not matches:
+        return []
+    intrinsics, t = sighting.intrinsics, sighting.capture_time_s
+    if intrinsics.readout_s <= 0:
+        sets = [corner_set(matches, intrinsics, sighting.T_world_cam, sighting.camera, t)]
+    else:
+        row_s, middle = intrinsics.readout_s / intrinsics.height, (intrinsics.height - 1) / 2.0
+        sets = [corner_set((m,), intrinsics, sighting.T_world_cam, sighting.camera,
+                           t + (float(np.mean(m.detection.corners_px[:, 1])) - middle) * row_s) for m in matches]
+    return [s for s in sets if s is not None]  # (none is: each has matches)
 
 
 @dataclass(frozen=True, slots=True)
@@ -424,22 +441,14 @@ class FilterFusion:
         (6x6 over ``[δp, δθ]``): how uncertain that pose is, which widens the association gate
         (:func:`prediction_gate_px`) of a body whose ids are all distinct (where an id repeats, the
         gate is what tells its faces apart: it stays ``association_gate_px``)."""
-        intrinsics, t = sighting.intrinsics, sighting.capture_time_s
+        intrinsics = sighting.intrinsics
         layout = self.layouts[sighting.robot]
         gate_px = self.params.association_gate_px
         if covariance is not None and not layout.has_repeated_ids:  # a repeated id's face is told by the gate
             gate_px += prediction_gate_px(covariance, T_world_cube, sighting.T_world_cam, intrinsics, layout)
         matches = match_faces(sighting.detections, layout, intrinsics, sighting.T_world_cam, T_world_cube,
                               gate_px=gate_px, max_view_angle_deg=self.params.max_view_angle_deg)
-        if not matches:
-            return []
-        if intrinsics.readout_s <= 0:
-            sets = [corner_set(matches, intrinsics, sighting.T_world_cam, sighting.camera, t)]
-        else:
-            row_s, middle = intrinsics.readout_s / intrinsics.height, (intrinsics.height - 1) / 2.0
-            sets = [corner_set((m,), intrinsics, sighting.T_world_cam, sighting.camera,
-                               t + (float(np.mean(m.detection.corners_px[:, 1])) - middle) * row_s) for m in matches]
-        return [s for s in sets if s is not None]  # (none is: each has matches)
+        return sighting_corner_sets(sighting, matches)
 
     def _apply(self, state: RobotState, history: list[HistoryStep], index: int, now_s: float,
                record: bool) -> tuple[RobotState, TrackedPose | None, str]:
