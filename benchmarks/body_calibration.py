@@ -11,8 +11,8 @@ truth (``true_cube.toml``, compared in the body frame that fits it best, as
 rotation error (°) and the size error (mm); max and mean over the markers; the nominal layout's
 errors for reference. Each recording is calibrated with the calibration's corners (the
 default: edge fit, then the template fit of :mod:`cubetrack.calib.marker_fit`) and, with
-``--compare``, with the detector's corners (``[bundle_adjustment] body_edge_corners = false``),
-and with ``--compare-instants`` with the instants model (``body_knot_s = 0``: one body pose per
+``--compare``, with the detector's corners (``[body_calibration] edge_corners = false``),
+and with ``--compare-instants`` with the instants model (``knot_s = 0``: one body pose per
 instant, moved with a fitted velocity) instead of the body's continuous-time trajectory. CPU
 seconds of each calibrate-body (its child process), the core count and the load average are
 printed.
@@ -112,8 +112,8 @@ def extrinsics_for(rec: Path, seed: int, scene: Sequence[str], which: str) -> Pa
     return out
 
 
-# the calibrations compared: name -> [bundle_adjustment] settings over the recording's config
-KINDS = {"calibration": "", "detector": "body_edge_corners = false", "instants": "body_knot_s = 0.0"}
+# the calibrations compared: name -> [body_calibration] settings over the recording's config
+KINDS = {"calibration": "", "detector": "edge_corners = false", "instants": "knot_s = 0.0"}
 
 
 def calibrate(rec: Path, kind: str, refine_intrinsics: bool, extrinsics: Path) -> tuple[Path, float]:
@@ -123,7 +123,7 @@ def calibrate(rec: Path, kind: str, refine_intrinsics: bool, extrinsics: Path) -
     config = rec / "config.toml"
     if KINDS[kind]:
         config = rec / f"config_{kind}.toml"
-        config.write_text((rec / "config.toml").read_text() + f"\n[bundle_adjustment]\n{KINDS[kind]}\n")
+        config.write_text((rec / "config.toml").read_text() + f"\n[body_calibration]\n{KINDS[kind]}\n")
     tag = extrinsics.stem.removeprefix("extrinsics_") if extrinsics.name.startswith("extrinsics_") else ""
     out = rec / f"body_{kind}{'_intrinsics' if refine_intrinsics else ''}{'_' + tag if tag else ''}.toml"
     cpu0 = child_cpu_s()
@@ -157,7 +157,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--out", type=Path, help="keep the recordings here (and reuse complete ones)")
     ap.add_argument("--compare", action="store_true", help="also calibrate with the detector's corners")
     ap.add_argument("--compare-instants", action="store_true",
-                    help="also calibrate with instants (body_knot_s = 0) instead of the body's trajectory")
+                    help="also calibrate with instants (knot_s = 0) instead of the body's trajectory")
     ap.add_argument("--refine-intrinsics", action="store_true", help="calibrate-body --refine-intrinsics")
     ap.add_argument("--extrinsics", choices=("true", "calibrated", "refined"), default="true",
                     help="the extrinsics calibrate-body starts from: the simulation's truth (default), cubetrack "

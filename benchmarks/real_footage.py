@@ -91,7 +91,7 @@ def _rigid_fit(model: np.ndarray, points: np.ndarray) -> tuple[np.ndarray, float
 
 def charuco_reference(data: Path = DATA) -> dict[int, Instant]:
     """Sync index -> the board's reference pose (module docstring)."""
-    from cubetrack.app.import_rig import read_caliscope_rig
+    from cubetrack.io.caliscope import read_caliscope_rig
 
     rig = read_caliscope_rig(data)
     board = rig.board

@@ -116,7 +116,8 @@ def empty_cpu(messages: list[bytes], config, extrinsics) -> float:
 
 def publish(port: int, worker: int, cameras: int, fps: float, duration_s: float, messages: list[bytes]) -> None:
     """One publisher process: ``cameras`` keys at ``fps`` each for ``duration_s``."""
-    from cubetrack.app.worker import sighting_key, worker_endpoints
+    from cubetrack.app.worker import worker_endpoints
+    from cubetrack.io.worker_bus import sighting_key
     from cubetrack.sink.zenoh_session import open_session
 
     session = open_session(worker_endpoints(connect=(f"tcp/127.0.0.1:{port}",)), "benchmark worker")
@@ -137,8 +138,9 @@ def publish(port: int, worker: int, cameras: int, fps: float, duration_s: float,
 
 def transport(messages: list[bytes], workers: int, cameras: int, fps: float, duration_s: float) -> dict:
     """Publisher processes -> one subscriber here over loopback Zenoh."""
-    from cubetrack.app.worker import SIGHTINGS_KEY, fuse_endpoints
+    from cubetrack.app.worker import fuse_endpoints
     from cubetrack.io.sighting_wire import decode_sighting
+    from cubetrack.io.worker_bus import SIGHTINGS_KEY
     from cubetrack.sink.zenoh_session import open_session
 
     port = free_port()

@@ -1,9 +1,9 @@
 """`cubetrack calibrate-body` on a continuous-time trajectory of the body (the default,
-``[bundle_adjustment] body_knot_s``), end to end: a short realistic simulation (sharp turns,
+``[body_calibration] knot_s``), end to end: a short realistic simulation (sharp turns,
 rolling shutter, wobble, a wide-angle lens, a hand-built cube), rendered JPEGs, the CLI, the
 layout file it writes.
 
-Short for CI: 6 s of driving and the detector's corners (``body_edge_corners = false``; the
+Short for CI: 6 s of driving and the detector's corners (``[body_calibration] edge_corners = false``; the
 template fit costs about a minute more here). The bound is loose (every marker's rotation error
 at most half the nominal layout's); the one-minute figures are benchmarks/body_calibration.py's
 (docs/calibration.md)."""
@@ -28,7 +28,7 @@ def test_calibrate_body_follows_the_trajectory(scene, tmp_path, monkeypatch, cap
     monkeypatch.setattr(cli_main, "COMMANDS", {"calibrate-body": "calibrate_body"})
     config = scene / "config_detector_corners.toml"  # beside the recording's: it names cube.toml relative to itself
     config.write_text((scene / "config.toml").read_text()
-                      + "\n[bundle_adjustment]\nbody_edge_corners = false\n")
+                      + "\n[body_calibration]\nedge_corners = false\n")
     out = tmp_path / "body.toml"
     assert cli_main.main(["calibrate-body", "--config", str(config),
                           "--extrinsics", str(scene / "true_extrinsics.toml"),
@@ -45,11 +45,11 @@ def test_calibrate_body_follows_the_trajectory(scene, tmp_path, monkeypatch, cap
 def test_bad_trajectory_setting_is_one_line(scene, tmp_path, monkeypatch, capsys):
     monkeypatch.setattr(cli_main, "COMMANDS", {"calibrate-body": "calibrate_body"})
     config = scene / "config_bad_knots.toml"
-    config.write_text((scene / "config.toml").read_text() + "\n[bundle_adjustment]\nbody_knot_s = -0.02\n")
+    config.write_text((scene / "config.toml").read_text() + "\n[body_calibration]\nknot_s = -0.02\n")
     out = tmp_path / "body.toml"
     assert cli_main.main(["calibrate-body", "--config", str(config),
                           "--extrinsics", str(scene / "true_extrinsics.toml"),
                           "--recording", str(scene), "--out", str(out)]) != 0
     err = capsys.readouterr().err
-    assert "body_knot_s" in err and err.count("\n") == 1, err
+    assert "[body_calibration]: knot_s must not be negative" in err and err.count("\n") == 1, err
     assert not out.exists()

@@ -136,9 +136,10 @@ def test_the_fusion_counts_and_skips_what_is_not_a_sighting(scene, tmp_path):
     the config does not know are refused and counted; the fusion goes on."""
     from cubetrack.app.config import load_config
     from cubetrack.app.fusion_service import run_fusion
-    from cubetrack.app.worker import fuse_endpoints, sighting_key, worker_endpoints
+    from cubetrack.app.worker import fuse_endpoints, worker_endpoints
     from cubetrack.io.config import read_extrinsics
     from cubetrack.io.sighting_wire import SightingMessage, encode_sighting
+    from cubetrack.io.worker_bus import sighting_key
     from cubetrack.sink.zenoh_session import open_session
 
     work, rec = scene
@@ -171,8 +172,9 @@ class Bus:
 
     def __init__(self, port: int, hub: bool = False):
         """``hub``: listen on ``port`` (the workers' default peer) instead of connecting there."""
-        from cubetrack.app.worker import CLAIMS_KEY, SIGHTINGS_KEY, ClaimBoard, fuse_endpoints, worker_endpoints
+        from cubetrack.app.worker import fuse_endpoints, worker_endpoints
         from cubetrack.io.sighting_wire import decode_sighting
+        from cubetrack.io.worker_bus import CLAIMS_KEY, SIGHTINGS_KEY, ClaimBoard
         from cubetrack.sink.zenoh_session import open_session
 
         self.received: dict[str, list[float]] = {}  # camera -> time.monotonic() each sighting came here

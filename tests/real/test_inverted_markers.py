@@ -14,8 +14,8 @@ import cv2
 import numpy as np
 import pytest
 
-from cubetrack.app.import_rig import read_caliscope_rig
 from cubetrack.detect.detector import CornerRefinement, Detector, DetectorParams
+from cubetrack.io.caliscope import read_caliscope_rig
 
 DATA = Path(__file__).resolve().parents[2] / ".." / "shared" / "data" / "real" / "caliscope-4cam"
 pytestmark = pytest.mark.skipif(not DATA.is_dir(), reason=f"{DATA} not present (the real footage is in ../shared)")

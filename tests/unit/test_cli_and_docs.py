@@ -47,11 +47,15 @@ def test_defaults_round_trip_through_the_config_loader(tmp_path):
     from cubetrack.app.config import SECTIONS, ConfigParams, load_config
     from cubetrack.core.errors import ConfigError
     from cubetrack.core.layout import paper_cube_layout, write_layout
+    from cubetrack.sink.output_params import OUTPUT_TYPES, output_params
 
     write_layout(paper_cube_layout(), tmp_path / "cube.toml")
     (tmp_path / "c.toml").write_text('[[robots]]\nname = "r"\nlayout = "cube.toml"\n' + render())
-    assert set(tomllib.loads(render())) == set(SECTIONS)
+    printed = tomllib.loads(render())
+    assert set(printed) == {*SECTIONS, "outputs"}
     assert load_config(tmp_path / "c.toml")[1] == ConfigParams()
+    # one [[outputs]] table per output type, each read back as that type's defaults
+    assert [output_params(t, "x") for t in printed["outputs"]] == [cls() for cls in OUTPUT_TYPES.values()]
     (tmp_path / "c.toml").write_text('[[robots]]\nname = "r"\nlayout = "cube.toml"\n[filtre]\nx = 1\n')
     with pytest.raises(ConfigError, match=r"c\.toml: unknown section\(s\) filtre; known: .*filter"):
         load_config(tmp_path / "c.toml")

@@ -132,7 +132,7 @@ def calibrate_recording_body(config: TrackerConfig, recording: Recording, extrin
     """Calibrate the placement of the markers on ``robot``'s body (None: the config's only robot)
     from its sightings in the tracking ``recording`` (stamped with its ``clock.csv``) by the
     cameras of ``extrinsics``; ``params``: the config's resolved sections (None: read from
-    ``config``), of which ``[bundle_adjustment]`` and ``[detector]`` apply."""
+    ``config``), of which ``[bundle_adjustment]``, ``[body_calibration]`` and ``[detector]`` apply."""
     params = params or config_params(config)
     body = config_robot(config, robot)
     cameras = [c for c in recording.camera_names if c in extrinsics]
@@ -141,9 +141,9 @@ def calibrate_recording_body(config: TrackerConfig, recording: Recording, extrin
             {c: recording.frames(c) for c in recording.camera_names}, extrinsics,
             recording_intrinsics(config, recording, cameras), body.layout, body.name,
             clock_samples={c: recording.clock_samples(c) for c in cameras}, params=params.bundle_adjustment,
-            detector_params=params.detector, progress=progress,
+            body=params.body_calibration, detector_params=params.detector, progress=progress,
             frame_count=sum(len(recording.index(c)) for c in cameras),
-            edge_corners=params.bundle_adjustment.body_edge_corners)
+            edge_corners=params.body_calibration.edge_corners)
     except CalibrationError as exc:
         raise CalibrationError(f"{recording.path}: {exc}") from None
 
@@ -174,7 +174,8 @@ def run_body_calibration(config: TrackerConfig, recording: Recording, extrinsics
     result = BodyCalibrationRun(report, out, run_record_beside(out))
     write_toml(layout_to_table(report.layout), out)
     write_run_record(result.run_record_path, "calibrate-body",
-                     {k: v for k, v in parameter_tables(params).items() if k in ("detector", "bundle_adjustment")},
+                     {k: v for k, v in parameter_tables(params).items()
+                      if k in ("detector", "bundle_adjustment", "body_calibration")},
                      {"config": config.path, "recording": recording.path, "extrinsics": extrinsics_path,
                       "nominal_layout": body.layout_path},
                      {"robot": body.name, "outputs": {"layout": str(out.resolve())}})

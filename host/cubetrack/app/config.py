@@ -20,12 +20,12 @@ from typing import Any
 
 import numpy as np
 
-from cubetrack.app.parallel import LiveParams
 from cubetrack.app.tracker import StageParams
-from cubetrack.calib.bundle import BundleAdjustmentParams
+from cubetrack.calib.bundle import MOVED_BODY_KEYS, BodyCalibrationParams, BundleAdjustmentParams
 from cubetrack.calib.extrinsics import CalibrationParams
 from cubetrack.core.cameras import CameraIntrinsics
 from cubetrack.core.errors import ConfigError
+from cubetrack.core.frame_pool import LiveParams
 from cubetrack.core.layout import CubeLayout, face_T_cube_marker
 from cubetrack.core.params import params_from_table, params_to_table
 from cubetrack.detect.detector import CornerRefinement
@@ -49,12 +49,13 @@ class ConfigParams(StageParams):
     The fields are the sections, in the order ``cubetrack defaults`` prints them: the tracker's
     (``[detector]`` ... ``[track]``, from :class:`~cubetrack.app.tracker.StageParams`, so these
     parameters run a :class:`~cubetrack.app.tracker.Tracker` as they are), then calibration,
-    bundle adjustment, the live source, live processing and the dashboard. This class is the one
+    bundle adjustment, body calibration, the live source, live processing and the dashboard. This class is the one
     list of sections.
     """
 
     calibration: CalibrationParams = field(default_factory=CalibrationParams)
     bundle_adjustment: BundleAdjustmentParams = field(default_factory=BundleAdjustmentParams)
+    body_calibration: BodyCalibrationParams = field(default_factory=BodyCalibrationParams)
     source: SourceParams = field(default_factory=SourceParams)
     live: LiveParams = field(default_factory=LiveParams)
     dashboard: DashboardParams = field(default_factory=DashboardParams)
@@ -75,6 +76,10 @@ def config_params(config: TrackerConfig) -> ConfigParams:
     if unknown:
         known = ("world", "cameras", "robots", *SECTIONS)
         raise ConfigError(f"{config.path}: unknown section(s) {', '.join(unknown)}; known: {', '.join(known)}")
+    moved = [key for key in config.section("bundle_adjustment") or {} if key in MOVED_BODY_KEYS]
+    if moved:
+        raise ConfigError(f"{config.path}: [bundle_adjustment] " + ", ".join(moved) + " moved to [body_calibration] as "
+                          + ", ".join(MOVED_BODY_KEYS[key] for key in moved) + " (the same meaning and values)")
     hints = typing.get_type_hints(ConfigParams)
     params = ConfigParams(**{name: params_from_table(hints[name], config.section(name), f"{config.path}: [{name}]")
                              for name in SECTIONS})

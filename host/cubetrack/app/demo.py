@@ -24,7 +24,7 @@ from pathlib import Path
 from cubetrack.app.calibrate import run_calibration
 from cubetrack.app.config import ConfigParams, config_params, parameter_tables
 from cubetrack.app.emulated import EmulatedCameras
-from cubetrack.app.live import LiveResult, LiveStatus, track_live
+from cubetrack.app.live import LiveResult, track_live
 from cubetrack.app.track import track_recording
 from cubetrack.calib.extrinsics import extrinsics_errors
 from cubetrack.core.errors import ConfigError
@@ -43,6 +43,7 @@ from cubetrack.io.run import RUN_FILE, write_run_record
 from cubetrack.io.trajectory import Trajectory, read_tum, write_tum
 from cubetrack.simulate import SimulationParams, simulate
 from cubetrack.sink.base import Sink
+from cubetrack.source.health import LiveStatus
 
 END_GRACE_S = 1.5  # after the replay's last frame: its transfer, the clock poll, the filter's reorder delay
 

@@ -24,18 +24,19 @@ from pathlib import Path
 from typing import Any
 
 from cubetrack.app.config import config_params, parameter_tables
-from cubetrack.app.live import HEALTH_EVERY_S, live_intrinsics
+from cubetrack.app.live import live_intrinsics
 from cubetrack.app.outputs import open_outputs
 from cubetrack.app.session import PoseStream, RunSpec, Session, idle_wait_s
 from cubetrack.app.tracker import StageParams, Tracker, TrackStats
-from cubetrack.app.worker import SIGHTINGS_KEY, WORKERS_KEY
 from cubetrack.core.cameras import CameraExtrinsics
 from cubetrack.core.records import CameraHealth, Frame, FrameJob, FrameOutcome, FrameResult
 from cubetrack.io.config import TrackerConfig
 from cubetrack.io.run import RUN_FILE
 from cubetrack.io.sighting_wire import SightingMessage, SightingWireError, decode_sighting
+from cubetrack.io.worker_bus import SIGHTINGS_KEY, WORKERS_KEY
 from cubetrack.sink.base import Sink
 from cubetrack.sink.zenoh_session import ZenohEndpoints, open_session
+from cubetrack.source.health import HEALTH_EVERY_S
 
 log = logging.getLogger(__name__)
 

@@ -18,9 +18,7 @@ from __future__ import annotations
 import dataclasses
 import functools
 import logging
-import math
 import shutil
-import statistics
 import threading
 import time
 from collections.abc import Callable, Sequence
@@ -30,12 +28,12 @@ from pathlib import Path
 from cubetrack.app.camera_workers import FORECAST_EVERY_S, CameraProcesses
 from cubetrack.app.config import config_params, parameter_tables
 from cubetrack.app.outputs import open_outputs
-from cubetrack.app.parallel import FramePool, LiveParams, WorkerKind, by_capture_time
 from cubetrack.app.session import PoseStream, RunSpec, Session, idle_wait_s
 from cubetrack.app.tracker import FrameProcessor, StageParams, Tracker, TrackStats
 from cubetrack.core.cameras import CameraExtrinsics, CameraIntrinsics, ClockSample
 from cubetrack.core.errors import ConfigError
-from cubetrack.core.records import CameraHealth, CameraView, Frame, FrameResult, TrackedPose
+from cubetrack.core.frame_pool import FramePool, LiveParams, WorkerKind, by_capture_time
+from cubetrack.core.records import CameraView, Frame, FrameResult
 from cubetrack.fuse.forecast import forecast_of
 from cubetrack.io.camera_info import read_camera_info
 from cubetrack.io.config import TrackerConfig
@@ -43,7 +41,7 @@ from cubetrack.io.frame_wire import unpack_result
 from cubetrack.io.recording import CameraEntry, RecordingWriter
 from cubetrack.io.run import RUN_FILE
 from cubetrack.sink.base import Outputs, Sink
-from cubetrack.source.clock import ClockFitMethod, ClockSync
+from cubetrack.source.health import HEALTH_EVERY_S, HealthMeter, LiveStatus, StatusRates
 from cubetrack.source.streams import CameraStats, ClockReading, LiveCameras, SourceParams
 
 log = logging.getLogger(__name__)
@@ -70,122 +68,6 @@ def live_intrinsics(config: TrackerConfig) -> dict[str, CameraIntrinsics]:
             'from the config only (there is no recording folder): add camera_info = "calib/<camera>.yaml" '
             "(ROS camera_info YAML, e.g. from cubetrack calibrate-intrinsics) to each [[cameras]] table")
     return {c.name: read_camera_info(c.camera_info) for c in config.cameras if c.camera_info is not None}
-
-
-@dataclass(frozen=True, slots=True)
-class LiveStatus:
-    """A periodic snapshot of a live session (rates over the last interval)."""
-
-    elapsed_s: float
-    frames_per_s: dict[str, float]
-    poses_per_s: dict[str, float]
-    latency_s: float | None  # median pose latency over the interval (capture -> pose output)
-    cameras: dict[str, CameraStats]
-    queued: int
-    arrival_latency_s: float | None = None  # median over the interval of frame arrival -> pose output
-
-    def line(self) -> str:
-        """One status line, e.g. ``12s robot 7.4 poses/s | cam1 7.5 fps ... | latency 4/51 ms | ...``
-        (arrival -> pose / capture -> pose, medians)."""
-        parts = [f"{self.elapsed_s:5.0f}s"]
-        if self.poses_per_s:
-            parts.append(" ".join(f"{r} {v:.1f} poses/s" for r, v in self.poses_per_s.items()))
-        parts.append(" ".join(f"{c} {v:.1f} fps" for c, v in self.frames_per_s.items()))
-        if self.poses_per_s:
-            parts.append(f"latency {_ms(self.arrival_latency_s)}/{_ms(self.latency_s)} ms")
-        bad = sum(s.bad for s in self.cameras.values())
-        reconnects = sum(s.reconnects for s in self.cameras.values())
-        dropped = sum(s.dropped for s in self.cameras.values())
-        clock = "/".join(str(s.clock_samples) for s in self.cameras.values())
-        down = [c for c, s in self.cameras.items() if not s.connected]
-        tail = f"bad {bad} reconnects {reconnects} dropped {dropped} clock {clock}"
-        if down:
-            tail += " down: " + ",".join(down)
-        parts.append(tail)
-        return " | ".join(parts)
-
-
-def _ms(seconds: float | None) -> str:
-    return "-" if seconds is None else f"{seconds * 1000:.0f}"
-
-
-class _Rates:
-    """Turns counters into per-interval rates for :class:`LiveStatus`."""
-
-    def __init__(self, cameras: Sequence[str], robots: list[str]):
-        self.robots = robots
-        self.start = time.monotonic()
-        self.last = self.start
-        self.frames = {c: 0 for c in cameras}
-        self.poses = {r: 0 for r in robots}
-        self.latencies: list[float] = []
-        self.arrival_latencies: list[float] = []
-
-    def add_poses(self, poses: list[TrackedPose]) -> None:
-        for pose in poses:
-            if not pose.predicted:
-                self.latencies.append(pose.latency_s)
-            if pose.arrival_latency_s is not None:
-                self.arrival_latencies.append(pose.arrival_latency_s)
-
-    def snapshot(self, cams: dict[str, CameraStats], queued: int, poses_total: dict[str, int]) -> LiveStatus:
-        """The rates since the last snapshot, from the source's counters ``cams`` and the session's
-        poses so far; ``queued``: frames waiting in the source."""
-        now = time.monotonic()
-        dt = max(1e-6, now - self.last)
-        fps = {c: (s.frames - self.frames[c]) / dt for c, s in cams.items()}
-        pps = {r: (poses_total.get(r, 0) - self.poses[r]) / dt for r in self.robots}
-        status = LiveStatus(now - self.start, fps, pps, _median(self.latencies), cams, queued,
-                            _median(self.arrival_latencies))
-        self.frames = {c: s.frames for c, s in cams.items()}
-        self.poses = {r: poses_total.get(r, 0) for r in self.robots}
-        self.latencies, self.arrival_latencies = [], []
-        self.last = now
-        return status
-
-
-def _median(values: list[float]) -> float | None:
-    return statistics.median(values) if values else None
-
-
-HEALTH_EVERY_S = 1.0  # camera health snapshots for the outputs, per camera
-
-
-class _Health:
-    """Each camera's :class:`CameraHealth` for the outputs (the dashboard, Foxglove, Zenoh),
-    taken every ``HEALTH_EVERY_S``: the source's counters, frames/s and mean JPEG size over the
-    interval, the median transfer latency (arrival - capture) of the frames processed in it, and
-    the camera's clock fit (offset and drift, NaN until a ``/time`` round trip is known)."""
-
-    def __init__(self, cameras: Sequence[str], clocks: dict[str, ClockSync], clock: Callable[[], float]):
-        self.clocks, self.clock = clocks, clock
-        self.last = time.monotonic()
-        self.counts = {c: (0, 0) for c in cameras}  # frames, bytes at the last snapshot
-        self.jpeg_bytes = {c: 0 for c in cameras}
-        self.transfer: dict[str, list[float]] = {c: [] for c in cameras}
-
-    def frame(self, frame: Frame, capture_time_s: float) -> None:
-        self.transfer[frame.camera].append(frame.host_time_s - capture_time_s)
-
-    def snapshots(self, cams: dict[str, CameraStats]) -> list[CameraHealth]:
-        """Every camera's health from the source's counters ``cams``."""
-        now = time.monotonic()
-        dt, self.last = max(1e-6, now - self.last), now
-        out = []
-        for name, s in cams.items():
-            frames, size = self.counts[name]
-            if s.frames > frames:
-                self.jpeg_bytes[name] = (s.bytes - size) // (s.frames - frames)
-            self.counts[name] = (s.frames, s.bytes)
-            fit = self.clocks[name].fit() if name in self.clocks else None
-            synced = fit if fit is not None and fit.method is ClockFitMethod.ROUND_TRIP else None
-            transfer = _median(self.transfer[name])
-            self.transfer[name] = []
-            out.append(CameraHealth(name, self.clock(), s.connected, (s.frames - frames) / dt, s.frames, s.dropped,
-                                    s.bad, s.reconnects, synced.offset_s if synced else math.nan,
-                                    synced.drift * 1e6 if synced else math.nan,
-                                    math.nan if transfer is None else transfer, self.jpeg_bytes[name], s.last_error))
-        return out
 
 
 class _Recorder:
@@ -340,7 +222,7 @@ class _Fused:
     for the camera's health and, for outputs that show images, the frame with what detection
     found in it."""
 
-    def __init__(self, stream: PoseStream, health: _Health, outputs: Outputs):
+    def __init__(self, stream: PoseStream, health: HealthMeter, outputs: Outputs):
         self.stream, self.health, self.outputs = stream, health, outputs
 
     def __call__(self, result: FrameResult) -> None:
@@ -365,7 +247,7 @@ def track_live(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
     (everything that arrived, including frames the tracker had to drop). Frames are stamped with
     their capture time through each camera's ``/time`` round trips, exactly as in a replay.
 
-    Per-frame work runs on ``[live] workers`` (:mod:`cubetrack.app.parallel`) or camera worker
+    Per-frame work runs on ``[live] workers`` (:mod:`cubetrack.core.frame_pool`) or camera worker
     processes (:mod:`cubetrack.app.camera_workers`); this thread is the one ordered consumer that
     fuses. Frames of a camera whose clock is not known yet are given up (counted). The runtime
     releases the poses a fixed lag held once their time is up and, with ``[fusion]
@@ -387,9 +269,9 @@ def track_live(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
         session = Session(duration_s=duration_s, stop=stop, status_every_s=status_every_s, record=RunSpec(
             out_dir / RUN_FILE, command, {**parameter_tables(params), "source": source},
             {"config": config.path, "extrinsics": extrinsics_path, "recorded_to": record_to}, {"cameras": urls}))
-        rates = _Rates(list(urls), [r.name for r in config.robots])
+        rates = StatusRates(list(urls), [r.name for r in config.robots])
         stream = PoseStream(tracker, outputs, clock, on_poses=rates.add_poses)
-        fused = _Fused(stream, _Health(list(urls), tracker.clocks, clock), outputs)
+        fused = _Fused(stream, HealthMeter(list(urls), tracker.clocks, clock), outputs)
         kind = live_params.kind_for(len(urls), recorder is not None)
         if live_params.worker_kind is WorkerKind.CAMERA_PROCESS and recorder is not None:
             log.warning("recording: frames are recorded by this process, so they are read here and processed by "
@@ -419,8 +301,8 @@ def track_live(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
                       stream.arrival_latencies.median(), session.ended_by)
 
 
-def _attach_live_ticks(session: Session, stream: PoseStream, live: LiveCameras | CameraProcesses, health: _Health,
-                       rates: _Rates, status: Callable[[LiveStatus], None] | None) -> None:
+def _attach_live_ticks(session: Session, stream: PoseStream, live: LiveCameras | CameraProcesses, health: HealthMeter,
+                       rates: StatusRates, status: Callable[[LiveStatus], None] | None) -> None:
     """A live session's periodic duties: the tracker's (:meth:`PoseStream.attach`), each camera's
     health for the outputs every ``HEALTH_EVERY_S`` and the status every ``status_every_s``."""
     stream.attach(session)
@@ -457,7 +339,7 @@ def record_live(config: TrackerConfig, out: str | Path, source: SourceParams | N
     urls = live_camera_urls(config)
     recorder = _Recorder(out, config, urls, overwrite)
     live = LiveCameras(urls, source, on_frame=recorder.frame, on_clock=recorder.clock, queue=False, clock=clock)
-    rates = _Rates(list(urls), [])
+    rates = StatusRates(list(urls), [])
     session = Session(duration_s=duration_s, stop=stop, status_every_s=status_every_s,
                       status=None if status is None else lambda: status(
                           rates.snapshot(live.stats(), live.pending(), {})),

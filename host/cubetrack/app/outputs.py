@@ -14,6 +14,18 @@ from cubetrack.core.cameras import CameraExtrinsics, CameraIntrinsics
 from cubetrack.core.errors import ConfigError
 from cubetrack.io.config import TrackerConfig
 from cubetrack.sink.base import CameraSetup, FileSink, Outputs, SessionInfo, Sink
+from cubetrack.sink.output_params import (
+    FoxgloveOutputParams,
+    ImageRateParams,
+    McapOutputParams,
+    OutputParams,
+    Ros2OutputParams,
+    VrpnOutputParams,
+    ZenohEndpointParams,
+    ZenohOutputParams,
+    output_params,
+)
+from cubetrack.sink.zenoh_session import ZenohEndpoints, json_endpoints, ros_endpoints
 
 
 def session_info(config: TrackerConfig, intrinsics: dict[str, CameraIntrinsics],
@@ -35,21 +47,12 @@ def open_outputs(config: TrackerConfig, intrinsics: dict[str, CameraIntrinsics],
     return outputs, files
 
 
-OUTPUT_KEYS = {
-    "zenoh": {"prefix", "listen", "connect", "mode", "zenoh_config"},
-    "ros2": {"distro", "domain_id", "profile", "namespace", "world_frame", "listen", "connect", "mode", "zenoh_config"},
-    "vrpn": {"address"},
-    "foxglove": {"address", "image_fps"},
-    "mcap": {"path", "image_fps"},
-}
-DEFAULT_ADDRESSES = {"vrpn": ("127.0.0.1", 3883), "foxglove": ("127.0.0.1", 8765)}
-
-
 @dataclass(frozen=True, slots=True)
 class OutputSpec:
     """One output as the config's ``[[outputs]]`` table or a command-line flag gives it:
-    the raw ``table`` (with ``type``), the folder relative paths in it resolve against, and
-    where it came from (for error messages)."""
+    the raw ``table`` (with ``type``; read into its params by
+    :func:`cubetrack.sink.output_params.output_params`), the folder relative paths in it resolve
+    against, and where it came from (for error messages)."""
 
     table: dict
     base: Path
@@ -72,121 +75,71 @@ def merge_outputs(from_config: list[OutputSpec], from_flags: list[OutputSpec]) -
     return [spec for spec in from_config if spec.type not in flagged] + from_flags
 
 
-def parse_address(text: str, default: tuple[str, int], where: str) -> tuple[str, int]:
-    """``ADDR:PORT``, ``ADDR`` or ``PORT`` -> (host, port), defaults filling what is missing."""
-    host, _, port = text.rpartition(":") if ":" in text else (("", "", text) if text.isdigit() else (text, "", ""))
-    host = host.strip("[]") or default[0]
-    try:
-        number = int(port) if port else default[1]
-    except ValueError:
-        raise ConfigError(f"{where}: {text!r} is not ADDR:PORT (e.g. 127.0.0.1:{default[1]})") from None
-    if not 0 <= number <= 65535:
-        raise ConfigError(f"{where}: port {number} out of range 0..65535")
-    return host, number
-
-
-def _locators(spec: OutputSpec, key: str) -> tuple[str, ...]:
-    value = spec.table.get(key, [])
-    value = [value] if isinstance(value, str) else value
-    if not isinstance(value, list) or not all(isinstance(v, str) and "/" in v for v in value):
-        raise ConfigError(f"{spec.where}: {key} must be Zenoh locators such as \"tcp/127.0.0.1:7447\"")
-    return tuple(value)
-
-
-def _zenoh_endpoints(spec: OutputSpec, ros: bool):
-    from cubetrack.sink.zenoh_session import json_endpoints, ros_endpoints
-
-    mode = spec.table.get("mode", "peer")
-    if mode not in ("peer", "client", "router"):
-        raise ConfigError(f"{spec.where}: mode must be peer, client or router, got {mode!r}")
-    config_file = spec.table.get("zenoh_config")
-    config_file = spec.base / config_file if config_file else None
+def _zenoh_endpoints(params: ZenohEndpointParams, spec: OutputSpec, ros: bool) -> ZenohEndpoints:
+    config_file = spec.base / params.zenoh_config if params.zenoh_config else None
     if config_file is not None and not config_file.is_file():
         raise ConfigError(f"{spec.where}: Zenoh config {config_file} not found")
-    return (ros_endpoints if ros else json_endpoints)(_locators(spec, "listen"), _locators(spec, "connect"), mode,
-                                                      config_file)
+    return (ros_endpoints if ros else json_endpoints)(params.listen, params.connect, params.mode.value, config_file)
 
 
-def _sink(spec: OutputSpec, default_domain_id: int, robots: tuple[str, ...]) -> Sink:
-    table, where = spec.table, spec.where
-    if spec.type == "zenoh":
+def _sink(spec: OutputSpec, params: OutputParams, default_domain_id: int, robots: tuple[str, ...]) -> Sink:
+    if isinstance(params, ZenohOutputParams):
         from cubetrack.sink.zenoh_json import ZenohJsonParams, ZenohJsonSink
 
-        return ZenohJsonSink(ZenohJsonParams(prefix=str(table.get("prefix", "cubetrack"))),
-                             _zenoh_endpoints(spec, ros=False))
-    if spec.type == "ros2":
-        from cubetrack.sink.rmw_zenoh import Distro
-        from cubetrack.sink.ros2 import Ros2Params, Ros2Profile, Ros2Sink
+        return ZenohJsonSink(ZenohJsonParams(prefix=params.prefix), _zenoh_endpoints(params, spec, ros=False))
+    if isinstance(params, Ros2OutputParams):
+        from cubetrack.sink.ros2 import Ros2Params, Ros2Sink
 
-        try:
-            params = Ros2Params(profile=Ros2Profile(table.get("profile", "rmw_zenoh")),
-                                distro=Distro(table.get("distro", "jazzy")),
-                                domain_id=int(table.get("domain_id", default_domain_id)),
-                                namespace=str(table.get("namespace", "")),
-                                world_frame=str(table.get("world_frame", "world")))
-        except (ValueError, TypeError) as exc:
-            raise ConfigError(f"{where}: {exc} (profile: rmw_zenoh | bridge; distro: "
-                              f"{' | '.join(d.value for d in Distro)})") from None
-        return Ros2Sink(params, _zenoh_endpoints(spec, ros=True))
-    if spec.type == "vrpn":
+        domain_id = default_domain_id if params.domain_id is None else params.domain_id
+        ros = Ros2Params(profile=params.profile, distro=params.distro, domain_id=domain_id,
+                         namespace=params.namespace, world_frame=params.world_frame)
+        return Ros2Sink(ros, _zenoh_endpoints(params, spec, ros=True))
+    if isinstance(params, VrpnOutputParams):
         from cubetrack.sink.vrpn import VrpnParams, VrpnSink
 
-        host, port = parse_address(str(table.get("address", "")), DEFAULT_ADDRESSES["vrpn"], where)
+        host, port = params.host_port
         return VrpnSink(VrpnParams(host=host, port=port), robots)
-    return _foxglove_sink([spec])
+    return _foxglove_sink([(spec, params)])
 
 
-def _foxglove_params(spec: OutputSpec):
-    from cubetrack.sink.foxglove import FoxgloveParams
-
-    try:
-        return FoxgloveParams(**{key: spec.table[key] for key in ("image_fps",) if key in spec.table})
-    except ConfigError as exc:
-        raise ConfigError(f"{spec.where}: {exc}") from None
-
-
-def _foxglove_sink(specs: list[OutputSpec]) -> Sink:
-    """The Foxglove server and/or MCAP file of ``specs`` (one of each at most, same parameters)
+def _foxglove_sink(outputs: list[tuple[OutputSpec, OutputParams]]) -> Sink:
+    """The Foxglove server and/or MCAP file of ``outputs`` (one of each at most, same image rate)
     as one sink: one foxglove-sdk context builds and encodes each message once for both."""
-    from cubetrack.sink.foxglove import FoxgloveSink
+    from cubetrack.sink.foxglove import FoxgloveParams, FoxgloveSink
 
     server = mcap = None
-    for spec in specs:
-        if spec.type == "foxglove":
-            server = parse_address(str(spec.table.get("address", "")), DEFAULT_ADDRESSES["foxglove"], spec.where)
-        elif "path" not in spec.table:
-            raise ConfigError(f"{spec.where}: an mcap output needs path = \"<file>.mcap\"")
-        else:
-            mcap = spec.base / str(spec.table["path"])
-    return FoxgloveSink(server=server, mcap=mcap, params=_foxglove_params(specs[0]))
+    image_fps = 0.0
+    for spec, params in outputs:
+        if isinstance(params, FoxgloveOutputParams):
+            server = params.host_port
+        elif isinstance(params, McapOutputParams):
+            if not params.path:
+                raise ConfigError(f"{spec.where}: an mcap output needs path = \"<file>.mcap\"")
+            mcap = spec.base / params.path
+        assert isinstance(params, ImageRateParams)  # _grouped: only these come here
+        image_fps = params.image_fps
+    return FoxgloveSink(server=server, mcap=mcap, params=FoxgloveParams(image_fps=image_fps))
 
 
-def _grouped(specs: list[OutputSpec]) -> list[list[OutputSpec]]:
-    """Each output alone, except a Foxglove server and an MCAP file with the same parameters:
+def _grouped(outputs: list[tuple[OutputSpec, OutputParams]]) -> list[list[tuple[OutputSpec, OutputParams]]]:
+    """Each output alone, except a Foxglove server and an MCAP file with the same image rate:
     those together (:func:`_foxglove_sink`)."""
-    foxglove = [s for s in specs if s.type in ("foxglove", "mcap")]
-    if len(foxglove) == 2 and foxglove[0].type != foxglove[1].type and \
-            _foxglove_params(foxglove[0]) == _foxglove_params(foxglove[1]):
-        return [[s] for s in specs if s not in foxglove] + [foxglove]
-    return [[s] for s in specs]
+    foxglove = [o for o in outputs if isinstance(o[1], FoxgloveOutputParams | McapOutputParams)]
+    if len(foxglove) == 2 and type(foxglove[0][1]) is not type(foxglove[1][1]) and \
+            foxglove[0][1].image_fps == foxglove[1][1].image_fps:  # type: ignore[union-attr]  # isinstance above
+        return [[o] for o in outputs if o not in foxglove] + [foxglove]
+    return [[o] for o in outputs]
 
 
 def output_sinks(specs: list[OutputSpec], default_domain_id: int = 0, robots: tuple[str, ...] = ()) -> list[Sink]:
     """Start every output (servers bind, sessions open now, so a bad address fails before the
     session; the configured ``robots`` are announced at once, e.g. as VRPN trackers); on an error
     the ones already started are closed again."""
-    for spec in specs:
-        if spec.table.get("type") not in OUTPUT_KEYS:
-            raise ConfigError(f"{spec.where}: type must be one of {', '.join(OUTPUT_KEYS)}, "
-                              f"got {spec.table.get('type')!r}")
-        unknown = set(spec.table) - OUTPUT_KEYS[spec.type] - {"type"}
-        if unknown:
-            raise ConfigError(f"{spec.where}: unknown key(s) {', '.join(sorted(unknown))} for a {spec.type} output; "
-                              f"known: {', '.join(sorted(OUTPUT_KEYS[spec.type]))}")
+    outputs = [(spec, output_params(spec.table, spec.where)) for spec in specs]
     sinks: list[Sink] = []
     try:
-        for group in _grouped(specs):
-            sinks.append(_sink(group[0], default_domain_id, robots) if len(group) == 1 else _foxglove_sink(group))
+        for group in _grouped(outputs):
+            sinks.append(_sink(*group[0], default_domain_id, robots) if len(group) == 1 else _foxglove_sink(group))
     except BaseException:
         close_sinks(sinks)
         raise

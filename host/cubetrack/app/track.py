@@ -22,11 +22,11 @@ import cv2
 
 from cubetrack.app.config import config_params, parameter_tables, recording_intrinsics
 from cubetrack.app.outputs import open_outputs
-from cubetrack.app.parallel import FramePool, WorkerKind
 from cubetrack.app.session import RunSpec, Session
 from cubetrack.app.tracker import FrameProcessor, StageParams, Tracker, TrackStats
 from cubetrack.core.cameras import CameraExtrinsics, CameraIntrinsics, ClockSample, WorldConfig
 from cubetrack.core.errors import ConfigError
+from cubetrack.core.frame_pool import FramePool, WorkerKind
 from cubetrack.core.layout import CubeLayout
 from cubetrack.core.progress import Progress
 from cubetrack.core.records import Frame, FrameJob, FrameResult

@@ -33,6 +33,7 @@ from cubetrack.fuse.camera_watch import WatchParams
 from cubetrack.fuse.corner_filter import FilterParams
 from cubetrack.fuse.fusion import FilterFusion, FusionMethod, FusionParams, LatestEstimateFusion
 from cubetrack.io.config import RobotConfig, TrackerConfig
+from cubetrack.io.frame_wire import pack_result, unpack_result
 from cubetrack.source.clock import ClockFitMethod, ClockSync
 
 log = logging.getLogger(__name__)
@@ -151,6 +152,14 @@ class FrameProcessor:
         if T_world_cam is None:
             return FrameResult(job, FrameOutcome.NO_CAMERA_POSE, dropped=found.dropped)
         return FrameResult(job, outcome, self.sightings(job, detections, T_world_cam), dropped=found.dropped)
+
+    def pack(self, result: FrameResult) -> tuple:
+        """``result`` as the message of a frame worker process (:func:`cubetrack.io.frame_wire.pack_result`)."""
+        return pack_result(result, self.T_world_cam)
+
+    def unpack(self, job: FrameJob, message: tuple) -> FrameResult:
+        """The result of ``job`` that :meth:`pack` packed, with this end's intrinsics and camera poses."""
+        return unpack_result(job, message, self.intrinsics, self.T_world_cam)
 
     def sightings(self, job: FrameJob, detections: tuple[Detection, ...],
                   T_world_cam: np.ndarray) -> tuple[CubeSighting, ...]:

@@ -7,15 +7,17 @@ takes the layout as exact, so every such error becomes a pose error that changes
 in view. :func:`calibrate_body` estimates each marker's pose on the body and its size from the
 body's sightings in a tracking recording — a bundle adjustment (:mod:`cubetrack.calib.solver`)
 over the frames of multi-camera instants as in the extrinsics refinement
-(:mod:`cubetrack.calib.bundle`) but of frames closer in time (``body_max_span_s``), the corners
+(:mod:`cubetrack.calib.bundle`) but of frames closer in time (``[body_calibration]``,
+:class:`~cubetrack.calib.bundle.BodyCalibrationParams`: ``max_span_s``), the corners
 measured by the template fit (:mod:`cubetrack.calib.marker_fit`), on a continuous-time trajectory
-of the body (``body_knot_s`` > 0, the default; :class:`Trajectory`: each corner at the pose
-interpolated to its row's time, no velocity assumed) or (``body_knot_s`` = 0) one pose per
+of the body (``knot_s`` > 0, the default; :class:`Trajectory`: each corner at the pose
+interpolated to its row's time, no velocity assumed) or (``knot_s`` = 0) one pose per
 instant, moved to each frame's time with a fitted velocity, each corner's noise growing with its
-frame's time from its instant (``body_motion_noise_px_per_s``), with the markers free,
-held near the nominal layout by priors (``body_position_sigma_m``,
-``body_rotation_sigma_deg``, ``body_size_sigma``), the cameras refined too but held near the given
-extrinsics (``body_camera_sigma_m``, ``body_camera_sigma_deg``), and (``refine_intrinsics``) the
+frame's time from its instant (``motion_noise_px_per_s``), with the markers free,
+held near the nominal layout by priors (``position_sigma_m``,
+``rotation_sigma_deg``, ``size_sigma``), the cameras refined too but held near the given
+extrinsics (``camera_sigma_m``, ``camera_sigma_deg``), and (``[bundle_adjustment]
+refine_intrinsics``) the
 intrinsics near camera_info.
 
 Gauge: the body frame of the result is the nominal layout's best fit — the rigid transform that
@@ -36,6 +38,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from cubetrack.calib.bundle import (
+    BodyCalibrationParams,
     BundleAdjustmentParams,
     CubeFrame,
     FrameCorners,
@@ -141,15 +144,16 @@ def placement_errors(layout: CubeLayout, truth: CubeLayout, aligned: bool = True
 def calibrate_body(frames: Mapping[str, Iterable[Frame]], extrinsics: Mapping[str, CameraExtrinsics],
                    intrinsics: Mapping[str, CameraIntrinsics], layout: CubeLayout, robot: str = "robot", *,
                    clock_samples: Mapping[str, Sequence[ClockSample]] | None = None,
-                   params: BundleAdjustmentParams | None = None,
+                   params: BundleAdjustmentParams | None = None, body: BodyCalibrationParams | None = None,
                    detector_params: DetectorParams | None = None, progress: Progress | None = None,
                    frame_count: int = 0, readout_s: Mapping[str, float] | None = None,
                    edge_corners: bool = False) -> BodyCalibrationReport:
     """Calibrate the placement of every marker of ``layout`` (the nominal body of ``robot``) from
     the tracking ``frames`` (camera -> its frames, stamped with ``clock_samples``) of cameras
     with ``extrinsics`` and ``intrinsics``; see the module docstring. ``params``: the
-    ``[bundle_adjustment]`` settings (None: the defaults; instants, their span
-    ``body_max_span_s``, noise, rounds, the body_* and intrinsics priors); ``readout_s``: each
+    ``[bundle_adjustment]`` settings (None: the defaults; instants, noise, rounds, the intrinsics
+    priors); ``body``: the ``[body_calibration]`` settings (None: the defaults; the instants' span,
+    the body's priors and motion, the cameras' priors); ``readout_s``: each
     camera's rolling-shutter readout (seconds; a corner is moved to the time its row was
     exposed; None: the intrinsics' ``readout_s``, from camera_info); ``edge_corners``:
     re-measure the corners by the calibration's edge fit and template fit
@@ -158,6 +162,7 @@ def calibrate_body(frames: Mapping[str, Iterable[Frame]], extrinsics: Mapping[st
     CalibrationError when fewer than two calibrated cameras saw the body at once.
     """
     params = params or BundleAdjustmentParams()
+    body = body or BodyCalibrationParams()
     warnings: list[str] = []
 
     def warn(message: str) -> None:
@@ -165,21 +170,21 @@ def calibrate_body(frames: Mapping[str, Iterable[Frame]], extrinsics: Mapping[st
         log.warning("%s", message)
 
     # a trajectory follows every instant's frames (max_instants spreads instants over a recording)
-    instants = dataclasses.replace(params, max_span_s=params.body_max_span_s,
-                                   max_instants=sys.maxsize if params.body_knot_s > 0 else params.max_instants)
+    instants = dataclasses.replace(params, max_span_s=body.max_span_s,
+                                   max_instants=sys.maxsize if body.knot_s > 0 else params.max_instants)
     ref, _cameras = start_refinement(frames, extrinsics, intrinsics, {robot: layout}, clock_samples=clock_samples,
                                      params=instants,
                                      detector_params=detector_params, progress=progress,
                                      frame_count=frame_count, warn=warn, readout_s=readout_s,
                                      calibration_corners=edge_corners)
     T_given = ref.model.T_cams.copy()
-    camera_prior = PosePrior(T_given, params.body_camera_sigma_m, np.radians(params.body_camera_sigma_deg))
+    camera_prior = PosePrior(T_given, body.camera_sigma_m, np.radians(body.camera_sigma_deg))
     # no ground-robot priors on the body's poses (one height, upright): a robot on a real floor
     # tilts and bounces, and held level the body bent its markers instead (0.1-0.2 deg out of
     # plane; docs/calibration.md); the cameras' prior holds the world frame without them
-    free = dataclasses.replace(ref.freedom(camera_prior=camera_prior, intrinsics=params.refine_intrinsics, body=True),
+    free = dataclasses.replace(ref.freedom(camera_prior=camera_prior, intrinsics=params.refine_intrinsics, body=body),
                                height_sigma_m=0.0, upright_sigma_rad=0.0)
-    trajectory = Trajectory.start(ref) if params.body_knot_s > 0 else None
+    trajectory = Trajectory.start(ref, body) if body.knot_s > 0 else None
     for done in range(params.rounds + 1):
         if progress is not None:
             progress("body calibration: solves", done, params.rounds + 1)
@@ -205,36 +210,36 @@ def calibrate_body(frames: Mapping[str, Iterable[Frame]], extrinsics: Mapping[st
 
 @dataclass(eq=False)
 class Trajectory:
-    """The body's continuous-time trajectory through a refinement's frames (``body_knot_s`` > 0):
-    body poses at knots ``times_s`` (K,) spaced ``body_knot_s`` apart within pieces of the
-    recording where the frames follow each other within ``body_max_span_s`` (``first`` (K,):
+    """The body's continuous-time trajectory through a refinement's frames (``body.knot_s`` > 0):
+    body poses at knots ``times_s`` (K,) spaced ``body.knot_s`` apart within pieces of the
+    recording where the frames follow each other within ``body.max_span_s`` (``first`` (K,):
     whether a knot starts a piece), each corner seen at the pose interpolated to the time its
-    row was exposed, the knots tied by the solver's smoothness prior (``body_accel_sigma_m_s2``,
-    ``body_angular_accel_sigma_rad_s2``). The frames are every frame of the refinement's
+    row was exposed, the knots tied by the solver's smoothness prior (``body.accel_sigma_m_s2``,
+    ``body.angular_accel_sigma_rad_s2``). The frames are every frame of the refinement's
     instants, each with its corners matched (``sets``) at the trajectory's pose. From
     :meth:`start` on, ``ref.model``'s body poses are the knots' (its instants no longer apply)."""
 
     ref: Refinement
+    body: BodyCalibrationParams
     times_s: np.ndarray
     first: np.ndarray
     frames: list[CubeFrame]
     sets: list[FrameCorners]
 
     @classmethod
-    def start(cls, ref: Refinement) -> Trajectory:
+    def start(cls, ref: Refinement, body: BodyCalibrationParams) -> Trajectory:
         """Knots over the instants' frames, started from the instants' poses moved with their
         velocities, and the frames matched at them."""
-        params = ref.params
         if len(ref.robots) != 1:
             raise CalibrationError(f"a body trajectory follows one robot, not {len(ref.robots)}")
         frames = sorted({id(f): f for i in ref.instants for f in i.frames}.values(), key=lambda f: (f.time_s, f.camera))
         t = np.array([f.time_s for f in frames])
-        margin = max(ref.readout_s.values(), default=0.0) / 2 + params.body_knot_s
-        breaks = np.flatnonzero(np.diff(t) > params.body_max_span_s) + 1
+        margin = max(ref.readout_s.values(), default=0.0) / 2 + body.knot_s
+        breaks = np.flatnonzero(np.diff(t) > body.max_span_s) + 1
         times, first = [], []
         for piece in np.split(t, breaks):
-            n = int(np.ceil((piece[-1] - piece[0] + 2 * margin) / params.body_knot_s)) + 1
-            times.append(piece[0] - margin + params.body_knot_s * np.arange(n))
+            n = int(np.ceil((piece[-1] - piece[0] + 2 * margin) / body.knot_s)) + 1
+            times.append(piece[0] - margin + body.knot_s * np.arange(n))
             first.append(np.arange(n) == 0)
         times_s = np.concatenate(times)
         inst_t = np.array([i.time_s for i in ref.instants])
@@ -244,7 +249,7 @@ class Trajectory:
         knots = np.array([moved_pose(ref.model.T_bodies[k], ref.vel[k], ref.angvel[k], tk - inst_t[k])
                           for k, tk in zip(near, times_s, strict=True)])
         ref.model = ref.model.replace(T_bodies=knots)
-        trajectory = cls(ref, times_s, np.concatenate(first), frames, [])
+        trajectory = cls(ref, body, times_s, np.concatenate(first), frames, [])
         trajectory.rematch()
         return trajectory
 
@@ -292,13 +297,12 @@ class Trajectory:
                             np.zeros((n, 3)), np.zeros(K, int), 1, np.zeros(0, int), np.zeros((0, 3)),
                             np.zeros((0, 2)), knot_alpha=alpha,
                             knot_triples=np.column_stack([inner - 1, inner, inner + 1]),
-                            knot_spacing_s=self.ref.params.body_knot_s)
+                            knot_spacing_s=self.body.knot_s)
 
     def solve(self, free: Freedom) -> None:
         """Solve the knots, markers and cameras (``free``; no motion noise: nothing is extrapolated)."""
-        p = self.ref.params
-        free = dataclasses.replace(free, motion_noise_px_per_s=0.0, accel_sigma_m_s2=p.body_accel_sigma_m_s2,
-                                   angular_accel_sigma_rad_s2=p.body_angular_accel_sigma_rad_s2)
+        free = dataclasses.replace(free, motion_noise_px_per_s=0.0, accel_sigma_m_s2=self.body.accel_sigma_m_s2,
+                                   angular_accel_sigma_rad_s2=self.body.angular_accel_sigma_rad_s2)
         self.ref.model = solve(self.observations(), self.ref.model, free)
 
 

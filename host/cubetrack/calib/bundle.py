@@ -88,7 +88,7 @@ from cubetrack.core.cameras import CameraExtrinsics, CameraIntrinsics, ClockSamp
 from cubetrack.core.errors import CalibrationError, ImageError
 from cubetrack.core.geometry import invert_T, make_T, mean_rotation, rotation_angle, shoelace_area
 from cubetrack.core.layout import CubeLayout, LayoutMarker, marker_corners_m
-from cubetrack.core.params import check, check_positive, param
+from cubetrack.core.params import check, check_non_negative, check_positive, param
 from cubetrack.core.progress import Progress
 from cubetrack.core.records import Detection, Frame
 from cubetrack.detect.detector import Detector, DetectorParams, decode_gray
@@ -144,53 +144,58 @@ class BundleAdjustmentParams:
                                                       "uncertainty (1 sigma), pixels")
     intrinsics_k1_sigma: float = param(0.01, "refined intrinsics: the camera_info k1's uncertainty (1 sigma)")
     intrinsics_k2_sigma: float = param(0.03, "refined intrinsics: the camera_info k2's uncertainty (1 sigma)")
-    body_position_sigma_m: float = param(0.003, "calibrate-body: how far a marker may be from its nominal place "
-                                                "(1 sigma), metres")
-    body_rotation_sigma_deg: float = param(2.0, "calibrate-body: how far a marker may be turned from its nominal pose "
-                                                "(1 sigma), degrees")
-    body_size_sigma: float = param(0.02, "calibrate-body: a marker's printed size against its nominal size (1 "
-                                         "sigma), relative")
-    body_camera_sigma_m: float = param(0.01, "calibrate-body: cameras are refined too, held near the given extrinsics "
-                                             "with this position sigma, metres")
-    body_camera_sigma_deg: float = param(0.3, "calibrate-body: ... and this rotation sigma, degrees")
-    body_max_span_s: float = param(0.08, "calibrate-body: max_span_s of the body calibration's instants (shorter: the "
-                                         "body's motion between the frames of an instant is modelled as constant "
-                                         "velocity, which misses sharp turns and vibration; measured in "
-                                         "docs/calibration.md)")
-    body_motion_noise_px_per_s: float = param(25.0, "calibrate-body: a corner's noise grows by this many pixels per "
-                                                    "second of its frame's time from its instant (the "
-                                                    "constant-velocity motion between an instant's frames misses turns "
-                                                    "and vibration; 0 = not at all)")
-    body_knot_s: float = param(0.05, "calibrate-body: the body's pose is a continuous-time trajectory with knots this "
-                                     "many seconds apart (each corner at the pose interpolated to its row's time, the "
-                                     "knots tied by the body_accel sigmas; measured in docs/calibration.md); 0 = one "
-                                     "pose per instant moved with a fitted velocity (body_motion_noise_px_per_s "
-                                     "applies only then)")
-    body_accel_sigma_m_s2: float = param(10.0, "calibrate-body trajectory: the body's acceleration between knots (1 "
-                                               "sigma of the knots' second difference over the squared spacing), m/s^2")
-    body_angular_accel_sigma_rad_s2: float = param(100.0, "calibrate-body trajectory: the body's angular acceleration "
-                                                          "between knots (1 sigma), rad/s^2 (the robot's "
-                                                          "wobble reaches tens)")
-    body_edge_corners: bool = param(True, "calibrate-body: re-measure the body's marker corners by the calibration's "
-                                          "edge fit (as the world marker's) and then by fitting each marker's whole "
-                                          "image (cubetrack.calib.marker_fit; about 70 ms per marker seen, "
-                                          "docs/calibration.md has the measured errors)")
-
     def __post_init__(self) -> None:
         check_positive(self, "max_span_s", "corner_noise_px", "world_corner_noise_px", "f_scale_px",
                        "association_gate_px", "velocity_window_s", "moved_position_m", "moved_rotation_deg",
                        "gauge_prior_position_m", "gauge_prior_rotation_deg", "height_sigma_m",
                        "intrinsics_focal_sigma", "intrinsics_principal_sigma_px", "intrinsics_k1_sigma",
-                       "intrinsics_k2_sigma", "body_position_sigma_m", "body_rotation_sigma_deg", "body_size_sigma",
-                       "body_camera_sigma_m", "body_camera_sigma_deg", "body_max_span_s", "body_accel_sigma_m_s2",
-                       "body_angular_accel_sigma_rad_s2")
-        check(self.body_knot_s >= 0, f"body_knot_s must not be negative, got {self.body_knot_s}")
+                       "intrinsics_k2_sigma")
         check(self.upright_sigma_deg >= 0, f"upright_sigma_deg must not be negative, got {self.upright_sigma_deg}")
-        check(self.body_motion_noise_px_per_s >= 0,
-              f"body_motion_noise_px_per_s must not be negative, got {self.body_motion_noise_px_per_s}")
         check(self.world_samples >= 1, f"world_samples must be at least 1, got {self.world_samples}")
         check(self.min_cameras >= 2 and self.max_instants >= 1 and self.rounds >= 1 and self.max_nfev >= 1,
               "need min_cameras >= 2, max_instants >= 1, rounds >= 1, max_nfev >= 1")
+
+
+@dataclass(frozen=True, slots=True)
+class BodyCalibrationParams:
+    """The ``[body_calibration]`` section: how ``cubetrack calibrate-body``
+    (:func:`cubetrack.calib.body.calibrate_body`) models the body, its motion and the cameras on top of
+    the ``[bundle_adjustment]`` settings it shares (noise, loss, rounds, intrinsics priors). These were
+    ``[bundle_adjustment] body_*`` keys until issue 23 (:data:`MOVED_BODY_KEYS`)."""
+
+    position_sigma_m: float = param(0.003, "how far a marker may be from its nominal place (1 sigma), metres")
+    rotation_sigma_deg: float = param(2.0, "how far a marker may be turned from its nominal pose (1 sigma), degrees")
+    size_sigma: float = param(0.02, "a marker's printed size against its nominal size (1 sigma), relative")
+    camera_sigma_m: float = param(0.01, "cameras are refined too, held near the given extrinsics with this position "
+                                        "sigma, metres")
+    camera_sigma_deg: float = param(0.3, "... and this rotation sigma, degrees")
+    max_span_s: float = param(0.08, "[bundle_adjustment] max_span_s of the body calibration's instants (shorter: the "
+                                    "body's motion between the frames of an instant is modelled as constant velocity, "
+                                    "which misses sharp turns and vibration; measured in docs/calibration.md)")
+    motion_noise_px_per_s: float = param(25.0, "a corner's noise grows by this many pixels per second of its frame's "
+                                               "time from its instant (the constant-velocity motion between an "
+                                               "instant's frames misses turns and vibration; 0 = not at all)")
+    knot_s: float = param(0.05, "the body's pose is a continuous-time trajectory with knots this many seconds apart "
+                                "(each corner at the pose interpolated to its row's time, the knots tied by the accel "
+                                "sigmas; measured in docs/calibration.md); 0 = one pose per instant moved with a "
+                                "fitted velocity (motion_noise_px_per_s applies only then)")
+    accel_sigma_m_s2: float = param(10.0, "trajectory: the body's acceleration between knots (1 sigma of the knots' "
+                                          "second difference over the squared spacing), m/s^2")
+    angular_accel_sigma_rad_s2: float = param(100.0, "trajectory: the body's angular acceleration between knots (1 "
+                                                     "sigma), rad/s^2 (the robot's wobble reaches tens)")
+    edge_corners: bool = param(True, "re-measure the body's marker corners by the calibration's edge fit (as the world "
+                                     "marker's) and then by fitting each marker's whole image "
+                                     "(cubetrack.calib.marker_fit; about 70 ms per marker seen, docs/calibration.md "
+                                     "has the measured errors)")
+
+    def __post_init__(self) -> None:
+        check_positive(self, "position_sigma_m", "rotation_sigma_deg", "size_sigma", "camera_sigma_m",
+                       "camera_sigma_deg", "max_span_s", "accel_sigma_m_s2", "angular_accel_sigma_rad_s2")
+        check_non_negative(self, "knot_s", "motion_noise_px_per_s")
+
+
+# [bundle_adjustment] key of a config from before issue 23 -> its [body_calibration] key
+MOVED_BODY_KEYS = {f"body_{name}": name for name in BodyCalibrationParams.__dataclass_fields__}
 
 
 # ---------------------------------------------------------------------------------------------
@@ -611,23 +616,24 @@ class Refinement:
                             np.vstack(wx) if wx else np.zeros((0, 2)), dt)
 
     def freedom(self, *, cameras: bool = True, camera_prior: PosePrior | None = None, intrinsics: bool = False,
-                body: bool = False, free_scale: bool = False) -> Freedom:
+                body: BodyCalibrationParams | None = None, free_scale: bool = False) -> Freedom:
         """A :class:`~cubetrack.calib.solver.Freedom` with this refinement's noise, loss, ground-robot
-        priors and, when asked, intrinsics held near the given ones and markers near the given layouts."""
+        priors and, when asked, intrinsics held near the given ones and (``body``: its priors) markers
+        near the given layouts."""
         p = self.params
         intrinsics_prior = body_prior = None
         if intrinsics:
             K, dist = _intrinsics_arrays([self.given[c] for c in self.cameras])
             intrinsics_prior = IntrinsicsPrior(K, dist, p.intrinsics_focal_sigma, p.intrinsics_principal_sigma_px,
                                                p.intrinsics_k1_sigma, p.intrinsics_k2_sigma)
-        if body:
+        if body is not None:
             markers = [m for r in self.robots for m in self.layouts[r].markers]
             body_prior = BodyPrior(np.array([m.T_cube_marker for m in markers]), np.array([m.size_m for m in markers]),
-                                   p.body_position_sigma_m, np.radians(p.body_rotation_sigma_deg), p.body_size_sigma)
+                                   body.position_sigma_m, np.radians(body.rotation_sigma_deg), body.size_sigma)
         return Freedom(cameras, camera_prior, intrinsics_prior, body_prior, free_scale, p.corner_noise_px,
                        p.world_corner_noise_px, p.f_scale_px, p.height_sigma_m if p.planar_motion else 0.0,
                        float(np.radians(p.upright_sigma_deg)), p.max_nfev,
-                       p.body_motion_noise_px_per_s if body else 0.0)
+                       body.motion_noise_px_per_s if body is not None else 0.0)
 
     def solve(self, free: Freedom, world: Mapping[str, tuple[np.ndarray, np.ndarray]] | None = None) -> None:
         self.model = solve(self.observations(world), self.model, free)

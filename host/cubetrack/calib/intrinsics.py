@@ -21,8 +21,8 @@ from pathlib import Path
 import numpy as np
 
 from cubetrack.core.cameras import CameraIntrinsics
-from cubetrack.core.errors import CalibrationError, ImageError, ParamsError
-from cubetrack.core.params import param
+from cubetrack.core.errors import CalibrationError, ImageError
+from cubetrack.core.params import check, param
 from cubetrack.core.progress import Progress
 from cubetrack.detect.detector import CornerRefinement, aruco_dictionary, opencv_corner_refinement, read_gray
 
@@ -49,18 +49,15 @@ class IntrinsicsParams:
     min_views: int = param(3, "usable views needed to calibrate")
 
     def __post_init__(self) -> None:
-        if self.squares_x < 2 or self.squares_y < 2:
-            raise ParamsError(f"a ChArUco board needs at least 2x2 squares, got {self.squares_x}x{self.squares_y}")
-        if not 0 < self.marker_m < self.square_m:
-            raise ParamsError(f"marker side ({self.marker_m} m) must be positive and smaller than the "
-                             f"square side ({self.square_m} m)")
-        if self.min_corners < 4 or self.min_views < 1:
-            raise ParamsError("min_corners must be at least 4 and min_views at least 1")
+        check(self.squares_x >= 2 and self.squares_y >= 2,
+              f"a ChArUco board needs at least 2x2 squares, got {self.squares_x}x{self.squares_y}")
+        check(0 < self.marker_m < self.square_m,
+              f"marker side ({self.marker_m} m) must be positive and smaller than the square side ({self.square_m} m)")
+        check(self.min_corners >= 4 and self.min_views >= 1, "min_corners must be at least 4 and min_views at least 1")
         aruco_dictionary(self.dictionary)
-        if self.marker_refinement is CornerRefinement.EDGE:
-            raise ParamsError("marker_refinement 'edge' is not available for ChArUco boards (OpenCV's "
-                             "CharucoDetector refines the markers itself); use apriltag, subpix, "
-                             "contour or none")
+        check(self.marker_refinement is not CornerRefinement.EDGE,
+              "marker_refinement 'edge' is not available for ChArUco boards (OpenCV's CharucoDetector refines the "
+              "markers itself); use apriltag, subpix, contour or none")
 
 
 @dataclass(frozen=True, slots=True)

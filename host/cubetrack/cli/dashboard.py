@@ -71,9 +71,10 @@ def add_dashboard(args: argparse.Namespace, sinks: list, config=None, out_dir: P
     start, ``sinks`` are closed again before the error goes on."""
     if getattr(args, "dashboard", None) is None:
         return sinks
-    from cubetrack.app.outputs import close_sinks, parse_address
+    from cubetrack.app.outputs import close_sinks
     from cubetrack.sink.dashboard.server import TRAJECTORY_FILES, DashboardServer, DashboardSink, folder_downloads
     from cubetrack.sink.dashboard.state import DashboardParams
+    from cubetrack.sink.output_params import parse_address
 
     try:
         host, port = parse_address(args.dashboard, DEFAULT_ADDRESS, "--dashboard")

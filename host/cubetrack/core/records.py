@@ -111,7 +111,10 @@ class TrackedPose:
     (the host time it was output, for control loops), not a fused measurement.
     ``velocity_m_s`` and ``angular_velocity_rad_s`` are world-frame rates and ``covariance`` the
     (6, 6) covariance of the world-frame pose increment ``[δp (m), δθ (rad)]``, where the fusion
-    estimates them (the filter does), else None.
+    estimates them (the filter does), else None. ``smoothed``: the smoother estimated it from
+    sightings before and after it; ``smooth_lag_s``: with a fixed-lag smoother, how many seconds of
+    later sightings (by capture time) it was smoothed over (None without one). Each is a field of
+    the JSONL object (contracts §5) when set.
     """
 
     robot: str
@@ -121,12 +124,13 @@ class TrackedPose:
     cameras: tuple[str, ...]
     markers: tuple[str, ...]
     latency_s: float
-    extra: dict = field(default_factory=dict)
     velocity_m_s: np.ndarray | None = None
     angular_velocity_rad_s: np.ndarray | None = None
     covariance: np.ndarray | None = None
     arrival_latency_s: float | None = None
     predicted: bool = False
+    smoothed: bool = False
+    smooth_lag_s: float | None = None
 
 
 @dataclass(frozen=True, slots=True, eq=False)

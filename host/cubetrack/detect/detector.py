@@ -31,9 +31,9 @@ import cv2
 import numpy as np
 
 from cubetrack.core.cameras import CameraIntrinsics
-from cubetrack.core.errors import DetectionError, ImageError, ParamsError
+from cubetrack.core.errors import DetectionError, ImageError
 from cubetrack.core.geometry import shoelace_area
-from cubetrack.core.params import param
+from cubetrack.core.params import check, param
 from cubetrack.core.records import Detection
 from cubetrack.detect.decode import decode_gray as decode_gray  # also imported from here by other stages
 from cubetrack.detect.decode import read_gray as read_gray
@@ -190,27 +190,24 @@ class DetectorParams:
 
     def __post_init__(self) -> None:
         aruco_dictionary(self.dictionary)  # DetectionError with the valid names
-        if not 0.0 < self.relative_corner_refinement_win_size <= 4.0:
-            raise ParamsError(f"relative_corner_refinement_win_size must be in (0, 4], got "
-                             f"{self.relative_corner_refinement_win_size}")
-        if self.corner_refinement_win_size_px < 1 or self.corner_refinement_max_iterations < 1:
-            raise ParamsError("corner_refinement_win_size_px and corner_refinement_max_iterations must be >= 1")
-        if not self.corner_refinement_min_accuracy_px > 0.0:
-            raise ParamsError("corner_refinement_min_accuracy_px must be positive")
+        check(0.0 < self.relative_corner_refinement_win_size <= 4.0,
+              f"relative_corner_refinement_win_size must be in (0, 4], got {self.relative_corner_refinement_win_size}")
+        check(self.corner_refinement_win_size_px >= 1 and self.corner_refinement_max_iterations >= 1,
+              "corner_refinement_win_size_px and corner_refinement_max_iterations must be >= 1")
+        check(self.corner_refinement_min_accuracy_px > 0.0, "corner_refinement_min_accuracy_px must be positive")
         lo, hi, step = (self.adaptive_thresh_win_size_min_px, self.adaptive_thresh_win_size_max_px,
                         self.adaptive_thresh_win_size_step_px)
-        if lo < 3 or hi < lo or step < 1:
-            raise ParamsError(f"adaptive threshold windows need 3 <= min <= max and step >= 1, got "
-                             f"min {lo}, max {hi}, step {step}")
-        if not 0.0 < self.min_marker_perimeter_rate < self.max_marker_perimeter_rate:
-            raise ParamsError("need 0 < min_marker_perimeter_rate < max_marker_perimeter_rate")
-        if not 0.0 <= self.error_correction_rate <= 1.0:
-            raise ParamsError(f"error_correction_rate must be in [0, 1], got {self.error_correction_rate}")
-        if self.min_area_px2 < 0.0 or self.min_distance_to_border_px < 0:
-            raise ParamsError("min_area_px2 and min_distance_to_border_px must not be negative")
-        if self.edge_iterations < 1 or self.template_iterations < 1:
-            raise ParamsError(f"edge_iterations and template_iterations must be at least 1, got "
-                              f"{self.edge_iterations} and {self.template_iterations}")
+        check(lo >= 3 and hi >= lo and step >= 1,
+              f"adaptive threshold windows need 3 <= min <= max and step >= 1, got min {lo}, max {hi}, step {step}")
+        check(0.0 < self.min_marker_perimeter_rate < self.max_marker_perimeter_rate,
+              "need 0 < min_marker_perimeter_rate < max_marker_perimeter_rate")
+        check(0.0 <= self.error_correction_rate <= 1.0,
+              f"error_correction_rate must be in [0, 1], got {self.error_correction_rate}")
+        check(self.min_area_px2 >= 0.0 and self.min_distance_to_border_px >= 0,
+              "min_area_px2 and min_distance_to_border_px must not be negative")
+        check(self.edge_iterations >= 1 and self.template_iterations >= 1,
+              f"edge_iterations and template_iterations must be at least 1, got {self.edge_iterations} and "
+              f"{self.template_iterations}")
 
 
 def _cv_parameters(p: DetectorParams) -> cv2.aruco.DetectorParameters:

@@ -4,8 +4,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-from cubetrack.core.errors import ParamsError
-from cubetrack.core.params import param
+from cubetrack.core.params import check_positive, param
 
 
 @dataclass(frozen=True, slots=True)
@@ -42,7 +41,5 @@ class EstimatorParams:
     )
 
     def __post_init__(self) -> None:
-        for name in ("max_reprojection_error_px", "corner_noise_px", "upright_sigma_deg",
-                     "upright_tolerance_deg", "max_face_spread_m", "max_joint_reprojection_error_px"):
-            if not getattr(self, name) > 0.0:
-                raise ParamsError(f"{name} must be positive, got {getattr(self, name)}")
+        check_positive(self, "max_reprojection_error_px", "corner_noise_px", "upright_sigma_deg",
+                       "upright_tolerance_deg", "max_face_spread_m", "max_joint_reprojection_error_px")

@@ -121,9 +121,8 @@ def smoothed_poses(trail: Sequence[TrailStep], now_s: float, count: int | None =
                     pose, position_m=f.position_m.copy(), quaternion_xyzw=quat_xyzw_from_R(f.R_world_cube),
                     velocity_m_s=f.velocity_m_s.copy(), angular_velocity_rad_s=f.angular_velocity_rad_s.copy(),
                     covariance=f.pose_covariance, latency_s=max(0.0, now_s - f.time_s),
-                    arrival_latency_s=max(0.0, now_s - trail[i].arrival_time_s), extra={**pose.extra, "smoothed": True}
-                    if lag_s is None else {**pose.extra, "smoothed": True,
-                                           "smooth_lag_s": round(min(lag_s, newest_s - pose.time_s), 4)}))
+                    arrival_latency_s=max(0.0, now_s - trail[i].arrival_time_s), smoothed=True,
+                    smooth_lag_s=None if lag_s is None else round(min(lag_s, newest_s - pose.time_s), 4)))
     if gains is not None:
         gains.pass_done()
     return poses

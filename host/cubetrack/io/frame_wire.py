@@ -1,5 +1,5 @@
 """The per-frame work's result between processes of one tracker (frame worker processes,
-:mod:`cubetrack.app.parallel`; camera worker processes, :mod:`cubetrack.app.camera_workers`).
+:mod:`cubetrack.core.frame_pool`; camera worker processes, :mod:`cubetrack.app.camera_workers`).
 
 A :class:`~cubetrack.core.records.FrameResult` without its job, in plain values that pickle fast
 through a pipe: the outcome's value, per sighting the robot, the marker ids, one corner array,

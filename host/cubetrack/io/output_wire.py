@@ -30,8 +30,8 @@ def pack_output(kind: str, value: object) -> tuple:
     if isinstance(value, TrackedPose):
         p = value
         return kind, (p.robot, p.time_s, _array(p.position_m), _array(p.quaternion_xyzw), p.cameras, p.markers,
-                      p.latency_s, p.extra, _array(p.velocity_m_s), _array(p.angular_velocity_rad_s),
-                      _array(p.covariance), p.arrival_latency_s, p.predicted)
+                      p.latency_s, _array(p.velocity_m_s), _array(p.angular_velocity_rad_s),
+                      _array(p.covariance), p.arrival_latency_s, p.predicted, p.smoothed, p.smooth_lag_s)
     if isinstance(value, CameraView):
         v = value
         return kind, (v.camera, v.seq, v.time_s, v.jpeg,
@@ -45,11 +45,11 @@ def pack_output(kind: str, value: object) -> tuple:
 def unpack_output(kind: str, fields: Any) -> tuple[str, object]:
     """The call :func:`pack_output` packed."""
     if kind == "pose":
-        (robot, time_s, position, quaternion, cameras, markers, latency_s, extra, velocity, angular, covariance,
-         arrival_latency_s, predicted) = fields
+        (robot, time_s, position, quaternion, cameras, markers, latency_s, velocity, angular, covariance,
+         arrival_latency_s, predicted, smoothed, smooth_lag_s) = fields
         return kind, TrackedPose(robot, time_s, _array_of(position, 3), _array_of(quaternion, 4), cameras, markers,
-                                 latency_s, extra, _unarray(velocity, 3), _unarray(angular, 3),
-                                 _unarray(covariance, 6, 6), arrival_latency_s, predicted)
+                                 latency_s, _unarray(velocity, 3), _unarray(angular, 3),
+                                 _unarray(covariance, 6, 6), arrival_latency_s, predicted, smoothed, smooth_lag_s)
     if kind == "camera_view":
         camera, seq, time_s, jpeg, detections, predicted = fields
         return kind, CameraView(camera, seq, time_s, jpeg, tuple(

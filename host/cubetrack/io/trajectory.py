@@ -98,7 +98,10 @@ def pose_to_json(pose: TrackedPose) -> dict:
         out["arrival_latency"] = round(float(pose.arrival_latency_s), 6)
     if pose.predicted:
         out["predicted"] = True
-    out.update(pose.extra)
+    if pose.smoothed:
+        out["smoothed"] = True
+    if pose.smooth_lag_s is not None:
+        out["smooth_lag_s"] = pose.smooth_lag_s
     return out
 
 

@@ -22,8 +22,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cubetrack.core.errors import ParamsError
-from cubetrack.core.params import param
+from cubetrack.core.params import check, param
 
 log = logging.getLogger(__name__)
 
@@ -40,10 +39,9 @@ class ClockSyncParams:
                                 "already beats arrival times)")
 
     def __post_init__(self) -> None:
-        if self.window < 2 or self.min_samples < 1 or not 0.0 < self.fastest_fraction <= 1.0:
-            raise ParamsError("need window >= 2, min_samples >= 1 and 0 < fastest_fraction <= 1")
-        if not self.max_round_trip_s > 0:
-            raise ParamsError("max_round_trip_s must be positive")
+        check(self.window >= 2 and self.min_samples >= 1 and 0.0 < self.fastest_fraction <= 1.0,
+              "need window >= 2, min_samples >= 1 and 0 < fastest_fraction <= 1")
+        check(self.max_round_trip_s > 0, "max_round_trip_s must be positive")
 
 
 @enum.unique

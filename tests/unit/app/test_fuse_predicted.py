@@ -24,17 +24,13 @@ from cubetrack.app.fusion_service import run_fusion
 from cubetrack.app.live import live_intrinsics
 from cubetrack.app.session import PoseStream
 from cubetrack.app.tracker import Tracker
-from cubetrack.app.worker import (
-    fuse_endpoints,
-    sighting_key,
-    sighting_message,
-    worker_endpoints,
-)
+from cubetrack.app.worker import fuse_endpoints, sighting_message, worker_endpoints
 from cubetrack.fuse.forecast import NO_FORECAST
 from cubetrack.io.config import read_extrinsics
 from cubetrack.io.recording import Recording
 from cubetrack.io.sighting_wire import encode_sighting
 from cubetrack.io.trajectory import read_tum
+from cubetrack.io.worker_bus import sighting_key
 from cubetrack.source.streams import CameraStats
 from tests.helpers.scene import simulated_recording
 

@@ -14,9 +14,9 @@ import pytest
 import test_tracker
 from test_tracker import BLUE, INTRINSICS, RED, T_WORLD_CAM, WORLD
 
-from cubetrack.app.parallel import CAMERA_PROCESSES_FROM, FramePool, LiveParams, WorkerKind
 from cubetrack.app.tracker import FrameProcessor, StageParams
 from cubetrack.core.errors import SourceError
+from cubetrack.core.frame_pool import CAMERA_PROCESSES_FROM, FramePool, LiveParams, WorkerKind
 from cubetrack.core.records import Frame, FrameJob, FrameOutcome
 
 scenes = test_tracker.scenes  # the rendered frames of the tracker's tests (a fixture)

@@ -68,7 +68,7 @@ def test_smoothed_poses_are_closer_to_the_truth_than_the_filters(seed):
     causal, smoothed, fusion = tracked(items)
     assert fusion.stats["accepted sighting"] > 0.9 * len(items)
     assert [p.time_s for p in smoothed] == [p.time_s for p in causal]  # one pose per sighting, as the filter's
-    assert all(p.extra == {"smoothed": True} for p in smoothed) and not any(p.extra for p in causal)
+    assert all(p.smoothed and p.smooth_lag_s is None for p in smoothed) and not any(p.smoothed for p in causal)
     assert all(p.latency_s >= items[-1].arrival_time_s - p.time_s - 1e-9 for p in smoothed)  # out at the end
     (pos_f, rot_f), (pos_s, rot_s) = errors(causal, weaving), errors(smoothed, weaving)
     assert rms(pos_s) < 0.75 * rms(pos_f)
@@ -109,7 +109,8 @@ def test_gains_kept_from_pass_to_pass_change_no_smoothed_pose():
         for kept, fresh in zip(smoothed_poses(part, 2.0, 4, 0.1, gains), smoothed_poses(part, 2.0, 4, 0.1),
                                strict=True):
             assert kept.position_m.tolist() == fresh.position_m.tolist()
-            assert kept.covariance.tolist() == fresh.covariance.tolist() and kept.extra == fresh.extra
+            assert kept.covariance.tolist() == fresh.covariance.tolist()
+            assert (kept.smoothed, kept.smooth_lag_s) == (fresh.smoothed, fresh.smooth_lag_s)
 
 
 def test_late_sightings_are_smoothed_as_in_capture_order():
@@ -209,8 +210,8 @@ def test_a_fixed_lag_gives_each_pose_that_late_and_closer_to_the_truth(seed):
     assert all(p.time_s < newest - 0.15 for newest, p in left if newest < np.inf)  # none before 0.15 s of newer
     assert sum(newest == np.inf for newest, _ in left) <= 8  # the session's last 0.15 s leave at its end
     # each says its lag: the setting, or at the session's end what there was after it
-    assert all(p.extra == {"smoothed": True, "smooth_lag_s": 0.15} for newest, p in left if newest < np.inf)
-    assert all(p.extra["smooth_lag_s"] == round(items[-1].capture_time_s - p.time_s, 4) < 0.15
+    assert all(p.smoothed and p.smooth_lag_s == 0.15 for newest, p in left if newest < np.inf)
+    assert all(p.smooth_lag_s == round(items[-1].capture_time_s - p.time_s, 4) < 0.15
                for newest, p in left if newest == np.inf)
     assert all(p.latency_s > 0.15 + 0.05 for newest, p in left if newest < np.inf)  # arrival 50 ms after capture
     (pos_f, rot_f), (pos_l, rot_l) = errors(causal, weaving), errors(poses, weaving)
@@ -270,12 +271,12 @@ def test_a_robot_seen_no_more_gets_its_held_poses_within_lag_and_margin():
     causal = run(FilterFusion({"bot": LAYOUT}), [s for s in items if s is not withheld])
     assert [p.time_s for _, p in out] == [p.time_s for p in causal]  # each pose once, in capture order
     assert all(now <= p.time_s + lag_s + margin_s + tick_s + 1e-9 for now, p in out)  # on time
-    early = [(now, p) for now, p in out if p.extra["smooth_lag_s"] < lag_s]
+    early = [(now, p) for now, p in out if p.smooth_lag_s < lag_s]
     last_s = max(s.capture_time_s for s in items if s is not withheld)
     assert len(early) >= 2 and fusion.stats["pose released before its lag"] == len(early)
     for now, p in early:  # the last lag's poses, when their time was up, smoothed over what came after them
         assert p.time_s > last_s - lag_s and now >= p.time_s + lag_s + margin_s - 1e-9
-        assert p.extra["smooth_lag_s"] == round(last_s - p.time_s, 4)
+        assert p.smooth_lag_s == round(last_s - p.time_s, 4)
         assert p.latency_s == pytest.approx(now - p.time_s)
     assert early[-1][1].time_s == last_s
 

@@ -43,3 +43,21 @@ def test_pose_writer_writes_tum_and_jsonl(tmp_path):
     obj = json.loads((tmp_path / "bot.jsonl").read_text())
     assert obj["robot"] == "bot" and obj["cameras"] == ["cam1", "cam2"] and obj["latency"] == 0.04
     assert obj["quaternion_xyzw"] == [0, 0, 0, 1.0]
+
+
+def test_the_smoother_fields_are_the_jsonl_objects_last_keys_only_when_set(tmp_path):
+    """contracts §5: a smoothed pose adds "smoothed": true, a fixed-lag one also "smooth_lag_s", after
+    the other keys; a causal pose has neither."""
+    import dataclasses
+
+    causal = TrackedPose("bot", 12.5, np.array([1.0, 2.0, 3.0]), np.array([0, 0, 0, 1.0]), ("cam1",), (), 0.04,
+                         arrival_latency_s=0.01)
+    whole = dataclasses.replace(causal, time_s=12.6, smoothed=True)
+    lagged = dataclasses.replace(causal, time_s=12.7, smoothed=True, smooth_lag_s=0.05)
+    with PoseWriter(tmp_path, "bot") as w:
+        for pose in (causal, whole, lagged):
+            w.write(pose)
+    objects = [json.loads(line) for line in (tmp_path / "bot.jsonl").read_text().splitlines()]
+    assert [list(o)[-2:] for o in objects] == [["latency", "arrival_latency"], ["arrival_latency", "smoothed"],
+                                               ["smoothed", "smooth_lag_s"]]
+    assert objects[1]["smoothed"] is True and objects[2]["smooth_lag_s"] == 0.05

@@ -13,12 +13,7 @@ import requests
 from sink_helpers import INTRINSICS, look_at
 
 from cubetrack.app.config import load_config
-from cubetrack.app.dashboard import (
-    DashboardApp,
-    calibration_advice,
-    missing_advice,
-    recorded_cameras,
-)
+from cubetrack.app.dashboard import DashboardApp, recorded_cameras
 from cubetrack.calib.check import world_marker_reprojection
 from cubetrack.core.cameras import WorldConfig
 from cubetrack.core.errors import CalibrationError
@@ -26,6 +21,7 @@ from cubetrack.core.geometry import make_T
 from cubetrack.core.records import Frame
 from cubetrack.io.camera_info import write_camera_info
 from cubetrack.io.recording import CameraEntry, RecordingWriter
+from cubetrack.sink.dashboard.calibration import calibration_advice, missing_advice
 from cubetrack.sink.dashboard.server import DashboardServer
 from cubetrack.sink.dashboard.state import DashboardParams
 
@@ -198,7 +194,7 @@ def test_guide_params_refuse_bad_values():
 
 
 def test_the_drive_counts_instants_as_the_bundle_adjustment_groups_them():
-    from cubetrack.app.dashboard import InstantCounter
+    from cubetrack.sink.dashboard.calibration import InstantCounter
 
     counter = InstantCounter(max_span_s=0.1, min_cameras=2)
     # three cameras see the robot at one moment: one instant, not one per pose

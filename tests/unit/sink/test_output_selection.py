@@ -1,23 +1,18 @@
 """Choosing outputs: the config's [[outputs]] tables, the command-line flags, and their errors."""
 
 import argparse
+import dataclasses
 
 import pytest
 from sink_helpers import free_port
 
-from cubetrack.app.outputs import (
-    OutputSpec,
-    close_sinks,
-    config_output_specs,
-    merge_outputs,
-    output_sinks,
-    parse_address,
-)
+from cubetrack.app.outputs import OutputSpec, close_sinks, config_output_specs, merge_outputs, output_sinks
 from cubetrack.cli.outputs import add_output_arguments, flag_output_specs
 from cubetrack.core.errors import ConfigError
 from cubetrack.core.layout import paper_cube_layout, write_layout
 from cubetrack.io.config import read_tracker_config
 from cubetrack.sink.foxglove import FoxgloveSink
+from cubetrack.sink.output_params import OUTPUT_TYPES, Ros2OutputParams, output_params, parse_address
 from cubetrack.sink.vrpn import VrpnParams, VrpnSink
 
 
@@ -80,18 +75,31 @@ def test_config_outputs_resolve_paths_against_the_config_and_flags_replace_them(
 @pytest.mark.parametrize("table,message", [
     ({"type": "pigeon"}, "type must be one of zenoh, ros2, vrpn, foxglove, mcap"),
     ({"type": "vrpn", "adress": "x"}, "unknown key"),
+    ({"type": "vrpn", "address": "host:port"}, "not ADDR:PORT"),
     ({"type": "mcap"}, "needs path"),
-    ({"type": "ros2", "distro": "noetic"}, "distro: humble | iron | jazzy | kilted | rolling"),
+    ({"type": "ros2", "distro": "noetic"}, "'noetic' is not one of 'humble', 'iron', 'jazzy', 'kilted', 'rolling'"),
+    ({"type": "ros2", "domain_id": 300}, "domain_id must be 0..232"),
     ({"type": "zenoh", "connect": "127.0.0.1:7447"}, "Zenoh locators"),
-    ({"type": "zenoh", "mode": "broker"}, "mode must be peer, client or router"),
+    ({"type": "zenoh", "mode": "broker"}, "'broker' is not one of 'peer', 'client', 'router'"),
     ({"type": "zenoh", "zenoh_config": "missing.json5"}, "not found"),
-    ({"type": "mcap", "path": "s.mcap", "image_fps": -1}, "image_fps must be a number >= 0"),
-    ({"type": "foxglove", "image_fps": "fast"}, "image_fps must be a number >= 0"),
+    ({"type": "mcap", "path": "s.mcap", "image_fps": -1}, "image_fps must be a non-negative number"),
+    ({"type": "foxglove", "image_fps": "fast"}, "expected a number"),
 ])
 def test_bad_output_tables_are_one_line_errors(tmp_path, table, message):
     with pytest.raises(ConfigError, match=message) as err:
         output_sinks([OutputSpec(table, tmp_path, "lab.toml: outputs[0]")])
-    assert str(err.value).startswith("lab.toml: outputs[0]: ") and "\n" not in str(err.value)
+    assert str(err.value).startswith("lab.toml: outputs[0]") and "\n" not in str(err.value)
+
+
+def test_every_output_table_reads_into_its_params_class_with_the_documented_defaults():
+    """[[outputs]] is a params section like the others: each type's table maps 1:1 onto a params
+    dataclass whose fields carry a doc (shown by cubetrack defaults); a key left out keeps its default."""
+    for kind, cls in OUTPUT_TYPES.items():
+        params = output_params({"type": kind}, "t")
+        assert params == cls() and all(f.metadata.get("doc") for f in dataclasses.fields(cls))
+    ros = output_params({"type": "ros2", "distro": "humble", "domain_id": 7, "connect": "tcp/10.0.0.1:7447"}, "t")
+    assert ros == Ros2OutputParams(connect=("tcp/10.0.0.1:7447",), distro=ros.distro, domain_id=7)
+    assert ros.distro.value == "humble"
 
 
 def test_outputs_started_before_a_failure_are_closed_again(tmp_path):

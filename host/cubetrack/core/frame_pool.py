@@ -24,15 +24,14 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
 from multiprocessing.connection import wait as connection_wait
+from typing import Protocol
 
 import cv2
 
-from cubetrack.app.tracker import FrameProcessor
 from cubetrack.core.errors import SourceError
 from cubetrack.core.lifetime import end_with_parent
 from cubetrack.core.params import check, param
 from cubetrack.core.records import Frame, FrameJob, FrameResult
-from cubetrack.io.frame_wire import pack_result, unpack_result
 
 
 @enum.unique
@@ -45,6 +44,18 @@ class WorkerKind(enum.Enum):
 
 _WAITING, _STARTED, _RECLAIMED = 0, 1, 2  # a job's claim flag (_ProcessLane)
 CAMERA_PROCESSES_FROM = 12  # [live] worker_kind = "auto": camera worker processes from this many cameras on
+
+
+class FrameWorker(Protocol):
+    """The per-frame work a pool runs (:class:`cubetrack.app.tracker.FrameProcessor`): a job in, its
+    result out, and the result's message between processes both ways (the codec of
+    :mod:`cubetrack.io.frame_wire`, which leaves out what both ends hold)."""
+
+    def work(self, job: FrameJob) -> FrameResult: ...
+
+    def pack(self, result: FrameResult) -> tuple: ...
+
+    def unpack(self, job: FrameJob, message: tuple) -> FrameResult: ...
 
 
 @dataclass(frozen=True, slots=True)
@@ -86,7 +97,7 @@ class FramePool:
     the first is ready, :attr:`ready` is False and the consumer does the work itself. Use as a
     context manager; :meth:`close` ends the workers."""
 
-    def __init__(self, make_worker: Callable[[], FrameProcessor], count: int, kind: WorkerKind,
+    def __init__(self, make_worker: Callable[[], FrameWorker], count: int, kind: WorkerKind,
                  wake: Callable[[], None] | None = None, depth: int = 1):
         self.kind = kind
         self.count = count
@@ -221,7 +232,7 @@ class FramePool:
                 self._idle.append(lane)
         self._wake()
 
-    def _thread_loop(self, worker: FrameProcessor) -> None:
+    def _thread_loop(self, worker: FrameWorker) -> None:
         while (job := self._jobs.get()) is not None:
             try:
                 result = worker.work(job)
@@ -245,7 +256,7 @@ class _ProcessLane:
     results. With ``threaded``, a thread in this process waits for its results; without, the
     pool's :meth:`FramePool.wait` reads them on the caller's thread (no GIL hand-offs)."""
 
-    def __init__(self, context, make_worker: Callable[[], FrameProcessor], pool: FramePool, depth: int,
+    def __init__(self, context, make_worker: Callable[[], FrameWorker], pool: FramePool, depth: int,
                  threaded: bool):
         self.conn, child = context.Pipe()
         # one flag per job on the way (a ring): whether the worker started it (_STARTED) or the
@@ -302,8 +313,7 @@ class _ProcessLane:
         if message is None:  # taken back before the worker started it
             self.pool._finished(None, self)
         else:
-            local = self.pool.local_worker
-            self.pool._finished(unpack_result(job, message, local.intrinsics, local.T_world_cam), self)
+            self.pool._finished(self.pool.local_worker.unpack(job, message), self)
 
     def ended(self) -> None:
         if not self.closing:
@@ -333,10 +343,10 @@ class _ProcessLane:
             self.reader.join(5.0)
 
 
-def _process_main(conn: Connection, make_worker: Callable[[], FrameProcessor], claims, claim_lock) -> None:
+def _process_main(conn: Connection, make_worker: Callable[[], FrameWorker], claims, claim_lock) -> None:
     """A worker process: jobs in (plain values, :meth:`_ProcessLane.send`), results out, packed
-    (:func:`cubetrack.io.frame_wire.pack_result`: without the job, which the other side keeps; None for a job taken
-    back before it started), until None comes."""
+    (:meth:`FrameWorker.pack`: without the job, which the other side keeps; None for a job taken back before it
+    started), until None comes."""
     end_with_parent()
     cv2.setNumThreads(1)
     try:
@@ -352,7 +362,7 @@ def _process_main(conn: Connection, make_worker: Callable[[], FrameProcessor], c
                 continue
             job = FrameJob(Frame(camera, seq, device_time_s, host_time_s, jpeg), capture_time_s, regions,
                            frozenset(estimate_robots))
-            conn.send(pack_result(worker.work(job), worker.T_world_cam))
+            conn.send(worker.pack(worker.work(job)))
     except (EOFError, KeyboardInterrupt):
         pass
 

@@ -1,4 +1,4 @@
-"""Automatic camera claiming (cubetrack.app.worker): the share rule every worker computes alike,
+"""Automatic camera claiming (cubetrack.io.worker_bus): the share rule every worker computes alike,
 and the take / give-up decisions that keep one reader per camera as workers come and go."""
 
 from __future__ import annotations
@@ -7,8 +7,8 @@ import itertools
 
 import pytest
 
-from cubetrack.app.worker import ClaimBoard, claim_changes, claim_key, share_cameras
 from cubetrack.core.errors import ConfigError
+from cubetrack.io.worker_bus import ClaimBoard, claim_changes, claim_key, share_cameras
 
 CAMERAS = [f"cam{i}" for i in range(1, 8)]
 
