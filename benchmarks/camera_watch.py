@@ -50,7 +50,7 @@ def scene(work: Path, cameras: int, seed: int, duration_s: float, bump_camera: i
     return rec
 
 
-def replay(rec: Path, extrinsics: dict, watch: bool) -> tuple[list, list, float]:
+def replay(rec: Path, extrinsics: dict, watch: bool, config_path: Path | None = None) -> tuple[list, list, float]:
     """Replay a recording through a Tracker (frames and /time round trips in arrival order);
     returns its poses, the watcher's events and the CPU seconds it took."""
     from cubetrack.app.track import recording_intrinsics
@@ -59,7 +59,7 @@ def replay(rec: Path, extrinsics: dict, watch: bool) -> tuple[list, list, float]
     from cubetrack.io.config import read_tracker_config
     from cubetrack.io.recording import Recording
 
-    config = read_tracker_config(rec / "config.toml")
+    config = read_tracker_config(config_path or rec / "config.toml")
     recording = Recording.open(rec)
     params = StageParams.from_config(config)
     params = dataclasses.replace(params, camera_watch=dataclasses.replace(params.camera_watch, enabled=watch))
@@ -139,6 +139,20 @@ def run_scene(work: Path, cameras: int, seed: int, duration_s: float, bump_camer
     return out
 
 
+def real_footage(work: Path) -> dict:
+    """The caliscope-4cam footage imported as benchmarks/real_footage.py does, replayed with the
+    watching on: its events (there should be none: nobody bumped those cameras)."""
+    from cubetrack.app.import_rig import import_caliscope
+    from cubetrack.io.config import read_extrinsics
+
+    data = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "real" / "caliscope-4cam"
+    if not (work / "config.toml").exists():
+        import_caliscope(data, work)
+    poses, events, cpu_s = replay(work / "recording", read_extrinsics(work / "extrinsics.toml"), True,
+                                  work / "config.toml")
+    return {"poses": len(poses), "events": [(e.kind.value, e.camera, e.time_s) for e in events], "cpu_s": cpu_s}
+
+
 def read_tracker_start(rec: Path) -> float:
     """The simulated session's start (host clock), from simulation.toml."""
     import tomllib
@@ -156,8 +170,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--bump-camera", type=int, default=2, help="the camera bumped (default: 2)")
     parser.add_argument("--bump-at", type=float, default=20.0, help="when, seconds after the start (default: 20)")
     parser.add_argument("--report", type=Path, default=None, help="write the JSON report here")
+    parser.add_argument("--real", action="store_true", help="also replay the caliscope-4cam real footage watched")
     args = parser.parse_args(argv)
     args.work.mkdir(parents=True, exist_ok=True)
+    if args.real:
+        print("real footage (caliscope-4cam), watched:", real_footage(args.work / "caliscope-4cam"), flush=True)
     rows = []
     for cameras in args.cameras:
         for seed in args.seeds:

@@ -20,6 +20,9 @@ rejoining). The camera is **moved** when
 - and it is more than ``moved_m`` or ``moved_deg`` away from it (the fit keeps the pose near the
   settled one by a prior of ``WINDOW_PRIOR_M`` and ``WINDOW_PRIOR_DEG``: a window of points
   bunched in one spot leaves a translation and a rotation that mimic each other free),
+- and it explains the window ``moved_ratio`` (4) times better than the settled pose (median corner
+  residual: a rigid move of the camera explains what it sees; references that disagree among
+  themselves, as where real calibrations are off by several pixels, do not),
 - and each half of the window is explained better by the window's pose than by the settled one,
   by more than half ``moved_px`` (median corner residual: a consistent offset, not a few bad
   references).
@@ -47,7 +50,6 @@ from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from cubetrack.core.geometry import rotation_angle, so3_left_jacobian, transform_points
 from cubetrack.core.layout import CubeLayout
@@ -58,7 +60,7 @@ from cubetrack.estimate.params import EstimatorParams
 from cubetrack.estimate.pose import estimate_cube
 from cubetrack.estimate.reprojection import CornerSet, moved_pose, perturbed, reprojection_residuals_px
 from cubetrack.fuse.fusion import sighting_corner_sets
-from cubetrack.fuse.multi_view_fit import solve_joint
+from cubetrack.fuse.multi_view_fit import robust_least_squares, solve_joint
 
 
 @dataclass(frozen=True, slots=True)
@@ -82,6 +84,8 @@ class WatchParams:
     baseline_every_s: float = param(5.0, "how often the settled pose is fitted again, seconds")
     moved_px: float = param(5.0, "moved: the refitted pose moves the camera's corners by more than this (RMS), "
                                  "pixels")
+    moved_ratio: float = param(4.0, "moved: ... and the window's pose explains the window this many times better "
+                                    "(median corner residual) than the settled pose")
     moved_m: float = param(0.01, "moved: ... and the camera is more than this far from its pose, metres")
     moved_deg: float = param(0.5, "moved: ... or turned by more than this, degrees")
     rejoin_points: int = param(400, "corners gathered since a camera moved before its re-calibration is tried")
@@ -97,9 +101,9 @@ class WatchParams:
 
     def __post_init__(self) -> None:
         check_positive(self, "baseline_s", "baseline_every_s", "samples_per_s", "reference_span_s",
-                       "reference_rms_px", "window_s", "check_every_s", "moved_px", "moved_m", "moved_deg",
-                       "rejoin_sigma_m", "rejoin_sigma_deg", "rejoin_agree_m", "rejoin_agree_deg", "corner_noise_px",
-                       "gate_px")
+                       "reference_rms_px", "window_s", "check_every_s", "moved_px", "moved_ratio", "moved_m",
+                       "moved_deg", "rejoin_sigma_m", "rejoin_sigma_deg", "rejoin_agree_m", "rejoin_agree_deg",
+                       "corner_noise_px", "gate_px")
         check_at_least(self, 1, "reference_cameras")
         check_at_least(self, 6, "min_points", "rejoin_points")
         check(self.check_every_s <= self.window_s,
@@ -249,20 +253,12 @@ def refit_camera(points_world_m: np.ndarray, normalized: np.ndarray, focal_px: n
         J[:, 3:6] = J[:, 3:6] @ so3_left_jacobian(x[3:6])  # x holds a finite rotation increment
         return np.vstack([J / corner_noise_px, np.diag(prior)]) if len(prior) else J / corner_noise_px
 
-    try:
-        result = least_squares(fun, np.zeros(6), jac=jac, method="trf", loss="soft_l1",
-                               f_scale=f_scale_px / corner_noise_px,
-                               x_scale=np.array([0.01, 0.01, 0.01, 0.002, 0.002, 0.002]), max_nfev=60)
-    except (ValueError, np.linalg.LinAlgError):
+    solved = robust_least_squares(fun, jac, np.array([0.01, 0.01, 0.01, 0.002, 0.002, 0.002]),
+                                  f_scale_px / corner_noise_px, 60)
+    if solved is None:
         return None
-    if not np.all(np.isfinite(result.x)):
-        return None
-    J = np.asarray(result.jac)
-    try:
-        covariance = np.linalg.inv(J.T @ J)
-    except np.linalg.LinAlgError:
-        return None
-    T = perturbed(T0, result.x)
+    x, covariance, _ = solved
+    T = perturbed(T0, x)
     r = residuals_px(T, X, uv, f)
     sigma_m = math.sqrt(max(float(np.linalg.eigvalsh(covariance[:3, :3]).max()), 0.0))
     sigma_rad = math.sqrt(max(float(np.linalg.eigvalsh(covariance[3:, 3:]).max()), 0.0))
@@ -288,13 +284,20 @@ class Verdict:
     moved: bool
 
 
-def improvement_px(fit: CameraFit, T_world_cam: np.ndarray, samples: Sequence[WatchSample]) -> float:
-    """How much better the refitted pose explains the samples than ``T_world_cam``: the median
-    corner residual (px) against the one minus that against the other."""
+def median_residuals_px(fit: CameraFit, T_world_cam: np.ndarray, samples: Sequence[WatchSample]
+                        ) -> tuple[float, float]:
+    """The samples' median corner residual (px) against ``T_world_cam`` and against the refitted pose."""
     X, uv, f = stacked(samples)
     before = np.linalg.norm(residuals_px(T_world_cam, X, uv, f), axis=1)
     after = np.linalg.norm(residuals_px(fit.T_world_cam, X, uv, f), axis=1)
-    return float(np.median(before) - np.median(after))
+    return float(np.median(before)), float(np.median(after))
+
+
+def improvement_px(fit: CameraFit, T_world_cam: np.ndarray, samples: Sequence[WatchSample]) -> float:
+    """How much better the refitted pose explains the samples than ``T_world_cam``: the median
+    corner residual (px) against the one minus that against the other."""
+    before, after = median_residuals_px(fit, T_world_cam, samples)
+    return before - after
 
 
 def window_verdict(samples: Sequence[WatchSample], T_world_cam: np.ndarray, params: WatchParams) -> Verdict | None:
@@ -308,7 +311,9 @@ def window_verdict(samples: Sequence[WatchSample], T_world_cam: np.ndarray, para
         return None
     shift = shift_px(fit, T_world_cam, samples)
     off_m, off_deg = fit.offset_from(T_world_cam)
-    moved = shift > params.moved_px and (off_m > params.moved_m or off_deg > params.moved_deg)
+    before, after = median_residuals_px(fit, T_world_cam, samples)
+    moved = (shift > params.moved_px and (off_m > params.moved_m or off_deg > params.moved_deg)
+             and before >= params.moved_ratio * after)
     if moved:  # consistent: each half on its own is explained much better by the new pose
         middle = len(samples) // 2
         moved = middle >= 2 and all(improvement_px(fit, T_world_cam, part) > params.moved_px / 2
@@ -401,7 +406,7 @@ class CameraWatch:
         return event
 
     def _check(self, now_s: float) -> list[WatchEvent]:
-        """Fit every watched camera's window; declare the worst moved one."""
+        """Fit every watched camera's window; declare the one :meth:`_culprit` names, if any."""
         p = self.params
         verdicts: dict[str, Verdict] = {}
         baseline = now_s >= self._next_baseline_s

@@ -142,3 +142,33 @@ def test_with_one_other_camera_the_watcher_says_so_and_waits():
     for s in sightings(5.0, lambda camera, t: two[camera], two, rng):
         assert watch.add(s) == []
     assert watch.stats["checked"] == 0 and watch.stats["too few other cameras"] > 30
+
+
+@pytest.mark.parametrize(("changes", "message"), [
+    ({"moved_px": 0.0}, "moved_px"),
+    ({"reference_cameras": 0}, "reference_cameras"),
+    ({"window_s": 40.0}, "window_s"),
+])
+def test_bad_watch_settings_are_refused_with_a_clear_message(changes, message):
+    from cubetrack.core.errors import ParamsError
+
+    with pytest.raises(ParamsError, match=message):
+        WatchParams(**changes)
+
+
+def test_the_tracker_watches_only_when_enabled():
+    import dataclasses
+
+    from cubetrack.app.tracker import StageParams, Tracker
+    from cubetrack.core.cameras import CameraExtrinsics, WorldConfig
+    from cubetrack.io.config import RobotConfig
+
+    robots = (RobotConfig("bot", LAYOUT),)
+    extrinsics = {c: CameraExtrinsics(T) for c, T in CAMERAS.items()}
+    intrinsics = dict.fromkeys(CAMERAS, INTR)
+    world = WorldConfig("DICT_4X4_50", 0, 0.25)
+    off = Tracker(intrinsics, world, robots, extrinsics, StageParams())
+    on = Tracker(intrinsics, world, robots, extrinsics,
+                 dataclasses.replace(StageParams(), camera_watch=WatchParams(enabled=True)))
+    assert isinstance(on.fusion, WatchedFusion) and isinstance(on.fusion.fusion, FilterFusion)
+    assert isinstance(off.fusion, FilterFusion)
