@@ -8,8 +8,15 @@ OpenCV < 4.6 with an even number of rows need --legacy. Options left out keep th
 parameters' defaults (cubetrack.calib.intrinsics.IntrinsicsParams: the board of the example
 below, 3 usable views at least). See docs/calibration.md.
 
-Example:
+Or live from any camera (--camera usb:0, v4l2:/dev/video2, http://.../stream, file:video.avi):
+views are kept as the board is moved in front of it, each one that shows a part of the image or
+a tilt the others do not (cubetrack.calib.live_views), with a line of guidance per frame on
+stderr (where the board has not been yet), until --views are kept or --duration passes.
+
+Examples:
   cubetrack calibrate-intrinsics img_*.jpg --board 5x7 --square 0.04 --marker 0.02 \\
+      --dictionary DICT_6X6_250 --out cam1.yaml
+  cubetrack calibrate-intrinsics --camera usb:0 --board 5x7 --square 0.04 --marker 0.02 \\
       --dictionary DICT_6X6_250 --out cam1.yaml
 """
 
@@ -18,12 +25,18 @@ from __future__ import annotations
 import argparse
 import re
 from pathlib import Path
+from typing import Any
 
 HELP = "intrinsics from ChArUco photos -> ROS camera_info YAML"
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    p.add_argument("images", nargs="+", type=Path, metavar="IMAGE", help="photos of the ChArUco board")
+    p.add_argument("images", nargs="*", type=Path, metavar="IMAGE", help="photos of the ChArUco board")
+    p.add_argument("--camera", metavar="URL", help="capture the views live from this camera instead (usb:0, "
+                   "v4l2:/dev/video2, http://host/stream, file:video.avi)")
+    p.add_argument("--views", type=int, default=15, metavar="N", help="with --camera: views to keep (default 15)")
+    p.add_argument("--duration", type=float, default=180.0, metavar="S",
+                   help="with --camera: stop looking after S seconds, with the views kept so far (default 180)")
     p.add_argument("--board", metavar="COLSxROWS", help="squares across x and y, e.g. 5x7")
     p.add_argument("--square", type=float, metavar="M", help="square side, metres")
     p.add_argument("--marker", type=float, metavar="M", help="marker side, metres")
@@ -45,7 +58,7 @@ def parse_board(text: str) -> tuple[int, int]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from cubetrack.calib.intrinsics import IntrinsicsParams, calibrate_intrinsics_files
+    from cubetrack.calib.intrinsics import IntrinsicsParams, calibrate_intrinsics, calibrate_intrinsics_files
     from cubetrack.core.params import params_with
     from cubetrack.core.progress import StderrProgress
     from cubetrack.io.camera_info import write_camera_info
@@ -56,7 +69,14 @@ def run(args: argparse.Namespace) -> int:
         given["squares_x"], given["squares_y"] = parse_board(args.board)
     params = params_with(IntrinsicsParams(), "board", **{k: v for k, v in given.items() if v is not None})
     name = args.camera_name or args.out.stem
-    result = calibrate_intrinsics_files(args.images, params, name, StderrProgress())
+    if bool(args.images) == bool(args.camera):
+        from cubetrack.core.errors import ConfigError
+
+        raise ConfigError("give either photos of the board or --camera URL (to capture the views live)")
+    if args.camera:
+        result = calibrate_intrinsics(_live_views(args, params), params, name)
+    else:
+        result = calibrate_intrinsics_files(args.images, params, name, StderrProgress())
     write_camera_info(result.intrinsics, args.out)
     K = result.intrinsics.K
     used = sum(v.used for v in result.views)
@@ -69,3 +89,26 @@ def run(args: argparse.Namespace) -> int:
           f"cx {K[0, 2]:.2f}  cy {K[1, 2]:.2f} px; dist {', '.join(f'{d:.4g}' for d in result.intrinsics.dist)}")
     print(f"wrote {args.out}")
     return 0
+
+
+def _live_views(args: argparse.Namespace, params: Any) -> list:
+    """Views of the board picked from ``--camera`` as it streams, a guidance line per frame on stderr."""
+    import sys
+
+    from cubetrack.calib.live_views import ViewPicker, pick_views_live
+    from cubetrack.core.errors import ConfigError
+
+    if args.views < 1 or not args.duration > 0:
+        raise ConfigError("--views must be at least 1 and --duration positive")
+    picker = ViewPicker(params, target_views=args.views)
+
+    def report(view: Any, guidance: str) -> None:
+        what = f"kept ({view.corners} corners)" if view.kept else view.reason
+        print(f"{view.name}: {what} | {guidance}", file=sys.stderr, flush=True)
+
+    try:
+        pick_views_live(args.camera, picker, args.duration, report)
+    except KeyboardInterrupt:  # enough views: Ctrl-C calibrates with those kept so far
+        print(f"stopped by Ctrl-C with {len(picker.views)} views", file=sys.stderr)
+    print(f"{len(picker.views)} views captured from {args.camera}: {picker.guidance()}", file=sys.stderr)
+    return picker.views

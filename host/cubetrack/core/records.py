@@ -163,7 +163,9 @@ class CameraHealth:
     parts) and ``reconnects`` count since the start; ``clock_offset_s`` (host minus device) and
     ``clock_drift_ppm`` from the camera's clock fit (NaN until known); ``transfer_latency_s``
     median arrival minus capture over the interval (NaN until known); ``jpeg_bytes`` the last
-    frame's size; ``last_error`` the last connection or stream error ("" if none).
+    frame's size; ``last_error`` the last connection or stream error ("" if none); ``timing`` how
+    its frames are timed and what it lacks for it, e.g. ``no clock: stamped on arrival, latency
+    ~40 ms assumed`` (:func:`cubetrack.source.timing.timing_note`; "" until known).
     """
 
     camera: str
@@ -179,6 +181,7 @@ class CameraHealth:
     transfer_latency_s: float = float("nan")
     jpeg_bytes: int = 0
     last_error: str = ""
+    timing: str = ""
 
 
 @dataclass(frozen=True, slots=True, eq=False)

@@ -45,6 +45,9 @@ class LiveStatus:
         tail = f"bad {bad} reconnects {reconnects} dropped {dropped} clock {clock}"
         if down:
             tail += " down: " + ",".join(down)
+        unclocked = [c for c, s in self.cameras.items() if s.timing.startswith("no clock")]
+        if unclocked:
+            tail += " no clock: " + ",".join(unclocked)
         parts.append(tail)
         return " | ".join(parts)
 
@@ -128,5 +131,6 @@ class HealthMeter:
             out.append(CameraHealth(name, self.clock(), s.connected, (s.frames - frames) / dt, s.frames, s.dropped,
                                     s.bad, s.reconnects, synced.offset_s if synced else math.nan,
                                     synced.drift * 1e6 if synced else math.nan,
-                                    math.nan if transfer is None else transfer, self.jpeg_bytes[name], s.last_error))
+                                    math.nan if transfer is None else transfer, self.jpeg_bytes[name], s.last_error,
+                                    s.timing))
         return out

@@ -20,7 +20,8 @@ _EOI = b"\xff\xd9"
 @dataclass(frozen=True, slots=True, eq=False)
 class MjpegPart:
     """One whole, plausible part: X-Frame (None when the server sends none), X-Timestamp in
-    seconds, the JPEG bytes and the part headers (names lower-cased)."""
+    seconds (NaN when the server sends none and the parser does not require it), the JPEG bytes
+    and the part headers (names lower-cased)."""
 
     seq: int | None
     device_time_s: float
@@ -49,12 +50,16 @@ class MjpegParser:
     cut short (a delimiter inside the declared length means the part was truncated: parsing resumes
     at that delimiter, so the next part is not lost). A part failing any check is skipped and
     counted in :attr:`bad` (reason -> count). ``boundary=None``: taken from the first ``--`` line.
+    ``require_timestamp=False``: a part without X-Timestamp is kept (NaN time) for the caller to
+    judge (a plain MJPEG device sends none); a malformed one is still skipped.
     """
 
     _SEEK, _HEADERS, _BODY, _SCAN = range(4)
 
-    def __init__(self, boundary: str | None, max_header_bytes: int = 2048, max_part_bytes: int = 4 << 20):
+    def __init__(self, boundary: str | None, max_header_bytes: int = 2048, max_part_bytes: int = 4 << 20,
+                 require_timestamp: bool = True):
         self.max_header_bytes = max_header_bytes
+        self.require_timestamp = require_timestamp
         self.max_part_bytes = max_part_bytes
         self._delim = b"--" + boundary.encode("latin-1") if boundary else None
         self._buf = bytearray()
@@ -256,14 +261,14 @@ class MjpegParser:
             self._bad("not a whole JPEG")
             return None
         stamp = headers.get("x-timestamp")
-        if stamp is None:
+        if stamp is None and self.require_timestamp:
             self._bad("no X-Timestamp")
             return None
         try:
-            device_time_s = float(stamp)
+            device_time_s = float("nan") if stamp is None else float(stamp)
         except ValueError:
             device_time_s = float("nan")
-        if not (math.isfinite(device_time_s) and device_time_s >= 0):
+        if stamp is not None and not (math.isfinite(device_time_s) and device_time_s >= 0):
             self._bad("bad X-Timestamp")
             return None
         seq_text = headers.get("x-frame")

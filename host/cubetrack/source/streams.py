@@ -28,6 +28,7 @@ each one matters).
 from __future__ import annotations
 
 import logging
+import math
 import re
 import selectors
 import socket
@@ -37,12 +38,13 @@ from collections import Counter, deque
 from collections.abc import Callable, Iterable, Mapping
 from dataclasses import dataclass, field, replace
 from typing import Any, cast
-from urllib.parse import urlsplit
 
 from cubetrack.core.cameras import ClockSample
 from cubetrack.core.errors import ConfigError, SourceError
 from cubetrack.core.params import check, check_at_least, check_positive, param
 from cubetrack.core.records import Frame
+from cubetrack.source.camera_url import parse_camera_url
+from cubetrack.source.capture import CaptureReader, CaptureSettings, CaptureTaps
 from cubetrack.source.http_get import HttpError, HttpGet
 from cubetrack.source.mjpeg import MjpegParser, boundary_from_content_type
 from cubetrack.source.reasons import (
@@ -54,6 +56,7 @@ from cubetrack.source.reasons import (
     timeout_reason,
 )
 from cubetrack.source.time_poll import _ClockPoll, time_url
+from cubetrack.source.timing import CameraTiming, declared_sample, timing_note
 
 log = logging.getLogger(__name__)
 
@@ -75,12 +78,24 @@ class SourceParams:
     max_header_bytes: int = param(2048, "a part whose headers are longer than this is skipped, bytes")
     max_part_bytes: int = param(4 * 1024 * 1024, "a part whose JPEG is larger than this is skipped, bytes")
     read_chunk_bytes: int = param(65536, "largest single socket read, bytes")
+    arrival_latency_s: float = param(0.0, "capture -> arrival time assumed for a camera without a clock (a plain "
+                                          "MJPEG device, RTSP, a capture device without driver timestamps): its "
+                                          "frames are stamped this long before they arrived, seconds")
+    capture_jpeg_quality: int = param(90, "JPEG quality (1..100) frames of usb:/v4l2:/rtsp:/file: cameras are "
+                                          "encoded at (grayscale)")
 
     def __post_init__(self) -> None:
         check_positive(self, "connect_timeout_s", "read_timeout_s", "backoff_initial_s", "backoff_max_s",
                        "clock_period_s", "clock_timeout_s", unit="seconds")
         check(self.backoff_max_s >= self.backoff_initial_s, "backoff_max_s must not be below backoff_initial_s")
         check_at_least(self, 1, "frames_per_camera", "max_header_bytes", "max_part_bytes", "read_chunk_bytes")
+        check(0.0 <= self.arrival_latency_s < 10.0, "arrival_latency_s must be in [0, 10) seconds")
+        check(1 <= self.capture_jpeg_quality <= 100, "capture_jpeg_quality must be in 1..100")
+
+    def capture_settings(self) -> CaptureSettings:
+        """What a VideoCapture camera's reader takes of these."""
+        return CaptureSettings(self.arrival_latency_s, self.capture_jpeg_quality, self.clock_period_s,
+                               self.backoff_initial_s, self.backoff_max_s)
 
 
 # --- the live cameras ------------------------------------------------------------------------
@@ -110,6 +125,8 @@ class CameraStats:
     clock_failures: Counter = field(default_factory=Counter)  # reason -> count
     last_round_trip_s: float = float("nan")
     last_error: str = ""
+    timing: str = ""  # how its frames are timed and what it lacks (cubetrack.source.timing.timing_note)
+    unstamped: int = 0  # frames without X-Timestamp given up before the camera was known to have no clock
 
     @property
     def bad(self) -> int:
@@ -126,6 +143,7 @@ class _StreamEnded(Exception):
 
 _STREAM, _CLOCK, _WAKE = "stream", "clock", "wake"
 READS_PER_EVENT = 4  # reads of one ready stream before the loop turns to the others
+NO_TIME_STATUSES = frozenset({400, 401, 403, 404, 405, 501})  # /time answered so: the device has no /time
 
 
 @dataclass(slots=True, eq=False)
@@ -146,6 +164,8 @@ class _Camera:
     reported: Counter = field(default_factory=Counter)  # bad parts already counted in the stats
     poll: _ClockPoll | None = None
     poll_at: float = 0.0
+    timing: CameraTiming = CameraTiming.UNKNOWN
+    clock_failed: bool = False  # a /time round trip failed (no answer): with unstamped parts, no clock
 
 
 class LiveCameras:
@@ -177,11 +197,7 @@ class LiveCameras:
             urls = {c.name: c.url for c in cast(Iterable[Any], cameras)}  # records with name and url
         if not urls:
             raise ConfigError("no cameras to read")
-        for name, url in urls.items():
-            u = urlsplit(url)
-            if u.scheme != "http" or not u.hostname:
-                raise ConfigError(f"camera {name}: url {url!r} is not an http:// stream URL "
-                                  "(like http://192.168.1.21/stream)")
+        specs = {name: parse_camera_url(name, url) for name, url in urls.items()}
         self.urls = urls
         self.params = params
         self.on_frame = on_frame
@@ -199,7 +215,10 @@ class LiveCameras:
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self._cameras = [_Camera(name, url, time_url(url), backoff=params.backoff_initial_s)
-                         for name, url in urls.items()]
+                         for name, url in urls.items() if not specs[name].captured]
+        taps = CaptureTaps(self._put_captured, self._put_clock, self._count)
+        self._captures = [CaptureReader(name, spec, params.capture_settings(), taps)
+                          for name, spec in specs.items() if spec.captured]
         self._selector: selectors.BaseSelector | None = None
         self._waker: tuple[socket.socket, socket.socket] | None = None
         self._next_due = 0.0
@@ -214,11 +233,18 @@ class LiveCameras:
         now = time.monotonic()
         for camera in self._cameras:
             camera.reconnect_at = camera.poll_at = now
-        if self.threaded:
+        if self.threaded or self._captures:
             self._waker = socket.socketpair()
             for s in self._waker:
                 s.setblocking(False)
             self._selector.register(self._waker[0], selectors.EVENT_READ, None)
+        try:
+            for reader in self._captures:
+                reader.start()
+        except Exception:
+            self.stop()
+            raise
+        if self.threaded:
             t = threading.Thread(target=self._run, name="cubetrack-cameras", daemon=True)
             self._threads.append(t)
             t.start()
@@ -231,6 +257,8 @@ class LiveCameras:
         self._stop.set()
         with self._cond:
             self._cond.notify_all()
+        for reader in self._captures:
+            reader.stop(timeout_s if timeout_s is not None else 2.0)
         if self._selector is None:
             return
         if not self._threads:
@@ -362,6 +390,17 @@ class LiveCameras:
         if self.wake is not None:
             self.wake()
 
+    def _put_captured(self, frame: Frame) -> None:
+        """A frame of a VideoCapture camera's thread: queued, and the event loop woken (without a
+        thread of its own, :meth:`get` waits on the selector)."""
+        self._put_frame(frame)
+        waker = self._waker
+        if waker is not None and not self.threaded:
+            try:
+                waker[1].send(b"f")
+            except OSError:  # closed by stop(), or its buffer full (the loop is woken anyway)
+                pass
+
     def _put_clock(self, camera: str, sample: ClockSample) -> None:
         if self.on_clock is not None:
             try:
@@ -440,7 +479,10 @@ class LiveCameras:
                 self._stream_lost(camera, _StreamEnded(timeout_reason(what, limit, camera.url)))
             due = min(due, camera.deadline if camera.stream is not None else camera.reconnect_at)
             if camera.poll is None and now >= camera.poll_at:
-                self._start_poll(camera, now)
+                if camera.timing is CameraTiming.ARRIVAL:
+                    self._declare(camera, now)
+                else:
+                    self._start_poll(camera, now)
             elif camera.poll is not None and now >= camera.poll.deadline:
                 self._poll_done(camera, reason="no answer", detail="timed out")
             due = min(due, camera.poll.deadline if camera.poll is not None else camera.poll_at)
@@ -503,7 +545,8 @@ class LiveCameras:
         if not ctype.lower().startswith("multipart/"):
             raise _StreamEnded(content_type_reason(ctype, camera.url))
         p = self.params
-        camera.parser = MjpegParser(boundary_from_content_type(ctype), p.max_header_bytes, p.max_part_bytes)
+        camera.parser = MjpegParser(boundary_from_content_type(ctype), p.max_header_bytes, p.max_part_bytes,
+                                    require_timestamp=False)
         camera.reported = Counter()
         self._count(camera.name, connects=1, connected=True, last_error="")
         log.info("camera %s: streaming from %s", camera.name, camera.url)
@@ -513,10 +556,38 @@ class LiveCameras:
         if parser is None:
             return
         for part in parser.feed(data):
-            camera.seq = part.seq if part.seq is not None else camera.seq + 1
-            self._put_frame(Frame(camera.name, camera.seq, part.device_time_s, arrived_s, part.jpeg))
             camera.got_frame = True
+            device_time_s = part.device_time_s
+            if camera.timing is CameraTiming.ARRIVAL:
+                device_time_s = arrived_s  # the declared clock samples put the capture before it
+            elif math.isnan(device_time_s):
+                if camera.timing is CameraTiming.NODE:
+                    parser.bad["no X-Timestamp"] += 1
+                    continue
+                if not camera.clock_failed:  # /time has not told yet: the frame cannot be placed in time
+                    self._count(camera.name, unstamped=1)
+                    continue
+                self._no_clock(camera, "its stream parts carry no X-Timestamp and /time did not answer")
+                device_time_s = arrived_s
+            camera.seq = part.seq if part.seq is not None else camera.seq + 1
+            self._put_frame(Frame(camera.name, camera.seq, device_time_s, arrived_s, part.jpeg))
         self._report_bad(camera)
+
+    def _no_clock(self, camera: _Camera, why: str) -> None:
+        """The camera has no clock (``why``): its frames are stamped on arrival from now on, and a
+        declared clock sample (the assumed latency) is queued now and every ``clock_period_s``."""
+        camera.timing = CameraTiming.ARRIVAL
+        self._poll_done(camera)
+        note = timing_note(camera.timing, self.params.arrival_latency_s)
+        log.warning("camera %s: %s: %s", camera.name, why, note)
+        self._count(camera.name, timing=note)
+        now = time.monotonic()
+        camera.poll_at = now
+        self._declare(camera, now)
+
+    def _declare(self, camera: _Camera, now: float) -> None:
+        camera.poll_at = max(camera.poll_at + self.params.clock_period_s, now)
+        self._put_clock(camera.name, declared_sample(self.clock(), self.params.arrival_latency_s))
 
     def _report_bad(self, camera: _Camera) -> None:
         if camera.parser is None:
@@ -565,12 +636,19 @@ class LiveCameras:
         except (OSError, HttpError) as exc:
             self._poll_done(camera, reason="no answer", detail=_describe(exc))
         except (ValueError, UnicodeDecodeError) as exc:
-            self._poll_done(camera, reason="garbage answer", detail=_describe(exc))
+            status = poll.get.head[0] if poll.get.head is not None else 0
+            if camera.timing is CameraTiming.UNKNOWN and status in NO_TIME_STATUSES:
+                self._no_clock(camera, f"/time answered HTTP {status}")
+            else:
+                self._poll_done(camera, reason="garbage answer", detail=_describe(exc))
         else:
             if sample is None:
                 self._loop().modify(poll.get.sock, poll.get.events, (camera, _CLOCK))
             else:
                 self._poll_done(camera)
+                if camera.timing is CameraTiming.UNKNOWN:
+                    camera.timing = CameraTiming.NODE
+                    self._count(camera.name, timing=timing_note(camera.timing))
                 self._put_clock(camera.name, sample)
 
     def _poll_done(self, camera: _Camera, reason: str = "", detail: str = "") -> None:
@@ -579,6 +657,7 @@ class LiveCameras:
             self._unregister(camera.poll.get)
             camera.poll = None
         if reason:
+            camera.clock_failed = True
             self._count(camera.name, clock_failures=Counter({reason: 1}))
             log.debug("camera %s: /time round trip failed: %s", camera.name, detail)
 

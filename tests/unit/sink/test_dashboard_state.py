@@ -106,7 +106,7 @@ def test_health_json_has_every_field_and_no_nan():
     out = health_json(health(clock_offset_s=0.5))
     assert out["clock_offset_s"] == 0.5 and out["clock_drift_ppm"] is None and out["transfer_latency_s"] is None
     assert set(out) == {"camera", "time_s", "connected", "frames_per_s", "frames", "dropped", "bad", "reconnects",
-                        "clock_offset_s", "clock_drift_ppm", "transfer_latency_s", "jpeg_bytes", "last_error"}
+                        "clock_offset_s", "clock_drift_ppm", "transfer_latency_s", "jpeg_bytes", "last_error", "timing"}
 
 
 def test_trails_cover_trail_s_and_seen_by_lists_recent_cameras(session_info):

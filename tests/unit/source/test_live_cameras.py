@@ -211,9 +211,9 @@ def test_several_cameras_are_merged_in_arrival_order(tmp_path):
     assert arrivals == sorted(arrivals)
 
 
-def test_only_http_stream_urls_are_accepted():
-    with pytest.raises(ConfigError, match="cam1"):
-        LiveCameras({"cam1": "rtsp://10.0.0.2/stream"})
+def test_unknown_camera_url_schemes_are_refused_naming_the_camera():
+    with pytest.raises(ConfigError, match="cam1.*unknown scheme 'ftp'"):
+        LiveCameras({"cam1": "ftp://10.0.0.2/stream"})
     with pytest.raises(ConfigError, match="no cameras"):
         LiveCameras({})
 

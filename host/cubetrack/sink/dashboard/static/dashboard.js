@@ -78,7 +78,7 @@ function tileFor(name) {
     el("dl", { class: "stats" },
       stat("fps", "fps"), stat("dropped", "dropped"), stat("latency", "transfer"), stat("jpeg", "JPEG"),
       stat("offset", "clock offset"), stat("drift", "drift"), stat("reconnects", "reconnects"), stat("bad", "bad parts"),
-      stat("error", "last error", true), stat("url", "url", true)));
+      stat("timing", "timing", true), stat("error", "last error", true), stat("url", "url", true)));
   const img = $("img", tile);
   img.addEventListener("load", () => { img.dataset.loading = ""; img.hidden = false; $(".frame .hint", tile).hidden = true; loadFrame(tile); });
   img.addEventListener("error", () => { img.dataset.loading = ""; });
@@ -127,6 +127,7 @@ function renderCamera(cam) {
   put("drift", fmt(h.clock_drift_ppm, 1, " ppm"));
   put("reconnects", h.reconnects === undefined ? "–" : String(h.reconnects));
   put("bad", h.bad === undefined ? "–" : String(h.bad));
+  put("timing", h.timing || "–");
   put("error", h.last_error || "–");
   put("url", cam.url || "–");
   setFrame(cam.name, cam.view);
