@@ -477,9 +477,10 @@ class CameraWatch:
             if estimate is None:
                 found = None, []
             else:
-                found = estimate.T_world_cube, sighting_corner_sets(sighting, match_faces(
-                    sighting.detections, layout, sighting.intrinsics, sighting.T_world_cam, estimate.T_world_cube,
-                    gate_px=self.params.gate_px))
+                matches = match_faces(sighting.detections, layout, sighting.intrinsics, sighting.T_world_cam,
+                                      estimate.T_world_cube, gate_px=self.params.gate_px)
+                found = estimate.T_world_cube, sighting_corner_sets(matches, sighting.intrinsics, sighting.T_world_cam,
+                                                                    sighting.camera, sighting.capture_time_s)
             self._sets[key] = found
         return found
 
