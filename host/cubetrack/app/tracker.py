@@ -18,6 +18,7 @@ from typing import Protocol
 import cv2
 import numpy as np
 
+from cubetrack.calib.recalibrate import WatchedFusion
 from cubetrack.core.cameras import CameraExtrinsics, CameraIntrinsics, ClockSample, WorldConfig
 from cubetrack.core.errors import ConfigError, ImageError
 from cubetrack.core.geometry import invert_T, transform_points
@@ -28,6 +29,7 @@ from cubetrack.estimate.match import body_detections
 from cubetrack.estimate.params import EstimatorParams
 from cubetrack.estimate.pose import estimate_cube, world_marker_pose
 from cubetrack.fuse.base import Fusion
+from cubetrack.fuse.camera_watch import WatchParams
 from cubetrack.fuse.corner_filter import FilterParams
 from cubetrack.fuse.fusion import FilterFusion, FusionMethod, FusionParams, LatestEstimateFusion
 from cubetrack.io.config import RobotConfig, TrackerConfig
@@ -101,6 +103,7 @@ class StageParams:
     fusion: FusionParams = field(default_factory=FusionParams)
     filter: FilterParams = field(default_factory=FilterParams)
     track: TrackParams = field(default_factory=TrackParams)
+    camera_watch: WatchParams = field(default_factory=WatchParams)
 
     @classmethod
     def from_config(cls, config: TrackerConfig) -> StageParams:
@@ -262,6 +265,9 @@ class Tracker:
                                        params.estimator)
         else:
             self.fusion = LatestEstimateFusion(params.fusion)
+        if params.camera_watch.enabled and self.T_world_cam:  # docs/calibration.md, "Watching the cameras"
+            self.fusion = WatchedFusion(self.fusion, {r.name: r.layout for r in robots}, self.T_world_cam,
+                                        params.camera_watch, params.estimator)
         self.clocks = {name: ClockSync() for name in intrinsics}
         self.synced_cameras = synced_cameras
         self.held: dict[str, deque[Frame]] = {}  # frames waiting for their camera's first round trip

@@ -68,8 +68,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
             kwargs["action"] = argparse.BooleanOptionalAction
         elif typing.get_origin(hint) is tuple:
             assert isinstance(default, tuple)  # a tuple field's default
-            kwargs.update(type=float, nargs=len(default) if f.name != "distortion" else "+",
-                          metavar="X")
+            item = typing.get_args(hint)[0]
+            kwargs.update(type=item, nargs=len(default) if default and f.name != "distortion" else "+",
+                          metavar=_metavar(f.name, item))
         elif f.name == "path":
             kwargs.update(choices=PATHS)
         else:
@@ -94,7 +95,7 @@ def _metavar(name: str, hint: typing.Any) -> str:
 
 def _show(value: typing.Any) -> str:
     if isinstance(value, tuple):
-        return " ".join(f"{v:g}" for v in value)
+        return " ".join(f"{v:g}" for v in value) or "none"
     if isinstance(value, bool):
         return "on" if value else "off"
     if isinstance(value, float):

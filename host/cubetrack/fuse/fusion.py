@@ -34,6 +34,7 @@ import enum
 import logging
 import math
 from collections import Counter
+from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 
 import cv2
@@ -45,7 +46,7 @@ from cubetrack.core.geometry import invert_T, mean_rotation, quat_xyzw_from_R
 from cubetrack.core.layout import CubeLayout
 from cubetrack.core.params import check, check_at_least, check_non_negative, check_positive, param
 from cubetrack.core.records import CameraEstimate, CubeSighting, TrackedPose
-from cubetrack.estimate.match import match_faces
+from cubetrack.estimate.match import FaceMatch, match_faces
 from cubetrack.estimate.params import EstimatorParams
 from cubetrack.estimate.pose import estimate_cube
 from cubetrack.estimate.reprojection import CornerSet, corner_set
@@ -212,6 +213,23 @@ def pose_record(sighting: CubeSighting, f: PoseFilter, now_s: float, cameras: tu
                        markers=markers, latency_s=max(0.0, now_s - f.time_s), velocity_m_s=f.velocity_m_s.copy(),
                        angular_velocity_rad_s=f.angular_velocity_rad_s.copy(), covariance=f.pose_covariance,
                        arrival_latency_s=max(0.0, now_s - sighting.arrival_time_s))
+
+
+def sighting_corner_sets(matches: Sequence[FaceMatch], intrinsics: CameraIntrinsics, T_world_cam: np.ndarray,
+                         camera: str, time_s: float) -> list[CornerSet]:
+    """A camera frame's matched faces as corner sets: one, taken at its capture time ``time_s``;
+    under a rolling shutter (the camera's ``readout_s``) one per face, taken when the rows of its
+    corners were (their mean row's time); none when nothing matched."""
+    if not matches:
+        return []
+    if intrinsics.readout_s <= 0:
+        sets = [corner_set(matches, intrinsics, T_world_cam, camera, time_s)]
+    else:
+        row_s, middle = intrinsics.readout_s / intrinsics.height, (intrinsics.height - 1) / 2.0
+        sets = [corner_set((m,), intrinsics, T_world_cam, camera,
+                           time_s + (float(m.detection.corners_px[:, 1].sum()) / 4.0 - middle) * row_s)
+                for m in matches]
+    return [s for s in sets if s is not None]  # (none is: each has matches)
 
 
 @dataclass(frozen=True, slots=True)
@@ -455,15 +473,7 @@ class FilterFusion:
             gate_px += prediction_gate_px(covariance, T_world_cube, T_world_cam, intrinsics, layout)
         matches = match_faces(sighting.detections, layout, intrinsics, T_world_cam, T_world_cube,
                               gate_px=gate_px, max_view_angle_deg=self.params.max_view_angle_deg)
-        if not matches:
-            return []
-        if intrinsics.readout_s <= 0:
-            sets = [corner_set(matches, intrinsics, T_world_cam, sighting.camera, t)]
-        else:
-            row_s, middle = intrinsics.readout_s / intrinsics.height, (intrinsics.height - 1) / 2.0
-            sets = [corner_set((m,), intrinsics, T_world_cam, sighting.camera,
-                               t + (float(m.detection.corners_px[:, 1].sum()) / 4.0 - middle) * row_s) for m in matches]
-        return [s for s in sets if s is not None]  # (none is: each has matches)
+        return sighting_corner_sets(matches, intrinsics, T_world_cam, sighting.camera, t)
 
     def _apply(self, state: RobotState, history: list[HistoryStep], index: int, now_s: float,
                record: bool) -> tuple[RobotState, TrackedPose | None, str]:

@@ -9,7 +9,7 @@ of several cameras.
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -33,6 +33,27 @@ class JointSolution:
     rms_px: float
     inlier_fraction: float
     points: int
+
+
+def robust_least_squares(residuals: Callable[[np.ndarray], np.ndarray], jacobian: Callable[[np.ndarray], np.ndarray],
+                         x_scale: np.ndarray, f_scale: float, max_nfev: int
+                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """A soft-L1 least-squares fit of increments started at zero (``residuals`` in units of their
+    noise): the solution, its covariance ``(JᵀJ)⁻¹`` and the residuals there; None when the fit
+    fails or its information is singular."""
+    try:
+        result = least_squares(residuals, np.zeros(len(x_scale)), jac=jacobian, method="trf", loss="soft_l1",
+                               f_scale=f_scale, x_scale=x_scale, max_nfev=max_nfev)
+    except (ValueError, np.linalg.LinAlgError):
+        return None
+    if not np.all(np.isfinite(result.x)):
+        return None
+    J = np.asarray(result.jac)  # of residuals in units of their noise: J^T J is the information
+    try:
+        covariance = np.linalg.inv(J.T @ J)
+    except np.linalg.LinAlgError:
+        return None
+    return result.x, covariance, np.asarray(result.fun)
 
 
 def solve_joint(sets: Sequence[CornerSet], T_init: np.ndarray, t_ref_s: float,
@@ -72,22 +93,11 @@ def solve_joint(sets: Sequence[CornerSet], T_init: np.ndarray, t_ref_s: float,
             J = np.vstack([J, prior])
         return J
 
-    f_scale = f_scale_px / corner_noise_px
-    try:
-        result = least_squares(residuals, np.zeros(n), jac=jacobian, method="trf", loss="soft_l1",
-                               f_scale=f_scale, x_scale=np.full(n, 0.01), max_nfev=80)
-    except (ValueError, np.linalg.LinAlgError):
+    solved = robust_least_squares(residuals, jacobian, np.full(n, 0.01), f_scale_px / corner_noise_px, 80)
+    if solved is None:
         return None
-    if not np.all(np.isfinite(result.x)):
-        return None
-    # of residuals in units of corner_noise_px (dense: finite differences): J^T J is the information
-    J = np.asarray(result.jac)
-    try:
-        covariance = np.linalg.inv(J.T @ J)
-    except np.linalg.LinAlgError:
-        return None
-    r_px = result.fun[: 2 * n_points] * corner_noise_px
-    x = result.x
+    x, covariance, fun = solved
+    r_px = fun[: 2 * n_points] * corner_noise_px
     return JointSolution(
         T_world_cube=perturbed(T_init, x[:6]),
         velocity_m_s=x[6:9].copy() if n == 12 else np.zeros(3),

@@ -10,6 +10,7 @@ Modules: :mod:`~cubetrack.simulate.params` (the parameters; light to import),
 :mod:`~cubetrack.simulate.scenario` (arena, cameras, robot, path),
 :mod:`~cubetrack.simulate.timing` (clocks, captures, transfers, ``/time`` round trips),
 :mod:`~cubetrack.simulate.render` (the exact anti-aliased renderer),
+:mod:`~cubetrack.simulate.camera_motion` (bumped and drifting cameras),
 :mod:`~cubetrack.simulate.simulation` (writing the recording). See docs/simulation.md.
 """
 

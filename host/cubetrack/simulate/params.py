@@ -97,6 +97,17 @@ class SimulationParams:
     wobble_deg: float = param(0.0, "robot vibration: roll and pitch wobble (std each, 3-12 Hz), degrees")
     people: int = param(0, "people walking through the arena (occluders), each crossing it again and again")
     duration_s: float = param(30.0, "length of the tracking recording, seconds")
+    # --- cameras that move during the session (docs/simulation.md, "Bumped and drifting cameras")
+    bump_camera: tuple[int, ...] = param((), "bumped cameras: one camera number (1..cameras) per bump")
+    bump_at_s: tuple[float, ...] = param((), "time of each bump after the recording's start (one per bump_camera), "
+                                             "seconds")
+    bump_step_m: float = param(0.02, "translation of each bump (random direction), metres")
+    bump_turn_deg: float = param(1.0, "rotation of each bump about the camera's optical centre (random axis), "
+                                      "degrees")
+    drift_camera: int = param(0, "camera number (1..cameras) that drifts from the start (0: none)")
+    drift_mm_per_min: float = param(0.0, "the drifting camera's translation rate (random direction), millimetres "
+                                         "per minute")
+    drift_deg_per_min: float = param(0.0, "the drifting camera's rotation rate (random axis), degrees per minute")
     # --- capture and timing
     fps: float = param(7.5, "frame rate of each camera node (on its own clock), frames per second")
     capture_jitter_s: float = param(0.002, "random jitter of each capture time (std), seconds")
@@ -140,7 +151,8 @@ class SimulationParams:
                            "vignetting", "start_unix_s", "principal_offset_px", "focal_spread", "readout_ms",
                            "info_focal_error", "info_principal_error_px", "info_k1_error", "marker_shift_mm",
                            "marker_turn_deg", "marker_undersize", "face_tilt_deg", "floor_bumps_mm", "bounce_mm",
-                           "wobble_deg", "exposure_steps_per_s", "exposure_step")
+                           "wobble_deg", "exposure_steps_per_s", "exposure_step", "bump_step_m", "bump_turn_deg",
+                           "drift_mm_per_min", "drift_deg_per_min")
         check_between(self, 0, 1, "spike_rate", "slow_rtt_rate", "vignetting", "face_shading")
         check(0 <= self.drop_rate < 1, f"drop_rate must be at least 0 and below 1, got {self.drop_rate}")
         check_between(self, 0, 8, "people")
@@ -160,6 +172,18 @@ class SimulationParams:
         check(16 <= self.image_width_px <= 4096 and 16 <= self.image_height_px <= 4096,
               f"image size must be 16..4096 pixels per side, got {self.image_width_px} x {self.image_height_px}")
         self._check_geometry()
+        self._check_camera_motion()
+
+    def _check_camera_motion(self) -> None:
+        """Bumps name existing cameras, one time each, within the recording; a drift names a camera."""
+        check(len(self.bump_at_s) == len(self.bump_camera),
+              f"bump_at_s needs one time per bumped camera ({len(self.bump_camera)}), got {len(self.bump_at_s)}")
+        for camera in self.bump_camera:
+            check(1 <= camera <= self.cameras, f"bump_camera {camera} is not a camera number 1..{self.cameras}")
+        for at in self.bump_at_s:
+            check(0 <= at <= self.duration_s, f"bump_at_s {at} must lie within the recording (0..{self.duration_s} s)")
+        check(0 <= self.drift_camera <= self.cameras,
+              f"drift_camera must be 0 (none) or a camera number 1..{self.cameras}, got {self.drift_camera}")
 
     def _check_geometry(self) -> None:
         """What the scene's parts need of each other: lens, cube, robot, path, ids, clocks, cameras."""

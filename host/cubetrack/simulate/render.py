@@ -32,6 +32,7 @@ blur, noise and quantisation.
 
 from __future__ import annotations
 
+import copy
 import math
 from dataclasses import dataclass
 from functools import lru_cache
@@ -218,6 +219,14 @@ class View:
         self.canvas_size = (int(hi[0] - lo[0]), int(hi[1] - lo[1]))
         self.map_x = (ideal_s[..., 0] - lo[0]).astype(np.float32)
         self.map_y = (ideal_s[..., 1] - lo[1]).astype(np.float32)
+
+    def moved(self, T_world_cam: np.ndarray) -> View:
+        """The same camera at another pose (the distortion maps, which depend on the lens only, are shared)."""
+        view = copy.copy(self)
+        view.T_world_cam = np.asarray(T_world_cam, float)
+        view.T_cam_world = invert_T(view.T_world_cam)
+        view.position_world = view.T_world_cam[:3, 3].copy()
+        return view
 
     def project(self, points_world: np.ndarray) -> np.ndarray:
         """(N, 2) pixel positions (with distortion) of world points; points must be in front."""

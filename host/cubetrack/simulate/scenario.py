@@ -22,6 +22,7 @@ from cubetrack.core.cameras import CameraIntrinsics, WorldConfig
 from cubetrack.core.errors import SimulationError
 from cubetrack.core.geometry import invert_T, make_T, transform_points
 from cubetrack.core.layout import CubeLayout, paper_cube_layout
+from cubetrack.simulate.camera_motion import CameraMotion, plan_camera_motions
 from cubetrack.simulate.imperfections import built_layout, calibrated_intrinsics, true_intrinsics
 from cubetrack.simulate.motion import (
     PERSON_BODY_M,
@@ -60,7 +61,7 @@ LIGHT_ELEVATION_DEG = 50.0  # the directional light of face_shading comes from t
 (STREAM_SCENE, STREAM_CLOCK, STREAM_TIMING, STREAM_SYNC, STREAM_IMAGE, STREAM_GAIN,
  STREAM_CAL_TIMING, STREAM_CAL_SYNC, STREAM_CAL_IMAGE, STREAM_CAL_GAIN,
  STREAM_LENS, STREAM_INFO, STREAM_BUILD, STREAM_FLOOR, STREAM_VIBRATION, STREAM_PATH, STREAM_PEOPLE,
- STREAM_EXPOSURE, STREAM_CAL_EXPOSURE, STREAM_LIGHT) = range(20)
+ STREAM_EXPOSURE, STREAM_CAL_EXPOSURE, STREAM_LIGHT, STREAM_CAMERA_MOTION) = range(21)
 
 
 def rng_for(seed: int, purpose: int, index: int = 0) -> np.random.Generator:
@@ -82,6 +83,11 @@ class CameraSetup:
     light_direction_rad: float
     camera_info: CameraIntrinsics
     readout_s: float = 0.0
+    motion: CameraMotion = CameraMotion()
+
+    def T_world_cam_at(self, t_s: float) -> np.ndarray:
+        """The camera's true pose ``t_s`` seconds after the recording's start (bumps and drift included)."""
+        return self.motion.T_world_cam(self.T_world_cam, t_s) if not self.motion.still else self.T_world_cam.copy()
 
     @property
     def row_s(self) -> float:
@@ -263,6 +269,9 @@ def build_scene(p: SimulationParams) -> Scene:
         robots.append(SimRobot(p.robot_names[k], layout, path,
                                built_layout(layout, p, rng_for(p.seed, STREAM_BUILD, k)), terrain))
     cameras = []
+    motions = plan_camera_motions(p.cameras, p.bump_camera, p.bump_at_s, p.bump_step_m, p.bump_turn_deg,
+                                  p.drift_camera, p.drift_mm_per_min, p.drift_deg_per_min,
+                                  [rng_for(p.seed, STREAM_CAMERA_MOTION, k) for k in range(len(p.bump_camera) + 1)])
     for i in range(p.cameras):
         name = f"cam{i + 1}"
         azimuth = math.radians(-75.0) + 2.0 * math.pi * i / p.cameras
@@ -275,7 +284,8 @@ def build_scene(p: SimulationParams) -> Scene:
         # the tracker is told the readout too (the sensor mode's datasheet value: exact)
         info = replace(calibrated_intrinsics(intrinsics, p, rng_for(p.seed, STREAM_INFO, i)),
                        readout_s=1e-3 * p.readout_ms)
-        cameras.append(CameraSetup(name, intrinsics, T_world_cam, clock, phase, light, info, 1e-3 * p.readout_ms))
+        cameras.append(CameraSetup(name, intrinsics, T_world_cam, clock, phase, light, info, 1e-3 * p.readout_ms,
+                                   motions[i]))
     for marker_id in sorted({p.world_marker_id, *(i for r in robots for i in r.layout.ids)}):
         MarkerTexture(p.dictionary, marker_id).cells  # noqa: B018 (unknown dictionary or id: SimulationError)
     light_world = None

@@ -7,6 +7,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+import threading
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from pathlib import Path
@@ -24,6 +25,7 @@ from cubetrack.io.camera_info import write_camera_info
 from cubetrack.io.config import CameraConfig, tracker_config_to_table, write_extrinsics, write_toml
 from cubetrack.io.recording import CameraEntry, RecordingWriter
 from cubetrack.io.trajectory import Trajectory, write_tum
+from cubetrack.simulate.camera_motion import CameraMotion
 from cubetrack.simulate.imperfections import auto_exposure_gains
 from cubetrack.simulate.motion import PERSON_SPEED_M_S
 from cubetrack.simulate.params import SimulationParams
@@ -59,6 +61,8 @@ GROUND_TRUTH_DIR = "ground_truth"  # with several robots: ground_truth/<robot>.t
 _GAP_BEFORE_RECORDING_S = 20.0  # the calibration recording ends this long before the tracking one
 _MAX_STEP_PX = 0.5    # rolling shutter: the robot moves at most this far between two rendered instants
 _PROBE_S = 0.005      # ... as measured from its projection at instants this far apart
+_KEEP_RENDERERS = 6   # a moving camera: renderers of its latest poses kept (each holds a supersampled canvas)
+TRUE_CAMERA_POSES_DIR = "true_camera_poses"  # <cam>.tum: each frame's true camera pose, when a camera moves
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -75,10 +79,16 @@ class SimulatedCamera:
     calibration_captures: tuple[CaptureTruth, ...]
     camera_info: CameraIntrinsics
     readout_s: float = 0.0
+    motion: CameraMotion = CameraMotion()
 
     @property
     def frames_written(self) -> int:
         return sum(c.delivered for c in self.captures)
+
+    def T_world_cam_at(self, t_s: float) -> np.ndarray:
+        """The camera's true pose ``t_s`` seconds after the recording's start: ``T_world_cam``
+        moved by its bumps and drift (docs/simulation.md); before the start, ``T_world_cam``."""
+        return self.motion.T_world_cam(self.T_world_cam, t_s)
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -134,6 +144,10 @@ class SimulationResult:
     def T_world_cube(self, host_time_s: float, robot: int = 0) -> np.ndarray:
         """True pose of a robot's cube frame in the world at a host (Unix) time, exact (not sampled)."""
         return self.scene.T_world_cube(host_time_s - self.params.start_unix_s, robot)
+
+    def T_world_cam_at(self, name: str, host_time_s: float) -> np.ndarray:
+        """True pose of a camera at a host (Unix) time: where a frame captured then was rendered from."""
+        return self.camera(name).T_world_cam_at(host_time_s - self.params.start_unix_s)
 
 
 def _motion_offsets_s(p: SimulationParams) -> np.ndarray:
@@ -201,17 +215,38 @@ class _FrameMaker:
         p = scene.params
         self.scene = scene
         self.renderers = renderers
+        self._moved: dict[tuple[int, tuple[int, int]], Renderer] = {}  # (camera, pose segment) -> renderer
+        self._lock = threading.Lock()
         self.light = [lighting_gain(p.image_width_px, p.image_height_px, p.light_gradient,
                                     c.light_direction_rad, p.vignetting) for c in scene.cameras]
         self.offsets = _motion_offsets_s(p)
 
+    def renderer(self, camera: int, t_s: float) -> Renderer:
+        """Camera ``camera``'s renderer for a frame ``t_s`` seconds after the start: the one built
+        at its original pose, or (a moved camera) one per piece of its pose, the last few kept."""
+        setup = self.scene.cameras[camera]
+        segment = setup.motion.segment(t_s)
+        if segment == (0, 0):
+            return self.renderers[camera]
+        with self._lock:
+            found = self._moved.get((camera, segment))
+            if found is None:
+                base = self.renderers[camera]
+                found = Renderer(base.view.moved(setup.T_world_cam_at(t_s)), self.scene.floor,
+                                 (self.scene.world_marker,))
+                mine = [key for key in self._moved if key[0] == camera]
+                for key in mine[:max(0, len(mine) - _KEEP_RENDERERS + 1)]:
+                    del self._moved[key]
+                self._moved[(camera, segment)] = found
+            return found
+
     def __call__(self, job: _FrameJob) -> bytes:
         p = self.scene.params
-        renderer = self.renderers[job.camera]
+        t = job.capture.capture_host_s - p.start_unix_s
+        renderer = self.renderer(job.camera, t) if job.moving else self.renderers[job.camera]
         if job.moving:
-            t = job.capture.capture_host_s - p.start_unix_s
             camera = self.scene.cameras[job.camera]
-            position = camera.T_world_cam[:3, 3]
+            position = renderer.view.position_world
             if camera.readout_s > 0:
                 exposure = Exposure(t, p.exposure_s, camera.row_s, camera.reference_row)
                 albedo = renderer.render_exposure(lambda ts: self.scene.moving_solids(ts, position), exposure,
@@ -343,9 +378,10 @@ def simulate(params: SimulationParams, out: str | Path, progress: Progress | Non
 
     cameras = tuple(
         SimulatedCamera(c.name, c.intrinsics, c.T_world_cam, c.clock, plans[i], cal_plans[i], c.camera_info,
-                        c.readout_s)
+                        c.readout_s, c.motion)
         for i, c in enumerate(scene.cameras)
     )
+    _write_camera_poses(out, p, cameras)
     log.info("simulated %d cameras: %d frames in %s", len(cameras), sum(c.frames_written for c in cameras), out)
     return SimulationResult(out, cal_dir, out / CONFIG_FILE, p, cameras, scene.world, ground_truths, scene)
 
@@ -418,5 +454,35 @@ def _write_session_files(out: Path, scene: Scene) -> None:
             "row_time_s": float(c.row_s),
             "reference_row": float(c.reference_row),
         }
+        if not c.motion.still:
+            truth[c.name]["motion"] = _motion_table(c.motion)
     doc = {"params": params_to_table(p), "cameras": truth}
     (out / SIMULATION_FILE).write_text(tomli_w.dumps(doc), encoding="utf-8")
+
+
+def _motion_table(motion: CameraMotion) -> dict[str, object]:
+    """simulation.toml's record of a moving camera: each bump (time after the start, world
+    translation, world rotation vector about the optical centre) and the drift's rates and axes."""
+    table: dict[str, object] = {
+        "bumps": [{"at_s": b.time_s, "translation_m": [float(v) for v in b.translation_m],
+                   "rotvec_rad": [float(v) for v in b.rotvec_rad]} for b in motion.bumps],
+        "drift_m_per_s": motion.drift_m_per_s, "drift_rad_per_s": motion.drift_rad_per_s}
+    if motion.drift_direction is not None and motion.drift_axis is not None:
+        table["drift_direction"] = [float(v) for v in motion.drift_direction]
+        table["drift_axis"] = [float(v) for v in motion.drift_axis]
+    return table
+
+
+def _write_camera_poses(out: Path, p: SimulationParams, cameras: tuple[SimulatedCamera, ...]) -> None:
+    """``true_camera_poses/<cam>.tum``: every camera's true pose (T_world_cam, TUM rows) at the
+    capture time (host clock) of each frame it delivered: the pose that frame was rendered from;
+    nothing when every camera stands still."""
+    if all(c.motion.still for c in cameras):
+        return
+    folder = out / TRUE_CAMERA_POSES_DIR
+    folder.mkdir(exist_ok=True)
+    for c in cameras:
+        times = np.array([x.capture_host_s for x in c.captures if x.delivered])
+        poses = [position_quat_from_T(c.T_world_cam_at(t - p.start_unix_s)) for t in times]
+        write_tum(Trajectory(times, np.array([q[0] for q in poses]).reshape(-1, 3),
+                             np.array([q[1] for q in poses]).reshape(-1, 4)), folder / f"{c.name}.tum")

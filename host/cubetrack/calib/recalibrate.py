@@ -1,0 +1,167 @@
+"""Re-calibrating a moved camera from the robots it tracks, while tracking goes on (issue 27).
+
+:class:`cubetrack.fuse.camera_watch.CameraWatch` notices a moved camera, sets it aside and
+gathers its sightings against the cube poses the other cameras give. :func:`recalibrate` fits
+the camera's new pose to them (the resection of :func:`cubetrack.fuse.camera_watch.refit_camera`
+over every corner gathered) and says whether it is good enough to rejoin: known to
+``rejoin_sigma_m`` / ``rejoin_sigma_deg`` and the older and newer halves of the sightings agreeing
+to ``rejoin_agree_m`` / ``rejoin_agree_deg``. :class:`WatchedFusion` puts the watcher in front
+of any fusion: it keeps a moved camera's sightings out, runs the fit on an executor (a
+background thread live, never the tracking thread; inline when none is given, as offline
+replay does, so a replay is reproducible), lets the camera back in at its new pose and gives
+the fusion that camera's sightings at that pose from then on.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from collections import Counter
+from collections.abc import Sequence
+from concurrent.futures import Executor, Future
+from dataclasses import dataclass
+
+import numpy as np
+
+from cubetrack.core.layout import CubeLayout
+from cubetrack.core.records import CubeSighting, TrackedPose
+from cubetrack.estimate.params import EstimatorParams
+from cubetrack.estimate.pose import estimate_cube
+from cubetrack.fuse.base import Fusion
+from cubetrack.fuse.camera_watch import (
+    CameraFit,
+    CameraWatch,
+    WatchEvent,
+    WatchParams,
+    WatchSample,
+    refit_camera,
+    stacked,
+)
+
+log = logging.getLogger(__name__)
+
+RETRY_GROWTH = 1.25  # a refused re-calibration is tried again once the camera has this many times the corners
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Recalibration:
+    """A moved camera's new pose: ``fit`` over all its ``sightings``; ``agree_m`` / ``agree_deg``
+    how far the fits of the older and the newer half of them are apart; ``consistent``: good
+    enough to rejoin (the thresholds of :class:`cubetrack.fuse.camera_watch.WatchParams`)."""
+
+    camera: str
+    fit: CameraFit
+    sightings: int
+    agree_m: float
+    agree_deg: float
+    consistent: bool
+
+
+def recalibrate(camera: str, samples: Sequence[WatchSample], T_world_cam_init: np.ndarray,
+                params: WatchParams) -> Recalibration | None:
+    """Fit ``camera``'s pose to its gathered samples, started from ``T_world_cam_init`` (the
+    pose the watcher's window found when it moved); None when a fit fails."""
+    if len(samples) < 4:
+        return None
+    fit = refit_camera(*stacked(samples), T_world_cam_init, params.corner_noise_px)
+    middle = len(samples) // 2
+    older = refit_camera(*stacked(samples[:middle]), T_world_cam_init, params.corner_noise_px)
+    newer = refit_camera(*stacked(samples[middle:]), T_world_cam_init, params.corner_noise_px)
+    if fit is None or older is None or newer is None:
+        return None
+    agree_m, agree_deg = older.offset_from(newer.T_world_cam)
+    consistent = (fit.sigma_m <= params.rejoin_sigma_m and fit.sigma_deg <= params.rejoin_sigma_deg
+                  and agree_m <= params.rejoin_agree_m and agree_deg <= params.rejoin_agree_deg)
+    return Recalibration(camera, fit, len(samples), agree_m, agree_deg, consistent)
+
+
+class WatchedFusion:
+    """A :class:`cubetrack.fuse.base.Fusion` behind a :class:`CameraWatch` (see the module doc).
+    ``events``: the watcher's decisions in order; ``stats``: sightings kept out while their
+    camera was set aside, re-calibrations tried and refused."""
+
+    def __init__(self, fusion: Fusion, layouts: dict[str, CubeLayout], T_world_cams: dict[str, np.ndarray],
+                 params: WatchParams, estimator_params: EstimatorParams | None = None,
+                 executor: Executor | None = None):
+        self.fusion = fusion
+        self.watch = CameraWatch(layouts, T_world_cams, params, estimator_params)
+        self.layouts = layouts
+        self.estimator_params = estimator_params or EstimatorParams()
+        self.executor = executor
+        self.stats: Counter[str] = Counter()
+        self._running: dict[str, Future[Recalibration | None]] = {}
+        self._tried: dict[str, int] = {}  # camera -> corners it had at its last refused re-calibration
+
+    @property
+    def events(self) -> list[WatchEvent]:
+        return self.watch.events
+
+    def needs_estimate(self, robot: str) -> bool:
+        return self.fusion.needs_estimate(robot)
+
+    def predicted_pose(self, robot: str, time_s: float) -> np.ndarray | None:
+        return self.fusion.predicted_pose(robot, time_s)
+
+    def flush(self, now_s: float) -> list[TrackedPose]:
+        return self.fusion.flush(now_s)
+
+    def release(self, now_s: float) -> list[TrackedPose]:
+        self._collect(now_s)
+        return self.fusion.release(now_s)
+
+    def add(self, sighting: CubeSighting, now_s: float) -> list[TrackedPose]:
+        """Watch the sighting, then fuse it unless its camera is set aside (at its new pose if
+        it was re-calibrated)."""
+        self._collect(now_s)
+        sighting = self._reposed(sighting)
+        for event in self.watch.add(sighting):
+            log.warning("%s", event.message)
+        self._start(now_s)
+        if self.watch.excluded(sighting.camera):
+            self.stats["set-aside sighting"] += 1
+            return []
+        return self.fusion.add(sighting, now_s)
+
+    def _start(self, now_s: float) -> None:
+        """Start the re-calibration of each camera that has gathered enough (again)."""
+        for camera in self.watch.ready():
+            points = self.watch.points(camera)
+            if camera in self._running or points < RETRY_GROWTH * self._tried.get(camera, 0):
+                continue
+            samples = tuple(self.watch.samples[camera])
+            start = next(e.T_world_cam for e in reversed(self.watch.events) if e.camera == camera)
+            params = self.watch.params
+            if self.executor is None:
+                self._finish(camera, recalibrate(camera, samples, start, params), now_s)
+            else:
+                self._running[camera] = self.executor.submit(recalibrate, camera, samples, start, params)
+
+    def _collect(self, now_s: float) -> None:
+        """Apply the background re-calibrations that are done."""
+        for camera, future in list(self._running.items()):
+            if future.done():
+                del self._running[camera]
+                self._finish(camera, future.result(), now_s)
+
+    def _finish(self, camera: str, result: Recalibration | None, now_s: float) -> None:
+        self.stats["re-calibration tried"] += 1
+        if result is None or not result.consistent:
+            self.stats["re-calibration refused"] += 1
+            self._tried[camera] = self.watch.points(camera)
+            return
+        self._tried.pop(camera, None)
+        event = self.watch.rejoin(camera, result.fit.T_world_cam, now_s, result.sightings)
+        log.warning("%s", event.message)
+
+    def _reposed(self, sighting: CubeSighting) -> CubeSighting:
+        """The sighting at its camera's re-calibrated pose (unchanged for a camera that never moved)."""
+        T = self.watch.T_world_cam.get(sighting.camera)
+        if T is None or np.array_equal(T, sighting.T_world_cam):
+            return sighting
+        estimate = None
+        if sighting.estimate is not None:
+            estimate = estimate_cube(sighting.detections, self.layouts[sighting.robot], sighting.intrinsics, T,
+                                     camera=sighting.camera, robot=sighting.robot, seq=sighting.seq,
+                                     capture_time_s=sighting.capture_time_s, arrival_time_s=sighting.arrival_time_s,
+                                     params=self.estimator_params)
+        return dataclasses.replace(sighting, T_world_cam=T, estimate=estimate)

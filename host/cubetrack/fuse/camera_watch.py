@@ -1,0 +1,518 @@
+"""Watching every camera against the others while tracking (issue 27): a bumped camera is
+noticed, set aside and, once re-calibrated (:mod:`cubetrack.calib.recalibrate`), let back in.
+
+For each camera, a few of its sightings a second (``samples_per_s``) are checked against the
+cube pose the OTHER cameras give at the same instant: a joint fit of their matched corners within
+``reference_span_s`` of the sighting, with the cube's velocities
+(:func:`cubetrack.fuse.multi_view_fit.solve_joint`), needing ``reference_cameras`` other cameras
+that the watcher trusts. The sighting's corners and those reference world points form a
+:class:`WatchSample`. Every ``check_every_s`` each camera's samples of the last ``window_s``
+are fitted as a camera resection (:func:`refit_camera`: the pose that best explains what this
+camera saw of points the others located) and compared with the camera's **settled pose**: the
+same fit over its samples of the ``baseline_s`` before the window (refitted every
+``baseline_every_s``, once four times ``min_points`` corners are there). The settled pose holds
+what the calibration left between this camera and the others, so that is never taken for a
+move; a camera is therefore only judged once it has one (a few seconds after the start or after
+rejoining). The camera is **moved** when
+
+- the window's pose moves the camera's corners by more than ``moved_px`` (RMS over the window's
+  points) against the settled pose,
+- and it is more than ``moved_m`` or ``moved_deg`` away from it (the fit keeps the pose near the
+  settled one by a prior of ``WINDOW_PRIOR_M`` and ``WINDOW_PRIOR_DEG``: a window of points
+  bunched in one spot leaves a translation and a rotation that mimic each other free),
+- and it explains the window ``moved_ratio`` (4) times better than the settled pose (median corner
+  residual: a rigid move of the camera explains what it sees; references that disagree among
+  themselves, as where real calibrations are off by several pixels, do not),
+- and each half of the window is explained better by the window's pose than by the settled one,
+  by more than half ``moved_px`` (median corner residual: a consistent offset, not a few bad
+  references).
+
+A moved camera spoils the references it takes part in, so its partners' windows shift too (with
+three cameras, about as much as its own). Of the cameras whose window says moved, the one declared
+is the one that disagreed most with the others inside the reference fits it took part in over the
+window (the median corner residual of its sets there); if that camera's own window does not say
+moved, none is declared yet. Then every camera's window restarts. A moved camera is set aside
+(:meth:`CameraWatch.excluded`: its sightings leave the fusion, and it serves nobody as a
+reference) and its samples are gathered for its re-calibration until :meth:`CameraWatch.rejoin`.
+Offsets under the thresholds (what a calibration leaves, a slow drift's first millimetres) are
+not this module's business: they are the per-camera pose bias the filter follows (docs/tracking.md).
+
+Pure: sightings in, events out; no clock, no thread (the re-calibration fit is the caller's to
+run in the background).
+"""
+
+from __future__ import annotations
+
+import enum
+import math
+from collections import Counter, deque
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import numpy as np
+
+from cubetrack.core.geometry import rotation_angle, so3_left_jacobian, transform_points
+from cubetrack.core.layout import CubeLayout
+from cubetrack.core.params import check, check_at_least, check_positive, param
+from cubetrack.core.records import CubeSighting
+from cubetrack.estimate.match import match_faces
+from cubetrack.estimate.params import EstimatorParams
+from cubetrack.estimate.pose import estimate_cube
+from cubetrack.estimate.reprojection import CornerSet, moved_pose, perturbed, reprojection_residuals_px
+from cubetrack.fuse.fusion import sighting_corner_sets
+from cubetrack.fuse.multi_view_fit import robust_least_squares, solve_joint
+
+
+@dataclass(frozen=True, slots=True)
+class WatchParams:
+    """The ``[camera_watch]`` section of the tracker config (docs/calibration.md, "Watching the cameras")."""
+
+    enabled: bool = param(False, "watch every camera against the others while tracking; set a moved one aside and "
+                                 "re-calibrate it from the robots' sightings")
+    samples_per_s: float = param(8.0, "sightings per camera and second checked against the other cameras (the "
+                                      "rest are not: each check is a multi-camera fit)")
+    reference_span_s: float = param(0.15, "the other cameras' sightings within this many seconds of a checked "
+                                          "one form its reference cube pose, seconds")
+    reference_cameras: int = param(2, "other cameras that must see the cube for a reference (one alone is weak in "
+                                      "depth: the watcher then says so and waits)")
+    reference_rms_px: float = param(3.0, "a reference fit with a larger RMS corner residual is not used, pixels")
+    window_s: float = param(2.0, "sliding window of a camera's checked sightings, seconds")
+    check_every_s: float = param(0.5, "how often each camera's window is fitted, seconds")
+    min_points: int = param(40, "corners a window needs before it can declare a camera moved")
+    baseline_s: float = param(30.0, "a camera's settled pose (what a window is compared with) is fitted to its "
+                                    "checked sightings of this many seconds before the window, seconds")
+    baseline_every_s: float = param(5.0, "how often the settled pose is fitted again, seconds")
+    moved_px: float = param(5.0, "moved: the refitted pose moves the camera's corners by more than this (RMS), "
+                                 "pixels")
+    moved_ratio: float = param(4.0, "moved: ... and the window's pose explains the window this many times better "
+                                    "(median corner residual) than the settled pose")
+    moved_m: float = param(0.01, "moved: ... and the camera is more than this far from its pose, metres")
+    moved_deg: float = param(0.5, "moved: ... or turned by more than this, degrees")
+    rejoin_points: int = param(400, "corners gathered since a camera moved before its re-calibration is tried")
+    rejoin_sigma_m: float = param(0.002, "a re-calibrated pose rejoins when its position is known to this "
+                                         "(standard deviation), metres")
+    rejoin_sigma_deg: float = param(0.05, "... and its orientation to this (standard deviation), degrees")
+    rejoin_agree_m: float = param(0.004, "... and the fits of the older and the newer half of its sightings agree "
+                                         "to this, metres")
+    rejoin_agree_deg: float = param(0.1, "... and to this, degrees")
+    corner_noise_px: float = param(0.5, "corner noise the fits assume (scales their uncertainty), pixels")
+    gate_px: float = param(12.0, "a sighting's detections are matched to faces within this of where its own "
+                                 "camera's cube pose projects them, pixels")
+
+    def __post_init__(self) -> None:
+        check_positive(self, "baseline_s", "baseline_every_s", "samples_per_s", "reference_span_s",
+                       "reference_rms_px", "window_s", "check_every_s", "moved_px", "moved_ratio", "moved_m",
+                       "moved_deg", "rejoin_sigma_m", "rejoin_sigma_deg", "rejoin_agree_m", "rejoin_agree_deg",
+                       "corner_noise_px", "gate_px")
+        check_at_least(self, 1, "reference_cameras")
+        check_at_least(self, 6, "min_points", "rejoin_points")
+        check(self.check_every_s <= self.window_s,
+              f"check_every_s ({self.check_every_s}) must not exceed window_s ({self.window_s})")
+        check(self.window_s < self.baseline_s, f"window_s ({self.window_s}) must be shorter than baseline_s "
+              f"({self.baseline_s})")
+
+
+@enum.unique
+class CameraState(enum.Enum):
+    WATCHED = "watched"  # in the fusion, checked against the others
+    RECALIBRATING = "re-calibrating"  # moved: set aside, its sightings gathered for a new pose
+
+
+@enum.unique
+class EventKind(enum.Enum):
+    MOVED = "moved"
+    REJOINED = "rejoined"
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class WatchEvent:
+    """Something the watcher decided: ``camera`` ``kind`` at host time ``time_s``; ``offset_m``
+    and ``offset_deg`` how far its pose moved (moved: the window's refit against the pose it
+    had; rejoined: the new pose against the one before the move); ``T_world_cam`` the refitted
+    or new pose; ``sightings`` how many sightings the new pose comes from (rejoined)."""
+
+    kind: EventKind
+    camera: str
+    time_s: float
+    offset_m: float
+    offset_deg: float
+    T_world_cam: np.ndarray
+    sightings: int = 0
+
+    @property
+    def message(self) -> str:
+        """One line for the status line and logs."""
+        if self.kind is EventKind.MOVED:
+            return f"{self.camera} moved {100 * self.offset_m:.1f} cm / {self.offset_deg:.1f} deg; set aside"
+        return (f"{self.camera} re-calibrated from {self.sightings} sightings ({100 * self.offset_m:.1f} cm / "
+                f"{self.offset_deg:.1f} deg from its old pose); rejoined")
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class WatchSample:
+    """One checked sighting: the cube's corners where the other cameras put them
+    (``points_world_m`` (N, 3)), where this camera saw them (``normalized`` (N, 2), undistorted
+    normalised image coordinates; ``focal_px`` (N,) its focal length)."""
+
+    camera: str
+    time_s: float
+    points_world_m: np.ndarray
+    normalized: np.ndarray
+    focal_px: np.ndarray
+
+
+WINDOW_PRIOR_M = 0.05  # a window's fit: prior spread of the camera's position about its settled pose, metres
+WINDOW_PRIOR_DEG = 3.0  # ... and of its orientation, degrees
+
+
+def stacked(samples: Sequence[WatchSample]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The samples' points, normalised image points and focal lengths, one array each."""
+    return (np.concatenate([s.points_world_m for s in samples]), np.concatenate([s.normalized for s in samples]),
+            np.concatenate([s.focal_px for s in samples]))
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class CameraFit:
+    """A camera pose fitted to world points: ``T_world_cam``; ``sigma_m`` and ``sigma_deg`` the
+    largest standard deviation of its position (m) and orientation (deg, about any world axis)
+    at the given corner noise; ``rms_px`` the RMS corner residual after the fit; ``points`` how
+    many corners were used."""
+
+    T_world_cam: np.ndarray
+    sigma_m: float
+    sigma_deg: float
+    rms_px: float
+    points: int
+
+    def offset_from(self, T_world_cam: np.ndarray) -> tuple[float, float]:
+        """How far this pose is from ``T_world_cam``: the distance between the optical centres
+        (m) and the angle between the orientations (deg)."""
+        return (float(np.linalg.norm(self.T_world_cam[:3, 3] - T_world_cam[:3, 3])),
+                rotation_angle(T_world_cam[:3, :3], self.T_world_cam[:3, :3], unit="deg"))
+
+
+def residuals_px(T_world_cam: np.ndarray, points_world_m: np.ndarray, normalized: np.ndarray,
+                 focal_px: np.ndarray) -> np.ndarray:
+    """(N, 2) reprojection residuals (px) of world points seen at ``normalized`` (undistorted
+    normalised image coordinates, each point's camera focal length ``focal_px``) by a camera at
+    ``T_world_cam``. A point at or behind the camera gets a 1000 px residual."""
+    R, p = T_world_cam[:3, :3], T_world_cam[:3, 3]
+    in_cam = (points_world_m - p) @ R
+    z = in_cam[:, 2]
+    ok = z > 1e-6
+    out = np.full((len(z), 2), 1000.0)
+    out[ok] = (in_cam[ok, :2] / z[ok, None] - normalized[ok]) * focal_px[ok, None]
+    return out
+
+
+def resection_jacobian_px(T_world_cam: np.ndarray, points_world_m: np.ndarray, focal_px: np.ndarray) -> np.ndarray:
+    """(2N, 6) derivative of :func:`residuals_px` (rows u0, v0, u1, ...) by a world-frame
+    increment ``[δp (m), δθ (rad)]`` of the camera pose (as :func:`cubetrack.estimate.reprojection.perturbed`)."""
+    R, p = T_world_cam[:3, :3], T_world_cam[:3, 3]
+    v = points_world_m - p
+    in_cam = v @ R
+    z = np.where(in_cam[:, 2] > 1e-6, in_cam[:, 2], np.inf)
+    # d(x, y, z)_cam: by δp -R^T, by δθ R^T [v]x
+    d_p = np.broadcast_to(-R.T, (len(v), 3, 3))
+    skew = np.zeros((len(v), 3, 3))
+    skew[:, 0, 1], skew[:, 0, 2], skew[:, 1, 2] = -v[:, 2], v[:, 1], -v[:, 0]
+    skew[:, 1, 0], skew[:, 2, 0], skew[:, 2, 1] = v[:, 2], -v[:, 1], v[:, 0]
+    d_theta = R.T[None] @ skew
+    d_cam = np.concatenate([d_p, d_theta], axis=2)  # (N, 3, 6)
+    proj = np.zeros((len(v), 2, 3))
+    proj[:, 0, 0] = proj[:, 1, 1] = focal_px / z
+    proj[:, 0, 2] = -focal_px * in_cam[:, 0] / z**2
+    proj[:, 1, 2] = -focal_px * in_cam[:, 1] / z**2
+    return (proj @ d_cam).reshape(-1, 6)
+
+
+def refit_camera(points_world_m: np.ndarray, normalized: np.ndarray, focal_px: np.ndarray,
+                 T_world_cam_init: np.ndarray, corner_noise_px: float = 0.5,
+                 f_scale_px: float = 2.0, prior_sigma: tuple[float, float] | None = None) -> CameraFit | None:
+    """The camera pose that best explains ``normalized`` (N, 2) as images of ``points_world_m``
+    (N, 3), started from ``T_world_cam_init``; None with fewer than six points or when the fit
+    fails. ``corner_noise_px`` scales the covariance; ``f_scale_px`` is the robust loss's knee;
+    ``prior_sigma`` (m, rad): a Gaussian prior keeping the pose near ``T_world_cam_init`` (a
+    window of points bunched in one spot leaves a translation and a rotation that mimic each
+    other free)."""
+    X = np.asarray(points_world_m, float).reshape(-1, 3)
+    uv = np.asarray(normalized, float).reshape(-1, 2)
+    f = np.broadcast_to(np.asarray(focal_px, float), (len(X),))
+    if len(X) < 6:
+        return None
+    T0 = np.asarray(T_world_cam_init, float)
+
+    prior = np.zeros(0) if prior_sigma is None else np.repeat(1.0 / np.asarray(prior_sigma, float), 3)
+
+    def fun(x: np.ndarray) -> np.ndarray:
+        return np.concatenate([residuals_px(perturbed(T0, x), X, uv, f).ravel() / corner_noise_px, x * prior
+                               if len(prior) else prior])
+
+    def jac(x: np.ndarray) -> np.ndarray:
+        J = resection_jacobian_px(perturbed(T0, x), X, f)
+        J[:, 3:6] = J[:, 3:6] @ so3_left_jacobian(x[3:6])  # x holds a finite rotation increment
+        return np.vstack([J / corner_noise_px, np.diag(prior)]) if len(prior) else J / corner_noise_px
+
+    solved = robust_least_squares(fun, jac, np.array([0.01, 0.01, 0.01, 0.002, 0.002, 0.002]),
+                                  f_scale_px / corner_noise_px, 60)
+    if solved is None:
+        return None
+    x, covariance, _ = solved
+    T = perturbed(T0, x)
+    r = residuals_px(T, X, uv, f)
+    sigma_m = math.sqrt(max(float(np.linalg.eigvalsh(covariance[:3, :3]).max()), 0.0))
+    sigma_rad = math.sqrt(max(float(np.linalg.eigvalsh(covariance[3:, 3:]).max()), 0.0))
+    return CameraFit(T, sigma_m, math.degrees(sigma_rad), float(np.sqrt(np.mean(r**2))), len(X))
+
+
+def shift_px(fit: CameraFit, T_world_cam: np.ndarray, samples: Sequence[WatchSample]) -> float:
+    """How far (RMS, px) the refitted pose moves the samples' corners in the image against ``T_world_cam``."""
+    X, uv, f = stacked(samples)
+    moved = residuals_px(T_world_cam, X, uv, f) - residuals_px(fit.T_world_cam, X, uv, f)
+    return float(np.sqrt(np.mean(np.sum(moved**2, axis=1))))
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class Verdict:
+    """A window's fit against the pose in use: the fit, its corner shift (px, RMS) and offset
+    (m, deg), and whether the camera moved by the thresholds (both halves agreeing)."""
+
+    fit: CameraFit
+    shift_px: float
+    offset_m: float
+    offset_deg: float
+    moved: bool
+
+
+def median_residuals_px(fit: CameraFit, T_world_cam: np.ndarray, samples: Sequence[WatchSample]
+                        ) -> tuple[float, float]:
+    """The samples' median corner residual (px) against ``T_world_cam`` and against the refitted pose."""
+    X, uv, f = stacked(samples)
+    before = np.linalg.norm(residuals_px(T_world_cam, X, uv, f), axis=1)
+    after = np.linalg.norm(residuals_px(fit.T_world_cam, X, uv, f), axis=1)
+    return float(np.median(before)), float(np.median(after))
+
+
+def improvement_px(fit: CameraFit, T_world_cam: np.ndarray, samples: Sequence[WatchSample]) -> float:
+    """How much better the refitted pose explains the samples than ``T_world_cam``: the median
+    corner residual (px) against the one minus that against the other."""
+    before, after = median_residuals_px(fit, T_world_cam, samples)
+    return before - after
+
+
+def window_verdict(samples: Sequence[WatchSample], T_world_cam: np.ndarray, params: WatchParams) -> Verdict | None:
+    """Fit a camera's window of samples against its settled pose ``T_world_cam`` and judge it
+    (see the module doc); None when the window holds under ``min_points`` corners or the fit fails."""
+    if sum(len(s.points_world_m) for s in samples) < params.min_points:
+        return None
+    fit = refit_camera(*stacked(samples), T_world_cam, params.corner_noise_px,
+                       prior_sigma=(WINDOW_PRIOR_M, math.radians(WINDOW_PRIOR_DEG)))
+    if fit is None:
+        return None
+    shift = shift_px(fit, T_world_cam, samples)
+    off_m, off_deg = fit.offset_from(T_world_cam)
+    before, after = median_residuals_px(fit, T_world_cam, samples)
+    moved = (shift > params.moved_px and (off_m > params.moved_m or off_deg > params.moved_deg)
+             and before >= params.moved_ratio * after)
+    if moved:  # consistent: each half on its own is explained much better by the new pose
+        middle = len(samples) // 2
+        moved = middle >= 2 and all(improvement_px(fit, T_world_cam, part) > params.moved_px / 2
+                                    for part in (samples[:middle], samples[middle:]))
+    return Verdict(fit, shift, off_m, off_deg, moved)
+
+
+class CameraWatch:
+    """Every camera watched against the others (see the module doc). Visible state: ``state``
+    (camera -> :class:`CameraState`), ``T_world_cam`` (camera -> the pose the tracker uses: the
+    calibrated one, or the re-calibrated one after :meth:`rejoin`), ``settled`` (camera -> its
+    settled pose), ``samples`` (camera -> its checked sightings: the window and the settled pose's
+    span while watched, everything since the move while re-calibrating), ``moved_pose`` (camera ->
+    its settled pose when it moved), ``events`` (every decision so far) and ``stats`` (counts of
+    checked sightings and why others were not)."""
+
+    def __init__(self, layouts: dict[str, CubeLayout], T_world_cams: dict[str, np.ndarray],
+                 params: WatchParams = WatchParams(), estimator_params: EstimatorParams | None = None):
+        self.layouts = layouts
+        self.params = params
+        self.estimator_params = estimator_params or EstimatorParams()
+        self.T_world_cam = {c: np.asarray(T, float).copy() for c, T in T_world_cams.items()}
+        self.state = {c: CameraState.WATCHED for c in T_world_cams}
+        self.samples: dict[str, deque[WatchSample]] = {c: deque() for c in T_world_cams}
+        self.moved_pose: dict[str, np.ndarray] = {}
+        self.settled: dict[str, np.ndarray] = {}
+        self._next_baseline_s = -math.inf
+        self._disagreement: dict[str, deque[tuple[float, float]]] = {c: deque() for c in T_world_cams}
+        self.events: list[WatchEvent] = []
+        self.stats: Counter[str] = Counter()
+        self._recent: dict[str, deque[CubeSighting]] = {r: deque() for r in layouts}
+        self._sets: dict[tuple[str, str, int], tuple[np.ndarray | None, list[CornerSet]]] = {}
+        self._pending: deque[CubeSighting] = deque()
+        self._next_sample_s: dict[str, float] = {}
+        self._newest_s = -math.inf
+        self._next_check_s = -math.inf
+
+    def excluded(self, camera: str) -> bool:
+        """Whether the camera's sightings must stay out of the fusion (it moved and has not rejoined)."""
+        return self.state.get(camera, CameraState.WATCHED) is not CameraState.WATCHED
+
+    def points(self, camera: str) -> int:
+        """Corners the camera's samples hold (a re-calibrating camera's progress towards ``rejoin_points``)."""
+        return sum(len(s.points_world_m) for s in self.samples.get(camera, ()))
+
+    def ready(self) -> list[str]:
+        """The re-calibrating cameras with ``rejoin_points`` corners gathered: their
+        re-calibration can be tried (:func:`cubetrack.calib.recalibrate.recalibrate`)."""
+        return [c for c, s in self.state.items()
+                if s is CameraState.RECALIBRATING and self.points(c) >= self.params.rejoin_points]
+
+    def add(self, sighting: CubeSighting) -> list[WatchEvent]:
+        """Take one sighting (any camera, any robot, in about capture order); returns the events
+        it led to (a camera declared moved)."""
+        if sighting.robot not in self.layouts or sighting.camera not in self.state:
+            return []
+        t = sighting.capture_time_s
+        self._newest_s = max(self._newest_s, t)
+        recent = self._recent[sighting.robot]
+        recent.append(sighting)
+        keep_s = 2.0 * self.params.reference_span_s + 1.0
+        while recent and recent[0].capture_time_s < self._newest_s - keep_s:
+            old = recent.popleft()
+            self._sets.pop((old.camera, old.robot, old.seq), None)
+        if t >= self._next_sample_s.get(sighting.camera, -math.inf):
+            self._pending.append(sighting)
+            self._next_sample_s[sighting.camera] = t + 1.0 / self.params.samples_per_s
+        while self._pending and self._pending[0].capture_time_s + self.params.reference_span_s <= self._newest_s:
+            sample = self._sample(self._pending.popleft())
+            if sample is not None:
+                self.samples[sample.camera].append(sample)
+        if self._newest_s < self._next_check_s:
+            return []
+        self._next_check_s = self._newest_s + self.params.check_every_s
+        return self._check(self._newest_s)
+
+    def rejoin(self, camera: str, T_world_cam: np.ndarray, time_s: float, sightings: int) -> WatchEvent:
+        """Let a re-calibrated camera back in at its new pose ``T_world_cam`` (host time ``time_s``;
+        ``sightings`` it was found from); its window restarts."""
+        before = self.moved_pose.pop(camera, self.T_world_cam[camera])
+        self.T_world_cam[camera] = np.asarray(T_world_cam, float).copy()
+        self.state[camera] = CameraState.WATCHED
+        self.samples[camera].clear()
+        self.settled.pop(camera, None)
+        fit = CameraFit(self.T_world_cam[camera], 0.0, 0.0, 0.0, 0)
+        offset_m, offset_deg = fit.offset_from(before)
+        event = WatchEvent(EventKind.REJOINED, camera, time_s, offset_m, offset_deg, self.T_world_cam[camera].copy(),
+                           sightings)
+        self.events.append(event)
+        return event
+
+    def _check(self, now_s: float) -> list[WatchEvent]:
+        """Fit every watched camera's window; declare the one :meth:`_culprit` names, if any."""
+        p = self.params
+        verdicts: dict[str, Verdict] = {}
+        baseline = now_s >= self._next_baseline_s
+        if baseline:
+            self._next_baseline_s = now_s + p.baseline_every_s
+        for camera, samples in self.samples.items():
+            if self.state[camera] is not CameraState.WATCHED:
+                continue
+            while samples and samples[0].time_s < now_s - p.window_s - p.baseline_s:
+                samples.popleft()
+            if baseline:
+                self._settle(camera, [s for s in samples if s.time_s < now_s - p.window_s])
+            if camera not in self.settled:
+                continue
+            window = [s for s in samples if s.time_s >= now_s - p.window_s]
+            verdict = window_verdict(window, self.settled[camera], p)
+            if verdict is not None:
+                verdicts[camera] = verdict
+        worst = self._culprit(verdicts, now_s)
+        if worst is None:
+            return []
+        camera, verdict = worst
+        window = [s for s in self.samples[camera] if s.time_s >= now_s - p.window_s]
+        for samples in self.samples.values():
+            samples.clear()
+        self.samples[camera].extend(window[len(window) // 2:])  # the newer half: after the move
+        self.state[camera] = CameraState.RECALIBRATING
+        self.moved_pose[camera] = self.settled.pop(camera)
+        event = WatchEvent(EventKind.MOVED, camera, now_s, verdict.offset_m, verdict.offset_deg,
+                           verdict.fit.T_world_cam.copy())
+        self.events.append(event)
+        return [event]
+
+    def _culprit(self, verdicts: dict[str, Verdict], now_s: float) -> tuple[str, Verdict] | None:
+        """The camera to declare moved, if any: of the cameras whose window says moved, the one
+        that disagreed most with the others in the references it took part in over the window
+        (a moved camera shifts its partners' windows too, through their references)."""
+        for trail in self._disagreement.values():
+            while trail and trail[0][0] < now_s - self.params.window_s:
+                trail.popleft()
+        moved = [c for c, v in verdicts.items() if v.moved]
+        if not moved:
+            return None
+        score = {c: float(np.median([d for _, d in self._disagreement[c]])) if self._disagreement[c] else 0.0
+                 for c in verdicts}
+        top = max(score, key=lambda c: score[c])
+        return (top, verdicts[top]) if top in moved else None
+
+    def _settle(self, camera: str, samples: Sequence[WatchSample]) -> None:
+        """Fit the camera's settled pose to its samples before the window, given enough of them."""
+        if sum(len(s.points_world_m) for s in samples) >= 4 * self.params.min_points:
+            start = self.settled.get(camera, self.T_world_cam[camera])
+            fit = refit_camera(*stacked(samples), start, self.params.corner_noise_px)
+            if fit is not None:
+                self.settled[camera] = fit.T_world_cam
+
+    def _corner_sets(self, sighting: CubeSighting) -> tuple[np.ndarray | None, list[CornerSet]]:
+        """The sighting's own cube pose (its camera's estimate) and its corners matched to faces
+        by it (once per sighting)."""
+        key = (sighting.camera, sighting.robot, sighting.seq)
+        found = self._sets.get(key)
+        if found is None:
+            layout = self.layouts[sighting.robot]
+            estimate = sighting.estimate or estimate_cube(
+                sighting.detections, layout, sighting.intrinsics, sighting.T_world_cam, camera=sighting.camera,
+                robot=sighting.robot, seq=sighting.seq, capture_time_s=sighting.capture_time_s,
+                arrival_time_s=sighting.arrival_time_s, params=self.estimator_params)
+            if estimate is None:
+                found = None, []
+            else:
+                matches = match_faces(sighting.detections, layout, sighting.intrinsics, sighting.T_world_cam,
+                                      estimate.T_world_cube, gate_px=self.params.gate_px)
+                found = estimate.T_world_cube, sighting_corner_sets(matches, sighting.intrinsics, sighting.T_world_cam,
+                                                                    sighting.camera, sighting.capture_time_s)
+            self._sets[key] = found
+        return found
+
+    def _sample(self, sighting: CubeSighting) -> WatchSample | None:
+        """The sighting against the other watched cameras' cube pose at its time, or None (counted)."""
+        T_own, mine = self._corner_sets(sighting)
+        if T_own is None or not mine:
+            self.stats["no cube matched"] += 1
+            return None
+        t, span = sighting.capture_time_s, self.params.reference_span_s
+        others = [s for o in self._recent[sighting.robot]
+                  if o.camera != sighting.camera and not self.excluded(o.camera) and abs(o.capture_time_s - t) <= span
+                  for s in self._corner_sets(o)[1]]
+        if len({s.camera for s in others}) < self.params.reference_cameras:
+            self.stats["too few other cameras"] += 1
+            return None
+        # started from the camera's own cube pose: off by what the camera moved, a few cm and degrees at most
+        reference = solve_joint(others, T_own, t, self.params.corner_noise_px,
+                                velocity_sigma=(1.0, 4.0))
+        if reference is None or reference.rms_px > self.params.reference_rms_px:
+            self.stats["reference fit refused"] += 1
+            return None
+        self.stats["checked"] += 1
+        r = reprojection_residuals_px(reference.T_world_cube, others, t, reference.velocity_m_s,
+                                      reference.angular_velocity_rad_s).reshape(-1, 2)
+        rows = np.cumsum([0] + [len(s.points_cube_m) for s in others])
+        for s, a, b in zip(others, rows[:-1], rows[1:], strict=True):
+            self._disagreement[s.camera].append((t, float(np.median(np.linalg.norm(r[a:b], axis=1)))))
+        points = [transform_points(moved_pose(reference.T_world_cube, reference.velocity_m_s,
+                                              reference.angular_velocity_rad_s, s.time_s - t), s.points_cube_m)
+                  for s in mine]
+        normalized = np.concatenate([s.normalized for s in mine])
+        focal = np.concatenate([np.full(len(s.normalized), s.focal_px) for s in mine])
+        return WatchSample(sighting.camera, t, np.concatenate(points), normalized, focal)
+
