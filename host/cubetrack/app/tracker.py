@@ -187,7 +187,11 @@ class FrameProcessor:
                 lens: CameraIntrinsics) -> tuple[DetectResult, FrameOutcome]:
         """Detections in the regions (cut to the image; the frame decoded only down to their lowest
         edge, ``decode_gray(rows=...)``), or in the whole frame (also when the regions find
-        nothing). ImageError: the frame does not decode."""
+        nothing). No regions at all (every robot predicted out of this camera's view): nothing to
+        search, so the frame is not decoded (a corrupt one then goes unnoticed). ImageError: the
+        frame does not decode."""
+        if regions == ():
+            return DetectResult(()), FrameOutcome.REGIONS
         if regions is not None:
             gray = decode_gray(jpeg, source, rows=max((box[3] for box in regions), default=None))
             height, width = gray.shape

@@ -202,8 +202,8 @@ def _match_by_prediction(detections: Sequence[Detection], layout: CubeLayout, in
     # facing away, or seen so obliquely that its corners are poor: not a candidate (the view
     # angle's cosine -n.c / |c|, with c twice the face's centre: its diagonal's midpoint)
     centres = corners_cam[:, 0] + corners_cam[:, 2]
-    toward = -np.einsum("ij,ij->i", layout.normals @ R_cb.T, centres)
-    visible = toward >= math.cos(math.radians(max_view_angle_deg)) * np.sqrt(np.einsum("ij,ij->i", centres, centres))
+    toward = -((layout.normals @ R_cb.T) * centres).sum(axis=1)
+    visible = toward >= math.cos(math.radians(max_view_angle_deg)) * np.sqrt((centres * centres).sum(axis=1))
     if not visible.any():
         return ()
     proj, _ = cv2.projectPoints(corners_cam.reshape(-1, 3), _ZERO3, _ZERO3, intrinsics.K, intrinsics.dist)

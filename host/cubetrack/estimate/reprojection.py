@@ -14,6 +14,7 @@ scaled by the camera's focal length, so they are in pixels.
 
 from __future__ import annotations
 
+import math
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -22,7 +23,7 @@ import cv2
 import numpy as np
 
 from cubetrack.core.cameras import CameraIntrinsics
-from cubetrack.core.geometry import R_from_rotvec, invert_T, make_T, so3_left_jacobian
+from cubetrack.core.geometry import R_from_rotvec, invert_T, make_T
 from cubetrack.core.layout import CubeLayout
 from cubetrack.core.records import Detection
 from cubetrack.estimate.match import FaceMatch, match_faces
@@ -120,10 +121,14 @@ def reprojection_residuals_px(T_world_cube: np.ndarray, sets: Sequence[CornerSet
     camera give a large residual (1000 px; a NaN one, e.g. of a corner that did not undistort,
     too)."""
     out = []
+    R0, p0 = T_world_cube[:3, :3], T_world_cube[:3, 3]
+    omega = None if angular_velocity_rad_s is None else angular_velocity_rad_s.tolist()
     for s in sets:
-        T = (moved_pose(T_world_cube, velocity_m_s, angular_velocity_rad_s, s.time_s - t_ref_s)
-             if velocity_m_s is not None and angular_velocity_rad_s is not None else T_world_cube)
-        out.append(_residuals(s, T[:3, :3], T[:3, 3])[3].ravel())
+        R, p = R0, p0
+        if velocity_m_s is not None and omega is not None:  # moving: as reprojection_jacobian_px moves it
+            dt = s.time_s - t_ref_s
+            R, p = _exp_and_left_jacobian(omega, dt)[:, :3] @ R0, p0 + velocity_m_s * dt
+        out.append(_residuals(s, R, p)[3].ravel())
     if not out:
         return np.zeros(0)
     r = out[0] if len(out) == 1 else np.concatenate(out)
@@ -137,6 +142,30 @@ _NEG_SKEW[1, 2, 0], _NEG_SKEW[1, 0, 2] = 1.0, -1.0
 _NEG_SKEW[2, 0, 1], _NEG_SKEW[2, 1, 0] = 1.0, -1.0
 _NEG_SKEW = _NEG_SKEW.reshape(3, 9)
 _NEG_SKEW.setflags(write=False)
+
+
+def _exp_and_left_jacobian(omega: list[float], dt: float) -> np.ndarray:
+    """``[Exp(ω dt) | J_l(ω dt) dt]`` (3, 6) for an angular velocity ``omega`` (rad/s, 3 floats): the
+    rotation of a body turning at ``omega`` for ``dt`` seconds and its left Jacobian times ``dt`` (the
+    chain rule to ``δω``). Rodrigues, ``I + a K + b K²`` and ``I + b K + c K²`` with ``K = [v]×``,
+    ``K² = v vᵀ - θ² I``, in plain floats (one array made; it runs for every corner set of every
+    Gauss-Newton step); below 0.01 rad the coefficients' Taylor series, where the closed forms lose
+    digits to cancellation."""
+    x, y, z = omega[0] * dt, omega[1] * dt, omega[2] * dt
+    t2 = x * x + y * y + z * z
+    if t2 < 1e-4:
+        a, b, c = 1.0 - t2 / 6.0 * (1.0 - t2 / 20.0), 0.5 - t2 / 24.0 * (1.0 - t2 / 30.0), \
+            1.0 / 6.0 - t2 / 120.0 * (1.0 - t2 / 42.0)
+    else:
+        theta = math.sqrt(t2)
+        sin, cos = math.sin(theta), math.cos(theta)
+        a, b, c = sin / theta, (1.0 - cos) / t2, (theta - sin) / (t2 * theta)
+    xx, yy, zz, xy, xz, yz = x * x - t2, y * y - t2, z * z - t2, x * y, x * z, y * z   # K² = v vᵀ - θ² I
+    bd, cd = b * dt, c * dt
+    return np.array([
+        [1.0 + b * xx, -a * z + b * xy, a * y + b * xz, dt + cd * xx, -bd * z + cd * xy, bd * y + cd * xz],
+        [a * z + b * xy, 1.0 + b * yy, -a * x + b * yz, bd * z + cd * xy, dt + cd * yy, -bd * x + cd * yz],
+        [-a * y + b * xz, a * x + b * yz, 1.0 + b * zz, -bd * y + cd * xz, bd * x + cd * yz, dt + cd * zz]])
 
 
 def reprojection_jacobian_px(T_world_cube: np.ndarray, sets: Sequence[CornerSet], t_ref_s: float = 0.0,
@@ -157,20 +186,21 @@ def reprojection_jacobian_px(T_world_cube: np.ndarray, sets: Sequence[CornerSet]
     moving = velocity_m_s is not None and angular_velocity_rad_s is not None
     R0, p0 = T_world_cube[:3, :3], T_world_cube[:3, 3]
     residuals, jacobians = [], []
+    omega = None if angular_velocity_rad_s is None else angular_velocity_rad_s.tolist()
     for s in sets:
         R, p = R0, p0
-        if velocity_m_s is not None and angular_velocity_rad_s is not None:  # moving
+        if velocity_m_s is not None and omega is not None:  # moving
             dt = s.time_s - t_ref_s
-            rotvec = angular_velocity_rad_s * dt
-            step = R_from_rotvec(rotvec)
-            R, p = step @ R0, p0 + velocity_m_s * dt
+            chain = _exp_and_left_jacobian(omega, dt)  # [S | J_l(ω dt) dt]
+            R, p = chain[:, :3] @ R0, p0 + velocity_m_s * dt
         q, uv, scale, r = _residuals(s, R, p)
         R_cw = s.T_cam_world[:3, :3]
         # d(pixels)/d(pw) = focal/z [[1, 0, -x/z], [0, 1, -y/z]] R_cw, one (2, 3) block per corner
         d_pw = (R_cw[:2] - uv[:, :, None] * R_cw[2]) * scale[:, None, None]
         d_theta = d_pw @ (q @ _NEG_SKEW).reshape(-1, 3, 3)  # a^T (-[q]x) = q x a, row by row
         if moving:
-            blocks = [d_pw, d_theta @ step, d_pw * dt, d_theta @ (so3_left_jacobian(rotvec) * dt)]
+            d_rot = d_theta @ chain
+            blocks = [d_pw, d_rot[:, :, :3], d_pw * dt, d_rot[:, :, 3:]]
         else:
             blocks = [d_pw, d_theta]
         residuals.append(r.ravel())

@@ -36,6 +36,7 @@ import math
 from collections import Counter
 from dataclasses import dataclass, field
 
+import cv2
 import numpy as np
 
 from cubetrack.core.cameras import CameraIntrinsics
@@ -184,8 +185,8 @@ def prediction_gate_px(covariance: np.ndarray, T_world_cube: np.ndarray, T_world
     ``T_world_cube`` with ``covariance`` (6x6, ``[δp (m), δθ (rad)]``) may be from where they
     project: the largest position spread plus the largest rotation spread times the body's
     farthest corner, over the body's depth in the camera, times the focal length."""
-    position_var = float(np.linalg.eigvalsh(covariance[:3, :3])[-1])
-    rotation_var = float(np.linalg.eigvalsh(covariance[3:6, 3:6])[-1])
+    position_var = float(cv2.eigen(np.ascontiguousarray(covariance[:3, :3]))[1][0, 0])  # the largest eigenvalue
+    rotation_var = float(cv2.eigen(np.ascontiguousarray(covariance[3:6, 3:6]))[1][0, 0])
     reach_m = float(np.sqrt(np.max(np.sum(layout.corners_m.reshape(-1, 3) ** 2, axis=1))))
     depth_m = float((invert_T(T_world_cam) @ T_world_cube[:, 3])[2])
     if depth_m <= 1e-3:
@@ -438,7 +439,7 @@ class FilterFusion:
         else:
             row_s, middle = intrinsics.readout_s / intrinsics.height, (intrinsics.height - 1) / 2.0
             sets = [corner_set((m,), intrinsics, sighting.T_world_cam, sighting.camera,
-                               t + (float(np.mean(m.detection.corners_px[:, 1])) - middle) * row_s) for m in matches]
+                               t + (float(m.detection.corners_px[:, 1].sum()) / 4.0 - middle) * row_s) for m in matches]
         return [s for s in sets if s is not None]  # (none is: each has matches)
 
     def _apply(self, state: RobotState, history: list[HistoryStep], index: int, now_s: float,

@@ -218,6 +218,29 @@ def test_regions_while_every_robot_is_tracked_and_a_whole_frame_every_n(scenes):
     assert "RF" in kinds and "R" not in kinds
 
 
+def test_a_frame_whose_regions_are_empty_is_neither_decoded_nor_searched(scenes, monkeypatch):
+    """Every robot predicted out of a camera's view gives that frame no regions: nothing to search,
+    so its JPEG is not even decoded (issue 31); the others are, and tracking goes on."""
+    import cubetrack.app.tracker as tracker_module
+    from cubetrack.core.records import FrameJob, FrameOutcome
+
+    t = tracker(FILTER)
+    decoded: list[int] = []
+    real_decode = tracker_module.decode_gray
+    monkeypatch.setattr(tracker_module, "decode_gray", lambda jpeg, *a, **kw: decoded.append(1) or real_decode(
+        jpeg, *a, **kw))
+    frame = stream(scenes["both"], 0, 1)[0]
+    result = t.processor.work(FrameJob(frame, capture_time(frame.camera, 0), (), frozenset()))
+    assert (result.outcome, result.sightings, decoded, t.processor.detector.calls) == (FrameOutcome.REGIONS, (),
+                                                                                      [], [])
+    broken = dataclasses.replace(frame, jpeg=b"\xff\xd8junk\xff\xd9")  # not decoded, so not found corrupt
+    assert t.processor.work(FrameJob(broken, capture_time(frame.camera, 0), (), frozenset())).outcome \
+        is FrameOutcome.REGIONS
+    whole = t.processor.work(FrameJob(frame, capture_time(frame.camera, 0), None, frozenset()))
+    assert len(decoded) == 1 and whole.outcome is FrameOutcome.FULL_FRAME
+    assert {s.robot for s in whole.sightings} == {"red", "blue"}
+
+
 @pytest.mark.parametrize("case", ["paper fusion", "region detection off", "a robot never tracked",
                                   "world-marker camera poses"])
 def test_the_whole_frame_is_searched_when_not_every_robot_is_predicted(scenes, case):

@@ -1,0 +1,47 @@
+"""Smoke run of benchmarks/fusion_step.py --quick (issues 28 and 31: CPU per cube sighting of the filter
+fusion, ours against a baseline commit's package on the same recorded sightings): the report has every
+figure, each is a measurement that happened (sightings fused, CPU counted on both sides, the ratio the
+two medians', every stage's timer counted its stage) and the baseline really is another copy of the
+package. How fast either side is stays the benchmark's business, never asserted here."""
+
+import json
+import re
+
+import pytest
+
+from tests.helpers.benchmarks import load_benchmark
+
+pytestmark = pytest.mark.slow
+
+
+def test_quick_run_reports_both_sides_per_sighting(tmp_path, capsys):
+    bench = load_benchmark("fusion_step")
+    assert bench.main(["--quick", "--work", str(tmp_path)]) == 0
+    text = capsys.readouterr().out
+    report = json.loads((tmp_path / bench.REPORT_FILE).read_text())
+    assert report["cores"] >= 1 and report["rounds"] == 1 and report["baseline"] == bench.BASELINE
+    # the baseline's own package was extracted and fed the calls (not this checkout's by another name)
+    assert list(tmp_path.glob("baseline_*/host/cubetrack/fuse/fusion.py"))
+    (m,) = report["results"]
+    assert m["cameras"] == 3 and m["sightings"] > 20 and 0 < m["poses"] <= m["sightings"] + 5
+    assert m["baseline_ms"] > 0 and m["ours_ms"] > 0
+    assert m["ratio"] == pytest.approx(m["ours_ms"] / m["baseline_ms"])
+    assert len(m["rounds_ms"]["baseline"]) == len(m["rounds_ms"]["ours"]) == 1
+    # a track ran: associations, updates and predictions were timed, and they are part of the total
+    for stage in ("association", "filter update", "prediction", "track start"):
+        assert m["stages_ms"][stage] > 0, stage
+    assert m["stages_ms"]["filter update"] < m["stages_total_ms"]
+    diff = m["difference"]
+    assert diff["identical"] or (diff["poses_equal_times"] and diff["max_position_mm"] < 1.0)
+    line = re.search(r"^3 cameras: (\d+) sightings, (\d+) poses; CPU per cube sighting baseline ([0-9.]+) ms, "
+                     r"ours ([0-9.]+) ms: ours/baseline ([0-9.]+)", text, re.MULTILINE)
+    assert line, text
+    assert int(line.group(1)) == m["sightings"] and float(line.group(5)) == pytest.approx(m["ratio"], abs=0.006)
+    assert re.search(r"^target <= 0.3 ms per cube sighting: (met|missed)", text, re.MULTILINE), text
+
+
+def test_an_unknown_baseline_is_one_line_and_exit_1(tmp_path, capsys):
+    bench = load_benchmark("fusion_step")
+    assert bench.main(["--quick", "--work", str(tmp_path), "--baseline", "no-such-commit-xyz"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.count("\n") == 0 and "no-such-commit-xyz" in err
