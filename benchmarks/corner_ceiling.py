@@ -31,9 +31,19 @@ on the mean over the scenes: in-sample, so an upper bound on what retuning buys)
 row: rotation RMSE, its roll/pitch (RMS of the world-frame error about x and y) and yaw (about z)
 parts, position RMSE, each the mean over the scenes, and per scene in the JSON report.
 
+``--floor`` (issue 26) also measures the floor each accuracy target is stated against: every
+sighting's camera frame alone, fitted (``cv2.solvePnP``, Levenberg-Marquardt from the true pose,
+so never a flipped solution) with the true camera (true intrinsics and lens, true pose) and the
+body as built, to the detected corners, the oracle corners and the template corners; scored
+against the truth at the instant the fitted corners' rows were exposed (their mean row under the
+rolling shutter), RMS over sightings, all and split by one marker / two or more. The tracker's
+filter pools several frames and cameras, so it can go below this floor; a per-instant fit cannot.
+``--preset`` picks accuracy.py's preset of the scenes (default realistic).
+
     nice -n 19 .venv/bin/python benchmarks/corner_ceiling.py [--out /tmp/corner_ceiling] [--duration 15]
                                                               [--configs 1 3] [--sigmas 0 0.02 0.05 0.1 0.2]
                                                               [--body] [--no-template] [--no-tune] [--json FILE]
+                                                              [--floor] [--preset clean|realistic|rig]
 
 The process lowers its own priority (``os.nice``). The exit code is 0 for a completed run.
 """
@@ -172,10 +182,11 @@ class Truth:
         angle = math.degrees(math.acos(np.clip(np.dot(T[:3, 2], ray) / np.linalg.norm(ray), -1.0, 1.0)))
         return uv, angle
 
-    def match(self, camera: str, seq: int, detection) -> tuple[np.ndarray | None, float]:
-        """The oracle corners of the true marker a detection shows (the nearest one of its id in
-        front of the camera), and its view angle; None when none is within ``MATCH_PX`` (RMS)."""
-        best = (math.inf, None, math.nan)
+    def nearest(self, camera: str, seq: int, detection) -> tuple[float, np.ndarray | None, float, object]:
+        """The true marker a detection shows (the nearest one of its id in front of the camera):
+        the RMS distance (px) of its oracle corners from the detected ones, those corners, its view
+        angle and the marker (``inf, None, nan, None`` when no marker of that id faces the camera)."""
+        best: tuple[float, np.ndarray | None, float, object] = (math.inf, None, math.nan, None)
         for m in self.markers:
             if m.marker_id != detection.marker_id:
                 continue
@@ -184,8 +195,14 @@ class Truth:
                 continue
             rms = float(np.sqrt(np.mean(np.sum((uv - detection.corners_px) ** 2, axis=1))))
             if rms < best[0]:
-                best = (rms, uv, angle)
-        return (best[1], best[2]) if best[0] <= MATCH_PX else (None, best[2])
+                best = (rms, uv, angle, m)
+        return best
+
+    def match(self, camera: str, seq: int, detection) -> tuple[np.ndarray | None, float]:
+        """The oracle corners of the true marker a detection shows (:meth:`nearest`), and its view
+        angle; None when none is within ``MATCH_PX`` (RMS)."""
+        rms, uv, angle, _ = self.nearest(camera, seq, detection)
+        return (uv, angle) if rms <= MATCH_PX else (None, angle)
 
 
 def oracle_corners(rec: Path, sightings: list) -> dict:
@@ -299,6 +316,88 @@ def mean_scores(per_scene: list[dict]) -> dict:
     return {k: float(np.mean([s[k] for s in per_scene])) for k in KEYS}
 
 
+# --------------------------------------------------------------------------------- floor
+
+
+def true_markers(truth: Truth, sightings: list) -> list[list]:
+    """Per sighting, per detection: the true marker it shows (:meth:`Truth.nearest`), None when
+    none is within ``MATCH_PX``."""
+    out = []
+    for s, _ in sightings:
+        row = []
+        for d in s.detections:
+            rms, _, _, marker = truth.nearest(s.camera, s.seq, d)
+            row.append(marker if rms <= MATCH_PX else None)
+        out.append(row)
+    return out
+
+
+def floor_errors(truth: Truth, sightings: list, markers: list[list],
+                 corners: dict | None) -> list[tuple[float, float, int]]:
+    """The floor (issue 26): per sighting that shows true markers, the error of a per-instant fit
+    of that camera frame alone with the true camera (its true intrinsics, lens included, and true
+    pose) and the body as built, started from the truth: position (m), rotation (°) against the
+    truth at the instant the fitted corners' rows were exposed (their mean row under the rolling
+    shutter; the frame's capture instant without one), and the markers fitted. ``corners``: per sighting, per
+    detection, the corners to fit (None, or a None entry: the detected ones); ``markers``: the
+    true marker of each detection (:func:`true_markers`; None: left out)."""
+    import cv2
+
+    from cubetrack.core.geometry import invert_T, make_T, rotation_angle, transform_points
+    from cubetrack.core.layout import marker_corners_m
+
+    out = []
+    for k, (s, _) in enumerate(sightings):
+        obj, img = [], []
+        for i, (d, marker) in enumerate(zip(s.detections, markers[k], strict=True)):
+            if marker is None:
+                continue
+            given = None if corners is None else corners[k][i][0]
+            obj.append(transform_points(marker.T_cube_marker, marker_corners_m(marker.size_m)))
+            img.append(d.corners_px if given is None else given)
+        if not obj:
+            continue
+        cam = truth.cameras[s.camera]
+        rows_s = (float(np.concatenate(img)[:, 1].mean()) - cam.reference_row) * cam.row_s  # the markers' rows
+        T_true = truth.scene.T_world_cube(truth.capture_s[(s.camera, s.seq)] + rows_s)
+        T_cam_cube = invert_T(cam.T_world_cam) @ T_true
+        rvec = cv2.Rodrigues(T_cam_cube[:3, :3])[0]
+        tvec = T_cam_cube[:3, 3].reshape(3, 1).copy()
+        _, rvec, tvec = cv2.solvePnP(np.concatenate(obj), np.concatenate(img).astype(np.float64),
+                                     cam.intrinsics.K, cam.intrinsics.dist, rvec, tvec, useExtrinsicGuess=True,
+                                     flags=cv2.SOLVEPNP_ITERATIVE)
+        T_fit = cam.T_world_cam @ make_T(cv2.Rodrigues(rvec)[0], tvec.ravel())
+        out.append((float(np.linalg.norm(T_fit[:3, 3] - T_true[:3, 3])),
+                    rotation_angle(T_fit[:3, :3], T_true[:3, :3], unit="deg"), len(obj)))
+    return out
+
+
+def floor_summary(errors: list[tuple[float, float, int]]) -> dict:
+    """RMS position (cm) and rotation (°) of :func:`floor_errors`, over all sightings and split by
+    one marker / two or more."""
+    out = {}
+    for name, keep in (("all", lambda n: True), ("1 marker", lambda n: n == 1), ("2+ markers", lambda n: n > 1)):
+        e = np.array([(p, r) for p, r, n in errors if keep(n)]).reshape(-1, 2)
+        out[name] = {"pos_cm": 100.0 * float(np.sqrt(np.mean(e[:, 0] ** 2))) if len(e) else math.nan,
+                     "rot_deg": float(np.sqrt(np.mean(e[:, 1] ** 2))) if len(e) else math.nan,
+                     "sightings": len(e)}
+    return out
+
+
+def floor_report(scenes: list[dict], corner_sets: list[str]) -> dict:
+    """:func:`floor_summary` per scene and corner set (``edge``: as detected, ``oracle``,
+    ``template``)."""
+    out = {}
+    for sc in scenes:
+        truth = Truth(sc["rec"])
+        markers = true_markers(truth, sc["sightings"])
+        out[sc["name"]] = {which: floor_summary(floor_errors(truth, sc["sightings"], markers,
+                                                              None if which == "edge" else sc[which]))
+                           for which in corner_sets}
+        say(f"  floor {sc['name']}: done")
+    return out
+
+
 # --------------------------------------------------------------------------------- report
 
 
@@ -352,6 +451,18 @@ def run_rows(scenes: list[dict], label: str, corners_key: str, sigma: float, tun
     return rows
 
 
+def print_floor(report: dict) -> None:
+    """The floor's table: RMS position / rotation of the per-instant fits per scene and corner set."""
+    print("\nfloor: per-instant fit of each camera frame, true camera and body (RMS over sightings)")
+    print("| scene | corners | all: position cm / rotation ° | 1 marker | 2+ markers | sightings (1 / 2+) |")
+    print("| --- | --- | --- | --- | --- | --- |")
+    for scene, sets in report["floor"].items():
+        for which, f in sets.items():
+            cells = " | ".join(f"{f[k]['pos_cm']:.3f} / {f[k]['rot_deg']:.3f}"
+                               for k in ("all", "1 marker", "2+ markers"))
+            print(f"| {scene} | {which} | {cells} | {f['1 marker']['sightings']} / {f['2+ markers']['sightings']} |")
+
+
 def print_report(report: dict) -> None:
     print(f"corner ceiling: {report['scenes']} (load average {report['load']}, {report['cores']} cores)")
     print(f"oracle corners for {report['oracle_matched']} of {report['detections']} detections "
@@ -364,6 +475,8 @@ def print_report(report: dict) -> None:
         t = report["template_cpu_ms"]
         print(f"\ntemplate fit CPU per marker: median {t['median']:.1f} ms, mean {t['mean']:.1f} ms, "
               f"p90 {t['p90']:.1f} ms over {t['markers']} markers ({t['failed']} failed, edge corners kept)")
+    if "floor" in report:
+        print_floor(report)
     print("\n| corners | sigma px | layout | rotation | roll/pitch | yaw | position cm | tuned: rotation / roll-pitch "
           "/ yaw | tuned setting |")
     print("| --- | --- | --- | --- | --- | --- | --- | --- | --- |")
@@ -381,6 +494,10 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--out", type=Path, default=Path("/tmp/corner_ceiling"),
                     help="folder of the recordings (reused when complete) and accuracy caches")
     ap.add_argument("--seed", type=int, default=SEED)
+    ap.add_argument("--preset", choices=("clean", "realistic", "rig"), default="realistic",
+                    help="accuracy.py's simulation preset of the scenes")
+    ap.add_argument("--floor", action="store_true",
+                    help="also the floor: a per-instant fit of each camera frame with the true camera and body")
     ap.add_argument("--duration", type=float, default=15.0, help="seconds per scene")
     ap.add_argument("--configs", type=int, nargs="+", default=list(CONFIGS),
                     help="accuracy.py's configuration indices (0-3)")
@@ -406,10 +523,10 @@ def load_scene(bench, args, config_index: int) -> dict:
     from cubetrack.io.trajectory import read_tum
 
     name, cameras, height, tilt, _ = bench.CONFIGS[config_index]
-    rec = bench.scene_dir(args.out, config_index, args.seed, bench.REALISTIC)
+    rec = bench.scene_dir(args.out, config_index, args.seed, args.preset)
     say(f"{name}: {rec}")
     seconds, reused = bench.ensure_recording(
-        bench.sim_params(bench.REALISTIC, cameras, height, tilt, args.seed, args.duration, args.calibration_frames),
+        bench.sim_params(args.preset, cameras, height, tilt, args.seed, args.duration, args.calibration_frames),
         rec, 2)
     say(f"  recording {'reused' if reused else f'rendered in {seconds:.0f} s'}")
     cache = rec / CACHE
@@ -431,6 +548,7 @@ def load_scene(bench, args, config_index: int) -> dict:
         say(f"  body calibrated from a separate {args.body_drive:g} s drive: worst marker {body['info']}")
     sc["truth"] = read_tum(rec / "ground_truth.tum")
     sc["name"] = name
+    sc["rec"] = rec
     return sc
 
 
@@ -444,7 +562,7 @@ def calibrated_body(bench, args, rec: Path, config_index: int, robot: str) -> di
 
     _, cameras, height, tilt, _ = bench.CONFIGS[config_index]
     full = rec.with_name(rec.name + "_drive")
-    bench.ensure_recording(bench.sim_params(bench.REALISTIC, cameras, height, tilt, args.seed,
+    bench.ensure_recording(bench.sim_params(args.preset, cameras, height, tilt, args.seed,
                                             args.duration + args.body_drive, 0), full, 2)
     drive = bench.later_part(full, rec.with_name(rec.name + "_drive_after"),
                              bench.read_sim_start_s(full) + args.duration)
@@ -463,7 +581,7 @@ def main(argv: list[str] | None = None) -> int:
     bench = load_accuracy()
     args.out.mkdir(parents=True, exist_ok=True)
     scenes = [load_scene(bench, args, c) for c in args.configs]
-    report = {"scenes": ", ".join(f"{sc['name']} realistic seed {args.seed} {args.duration:g} s" for sc in scenes),
+    report = {"scenes": ", ".join(f"{sc['name']} {args.preset} seed {args.seed} {args.duration:g} s" for sc in scenes),
               "load": " ".join(f"{v:.1f}" for v in os.getloadavg()), "cores": os.cpu_count(),
               "residuals": {"edge": residual_table(scenes, "edge")}, "rows": [],
               "oracle_matched": [sum(o is not None for row in sc["oracle"].values() for o, _ in row) for sc in scenes],
@@ -479,6 +597,8 @@ def main(argv: list[str] | None = None) -> int:
         report["template_cpu_ms"] = {"median": float(np.median(cpu)), "mean": float(np.mean(cpu)),
                                      "p90": float(np.percentile(cpu, 90)), "markers": len(cpu), "failed": failed}
         report["rows"] += run_rows(scenes, "template fit", "template", 0.0, tune)
+    if args.floor:
+        report["floor"] = floor_report(scenes, ["edge", "oracle"] + ([] if args.no_template else ["template"]))
     report["load_end"] = " ".join(f"{v:.1f}" for v in os.getloadavg())
     print_report(report)
     if args.json:

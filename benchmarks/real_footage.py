@@ -8,8 +8,9 @@ instant (caliscope's ``sync_index``: one frame per camera, a few ms apart) every
 or more cameras is triangulated (linear least squares on undistorted rays, the calibration's
 cameras), and the board's corner grid is fitted to them rigidly (Kabsch). An instant counts when
 at least 6 corners triangulate and the rigid fit's RMS residual is below 3 mm (typically ~1 mm);
-every instant at which two or more cameras see board markers counts for the share of instants
-with a pose.
+every instant at which two or more cameras see board markers (ids of the board: a stray id of the
+dictionary elsewhere in a frame, a false positive as the README names, is not the board) counts for
+the share of instants with a pose.
 
 Scoring (:func:`score`): an instant has a pose when the tracker output one between its first and
 its last camera frame (1 ms slack); the instant's last such pose is compared with the reference
@@ -100,6 +101,7 @@ def charuco_reference(data: Path = DATA) -> dict[int, Instant]:
                                       board.marker_size_m, dictionary)
     detector = cv2.aruco.CharucoDetector(cv_board)
     grid_cv = np.asarray(cv_board.getChessboardCorners(), float).reshape(-1, 3)
+    board_ids = set(np.asarray(cv_board.getIds()).ravel().tolist())
     T_body_cv = board.T_board_opencv  # OpenCV's board frame in the board (body) frame
     rows: dict[int, list[tuple[int, int, float]]] = {}
     with (data / "video" / "timestamps.csv").open(newline="") as f:
@@ -116,7 +118,7 @@ def charuco_reference(data: Path = DATA) -> dict[int, Instant]:
             times.setdefault(sync, []).append(t)
             gray = frames[k]
             corners, ids, _, marker_ids = detector.detectBoard(255 - gray if rig.inverted else gray)
-            if marker_ids is not None and len(marker_ids):
+            if marker_ids is not None and board_ids.intersection(marker_ids.ravel().tolist()):  # not a stray id
                 cams.setdefault(sync, set()).add(cam)
             if ids is None or len(ids) < 2:
                 continue

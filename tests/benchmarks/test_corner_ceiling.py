@@ -41,3 +41,20 @@ def test_oracle_corners_are_the_pictures_truth_and_exact_ones_track_better(tmp_p
     exact = rows[("oracle", 0.0, bench.TRUE)]["default"]["mean"]["rot_deg"]
     noisy = rows[("oracle", 0.3, bench.TRUE)]["default"]["mean"]["rot_deg"]
     assert exact < 0.85 * noisy, (exact, noisy)
+
+
+def test_the_floor_with_exact_corners_on_a_clean_scene_is_zero(tmp_path, capsys, monkeypatch):
+    """--floor (issue 26): a per-instant fit with the true camera and body to the oracle's corners
+    recovers the true pose on a clean scene (global shutter: nothing else differs), and the
+    detector's corners leave a finite, larger error."""
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
+    bench = importlib.import_module("corner_ceiling")
+    report_path = tmp_path / "report.json"
+    assert bench.main(["--out", str(tmp_path), "--preset", "clean", "--duration", "3", "--configs", "1", "--sigmas",
+                       "0", "--no-template", "--no-tune", "--calibration-frames", "40", "--floor",
+                       "--json", str(report_path)]) == 0
+    assert "floor: per-instant fit" in capsys.readouterr().out
+    (floor,) = json.loads(report_path.read_text())["floor"].values()
+    assert floor["oracle"]["all"]["sightings"] == floor["edge"]["all"]["sightings"] > 0
+    assert floor["oracle"]["all"]["pos_cm"] < 1e-3 and floor["oracle"]["all"]["rot_deg"] < 1e-3, floor["oracle"]
+    assert 0.01 < floor["edge"]["all"]["pos_cm"] < 5.0 and 0.01 < floor["edge"]["all"]["rot_deg"] < 5.0, floor["edge"]

@@ -64,15 +64,18 @@ def test_the_import_writes_what_track_reads(imported):
 def test_the_reference_is_a_rigid_board_to_about_a_millimetre(reference):
     rms_mm = np.array([i.rms_m for i in reference.values() if i.T_world_body is not None]) * 1000.0
     assert len(reference) >= 45 and len(rms_mm) >= 40 and np.median(rms_mm) < 1.5, (len(reference), len(rms_mm))
+    # an instant is one where two cameras see the board's own ids: cam3's stray id 998 at sync 67
+    # (cam1 alone sees the board there) does not make one
+    assert 67 not in reference
 
 
 def test_the_default_tracker_follows_the_board_better_than_the_mean_fusion(scores):
-    """Issue 25's targets met here (measured: filter median 2.7, p95 6.1, max 6.4 mm, rotation median
-    0.41 deg; mean fusion 3.9 / 10.6 / 14.6 mm, 0.87 deg). Not met, so asserted only as far as they
-    are: poses at >= 98 % of the instants (48 of 49, 97.96 %: the one missed is a lone instant whose
-    track start fails), median <= 2 mm and p95 <= 6 mm (docs/tracking.md "Real footage")."""
+    """Issue 25's targets met here (measured: poses at 48 of the 48 instants, filter median 2.7, p95
+    6.1, max 6.4 mm, rotation median 0.41 deg; mean fusion 3.9 / 10.6 / 14.6 mm, 0.87 deg). Not met,
+    so asserted only as far as they are: median <= 2 mm and p95 <= 6 mm (docs/tracking.md "Real
+    footage")."""
     ours, mean = scores["default"], scores["mean"]
-    assert ours.fraction >= 0.97, ours.line("default")
+    assert ours.fraction >= 0.98, ours.line("default")
     assert ours.position_mm.max() <= 20.0 and np.median(ours.rotation_deg) <= 0.6, ours.line("default")
     assert np.median(ours.position_mm) < np.median(mean.position_mm), (ours.line("default"), mean.line("mean"))
     assert np.percentile(ours.position_mm, 95) < np.percentile(mean.position_mm, 95), (ours.line("default"),

@@ -89,7 +89,7 @@ def frame_result(tracker: Tracker, message: SightingMessage) -> FrameResult | No
     job = FrameJob(frame, message.capture_time_s, None,
                    frozenset(r.name for r in tracker.robots if tracker.fusion.needs_estimate(r.name)))
     sightings = tracker.processor.sightings(job, message.detections, T_world_cam)
-    return FrameResult(job, FrameOutcome(message.outcome), sightings)
+    return FrameResult(job, FrameOutcome(message.outcome), sightings, dropped=message.dropped)
 
 
 def camera_health(message: SightingMessage, previous: CameraHealth | None, now_s: float) -> CameraHealth:

@@ -105,7 +105,8 @@ def sighting_message(result: FrameResult, clock: ClockSync, stats: CameraStats, 
     return SightingMessage(frame.camera, frame.seq, frame.device_time_s, result.job.capture_time_s,
                            frame.host_time_s, result.outcome.value, tuple(seen.values()),
                            WireClock(fit.method.value, fit.offset_s, fit.drift, fit.device_ref_s),
-                           WireHealth(stats.connected, stats.frames, stats.dropped, stats.bad, stats.reconnects), pose)
+                           WireHealth(stats.connected, stats.frames, stats.dropped, stats.bad, stats.reconnects), pose,
+                           result.dropped)
 
 
 @dataclass(frozen=True, slots=True)

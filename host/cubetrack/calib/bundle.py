@@ -15,7 +15,9 @@ jointly from
     ``clock.csv``, as the tracker stamps them). Frames of one instant are motion-compensated to
     its mean time with the constant-velocity model of :mod:`cubetrack.estimate.reprojection`; velocities come
     from the instants' own poses (a local linear fit over ``velocity_window_s``), re-estimated
-    after each solve.
+    after each solve. The corners are edge-fitted and then template-fitted (:func:`cube_frames`
+    with the lenses, as the body calibration measures them): the edge fit's outward bias on
+    obliquely seen markers scaled the refined cameras out (issue 26).
 
 Unknowns: each camera's 6-dof pose, the cube pose at each instant and (``planar_motion``) one
 cube height per robot. Residuals: reprojection errors (pixels, on undistorted points scaled by
@@ -375,7 +377,8 @@ def cube_frames(frames: Mapping[str, Iterable[Frame]], layouts: Mapping[str, Cub
     ``clock_samples`` (round trips; without them, its frames' arrival times); in time order.
     ``frame_count`` (all cameras' frames) only sizes the progress.
 
-    ``lenses`` (camera -> intrinsics): the cube corners are measured for the body calibration:
+    ``lenses`` (camera -> intrinsics): the cube corners are measured for the refinement and the
+    body calibration:
     as the world marker's are for calibration (:func:`cubetrack.detect.detector.refine_corners_edges` with
     :data:`cubetrack.calib.extrinsics.EDGE_FIT` and the camera's lens model: sides straight in
     the undistorted image, edge points from the gradient's peak), then by fitting the whole marker
@@ -846,9 +849,12 @@ def adjust_extrinsics(frames: Mapping[str, Iterable[Frame]], extrinsics: Mapping
         warnings.append(message)
         log.warning("%s", message)
 
+    # the cube's corners template-fitted, as the body calibration's: the edge fit's outward bias
+    # on obliquely seen markers scaled the refined cameras out (issue 26, docs/calibration.md)
     ref, cameras = start_refinement(frames, extrinsics, intrinsics, layouts, clock_samples=clock_samples,
                                     params=params, detector_params=detector_params, progress=progress,
-                                    frame_count=frame_count, warn=warn, readout_s=readout_s)
+                                    frame_count=frame_count, warn=warn, readout_s=readout_s,
+                                    calibration_corners=True)
     T_prior = {c: extrinsics[c].T_world_cam for c in cameras}
     used = ref.cameras
 

@@ -45,6 +45,8 @@ _BLUR_STEP_PX = 0.05  # the blur's derivative: a forward difference of this much
 _BLUR_RANGE_PX = (0.3, 3.0)  # the fast fit keeps its blur sigma within this range
 _CONVERGED_PX = 1e-3  # the fast fit stops once no corner moves more than this in an iteration
 _REMAP_ROW = 4096  # LensMap.undistort reads the map for this many points per cv2.remap row
+_BEYOND_MIN = 0.05  # the fast fit measures the brightness beyond the margin where a pixel sees this much of it
+_AREA_STEP = 0.25  # template samples: the fast fit's pre-blurred templates are cached at multiples of this
 
 
 def distort_px(points_px: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:
@@ -77,16 +79,6 @@ def marker_template(dictionary: str, marker_id: int, white_modules: float) -> tu
     image = np.ascontiguousarray(cv2.GaussianBlur(image, (0, 0), 0.7).transpose(2, 0, 1))
     image.setflags(write=False)
     return image, modules
-
-
-@functools.lru_cache(maxsize=64)
-def _template_gradients(dictionary: str, marker_id: int, white_modules: float) -> np.ndarray:
-    """(4, n, n) float32: d/dx and d/dy (per template sample) of :func:`marker_template`'s
-    reflectance image, then of its beyond-the-margin image."""
-    template, _ = marker_template(dictionary, marker_id, white_modules)
-    out = np.array([g for k in (0, 1) for g in np.gradient(template[k])[::-1]], np.float32)
-    out.setflags(write=False)
-    return out
 
 
 _SQUARE = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
@@ -247,56 +239,132 @@ class TemplateFitSettings:
     max_move_px: float = 1.5
 
 
-def fast_template_corners(gray: np.ndarray, corners_px: np.ndarray, dictionary: str, marker_id: int,
-                          lens: LensMap, iterations: int = 3,
-                          settings: TemplateFitSettings = TemplateFitSettings()) -> np.ndarray | None:
-    """The (4, 2) corners (TL TR BR BL, px in ``gray``) of marker ``marker_id`` of ``dictionary``
-    near ``corners_px`` (the edge fit's), re-measured by the template fit (module docstring):
-    ``iterations`` Gauss-Newton steps through ``lens``. None when the marker with its
-    margin is not wholly inside the image, the fit diverges or a corner would move more than
-    ``settings.max_move_px``."""
-    template, modules = marker_template(dictionary, marker_id, settings.white_modules)
-    grads = _template_gradients(dictionary, marker_id, settings.white_modules)
+FAST_SETTINGS = TemplateFitSettings(supersample=2)  # tracking's fit (fast_template_corners)
+
+
+def _lens_jacobian(lens: LensMap, corners_px: np.ndarray) -> np.ndarray:
+    """(2, 2): distorted pixels per undistorted pixel at the marker's centre (the lens's local
+    linear map, from ``lens``'s undistortion one pixel either way)."""
+    mid = np.asarray(corners_px, float).reshape(4, 2).mean(axis=0)
+    probe = lens.undistort(np.array([mid, mid + [1.0, 0.0], mid + [0.0, 1.0]]))
+    return np.linalg.inv(np.column_stack([probe[1] - probe[0], probe[2] - probe[0]]))
+
+
+@functools.lru_cache(maxsize=256)
+def _area_template(dictionary: str, marker_id: int, white_modules: float, steps: tuple[int, int]) -> np.ndarray:
+    """(2, n, n) float32: :func:`marker_template`'s two images blurred by a Gaussian of
+    ``steps`` x ``_AREA_STEP`` template samples along x and y (a sample's area, see
+    :func:`_area_steps`), so that reading them at a few points per pixel keeps the sub-pixel place
+    of every cell edge; cached per marker and blur: per marker size."""
+    template, _ = marker_template(dictionary, marker_id, white_modules)
+    sx, sy = (max(k * _AREA_STEP, 0.01) for k in steps)
+    out = np.stack([cv2.GaussianBlur(t, (0, 0), sigmaX=sx, sigmaY=sy, borderType=cv2.BORDER_REPLICATE)
+                    for t in template])
+    out.setflags(write=False)
+    return out
+
+
+def _area_steps(H: np.ndarray, modules: int, lens_jacobian: np.ndarray, supersample: int) -> tuple[int, int]:
+    """The area of one of ``supersample`` x ``supersample`` samples of a pixel (a variance of
+    1 / (12 s^2) px^2 along each axis) pulled back into the template through the homography ``H``
+    and the lens at the marker's centre: its standard deviations along x and y in units of
+    ``_AREA_STEP`` template samples."""
+    c = np.array([modules / 2.0, modules / 2.0, 1.0])
+    h = H @ c
+    J = lens_jacobian @ (H[:2, :2] - np.outer(h[:2] / h[2], H[2, :2])) / h[2]  # distorted px per module
+    cov = np.linalg.inv(J.T @ J) * (TEMPLATE_RES ** 2 / (12.0 * supersample ** 2))
+    sx, sy = np.sqrt(np.diag(cov)) / _AREA_STEP
+    return int(round(sx)), int(round(sy))
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class _FastRegion:
+    """What :func:`fast_template_corners` compares: the region's ``shape`` (ny, nx); ``samples``
+    (ny s nx s, 3) its pixels' samples and ``centres`` (n, 3) the compared pixels' centres,
+    undistorted, homogeneous; ``lens`` (2, 2) the lens's local map (:func:`_lens_jacobian`) and the
+    rest as :class:`MarkerRegion`'s."""
+
+    region: MarkerRegion
+    samples: np.ndarray
+    centres: np.ndarray
+    lens: np.ndarray
+
+
+def _fast_region(gray: np.ndarray, corners_px: np.ndarray, modules: int, lens: LensMap,
+                 settings: TemplateFitSettings) -> _FastRegion | None:
     region = marker_region(gray, corners_px, modules, lens.K, lens.dist, lens.undistort, settings.supersample,
                            settings.margin_modules)
     if region is None:
         return None
-    ny, nx = region.shape
+    samples = region.samples_px.reshape(-1, 2)
+    return _FastRegion(region, np.column_stack([samples, np.ones(len(samples))]),
+                       np.column_stack([region.centres_px, np.ones(len(region.centres_px))]),
+                       _lens_jacobian(lens, corners_px))
+
+
+def _gauss_newton_step(f: _FastRegion, template: np.ndarray, H: np.ndarray, dH: np.ndarray, blur: float,
+                       s: int) -> np.ndarray:
+    """One Gauss-Newton step of the fast fit at homography ``H`` (derivatives ``dH``) and blur:
+    the update of the 8 corner coordinates, the blur and the 5 brightness terms (their values, not
+    an update). The Jacobian by the corners is the predicted image's own gradient (in the
+    distorted image, through the lens's local map) times the motion of each compared pixel's
+    template point when a corner moves."""
+    r = f.region
+    ny, nx = r.shape
+    H_inv = np.linalg.inv(H)
+    U = f.samples @ H_inv.T
+    mx = (TEMPLATE_RES * U[:, 0] / U[:, 2] + _TEMPLATE_SHIFT).astype(np.float32).reshape(ny * s, nx * s)
+    my = (TEMPLATE_RES * U[:, 1] / U[:, 2] + _TEMPLATE_SHIFT).astype(np.float32).reshape(ny * s, nx * s)
+    area = np.stack([cv2.remap(template[k], mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
+                               borderValue=float(k)) for k in (0, 1)], axis=-1)
+    if s > 1:
+        area = np.ascontiguousarray(area.reshape(ny, s, nx, s, 2).mean(axis=(1, 3)))
+    image = cv2.GaussianBlur(area, (0, 0), blur, borderType=cv2.BORDER_REPLICATE)
+    predicted = image.reshape(-1, 2)[r.fitted].astype(np.float64)
+    wider = cv2.GaussianBlur(area, (0, 0), blur + _BLUR_STEP_PX, borderType=cv2.BORDER_REPLICATE)
+    if predicted[:, 1].max() < _BEYOND_MIN:  # no compared pixel sees beyond the margin: that brightness is not
+        image[..., 1] = wider[..., 1] = predicted[:, 1] = 0.0  # measured, its column is left out
+    A = photometric_columns(predicted, r.gradient)
+    coef = _least_squares(A, r.pixels)
+    gx = cv2.Sobel(image, cv2.CV_32F, 1, 0, ksize=1, scale=0.5, borderType=cv2.BORDER_REPLICATE).reshape(-1, 2)
+    gy = cv2.Sobel(image, cv2.CV_32F, 0, 1, ksize=1, scale=0.5, borderType=cv2.BORDER_REPLICATE).reshape(-1, 2)
+    gain = coef[1] + coef[2] * r.gradient[:, 0] + coef[3] * r.gradient[:, 1]
+    gx, gy = gx[r.fitted], gy[r.fitted]  # d/dx, d/dy of the two predicted images
+    slope = np.column_stack([gx[:, 0] * gain + gx[:, 1] * coef[4], gy[:, 0] * gain + gy[:, 1] * coef[4]]) @ f.lens
+    Uc = f.centres @ H_inv.T
+    D = np.einsum("kij,nj->kin", dH, Uc) / Uc[:, 2]  # (8, 3, n)
+    J = -(slope[:, 0] * (D[:, 0] - f.centres[:, 0] * D[:, 2]) + slope[:, 1] * (D[:, 1] - f.centres[:, 1] * D[:, 2]))
+    J_blur = (photometric_columns(wider.reshape(-1, 2)[r.fitted].astype(np.float64), r.gradient) - A) @ coef
+    return _least_squares(np.column_stack([J.T, J_blur / _BLUR_STEP_PX, A]), r.pixels - A @ coef)
+
+
+def fast_template_corners(gray: np.ndarray, corners_px: np.ndarray, dictionary: str, marker_id: int,
+                          lens: LensMap, iterations: int = 3,
+                          settings: TemplateFitSettings = FAST_SETTINGS) -> np.ndarray | None:
+    """The (4, 2) corners (TL TR BR BL, px in ``gray``) of marker ``marker_id`` of ``dictionary``
+    near ``corners_px`` (the edge fit's), re-measured by the template fit (module docstring):
+    ``iterations`` Gauss-Newton steps through ``lens``. None when the marker with its
+    margin is not wholly inside the image, the fit diverges or a corner would move more than
+    ``settings.max_move_px``.
+
+    Tracking's fit reads the template pre-blurred by a sample's area (cached per marker size,
+    :func:`_area_template`) at ``settings.supersample`` x ``supersample`` points per pixel (2 x 2:
+    a quarter of the body calibration's fit's reads) and takes the corners' Jacobian from the
+    predicted image's own gradient (:func:`_gauss_newton_step`)."""
+    _, modules = marker_template(dictionary, marker_id, settings.white_modules)
+    f = _fast_region(gray, corners_px, modules, lens, settings)
+    if f is None:
+        return None
+    start = f.region.start_px
     s = settings.supersample
-    samples = np.column_stack([region.samples_px.reshape(-1, 2), np.ones(ny * s * nx * s)])
-    centres = np.column_stack([region.centres_px, np.ones(len(region.centres_px))])
-    images = (template[0], template[1], *grads)
-    border = (0.0, 1.0, 0.0, 0.0, 0.0, 0.0)
+    template = _area_template(dictionary, marker_id, settings.white_modules,
+                              _area_steps(square_homography(start, modules), modules, f.lens, s))
     p = np.zeros(8)
     blur = settings.start_blur_px
     try:
         for _ in range(iterations):
-            H, dH = square_homography_derivatives(region.start_px + p.reshape(4, 2), modules)
-            H_inv = np.linalg.inv(H)
-            U = samples @ H_inv.T
-            mx = (TEMPLATE_RES * U[:, 0] / U[:, 2] + _TEMPLATE_SHIFT).astype(np.float32).reshape(ny * s, nx * s)
-            my = (TEMPLATE_RES * U[:, 1] / U[:, 2] + _TEMPLATE_SHIFT).astype(np.float32).reshape(ny * s, nx * s)
-            resampled = np.stack([cv2.remap(im, mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
-                                            borderValue=b) for im, b in zip(images, border, strict=True)], axis=-1)
-            area = np.ascontiguousarray(resampled.reshape(ny, s, nx, s, 6).mean(axis=(1, 3)))
-            predicted = cv2.GaussianBlur(area, (0, 0), blur, borderType=cv2.BORDER_REPLICATE).reshape(ny * nx, 6)
-            predicted = predicted[region.fitted].astype(np.float64)
-            wider = cv2.GaussianBlur(area[..., :2], (0, 0), blur + _BLUR_STEP_PX, borderType=cv2.BORDER_REPLICATE)
-            wider = wider.reshape(ny * nx, 2)[region.fitted].astype(np.float64)
-            A = photometric_columns(predicted[:, :2], region.gradient)
-            coef = _least_squares(A, region.pixels)
-            r = region.pixels - A @ coef
-            # d(template sample coordinates)/d(corner coordinates) at the compared pixels' centres
-            Uc = centres @ H_inv.T
-            dU = np.einsum("nj,kij->nki", centres, -H_inv @ dH @ H_inv)  # (n, 8, 3)
-            w = Uc[:, 2:3]
-            dmx = (dU[:, :, 0] - (Uc[:, 0:1] / w) * dU[:, :, 2]) / w * TEMPLATE_RES
-            dmy = (dU[:, :, 1] - (Uc[:, 1:2] / w) * dU[:, :, 2]) / w * TEMPLATE_RES
-            gain = coef[1] + coef[2] * region.gradient[:, 0] + coef[3] * region.gradient[:, 1]
-            J = (gain[:, None] * (predicted[:, 2:3] * dmx + predicted[:, 3:4] * dmy)
-                 + coef[4] * (predicted[:, 4:5] * dmx + predicted[:, 5:6] * dmy))
-            J_blur = (photometric_columns(wider, region.gradient) - A) @ coef / _BLUR_STEP_PX
-            delta = _least_squares(np.column_stack([J, J_blur, A]), r)
+            H, dH = square_homography_derivatives(start + p.reshape(4, 2), modules)
+            delta = _gauss_newton_step(f, template, H, dH, blur, s)
             p = p + delta[:8]
             blur = float(np.clip(blur + delta[8], *_BLUR_RANGE_PX))
             if not np.isfinite(p).all() or np.abs(delta[:8]).max() < _CONVERGED_PX:
@@ -305,4 +373,4 @@ def fast_template_corners(gray: np.ndarray, corners_px: np.ndarray, dictionary: 
         return None
     if not np.isfinite(p).all() or np.abs(p).max() > settings.max_move_px:
         return None
-    return distort_px(region.start_px + p.reshape(4, 2), lens.K, lens.dist)
+    return distort_px(start + p.reshape(4, 2), lens.K, lens.dist)

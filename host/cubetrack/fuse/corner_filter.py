@@ -66,6 +66,18 @@ class FilterParams:
         "motion (docs/tracking.md \"Cameras that disagree\"; 0: cameras taken as exact)")
     camera_rotation_sigma_deg: float = param(
         0.1, "the same for the camera's orientation (1 sigma per axis), degrees (real calibrations leave 0.1-0.3)")
+    correction_time_sigma_s: float = param(
+        0.0, "per-camera corrections estimated over the session (docs/tracking.md \"Per-camera corrections\"): the "
+        "prior (1 sigma) of a camera's time offset (its frames taken that much before or after their stamps), seconds; "
+        "0.05 for cameras without a clock (stamped from arrival, each late by its own transfer time); bounded to 4 "
+        "sigma; 0: not estimated")
+    correction_position_sigma_m: float = param(
+        0.0, "the same for a camera's position error (1 sigma per axis), metres (0: not estimated; measured to "
+        "cost accuracy on cameras that agree, docs/tracking.md)")
+    correction_rotation_sigma_deg: float = param(0.0, "the same for a camera's orientation error (1 sigma per axis), "
+                                                 "degrees (0: not estimated)")
+    correction_memory_s: float = param(60.0, "what a camera's frames said about its correction fades over this many "
+                                       "seconds (a camera that moves is followed; 0: no corrections)")
     huber_px: float = param(1.5, "corner residuals beyond this are down-weighted (Huber), pixels")
     gate_rms_px: float = param(2.0, "a camera frame whose RMS residual after the update exceeds this is "
                                     "rejected, pixels")
@@ -90,7 +102,9 @@ class FilterParams:
                        "sharp_turn_rad_s", "turn_hold_s", "corner_noise_px", "huber_px", "gate_rms_px", "face_gate_px",
                        "init_velocity_sigma", "init_angular_velocity_sigma")
         check_non_negative(self, "camera_position_sigma_m", unit="metres")
-        check_non_negative(self, "camera_rotation_sigma_deg", unit="degrees")
+        check_non_negative(self, "camera_rotation_sigma_deg", "correction_rotation_sigma_deg", unit="degrees")
+        check_non_negative(self, "correction_position_sigma_m", unit="metres")
+        check_non_negative(self, "correction_time_sigma_s", "correction_memory_s", unit="seconds")
         check_at_least(self, 1, "iterations")
         check_non_negative(self, "smooth_lag_s", "smooth_margin_s", unit="seconds")
 

@@ -34,7 +34,7 @@ import enum
 import logging
 import math
 from collections import Counter
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import cv2
 import numpy as np
@@ -49,6 +49,14 @@ from cubetrack.estimate.match import match_faces
 from cubetrack.estimate.params import EstimatorParams
 from cubetrack.estimate.pose import estimate_cube
 from cubetrack.estimate.reprojection import CornerSet, corner_set
+from cubetrack.fuse.camera_corrections import (
+    CameraCorrection,
+    CameraCorrections,
+    CorrectionPriors,
+    combined,
+    corrected_T_world_cam,
+    observed,
+)
 from cubetrack.fuse.corner_filter import FilterParams, PoseFilter
 from cubetrack.fuse.multi_view_fit import solve_joint
 from cubetrack.fuse.smoother import Gains, TrailStep, smoothed_poses
@@ -214,6 +222,7 @@ class RobotState:
     filter: PoseFilter | None = None
     last_accepted_s: float = float("-inf")
     rejections: int = 0
+    corrections: CameraCorrections = field(default_factory=CameraCorrections)  # the cameras', kept over restarts
 
 
 @dataclass(slots=True, eq=False)
@@ -256,6 +265,9 @@ class FilterFusion:
         self.params = params
         self.filter_params = filter_params
         self.estimator_params = estimator_params or EstimatorParams()
+        fp = filter_params
+        self._priors = CorrectionPriors(fp.correction_position_sigma_m, math.radians(fp.correction_rotation_sigma_deg),
+                                        fp.correction_time_sigma_s, fp.correction_memory_s)
         self.state: dict[str, RobotState] = {r: RobotState() for r in layouts}
         self.history: dict[str, list[HistoryStep]] = {r: [] for r in layouts}
         self._keys: dict[str, list[tuple[float, str, int]]] = {r: [] for r in layouts}
@@ -290,6 +302,12 @@ class FilterFusion:
             after.append(self.state[robot].filter)
         return [TrailStep(step.outcome, f, step.pose, step.sighting.arrival_time_s, step.key[0])
                 for step, f in zip(history[start:stop], after, strict=True)]
+
+    def camera_corrections(self) -> dict[str, CameraCorrection]:
+        """Each camera's correction as the sightings so far estimate it, over every robot's
+        (:mod:`cubetrack.fuse.camera_corrections`; late sightings still pending not folded in):
+        what a watcher of moved cameras reads."""
+        return combined([state.corrections for state in self.state.values()], self._priors)
 
     def needs_estimate(self, robot: str) -> bool:
         """A per-camera estimate is only needed to start a track: not while one runs."""
@@ -417,28 +435,33 @@ class FilterFusion:
                 self._trails[robot] += self._trail_steps(robot, 0, n)
             del history[:n], keys[:n]
 
-    def _corners(self, sighting: CubeSighting, T_world_cube: np.ndarray,
+    def _corners(self, sighting: CubeSighting, T_world_cube: np.ndarray, corrections: CameraCorrections | None = None,
                  covariance: np.ndarray | None = None) -> list[CornerSet]:
-        """The sighting's corners matched to faces where ``T_world_cube`` projects them: one set,
-        taken at the capture time; under a rolling shutter (the camera's ``readout_s``) one set
+        """The sighting's corners matched to faces where ``T_world_cube`` projects them, seen
+        from its camera as ``corrections`` put it (its extrinsics corrected, its stamp moved by its
+        time offset: :mod:`cubetrack.fuse.camera_corrections`): one set, taken at the capture time;
+        under a rolling shutter (the camera's ``readout_s``) one set
         per face, taken when the rows of its corners were (their mean row's time). ``covariance``
         (6x6 over ``[δp, δθ]``): how uncertain that pose is, which widens the association gate
         (:func:`prediction_gate_px`) of a body whose ids are all distinct (where an id repeats, the
         gate is what tells its faces apart: it stays ``association_gate_px``)."""
-        intrinsics, t = sighting.intrinsics, sighting.capture_time_s
+        intrinsics, t, T_world_cam = sighting.intrinsics, sighting.capture_time_s, sighting.T_world_cam
+        offset = None if corrections is None else corrections.applied(sighting.camera)
+        if offset is not None:
+            t, T_world_cam = t + float(offset[6]), corrected_T_world_cam(T_world_cam, offset)
         layout = self.layouts[sighting.robot]
         gate_px = self.params.association_gate_px
         if covariance is not None and not layout.has_repeated_ids:  # a repeated id's face is told by the gate
-            gate_px += prediction_gate_px(covariance, T_world_cube, sighting.T_world_cam, intrinsics, layout)
-        matches = match_faces(sighting.detections, layout, intrinsics, sighting.T_world_cam, T_world_cube,
+            gate_px += prediction_gate_px(covariance, T_world_cube, T_world_cam, intrinsics, layout)
+        matches = match_faces(sighting.detections, layout, intrinsics, T_world_cam, T_world_cube,
                               gate_px=gate_px, max_view_angle_deg=self.params.max_view_angle_deg)
         if not matches:
             return []
         if intrinsics.readout_s <= 0:
-            sets = [corner_set(matches, intrinsics, sighting.T_world_cam, sighting.camera, t)]
+            sets = [corner_set(matches, intrinsics, T_world_cam, sighting.camera, t)]
         else:
             row_s, middle = intrinsics.readout_s / intrinsics.height, (intrinsics.height - 1) / 2.0
-            sets = [corner_set((m,), intrinsics, sighting.T_world_cam, sighting.camera,
+            sets = [corner_set((m,), intrinsics, T_world_cam, sighting.camera,
                                t + (float(m.detection.corners_px[:, 1].sum()) / 4.0 - middle) * row_s) for m in matches]
         return [s for s in sets if s is not None]  # (none is: each has matches)
 
@@ -450,16 +473,16 @@ class FilterFusion:
         robot, t = sighting.robot, sighting.capture_time_s
         if state.filter is not None and t - state.last_accepted_s > self.params.lost_after_s:
             log.info("%s: not seen for %.2f s; track restarts", robot, t - state.last_accepted_s)
-            state = RobotState(None, state.last_accepted_s, state.rejections)
+            state = replace(state, filter=None)
         if state.filter is None:
             window = history[max(0, index + 1 - self.START_WINDOW): index + 1]
             return self._start(state, sighting, [s.sighting for s in window], now_s, record)
         f = state.filter.copy()
         f.predict(t)
-        corners = self._corners(sighting, f.T_world_cube, f.pose_covariance)
-        outcome = "accepted sighting"
+        corners = self._corners(sighting, f.T_world_cube, state.corrections, f.pose_covariance)
+        prior, outcome = f.copy(), "accepted sighting"
         if not (corners and f.update(corners).accepted):
-            again = self._reacquire(sighting, f)
+            again = self._reacquire(sighting, f, state.corrections)
             if again is not None:
                 (f, corners), outcome = again, "re-acquired sighting"
             else:
@@ -468,14 +491,22 @@ class FilterFusion:
             rejections = state.rejections + 1
             if rejections >= self.params.max_rejections:
                 log.info("%s: %d sightings rejected in a row; track restarts", robot, rejections)
-                return RobotState(None, state.last_accepted_s, rejections), None, "rejected sighting"
-            return RobotState(f, state.last_accepted_s, rejections), None, "rejected sighting"
+                return replace(state, filter=None, rejections=rejections), None, "rejected sighting"
+            return replace(state, filter=f, rejections=rejections), None, "rejected sighting"
+        corrections = state.corrections
+        if outcome == "accepted sighting":  # the camera against the prediction (the others' consensus)
+            fp = self.filter_params
+            corrections = observed(corrections, self._priors, corners, prior.T_world_cube, prior.velocity_m_s,
+                                   prior.angular_velocity_rad_s, prior.time_s, prior.P,
+                                   fp.corner_noise_px, fp.huber_px)
+        new = RobotState(f, t, 0, corrections)
         if not record:
-            return RobotState(f, t, 0), None, outcome
+            return new, None, outcome
         markers = tuple(f"{sighting.camera}:{face}" for c in corners for face in c.faces)
-        return RobotState(f, t, 0), pose_record(sighting, f, now_s, (sighting.camera,), markers), outcome
+        return new, pose_record(sighting, f, now_s, (sighting.camera,), markers), outcome
 
-    def _reacquire(self, sighting: CubeSighting, f: PoseFilter) -> tuple[PoseFilter, list[CornerSet]] | None:
+    def _reacquire(self, sighting: CubeSighting, f: PoseFilter,
+                   corrections: CameraCorrections) -> tuple[PoseFilter, list[CornerSet]] | None:
         """The other hypothesis for a sighting the predicted pose ``f`` does not explain: the
         camera's own cube pose from its detections (another face, a flip, a turn the motion model
         missed). If it lies within ``reacquire_m`` of the prediction and its matched corners pass
@@ -488,7 +519,7 @@ class FilterFusion:
             params=self.estimator_params)
         if estimate is None or np.linalg.norm(estimate.T_world_cube[:3, 3] - f.position_m) > self.params.reacquire_m:
             return None
-        corners = self._corners(sighting, estimate.T_world_cube)
+        corners = self._corners(sighting, estimate.T_world_cube, corrections)
         if not corners:
             return None
         prior = np.diag(np.repeat([self.params.reacquire_m**2, np.radians(30.0) ** 2], 3))
@@ -510,7 +541,7 @@ class FilterFusion:
         fp = self.filter_params
         best = None
         for guess in {id(s.estimate): s.estimate for s in window if s.estimate is not None}.values():
-            sets = [c for s in window for c in self._corners(s, guess.T_world_cube)]
+            sets = [c for s in window for c in self._corners(s, guess.T_world_cube, state.corrections)]
             if len({c.camera for c in sets}) < 2:
                 continue
             solution = solve_joint(sets, guess.T_world_cube, t, corner_noise_px=fp.corner_noise_px,
@@ -525,7 +556,7 @@ class FilterFusion:
         f = PoseFilter(fp, t, solution.T_world_cube, solution.covariance, solution.velocity_m_s,
                        solution.angular_velocity_rad_s)
         if not record:
-            return RobotState(f, t, 0), None, "track start"
+            return RobotState(f, t, 0, state.corrections), None, "track start"
         cameras = tuple(sorted({s.camera for s in sets}))
         markers = tuple(f"{s.camera}:{face}" for s in sets for face in s.faces)
-        return RobotState(f, t, 0), pose_record(sighting, f, now_s, cameras, markers), "track start"
+        return RobotState(f, t, 0, state.corrections), pose_record(sighting, f, now_s, cameras, markers), "track start"

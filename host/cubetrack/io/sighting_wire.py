@@ -11,9 +11,12 @@ One message per processed camera frame, little-endian binary, corners and never 
     dictionaries: u8 count, each u8 length + UTF-8
     detections: u16 count, each marker id i32, dictionary index u8, corners 8 f64 (TL, TR, BR, BL
     x, y in pixels), area f64 (px^2)
+    [drops: u8 count, each u8 length + UTF-8 reason, u32 markers, when flags bit 3]
 
 ``flags`` bit 0: a per-frame camera pose follows (world-marker mode); bits 1-2 the detection
-outcome (0 regions, 1 full frame, 2 corrupt JPEG, 3 no camera pose). Times are host-clock Unix
+outcome (0 regions, 1 full frame, 2 corrupt JPEG, 3 no camera pose); bit 3: the frame's markers
+that OpenCV found and the detector then dropped, counted per reason, follow (so ``cubetrack fuse``
+summaries count them as ``track`` does). Times are host-clock Unix
 seconds after the worker's clock mapping (``capture = device + offset + drift * (device -
 device_ref)``), so the fusion orders sightings exactly as one process would; the mapping itself
 travels along for inspection. Floats are float64, so a decoded message is bit-identical to what
@@ -24,7 +27,8 @@ from __future__ import annotations
 
 import math
 import struct
-from dataclasses import dataclass
+from collections.abc import Mapping
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -46,6 +50,7 @@ _DETECTION = struct.Struct("<iB9d")
 _POSE = struct.Struct("<12d")
 _U8 = struct.Struct("<B")
 _U16 = struct.Struct("<H")
+_U32 = struct.Struct("<I")
 
 
 class SightingWireError(CubetrackError):
@@ -87,6 +92,7 @@ class SightingMessage:
     clock: WireClock = WireClock()
     health: WireHealth = WireHealth()
     T_world_cam: np.ndarray | None = None
+    dropped: Mapping[str, int] = field(default_factory=dict)  # markers found, then dropped: reason -> count
 
 
 def _name(text: str, what: str) -> bytes:
@@ -104,7 +110,9 @@ def encode_sighting(message: SightingMessage) -> bytes:
         raise SightingWireError(f"sighting message: unknown clock method {message.clock.method!r}")
     if len(message.detections) > 0xFFFF:
         raise SightingWireError(f"sighting message: {len(message.detections)} detections, at most 65535")
-    flags = (message.T_world_cam is not None) | OUTCOME_CODES[message.outcome] << 1
+    if len(message.dropped) > 255:
+        raise SightingWireError(f"sighting message: {len(message.dropped)} drop reasons, at most 255")
+    flags = (message.T_world_cam is not None) | OUTCOME_CODES[message.outcome] << 1 | bool(message.dropped) << 3
     h, c = message.health, message.clock
     parts = [_HEAD.pack(MAGIC, VERSION, flags, message.seq, message.device_time_s, message.capture_time_s,
                         message.arrival_time_s, CLOCK_METHOD_CODES[c.method], c.offset_s, c.drift, c.device_ref_s,
@@ -121,6 +129,10 @@ def encode_sighting(message: SightingMessage) -> bytes:
     for d in message.detections:
         parts.append(_DETECTION.pack(d.marker_id, dictionaries.index(d.dictionary),
                                      *np.asarray(d.corners_px, dtype=np.float64).ravel(), d.area_px2))
+    if message.dropped:
+        parts.append(_U8.pack(len(message.dropped)))
+        for reason, count in sorted(message.dropped.items()):
+            parts += [_name(reason, "drop reason"), _U32.pack(min(count, 0xFFFFFFFF))]
     return b"".join(parts)
 
 
@@ -156,8 +168,8 @@ def decode_sighting(data: bytes) -> SightingMessage:
         raise SightingWireError(f"sighting message version {data[4]}, this cubetrack reads version {VERSION}")
     r = _Reader(data)
     (_, _, flags, seq, device_s, capture_s, arrival_s, method, offset_s, drift, ref_s, connected,
-     frames, dropped, bad, reconnects) = r.take(_HEAD, "header")
-    if flags >> 3 or method not in _CLOCK_METHODS:
+     frames, dropped_frames, bad, reconnects) = r.take(_HEAD, "header")
+    if flags >> 4 or method not in _CLOCK_METHODS:
         raise SightingWireError(f"sighting message: unknown flags {flags:#x} or clock method {method}")
     camera = r.name("camera name")
     T_world_cam = None
@@ -173,8 +185,14 @@ def decode_sighting(data: bytes) -> SightingMessage:
             raise SightingWireError(f"sighting message: detection of marker {marker_id} names dictionary {index} "
                                     f"of {n_dict}")
         detections.append(Detection(marker_id, np.array(values[:8]).reshape(4, 2), values[8], dictionaries[index]))
+    dropped = {}
+    if flags & 8:
+        (n_reasons,) = r.take(_U8, "drop counts")
+        for _ in range(n_reasons):
+            reason = r.name("drop reason")
+            dropped[reason] = r.take(_U32, "drop counts")[0]
     if r.at != len(data):
         raise SightingWireError(f"sighting message: {len(data) - r.at} bytes after its end")
     return SightingMessage(camera, seq, device_s, capture_s, arrival_s, _OUTCOMES[(flags >> 1) & 3], tuple(detections),
                            WireClock(_CLOCK_METHODS[method], offset_s, drift, ref_s),
-                           WireHealth(bool(connected), frames, dropped, bad, reconnects), T_world_cam)
+                           WireHealth(bool(connected), frames, dropped_frames, bad, reconnects), T_world_cam, dropped)

@@ -236,12 +236,54 @@ class SharpPath:
         return xy, float(np.interp(s, self._s, self._yaw))
 
 
+HAND_LIFT_M = (0.05, 0.35)     # a hand-held body's ground frame is this high above the floor (its range)
+HAND_TILT_DEG = 25.0           # ... tilts this far about the horizontal axes (amplitude of each)
+HAND_YAW_DEG = 70.0            # ... and turns this far about the vertical (amplitude)
+HAND_TURN_RAD_S = 0.8          # ... at this RMS angular speed (a wrist turning an object to look at it)
+_HAND_WAVES = 3                # sinusoids per axis
+_HAND_FREQ_SPREAD = (0.6, 1.4)  # each sinusoid's frequency, relative to the axis's mean
+
+
+class HandPath:
+    """Free 6-DoF motion of a body carried by hand: every axis of position and orientation a sum
+    of ``_HAND_WAVES`` sinusoids of random phase and frequency (smooth, no floor contact). The
+    position stays within ``half_extent_m`` (x, y) and ``HAND_LIFT_M`` (height of the ground
+    frame), its RMS speed over the horizontal axes is ``speed_m_s``; the orientation tilts up to
+    about ``HAND_TILT_DEG`` and turns up to ``HAND_YAW_DEG`` at ``HAND_TURN_RAD_S`` RMS. Walking-hand
+    motion: 0.1-0.5 m/s (the real footage's board moved at about 0.085 m/s, ../shared/data/real
+    README), frequencies of a fraction of a hertz; the source of these sizes is that footage and
+    the arm's reach (a desk-sized volume), not a motion-capture study."""
+
+    def __init__(self, half_extent_m: tuple[float, float], speed_m_s: float, rng: np.random.Generator):
+        lift_mid, lift_half = (HAND_LIFT_M[0] + HAND_LIFT_M[1]) / 2.0, (HAND_LIFT_M[1] - HAND_LIFT_M[0]) / 2.0
+        amplitudes = np.array([*half_extent_m, lift_half, *np.radians([HAND_TILT_DEG, HAND_TILT_DEG, HAND_YAW_DEG])])
+        self.centre = np.array([0.0, 0.0, lift_mid, 0.0, 0.0, 0.0])
+        self.amplitude = amplitudes / _HAND_WAVES  # per sinusoid: the sum never leaves the range
+        spread = rng.uniform(*_HAND_FREQ_SPREAD, (6, _HAND_WAVES))
+        self.phase = rng.uniform(0.0, 2.0 * math.pi, (6, _HAND_WAVES))
+        # RMS speed of one axis with angular frequencies c * spread: c * a * sqrt(sum(spread^2) / 2)
+        unit = self.amplitude[:, None] * np.sqrt(0.5 * np.sum(spread**2, axis=1, keepdims=True))
+        omega = np.empty((6, _HAND_WAVES))
+        horizontal = math.sqrt(float(np.sum(unit[:2] ** 2)))
+        omega[:3] = spread[:3] * speed_m_s / horizontal
+        omega[3:] = spread[3:] * HAND_TURN_RAD_S / math.sqrt(float(np.sum(unit[3:] ** 2)))
+        self.omega = omega
+
+    def T_world_robot(self, t_s: float) -> np.ndarray:
+        """The carried body's ground frame (x forward, z up when level) ``t_s`` seconds after the start."""
+        x = self.centre + self.amplitude * np.sin(self.omega * t_s + self.phase).sum(axis=1)
+        return make_T(Rotation.from_euler("ZYX", [x[5], x[4], x[3]]).as_matrix(), x[:3])
+
+
 def make_path(kind: str, half_extent_m: tuple[float, float], speed_m_s: float, start_fraction: float,
               accel_m_s2: float, turn_rate_rad_s: float, turn_radius_m: float,
-              rng: np.random.Generator) -> RobotPath | SharpPath:
-    """The path a robot drives (``rng`` places a sharp path's waypoints)."""
+              rng: np.random.Generator) -> RobotPath | SharpPath | HandPath:
+    """The path a robot drives, or the hand-held motion of ``handheld`` (``rng`` places a sharp
+    path's waypoints, or draws the hand's sinusoids)."""
     if kind == "sharp":
         return SharpPath(half_extent_m, speed_m_s, accel_m_s2, turn_rate_rad_s, turn_radius_m, start_fraction, rng)
+    if kind == "handheld":
+        return HandPath(half_extent_m, speed_m_s, rng)
     return RobotPath(kind, half_extent_m, speed_m_s, start_fraction)
 
 

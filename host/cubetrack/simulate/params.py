@@ -19,7 +19,7 @@ from typing import Any
 
 from cubetrack.core.params import check, check_between, check_finite, check_non_negative, check_positive, param
 
-PATHS = ("figure8", "rectangle", "sharp")
+PATHS = ("figure8", "rectangle", "sharp", "handheld")
 
 
 LIMITS = {"focal_spread": 0.1, "info_focal_error": 0.05, "info_k1_error": 0.1, "marker_undersize": 0.2,
@@ -82,8 +82,10 @@ class SimulationParams:
     face_tilt_deg: float = param(0.0, "imperfect cube: faces not quite square, each marker plane tilted "
                                       "(std about each in-plane axis), degrees")
     # --- motion
-    path: str = param("figure8", "robot path: figure8 (crosses the world marker), rectangle (rounded) or sharp "
-                                 "(random waypoints, sharp turns, accelerating and braking)")
+    path: str = param("figure8", "robot path: figure8 (crosses the world marker), rectangle (rounded), sharp "
+                                 "(random waypoints, sharp turns, accelerating and braking) or handheld (the body "
+                                 "carried by hand: smooth random 6-DoF motion within path_size_m, lifted 0.05-0.35 m, "
+                                 "tilting about 25 deg, at speed_m_s RMS; no floor contact)")
     path_size_m: tuple[float, ...] = param((0.8, 0.5), "half-extent of the path along world x and y, metres")
     speed_m_s: float = param(0.25, "robot speed along the path (sharp: top speed), metres per second")
     accel_m_s2: float = param(1.0, "sharp path: acceleration and braking limit, metres per second squared")
@@ -170,6 +172,7 @@ class SimulationParams:
         check(len(self.path_size_m) == 2 and min(self.path_size_m) > 0,
               "path_size_m needs two positive numbers: half-extent along x and y")
         check(self.path in PATHS, f"path must be one of {', '.join(PATHS)}, got {self.path!r}")
+        check(self.path != "handheld" or self.robots == 1, "path handheld carries one body: set robots = 1")
         check(self.world_marker_id >= 0 and self.cube_marker_id >= 0, "marker ids must not be negative")
         cube_ids = range(self.cube_marker_id, self.cube_marker_id + (5 if self.distinct_ids else 1) * self.robots)
         check(self.world_marker_id not in cube_ids,
@@ -252,8 +255,8 @@ REALISTIC: dict[str, object] = {
 # ../shared/data/real/caliscope-4cam has that the realistic preset lacks (its README): 1280 x 720
 # webcams (focal length as its calibrated cameras', 640-900 px) at about 6 fps, free-running
 # (unsynchronised: each camera's own clock and capture phase, as every preset), markers printed
-# inverted, each with its own id. Free hand-held motion is not simulated (the robot's cube tilts
-# only with the floor and its vibration).
+# inverted, each with its own id. Its board's free hand-held motion is ``path = "handheld"`` on top
+# (benchmarks/accuracy.py --presets hand).
 RIG: dict[str, object] = {
     "image_width_px": 1280,
     "image_height_px": 720,

@@ -26,6 +26,7 @@ from cubetrack.simulate.imperfections import built_layout, calibrated_intrinsics
 from cubetrack.simulate.motion import (
     PERSON_BODY_M,
     PERSON_HEAD_M,
+    HandPath,
     Person,
     RobotPath,
     SharpPath,
@@ -101,7 +102,7 @@ class SimRobot:
 
     name: str
     layout: CubeLayout
-    path: RobotPath | SharpPath
+    path: RobotPath | SharpPath | HandPath
     true_layout: CubeLayout
     terrain: Terrain | None = None
 
@@ -123,6 +124,8 @@ class Scene:
         """A robot's ground frame (x forward, z up) ``t_s`` seconds after the start; on an uneven
         floor it stands on its four wheels and vibrates."""
         r = self.robots[robot]
+        if isinstance(r.path, HandPath):  # carried: no floor under it
+            return r.path.T_world_robot(t_s)
         xy, yaw = r.path.pose(t_s)
         if r.terrain is not None:
             return r.terrain.T_world_robot(np.asarray(xy, float), yaw, t_s)

@@ -159,3 +159,22 @@ def test_the_detector_owns_one_lens_map_per_camera():
     detector.detect(image, lens=other)
     assert len(detector._lens_maps) == 2
     assert not Detector(DetectorParams(corner_refinement=CornerRefinement.TEMPLATE))._lens_maps
+
+
+def test_the_pre_blur_is_one_reads_area_in_template_samples():
+    """The fast fit's template pre-blur (template_fit._area_steps) is a read's area pulled back into
+    the template: a marker half as large in the image needs twice the blur in template samples, and
+    a marker squashed along y by 1/2 needs twice the blur along y only (a read of 1/2 px is 1/24 px^2
+    of variance; 6 modules of 16 samples across 60 px: 1.6 samples per px)."""
+    from cubetrack.detect.template_fit import TEMPLATE_RES, _area_steps
+
+    modules, side_px, step = 6, 60.0, 0.25
+    square = np.array([[100.0, 100.0], [100.0 + side_px, 100.0], [100.0 + side_px, 100.0 + side_px],
+                       [100.0, 100.0 + side_px]])
+    sigma = np.sqrt(1.0 / 48.0) * TEMPLATE_RES * modules / side_px / step  # in steps of 0.25 template samples
+    full = _area_steps(square_homography(square, modules), modules, np.eye(2), 2)
+    assert full == (round(sigma), round(sigma))
+    half = _area_steps(square_homography(100.0 + (square - 100.0) / 2.0, modules), modules, np.eye(2), 2)
+    assert half == (round(2 * sigma), round(2 * sigma))
+    squashed = square * [1.0, 0.5]
+    assert _area_steps(square_homography(squashed, modules), modules, np.eye(2), 2) == (round(sigma), round(2 * sigma))

@@ -104,3 +104,32 @@ def test_a_bad_dictionary_index_or_name_is_refused():
         encode_sighting(SightingMessage("c", 0, 0.0, 0.0, 0.0, "lost", ()))
     with pytest.raises(SightingWireError, match="longer than 255 bytes"):
         encode_sighting(SightingMessage("c" * 300, 0, 0.0, 0.0, 0.0, "regions", ()))
+
+
+DROPS = {"edge refinement failed": 3, "not a convex quad": 1}
+
+
+def test_drop_counts_travel_and_a_frame_without_drops_keeps_the_version_1_bytes():
+    """The markers a worker's detector found and dropped reach ``cubetrack fuse``'s summary (issue 25)."""
+    import dataclasses
+
+    sent = dataclasses.replace(message(pose=True), dropped=DROPS)
+    assert decode_sighting(encode_sighting(sent)).dropped == DROPS
+    plain = encode_sighting(message(pose=True))
+    assert decode_sighting(plain).dropped == {} and not plain[5] & 8  # flags bit 3 clear: as before
+    data = encode_sighting(sent)
+    for n in range(len(plain), len(data)):  # cut inside the drop counts
+        with pytest.raises(SightingWireError):
+            decode_sighting(data[:n])
+
+
+def test_a_workers_message_carries_its_frames_drop_counts_to_the_fusions_frame_result():
+    from cubetrack.app.worker import sighting_message
+    from cubetrack.core.records import Frame, FrameJob, FrameResult
+    from cubetrack.source.clock import ClockSync
+    from cubetrack.source.streams import CameraStats
+
+    job = FrameJob(Frame("cam1", 4, 10.0, 10.05, b""), 10.0, None, frozenset())
+    result = FrameResult(job, FrameOutcome.FULL_FRAME, (), dropped=DROPS)
+    got = decode_sighting(encode_sighting(sighting_message(result, ClockSync(), CameraStats(), with_pose=False)))
+    assert got.dropped == DROPS
