@@ -301,14 +301,16 @@ class PoseFilter:
         while sets:
             delta, info, T, r = self._solve(sets)
             face_rms = np.sqrt((r * r).reshape(-1, 8).sum(axis=1) / 8.0)  # RMS of 4 corners x (x, y) per face
-            worst = int(np.argmax(face_rms))
-            if face_rms[worst] <= self.params.face_gate_px or len(face_rms) == 1:
+            if len(face_rms) == 1:
+                break
+            worst = int(face_rms.argmax())
+            if face_rms[worst] <= self.params.face_gate_px:
                 break
             sets = _without_face(sets, worst)
         if not sets:
             return UpdateResult(False, float("inf"), 0)
         rms = math.sqrt(float(r @ r) / r.size)
-        if not np.isfinite(rms) or rms > self.params.gate_rms_px:
+        if not math.isfinite(rms) or rms > self.params.gate_rms_px:
             return UpdateResult(False, rms, r.size // 2)
         self.P = inverse(info)
         self.P = (self.P + self.P.T) / 2.0
