@@ -5,9 +5,9 @@ selector loop that reads the HTTP cameras (:class:`cubetrack.source.streams.Live
 these readers and merges their frames into its one queue).
 
 Per frame: the image is encoded as a grayscale JPEG (detection works on gray; the pipeline, the
-recording and the worker processes carry JPEGs), measured at 1.6 ms per VGA frame and 3.3 ms
-per 1280x720 frame on this project's 2-core machine (simplejpeg, quality 90; colour: 2.5 / 7.0 ms),
-and stamped (:mod:`cubetrack.source.timing`):
+recording and the worker processes carry JPEGs): 0.72 ms per VGA frame and 1.88 ms per
+1280x720 frame, colour would be 1.52 / 4.10 ms (``benchmarks/capture_encode.py``, 2 cores), and
+stamped (:mod:`cubetrack.source.timing`):
 
 - the driver's timestamp (``CAP_PROP_POS_MSEC``: the V4L2 backend gives the buffer's timestamp,
   on the host's monotonic clock for UVC webcams) when it is plausible (within 2 s before now);
