@@ -144,41 +144,42 @@ def write_fleet(fleet: Fleet, work: Path) -> tuple[Path, Path]:
 
 def frame_detections(fleet: Fleet, marker_sets: list, T_cam_world: np.ndarray, t_s: float,
                      rng: np.random.Generator) -> dict[str, tuple]:
-    """Robot -> the detections of its markers in a camera's frame captured at ``t_s``."""
-    import cv2
-
+    """Robot -> the detections of its markers in a camera's frame captured at ``t_s`` (a pinhole
+    without distortion: the cameras' intrinsics have none)."""
     from cubetrack.core.records import Detection
 
     out = {}
     for k, (name, markers) in enumerate(marker_sets):
+        if markers is None:
+            continue
+        ids, corners_cube, normals_cube = markers
         T = T_cam_world @ fleet.T_world_cube(k, t_s)
+        pc = corners_cube @ T[:3, :3].T + T[:3, 3]  # (faces, 4, 3) in the camera frame
+        centres = pc.mean(axis=1)
+        towards = np.einsum("ij,ij->i", normals_cube @ T[:3, :3].T, -centres)
+        facing = towards >= COS_VIEW * np.linalg.norm(centres, axis=1)
+        px = FOCAL_PX * pc[..., :2] / np.maximum(pc[..., 2:], 1e-6) + [WIDTH / 2, HEIGHT / 2]
+        sides = np.linalg.norm(px - np.roll(px, 1, axis=1), axis=2).min(axis=1)
+        inside = np.all((px >= 0) & (px < [WIDTH, HEIGHT]), axis=(1, 2)) & np.all(pc[..., 2] > 0.1, axis=1)
         dets = []
-        for marker_id, corners_cube, normal_cube in markers:
-            pc = corners_cube @ T[:3, :3].T + T[:3, 3]
-            centre = pc.mean(axis=0)
-            if centre[2] <= 0.1 or np.dot(T[:3, :3] @ normal_cube, -centre) < COS_VIEW * np.linalg.norm(centre):
-                continue
-            px = cv2.projectPoints(pc, np.zeros(3), np.zeros(3), K(), None)[0].reshape(4, 2)
-            if np.any(px < 0) or np.any(px[:, 0] >= WIDTH) or np.any(px[:, 1] >= HEIGHT):
-                continue
-            if min(np.linalg.norm(px - np.roll(px, 1, axis=0), axis=1)) < MIN_SIDE_PX:
-                continue
-            px = px + rng.normal(0, fleet.noise_px, px.shape)
-            area = 0.5 * abs(np.dot(px[:, 0], np.roll(px[:, 1], 1)) - np.dot(px[:, 1], np.roll(px[:, 0], 1)))
-            dets.append(Detection(marker_id, px, float(area), DICTIONARY))
+        for i in np.flatnonzero(facing & inside & (sides >= MIN_SIDE_PX)):
+            corners = px[i] + rng.normal(0, fleet.noise_px, (4, 2))
+            x, y = corners[:, 0], corners[:, 1]
+            area = 0.5 * abs(float(np.dot(x, np.roll(y, 1)) - np.dot(y, np.roll(x, 1))))
+            dets.append(Detection(int(ids[i]), corners, area, DICTIONARY))
         if dets:
             out[name] = tuple(dets)
     return out
 
 
 def marker_sets(fleet: Fleet, cell: int) -> list:
-    """(robot, [(marker id, corners in the cube frame, face normal)]) of the robots in ``cell``."""
-    out = []
+    """(robot, (marker ids, corners in the cube frame (faces, 4, 3), face normals)) of the robots in
+    ``cell``; None for the others (8 m away: their markers would be under MIN_SIDE_PX)."""
+    out: list = []
     for k, (name, layout) in enumerate(layouts(fleet).items()):
-        if k % fleet.cells == cell:
-            out.append((name, [(m.marker_id, m.corners_cube_m(), m.T_cube_marker[:3, 2]) for m in layout.markers]))
-        else:
-            out.append((name, []))  # another cell's robot: 8 m away, its markers below MIN_SIDE_PX
+        markers = layout.markers
+        out.append((name, (np.array([m.marker_id for m in markers]), np.stack([m.corners_cube_m() for m in markers]),
+                           np.stack([m.T_cube_marker[:3, 2] for m in markers])) if k % fleet.cells == cell else None))
     return out
 
 
@@ -360,6 +361,12 @@ def wait_for(condition, timeout_s: float, what: str) -> None:
         time.sleep(0.05)
 
 
+def settled(holders: dict[str, set[str]], robots: list[str], shards: int) -> bool:
+    """Every robot claimed by one shard, and as many shards with a share as there can be."""
+    return (all(len(holders.get(r, ())) == 1 for r in robots)
+            and len({s for r in robots for s in holders[r]}) == min(shards, len(robots)))
+
+
 def cpu_of(pid: int) -> float:
     """A process's CPU seconds so far (Linux /proc)."""
     fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
@@ -390,8 +397,8 @@ def run_fleet(args: argparse.Namespace, work: Path) -> dict:
         for p in shards + publishers:
             p.start()
         observer = Observer(ports)
-        wait_for(lambda: all(len(observer.holders().get(r, ())) == 1 for r in fleet.robot_names()), 120,
-                 "the shards did not claim every robot once")
+        wait_for(lambda: settled(observer.holders(), fleet.robot_names(), args.shards), 120,
+                 "the shards did not each claim a share of the robots, every robot once")
         for _ in publishers:
             ready.get(timeout=120)
         time.sleep(1.0)  # the shards' subscriptions reach the publishers
