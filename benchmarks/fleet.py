@@ -28,6 +28,7 @@ shards' claims.
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import math
 import multiprocessing
@@ -98,8 +99,7 @@ class Fleet:
 
     def T_world_cube(self, k: int, t_s: float) -> np.ndarray:
         """Robot ``k``'s cube at time ``t_s``: a circle of radius 0.3-0.8 m at 0.3-0.5 m/s in its cell."""
-        rng = np.random.default_rng([self.seed, k])
-        radius, speed, phase = rng.uniform(0.3, 0.8), rng.uniform(0.3, 0.5), rng.uniform(0, 2 * math.pi)
+        radius, speed, phase = circle(self.seed, k)
         angle = phase + speed / radius * t_s
         centre = self.cell_centre(k % self.cells) + [0.4 * math.cos(k), 0.4 * math.sin(k), CUBE_HEIGHT_M]
         heading = angle + math.pi / 2
@@ -107,6 +107,13 @@ class Fleet:
         T[:3, :3] = [[math.cos(heading), -math.sin(heading), 0], [math.sin(heading), math.cos(heading), 0], [0, 0, 1]]
         T[:3, 3] = centre + [radius * math.cos(angle), radius * math.sin(angle), 0.0]
         return T
+
+
+@functools.cache
+def circle(seed: int, k: int) -> tuple[float, float, float]:
+    """Robot ``k``'s circle: radius (m), speed (m/s), phase (rad)."""
+    rng = np.random.default_rng([seed, k])
+    return float(rng.uniform(0.3, 0.8)), float(rng.uniform(0.3, 0.5)), float(rng.uniform(0, 2 * math.pi))
 
 
 def layouts(fleet: Fleet) -> dict:

@@ -16,6 +16,7 @@ which cameras it hears from (and which it does not).
 from __future__ import annotations
 
 import collections
+import dataclasses
 import logging
 import math
 import threading
@@ -265,7 +266,10 @@ def run_fusion(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
     intrinsics = live_intrinsics(config)
     tracker = Tracker(intrinsics, config.world, config.robots, extrinsics, params)
     out_dir = Path(out_dir)
-    outputs, files = open_outputs(config, intrinsics, extrinsics, out_dir, sinks)
+    # named robots: the outputs (files, topics, trackers) are theirs only; a shard's robots change, so all
+    mine = config if shard or not robots else dataclasses.replace(config, robots=tuple(
+        r for r in config.robots if r.name in names))
+    outputs, files = open_outputs(mine, intrinsics, extrinsics, out_dir, sinks)
     zenoh, declared, behind = None, [], 0
     try:
         stream = PoseStream(tracker, outputs, clock)
