@@ -542,7 +542,8 @@ def print_report(r: dict) -> None:
     print(f"longest time a robot had two shards' claims: {r['double_claims_longest_s']} s")
     if r["takeover"]:
         t = r["takeover"]
-        print(f"shard 0 {t['how']}ed holding {', '.join(t['robots'])}: claimed by another after "
+        how = "killed (SIGKILL)" if t["how"] == "kill" else "frozen (SIGSTOP)"
+        print(f"shard 0 {how} holding {', '.join(t['robots'])}: claimed by another after "
               f"{t['claimed_after_s']:.2f} s, poses resumed after {t['poses_resumed_after_s']:.2f} s")
 
 

@@ -27,7 +27,7 @@ def test_a_killed_shards_robots_are_fused_by_the_other_within_3_s(tmp_path):
     assert run.returncode == 0, run.stderr[-3000:]
     r = json.loads(report.read_text())
     for line in ("cores: 2", "sightings/s offered", "publish -> pose latency: p50", "CPU per sighting",
-                 "publishers: CPU", "accuracy vs truth", "single-process replay", "shard 0 killed holding"):
+                 "publishers: CPU", "accuracy vs truth", "single-process replay", "shard 0 killed (SIGKILL) holding"):
         assert line.split(":")[0] in run.stdout, line
     assert r["cores"] >= 1 and r["offered_per_s"] > 0 and r["fused_per_s"] > 0
     assert len(r["latency_ms_p50_p95_p99"]) == 3 and r["latency_ms_p50_p95_p99"][0] > 0
