@@ -199,12 +199,15 @@ class _Inbox:
                 self.stream.outputs.camera_health(h.health)
 
     def line(self, elapsed_s: float) -> str:
-        """The status line: the workers, the cameras heard from (sightings so far) and those silent."""
+        """The status line: the robots fused, the workers, the cameras heard from (sightings so far)
+        and those silent."""
         now = time.monotonic()
         live = [f"{c} {h.messages}" for c, h in self.heard.items() if now - h.last_heard_s < SILENT_AFTER_S]
         silent = [c for c, h in self.heard.items() if not now - h.last_heard_s < SILENT_AFTER_S]
         poses = " ".join(f"{r} {n} poses" for r, n in self.tracker.stats.poses.items() if r in self.stream.robots)
-        return (f"{elapsed_s:5.0f}s {len(self.workers)} worker(s), hearing {', '.join(live) or 'no camera'}"
+        robots = self.stream.robots
+        return (f"{elapsed_s:5.0f}s fusing {', '.join(robots[:8]) or 'no robot'}{' ...' if len(robots) > 8 else ''}"
+                f" | {len(self.workers)} worker(s), hearing {', '.join(live) or 'no camera'}"
                 + (f" | silent: {', '.join(silent)}" if silent else "") + (f" | {poses}" if poses else "")
                 + (f" | refused {self.bad}" if self.bad else "")
                 + (f" | duplicates {self.duplicates}" if self.duplicates else ""))

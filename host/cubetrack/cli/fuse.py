@@ -71,4 +71,7 @@ def run(args: argparse.Namespace) -> int:
           + "".join(f"; never heard from {c}" for c, n in result.heard.items() if not n))
     for robot, (tum, jsonl) in result.outputs.items():
         print(f"{robot}: {result.stats.poses[robot]} poses -> {tum}, {jsonl}")
+    if args.shard:
+        print("  claims: " + (", ".join(f"{'took' if taken else 'gave up'} {robot} at {at_s:.2f} s"
+                                         for at_s, robot, taken in result.claims) or "none"))
     return 0
