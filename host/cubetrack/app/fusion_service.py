@@ -138,12 +138,13 @@ class _Inbox:
         self.bad = self.duplicates = self.received = 0
         self.started = time.monotonic()
         self.claims: list[tuple[float, str, bool]] = []
+        self.fusing: set[str] = set()  # the robots this fusion fuses (their predictions: stream.robots)
 
     def fused(self, robot: str, held: bool) -> None:
         """The fusion took (``held``) or gave up ``robot``: its poses and predictions start or stop
         (sightings of it still on the way are dropped)."""
-        robots = set(self.stream.robots) | {robot} if held else set(self.stream.robots) - {robot}
-        self.stream.robots = [r.name for r in self.tracker.robots if r.name in robots]
+        self.fusing = self.fusing | {robot} if held else self.fusing - {robot}
+        self.stream.robots = [r.name for r in self.tracker.robots if r.name in self.fusing]
         self.claims.append((time.monotonic() - self.started, robot, held))
         log.info("fuse: %s robot %s", "fusing" if held else "no longer fusing", robot)
 
@@ -179,13 +180,13 @@ class _Inbox:
 
     def fuse(self) -> None:
         for message in self._decoded():
+            if message.body is not None and message.body not in self.fusing:
+                continue  # a robot this fusion no longer fuses (or does not know)
             result = frame_result(self.tracker, message)
             if result is None:
                 self.bad += 1
                 log.warning("fuse: sighting of camera %r, which the config and extrinsics do not know", message.camera)
                 continue
-            if message.body is not None and message.body not in self.stream.robots:
-                continue  # a robot this fusion no longer fuses (or does not know)
             h = self.heard[message.camera]
             if not h.first_copy(message):
                 self.duplicates += 1
