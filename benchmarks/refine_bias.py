@@ -97,7 +97,7 @@ def run_worker(host: Path, rec: Path, out: Path) -> dict:
     return json.loads(out.with_suffix(".json").read_text(encoding="utf-8"))
 
 
-def baseline_tree(commit: str, into: Path) -> Path:
+def commit_tree(commit: str, into: Path) -> Path:
     """``host/`` of ``commit`` extracted under ``into`` (``git archive``); its path."""
     into.mkdir(parents=True, exist_ok=True)
     archive = subprocess.run(["git", "-C", str(ROOT), "archive", commit, "host"], capture_output=True, check=True)
@@ -207,6 +207,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--baseline", default=BASELINE, help=f"commit whose code is the baseline (default {BASELINE}: "
                     "the refinement on edge-fitted corners)")
     ap.add_argument("--no-baseline", action="store_true", help="only ours and the world marker")
+    ap.add_argument("--ours", metavar="COMMIT", help="take ours from this commit's host/ too (default: the working "
+                    "tree's; a commit keeps a long run's code fixed while the tree changes)")
     ap.add_argument("--json", type=Path, help="write the scenes' rows here")
     ap.add_argument("--worker", nargs=2, type=Path, metavar=("REC", "OUT"), help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
@@ -220,12 +222,16 @@ def main(argv: list[str] | None = None) -> int:
     if bad:
         ap.error(f"--configs: no configuration {bad[0]} (0-{len(acc.CONFIGS) - 1})")
     with tempfile.TemporaryDirectory(prefix="cubetrack-refine-bias-") as tmp:
+        wanted = {OURS: args.ours, **({} if args.no_baseline else {BASE: args.baseline})}
         trees = {OURS: ROOT / "host"}
-        if not args.no_baseline:
+        for label, commit in wanted.items():
             try:
-                trees = {BASE: baseline_tree(args.baseline, Path(tmp) / "baseline"), **trees}
+                if commit is not None:
+                    trees[label] = commit_tree(commit, Path(tmp) / label.split()[0])
             except subprocess.CalledProcessError as exc:
-                ap.error(f"--baseline {args.baseline}: git archive failed ({exc.stderr.decode().strip()})")
+                flag = "--ours" if label == OURS else "--baseline"
+                ap.error(f"{flag} {commit}: git archive failed ({exc.stderr.decode().strip()})")
+        trees = {label: trees[label] for label in (BASE, OURS) if label in trees}  # the baseline first
         work = args.out or Path(tmp) / "scenes"
         work.mkdir(parents=True, exist_ok=True)
         t0 = time.monotonic()
@@ -238,7 +244,8 @@ def main(argv: list[str] | None = None) -> int:
                                             trees))
                     print_scene(scenes[-1])
         print_summary(scenes)
-        print(f"\nbaseline {args.baseline if not args.no_baseline else '(none)'}; code {acc.code_version()}; "
+        ours = f"ours {args.ours}" if args.ours else f"code {acc.code_version()}"
+        print(f"\nbaseline {args.baseline if not args.no_baseline else '(none)'}; {ours}; "
               f"{os.cpu_count()} cores, load {' '.join(f'{x:.1f}' for x in os.getloadavg())}; "
               f"total {time.monotonic() - t0:.0f} s")
         if args.json:
