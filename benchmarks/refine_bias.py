@@ -15,7 +15,11 @@ corners) runs the same function from that commit's ``host/`` (``git archive`` in
 folder, ``PYTHONPATH``) on the same recordings. Rows per scene:
 
 - **world marker**: the world-marker calibration alone (ours; the baseline's is the same code);
-- **baseline refined** and **ours refined**: the cameras ``--refine-with`` writes.
+- **baseline refined** and **ours refined**: the cameras the refinement writes
+  (``run_calibration`` without the bodies);
+- **ours refined + body** (``--bodies``): the cameras ``cubetrack calibrate --refine-with`` writes
+  today, the body calibrated from the drive first and the refinement on it
+  (``run_calibration(..., with_bodies=True)``).
 
 Each row: every camera's position error (mm) and rotation error (°) against
 ``true_extrinsics.toml``, its radial error (mm: how much farther from the world origin than the
@@ -47,7 +51,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 ACCURACY = Path(__file__).resolve().with_name("accuracy.py")
 BASELINE = "0585352^"  # the refinement on edge-fitted corners (before issue 26's template corners)
-WORLD, BASE, OURS = "world marker", "baseline refined", "ours refined"
+WORLD, BASE, OURS, BODIES = "world marker", "baseline refined", "ours refined", "ours refined + body"
 TARGET_MM, TARGET_DEG = 3.0, 0.05  # issue 26, clean renders
 
 
@@ -67,17 +71,19 @@ def say(text: str) -> None:
 # --------------------------------------------------------------------------------- the calibration under test
 
 
-def calibrate_scene(rec: Path, out: Path) -> None:
+def calibrate_scene(rec: Path, out: Path, with_bodies: bool = False) -> None:
     """In the worker process (the code under test on ``sys.path``): ``rec``'s calibration made
-    the README's way into ``out`` (extrinsics TOML, its run record), and ``out``'s ``.json``
-    with the world-marker and the refined camera poses (4x4 lists) and the seconds it took."""
+    the README's way into ``out`` (extrinsics TOML, its run record; ``with_bodies``: the bodies
+    calibrated too), and ``out``'s ``.json`` with the world-marker and the refined camera poses
+    (4x4 lists) and the CPU seconds it took."""
     from cubetrack.app.calibrate import run_calibration
     from cubetrack.io.config import read_tracker_config
     from cubetrack.io.recording import Recording
 
     t0 = time.process_time()
     config = read_tracker_config(rec / "config.toml")
-    run = run_calibration(config, Recording.open(rec / "calibration"), out, adjust_with=Recording.open(rec))
+    run = run_calibration(config, Recording.open(rec / "calibration"), out, adjust_with=Recording.open(rec),
+                          **({"with_bodies": True} if with_bodies else {}))
     poses = {name: {c: np.asarray(e.T_world_cam, float).tolist() for c, e in ext.items()}
              for name, ext in ((WORLD, run.report.extrinsics), ("refined", run.extrinsics))}
     doc = {"poses": poses, "cpu_s": time.process_time() - t0,
@@ -85,11 +91,12 @@ def calibrate_scene(rec: Path, out: Path) -> None:
     out.with_suffix(".json").write_text(json.dumps(doc), encoding="utf-8")
 
 
-def run_worker(host: Path, rec: Path, out: Path) -> dict:
+def run_worker(host: Path, rec: Path, out: Path, with_bodies: bool = False) -> dict:
     """:func:`calibrate_scene` in a process importing ``cubetrack`` from ``host``; its JSON, or
     {"error": the last line of its stderr}."""
     env = dict(os.environ, PYTHONPATH=str(host))
-    proc = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--worker", str(rec), str(out)],
+    proc = subprocess.run([sys.executable, str(Path(__file__).resolve()), "--worker", str(rec), str(out),
+                           *(["--worker-bodies"] if with_bodies else [])],
                           env=env, capture_output=True, text=True, check=False)
     if proc.returncode != 0:
         lines = [line for line in proc.stderr.splitlines() if line.strip()] or ["(no output)"]
@@ -140,7 +147,8 @@ def run_scene(acc, work: Path, preset: str, config_index: int, seed: int, durati
     truth = {c: e.T_world_cam for c, e in read_extrinsics(rec / "true_extrinsics.toml").items()}
     scene = {"preset": preset, "config": acc.CONFIGS[config_index][0], "seed": seed, "render_s": render_s, "rows": {}}
     for label, host in trees.items():
-        result = run_worker(host, rec, rec / f"refine_bias_{label.split()[0]}.toml")
+        result = run_worker(host, rec, rec / f"refine_bias_{label.replace(' ', '_').replace('+', '')}.toml",
+                            label == BODIES)
         if "error" in result:
             scene["rows"][label] = {"error": result["error"]}
             continue
@@ -155,7 +163,7 @@ def print_scene(scene: dict) -> None:
     print(f"\n{scene['preset']} {scene['config']}, seed {scene['seed']}")
     print("| calibration | per camera: mm / ° (radial mm) | max mm / ° | mean mm / ° | scale | CPU s |")
     print("| --- | --- | --- | --- | --- | --- |")
-    for label in (WORLD, BASE, OURS):
+    for label in (WORLD, BASE, OURS, BODIES):
         row = scene["rows"].get(label)
         if row is None:
             continue
@@ -171,7 +179,7 @@ def print_scene(scene: dict) -> None:
 def print_summary(scenes: list[dict]) -> None:
     print("\nsummary (worst over the scenes of each preset): max camera error mm / °, scale farthest from 1")
     for preset in dict.fromkeys(s["preset"] for s in scenes):
-        for label in (WORLD, BASE, OURS):
+        for label in (WORLD, BASE, OURS, BODIES):
             rows = [s["rows"][label] for s in scenes if s["preset"] == preset and label in s["rows"]]
             ok = [r for r in rows if "error" not in r]
             if not rows:
@@ -209,11 +217,14 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--no-baseline", action="store_true", help="only ours and the world marker")
     ap.add_argument("--ours", metavar="COMMIT", help="take ours from this commit's host/ too (default: the working "
                     "tree's; a commit keeps a long run's code fixed while the tree changes)")
+    ap.add_argument("--bodies", action="store_true", help="also ours with the bodies calibrated from the drive "
+                    "first (what cubetrack calibrate --refine-with does; costs a body calibration per scene)")
     ap.add_argument("--json", type=Path, help="write the scenes' rows here")
     ap.add_argument("--worker", nargs=2, type=Path, metavar=("REC", "OUT"), help=argparse.SUPPRESS)
+    ap.add_argument("--worker-bodies", action="store_true", help=argparse.SUPPRESS)
     args = ap.parse_args(argv)
     if args.worker is not None:  # one calibration, with whichever cubetrack PYTHONPATH names
-        calibrate_scene(*args.worker)
+        calibrate_scene(*args.worker, with_bodies=args.worker_bodies)
         return 0
     if args.duration <= 0 or args.calibration_frames < 5:
         ap.error("--duration must be positive and --calibration-frames at least 5")
@@ -232,6 +243,8 @@ def main(argv: list[str] | None = None) -> int:
                 flag = "--ours" if label == OURS else "--baseline"
                 ap.error(f"{flag} {commit}: git archive failed ({exc.stderr.decode().strip()})")
         trees = {label: trees[label] for label in (BASE, OURS) if label in trees}  # the baseline first
+        if args.bodies:
+            trees[BODIES] = trees[OURS]
         work = args.out or Path(tmp) / "scenes"
         work.mkdir(parents=True, exist_ok=True)
         t0 = time.monotonic()
