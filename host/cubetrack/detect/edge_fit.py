@@ -200,7 +200,7 @@ def _fitted_corners(prof: np.ndarray, z: np.ndarray, z0: np.ndarray, v: np.ndarr
     return out
 
 
-def compile_kernels() -> None:
+def compile_edge_fit() -> None:
     """Compile the edge fit's kernel (or load it from numba's on-disk cache, ``__pycache__``) for
     the argument types :func:`refine_corners_edges` passes, by fitting one synthetic marker both
     ways (``tent`` and ``peak``), so that no frame pays it: called at start-up, before the first

@@ -1,5 +1,5 @@
-"""The edge fit's compiled kernel (numba): compiled when a detector is built, never on a frame,
-and per-marker arguments reach each marker."""
+"""The edge fit's and the template fit's compiled kernels (numba): compiled when a detector is
+built, never on a frame, and per-marker arguments reach each marker."""
 
 from __future__ import annotations
 
@@ -8,12 +8,20 @@ import numpy as np
 from scenes import render_in_front
 from test_detect_markers import INTR, K, facing
 
-from cubetrack.detect import edge_fit
+from cubetrack.core.cameras import CameraIntrinsics
+from cubetrack.detect import edge_fit, template_fit
 from cubetrack.detect.detector import CornerRefinement, Detector, DetectorParams
+
+TEMPLATE_KERNELS = (template_fit._template_maps, template_fit._pixel_areas, template_fit._brightness_system,
+                    template_fit._step_system)
 
 
 def _kernel_signatures() -> int:
     return len(edge_fit._side_samples.signatures) + len(edge_fit._fitted_corners.signatures)
+
+
+def _template_signatures() -> list[int]:
+    return [len(kernel.signatures) for kernel in TEMPLATE_KERNELS]
 
 
 def _two_marker_frame() -> np.ndarray:
@@ -65,3 +73,21 @@ def test_the_fit_follows_a_known_edge_to_a_fraction_of_a_pixel():
     truth = np.array([[40.0, 30.0], [100.0, 30.0], [100.0, 90.0], [40.0, 90.0]]) - 0.5   # pixel edges
     start = truth + np.array([[1.0, -0.8], [-0.7, 0.9], [0.8, 1.0], [-1.0, -0.6]])
     assert np.abs(edge_fit.refine_corners_edges(gray, start, 6) - truth).max() < 1e-3
+
+
+def test_a_template_detector_compiles_the_template_fit_before_its_first_frame():
+    """With ``template`` corners the detector also compiles the template fit's kernels when it is
+    built; fitting markers through a lens model or without one then compiles nothing more, and
+    the fit still moves the corners (it ran)."""
+    detector = Detector(DetectorParams(corner_refinement=CornerRefinement.TEMPLATE))
+    compiled = _template_signatures()
+    assert min(compiled) >= 1
+    gray = _two_marker_frame()
+    edge = Detector(DetectorParams(corner_refinement=CornerRefinement.EDGE)).detect(gray)
+    lensed = CameraIntrinsics(INTR.width, INTR.height, K, np.array([-0.05, 0.01, 0.0, 0.0, 0.0]))
+    for lens in (None, lensed):
+        found = detector.detect(gray, lens=lens)
+        assert len(found) == 2
+        moved = max(np.abs(a.corners_px - b.corners_px).max() for a, b in zip(found, edge, strict=True))
+        assert 1e-4 < moved < 1.5
+    assert _template_signatures() == compiled
