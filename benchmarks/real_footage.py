@@ -17,7 +17,8 @@ which two or more cameras see board markers (ids of the board: a stray id of the
 elsewhere in a frame, a false positive as the README names, is not the board) counts for the share
 of instants with a pose. What the reference is worth is printed first (:func:`reference_report`):
 per camera its corners' RMS against the other cameras' reference, the frames left out, and how far
-the board moves when that camera is left out; and how far the reference of every corner is.
+the board moves when that camera is left out; each camera's stamp offset that best fits it to the
+board the others see (:func:`camera_time_offsets`); and how far the reference of every corner is.
 
 Scoring (:func:`score`): an instant has a pose when the tracker output one between its first and
 its last camera frame (1 ms slack); the instant's last such pose is compared with the reference
@@ -78,7 +79,8 @@ class Instant:
     ``reprojection_px``: per camera with corners, the RMS (px) of its corners against the reference
     of the other used cameras (against the reference itself where they make none); ``loo_mm``: per
     used camera, how far (mm) the board's centre moves when that camera is left out (three cameras or
-    more); ``all_cameras_mm``: how far the reference of every camera's corners, agreeing or not, is."""
+    more); ``all_cameras_mm``: how far the reference of every camera's corners, agreeing or not, is;
+    ``views``: every camera's corners at the instant; ``grid_m``: the board's corners (OpenCV's board frame)."""
 
     t0_s: float
     t1_s: float
@@ -91,6 +93,8 @@ class Instant:
     reprojection_px: Mapping[int, float] = field(default_factory=dict)
     loo_mm: Mapping[int, float] = field(default_factory=dict)
     all_cameras_mm: float = float("nan")
+    views: tuple[View, ...] = ()
+    grid_m: np.ndarray = field(default_factory=lambda: np.zeros((0, 3)))
 
 
 def _frames(video: Path) -> list[np.ndarray]:
@@ -181,7 +185,7 @@ def _instant(views: Sequence[View], times: Sequence[float], cameras: int, grid: 
     T_cv, rms = _fit(kept, grid)
     t0, t1 = min(times), max(times)
     if T_cv is None:
-        return Instant(t0, t1, None, cameras, rms)
+        return Instant(t0, t1, None, cameras, rms, views=tuple(views), grid_m=grid)
     for view in views:  # a camera left out keeps its RMS against the others that left it out
         if view.camera not in rms_px or (len(kept) < 3 and view in kept):
             rms_px[view.camera] = _reprojection_px(view, T_cv, grid)
@@ -193,7 +197,7 @@ def _instant(views: Sequence[View], times: Sequence[float], cameras: int, grid: 
     T_all, _ = _fit(views, grid)
     return Instant(t0, t1, T_cv @ np.linalg.inv(T_body_cv), cameras, rms, float(np.mean([v.t_s for v in kept])),
                    tuple(v.camera for v in kept), tuple(v.camera for v in views if v not in kept), rms_px, loo,
-                   _position_mm(T_all, T_cv, T_body_cv) if T_all is not None else float("nan"))
+                   _position_mm(T_all, T_cv, T_body_cv) if T_all is not None else float("nan"), tuple(views), grid)
 
 
 def charuco_reference(data: Path = DATA, max_view_rms_px: float = MAX_VIEW_RMS_PX) -> dict[int, Instant]:
@@ -243,8 +247,11 @@ def reference_report(reference: Mapping[int, Instant]) -> list[str]:
     mm); the reference against the one of every camera's corners."""
     posed = [i for i in reference.values() if i.T_world_body is not None]
     rms = np.array([i.rms_m for i in posed]) * 1000.0
+    spread_ms = 1000.0 * np.array([i.t1_s - i.t0_s for i in reference.values()])
     lines = [f"{len(reference)} instants with >= 2 cameras seeing the board, {len(posed)} with a reference pose: "
-             f"rigid-fit RMS median {np.median(rms):.2f} mm, max {rms.max():.2f} mm"]
+             f"rigid-fit RMS median {np.median(rms):.2f} mm, max {rms.max():.2f} mm; an instant's frames stamped "
+             f"within {np.median(spread_ms):.1f} ms (median), {np.percentile(spread_ms, 90):.1f} (p90), "
+             f"{spread_ms.max():.1f} (max)"]
     for cam in sorted({c for i in posed for c in i.reprojection_px}):
         px = np.array([i.reprojection_px[cam] for i in posed if cam in i.reprojection_px])
         loo = np.array([i.loo_mm[cam] for i in posed if cam in i.loo_mm])
@@ -255,10 +262,54 @@ def reference_report(reference: Mapping[int, Instant]) -> list[str]:
                      f"board moves without it {loo_text} ({len(loo)} instants)")
     loo_all = np.array([v for i in posed for v in i.loo_mm.values()])
     apart = np.array([i.all_cameras_mm for i in posed])
+    offsets = camera_time_offsets(reference)
+    lines.append("  stamps against the other cameras' board: " + "; ".join(
+        f"cam{c} best {1000 * o:+.0f} ms ({at:.2f} px, at 0 ms {zero:.2f} px)" for c, (o, at, zero) in offsets.items()))
     lines.append(f"  leave-one-camera-out, every camera: median {np.median(loo_all):.2f} p95 "
                  f"{np.percentile(loo_all, 95):.2f} mm; the reference of all corners (none left out) is "
                  f"median {np.nanmedian(apart):.2f} p95 {np.nanpercentile(apart, 95):.2f} mm from it")
     return lines
+
+
+def camera_time_offsets(reference: Mapping[int, Instant], step_s: float = 0.005,
+                        span_s: float = 0.1) -> dict[int, tuple[float, float, float]]:
+    """Per camera, how its stamps fit the board as the other cameras see it: the board's pose from
+    the others' corners (instants where two or more others agree), interpolated to the camera's
+    stamps moved by an offset (-``span_s`` to ``span_s`` in ``step_s`` steps), projected into its
+    frames. (best offset s, the camera's corners' RMS px at it, at 0). No tracker involved."""
+    out = {}
+    for cam in sorted({v.camera for i in reference.values() for v in i.views}):
+        times, poses = [], []
+        for _sync, inst in sorted(reference.items()):
+            others = [v for v in inst.views if v.camera != cam and v.camera in inst.used]
+            T_cv = _fit(others, inst.grid_m)[0] if len(others) >= 2 else None
+            if T_cv is not None:
+                times.append(float(np.mean([v.t_s for v in others])))
+                poses.append(T_cv)
+        if len(times) < 2:
+            continue
+        t, T = np.array(times), np.array(poses)
+        slerp = Slerp(t, Rotation.from_matrix(T[:, :3, :3]))
+        offsets = np.round(np.arange(-span_s, span_s + step_s / 2, step_s), 6)
+        sq, n = np.zeros(len(offsets)), np.zeros(len(offsets))
+        for inst in reference.values():
+            for view in (v for v in inst.views if v.camera == cam):
+                at = view.t_s + offsets
+                k = np.searchsorted(t, at)
+                inside = np.flatnonzero((k > 0) & (k < len(t)))
+                inside = inside[t[k[inside]] - t[k[inside] - 1] <= 0.4]  # a gap: not interpolated across
+                if not len(inside):
+                    continue
+                rotations = slerp(at[inside]).as_matrix()
+                for j, R in zip(inside, rotations, strict=True):
+                    T_at = np.eye(4)
+                    T_at[:3, :3], T_at[:3, 3] = R, [np.interp(at[j], t, T[:, m, 3]) for m in range(3)]
+                    sq[j] += _reprojection_px(view, T_at, inst.grid_m) ** 2 * len(view.ids)
+                    n[j] += len(view.ids)
+        rms = np.sqrt(sq / np.maximum(n, 1))
+        best, zero = int(np.argmin(np.where(n > 0, rms, np.inf))), int(np.argmin(np.abs(offsets)))
+        out[cam] = (float(offsets[best]), float(rms[best]), float(rms[zero]))
+    return out
 
 
 def read_tum(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
