@@ -340,9 +340,13 @@ class Score:
                 f"rotation median {np.median(r):.3f} p95 {np.percentile(r, 95):.3f} max {r.max():.3f} deg")
 
 
-def score(tum: Path, reference: Mapping[int, Instant]) -> Score:
-    """Score a TUM trajectory against ``reference`` (module docstring)."""
+def score(tum: Path, reference: Mapping[int, Instant], frame_times_s: np.ndarray | None = None) -> Score:
+    """Score a TUM trajectory against ``reference`` (module docstring). ``frame_times_s``: per pose,
+    the recorded time of the frame it was made from (NaN: none), which then places the pose in its
+    instant instead of the pose's own time (a live run's clock is not the recording's); the errors
+    are still taken at the pose's own time."""
     times, positions, quats = read_tum(tum)
+    placed = times if frame_times_s is None else np.asarray(frame_times_s, float)
     syncs = sorted(s for s, i in reference.items() if i.T_world_body is not None)
     ref_t = np.array([reference[s].t_s for s in syncs])
     ref_T = np.array([reference[s].T_world_body for s in syncs])
@@ -350,7 +354,7 @@ def score(tum: Path, reference: Mapping[int, Instant]) -> Score:
     pos_err, rot_err = [], []
     with_pose = 0
     for _sync, inst in sorted(reference.items()):
-        inside = np.flatnonzero((times >= inst.t0_s - TIME_SLACK_S) & (times <= inst.t1_s + TIME_SLACK_S))
+        inside = np.flatnonzero((placed >= inst.t0_s - TIME_SLACK_S) & (placed <= inst.t1_s + TIME_SLACK_S))
         if not len(inside):
             continue
         with_pose += 1
