@@ -28,6 +28,7 @@ from cubetrack.app.live import live_intrinsics
 from cubetrack.app.outputs import open_outputs
 from cubetrack.app.session import PoseStream, RunSpec, Session, idle_wait_s
 from cubetrack.app.tracker import StageParams, Tracker, TrackStats
+from cubetrack.app.watch_log import attach_watch_log
 from cubetrack.core.cameras import CameraExtrinsics
 from cubetrack.core.records import CameraHealth, Frame, FrameJob, FrameOutcome, FrameResult
 from cubetrack.io.config import TrackerConfig
@@ -182,17 +183,20 @@ def run_fusion(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
                endpoints: ZenohEndpoints, params: StageParams | None = None, *, duration_s: float | None = None,
                stop: threading.Event | None = None, status: Callable[[str], None] | None = None,
                status_every_s: float = 2.0, clock: Callable[[], float] = time.time,
-               sinks: Sequence[Sink] = (), extrinsics_path: str | Path | None = None) -> FuseResult:
+               sinks: Sequence[Sink] = (), extrinsics_path: str | Path | None = None,
+               update_extrinsics: bool = False) -> FuseResult:
     """Fuse the sightings every worker publishes into ``<out_dir>/<robot>.tum`` and ``.jsonl``
     and ``sinks`` until ``duration_s``, ``stop``, Ctrl-C or SIGTERM, on the session runtime
     (:mod:`cubetrack.app.session`) as ``track --live`` is: the same release of a fixed lag's poses,
-    the same ``[fusion] output_rate_hz`` predicted poses, ``<out_dir>/run.json`` of the same shape."""
+    the same ``[fusion] output_rate_hz`` predicted poses, ``<out_dir>/run.json`` of the same shape,
+    the same camera watching (:func:`cubetrack.app.watch_log.attach_watch_log`)."""
     params = params or config_params(config).stages
     intrinsics = live_intrinsics(config)
     tracker = Tracker(intrinsics, config.world, config.robots, extrinsics, params)
     out_dir = Path(out_dir)
     outputs, files = open_outputs(config, intrinsics, extrinsics, out_dir, sinks)
     zenoh = None
+    watch_log = attach_watch_log(tracker.fusion, out_dir, extrinsics, extrinsics_path if update_extrinsics else None)
     try:
         stream = PoseStream(tracker, outputs, clock)
         inbox = _Inbox(stream, [c.name for c in config.cameras])
@@ -213,9 +217,11 @@ def run_fusion(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
     finally:
         if zenoh is not None:
             zenoh.close()
+        if watch_log is not None:
+            watch_log.close()
         outputs.close()
     heard = {c: h.messages for c, h in inbox.heard.items()}
     session.finish({**stream.summary(tracker.stats), "heard": heard, "refused": inbox.bad,
-                    "duplicates": inbox.duplicates})
+                    "duplicates": inbox.duplicates, **(watch_log.summary() if watch_log is not None else {})})
     return FuseResult(tracker.stats, heard, inbox.bad, files.outputs, session.elapsed_s, session.interrupted,
                       inbox.duplicates)
