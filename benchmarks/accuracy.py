@@ -31,6 +31,12 @@ Every scene is tracked these ways (the same frames for each):
   default, and only the frames after the session's end calibrate the body; the scored session
   plays no part), the remedy for the realistic preset's hand-built cube that ``cube.toml`` calls
   nominal;
+- **README workflow** (``--workflow``): what the README's real-camera workflow gives with the
+  default settings: ``cubetrack calibrate --recording calibration --refine-with DRIVE`` (a separate
+  drive, made as for ``--body``: ``--body-drive`` seconds after the session's end), then ``cubetrack
+  track --extrinsics`` on the session, both run as commands from the code under test; with
+  ``--workflow-baseline COMMIT`` also **README workflow, baseline**: the same commands from that
+  commit's ``host/`` (``git archive``, ``PYTHONPATH``) on the same recordings;
 - **ours smoothed** (and **ours + body smoothed** with ``--body``): the same replay's poses
   smoothed over the whole recording (``cubetrack track --smooth``: a Rauch-Tung-Striebel smoother
   over the filter's states, :mod:`cubetrack.fuse.smoother`), what a user who records a session
@@ -113,6 +119,7 @@ TARGET_SPEED = 1.0
 
 OURS, PAPER, OUR_MEAN, REFINED, BODY = "ours", "paper_mean", "our_mean", "ours_refined", "ours_body"
 SMOOTHED, BODY_SMOOTHED, LAGGED = "ours_smoothed", "ours_body_smoothed", "ours_lag"
+WORKFLOW, WORKFLOW_BASE = "readme_workflow", "readme_workflow_baseline"
 TEMPLATE, BODY_TEMPLATE = "ours_template", "ours_body_template"
 BODY_TEMPLATE_SMOOTHED, BODY_TEMPLATE_LAG = "ours_body_template_smoothed", "ours_body_template_lag"
 SMOOTHED_OF = {OURS: SMOOTHED, BODY: BODY_SMOOTHED, BODY_TEMPLATE: BODY_TEMPLATE_SMOOTHED}  # a method -> its poses
@@ -130,13 +137,16 @@ LABELS = {
     BODY_TEMPLATE: "ours + body + template",
     BODY_TEMPLATE_SMOOTHED: "ours + body + tmpl, smoothed",
     BODY_TEMPLATE_LAG: "ours + body + tmpl, lag",
+    WORKFLOW: "README workflow",
+    WORKFLOW_BASE: "README workflow, baseline",
     PAPER: "paper mean (CMA, arrival)",
     OUR_MEAN: "our mean (robust, capture)",
 }
 RATIO_KEYS = ((OURS, "ratio"), (SMOOTHED, "ratio_smoothed"), (LAGGED, "ratio_lag"), (REFINED, "ratio_refined"),
               (BODY, "ratio_body"), (BODY_SMOOTHED, "ratio_body_smoothed"), (TEMPLATE, "ratio_template"),
               (BODY_TEMPLATE, "ratio_body_template"), (BODY_TEMPLATE_SMOOTHED, "ratio_body_template_smoothed"),
-              (BODY_TEMPLATE_LAG, "ratio_body_template_lag"))  # our methods with targets, their RMSE ratio's key
+              (BODY_TEMPLATE_LAG, "ratio_body_template_lag"), (WORKFLOW, "ratio_workflow"),
+              (WORKFLOW_BASE, "ratio_workflow_baseline"))  # our methods with targets, their RMSE ratio's key
 COMPLETE_FILE = "bench-complete.json"
 REPORT_FILE = "accuracy_report.json"
 ROBUST_EXTRINSICS_FILE = "extrinsics_robust.toml"
@@ -156,6 +166,18 @@ def code_version() -> str:
         return "unknown (no git)"
     changed = [line[3:].removeprefix("host/cubetrack/") for line in dirty if line.strip()]
     return f"git {head or '?'}" + (f" + uncommitted {', '.join(changed)}" if changed else "")
+
+
+def commit_host(commit: str, into: Path) -> str:
+    """``host/`` of ``commit`` extracted (``git archive``) under ``into`` (emptied first); its path."""
+    import subprocess
+
+    shutil.rmtree(into, ignore_errors=True)
+    into.mkdir(parents=True)
+    root = Path(__file__).resolve().parents[1]
+    archive = subprocess.run(["git", "-C", str(root), "archive", commit, "host"], capture_output=True, check=True)
+    subprocess.run(["tar", "-x", "-C", str(into)], input=archive.stdout, check=True)
+    return str(into / "host")
 
 
 def refine_available() -> bool:
@@ -259,10 +281,12 @@ def calibration_error(extrinsics: dict, truth: dict) -> tuple[float, float]:
 
 def run_scene(work: str, preset: str, config_index: int, seed: int, duration: float, calibration_frames: int,
               workers: int, refine: bool, body_drive_s: float = 0.0, lag_s: float = 0.0,
-              template: bool = False) -> dict:
+              template: bool = False, workflow: dict[str, str] | None = None, body: bool = True) -> dict:
     """Simulate (or reuse) one scene, calibrate it both ways, track it every way, score it
     (``body_drive_s`` > 0: also with the body calibrated from a drive of that many seconds;
-    ``lag_s`` > 0: also with that fixed lag; ``template``: also with template corners)."""
+    ``lag_s`` > 0: also with that fixed lag; ``template``: also with template corners;
+    ``workflow``: also the README workflow by each tree, method -> its ``host/``, with that drive;
+    ``body`` False: the drive for the workflow only)."""
     from cubetrack.app.calibrate import calibrate_recording
     from cubetrack.app.track import track_recording
     from cubetrack.app.tracker import StageParams, Timestamps
@@ -313,11 +337,15 @@ def run_scene(work: str, preset: str, config_index: int, seed: int, duration: fl
         ensure_recording(sim_params(preset, cameras, height, tilt, seed, duration + body_drive_s, 0), full, workers)
         drive = later_part(full, rec.with_name(rec.name + "_drive_after"),
                            read_sim_start_s(full) + duration)
-        config_body, out["body"] = calibrated_body(config, drive, rec, ours_ext, robot)
-        out["body"].update(seconds=time.monotonic() - t_body, drive_s=body_drive_s)
+        for method, host in (workflow or {}).items():
+            out["methods"][method] = score(readme_workflow(host, rec, drive, rec / "track" / method, robot), truth)
+        if body:
+            config_body, out["body"] = calibrated_body(config, drive, rec, ours_ext, robot)
+            out["body"].update(seconds=time.monotonic() - t_body, drive_s=body_drive_s)
     out["calibration"]["robust"] = calibration_error(ours_ext, true_extrinsics)
     out["calibration"]["cma"] = calibration_error(cma_ext, true_extrinsics)
-    if body_drive_s > 0:
+    body = body and body_drive_s > 0
+    if body:
         variants[BODY] = (base, ours_ext)
     if lag_s > 0:
         variants[LAGGED] = (dataclasses.replace(base, filter=dataclasses.replace(base.filter, smooth_lag_s=lag_s)),
@@ -326,7 +354,7 @@ def run_scene(work: str, preset: str, config_index: int, seed: int, duration: fl
         templated = dataclasses.replace(base, detector=dataclasses.replace(
             base.detector, corner_refinement=CornerRefinement.TEMPLATE))
         variants[TEMPLATE] = (templated, ours_ext)
-        if body_drive_s > 0:
+        if body:
             trusting = dataclasses.replace(templated, filter=dataclasses.replace(base.filter, **TRUSTING_FILTER))
             variants[BODY_TEMPLATE] = (trusting, ours_ext)
             if lag_s > 0:
@@ -343,6 +371,29 @@ def run_scene(work: str, preset: str, config_index: int, seed: int, duration: fl
     out["seconds"] = {"render": render_s, "reused": reused, "calibrate": t2 - t1, "track": t3 - t2,
                       "total": t3 - t0}
     return out
+
+
+def readme_workflow(host: str, rec: Path, drive: Path, out: Path, robot: str) -> Path:
+    """The README's real-camera workflow by the code in ``host`` (``PYTHONPATH``), as commands:
+    ``calibrate --refine-with`` the ``drive``, then ``track`` the session ``rec`` into ``out``;
+    the robot's TUM file (empty when a command failed: the method then scores as missing)."""
+    import subprocess
+
+    env = dict(os.environ, PYTHONPATH=host)
+    cli = [sys.executable, "-m", "cubetrack.cli.main"]
+    config, extrinsics = rec / "config.toml", out / "extrinsics.toml"
+    out.mkdir(parents=True, exist_ok=True)
+    tum = out / f"{robot}.tum"
+    tum.unlink(missing_ok=True)
+    for args in (["calibrate", "--config", config, "--recording", rec / "calibration", "--refine-with", drive,
+                  "--out", extrinsics],
+                 ["track", "--config", config, "--extrinsics", extrinsics, "--recording", rec, "--out", out]):
+        proc = subprocess.run([*cli, *map(str, args)], env=env, capture_output=True, text=True, check=False)
+        (out / f"{args[0]}.log").write_text(proc.stdout + proc.stderr, encoding="utf-8")
+        if proc.returncode != 0:
+            tum.write_text("", encoding="utf-8")
+            break
+    return tum
 
 
 def refine_extrinsics(config, rec: Path, extrinsics: dict) -> tuple[dict, dict]:
@@ -761,6 +812,10 @@ def main(argv: list[str] | None = None) -> int:
                     "live; default 0: not)")
     ap.add_argument("--template", action="store_true", help="also report ours with [detector] corner_refinement = "
                     "template (and, with --body, the calibrated body, template corners and a filter that trusts them)")
+    ap.add_argument("--workflow", action="store_true", help="also report the README workflow: cubetrack calibrate "
+                    "--refine-with a separate drive of --body-drive seconds, then cubetrack track, as commands")
+    ap.add_argument("--workflow-baseline", metavar="COMMIT", help="with --workflow: also that workflow by this "
+                    "commit's code (git archive of its host/, PYTHONPATH), e.g. main")
     ap.add_argument("--speed-rounds", type=int, default=None, help="interleaved speed rounds (default 5; "
                     "--quick: 2)")
     ap.add_argument("--speed-frames", type=int, default=None, help="frames per recording in the speed "
@@ -785,10 +840,14 @@ def main(argv: list[str] | None = None) -> int:
         ap.error("--refine needs cubetrack.calib.bundle, which is not installed")
     if args.lag < 0:
         ap.error(f"--lag must not be negative, got {args.lag}")
+    if args.workflow_baseline and not args.workflow:
+        ap.error("--workflow-baseline goes with --workflow")
     methods = ([OURS, SMOOTHED] + ([LAGGED] if args.lag > 0 else []) + ([REFINED] if args.refine else [])
                + ([BODY, BODY_SMOOTHED] if args.body else []) + ([TEMPLATE] if args.template else [])
                + ([BODY_TEMPLATE, BODY_TEMPLATE_SMOOTHED] if args.template and args.body else [])
-               + ([BODY_TEMPLATE_LAG] if args.template and args.body and args.lag > 0 else []) + [PAPER, OUR_MEAN])
+               + ([BODY_TEMPLATE_LAG] if args.template and args.body and args.lag > 0 else [])
+               + ([WORKFLOW] if args.workflow else []) + ([WORKFLOW_BASE] if args.workflow_baseline else [])
+               + [PAPER, OUR_MEAN])
 
     kept = args.out is not None
     work = args.out if kept else Path(tempfile.mkdtemp(prefix="cubetrack-accuracy-"))
@@ -814,8 +873,11 @@ def main(argv: list[str] | None = None) -> int:
                   f"{result['methods'][OURS]['pos_cm']:.2f} cm, paper mean {result['methods'][PAPER]['pos_cm']:.2f} cm",
                   file=sys.stderr, flush=True)
 
+        trees = {WORKFLOW: str(Path(__file__).resolve().parents[1] / "host")} if args.workflow else None
+        if args.workflow_baseline:
+            trees[WORKFLOW_BASE] = commit_host(args.workflow_baseline, work / "workflow_baseline")
         call = [(str(work), preset, ci, seed, duration, calibration_frames, workers, args.refine,
-                 args.body_drive if args.body else 0.0, args.lag, args.template)
+                 args.body_drive if args.body or args.workflow else 0.0, args.lag, args.template, trees, args.body)
                 for preset, ci, seed in jobs]
         print(f"{len(jobs)} scenes, {n_jobs} at a time, in {work} ...", file=sys.stderr, flush=True)
         if n_jobs == 1:

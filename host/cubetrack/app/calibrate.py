@@ -19,7 +19,7 @@ from cubetrack.calib.bundle import BundleAdjustmentReport, adjust_extrinsics
 from cubetrack.calib.extrinsics import CalibrationParams, CalibrationReport, calibrate_cameras
 from cubetrack.core.cameras import CameraExtrinsics
 from cubetrack.core.errors import CalibrationError, ConfigError
-from cubetrack.core.layout import layout_to_table
+from cubetrack.core.layout import layout_to_table, read_layout
 from cubetrack.core.progress import Progress
 from cubetrack.io.config import RobotConfig, TrackerConfig, write_extrinsics, write_toml
 from cubetrack.io.recording import Recording
@@ -76,12 +76,18 @@ def adjust_recording_extrinsics(config: TrackerConfig, recording: Recording,
 @dataclasses.dataclass(frozen=True, slots=True, eq=False)
 class CalibrationRun:
     """What :func:`run_calibration` produced: the world-marker calibration, the bundle adjustment
-    (None without a tracking recording), the extrinsics file written and its run record."""
+    (None without a tracking recording), the bodies calibrated from that recording (robot ->
+    report; robot -> the layout file written beside the extrinsics, :func:`body_path`), the robots
+    whose body could not be calibrated (robot -> why: they keep their layout), the extrinsics file
+    written and its run record."""
 
     report: CalibrationReport
     adjusted: BundleAdjustmentReport | None
     extrinsics_path: Path
     run_record_path: Path
+    bodies: dict[str, BodyCalibrationReport] = dataclasses.field(default_factory=dict)
+    body_paths: dict[str, Path] = dataclasses.field(default_factory=dict)
+    body_failures: dict[str, str] = dataclasses.field(default_factory=dict)
 
     @property
     def extrinsics(self) -> dict[str, CameraExtrinsics]:
@@ -89,26 +95,83 @@ class CalibrationRun:
         return self.report.extrinsics if self.adjusted is None else self.adjusted.extrinsics
 
 
+def body_path(extrinsics_path: str | Path, robot: str) -> Path:
+    """Where ``cubetrack calibrate --refine-with`` writes ``robot``'s calibrated body and where the
+    tracker looks for it (:func:`with_calibrated_bodies`): beside the extrinsics,
+    ``<extrinsics stem>.<robot>.body.toml`` (``extrinsics.toml`` -> ``extrinsics.robot.body.toml``)."""
+    path = Path(extrinsics_path)
+    return path.with_name(f"{path.stem}.{robot}.body.toml")
+
+
+def with_calibrated_bodies(config: TrackerConfig, extrinsics_path: str | Path) -> tuple[TrackerConfig, list[Path]]:
+    """``config`` with each robot's layout replaced by the body calibrated together with the
+    extrinsics at ``extrinsics_path`` (:func:`body_path`), where that file exists; and the files used."""
+    robots, used = [], []
+    for robot in config.robots:
+        path = body_path(extrinsics_path, robot.name)
+        if path.is_file():
+            robot = dataclasses.replace(robot, layout=read_layout(path), layout_path=path)
+            used.append(path)
+        robots.append(robot)
+    return dataclasses.replace(config, robots=tuple(robots)), used
+
+
+def calibrate_bodies(config: TrackerConfig, recording: Recording, extrinsics: dict[str, CameraExtrinsics],
+                     params: ConfigParams, progress: Progress | None = None
+                     ) -> tuple[dict[str, BodyCalibrationReport], dict[str, str]]:
+    """Every robot's body calibrated from ``recording`` (:func:`calibrate_recording_body`): (robot
+    -> report, robot -> why it could not be, e.g. it was not in the recording)."""
+    bodies: dict[str, BodyCalibrationReport] = {}
+    failures: dict[str, str] = {}
+    for robot in config.robots:
+        try:
+            bodies[robot.name] = calibrate_recording_body(config, recording, extrinsics, robot.name, params, progress)
+        except CalibrationError as exc:
+            failures[robot.name] = str(exc)
+    return bodies, failures
+
+
 def run_calibration(config: TrackerConfig, recording: Recording, out: str | Path,
                     params: ConfigParams | None = None, *, adjust_with: Recording | None = None,
-                    allow_missing: bool = False, progress: Progress | None = None) -> CalibrationRun:
+                    allow_missing: bool = False, progress: Progress | None = None,
+                    with_bodies: bool = False) -> CalibrationRun:
     """``cubetrack calibrate``: calibrate ``recording``, optionally refine with the tracking
     recording ``adjust_with``, write the extrinsics TOML to ``out`` and its run record beside it
-    (``<out stem>.run.json``). Nothing is written when a step fails."""
+    (``<out stem>.run.json``). With ``with_bodies`` (and ``adjust_with``) every robot's body is
+    first calibrated from that recording on the world-marker extrinsics, the refinement takes
+    the calibrated bodies, and each is written beside ``out`` (:func:`body_path`); a body file
+    there from an earlier run that made none is removed (it belongs to the extrinsics replaced).
+    Nothing is written when a step fails."""
     params = params or config_params(config)
     report = calibrate_recording(config, recording, params.calibration, progress, allow_missing, params)
     adjusted = None
+    bodies: dict[str, BodyCalibrationReport] = {}
+    failures: dict[str, str] = {}
     if adjust_with is not None:
-        adjusted = adjust_recording_extrinsics(config, adjust_with, report.extrinsics, recording, params, progress)
+        if with_bodies:
+            bodies, failures = calibrate_bodies(config, adjust_with, report.extrinsics, params, progress)
+        calibrated = dataclasses.replace(config, robots=tuple(
+            dataclasses.replace(r, layout=bodies[r.name].layout) if r.name in bodies else r for r in config.robots))
+        adjusted = adjust_recording_extrinsics(calibrated, adjust_with, report.extrinsics, recording, params,
+                                               progress)
     out = Path(out)
-    result = CalibrationRun(report, adjusted, out, run_record_beside(out))
+    paths = {name: body_path(out, name) for name in bodies}
+    result = CalibrationRun(report, adjusted, out, run_record_beside(out), bodies, paths, failures)
     write_extrinsics(result.extrinsics, out)
+    for robot in config.robots:
+        if robot.name in bodies:
+            write_toml(layout_to_table(bodies[robot.name].layout), paths[robot.name])
+        elif robot.layout_path is None or body_path(out, robot.name).resolve() != robot.layout_path.resolve():
+            body_path(out, robot.name).unlink(missing_ok=True)  # never the layout the config names
     sections = parameter_tables(params)
-    used = {k: sections[k] for k in ("detector", "calibration", *(("bundle_adjustment",) if adjusted else ()))}
+    used = {k: sections[k] for k in ("detector", "calibration", *(("bundle_adjustment",) if adjusted else ()),
+                                     *(("body_calibration",) if bodies else ()))}
     write_run_record(result.run_record_path, "calibrate", used,
                      {"config": config.path, "recording": recording.path,
                       "tracking_recording": adjust_with.path if adjust_with is not None else None},
-                     {"outputs": {"extrinsics": str(out.resolve())}})
+                     {"outputs": {"extrinsics": str(out.resolve()),
+                                  **{f"body {name}": str(path.resolve()) for name, path in paths.items()}},
+                      **({"bodies_not_calibrated": failures} if failures else {})})
     return result
 
 

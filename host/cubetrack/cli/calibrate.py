@@ -18,6 +18,10 @@ docs/calibration.md.
 With --refine-with REC the calibrated poses are then refined by a bundle adjustment over the
 cube corners of a tracking recording REC (instants where several cameras saw the cube) and
 the world marker's averaged corners ([bundle_adjustment] section); --out gets the refined poses.
+The same drive first calibrates each robot's body (where its markers really sit, as
+`cubetrack calibrate-body` does; [body_calibration] section), the refinement takes the calibrated
+bodies, and each is written beside --out as <out stem>.<robot>.body.toml, where `cubetrack track
+--extrinsics` finds it (--no-body: neither).
 Per-camera residuals are printed, and a camera that moved after the calibration recording is named with how far.
 
 Example:
@@ -48,6 +52,9 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--refine-with", type=Path, metavar="REC",
                    help="tracking recording (the robot driving where several cameras see it): refine the "
                         "calibrated poses with its cube sightings (bundle adjustment); --out gets the refined poses")
+    p.add_argument("--no-body", action="store_true",
+                   help="with --refine-with: do not calibrate the robots' bodies (the refinement takes the config's "
+                        "layouts as exact; no <out stem>.<robot>.body.toml is written)")
     p.add_argument("--truth", type=Path, metavar="EXTRINSICS",
                    help="true extrinsics (e.g. REC/true_extrinsics.toml of a simulation): also print the errors")
 
@@ -76,7 +83,8 @@ def run(args: argparse.Namespace) -> int:
     recording = Recording.open(args.recording)
     adjust_with = Recording.open(args.refine_with) if args.refine_with is not None else None
     result = run_calibration(config, recording, args.out, settings, adjust_with=adjust_with,
-                             allow_missing=args.allow_missing, progress=StderrProgress())
+                             allow_missing=args.allow_missing, progress=StderrProgress(),
+                             with_bodies=not args.no_body)
     report, refined = result.report, result.adjusted
     errors = extrinsics_errors(report.extrinsics, truth) if truth else {}
     if refined is None:
@@ -104,6 +112,15 @@ def run(args: argparse.Namespace) -> int:
         print(f"recording: skipped {n} ({why})")
     if refined is not None:
         _print_refined(refined, extrinsics_errors(refined.extrinsics, truth) if truth else {})
+    for robot, path in result.body_paths.items():
+        body = result.bodies[robot]
+        worst = max(body.markers, key=lambda m: m.shift_m)
+        print(f"body {robot}: calibrated from {body.instants} instants, wrote {path} (track --extrinsics "
+              f"{args.out} uses it); largest marker shift {1000 * worst.shift_m:.2f} mm ({worst.face})")
+        for warning in body.warnings:
+            print(f"warning: body {robot}: {warning}")
+    for robot, why in result.body_failures.items():
+        print(f"warning: body {robot} not calibrated (it keeps its layout): {why}")
     return 0
 
 

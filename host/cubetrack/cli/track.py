@@ -79,6 +79,7 @@ def run(args: argparse.Namespace) -> int:
     import dataclasses
     import sys
 
+    from cubetrack.app.calibrate import with_calibrated_bodies
     from cubetrack.app.config import load_config
     from cubetrack.app.outputs import close_sinks
     from cubetrack.app.track import track_recording
@@ -112,6 +113,9 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError("give --extrinsics (from cubetrack calibrate) or --uncalibrated")
     else:
         extrinsics = read_extrinsics(args.extrinsics)
+        config, bodies = with_calibrated_bodies(config, args.extrinsics)
+        for path in bodies:
+            print(f"body calibrated with the extrinsics: {path}", file=sys.stderr)
     recording = None if args.live else Recording.open(args.recording)
     sinks = add_dashboard(args, output_sinks_from_args(args, config), config, args.out, settings.dashboard)
     try:

@@ -6,6 +6,7 @@
 //   {"serverInfo": {...}}                      the server's info message
 //   {"advertise": [channel, ...]}              each advertise message (topic, encoding, schema...)
 //   {"message": {"topic", "logTime", "data"}}  the first message of each channel (data in base64)
+// A subscription the server refuses ("Unknown channel ID") is sent again.
 // It connects again every 0.3 s until the server listens; it exits 0 once every topic named in
 // --topics (comma-separated; default: every advertised channel) has delivered a message, 1 after
 // --timeout seconds with what is missing on stderr.
@@ -85,6 +86,19 @@ function connect() {
       }
       pending = [];
     }, 200);
+  });
+  // Should it still refuse one (a status "Unknown channel ID: N"), subscribe to that channel again.
+  client.on("status", ({ message }) => {
+    const refused = /^Unknown channel ID: (\d+)/.exec(message ?? "");
+    if (!refused) {
+      return;
+    }
+    for (const [subscriptionId, channel] of channels) {
+      if (channel.id === Number(refused[1])) {
+        channels.delete(subscriptionId);
+        setTimeout(() => channels.set(client.subscribe(channel.id), channel), 50);
+      }
+    }
   });
   client.on("message", ({ subscriptionId, timestamp, data }) => {
     const channel = channels.get(subscriptionId);

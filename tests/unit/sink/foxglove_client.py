@@ -12,6 +12,8 @@ import json
 import struct
 import time
 
+UNKNOWN_CHANNEL = "Unknown channel ID: "  # foxglove-sdk's status message for a subscription it refused
+
 
 def decode(schema_name: str, schema_encoding: str, schema: bytes, data: bytes):
     """One message as a protobuf object (or a dict for JSON channels)."""
@@ -55,6 +57,7 @@ class LiveClient:
         self.channels: dict[int, dict] = {}
         self.subscriptions: dict[int, int] = {}  # subscription id -> channel id
         self.messages: dict[str, list] = {}
+        self.retries = 0  # subscriptions the server refused and this client sent again
 
     def poll(self, until, timeout_s: float = 5.0) -> None:
         """Handle frames until ``until(self)`` holds; subscribes to every channel advertised."""
@@ -84,13 +87,26 @@ class LiveClient:
         if msg["op"] == "serverInfo":
             self.server_info = msg
         elif msg["op"] == "advertise":
-            new = []
             for channel in msg["channels"]:
                 self.channels[channel["id"]] = channel
-                sub_id = len(self.subscriptions) + 1
-                self.subscriptions[sub_id] = channel["id"]
-                new.append({"id": sub_id, "channelId": channel["id"]})
-            self.ws.send(json.dumps({"op": "subscribe", "subscriptions": new}))
+            self._subscribe([channel["id"] for channel in msg["channels"]])
+        elif msg["op"] == "status" and msg.get("message", "").startswith(UNKNOWN_CHANNEL):
+            # foxglove-sdk 0.30.3's server can refuse a subscription that arrives while the channel
+            # it has just advertised is still being registered; it says so, and by then it knows the
+            # channel: subscribe again, as a viewer would (seen once in CI, 2026-11).
+            channel_id = int(msg["message"].removeprefix(UNKNOWN_CHANNEL))
+            if channel_id in self.channels and self.retries < 10:
+                self.retries += 1
+                time.sleep(0.05)
+                self._subscribe([channel_id])
+
+    def _subscribe(self, channel_ids: list[int]) -> None:
+        new = []
+        for channel_id in channel_ids:
+            sub_id = len(self.subscriptions) + 1
+            self.subscriptions[sub_id] = channel_id
+            new.append({"id": sub_id, "channelId": channel_id})
+        self.ws.send(json.dumps({"op": "subscribe", "subscriptions": new}))
 
     def topics(self) -> dict[str, dict]:
         return {c["topic"]: c for c in self.channels.values()}
