@@ -14,7 +14,8 @@ RSS. Then it reports:
 - CPU per processed frame and cores used (the tracker's processes; the emulator's shown apart);
 - p50 / p95 / p99 of arrival -> pose and capture -> pose (the JSONL's ``arrival_latency`` and
   ``latency``: up to the moment each pose was handed to the outputs);
-- RSS of the tracker's processes at the start (after --warmup seconds) and at the end;
+- RSS of the tracker's processes at the start (after --warmup seconds), half-way and at the end,
+  and the time from the tracker's command to its first pose (start-up);
 - accuracy against the ground truth (moved onto the live clock, repeated per loop of the
   replay; poses from 0.05 s before to 0.5 s after the replay jumps back to its start are not
   scored, the robot teleports there) and against the offline replay (``cubetrack track
@@ -294,6 +295,9 @@ def run_live(args: argparse.Namespace, rec: Path, work: Path, name: str = "live"
     # processed in that window estimated from the poses captured in it
     window = (warm[0] + unix_minus_monotonic, full[0] + unix_minus_monotonic)
     window_frames = sum(window[0] <= p["time"] <= window[1] for p in fused) * processed / max(len(fused), 1)
+    # the first pose's moment (capture + capture -> pose) after the tracker's command started: start-up
+    first_pose_s = (min((p["time"] + p["latency"] for p in fused), default=float("nan"))
+                    - (started + unix_minus_monotonic))
     arrival = np.array([p["arrival_latency"] for p in fused]) * 1000.0
     capture = np.array([p["latency"] for p in fused]) * 1000.0
     return {
@@ -318,7 +322,9 @@ def run_live(args: argparse.Namespace, rec: Path, work: Path, name: str = "live"
         "emulator_cores_used": cpu_emulator / max(emulator.samples[-1][0] - emulator.samples[0][0], 1e-9)
         if len(emulator.samples) > 1 else float("nan"),
         "rss_start_mb": warm[2] / 1e6,
+        "rss_mid_mb": sampler.at(started + 0.5 * (warm[0] - started + full[0] - started))[2] / 1e6,
         "rss_end_mb": full[2] / 1e6,
+        "first_pose_s": first_pose_s,
         "poses": len(fused),
         "arrival_ms": percentiles(arrival),
         "capture_ms": percentiles(capture),
@@ -628,7 +634,9 @@ def print_report(args: argparse.Namespace, report: dict) -> list[str]:
           f"(the emulator: {live['emulator_cores_used']:.2f} cores)")
     print(f"  arrival -> pose ms: p50 {a['p50']:.1f}  p95 {a['p95']:.1f}  p99 {a['p99']:.1f}   "
           f"capture -> pose ms: p50 {c['p50']:.1f}  p95 {c['p95']:.1f}  p99 {c['p99']:.1f}  ({live['poses']} poses)")
-    print(f"  RSS: {live['rss_start_mb']:.0f} MB at {args.warmup:g} s, {live['rss_end_mb']:.0f} MB at the end")
+    print(f"  RSS: {live['rss_start_mb']:.0f} MB at {args.warmup:g} s, {live['rss_mid_mb']:.0f} MB half-way after it, "
+          f"{live['rss_end_mb']:.0f} MB at the end ({(live['rss_end_mb'] / live['rss_start_mb'] - 1) * 100:+.1f} %); "
+          f"first pose {live['first_pose_s']:.2f} s after the tracker's command started")
     print(f"  accuracy vs ground truth: live {acc['live']['pos_cm']:.2f} cm / {acc['live']['rot_deg']:.2f} deg "
           f"(detection ratio {acc['live']['detection_ratio']:.3f}); offline replay of the same frames "
           f"{acc['offline']['pos_cm']:.2f} cm / {acc['offline']['rot_deg']:.2f} deg; live/offline "

@@ -43,6 +43,8 @@ def test_quick_run_prints_and_saves_a_complete_report(tmp_path):
         assert 0 <= p["p50"] <= p["p95"] <= p["p99"], kind
     assert live["poses"] > 0 and live["cpu_ms_per_frame"] > 0 and live["cpu_ms_per_frame_warm"] > 0
     assert live["rss_end_mb"] > 0 and live["processed_fps_warm"] > 0  # frames were processed after the warm-up
+    assert live["rss_start_mb"] > 0 and live["rss_mid_mb"] > 0
+    assert 0 < live["first_pose_s"] < live["wall_s"]  # start-up: the first pose came during the session
     assert math.isnan(live["offered_fps_warm"]) or live["offered_fps_warm"] > 0  # no status line after 1.5 s of 5
     for run in ("live", "offline"):
         assert 0 < acc[run]["pos_cm"] < 2.0 and 0 < acc[run]["rot_deg"] < 2.0, run

@@ -189,7 +189,7 @@ class Bus:
             self.received.setdefault(message.camera, []).append(time.monotonic())
             self.stamped.setdefault(message.camera, []).append(message.arrival_time_s)
 
-        self.subscriber = self.session.declare_subscriber(f"{SIGHTINGS_KEY}/*", sighting)
+        self.subscriber = self.session.declare_subscriber(f"{SIGHTINGS_KEY}/**", sighting)
         self.watcher = self.session.liveliness().declare_subscriber(
             f"{CLAIMS_KEY}/**", lambda s: self.board.token(str(s.key_expr), not str(s.kind).endswith("DELETE")),
             history=True)

@@ -1,7 +1,9 @@
 """``cubetrack fuse``: the fusion half of tracking, fed by ``cubetrack worker`` processes over
 Zenoh (docs/scaling.md).
 
-It subscribes to ``cubetrack/sightings/*`` (:mod:`cubetrack.app.worker`), turns each message
+It subscribes to ``cubetrack/sightings/**`` (:mod:`cubetrack.app.worker`), or as a shard of a fleet
+to ``cubetrack/sightings/*/<robot>`` of the robots it fuses (named, or claimed like workers claim
+cameras: :class:`cubetrack.io.worker_bus.Claims`), turns each message
 back into the per-frame work's result (each robot's own detections, and its per-camera
 estimate from the corners when the fusion asks for one) and runs the tracker's fusion
 (:meth:`cubetrack.app.tracker.Tracker.fuse`) and the outputs on the session runtime
@@ -14,6 +16,7 @@ which cameras it hears from (and which it does not).
 from __future__ import annotations
 
 import collections
+import dataclasses
 import logging
 import math
 import threading
@@ -28,12 +31,23 @@ from cubetrack.app.live import live_intrinsics
 from cubetrack.app.outputs import open_outputs
 from cubetrack.app.session import PoseStream, RunSpec, Session, idle_wait_s
 from cubetrack.app.tracker import StageParams, Tracker, TrackStats
+from cubetrack.app.worker import CHECK_EVERY_S, worker_id
 from cubetrack.core.cameras import CameraExtrinsics
+from cubetrack.core.errors import ConfigError
 from cubetrack.core.records import CameraHealth, Frame, FrameJob, FrameOutcome, FrameResult
 from cubetrack.io.config import TrackerConfig
 from cubetrack.io.run import RUN_FILE
 from cubetrack.io.sighting_wire import SightingMessage, SightingWireError, decode_sighting
-from cubetrack.io.worker_bus import SIGHTINGS_KEY, WORKERS_KEY
+from cubetrack.io.worker_bus import (
+    ROBOT_CLAIMS_KEY,
+    SHARD_POOL_KEY,
+    SHARDS_KEY,
+    SIGHTINGS_KEY,
+    WORKERS_KEY,
+    Claims,
+    FusedRobots,
+    key_chunk,
+)
 from cubetrack.sink.base import Sink
 from cubetrack.sink.zenoh_session import ZenohEndpoints, open_session
 from cubetrack.source.health import HEALTH_EVERY_S
@@ -56,7 +70,7 @@ class Heard:
     def first_copy(self, message: SightingMessage) -> bool:
         """Whether ``message`` is the first of its frame (two workers can read one camera for
         a moment while a claim changes hands: the second copy of a frame is dropped)."""
-        frame = (message.seq, message.device_time_s)
+        frame = (message.seq, message.device_time_s, message.body)
         if frame in self.recent:
             return False
         self.recent.append(frame)
@@ -75,12 +89,16 @@ class FuseResult:
     duration_s: float
     interrupted: bool
     duplicates: int = 0
+    claims: tuple[tuple[float, str, bool], ...] = ()  # (seconds since the start, robot, taken / given up)
+    behind: int = 0  # messages still waiting when the session stopped (fused then): the fusion fell behind
+    received: int = 0  # messages the bus delivered (a shard: only its robots')
 
 
 def frame_result(tracker: Tracker, message: SightingMessage) -> FrameResult | None:
     """The per-frame work's result a sighting message stands for (None: a camera the fusion
     has no intrinsics or pose for): the tracker's :meth:`~cubetrack.app.tracker.FrameProcessor.sightings`
-    of the message's detections, with estimates for the robots whose fusion asks."""
+    of the message's detections (only its ``body``'s, when it names one), with estimates for the
+    robots whose fusion asks."""
     camera = message.camera
     T_world_cam = message.T_world_cam if message.T_world_cam is not None else tracker.T_world_cam.get(camera)
     if camera not in tracker.intrinsics or T_world_cam is None:
@@ -88,7 +106,8 @@ def frame_result(tracker: Tracker, message: SightingMessage) -> FrameResult | No
     frame = Frame(camera, message.seq, message.device_time_s, message.arrival_time_s, b"")
     job = FrameJob(frame, message.capture_time_s, None,
                    frozenset(r.name for r in tracker.robots if tracker.fusion.needs_estimate(r.name)))
-    sightings = tracker.processor.sightings(job, message.detections, T_world_cam)
+    robots = None if message.body is None else tuple(r for r in tracker.robots if r.name == message.body)
+    sightings = tracker.processor.sightings(job, message.detections, T_world_cam, robots)
     return FrameResult(job, FrameOutcome(message.outcome), sightings, dropped=message.dropped)
 
 
@@ -116,7 +135,18 @@ class _Inbox:
         self.wake = threading.Event()
         self.heard = {c: Heard() for c in cameras}
         self.workers: set[str] = set()
-        self.bad = self.duplicates = 0
+        self.bad = self.duplicates = self.received = 0
+        self.started = time.monotonic()
+        self.claims: list[tuple[float, str, bool]] = []
+        self.fusing: set[str] = set()  # the robots this fusion fuses (their predictions: stream.robots)
+
+    def fused(self, robot: str, held: bool) -> None:
+        """The fusion took (``held``) or gave up ``robot``: its poses and predictions start or stop
+        (sightings of it still on the way are dropped)."""
+        self.fusing = self.fusing | {robot} if held else self.fusing - {robot}
+        self.stream.robots = [r.name for r in self.tracker.robots if r.name in self.fusing]
+        self.claims.append((time.monotonic() - self.started, robot, held))
+        log.info("fuse: %s robot %s", "fusing" if held else "no longer fusing", robot)
 
     def receive(self, sample: Any) -> None:  # a Zenoh thread
         self.messages.append(bytes(sample.payload))
@@ -139,6 +169,7 @@ class _Inbox:
     def _decoded(self) -> list[SightingMessage]:
         messages = []
         while self.messages:
+            self.received += 1
             try:
                 messages.append(decode_sighting(self.messages.popleft()))
             except SightingWireError as exc:
@@ -149,6 +180,8 @@ class _Inbox:
 
     def fuse(self) -> None:
         for message in self._decoded():
+            if message.body is not None and message.body not in self.fusing:
+                continue  # a robot this fusion no longer fuses (or does not know)
             result = frame_result(self.tracker, message)
             if result is None:
                 self.bad += 1
@@ -167,55 +200,107 @@ class _Inbox:
                 self.stream.outputs.camera_health(h.health)
 
     def line(self, elapsed_s: float) -> str:
-        """The status line: the workers, the cameras heard from (sightings so far) and those silent."""
+        """The status line: the robots fused, the workers, the cameras heard from (sightings so far)
+        and those silent."""
         now = time.monotonic()
         live = [f"{c} {h.messages}" for c, h in self.heard.items() if now - h.last_heard_s < SILENT_AFTER_S]
         silent = [c for c, h in self.heard.items() if not now - h.last_heard_s < SILENT_AFTER_S]
-        poses = " ".join(f"{r} {n} poses" for r, n in self.tracker.stats.poses.items())
-        return (f"{elapsed_s:5.0f}s {len(self.workers)} worker(s), hearing {', '.join(live) or 'no camera'}"
+        poses = " ".join(f"{r} {n} poses" for r, n in self.tracker.stats.poses.items() if r in self.stream.robots)
+        robots = self.stream.robots
+        return (f"{elapsed_s:5.0f}s fusing {', '.join(robots[:8]) or 'no robot'}{' ...' if len(robots) > 8 else ''}"
+                f" | {len(self.workers)} worker(s), hearing {', '.join(live) or 'no camera'}"
                 + (f" | silent: {', '.join(silent)}" if silent else "") + (f" | {poses}" if poses else "")
                 + (f" | refused {self.bad}" if self.bad else "")
                 + (f" | duplicates {self.duplicates}" if self.duplicates else ""))
+
+
+def chosen_robots(config: TrackerConfig, robots: Sequence[str]) -> list[str]:
+    """``robots`` checked against the config and as key chunks (every robot when empty)."""
+    known = [r.name for r in config.robots]
+    unknown = [r for r in robots if r not in known]
+    if unknown:
+        raise ConfigError(f"{config.path}: no robot {', '.join(unknown)} (the config has {', '.join(known)})")
+    return [key_chunk("robot", r) for r in robots or known]
+
+
+def _join_bus(zenoh: Any, inbox: _Inbox, session: Session, names: list[str], shard: bool, every: bool) -> list[Any]:
+    """This fusion on the bus: its token, the workers' tokens followed, and the robots it fuses:
+    every robot from ``cubetrack/sightings/**`` (``every``), ``names`` each from its own key, or
+    with ``shard`` its share of ``names`` claimed (checked every ``CHECK_EVERY_S`` and whenever a
+    token comes or goes). What to close, in order, at the end."""
+    me = worker_id()
+    robots = FusedRobots(zenoh, me, None if every else inbox.receive, inbox.fused)
+    declared: list[Any] = [zenoh.liveliness().declare_token(f"{SHARDS_KEY}/{me}")]
+    declared.append(zenoh.liveliness().declare_subscriber(f"{WORKERS_KEY}/*", inbox.worker_event, history=True))
+    if every:
+        declared.append(zenoh.declare_subscriber(f"{SIGHTINGS_KEY}/**", inbox.receive))
+    if shard:
+        claims = Claims(zenoh, me, names, lambda: robots.held, robots.take, robots.give_up,
+                        (SHARD_POOL_KEY, ROBOT_CLAIMS_KEY))
+        claims.watch()
+        session.every(CHECK_EVERY_S, claims.rebalance)
+        session.each_turn(claims.rebalance_if_changed)
+        declared.append(claims)
+        log.info("fuse %s: claiming a share of robots %s", me, ", ".join(names))
+    else:
+        for robot in names:
+            robots.take(robot)
+    return [robots, *reversed(declared)]
+
+
+def _close(declared: list[Any]) -> None:
+    for item in declared:
+        (item.close if isinstance(item, (Claims, FusedRobots)) else item.undeclare)()
 
 
 def run_fusion(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | None, out_dir: str | Path,
                endpoints: ZenohEndpoints, params: StageParams | None = None, *, duration_s: float | None = None,
                stop: threading.Event | None = None, status: Callable[[str], None] | None = None,
                status_every_s: float = 2.0, clock: Callable[[], float] = time.time,
-               sinks: Sequence[Sink] = (), extrinsics_path: str | Path | None = None) -> FuseResult:
+               sinks: Sequence[Sink] = (), extrinsics_path: str | Path | None = None,
+               robots: Sequence[str] = (), shard: bool = False) -> FuseResult:
     """Fuse the sightings every worker publishes into ``<out_dir>/<robot>.tum`` and ``.jsonl``
     and ``sinks`` until ``duration_s``, ``stop``, Ctrl-C or SIGTERM, on the session runtime
     (:mod:`cubetrack.app.session`) as ``track --live`` is: the same release of a fixed lag's poses,
-    the same ``[fusion] output_rate_hz`` predicted poses, ``<out_dir>/run.json`` of the same shape."""
+    the same ``[fusion] output_rate_hz`` predicted poses, ``<out_dir>/run.json`` of the same shape.
+    ``robots``: fuse only these (a shard of a fleet; default every robot); ``shard``: claim a share
+    of them (of every robot when none are named) as other shards come and go (docs/scaling.md)."""
     params = params or config_params(config).stages
+    names = chosen_robots(config, robots)
     intrinsics = live_intrinsics(config)
     tracker = Tracker(intrinsics, config.world, config.robots, extrinsics, params)
     out_dir = Path(out_dir)
-    outputs, files = open_outputs(config, intrinsics, extrinsics, out_dir, sinks)
-    zenoh = None
+    # named robots: the outputs (files, topics, trackers) are theirs only; a shard's robots change, so all
+    mine = config if shard or not robots else dataclasses.replace(config, robots=tuple(
+        r for r in config.robots if r.name in names))
+    outputs, files = open_outputs(mine, intrinsics, extrinsics, out_dir, sinks)
+    zenoh, declared, behind = None, [], 0
     try:
         stream = PoseStream(tracker, outputs, clock)
+        stream.robots = []
         inbox = _Inbox(stream, [c.name for c in config.cameras])
         session = Session(duration_s=duration_s, stop=stop, status_every_s=status_every_s,
                           status=None if status is None else lambda: status(inbox.line(session.elapsed_s)),
                           record=RunSpec(out_dir / RUN_FILE, "fuse", parameter_tables(params),
-                                         {"config": config.path, "extrinsics": extrinsics_path}))
+                                         {"config": config.path, "extrinsics": extrinsics_path},
+                                         {"robots": list(robots), "shard": shard}))
         stream.attach(session)
         zenoh = open_session(endpoints, "fuse")
-        subscriber = zenoh.declare_subscriber(f"{SIGHTINGS_KEY}/*", inbox.receive)
-        watcher = zenoh.liveliness().declare_subscriber(f"{WORKERS_KEY}/*", inbox.worker_event, history=True)
-        log.info("fuse: subscribed to %s/*", SIGHTINGS_KEY)
+        declared = _join_bus(zenoh, inbox, session, names, shard, not robots and not shard)
+        log.info("fuse: subscribed to %s", f"{SIGHTINGS_KEY}/**" if not robots and not shard else "its robots")
         session.run(inbox.step, idle_wait_s(params))
-        subscriber.undeclare()
-        watcher.undeclare()
+        behind = len(inbox.messages)
         inbox.fuse()
+        _close(declared)
+        declared = []
         stream.finish()
     finally:
+        _close(declared)
         if zenoh is not None:
             zenoh.close()
         outputs.close()
     heard = {c: h.messages for c, h in inbox.heard.items()}
     session.finish({**stream.summary(tracker.stats), "heard": heard, "refused": inbox.bad,
-                    "duplicates": inbox.duplicates})
+                    "duplicates": inbox.duplicates, "behind": behind})
     return FuseResult(tracker.stats, heard, inbox.bad, files.outputs, session.elapsed_s, session.interrupted,
-                      inbox.duplicates)
+                      inbox.duplicates, tuple(inbox.claims), behind, inbox.received)

@@ -161,16 +161,16 @@ class FrameProcessor:
         """The result of ``job`` that :meth:`pack` packed, with this end's intrinsics and camera poses."""
         return unpack_result(job, message, self.intrinsics, self.T_world_cam)
 
-    def sightings(self, job: FrameJob, detections: tuple[Detection, ...],
-                  T_world_cam: np.ndarray) -> tuple[CubeSighting, ...]:
+    def sightings(self, job: FrameJob, detections: tuple[Detection, ...], T_world_cam: np.ndarray,
+                  robots: tuple[RobotConfig, ...] | None = None) -> tuple[CubeSighting, ...]:
         """The sightings of a frame's detections, seen from ``T_world_cam``: each robot's own
         detections and, for the robots in ``job.estimate_robots``, its per-camera estimate. The
         rest of :meth:`work`, and all of it for detections made elsewhere (a ``cubetrack worker``'s
-        message, :func:`cubetrack.app.fusion_service.frame_result`)."""
+        message, :func:`cubetrack.app.fusion_service.frame_result`); ``robots``: only these."""
         frame = job.frame
         intrinsics = self.intrinsics[frame.camera]
         sightings = []
-        for robot in self.robots:
+        for robot in self.robots if robots is None else robots:
             mine = body_detections(detections, robot.layout)
             if not mine:
                 continue

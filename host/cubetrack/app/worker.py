@@ -3,13 +3,14 @@
 A worker reads its cameras (:class:`cubetrack.source.streams.LiveCameras`), stamps each frame with its
 capture time through the camera's ``/time`` round trips and does the tracker's per-frame work
 (:meth:`cubetrack.app.tracker.FrameProcessor.work`: decode, detect, the camera's pose), then
-publishes one sighting message per frame (:mod:`cubetrack.io.sighting_wire`) under
-``cubetrack/sightings/<camera>``. The fusion (:mod:`cubetrack.app.fusion_service`) subscribes to
-``cubetrack/sightings/*``. A worker holds no fusion state, so detection searches whole frames
-(there is no prediction to search around) and per-camera estimates are made by the fusion, from
-the corners, when it asks for one (as in one process: only then). Each running worker holds a
-Zenoh liveliness token ``cubetrack/workers/<host>-<pid>``; the fusion reports workers coming and
-going (a killed worker's token goes when its connection drops).
+publishes each frame (:mod:`cubetrack.io.sighting_wire`) as one message per robot whose markers it
+holds under ``cubetrack/sightings/<camera>/<robot>`` (:func:`body_messages`), a frame without any
+under ``cubetrack/sightings/<camera>``. The fusion (:mod:`cubetrack.app.fusion_service`) subscribes
+to ``cubetrack/sightings/**``, a fusion shard to its robots' keys. A worker holds no fusion state,
+so detection searches whole frames (there is no prediction to search around) and per-camera
+estimates are made by the fusion, from the corners, when it asks for one (as in one process: only
+then). Each running worker holds a Zenoh liveliness token ``cubetrack/workers/<host>-<pid>``; the
+fusion reports workers coming and going (a killed worker's token goes when its connection drops).
 
 Which worker reads which camera: named (``--cameras``) or automatic. Every worker holds a
 liveliness token ``cubetrack/claims/<camera>/<worker>`` per camera it reads; an automatic worker
@@ -26,6 +27,7 @@ default); either may start first, restart, or come and go.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import os
 import re
@@ -46,16 +48,7 @@ from cubetrack.core.records import Detection, Frame, FrameResult
 from cubetrack.fuse.forecast import NO_FORECAST
 from cubetrack.io.config import TrackerConfig
 from cubetrack.io.sighting_wire import SightingMessage, WireClock, WireHealth, encode_sighting
-from cubetrack.io.worker_bus import (
-    CLAIMS_KEY,
-    POOL_KEY,
-    SIGHTINGS_KEY,
-    WORKERS_KEY,
-    ClaimBoard,
-    claim_changes,
-    claim_key,
-    sighting_key,
-)
+from cubetrack.io.worker_bus import SIGHTINGS_KEY, WORKERS_KEY, Claims, claim_key, sighting_key
 from cubetrack.sink.zenoh_session import ZenohEndpoints, open_session
 from cubetrack.source.clock import ClockSync
 from cubetrack.source.streams import CameraStats, ClockReading, LiveCameras, SourceParams
@@ -64,7 +57,6 @@ log = logging.getLogger(__name__)
 
 FUSE_PORT = 7450
 BUS_LEASE_MS = 3000  # a worker or fusion silent this long (frozen, host gone) is dropped with its claims
-SETTLE_S = 1.0  # an automatic worker on the bus listens this long to the others' tokens before it claims
 CHECK_EVERY_S = 0.2  # how often an automatic worker compares its claims with its share
 
 
@@ -93,8 +85,8 @@ def worker_id() -> str:
 
 
 def sighting_message(result: FrameResult, clock: ClockSync, stats: CameraStats, with_pose: bool) -> SightingMessage:
-    """What a worker publishes for one frame's per-frame work: the detections of every robot's
-    markers (corners, not the image), the camera pose where it came from the frame itself."""
+    """One frame's per-frame work as one message: the detections of every robot's markers
+    (corners, not the image), the camera pose where it came from the frame itself."""
     frame = result.job.frame
     seen: dict[int, Detection] = {}
     for sighting in result.sightings:
@@ -107,6 +99,16 @@ def sighting_message(result: FrameResult, clock: ClockSync, stats: CameraStats, 
                            WireClock(fit.method.value, fit.offset_s, fit.drift, fit.device_ref_s),
                            WireHealth(stats.connected, stats.frames, stats.dropped, stats.bad, stats.reconnects), pose,
                            result.dropped)
+
+
+def body_messages(result: FrameResult, clock: ClockSync, stats: CameraStats,
+                  with_pose: bool) -> list[SightingMessage]:
+    """What a worker publishes for one frame: one message per robot whose markers it holds, with
+    that robot's detections only (``body``; the frame's drop counts travel with the first), or
+    the whole frame's message when it holds no robot's markers (contracts §7)."""
+    whole = sighting_message(result, clock, stats, with_pose)
+    return [dataclasses.replace(whole, detections=s.detections, body=s.robot, dropped=whole.dropped if i == 0 else {})
+            for i, s in enumerate(result.sightings)] or [whole]
 
 
 @dataclass(frozen=True, slots=True)
@@ -142,54 +144,31 @@ class ZenohWorker:
         self.bus, self.tracker, self.urls, self.source, self.clock = session, tracker, urls, source, clock
         self.with_pose = with_pose
         self.me = worker_id()
-        self.board = ClaimBoard()
-        self.readers: dict[str, tuple[LiveCameras, Any, Any]] = {}  # camera -> its reader, publisher, claim token
+        # camera -> its reader, publishers (None: frames without a robot's markers, else by robot), claim token
+        self.readers: dict[str, tuple[LiveCameras, dict[str | None, Any], Any]] = {}
         self.last_stats: dict[str, CameraStats] = {}
         self.claims: list[tuple[float, str, bool]] = []
         self.wake = threading.Event()
         self.published = 0
         self.started = time.monotonic()
-        self.on_bus_s: float | None = None  # since when this worker has been connected to another Zenoh node
 
     def take(self, camera: str) -> None:
         token = self.bus.liveliness().declare_token(claim_key(camera, self.me))
         live = LiveCameras({camera: self.urls[camera]}, self.source, clock=self.clock, wake=self.wake.set)
-        self.readers[camera] = (live, self.bus.declare_publisher(sighting_key(camera)), token)
+        self.readers[camera] = (live, {None: self.bus.declare_publisher(sighting_key(camera))}, token)
         live.start()
         self.claims.append((time.monotonic() - self.started, camera, True))
         log.info("worker %s: reading %s", self.me, camera)
 
     def give_up(self, camera: str) -> None:
-        live, publisher, token = self.readers.pop(camera)
+        live, publishers, token = self.readers.pop(camera)
         live.stop()
         self.last_stats.update(live.stats())
-        publisher.undeclare()
+        for publisher in publishers.values():
+            publisher.undeclare()
         token.undeclare()
         self.claims.append((time.monotonic() - self.started, camera, False))
         log.info("worker %s: no longer reading %s", self.me, camera)
-
-    def rebalance(self, names: Sequence[str]) -> None:
-        """An automatic worker's claims brought in line with its share (once it has been on the
-        bus for ``SETTLE_S``)."""
-        info = self.bus.info
-        if not (list(info.peers_zid()) or list(info.routers_zid())):
-            self.on_bus_s = None
-            return
-        self.on_bus_s = self.on_bus_s if self.on_bus_s is not None else time.monotonic()
-        if time.monotonic() - self.on_bus_s < SETTLE_S:
-            return
-        pool, holders = self.board.snapshot()
-        gained, lost = claim_changes(self.me, names, self.readers, pool, holders)
-        for camera in sorted(lost):
-            self.give_up(camera)
-        for camera in sorted(gained):
-            self.take(camera)
-
-    def rebalance_if_changed(self, names: Sequence[str]) -> None:
-        """:meth:`rebalance` as soon as a claim or pool token came or went."""
-        if self.board.changed.is_set():
-            self.board.changed.clear()
-            self.rebalance(names)
 
     def step(self, timeout_s: float) -> None:
         """One event of every camera read (waiting up to ``timeout_s`` when none had one)."""
@@ -209,9 +188,11 @@ class ZenohWorker:
             self.tracker.add_clock_sample(event.camera, event.sample)
         elif (job := self.tracker.admit(event, hold=False, forecast=NO_FORECAST)) is not None:
             result = self.tracker.processor.work(job)
-            live, publisher, _ = self.readers[camera]
-            message = sighting_message(result, self.tracker.clocks[camera], live.stats()[camera], self.with_pose)
-            publisher.put(encode_sighting(message))
+            live, publishers, _ = self.readers[camera]
+            for message in body_messages(result, self.tracker.clocks[camera], live.stats()[camera], self.with_pose):
+                if message.body not in publishers:
+                    publishers[message.body] = self.bus.declare_publisher(sighting_key(camera, message.body))
+                publishers[message.body].put(encode_sighting(message))
             self.published += 1
 
     def camera_stats(self) -> dict[str, CameraStats]:
@@ -229,9 +210,10 @@ def run_worker(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
                status: Callable[[str], None] | None = None, status_every_s: float = 2.0,
                clock: Callable[[], float] = time.time) -> WorkerResult:
     """Read ``cameras`` of ``config`` live (none named: claim a share of the free cameras, see
-    :func:`claim_changes`) and publish each frame's sighting on Zenoh until ``duration_s``,
-    ``stop``, Ctrl-C or SIGTERM (the session runtime, :mod:`cubetrack.app.session`). Frames of a
-    camera whose clock is not known yet are given up (counted), as in ``track --live``."""
+    :func:`cubetrack.io.worker_bus.claim_changes`) and publish each frame's sightings on Zenoh
+    (:func:`body_messages`) until ``duration_s``, ``stop``, Ctrl-C or SIGTERM (the session runtime,
+    :mod:`cubetrack.app.session`). Frames of a camera whose clock is not known yet are given up
+    (counted), as in ``track --live``."""
     if params is None or source is None:
         settings = config_params(config)
         params, source = params or settings.stages, source or settings.source
@@ -239,7 +221,8 @@ def run_worker(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
     names = chosen_cameras(config, cameras)
     urls = {n: u for n, u in live_camera_urls(config).items() if n in names}
     for n in names:
-        sighting_key(n)  # every name a key chunk, before anything starts
+        for robot in config.robots:
+            sighting_key(n, robot.name)  # every name a key chunk, before anything starts
     intrinsics = {n: i for n, i in live_intrinsics(config).items() if n in names}
     tracker = Tracker(intrinsics, config.world, config.robots, extrinsics, params, synced_cameras=frozenset(urls))
     zenoh = open_session(endpoints, "worker")
@@ -247,29 +230,24 @@ def run_worker(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
     worker = ZenohWorker(zenoh, tracker, urls, source, clock, with_pose)
     session = Session(duration_s=duration_s, stop=stop, status_every_s=status_every_s,
                       status=None if status is None else lambda: status(worker.line(session.elapsed_s)))
-    tokens = [zenoh.liveliness().declare_token(f"{WORKERS_KEY}/{worker.me}")]
-    watchers = []
+    token = zenoh.liveliness().declare_token(f"{WORKERS_KEY}/{worker.me}")
+    claims = Claims(zenoh, worker.me, names, lambda: worker.readers, worker.take, worker.give_up)
     try:
         if automatic:
-            tokens.append(zenoh.liveliness().declare_token(f"{POOL_KEY}/{worker.me}"))
-            watchers = [zenoh.liveliness().declare_subscriber(f"{key}/**", lambda sample: worker.board.token(
-                str(sample.key_expr), not str(sample.kind).endswith("DELETE")), history=True)
-                for key in (POOL_KEY, CLAIMS_KEY)]
-            session.every(CHECK_EVERY_S, lambda: worker.rebalance(names))
-            session.each_turn(lambda: worker.rebalance_if_changed(names))
+            claims.watch()
+            session.every(CHECK_EVERY_S, claims.rebalance)
+            session.each_turn(claims.rebalance_if_changed)
             log.info("worker %s: claiming its share of %s", worker.me, ", ".join(names))
         else:
             for camera in names:
                 worker.take(camera)
             log.info("worker %s: %s -> Zenoh %s/*", worker.me, ", ".join(names), SIGHTINGS_KEY)
         session.run(worker.step, 0.05 if automatic else 0.1)
-        for watcher in watchers:
-            watcher.undeclare()
     finally:
         for camera in list(worker.readers):
             worker.give_up(camera)
-        for token in tokens:
-            token.undeclare()
+        claims.close()
+        token.undeclare()
         zenoh.close()
     return WorkerResult(tracker.stats, worker.published, worker.camera_stats(), session.elapsed_s,
                         session.interrupted, tuple(worker.claims))

@@ -1,6 +1,7 @@
 """Read some of the config's cameras live and publish each frame's sighting (corners, capture
 time, the camera's clock mapping and health; never images) on Zenoh under
-cubetrack/sightings/<camera>, for `cubetrack fuse` (docs/scaling.md).
+cubetrack/sightings/<camera>/<robot> (one message per robot seen; cubetrack/sightings/<camera> for
+a frame without any), for `cubetrack fuse` (docs/scaling.md).
 
 Without --cameras the worker claims its share of the cameras no other worker reads (automatic
 assignment through Zenoh liveliness tokens: start as many workers as you like, each takes a fair

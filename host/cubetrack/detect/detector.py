@@ -37,8 +37,8 @@ from cubetrack.core.params import check, param
 from cubetrack.core.records import Detection
 from cubetrack.detect.decode import decode_gray as decode_gray  # also imported from here by other stages
 from cubetrack.detect.decode import read_gray as read_gray
-from cubetrack.detect.edge_fit import NEXT_I, refine_corners_edges
-from cubetrack.detect.template_fit import LensMap, fast_template_corners
+from cubetrack.detect.edge_fit import NEXT_I, compile_edge_fit, refine_corners_edges
+from cubetrack.detect.template_fit import LensMap, compile_template_fit, fast_template_corners
 
 log = logging.getLogger(__name__)
 
@@ -311,6 +311,10 @@ class Detector:
                            if self.params.corner_refinement is CornerRefinement.APRILTAG else 0.0)
         self._modules = tuple(d.markerSize + 2 for d in dicts)  # cells across, with a 1-bit border
         self._lens_maps: dict[tuple, LensMap] = {}
+        if self.params.corner_refinement in (CornerRefinement.EDGE, CornerRefinement.TEMPLATE):
+            compile_edge_fit()   # the compiled kernels, before the first frame
+        if self.params.corner_refinement is CornerRefinement.TEMPLATE:
+            compile_template_fit()
 
     def detect(self, gray: np.ndarray, regions: Sequence[Box] | None = None,
                lens: CameraIntrinsics | None = None) -> tuple[Detection, ...]:

@@ -9,8 +9,10 @@ margin here; the detector hands inverted (white-on-black) markers over in the ne
 from __future__ import annotations
 
 import functools
+import math
 
 import cv2
+import numba
 import numpy as np
 
 from cubetrack.core.geometry import undistort_points
@@ -44,20 +46,170 @@ def _undistort_c(z: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:
 
 @functools.lru_cache(maxsize=8)
 def _edge_sampling(samples_along: int, samples_across: int, span: tuple[float, float]) -> tuple[np.ndarray, ...]:
-    """Sample positions of the edge fit: along a side (fractions t, and the powers 1, t, t^2
-    per row), across it (units of the half-width), the midpoints between those, the matrix
-    taking a profile to its differences (m, m-1), and the midpoints beside ones (m-1, 2: a
-    profile's moments in one product)."""
+    """Sample positions of the edge fit: along a side (fractions t), across it (units of the
+    half-width), and the midpoints between those (where a profile's differences lie)."""
     t = np.linspace(span[0], span[1], samples_along)
     unit = np.linspace(-1.0, 1.0, samples_across)
-    unit_mid = 0.5 * (unit[1:] + unit[:-1])
-    step = np.eye(samples_across, samples_across - 1, -1) - np.eye(samples_across, samples_across - 1)
-    out = (t, np.stack([np.ones_like(t), t, t * t], axis=1), unit, unit_mid, step,
-           np.stack([unit_mid, np.ones_like(unit_mid)], axis=1))
+    out = (t, unit, 0.5 * (unit[1:] + unit[:-1]))
     for a in out:
         a.setflags(write=False)
     return out
 
+
+@numba.njit(cache=True, nogil=True)
+def _edge_offset(g: np.ndarray, s_mid: np.ndarray, peak: bool, focus_px: float) -> float:
+    """Where along the normal (px) the rising gradient ``g`` (m-1 differences of one profile,
+    at ``s_mid`` px) puts the edge: see :func:`refine_corners_edges`'s ``focus``."""
+    n = g.shape[0]
+    if peak:   # start at the (smoothed) gradient's peak; a hard window of +-focus_px around the edge point
+        best, at = -1.0, 0
+        for j in range(n - 2):
+            smooth = g[j] + 2.0 * g[j + 1] + g[j + 2]
+            if smooth > best:
+                best, at = smooth, j
+        off = s_mid[at + 1]
+        for _focus in range(3):
+            sgd, sg = 0.0, 0.0
+            for j in range(n):
+                d = s_mid[j] - off
+                if abs(d) <= focus_px:
+                    sgd += g[j] * d
+                    sg += g[j]
+            off = off + sgd / max(sg, 1e-12)
+        return off
+    sgu, sg = 0.0, 0.0   # the centroid of the whole profile's gradient, then a tent of half-width focus_px
+    for j in range(n):
+        sgu += g[j] * s_mid[j]
+        sg += g[j]
+    off = sgu / max(sg, 1e-12)
+    for _focus in range(2):   # the centroid under tent weights focus_px - |d| around the last
+        sgu, sg = 0.0, 0.0
+        for j in range(n):
+            gf = g[j] * max(focus_px - abs(s_mid[j] - off), 0.0)
+            sgu += gf * s_mid[j]
+            sg += gf
+        off = sgu / max(sg, 1e-12)
+    return off
+
+
+@numba.njit(cache=True, nogil=True)
+def _line_fit(weight: np.ndarray, off: np.ndarray, t: np.ndarray) -> tuple[float, float, float]:
+    """``off = a + b t`` by weighted least squares: ``(a, b, the weights' sum)``; NaN with fewer
+    than two usable points."""
+    s0 = s1 = s2 = sy = sty = 0.0
+    for i in range(t.shape[0]):
+        wi, ti = weight[i], t[i]
+        s0 += wi
+        s1 += wi * ti
+        s2 += wi * ti * ti
+        sy += wi * off[i]
+        sty += wi * ti * off[i]
+    den = s0 * s2 - s1 * s1
+    if not den > 1e-12:
+        return math.nan, math.nan, s0
+    b = (s0 * sty - s1 * sy) / den
+    return (sy - b * s1) / s0, b, s0
+
+
+@numba.njit(cache=True, nogil=True)
+def _side_samples(z: np.ndarray, width_per_side: np.ndarray, t: np.ndarray,
+                  unit: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Where the edge fit samples the quads ``z`` (M, 4; complex x + iy): ``(p, v, n, length, w)``,
+    the positions (M, 4, k, m) at fractions ``t`` along each side and ``unit`` half-widths across
+    it, each side's vector (corner i -> i + 1), outward unit normal (clockwise, y down) and length,
+    and its half-width ``w``: ``width_per_side`` (M, 1; or 1, 1 for all) x the two neighbouring
+    sides, in [1.5, 4] px."""
+    n_markers, k, m = z.shape[0], t.shape[0], unit.shape[0]
+    last = width_per_side.shape[0] - 1
+    v, n = np.empty((n_markers, 4), np.complex128), np.empty((n_markers, 4), np.complex128)
+    length, w = np.empty((n_markers, 4)), np.empty((n_markers, 4))
+    p = np.empty((n_markers, 4, k, m), np.complex128)
+    for q in range(n_markers):
+        for side in range(4):
+            v[q, side] = z[q, (side + 1) % 4] - z[q, side]
+            length[q, side] = abs(v[q, side])
+            n[q, side] = v[q, side] * (-1j / max(length[q, side], 1e-9))
+        for side in range(4):
+            around = length[q, (side + 1) % 4] + length[q, (side + 3) % 4]
+            w[q, side] = min(max(around * width_per_side[min(q, last), 0], 1.5), 4.0)
+            across = w[q, side] * n[q, side]
+            for i in range(k):
+                at = z[q, side] + t[i] * v[q, side]
+                for j in range(m):
+                    p[q, side, i, j] = at + unit[j] * across
+    return p, v, n, length, w
+
+
+@numba.njit(cache=True, nogil=True)
+def _fitted_corners(prof: np.ndarray, z: np.ndarray, z0: np.ndarray, v: np.ndarray, n: np.ndarray,
+                    length: np.ndarray, w: np.ndarray, t: np.ndarray, unit_mid: np.ndarray,
+                    focus: tuple[bool, float, float], fitted: np.ndarray) -> np.ndarray:
+    """One iteration of the edge fit after sampling: from the profiles ``prof`` (M, 4, k, m,
+    float32) across the sides of the quads ``z`` (with :func:`_side_samples`' ``v``, ``n``,
+    ``length``, ``w``), each side's edge points (``focus``: peak or not, ``focus_px``,
+    ``min_contrast``), its line ``off = a + b t`` (px along the normal) fitted to them weighted by
+    their gradient mass, once more without points beyond 2.5 sigma, and the corners where
+    neighbouring lines meet. ``fitted`` (M, 4) is cleared where a side has fewer than 3 points or
+    is shorter than 4 px or a corner is not finite; those markers' corners are ``z0``'s. One
+    compiled pass: as numpy, ~40 calls per iteration over a few markers, and the calls were the cost."""
+    peak, focus_px, min_contrast = focus
+    n_markers, k, m = prof.shape[0], prof.shape[2], prof.shape[3]
+    base, direction = np.empty(4, np.complex128), np.empty(4, np.complex128)   # side i: base + s direction
+    out = np.empty_like(z)
+    g, s_mid = np.empty(m - 1), np.empty(m - 1)
+    off, weight = np.empty(k), np.empty(k)
+    for q in range(n_markers):
+        for side in range(4):
+            for j in range(m - 1):
+                s_mid[j] = unit_mid[j] * w[q, side]
+            for i in range(k):
+                row = prof[q, side, i]
+                mass = 0.0
+                for j in range(m - 1):
+                    g[j] = max(np.float64(row[j + 1]) - np.float64(row[j]), 0.0)
+                    mass += g[j]
+                off[i] = _edge_offset(g, s_mid, peak, focus_px)
+                rise = np.float64(row[m - 1]) - np.float64(row[0])
+                weight[i] = mass if mass > 1e-6 and rise > min_contrast else 0.0
+            a0, b0, s0 = _line_fit(weight, off, t)
+            rms2 = 0.0
+            for i in range(k):
+                r = off[i] - (a0 + b0 * t[i])
+                rms2 += weight[i] * r * r
+            limit = max(6.25 * rms2 / max(s0, 1e-12), 0.01)   # no line (NaN): r is NaN, no point kept
+            points = 0
+            for i in range(k):
+                r = off[i] - (a0 + b0 * t[i])
+                if r * r <= limit and weight[i] > 0.0:
+                    points += 1
+                else:
+                    weight[i] = 0.0
+            a, b, _s0 = _line_fit(weight, off, t)
+            base[side], direction[side] = z[q, side] + a * n[q, side], v[q, side] + b * n[q, side]
+            if not (length[q, side] > 4.0 and points >= 3):
+                fitted[q, side] = False
+        for c in range(4):   # corner c: side c - 1 meets side c
+            b1, d1 = base[(c + 3) % 4], direction[(c + 3) % 4]
+            s = ((base[c] - b1).conjugate() * direction[c]).imag / (d1.conjugate() * direction[c]).imag
+            out[q, c] = b1 + s * d1
+            if not (math.isfinite(out[q, c].real) and math.isfinite(out[q, c].imag)):
+                fitted[q, c] = False
+        for c in range(4):
+            if not fitted[q, c]:
+                out[q, c] = z0[q, c]
+    return out
+
+
+def compile_edge_fit() -> None:
+    """Compile the edge fit's kernel (or load it from numba's on-disk cache, ``__pycache__``) for
+    the argument types :func:`refine_corners_edges` passes, by fitting one synthetic marker both
+    ways (``tent`` and ``peak``), so that no frame pays it: called at start-up, before the first
+    frame (:class:`cubetrack.detect.detector.Detector` does)."""
+    gray = np.full((48, 48), 200, dtype=np.uint8)
+    gray[12:36, 12:36] = 20
+    corners = np.array([[12.0, 12.0], [36.0, 12.0], [36.0, 36.0], [12.0, 36.0]])
+    for focus in ("tent", "peak"):
+        refine_corners_edges(gray, corners, 6, focus=focus)
 
 def refine_corners_edges(gray: np.ndarray, corners_px: np.ndarray, modules: int | np.ndarray,
                          iterations: int = 2, *, K: np.ndarray | None = None,
@@ -134,74 +286,24 @@ def refine_corners_edges(gray: np.ndarray, corners_px: np.ndarray, modules: int 
     peak = focus == "peak"
     if focus_px is None:
         focus_px = _PEAK_WINDOW_PX if peak else _EDGE_FOCUS_PX
-    t, powers_t, unit, unit_mid, step, across = _edge_sampling(samples_along, samples_across, tuple(span))
-    ones_t, k, moments_t = powers_t[:, 0], len(t), powers_t.T
+    t, unit, unit_mid = _edge_sampling(samples_along, samples_across, tuple(span))
     z = z0
     side_px = np.abs(z.take(NEXT_I, axis=1) - z)  # the initial quad's side lengths (pinhole image)
     fitted = np.ones(z.shape, dtype=bool)   # per side and corner: the fit held (a failed marker's
     # corners restart from the initial ones, so the next iteration samples finite positions)
     # few numpy calls per iteration, each over every marker, side and sample at once: they, not
-    # the arithmetic, are the cost; sums over samples are matrix products with constant vectors
+    # the arithmetic, are the cost; the per-sample work is one compiled call (_side_lines)
     for _ in range(iterations):
-        v = z.take(NEXT_I, axis=1) - z                                 # side i: corner i -> i+1
-        length = np.abs(v)                                              # (M, 4) px
-        n = v * (-1j / np.maximum(length, 1e-9))                        # outward unit normal (clockwise, y down)
-        w = np.minimum(np.maximum((length.take(NEXT_I, axis=1) + length.take(PREV_I, axis=1)) * width_per_side,
-                                  1.5), 4.0)
-        p = (z[..., None] + t * v[..., None])[..., None] + unit * (w * n)[..., None, None]   # (M, 4, k, m)
+        p, v, n, length, w = _side_samples(z, width_per_side, t, unit)   # p: (M, 4, k, m)
         if lens is not None:
             p = _distort_c(p, *lens)
         xy = p.view(np.float64).reshape(1, -1, 2).astype(np.float32)  # interleaved x, y: one map
         # map1 holds both coordinates, so map2 is None (OpenCV's stubs do not allow None there)
         prof = cv2.remap(img, xy, None, cv2.INTER_LINEAR,  # type: ignore[call-overload]
-                         borderMode=cv2.BORDER_REPLICATE).reshape(p.shape).astype(np.float64)
-        # edge point along n from the rising gradient (see focus)
-        g = np.maximum(prof @ step, 0.0)                                # (M, 4, k, m-1) differences
-        wide = w[..., None]                                             # (M, 4, 1) half-width px
-        if peak:   # start at the gradient's peak; a hard window of +-focus_px around the edge point
-            mass = g @ across[:, 1]
-            smooth = g[..., :-2] + 2.0 * g[..., 1:-1] + g[..., 2:]       # a steadier peak
-            off = unit_mid[smooth.argmax(axis=-1) + 1] * wide
-            s_mid = (unit_mid * wide[..., None])                        # (M, 4, 1, m-1) px
-            for _focus in range(3):
-                d = s_mid - off[..., None]
-                gf = g * (np.abs(d) <= focus_px)
-                off = off + (gf * d) @ across[:, 1] / np.maximum(gf @ across[:, 1], 1e-12)
-        else:      # start at the centroid of the whole profile's gradient; a tent of half-width focus_px
-            moments = g @ across                                        # (M, 4, k, 2): sum g u, sum g
-            mass = moments[..., 1]
-            off = wide * moments[..., 0] / np.maximum(mass, 1e-12)      # (M, 4, k) px along n
-            s_mid = (unit_mid * wide[..., None])
-            for _focus in range(2):
-                # the centroid under tent weights focus_px - |d| (the scale cancels) around the last
-                gf = g * np.maximum(focus_px - np.abs(s_mid - off[..., None]), 0.0)
-                moments = gf @ across
-                off = wide * moments[..., 0] / np.maximum(moments[..., 1], 1e-12)
-        weight = mass * ((mass > 1e-6) & (prof[..., -1] - prof[..., 0] > min_contrast))
-        # each side: off = a + b t by weighted least squares (edge points scatter across the
-        # side only), then once more without points beyond 2.5 sigma of that line
-        a: np.ndarray  # a, b, s0: bound by the first (robust=False) pass
-        b: np.ndarray
-        s0: np.ndarray
-        for robust in (False, True):
-            if robust:
-                resid2 = off - (a[..., None] + b[..., None] * t)  # noqa: F821 (see above)
-                resid2 *= resid2
-                rms2 = (weight * resid2) @ ones_t / np.maximum(s0, 1e-12)  # noqa: F821 (see above)
-                weight = weight * (resid2 <= np.maximum(6.25 * rms2, 0.01)[..., None])
-            s0, s1, s2 = (moments_t @ weight.reshape(-1, k).T).reshape(3, -1, 4)   # (M, 4) each
-            sy, sty = (moments_t[:2] @ (weight * off).reshape(-1, k).T).reshape(2, -1, 4)
-            den = s0 * s2 - s1 * s1
-            den[den <= 1e-12] = np.nan                                  # < 2 usable points: no line
-            b = (s0 * sty - s1 * sy) / den
-            a = (sy - b * s1) / s0
-        # side i is the line P + s D; corner i = side i-1 meets side i
-        P, D = z + a * n, v + b * n
-        P1, D1 = P.take(PREV_I, axis=1), D.take(PREV_I, axis=1)
-        s = ((P - P1).conj() * D).imag / (D1.conj() * D).imag
-        z = P1 + s * D1
-        fitted &= (length > 4.0) & (np.sign(weight) @ ones_t >= 3.0) & np.isfinite(z)
-        z = np.where(fitted, z, z0)
+                         borderMode=cv2.BORDER_REPLICATE).reshape(p.shape)
+        # edge points, each side's robust line, and the corners where they meet
+        z = _fitted_corners(prof, z, z0, v, n, length, w, t, unit_mid, (peak, float(focus_px), float(min_contrast)),
+                            fitted)
     good &= fitted.all(axis=1)
     if lens is not None:
         z = _distort_c(z, *lens)

@@ -32,6 +32,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 
 import cv2
+import numba
 import numpy as np
 
 from cubetrack.core.cameras import CameraIntrinsics
@@ -203,14 +204,19 @@ def marker_region(gray: np.ndarray, corners_px: np.ndarray, modules: int, K: np.
 
 def _least_squares(A: np.ndarray, b: np.ndarray) -> np.ndarray:
     """argmin |A x - b| for a tall A (n, <= 14) by the normal equations (several times cheaper than
-    ``np.linalg.lstsq``'s SVD at this size); a column that vanishes (no pixel of the region lies
-    beyond the marker's margin) gets 0, as the least-norm solution gives it. LinAlgError when the
-    rest is rank-deficient."""
-    N = A.T @ A
+    ``np.linalg.lstsq``'s SVD at this size): :func:`_normal_solution`."""
+    return _normal_solution(A.T @ A, A.T @ b)
+
+
+def _normal_solution(N: np.ndarray, rhs: np.ndarray) -> np.ndarray:
+    """The least-squares solution from its normal equations ``N x = rhs`` (``N = A^T A``,
+    ``rhs = A^T b``); a column of ``A`` that vanishes (no pixel of the region lies beyond the
+    marker's margin) gets 0, as the least-norm solution gives it. LinAlgError when the rest is
+    rank-deficient."""
     norms = np.sqrt(np.diag(N))
     kept = norms > 1e-9 * norms.max()
-    x = np.zeros(A.shape[1])
-    x[kept] = np.linalg.solve(N[np.ix_(kept, kept)], (A.T @ b)[kept])
+    x = np.zeros(N.shape[1])
+    x[kept] = np.linalg.solve(N[np.ix_(kept, kept)], rhs[kept])
     return x
 
 
@@ -288,6 +294,7 @@ class _FastRegion:
     samples: np.ndarray
     centres: np.ndarray
     lens: np.ndarray
+    index: np.ndarray  # (n,) the compared pixels' flat indices in the region
 
 
 def _fast_region(gray: np.ndarray, corners_px: np.ndarray, modules: int, lens: LensMap,
@@ -299,7 +306,107 @@ def _fast_region(gray: np.ndarray, corners_px: np.ndarray, modules: int, lens: L
     samples = region.samples_px.reshape(-1, 2)
     return _FastRegion(region, np.column_stack([samples, np.ones(len(samples))]),
                        np.column_stack([region.centres_px, np.ones(len(region.centres_px))]),
-                       _lens_jacobian(lens, corners_px))
+                       _lens_jacobian(lens, corners_px), np.flatnonzero(region.fitted))
+
+
+@numba.njit(cache=True, nogil=True)
+def _template_maps(samples: np.ndarray, H_inv: np.ndarray, rows: int, cols: int) -> tuple[np.ndarray, np.ndarray]:
+    """Where each sample (rows x cols of them, homogeneous undistorted px) reads the template:
+    ``cv2.remap``'s x and y maps (float32), through the inverse homography ``H_inv``."""
+    mx, my = np.empty((rows, cols), np.float32), np.empty((rows, cols), np.float32)
+    for i in range(rows):
+        for j in range(cols):
+            x, y, w = samples[i * cols + j]
+            u = H_inv[0, 0] * x + H_inv[0, 1] * y + H_inv[0, 2] * w
+            v = H_inv[1, 0] * x + H_inv[1, 1] * y + H_inv[1, 2] * w
+            z = H_inv[2, 0] * x + H_inv[2, 1] * y + H_inv[2, 2] * w
+            mx[i, j] = TEMPLATE_RES * u / z + _TEMPLATE_SHIFT
+            my[i, j] = TEMPLATE_RES * v / z + _TEMPLATE_SHIFT
+    return mx, my
+
+
+@numba.njit(cache=True, nogil=True)
+def _pixel_areas(reflectance: np.ndarray, beyond: np.ndarray, s: int) -> np.ndarray:
+    """(ny, nx, 2) float32: the mean of each pixel's ``s`` x ``s`` template reads of both images."""
+    ny, nx = reflectance.shape[0] // s, reflectance.shape[1] // s
+    out = np.empty((ny, nx, 2), np.float32)
+    scale = 1.0 / (s * s)
+    for i in range(ny):
+        for j in range(nx):
+            a = b = 0.0
+            for di in range(s):
+                for dj in range(s):
+                    a += reflectance[i * s + di, j * s + dj]
+                    b += beyond[i * s + di, j * s + dj]
+            out[i, j, 0], out[i, j, 1] = a * scale, b * scale
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _brightness_system(image: np.ndarray, index: np.ndarray, gradient: np.ndarray,
+                       pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
+    """The brightness model's normal equations (:func:`photometric_columns` against the compared
+    pixels' values) at the predicted ``image`` (ny, nx, 2), and whether any compared pixel sees
+    the beyond-margin image (``_BEYOND_MIN``; if none, that column is left out: zero)."""
+    flat = image.reshape(-1, 2)
+    seen = 0.0
+    for i in range(index.shape[0]):
+        seen = max(seen, np.float64(flat[index[i], 1]))
+    beyond = seen >= _BEYOND_MIN
+    N, rhs, row = np.zeros((5, 5)), np.zeros(5), np.empty(5)
+    for i in range(index.shape[0]):
+        P = np.float64(flat[index[i], 0])
+        row[0], row[1], row[2], row[3] = 1.0, P, P * gradient[i, 0], P * gradient[i, 1]
+        row[4] = np.float64(flat[index[i], 1]) if beyond else 0.0
+        for a in range(5):
+            rhs[a] += row[a] * pixels[i]
+            for b in range(5):
+                N[a, b] += row[a] * row[b]
+    return N, rhs, beyond
+
+
+@numba.njit(cache=True, nogil=True)
+def _step_system(image: np.ndarray, wider: np.ndarray, gx: np.ndarray, gy: np.ndarray, index: np.ndarray,
+                 gradient: np.ndarray, pixels: np.ndarray, centres: np.ndarray, lens: np.ndarray,
+                 H_inv: np.ndarray, dH: np.ndarray, coef: np.ndarray, beyond: bool) -> tuple[np.ndarray, np.ndarray]:
+    """The normal equations of one Gauss-Newton step (:func:`_gauss_newton_step`), summed pixel by
+    pixel: per compared pixel, the 8 corners' columns (the predicted image's gradient ``gx``,
+    ``gy`` times the brightness ``coef``, through the lens's local map, times the motion of the
+    pixel's template point, ``dH`` at its centre), the blur's (from ``wider``) and the 5
+    brightness columns, against the residual at ``coef``."""
+    img, wide = image.reshape(-1, 2), wider.reshape(-1, 2)
+    dx, dy = gx.reshape(-1, 2), gy.reshape(-1, 2)
+    N, rhs, row, d = np.zeros((14, 14)), np.zeros(14), np.empty(14), np.empty(3)
+    for i in range(index.shape[0]):
+        f = index[i]
+        g0, g1 = gradient[i, 0], gradient[i, 1]
+        P, Pw = np.float64(img[f, 0]), np.float64(wide[f, 0])
+        B = np.float64(img[f, 1]) if beyond else 0.0
+        Bw = np.float64(wide[f, 1]) if beyond else 0.0
+        gain = coef[1] + coef[2] * g0 + coef[3] * g1
+        sx = np.float64(dx[f, 0]) * gain + np.float64(dx[f, 1]) * coef[4]
+        sy = np.float64(dy[f, 0]) * gain + np.float64(dy[f, 1]) * coef[4]
+        s0, s1 = sx * lens[0, 0] + sy * lens[1, 0], sx * lens[0, 1] + sy * lens[1, 1]
+        cx, cy = centres[i, 0], centres[i, 1]
+        u0 = H_inv[0, 0] * cx + H_inv[0, 1] * cy + H_inv[0, 2]
+        u1 = H_inv[1, 0] * cx + H_inv[1, 1] * cy + H_inv[1, 2]
+        u2 = H_inv[2, 0] * cx + H_inv[2, 1] * cy + H_inv[2, 2]
+        for k in range(8):
+            for a in range(3):
+                d[a] = (dH[k, a, 0] * u0 + dH[k, a, 1] * u1 + dH[k, a, 2] * u2) / u2
+            row[k] = -(s0 * (d[0] - cx * d[2]) + s1 * (d[1] - cy * d[2]))
+        row[8] = (coef[1] * (Pw - P) + coef[2] * (Pw - P) * g0 + coef[3] * (Pw - P) * g1
+                  + coef[4] * (Bw - B)) / _BLUR_STEP_PX
+        row[9], row[10], row[11], row[12], row[13] = 1.0, P, P * g0, P * g1, B
+        r = pixels[i] - (coef[0] + coef[1] * P + coef[2] * P * g0 + coef[3] * P * g1 + coef[4] * B)
+        for a in range(14):
+            rhs[a] += row[a] * r
+            for b in range(a, 14):
+                N[a, b] += row[a] * row[b]
+    for a in range(14):
+        for b in range(a):
+            N[a, b] = N[b, a]
+    return N, rhs
 
 
 def _gauss_newton_step(f: _FastRegion, template: np.ndarray, H: np.ndarray, dH: np.ndarray, blur: float,
@@ -308,34 +415,24 @@ def _gauss_newton_step(f: _FastRegion, template: np.ndarray, H: np.ndarray, dH: 
     the update of the 8 corner coordinates, the blur and the 5 brightness terms (their values, not
     an update). The Jacobian by the corners is the predicted image's own gradient (in the
     distorted image, through the lens's local map) times the motion of each compared pixel's
-    template point when a corner moves."""
+    template point when a corner moves. The per-pixel work is compiled (numba): as numpy it was
+    ~40 calls per iteration on arrays of a few thousand samples."""
     r = f.region
     ny, nx = r.shape
     H_inv = np.linalg.inv(H)
-    U = f.samples @ H_inv.T
-    mx = (TEMPLATE_RES * U[:, 0] / U[:, 2] + _TEMPLATE_SHIFT).astype(np.float32).reshape(ny * s, nx * s)
-    my = (TEMPLATE_RES * U[:, 1] / U[:, 2] + _TEMPLATE_SHIFT).astype(np.float32).reshape(ny * s, nx * s)
-    area = np.stack([cv2.remap(template[k], mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT,
-                               borderValue=float(k)) for k in (0, 1)], axis=-1)
-    if s > 1:
-        area = np.ascontiguousarray(area.reshape(ny, s, nx, s, 2).mean(axis=(1, 3)))
+    mx, my = _template_maps(f.samples, H_inv, ny * s, nx * s)
+    read = [cv2.remap(template[k], mx, my, cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=float(k))
+            for k in (0, 1)]
+    area = _pixel_areas(read[0], read[1], s)
     image = cv2.GaussianBlur(area, (0, 0), blur, borderType=cv2.BORDER_REPLICATE)
-    predicted = image.reshape(-1, 2)[r.fitted].astype(np.float64)
     wider = cv2.GaussianBlur(area, (0, 0), blur + _BLUR_STEP_PX, borderType=cv2.BORDER_REPLICATE)
-    if predicted[:, 1].max() < _BEYOND_MIN:  # no compared pixel sees beyond the margin: that brightness is not
-        image[..., 1] = wider[..., 1] = predicted[:, 1] = 0.0  # measured, its column is left out
-    A = photometric_columns(predicted, r.gradient)
-    coef = _least_squares(A, r.pixels)
-    gx = cv2.Sobel(image, cv2.CV_32F, 1, 0, ksize=1, scale=0.5, borderType=cv2.BORDER_REPLICATE).reshape(-1, 2)
-    gy = cv2.Sobel(image, cv2.CV_32F, 0, 1, ksize=1, scale=0.5, borderType=cv2.BORDER_REPLICATE).reshape(-1, 2)
-    gain = coef[1] + coef[2] * r.gradient[:, 0] + coef[3] * r.gradient[:, 1]
-    gx, gy = gx[r.fitted], gy[r.fitted]  # d/dx, d/dy of the two predicted images
-    slope = np.column_stack([gx[:, 0] * gain + gx[:, 1] * coef[4], gy[:, 0] * gain + gy[:, 1] * coef[4]]) @ f.lens
-    Uc = f.centres @ H_inv.T
-    D = np.einsum("kij,nj->kin", dH, Uc) / Uc[:, 2]  # (8, 3, n)
-    J = -(slope[:, 0] * (D[:, 0] - f.centres[:, 0] * D[:, 2]) + slope[:, 1] * (D[:, 1] - f.centres[:, 1] * D[:, 2]))
-    J_blur = (photometric_columns(wider.reshape(-1, 2)[r.fitted].astype(np.float64), r.gradient) - A) @ coef
-    return _least_squares(np.column_stack([J.T, J_blur / _BLUR_STEP_PX, A]), r.pixels - A @ coef)
+    N, rhs, beyond = _brightness_system(image, f.index, r.gradient, r.pixels)
+    coef = _normal_solution(N, rhs)
+    gx = cv2.Sobel(image, cv2.CV_32F, 1, 0, ksize=1, scale=0.5, borderType=cv2.BORDER_REPLICATE)
+    gy = cv2.Sobel(image, cv2.CV_32F, 0, 1, ksize=1, scale=0.5, borderType=cv2.BORDER_REPLICATE)
+    N, rhs = _step_system(image, wider, gx, gy, f.index, r.gradient, r.pixels, f.centres, f.lens, H_inv, dH,
+                          coef, beyond)
+    return _normal_solution(N, rhs)
 
 
 def fast_template_corners(gray: np.ndarray, corners_px: np.ndarray, dictionary: str, marker_id: int,
@@ -374,3 +471,15 @@ def fast_template_corners(gray: np.ndarray, corners_px: np.ndarray, dictionary: 
     if not np.isfinite(p).all() or np.abs(p).max() > settings.max_move_px:
         return None
     return distort_px(start + p.reshape(4, 2), lens.K, lens.dist)
+
+
+def compile_template_fit() -> None:
+    """Compile the template fit's kernels (or load them from numba's on-disk cache) for the
+    argument types :func:`fast_template_corners` passes, by fitting one synthetic marker, so that
+    no frame pays it: called at start-up, before the first frame (a
+    :class:`cubetrack.detect.detector.Detector` with ``template`` corners does)."""
+    image = np.full((72, 72), 220, np.uint8)
+    dictionary = cv2.aruco.getPredefinedDictionary(cv2.aruco.DICT_4X4_50)
+    image[18:54, 18:54] = np.where(cv2.aruco.generateImageMarker(dictionary, 0, 36, borderBits=1) == 0, 20, 220)
+    corners = np.array([[17.5, 17.5], [53.5, 17.5], [53.5, 53.5], [17.5, 53.5]])
+    fast_template_corners(image, corners, "DICT_4X4_50", 0, LensMap(None))

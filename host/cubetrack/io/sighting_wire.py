@@ -7,6 +7,7 @@ One message per processed camera frame, little-endian binary, corners and never 
     clock: method u8 (0 none, 1 arrival, 2 round-trip), offset_s f64, drift f64, device_ref_s f64
     health: connected u8, frames u32, dropped u32, bad u32, reconnects u32
     camera: u8 length + UTF-8
+    [body: u8 length + UTF-8, the one robot whose markers the message holds, when flags bit 4]
     [T_world_cam: 12 f64, rows 0-2 of the 4x4, when flags bit 0]
     dictionaries: u8 count, each u8 length + UTF-8
     detections: u16 count, each marker id i32, dictionary index u8, corners 8 f64 (TL, TR, BR, BL
@@ -16,7 +17,10 @@ One message per processed camera frame, little-endian binary, corners and never 
 ``flags`` bit 0: a per-frame camera pose follows (world-marker mode); bits 1-2 the detection
 outcome (0 regions, 1 full frame, 2 corrupt JPEG, 3 no camera pose); bit 3: the frame's markers
 that OpenCV found and the detector then dropped, counted per reason, follow (so ``cubetrack fuse``
-summaries count them as ``track`` does). Times are host-clock Unix
+summaries count them as ``track`` does); bit 4: the message is one body's share of the frame (a worker
+publishes a frame per body it holds markers of, so that a fusion shard receives only its robots'
+share; docs/scaling.md), whose name follows the camera's. Messages without bit 4 (every message before
+it existed) hold the whole frame. Times are host-clock Unix
 seconds after the worker's clock mapping (``capture = device + offset + drift * (device -
 device_ref)``), so the fusion orders sightings exactly as one process would; the mapping itself
 travels along for inspection. Floats are float64, so a decoded message is bit-identical to what
@@ -93,6 +97,7 @@ class SightingMessage:
     health: WireHealth = WireHealth()
     T_world_cam: np.ndarray | None = None
     dropped: Mapping[str, int] = field(default_factory=dict)  # markers found, then dropped: reason -> count
+    body: str | None = None  # the one robot whose detections these are (None: the whole frame's)
 
 
 def _name(text: str, what: str) -> bytes:
@@ -112,12 +117,15 @@ def encode_sighting(message: SightingMessage) -> bytes:
         raise SightingWireError(f"sighting message: {len(message.detections)} detections, at most 65535")
     if len(message.dropped) > 255:
         raise SightingWireError(f"sighting message: {len(message.dropped)} drop reasons, at most 255")
-    flags = (message.T_world_cam is not None) | OUTCOME_CODES[message.outcome] << 1 | bool(message.dropped) << 3
+    flags = ((message.T_world_cam is not None) | OUTCOME_CODES[message.outcome] << 1 | bool(message.dropped) << 3
+             | (message.body is not None) << 4)
     h, c = message.health, message.clock
     parts = [_HEAD.pack(MAGIC, VERSION, flags, message.seq, message.device_time_s, message.capture_time_s,
                         message.arrival_time_s, CLOCK_METHOD_CODES[c.method], c.offset_s, c.drift, c.device_ref_s,
                         h.connected, *(min(v, 0xFFFFFFFF) for v in (h.frames, h.dropped, h.bad, h.reconnects))),
              _name(message.camera, "camera name")]
+    if message.body is not None:
+        parts.append(_name(message.body, "body name"))
     if message.T_world_cam is not None:
         parts.append(_POSE.pack(*np.asarray(message.T_world_cam, dtype=np.float64)[:3].ravel()))
     dictionaries = sorted({d.dictionary for d in message.detections})
@@ -169,9 +177,10 @@ def decode_sighting(data: bytes) -> SightingMessage:
     r = _Reader(data)
     (_, _, flags, seq, device_s, capture_s, arrival_s, method, offset_s, drift, ref_s, connected,
      frames, dropped_frames, bad, reconnects) = r.take(_HEAD, "header")
-    if flags >> 4 or method not in _CLOCK_METHODS:
+    if flags >> 5 or method not in _CLOCK_METHODS:
         raise SightingWireError(f"sighting message: unknown flags {flags:#x} or clock method {method}")
     camera = r.name("camera name")
+    body = r.name("body name") if flags & 16 else None
     T_world_cam = None
     if flags & 1:
         T_world_cam = np.vstack([np.array(r.take(_POSE, "camera pose")).reshape(3, 4), [0.0, 0.0, 0.0, 1.0]])
@@ -195,4 +204,5 @@ def decode_sighting(data: bytes) -> SightingMessage:
         raise SightingWireError(f"sighting message: {len(data) - r.at} bytes after its end")
     return SightingMessage(camera, seq, device_s, capture_s, arrival_s, _OUTCOMES[(flags >> 1) & 3], tuple(detections),
                            WireClock(_CLOCK_METHODS[method], offset_s, drift, ref_s),
-                           WireHealth(bool(connected), frames, dropped_frames, bad, reconnects), T_world_cam, dropped)
+                           WireHealth(bool(connected), frames, dropped_frames, bad, reconnects), T_world_cam, dropped,
+                           body)

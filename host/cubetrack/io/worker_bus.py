@@ -1,12 +1,19 @@
 """The bus between ``cubetrack worker`` and ``cubetrack fuse`` (docs/scaling.md): its Zenoh key
-expressions and the claim protocol by which automatic workers share the cameras (the messages on it
-are :mod:`cubetrack.io.sighting_wire`'s).
+expressions and the claim protocol by which automatic workers share the cameras and automatic fusion
+shards share the robots (the messages on it are :mod:`cubetrack.io.sighting_wire`'s).
 
 Every worker holds a liveliness token ``cubetrack/claims/<camera>/<worker>`` per camera it reads; an
 automatic worker also holds ``cubetrack/pool/<worker>``. The cameras no named worker claims are
 shared among the automatic workers by :func:`share_cameras` (the same answer in every worker that
 sees the same tokens); :func:`claim_changes` says what a worker takes and gives up, and
-:class:`ClaimBoard` follows the tokens seen on the bus.
+:class:`ClaimBoard` follows the tokens seen on the bus. Fusion shards do the same with robots, under
+their own keys (``cubetrack/robot-claims/<robot>/<shard>``, ``cubetrack/shard-pool/<shard>``):
+:class:`Claims` runs the rule for either.
+
+A worker publishes each frame once per robot it holds markers of, under
+``cubetrack/sightings/<camera>/<robot>`` (:func:`sighting_key`), and a frame with no robot's markers
+under ``cubetrack/sightings/<camera>``: a shard subscribes to ``cubetrack/sightings/*/<robot>`` for
+each of its robots (:func:`robot_sightings_key`), a fusion of every robot to ``cubetrack/sightings/**``.
 """
 
 from __future__ import annotations
@@ -14,14 +21,20 @@ from __future__ import annotations
 import hashlib
 import re
 import threading
-from collections.abc import Iterable, Mapping, Sequence
+import time
+from collections.abc import Callable, Iterable, Mapping, Sequence
+from typing import Any
 
 from cubetrack.core.errors import ConfigError
 
-SIGHTINGS_KEY = "cubetrack/sightings"  # one camera's sightings: cubetrack/sightings/<camera>
+SIGHTINGS_KEY = "cubetrack/sightings"  # cubetrack/sightings/<camera>[/<robot>]: a frame or one robot's share of it
 WORKERS_KEY = "cubetrack/workers"  # a liveliness token per running worker: cubetrack/workers/<host>-<pid>
 CLAIMS_KEY = "cubetrack/claims"  # a liveliness token per camera a worker reads: cubetrack/claims/<camera>/<worker>
 POOL_KEY = "cubetrack/pool"  # a liveliness token per automatic worker: cubetrack/pool/<worker>
+SHARDS_KEY = "cubetrack/shards"  # a liveliness token per running fusion: cubetrack/shards/<host>-<pid>
+ROBOT_CLAIMS_KEY = "cubetrack/robot-claims"  # per robot a fusion fuses: cubetrack/robot-claims/<robot>/<shard>
+SHARD_POOL_KEY = "cubetrack/shard-pool"  # a liveliness token per automatic fusion shard
+SETTLE_S = 1.0  # an automatic member on the bus listens this long to the others' tokens before it claims
 
 
 def key_chunk(what: str, name: str) -> str:
@@ -31,14 +44,22 @@ def key_chunk(what: str, name: str) -> str:
     return name
 
 
-def sighting_key(camera: str) -> str:
-    """The key expression ``camera``'s sightings are published under."""
-    return f"{SIGHTINGS_KEY}/{key_chunk('camera', camera)}"
+def sighting_key(camera: str, robot: str | None = None) -> str:
+    """The key expression ``camera``'s frames with ``robot``'s markers are published under (one
+    message per robot of a frame); ``robot`` None: its frames with no robot's markers."""
+    key = f"{SIGHTINGS_KEY}/{key_chunk('camera', camera)}"
+    return key if robot is None else f"{key}/{key_chunk('robot', robot)}"
 
 
-def claim_key(camera: str, worker: str) -> str:
-    """The liveliness token of ``worker`` reading ``camera``."""
-    return f"{CLAIMS_KEY}/{key_chunk('camera', camera)}/{worker}"
+def robot_sightings_key(robot: str) -> str:
+    """The key expression of ``robot``'s sightings from every camera (what a shard subscribes to)."""
+    return f"{SIGHTINGS_KEY}/*/{key_chunk('robot', robot)}"
+
+
+def claim_key(camera: str, worker: str, claims_key: str = CLAIMS_KEY) -> str:
+    """The liveliness token of ``worker`` reading ``camera`` (or of a shard fusing a robot:
+    ``claims_key`` ROBOT_CLAIMS_KEY)."""
+    return f"{claims_key}/{key_chunk('camera' if claims_key == CLAIMS_KEY else 'robot', camera)}/{worker}"
 
 
 def share_cameras(cameras: Sequence[str], pool: Iterable[str]) -> dict[str, str]:
@@ -79,9 +100,11 @@ def claim_changes(me: str, cameras: Sequence[str], held: Iterable[str], pool: It
 
 
 class ClaimBoard:
-    """The claim and pool tokens seen on the bus (updated from Zenoh's threads)."""
+    """The claim and pool tokens seen on the bus (updated from Zenoh's threads): the workers' by
+    default, the fusion shards' with ``pool_key`` SHARD_POOL_KEY and ``claims_key`` ROBOT_CLAIMS_KEY."""
 
-    def __init__(self) -> None:
+    def __init__(self, pool_key: str = POOL_KEY, claims_key: str = CLAIMS_KEY) -> None:
+        self.pool_key, self.claims_key = pool_key, claims_key
         self._lock = threading.Lock()
         self.pool: set[str] = set()
         self.holders: dict[str, set[str]] = {}
@@ -91,9 +114,9 @@ class ClaimBoard:
         """A liveliness token ``key`` appeared (``alive``) or vanished."""
         parts = key.split("/")
         with self._lock:
-            if key.startswith(f"{POOL_KEY}/") and len(parts) == 3:
+            if key.startswith(f"{self.pool_key}/") and len(parts) == 3:
                 (self.pool.add if alive else self.pool.discard)(parts[2])
-            elif key.startswith(f"{CLAIMS_KEY}/") and len(parts) == 4:
+            elif key.startswith(f"{self.claims_key}/") and len(parts) == 4:
                 workers = self.holders.setdefault(parts[2], set())
                 (workers.add if alive else workers.discard)(parts[3])
             else:
@@ -103,3 +126,86 @@ class ClaimBoard:
     def snapshot(self) -> tuple[set[str], dict[str, set[str]]]:
         with self._lock:
             return set(self.pool), {c: set(w) for c, w in self.holders.items()}
+
+
+class Claims:
+    """One automatic member's claims on the bus: a worker's cameras or a fusion shard's robots
+    (``keys``: the board's pool and claims keys). It holds the pool token, follows the tokens
+    (:class:`ClaimBoard`) and, once connected to another Zenoh node for ``SETTLE_S``, brings what
+    the member holds (``held()``) in line with :func:`claim_changes` through the member's ``take``
+    and ``give_up`` (which declare and drop the member's claim tokens, :func:`claim_key`)."""
+
+    def __init__(self, bus: Any, me: str, names: Sequence[str], held: Callable[[], Iterable[str]],
+                 take: Callable[[str], None], give_up: Callable[[str], None],
+                 keys: tuple[str, str] = (POOL_KEY, CLAIMS_KEY)):
+        self.bus, self.me, self.names, self.held, self.take, self.give_up = bus, me, names, held, take, give_up
+        self.board = ClaimBoard(*keys)
+        self.on_bus_s: float | None = None  # since when this member has been connected to another Zenoh node
+        self._declared: list[Any] = []
+
+    def watch(self) -> None:
+        """Declare the pool token and follow the pool's and claims' tokens."""
+        liveliness = self.bus.liveliness()
+        self._declared = [liveliness.declare_token(f"{self.board.pool_key}/{self.me}")] + [
+            liveliness.declare_subscriber(f"{key}/**", lambda sample: self.board.token(
+                str(sample.key_expr), not str(sample.kind).endswith("DELETE")), history=True)
+            for key in (self.board.pool_key, self.board.claims_key)]
+
+    def close(self) -> None:
+        """Stop following the tokens and drop the pool token (the claims are the member's)."""
+        for declared in reversed(self._declared):
+            declared.undeclare()
+        self._declared = []
+
+    def rebalance(self) -> None:
+        """The claims brought in line with this member's share (once on the bus for ``SETTLE_S``)."""
+        info = self.bus.info
+        if not (list(info.peers_zid()) or list(info.routers_zid())):
+            self.on_bus_s = None
+            return
+        self.on_bus_s = self.on_bus_s if self.on_bus_s is not None else time.monotonic()
+        if time.monotonic() - self.on_bus_s < SETTLE_S:
+            return
+        pool, holders = self.board.snapshot()
+        gained, lost = claim_changes(self.me, self.names, self.held(), pool, holders)
+        for name in sorted(lost):
+            self.give_up(name)
+        for name in sorted(gained):
+            self.take(name)
+
+    def rebalance_if_changed(self) -> None:
+        """:meth:`rebalance` as soon as a claim or pool token came or went."""
+        if self.board.changed.is_set():
+            self.board.changed.clear()
+            self.rebalance()
+
+
+class FusedRobots:
+    """The robots one fusion fuses, on the bus: per robot its claim token
+    ``cubetrack/robot-claims/<robot>/<me>`` and, when ``receive`` is given, its subscriber to
+    ``cubetrack/sightings/*/<robot>`` (a shard; a fusion of every robot subscribes to everything
+    once). ``changed(robot, held)`` is called after each take and give-up."""
+
+    def __init__(self, bus: Any, me: str, receive: Callable[[Any], None] | None,
+                 changed: Callable[[str, bool], None]):
+        self.bus, self.me, self.receive, self.changed = bus, me, receive, changed
+        self.held: dict[str, tuple[Any, Any]] = {}  # robot -> its claim token, its subscriber (or None)
+
+    def take(self, robot: str) -> None:
+        token = self.bus.liveliness().declare_token(claim_key(robot, self.me, ROBOT_CLAIMS_KEY))
+        subscriber = None
+        if self.receive is not None:
+            subscriber = self.bus.declare_subscriber(robot_sightings_key(robot), self.receive)
+        self.held[robot] = (token, subscriber)
+        self.changed(robot, True)
+
+    def give_up(self, robot: str) -> None:
+        token, subscriber = self.held.pop(robot)
+        if subscriber is not None:
+            subscriber.undeclare()
+        token.undeclare()
+        self.changed(robot, False)
+
+    def close(self) -> None:
+        for robot in list(self.held):
+            self.give_up(robot)

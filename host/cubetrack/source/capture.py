@@ -12,8 +12,9 @@ stamped (:mod:`cubetrack.source.timing`):
 - the driver's timestamp (``CAP_PROP_POS_MSEC``: the V4L2 backend gives the buffer's timestamp,
   on the host's monotonic clock for UVC webcams) when it is plausible (within 2 s before now);
   the reader then sends monotonic<->Unix round trips of this host as the camera's clock samples;
-- otherwise (RTSP, devices without stamps) the monotonic time the read returned, the assumed
-  latency declared in the clock samples;
+- otherwise (RTSP, devices without stamps) the monotonic time the read returned, de-jittered
+  (:class:`~cubetrack.source.timing.ArrivalEnvelope`: the lower envelope of the read times
+  against the frame count), the assumed latency declared in the clock samples;
 - a video file: its media time (``CAP_PROP_POS_MSEC`` of the frame read) from its start, played
   in real time; frames whose time has already passed are skipped, as a live camera would not
   deliver them.
@@ -43,7 +44,7 @@ from cubetrack.core.cameras import ClockSample
 from cubetrack.core.errors import SourceError
 from cubetrack.core.records import Frame
 from cubetrack.source.camera_url import CameraKind, CameraUrl
-from cubetrack.source.timing import CameraTiming, monotonic_sample, timing_note
+from cubetrack.source.timing import ArrivalEnvelope, CameraTiming, monotonic_sample, timing_note
 
 log = logging.getLogger(__name__)
 
@@ -60,6 +61,7 @@ class CaptureSettings:
     clock_period_s: float
     backoff_initial_s: float
     backoff_max_s: float
+    envelope_frames: int = 0  # without driver stamps: frames of the arrival envelope (0: the read time itself)
 
 
 @dataclass(frozen=True, slots=True)
@@ -119,6 +121,7 @@ class CaptureReader:
         self._next_clock_s = 0.0
         self._file_start_mono = 0.0
         self._file_skipped = 0
+        self._envelope = ArrivalEnvelope(settings.envelope_frames) if settings.envelope_frames else None
 
     def start(self) -> None:
         """Open the device (SourceError when it cannot be) and start reading it."""
@@ -170,6 +173,8 @@ class CaptureReader:
         if self.capture is not None:
             self.capture.release()
             self.capture = None
+        if self._envelope is not None:
+            self._envelope.reset()
         if self.spec.kind is CameraKind.FILE:
             self.taps.count(self.name, connected=False, last_error=f"end of the video file {self.spec.target} "
                             f"({self.seq} frames read, {self._file_skipped} skipped as already past)")
@@ -213,7 +218,9 @@ class CaptureReader:
             note = timing_note(self.timing, self.settings.latency_s)
             log.info("camera %s: %s", self.name, note)
             self.taps.count(self.name, timing=note)
-        return pos_s if plausible and self.timing is CameraTiming.DRIVER else read_mono
+        if plausible and self.timing is CameraTiming.DRIVER:
+            return pos_s
+        return read_mono if self._envelope is None else self._envelope.stamp(read_mono)
 
     def _clock_due(self) -> None:
         """This host's monotonic<->Unix round trip every ``clock_period_s`` (and before the first

@@ -56,7 +56,13 @@ from cubetrack.source.reasons import (
     timeout_reason,
 )
 from cubetrack.source.time_poll import _ClockPoll, time_url
-from cubetrack.source.timing import CameraTiming, declared_sample, timing_note
+from cubetrack.source.timing import (
+    ENVELOPE_WARMUP,
+    ArrivalEnvelope,
+    CameraTiming,
+    declared_sample,
+    timing_note,
+)
 
 log = logging.getLogger(__name__)
 
@@ -81,6 +87,10 @@ class SourceParams:
     arrival_latency_s: float = param(0.0, "capture -> arrival time assumed for a camera without a clock (a plain "
                                           "MJPEG device, RTSP, a capture device without driver timestamps): its "
                                           "frames are stamped this long before they arrived, seconds")
+    arrival_envelope_frames: int = param(64, "a camera without a clock is stamped on the lower envelope of its "
+                                             "arrivals against its frame count over this many frames (it captures "
+                                             "at a steady rate, transfer only adds delay: "
+                                             "cubetrack.source.timing.ArrivalEnvelope); 0: on the arrival itself")
     capture_jpeg_quality: int = param(90, "JPEG quality (1..100) frames of usb:/v4l2:/rtsp:/file: cameras are "
                                           "encoded at (grayscale)")
 
@@ -91,11 +101,17 @@ class SourceParams:
         check_at_least(self, 1, "frames_per_camera", "max_header_bytes", "max_part_bytes", "read_chunk_bytes")
         check(0.0 <= self.arrival_latency_s < 10.0, "arrival_latency_s must be in [0, 10) seconds")
         check(1 <= self.capture_jpeg_quality <= 100, "capture_jpeg_quality must be in 1..100")
+        check(self.arrival_envelope_frames == 0 or self.arrival_envelope_frames >= ENVELOPE_WARMUP,
+              f"arrival_envelope_frames must be 0 (off) or at least {ENVELOPE_WARMUP}")
 
     def capture_settings(self) -> CaptureSettings:
         """What a VideoCapture camera's reader takes of these."""
         return CaptureSettings(self.arrival_latency_s, self.capture_jpeg_quality, self.clock_period_s,
-                               self.backoff_initial_s, self.backoff_max_s)
+                               self.backoff_initial_s, self.backoff_max_s, self.arrival_envelope_frames)
+
+    def arrival_envelope(self) -> ArrivalEnvelope | None:
+        """A camera without a clock's envelope of arrivals (None: stamped on the arrival itself)."""
+        return ArrivalEnvelope(self.arrival_envelope_frames) if self.arrival_envelope_frames else None
 
 
 # --- the live cameras ------------------------------------------------------------------------
@@ -166,6 +182,7 @@ class _Camera:
     poll_at: float = 0.0
     timing: CameraTiming = CameraTiming.UNKNOWN
     clock_failed: bool = False  # a /time round trip failed (no answer): with unstamped parts, no clock
+    envelope: ArrivalEnvelope | None = None  # without a clock: its arrivals' envelope (stamps)
 
 
 class LiveCameras:
@@ -548,6 +565,8 @@ class LiveCameras:
         camera.parser = MjpegParser(boundary_from_content_type(ctype), p.max_header_bytes, p.max_part_bytes,
                                     require_timestamp=False)
         camera.reported = Counter()
+        if camera.envelope is not None:  # a new connection: frames in a new phase, maybe at a new rate
+            camera.envelope.reset()
         self._count(camera.name, connects=1, connected=True, last_error="")
         log.info("camera %s: streaming from %s", camera.name, camera.url)
 
@@ -559,7 +578,7 @@ class LiveCameras:
             camera.got_frame = True
             device_time_s = part.device_time_s
             if camera.timing is CameraTiming.ARRIVAL:
-                device_time_s = arrived_s  # the declared clock samples put the capture before it
+                device_time_s = self._arrival_stamp(camera, arrived_s, part.seq)
             elif math.isnan(device_time_s):
                 if camera.timing is CameraTiming.NODE:
                     parser.bad["no X-Timestamp"] += 1
@@ -568,15 +587,22 @@ class LiveCameras:
                     self._count(camera.name, unstamped=1)
                     continue
                 self._no_clock(camera, "its stream parts carry no X-Timestamp and /time did not answer")
-                device_time_s = arrived_s
+                device_time_s = self._arrival_stamp(camera, arrived_s, part.seq)
             camera.seq = part.seq if part.seq is not None else camera.seq + 1
             self._put_frame(Frame(camera.name, camera.seq, device_time_s, arrived_s, part.jpeg))
         self._report_bad(camera)
+
+    @staticmethod
+    def _arrival_stamp(camera: _Camera, arrived_s: float, seq: int | None) -> float:
+        """A frame of a camera without a clock on its device clock: its time on the envelope of the
+        arrivals (or its arrival); the declared clock samples put the capture the latency before."""
+        return arrived_s if camera.envelope is None else camera.envelope.stamp(arrived_s, seq)
 
     def _no_clock(self, camera: _Camera, why: str) -> None:
         """The camera has no clock (``why``): its frames are stamped on arrival from now on, and a
         declared clock sample (the assumed latency) is queued now and every ``clock_period_s``."""
         camera.timing = CameraTiming.ARRIVAL
+        camera.envelope = self.params.arrival_envelope()
         self._poll_done(camera)
         note = timing_note(camera.timing, self.params.arrival_latency_s)
         log.warning("camera %s: %s: %s", camera.name, why, note)

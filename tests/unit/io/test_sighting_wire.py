@@ -3,11 +3,14 @@ one-line refusals of anything that is not a version-1 sighting."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
 from cubetrack.core.records import Detection, FrameOutcome
 from cubetrack.io.sighting_wire import (
+    _HEAD,
     CLOCK_METHOD_CODES,
     OUTCOME_CODES,
     SightingMessage,
@@ -133,3 +136,21 @@ def test_a_workers_message_carries_its_frames_drop_counts_to_the_fusions_frame_r
     result = FrameResult(job, FrameOutcome.FULL_FRAME, (), dropped=DROPS)
     got = decode_sighting(encode_sighting(sighting_message(result, ClockSync(), CameraStats(), with_pose=False)))
     assert got.dropped == DROPS
+
+
+def test_a_bodys_share_of_a_frame_names_the_body_and_a_whole_frame_is_byte_for_byte_as_before():
+    """A worker publishes a frame per robot it holds markers of (flags bit 4, the robot's name after
+    the camera's); a message without a body is the version-1 message as it was (bit 4 clear, no
+    byte more), so the bytes of workers from before shards still decode."""
+    whole = message(pose=True)
+    share = dataclasses.replace(whole, body="robot-7", detections=whole.detections[:1])
+    old, new = encode_sighting(whole), encode_sighting(share)
+    assert not old[5] & 16 and new[5] & 16
+    got = decode_sighting(new)
+    assert got.body == "robot-7" and decode_sighting(old).body is None
+    assert len(got.detections) == 1 and np.array_equal(got.detections[0].corners_px, whole.detections[0].corners_px)
+    assert np.array_equal(got.T_world_cam, whole.T_world_cam) and got.camera == whole.camera
+    with pytest.raises(SightingWireError, match="truncated in its body name"):
+        decode_sighting(new[:_HEAD.size + 1 + len(whole.camera.encode()) + 3])
+    with pytest.raises(SightingWireError, match="unknown flags"):
+        decode_sighting(old[:5] + bytes([old[5] | 32]) + old[6:])

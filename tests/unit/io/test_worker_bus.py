@@ -1,5 +1,6 @@
 """Automatic camera claiming (cubetrack.io.worker_bus): the share rule every worker computes alike,
-and the take / give-up decisions that keep one reader per camera as workers come and go."""
+and the take / give-up decisions that keep one reader per camera as workers come and go; the same
+for fusion shards and robots, and the per-robot keys of the sightings."""
 
 from __future__ import annotations
 
@@ -8,7 +9,18 @@ import itertools
 import pytest
 
 from cubetrack.core.errors import ConfigError
-from cubetrack.io.worker_bus import ClaimBoard, claim_changes, claim_key, share_cameras
+from cubetrack.io.worker_bus import (
+    ROBOT_CLAIMS_KEY,
+    SHARD_POOL_KEY,
+    SIGHTINGS_KEY,
+    ClaimBoard,
+    Claims,
+    claim_changes,
+    claim_key,
+    robot_sightings_key,
+    share_cameras,
+    sighting_key,
+)
 
 CAMERAS = [f"cam{i}" for i in range(1, 8)]
 
@@ -93,3 +105,91 @@ def test_the_board_follows_tokens_and_ignores_other_keys():
     assert board.snapshot() == (set(), {"cam1": {"h-2"}})
     with pytest.raises(ConfigError, match="key chunk"):
         claim_key("cam/1", "h-1")
+
+
+def test_a_robots_share_of_a_frame_has_its_own_key_that_a_shards_subscription_matches():
+    import zenoh
+
+    assert sighting_key("cam1") == "cubetrack/sightings/cam1"
+    assert sighting_key("cam1", "r2") == "cubetrack/sightings/cam1/r2"
+    mine = zenoh.KeyExpr(robot_sightings_key("r2"))
+    assert mine.intersects(zenoh.KeyExpr(sighting_key("cam1", "r2")))
+    assert not mine.intersects(zenoh.KeyExpr(sighting_key("cam1", "r22")))
+    assert not mine.intersects(zenoh.KeyExpr(sighting_key("cam1")))  # frames without a robot: not a shard's
+    every = zenoh.KeyExpr(f"{SIGHTINGS_KEY}/**")
+    assert every.intersects(zenoh.KeyExpr(sighting_key("cam1")))
+    assert every.intersects(zenoh.KeyExpr(sighting_key("cam1", "r2")))
+    with pytest.raises(ConfigError, match="robot name"):
+        sighting_key("cam1", "r/2")
+
+
+def test_the_shards_board_follows_robot_claims_and_not_the_workers():
+    board = ClaimBoard(SHARD_POOL_KEY, ROBOT_CLAIMS_KEY)
+    board.token(f"{SHARD_POOL_KEY}/s-1", True)
+    board.token(claim_key("r1", "s-1", ROBOT_CLAIMS_KEY), True)
+    board.token(claim_key("cam1", "w-1"), True)  # a worker's camera claim
+    board.token("cubetrack/pool/w-1", True)
+    assert board.snapshot() == ({"s-1"}, {"r1": {"s-1"}})
+    robots = [f"r{i}" for i in range(5)]
+    take, give = claim_changes("s-2", robots, set(), ["s-1", "s-2"], {"r1": {"s-1"}})
+    owner = share_cameras(robots, ["s-1", "s-2"])
+    assert take == {r for r in robots if owner[r] == "s-2"} - {"r1"} and give == set()
+
+
+class FakeBus:
+    """What Claims uses of a Zenoh session: its peers, and liveliness tokens and subscribers."""
+
+    def __init__(self) -> None:
+        self.peers: list[str] = []
+        self.tokens: list[str] = []
+        self.info = self
+
+    def peers_zid(self) -> list[str]:
+        return self.peers
+
+    def routers_zid(self) -> list[str]:
+        return []
+
+    def liveliness(self) -> FakeBus:
+        return self
+
+    def declare_token(self, key: str) -> FakeToken:
+        self.tokens.append(key)
+        return FakeToken(self, key)
+
+    def declare_subscriber(self, key: str, callback, history: bool) -> FakeToken:
+        return FakeToken(self, None)
+
+
+class FakeToken:
+    def __init__(self, bus: FakeBus, key: str | None):
+        self.bus, self.key = bus, key
+
+    def undeclare(self) -> None:
+        if self.key is not None:
+            self.bus.tokens.remove(self.key)
+
+
+def test_a_shard_claims_its_share_only_once_on_the_bus_and_gives_way_to_a_smaller_name(monkeypatch):
+    monkeypatch.setattr("cubetrack.io.worker_bus.SETTLE_S", 0.0)
+    bus, held = FakeBus(), set()
+    claims = Claims(bus, "s-2", ["r1", "r2", "r3"], lambda: held, held.add, held.discard,
+                    (SHARD_POOL_KEY, ROBOT_CLAIMS_KEY))
+    claims.watch()
+    assert bus.tokens == [f"{SHARD_POOL_KEY}/s-2"]
+    claims.board.token(f"{SHARD_POOL_KEY}/s-2", True)
+    claims.rebalance()
+    assert held == set()  # alone on the bus (no worker, no other shard): nothing claimed
+    bus.peers.append("a peer")
+    claims.rebalance()
+    assert held == {"r1", "r2", "r3"}
+    claims.board.token(f"{SHARD_POOL_KEY}/s-1", True)  # another shard joins and claims its share
+    owner = share_cameras(["r1", "r2", "r3"], ["s-1", "s-2"])
+    for robot in ("r1", "r2", "r3"):
+        claims.board.token(claim_key(robot, "s-2", ROBOT_CLAIMS_KEY), True)
+        if owner[robot] == "s-1":
+            claims.board.token(claim_key(robot, "s-1", ROBOT_CLAIMS_KEY), True)  # a double claim
+    claims.rebalance_if_changed()
+    assert held == {r for r in owner if owner[r] == "s-2"}  # s-1's share given up: the greater name gives way
+    claims.close()
+    assert bus.tokens == []

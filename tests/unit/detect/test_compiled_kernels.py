@@ -1,0 +1,93 @@
+"""The edge fit's and the template fit's compiled kernels (numba): compiled when a detector is
+built, never on a frame, and per-marker arguments reach each marker."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+from scenes import render_in_front
+from test_detect_markers import INTR, K, facing
+
+from cubetrack.core.cameras import CameraIntrinsics
+from cubetrack.detect import edge_fit, template_fit
+from cubetrack.detect.detector import CornerRefinement, Detector, DetectorParams
+
+TEMPLATE_KERNELS = (template_fit._template_maps, template_fit._pixel_areas, template_fit._brightness_system,
+                    template_fit._step_system)
+
+
+def _kernel_signatures() -> int:
+    return len(edge_fit._side_samples.signatures) + len(edge_fit._fitted_corners.signatures)
+
+
+def _template_signatures() -> list[int]:
+    return [len(kernel.signatures) for kernel in TEMPLATE_KERNELS]
+
+
+def _two_marker_frame() -> np.ndarray:
+    markers = [(facing(0.8, 25, 10, 15, -0.12, 0.0), "DICT_4X4_50", 3, 0.08, 0.04),
+               (facing(1.1, -30, 20, 80, 0.15, 0.05), "DICT_4X4_50", 9, 0.08, 0.04)]
+    return render_in_front(INTR, markers, blur_px=0.7, noise_std=2.0, jpeg_quality=85, rng=np.random.default_rng(3))
+
+
+def test_a_detector_compiles_the_kernel_before_its_first_frame():
+    """Every kind of call the detector and calibration make (8-bit and float images, one or
+    several markers, one module count or one per marker, with and without a lens model, tent and
+    peak focus) runs code compiled when the detector was built: no frame waits for numba."""
+    detector = Detector(DetectorParams(corner_refinement=CornerRefinement.EDGE))
+    compiled = _kernel_signatures()
+    assert compiled >= 2
+    gray = _two_marker_frame()
+    found = detector.detect(gray)
+    assert len(found) == 2
+    quads = np.array([d.corners_px for d in found])
+    dist = np.array([-0.1, 0.02, 0.0, 0.0, 0.0])
+    for kwargs in ({}, {"focus": "peak"}, {"K": K, "dist": dist}, {"K": K, "dist": dist, "focus": "peak"}):
+        for image in (gray, gray.astype(np.float32)):
+            assert np.isfinite(edge_fit.refine_corners_edges(image, quads, np.array([6, 6]), **kwargs)).all()
+            assert np.isfinite(edge_fit.refine_corners_edges(image, quads[0], 6, **kwargs)).all()
+    assert _kernel_signatures() == compiled
+
+
+def test_a_module_count_per_marker_reaches_each_marker():
+    """``modules`` per marker sets each marker's sampling half-width: a call over several markers
+    gives each the corners it gets alone with its own count, and one count for all is the same
+    as that count repeated."""
+    gray = _two_marker_frame()
+    quads = np.array([d.corners_px for d in Detector(DetectorParams(corner_refinement=CornerRefinement.NONE))
+                      .detect(gray)])
+    together = edge_fit.refine_corners_edges(gray, quads, np.array([6, 9]))
+    for i, modules in enumerate((6, 9)):
+        np.testing.assert_allclose(together[i], edge_fit.refine_corners_edges(gray, quads[i], modules), atol=1e-9)
+    assert not np.allclose(together[1], edge_fit.refine_corners_edges(gray, quads[1], 6), atol=1e-6)
+    np.testing.assert_array_equal(edge_fit.refine_corners_edges(gray, quads, 6),
+                                  edge_fit.refine_corners_edges(gray, quads, np.array([6, 6])))
+
+
+def test_the_fit_follows_a_known_edge_to_a_fraction_of_a_pixel():
+    """A dark square on a bright ground, blurred: the fitted corners (the detector's ``tent``
+    focus) are the square's to 1e-3 px, from initial corners a pixel off."""
+    gray = np.full((120, 120), 210.0, np.float32)
+    gray[30:90, 40:100] = 30.0
+    gray = cv2.GaussianBlur(gray, (0, 0), 1.0)
+    truth = np.array([[40.0, 30.0], [100.0, 30.0], [100.0, 90.0], [40.0, 90.0]]) - 0.5   # pixel edges
+    start = truth + np.array([[1.0, -0.8], [-0.7, 0.9], [0.8, 1.0], [-1.0, -0.6]])
+    assert np.abs(edge_fit.refine_corners_edges(gray, start, 6) - truth).max() < 1e-3
+
+
+def test_a_template_detector_compiles_the_template_fit_before_its_first_frame():
+    """With ``template`` corners the detector also compiles the template fit's kernels when it is
+    built; fitting markers through a lens model or without one then compiles nothing more, and
+    the fit still moves the corners (it ran)."""
+    detector = Detector(DetectorParams(corner_refinement=CornerRefinement.TEMPLATE))
+    compiled = _template_signatures()
+    assert min(compiled) >= 1
+    gray = _two_marker_frame()
+    edge = Detector(DetectorParams(corner_refinement=CornerRefinement.EDGE)).detect(gray)
+    lensed = CameraIntrinsics(INTR.width, INTR.height, K, np.array([-0.05, 0.01, 0.0, 0.0, 0.0]))
+    for lens in (None, lensed):
+        found = detector.detect(gray, lens=lens)
+        assert len(found) == 2
+        moved = max(np.abs(a.corners_px - b.corners_px).max() for a, b in zip(found, edge, strict=True))
+        assert 1e-4 < moved < 1.5
+    assert _template_signatures() == compiled
