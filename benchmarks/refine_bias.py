@@ -49,19 +49,9 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-ACCURACY = Path(__file__).resolve().with_name("accuracy.py")
 BASELINE = "0585352^"  # the refinement on edge-fitted corners (before issue 26's template corners)
 WORLD, BASE, OURS, BODIES = "world marker", "baseline refined", "ours refined", "ours refined + body"
 TARGET_MM, TARGET_DEG = 3.0, 0.05  # issue 26, clean renders
-
-
-def load_accuracy():
-    """benchmarks/accuracy.py as a module (its scenes, rendering and reuse rule)."""
-    if str(ACCURACY.parent) not in sys.path:
-        sys.path.insert(0, str(ACCURACY.parent))
-    import accuracy
-
-    return accuracy
 
 
 def say(text: str) -> None:
@@ -228,7 +218,8 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     if args.duration <= 0 or args.calibration_frames < 5:
         ap.error("--duration must be positive and --calibration-frames at least 5")
-    acc = load_accuracy()
+    sys.path.insert(0, str(Path(__file__).resolve().parent))  # accuracy.py: its scenes, rendering and reuse rule
+    import accuracy as acc
     bad = [c for c in args.configs if not 0 <= c < len(acc.CONFIGS)]
     if bad:
         ap.error(f"--configs: no configuration {bad[0]} (0-{len(acc.CONFIGS) - 1})")
