@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import math
 from collections import Counter
 from collections.abc import Callable, Sequence
 from concurrent.futures import Executor, Future
@@ -23,12 +24,16 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from cubetrack.calib.solver import apply_increments, pose_offsets
+from cubetrack.core.geometry import invert_T, transform_points
 from cubetrack.core.layout import CubeLayout
 from cubetrack.core.records import CubeSighting, TrackedPose
 from cubetrack.estimate.params import EstimatorParams
 from cubetrack.estimate.pose import estimate_cube
+from cubetrack.estimate.reprojection import moved_pose
 from cubetrack.fuse.base import Fusion
 from cubetrack.fuse.camera_watch import (
+    VELOCITY_SIGMA,
     CameraFit,
     CameraWatch,
     WatchEvent,
@@ -37,9 +42,13 @@ from cubetrack.fuse.camera_watch import (
     refit_camera,
     stacked,
 )
+from cubetrack.fuse.multi_view_fit import solve_joint
 
 log = logging.getLogger(__name__)
 
+JOINT_STOP_M = 2e-4  # the joint fit stops once a round moves the camera by less than this, metres
+JOINT_STOP_DEG = 0.005  # ... and turns it by less than this, degrees
+JOINT_MAX_RATIO = 0.8  # the joint fit's extrapolation assumes at most this ratio of one round's step to the last's
 RETRY_GROWTH = 1.25  # a refused re-calibration is tried again once the camera has this many times the corners
 
 
@@ -57,17 +66,66 @@ class Recalibration:
     consistent: bool
 
 
+def joint_sample(sample: WatchSample, T_world_cam: np.ndarray, corner_noise_px: float) -> WatchSample:
+    """The sample's cube corners placed by a joint fit of the other cameras' corners AND its own,
+    its camera taken at ``T_world_cam``; the sample unchanged when it kept no corner sets or the
+    fit fails."""
+    if not sample.own_sets or sample.T_world_cube is None:
+        return sample
+    T_cam_world = invert_T(T_world_cam)
+    own = [dataclasses.replace(s, T_cam_world=T_cam_world) for s in sample.own_sets]
+    solved = solve_joint([*sample.reference_sets, *own], sample.T_world_cube, sample.time_s, corner_noise_px,
+                         velocity_sigma=VELOCITY_SIGMA)
+    if solved is None:
+        return sample
+    points = np.concatenate([transform_points(moved_pose(solved.T_world_cube, solved.velocity_m_s,
+                                                         solved.angular_velocity_rad_s, s.time_s - sample.time_s),
+                                              s.points_cube_m) for s in sample.own_sets])
+    return dataclasses.replace(sample, points_world_m=points, T_world_cube=solved.T_world_cube)
+
+
+def joint_fit(samples: Sequence[WatchSample], T_world_cam_init: np.ndarray, params: WatchParams
+              ) -> tuple[CameraFit | None, list[WatchSample]]:
+    """The camera's pose fitted jointly with the cube's pose at every sample: alternately the
+    resection against the cube poses and the cube poses with this camera's corners in them (at
+    the resection's pose), until the pose moves by under ``JOINT_STOP_M`` / ``JOINT_STOP_DEG`` or
+    after ``params.rejoin_rounds`` rounds. The other cameras' poses stay fixed: they define the
+    world. Returns the fit and the samples with their jointly fitted corners."""
+    samples = list(samples)
+    fit = refit_camera(*stacked(samples), T_world_cam_init, params.corner_noise_px)
+    T_next = None if fit is None else fit.T_world_cam
+    last_step = math.inf
+    for _ in range(params.rejoin_rounds):
+        if fit is None or T_next is None:
+            break
+        samples = [joint_sample(s, T_next, params.corner_noise_px) for s in samples]
+        fit = refit_camera(*stacked(samples), T_next, params.corner_noise_px)
+        if fit is None or all(a < b for a, b in zip(fit.offset_from(T_next), (JOINT_STOP_M, JOINT_STOP_DEG),
+                                                    strict=True)):
+            break
+        # a round takes the camera a steady fraction of the way when the cube poses hold it back:
+        # go as far as the rounds' ratio says is left (Aitken's extrapolation; 1x when they do not)
+        step = pose_offsets(fit.T_world_cam[None], T_next[None])
+        size = float(np.linalg.norm(step))
+        ratio = min(size / last_step, JOINT_MAX_RATIO)
+        last_step = size
+        T_next = apply_increments(T_next[None], step / (1.0 - ratio))[0]
+    return fit, samples
+
+
 def recalibrate(camera: str, samples: Sequence[WatchSample], T_world_cam_init: np.ndarray,
                 params: WatchParams) -> Recalibration | None:
-    """Fit ``camera``'s pose to its gathered samples, started from ``T_world_cam_init`` (the
-    pose the watcher's window found when it moved); None when a fit fails."""
+    """Fit ``camera``'s pose to its gathered samples (:func:`joint_fit`), started from
+    ``T_world_cam_init`` (the pose the watcher's window found when it moved); None when a fit fails."""
     if len(samples) < 4:
         return None
-    fit = refit_camera(*stacked(samples), T_world_cam_init, params.corner_noise_px)
-    middle = len(samples) // 2
-    older = refit_camera(*stacked(samples[:middle]), T_world_cam_init, params.corner_noise_px)
-    newer = refit_camera(*stacked(samples[middle:]), T_world_cam_init, params.corner_noise_px)
-    if fit is None or older is None or newer is None:
+    fit, joint = joint_fit(samples, T_world_cam_init, params)
+    if fit is None:
+        return None
+    middle = len(joint) // 2
+    older = refit_camera(*stacked(joint[:middle]), fit.T_world_cam, params.corner_noise_px)
+    newer = refit_camera(*stacked(joint[middle:]), fit.T_world_cam, params.corner_noise_px)
+    if older is None or newer is None:
         return None
     agree_m, agree_deg = older.offset_from(newer.T_world_cam)
     consistent = (fit.sigma_m <= params.rejoin_sigma_m and fit.sigma_deg <= params.rejoin_sigma_deg

@@ -89,6 +89,8 @@ class WatchParams:
     moved_m: float = param(0.01, "moved: ... and the camera is more than this far from its pose, metres")
     moved_deg: float = param(0.5, "moved: ... or turned by more than this, degrees")
     rejoin_points: int = param(400, "corners gathered since a camera moved before its re-calibration is tried")
+    rejoin_rounds: int = param(20, "rounds of the re-calibration's joint fit (the camera's pose, then the cube's "
+                                   "poses with this camera's corners in them, alternately) at most")
     rejoin_sigma_m: float = param(0.002, "a re-calibrated pose rejoins when its position is known to this "
                                          "(standard deviation), metres")
     rejoin_sigma_deg: float = param(0.05, "... and its orientation to this (standard deviation), degrees")
@@ -105,6 +107,7 @@ class WatchParams:
                        "moved_deg", "rejoin_sigma_m", "rejoin_sigma_deg", "rejoin_agree_m", "rejoin_agree_deg",
                        "corner_noise_px", "gate_px")
         check_at_least(self, 1, "reference_cameras")
+        check_at_least(self, 0, "rejoin_rounds")
         check_at_least(self, 6, "min_points", "rejoin_points")
         check(self.check_every_s <= self.window_s,
               f"check_every_s ({self.check_every_s}) must not exceed window_s ({self.window_s})")
@@ -152,15 +155,22 @@ class WatchEvent:
 class WatchSample:
     """One checked sighting: the cube's corners where the other cameras put them
     (``points_world_m`` (N, 3)), where this camera saw them (``normalized`` (N, 2), undistorted
-    normalised image coordinates; ``focal_px`` (N,) its focal length)."""
+    normalised image coordinates; ``focal_px`` (N,) its focal length). For the re-calibration's
+    joint fit (:func:`cubetrack.calib.recalibrate.recalibrate`): the sighting's own corner sets
+    (``own_sets``), the other cameras' (``reference_sets``) and the cube pose they gave
+    (``T_world_cube``, None when not kept)."""
 
     camera: str
     time_s: float
     points_world_m: np.ndarray
     normalized: np.ndarray
     focal_px: np.ndarray
+    own_sets: tuple[CornerSet, ...] = ()
+    reference_sets: tuple[CornerSet, ...] = ()
+    T_world_cube: np.ndarray | None = None
 
 
+VELOCITY_SIGMA = (1.0, 4.0)  # the reference fits' prior spread of the cube's velocities: m/s, rad/s
 WINDOW_PRIOR_M = 0.05  # a window's fit: prior spread of the camera's position about its settled pose, metres
 WINDOW_PRIOR_DEG = 3.0  # ... and of its orientation, degrees
 
@@ -498,8 +508,7 @@ class CameraWatch:
             self.stats["too few other cameras"] += 1
             return None
         # started from the camera's own cube pose: off by what the camera moved, a few cm and degrees at most
-        reference = solve_joint(others, T_own, t, self.params.corner_noise_px,
-                                velocity_sigma=(1.0, 4.0))
+        reference = solve_joint(others, T_own, t, self.params.corner_noise_px, velocity_sigma=VELOCITY_SIGMA)
         if reference is None or reference.rms_px > self.params.reference_rms_px:
             self.stats["reference fit refused"] += 1
             return None
@@ -514,5 +523,6 @@ class CameraWatch:
                   for s in mine]
         normalized = np.concatenate([s.normalized for s in mine])
         focal = np.concatenate([np.full(len(s.normalized), s.focal_px) for s in mine])
-        return WatchSample(sighting.camera, t, np.concatenate(points), normalized, focal)
+        return WatchSample(sighting.camera, t, np.concatenate(points), normalized, focal, tuple(mine), tuple(others),
+                           reference.T_world_cube)
 
