@@ -142,8 +142,7 @@ class _Inbox:
         self.fusing: set[str] = set()  # the robots this fusion fuses (their predictions: stream.robots)
 
     def fused(self, robot: str, held: bool) -> None:
-        """The fusion took (``held``) or gave up ``robot``: its poses and predictions start or stop
-        (sightings of it still on the way are dropped)."""
+        """The fusion took (``held``) or gave up ``robot``: its poses and predictions start or stop."""
         self.fusing = self.fusing | {robot} if held else self.fusing - {robot}
         self.stream.robots = [r.name for r in self.tracker.robots if r.name in self.fusing]
         self.claims.append((time.monotonic() - self.started, robot, held))
@@ -290,7 +289,6 @@ def run_fusion(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
         stream.attach(session)
         zenoh = open_session(endpoints, "fuse")
         declared = _join_bus(zenoh, inbox, session, names, shard, not robots and not shard)
-        log.info("fuse: subscribed to %s", f"{SIGHTINGS_KEY}/**" if not robots and not shard else "its robots")
         session.run(inbox.step, idle_wait_s(params))
         behind = len(inbox.messages)
         inbox.fuse()
