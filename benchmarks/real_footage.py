@@ -54,11 +54,11 @@ TIME_SLACK_S = 0.001
 MAX_VIEW_RMS_PX = 3.0
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class View:
     """One camera frame's ChArUco corners: the camera id, its stamp (s), the corners' ids and pixels,
-    their rays in the world (the camera centre, unit directions) and the camera that projects into
-    the frame (intrinsics, ``T_world_cam``)."""
+    their rays' unit directions in the world (from the camera's centre, ``T_world_cam``'s translation) and
+    the camera that projects into the frame (intrinsics, ``T_world_cam``). Compared by identity."""
 
     camera: int
     t_s: float

@@ -25,12 +25,14 @@ with the core count and the load average (the machine is shared):
 
 Usage: python benchmarks/real_footage_live.py [--data DIR] [--work DIR] [--latency S] [--mode record|track]
        [--envelope-frames N]
+       python benchmarks/real_footage_live.py --mode order [--work-s S] [--workers N] [--behind-s S]
 """
 
 from __future__ import annotations
 
 import argparse
 import hashlib
+import math
 import os
 import shutil
 import sys
@@ -44,6 +46,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:
+    from cubetrack.core.records import Frame, FrameResult
     from cubetrack.io.recording import Recording
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -137,6 +140,56 @@ def live_run(work: Path, latency_s: float, mode: str, envelope_frames: int | Non
     return LiveRun(tum, aligned_tum, frame_times_s, offset_s, came, processed)
 
 
+def order_run(work: Path, work_s: float, workers: int, behind_s: float | None) -> Path:
+    """The imported recording through a stand-in for ``track_live``'s worker threads
+    (``cubetrack.app.live``'s frame pool feed) on a simulated clock, so that the order in which
+    frames are fused is measured apart from this host's speed: frames arrive at their recorded
+    times, each camera keeps one waiting (a newer one drops it), ``workers`` workers each take
+    ``work_s`` per frame, a free worker takes the freshest waiting frame (``behind_s`` None), or
+    the oldest unless it has waited longer than ``behind_s``; each job is planned with the fusion
+    as it is when taken, and results are fused when done (together: oldest capture first). The
+    TUM file written (on the recording's clock)."""
+    from cubetrack.app.config import config_params
+    from cubetrack.app.track import recording_intrinsics
+    from cubetrack.app.tracker import Tracker
+    from cubetrack.io.config import read_extrinsics, read_tracker_config
+    from cubetrack.io.recording import Recording
+
+    config = read_tracker_config(work / "config.toml")
+    recording = Recording.open(work / "recording")
+    tracker = Tracker(recording_intrinsics(config, recording), config.world, config.robots,
+                      read_extrinsics(work / "extrinsics.toml"), config_params(config).stages)
+    frames = sorted(recording.merged_frames(), key=lambda f: f.host_time_s)
+    waiting: dict[str, Frame] = {}
+    busy: list[tuple[float, FrameResult]] = []  # (done at, result)
+    poses, i = [], 0
+    while i < len(frames) or waiting or busy:
+        arrives_s = frames[i].host_time_s if i < len(frames) else math.inf
+        now_s = min(arrives_s, min((done_s for done_s, _ in busy), default=math.inf))
+        if now_s < arrives_s:
+            for _, result in sorted((b for b in busy if b[0] <= now_s), key=lambda b: b[1].job.capture_time_s):
+                poses += tracker.fuse(result, now_s)
+            busy = [b for b in busy if b[0] > now_s]
+        else:
+            waiting[frames[i].camera] = frames[i]
+            i += 1
+        while len(busy) < workers and waiting:
+            oldest = min(waiting.values(), key=lambda f: f.host_time_s)
+            fresh = behind_s is None or now_s - oldest.host_time_s > behind_s
+            frame = max(waiting.values(), key=lambda f: f.host_time_s) if fresh else oldest
+            del waiting[frame.camera]
+            if (job := tracker.admit(frame, hold=False)) is not None:
+                busy.append((now_s + work_s, tracker.processor.work(job)))
+    poses += tracker.finish(now_s)
+    tum = work / "order.tum"
+    np.savetxt(tum, [[p.time_s, *p.position_m, *p.quaternion_xyzw] for p in poses if not p.predicted], fmt="%.6f")
+    late = getattr(tracker.fusion, "stats", {})
+    print(f"order: {workers} workers x {work_s * 1000:.0f} ms per frame, "
+          f"{'freshest first' if behind_s is None else f'oldest first unless waiting > {behind_s * 1000:.0f} ms'}: "
+          f"{len(poses)} poses, {late.get('late sighting', 0)} late sightings")
+    return tum
+
+
 def frame_pairs(original: Recording, live: Recording, latency_s: float) -> tuple[np.ndarray, np.ndarray]:
     """Per frame that came live: its capture stamp there (device time - the declared latency: the
     declared clock samples are that constant) and its recorded time, matched by the JPEG's bytes."""
@@ -156,10 +209,17 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--data", type=Path, default=DATA, help="the caliscope project folder")
     parser.add_argument("--work", type=Path, help="where to import and track (default: a temporary folder)")
     parser.add_argument("--latency", type=float, default=0.0, help="[source] arrival_latency_s for the live run, s")
-    parser.add_argument("--mode", choices=("track", "record"), default="record",
+    parser.add_argument("--mode", choices=("track", "record", "order"), default="record",
                         help="track: track_live as the cameras stream (needs a host that keeps up with 4 x 6 fps "
                              "of 1280x720); record: record_live, then track the recording (the camera path "
-                             "alone: which frames came, stamped when)")
+                             "alone: which frames came, stamped when); order: no cameras, the recorded frames "
+                             "through a stand-in for track_live's worker threads on a simulated clock (the "
+                             "order frames are fused in, apart from this host's speed)")
+    parser.add_argument("--work-s", type=float, default=0.06, help="order: simulated work per frame, s")
+    parser.add_argument("--workers", type=int, default=2, help="order: simulated workers")
+    parser.add_argument("--behind-s", type=float,
+                        help="order: take the oldest waiting frame unless it waited longer than this, s "
+                             "(default: always the freshest, as track_live's worker threads do)")
     parser.add_argument("--envelope-frames", type=int,
                         help="[source] arrival_envelope_frames for the live run (0: stamps on the arrival itself; "
                              "default: the config's, 64)")
@@ -171,6 +231,14 @@ def main(argv: list[str] | None = None) -> int:
         import_caliscope(args.data, work)
     reference = charuco_reference(args.data)
     offline = score(track(work, "offline"), reference)
+    if args.mode == "order":
+        simulated = score(order_run(work, args.work_s, args.workers, args.behind_s), reference)
+        print(offline.line("offline replay"))
+        print(simulated.line("live order, simulated"))
+        print(f"  simulated / offline: instants with a pose {simulated.fraction / offline.fraction:.3f}, position "
+              f"median {np.median(simulated.position_mm) / np.median(offline.position_mm):.3f}, rotation median "
+              f"{np.median(simulated.rotation_deg) / np.median(offline.rotation_deg):.3f}")
+        return 0
     run = live_run(work, args.latency, args.mode, args.envelope_frames)
     print(f"cores {os.cpu_count()}, load average {os.getloadavg()[0]:.1f}; live ({args.mode}): "
           f"{100 * run.came:.1f} % of the recorded frames came, {100 * run.processed:.1f} % were processed; "

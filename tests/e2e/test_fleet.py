@@ -21,7 +21,7 @@ ROOT = Path(__file__).resolve().parents[2]
 def test_a_killed_shards_robots_are_fused_by_the_other_within_3_s(tmp_path):
     report = tmp_path / "fleet.json"
     run = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "fleet.py"), "--robots", "2", "--cameras", "4",
-                          "--fps", "10", "--duration", "3", "--shards", "2", "--publishers", "1",
+                          "--fps", "10", "--duration", "2", "--shards", "2", "--publishers", "1",
                           "--kill-shard", "kill", "--json", str(report)],
                          check=False, capture_output=True, text=True, timeout=300, cwd=ROOT)
     assert run.returncode == 0, run.stderr[-3000:]

@@ -31,6 +31,7 @@ from cubetrack.app.live import live_intrinsics
 from cubetrack.app.outputs import open_outputs
 from cubetrack.app.session import PoseStream, RunSpec, Session, idle_wait_s
 from cubetrack.app.tracker import StageParams, Tracker, TrackStats
+from cubetrack.app.watch_log import attach_watch_log
 from cubetrack.app.worker import CHECK_EVERY_S, worker_id
 from cubetrack.core.cameras import CameraExtrinsics
 from cubetrack.core.errors import ConfigError
@@ -258,13 +259,14 @@ def run_fusion(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
                stop: threading.Event | None = None, status: Callable[[str], None] | None = None,
                status_every_s: float = 2.0, clock: Callable[[], float] = time.time,
                sinks: Sequence[Sink] = (), extrinsics_path: str | Path | None = None,
-               robots: Sequence[str] = (), shard: bool = False) -> FuseResult:
+               robots: Sequence[str] = (), shard: bool = False, update_extrinsics: bool = False) -> FuseResult:
     """Fuse the sightings every worker publishes into ``<out_dir>/<robot>.tum`` and ``.jsonl``
     and ``sinks`` until ``duration_s``, ``stop``, Ctrl-C or SIGTERM, on the session runtime
     (:mod:`cubetrack.app.session`) as ``track --live`` is: the same release of a fixed lag's poses,
     the same ``[fusion] output_rate_hz`` predicted poses, ``<out_dir>/run.json`` of the same shape.
     ``robots``: fuse only these (a shard of a fleet; default every robot); ``shard``: claim a share
-    of them (of every robot when none are named) as other shards come and go (docs/scaling.md)."""
+    of them (of every robot when none are named) as other shards come and go (docs/scaling.md). The
+    same camera watching as live (:func:`cubetrack.app.watch_log.attach_watch_log`)."""
     params = params or config_params(config).stages
     names = chosen_robots(config, robots)
     intrinsics = live_intrinsics(config)
@@ -275,6 +277,7 @@ def run_fusion(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
         r for r in config.robots if r.name in names))
     outputs, files = open_outputs(mine, intrinsics, extrinsics, out_dir, sinks)
     zenoh, declared, behind = None, [], 0
+    watch_log = attach_watch_log(tracker.fusion, out_dir, extrinsics, extrinsics_path if update_extrinsics else None)
     try:
         stream = PoseStream(tracker, outputs, clock)
         stream.robots = []
@@ -298,9 +301,12 @@ def run_fusion(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
         _close(declared)
         if zenoh is not None:
             zenoh.close()
+        if watch_log is not None:
+            watch_log.close()
         outputs.close()
     heard = {c: h.messages for c, h in inbox.heard.items()}
     session.finish({**stream.summary(tracker.stats), "heard": heard, "refused": inbox.bad,
-                    "duplicates": inbox.duplicates, "behind": behind})
+                    "duplicates": inbox.duplicates, "behind": behind,
+                    **(watch_log.summary() if watch_log is not None else {})})
     return FuseResult(tracker.stats, heard, inbox.bad, files.outputs, session.elapsed_s, session.interrupted,
                       inbox.duplicates, tuple(inbox.claims), behind, inbox.received)

@@ -30,6 +30,7 @@ from cubetrack.app.config import config_params, parameter_tables
 from cubetrack.app.outputs import open_outputs
 from cubetrack.app.session import PoseStream, RunSpec, Session, idle_wait_s
 from cubetrack.app.tracker import FrameProcessor, StageParams, Tracker, TrackStats
+from cubetrack.app.watch_log import attach_watch_log
 from cubetrack.core.cameras import CameraExtrinsics, CameraIntrinsics, ClockSample
 from cubetrack.core.errors import ConfigError
 from cubetrack.core.frame_pool import FramePool, LiveParams, WorkerKind, by_capture_time
@@ -240,7 +241,8 @@ def track_live(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
                stop: threading.Event | None = None, status: Callable[[LiveStatus], None] | None = None,
                status_every_s: float = 2.0, clock: Callable[[], float] = time.time,
                sinks: Sequence[Sink] = (), live_params: LiveParams | None = None,
-               extrinsics_path: str | Path | None = None, command: str = "track") -> LiveResult:
+               extrinsics_path: str | Path | None = None, command: str = "track",
+               update_extrinsics: bool = False) -> LiveResult:
     """Track every robot of ``config`` live from its cameras' URLs, writing ``<out_dir>/<robot>.tum``
     and ``.jsonl`` (flushed per pose) and ``<out_dir>/run.json`` (the session runtime's record,
     :mod:`cubetrack.app.session`, of ``command``). ``record_to``: also record the session there
@@ -252,7 +254,10 @@ def track_live(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
     fuses. Frames of a camera whose clock is not known yet are given up (counted). The runtime
     releases the poses a fixed lag held once their time is up and, with ``[fusion]
     output_rate_hz``, outputs each tracked robot's predicted pose at that rate. Runs until
-    ``duration_s``, ``stop``, Ctrl-C or SIGTERM; ``sinks``: other outputs, fed the same poses."""
+    ``duration_s``, ``stop``, Ctrl-C or SIGTERM; ``sinks``: other outputs, fed the same poses.
+    With ``[camera_watch] enabled`` the watcher's events go to ``<out_dir>/camera_watch.jsonl``, the
+    log and run.json, a re-calibrated camera's new pose to a versioned extrinsics file beside them
+    (and over ``extrinsics_path`` with ``update_extrinsics``): :mod:`cubetrack.app.watch_log`."""
     if params is None or source is None or live_params is None:
         settings = config_params(config)
         params, source, live_params = params or settings.stages, source or settings.source, live_params or settings.live
@@ -265,6 +270,7 @@ def track_live(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
     recorder = _Recorder(record_to, config, urls) if record_to is not None else None
     outputs, files = open_outputs(config, intrinsics, extrinsics, out_dir, sinks)
     feed: _FramePoolFeed | _CameraProcessFeed | None = None
+    watch_log = attach_watch_log(tracker.fusion, out_dir, extrinsics, extrinsics_path if update_extrinsics else None)
     try:
         session = Session(duration_s=duration_s, stop=stop, status_every_s=status_every_s, record=RunSpec(
             out_dir / RUN_FILE, command, {**parameter_tables(params), "source": source},
@@ -292,10 +298,12 @@ def track_live(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
     finally:
         if feed is not None:
             feed.close()
+        if watch_log is not None:
+            watch_log.close()
         outputs.close()
         if recorder is not None:
             recorder.close()
-    session.finish(stream.summary(stats))
+    session.finish({**stream.summary(stats), **(watch_log.summary() if watch_log is not None else {})})
     return LiveResult(stats, feed.live.stats(), files.outputs, recorder.path if recorder else None,
                       session.elapsed_s, session.interrupted, stream.latencies.median(),
                       stream.arrival_latencies.median(), session.ended_by)

@@ -17,7 +17,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 from collections import Counter
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from concurrent.futures import Executor, Future
 from dataclasses import dataclass
 
@@ -77,8 +77,10 @@ def recalibrate(camera: str, samples: Sequence[WatchSample], T_world_cam_init: n
 
 class WatchedFusion:
     """A :class:`cubetrack.fuse.base.Fusion` behind a :class:`CameraWatch` (see the module doc).
-    ``events``: the watcher's decisions in order; ``stats``: sightings kept out while their
-    camera was set aside, re-calibrations tried and refused."""
+    ``events``: the watcher's decisions in order; ``listeners``: called with each event as it
+    happens (on the thread that calls :meth:`add`); ``stats``: sightings kept out while their
+    camera was set aside, re-calibrations tried and refused; ``executor``: where the
+    re-calibration fits run (None: inline)."""
 
     def __init__(self, fusion: Fusion, layouts: dict[str, CubeLayout], T_world_cams: dict[str, np.ndarray],
                  params: WatchParams, estimator_params: EstimatorParams | None = None,
@@ -89,6 +91,7 @@ class WatchedFusion:
         self.estimator_params = estimator_params or EstimatorParams()
         self.executor = executor
         self.stats: Counter[str] = Counter()
+        self.listeners: list[Callable[[WatchEvent], None]] = []
         self._running: dict[str, Future[Recalibration | None]] = {}
         self._tried: dict[str, int] = {}  # camera -> corners it had at its last refused re-calibration
 
@@ -115,7 +118,7 @@ class WatchedFusion:
         self._collect(now_s)
         sighting = self._reposed(sighting)
         for event in self.watch.add(sighting):
-            log.warning("%s", event.message)
+            self._tell(event)
         self._start(now_s)
         if self.watch.excluded(sighting.camera):
             self.stats["set-aside sighting"] += 1
@@ -150,8 +153,12 @@ class WatchedFusion:
             self._tried[camera] = self.watch.points(camera)
             return
         self._tried.pop(camera, None)
-        event = self.watch.rejoin(camera, result.fit.T_world_cam, now_s, result.sightings)
-        log.warning("%s", event.message)
+        self._tell(self.watch.rejoin(camera, result.fit.T_world_cam, now_s, result.sightings))
+
+    def _tell(self, event: WatchEvent) -> None:
+        log.log(logging.INFO if self.listeners else logging.WARNING, "%s", event.message)
+        for listener in self.listeners:
+            listener(event)
 
     def _reposed(self, sighting: CubeSighting) -> CubeSighting:
         """The sighting at its camera's re-calibrated pose (unchanged for a camera that never moved)."""

@@ -26,6 +26,7 @@ import argparse
 from pathlib import Path
 
 from cubetrack.cli.outputs import add_output_arguments, output_sinks_from_args
+from cubetrack.cli.track import add_update_extrinsics_argument
 from cubetrack.cli.worker import add_bus_arguments, add_common_arguments, bus, load
 
 HELP = "fuse the sightings of cubetrack worker processes -> TUM + JSONL per robot and outputs"
@@ -41,6 +42,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
                         "fuses, and take over those of a shard that leaves (docs/scaling.md)")
     add_bus_arguments(p, "default: listen on tcp/127.0.0.1:7450")
     add_output_arguments(p)
+    add_update_extrinsics_argument(p)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -62,7 +64,7 @@ def run(args: argparse.Namespace) -> int:
         result = run_fusion(config, extrinsics, args.out, bus(args, fuse_endpoints), settings.stages,
                             duration_s=args.duration, status=status, status_every_s=args.status_every, sinks=sinks,
                             extrinsics_path=args.extrinsics, robots=robots if args.robots else (),
-                            shard=args.shard)
+                            shard=args.shard, update_extrinsics=args.update_extrinsics)
     finally:
         close_sinks(sinks)
     print(f"{'interrupted; ' if result.interrupted else ''}fused for {result.duration_s:.1f} s: "

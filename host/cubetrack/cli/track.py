@@ -63,7 +63,16 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--status-every", type=float, default=2.0, metavar="S",
                    help="--live: seconds between status lines (default %(default)s)")
     add_output_arguments(p)
+    add_update_extrinsics_argument(p)
     add_dashboard_argument(p)
+
+
+def add_update_extrinsics_argument(p: argparse.ArgumentParser) -> None:
+    """``--update-extrinsics``: live, with ``[camera_watch] enabled``, a re-calibrated camera's new
+    pose is also written over the ``--extrinsics`` file (docs/calibration.md)."""
+    p.add_argument("--update-extrinsics", action="store_true",
+                   help="live, with [camera_watch] enabled: write a re-calibrated camera's new pose over the "
+                        "--extrinsics file too (without it only OUT/extrinsics.watch-<n>.toml is written)")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -156,7 +165,8 @@ def _run_live(args: argparse.Namespace, config, extrinsics, settings, sinks) -> 
           file=sys.stderr, flush=True)
     result = track_live(config, extrinsics, args.out, params, settings.source, duration_s=args.duration,
                         record_to=args.record, status=status, status_every_s=args.status_every, sinks=sinks,
-                        live_params=settings.live, extrinsics_path=args.extrinsics)
+                        live_params=settings.live, extrinsics_path=args.extrinsics,
+                        update_extrinsics=args.update_extrinsics)
     s = result.stats
     if s is None:  # track_live always returns its counters (only record_live has none)
         raise AssertionError("a live tracking session without counters")

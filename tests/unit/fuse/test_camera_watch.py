@@ -8,7 +8,10 @@ is not representative of it."""
 
 from __future__ import annotations
 
+import concurrent.futures
+import json
 import math
+import threading
 
 import numpy as np
 import pytest
@@ -19,7 +22,7 @@ from cubetrack.calib.recalibrate import WatchedFusion, recalibrate
 from cubetrack.core.geometry import make_T, rotation_angle
 from cubetrack.core.records import CubeSighting
 from cubetrack.estimate.pose import estimate_cube
-from cubetrack.fuse.camera_watch import CameraState, CameraWatch, EventKind, WatchParams
+from cubetrack.fuse.camera_watch import CameraState, CameraWatch, EventKind, WatchEvent, WatchParams
 from cubetrack.fuse.fusion import FilterFusion
 
 FPS = 7.5
@@ -105,10 +108,14 @@ def test_the_moved_camera_is_recalibrated_to_its_new_pose(bump_session):
 
 def test_the_fusion_keeps_the_moved_camera_out_then_takes_it_back_at_its_new_pose(bump_session):
     moved, seen = bump_session
-    fused = WatchedFusion(FilterFusion({"bot": LAYOUT}), {"bot": LAYOUT}, CAMERAS, WatchParams(enabled=True))
+    executor = ThreadExecutor()  # as live (cubetrack.app.watch_log): the refit on another thread
+    fused = WatchedFusion(FilterFusion({"bot": LAYOUT}), {"bot": LAYOUT}, CAMERAS, WatchParams(enabled=True),
+                          executor=executor)
     used: list[tuple[float, tuple[str, ...]]] = []  # each pose's time and the cameras it used
     for s in seen:
         used += [(pose.time_s, pose.cameras) for pose in fused.add(s, s.arrival_time_s)]
+        assert not fused._running or fused.watch.excluded("cam2")  # a refit's result waits for the next call
+    assert executor.threads and set(executor.threads) == {"refit"}
     kinds = [(e.kind, e.camera) for e in fused.events]
     assert kinds == [(EventKind.MOVED, "cam2"), (EventKind.REJOINED, "cam2")], kinds
     moved_at, rejoined_at = fused.events[0].time_s, fused.events[1].time_s
@@ -172,3 +179,63 @@ def test_the_tracker_watches_only_when_enabled():
                  dataclasses.replace(StageParams(), camera_watch=WatchParams(enabled=True)))
     assert isinstance(on.fusion, WatchedFusion) and isinstance(on.fusion.fusion, FilterFusion)
     assert isinstance(off.fusion, FilterFusion)
+
+
+
+
+class ThreadExecutor(concurrent.futures.Executor):
+    """Runs each job on a thread of its own, to its end before returning the future (so the test
+    is deterministic), and notes the threads' names and whether the caller had been told."""
+
+    def __init__(self) -> None:
+        self.threads: list[str] = []
+
+    def submit(self, fn, /, *args, **kwargs):  # type: ignore[override]
+        future: concurrent.futures.Future = concurrent.futures.Future()
+
+        def run() -> None:
+            self.threads.append(threading.current_thread().name)
+            future.set_result(fn(*args))
+
+        worker = threading.Thread(target=run, name="refit")
+        worker.start()
+        worker.join(timeout=60.0)
+        return future
+
+
+def _events(moved: np.ndarray) -> list[WatchEvent]:
+    return [WatchEvent(EventKind.MOVED, "cam3", 1.75e9 + 3.0, 0.021, 0.9, moved),
+            WatchEvent(EventKind.REJOINED, "cam3", 1.75e9 + 30.0, 0.02, 1.0, moved, 212)]
+
+
+@pytest.mark.parametrize("update", [False, True])
+def test_a_session_keeps_what_was_learnt(tmp_path, update):
+    """cubetrack.app.watch_log: the events reach camera_watch.jsonl, the status lines and run.json's
+    entry; the new pose goes to a versioned extrinsics file beside the session, and over the
+    user's file only with --update-extrinsics."""
+    from cubetrack.app.watch_log import EVENTS_FILE, RECALIBRATED_METHOD, WatchLog, attach_watch_log
+    from cubetrack.core.cameras import CameraExtrinsics
+    from cubetrack.io.config import read_extrinsics, write_extrinsics
+
+    user_file = tmp_path / "extrinsics.toml"
+    write_extrinsics({c: CameraExtrinsics(T, method="marker") for c, T in CAMERAS.items()}, user_file)
+    before = user_file.read_bytes()
+    new = bumped(CAMERAS["cam3"], 0.02, 1.0, np.random.default_rng(1))
+    log_ = WatchLog(tmp_path / "out", read_extrinsics(user_file), update_path=user_file if update else None)
+    for event in _events(new):
+        log_(event)
+    assert log_.lines == ["cam3 moved 2.1 cm / 0.9 deg at 15:06:43; set aside, re-calibrating",
+                          "cam3 moved 2.0 cm / 1.0 deg at 15:06:43, re-calibrated from 212 sightings"]
+    lines = [json.loads(x) for x in (tmp_path / "out" / EVENTS_FILE).read_text().splitlines()]
+    assert [(x["event"], x["camera"], x["sightings"]) for x in lines] == [("moved", "cam3", 0),
+                                                                          ("rejoined", "cam3", 212)]
+    assert lines[1]["extrinsics"] == "extrinsics.watch-1.toml" and log_.summary() == {"camera_watch": lines}
+    written = read_extrinsics(tmp_path / "out" / "extrinsics.watch-1.toml")
+    assert np.allclose(written["cam3"].T_world_cam, new, atol=1e-6) and written["cam3"].method == RECALIBRATED_METHOD
+    assert np.allclose(written["cam1"].T_world_cam, CAMERAS["cam1"], atol=1e-6)
+    if update:
+        assert np.allclose(read_extrinsics(user_file)["cam3"].T_world_cam, new, atol=1e-6)
+    else:
+        assert user_file.read_bytes() == before
+    # only a watched fusion gets one
+    assert attach_watch_log(FilterFusion({"bot": LAYOUT}), tmp_path, None) is None
