@@ -106,14 +106,11 @@ def body_path(extrinsics_path: str | Path, robot: str) -> Path:
 def with_calibrated_bodies(config: TrackerConfig, extrinsics_path: str | Path) -> tuple[TrackerConfig, list[Path]]:
     """``config`` with each robot's layout replaced by the body calibrated together with the
     extrinsics at ``extrinsics_path`` (:func:`body_path`), where that file exists; and the files used."""
-    robots, used = [], []
-    for robot in config.robots:
-        path = body_path(extrinsics_path, robot.name)
-        if path.is_file():
-            robot = dataclasses.replace(robot, layout=read_layout(path), layout_path=path)
-            used.append(path)
-        robots.append(robot)
-    return dataclasses.replace(config, robots=tuple(robots)), used
+    found = {r.name: body_path(extrinsics_path, r.name) for r in config.robots}
+    found = {name: path for name, path in found.items() if path.is_file()}
+    robots = tuple(dataclasses.replace(r, layout=read_layout(found[r.name]), layout_path=found[r.name])
+                   if r.name in found else r for r in config.robots)
+    return dataclasses.replace(config, robots=robots), list(found.values())
 
 
 def calibrate_bodies(config: TrackerConfig, recording: Recording, extrinsics: dict[str, CameraExtrinsics],
@@ -123,7 +120,7 @@ def calibrate_bodies(config: TrackerConfig, recording: Recording, extrinsics: di
     -> report, robot -> why it could not be, e.g. it was not in the recording)."""
     bodies: dict[str, BodyCalibrationReport] = {}
     failures: dict[str, str] = {}
-    for robot in config.robots:
+    for robot in config.robots:  # one robot's failure leaves the others' bodies
         try:
             bodies[robot.name] = calibrate_recording_body(config, recording, extrinsics, robot.name, params, progress)
         except CalibrationError as exc:
