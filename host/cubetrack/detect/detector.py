@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import enum
 import logging
+import time
 import warnings
 from collections import Counter
 from collections.abc import Iterable, Mapping, Sequence
@@ -41,6 +42,7 @@ from cubetrack.detect.edge_fit import NEXT_I, compile_edge_fit, refine_corners_e
 from cubetrack.detect.template_fit import LensMap, compile_template_fit, fast_template_corners
 
 log = logging.getLogger(__name__)
+COMPILE_NOTICE_S = 2.0  # a start-up this much slower is the first compile of the corner fits: say so
 
 # OpenCV's APRILTAG refinement reports corners with AprilTag's pixel convention (the top-left
 # pixel's centre at (0.5, 0.5)); this brings them to OpenCV's (centre at (0, 0)).
@@ -311,10 +313,14 @@ class Detector:
                            if self.params.corner_refinement is CornerRefinement.APRILTAG else 0.0)
         self._modules = tuple(d.markerSize + 2 for d in dicts)  # cells across, with a 1-bit border
         self._lens_maps: dict[tuple, LensMap] = {}
+        started_s = time.perf_counter()
         if self.params.corner_refinement in (CornerRefinement.EDGE, CornerRefinement.TEMPLATE):
             compile_edge_fit()   # the compiled kernels, before the first frame
         if self.params.corner_refinement is CornerRefinement.TEMPLATE:
             compile_template_fit()
+        if (compile_s := time.perf_counter() - started_s) > COMPILE_NOTICE_S:
+            log.info("compiled the corner fits in %.0f s (numba; once after an install or upgrade: "
+                     "later runs load them from its cache)", compile_s)
 
     def detect(self, gray: np.ndarray, regions: Sequence[Box] | None = None,
                lens: CameraIntrinsics | None = None) -> tuple[Detection, ...]:
