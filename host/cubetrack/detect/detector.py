@@ -276,6 +276,16 @@ def _lens_key(lens: CameraIntrinsics) -> tuple:
     return lens.width, lens.height, np.asarray(lens.K).tobytes(), np.asarray(lens.dist).tobytes()
 
 
+def _interrupted(exc: BaseException) -> bool:
+    """Whether ``exc`` was caused, at any depth, by a KeyboardInterrupt."""
+    seen: BaseException | None = exc
+    while seen is not None:
+        if isinstance(seen, KeyboardInterrupt):
+            return True
+        seen = seen.__cause__ or seen.__context__
+    return False
+
+
 class Detector:
     """A configured marker detector; ``detect`` / ``find`` / ``detect_jpeg`` may be called per frame.
 
@@ -314,10 +324,18 @@ class Detector:
         self._modules = tuple(d.markerSize + 2 for d in dicts)  # cells across, with a 1-bit border
         self._lens_maps: dict[tuple, LensMap] = {}
         started_s = time.perf_counter()
-        if self.params.corner_refinement in (CornerRefinement.EDGE, CornerRefinement.TEMPLATE):
-            compile_edge_fit()   # the compiled kernels, before the first frame
-        if self.params.corner_refinement is CornerRefinement.TEMPLATE:
-            compile_template_fit()
+        try:
+            if self.params.corner_refinement in (CornerRefinement.EDGE, CornerRefinement.TEMPLATE):
+                compile_edge_fit()   # the compiled kernels, before the first frame
+            if self.params.corner_refinement is CornerRefinement.TEMPLATE:
+                compile_template_fit()
+        except SystemError as exc:
+            # Ctrl-C (or SIGTERM/SIGHUP, which the CLI turns into it) while numba loads a kernel from its
+            # cache comes out of numba's C dispatcher as a SystemError caused by the KeyboardInterrupt:
+            # give the command its interrupt back, so that it stops as it would anywhere else
+            if _interrupted(exc):
+                raise KeyboardInterrupt from None
+            raise
         if (compile_s := time.perf_counter() - started_s) > COMPILE_NOTICE_S:
             log.info("compiled the corner fits in %.0f s (numba; once after an install or upgrade: "
                      "later runs load them from its cache)", compile_s)

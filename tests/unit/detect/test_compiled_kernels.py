@@ -91,3 +91,30 @@ def test_a_template_detector_compiles_the_template_fit_before_its_first_frame():
         moved = max(np.abs(a.corners_px - b.corners_px).max() for a, b in zip(found, edge, strict=True))
         assert 1e-4 < moved < 1.5
     assert _template_signatures() == compiled
+
+
+def _numba_interrupted() -> None:
+    """What numba's dispatcher raises when Ctrl-C lands while it loads a kernel from its cache (seen
+    in CI: a SIGHUP during a dashboard's start-up)."""
+    try:
+        raise KeyboardInterrupt
+    except KeyboardInterrupt as interrupt:
+        raise SystemError("CPUDispatcher(<function _side_samples>) returned a result with an exception set") \
+            from interrupt
+
+
+def test_an_interrupt_while_the_kernels_load_is_an_interrupt(monkeypatch):
+    import pytest
+
+    from cubetrack.detect import detector
+
+    monkeypatch.setattr(detector, "compile_edge_fit", _numba_interrupted)
+    with pytest.raises(KeyboardInterrupt):
+        Detector(DetectorParams(corner_refinement=CornerRefinement.EDGE))
+
+    def broken() -> None:
+        raise SystemError("a numba failure of its own")
+
+    monkeypatch.setattr(detector, "compile_edge_fit", broken)
+    with pytest.raises(SystemError, match="of its own"):
+        Detector(DetectorParams(corner_refinement=CornerRefinement.EDGE))
