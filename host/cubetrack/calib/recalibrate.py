@@ -186,6 +186,9 @@ class WatchedFusion:
         if self.watch.excluded(sighting.camera):
             self.stats["set-aside sighting"] += 1
             return []
+        predicted = self.fusion.predicted_pose(sighting.robot, sighting.capture_time_s)
+        if predicted is not None and self.watch.off_prediction(sighting, predicted):
+            return []
         return self.fusion.add(sighting, now_s)
 
     def _start(self, now_s: float) -> None:

@@ -34,6 +34,10 @@ than ``suspect_px`` (median corner residual at its settled pose), and which disa
 the others in the recent reference fits, is **suspect**: out of the fusion and no one's reference,
 still checked, until as many samples in a row agree again or it is declared moved (at least
 ``reference_cameras`` others stay in use).
+And since a check waits for the other cameras' sightings around it, the very first sightings
+after a bump come before any check: :meth:`CameraWatch.off_prediction` holds a sighting out of
+the fusion when it misses the fused prediction by more than ``gate_prediction_px`` and
+``gate_prediction_ratio`` times more than every other camera's latest sighting.
 
 A moved camera spoils the references it takes part in, so its partners' windows shift too (with
 three cameras, about as much as its own). A suspect camera whose window says moved is declared;
@@ -52,6 +56,7 @@ run in the background).
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 import math
 from collections import Counter, deque
@@ -60,7 +65,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cubetrack.core.geometry import rotation_angle, so3_left_jacobian, transform_points
+from cubetrack.core.geometry import invert_T, rotation_angle, so3_left_jacobian, transform_points
 from cubetrack.core.layout import CubeLayout
 from cubetrack.core.params import check, check_at_least, check_positive, param
 from cubetrack.core.records import CubeSighting
@@ -113,12 +118,18 @@ class WatchParams:
                                    "cameras' cube pose by more than this (median corner residual at its settled "
                                    "pose), pixels; a suspect camera leaves the fusion until it agrees again")
     suspect_samples: int = param(2, "checked sightings in a row that make a camera suspect, or clear it")
+    gate_prediction_px: float = param(3.0, "a watched camera's sighting is held out of the fusion when it misses the "
+                                           "fused prediction by more than this (median corner residual at its "
+                                           "settled pose) and gate_prediction_ratio times more than any other "
+                                           "camera's latest sighting, pixels; 0: never")
+    gate_prediction_ratio: float = param(4.0, "... see gate_prediction_px")
 
     def __post_init__(self) -> None:
+        check_at_least(self, 0, "gate_prediction_px")
         check_positive(self, "baseline_s", "baseline_every_s", "samples_per_s", "reference_span_s",
                        "reference_rms_px", "window_s", "check_every_s", "moved_px", "moved_ratio", "moved_m",
                        "moved_deg", "rejoin_sigma_m", "rejoin_sigma_deg", "rejoin_agree_m", "rejoin_agree_deg",
-                       "corner_noise_px", "gate_px", "suspect_px")
+                       "corner_noise_px", "gate_px", "suspect_px", "gate_prediction_ratio")
         check_at_least(self, 1, "reference_cameras", "suspect_samples")
         check_at_least(self, 0, "rejoin_rounds")
         check_at_least(self, 6, "min_points", "rejoin_points")
@@ -367,6 +378,7 @@ class CameraWatch:
         self._next_baseline_s = -math.inf
         self._disagreement: dict[str, deque[tuple[float, float]]] = {c: deque() for c in T_world_cams}
         self._misses: dict[str, deque[float]] = {c: deque(maxlen=params.suspect_samples) for c in T_world_cams}
+        self._off_prediction: dict[str, dict[str, tuple[float, float]]] = {r: {} for r in layouts}
         self.events: list[WatchEvent] = []
         self.stats: Counter[str] = Counter()
         self._recent: dict[str, deque[CubeSighting]] = {r: deque() for r in layouts}
@@ -380,6 +392,32 @@ class CameraWatch:
         """Whether the camera's sightings must stay out of the fusion (and serve nobody as a
         reference): it is suspect, or it moved and has not rejoined."""
         return self.state.get(camera, CameraState.WATCHED) is not CameraState.WATCHED
+
+    def off_prediction(self, sighting: CubeSighting, T_world_cube: np.ndarray) -> bool:
+        """Whether a watched camera's sighting must be held out of the fusion: it misses the
+        fused prediction ``T_world_cube`` (at its capture time) by more than ``gate_prediction_px``
+        (median corner residual at the camera's settled pose), and ``gate_prediction_ratio`` times
+        more than the latest sighting of any other camera in use (within ``window_s``; at least
+        ``reference_cameras`` of them). The first sightings after a bump come before any check can judge them (a
+        check waits for the other cameras' sightings around it); this keeps them out."""
+        p = self.params
+        settled = self.settled.get(sighting.camera)
+        if p.gate_prediction_px <= 0 or settled is None or sighting.robot not in self.layouts:
+            return False
+        sets = [dataclasses.replace(s, T_cam_world=invert_T(settled)) for s in self._corner_sets(sighting)[1]]
+        if not sets:
+            return False
+        residual = reprojection_residuals_px(T_world_cube, sets, sighting.capture_time_s).reshape(-1, 2)
+        miss = float(np.median(np.linalg.norm(residual, axis=1)))
+        latest = self._off_prediction[sighting.robot]
+        latest[sighting.camera] = (sighting.capture_time_s, miss)
+        if miss <= p.gate_prediction_px:
+            return False
+        others = [m for c, (t, m) in latest.items() if c != sighting.camera and not self.excluded(c)
+                  and t >= sighting.capture_time_s - p.window_s]
+        held = len(others) >= p.reference_cameras and miss > p.gate_prediction_ratio * max(others)
+        self.stats["held off the prediction"] += held
+        return held
 
     def points(self, camera: str) -> int:
         """Corners the camera's samples hold (a re-calibrating camera's progress towards ``rejoin_points``)."""
@@ -505,6 +543,7 @@ class CameraWatch:
         if len(misses) < p.suspect_samples:
             return
         if self.state[camera] is CameraState.SUSPECT:
+            self.stats["checked while suspect"] += 1
             if max(misses) <= p.suspect_px:
                 self.state[camera] = CameraState.WATCHED
             return

@@ -82,10 +82,13 @@ def test_a_bumped_camera_is_declared_moved_within_seconds_and_no_other(bump_sess
     moved, seen = bump_session
     watch = CameraWatch({"bot": LAYOUT}, CAMERAS, WatchParams(enabled=True))
     events, suspect_at = [], {}
+    held: dict[str, list[tuple[float, bool]]] = {c: [] for c in CAMERAS}
     for s in seen:
         if s.capture_time_s >= 20.0:
             break
         events += watch.add(s)
+        if 8.0 <= s.capture_time_s < 10.5:  # as WatchedFusion asks, with a perfect prediction
+            held[s.camera].append((s.capture_time_s, watch.off_prediction(s, cube_at(s.capture_time_s))))
         for camera, state in watch.state.items():
             if state is CameraState.SUSPECT:
                 suspect_at.setdefault(camera, s.capture_time_s)
@@ -94,6 +97,9 @@ def test_a_bumped_camera_is_declared_moved_within_seconds_and_no_other(bump_sess
     assert 10.0 < event.time_s < 13.0, event.time_s
     # suspect (out of the fusion) within a second of the bump, before it is declared; no other camera
     assert list(suspect_at) == ["cam2"] and 10.0 < suspect_at["cam2"] < min(11.0, event.time_s), suspect_at
+    # before any check: cam2's sightings after the bump are held off the fusion's prediction, no other
+    assert [t for t, h in held["cam2"] if h] and all(t > 10.0 for t, h in held["cam2"] if h), held["cam2"]
+    assert not any(h for c in ("cam1", "cam3", "cam4") for _, h in held[c])
     assert watch.excluded("cam2") and not watch.excluded("cam1")
     assert watch.state["cam2"] is CameraState.RECALIBRATING
     # the window's refit already knows about where the camera went
@@ -135,14 +141,15 @@ def test_the_fusion_keeps_the_moved_camera_out_then_takes_it_back_at_its_new_pos
 def test_noisy_imperfectly_calibrated_cameras_are_never_declared_moved():
     """Each camera's pose as calibration leaves it (as cubetrack calibrate does on the simulated
     arena: up to 10 mm and 0.2 deg off, docs/simulation.md), corners with 0.6 px noise, 40 s: no
-    event and no suspect (the ten-minute sessions are benchmarks/camera_watch.py --long's)."""
+    event, and a camera is rarely and briefly suspect (the ten-minute sessions are
+    benchmarks/camera_watch.py --long's)."""
     rng = np.random.default_rng(11)
     believed = {c: bumped(T, 0.01, 0.2, rng) for c, T in CAMERAS.items()}
     seen = sightings(40.0, lambda camera, t: CAMERAS[camera], believed, rng, noise_px=0.6)
     watch = CameraWatch({"bot": LAYOUT}, believed, WatchParams(enabled=True))
     events = [e for s in seen for e in watch.add(s)]
-    assert events == [] and watch.stats["suspect"] == 0
-    assert watch.stats["checked"] > 700
+    assert events == [] and watch.stats["suspect"] <= 2
+    assert watch.stats["checked"] > 700 and watch.stats["checked while suspect"] < 0.01 * watch.stats["checked"]
 
 
 def test_with_one_other_camera_the_watcher_says_so_and_waits():
