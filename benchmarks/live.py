@@ -34,6 +34,10 @@ RSS. Then it reports:
   (``--zenoh --ros2 --vrpn --foxglove --mcap``, servers on free loopback ports, no client
   attached) and its processed frames/s, CPU per frame and arrival -> pose p95 against the
   first session's (pose files only), as ratios.
+- with --watch (issue 27): a second live session with ``[camera_watch] enabled`` and its
+  processed frames/s, CPU per frame, latency, dropped frames and events against the first's
+  (watching off), as ratios; the live targets are checked on it too, and a moved event is a
+  false alarm (nobody bumps a camera).
 
 Targets (issues 9 and 31, on a 2-core machine at 16 cameras x 30 fps): <= 1 % of frames dropped
 by the tracker; p95 arrival -> pose <= 15 ms and p99 <= 30 ms; throughput >= 4x the naive loop's
@@ -46,6 +50,7 @@ lists the targets missed.
     .venv/bin/python benchmarks/live.py --outputs      # and the cost of every output (issue 10)
     .venv/bin/python benchmarks/live.py --speed-only --speed-rounds 5 --out /tmp/lb16   # naive / ours only
     .venv/bin/python benchmarks/live.py --template ...  # with corner_refinement = "template"
+    .venv/bin/python benchmarks/live.py --watch        # and the cost of the camera watching (issue 27)
 
 --out keeps the recording, the calibration, the live poses and ``live_report.json``
 (``speed_report.json`` with --speed-only; a recording made with the same parameters is reused).
@@ -109,13 +114,16 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--outputs", action="store_true",
                    help="issue 10: a second live session with every output on (--zenoh --ros2 --vrpn --foxglove "
                         "--mcap), compared with the first (pose files only)")
+    p.add_argument("--watch", action="store_true",
+                   help="issue 27: a second live session with [camera_watch] enabled (every camera watched against "
+                        "the others), compared with the first (watching off)")
     p.add_argument("--template", action="store_true",
                    help='[detector] corner_refinement = "template" for every run of ours (live, offline, same frames)')
     p.add_argument("--tracker-arg", action="append", default=[], metavar="ARG",
                    help="extra argument for `cubetrack track` (repeatable)")
     args = p.parse_args(argv)
-    if args.speed_only and (args.record or args.outputs):
-        p.error("--speed-only replays the simulated recording: no --record or --outputs")
+    if args.speed_only and (args.record or args.outputs or args.watch):
+        p.error("--speed-only replays the simulated recording: no --record, --outputs or --watch")
     if args.quick:
         args.cameras, args.fps, args.duration, args.recording_s = 2, 10.0, 5.0, 3.0
         args.warmup, args.speed_frames = 1.5, 60
@@ -241,9 +249,10 @@ class TreeSampler:
 
 
 def run_live(args: argparse.Namespace, rec: Path, work: Path, name: str = "live",
-             outputs: tuple[str, ...] = ()) -> dict:
+             outputs: tuple[str, ...] = (), sections: str = "") -> dict:
     """One live session of the tracker (``name``: its folder in ``work`` and the prefix of its log
-    files; ``outputs``: output flags for ``cubetrack track``, none: the pose files only)."""
+    files; ``outputs``: output flags for ``cubetrack track``, none: the pose files only;
+    ``sections``: TOML appended to its config)."""
     from cubetrack.app.demo import write_live_config
     from cubetrack.app.emulated import EmulatedCameras
 
@@ -254,8 +263,9 @@ def run_live(args: argparse.Namespace, rec: Path, work: Path, name: str = "live"
     with EmulatedCameras(rec, ("--loop",)) as emu:
         config = write_live_config(tracker_config(args, rec, work), emu.urls, work / "live_config.toml")
         if args.worker_kind:
-            config.write_text(config.read_text(encoding="utf-8") + f'\n[live]\nworker_kind = "{args.worker_kind}"\n',
-                              encoding="utf-8")
+            sections += f'\n[live]\nworker_kind = "{args.worker_kind}"\n'
+        if sections:
+            config.write_text(config.read_text(encoding="utf-8") + sections, encoding="utf-8")
         command = [sys.executable, "-m", "cubetrack.cli.main", "track", "--config", str(config),
                    "--extrinsics", str(rec / "extrinsics.toml"), "--live", "--out", str(out),
                    "--duration", str(args.duration), "--status-every", "5",
@@ -362,12 +372,43 @@ def outputs_cost(args: argparse.Namespace, rec: Path, work: Path, files_only: di
     on = run_live(args, rec, work, "live_outputs", flags)
     mcap_mb = mcap.stat().st_size / 1e6 if mcap.exists() else 0.0
     mcap.unlink(missing_ok=True)  # every camera frame: large
-    keys = ("processed_fps", "dropped_fraction", "cpu_ms_per_frame", "cores_used", "arrival_ms", "poses")
-    return {"flags": " ".join(flags), "mcap_mb": mcap_mb, "files_only": {k: files_only[k] for k in keys},
-            "all_outputs": {k: on[k] for k in keys},
-            "processed_ratio": on["processed_fps"] / max(files_only["processed_fps"], 1e-9),
-            "cpu_ratio": on["cpu_ms_per_frame"] / max(files_only["cpu_ms_per_frame"], 1e-9),
-            "p95_ratio": on["arrival_ms"]["p95"] / max(files_only["arrival_ms"]["p95"], 1e-9)}
+    return {"flags": " ".join(flags), "mcap_mb": mcap_mb, "files_only": {k: files_only[k] for k in COMPARED},
+            "all_outputs": {k: on[k] for k in COMPARED}, **ratios(files_only, on)}
+
+
+COMPARED = ("processed_fps", "dropped_fraction", "cpu_ms_per_frame", "cores_used", "arrival_ms", "poses")
+WATCH_SECTION = "\n[camera_watch]\nenabled = true\n"
+
+
+def ratios(off: dict, on: dict) -> dict:
+    """A second live session ``on`` against the first, ``off``: processed frames/s, CPU per frame,
+    p95 arrival -> pose."""
+    return {"processed_ratio": on["processed_fps"] / max(off["processed_fps"], 1e-9),
+            "cpu_ratio": on["cpu_ms_per_frame"] / max(off["cpu_ms_per_frame"], 1e-9),
+            "p95_ratio": on["arrival_ms"]["p95"] / max(off["arrival_ms"]["p95"], 1e-9)}
+
+
+def watch_cost(args: argparse.Namespace, rec: Path, work: Path, off: dict) -> dict:
+    """Issue 27's check: a second live session on the same cameras with ``[camera_watch] enabled``
+    against ``off`` (the first, watching off): the same figures, their ratios, the live targets
+    the watched session misses and the watcher's events (none expected: nobody bumps a camera)."""
+    on = run_live(args, rec, work, "live_watched", sections=WATCH_SECTION)
+    events_file = work / "live_watched" / "camera_watch.jsonl"
+    events = events_file.read_text(encoding="utf-8").splitlines() if events_file.exists() else []
+    return {"watch_off": {k: off[k] for k in COMPARED}, "watch_on": {k: on[k] for k in COMPARED},
+            "events": [json.loads(line) for line in events], "failures": live_failures(on), **ratios(off, on)}
+
+
+def live_failures(live: dict) -> list[str]:
+    """The live targets (dropped frames, arrival -> pose p95 and p99) a session misses."""
+    a, failures = live["arrival_ms"], []
+    if live["dropped_fraction"] > TARGET_DROPPED:
+        failures.append(f"dropped {live['dropped_fraction'] * 100:.1f} % > {TARGET_DROPPED * 100:g} %")
+    if not a["p95"] <= TARGET_P95_MS:
+        failures.append(f"p95 arrival->pose {a['p95']:.1f} ms > {TARGET_P95_MS:g}")
+    if not a["p99"] <= TARGET_P99_MS:
+        failures.append(f"p99 arrival->pose {a['p99']:.1f} ms > {TARGET_P99_MS:g}")
+    return failures
 
 
 def percentiles(values: np.ndarray) -> dict:
@@ -642,14 +683,7 @@ def print_report(args: argparse.Namespace, report: dict) -> list[str]:
           f"{acc['offline']['pos_cm']:.2f} cm / {acc['offline']['rot_deg']:.2f} deg; live/offline "
           f"{acc['pos_ratio']:.2f} / {acc['rot_ratio']:.2f}")
     print_speed(sp)
-    failures = []
-    if live["dropped_fraction"] > TARGET_DROPPED:
-        failures.append(f"dropped {live['dropped_fraction'] * 100:.1f} % > {TARGET_DROPPED * 100:g} %")
-    if not a["p95"] <= TARGET_P95_MS:
-        failures.append(f"p95 arrival->pose {a['p95']:.1f} ms > {TARGET_P95_MS:g}")
-    if not a["p99"] <= TARGET_P99_MS:
-        failures.append(f"p99 arrival->pose {a['p99']:.1f} ms > {TARGET_P99_MS:g}")
-    failures += speed_failures(args, sp)
+    failures = live_failures(live) + speed_failures(args, sp)
     if not max(acc["pos_ratio"], acc["rot_ratio"]) <= 1.0 + TARGET_ACCURACY:
         failures.append(f"live accuracy {max(acc['pos_ratio'], acc['rot_ratio']):.2f}x the offline replay's")
     if "outputs" in report:
@@ -660,6 +694,17 @@ def print_report(args: argparse.Namespace, report: dict) -> list[str]:
               f"{on['processed_fps']:.1f} frames/s, {on['cpu_ms_per_frame']:.2f} ms, p95 {on['arrival_ms']['p95']:.1f} "
               f"ms (MCAP {o['mcap_mb']:.0f} MB); on/off: processed {o['processed_ratio']:.2f}, CPU per frame "
               f"{o['cpu_ratio']:.2f}, p95 {o['p95_ratio']:.2f}")
+    if "watch" in report:
+        w = report["watch"]
+        off, on = w["watch_off"], w["watch_on"]
+        print(f"  camera watching: off {off['processed_fps']:.1f} frames/s processed, {off['cpu_ms_per_frame']:.2f} ms "
+              f"CPU per frame, arrival -> pose p95 {off['arrival_ms']['p95']:.1f} ms; on {on['processed_fps']:.1f} "
+              f"frames/s, {on['cpu_ms_per_frame']:.2f} ms, p95 {on['arrival_ms']['p95']:.1f} ms, p99 "
+              f"{on['arrival_ms']['p99']:.1f} ms, dropped {on['dropped_fraction'] * 100:.2f} %; on/off: processed "
+              f"{w['processed_ratio']:.2f}, CPU per frame {w['cpu_ratio']:.2f}, p95 {w['p95_ratio']:.2f}; "
+              f"events {[(e['event'], e['camera']) for e in w['events']]}")
+        failures += [f"watching on: {f}" for f in w["failures"]]
+        failures += [f"watching on: false alarm {e['camera']}" for e in w["events"] if e["event"] == "moved"]
     print("SUMMARY: " + ("all targets met" if not failures else f"{len(failures)} target(s) missed: "
                          + "; ".join(failures)))
     return failures
@@ -691,6 +736,10 @@ def main(argv: list[str] | None = None) -> int:
         if args.outputs:
             print("tracking live again with every output on ...", file=sys.stderr, flush=True)
             outputs = outputs_cost(args, rec, work, live)
+        watch = None
+        if args.watch:
+            print("tracking live again with the camera watching on ...", file=sys.stderr, flush=True)
+            watch = watch_cost(args, rec, work, live)
         print("replaying the frames offline and timing the naive loop ...", file=sys.stderr, flush=True)
         after = os.getloadavg()
         report = {"nproc": os.cpu_count(), "load_average": [load, after],
@@ -698,6 +747,8 @@ def main(argv: list[str] | None = None) -> int:
                   "live": live, "accuracy": accuracy(args, rec, work, live), "speed": speed(args, rec, work, live)}
         if outputs is not None:
             report["outputs"] = outputs
+        if watch is not None:
+            report["watch"] = watch
         report["failures"] = print_report(args, report)
         (work / REPORT_FILE).write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
     return 0
