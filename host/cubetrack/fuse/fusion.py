@@ -59,6 +59,7 @@ from cubetrack.fuse.camera_corrections import (
     observed,
 )
 from cubetrack.fuse.corner_filter import FilterParams, PoseFilter
+from cubetrack.fuse.filter_kernels import compile_filter_kernels
 from cubetrack.fuse.multi_view_fit import solve_joint
 from cubetrack.fuse.smoother import Gains, TrailStep, smoothed_poses
 
@@ -297,6 +298,7 @@ class FilterFusion:
         if filter_params.smooth_lag_s > params.history_s:
             raise ParamsError(f"[filter] smooth_lag_s ({filter_params.smooth_lag_s}) must not exceed [fusion] "
                               f"history_s ({params.history_s}): the steps it waits for are kept that long")
+        compile_filter_kernels()  # before the first sighting
 
     def keep_trail(self) -> None:
         """From now on keep each sighting's final filter state and pose (about 3 KB a sighting:
