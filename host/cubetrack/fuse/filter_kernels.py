@@ -9,7 +9,8 @@ that of :mod:`cubetrack.estimate.reprojection` (residuals and Jacobian, motion-c
 corner set) and :mod:`cubetrack.fuse.corner_filter` (the update's steps, in the same order);
 the small inverses and solves are an LU with partial pivoting, as OpenCV's ``DECOMP_LU`` that
 the numpy version called (singular when a pivot is below ``100 * DBL_EPSILON``). Results agree
-with the numpy version to rounding (tests/unit/fuse/test_filter_kernels.py).
+with the numpy version to rounding (tests/unit/fuse/test_filter_kernels.py). The multi-camera fit that
+starts a track (:mod:`cubetrack.fuse.multi_view_fit`) uses the compiled reprojection too.
 
 A corner set's arrays are passed packed (:func:`packed_sets`): one row per corner
 (``points_cube_m``, ``normalized``, its set's index) and one per set (``R_cam_world``,
@@ -444,5 +445,10 @@ def _run_kernels() -> None:
     for moving in (False, True):
         solve_update(T, P, 0.0, np.zeros(3), np.zeros(3), points, normalized, which, R_cw, t_cw, np.ones(1),
                      np.full(1, 0.01 if moving else 0.0), moving, 2, 1.5, 4.0, 0.002, 0.002)
+    T_fit = T.copy()   # the joint fit's poses (multi_view_fit) are writable arrays
+    for moving in (False, True):
+        for jacobian in (False, True):
+            reprojection(T_fit, points, normalized, which, R_cw, t_cw, np.ones(1), np.zeros(1), 0.0, np.zeros(3),
+                         np.zeros(3), moving, jacobian)
     moved_pose(T, np.zeros(3), np.zeros(3), 0.01)
     predicted_covariance(P, 0.01, noise, noise, noise)

@@ -49,7 +49,7 @@ from cubetrack.core.records import CameraEstimate, CubeSighting, TrackedPose
 from cubetrack.estimate.match import FaceMatch, match_faces
 from cubetrack.estimate.params import EstimatorParams
 from cubetrack.estimate.pose import estimate_cube
-from cubetrack.estimate.reprojection import CornerSet, corner_set
+from cubetrack.estimate.reprojection import CornerSet, corner_set, normalize_px
 from cubetrack.fuse.camera_corrections import (
     CameraCorrection,
     CameraCorrections,
@@ -225,12 +225,15 @@ def sighting_corner_sets(matches: Sequence[FaceMatch], intrinsics: CameraIntrins
         return []
     if intrinsics.readout_s <= 0:
         sets = [corner_set(matches, intrinsics, T_world_cam, camera, time_s)]
-    else:
-        row_s, middle = intrinsics.readout_s / intrinsics.height, (intrinsics.height - 1) / 2.0
-        sets = [corner_set((m,), intrinsics, T_world_cam, camera,
-                           time_s + (float(m.detection.corners_px[:, 1].sum()) / 4.0 - middle) * row_s)
-                for m in matches]
-    return [s for s in sets if s is not None]  # (none is: each has matches)
+        return [s for s in sets if s is not None]  # (none is: it has matches)
+    # the faces' sets share one undistortion and one camera pose (a set per face of corner_set's making)
+    row_s, middle = intrinsics.readout_s / intrinsics.height, (intrinsics.height - 1) / 2.0
+    corners_px = np.concatenate([m.detection.corners_px for m in matches])
+    normalized = normalize_px(corners_px, intrinsics.K, intrinsics.dist)
+    rows = corners_px[:, 1].reshape(-1, 4).sum(axis=1).tolist()
+    T_cam_world, focal_px = invert_T(T_world_cam), float((intrinsics.K[0, 0] + intrinsics.K[1, 1]) / 2.0)
+    return [CornerSet(camera, time_s + (rows[i] / 4.0 - middle) * row_s, T_cam_world, focal_px, m.points_body_m,
+                      normalized[4 * i: 4 * i + 4], (m.face,)) for i, m in enumerate(matches)]
 
 
 @dataclass(frozen=True, slots=True)
