@@ -29,6 +29,7 @@ import numba
 import numpy as np
 
 from cubetrack.detect.detector import COMPILE_NOTICE_S, _interrupted
+from cubetrack.estimate.match import compile_match_kernels
 from cubetrack.estimate.reprojection import CornerSet
 
 log = logging.getLogger(__name__)
@@ -424,6 +425,7 @@ def compile_filter_kernels() -> None:
     started_s = time.perf_counter()
     try:
         _run_kernels()
+        compile_match_kernels()   # the association's
     except SystemError as exc:
         if _interrupted(exc):
             raise KeyboardInterrupt from None
