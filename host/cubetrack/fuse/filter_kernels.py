@@ -415,6 +415,32 @@ def predicted_covariance(P: np.ndarray, dt: float, A: np.ndarray, B: np.ndarray,
     return out
 
 
+@numba.njit(cache=True, nogil=True)
+def largest_eigenvalue(A: np.ndarray, at: int) -> float:  # pragma: no cover
+    """The largest eigenvalue of the symmetric 3x3 block ``A[at:at+3, at:at+3]`` (closed form: the
+    trigonometric solution of its characteristic cubic)."""
+    a, b, c = A[at, at], A[at + 1, at + 1], A[at + 2, at + 2]
+    d, e, f = A[at, at + 1], A[at, at + 2], A[at + 1, at + 2]
+    off = d * d + e * e + f * f
+    if off == 0.0:
+        return max(a, b, c)
+    q = (a + b + c) / 3.0
+    p = math.sqrt(((a - q) ** 2 + (b - q) ** 2 + (c - q) ** 2 + 2.0 * off) / 6.0)
+    a, b, c = (a - q) / p, (b - q) / p, (c - q) / p   # B = (A - q I) / p
+    d, e, f = d / p, e / p, f / p
+    half_det = (a * (b * c - f * f) - d * (d * c - f * e) + e * (d * f - b * e)) / 2.0
+    return q + 2.0 * p * math.cos(math.acos(min(1.0, max(-1.0, half_det))) / 3.0)
+
+
+@numba.njit(cache=True, nogil=True)
+def spread_m(covariance: np.ndarray, reach_m: float) -> float:  # pragma: no cover
+    """How far (1 sigma, metres) a body's corners may be from where a pose of ``covariance`` (6x6
+    or more, ``[δp (m), δθ (rad)]`` first) puts them: the largest position spread plus the largest
+    rotation spread times ``reach_m``, the body's farthest corner from its origin."""
+    return (math.sqrt(max(largest_eigenvalue(covariance, 0), 0.0))
+            + reach_m * math.sqrt(max(largest_eigenvalue(covariance, 3), 0.0)))
+
+
 def compile_filter_kernels() -> None:
     """Compile the kernels (or load them from numba's on-disk cache, ``__pycache__``) for the
     argument types the filter passes, on a made-up sighting, so that no sighting pays it: called
@@ -453,4 +479,5 @@ def _run_kernels() -> None:
             reprojection(T_fit, points, normalized, which, R_cw, t_cw, np.ones(1), np.zeros(1), 0.0, np.zeros(3),
                          np.zeros(3), moving, jacobian)
     moved_pose(T, np.zeros(3), np.zeros(3), 0.01)
+    spread_m(P, 0.1)
     predicted_covariance(P, 0.01, noise, noise, noise)

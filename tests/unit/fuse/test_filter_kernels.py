@@ -148,3 +148,15 @@ def test_one_gauss_newton_step_is_the_normal_equations_by_hand() -> None:
     singular = np.zeros((12, 12))
     assert fk.solve_update(T, singular, 0.0, v, w, *fk.packed_sets(sets), True, 1, huber, inv_var, 0.0,
                            0.0)[0] == fk.SINGULAR_PRIOR
+
+
+def test_the_largest_eigenvalue_and_the_spread() -> None:
+    rng = np.random.default_rng(9)
+    for scale in (1e-8, 1e-3, 1.0):
+        A = rng.normal(size=(6, 6))
+        A = (A @ A.T) * scale
+        expected = [np.linalg.eigvalsh(A[k:k + 3, k:k + 3]).max() for k in (0, 3)]
+        assert [fk.largest_eigenvalue(A, k) for k in (0, 3)] == pytest.approx(expected, rel=1e-9)
+        assert fk.spread_m(A, 0.07) == pytest.approx(math.sqrt(expected[0]) + 0.07 * math.sqrt(expected[1]), rel=1e-9)
+    diagonal = np.diag([4.0, 9.0, 1.0, 2.0, 2.0, 2.0])   # no off-diagonal terms; three equal ones
+    assert fk.largest_eigenvalue(diagonal, 0) == 9.0 and fk.largest_eigenvalue(diagonal, 3) == 2.0
