@@ -160,3 +160,19 @@ def test_the_largest_eigenvalue_and_the_spread() -> None:
         assert fk.spread_m(A, 0.07) == pytest.approx(math.sqrt(expected[0]) + 0.07 * math.sqrt(expected[1]), rel=1e-9)
     diagonal = np.diag([4.0, 9.0, 1.0, 2.0, 2.0, 2.0])   # no off-diagonal terms; three equal ones
     assert fk.largest_eigenvalue(diagonal, 0) == 9.0 and fk.largest_eigenvalue(diagonal, 3) == 2.0
+
+
+@pytest.mark.parametrize("coefficients", [4, 5, 8, 12])
+def test_the_associations_projection_is_opencvs(coefficients: int) -> None:
+    """The filter's association (estimate.match) projects the faces with a compiled copy of
+    cv2.projectPoints' model; a tilted sensor (14 coefficients) still goes to OpenCV."""
+    import cv2
+
+    from cubetrack.estimate.match import _projected
+
+    rng = np.random.default_rng(10 + coefficients)
+    points = rng.uniform(-0.5, 0.5, (24, 3)) + [0.0, 0.0, 2.0]
+    K = np.array([[610.0, 0.0, 330.0], [0.0, 600.0, 245.0], [0.0, 0.0, 1.0]])
+    dist = rng.normal(0.0, 0.05, coefficients)
+    expected = cv2.projectPoints(points, np.zeros(3), np.zeros(3), K, dist)[0].reshape(-1, 2)
+    np.testing.assert_allclose(_projected(points, K, dist), expected, rtol=0, atol=1e-9)
