@@ -20,19 +20,15 @@ loads them from numba's on-disk cache) before the first sighting.
 
 from __future__ import annotations
 
-import logging
 import math
-import time
 from collections.abc import Sequence
 
 import numba
 import numpy as np
 
-from cubetrack.detect.detector import COMPILE_NOTICE_S, _interrupted
+from cubetrack.detect.detector import compile_kernels
 from cubetrack.estimate.match import compile_match_kernels
 from cubetrack.estimate.reprojection import CornerSet
-
-log = logging.getLogger(__name__)
 
 SINGULAR = 1.0e2 * np.finfo(np.float64).eps  # OpenCV's LU: a pivot below this is a singular matrix
 _LARGEST = float(np.finfo(np.float64).max)
@@ -445,20 +441,10 @@ def compile_filter_kernels() -> None:
     """Compile the kernels (or load them from numba's on-disk cache, ``__pycache__``) for the
     argument types the filter passes, on a made-up sighting, so that no sighting pays it: called
     before the first sighting (:class:`cubetrack.fuse.fusion.FilterFusion` does; once loaded, a
-    call costs microseconds). A compile (over ``COMPILE_NOTICE_S``: the first run after an
-    install or upgrade) is logged at INFO; Ctrl-C while numba loads them is a KeyboardInterrupt
-    (numba's dispatcher wraps it in a SystemError), as in the detector."""
-    started_s = time.perf_counter()
-    try:
-        _run_kernels()
-        compile_match_kernels()   # the association's
-    except SystemError as exc:
-        if _interrupted(exc):
-            raise KeyboardInterrupt from None
-        raise
-    if (compile_s := time.perf_counter() - started_s) > COMPILE_NOTICE_S:
-        log.info("compiled the filter's kernels in %.0f s (numba; once after an install or upgrade: later runs "
-                 "load them from its cache)", compile_s)
+    call costs microseconds), with the association's (:func:`cubetrack.estimate.match.compile_match_kernels`),
+    as the detector's (:func:`cubetrack.detect.detector.compile_kernels`: a first compile logged at INFO,
+    Ctrl-C while numba loads them a KeyboardInterrupt)."""
+    compile_kernels("filter's kernels", _run_kernels, compile_match_kernels)
 
 
 def _run_kernels() -> None:
