@@ -4,6 +4,7 @@ stays bounded, and stop() wakes blocked reads."""
 
 from __future__ import annotations
 
+import dataclasses
 import http.server
 import itertools
 import logging
@@ -174,17 +175,19 @@ def test_a_consumer_behind_gets_the_freshest_frame_first_one_keeping_up_the_olde
 
     rec = write_recording(tmp_path / "rec", [CameraSpec("a"), CameraSpec("b")], frames=30, fps=10.0)
     with Emulator(rec, loop=True) as emu:
-        with LiveCameras(emu.urls, SourceParams(clock_period_s=0.25)) as live:
-            wait_until(lambda: all(s.frames >= 2 for s in live.stats().values()))  # nobody reads: newest waits
+        with LiveCameras(emu.urls, SourceParams(clock_period_s=0.25, behind_intervals=600.0)) as live:
+            # nobody reads: each camera's newest waits, its interval learnt from the real arrivals
+            wait_until(lambda: all(s.frames >= 3 for s in live.stats().values()))
             live.stop()
             while live.get(0, frames=False) is not None:  # the clock samples
                 pass
             waiting = [live._queue[0], live._queue[-1]]  # arrival order: the older, the fresher
             assert [type(e) for e in waiting] == [Frame, Frame]
-            kept_up = live.get(0, newest_first_after_s=60.0)  # nothing waited that long: arrival order
+            kept_up = live.get(0, newest_if_behind=True)  # nothing waited 600 frame intervals: arrival order
             live._queue.appendleft(kept_up)
             live._queued_frames[kept_up.camera] += 1
-            behind = live.get(0, newest_first_after_s=0.001)  # the older one waited longer: freshest first
+            live.params = dataclasses.replace(live.params, behind_intervals=0.0)
+            behind = live.get(0, newest_if_behind=True)  # the older one waited longer than that: freshest first
     assert kept_up is waiting[0] and behind is waiting[1]
 
 
