@@ -148,9 +148,9 @@ def order_run(config_path: Path, recording_path: Path, extrinsics_path: Path, ou
     measured apart from this host's speed: frames arrive at their recorded times, each camera
     keeps one waiting (a newer one drops it), ``workers`` workers each take ``work_s`` per frame,
     a free worker takes the waiting frames by the live source's rule
-    (:meth:`cubetrack.source.order.FrameIntervals.behind`: arrival order until a frame has waited
-    longer than ``behind_intervals`` of its camera's interval, then the freshest; 0: always the
-    freshest, inf: always arrival order); each job is planned with the fusion as it is when taken,
+    (:mod:`cubetrack.source.order`: arrival order until a frame has waited longer than
+    ``behind_intervals`` of its camera's interval, then the oldest of the freshest instant; inf:
+    always arrival order); each job is planned with the fusion as it is when taken,
     and results are fused when done (together: oldest capture first). Prints the poses, late
     sightings, frames dropped and arrival -> fused p50 / p95; returns the TUM file written in
     ``out`` (on the recording's clock)."""
@@ -184,8 +184,9 @@ def order_run(config_path: Path, recording_path: Path, extrinsics_path: Path, ou
             intervals.add(frames[i].camera, frames[i].host_time_s)
             i += 1
         while len(busy) < workers and waiting:
-            fresh = intervals.behind(waiting.values(), now_s, behind_intervals)
-            frame = (max if fresh else min)(waiting.values(), key=lambda f: f.host_time_s)
+            ordered = sorted(waiting.values(), key=lambda f: f.host_time_s)
+            behind = intervals.behind(ordered, now_s, behind_intervals)
+            frame = intervals.freshest_instant(ordered) if behind else ordered[0]
             del waiting[frame.camera]
             if (job := tracker.admit(frame, hold=False)) is not None:
                 busy.append((now_s + work_s, tracker.processor.work(job)))
@@ -194,10 +195,11 @@ def order_run(config_path: Path, recording_path: Path, extrinsics_path: Path, ou
     tum = out / f"order-{behind_intervals}.tum"
     np.savetxt(tum, [[p.time_s, *p.position_m, *p.quaternion_xyzw] for p in poses if not p.predicted], fmt="%.6f")
     late = getattr(tracker.fusion, "stats", {})
-    print(f"order: {workers} workers x {work_s * 1000:.1f} ms per frame, freshest first once a frame waited "
-          f"{behind_intervals} of its camera's interval: {len(poses)} poses, {late.get('late sighting', 0)} late "
-          f"sightings, {dropped} of {len(frames)} frames dropped, arrival -> fused p50 "
-          f"{1000 * float(np.median(waits_s)):.1f} p95 {1000 * float(np.percentile(waits_s, 95)):.1f} ms")
+    print(f"order: {workers} workers x {work_s * 1000:.1f} ms per frame, the freshest instant first once a frame "
+          f"waited {behind_intervals} of its camera's interval: {len(poses)} poses, "
+          f"{late.get('late sighting', 0)} late sightings, {dropped} of {len(frames)} frames dropped, "
+          f"arrival -> fused p50 {1000 * float(np.median(waits_s)):.1f} "
+          f"p95 {1000 * float(np.percentile(waits_s, 95)):.1f} ms")
     return tum
 
 
@@ -267,9 +269,9 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--work-s", type=float, default=0.06, help="order: simulated work per frame, s")
     parser.add_argument("--workers", type=int, default=2, help="order: simulated workers")
     parser.add_argument("--behind-intervals", type=float, action="append",
-                        help="order: [source] behind_intervals, the freshest waiting frame first once a frame "
-                             "waited longer than this many of its camera's frame intervals, else the oldest "
-                             "(0: always the freshest; inf: always the oldest; repeatable: one run each; default: "
+                        help="order: [source] behind_intervals, the freshest instant first once a frame waited "
+                             "longer than this many of its camera's frame intervals, else the oldest (inf: always "
+                             "the oldest; repeatable: one run each; default: "
                              "the package's, as track_live)")
     parser.add_argument("--order-recording", type=Path,
                         help="order: this simulated recording (config.toml, extrinsics.toml and ground_truth.tum "

@@ -4,22 +4,23 @@ Frames wait in :class:`~cubetrack.source.streams.LiveCameras`' queue, each camer
 Taken in arrival order, the frames of one instant (every camera's, arriving within a few ms)
 reach the fusion oldest first, as a replay gives them; taken freshest first, the last of them is
 often fused before the others, which then come late and give no pose of their own. But when the
-consumer is behind, arrival order makes every frame wait for the ones before it, and the
-freshest first cuts the arrival -> pose latency. So the consumer is *behind* when a frame has
-waited longer than a share of its own camera's frame interval (``[source] behind_intervals``):
-"behind" at 6 fps is another wait than at 30 fps. A camera's interval is the median of its last
-arrival gaps (:class:`FrameIntervals`).
+consumer is behind, arrival order makes every frame wait for the ones before it. So the consumer
+is *behind* when a frame has waited longer than a share of its own camera's frame interval
+(``[source] behind_intervals``: "behind" at 6 fps is another wait than at 30 fps), and then takes
+the freshest instant first, its frames in arrival order. A camera's interval is the median of its
+last arrival gaps (:class:`FrameIntervals`).
 """
 
 from __future__ import annotations
 
 import statistics
 from collections import deque
-from collections.abc import Iterable
+from collections.abc import Iterable, Sequence
 
 from cubetrack.core.records import Frame
 
 INTERVAL_GAPS = 15  # arrival gaps per camera whose median is its frame interval
+INSTANT_INTERVALS = 0.1  # frames that arrived this share of a frame interval apart are of one instant
 
 
 class FrameIntervals:
@@ -47,6 +48,15 @@ class FrameIntervals:
         """The camera's frame interval, seconds (None: fewer than two frames so far)."""
         return self._interval_s.get(camera)
 
+    def freshest_instant(self, waiting: Sequence[Frame]) -> Frame:
+        """What a consumer that is :meth:`behind` takes of ``waiting`` (in arrival order, not
+        empty): the oldest frame of the freshest instant, the frames that arrived within
+        ``INSTANT_INTERVALS`` of the freshest's camera's interval of it (the cameras of one instant
+        arrive within a few ms: taken in their order, none of them comes to the fusion late)."""
+        freshest = waiting[-1]
+        width_s = INSTANT_INTERVALS * (self._interval_s.get(freshest.camera) or 0.0)
+        return next(f for f in waiting if f.host_time_s >= freshest.host_time_s - width_s)
+
     def behind(self, waiting: Iterable[Frame], now_s: float, behind_intervals: float) -> bool:
         """Whether a consumer with ``waiting`` frames is behind at ``now_s`` (on the frames'
         ``host_time_s`` clock): some frame has waited longer than ``behind_intervals`` of its
@@ -56,3 +66,4 @@ class FrameIntervals:
             if interval_s is not None and now_s - frame.host_time_s > behind_intervals * interval_s:
                 return True
         return False
+

@@ -92,10 +92,10 @@ class SourceParams:
                                              "arrivals against its frame count over this many frames (it captures "
                                              "at a steady rate, transfer only adds delay: "
                                              "cubetrack.source.timing.ArrivalEnvelope); 0: on the arrival itself")
-    behind_intervals: float = param(0.5, "a consumer that takes frames freshest first only when behind "
-                                         "(track --live) is behind when a waiting frame has waited longer than this "
-                                         "many of its camera's frame intervals; until then it takes them in arrival "
-                                         "order, as a replay does (cubetrack.source.order)")
+    behind_intervals: float = param(0.25, "track --live takes waiting frames in arrival order, as a replay does, "
+                                          "until one has waited longer than this many of its camera's frame "
+                                          "intervals (it is behind), then the freshest instant first, its frames "
+                                          "in arrival order (cubetrack.source.order)")
     capture_jpeg_quality: int = param(90, "JPEG quality (1..100) frames of usb:/v4l2:/rtsp:/file: cameras are "
                                           "encoded at (grayscale)")
 
@@ -316,9 +316,9 @@ class LiveCameras:
         ``frames=False``: the next clock reading only (frames keep waiting: a consumer with no
         room for a frame still takes the clock samples). ``newest_first``: clock readings first,
         then the frame that arrived last (the freshest, of whichever camera);
-        ``newest_if_behind``: so only while the consumer is behind (a frame has waited longer
-        than ``behind_intervals`` of its camera's frame interval,
-        :meth:`~cubetrack.source.order.FrameIntervals.behind`), else arrival order."""
+        ``newest_if_behind``: arrival order until the consumer is behind (a frame has waited
+        longer than ``behind_intervals`` of its camera's frame interval), then clock readings
+        first and the oldest frame of the freshest instant (:mod:`cubetrack.source.order`)."""
         if not self.threaded:
             self._read_for(timeout_s, frames)
         with self._cond:
@@ -326,16 +326,17 @@ class LiveCameras:
                 self._cond.wait(timeout_s)
             if self.failure is not None:
                 raise self.failure
-            if frames and not newest_first and newest_if_behind:
-                waiting = (e for e in self._queue if isinstance(e, Frame))
-                newest_first = self._intervals.behind(waiting, self.clock(), self.params.behind_intervals)
-            if frames and not newest_first:
+            waiting = [e for e in self._queue if isinstance(e, Frame)] if frames and newest_if_behind else []
+            behind = self._intervals.behind(waiting, self.clock(), self.params.behind_intervals)
+            if frames and not newest_first and not behind:
                 if not self._queue:
                     return None
                 item = self._queue.popleft()
             else:
                 item = next((e for e in self._queue if isinstance(e, ClockReading)), None)
-                if item is None and frames:
+                if item is None and behind:
+                    item = self._intervals.freshest_instant(waiting)
+                elif item is None and frames:
                     item = next((e for e in reversed(self._queue) if isinstance(e, Frame)), None)
                 if item is None:
                     return None
