@@ -14,6 +14,9 @@ RSS. Then it reports:
 - CPU per processed frame and cores used (the tracker's processes; the emulator's shown apart);
 - p50 / p95 / p99 of arrival -> pose and capture -> pose (the JSONL's ``arrival_latency`` and
   ``latency``: up to the moment each pose was handed to the outputs);
+- the run interval by interval (between the tracker's status lines, every 5 s): frames dropped,
+  poses, arrival -> pose p95 and cores used in each, so that a run missing the targets shows
+  whether it missed them at the start, in a burst or throughout (issue 31's run-to-run spread);
 - RSS of the tracker's processes at the start (after --warmup seconds), half-way and at the end,
   and the time from the tracker's command to its first pose (start-up);
 - accuracy against the ground truth (moved onto the live clock, repeated per loop of the
@@ -237,6 +240,65 @@ class TreeSampler:
         return [s for s in self.samples if s[3] == most][-1]
 
 
+_STATUS_DROPPED = re.compile(r"^track:\s+[\d.]+s \|.* dropped (\d+)")
+
+
+class StatusFollower:
+    """Follows the tracker's stderr file as the tracker writes it, every ``period_s``: the moment
+    (``time.monotonic()``) each status line appeared, with the frames dropped by the tracker so far
+    that it gives; the moments are what put the drops beside the poses and the CPU samples
+    (:func:`over_time`)."""
+
+    def __init__(self, path: Path, period_s: float = 0.25):
+        self.path, self.period_s = path, period_s
+        self.lines: list[tuple[float, int]] = []  # (monotonic s, dropped so far)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        offset, partial = 0, ""
+        while True:
+            stopping = self._stop.wait(self.period_s)
+            with contextlib.suppress(OSError), open(self.path, encoding="utf-8", errors="replace") as f:
+                f.seek(offset)
+                text = partial + f.read()
+                offset = f.tell()
+                *complete, partial = text.split("\n")
+                now = time.monotonic()
+                for line in complete:
+                    if (m := _STATUS_DROPPED.match(line)) is not None:
+                        self.lines.append((now, int(m.group(1))))
+            if stopping:
+                return
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join()
+
+
+def over_time(status: list[tuple[float, int]], poses: list[dict], samples: list[tuple[float, float, int, int]],
+              start_s: float, unix_minus_monotonic: float) -> list[dict]:
+    """The live run interval by interval, from the tracker's command (``start_s``, monotonic) to each
+    status line's moment in turn (``status``: :class:`StatusFollower`'s lines): frames dropped by the
+    tracker in it, poses handed to the outputs in it (a pose's capture time + its capture -> pose
+    latency, Unix s) and their arrival -> pose p95, and the tracker's cores used in it (the
+    :class:`TreeSampler` samples nearest its ends). A run that misses the drop or latency targets then
+    shows when: at the start (start-up), in a burst (a pause), or throughout (short of CPU)."""
+    handed = np.array([p["time"] + p["latency"] - unix_minus_monotonic for p in poses])
+    arrival_ms = np.array([p["arrival_latency"] * 1000.0 for p in poses])
+    out, begin, dropped_before = [], start_s, 0
+    for end, dropped in status:
+        inside = (handed >= begin) & (handed < end)
+        (t0, cpu0, _, _), (t1, cpu1, _, _) = (min(samples, key=lambda s, t=t: abs(s[0] - t)) for t in (begin, end))
+        out.append({"from_s": begin - start_s, "to_s": end - start_s, "dropped": dropped - dropped_before,
+                    "poses": int(inside.sum()),
+                    "arrival_p95_ms": float(np.percentile(arrival_ms[inside], 95)) if inside.any() else float("nan"),
+                    "cores": (cpu1 - cpu0) / (t1 - t0) if t1 > t0 else float("nan")})
+        begin, dropped_before = end, dropped
+    return out
+
+
 # --------------------------------------------------------------------------- the live run
 
 
@@ -266,10 +328,11 @@ def run_live(args: argparse.Namespace, rec: Path, work: Path, name: str = "live"
         unix_minus_monotonic = time.time() - started
         with open(work / f"{name}_stdout.txt", "w") as stdout, open(work / f"{name}_stderr.txt", "w") as stderr:
             proc = subprocess.Popen(command, stdout=stdout, stderr=stderr, cwd=ROOT)
-            sampler = TreeSampler(proc.pid)
+            sampler, status = TreeSampler(proc.pid), StatusFollower(work / f"{name}_stderr.txt")
             code = proc.wait(args.duration + 300)
         ended = time.monotonic()
         sampler.stop()
+        status.stop()
         emulator.stop()
         shift_s, period_s = emu.clock_shift_s, emu.period_s
     if code != 0:
@@ -330,6 +393,7 @@ def run_live(args: argparse.Namespace, rec: Path, work: Path, name: str = "live"
         "capture_ms": percentiles(capture),
         "clock_shift_s": shift_s,
         "period_s": period_s,
+        "over_time": over_time(status.lines, fused, sampler.samples, started, unix_minus_monotonic),
     }
 
 
@@ -634,6 +698,9 @@ def print_report(args: argparse.Namespace, report: dict) -> list[str]:
           f"(the emulator: {live['emulator_cores_used']:.2f} cores)")
     print(f"  arrival -> pose ms: p50 {a['p50']:.1f}  p95 {a['p95']:.1f}  p99 {a['p99']:.1f}   "
           f"capture -> pose ms: p50 {c['p50']:.1f}  p95 {c['p95']:.1f}  p99 {c['p99']:.1f}  ({live['poses']} poses)")
+    print("  over time (seconds from the tracker's command: dropped, poses, arrival -> pose p95 ms, cores): "
+          + " | ".join(f"{i['from_s']:.1f}-{i['to_s']:.1f}: {i['dropped']}, {i['poses']}, {i['arrival_p95_ms']:.1f}, "
+                       f"{i['cores']:.2f}" for i in live["over_time"]))
     print(f"  RSS: {live['rss_start_mb']:.0f} MB at {args.warmup:g} s, {live['rss_mid_mb']:.0f} MB half-way after it, "
           f"{live['rss_end_mb']:.0f} MB at the end ({(live['rss_end_mb'] / live['rss_start_mb'] - 1) * 100:+.1f} %); "
           f"first pose {live['first_pose_s']:.2f} s after the tracker's command started")

@@ -3,6 +3,7 @@ the tracker live over HTTP in its own process. The targets are the benchmark's b
 a timing here): the report is complete and consistent (its counts add up, its verdicts follow
 from its figures), and the live run tracked the robot."""
 
+import itertools
 import json
 import math
 import subprocess
@@ -25,7 +26,7 @@ def test_quick_run_prints_and_saves_a_complete_report(tmp_path):
     lines = run.stdout.splitlines()
     for start in ("live benchmark: 2 cameras x 10 fps", "  command: ", "  after the first ", "  frames/s: offered",
                   "  CPU: ", "  CPU per frame: naive loop ",
-                  "  arrival -> pose ms: p50", "  RSS: ", "  accuracy vs ground truth: live",
+                  "  arrival -> pose ms: p50", "  over time (", "  RSS: ", "  accuracy vs ground truth: live",
                   "  same ", "  per frame, one thread: ", "  outputs: files only ", "SUMMARY: "):
         assert sum(line.startswith(start) for line in lines) == 1, start
     assert "nproc" in lines[0] and "naive loop" in next(line for line in lines if line.startswith("  same "))
@@ -45,6 +46,11 @@ def test_quick_run_prints_and_saves_a_complete_report(tmp_path):
     assert live["rss_end_mb"] > 0 and live["processed_fps_warm"] > 0  # frames were processed after the warm-up
     assert live["rss_start_mb"] > 0 and live["rss_mid_mb"] > 0
     assert 0 < live["first_pose_s"] < live["wall_s"]  # start-up: the first pose came during the session
+    # interval by interval (between status lines): in order, within the run, no more poses than the run's
+    ends = [(i["from_s"], i["to_s"]) for i in live["over_time"]]
+    assert all(0 <= a < b for a, b in ends) and all(b == c for (_, b), (c, _) in itertools.pairwise(ends))
+    assert sum(i["poses"] for i in live["over_time"]) <= live["poses"]
+    assert all(i["dropped"] >= 0 for i in live["over_time"])
     assert math.isnan(live["offered_fps_warm"]) or live["offered_fps_warm"] > 0  # no status line after 1.5 s of 5
     for run in ("live", "offline"):
         assert 0 < acc[run]["pos_cm"] < 2.0 and 0 < acc[run]["rot_deg"] < 2.0, run
