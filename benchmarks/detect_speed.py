@@ -26,8 +26,10 @@ prints the thread CPU time per frame of each stage (decode, OpenCV's search, the
 the per-camera estimate, planning, fusion; median of rounds), the estimate/ functions the fusion
 calls (in place, then each alone on the calls it made in the first ``--micro-frames`` frames),
 the naive loop on the same frames as the ratio, the frames whose regions were empty (every robot
-predicted out of the camera's view) and what decoding them cost, and whether the poses were
-bit-identical across rounds (exit 1 if not). Frames are stamped by their arrival times (clock.csv is not used).
+predicted out of the camera's view) and what decoding them cost, the CPU of ways to decode the first
+``--micro-frames`` frames (colour, gray, DCT-scaled to 1/2, 1/4, 1/8, and the tracker's own top-rows decode)
+against the full gray decode, and whether the poses were bit-identical across rounds (exit 1 if not).
+Frames are stamped by their arrival times (clock.csv is not used).
 
     nice -n 19 .venv/bin/python benchmarks/detect_speed.py --stages --recording /tmp/lb16q/rec_c16_f30_d20_s7 \
         --frames 600 --rounds 3
@@ -380,10 +382,60 @@ def stage_costs(args: argparse.Namespace) -> int:
         per_call = float(np.median(times)) / len(recorded)
         print(f"  {key:<40} {len(recorded) / micro_frames:6.2f} calls/frame {per_call * 1e6:8.1f} us/call "
               f"{per_call * len(recorded) / micro_frames * 1000.0:7.3f} ms/frame")
+    decode_variants(frames[:micro_frames], calls.get("decode", []), args.rounds)
     print(f"poses: {len(poses)}; replay "
           f"{'bit-identical across rounds' if len(digests) == 1 else 'DIFFERS across rounds'} (sha256 "
           f"{min(digests)[:16]})")
     return 0 if len(digests) == 1 else 1
+
+
+def decode_variants(frames: list, tracker_calls: list, rounds: int) -> None:
+    """Thread CPU per frame of ways to decode the same frames (issue 31's decode levers), against the
+    full-resolution gray decode: the naive loop's colour decode, OpenCV's gray and DCT-scaled gray
+    decodes (``IMREAD_REDUCED_GRAYSCALE_N``), simplejpeg's gray decode at full and DCT-scaled sizes
+    (libjpeg-turbo's scaled IDCT; the entropy decoding is the same), and the tracker's own decode
+    (``decode_gray`` with the rows its regions needed, ``tracker_calls``: the calls it made)."""
+    import simplejpeg
+
+    from cubetrack.detect.decode import decode_gray
+
+    def opencv(flag: int):
+        return lambda jpeg: cv2.imdecode(np.frombuffer(jpeg, np.uint8), flag)
+
+    def scaled(k: int):
+        def decode(jpeg: bytes) -> np.ndarray:
+            height, width = simplejpeg.decode_jpeg_header(jpeg)[:2]
+            return simplejpeg.decode_jpeg(jpeg, colorspace="GRAY", min_height=height // k, min_width=width // k)
+        return decode
+
+    ways = {"colour, full size (the naive loop's)": opencv(cv2.IMREAD_COLOR),
+            "gray, full size (simplejpeg)": scaled(1),
+            "gray, full size (OpenCV)": opencv(cv2.IMREAD_GRAYSCALE),
+            **{f"gray, 1/{k} size (OpenCV IMREAD_REDUCED_GRAYSCALE_{k})":
+               opencv(getattr(cv2, f"IMREAD_REDUCED_GRAYSCALE_{k}")) for k in (2, 4, 8)},
+            **{f"gray, 1/{k} size (simplejpeg, scaled IDCT)": scaled(k) for k in (2, 4, 8)}}
+    jpegs = [f.jpeg for f in frames]
+    ms = {}
+    for label, decode in ways.items():
+        times = []
+        for _ in range(rounds):
+            t0 = time.thread_time()
+            for jpeg in jpegs:
+                decode(jpeg)
+            times.append(time.thread_time() - t0)
+        ms[label] = float(np.median(times)) / len(jpegs) * 1000.0
+    if tracker_calls:
+        times = []
+        for _ in range(rounds):
+            t0 = time.thread_time()
+            for _fn, a, kw in tracker_calls:
+                decode_gray(*a, **kw)
+            times.append(time.thread_time() - t0)
+        ms["the tracker's (rows down to its regions' lowest edge)"] = float(np.median(times)) / len(jpegs) * 1e3
+    full = ms["gray, full size (simplejpeg)"]
+    print(f"decode, the first {len(jpegs)} frames ({rounds} rounds; thread CPU ms per frame, / the full gray decode):")
+    for label, value in ms.items():
+        print(f"  {label:<58} {value:7.3f} ms  {value / full:5.2f}")
 
 
 if __name__ == "__main__":

@@ -49,6 +49,7 @@ lists the targets missed.
     .venv/bin/python benchmarks/live.py --outputs      # and the cost of every output (issue 10)
     .venv/bin/python benchmarks/live.py --speed-only --speed-rounds 5 --out /tmp/lb16   # naive / ours only
     .venv/bin/python benchmarks/live.py --template ...  # with corner_refinement = "template"
+    .venv/bin/python benchmarks/live.py --worker-split --duration 15 --out /tmp/lb16   # a camera worker's CPU
 
 --out keeps the recording, the calibration, the live poses and ``live_report.json``
 (``speed_report.json`` with --speed-only; a recording made with the same parameters is reused).
@@ -102,6 +103,10 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--speed-only", action="store_true",
                    help="only the same-frames comparison (naive / one thread / ours), on the recording of --out "
                         "made with the same parameters (or a new one): no live run, no accuracy")
+    p.add_argument("--worker-split", action="store_true",
+                   help="only where a camera worker process's CPU goes: its loop in this process over half the "
+                        "cameras for --duration s, fed by the emulator, the fusion in a thread standing in for the "
+                        "tracker's process (no live run, no accuracy, no same-frames comparison)")
     p.add_argument("--seed", type=int, default=7, help="scene seed (default 7)")
     p.add_argument("--out", type=Path, help="keep everything here (default: a temporary folder, deleted)")
     p.add_argument("--quick", action="store_true", help="smoke run: 2 cameras x 10 fps, 5 s, small recording")
@@ -117,6 +122,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--tracker-arg", action="append", default=[], metavar="ARG",
                    help="extra argument for `cubetrack track` (repeatable)")
     args = p.parse_args(argv)
+    if args.worker_split and (args.speed_only or args.record or args.outputs):
+        p.error("--worker-split runs alone: no --speed-only, --record or --outputs")
     if args.speed_only and (args.record or args.outputs):
         p.error("--speed-only replays the simulated recording: no --record or --outputs")
     if args.quick:
@@ -636,6 +643,93 @@ def speed(args: argparse.Namespace, rec: Path, work: Path, live: dict | None) ->
             "worker_jobs": median("worker_jobs"), "rounds": rounds}
 
 
+def worker_split(args: argparse.Namespace, rec: Path, work: Path) -> dict:
+    """Where a camera worker process's CPU goes (issue 31): the loop of one camera worker process
+    (:func:`cubetrack.app.camera_workers._work_cameras`, as each of the live run's runs it) on this
+    process's main thread over half the emulated cameras (the live run deals them to 2 processes), for
+    --duration seconds; a second thread stands for the tracker's process: it fuses the results as they
+    come, in the same process, and sends a new forecast after each. Thread CPU per processed frame of
+    the per-frame work (``FrameProcessor.work``), the planning (``Tracker.admit``), sending the results
+    (pickling, the pipe) and the rest of the loop (reading and parsing the streams, the clock round
+    trips), and the stand-in's unpacking + fusion + forecast."""
+    import functools
+    import math
+    import multiprocessing
+
+    import cv2
+
+    from cubetrack.app.camera_workers import _work_cameras
+    from cubetrack.app.config import load_config, recording_intrinsics
+    from cubetrack.app.emulated import EmulatedCameras
+    from cubetrack.app.tracker import Tracker
+    from cubetrack.fuse.forecast import forecast_of
+    from cubetrack.io.config import read_extrinsics
+    from cubetrack.io.frame_wire import unpack_result
+    from cubetrack.io.recording import Recording
+
+    cv2.setNumThreads(1)
+    config, settings = load_config(tracker_config(args, rec, work))
+    intrinsics, extrinsics = recording_intrinsics(config, Recording.open(rec)), read_extrinsics(rec / "extrinsics.toml")
+    cpu_s = {"work": 0.0, "plan": 0.0, "send": 0.0, "fusion": 0.0}
+
+    def timed(fn, key: str):
+        def call(*a, **kw):
+            t0 = time.thread_time()
+            try:
+                return fn(*a, **kw)
+            finally:
+                cpu_s[key] += time.thread_time() - t0
+        return call
+
+    with EmulatedCameras(rec, ("--loop",)) as emu:
+        urls = dict(list(emu.urls.items())[: max(1, args.cameras // 2)])
+        make = functools.partial(Tracker, {c: intrinsics[c] for c in urls}, config.world, config.robots,
+                                 {c: extrinsics[c] for c in urls}, settings.stages, synced_cameras=frozenset(urls))
+        worker, fusing = make(), make()
+        worker.processor.work = timed(worker.processor.work, "work")   # type: ignore[method-assign]
+        worker.admit = timed(worker.admit, "plan")   # type: ignore[method-assign]
+        ours, theirs = multiprocessing.Pipe()
+        theirs.send = timed(theirs.send, "send")   # type: ignore[method-assign]
+        working, taken = multiprocessing.RawArray("d", [math.inf]), multiprocessing.RawArray("q", 1)
+        robots = [r.name for r in config.robots]
+        received = [0]   # frames the worker's cameras delivered, as its last counters say
+
+        def tracker_process() -> None:   # the tracker's process, standing in: fuse, forecast
+            stop_at, stopped = time.monotonic() + args.duration, False
+            while True:
+                if not stopped and time.monotonic() > stop_at:
+                    ours.send(None)
+                    stopped = True
+                if not ours.poll(0.05):
+                    continue
+                kind, payload = ours.recv()
+                if kind == "done":
+                    return
+                t0 = time.thread_time()
+                if kind == "update":
+                    received[0] = sum(c.frames for c in payload.cameras.values())
+                if kind == "clock":
+                    fusing.add_clock_sample(payload.camera, payload.sample)
+                elif kind == "result":
+                    fusing.fuse(unpack_result(*payload, intrinsics=fusing.intrinsics, T_world_cam=fusing.T_world_cam),
+                                time.time())
+                    taken[0] += 1
+                    ours.send(forecast_of(fusing.fusion, robots, time.time()))
+                cpu_s["fusion"] += time.thread_time() - t0
+
+        side = threading.Thread(target=tracker_process, daemon=True)
+        side.start()
+        t0 = time.thread_time()
+        _work_cameras(theirs, urls, settings.source, worker, False, time.time, working, taken, 0)
+        total_s = time.thread_time() - t0
+        side.join()
+    frames = max(int(taken[0]), 1)
+    per = {k: v / frames * 1000.0 for k, v in cpu_s.items()}
+    per["rest"] = (total_s - cpu_s["work"] - cpu_s["plan"] - cpu_s["send"]) / frames * 1000.0
+    return {"cameras": len(urls), "frames": int(taken[0]), "received": received[0], "ms": per,
+            "load_average": os.getloadavg()[0]}
+
+
 class _NoSink:
     def pose(self, pose) -> None:
         pass
@@ -665,6 +759,16 @@ def print_speed(sp: dict) -> None:
     w, f = sp["work_ms"], sp["fuse_ms"]
     print(f"  per frame, one thread: decode + detect + estimate p50 {w['p50']:.2f} ms p95 {w['p95']:.2f} ms; "
           f"fusion p50 {f['p50']:.2f} ms p95 {f['p95']:.2f} ms")
+
+
+def print_worker_split(args: argparse.Namespace, split: dict) -> None:
+    ms = split["ms"]
+    print(f"one camera worker process's loop over {split['cameras']} cameras x {args.fps:g} fps for {args.duration:g} "
+          f"s, nproc {os.cpu_count()} (load average {split['load_average']:.1f}): {split['frames']} frames processed "
+          f"of {split['received']} received; thread CPU per processed frame: work (decode, detection, estimates) "
+          f"{ms['work']:.3f} ms, planning {ms['plan']:.3f} ms, sending the result {ms['send']:.3f} ms, the rest of "
+          f"the loop (reading the streams, clock round trips) {ms['rest']:.3f} ms; the tracker's process standing "
+          f"in (unpack, fuse, forecast) {ms['fusion']:.3f} ms")
 
 
 def speed_failures(args: argparse.Namespace, sp: dict) -> list[str]:
@@ -739,6 +843,9 @@ def main(argv: list[str] | None = None) -> int:
         work.mkdir(parents=True, exist_ok=True)
         print(f"preparing {args.cameras} cameras x {args.fps:g} fps ...", file=sys.stderr, flush=True)
         rec = ensure_recording(args, work)
+        if args.worker_split:
+            print_worker_split(args, worker_split(args, rec, work))
+            return 0
         if args.speed_only:
             load = os.getloadavg()
             sp = speed(args, rec, work, None)

@@ -47,5 +47,12 @@ def test_stages_report_every_stage_and_a_bit_identical_replay(capsys):
                  "corner_filter.reprojection_residuals_px"):
         assert re.search(rf"^  {re.escape(name)}\s+[0-9.]+ calls/frame\s+[0-9.]+ us/call", text, re.MULTILINE), name
     assert re.search(r"^poses: [1-9][0-9]*; replay bit-identical across rounds", text, re.MULTILINE), text
+    # the decode levers on the same frames, each against the full gray decode (its own ratio 1)
+    decodes = {label: (float(value), float(ratio)) for label, value, ratio in
+               re.findall(r"^  (colour.*?|gray.*?|the tracker's.*?)\s+([0-9.]+) ms\s+([0-9.]+)$", text, re.MULTILINE)}
+    assert len(decodes) == 10, decodes
+    assert decodes["gray, full size (simplejpeg)"][1] == 1.0
+    assert all(value > 0.0 and abs(ratio - value / decodes["gray, full size (simplejpeg)"][0]) < 0.02
+               for value, ratio in decodes.values()), decodes
     assert (tracker_module.decode_gray, detector_module.refine_corners_edges,
             corner_filter_module.reprojection_jacobian_px) == originals

@@ -6,6 +6,7 @@ from its figures), and the live run tracked the robot."""
 import itertools
 import json
 import math
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -105,3 +106,20 @@ def test_template_speed_only_run_uses_template_corners_and_its_target(tmp_path):
     assert "template corners" in lines[0]
     assert any(line.startswith("  CPU per frame: naive loop ") for line in lines)
     assert lines[-1] == "SUMMARY: throughput target met" if speed["ratio"] >= 2.5 else "< 2.5" in lines[-1]
+
+
+def test_worker_split_reports_where_a_camera_worker_process_spends_its_cpu(tmp_path):
+    """--worker-split: one camera worker process's loop in the benchmark's process, fed by the emulator:
+    frames processed (no more than its cameras delivered) and the CPU per processed frame of each part."""
+    command = [sys.executable, str(ROOT / "benchmarks" / "live.py"), "--quick", "--worker-split",
+               "--out", str(tmp_path)]
+    run = subprocess.run(command, check=False, capture_output=True, text=True, timeout=900, cwd=ROOT)
+    assert run.returncode == 0, run.stderr[-3000:]
+    line = run.stdout.splitlines()[-1]
+    found = re.search(r"over 1 cameras .*: (\d+) frames processed of (\d+) received; thread CPU per processed frame: "
+                      r"work .* ([0-9.]+) ms, planning ([0-9.]+) ms, sending the result ([0-9.]+) ms, the rest .* "
+                      r"([0-9.]+) ms; the tracker's process standing in .* ([0-9.]+) ms$", line)
+    assert found, line
+    processed, received = int(found.group(1)), int(found.group(2))
+    assert 0 < processed <= received
+    assert all(float(found.group(k)) > 0.0 for k in range(3, 8)), line
