@@ -28,7 +28,8 @@ calls (in place, then each alone on the calls it made in the first ``--micro-fra
 the naive loop on the same frames as the ratio, the frames whose regions were empty (every robot
 predicted out of the camera's view) and what decoding them cost, the CPU of ways to decode the first
 ``--micro-frames`` frames (colour, gray, DCT-scaled to 1/2, 1/4, 1/8, and the tracker's own top-rows decode)
-against the full gray decode, and whether the poses were bit-identical across rounds (exit 1 if not).
+against the full gray decode, the CPU and markers kept of those frames' region searches as configured, at half
+size and with fewer adaptive-threshold passes, and whether the poses were bit-identical across rounds (exit 1 if not).
 Frames are stamped by their arrival times (clock.csv is not used).
 
     nice -n 19 .venv/bin/python benchmarks/detect_speed.py --stages --recording /tmp/lb16q/rec_c16_f30_d20_s7 \
@@ -383,6 +384,7 @@ def stage_costs(args: argparse.Namespace) -> int:
         print(f"  {key:<40} {len(recorded) / micro_frames:6.2f} calls/frame {per_call * 1e6:8.1f} us/call "
               f"{per_call * len(recorded) / micro_frames * 1000.0:7.3f} ms/frame")
     decode_variants(frames[:micro_frames], calls.get("decode", []), args.rounds)
+    region_variants(calls.get("detect", []), stages.detector, world.dictionary, robots, args.rounds)
     print(f"poses: {len(poses)}; replay "
           f"{'bit-identical across rounds' if len(digests) == 1 else 'DIFFERS across rounds'} (sha256 "
           f"{min(digests)[:16]})")
@@ -436,6 +438,38 @@ def decode_variants(frames: list, tracker_calls: list, rounds: int) -> None:
     print(f"decode, the first {len(jpegs)} frames ({rounds} rounds; thread CPU ms per frame, / the full gray decode):")
     for label, value in ms.items():
         print(f"  {label:<58} {value:7.3f} ms  {value / full:5.2f}")
+
+
+def region_variants(find_calls: list, params: DetectorParams, world_dictionary: str, robots, rounds: int) -> None:
+    """Thread CPU per region search and markers kept (``Detector.find`` on the regions the tracker searched
+    in ``find_calls``, edge fit included) as configured and with issue 31's levers: the image at half size
+    (``cv2.resize`` INTER_AREA, the boxes halved) and fewer adaptive-threshold passes."""
+    import dataclasses
+
+    searches = [(a[0], tuple(a[1]), kw.get("lens", a[2] if len(a) > 2 else None)) for _fn, a, kw in find_calls
+                if len(a) > 1 and a[1]]
+    if not searches:
+        return
+    dictionaries = [world_dictionary, *(d for r in robots for d in r.layout.dictionaries)]
+    windows = {"as configured": {}, "threshold windows 13, 23 px": {"adaptive_thresh_win_size_min_px": 13},
+               "threshold windows 8, 18 px": {"adaptive_thresh_win_size_min_px": 8,
+                                              "adaptive_thresh_win_size_max_px": 18}}
+    ways = {label: (Detector(dataclasses.replace(params, **change), dictionaries), 1)
+            for label, change in windows.items()}
+    ways["the image at half size (INTER_AREA)"] = (ways["as configured"][0], 2)
+    print(f"region searches of those frames: {len(searches)} ({rounds} rounds; thread CPU ms per search, edge fit "
+          "included; markers kept):")
+    for label, (detector, k) in ways.items():
+        inputs = [(gray, regions, lens) if k == 1 else
+                  (cv2.resize(gray, (gray.shape[1] // k, gray.shape[0] // k), interpolation=cv2.INTER_AREA),
+                   tuple(tuple(v // k for v in box) for box in regions), lens) for gray, regions, lens in searches]
+        times, kept = [], 0
+        for _ in range(rounds):
+            kept, t0 = 0, time.thread_time()
+            for gray, regions, lens in inputs:
+                kept += len(detector.find(gray, regions, lens).detections)
+            times.append(time.thread_time() - t0)
+        print(f"  {label:<40} {float(np.median(times)) / len(inputs) * 1000.0:7.3f} ms  {kept:6d} markers")
 
 
 if __name__ == "__main__":

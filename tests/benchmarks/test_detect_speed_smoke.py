@@ -54,5 +54,12 @@ def test_stages_report_every_stage_and_a_bit_identical_replay(capsys):
     assert decodes["gray, full size (simplejpeg)"][1] == 1.0
     assert all(value > 0.0 and abs(ratio - value / decodes["gray, full size (simplejpeg)"][0]) < 0.02
                for value, ratio in decodes.values()), decodes
+    # the region searches those frames made, as configured and with the levers (each costs CPU; as configured
+    # keeps markers: the tracker searched regions where its robot was predicted)
+    regions = {label: (float(ms_), int(kept)) for label, ms_, kept in
+               re.findall(r"^  (as configured|threshold windows .*?|the image at half size.*?)\s+([0-9.]+) ms\s+(\d+) "
+                          r"markers$", text, re.MULTILINE)}
+    assert len(regions) == 4 and all(value > 0.0 for value, _ in regions.values()), regions
+    assert regions["as configured"][1] > 0, regions
     assert (tracker_module.decode_gray, detector_module.refine_corners_edges,
             corner_filter_module.reprojection_jacobian_px) == originals
