@@ -781,6 +781,20 @@ def speed_failures(args: argparse.Namespace, sp: dict) -> list[str]:
     return failures
 
 
+SHOWN_FIRST, SHOWN_WORST = 4, 4   # a long run's report line: its first intervals and those with the most drops
+
+
+def shown_intervals(intervals: list[dict]) -> list[dict]:
+    """The intervals of :func:`over_time` the report line shows, in time order: all of a short run's; of
+    a long one (a 10-minute run has 120) the first ``SHOWN_FIRST`` (start-up) and the ``SHOWN_WORST``
+    others with the most frames dropped (then the highest arrival -> pose p95)."""
+    if len(intervals) <= SHOWN_FIRST + SHOWN_WORST:
+        return intervals
+    rest = sorted(range(SHOWN_FIRST, len(intervals)), key=lambda k: (
+        -intervals[k]["dropped"], -np.nan_to_num(intervals[k]["arrival_p95_ms"], nan=-1.0)))
+    return [intervals[k] for k in sorted([*range(SHOWN_FIRST), *rest[:SHOWN_WORST]])]
+
+
 def print_report(args: argparse.Namespace, report: dict) -> list[str]:
     live, acc, sp = report["live"], report["accuracy"], report["speed"]
     a, c = live["arrival_ms"], live["capture_ms"]
@@ -802,9 +816,13 @@ def print_report(args: argparse.Namespace, report: dict) -> list[str]:
           f"(the emulator: {live['emulator_cores_used']:.2f} cores)")
     print(f"  arrival -> pose ms: p50 {a['p50']:.1f}  p95 {a['p95']:.1f}  p99 {a['p99']:.1f}   "
           f"capture -> pose ms: p50 {c['p50']:.1f}  p95 {c['p95']:.1f}  p99 {c['p99']:.1f}  ({live['poses']} poses)")
-    print("  over time (seconds from the tracker's command: dropped, poses, arrival -> pose p95 ms, cores): "
+    intervals = live["over_time"]
+    shown = shown_intervals(intervals)
+    print("  over time (seconds from the tracker's command: dropped, poses, arrival -> pose p95 ms, cores"
+          + (f"; {len(shown)} of {len(intervals)} intervals: the first {SHOWN_FIRST} and those with the most drops"
+             if len(shown) < len(intervals) else "") + "): "
           + " | ".join(f"{i['from_s']:.1f}-{i['to_s']:.1f}: {i['dropped']}, {i['poses']}, {i['arrival_p95_ms']:.1f}, "
-                       f"{i['cores']:.2f}" for i in live["over_time"]))
+                       f"{i['cores']:.2f}" for i in shown))
     print(f"  RSS: {live['rss_start_mb']:.0f} MB at {args.warmup:g} s, {live['rss_mid_mb']:.0f} MB half-way after it, "
           f"{live['rss_end_mb']:.0f} MB at the end ({(live['rss_end_mb'] / live['rss_start_mb'] - 1) * 100:+.1f} %); "
           f"first pose {live['first_pose_s']:.2f} s after the tracker's command started")

@@ -60,3 +60,19 @@ def test_follower_takes_status_lines_as_they_are_written_and_skips_the_rest(tmp_
         follower.stop()
     assert [d for _, d in follower.lines] == [17, 36]
     assert follower.lines[0][0] <= follower.lines[1][0]
+
+
+def test_a_long_runs_line_shows_its_start_and_its_worst_intervals_in_time_order():
+    live = load_benchmark("live")
+    short = [{"dropped": 0, "arrival_p95_ms": 5.0, "from_s": 5.0 * k}
+             for k in range(live.SHOWN_FIRST + live.SHOWN_WORST)]
+    assert live.shown_intervals(short) == short
+    drops = [9, 0, 0, 1, 0, 7, 0, 3, 0, 0, 12, 0, 2, 0, 0]   # intervals 0-3 are the start; then 10, 5, 7, 12
+    p95 = [5.0] * len(drops)
+    p95[13] = 80.0                                          # no drop, but the slowest: a tie of 0 drops goes by p95
+    rows = [{"dropped": d, "arrival_p95_ms": q, "from_s": 5.0 * k} for k, (d, q) in enumerate(zip(drops, p95,
+                                                                                                     strict=True))]
+    shown = live.shown_intervals(rows)
+    assert [r["from_s"] / 5.0 for r in shown] == [0, 1, 2, 3, 5, 7, 10, 12]
+    rows[12]["dropped"] = 0                                 # now interval 13's p95 beats the other no-drop ones
+    assert [r["from_s"] / 5.0 for r in live.shown_intervals(rows)] == [0, 1, 2, 3, 5, 7, 10, 13]
