@@ -195,6 +195,36 @@ _FUSION_HOOKS = (("cubetrack.fuse.fusion", "match_faces"), ("cubetrack.fuse.fusi
 _WORKER_HOOKS = (("cubetrack.app.tracker", "estimate_cube"), ("cubetrack.app.tracker", "body_detections"))
 
 
+def ms_median(key: str, rounds: list[dict[str, float]]) -> float:
+    return float(np.median([c[key] for c in rounds]))
+
+
+class _GcPauses:
+    """Python's garbage collections while it is installed (``gc.callbacks``): how many, of which of
+    the oldest generation, and their wall-clock milliseconds (a collection pauses the thread: a
+    latency spike live)."""
+
+    def __init__(self) -> None:
+        import gc
+
+        self._gc, self._started = gc, 0.0
+        self.ms: list[tuple[int, float]] = []   # (generation, ms)
+        gc.callbacks.append(self._callback)
+
+    def _callback(self, phase: str, info: dict) -> None:
+        if phase == "start":
+            self._started = time.perf_counter()
+        else:
+            self.ms.append((info["generation"], (time.perf_counter() - self._started) * 1000.0))
+
+    def stop(self) -> None:
+        self._gc.callbacks.remove(self._callback)
+
+    def summary(self) -> dict[str, float]:
+        return {"gc_count": len(self.ms), "gc2_count": sum(g == 2 for g, _ in self.ms),
+                "gc_ms": sum(m for _, m in self.ms), "gc_max_ms": max((m for _, m in self.ms), default=0.0)}
+
+
 class _Hooks:
     """Thread-CPU timers (and, while ``recording``, argument capture) wrapped around module
     functions; ``restore`` puts the originals back."""
@@ -301,6 +331,7 @@ def stage_costs(args: argparse.Namespace) -> int:
         cpu = {"plan": 0.0, "work": 0.0, "fuse": 0.0, "decode_empty": 0.0, "empty_frames": 0.0}
         poses = []
         clock = time.thread_time
+        pauses = _GcPauses()
         try:
             for i, frame in enumerate(frames):
                 hooks.recording = micro and i < args.micro_frames
@@ -324,7 +355,9 @@ def stage_costs(args: argparse.Namespace) -> int:
             cpu["fuse"] += clock() - t0
         finally:
             hooks.restore()
+            pauses.stop()
         cpu.update(hooks.cpu_s)
+        cpu.update(pauses.summary())
         cpu["detect"] -= cpu["edge"]                       # exclusive times
         cpu["estimate"] = cpu["work"] - cpu["decode"] - cpu["detect"] - cpu["edge"]
         return cpu, poses, hooks.calls
@@ -385,6 +418,10 @@ def stage_costs(args: argparse.Namespace) -> int:
               f"{per_call * len(recorded) / micro_frames * 1000.0:7.3f} ms/frame")
     decode_variants(frames[:micro_frames], calls.get("decode", []), args.rounds)
     region_variants(calls.get("detect", []), stages.detector, world.dictionary, robots, args.rounds)
+    print(f"garbage collections in a round (median of rounds): {ms_median('gc_count', rounds):.0f}, of which "
+          f"{ms_median('gc2_count', rounds):.0f} of the oldest generation; {ms_median('gc_ms', rounds):.1f} ms in all "
+          f"({ms_median('gc_ms', rounds) / n:.4f} ms per frame), the longest {max(c['gc_max_ms'] for c in rounds):.2f} "
+          "ms (wall clock: a pause of the thread)")
     print(f"poses: {len(poses)}; replay "
           f"{'bit-identical across rounds' if len(digests) == 1 else 'DIFFERS across rounds'} (sha256 "
           f"{min(digests)[:16]})")

@@ -61,5 +61,8 @@ def test_stages_report_every_stage_and_a_bit_identical_replay(capsys):
                           r"markers$", text, re.MULTILINE)}
     assert len(regions) == 4 and all(value > 0.0 for value, _ in regions.values()), regions
     assert regions["as configured"][1] > 0, regions
+    gc = re.search(r"^garbage collections in a round \(median of rounds\): (\d+), of which (\d+) of the oldest "
+                   r"generation; ([0-9.]+) ms in all \(([0-9.]+) ms per frame\), the longest ([0-9.]+) ms", text, re.M)
+    assert gc and int(gc.group(2)) <= int(gc.group(1)), text   # per round, so in the medians too
     assert (tracker_module.decode_gray, detector_module.refine_corners_edges,
             corner_filter_module.reprojection_jacobian_px) == originals
