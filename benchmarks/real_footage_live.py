@@ -151,7 +151,9 @@ def order_run(config_path: Path, recording_path: Path, extrinsics_path: Path, ou
     (:mod:`cubetrack.source.order`: arrival order until a frame has waited longer than
     ``behind_intervals`` of its camera's interval, then the oldest of the freshest instant; inf:
     always arrival order); each job is planned with the fusion as it is when taken,
-    and results are fused when done (together: oldest capture first). Prints the poses, late
+    and results are fused when done (together: oldest capture first). No ``/time`` round trips
+    are fed: a polled camera's capture times come from a fit to its arrivals (compare rules with
+    each other on such a recording, not with its replay). Prints the poses, late
     sightings, frames dropped and arrival -> fused p50 / p95; returns the TUM file written in
     ``out`` (on the recording's clock)."""
     from cubetrack.app.config import config_params
