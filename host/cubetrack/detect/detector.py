@@ -32,7 +32,7 @@ import cv2
 import numpy as np
 
 from cubetrack.core.cameras import CameraIntrinsics
-from cubetrack.core.errors import DetectionError, ImageError
+from cubetrack.core.errors import DetectionError, ImageError, caused_by_interrupt
 from cubetrack.core.geometry import shoelace_area
 from cubetrack.core.params import check, param
 from cubetrack.core.records import Detection
@@ -287,23 +287,14 @@ def compile_kernels(what: str, *compile_functions: Callable[[], None]) -> None:
     except SystemError as exc:
         # Ctrl-C (or SIGTERM/SIGHUP, which the CLI turns into it) while numba loads a kernel from its
         # cache comes out of numba's C dispatcher as a SystemError caused by the KeyboardInterrupt:
-        # give the command its interrupt back, so that it stops as it would anywhere else
-        if _interrupted(exc):
+        # give the command its interrupt back here, before any `except Exception` on the way up takes
+        # it for a failure (the CLI's boundary checks the same for other callers)
+        if caused_by_interrupt(exc):
             raise KeyboardInterrupt from None
         raise
     if (compile_s := time.perf_counter() - started_s) > COMPILE_NOTICE_S:
         log.info("compiled the %s in %.0f s (numba; once after an install or upgrade: later runs load them from its "
                  "cache)", what, compile_s)
-
-
-def _interrupted(exc: BaseException) -> bool:
-    """Whether ``exc`` was caused, at any depth, by a KeyboardInterrupt."""
-    seen: BaseException | None = exc
-    while seen is not None:
-        if isinstance(seen, KeyboardInterrupt):
-            return True
-        seen = seen.__cause__ or seen.__context__
-    return False
 
 
 class Detector:
