@@ -66,6 +66,11 @@ class FilterParams:
         "motion (docs/tracking.md \"Cameras that disagree\"; 0: cameras taken as exact)")
     camera_rotation_sigma_deg: float = param(
         0.1, "the same for the camera's orientation (1 sigma per axis), degrees (real calibrations leave 0.1-0.3)")
+    camera_scale_sigma: float = param(
+        0.005, "the same for the camera's scale: its focal length's error (or its corners' bias outwards), a fraction "
+        "(1 sigma), which moves the body along the camera's optical axis by that fraction of its depth, so a "
+        "camera's depth is trusted less than its view across (docs/tracking.md \"Cameras that disagree\"; 0: none; "
+        "0.005 since issue 25's third round)")
     correction_time_sigma_s: float = param(
         0.0, "per-camera corrections estimated over the session (docs/tracking.md \"Per-camera corrections\"): the "
         "prior (1 sigma) of a camera's time offset (its frames taken that much before or after their stamps), seconds; "
@@ -102,6 +107,7 @@ class FilterParams:
                        "sharp_turn_rad_s", "turn_hold_s", "corner_noise_px", "huber_px", "gate_rms_px", "face_gate_px",
                        "init_velocity_sigma", "init_angular_velocity_sigma")
         check_non_negative(self, "camera_position_sigma_m", unit="metres")
+        check_non_negative(self, "camera_scale_sigma")
         check_non_negative(self, "camera_rotation_sigma_deg", "correction_rotation_sigma_deg", unit="degrees")
         check_non_negative(self, "correction_position_sigma_m", unit="metres")
         check_non_negative(self, "correction_time_sigma_s", "correction_memory_s", unit="seconds")
@@ -335,7 +341,10 @@ def calibration_discount(params: FilterParams, sets: Sequence[CornerSet], T_worl
     ``W⁻¹ + H_pose Σ H_poseᵀ``, whose inverse (Woodbury) is ``W - W H_pose K H_poseᵀ W`` with
     ``K = (Σ⁻¹ + H_poseᵀ W H_pose)⁻¹``; ``K H_poseᵀ W r`` is the error ``e`` that best explains
     residuals ``r``. ``Σ⁻¹`` in closed form (its Schur complement on the rotation block is
-    ``σ_t² I``): ``[[I, D], [Dᵀ, σ_t²/σ_φ² I + DᵀD]] / σ_t²`` with ``D = [p - c]×``. All sets of one
+    ``σ_t² I``): ``[[I, D], [Dᵀ, σ_t²/σ_φ² I + DᵀD]] / σ_t²`` with ``D = [p - c]×``. A scale error
+    ``s`` of the camera (its focal length off by that fraction, ``camera_scale_sigma``) moves the body
+    along the camera's optical axis ``z`` by ``s`` times its depth: ``Σ`` gains ``σ_s² u uᵀ`` with
+    ``u = [z (z · (p - c)); 0]``, taken into ``Σ⁻¹`` by Sherman-Morrison. All sets of one
     update come from one camera (one frame); with several cameras the first's centre is used."""
     sigma_t, sigma_phi = params.camera_position_sigma_m, math.radians(params.camera_rotation_sigma_deg)
     if sigma_t <= 0.0 or sigma_phi <= 0.0 or not sets:
@@ -348,8 +357,14 @@ def calibration_discount(params: FilterParams, sets: Sequence[CornerSet], T_worl
     sigma_inv[:3, 3:] = D
     sigma_inv[3:, :3] = D.T
     sigma_inv[3:, 3:] = D.T @ D + (sigma_t / sigma_phi) ** 2 * _EYE3
+    sigma_inv /= sigma_t**2
+    if params.camera_scale_sigma > 0.0:  # + σ_s² u uᵀ, u = [z_cam · depth; 0]: Sherman-Morrison
+        u = np.zeros(6)
+        u[:3] = T_cw[2, :3] * float(T_cw[2, :3] @ d)
+        v = sigma_inv @ u
+        sigma_inv -= np.outer(v, v) * (params.camera_scale_sigma**2 / (1.0 + params.camera_scale_sigma**2 * (u @ v)))
     try:
-        return inverse(sigma_inv / sigma_t**2 + info_pose)
+        return inverse(sigma_inv + info_pose)
     except np.linalg.LinAlgError:
         return None
 
