@@ -33,26 +33,48 @@ BUMP_STEP_M = 0.02
 BUMP_TURN_DEG = 1.0
 
 
-def scene(work: Path, cameras: int, seed: int, duration_s: float, bump_camera: int, bump_at_s: float,
-          bumped: bool) -> Path:
-    """Render (once) a realistic session; the unbumped twin has no calibration recording (it is the same)."""
+@dataclasses.dataclass(frozen=True)
+class Moves:
+    """What happens to the cameras in a scene: bumped cameras (numbers) and when (s after the
+    start), 2 cm / 1 deg each; a drifting camera (0: none) and its rate (mm per minute)."""
+
+    bump_cameras: tuple[int, ...] = ()
+    bump_at_s: tuple[float, ...] = ()
+    drift_camera: int = 0
+    drift_mm_per_min: float = 0.0
+
+    @property
+    def name(self) -> str:
+        bumps = "_".join(f"bump{c}at{t:g}" for c, t in zip(self.bump_cameras, self.bump_at_s, strict=True))
+        drift = f"drift{self.drift_camera}at{self.drift_mm_per_min:g}" if self.drift_camera else ""
+        return "_".join(part for part in (bumps, drift) if part) or "still"
+
+
+def scene(work: Path, cameras: int, seed: int, duration_s: float, moves: Moves, calibration: bool = True) -> Path:
+    """Render (once) a realistic session; without ``calibration`` (an unbumped twin: its calibration
+    recording would be the bumped session's) no calibration recording."""
     from cubetrack.simulate import SimulationParams, simulate
 
-    name = f"c{cameras}_s{seed}_d{duration_s:g}_" + (f"bump{bump_camera}at{bump_at_s:g}" if bumped else "still")
-    rec = work / name
+    rec = work / f"c{cameras}_s{seed}_d{duration_s:g}_{moves.name}{'' if calibration else '_nocal'}"
     if (rec / "done").exists():
         return rec
-    changes = {"bump_camera": (bump_camera,), "bump_at_s": (bump_at_s,), "bump_step_m": BUMP_STEP_M,
-               "bump_turn_deg": BUMP_TURN_DEG} if bumped else {"calibration_frames": 0}
+    changes: dict = {"bump_camera": moves.bump_cameras, "bump_at_s": moves.bump_at_s, "bump_step_m": BUMP_STEP_M,
+                     "bump_turn_deg": BUMP_TURN_DEG, "drift_camera": moves.drift_camera,
+                     "drift_mm_per_min": moves.drift_mm_per_min}
+    if not calibration:
+        changes["calibration_frames"] = 0
     params = SimulationParams.realistic(cameras=cameras, seed=seed, duration_s=duration_s, **changes)
     simulate(params, rec, overwrite=True, workers=min(4, os.cpu_count() or 1))
     (rec / "done").write_text("", encoding="utf-8")
     return rec
 
 
-def replay(rec: Path, extrinsics: dict, watch: bool, config_path: Path | None = None) -> tuple[list, list, float]:
+def replay(rec: Path, extrinsics: dict, watch: bool, config_path: Path | None = None,
+           camera: str | None = None) -> dict:
     """Replay a recording through a Tracker (frames and /time round trips in arrival order);
-    returns its poses, the watcher's events and the CPU seconds it took."""
+    returns its ``poses``, the watcher's ``events`` and ``stats``, the ``cpu_s`` it took and, for
+    ``camera``, ``camera_poses``: (host time, the pose the fusion uses, the watcher's settled pose
+    or None) every 5 s."""
     from cubetrack.app.track import recording_intrinsics
     from cubetrack.app.tracker import StageParams, Tracker
     from cubetrack.calib.recalibrate import WatchedFusion
@@ -66,18 +88,23 @@ def replay(rec: Path, extrinsics: dict, watch: bool, config_path: Path | None = 
     synced = frozenset(c for c in recording.camera_names if recording.clock_samples(c))
     tracker = Tracker(recording_intrinsics(config, recording), config.world, config.robots, extrinsics, params,
                       synced)
+    fusion = tracker.fusion if isinstance(tracker.fusion, WatchedFusion) else None
     trips = sorted(((s.host_recv_s, c, s) for c in recording.camera_names for s in recording.clock_samples(c)),
                    key=lambda item: (item[0], item[1]))
-    poses, k = [], 0
+    poses, k, camera_poses, next_s = [], 0, [], -math.inf
     c0 = time.process_time()
     for frame in recording.merged_frames():
         while k < len(trips) and trips[k][0] <= frame.host_time_s:
             poses += tracker.add_clock_sample(trips[k][1], trips[k][2])
             k += 1
         poses += tracker.process(frame)
+        if fusion is not None and camera is not None and frame.host_time_s >= next_s:
+            next_s = frame.host_time_s + 5.0
+            camera_poses.append((frame.host_time_s, fusion.watch.T_world_cam[camera].copy(),
+                                 fusion.watch.settled.get(camera)))
     poses += tracker.finish()
-    events = list(tracker.fusion.events) if isinstance(tracker.fusion, WatchedFusion) else []
-    return poses, events, time.process_time() - c0
+    return {"poses": poses, "events": list(fusion.events) if fusion else [], "cpu_s": time.process_time() - c0,
+            "stats": {**fusion.stats, **fusion.watch.stats} if fusion else {}, "camera_poses": camera_poses}
 
 
 def errors_m(poses: list, rec: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -93,69 +120,118 @@ def errors_m(poses: list, rec: Path) -> tuple[np.ndarray, np.ndarray]:
     return times, err
 
 
-def new_pose_error(rec: Path, camera: str, T_world_cam: np.ndarray) -> tuple[float, float]:
-    """The re-calibrated pose against the camera's true pose at the end of the session (m, deg)."""
-    from cubetrack.core.geometry import R_from_quat_xyzw, rotation_angle
+def true_camera_pose(rec: Path, camera: str, time_s: float | None = None) -> np.ndarray:
+    """The camera's true pose at host time ``time_s`` (the nearest sample; None: the session's end)."""
+    from cubetrack.core.geometry import T_from_position_quat
     from cubetrack.io.trajectory import read_tum
 
     truth = read_tum(rec / "true_camera_poses" / f"{camera}.tum")
-    return (float(np.linalg.norm(truth.positions_m[-1] - T_world_cam[:3, 3])),
-            rotation_angle(R_from_quat_xyzw(truth.quats_xyzw[-1]), T_world_cam[:3, :3], unit="deg"))
+    i = len(truth.times_s) - 1 if time_s is None else int(np.argmin(np.abs(truth.times_s - time_s)))
+    return T_from_position_quat(truth.positions_m[i], truth.quats_xyzw[i])
+
+
+def pose_error(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
+    """Distance (m) and angle (deg) between two camera poses."""
+    from cubetrack.core.geometry import rotation_angle
+
+    return float(np.linalg.norm(T_a[:3, 3] - T_b[:3, 3])), rotation_angle(T_a[:3, :3], T_b[:3, :3], unit="deg")
 
 
 def rmse(err: np.ndarray) -> float:
     return float(np.sqrt(np.mean(err**2))) if len(err) else math.nan
 
 
-def run_scene(work: Path, cameras: int, seed: int, duration_s: float, bump_camera: int, bump_at_s: float,
-              still: bool = True) -> dict:
-    """One scene's replays (see the module doc); ``still``: also render and replay the unbumped twin
-    (doubles the rendering; without it there is no RMSE ratio nor false-alarm count)."""
+def bump_rows(rec: Path, events: list, moves: Moves, start: float) -> dict:
+    """Per bumped camera: moved declared and rejoined (s after its bump), the new pose's error."""
+    out = {}
+    for number, at_s in zip(moves.bump_cameras, moves.bump_at_s, strict=True):
+        camera = f"cam{number}"
+        moved = [e for e in events if e.kind.value == "moved" and e.camera == camera]
+        rejoined = [e for e in events if e.kind.value == "rejoined" and e.camera == camera]
+        row: dict = {"moved_after_s": moved[0].time_s - start - at_s if moved else None,
+                     "rejoined_after_s": rejoined[0].time_s - start - at_s if rejoined else None}
+        if rejoined:
+            row["new_pose_error"] = pose_error(true_camera_pose(rec, camera), rejoined[0].T_world_cam)
+            row["sightings"] = rejoined[0].sightings
+        out[camera] = row
+    return out
+
+
+def drift_rows(rec: Path, camera: str, camera_poses: list, start: float) -> list:
+    """The drifting camera every 5 s: seconds after the start, the error (mm) of the pose the
+    fusion uses and of the watcher's settled pose against its true pose then."""
+    rows = []
+    for t, in_use, settled in camera_poses:
+        truth = true_camera_pose(rec, camera, t)
+        rows.append((round(t - start, 1), round(1000 * pose_error(in_use, truth)[0], 2),
+                     None if settled is None else round(1000 * pose_error(settled, truth)[0], 2)))
+    return rows
+
+
+def run_scene(work: Path, cameras: int, seed: int, duration_s: float, moves: Moves, still: bool = True) -> dict:
+    """One scene's replays (see the module doc). An unmoved scene (``--long``) is replayed watched
+    and unwatched; a scene with moves also, with ``still``, its unmoved twin (doubles the rendering;
+    without it there is no RMSE ratio nor false-alarm count on the twin)."""
     from cubetrack.app.calibrate import calibrate_recording
     from cubetrack.io.config import read_tracker_config
     from cubetrack.io.recording import Recording
 
-    bumped_rec = scene(work, cameras, seed, duration_s, bump_camera, bump_at_s, True)
-    still_rec = scene(work, cameras, seed, duration_s, bump_camera, bump_at_s, False) if still else None
-    config = read_tracker_config(bumped_rec / "config.toml")
-    extrinsics = calibrate_recording(config, Recording.open(bumped_rec / "calibration")).extrinsics
-    start = float(read_tracker_start(bumped_rec))
-    camera = f"cam{bump_camera}"
-    out: dict = {"cameras": cameras, "seed": seed, "duration_s": duration_s, "bump": f"{camera} at {bump_at_s:g} s"}
-    runs = [("watched", bumped_rec, True), ("unwatched", bumped_rec, False)]
+    moved_rec = scene(work, cameras, seed, duration_s, moves)
+    still_rec = scene(work, cameras, seed, duration_s, Moves(), False) if still and moves != Moves() else None
+    config = read_tracker_config(moved_rec / "config.toml")
+    extrinsics = calibrate_recording(config, Recording.open(moved_rec / "calibration")).extrinsics
+    start = float(read_tracker_start(moved_rec))
+    first_move_s = min(moves.bump_at_s, default=duration_s)
+    drifting = f"cam{moves.drift_camera}" if moves.drift_camera else None
+    bumped = {f"cam{c}" for c in moves.bump_cameras} | ({drifting} if drifting else set())
+    out: dict = {"cameras": cameras, "seed": seed, "duration_s": duration_s, "moves": moves.name}
+    runs = [("watched", moved_rec, True), ("unwatched", moved_rec, False)]
     if still_rec is not None:
         runs += [("still", still_rec, True), ("still_unwatched", still_rec, False)]
     for key, rec, watch in runs:
-        poses, events, cpu_s = replay(rec, extrinsics, watch)
-        times, err = errors_m(poses, rec)
-        row: dict = {"rmse_m": rmse(err), "max_m": float(err.max()), "poses": len(err), "cpu_s": cpu_s,
-                     "events": [(e.kind.value, e.camera, round(e.time_s - start, 2)) for e in events]}
+        run = replay(rec, extrinsics, watch, camera=drifting)
+        times, err = errors_m(run["poses"], rec)
+        after = times - start >= first_move_s
+        row: dict = {"rmse_m": rmse(err), "max_m": float(err.max()), "poses": len(err), "cpu_s": run["cpu_s"],
+                     "max_before_m": float(err[~after].max()) if (~after).any() else math.nan,
+                     "max_after_m": float(err[after].max()) if after.any() else math.nan,
+                     "events": [(e.kind.value, e.camera, round(e.time_s - start, 2)) for e in run["events"]],
+                     "suspect": run["stats"].get("suspect", 0),
+                     "suspect_sightings": run["stats"].get("suspect sighting", 0),
+                     "false_alarms": [e.camera for e in run["events"] if e.kind.value == "moved"
+                                      and (key.startswith("still") or e.camera not in bumped)]}
         if key == "watched":
-            moved = [e for e in events if e.kind.value == "moved" and e.camera == camera]
-            rejoined = [e for e in events if e.kind.value == "rejoined" and e.camera == camera]
-            row["moved_after_s"] = moved[0].time_s - start - bump_at_s if moved else None
-            row["rejoined_after_s"] = rejoined[0].time_s - start - bump_at_s if rejoined else None
-            if rejoined:
-                row["new_pose_error"] = new_pose_error(rec, camera, rejoined[0].T_world_cam)
-                row["sightings"] = rejoined[0].sightings
-            row["false_alarms"] = [e.camera for e in events if e.kind.value == "moved" and e.camera != camera]
+            row["bumps"] = bump_rows(rec, run["events"], moves, start)
+            if drifting:
+                row["drift"] = drift_rows(rec, drifting, run["camera_poses"], start)
         out[key] = row
-    out["rmse_ratio"] = out["watched"]["rmse_m"] / out["still_unwatched"]["rmse_m"] if still_rec else math.nan
+    base = out["still_unwatched"] if still_rec is not None else out["unwatched"]
+    out["rmse_ratio"] = out["watched"]["rmse_m"] / base["rmse_m"]
     return out
 
 
 def real_footage(work: Path) -> dict:
     """The caliscope-4cam footage imported as benchmarks/real_footage.py does, replayed with the
-    watching on: its events (there should be none: nobody bumped those cameras)."""
+    watching on and off: its events (there should be none: nobody bumped those cameras), and how
+    far the watched poses are from the unwatched ones (there is no ground truth)."""
     from cubetrack.app.import_rig import import_caliscope
     from cubetrack.io.config import read_extrinsics
 
     data = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "real" / "caliscope-4cam"
     if not (work / "config.toml").exists():
         import_caliscope(data, work)
-    poses, events, cpu_s = replay(work / "recording", read_extrinsics(work / "extrinsics.toml"), True,
-                                  work / "config.toml")
-    return {"poses": len(poses), "events": [(e.kind.value, e.camera, e.time_s) for e in events], "cpu_s": cpu_s}
+    extrinsics = read_extrinsics(work / "extrinsics.toml")
+    on = replay(work / "recording", extrinsics, True, work / "config.toml")
+    off = replay(work / "recording", extrinsics, False, work / "config.toml")
+    a = {(p.robot, round(p.time_s, 4)): p.position_m for p in on["poses"] if not p.predicted}
+    b = {(p.robot, round(p.time_s, 4)): p.position_m for p in off["poses"] if not p.predicted}
+    common = sorted(set(a) & set(b))
+    apart = np.array([np.linalg.norm(np.subtract(a[k], b[k])) for k in common])
+    return {"poses": len(on["poses"]), "events": [(e.kind.value, e.camera, e.time_s) for e in on["events"]],
+            "suspect": on["stats"].get("suspect", 0), "suspect_sightings": on["stats"].get("suspect sighting", 0),
+            "checked": on["stats"].get("checked", 0), "cpu_s": on["cpu_s"], "poses_compared": len(common),
+            "on_vs_off_median_mm": 1000 * float(np.median(apart)) if len(apart) else math.nan,
+            "on_vs_off_max_mm": 1000 * float(apart.max()) if len(apart) else math.nan}
 
 
 def read_tracker_start(rec: Path) -> float:
@@ -172,32 +248,56 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--cameras", type=int, nargs="+", default=[3], help="camera counts (default: 3)")
     parser.add_argument("--seeds", type=int, nargs="+", default=[31], help="scene seeds (default: 31)")
     parser.add_argument("--duration", type=float, default=50.0, help="session length, seconds (default: 50)")
-    parser.add_argument("--bump-camera", type=int, default=2, help="the camera bumped (default: 2)")
-    parser.add_argument("--bump-at", type=float, default=20.0, help="when, seconds after the start (default: 20)")
+    parser.add_argument("--bump-camera", type=int, nargs="*", default=[2],
+                        help="the cameras bumped, 2 cm / 1 deg each (default: 2; none: no bump)")
+    parser.add_argument("--bump-at", type=float, nargs="*", default=[20.0],
+                        help="when, seconds after the start, one per bumped camera (default: 20)")
+    parser.add_argument("--drift-camera", type=int, default=0, help="a camera drifting from the start (default: none)")
+    parser.add_argument("--drift-mm-per-min", type=float, default=2.0, help="its drift, mm per minute (default: 2)")
+    parser.add_argument("--long", action="store_true",
+                        help="no bump, no drift: --duration 600 unless given (10 minutes), the false-alarm run")
     parser.add_argument("--report", type=Path, default=None, help="write the JSON report here")
     parser.add_argument("--no-still", action="store_true", help="skip the unbumped twin (half the rendering)")
     parser.add_argument("--real", action="store_true", help="also replay the caliscope-4cam real footage watched")
     args = parser.parse_args(argv)
+    if args.long:
+        args.bump_camera, args.bump_at, args.drift_camera = [], [], 0
+        if "--duration" not in (argv if argv is not None else sys.argv[1:]):
+            args.duration = 600.0
+    if len(args.bump_camera) != len(args.bump_at):
+        parser.error(f"--bump-at needs one time per bumped camera ({len(args.bump_camera)}), got {len(args.bump_at)}")
+    moves = Moves(tuple(args.bump_camera), tuple(args.bump_at), args.drift_camera,
+                  args.drift_mm_per_min if args.drift_camera else 0.0)
     args.work.mkdir(parents=True, exist_ok=True)
     if args.real:
         print("real footage (caliscope-4cam), watched:", real_footage(args.work / "caliscope-4cam"), flush=True)
     rows = []
     for cameras in args.cameras:
         for seed in args.seeds:
-            rows.append(run_scene(args.work, cameras, seed, args.duration, args.bump_camera, args.bump_at,
-                                  not args.no_still))
+            rows.append(run_scene(args.work, cameras, seed, args.duration, moves, not args.no_still))
             print(json.dumps(rows[-1], indent=1, default=float), flush=True)
-    print(f"\n{os.cpu_count()} cores, load {os.getloadavg()[0]:.1f}")
-    print("cams seed  moved after  rejoined after  new pose error   max err  RMSE watched/still  still: alarms")
-    for r in rows:
-        w = r["watched"]
-        pose_err = w.get("new_pose_error")
-        print(f"{r['cameras']:4d} {r['seed']:4d}  {_s(w['moved_after_s']):>11}  {_s(w['rejoined_after_s']):>14}  "
-              f"{_pose(pose_err):>14}  {100 * w['max_m']:6.1f} cm  {r['rmse_ratio']:18.3f}  "
-              f"{len([e for e in r['still']['events'] if e[0] == 'moved']) if 'still' in r else '-'}")
+    print_table(rows)
     if args.report:
         args.report.write_text(json.dumps(rows, indent=1, default=float), encoding="utf-8")
     return 0
+
+
+def print_table(rows: list[dict]) -> None:
+    print(f"\n{os.cpu_count()} cores, load {os.getloadavg()[0]:.1f}")
+    print("cams seed moves              camera  moved after  rejoined after  new pose error    max err (before/after "
+          "the first move)  RMSE watched/base  alarms (still)")
+    for r in rows:
+        w = r["watched"]
+        alarms = f"{len(w['false_alarms'])} ({len(r['still']['false_alarms']) if 'still' in r else '-'})"
+        head = (f"{r['cameras']:4d} {r['seed']:4d} {r['moves']:<18} ")
+        tail = (f"{100 * w['max_before_m']:5.1f} / {100 * w['max_after_m']:5.1f} cm"
+                f"{r['rmse_ratio']:27.3f}  {alarms}")
+        for camera, b in (w.get("bumps") or {"-": {}}).items():
+            print(f"{head}{camera:>6}  {_s(b.get('moved_after_s')):>11}  {_s(b.get('rejoined_after_s')):>14}  "
+                  f"{_pose(b.get('new_pose_error')):>16}  {tail}")
+        for t, in_use, settled in w.get("drift", []):
+            print(f"    drift at {t:6.1f} s: pose in use {in_use:6.2f} mm off, settled pose "
+                  f"{'-' if settled is None else f'{settled:.2f} mm'} off")
 
 
 def _s(value: float | None) -> str:

@@ -35,6 +35,7 @@ from cubetrack.fuse.base import Fusion
 from cubetrack.fuse.camera_watch import (
     VELOCITY_SIGMA,
     CameraFit,
+    CameraState,
     CameraWatch,
     WatchEvent,
     WatchParams,
@@ -178,8 +179,15 @@ class WatchedFusion:
         for event in self.watch.add(sighting):
             self._tell(event)
         self._start(now_s)
+        state = self.watch.state.get(sighting.camera)
+        if state is CameraState.SUSPECT:
+            self.stats["suspect sighting"] += 1
+            return []
         if self.watch.excluded(sighting.camera):
             self.stats["set-aside sighting"] += 1
+            return []
+        predicted = self.fusion.predicted_pose(sighting.robot, sighting.capture_time_s)
+        if predicted is not None and self.watch.off_prediction(sighting, predicted):
             return []
         return self.fusion.add(sighting, now_s)
 

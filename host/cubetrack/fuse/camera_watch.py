@@ -27,8 +27,21 @@ rejoining). The camera is **moved** when
   by more than half ``moved_px`` (median corner residual: a consistent offset, not a few bad
   references).
 
+Until it is declared, a bumped camera would pull the fused pose towards its own for the seconds
+its window takes; so each checked sighting is also judged on its own (:meth:`CameraWatch._judge`):
+a camera whose last ``suspect_samples`` samples each miss the other cameras' cube pose by more
+than ``suspect_px`` (median corner residual at its settled pose), and which disagreed most with
+the others in the recent reference fits, is **suspect**: out of the fusion and no one's reference,
+still checked, until as many samples in a row agree again or it is declared moved (at least
+``reference_cameras`` others stay in use).
+And since a check waits for the other cameras' sightings around it, the very first sightings
+after a bump come before any check: :meth:`CameraWatch.off_prediction` holds a sighting out of
+the fusion when it misses the fused prediction by more than ``gate_prediction_px`` and
+``gate_prediction_ratio`` times more than every other camera's latest sighting.
+
 A moved camera spoils the references it takes part in, so its partners' windows shift too (with
-three cameras, about as much as its own). Of the cameras whose window says moved, the one declared
+three cameras, about as much as its own). A suspect camera whose window says moved is declared;
+otherwise, of the cameras whose window says moved, the one declared
 is the one that disagreed most with the others inside the reference fits it took part in over the
 window (the median corner residual of its sets there); if that camera's own window does not say
 moved, none is declared yet. Then every camera's window restarts. A moved camera is set aside
@@ -43,6 +56,7 @@ run in the background).
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 import math
 from collections import Counter, deque
@@ -51,7 +65,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cubetrack.core.geometry import rotation_angle, so3_left_jacobian, transform_points
+from cubetrack.core.geometry import invert_T, rotation_angle, so3_left_jacobian, transform_points
 from cubetrack.core.layout import CubeLayout
 from cubetrack.core.params import check, check_at_least, check_positive, param
 from cubetrack.core.records import CubeSighting
@@ -100,13 +114,23 @@ class WatchParams:
     corner_noise_px: float = param(0.5, "corner noise the fits assume (scales their uncertainty), pixels")
     gate_px: float = param(12.0, "a sighting's detections are matched to faces within this of where its own "
                                  "camera's cube pose projects them, pixels")
+    suspect_px: float = param(4.0, "suspect: a camera's last suspect_samples checked sightings each miss the other "
+                                   "cameras' cube pose by more than this (median corner residual at its settled "
+                                   "pose), pixels; a suspect camera leaves the fusion until it agrees again")
+    suspect_samples: int = param(2, "checked sightings in a row that make a camera suspect, or clear it")
+    gate_prediction_px: float = param(3.0, "a watched camera's sighting is held out of the fusion when it misses the "
+                                           "fused prediction by more than this (median corner residual at its "
+                                           "settled pose) and gate_prediction_ratio times more than any other "
+                                           "camera's latest sighting, pixels; 0: never")
+    gate_prediction_ratio: float = param(4.0, "... see gate_prediction_px")
 
     def __post_init__(self) -> None:
+        check_at_least(self, 0, "gate_prediction_px")
         check_positive(self, "baseline_s", "baseline_every_s", "samples_per_s", "reference_span_s",
                        "reference_rms_px", "window_s", "check_every_s", "moved_px", "moved_ratio", "moved_m",
                        "moved_deg", "rejoin_sigma_m", "rejoin_sigma_deg", "rejoin_agree_m", "rejoin_agree_deg",
-                       "corner_noise_px", "gate_px")
-        check_at_least(self, 1, "reference_cameras")
+                       "corner_noise_px", "gate_px", "suspect_px", "gate_prediction_ratio")
+        check_at_least(self, 1, "reference_cameras", "suspect_samples")
         check_at_least(self, 0, "rejoin_rounds")
         check_at_least(self, 6, "min_points", "rejoin_points")
         check(self.check_every_s <= self.window_s,
@@ -118,6 +142,7 @@ class WatchParams:
 @enum.unique
 class CameraState(enum.Enum):
     WATCHED = "watched"  # in the fusion, checked against the others
+    SUSPECT = "suspect"  # disagrees with the others right now: out of the fusion, still checked and judged
     RECALIBRATING = "re-calibrating"  # moved: set aside, its sightings gathered for a new pose
 
 
@@ -352,6 +377,8 @@ class CameraWatch:
         self.settled: dict[str, np.ndarray] = {}
         self._next_baseline_s = -math.inf
         self._disagreement: dict[str, deque[tuple[float, float]]] = {c: deque() for c in T_world_cams}
+        self._misses: dict[str, deque[float]] = {c: deque(maxlen=params.suspect_samples) for c in T_world_cams}
+        self._off_prediction: dict[str, dict[str, tuple[float, float]]] = {r: {} for r in layouts}
         self.events: list[WatchEvent] = []
         self.stats: Counter[str] = Counter()
         self._recent: dict[str, deque[CubeSighting]] = {r: deque() for r in layouts}
@@ -362,8 +389,35 @@ class CameraWatch:
         self._next_check_s = -math.inf
 
     def excluded(self, camera: str) -> bool:
-        """Whether the camera's sightings must stay out of the fusion (it moved and has not rejoined)."""
+        """Whether the camera's sightings must stay out of the fusion (and serve nobody as a
+        reference): it is suspect, or it moved and has not rejoined."""
         return self.state.get(camera, CameraState.WATCHED) is not CameraState.WATCHED
+
+    def off_prediction(self, sighting: CubeSighting, T_world_cube: np.ndarray) -> bool:
+        """Whether a watched camera's sighting must be held out of the fusion: it misses the
+        fused prediction ``T_world_cube`` (at its capture time) by more than ``gate_prediction_px``
+        (median corner residual at the camera's settled pose), and ``gate_prediction_ratio`` times
+        more than the latest sighting of any other camera in use (within ``window_s``; at least
+        ``reference_cameras`` of them). The first sightings after a bump come before any check can judge them (a
+        check waits for the other cameras' sightings around it); this keeps them out."""
+        p = self.params
+        settled = self.settled.get(sighting.camera)
+        if p.gate_prediction_px <= 0 or settled is None or sighting.robot not in self.layouts:
+            return False
+        sets = [dataclasses.replace(s, T_cam_world=invert_T(settled)) for s in self._corner_sets(sighting)[1]]
+        if not sets:
+            return False
+        residual = reprojection_residuals_px(T_world_cube, sets, sighting.capture_time_s).reshape(-1, 2)
+        miss = float(np.median(np.linalg.norm(residual, axis=1)))
+        latest = self._off_prediction[sighting.robot]
+        latest[sighting.camera] = (sighting.capture_time_s, miss)
+        if miss <= p.gate_prediction_px:
+            return False
+        others = [m for c, (t, m) in latest.items() if c != sighting.camera and not self.excluded(c)
+                  and t >= sighting.capture_time_s - p.window_s]
+        held = len(others) >= p.reference_cameras and miss > p.gate_prediction_ratio * max(others)
+        self.stats["held off the prediction"] += held
+        return held
 
     def points(self, camera: str) -> int:
         """Corners the camera's samples hold (a re-calibrating camera's progress towards ``rejoin_points``)."""
@@ -395,6 +449,7 @@ class CameraWatch:
             sample = self._sample(self._pending.popleft())
             if sample is not None:
                 self.samples[sample.camera].append(sample)
+                self._judge(sample)
         if self._newest_s < self._next_check_s:
             return []
         self._next_check_s = self._newest_s + self.params.check_every_s
@@ -423,7 +478,7 @@ class CameraWatch:
         if baseline:
             self._next_baseline_s = now_s + p.baseline_every_s
         for camera, samples in self.samples.items():
-            if self.state[camera] is not CameraState.WATCHED:
+            if self.state[camera] is CameraState.RECALIBRATING:
                 continue
             while samples and samples[0].time_s < now_s - p.window_s - p.baseline_s:
                 samples.popleft()
@@ -440,8 +495,11 @@ class CameraWatch:
             return []
         camera, verdict = worst
         window = [s for s in self.samples[camera] if s.time_s >= now_s - p.window_s]
-        for samples in self.samples.values():
+        for other, samples in self.samples.items():
             samples.clear()
+            self._misses[other].clear()
+            if self.state[other] is CameraState.SUSPECT:
+                self.state[other] = CameraState.WATCHED
         self.samples[camera].extend(window[len(window) // 2:])  # the newer half: after the move
         self.state[camera] = CameraState.RECALIBRATING
         self.moved_pose[camera] = self.settled.pop(camera)
@@ -460,10 +518,43 @@ class CameraWatch:
         moved = [c for c, v in verdicts.items() if v.moved]
         if not moved:
             return None
+        suspects = [c for c in moved if self.state[c] is CameraState.SUSPECT]
+        if suspects:  # named by its disagreement when it became suspect; no one's reference since
+            top = max(suspects, key=lambda c: verdicts[c].shift_px)
+            return top, verdicts[top]
         score = {c: float(np.median([d for _, d in self._disagreement[c]])) if self._disagreement[c] else 0.0
                  for c in verdicts}
         top = max(score, key=lambda c: score[c])
         return (top, verdicts[top]) if top in moved else None
+
+    def _judge(self, sample: WatchSample) -> None:
+        """Make the sample's camera suspect, or clear it: its last ``suspect_samples`` samples all
+        miss the other cameras' cube pose by more than ``suspect_px`` at its settled pose, and it is
+        the camera that disagreed most with the others in the recent reference fits (a suspect
+        spoils its partners' references too); cleared once as many in a row are within
+        ``suspect_px``. At least ``reference_cameras`` others must stay in use."""
+        camera, p = sample.camera, self.params
+        settled = self.settled.get(camera)
+        if settled is None or self.state[camera] is CameraState.RECALIBRATING:
+            return
+        misses = self._misses[camera]
+        residual = residuals_px(settled, sample.points_world_m, sample.normalized, sample.focal_px)
+        misses.append(float(np.median(np.linalg.norm(residual, axis=1))))
+        if len(misses) < p.suspect_samples:
+            return
+        if self.state[camera] is CameraState.SUSPECT:
+            self.stats["checked while suspect"] += 1
+            if max(misses) <= p.suspect_px:
+                self.state[camera] = CameraState.WATCHED
+            return
+        in_use = [c for c, s in self.state.items() if s is CameraState.WATCHED]
+        if min(misses) <= p.suspect_px or len(in_use) - 1 < p.reference_cameras:
+            return
+        since_s = sample.time_s - p.suspect_samples / p.samples_per_s - p.reference_span_s
+        score = {c: float(np.median([d for t, d in self._disagreement[c] if t >= since_s] or [0.0])) for c in in_use}
+        if score[camera] > 0.0 and max(score, key=lambda c: score[c]) == camera:
+            self.state[camera] = CameraState.SUSPECT
+            self.stats["suspect"] += 1
 
     def _settle(self, camera: str, samples: Sequence[WatchSample]) -> None:
         """Fit the camera's settled pose to its samples before the window, given enough of them."""

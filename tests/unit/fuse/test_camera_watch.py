@@ -18,7 +18,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 from test_joint_and_filter import CAMS, INTR, LAYOUT, detections, look_at
 
-from cubetrack.calib.recalibrate import WatchedFusion, recalibrate
+from cubetrack.calib.recalibrate import WatchedFusion
 from cubetrack.core.geometry import make_T, rotation_angle
 from cubetrack.core.records import CubeSighting
 from cubetrack.estimate.pose import estimate_cube
@@ -81,10 +81,25 @@ def bump_session():
 def test_a_bumped_camera_is_declared_moved_within_seconds_and_no_other(bump_session):
     moved, seen = bump_session
     watch = CameraWatch({"bot": LAYOUT}, CAMERAS, WatchParams(enabled=True))
-    events = [e for s in seen if s.capture_time_s < 20.0 for e in watch.add(s)]
+    events, suspect_at = [], {}
+    held: dict[str, list[tuple[float, bool]]] = {c: [] for c in CAMERAS}
+    for s in seen:
+        if s.capture_time_s >= 20.0:
+            break
+        events += watch.add(s)
+        if 8.0 <= s.capture_time_s < 10.5:  # as WatchedFusion asks, with a perfect prediction
+            held[s.camera].append((s.capture_time_s, watch.off_prediction(s, cube_at(s.capture_time_s))))
+        for camera, state in watch.state.items():
+            if state is CameraState.SUSPECT:
+                suspect_at.setdefault(camera, s.capture_time_s)
     assert [(e.kind, e.camera) for e in events] == [(EventKind.MOVED, "cam2")]
     (event,) = events
     assert 10.0 < event.time_s < 13.0, event.time_s
+    # suspect (out of the fusion) within a second of the bump, before it is declared; no other camera
+    assert list(suspect_at) == ["cam2"] and 10.0 < suspect_at["cam2"] < min(11.0, event.time_s), suspect_at
+    # before any check: cam2's sightings after the bump are held off the fusion's prediction, no other
+    assert [t for t, h in held["cam2"] if h] and all(t > 10.0 for t, h in held["cam2"] if h), held["cam2"]
+    assert not any(h for c in ("cam1", "cam3", "cam4") for _, h in held[c])
     assert watch.excluded("cam2") and not watch.excluded("cam1")
     assert watch.state["cam2"] is CameraState.RECALIBRATING
     # the window's refit already knows about where the camera went
@@ -93,27 +108,19 @@ def test_a_bumped_camera_is_declared_moved_within_seconds_and_no_other(bump_sess
     assert watch.stats["checked"] > 100
 
 
-def test_the_moved_camera_is_recalibrated_to_its_new_pose(bump_session):
-    moved, seen = bump_session
-    watch = CameraWatch({"bot": LAYOUT}, CAMERAS, WatchParams(enabled=True))
-    for s in seen:
-        watch.add(s)
-    samples = tuple(watch.samples["cam2"])
-    assert watch.ready() == ["cam2"]
-    result = recalibrate("cam2", samples, watch.events[0].T_world_cam, watch.params)
-    assert result is not None and result.consistent
-    step, turn = _offset(result.fit.T_world_cam, moved)
-    assert step < 0.005 and turn < 0.15, (step, turn)
-
-
 def test_the_fusion_keeps_the_moved_camera_out_then_takes_it_back_at_its_new_pose(bump_session):
     moved, seen = bump_session
     executor = ThreadExecutor()  # as live (cubetrack.app.watch_log): the refit on another thread
     fused = WatchedFusion(FilterFusion({"bot": LAYOUT}), {"bot": LAYOUT}, CAMERAS, WatchParams(enabled=True),
                           executor=executor)
     used: list[tuple[float, tuple[str, ...]]] = []  # each pose's time and the cameras it used
+    suspect_from = math.inf  # when cam2 first went out of the fusion as suspect
     for s in seen:
         used += [(pose.time_s, pose.cameras) for pose in fused.add(s, s.arrival_time_s)]
+        if fused.watch.state["cam2"] is CameraState.SUSPECT:
+            suspect_from = min(suspect_from, s.capture_time_s)
+        if len(fused.events) == 2 and s.capture_time_s > fused.events[1].time_s + 6.0:
+            break  # enough poses after the rejoin (the rest of the session only costs time)
         assert not fused._running or fused.watch.excluded("cam2")  # a refit's result waits for the next call
     assert executor.threads and set(executor.threads) == {"refit"}
     kinds = [(e.kind, e.camera) for e in fused.events]
@@ -123,7 +130,8 @@ def test_the_fusion_keeps_the_moved_camera_out_then_takes_it_back_at_its_new_pos
     step, turn = _offset(fused.watch.T_world_cam["cam2"], moved)
     assert step < 0.005 and turn < 0.15
     # set aside from the moment it was declared moved, and back after rejoining
-    aside = [cameras for t, cameras in used if moved_at + 0.2 < t < rejoined_at]
+    assert 10.0 < suspect_from < min(11.0, moved_at) and fused.stats["suspect sighting"] > 3
+    aside = [cameras for t, cameras in used if suspect_from + 0.2 < t < rejoined_at]
     back = [cameras for t, cameras in used if t > rejoined_at + 0.2]
     assert len(aside) > 30 and not any("cam2" in c for c in aside)
     assert sum("cam2" in c for c in back) > 30
@@ -132,14 +140,16 @@ def test_the_fusion_keeps_the_moved_camera_out_then_takes_it_back_at_its_new_pos
 
 def test_noisy_imperfectly_calibrated_cameras_are_never_declared_moved():
     """Each camera's pose as calibration leaves it (as cubetrack calibrate does on the simulated
-    arena: up to 10 mm and 0.2 deg off, docs/simulation.md), corners with 0.6 px noise, 60 s: no event."""
+    arena: up to 10 mm and 0.2 deg off, docs/simulation.md), corners with 0.6 px noise, 40 s: no
+    event, and a camera is rarely and briefly suspect (the ten-minute sessions are
+    benchmarks/camera_watch.py --long's)."""
     rng = np.random.default_rng(11)
     believed = {c: bumped(T, 0.01, 0.2, rng) for c, T in CAMERAS.items()}
-    seen = sightings(60.0, lambda camera, t: CAMERAS[camera], believed, rng, noise_px=0.6)
+    seen = sightings(40.0, lambda camera, t: CAMERAS[camera], believed, rng, noise_px=0.6)
     watch = CameraWatch({"bot": LAYOUT}, believed, WatchParams(enabled=True))
     events = [e for s in seen for e in watch.add(s)]
-    assert events == []
-    assert watch.stats["checked"] > 1000
+    assert events == [] and watch.stats["suspect"] <= 2
+    assert watch.stats["checked"] > 700 and watch.stats["checked while suspect"] < 0.01 * watch.stats["checked"]
 
 
 def test_with_one_other_camera_the_watcher_says_so_and_waits():
