@@ -278,14 +278,22 @@ def replaced(sightings: list, corners: dict, sigma_px: float, seed: int, params)
     return out
 
 
-def replay(sightings: list, layouts: dict, stage_params, filter_overrides: dict) -> list:
+def replay(sightings: list, layouts: dict, stage_params, filter_overrides: dict, smooth: bool = False) -> list:
+    """The sightings through ``FilterFusion``: its poses as live (causal), or (``smooth``) smoothed
+    over the whole replay as ``cubetrack track --smooth`` does (one robot)."""
     from cubetrack.fuse.fusion import FilterFusion
+    from cubetrack.fuse.smoother import smoothed_poses
 
     fusion = FilterFusion(layouts, stage_params.fusion, dataclasses.replace(stage_params.filter, **filter_overrides))
+    if smooth:
+        fusion.keep_trail()
     poses = []
     for s, now_s in sightings:
         poses += fusion.add(s, now_s)
-    poses += fusion.flush(sightings[-1][1])
+    end_s = sightings[-1][1]
+    poses += fusion.flush(end_s)
+    if smooth:
+        return smoothed_poses(fusion.trail(next(iter(layouts)), end_s), end_s)
     return poses
 
 
@@ -398,6 +406,86 @@ def floor_report(scenes: list[dict], corner_sets: list[str]) -> dict:
     return out
 
 
+# --------------------------------------------------------------------------------- decomposition
+
+# --decompose's rows: which of the tracker's inputs are replaced by the truth (cumulative towards
+# the last row, the filter with nothing left to get wrong: its own floor)
+LADDER = ((), ("body",), ("cameras",), ("body", "cameras"), ("body", "cameras", "stamps"),
+          ("body", "cameras", "stamps", "corners"))
+
+
+def with_truth(sc: dict, truth: Truth, true: tuple[str, ...], start: dict) -> tuple[list, dict]:
+    """The scene's sightings and layouts with the inputs named in ``true`` replaced by the truth:
+    ``body`` the cube as built, ``cameras`` each camera's true pose and intrinsics (lens and readout),
+    ``stamps`` each frame's true capture instant, ``corners`` the oracle's corners; the others
+    as ``start`` has them (``extrinsics``: camera -> T_world_cam or None for the tracker's own,
+    ``layouts``). A sighting that carried a per-camera estimate gets one from what it now has."""
+    from cubetrack.core.geometry import shoelace_area
+    from cubetrack.core.records import Detection
+    from cubetrack.estimate.pose import estimate_cube
+    from cubetrack.io.camera_info import read_camera_info
+    from cubetrack.io.config import read_extrinsics
+
+    rec = sc["rec"]
+    layouts = sc["layout_sets"][TRUE] if "body" in true else start["layouts"]
+    poses = start["extrinsics"]
+    if "cameras" in true:
+        poses = {c: e.T_world_cam for c, e in read_extrinsics(rec / "true_extrinsics.toml").items()}
+        lenses = {c: dataclasses.replace(read_camera_info(rec / "true_camera_info" / f"{c}.yaml"),
+                                         readout_s=truth.cameras[c].readout_s) for c in poses}  # the file has none
+    start_s = truth.params.start_unix_s
+    out = []
+    for k, (s, now_s) in enumerate(sc["sightings"]):
+        change: dict = {}
+        if poses is not None:
+            change["T_world_cam"] = poses[s.camera]
+        if "cameras" in true:
+            change["intrinsics"] = lenses[s.camera]
+        if "stamps" in true:
+            change["capture_time_s"] = start_s + truth.capture_s[(s.camera, s.seq)]
+        if "corners" in true:
+            change["detections"] = tuple(d if c is None else Detection(d.marker_id, c, shoelace_area(c), d.dictionary)
+                                         for d, (c, _) in zip(s.detections, sc["oracle"][k], strict=True))
+        s = dataclasses.replace(s, **change)
+        if s.estimate is not None:
+            s = dataclasses.replace(s, estimate=estimate_cube(
+                s.detections, layouts[s.robot], s.intrinsics, s.T_world_cam, camera=s.camera, robot=s.robot, seq=s.seq,
+                capture_time_s=s.capture_time_s, arrival_time_s=s.arrival_time_s, params=sc["params"].estimator))
+        out.append((s, now_s))
+    return out, layouts
+
+
+def decompose_report(scenes: list[dict], starts: dict[str, dict]) -> dict:
+    """Per start (``starts``: name -> ``extrinsics`` and ``layouts`` the tracker starts from) and
+    scene: the default filter's :func:`score` (causal and smoothed) on each :data:`LADDER` row."""
+    out: dict = {}
+    for sc in scenes:
+        truth = Truth(sc["rec"])
+        for name, start in starts.items():
+            rows = {}
+            for true in LADDER:
+                sightings, layouts = with_truth(sc, truth, true, start(sc) if callable(start) else start)
+                rows[" + ".join(true) or "nothing"] = {
+                    "causal": score(replay(sightings, layouts, sc["params"], {}), sc["truth"]),
+                    "smoothed": score(replay(sightings, layouts, sc["params"], {}, smooth=True), sc["truth"])}
+            out.setdefault(name, {})[sc["name"]] = rows
+            say(f"  decomposition {sc['name']}, {name}: done")
+    return out
+
+
+def workflow_start(sc: dict) -> dict:
+    """The start the README workflow gave a scene (accuracy.py ``--workflow``'s files under the
+    scene's ``track/readme_workflow``: ``calibrate --refine-with``'s extrinsics and body)."""
+    from cubetrack.core.layout import read_layout
+    from cubetrack.io.config import read_extrinsics
+
+    folder = sc["rec"] / "track" / "readme_workflow"
+    robot = next(iter(sc["layouts"]))
+    body = folder / f"extrinsics.{robot}.body.toml"
+    return {"extrinsics": {c: e.T_world_cam for c, e in read_extrinsics(folder / "extrinsics.toml").items()},
+            "layouts": {robot: read_layout(body)} if body.exists() else sc["layouts"]}
+
+
 # --------------------------------------------------------------------------------- report
 
 
@@ -463,6 +551,20 @@ def print_floor(report: dict) -> None:
             print(f"| {scene} | {which} | {cells} | {f['1 marker']['sightings']} / {f['2+ markers']['sightings']} |")
 
 
+def print_decomposition(report: dict) -> None:
+    """The decomposition's table: per start and scene, each ladder row's errors, causal and smoothed."""
+    print("\ndecomposition: the tracker's filter (default settings) with inputs replaced by the truth")
+    print("| start | scene | true | position cm | rotation ° | roll/pitch ° | yaw ° | smoothed: position cm / "
+          "rotation ° |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- |")
+    for start, scenes in report["decomposition"].items():
+        for scene, rows in scenes.items():
+            for true, r in rows.items():
+                c, m = r["causal"], r["smoothed"]
+                print(f"| {start} | {scene} | {true} | {c['pos_cm']:.3f} | {c['rot_deg']:.3f} | "
+                      f"{c['rollpitch_deg']:.3f} | {c['yaw_deg']:.3f} | {m['pos_cm']:.3f} / {m['rot_deg']:.3f} |")
+
+
 def print_report(report: dict) -> None:
     print(f"corner ceiling: {report['scenes']} (load average {report['load']}, {report['cores']} cores)")
     print(f"oracle corners for {report['oracle_matched']} of {report['detections']} detections "
@@ -477,6 +579,8 @@ def print_report(report: dict) -> None:
               f"p90 {t['p90']:.1f} ms over {t['markers']} markers ({t['failed']} failed, edge corners kept)")
     if "floor" in report:
         print_floor(report)
+    if "decomposition" in report:
+        print_decomposition(report)
     print("\n| corners | sigma px | layout | rotation | roll/pitch | yaw | position cm | tuned: rotation / roll-pitch "
           "/ yaw | tuned setting |")
     print("| --- | --- | --- | --- | --- | --- | --- | --- | --- |")
@@ -498,6 +602,11 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                     help="accuracy.py's simulation preset of the scenes")
     ap.add_argument("--floor", action="store_true",
                     help="also the floor: a per-instant fit of each camera frame with the true camera and body")
+    ap.add_argument("--decompose", action="store_true",
+                    help="also replay the tracker's filter with its inputs replaced by the truth, a row per step")
+    ap.add_argument("--workflow", action="store_true",
+                    help="with --decompose: also start from the README workflow's extrinsics and body (accuracy.py "
+                         "--workflow's files in the scene's track/readme_workflow)")
     ap.add_argument("--duration", type=float, default=15.0, help="seconds per scene")
     ap.add_argument("--configs", type=int, nargs="+", default=list(CONFIGS),
                     help="accuracy.py's configuration indices (0-3)")
@@ -599,6 +708,11 @@ def main(argv: list[str] | None = None) -> int:
         report["rows"] += run_rows(scenes, "template fit", "template", 0.0, tune)
     if args.floor:
         report["floor"] = floor_report(scenes, ["edge", "oracle"] + ([] if args.no_template else ["template"]))
+    if args.decompose:
+        starts = {"as tracked": lambda sc: {"extrinsics": None, "layouts": sc["layouts"]}}
+        if args.workflow:
+            starts["README workflow"] = workflow_start
+        report["decomposition"] = decompose_report(scenes, starts)
     report["load_end"] = " ".join(f"{v:.1f}" for v in os.getloadavg())
     print_report(report)
     if args.json:

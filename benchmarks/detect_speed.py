@@ -26,8 +26,11 @@ prints the thread CPU time per frame of each stage (decode, OpenCV's search, the
 the per-camera estimate, planning, fusion; median of rounds), the estimate/ functions the fusion
 calls (in place, then each alone on the calls it made in the first ``--micro-frames`` frames),
 the naive loop on the same frames as the ratio, the frames whose regions were empty (every robot
-predicted out of the camera's view) and what decoding them cost, and whether the poses were
-bit-identical across rounds (exit 1 if not). Frames are stamped by their arrival times (clock.csv is not used).
+predicted out of the camera's view) and what decoding them cost, the CPU of ways to decode the first
+``--micro-frames`` frames (colour, gray, DCT-scaled to 1/2, 1/4, 1/8, and the tracker's own top-rows decode)
+against the full gray decode, the CPU and markers kept of those frames' region searches as configured, at half
+size and with fewer adaptive-threshold passes, and whether the poses were bit-identical across rounds (exit 1 if not).
+Frames are stamped by their arrival times (clock.csv is not used).
 
     nice -n 19 .venv/bin/python benchmarks/detect_speed.py --stages --recording /tmp/lb16q/rec_c16_f30_d20_s7 \
         --frames 600 --rounds 3
@@ -192,6 +195,36 @@ _FUSION_HOOKS = (("cubetrack.fuse.fusion", "match_faces"), ("cubetrack.fuse.fusi
 _WORKER_HOOKS = (("cubetrack.app.tracker", "estimate_cube"), ("cubetrack.app.tracker", "body_detections"))
 
 
+def ms_median(key: str, rounds: list[dict[str, float]]) -> float:
+    return float(np.median([c[key] for c in rounds]))
+
+
+class _GcPauses:
+    """Python's garbage collections while it is installed (``gc.callbacks``): how many, of which of
+    the oldest generation, and their wall-clock milliseconds (a collection pauses the thread: a
+    latency spike live)."""
+
+    def __init__(self) -> None:
+        import gc
+
+        self._gc, self._started = gc, 0.0
+        self.ms: list[tuple[int, float]] = []   # (generation, ms)
+        gc.callbacks.append(self._callback)
+
+    def _callback(self, phase: str, info: dict) -> None:
+        if phase == "start":
+            self._started = time.perf_counter()
+        else:
+            self.ms.append((info["generation"], (time.perf_counter() - self._started) * 1000.0))
+
+    def stop(self) -> None:
+        self._gc.callbacks.remove(self._callback)
+
+    def summary(self) -> dict[str, float]:
+        return {"gc_count": len(self.ms), "gc2_count": sum(g == 2 for g, _ in self.ms),
+                "gc_ms": sum(m for _, m in self.ms), "gc_max_ms": max((m for _, m in self.ms), default=0.0)}
+
+
 class _Hooks:
     """Thread-CPU timers (and, while ``recording``, argument capture) wrapped around module
     functions; ``restore`` puts the originals back."""
@@ -298,6 +331,7 @@ def stage_costs(args: argparse.Namespace) -> int:
         cpu = {"plan": 0.0, "work": 0.0, "fuse": 0.0, "decode_empty": 0.0, "empty_frames": 0.0}
         poses = []
         clock = time.thread_time
+        pauses = _GcPauses()
         try:
             for i, frame in enumerate(frames):
                 hooks.recording = micro and i < args.micro_frames
@@ -321,7 +355,9 @@ def stage_costs(args: argparse.Namespace) -> int:
             cpu["fuse"] += clock() - t0
         finally:
             hooks.restore()
+            pauses.stop()
         cpu.update(hooks.cpu_s)
+        cpu.update(pauses.summary())
         cpu["detect"] -= cpu["edge"]                       # exclusive times
         cpu["estimate"] = cpu["work"] - cpu["decode"] - cpu["detect"] - cpu["edge"]
         return cpu, poses, hooks.calls
@@ -380,10 +416,97 @@ def stage_costs(args: argparse.Namespace) -> int:
         per_call = float(np.median(times)) / len(recorded)
         print(f"  {key:<40} {len(recorded) / micro_frames:6.2f} calls/frame {per_call * 1e6:8.1f} us/call "
               f"{per_call * len(recorded) / micro_frames * 1000.0:7.3f} ms/frame")
+    decode_variants(frames[:micro_frames], calls.get("decode", []), args.rounds)
+    region_variants(calls.get("detect", []), stages.detector, world.dictionary, robots, args.rounds)
+    print(f"garbage collections in a round (median of rounds): {ms_median('gc_count', rounds):.0f}, of which "
+          f"{ms_median('gc2_count', rounds):.0f} of the oldest generation; {ms_median('gc_ms', rounds):.1f} ms in all "
+          f"({ms_median('gc_ms', rounds) / n:.4f} ms per frame), the longest {max(c['gc_max_ms'] for c in rounds):.2f} "
+          "ms (wall clock: a pause of the thread)")
     print(f"poses: {len(poses)}; replay "
           f"{'bit-identical across rounds' if len(digests) == 1 else 'DIFFERS across rounds'} (sha256 "
           f"{min(digests)[:16]})")
     return 0 if len(digests) == 1 else 1
+
+
+def decode_variants(frames: list, tracker_calls: list, rounds: int) -> None:
+    """Thread CPU per frame of ways to decode the same frames (issue 31's decode levers), against the
+    full-resolution gray decode: the naive loop's colour decode, OpenCV's gray and DCT-scaled gray
+    decodes (``IMREAD_REDUCED_GRAYSCALE_N``), simplejpeg's gray decode at full and DCT-scaled sizes
+    (libjpeg-turbo's scaled IDCT; the entropy decoding is the same), and the tracker's own decode
+    (``decode_gray`` with the rows its regions needed, ``tracker_calls``: the calls it made)."""
+    import simplejpeg
+
+    from cubetrack.detect.decode import decode_gray
+
+    def opencv(flag: int):
+        return lambda jpeg: cv2.imdecode(np.frombuffer(jpeg, np.uint8), flag)
+
+    def scaled(k: int):
+        def decode(jpeg: bytes) -> np.ndarray:
+            height, width = simplejpeg.decode_jpeg_header(jpeg)[:2]
+            return simplejpeg.decode_jpeg(jpeg, colorspace="GRAY", min_height=height // k, min_width=width // k)
+        return decode
+
+    ways = {"colour, full size (the naive loop's)": opencv(cv2.IMREAD_COLOR),
+            "gray, full size (simplejpeg)": scaled(1),
+            "gray, full size (OpenCV)": opencv(cv2.IMREAD_GRAYSCALE),
+            **{f"gray, 1/{k} size (OpenCV IMREAD_REDUCED_GRAYSCALE_{k})":
+               opencv(getattr(cv2, f"IMREAD_REDUCED_GRAYSCALE_{k}")) for k in (2, 4, 8)},
+            **{f"gray, 1/{k} size (simplejpeg, scaled IDCT)": scaled(k) for k in (2, 4, 8)}}
+    jpegs = [f.jpeg for f in frames]
+    ms = {}
+    for label, decode in ways.items():
+        times = []
+        for _ in range(rounds):
+            t0 = time.thread_time()
+            for jpeg in jpegs:
+                decode(jpeg)
+            times.append(time.thread_time() - t0)
+        ms[label] = float(np.median(times)) / len(jpegs) * 1000.0
+    if tracker_calls:
+        times = []
+        for _ in range(rounds):
+            t0 = time.thread_time()
+            for _fn, a, kw in tracker_calls:
+                decode_gray(*a, **kw)
+            times.append(time.thread_time() - t0)
+        ms["the tracker's (rows down to its regions' lowest edge)"] = float(np.median(times)) / len(jpegs) * 1e3
+    full = ms["gray, full size (simplejpeg)"]
+    print(f"decode, the first {len(jpegs)} frames ({rounds} rounds; thread CPU ms per frame, / the full gray decode):")
+    for label, value in ms.items():
+        print(f"  {label:<58} {value:7.3f} ms  {value / full:5.2f}")
+
+
+def region_variants(find_calls: list, params: DetectorParams, world_dictionary: str, robots, rounds: int) -> None:
+    """Thread CPU per region search and markers kept (``Detector.find`` on the regions the tracker searched
+    in ``find_calls``, edge fit included) as configured and with issue 31's levers: the image at half size
+    (``cv2.resize`` INTER_AREA, the boxes halved) and fewer adaptive-threshold passes."""
+    import dataclasses
+
+    searches = [(a[0], tuple(a[1]), kw.get("lens", a[2] if len(a) > 2 else None)) for _fn, a, kw in find_calls
+                if len(a) > 1 and a[1]]
+    if not searches:
+        return
+    dictionaries = [world_dictionary, *(d for r in robots for d in r.layout.dictionaries)]
+    windows = {"as configured": {}, "threshold windows 13, 23 px": {"adaptive_thresh_win_size_min_px": 13},
+               "threshold windows 8, 18 px": {"adaptive_thresh_win_size_min_px": 8,
+                                              "adaptive_thresh_win_size_max_px": 18}}
+    ways = {label: (Detector(dataclasses.replace(params, **change), dictionaries), 1)
+            for label, change in windows.items()}
+    ways["the image at half size (INTER_AREA)"] = (ways["as configured"][0], 2)
+    print(f"region searches of those frames: {len(searches)} ({rounds} rounds; thread CPU ms per search, edge fit "
+          "included; markers kept):")
+    for label, (detector, k) in ways.items():
+        inputs = [(gray, regions, lens) if k == 1 else
+                  (cv2.resize(gray, (gray.shape[1] // k, gray.shape[0] // k), interpolation=cv2.INTER_AREA),
+                   tuple(tuple(v // k for v in box) for box in regions), lens) for gray, regions, lens in searches]
+        times, kept = [], 0
+        for _ in range(rounds):
+            kept, t0 = 0, time.thread_time()
+            for gray, regions, lens in inputs:
+                kept += len(detector.find(gray, regions, lens).detections)
+            times.append(time.thread_time() - t0)
+        print(f"  {label:<40} {float(np.median(times)) / len(inputs) * 1000.0:7.3f} ms  {kept:6d} markers")
 
 
 if __name__ == "__main__":

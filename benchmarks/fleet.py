@@ -11,7 +11,10 @@ constant of 1 ms sigma, and the frame published 40-60 ms after its capture (tran
 
 --publishers processes publish those sightings as ``cubetrack worker`` does (one message per robot
 of a frame under ``cubetrack/sightings/<camera>/<robot>``, a frame without a robot under
-``cubetrack/sightings/<camera>``) at the cameras' real rate (--fps), over loopback Zenoh, to --shards
+``cubetrack/sightings/<camera>``) at the cameras' real rate (--fps), over loopback Zenoh; with
+--pre-encoded they make every message before the run and only restamp it with the run's times and put
+it when due (the stand-in for workers on other hosts: what stays on this machine's CPU is Zenoh's
+sending, as a remote worker's traffic would cost the host its receiving only). Then to --shards
 fusion processes (``run_fusion(..., shard=True)``: each claims its share of the robots). Printed:
 sightings/s offered and fused, the share dropped (not fused before the end of the run, or lost),
 latency from publish to pose (p50/p95/p99), each shard's CPU per sighting and the publishers' CPU,
@@ -215,56 +218,85 @@ def cameras_of(fleet: Fleet, index: int, publishers: int) -> list[Camera]:
     return out
 
 
-def publish_frame(fleet: Fleet, camera: Camera, seq: int, t_s: float, publishers: dict, bus, out: dict) -> None:
-    """Camera's frame ``seq`` captured at ``t_s``: one message per robot seen (or the empty frame)."""
+def frame_messages(fleet: Fleet, camera: Camera, seq: int, capture_s: float, dropped: int) -> list[tuple[str, bytes]]:
+    """Camera's frame ``seq`` captured ``capture_s`` after the run's start: one message per robot seen
+    (or the empty frame), as (key, bytes), stamped as if the run started at 0 (:func:`send` restamps
+    them with the run's start and the time of sending)."""
     from cubetrack.io.sighting_wire import SightingMessage, WireClock, WireHealth, encode_sighting
     from cubetrack.io.worker_bus import sighting_key
 
-    found = frame_detections(fleet, camera.markers, camera.T_cam_world, t_s, camera.rng)
-    clock = WireClock("round-trip", camera.stamp_error_s - camera.offset_s, 0.0, t_s + camera.offset_s)
-    health = WireHealth(True, seq + 1, out["dropped"].get(camera.name, 0))
-    for body, dets in (found.items() if found else [(None, ())]):
-        message = SightingMessage(camera.name, seq, t_s + camera.offset_s, t_s + camera.stamp_error_s, time.time(),
-                                  "full frame", dets, clock, health, body=body)
-        if (camera.name, body) not in publishers:
-            publishers[(camera.name, body)] = bus.declare_publisher(sighting_key(camera.name, body))
-        data = encode_sighting(message)
-        publishers[(camera.name, body)].put(data)
-        if body is not None:
+    found = frame_detections(fleet, camera.markers, camera.T_cam_world, capture_s, camera.rng)
+    clock = WireClock("round-trip", camera.stamp_error_s - camera.offset_s, 0.0, capture_s + camera.offset_s)
+    health = WireHealth(True, seq + 1, dropped)
+    return [(sighting_key(camera.name, body),
+             encode_sighting(SightingMessage(camera.name, seq, capture_s + camera.offset_s,
+                                             capture_s + camera.stamp_error_s, 0.0, "full frame", dets, clock, health,
+                                             body=body)))
+            for body, dets in (found.items() if found else [(None, ())])]
+
+
+def send(messages: list[tuple[str, bytes]], camera: Camera, capture_s: float, t0: float, publishers: dict, bus,
+         out: dict) -> None:
+    """Put a frame's messages on the bus, their times moved to the run's start ``t0`` and the sending time."""
+    from cubetrack.io.sighting_wire import restamped
+
+    device_s = t0 + capture_s + camera.offset_s
+    for key, data in messages:
+        if key not in publishers:
+            publishers[key] = bus.declare_publisher(key)
+        data = restamped(data, device_s, t0 + capture_s + camera.stamp_error_s, time.time(), device_s)
+        publishers[key].put(data)
+        if key.count("/") == 3:   # cubetrack/sightings/<camera>/<robot>: a cube sighting
             out["sightings"].append(data)
 
 
-def publisher_main(fleet: Fleet, index: int, count: int, ports: list[int], ready, start_at, duration_s: float,
-                   out_path: str) -> None:
-    """One publisher process: its share of the cameras, at their rate, from ``start_at`` for ``duration_s``."""
+def plan(fleet: Fleet, cameras: list[Camera],
+         duration_s: float) -> tuple[list[tuple[float, int, int, float, int]], dict]:
+    """The frames to publish, in publishing order: (publish, camera index, seq, capture (seconds after
+    the run's start), the camera's frames dropped so far), each published DELAY_S after its capture; and
+    the frames dropped per camera."""
     import heapq
 
+    period_s = 1.0 / fleet.fps
+    due = [(camera.phase * period_s + DELAY_S[0], k, 0) for k, camera in enumerate(cameras)]
+    heapq.heapify(due)
+    frames, dropped = [], {}
+    while due and due[0][0] < duration_s:
+        publish_s, k, seq = heapq.heappop(due)
+        camera = cameras[k]
+        capture_s = (seq + camera.phase) * period_s
+        heapq.heappush(due, (capture_s + period_s + camera.rng.uniform(*DELAY_S), k, seq + 1))
+        if camera.rng.uniform() < fleet.drop:
+            dropped[camera.name] = dropped.get(camera.name, 0) + 1
+        else:
+            frames.append((publish_s, k, seq, capture_s, dropped.get(camera.name, 0)))
+    return frames, dropped
+
+
+def publisher_main(fleet: Fleet, index: int, count: int, ports: list[int], ready, start_at, duration_s: float,
+                   out_path: str, pre_encoded: bool) -> None:
+    """One publisher process: its share of the cameras, at their rate, from ``start_at`` for ``duration_s``.
+    With ``pre_encoded`` every message is made before the start and only restamped and put when due."""
     from cubetrack.app.worker import worker_endpoints
     from cubetrack.sink.zenoh_session import open_session
 
     bus = open_session(worker_endpoints(connect=tuple(f"tcp/127.0.0.1:{p}" for p in ports)), "publisher")
     cameras = cameras_of(fleet, index, count)
+    frames, dropped = plan(fleet, cameras, duration_s)
+    made = [frame_messages(fleet, cameras[k], seq, capture_s, d) for _, k, seq, capture_s, d in frames] \
+        if pre_encoded else None
     ready.put(index)
     while start_at.value == 0:
         time.sleep(0.01)
     t0 = start_at.value
-    period_s = 1.0 / fleet.fps
-    due = [(t0 + camera.phase * period_s + DELAY_S[0], k, 0) for k, camera in enumerate(cameras)]
-    heapq.heapify(due)
-    out: dict = {"sightings": [], "frames": 0, "dropped": {}, "late_s": []}
+    out: dict = {"sightings": [], "frames": 0, "dropped": dropped, "late_s": []}
     publishers: dict = {}
     cpu0 = time.process_time()
-    while due and due[0][0] < t0 + duration_s:
-        publish_s, k, seq = heapq.heappop(due)
-        camera = cameras[k]
-        capture_s = t0 + (seq + camera.phase) * period_s
-        heapq.heappush(due, (capture_s + period_s + camera.rng.uniform(*DELAY_S), k, seq + 1))
-        if camera.rng.uniform() < fleet.drop:
-            out["dropped"][camera.name] = out["dropped"].get(camera.name, 0) + 1
-            continue
-        time.sleep(max(0.0, publish_s - time.time()))
-        out["late_s"].append(time.time() - publish_s)
-        publish_frame(fleet, camera, seq, capture_s, publishers, bus, out)
+    for i, (publish_s, k, seq, capture_s, d) in enumerate(frames):
+        time.sleep(max(0.0, t0 + publish_s - time.time()))
+        out["late_s"].append(time.time() - t0 - publish_s)
+        messages = made[i] if made is not None else frame_messages(fleet, cameras[k], seq, capture_s, d)
+        send(messages, cameras[k], capture_s, t0, publishers, bus, out)
         out["frames"] += 1
     out["cpu_s"] = time.process_time() - cpu0
     bus.close()
@@ -402,7 +434,8 @@ def run_fleet(args: argparse.Namespace, work: Path) -> dict:
                                                    str(work / f"shard{i}.pkl"))) for i in range(args.shards)]
     ready, start_at = ctx.Queue(), ctx.Value("d", 0.0)
     publishers = [ctx.Process(target=publisher_main, args=(fleet, i, args.publishers, ports, ready, start_at,
-                                                           args.duration, str(work / f"publisher{i}.pkl")))
+                                                           args.duration, str(work / f"publisher{i}.pkl"),
+                                                           args.pre_encoded))
                   for i in range(args.publishers)]
     observer, kill = None, {}
     try:
@@ -495,14 +528,14 @@ def report(run: dict, args: argparse.Namespace) -> dict:
     poses = [p for r in shards.values() for p in r["poses"]]
     names = fleet.robot_names()
     errors = {r: [] for r in names}
-    for robot, time_s, position, _, _ in poses:
-        truth = fleet.T_world_cube(names.index(robot), time_s)[:3, 3]
+    for robot, time_s, position, _, _ in poses:   # the fleet moves in seconds from the run's start
+        truth = fleet.T_world_cube(names.index(robot), time_s - run["t0"])[:3, 3]
         errors[robot].append(float(np.linalg.norm(np.array(position) - truth)))
     out = {
         "cores": os.cpu_count(), "load_before": [round(v, 1) for v in run["load"]],
         "load_after": [round(v, 1) for v in run["load_after"]],
         "robots": fleet.robots, "cameras": fleet.cameras, "fps": fleet.fps, "shards": args.shards,
-        "publishers": args.publishers, "duration_s": duration_s,
+        "publishers": args.publishers, "pre_encoded": args.pre_encoded, "duration_s": duration_s,
         "offered_per_s": round(offered / duration_s, 1), "frames_per_s": round(frames / duration_s, 1),
         "fused_per_s": round(in_time / duration_s, 1),
         "dropped_pct": round(100 * (1 - in_time / offered), 2) if offered and not run["kill"] else math.nan,
@@ -538,7 +571,8 @@ def print_report(r: dict) -> None:
     print(f"publish -> pose latency: p50 {p50} ms, p95 {p95} ms, p99 {p99} ms")
     print(f"shards: sightings fused {r['shard_sightings']}, CPU during the run {r['shard_cpu_s']} s, "
           f"CPU per sighting {r['shard_cpu_ms_per_sighting']} ms")
-    print(f"publishers: CPU {r['publisher_cpu_s']} s, {r['publisher_cpu_ms_per_frame']} ms per frame, "
+    print(f"publishers{' (pre-encoded)' if r['pre_encoded'] else ''}: CPU {r['publisher_cpu_s']} s, "
+          f"{r['publisher_cpu_ms_per_frame']} ms per frame, "
           f"behind schedule p95 {r['publish_behind_ms_p95']} ms")
     print(f"accuracy vs truth, median position error per robot (mm): {r['error_mm_median_per_robot']}")
     if "replay_difference_mm_median_p95" in r:
@@ -565,6 +599,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--drop", type=float, default=0.02, help="share of frames dropped")
     p.add_argument("--kill-shard", choices=("kill", "freeze"), help="stop shard 0 half way (SIGKILL or SIGSTOP)")
     p.add_argument("--no-replay", dest="replay", action="store_false", help="skip the single-process replay")
+    p.add_argument("--pre-encoded", action="store_true",
+                   help="publishers make every message before the start and only restamp and put it when due: the "
+                        "stand-in for workers on other hosts (only Zenoh's sending is on this machine's CPU)")
     p.add_argument("--json", type=Path, help="also write the report here")
     p.add_argument("--quick", action="store_true", help="2 robots, 4 cameras, 10 fps, 3 s (the CI smoke)")
     args = p.parse_args(argv)

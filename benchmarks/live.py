@@ -14,6 +14,9 @@ RSS. Then it reports:
 - CPU per processed frame and cores used (the tracker's processes; the emulator's shown apart);
 - p50 / p95 / p99 of arrival -> pose and capture -> pose (the JSONL's ``arrival_latency`` and
   ``latency``: up to the moment each pose was handed to the outputs);
+- the run interval by interval (between the tracker's status lines, every 5 s): frames dropped,
+  poses, arrival -> pose p95 and cores used in each, so that a run missing the targets shows
+  whether it missed them at the start, in a burst or throughout (issue 31's run-to-run spread);
 - RSS of the tracker's processes at the start (after --warmup seconds), half-way and at the end,
   and the time from the tracker's command to its first pose (start-up);
 - accuracy against the ground truth (moved onto the live clock, repeated per loop of the
@@ -51,6 +54,7 @@ lists the targets missed.
     .venv/bin/python benchmarks/live.py --speed-only --speed-rounds 5 --out /tmp/lb16   # naive / ours only
     .venv/bin/python benchmarks/live.py --template ...  # with corner_refinement = "template"
     .venv/bin/python benchmarks/live.py --watch        # and the cost of the camera watching (issue 27)
+    .venv/bin/python benchmarks/live.py --worker-split --duration 15 --out /tmp/lb16   # a camera worker's CPU
 
 --out keeps the recording, the calibration, the live poses and ``live_report.json``
 (``speed_report.json`` with --speed-only; a recording made with the same parameters is reused).
@@ -104,6 +108,10 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--speed-only", action="store_true",
                    help="only the same-frames comparison (naive / one thread / ours), on the recording of --out "
                         "made with the same parameters (or a new one): no live run, no accuracy")
+    p.add_argument("--worker-split", action="store_true",
+                   help="only where a camera worker process's CPU goes: its loop in this process over half the "
+                        "cameras for --duration s, fed by the emulator, the fusion in a thread standing in for the "
+                        "tracker's process (no live run, no accuracy, no same-frames comparison)")
     p.add_argument("--seed", type=int, default=7, help="scene seed (default 7)")
     p.add_argument("--out", type=Path, help="keep everything here (default: a temporary folder, deleted)")
     p.add_argument("--quick", action="store_true", help="smoke run: 2 cameras x 10 fps, 5 s, small recording")
@@ -122,6 +130,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--tracker-arg", action="append", default=[], metavar="ARG",
                    help="extra argument for `cubetrack track` (repeatable)")
     args = p.parse_args(argv)
+    if args.worker_split and (args.speed_only or args.record or args.outputs or args.watch):
+        p.error("--worker-split runs alone: no --speed-only, --record, --outputs or --watch")
     if args.speed_only and (args.record or args.outputs or args.watch):
         p.error("--speed-only replays the simulated recording: no --record, --outputs or --watch")
     if args.quick:
@@ -245,6 +255,65 @@ class TreeSampler:
         return [s for s in self.samples if s[3] == most][-1]
 
 
+_STATUS_DROPPED = re.compile(r"^track:\s+[\d.]+s \|.* dropped (\d+)")
+
+
+class StatusFollower:
+    """Follows the tracker's stderr file as the tracker writes it, every ``period_s``: the moment
+    (``time.monotonic()``) each status line appeared, with the frames dropped by the tracker so far
+    that it gives; the moments are what put the drops beside the poses and the CPU samples
+    (:func:`over_time`)."""
+
+    def __init__(self, path: Path, period_s: float = 0.25):
+        self.path, self.period_s = path, period_s
+        self.lines: list[tuple[float, int]] = []  # (monotonic s, dropped so far)
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True)
+        self._thread.start()
+
+    def _run(self) -> None:
+        offset, partial = 0, ""
+        while True:
+            stopping = self._stop.wait(self.period_s)
+            with contextlib.suppress(OSError), open(self.path, encoding="utf-8", errors="replace") as f:
+                f.seek(offset)
+                text = partial + f.read()
+                offset = f.tell()
+                *complete, partial = text.split("\n")
+                now = time.monotonic()
+                for line in complete:
+                    if (m := _STATUS_DROPPED.match(line)) is not None:
+                        self.lines.append((now, int(m.group(1))))
+            if stopping:
+                return
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join()
+
+
+def over_time(status: list[tuple[float, int]], poses: list[dict], samples: list[tuple[float, float, int, int]],
+              start_s: float, unix_minus_monotonic: float) -> list[dict]:
+    """The live run interval by interval, from the tracker's command (``start_s``, monotonic) to each
+    status line's moment in turn (``status``: :class:`StatusFollower`'s lines): frames dropped by the
+    tracker in it, poses handed to the outputs in it (a pose's capture time + its capture -> pose
+    latency, Unix s) and their arrival -> pose p95, and the tracker's cores used in it (the
+    :class:`TreeSampler` samples nearest its ends). A run that misses the drop or latency targets then
+    shows when: at the start (start-up), in a burst (a pause), or throughout (short of CPU)."""
+    handed = np.array([p["time"] + p["latency"] - unix_minus_monotonic for p in poses])
+    arrival_ms = np.array([p["arrival_latency"] * 1000.0 for p in poses])
+    out, begin, dropped_before = [], start_s, 0
+    for end, dropped in status:
+        inside = (handed >= begin) & (handed < end)
+        (t0, cpu0, _, _), (t1, cpu1, _, _) = (min(samples, key=lambda s, t=t: abs(s[0] - t)) for t in (begin, end))
+        out.append({"from_s": begin - start_s, "to_s": end - start_s, "dropped": dropped - dropped_before,
+                    "poses": int(inside.sum()),
+                    "arrival_p95_ms": float(np.percentile(arrival_ms[inside], 95)) if inside.any() else float("nan"),
+                    "cores": (cpu1 - cpu0) / (t1 - t0) if t1 > t0 else float("nan")})
+        begin, dropped_before = end, dropped
+    return out
+
+
 # --------------------------------------------------------------------------- the live run
 
 
@@ -276,10 +345,11 @@ def run_live(args: argparse.Namespace, rec: Path, work: Path, name: str = "live"
         unix_minus_monotonic = time.time() - started
         with open(work / f"{name}_stdout.txt", "w") as stdout, open(work / f"{name}_stderr.txt", "w") as stderr:
             proc = subprocess.Popen(command, stdout=stdout, stderr=stderr, cwd=ROOT)
-            sampler = TreeSampler(proc.pid)
+            sampler, status = TreeSampler(proc.pid), StatusFollower(work / f"{name}_stderr.txt")
             code = proc.wait(args.duration + 300)
         ended = time.monotonic()
         sampler.stop()
+        status.stop()
         emulator.stop()
         shift_s, period_s = emu.clock_shift_s, emu.period_s
     if code != 0:
@@ -340,6 +410,7 @@ def run_live(args: argparse.Namespace, rec: Path, work: Path, name: str = "live"
         "capture_ms": percentiles(capture),
         "clock_shift_s": shift_s,
         "period_s": period_s,
+        "over_time": over_time(status.lines, fused, sampler.samples, started, unix_minus_monotonic),
     }
 
 
@@ -613,6 +684,93 @@ def speed(args: argparse.Namespace, rec: Path, work: Path, live: dict | None) ->
             "worker_jobs": median("worker_jobs"), "rounds": rounds}
 
 
+def worker_split(args: argparse.Namespace, rec: Path, work: Path) -> dict:
+    """Where a camera worker process's CPU goes (issue 31): the loop of one camera worker process
+    (:func:`cubetrack.app.camera_workers._work_cameras`, as each of the live run's runs it) on this
+    process's main thread over half the emulated cameras (the live run deals them to 2 processes), for
+    --duration seconds; a second thread stands for the tracker's process: it fuses the results as they
+    come, in the same process, and sends a new forecast after each. Thread CPU per processed frame of
+    the per-frame work (``FrameProcessor.work``), the planning (``Tracker.admit``), sending the results
+    (pickling, the pipe) and the rest of the loop (reading and parsing the streams, the clock round
+    trips), and the stand-in's unpacking + fusion + forecast."""
+    import functools
+    import math
+    import multiprocessing
+
+    import cv2
+
+    from cubetrack.app.camera_workers import _work_cameras
+    from cubetrack.app.config import load_config, recording_intrinsics
+    from cubetrack.app.emulated import EmulatedCameras
+    from cubetrack.app.tracker import Tracker
+    from cubetrack.fuse.forecast import forecast_of
+    from cubetrack.io.config import read_extrinsics
+    from cubetrack.io.frame_wire import unpack_result
+    from cubetrack.io.recording import Recording
+
+    cv2.setNumThreads(1)
+    config, settings = load_config(tracker_config(args, rec, work))
+    intrinsics, extrinsics = recording_intrinsics(config, Recording.open(rec)), read_extrinsics(rec / "extrinsics.toml")
+    cpu_s = {"work": 0.0, "plan": 0.0, "send": 0.0, "fusion": 0.0}
+
+    def timed(fn, key: str):
+        def call(*a, **kw):
+            t0 = time.thread_time()
+            try:
+                return fn(*a, **kw)
+            finally:
+                cpu_s[key] += time.thread_time() - t0
+        return call
+
+    with EmulatedCameras(rec, ("--loop",)) as emu:
+        urls = dict(list(emu.urls.items())[: max(1, args.cameras // 2)])
+        make = functools.partial(Tracker, {c: intrinsics[c] for c in urls}, config.world, config.robots,
+                                 {c: extrinsics[c] for c in urls}, settings.stages, synced_cameras=frozenset(urls))
+        worker, fusing = make(), make()
+        worker.processor.work = timed(worker.processor.work, "work")   # type: ignore[method-assign]
+        worker.admit = timed(worker.admit, "plan")   # type: ignore[method-assign]
+        ours, theirs = multiprocessing.Pipe()
+        theirs.send = timed(theirs.send, "send")   # type: ignore[method-assign]
+        working, taken = multiprocessing.RawArray("d", [math.inf]), multiprocessing.RawArray("q", 1)
+        robots = [r.name for r in config.robots]
+        received = [0]   # frames the worker's cameras delivered, as its last counters say
+
+        def tracker_process() -> None:   # the tracker's process, standing in: fuse, forecast
+            stop_at, stopped = time.monotonic() + args.duration, False
+            while True:
+                if not stopped and time.monotonic() > stop_at:
+                    ours.send(None)
+                    stopped = True
+                if not ours.poll(0.05):
+                    continue
+                kind, payload = ours.recv()
+                if kind == "done":
+                    return
+                t0 = time.thread_time()
+                if kind == "update":
+                    received[0] = sum(c.frames for c in payload.cameras.values())
+                if kind == "clock":
+                    fusing.add_clock_sample(payload.camera, payload.sample)
+                elif kind == "result":
+                    fusing.fuse(unpack_result(*payload, intrinsics=fusing.intrinsics, T_world_cam=fusing.T_world_cam),
+                                time.time())
+                    taken[0] += 1
+                    ours.send(forecast_of(fusing.fusion, robots, time.time()))
+                cpu_s["fusion"] += time.thread_time() - t0
+
+        side = threading.Thread(target=tracker_process, daemon=True)
+        side.start()
+        t0 = time.thread_time()
+        _work_cameras(theirs, urls, settings.source, worker, False, time.time, working, taken, 0)
+        total_s = time.thread_time() - t0
+        side.join()
+    frames = max(int(taken[0]), 1)
+    per = {k: v / frames * 1000.0 for k, v in cpu_s.items()}
+    per["rest"] = (total_s - cpu_s["work"] - cpu_s["plan"] - cpu_s["send"]) / frames * 1000.0
+    return {"cameras": len(urls), "frames": int(taken[0]), "received": received[0], "ms": per,
+            "load_average": os.getloadavg()[0]}
+
+
 class _NoSink:
     def pose(self, pose) -> None:
         pass
@@ -644,6 +802,16 @@ def print_speed(sp: dict) -> None:
           f"fusion p50 {f['p50']:.2f} ms p95 {f['p95']:.2f} ms")
 
 
+def print_worker_split(args: argparse.Namespace, split: dict) -> None:
+    ms = split["ms"]
+    print(f"one camera worker process's loop over {split['cameras']} cameras x {args.fps:g} fps for {args.duration:g} "
+          f"s, nproc {os.cpu_count()} (load average {split['load_average']:.1f}): {split['frames']} frames processed "
+          f"of {split['received']} received; thread CPU per processed frame: work (decode, detection, estimates) "
+          f"{ms['work']:.3f} ms, planning {ms['plan']:.3f} ms, sending the result {ms['send']:.3f} ms, the rest of "
+          f"the loop (reading the streams, clock round trips) {ms['rest']:.3f} ms; the tracker's process standing "
+          f"in (unpack, fuse, forecast) {ms['fusion']:.3f} ms")
+
+
 def speed_failures(args: argparse.Namespace, sp: dict) -> list[str]:
     """The same-frames targets missed (issue 31): throughput ours / naive (a lower bar with
     --template) and, after a live run, its CPU per processed frame against the naive loop's."""
@@ -652,6 +820,20 @@ def speed_failures(args: argparse.Namespace, sp: dict) -> list[str]:
     if sp["live_cpu_ratio"] is not None and not sp["live_cpu_ratio"] <= TARGET_CPU:
         failures.append(f"live CPU per frame / naive {sp['live_cpu_ratio']:.2f} > {TARGET_CPU:g}")
     return failures
+
+
+SHOWN_FIRST, SHOWN_WORST = 4, 4   # a long run's report line: its first intervals and those with the most drops
+
+
+def shown_intervals(intervals: list[dict]) -> list[dict]:
+    """The intervals of :func:`over_time` the report line shows, in time order: all of a short run's; of
+    a long one (a 10-minute run has 120) the first ``SHOWN_FIRST`` (start-up) and the ``SHOWN_WORST``
+    others with the most frames dropped (then the highest arrival -> pose p95)."""
+    if len(intervals) <= SHOWN_FIRST + SHOWN_WORST:
+        return intervals
+    rest = sorted(range(SHOWN_FIRST, len(intervals)), key=lambda k: (
+        -intervals[k]["dropped"], -np.nan_to_num(intervals[k]["arrival_p95_ms"], nan=-1.0)))
+    return [intervals[k] for k in sorted([*range(SHOWN_FIRST), *rest[:SHOWN_WORST]])]
 
 
 def print_report(args: argparse.Namespace, report: dict) -> list[str]:
@@ -675,6 +857,13 @@ def print_report(args: argparse.Namespace, report: dict) -> list[str]:
           f"(the emulator: {live['emulator_cores_used']:.2f} cores)")
     print(f"  arrival -> pose ms: p50 {a['p50']:.1f}  p95 {a['p95']:.1f}  p99 {a['p99']:.1f}   "
           f"capture -> pose ms: p50 {c['p50']:.1f}  p95 {c['p95']:.1f}  p99 {c['p99']:.1f}  ({live['poses']} poses)")
+    intervals = live["over_time"]
+    shown = shown_intervals(intervals)
+    print("  over time (seconds from the tracker's command: dropped, poses, arrival -> pose p95 ms, cores"
+          + (f"; {len(shown)} of {len(intervals)} intervals: the first {SHOWN_FIRST} and those with the most drops"
+             if len(shown) < len(intervals) else "") + "): "
+          + " | ".join(f"{i['from_s']:.1f}-{i['to_s']:.1f}: {i['dropped']}, {i['poses']}, {i['arrival_p95_ms']:.1f}, "
+                       f"{i['cores']:.2f}" for i in shown))
     print(f"  RSS: {live['rss_start_mb']:.0f} MB at {args.warmup:g} s, {live['rss_mid_mb']:.0f} MB half-way after it, "
           f"{live['rss_end_mb']:.0f} MB at the end ({(live['rss_end_mb'] / live['rss_start_mb'] - 1) * 100:+.1f} %); "
           f"first pose {live['first_pose_s']:.2f} s after the tracker's command started")
@@ -717,6 +906,9 @@ def main(argv: list[str] | None = None) -> int:
         work.mkdir(parents=True, exist_ok=True)
         print(f"preparing {args.cameras} cameras x {args.fps:g} fps ...", file=sys.stderr, flush=True)
         rec = ensure_recording(args, work)
+        if args.worker_split:
+            print_worker_split(args, worker_split(args, rec, work))
+            return 0
         if args.speed_only:
             load = os.getloadavg()
             sp = speed(args, rec, work, None)

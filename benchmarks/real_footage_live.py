@@ -25,7 +25,8 @@ with the core count and the load average (the machine is shared):
 
 Usage: python benchmarks/real_footage_live.py [--data DIR] [--work DIR] [--latency S] [--mode record|track]
        [--envelope-frames N]
-       python benchmarks/real_footage_live.py --mode order [--work-s S] [--workers N] [--behind-s S]
+       python benchmarks/real_footage_live.py --mode order [--work-s S] [--workers N] [--behind-intervals N ...]
+           [--order-recording REC]
 """
 
 from __future__ import annotations
@@ -140,54 +141,104 @@ def live_run(work: Path, latency_s: float, mode: str, envelope_frames: int | Non
     return LiveRun(tum, aligned_tum, frame_times_s, offset_s, came, processed)
 
 
-def order_run(work: Path, work_s: float, workers: int, behind_s: float | None) -> Path:
-    """The imported recording through a stand-in for ``track_live``'s worker threads
-    (``cubetrack.app.live``'s frame pool feed) on a simulated clock, so that the order in which
-    frames are fused is measured apart from this host's speed: frames arrive at their recorded
-    times, each camera keeps one waiting (a newer one drops it), ``workers`` workers each take
-    ``work_s`` per frame, a free worker takes the freshest waiting frame (``behind_s`` None), or
-    the oldest unless it has waited longer than ``behind_s``; each job is planned with the fusion
-    as it is when taken, and results are fused when done (together: oldest capture first). The
-    TUM file written (on the recording's clock)."""
+def order_run(config_path: Path, recording_path: Path, extrinsics_path: Path, out: Path, work_s: float,
+              workers: int, behind_intervals: float) -> Path:
+    """A recording through a stand-in for ``track_live``'s worker threads (``cubetrack.app.live``'s
+    frame pool feed) on a simulated clock, so that the order in which frames are fused is
+    measured apart from this host's speed: frames arrive at their recorded times, each camera
+    keeps one waiting (a newer one drops it), ``workers`` workers each take ``work_s`` per frame,
+    a free worker takes the waiting frames by the live source's rule
+    (:mod:`cubetrack.source.order`: arrival order until a frame has waited longer than
+    ``behind_intervals`` of its camera's interval, then the oldest of the freshest instant; inf:
+    always arrival order); each job is planned with the fusion as it is when taken,
+    and results are fused when done (together: oldest capture first). Prints the poses, late
+    sightings, frames dropped and arrival -> fused p50 / p95; returns the TUM file written in
+    ``out`` (on the recording's clock)."""
     from cubetrack.app.config import config_params
     from cubetrack.app.track import recording_intrinsics
     from cubetrack.app.tracker import Tracker
     from cubetrack.io.config import read_extrinsics, read_tracker_config
     from cubetrack.io.recording import Recording
+    from cubetrack.source.order import FrameIntervals
 
-    config = read_tracker_config(work / "config.toml")
-    recording = Recording.open(work / "recording")
+    config = read_tracker_config(config_path)
+    recording = Recording.open(recording_path)
     tracker = Tracker(recording_intrinsics(config, recording), config.world, config.robots,
-                      read_extrinsics(work / "extrinsics.toml"), config_params(config).stages)
+                      read_extrinsics(extrinsics_path), config_params(config).stages)
     frames = sorted(recording.merged_frames(), key=lambda f: f.host_time_s)
+    intervals = FrameIntervals()
     waiting: dict[str, Frame] = {}
     busy: list[tuple[float, FrameResult]] = []  # (done at, result)
-    poses, i = [], 0
+    poses, waits_s, dropped, i = [], [], 0, 0
     while i < len(frames) or waiting or busy:
         arrives_s = frames[i].host_time_s if i < len(frames) else math.inf
         now_s = min(arrives_s, min((done_s for done_s, _ in busy), default=math.inf))
         if now_s < arrives_s:
             for _, result in sorted((b for b in busy if b[0] <= now_s), key=lambda b: b[1].job.capture_time_s):
                 poses += tracker.fuse(result, now_s)
+                waits_s.append(now_s - result.job.frame.host_time_s)
             busy = [b for b in busy if b[0] > now_s]
         else:
+            dropped += frames[i].camera in waiting
             waiting[frames[i].camera] = frames[i]
+            intervals.add(frames[i].camera, frames[i].host_time_s)
             i += 1
         while len(busy) < workers and waiting:
-            oldest = min(waiting.values(), key=lambda f: f.host_time_s)
-            fresh = behind_s is None or now_s - oldest.host_time_s > behind_s
-            frame = max(waiting.values(), key=lambda f: f.host_time_s) if fresh else oldest
+            ordered = sorted(waiting.values(), key=lambda f: f.host_time_s)
+            behind = intervals.behind(ordered, now_s, behind_intervals)
+            frame = intervals.freshest_instant(ordered) if behind else ordered[0]
             del waiting[frame.camera]
             if (job := tracker.admit(frame, hold=False)) is not None:
                 busy.append((now_s + work_s, tracker.processor.work(job)))
     poses += tracker.finish(now_s)
-    tum = work / "order.tum"
+    out.mkdir(parents=True, exist_ok=True)
+    tum = out / f"order-{behind_intervals}.tum"
     np.savetxt(tum, [[p.time_s, *p.position_m, *p.quaternion_xyzw] for p in poses if not p.predicted], fmt="%.6f")
     late = getattr(tracker.fusion, "stats", {})
-    print(f"order: {workers} workers x {work_s * 1000:.0f} ms per frame, "
-          f"{'freshest first' if behind_s is None else f'oldest first unless waiting > {behind_s * 1000:.0f} ms'}: "
-          f"{len(poses)} poses, {late.get('late sighting', 0)} late sightings")
+    print(f"order: {workers} workers x {work_s * 1000:.1f} ms per frame, the freshest instant first once a frame "
+          f"waited {behind_intervals} of its camera's interval: {len(poses)} poses, "
+          f"{late.get('late sighting', 0)} late sightings, {dropped} of {len(frames)} frames dropped, "
+          f"arrival -> fused p50 {1000 * float(np.median(waits_s)):.1f} "
+          f"p95 {1000 * float(np.percentile(waits_s, 95)):.1f} ms")
     return tum
+
+
+def order_runs(args: argparse.Namespace) -> int:
+    """``--mode order``: the real footage (scored as offline) or ``--order-recording`` (a simulated
+    recording with its config and extrinsics inside: scored against its ground truth) through
+    :func:`order_run` once per ``--behind-intervals`` value."""
+    from cubetrack.source.streams import SourceParams
+
+    behinds = args.behind_intervals or [SourceParams().behind_intervals]
+    if args.order_recording is not None:
+        from cubetrack.evaluate.metrics import evaluate
+        from cubetrack.io.trajectory import read_tum
+
+        rec = args.order_recording
+        truth = read_tum(rec / "ground_truth.tum")
+        for behind in behinds:
+            tum = order_run(rec / "config.toml", rec, rec / "extrinsics.toml", args.work, args.work_s, args.workers,
+                            behind)
+            result = evaluate(read_tum(tum), truth)
+            print(f"  {result.position_rmse_m * 1000:.2f} mm / {result.rotation_rmse_deg:.3f} deg RMSE, "
+                  f"detection ratio {result.detection_ratio:.3f}")
+        return 0
+    from cubetrack.app.import_rig import import_caliscope
+
+    work = args.work
+    if not (work / "config.toml").exists():
+        import_caliscope(args.data, work)
+    reference = charuco_reference(args.data)
+    offline = score(track(work, "offline"), reference)
+    print(offline.line("offline replay"))
+    for behind in behinds:
+        simulated = score(order_run(work / "config.toml", work / "recording", work / "extrinsics.toml", work,
+                                    args.work_s, args.workers, behind), reference)
+        print(simulated.line("live order, simulated"))
+        print(f"  simulated / offline: instants with a pose {simulated.fraction / offline.fraction:.3f}, position "
+              f"median {np.median(simulated.position_mm) / np.median(offline.position_mm):.3f}, rotation median "
+              f"{np.median(simulated.rotation_deg) / np.median(offline.rotation_deg):.3f}")
+    return 0
 
 
 def frame_pairs(original: Recording, live: Recording, latency_s: float) -> tuple[np.ndarray, np.ndarray]:
@@ -217,28 +268,29 @@ def main(argv: list[str] | None = None) -> int:
                              "order frames are fused in, apart from this host's speed)")
     parser.add_argument("--work-s", type=float, default=0.06, help="order: simulated work per frame, s")
     parser.add_argument("--workers", type=int, default=2, help="order: simulated workers")
-    parser.add_argument("--behind-s", type=float,
-                        help="order: take the oldest waiting frame unless it waited longer than this, s "
-                             "(default: always the freshest, as track_live's worker threads do)")
+    parser.add_argument("--behind-intervals", type=float, action="append",
+                        help="order: [source] behind_intervals, the freshest instant first once a frame waited "
+                             "longer than this many of its camera's frame intervals, else the oldest (inf: always "
+                             "the oldest; repeatable: one run each; default: "
+                             "the package's, as track_live)")
+    parser.add_argument("--order-recording", type=Path,
+                        help="order: this simulated recording (config.toml, extrinsics.toml and ground_truth.tum "
+                             "inside, as benchmarks/live.py makes) instead of the real footage, scored against its "
+                             "ground truth")
     parser.add_argument("--envelope-frames", type=int,
                         help="[source] arrival_envelope_frames for the live run (0: stamps on the arrival itself; "
                              "default: the config's, 64)")
     args = parser.parse_args(argv)
+    args.work = args.work or Path(tempfile.mkdtemp(prefix="real-footage-live-"))
+    if args.mode == "order":
+        return order_runs(args)
     from cubetrack.app.import_rig import import_caliscope
 
-    work = args.work or Path(tempfile.mkdtemp(prefix="real-footage-live-"))
+    work = args.work
     if not (work / "config.toml").exists():
         import_caliscope(args.data, work)
     reference = charuco_reference(args.data)
     offline = score(track(work, "offline"), reference)
-    if args.mode == "order":
-        simulated = score(order_run(work, args.work_s, args.workers, args.behind_s), reference)
-        print(offline.line("offline replay"))
-        print(simulated.line("live order, simulated"))
-        print(f"  simulated / offline: instants with a pose {simulated.fraction / offline.fraction:.3f}, position "
-              f"median {np.median(simulated.position_mm) / np.median(offline.position_mm):.3f}, rotation median "
-              f"{np.median(simulated.rotation_deg) / np.median(offline.rotation_deg):.3f}")
-        return 0
     run = live_run(work, args.latency, args.mode, args.envelope_frames)
     print(f"cores {os.cpu_count()}, load average {os.getloadavg()[0]:.1f}; live ({args.mode}): "
           f"{100 * run.came:.1f} % of the recorded frames came, {100 * run.processed:.1f} % were processed; "

@@ -46,15 +46,24 @@ def test_oracle_corners_are_the_pictures_truth_and_exact_ones_track_better(tmp_p
 def test_the_floor_with_exact_corners_on_a_clean_scene_is_zero(tmp_path, capsys, monkeypatch):
     """--floor (issue 26): a per-instant fit with the true camera and body to the oracle's corners
     recovers the true pose on a clean scene (global shutter: nothing else differs), and the
-    detector's corners leave a finite, larger error."""
+    detector's corners leave a finite, larger error. --decompose in the same run: a row per
+    ladder step, and the filter given everything true tracks better than as tracked."""
     monkeypatch.syspath_prepend(str(BENCHMARKS))
     bench = importlib.import_module("corner_ceiling")
     report_path = tmp_path / "report.json"
-    assert bench.main(["--out", str(tmp_path), "--preset", "clean", "--duration", "3", "--configs", "1", "--sigmas",
-                       "0", "--no-template", "--no-tune", "--calibration-frames", "40", "--floor",
+    assert bench.main(["--out", str(tmp_path), "--preset", "clean", "--duration", "2", "--configs", "1", "--sigmas",
+                       "0", "--no-template", "--no-tune", "--calibration-frames", "40", "--floor", "--decompose",
                        "--json", str(report_path)]) == 0
-    assert "floor: per-instant fit" in capsys.readouterr().out
-    (floor,) = json.loads(report_path.read_text())["floor"].values()
+    out = capsys.readouterr().out
+    assert "floor: per-instant fit" in out and "decomposition: the tracker's filter" in out
+    report = json.loads(report_path.read_text())
+    (floor,) = report["floor"].values()
     assert floor["oracle"]["all"]["sightings"] == floor["edge"]["all"]["sightings"] > 0
     assert floor["oracle"]["all"]["pos_cm"] < 1e-3 and floor["oracle"]["all"]["rot_deg"] < 1e-3, floor["oracle"]
     assert 0.01 < floor["edge"]["all"]["pos_cm"] < 5.0 and 0.01 < floor["edge"]["all"]["rot_deg"] < 5.0, floor["edge"]
+    (rows,) = report["decomposition"]["as tracked"].values()
+    assert list(rows) == [" + ".join(true) or "nothing" for true in bench.LADDER]
+    assert all(math.isfinite(r[k]["rot_deg"]) and r[k]["dr"] > 0.9
+               for r in rows.values() for k in ("causal", "smoothed")), rows
+    everything = rows["body + cameras + stamps + corners"]["causal"]
+    assert everything["rot_deg"] < rows["nothing"]["causal"]["rot_deg"], rows

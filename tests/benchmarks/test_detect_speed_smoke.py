@@ -47,5 +47,22 @@ def test_stages_report_every_stage_and_a_bit_identical_replay(capsys):
                  "corner_filter.reprojection_residuals_px"):
         assert re.search(rf"^  {re.escape(name)}\s+[0-9.]+ calls/frame\s+[0-9.]+ us/call", text, re.MULTILINE), name
     assert re.search(r"^poses: [1-9][0-9]*; replay bit-identical across rounds", text, re.MULTILINE), text
+    # the decode levers on the same frames, each against the full gray decode (its own ratio 1)
+    decodes = {label: (float(value), float(ratio)) for label, value, ratio in
+               re.findall(r"^  (colour.*?|gray.*?|the tracker's.*?)\s+([0-9.]+) ms\s+([0-9.]+)$", text, re.MULTILINE)}
+    assert len(decodes) == 10, decodes
+    assert decodes["gray, full size (simplejpeg)"][1] == 1.0
+    assert all(value > 0.0 and abs(ratio - value / decodes["gray, full size (simplejpeg)"][0]) < 0.02
+               for value, ratio in decodes.values()), decodes
+    # the region searches those frames made, as configured and with the levers (each costs CPU; as configured
+    # keeps markers: the tracker searched regions where its robot was predicted)
+    regions = {label: (float(ms_), int(kept)) for label, ms_, kept in
+               re.findall(r"^  (as configured|threshold windows .*?|the image at half size.*?)\s+([0-9.]+) ms\s+(\d+) "
+                          r"markers$", text, re.MULTILINE)}
+    assert len(regions) == 4 and all(value > 0.0 for value, _ in regions.values()), regions
+    assert regions["as configured"][1] > 0, regions
+    gc = re.search(r"^garbage collections in a round \(median of rounds\): (\d+), of which (\d+) of the oldest "
+                   r"generation; ([0-9.]+) ms in all \(([0-9.]+) ms per frame\), the longest ([0-9.]+) ms", text, re.M)
+    assert gc and int(gc.group(2)) <= int(gc.group(1)), text   # per round, so in the medians too
     assert (tracker_module.decode_gray, detector_module.refine_corners_edges,
             corner_filter_module.reprojection_jacobian_px) == originals

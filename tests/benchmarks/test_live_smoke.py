@@ -3,8 +3,10 @@ the tracker live over HTTP in its own process. The targets are the benchmark's b
 a timing here): the report is complete and consistent (its counts add up, its verdicts follow
 from its figures), and the live run tracked the robot."""
 
+import itertools
 import json
 import math
+import re
 import subprocess
 import sys
 from pathlib import Path
@@ -25,7 +27,7 @@ def test_quick_run_prints_and_saves_a_complete_report(tmp_path):
     lines = run.stdout.splitlines()
     for start in ("live benchmark: 2 cameras x 10 fps", "  command: ", "  after the first ", "  frames/s: offered",
                   "  CPU: ", "  CPU per frame: naive loop ",
-                  "  arrival -> pose ms: p50", "  RSS: ", "  accuracy vs ground truth: live",
+                  "  arrival -> pose ms: p50", "  over time (", "  RSS: ", "  accuracy vs ground truth: live",
                   "  same ", "  per frame, one thread: ", "  outputs: files only ", "SUMMARY: "):
         assert sum(line.startswith(start) for line in lines) == 1, start
     assert "nproc" in lines[0] and "naive loop" in next(line for line in lines if line.startswith("  same "))
@@ -45,6 +47,11 @@ def test_quick_run_prints_and_saves_a_complete_report(tmp_path):
     assert live["rss_end_mb"] > 0 and live["processed_fps_warm"] > 0  # frames were processed after the warm-up
     assert live["rss_start_mb"] > 0 and live["rss_mid_mb"] > 0
     assert 0 < live["first_pose_s"] < live["wall_s"]  # start-up: the first pose came during the session
+    # interval by interval (between status lines): in order, within the run, no more poses than the run's
+    ends = [(i["from_s"], i["to_s"]) for i in live["over_time"]]
+    assert all(0 <= a < b for a, b in ends) and all(b == c for (_, b), (c, _) in itertools.pairwise(ends))
+    assert sum(i["poses"] for i in live["over_time"]) <= live["poses"]
+    assert all(i["dropped"] >= 0 for i in live["over_time"])
     assert math.isnan(live["offered_fps_warm"]) or live["offered_fps_warm"] > 0  # no status line after 1.5 s of 5
     for run in ("live", "offline"):
         assert 0 < acc[run]["pos_cm"] < 2.0 and 0 < acc[run]["rot_deg"] < 2.0, run
@@ -99,3 +106,20 @@ def test_template_speed_only_run_uses_template_corners_and_its_target(tmp_path):
     assert "template corners" in lines[0]
     assert any(line.startswith("  CPU per frame: naive loop ") for line in lines)
     assert lines[-1] == "SUMMARY: throughput target met" if speed["ratio"] >= 2.5 else "< 2.5" in lines[-1]
+
+
+def test_worker_split_reports_where_a_camera_worker_process_spends_its_cpu(tmp_path):
+    """--worker-split: one camera worker process's loop in the benchmark's process, fed by the emulator:
+    frames processed (no more than its cameras delivered) and the CPU per processed frame of each part."""
+    command = [sys.executable, str(ROOT / "benchmarks" / "live.py"), "--quick", "--worker-split",
+               "--out", str(tmp_path)]
+    run = subprocess.run(command, check=False, capture_output=True, text=True, timeout=900, cwd=ROOT)
+    assert run.returncode == 0, run.stderr[-3000:]
+    line = run.stdout.splitlines()[-1]
+    found = re.search(r"over 1 cameras .*: (\d+) frames processed of (\d+) received; thread CPU per processed frame: "
+                      r"work .* ([0-9.]+) ms, planning ([0-9.]+) ms, sending the result ([0-9.]+) ms, the rest .* "
+                      r"([0-9.]+) ms; the tracker's process standing in .* ([0-9.]+) ms$", line)
+    assert found, line
+    processed, received = int(found.group(1)), int(found.group(2))
+    assert 0 < processed <= received
+    assert all(float(found.group(k)) > 0.0 for k in range(3, 8)), line

@@ -2,7 +2,8 @@
 report is complete, the killed shard's robots are claimed by the other and their poses resume within
 3 s, no robot has two shards' claims for longer than the bus's lease, and the poses the shards made
 are those of a single process fusing the same sightings. Shards and publishers are separate
-processes; the shard is killed with SIGKILL (a crash). No speed is judged here."""
+processes (the publishers' messages made before the run: --pre-encoded); the shard is killed with SIGKILL
+(a crash). No speed is judged here."""
 
 import json
 import subprocess
@@ -22,7 +23,7 @@ def test_a_killed_shards_robots_are_fused_by_the_other_within_3_s(tmp_path):
     report = tmp_path / "fleet.json"
     run = subprocess.run([sys.executable, str(ROOT / "benchmarks" / "fleet.py"), "--robots", "2", "--cameras", "4",
                           "--fps", "10", "--duration", "2", "--shards", "2", "--publishers", "1",
-                          "--kill-shard", "kill", "--json", str(report)],
+                          "--kill-shard", "kill", "--pre-encoded", "--json", str(report)],
                          check=False, capture_output=True, text=True, timeout=300, cwd=ROOT)
     assert run.returncode == 0, run.stderr[-3000:]
     r = json.loads(report.read_text())

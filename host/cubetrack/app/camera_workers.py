@@ -43,7 +43,6 @@ log = logging.getLogger(__name__)
 
 STATS_EVERY_S = 0.5  # a worker process sends its cameras' counters this often
 FORECAST_EVERY_S = 0.01  # the tracker's process sends a new forecast at most this often
-BEHIND_S = 0.015  # a worker process whose oldest waiting frame is older than this takes the freshest first
 IN_FLIGHT = 4  # results a worker process may have sent that the fusion has not taken yet
 WAKE = "wake"  # the message to a worker process that may wait for its results to be taken
 MESSAGES_PER_TAKE = 64  # messages read from one worker process per take(), so that no process starves another
@@ -299,7 +298,7 @@ def _work_cameras(conn: Connection, urls: dict[str, str], source: SourceParams, 
                 # in arrival order: the fusion gets fewer late sightings to fold in (each costs re-applying the
                 # newer ones) than freshest-first would give it; freshest first only once behind
                 event = live.get(0 if stopping else 0.05, frames=room,  # or until a message comes
-                                 newest_first_after_s=BEHIND_S)
+                                 newest_if_behind=True)
                 if event is None and stopping:
                     break
                 job = admitted(event)
@@ -313,7 +312,7 @@ def _work_cameras(conn: Connection, urls: dict[str, str], source: SourceParams, 
                 # tracker's process holds this result for it rather than folding it in late
                 job = None
                 if stopping or sent + 1 - taken[lane] < IN_FLIGHT:
-                    while (event := live.get(0, newest_first_after_s=BEHIND_S)) is not None:
+                    while (event := live.get(0, newest_if_behind=True)) is not None:
                         if (job := admitted(event)) is not None:
                             break
                 working[lane] = math.inf if job is None else job.capture_time_s

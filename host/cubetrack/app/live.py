@@ -148,11 +148,11 @@ class _FramePoolFeed:
         self._take_events()
 
     def _take_events(self) -> None:
-        """Clock samples always; frames while a worker is free, the freshest first (the others
-        wait in the source, one per camera, until a newer frame replaces them). Until the first
+        """Clock samples always; frames while a worker is free, in arrival order, the freshest first once
+        behind (cubetrack.source.order; the others wait in the source, one per camera). Until the first
         worker has started, this thread does the per-frame work itself."""
         pool = self.pool
-        while (event := self.live.get(0, frames=pool.idle() > 0 or not pool.ready, newest_first=True)) is not None:
+        while (event := self.live.get(0, frames=pool.idle() > 0 or not pool.ready, newest_if_behind=True)) is not None:
             if isinstance(event, ClockReading):
                 self.stream.clock_sample(event.camera, event.sample)
             elif (job := self.tracker.admit(event, hold=False)) is not None:

@@ -3,7 +3,8 @@ command modules, and the one error boundary.
 
 A command module has a docstring (its ``--help`` text), ``HELP`` (one line), ``add_arguments``
 and ``run(args) -> int``. Known errors (:class:`cubetrack.core.errors.CubetrackError`) print one line
-and exit 1; Ctrl-C exits 130; anything else is a bug: its traceback is logged and the exit code is 2.
+and exit 1; Ctrl-C exits 130 (also when a C extension wrapped it in another exception); anything else
+is a bug: its traceback is logged and the exit code is 2.
 SIGTERM and SIGHUP (``kill``, a service manager, a closed terminal) stop a command as Ctrl-C does, so
 that what it opened is closed and its temporary folders are removed (unless the signal is ignored,
 e.g. under ``nohup``).
@@ -20,7 +21,7 @@ import threading
 from collections.abc import Mapping
 from typing import Any
 
-from cubetrack.core.errors import CubetrackError
+from cubetrack.core.errors import CubetrackError, caused_by_interrupt
 
 
 def build_parser(prog: str, description: str, version: str, package: str,
@@ -54,7 +55,10 @@ def run_command(parser: argparse.ArgumentParser, argv: list[str] | None) -> int:
     except KeyboardInterrupt:
         print(f"{parser.prog} {args.command}: interrupted", file=sys.stderr)
         return 130
-    except Exception:  # a bug, not bad input: keep the traceback for the report
+    except Exception as exc:  # a bug, not bad input: keep the traceback for the report
+        if caused_by_interrupt(exc):  # a C extension (numba's dispatcher) wrapped the interrupt
+            print(f"{parser.prog} {args.command}: interrupted", file=sys.stderr)
+            return 130
         logging.getLogger(parser.prog).exception("%s %s: unexpected error (please report it)",
                                                  parser.prog, args.command)
         return 2

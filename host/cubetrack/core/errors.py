@@ -58,3 +58,16 @@ class EvaluationError(CubetrackError):
 
 class SourceError(CubetrackError):
     """A camera source could not be started or read (e.g. the camera emulator failed)."""
+
+
+def caused_by_interrupt(exc: BaseException) -> bool:
+    """Whether ``exc`` was caused, at any depth, by a KeyboardInterrupt: Ctrl-C (or SIGTERM/SIGHUP,
+    which the CLI turns into it) while numba's C dispatcher loads a kernel from its cache comes out as
+    a SystemError caused by the interrupt, which is an interrupt all the same. The chain is followed
+    as a traceback shows it (``raise ... from None`` ends it)."""
+    seen: BaseException | None = exc
+    while seen is not None:
+        if isinstance(seen, KeyboardInterrupt):
+            return True
+        seen = seen.__cause__ if seen.__cause__ is not None or seen.__suppress_context__ else seen.__context__
+    return False

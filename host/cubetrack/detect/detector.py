@@ -25,14 +25,14 @@ import logging
 import time
 import warnings
 from collections import Counter
-from collections.abc import Iterable, Mapping, Sequence
+from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
 
 from cubetrack.core.cameras import CameraIntrinsics
-from cubetrack.core.errors import DetectionError, ImageError
+from cubetrack.core.errors import DetectionError, ImageError, caused_by_interrupt
 from cubetrack.core.geometry import shoelace_area
 from cubetrack.core.params import check, param
 from cubetrack.core.records import Detection
@@ -276,14 +276,25 @@ def _lens_key(lens: CameraIntrinsics) -> tuple:
     return lens.width, lens.height, np.asarray(lens.K).tobytes(), np.asarray(lens.dist).tobytes()
 
 
-def _interrupted(exc: BaseException) -> bool:
-    """Whether ``exc`` was caused, at any depth, by a KeyboardInterrupt."""
-    seen: BaseException | None = exc
-    while seen is not None:
-        if isinstance(seen, KeyboardInterrupt):
-            return True
-        seen = seen.__cause__ or seen.__context__
-    return False
+def compile_kernels(what: str, *compile_functions: Callable[[], None]) -> None:
+    """Run ``compile_functions`` (each compiles numba kernels or loads them from numba's on-disk
+    cache) before the first frame; a compile over ``COMPILE_NOTICE_S`` (the first run after an
+    install or upgrade) is logged at INFO, naming ``what``."""
+    started_s = time.perf_counter()
+    try:
+        for compile_function in compile_functions:
+            compile_function()
+    except SystemError as exc:
+        # Ctrl-C (or SIGTERM/SIGHUP, which the CLI turns into it) while numba loads a kernel from its
+        # cache comes out of numba's C dispatcher as a SystemError caused by the KeyboardInterrupt:
+        # give the command its interrupt back here, before any `except Exception` on the way up takes
+        # it for a failure (the CLI's boundary checks the same for other callers)
+        if caused_by_interrupt(exc):
+            raise KeyboardInterrupt from None
+        raise
+    if (compile_s := time.perf_counter() - started_s) > COMPILE_NOTICE_S:
+        log.info("compiled the %s in %.0f s (numba; once after an install or upgrade: later runs load them from its "
+                 "cache)", what, compile_s)
 
 
 class Detector:
@@ -323,22 +334,12 @@ class Detector:
                            if self.params.corner_refinement is CornerRefinement.APRILTAG else 0.0)
         self._modules = tuple(d.markerSize + 2 for d in dicts)  # cells across, with a 1-bit border
         self._lens_maps: dict[tuple, LensMap] = {}
-        started_s = time.perf_counter()
-        try:
-            if self.params.corner_refinement in (CornerRefinement.EDGE, CornerRefinement.TEMPLATE):
-                compile_edge_fit()   # the compiled kernels, before the first frame
-            if self.params.corner_refinement is CornerRefinement.TEMPLATE:
-                compile_template_fit()
-        except SystemError as exc:
-            # Ctrl-C (or SIGTERM/SIGHUP, which the CLI turns into it) while numba loads a kernel from its
-            # cache comes out of numba's C dispatcher as a SystemError caused by the KeyboardInterrupt:
-            # give the command its interrupt back, so that it stops as it would anywhere else
-            if _interrupted(exc):
-                raise KeyboardInterrupt from None
-            raise
-        if (compile_s := time.perf_counter() - started_s) > COMPILE_NOTICE_S:
-            log.info("compiled the corner fits in %.0f s (numba; once after an install or upgrade: "
-                     "later runs load them from its cache)", compile_s)
+        kernels = []   # the compiled kernels, before the first frame
+        if self.params.corner_refinement in (CornerRefinement.EDGE, CornerRefinement.TEMPLATE):
+            kernels.append(compile_edge_fit)
+        if self.params.corner_refinement is CornerRefinement.TEMPLATE:
+            kernels.append(compile_template_fit)
+        compile_kernels("corner fits", *kernels)
 
     def detect(self, gray: np.ndarray, regions: Sequence[Box] | None = None,
                lens: CameraIntrinsics | None = None) -> tuple[Detection, ...]:

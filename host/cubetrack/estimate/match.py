@@ -36,6 +36,7 @@ from collections.abc import Collection, Iterable, Sequence
 from dataclasses import dataclass
 
 import cv2
+import numba
 import numpy as np
 
 from cubetrack.core.cameras import CameraIntrinsics
@@ -194,22 +195,22 @@ def _match_by_prediction(detections: Sequence[Detection], layout: CubeLayout, in
                          max_view_angle_deg: float) -> tuple[FaceMatch, ...]:
     """Each detection, in order, takes the nearest unclaimed visible face with its id where
     ``T_world_cube`` projects the faces (see the module doc). Runs per sighting in the filter:
-    few numpy calls, and plain Python over the handful of faces."""
+    compiled steps (:func:`_faces_in_camera`, :func:`_projected`, :func:`_mean_corner_distances`) and
+    plain Python over the handful of faces."""
     R_wc = T_world_cam[:3, :3]
     R_cb = R_wc.T @ T_world_cube[:3, :3]
     t_cb = (T_world_cube[:3, 3] - T_world_cam[:3, 3]) @ R_wc
-    corners_cam = layout.corners_m @ R_cb.T + t_cb                     # (M, 4, 3)
-    # facing away, or seen so obliquely that its corners are poor: not a candidate (the view
-    # angle's cosine -n.c / |c|, with c twice the face's centre: its diagonal's midpoint)
-    centres = corners_cam[:, 0] + corners_cam[:, 2]
-    toward = -((layout.normals @ R_cb.T) * centres).sum(axis=1)
-    visible = toward >= math.cos(math.radians(max_view_angle_deg)) * np.sqrt((centres * centres).sum(axis=1))
+    corners_cam, visible = _faces_in_camera(layout.corners_m, layout.normals, R_cb, t_cb,
+                                            math.cos(math.radians(max_view_angle_deg)))
     if not visible.any():
         return ()
-    proj, _ = cv2.projectPoints(corners_cam.reshape(-1, 3), _ZERO3, _ZERO3, intrinsics.K, intrinsics.dist)
-    d = proj.reshape(1, -1, 4, 2) - np.array([det.corners_px for det in detections])[:, None]   # (D, M, 4, 2)
-    d *= d
-    distances = (np.sqrt(d[..., 0] + d[..., 1]).sum(axis=-1) * 0.25).tolist()   # mean corner distance (D, M)
+    dist = intrinsics.dist.ravel()
+    if len(dist) <= 12:   # OpenCV's model without its tilted sensor: compiled (cv2.projectPoints also makes a Jacobian)
+        proj = _projected(corners_cam, intrinsics.K, dist)
+    else:
+        proj = cv2.projectPoints(corners_cam, _ZERO3, _ZERO3, intrinsics.K, dist)[0].reshape(-1, 2)
+    distances = _mean_corner_distances(proj, np.array([det.corners_px for det in detections],
+                                                      dtype=np.float64)).tolist()   # (D, M)
     free = visible.tolist()
     ids = layout.marker_ids.tolist()
     by_dictionary = len(layout.dictionaries) > 1
@@ -225,3 +226,79 @@ def _match_by_prediction(detections: Sequence[Detection], layout: CubeLayout, in
         free[k] = False
         out.append(FaceMatch(k, layout.markers[k].face, det, layout.corners_m[k]))
     return tuple(out)
+
+
+# The prediction's numeric steps, compiled (numba: a dozen small numpy calls per sighting were most of the
+# filter's association; compile_match_kernels compiles them before the first sighting).
+
+
+@numba.njit(cache=True, nogil=True)
+def _faces_in_camera(corners_m: np.ndarray, normals: np.ndarray, R_cb: np.ndarray, t_cb: np.ndarray,
+                     cos_max: float) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover
+    """The faces' corners (M, 4, 3) in the camera frame (body at ``R_cb``, ``t_cb`` there), as
+    (4M, 3), and which faces are candidates: not facing away, nor seen more obliquely than the
+    angle of cosine ``cos_max`` (the view angle's cosine ``-n.c / |c|``, with ``c`` twice the face's
+    centre: its diagonal's midpoint)."""
+    M = corners_m.shape[0]
+    cam = np.empty((4 * M, 3))
+    visible = np.empty(M, dtype=np.bool_)
+    for j in range(M):
+        for c in range(4):
+            for a in range(3):
+                cam[4 * j + c, a] = (R_cb[a, 0] * corners_m[j, c, 0] + R_cb[a, 1] * corners_m[j, c, 1]
+                                     + R_cb[a, 2] * corners_m[j, c, 2] + t_cb[a])
+        toward, length2 = 0.0, 0.0
+        for a in range(3):
+            centre = cam[4 * j, a] + cam[4 * j + 2, a]
+            toward -= (R_cb[a, 0] * normals[j, 0] + R_cb[a, 1] * normals[j, 1] + R_cb[a, 2] * normals[j, 2]) * centre
+            length2 += centre * centre
+        visible[j] = toward >= cos_max * math.sqrt(length2)
+    return cam, visible
+
+
+@numba.njit(cache=True, nogil=True)
+def _projected(points: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:  # pragma: no cover
+    """(N, 2) pixels of camera-frame points (N, 3): ``cv2.projectPoints``' model (its
+    ``cvProjectPoints2Internal``) for up to 12 coefficients, k1 k2 p1 p2 [k3 [k4 k5 k6 [s1 s2 s3 s4]]]."""
+    k = np.zeros(12)
+    k[:dist.shape[0]] = dist
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    out = np.empty((points.shape[0], 2))
+    for i in range(points.shape[0]):
+        z = points[i, 2]
+        iz = 1.0 / z if z != 0.0 else 1.0
+        x, y = points[i, 0] * iz, points[i, 1] * iz
+        r2 = x * x + y * y
+        r4 = r2 * r2
+        a1, a2, a3 = 2.0 * x * y, r2 + 2.0 * x * x, r2 + 2.0 * y * y
+        radial = (1.0 + k[0] * r2 + k[1] * r4 + k[4] * r4 * r2) / (1.0 + k[5] * r2 + k[6] * r4 + k[7] * r4 * r2)
+        out[i, 0] = (x * radial + k[2] * a1 + k[3] * a2 + k[8] * r2 + k[9] * r4) * fx + cx
+        out[i, 1] = (y * radial + k[2] * a3 + k[3] * a1 + k[10] * r2 + k[11] * r4) * fy + cy
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _mean_corner_distances(projected: np.ndarray, detected: np.ndarray) -> np.ndarray:  # pragma: no cover
+    """(D, M): each detection's (``detected`` (D, 4, 2)) mean corner distance to each face's
+    projected corners (``projected`` (4M, 2)), pixels."""
+    D, M = detected.shape[0], projected.shape[0] // 4
+    out = np.empty((D, M))
+    for i in range(D):
+        for j in range(M):
+            s = 0.0
+            for c in range(4):
+                dx, dy = projected[4 * j + c, 0] - detected[i, c, 0], projected[4 * j + c, 1] - detected[i, c, 1]
+                s += math.sqrt(dx * dx + dy * dy)
+            out[i, j] = s * 0.25
+    return out
+
+
+def compile_match_kernels() -> None:
+    """Compile the matcher's kernels (or load them from numba's on-disk cache) for the argument
+    types it passes (a layout's read-only arrays), so that no sighting pays it."""
+    corners = np.zeros((1, 4, 3))
+    normals = np.array([[0.0, 0.0, 1.0]])
+    for a in (corners, normals):
+        a.setflags(write=False)
+    cam, _ = _faces_in_camera(corners, normals, np.eye(3), np.array([0.0, 0.0, 1.0]), 0.5)
+    _mean_corner_distances(_projected(cam, np.eye(3), np.zeros(5)), np.zeros((1, 4, 2)))

@@ -14,7 +14,7 @@ Estimated from the innovations: every accepted camera frame's corners, reproject
 filter's prediction (the pose the sightings before it, mostly other cameras', agree on), give
 residuals ``r ≈ J (θ_c - θ_true) + n`` with ``J = H [M | H_v]``: ``H`` the corners' Jacobian by
 the body pose, ``M`` how a camera error moves the body as that camera sees it (``δp = -δt +
-[p - c]× δφ``, ``δθ = -δφ``, as in :func:`cubetrack.fuse.corner_filter.calibration_discount`),
+[p - c]× δφ``, ``δθ = -δφ``, as in :func:`cubetrack.fuse.filter_kernels.calibration_discount`),
 ``H_v = [v; ω]`` how a time offset does; the noise ``n`` is the corners' own (Huber-weighted)
 plus the prediction's uncertainty projected, ``S = W⁻¹ + H P Hᵀ``. Each frame adds its
 information ``Jᵀ S⁻¹ J`` and ``Jᵀ S⁻¹ (J θ_c - r)`` to the camera's sums, which fade with

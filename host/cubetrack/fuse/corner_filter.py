@@ -30,19 +30,13 @@ import numpy as np
 
 from cubetrack.core.geometry import make_T
 from cubetrack.core.params import check_at_least, check_non_negative, check_positive, param
-from cubetrack.estimate.reprojection import (
-    CornerSet,
-    moved_pose,
-    perturbed,
-    reprojection_jacobian_px,
-    reprojection_residuals_px,
-)
+from cubetrack.estimate.reprojection import CornerSet, perturbed
+from cubetrack.fuse.filter_kernels import OK, moved_pose, packed_sets, predicted_covariance, solve_update
 
 _POSE, _VELOCITY, _ANGULAR_VELOCITY = slice(0, 6), slice(6, 9), slice(9, 12)  # error-state blocks
 _RATES = np.zeros((12, 12))  # d(state)/dt under constant velocity: δp' = δv, δθ' = δω
 _RATES[0:6, 6:12] = np.eye(6)
 _IDENTITY = np.eye(12)
-_EYE3 = np.eye(3)
 
 
 @dataclass(frozen=True, slots=True)
@@ -204,7 +198,8 @@ class PoseFilter:
 
     def predicted(self, time_s: float) -> np.ndarray:
         """The pose extrapolated to ``time_s`` at constant velocity (no state change)."""
-        return moved_pose(self.T_world_cube, self.velocity_m_s, self.angular_velocity_rad_s, time_s - self.time_s)
+        return moved_pose(self.T_world_cube, self.velocity_m_s, self.angular_velocity_rad_s,
+                          float(time_s - self.time_s))
 
     def predict(self, time_s: float) -> None:
         """Move the state to ``time_s`` (constant velocity) and grow the covariance."""
@@ -213,13 +208,7 @@ class PoseFilter:
             return
         self._set_pose(self.predicted(time_s))
         A, B, C = _motion_noise(self.params, self.time_s <= self.turning_until_s)
-        adt = abs(dt)
-        # F P F^T with F = transition(dt) = I + dt [[0, I], [0, 0]]: F P adds dt x its velocity rows to
-        # its pose rows, (F P) F^T the same with the columns (two slice updates, not two 12x12 products)
-        P = self.P.copy()
-        P[_POSE] += dt * P[6:12]
-        P[:, _POSE] += dt * P[:, 6:12]
-        self.P = P + ((adt**3 / 3.0) * A + (dt * dt / 2.0) * B + adt * C)
+        self.P = predicted_covariance(self.P, dt, A, B, C)  # F P Fᵀ + the process noise, F = transition(dt)
         self.time_s = time_s
 
     def error_from(self, other: PoseFilter) -> np.ndarray:
@@ -240,54 +229,26 @@ class PoseFilter:
         moved.P = (covariance + covariance.T) / 2.0
         return moved
 
-    def _solve(self, sets: Sequence[CornerSet]) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-        """Gauss-Newton on prior + Huber-weighted corner residuals: (δ (12,), information, the
-        pose moved by δ (4x4 ``T_world_cube``), residuals px there, less what the cameras'
-        calibration error explains (:func:`calibration_discount`)).
+    def _solve(self, sets: Sequence[CornerSet]) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, np.ndarray]:
+        """Gauss-Newton on prior + Huber-weighted corner residuals: (δ (12,), the covariance after
+        it (None if its information is singular), the pose moved by δ (4x4 ``T_world_cube``),
+        residuals px there, less what the cameras' calibration error explains
+        (:func:`cubetrack.fuse.filter_kernels.calibration_discount`)). Compiled:
+        :func:`cubetrack.fuse.filter_kernels.solve_update`.
 
         Corners taken at the filter's time see only the pose block of the state: their information
         adds to that block and their gradient to its rows. A set taken at another instant (a
         rolling shutter's row time) sees the pose moved there at the filter's velocities, so it
         informs the velocities too (the full 12-column Jacobian)."""
         prm = self.params
-        T0 = T = self.T_world_cube  # T: T0 moved by delta (at delta = 0, T0 itself)
-        info_prior = inverse(self.P)
-        delta = np.zeros(12)
-        rhs = np.zeros(12)
         moving = any(s.time_s != self.time_s for s in sets)
-        block = slice(0, 12) if moving else _POSE
-        explained: np.ndarray | float = 0.0
-        huber, inv_var = prm.huber_px, 1.0 / prm.corner_noise_px**2
-        for _ in range(prm.iterations):
-            r, H = reprojection_jacobian_px(*self._at(T, delta, sets, moving))
-            weights = np.minimum(huber / np.maximum(np.abs(r - explained), 1e-12), 1.0) * inv_var  # Huber
-            WH = weights[:, None] * H
-            info_add, grad = H.T @ WH, WH.T @ (H @ delta[block] - r)
-            K = calibration_discount(prm, sets, T, info_add[_POSE, _POSE])
-            if K is not None:
-                C = info_add[:, _POSE]     # (n, 6): H^T W H_pose
-                info_add = info_add - C @ K @ C.T
-                grad = grad - C @ (K @ grad[_POSE])
-            info = info_prior.copy()
-            info[block, block] += info_add
-            rhs[block] = grad
-            step = solved(info, rhs) - delta
-            delta = delta + step
-            T = perturbed(T0, delta[_POSE])
-            if K is not None:   # the calibration error that explains the residuals there
-                explained = H[:, _POSE] @ (K @ (WH[:, _POSE].T @ (r + H @ step[block])))
-        r = reprojection_residuals_px(*self._at(T, delta, sets, moving))
-        if K is not None:
-            r = r - H[:, _POSE] @ (K @ (WH[:, _POSE].T @ r))
-        return delta, info, T, r
-
-    def _at(self, T: np.ndarray, delta: np.ndarray, sets: Sequence[CornerSet], moving: bool) -> tuple:
-        """The arguments of the reprojection functions for the state moved by ``delta`` (its pose
-        ``T``, already moved)."""
-        if not moving:
-            return T, sets
-        return (T, sets, self.time_s, self.velocity_m_s + delta[_VELOCITY],
-                self.angular_velocity_rad_s + delta[_ANGULAR_VELOCITY])
+        status, delta, _info, T, r, P, P_ok = solve_update(
+            self.T_world_cube, self.P, self.time_s, self.velocity_m_s, self.angular_velocity_rad_s, *packed_sets(sets),
+            moving, prm.iterations, prm.huber_px, 1.0 / prm.corner_noise_px**2, prm.camera_position_sigma_m,
+            math.radians(prm.camera_rotation_sigma_deg))
+        if status != OK:
+            raise np.linalg.LinAlgError("singular matrix")
+        return delta, (P if P_ok else None), T, r
 
     def update(self, sets: Sequence[CornerSet]) -> UpdateResult:
         """Iterated EKF update with the corners of ``sets``, each taken at its ``time_s`` (the
@@ -299,7 +260,7 @@ class PoseFilter:
         """
         sets = [s for s in sets if s is not None and len(s.faces)]
         while sets:
-            delta, info, T, r = self._solve(sets)
+            delta, P, T, r = self._solve(sets)
             face_rms = np.sqrt((r * r).reshape(-1, 8).sum(axis=1) / 8.0)  # RMS of 4 corners x (x, y) per face
             if len(face_rms) == 1:
                 break
@@ -312,65 +273,14 @@ class PoseFilter:
         rms = math.sqrt(float(r @ r) / r.size)
         if not math.isfinite(rms) or rms > self.params.gate_rms_px:
             return UpdateResult(False, rms, r.size // 2)
-        self.P = inverse(info)
-        self.P = (self.P + self.P.T) / 2.0
+        if P is None:
+            raise np.linalg.LinAlgError("singular matrix")
+        self.P = P
         self._set_pose(T)
         self.velocity_m_s = self.velocity_m_s + delta[_VELOCITY]
         self.angular_velocity_rad_s = self.angular_velocity_rad_s + delta[_ANGULAR_VELOCITY]
         self._note_turn()
         return UpdateResult(True, rms, r.size // 2)
-
-
-def calibration_discount(params: FilterParams, sets: Sequence[CornerSet], T_world_cube: np.ndarray,
-                         info_pose: np.ndarray) -> np.ndarray | None:
-    """What one camera frame's corners tell about the pose, less what its camera's calibration
-    error could make them say: ``K``, with the corners' information becoming
-    ``H^T W H - C K C^T`` (``C = H^T W H_pose``), or None with the camera taken as exact.
-    ``info_pose``: the corners' information about the pose, ``H_pose^T W H_pose`` (6x6).
-
-    A camera whose true pose is off from its extrinsics by ``ε = (δt, δφ)`` (world frame,
-    rotation about its centre ``c``) sees the body as if it had moved by ``δp = -δt + [p - c]× δφ``,
-    ``δθ = -δφ``: so every corner of its frame shares the error ``H_pose e``, ``e ~ N(0, Σ)`` with
-    ``Σ = σ_t² diag(I, 0) + σ_φ² A Aᵀ``, ``A = [[p - c]×; -I]``. The corners' covariance is then
-    ``W⁻¹ + H_pose Σ H_poseᵀ``, whose inverse (Woodbury) is ``W - W H_pose K H_poseᵀ W`` with
-    ``K = (Σ⁻¹ + H_poseᵀ W H_pose)⁻¹``; ``K H_poseᵀ W r`` is the error ``e`` that best explains
-    residuals ``r``. ``Σ⁻¹`` in closed form (its Schur complement on the rotation block is
-    ``σ_t² I``): ``[[I, D], [Dᵀ, σ_t²/σ_φ² I + DᵀD]] / σ_t²`` with ``D = [p - c]×``. All sets of one
-    update come from one camera (one frame); with several cameras the first's centre is used."""
-    sigma_t, sigma_phi = params.camera_position_sigma_m, math.radians(params.camera_rotation_sigma_deg)
-    if sigma_t <= 0.0 or sigma_phi <= 0.0 or not sets:
-        return None
-    T_cw = sets[0].T_cam_world
-    d = T_world_cube[:3, 3] + T_cw[:3, :3].T @ T_cw[:3, 3]        # p - c
-    D = np.array([[0.0, -d[2], d[1]], [d[2], 0.0, -d[0]], [-d[1], d[0], 0.0]])
-    sigma_inv = np.empty((6, 6))
-    sigma_inv[:3, :3] = _EYE3
-    sigma_inv[:3, 3:] = D
-    sigma_inv[3:, :3] = D.T
-    sigma_inv[3:, 3:] = D.T @ D + (sigma_t / sigma_phi) ** 2 * _EYE3
-    try:
-        return inverse(sigma_inv / sigma_t**2 + info_pose)
-    except np.linalg.LinAlgError:
-        return None
-
-
-def inverse(M: np.ndarray) -> np.ndarray:
-    """The inverse of a small square matrix (OpenCV's LU: a fifth of ``np.linalg.inv``'s cost at 6x6 or
-    12x12, which is mostly its Python wrapper; the filter inverts several per sighting).
-    ``np.linalg.LinAlgError`` when ``M`` is singular."""
-    ok, out = cv2.invert(M, flags=cv2.DECOMP_LU)
-    if not ok:
-        raise np.linalg.LinAlgError("singular matrix")
-    return out
-
-
-def solved(A: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """``x`` with ``A x = b`` (A small and square, b a vector: OpenCV's LU, as :func:`inverse`).
-    ``np.linalg.LinAlgError`` when ``A`` is singular."""
-    ok, x = cv2.solve(A, b.reshape(-1, 1), flags=cv2.DECOMP_LU)
-    if not ok:
-        raise np.linalg.LinAlgError("singular matrix")
-    return x.ravel()
 
 
 def _without_face(sets: Sequence[CornerSet], index: int) -> list[CornerSet]:

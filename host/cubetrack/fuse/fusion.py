@@ -37,7 +37,6 @@ from collections import Counter
 from collections.abc import Sequence
 from dataclasses import dataclass, field, replace
 
-import cv2
 import numpy as np
 
 from cubetrack.core.cameras import CameraIntrinsics
@@ -49,7 +48,7 @@ from cubetrack.core.records import CameraEstimate, CubeSighting, TrackedPose
 from cubetrack.estimate.match import FaceMatch, match_faces
 from cubetrack.estimate.params import EstimatorParams
 from cubetrack.estimate.pose import estimate_cube
-from cubetrack.estimate.reprojection import CornerSet, corner_set
+from cubetrack.estimate.reprojection import CornerSet, corner_set, normalize_px
 from cubetrack.fuse.camera_corrections import (
     CameraCorrection,
     CameraCorrections,
@@ -59,6 +58,7 @@ from cubetrack.fuse.camera_corrections import (
     observed,
 )
 from cubetrack.fuse.corner_filter import FilterParams, PoseFilter
+from cubetrack.fuse.filter_kernels import compile_filter_kernels, spread_m
 from cubetrack.fuse.multi_view_fit import solve_joint
 from cubetrack.fuse.smoother import Gains, TrailStep, smoothed_poses
 
@@ -189,20 +189,17 @@ GATE_SIGMAS = 3.0  # the association gate grows by this many standard deviations
 
 
 def prediction_gate_px(covariance: np.ndarray, T_world_cube: np.ndarray, T_world_cam: np.ndarray,
-                       intrinsics: CameraIntrinsics, layout: CubeLayout) -> float:
+                       intrinsics: CameraIntrinsics, reach_m: float) -> float:
     """How far (``GATE_SIGMAS`` standard deviations, pixels) the corners of a body predicted at
     ``T_world_cube`` with ``covariance`` (6x6, ``[δp (m), δθ (rad)]``) may be from where they
-    project: the largest position spread plus the largest rotation spread times the body's
-    farthest corner, over the body's depth in the camera, times the focal length."""
-    position_var = float(cv2.eigen(np.ascontiguousarray(covariance[:3, :3]))[1][0, 0])  # the largest eigenvalue
-    rotation_var = float(cv2.eigen(np.ascontiguousarray(covariance[3:6, 3:6]))[1][0, 0])
-    reach_m = float(np.sqrt(np.max(np.sum(layout.corners_m.reshape(-1, 3) ** 2, axis=1))))
-    depth_m = float((invert_T(T_world_cam) @ T_world_cube[:, 3])[2])
+    project: the largest position spread plus the largest rotation spread times ``reach_m``, the
+    body's farthest corner from its origin (:func:`cubetrack.fuse.filter_kernels.spread_m`), over
+    the body's depth in the camera, times the focal length."""
+    depth_m = float(T_world_cam[:3, 2] @ (T_world_cube[:3, 3] - T_world_cam[:3, 3]))
     if depth_m <= 1e-3:
         return 0.0
-    focal_px = float(np.sqrt(intrinsics.K[0, 0] * intrinsics.K[1, 1]))
-    spread_m = np.sqrt(max(position_var, 0.0)) + reach_m * np.sqrt(max(rotation_var, 0.0))
-    return float(GATE_SIGMAS * focal_px * spread_m / depth_m)
+    focal_px = math.sqrt(intrinsics.K[0, 0] * intrinsics.K[1, 1])
+    return GATE_SIGMAS * focal_px * spread_m(covariance, reach_m) / depth_m
 
 
 def pose_record(sighting: CubeSighting, f: PoseFilter, now_s: float, cameras: tuple[str, ...],
@@ -224,12 +221,15 @@ def sighting_corner_sets(matches: Sequence[FaceMatch], intrinsics: CameraIntrins
         return []
     if intrinsics.readout_s <= 0:
         sets = [corner_set(matches, intrinsics, T_world_cam, camera, time_s)]
-    else:
-        row_s, middle = intrinsics.readout_s / intrinsics.height, (intrinsics.height - 1) / 2.0
-        sets = [corner_set((m,), intrinsics, T_world_cam, camera,
-                           time_s + (float(m.detection.corners_px[:, 1].sum()) / 4.0 - middle) * row_s)
-                for m in matches]
-    return [s for s in sets if s is not None]  # (none is: each has matches)
+        return [s for s in sets if s is not None]  # (none is: it has matches)
+    # the faces' sets share one undistortion and one camera pose (a set per face of corner_set's making)
+    row_s, middle = intrinsics.readout_s / intrinsics.height, (intrinsics.height - 1) / 2.0
+    corners_px = np.concatenate([m.detection.corners_px for m in matches])
+    normalized = normalize_px(corners_px, intrinsics.K, intrinsics.dist)
+    rows = corners_px[:, 1].reshape(-1, 4).sum(axis=1).tolist()
+    T_cam_world, focal_px = invert_T(T_world_cam), float((intrinsics.K[0, 0] + intrinsics.K[1, 1]) / 2.0)
+    return [CornerSet(camera, time_s + (rows[i] / 4.0 - middle) * row_s, T_cam_world, focal_px, m.points_body_m,
+                      normalized[4 * i: 4 * i + 4], (m.face,)) for i, m in enumerate(matches)]
 
 
 @dataclass(frozen=True, slots=True)
@@ -297,6 +297,9 @@ class FilterFusion:
         if filter_params.smooth_lag_s > params.history_s:
             raise ParamsError(f"[filter] smooth_lag_s ({filter_params.smooth_lag_s}) must not exceed [fusion] "
                               f"history_s ({params.history_s}): the steps it waits for are kept that long")
+        self._reach_m = {r: float(np.sqrt(np.max(np.sum(layout.corners_m.reshape(-1, 3) ** 2, axis=1))))
+                         for r, layout in layouts.items()}   # each body's farthest corner from its origin
+        compile_filter_kernels()  # before the first sighting
 
     def keep_trail(self) -> None:
         """From now on keep each sighting's final filter state and pose (about 3 KB a sighting:
@@ -470,7 +473,8 @@ class FilterFusion:
         layout = self.layouts[sighting.robot]
         gate_px = self.params.association_gate_px
         if covariance is not None and not layout.has_repeated_ids:  # a repeated id's face is told by the gate
-            gate_px += prediction_gate_px(covariance, T_world_cube, T_world_cam, intrinsics, layout)
+            gate_px += prediction_gate_px(covariance, T_world_cube, T_world_cam, intrinsics,
+                                          self._reach_m[sighting.robot])
         matches = match_faces(sighting.detections, layout, intrinsics, T_world_cam, T_world_cube,
                               gate_px=gate_px, max_view_angle_deg=self.params.max_view_angle_deg)
         return sighting_corner_sets(matches, intrinsics, T_world_cam, sighting.camera, t)

@@ -3,7 +3,8 @@
 The paper fuses per-marker poses; each of those is a monocular estimate of a small marker, weak
 in depth and prone to planar flips. Here the unknown is the body pose itself and the residual is
 the reprojection error of every matched corner in every camera (see
-:mod:`cubetrack.estimate.reprojection`), with a robust loss. Used to start a track from sightings
+:mod:`cubetrack.estimate.reprojection`; compiled: :func:`cubetrack.fuse.filter_kernels.reprojection`), with a
+robust loss. Used to start a track from sightings
 of several cameras.
 """
 
@@ -16,7 +17,8 @@ import numpy as np
 from scipy.optimize import least_squares
 
 from cubetrack.core.geometry import so3_left_jacobian
-from cubetrack.estimate.reprojection import CornerSet, perturbed, reprojection_jacobian_px, reprojection_residuals_px
+from cubetrack.estimate.reprojection import CornerSet, perturbed
+from cubetrack.fuse.filter_kernels import packed_sets, reprojection
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -71,20 +73,21 @@ def solve_joint(sets: Sequence[CornerSet], T_init: np.ndarray, t_ref_s: float,
     if n_points < 4:
         return None
     n = 6 if velocity_sigma is None else 12
+    packed, zero = packed_sets(sets), np.zeros(3)   # the compiled reprojection's arrays (fuse.filter_kernels)
 
     def residuals(x: np.ndarray) -> np.ndarray:
         if velocity_sigma is None:  # n == 6
-            return reprojection_residuals_px(perturbed(T_init, x[:6]), sets) / corner_noise_px
-        v, w = x[6:9], x[9:12]
-        r = reprojection_residuals_px(perturbed(T_init, x[:6]), sets, t_ref_s, v, w) / corner_noise_px
+            return reprojection(perturbed(T_init, x[:6]), *packed, 0.0, zero, zero, False, False)[0] / corner_noise_px
+        v, w = x[6:9].copy(), x[9:12].copy()
+        r = reprojection(perturbed(T_init, x[:6]), *packed, t_ref_s, v, w, True, False)[0] / corner_noise_px
         return np.concatenate([r, v / velocity_sigma[0], w / velocity_sigma[1]])
 
     def jacobian(x: np.ndarray) -> np.ndarray:
         T = perturbed(T_init, x[:6])
         if n == 6:
-            _, J = reprojection_jacobian_px(T, sets)
+            _, J = reprojection(T, *packed, 0.0, zero, zero, False, True)
         else:
-            _, J = reprojection_jacobian_px(T, sets, t_ref_s, x[6:9], x[9:12])
+            _, J = reprojection(T, *packed, t_ref_s, x[6:9].copy(), x[9:12].copy(), True, True)
         J[:, 3:6] = J[:, 3:6] @ so3_left_jacobian(x[3:6])  # x holds a finite rotation increment
         J /= corner_noise_px
         if n == 12:

@@ -167,6 +167,25 @@ class _Reader:
             raise SightingWireError(f"sighting message: its {what} is not UTF-8") from None
 
 
+_TIMES_AT = struct.calcsize("<4sBBq")           # device, capture and arrival time: where _HEAD packs them
+_DEVICE_REF_AT = struct.calcsize("<4sBBq3dB2d")  # the clock mapping's device_ref_s
+_TIMES = struct.Struct("<3d")
+_F64 = struct.Struct("<d")
+
+
+def restamped(data: bytes, device_time_s: float, capture_time_s: float, arrival_time_s: float,
+              device_ref_s: float) -> bytes:
+    """An encoded message with its times (and its clock mapping's ``device_ref_s``) replaced, the
+    rest as it was: a message encoded ahead, sent when its time comes (benchmarks/fleet.py's
+    stand-in for remote workers). SightingWireError when ``data`` is not a sighting message."""
+    if len(data) < _HEAD.size or data[:4] != MAGIC:
+        raise SightingWireError("sighting message: not a sighting (bad magic or truncated)")
+    out = bytearray(data)
+    _TIMES.pack_into(out, _TIMES_AT, device_time_s, capture_time_s, arrival_time_s)
+    _F64.pack_into(out, _DEVICE_REF_AT, device_ref_s)
+    return bytes(out)
+
+
 def decode_sighting(data: bytes) -> SightingMessage:
     """The message in ``data``; :class:`SightingWireError` (one line) for anything else."""
     data = bytes(data)

@@ -47,6 +47,7 @@ from cubetrack.source.camera_url import parse_camera_url
 from cubetrack.source.capture import CaptureReader, CaptureSettings, CaptureTaps
 from cubetrack.source.http_get import HttpError, HttpGet
 from cubetrack.source.mjpeg import MjpegParser, boundary_from_content_type
+from cubetrack.source.order import FrameIntervals
 from cubetrack.source.reasons import (
     broken_frames_reason,
     closed_reason,
@@ -91,6 +92,10 @@ class SourceParams:
                                              "arrivals against its frame count over this many frames (it captures "
                                              "at a steady rate, transfer only adds delay: "
                                              "cubetrack.source.timing.ArrivalEnvelope); 0: on the arrival itself")
+    behind_intervals: float = param(0.25, "track --live takes waiting frames in arrival order, as a replay does, "
+                                          "until one has waited longer than this many of its camera's frame "
+                                          "intervals (it is behind), then the freshest instant first, its frames "
+                                          "in arrival order (cubetrack.source.order)")
     capture_jpeg_quality: int = param(90, "JPEG quality (1..100) frames of usb:/v4l2:/rtsp:/file: cameras are "
                                           "encoded at (grayscale)")
 
@@ -100,6 +105,7 @@ class SourceParams:
         check(self.backoff_max_s >= self.backoff_initial_s, "backoff_max_s must not be below backoff_initial_s")
         check_at_least(self, 1, "frames_per_camera", "max_header_bytes", "max_part_bytes", "read_chunk_bytes")
         check(0.0 <= self.arrival_latency_s < 10.0, "arrival_latency_s must be in [0, 10) seconds")
+        check(self.behind_intervals >= 0.0, f"behind_intervals must not be negative, got {self.behind_intervals}")
         check(1 <= self.capture_jpeg_quality <= 100, "capture_jpeg_quality must be in 1..100")
         check(self.arrival_envelope_frames == 0 or self.arrival_envelope_frames >= ENVELOPE_WARMUP,
               f"arrival_envelope_frames must be 0 (off) or at least {ENVELOPE_WARMUP}")
@@ -229,6 +235,7 @@ class LiveCameras:
         self._cond = threading.Condition(self._lock)
         self._queue: deque = deque()
         self._queued_frames: Counter[str] = Counter()  # per camera
+        self._intervals = FrameIntervals()  # each camera's frame interval (what "behind" is measured in)
         self._stop = threading.Event()
         self._threads: list[threading.Thread] = []
         self._cameras = [_Camera(name, url, time_url(url), backoff=params.backoff_initial_s)
@@ -304,13 +311,14 @@ class LiveCameras:
     # --- what the consumer sees ---
 
     def get(self, timeout_s: float | None = None, frames: bool = True, newest_first: bool = False,
-            newest_first_after_s: float | None = None) -> Frame | ClockReading | None:
+            newest_if_behind: bool = False) -> Frame | ClockReading | None:
         """The next event in arrival order, or None after ``timeout_s`` (or once stopped and drained).
         ``frames=False``: the next clock reading only (frames keep waiting: a consumer with no
         room for a frame still takes the clock samples). ``newest_first``: clock readings first,
         then the frame that arrived last (the freshest, of whichever camera);
-        ``newest_first_after_s``: so only while the oldest waiting frame has waited longer than
-        this (the consumer is behind), else arrival order."""
+        ``newest_if_behind``: arrival order until the consumer is behind (a frame has waited
+        longer than ``behind_intervals`` of its camera's frame interval), then clock readings
+        first and the oldest frame of the freshest instant (:mod:`cubetrack.source.order`)."""
         if not self.threaded:
             self._read_for(timeout_s, frames)
         with self._cond:
@@ -318,16 +326,17 @@ class LiveCameras:
                 self._cond.wait(timeout_s)
             if self.failure is not None:
                 raise self.failure
-            if frames and not newest_first and newest_first_after_s is not None:
-                oldest = next((e for e in self._queue if isinstance(e, Frame)), None)
-                newest_first = oldest is not None and self.clock() - oldest.host_time_s > newest_first_after_s
-            if frames and not newest_first:
+            waiting = [e for e in self._queue if isinstance(e, Frame)] if frames and newest_if_behind else []
+            behind = self._intervals.behind(waiting, self.clock(), self.params.behind_intervals)
+            if frames and not newest_first and not behind:
                 if not self._queue:
                     return None
                 item = self._queue.popleft()
             else:
                 item = next((e for e in self._queue if isinstance(e, ClockReading)), None)
-                if item is None and frames:
+                if item is None and behind:
+                    item = self._intervals.freshest_instant(waiting)
+                elif item is None and frames:
                     item = next((e for e in reversed(self._queue) if isinstance(e, Frame)), None)
                 if item is None:
                     return None
@@ -396,6 +405,7 @@ class LiveCameras:
             self._stats[frame.camera].bytes += len(frame.jpeg)
             if not self.queue_enabled:
                 return
+            self._intervals.add(frame.camera, frame.host_time_s)
             if self._queued_frames[frame.camera] >= self.params.frames_per_camera:
                 oldest = next(e for e in self._queue if isinstance(e, Frame) and e.camera == frame.camera)
                 self._queue.remove(oldest)

@@ -19,6 +19,7 @@ from cubetrack.io.sighting_wire import (
     WireHealth,
     decode_sighting,
     encode_sighting,
+    restamped,
 )
 from cubetrack.source.clock import ClockFitMethod
 
@@ -154,3 +155,15 @@ def test_a_bodys_share_of_a_frame_names_the_body_and_a_whole_frame_is_byte_for_b
         decode_sighting(new[:_HEAD.size + 1 + len(whole.camera.encode()) + 3])
     with pytest.raises(SightingWireError, match="unknown flags"):
         decode_sighting(old[:5] + bytes([old[5] | 32]) + old[6:])
+
+
+@pytest.mark.parametrize("pose", [False, True])
+def test_a_restamped_message_is_the_same_message_at_its_new_times(pose):
+    sent = dataclasses.replace(message(pose), body="r1")
+    data = restamped(encode_sighting(sent), 55.25, 1.8e9 + 1 / 3, 1.8e9 + 0.04, 54.0)
+    clock = dataclasses.replace(sent.clock, device_ref_s=54.0)
+    expected = dataclasses.replace(sent, device_time_s=55.25, capture_time_s=1.8e9 + 1 / 3,
+                                   arrival_time_s=1.8e9 + 0.04, clock=clock)
+    assert data == encode_sighting(expected)
+    with pytest.raises(SightingWireError, match="not a sighting"):
+        restamped(b"CTXX" + data[4:], 0.0, 0.0, 0.0, 0.0)

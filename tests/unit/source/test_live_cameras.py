@@ -4,6 +4,7 @@ stays bounded, and stop() wakes blocked reads."""
 
 from __future__ import annotations
 
+import dataclasses
 import http.server
 import itertools
 import logging
@@ -169,23 +170,30 @@ def test_a_consumer_that_falls_behind_keeps_each_cameras_newest_frame_only(tmp_p
         assert f.seq >= st.frames - 1  # the newest was kept
 
 
-def test_a_consumer_behind_gets_the_freshest_frame_first_one_keeping_up_the_oldest(tmp_path):
+def test_behind_or_not_an_instants_frames_come_in_arrival_order_and_intervals_are_learnt(tmp_path):
     from cubecam.testdata import CameraSpec, write_recording
 
     rec = write_recording(tmp_path / "rec", [CameraSpec("a"), CameraSpec("b")], frames=30, fps=10.0)
     with Emulator(rec, loop=True) as emu:
-        with LiveCameras(emu.urls, SourceParams(clock_period_s=0.25)) as live:
-            wait_until(lambda: all(s.frames >= 2 for s in live.stats().values()))  # nobody reads: newest waits
+        with LiveCameras(emu.urls, SourceParams(clock_period_s=0.25, behind_intervals=600.0)) as live:
+            # nobody reads: each camera's newest waits, its interval learnt from the real arrivals
+            wait_until(lambda: all(s.frames >= 6 for s in live.stats().values()))
             live.stop()
             while live.get(0, frames=False) is not None:  # the clock samples
                 pass
             waiting = [live._queue[0], live._queue[-1]]  # arrival order: the older, the fresher
             assert [type(e) for e in waiting] == [Frame, Frame]
-            kept_up = live.get(0, newest_first_after_s=60.0)  # nothing waited that long: arrival order
+            intervals_s = [live._intervals.interval_s(name) for name in ("a", "b")]
+            kept_up = live.get(0, newest_if_behind=True)  # nothing waited 600 frame intervals: arrival order
             live._queue.appendleft(kept_up)
             live._queued_frames[kept_up.camera] += 1
-            behind = live.get(0, newest_first_after_s=0.001)  # the older one waited longer: freshest first
-    assert kept_up is waiting[0] and behind is waiting[1]
+            live.params = dataclasses.replace(live.params, behind_intervals=0.0)
+            behind = live.get(0, newest_if_behind=True)  # behind: the freshest instant, oldest first
+    assert all(i is not None and 0.08 < i < 0.125 for i in intervals_s), intervals_s  # 10 fps
+    # the emulator serves both cameras' frames of an instant together: one instant, unless this host
+    # was so slow to read that they arrived more than a tenth of an interval apart
+    one_instant = waiting[1].host_time_s - waiting[0].host_time_s <= 0.1 * intervals_s[1]
+    assert kept_up is waiting[0] and behind is waiting[0 if one_instant else 1]
 
 
 def test_stop_wakes_a_read_blocked_on_a_silent_camera(images):

@@ -1,0 +1,178 @@
+"""The filter's compiled kernels (cubetrack.fuse.filter_kernels) against the numpy model they
+replace: the reprojection of cubetrack.estimate.reprojection, the calibration discount built from
+its covariance, the prediction's F P Fᵀ, and one Gauss-Newton step by hand."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from cubetrack.core.geometry import R_from_rotvec, invert_T, make_T
+from cubetrack.estimate.reprojection import (
+    CornerSet,
+    moved_pose,
+    perturbed,
+    reprojection_jacobian_px,
+    reprojection_residuals_px,
+)
+from cubetrack.fuse import filter_kernels as fk
+from cubetrack.fuse.corner_filter import transition
+
+SQUARE = np.array([[-0.02, -0.02, 0.0], [0.02, -0.02, 0.0], [0.02, 0.02, 0.0], [-0.02, 0.02, 0.0]])
+
+
+def _camera(position: list[float]) -> np.ndarray:
+    """T_cam_world of a camera at ``position`` looking at the origin (z forward)."""
+    c = np.asarray(position, dtype=float)
+    z = -c / np.linalg.norm(c)
+    x = np.cross([0.0, 0.0, 1.0], z)
+    x /= np.linalg.norm(x)
+    return invert_T(make_T(np.column_stack([x, np.cross(z, x), z]), c))
+
+
+def _sets(rng: np.random.Generator, times: list[float]) -> list[CornerSet]:
+    """Corner sets of two faces' squares from one camera, noisy, each taken at its time."""
+    T_cw = _camera([1.2, -0.8, 0.9])
+    out = []
+    for k, t in enumerate(times):
+        points = SQUARE + [0.0, 0.0, 0.02 + 0.01 * k]
+        pc = (points @ T_cw[:3, :3].T) + T_cw[:3, 3]
+        out.append(CornerSet("cam", t, T_cw, 800.0 + 10 * k, points,
+                             pc[:, :2] / pc[:, 2:] + rng.normal(0.0, 1e-3, (4, 2)), (f"f{k}",)))
+    return out
+
+
+def _pose(rng: np.random.Generator) -> np.ndarray:
+    return make_T(R_from_rotvec(rng.normal(0.0, 0.3, 3)), rng.normal(0.0, 0.05, 3))
+
+
+def _read_only(a: np.ndarray) -> np.ndarray:
+    """``a`` read-only, as the filter passes its pose and process noise (each array's writability
+    is part of its numba type: the tests pass what the filter does, so they compile nothing new)."""
+    a.setflags(write=False)
+    return a
+
+
+@pytest.mark.parametrize("moving", [False, True])
+def test_the_reprojection_kernel_is_the_numpy_model(moving: bool) -> None:
+    rng = np.random.default_rng(3)
+    sets = _sets(rng, [0.01, -0.02, 0.005] if moving else [0.0, 0.0, 0.0])
+    T, v, w = _pose(rng), rng.normal(0.0, 0.5, 3), rng.normal(0.0, 2.0, 3)
+    motion = (0.0, v, w) if moving else ()
+    r_ref, H_ref = reprojection_jacobian_px(T, sets, *motion)
+    r, H = fk.reprojection(T, *fk.packed_sets(sets), 0.0, v, w, moving, True)
+    np.testing.assert_allclose(r, r_ref, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(H, H_ref, rtol=1e-10, atol=1e-9)
+    r_only, _ = fk.reprojection(T, *fk.packed_sets(sets), 0.0, v, w, moving, False)
+    np.testing.assert_allclose(r_only, reprojection_residuals_px(T, sets, *motion), rtol=0, atol=1e-9)
+
+
+def test_a_corner_behind_the_camera_or_not_undistorted_is_a_large_residual() -> None:
+    sets = _sets(np.random.default_rng(4), [0.0])
+    T = make_T(np.eye(3), [3.0, -2.0, 2.25])   # past the camera (at 1.2, -0.8, 0.9, looking at the origin)
+    zeros = np.zeros(3)
+    r, H = fk.reprojection(T, *fk.packed_sets(sets), 0.0, zeros, zeros, False, True)
+    assert (r == fk.BEHIND_PX).all() and not H.any()
+    broken = CornerSet("cam", 0.0, sets[0].T_cam_world, 800.0, SQUARE, np.full((4, 2), np.nan), ("f0",))
+    r, _ = fk.reprojection(np.eye(4), *fk.packed_sets([broken]), 0.0, zeros, zeros, False, False)
+    np.testing.assert_array_equal(r, reprojection_residuals_px(np.eye(4), [broken]))
+    assert (r == fk.BEHIND_PX).all()
+
+
+def test_the_calibration_discount_is_the_covariances_inverse() -> None:
+    """K = (Σ⁻¹ + H_poseᵀ W H_pose)⁻¹ with Σ built from the camera's errors, not the closed form."""
+    rng = np.random.default_rng(5)
+    sets = _sets(rng, [0.0])
+    T = _pose(rng)
+    sigma_t, sigma_phi = 0.002, math.radians(0.1)
+    info = rng.normal(size=(6, 6))
+    info = info @ info.T * 1e4
+    K = np.empty((6, 6))
+    _, _, _, R_cw, t_cw, _, _ = fk.packed_sets(sets)
+    assert fk.calibration_discount(T, R_cw, t_cw, info, sigma_t, sigma_phi, K)
+    c = invert_T(sets[0].T_cam_world)[:3, 3]
+    d = T[:3, 3] - c
+    D = np.array([[0.0, -d[2], d[1]], [d[2], 0.0, -d[0]], [-d[1], d[0], 0.0]])
+    A = np.vstack([D, -np.eye(3)])
+    sigma = sigma_t**2 * np.diag([1.0, 1, 1, 0, 0, 0]) + sigma_phi**2 * A @ A.T
+    np.testing.assert_allclose(K, np.linalg.inv(np.linalg.inv(sigma) + info), rtol=1e-7, atol=1e-15)
+    assert not fk.calibration_discount(T, R_cw, t_cw, info, 0.0, sigma_phi, K)   # the camera taken as exact
+
+
+def test_the_lu_solves_and_finds_singular_matrices() -> None:
+    rng = np.random.default_rng(6)
+    M = rng.normal(size=(12, 12))
+    out = np.empty((12, 12))
+    assert fk._inverse(M, out)
+    np.testing.assert_allclose(out, np.linalg.inv(M), rtol=1e-9, atol=1e-12)
+    M[:, 3] = 2.0 * M[:, 7]
+    assert not fk._inverse(M, out)
+
+
+def test_the_prediction_kernels_are_the_constant_velocity_model() -> None:
+    rng = np.random.default_rng(7)
+    P = rng.normal(size=(12, 12))
+    P = P @ P.T
+    A, B, C = (_read_only(np.diag(rng.uniform(0.1, 1.0, 12))) for _ in range(3))
+    for dt in (0.033, -0.02):
+        F = transition(dt)
+        expected = F @ P @ F.T + abs(dt) ** 3 / 3.0 * A + dt * dt / 2.0 * B + abs(dt) * C
+        np.testing.assert_allclose(fk.predicted_covariance(P, dt, A, B, C), expected, rtol=1e-12, atol=1e-12)
+        T, v, w = _read_only(_pose(rng)), rng.normal(size=3), rng.normal(0.0, 3.0, 3)
+        np.testing.assert_allclose(fk.moved_pose(T, v, w, dt), moved_pose(T, v, w, dt), rtol=0, atol=1e-14)
+
+
+def test_one_gauss_newton_step_is_the_normal_equations_by_hand() -> None:
+    """One iteration, no calibration discount: δ = (P⁻¹ + Hᵀ W H)⁻¹ Hᵀ W (-r) with Huber weights;
+    the residuals after it are at the moved state; the covariance is that information's inverse."""
+    rng = np.random.default_rng(8)
+    sets = _sets(rng, [0.004, -0.006])
+    T, v, w = _read_only(_pose(rng)), rng.normal(0.0, 0.3, 3), rng.normal(0.0, 1.0, 3)
+    P = np.diag(np.repeat([1e-4, 1e-3, 0.25, 4.0], 3))
+    huber, inv_var = 1.5, 4.0
+    status, delta, info, T_new, r_new, P_new, ok = fk.solve_update(
+        T, P, 0.0, v, w, *fk.packed_sets(sets), True, 1, huber, inv_var, 0.0, 0.0)
+    assert status == fk.OK and ok
+    r, H = reprojection_jacobian_px(T, sets, 0.0, v, w)
+    weights = np.minimum(huber / np.abs(r), 1.0) * inv_var
+    expected_info = np.linalg.inv(P) + H.T @ (weights[:, None] * H)
+    expected = np.linalg.solve(expected_info, H.T @ (weights * -r))
+    np.testing.assert_allclose(info, expected_info, rtol=1e-9)
+    np.testing.assert_allclose(delta, expected, rtol=1e-7, atol=1e-12)
+    np.testing.assert_allclose(T_new, perturbed(T, expected[:6]), rtol=0, atol=1e-12)
+    np.testing.assert_allclose(r_new, reprojection_residuals_px(T_new, sets, 0.0, v + delta[6:9], w + delta[9:]),
+                               rtol=0, atol=1e-9)
+    np.testing.assert_allclose(P_new, np.linalg.inv(expected_info), rtol=1e-7, atol=1e-15)
+    singular = np.zeros((12, 12))
+    assert fk.solve_update(T, singular, 0.0, v, w, *fk.packed_sets(sets), True, 1, huber, inv_var, 0.0,
+                           0.0)[0] == fk.SINGULAR_PRIOR
+
+
+def test_the_largest_eigenvalue_and_the_spread() -> None:
+    rng = np.random.default_rng(9)
+    for scale in (1e-8, 1e-3, 1.0):
+        A = rng.normal(size=(6, 6))
+        A = (A @ A.T) * scale
+        expected = [np.linalg.eigvalsh(A[k:k + 3, k:k + 3]).max() for k in (0, 3)]
+        assert [fk.largest_eigenvalue(A, k) for k in (0, 3)] == pytest.approx(expected, rel=1e-9)
+        assert fk.spread_m(A, 0.07) == pytest.approx(math.sqrt(expected[0]) + 0.07 * math.sqrt(expected[1]), rel=1e-9)
+    diagonal = np.diag([4.0, 9.0, 1.0, 2.0, 2.0, 2.0])   # no off-diagonal terms; three equal ones
+    assert fk.largest_eigenvalue(diagonal, 0) == 9.0 and fk.largest_eigenvalue(diagonal, 3) == 2.0
+
+
+@pytest.mark.parametrize("coefficients", [4, 5, 8, 12])
+def test_the_associations_projection_is_opencvs(coefficients: int) -> None:
+    """The filter's association (estimate.match) projects the faces with a compiled copy of
+    cv2.projectPoints' model; a tilted sensor (14 coefficients) still goes to OpenCV."""
+    import cv2
+
+    from cubetrack.estimate.match import _projected
+
+    rng = np.random.default_rng(10 + coefficients)
+    points = rng.uniform(-0.5, 0.5, (24, 3)) + [0.0, 0.0, 2.0]
+    K = np.array([[610.0, 0.0, 330.0], [0.0, 600.0, 245.0], [0.0, 0.0, 1.0]])
+    dist = rng.normal(0.0, 0.05, coefficients)
+    expected = cv2.projectPoints(points, np.zeros(3), np.zeros(3), K, dist)[0].reshape(-1, 2)
+    np.testing.assert_allclose(_projected(points, K, dist), expected, rtol=0, atol=1e-9)
