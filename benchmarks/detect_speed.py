@@ -186,11 +186,9 @@ _FRAME_HOOKS = (("cubetrack.app.tracker", "decode_gray", "decode"),
 # What the fusion calls per sighting (module attribute, name printed).
 _FUSION_HOOKS = (("cubetrack.fuse.fusion", "match_faces"), ("cubetrack.fuse.fusion", "corner_set"),
                  ("cubetrack.fuse.fusion", "estimate_cube"),
-                 ("cubetrack.fuse.corner_filter", "reprojection_jacobian_px"),
-                 ("cubetrack.fuse.corner_filter", "reprojection_residuals_px"),
+                 ("cubetrack.fuse.corner_filter", "solve_update"), ("cubetrack.fuse.corner_filter", "packed_sets"),
                  ("cubetrack.fuse.corner_filter", "perturbed"), ("cubetrack.fuse.corner_filter", "moved_pose"),
-                 ("cubetrack.fuse.multi_view_fit", "reprojection_jacobian_px"),
-                 ("cubetrack.fuse.multi_view_fit", "reprojection_residuals_px"))
+                 ("cubetrack.fuse.multi_view_fit", "reprojection"), ("cubetrack.fuse.multi_view_fit", "packed_sets"))
 # Per-frame estimate/ functions of the frame worker, micro-benchmarked like the fusion's.
 _WORKER_HOOKS = (("cubetrack.app.tracker", "estimate_cube"), ("cubetrack.app.tracker", "body_detections"))
 

@@ -17,7 +17,7 @@ pytestmark = pytest.mark.slow
 
 def test_stages_report_every_stage_and_a_bit_identical_replay(capsys):
     originals = (tracker_module.decode_gray, detector_module.refine_corners_edges,
-                 corner_filter_module.reprojection_jacobian_px)
+                 corner_filter_module.solve_update)
     bench = load_benchmark("detect_speed")
     assert bench.main(["--stages", "--duration", "3", "--rounds", "2", "--micro-frames", "20"]) == 0
     text = capsys.readouterr().out
@@ -43,8 +43,7 @@ def test_stages_report_every_stage_and_a_bit_identical_replay(capsys):
     assert empty, text
     assert int(empty.group(1)) <= int(empty.group(2)) and float(empty.group(3)) <= ms("decode (JPEG -> gray)")
     # the fusion ran (a track started) and its estimate/ calls were timed alone
-    for name in ("fusion.match_faces", "corner_filter.reprojection_jacobian_px",
-                 "corner_filter.reprojection_residuals_px"):
+    for name in ("fusion.match_faces", "corner_filter.solve_update", "corner_filter.packed_sets"):
         assert re.search(rf"^  {re.escape(name)}\s+[0-9.]+ calls/frame\s+[0-9.]+ us/call", text, re.MULTILINE), name
     assert re.search(r"^poses: [1-9][0-9]*; replay bit-identical across rounds", text, re.MULTILINE), text
     # the decode levers on the same frames, each against the full gray decode (its own ratio 1)
@@ -65,4 +64,4 @@ def test_stages_report_every_stage_and_a_bit_identical_replay(capsys):
                    r"generation; ([0-9.]+) ms in all \(([0-9.]+) ms per frame\), the longest ([0-9.]+) ms", text, re.M)
     assert gc and int(gc.group(2)) <= int(gc.group(1)), text   # per round, so in the medians too
     assert (tracker_module.decode_gray, detector_module.refine_corners_edges,
-            corner_filter_module.reprojection_jacobian_px) == originals
+            corner_filter_module.solve_update) == originals
