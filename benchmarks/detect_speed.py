@@ -187,6 +187,7 @@ _FRAME_HOOKS = (("cubetrack.app.tracker", "decode_gray", "decode"),
 _FUSION_HOOKS = (("cubetrack.fuse.fusion", "match_faces"), ("cubetrack.fuse.fusion", "corner_set"),
                  ("cubetrack.fuse.fusion", "estimate_cube"),
                  ("cubetrack.fuse.corner_filter", "solve_update"), ("cubetrack.fuse.corner_filter", "packed_sets"),
+                 ("cubetrack.fuse.corner_filter", "predicted_covariance"),
                  ("cubetrack.fuse.corner_filter", "perturbed"), ("cubetrack.fuse.corner_filter", "moved_pose"),
                  ("cubetrack.fuse.multi_view_fit", "reprojection"), ("cubetrack.fuse.multi_view_fit", "packed_sets"))
 # Per-frame estimate/ functions of the frame worker, micro-benchmarked like the fusion's.
@@ -195,6 +196,25 @@ _WORKER_HOOKS = (("cubetrack.app.tracker", "estimate_cube"), ("cubetrack.app.tra
 
 def ms_median(key: str, rounds: list[dict[str, float]]) -> float:
     return float(np.median([c[key] for c in rounds]))
+
+
+def full_collection() -> None:
+    """What one full collection costs this process now (the stages imported, the kernels loaded, a tracker's
+    state around): tracked objects and CPU ms, before and after ``gc.freeze()`` (start-up's objects moved out
+    of every later collection); the objects are unfrozen again afterwards."""
+    import gc
+
+    costs = []
+    for freeze in (False, True):
+        if freeze:
+            gc.freeze()
+        objects, t0 = len(gc.get_objects()), time.thread_time()
+        gc.collect()
+        costs.append((objects, (time.thread_time() - t0) * 1000.0))
+    gc.unfreeze()
+    (before, before_ms), (after, after_ms) = costs
+    print(f"a full collection here: {before} tracked objects, {before_ms:.1f} ms CPU; after gc.freeze() {after} "
+          f"objects, {after_ms:.1f} ms")
 
 
 class _GcPauses:
@@ -420,6 +440,7 @@ def stage_costs(args: argparse.Namespace) -> int:
           f"{ms_median('gc2_count', rounds):.0f} of the oldest generation; {ms_median('gc_ms', rounds):.1f} ms in all "
           f"({ms_median('gc_ms', rounds) / n:.4f} ms per frame), the longest {max(c['gc_max_ms'] for c in rounds):.2f} "
           "ms (wall clock: a pause of the thread)")
+    full_collection()
     print(f"poses: {len(poses)}; replay "
           f"{'bit-identical across rounds' if len(digests) == 1 else 'DIFFERS across rounds'} (sha256 "
           f"{min(digests)[:16]})")

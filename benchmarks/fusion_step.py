@@ -23,7 +23,7 @@ figures grow, the ratio much less.
 
     .venv/bin/python benchmarks/fusion_step.py --work /tmp/fs                 # 3 and 5 cameras, 3 rounds
     .venv/bin/python benchmarks/fusion_step.py --quick                        # the CI smoke run
-    .venv/bin/python benchmarks/fusion_step.py --baseline main --rounds 5     # against another commit
+    .venv/bin/python benchmarks/fusion_step.py --baseline 12ee071 --rounds 5  # against another commit
 
 --work keeps the scenes, the recorded calls, the baseline's copy and ``fusion_step_report.json``.
 Exit code 0 for a completed run (this is a report), 1 with a one-line error.
@@ -46,7 +46,7 @@ from pathlib import Path
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-BASELINE = "12ee071"  # the start of the frame-budget branch (issue 31): the fusion before its cheaper step
+BASELINE = "310161d"  # main before the compiled fusion step (issue 28, session 12); 12ee071: before issue 31's step
 TARGET_MS = 0.3       # issue 28: CPU per cube sighting at 3 and 5 cameras
 REPORT_FILE = "fusion_step_report.json"
 # The fusion's steps timed per stage in the stage child: (module, class or "", attribute, stage).

@@ -63,5 +63,8 @@ def test_stages_report_every_stage_and_a_bit_identical_replay(capsys):
     gc = re.search(r"^garbage collections in a round \(median of rounds\): (\d+), of which (\d+) of the oldest "
                    r"generation; ([0-9.]+) ms in all \(([0-9.]+) ms per frame\), the longest ([0-9.]+) ms", text, re.M)
     assert gc and int(gc.group(2)) <= int(gc.group(1)), text   # per round, so in the medians too
+    full = re.search(r"^a full collection here: (\d+) tracked objects, ([0-9.]+) ms CPU; after gc.freeze\(\) (\d+) "
+                     r"objects, ([0-9.]+) ms$", text, re.M)
+    assert full and int(full.group(3)) < int(full.group(1)), text   # frozen objects are out of the collection
     assert (tracker_module.decode_gray, detector_module.refine_corners_edges,
             corner_filter_module.solve_update) == originals

@@ -47,6 +47,8 @@ def test_quick_run_prints_and_saves_a_complete_report(tmp_path):
     assert live["rss_end_mb"] > 0 and live["processed_fps_warm"] > 0  # frames were processed after the warm-up
     assert live["rss_start_mb"] > 0 and live["rss_mid_mb"] > 0
     assert 0 < live["first_pose_s"] < live["wall_s"]  # start-up: the first pose came during the session
+    rss_line = next(line for line in lines if line.startswith("  RSS: "))
+    assert live["kernels_warm_s"] > 0 and "before it, the kernels " in rss_line  # warmed before the timed run
     # interval by interval (between status lines): in order, within the run, no more poses than the run's
     ends = [(i["from_s"], i["to_s"]) for i in live["over_time"]]
     assert all(0 <= a < b for a, b in ends) and all(b == c for (_, b), (c, _) in itertools.pairwise(ends))

@@ -60,6 +60,11 @@ class FilterParams:
         "motion (docs/tracking.md \"Cameras that disagree\"; 0: cameras taken as exact)")
     camera_rotation_sigma_deg: float = param(
         0.1, "the same for the camera's orientation (1 sigma per axis), degrees (real calibrations leave 0.1-0.3)")
+    camera_scale_sigma: float = param(
+        0.005, "the same for the camera's scale: its focal length's error (or its corners' bias outwards), a fraction "
+        "(1 sigma), which moves the body along the camera's optical axis by that fraction of its depth, so a "
+        "camera's depth is trusted less than its view across (docs/tracking.md \"Cameras that disagree\"; 0: none; "
+        "0.005 since issue 25's third round)")
     correction_time_sigma_s: float = param(
         0.0, "per-camera corrections estimated over the session (docs/tracking.md \"Per-camera corrections\"): the "
         "prior (1 sigma) of a camera's time offset (its frames taken that much before or after their stamps), seconds; "
@@ -96,6 +101,7 @@ class FilterParams:
                        "sharp_turn_rad_s", "turn_hold_s", "corner_noise_px", "huber_px", "gate_rms_px", "face_gate_px",
                        "init_velocity_sigma", "init_angular_velocity_sigma")
         check_non_negative(self, "camera_position_sigma_m", unit="metres")
+        check_non_negative(self, "camera_scale_sigma")
         check_non_negative(self, "camera_rotation_sigma_deg", "correction_rotation_sigma_deg", unit="degrees")
         check_non_negative(self, "correction_position_sigma_m", unit="metres")
         check_non_negative(self, "correction_time_sigma_s", "correction_memory_s", unit="seconds")
@@ -245,7 +251,7 @@ class PoseFilter:
         status, delta, _info, T, r, P, P_ok = solve_update(
             self.T_world_cube, self.P, self.time_s, self.velocity_m_s, self.angular_velocity_rad_s, *packed_sets(sets),
             moving, prm.iterations, prm.huber_px, 1.0 / prm.corner_noise_px**2, prm.camera_position_sigma_m,
-            math.radians(prm.camera_rotation_sigma_deg))
+            math.radians(prm.camera_rotation_sigma_deg), prm.camera_scale_sigma)
         if status != OK:
             raise np.linalg.LinAlgError("singular matrix")
         return delta, (P if P_ok else None), T, r

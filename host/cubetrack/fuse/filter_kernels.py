@@ -217,7 +217,7 @@ def _perturbed(T0: np.ndarray, delta: np.ndarray, out: np.ndarray) -> None:  # p
 
 @numba.njit(cache=True, nogil=True)
 def calibration_discount(T: np.ndarray, R_cw: np.ndarray, t_cw: np.ndarray, info_add: np.ndarray, sigma_t: float,
-                         sigma_phi: float, K: np.ndarray) -> bool:  # pragma: no cover
+                         sigma_phi: float, sigma_s: float, K: np.ndarray) -> bool:  # pragma: no cover
     """What one camera frame's corners tell about the pose, less what its camera's calibration
     error could make them say: ``K`` (written into ``K``, 6x6), with the corners' information
     becoming ``H^T W H - C K C^T`` (``C = H^T W H_pose``); False with the camera taken as exact
@@ -225,7 +225,7 @@ def calibration_discount(T: np.ndarray, R_cw: np.ndarray, t_cw: np.ndarray, info
     ``R_cw``, ``t_cw``: the packed sets' cameras (the first one's is used: all sets of one update
     come from one camera frame); ``info_add``: the corners' information (its 6x6 pose block is
     ``H_pose^T W H_pose``); ``sigma_t`` (m), ``sigma_phi`` (rad): the camera's position and
-    orientation error, 1 sigma per axis.
+    orientation error, 1 sigma per axis; ``sigma_s``: its scale error (a fraction, 1 sigma; 0: none).
 
     A camera whose true pose is off from its extrinsics by ``ε = (δt, δφ)`` (world frame,
     rotation about its centre ``c``) sees the body as if it had moved by ``δp = -δt + [p - c]× δφ``,
@@ -234,7 +234,10 @@ def calibration_discount(T: np.ndarray, R_cw: np.ndarray, t_cw: np.ndarray, info
     ``W⁻¹ + H_pose Σ H_poseᵀ``, whose inverse (Woodbury) is ``W - W H_pose K H_poseᵀ W`` with
     ``K = (Σ⁻¹ + H_poseᵀ W H_pose)⁻¹``; ``K H_poseᵀ W r`` is the error ``e`` that best explains
     residuals ``r``. ``Σ⁻¹`` in closed form (its Schur complement on the rotation block is
-    ``σ_t² I``): ``[[I, D], [Dᵀ, σ_t²/σ_φ² I + DᵀD]] / σ_t²`` with ``D = [p - c]×``."""
+    ``σ_t² I``): ``[[I, D], [Dᵀ, σ_t²/σ_φ² I + DᵀD]] / σ_t²`` with ``D = [p - c]×``. A scale error
+    ``s`` of the camera (its focal length off by that fraction) moves the body along the camera's
+    optical axis ``z`` by ``s`` times its depth: ``Σ`` gains ``σ_s² u uᵀ`` with ``u = [z (z · (p - c)); 0]``,
+    taken into ``Σ⁻¹`` by Sherman-Morrison."""
     if sigma_t <= 0.0 or sigma_phi <= 0.0:
         return False
     d = np.empty(3)
@@ -250,9 +253,18 @@ def calibration_discount(T: np.ndarray, R_cw: np.ndarray, t_cw: np.ndarray, info
             M[3 + a, b] = D[b, a]
             M[3 + a, 3 + b] = D[0, a] * D[0, b] + D[1, a] * D[1, b] + D[2, a] * D[2, b]
         M[3 + a, 3 + a] += ratio2
-    for a in range(6):
-        for b in range(6):
-            M[a, b] = M[a, b] * scale + info_add[a, b]
+    M *= scale
+    if sigma_s > 0.0:   # Σ⁻¹ - (Σ⁻¹u)(Σ⁻¹u)ᵀ σ_s² / (1 + σ_s² uᵀΣ⁻¹u), u = [z (z · d); 0]
+        u = np.zeros(6)
+        depth = R_cw[0, 2, 0] * d[0] + R_cw[0, 2, 1] * d[1] + R_cw[0, 2, 2] * d[2]
+        for a in range(3):
+            u[a] = R_cw[0, 2, a] * depth
+        v = _matvec(M, u)
+        factor = sigma_s**2 / (1.0 + sigma_s**2 * (u[0] * v[0] + u[1] * v[1] + u[2] * v[2]))
+        for a in range(6):
+            for b in range(6):
+                M[a, b] -= v[a] * v[b] * factor
+    M += info_add[:6, :6]
     return _inverse(M, K)
 
 
@@ -333,7 +345,7 @@ def _normal_equations(H: np.ndarray, r: np.ndarray, explained: np.ndarray, delta
 def solve_update(T0: np.ndarray, P: np.ndarray, t_ref: float, v0: np.ndarray, w0: np.ndarray, points: np.ndarray,
                  normalized: np.ndarray, which: np.ndarray, R_cw: np.ndarray, t_cw: np.ndarray, focal: np.ndarray,
                  times: np.ndarray, moving: bool, iterations: int, huber: float, inv_var: float, sigma_t: float,
-                 sigma_phi: float) -> tuple:  # pragma: no cover
+                 sigma_phi: float, sigma_s: float) -> tuple:  # pragma: no cover
     """``PoseFilter._solve`` on packed corner sets: Gauss-Newton on the prior (``P``, the state at
     ``T0``, ``v0``, ``w0``, time ``t_ref``) plus the Huber-weighted corner residuals less what the
     camera's calibration error explains. Returns ``(status, δ (12,), information (12x12), the pose
@@ -355,7 +367,7 @@ def solve_update(T0: np.ndarray, P: np.ndarray, t_ref: float, v0: np.ndarray, w0
         r, H = reprojection(T, points, normalized, which, R_cw, t_cw, focal, times, t_ref, v0 + delta[6:9],
                             w0 + delta[9:12], moving, True)
         WH, info_add, grad = _normal_equations(H, r, explained, delta, huber, inv_var)
-        have_K = calibration_discount(T, R_cw, t_cw, info_add, sigma_t, sigma_phi, K)
+        have_K = calibration_discount(T, R_cw, t_cw, info_add, sigma_t, sigma_phi, sigma_s, K)
         if have_K:
             _discounted(info_add, grad, K)
         info[:] = info_prior
@@ -458,7 +470,7 @@ def _run_kernels() -> None:
     which, R_cw, t_cw = np.zeros(4, dtype=np.int64), np.eye(3)[None].copy(), np.zeros((1, 3))
     for moving in (False, True):
         solve_update(T, P, 0.0, np.zeros(3), np.zeros(3), points, normalized, which, R_cw, t_cw, np.ones(1),
-                     np.full(1, 0.01 if moving else 0.0), moving, 2, 1.5, 4.0, 0.002, 0.002)
+                     np.full(1, 0.01 if moving else 0.0), moving, 2, 1.5, 4.0, 0.002, 0.002, 0.005)
     T_fit = T.copy()   # the joint fit's poses (multi_view_fit) are writable arrays
     for moving in (False, True):
         for jacobian in (False, True):

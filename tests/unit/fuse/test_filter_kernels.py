@@ -91,14 +91,17 @@ def test_the_calibration_discount_is_the_covariances_inverse() -> None:
     info = info @ info.T * 1e4
     K = np.empty((6, 6))
     _, _, _, R_cw, t_cw, _, _ = fk.packed_sets(sets)
-    assert fk.calibration_discount(T, R_cw, t_cw, info, sigma_t, sigma_phi, K)
     c = invert_T(sets[0].T_cam_world)[:3, 3]
     d = T[:3, 3] - c
     D = np.array([[0.0, -d[2], d[1]], [d[2], 0.0, -d[0]], [-d[1], d[0], 0.0]])
     A = np.vstack([D, -np.eye(3)])
-    sigma = sigma_t**2 * np.diag([1.0, 1, 1, 0, 0, 0]) + sigma_phi**2 * A @ A.T
-    np.testing.assert_allclose(K, np.linalg.inv(np.linalg.inv(sigma) + info), rtol=1e-7, atol=1e-15)
-    assert not fk.calibration_discount(T, R_cw, t_cw, info, 0.0, sigma_phi, K)   # the camera taken as exact
+    z = sets[0].T_cam_world[2, :3]   # the optical axis: a scale error moves the body along it by s x its depth
+    u = np.concatenate([z * (z @ d), np.zeros(3)])
+    for sigma_s in (0.0, 0.005):
+        assert fk.calibration_discount(T, R_cw, t_cw, info, sigma_t, sigma_phi, sigma_s, K)
+        sigma = sigma_t**2 * np.diag([1.0, 1, 1, 0, 0, 0]) + sigma_phi**2 * A @ A.T + sigma_s**2 * np.outer(u, u)
+        np.testing.assert_allclose(K, np.linalg.inv(np.linalg.inv(sigma) + info), rtol=1e-7, atol=1e-15)
+    assert not fk.calibration_discount(T, R_cw, t_cw, info, 0.0, sigma_phi, 0.0, K)   # the camera taken as exact
 
 
 def test_the_lu_solves_and_finds_singular_matrices() -> None:
@@ -133,7 +136,7 @@ def test_one_gauss_newton_step_is_the_normal_equations_by_hand() -> None:
     P = np.diag(np.repeat([1e-4, 1e-3, 0.25, 4.0], 3))
     huber, inv_var = 1.5, 4.0
     status, delta, info, T_new, r_new, P_new, ok = fk.solve_update(
-        T, P, 0.0, v, w, *fk.packed_sets(sets), True, 1, huber, inv_var, 0.0, 0.0)
+        T, P, 0.0, v, w, *fk.packed_sets(sets), True, 1, huber, inv_var, 0.0, 0.0, 0.0)
     assert status == fk.OK and ok
     r, H = reprojection_jacobian_px(T, sets, 0.0, v, w)
     weights = np.minimum(huber / np.abs(r), 1.0) * inv_var
@@ -147,7 +150,7 @@ def test_one_gauss_newton_step_is_the_normal_equations_by_hand() -> None:
     np.testing.assert_allclose(P_new, np.linalg.inv(expected_info), rtol=1e-7, atol=1e-15)
     singular = np.zeros((12, 12))
     assert fk.solve_update(T, singular, 0.0, v, w, *fk.packed_sets(sets), True, 1, huber, inv_var, 0.0,
-                           0.0)[0] == fk.SINGULAR_PRIOR
+                           0.0, 0.0)[0] == fk.SINGULAR_PRIOR
 
 
 def test_the_largest_eigenvalue_and_the_spread() -> None:
