@@ -491,6 +491,14 @@ def watch_cost(args: argparse.Namespace, rec: Path, work: Path, off: dict) -> di
             "events": [json.loads(line) for line in events], "failures": live_failures(on), **ratios(off, on)}
 
 
+def compared_text(r: dict, off: dict, on: dict, off_name: str, on_name: str) -> str:
+    """Two live sessions' figures and their :func:`ratios` ``r``, as one line of the report."""
+    return (f"{off_name} {off['processed_fps']:.1f} frames/s processed, {off['cpu_ms_per_frame']:.2f} ms CPU per "
+            f"frame, arrival -> pose p95 {off['arrival_ms']['p95']:.1f} ms; {on_name} {on['processed_fps']:.1f} "
+            f"frames/s, {on['cpu_ms_per_frame']:.2f} ms, p95 {on['arrival_ms']['p95']:.1f} ms; on/off: processed "
+            f"{r['processed_ratio']:.2f}, CPU per frame {r['cpu_ratio']:.2f}, p95 {r['p95_ratio']:.2f}")
+
+
 def live_failures(live: dict) -> list[str]:
     """The live targets (dropped frames, arrival -> pose p95 and p99) a session misses."""
     a, failures = live["arrival_ms"], []
@@ -901,20 +909,13 @@ def print_report(args: argparse.Namespace, report: dict) -> list[str]:
     if "outputs" in report:
         o = report["outputs"]
         off, on = o["files_only"], o["all_outputs"]
-        print(f"  outputs: files only {off['processed_fps']:.1f} frames/s processed, {off['cpu_ms_per_frame']:.2f} ms "
-              f"CPU per frame, arrival -> pose p95 {off['arrival_ms']['p95']:.1f} ms; every output on "
-              f"{on['processed_fps']:.1f} frames/s, {on['cpu_ms_per_frame']:.2f} ms, p95 {on['arrival_ms']['p95']:.1f} "
-              f"ms (MCAP {o['mcap_mb']:.0f} MB); on/off: processed {o['processed_ratio']:.2f}, CPU per frame "
-              f"{o['cpu_ratio']:.2f}, p95 {o['p95_ratio']:.2f}")
+        print(f"  outputs: {compared_text(o, off, on, 'files only', 'every output on')} (MCAP {o['mcap_mb']:.0f} MB)")
     if "watch" in report:
         w = report["watch"]
         off, on = w["watch_off"], w["watch_on"]
-        print(f"  camera watching: off {off['processed_fps']:.1f} frames/s processed, {off['cpu_ms_per_frame']:.2f} ms "
-              f"CPU per frame, arrival -> pose p95 {off['arrival_ms']['p95']:.1f} ms; on {on['processed_fps']:.1f} "
-              f"frames/s, {on['cpu_ms_per_frame']:.2f} ms, p95 {on['arrival_ms']['p95']:.1f} ms, p99 "
-              f"{on['arrival_ms']['p99']:.1f} ms, dropped {on['dropped_fraction'] * 100:.2f} %; on/off: processed "
-              f"{w['processed_ratio']:.2f}, CPU per frame {w['cpu_ratio']:.2f}, p95 {w['p95_ratio']:.2f}; "
-              f"events {[(e['event'], e['camera']) for e in w['events']]}")
+        print(f"  camera watching: {compared_text(w, off, on, 'off', 'on')}; with it on p99 "
+              f"{on['arrival_ms']['p99']:.1f} ms, dropped {on['dropped_fraction'] * 100:.2f} %, events "
+              f"{[(e['event'], e['camera']) for e in w['events']]}")
         failures += [f"watching on: {f}" for f in w["failures"]]
         failures += [f"watching on: false alarm {e['camera']}" for e in w["events"] if e["event"] == "moved"]
     print("SUMMARY: " + ("all targets met" if not failures else f"{len(failures)} target(s) missed: "

@@ -78,6 +78,7 @@ def bump_session():
     return moved, sightings(40.0, true_pose, dict(CAMERAS), rng)
 
 
+@pytest.mark.slow
 def test_a_bumped_camera_is_declared_moved_within_seconds_and_no_other(bump_session):
     moved, seen = bump_session
     watch = CameraWatch({"bot": LAYOUT}, CAMERAS, WatchParams(enabled=True))
@@ -108,6 +109,7 @@ def test_a_bumped_camera_is_declared_moved_within_seconds_and_no_other(bump_sess
     assert watch.stats["checked"] > 100
 
 
+@pytest.mark.slow
 def test_the_fusion_keeps_the_moved_camera_out_then_takes_it_back_at_its_new_pose(bump_session):
     moved, seen = bump_session
     executor = ThreadExecutor()  # as live (cubetrack.app.watch_log): the refit on another thread
@@ -138,6 +140,7 @@ def test_the_fusion_keeps_the_moved_camera_out_then_takes_it_back_at_its_new_pos
     assert fused.stats["set-aside sighting"] > 30
 
 
+@pytest.mark.slow
 def test_noisy_imperfectly_calibrated_cameras_are_never_declared_moved():
     """Each camera's pose as calibration leaves it (as cubetrack calibrate does on the simulated
     arena: up to 10 mm and 0.2 deg off, docs/simulation.md), corners with 0.6 px noise, 40 s: no
