@@ -24,6 +24,10 @@ figures grow, the ratio much less.
     .venv/bin/python benchmarks/fusion_step.py --work /tmp/fs                 # 3 and 5 cameras, 3 rounds
     .venv/bin/python benchmarks/fusion_step.py --quick                        # the CI smoke run
     .venv/bin/python benchmarks/fusion_step.py --baseline 12ee071 --rounds 5  # against another commit
+    .venv/bin/python benchmarks/fusion_step.py --ours-set filter.camera_scale_sigma=0  # same arithmetic
+
+--ours-set gives this checkout's side a [filter] setting the baseline lacks, at the value that does the
+baseline's arithmetic (the scale term of session 12 at 0): then the two sides' poses should agree.
 
 --work keeps the scenes, the recorded calls, the baseline's copy and ``fusion_step_report.json``.
 Exit code 0 for a completed run (this is a report), 1 with a one-line error.
@@ -71,10 +75,17 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--baseline", default=BASELINE, help=f"the commit compared against (default {BASELINE})")
     p.add_argument("--work", type=Path, help="keep everything here (default: a temporary folder, deleted)")
     p.add_argument("--quick", action="store_true", help="smoke run: 3 cameras, a 3 s scene at 10 fps, one round")
+    p.add_argument("--ours-set", action="append", default=[], metavar="filter.KEY=VALUE",
+                   help="a [filter] setting for this checkout's side only (repeat): one the baseline does not "
+                   "have, at the value that gives the baseline's arithmetic")
     p.add_argument("--child", type=Path, help=argparse.SUPPRESS)   # internal: feed these recorded calls
     p.add_argument("--config", type=Path, help=argparse.SUPPRESS)  # internal: the scene's tracker config
     p.add_argument("--stages", action="store_true", help=argparse.SUPPRESS)  # internal: time per stage
     args = p.parse_args(argv)
+    for item in args.ours_set:
+        key, _, value = item.partition("=")
+        if not key.startswith("filter.") or not value:
+            p.error(f"--ours-set takes filter.KEY=VALUE, got {item!r}")
     if args.quick:
         args.cameras, args.duration, args.fps, args.rounds = [3], 3.0, 10.0, 1
     if args.rounds < 1 or args.duration <= 0 or args.fps <= 0 or min(args.cameras) < 1:
@@ -85,16 +96,21 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
 # --------------------------------------------------------------------------- the child: one fusion run
 
 
-def feed(calls_path: Path, config_path: Path, stages: bool) -> dict:
-    """Feed the recorded calls to a fresh FilterFusion of whichever cubetrack package is imported:
-    its CPU time, the poses' digest and arrays, and with ``stages`` each stage's thread CPU."""
+def feed(calls_path: Path, config_path: Path, stages: bool, settings: list[str]) -> dict:
+    """Feed the recorded calls to a fresh FilterFusion of whichever cubetrack package is imported
+    (its [filter] params with ``settings``, ``filter.KEY=VALUE``, applied): its CPU time, the poses'
+    digest and arrays, and with ``stages`` each stage's thread CPU."""
+    import dataclasses
+
     from cubetrack.app.config import config_params, load_config
     from cubetrack.fuse.fusion import FilterFusion
 
     config, _ = load_config(config_path)
     params = config_params(config).stages
+    changes = {key.removeprefix("filter."): float(value) for key, _, value in (s.partition("=") for s in settings)}
     calls = pickle.loads(calls_path.read_bytes())
-    fusion = FilterFusion({r.name: r.layout for r in config.robots}, params.fusion, params.filter, params.estimator)
+    fusion = FilterFusion({r.name: r.layout for r in config.robots}, params.fusion,
+                          dataclasses.replace(params.filter, **changes), params.estimator)
     cpu_s = hooks(STAGE_HOOKS) if stages else {}
     poses = []
     start = time.process_time()
@@ -242,11 +258,12 @@ def measure(args: argparse.Namespace, cameras: int, work: Path, baseline: Path) 
     rec = scene(args, cameras, work)
     calls = record_calls(rec)
     child = ["--child", str(calls), "--config", str(rec / "config.toml")]
+    ours_child = [*child, *(f"--ours-set={item}" for item in args.ours_set)]
     runs: dict[str, list[dict]] = {"baseline": [], "ours": []}
     for _ in range(args.rounds):
         runs["baseline"].append(run(child, baseline))
-        runs["ours"].append(run(child))
-    stages = run([*child, "--stages"])
+        runs["ours"].append(run(ours_child))
+    stages = run([*ours_child, "--stages"])
     sightings = runs["ours"][0]["sightings"]
     ms = {name: statistics.median(r["cpu_s"] for r in rs) * 1000.0 / max(sightings, 1) for name, rs in runs.items()}
     ours = runs["ours"][0]
@@ -263,7 +280,8 @@ def measure(args: argparse.Namespace, cameras: int, work: Path, baseline: Path) 
 def print_report(report: dict) -> None:
     print(f"fusion step: {report['cores']} cores, load average {report['load_start']} (start) / "
           f"{report['load_end']} (end); baseline {report['baseline']}; {report['rounds']} interleaved rounds, "
-          "medians; process CPU of the fusion alone")
+          "medians; process CPU of the fusion alone" + (f"; ours with {', '.join(report['ours_set'])}"
+                                                        if report["ours_set"] else ""))
     for m in report["results"]:
         diff = m["difference"]
         same = ("poses byte-identical" if diff["identical"] else
@@ -284,13 +302,13 @@ def print_report(report: dict) -> None:
 def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     if args.child is not None:
-        print(json.dumps(feed(args.child, args.config, args.stages)))
+        print(json.dumps(feed(args.child, args.config, args.stages, args.ours_set)))
         return 0
     with tempfile.TemporaryDirectory(prefix="cubetrack-fusion-step-") as tmp:
         work = args.work if args.work is not None else Path(tmp)
         work.mkdir(parents=True, exist_ok=True)
         report = {"cores": os.cpu_count(), "load_start": " ".join(f"{x:.1f}" for x in os.getloadavg()),
-                  "baseline": args.baseline, "rounds": args.rounds}
+                  "baseline": args.baseline, "rounds": args.rounds, "ours_set": args.ours_set}
         try:
             baseline = baseline_package(args.baseline, work)
             report["results"] = [measure(args, cameras, work, baseline) for cameras in args.cameras]

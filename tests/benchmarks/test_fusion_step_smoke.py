@@ -16,10 +16,12 @@ pytestmark = pytest.mark.slow
 
 def test_quick_run_reports_both_sides_per_sighting(tmp_path, capsys):
     bench = load_benchmark("fusion_step")
-    assert bench.main(["--quick", "--work", str(tmp_path)]) == 0
+    # the baseline (main before the compiled step) has no camera scale term: at 0 ours does its arithmetic
+    assert bench.main(["--quick", "--work", str(tmp_path), "--ours-set", "filter.camera_scale_sigma=0"]) == 0
     text = capsys.readouterr().out
     report = json.loads((tmp_path / bench.REPORT_FILE).read_text())
     assert report["cores"] >= 1 and report["rounds"] == 1 and report["baseline"] == bench.BASELINE
+    assert report["ours_set"] == ["filter.camera_scale_sigma=0"] and "ours with filter.camera_scale_sigma=0" in text
     # the baseline's own package was extracted and fed the calls (not this checkout's by another name)
     assert list(tmp_path.glob("baseline_*/host/cubetrack/fuse/fusion.py"))
     (m,) = report["results"]
