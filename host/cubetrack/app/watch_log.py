@@ -12,7 +12,6 @@ background thread, so that the tracking thread never waits for one.
 from __future__ import annotations
 
 import dataclasses
-import datetime
 import json
 import logging
 from concurrent.futures import ThreadPoolExecutor
@@ -21,9 +20,8 @@ from typing import Any
 
 from cubetrack.calib.recalibrate import WatchedFusion
 from cubetrack.core.cameras import CameraExtrinsics
-from cubetrack.core.geometry import position_quat_from_T
 from cubetrack.fuse.base import Fusion
-from cubetrack.fuse.camera_watch import EventKind, WatchEvent
+from cubetrack.fuse.camera_watch import EventKind, WatchEvent, clock_text, event_record
 from cubetrack.io.config import write_extrinsics
 
 log = logging.getLogger(__name__)
@@ -31,20 +29,6 @@ log = logging.getLogger(__name__)
 EVENTS_FILE = "camera_watch.jsonl"
 EXTRINSICS_PATTERN = "extrinsics.watch-{n}.toml"
 RECALIBRATED_METHOD = "re-calibrated while tracking"
-
-
-def clock_text(time_s: float) -> str:
-    """A host time (Unix seconds) as the UTC wall-clock time of the status line, HH:MM:SS."""
-    return datetime.datetime.fromtimestamp(time_s, datetime.UTC).strftime("%H:%M:%S")
-
-
-def event_record(event: WatchEvent) -> dict[str, Any]:
-    """One event as a JSON object (a line of ``camera_watch.jsonl`` and an entry of run.json)."""
-    position, q = position_quat_from_T(event.T_world_cam)
-    return {"event": event.kind.value, "camera": event.camera, "time": round(event.time_s, 6),
-            "utc": clock_text(event.time_s), "offset_m": round(event.offset_m, 5),
-            "offset_deg": round(event.offset_deg, 4), "sightings": event.sightings,
-            "position": [round(float(v), 6) for v in position], "quaternion_xyzw": [round(float(v), 9) for v in q]}
 
 
 class WatchLog:

@@ -57,15 +57,23 @@ run in the background).
 from __future__ import annotations
 
 import dataclasses
+import datetime
 import enum
 import math
 from collections import Counter, deque
 from collections.abc import Sequence
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 
-from cubetrack.core.geometry import invert_T, rotation_angle, so3_left_jacobian, transform_points
+from cubetrack.core.geometry import (
+    invert_T,
+    position_quat_from_T,
+    rotation_angle,
+    so3_left_jacobian,
+    transform_points,
+)
 from cubetrack.core.layout import CubeLayout
 from cubetrack.core.params import check, check_at_least, check_positive, param
 from cubetrack.core.records import CubeSighting
@@ -174,6 +182,20 @@ class WatchEvent:
             return f"{self.camera} moved {100 * self.offset_m:.1f} cm / {self.offset_deg:.1f} deg; set aside"
         return (f"{self.camera} re-calibrated from {self.sightings} sightings ({100 * self.offset_m:.1f} cm / "
                 f"{self.offset_deg:.1f} deg from its old pose); rejoined")
+
+
+def clock_text(time_s: float) -> str:
+    """A host time (Unix seconds) as the UTC wall-clock time of the status line, HH:MM:SS."""
+    return datetime.datetime.fromtimestamp(time_s, datetime.UTC).strftime("%H:%M:%S")
+
+
+def event_record(event: WatchEvent) -> dict[str, Any]:
+    """One event as a JSON object (a line of ``camera_watch.jsonl`` and an entry of run.json)."""
+    position, q = position_quat_from_T(event.T_world_cam)
+    return {"event": event.kind.value, "camera": event.camera, "time": round(event.time_s, 6),
+            "utc": clock_text(event.time_s), "offset_m": round(event.offset_m, 5),
+            "offset_deg": round(event.offset_deg, 4), "sightings": event.sightings,
+            "position": [round(float(v), 6) for v in position], "quaternion_xyzw": [round(float(v), 9) for v in q]}
 
 
 @dataclass(frozen=True, slots=True, eq=False)
