@@ -218,6 +218,9 @@ class WatchSample:
 
 
 VELOCITY_SIGMA = (1.0, 4.0)  # the reference fits' prior spread of the cube's velocities: m/s, rad/s
+# the reference fits' Gauss-Newton steps at most (it stops on convergence): on 595 fits of a bumped 4-camera scene
+# within 0.012 mm / 0.01 deg of the trust-region solver's solutions, 5.2x cheaper (docs/calibration.md, "Cost")
+REFERENCE_ITERATIONS = 30
 WINDOW_PRIOR_M = 0.05  # a window's fit: prior spread of the camera's position about its settled pose, metres
 WINDOW_PRIOR_DEG = 3.0  # ... and of its orientation, degrees
 
@@ -621,7 +624,8 @@ class CameraWatch:
             self.stats["too few other cameras"] += 1
             return None
         # started from the camera's own cube pose: off by what the camera moved, a few cm and degrees at most
-        reference = solve_joint(others, T_own, t, self.params.corner_noise_px, velocity_sigma=VELOCITY_SIGMA)
+        reference = solve_joint(others, T_own, t, self.params.corner_noise_px, velocity_sigma=VELOCITY_SIGMA,
+                                iterations=REFERENCE_ITERATIONS)
         if reference is None or reference.rms_px > self.params.reference_rms_px:
             self.stats["reference fit refused"] += 1
             return None
