@@ -36,7 +36,7 @@ from cubetrack.estimate.pose import estimate_cube
 from cubetrack.estimate.reprojection import moved_pose
 from cubetrack.fuse.base import Fusion
 from cubetrack.fuse.camera_watch import (
-    REFERENCE_ITERATIONS,
+    FIT_ITERATIONS,
     VELOCITY_SIGMA,
     CameraFit,
     CameraState,
@@ -81,7 +81,7 @@ def joint_sample(sample: WatchSample, T_world_cam: np.ndarray, corner_noise_px: 
     T_cam_world = invert_T(T_world_cam)
     own = [dataclasses.replace(s, T_cam_world=T_cam_world) for s in sample.own_sets]
     solved = solve_joint([*sample.reference_sets, *own], sample.T_world_cube, sample.time_s, corner_noise_px,
-                         velocity_sigma=VELOCITY_SIGMA, iterations=REFERENCE_ITERATIONS)
+                         velocity_sigma=VELOCITY_SIGMA, iterations=FIT_ITERATIONS)
     if solved is None:
         return sample
     points = np.concatenate([transform_points(moved_pose(solved.T_world_cube, solved.velocity_m_s,

@@ -82,7 +82,7 @@ from cubetrack.estimate.params import EstimatorParams
 from cubetrack.estimate.pose import estimate_cube
 from cubetrack.estimate.reprojection import CornerSet, moved_pose, perturbed, reprojection_residuals_px
 from cubetrack.fuse.fusion import sighting_corner_sets
-from cubetrack.fuse.multi_view_fit import robust_least_squares, solve_joint
+from cubetrack.fuse.multi_view_fit import robust_gauss_newton, solve_joint
 
 
 @dataclass(frozen=True, slots=True)
@@ -218,9 +218,10 @@ class WatchSample:
 
 
 VELOCITY_SIGMA = (1.0, 4.0)  # the reference fits' prior spread of the cube's velocities: m/s, rad/s
-# the reference fits' Gauss-Newton steps at most (it stops on convergence): on 595 fits of a bumped 4-camera scene
-# within 0.012 mm / 0.01 deg of the trust-region solver's solutions, 5.2x cheaper (docs/calibration.md, "Cost")
-REFERENCE_ITERATIONS = 30
+# the watcher's fits' Gauss-Newton steps at most (they stop on convergence): on a bumped 4-camera scene within
+# 0.012 mm / 0.01 deg of the trust-region solver's solutions, 5.2x (reference fits) and 1.8x (camera refits)
+# cheaper (docs/calibration.md, "The reference fit by Gauss-Newton")
+FIT_ITERATIONS = 30
 WINDOW_PRIOR_M = 0.05  # a window's fit: prior spread of the camera's position about its settled pose, metres
 WINDOW_PRIOR_DEG = 3.0  # ... and of its orientation, degrees
 
@@ -313,8 +314,7 @@ def refit_camera(points_world_m: np.ndarray, normalized: np.ndarray, focal_px: n
         J[:, 3:6] = J[:, 3:6] @ so3_left_jacobian(x[3:6])  # x holds a finite rotation increment
         return np.vstack([J / corner_noise_px, np.diag(prior)]) if len(prior) else J / corner_noise_px
 
-    solved = robust_least_squares(fun, jac, np.array([0.01, 0.01, 0.01, 0.002, 0.002, 0.002]),
-                                  f_scale_px / corner_noise_px, 60)
+    solved = robust_gauss_newton(fun, jac, 6, f_scale_px / corner_noise_px, FIT_ITERATIONS)
     if solved is None:
         return None
     x, covariance, _ = solved
@@ -625,7 +625,7 @@ class CameraWatch:
             return None
         # started from the camera's own cube pose: off by what the camera moved, a few cm and degrees at most
         reference = solve_joint(others, T_own, t, self.params.corner_noise_px, velocity_sigma=VELOCITY_SIGMA,
-                                iterations=REFERENCE_ITERATIONS)
+                                iterations=FIT_ITERATIONS)
         if reference is None or reference.rms_px > self.params.reference_rms_px:
             self.stats["reference fit refused"] += 1
             return None

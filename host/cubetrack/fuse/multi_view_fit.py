@@ -79,12 +79,13 @@ def robust_gauss_newton(residuals: Callable[[np.ndarray], np.ndarray], jacobian:
             return None
         if np.max(np.abs(step)) < 1e-7:
             break
-    J = jacobian(x)
+    r, J = residuals(x), jacobian(x)
+    t = 1.0 + (r / f_scale) ** 2  # the covariance as scipy's: J scaled by the loss, sqrt(rho' + 2 rho'' r²) = t^-3/4
     try:
-        covariance = np.linalg.inv(J.T @ J)
+        covariance = np.linalg.inv((J * t[:, None] ** -1.5).T @ J)
     except np.linalg.LinAlgError:
         return None
-    return x, covariance, residuals(x)
+    return x, covariance, r
 
 
 def solve_joint(sets: Sequence[CornerSet], T_init: np.ndarray, t_ref_s: float,
