@@ -82,7 +82,7 @@ from cubetrack.estimate.params import EstimatorParams
 from cubetrack.estimate.pose import estimate_cube
 from cubetrack.estimate.reprojection import CornerSet, moved_pose, perturbed, reprojection_residuals_px
 from cubetrack.fuse.fusion import sighting_corner_sets
-from cubetrack.fuse.multi_view_fit import robust_gauss_newton, solve_joint
+from cubetrack.fuse.multi_view_fit import robust_gauss_newton, robust_least_squares, solve_joint
 
 
 @dataclass(frozen=True, slots=True)
@@ -314,7 +314,8 @@ def refit_camera(points_world_m: np.ndarray, normalized: np.ndarray, focal_px: n
         J[:, 3:6] = J[:, 3:6] @ so3_left_jacobian(x[3:6])  # x holds a finite rotation increment
         return np.vstack([J / corner_noise_px, np.diag(prior)]) if len(prior) else J / corner_noise_px
 
-    solved = robust_gauss_newton(fun, jac, 6, f_scale_px / corner_noise_px, FIT_ITERATIONS)
+    solved = robust_gauss_newton(fun, jac, 6, f_scale_px / corner_noise_px, FIT_ITERATIONS) or robust_least_squares(
+        fun, jac, np.array([0.01, 0.01, 0.01, 0.002, 0.002, 0.002]), f_scale_px / corner_noise_px, 60)
     if solved is None:
         return None
     x, covariance, _ = solved

@@ -58,13 +58,20 @@ def robust_least_squares(residuals: Callable[[np.ndarray], np.ndarray], jacobian
     return result.x, covariance, np.asarray(result.fun)
 
 
+MAX_STEP_RAD = 0.2  # robust_gauss_newton gives up on a step turning more than this (rad) ...
+MAX_STEP_M = 0.2  # ... or moving more than this (m)
+
+
 def robust_gauss_newton(residuals: Callable[[np.ndarray], np.ndarray], jacobian: Callable[[np.ndarray], np.ndarray],
                         n: int, f_scale: float, iterations: int
                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
     """What :func:`robust_least_squares` returns, by at most ``iterations`` steps of iteratively
     reweighted Gauss-Newton (the soft-L1 loss's weights ``1 / sqrt(1 + (r / f_scale)²)``), stopping
     once a step is under 1e-7 in every unknown: for a start already near the solution, where the
-    trust-region solver's own work costs many times the compiled residuals."""
+    trust-region solver's own work costs many times the compiled residuals. The first six unknowns
+    are a pose increment (m, rad). None when it does not converge within ``iterations``, a step
+    turns by more than ``MAX_STEP_RAD`` or moves by more than ``MAX_STEP_M`` (undamped, it can run
+    off from a poor start: the caller then uses the trust-region solver)."""
     x = np.zeros(n)
     for _ in range(iterations):
         r, J = residuals(x), jacobian(x)
@@ -74,11 +81,14 @@ def robust_gauss_newton(residuals: Callable[[np.ndarray], np.ndarray], jacobian:
             step = np.linalg.solve(Jw.T @ J, -(Jw.T @ r))
         except np.linalg.LinAlgError:
             return None
-        x = x + step
-        if not np.all(np.isfinite(x)):
+        if not (np.all(np.isfinite(step)) and np.linalg.norm(step[3:6]) <= MAX_STEP_RAD
+                and np.linalg.norm(step[:3]) <= MAX_STEP_M):
             return None
+        x = x + step
         if np.max(np.abs(step)) < 1e-7:
             break
+    else:
+        return None
     r, J = residuals(x), jacobian(x)
     t = 1.0 + (r / f_scale) ** 2  # the covariance as scipy's: J scaled by the loss, sqrt(rho' + 2 rho'' r²) = t^-3/4
     try:
@@ -99,7 +109,7 @@ def solve_joint(sets: Sequence[CornerSet], T_init: np.ndarray, t_ref_s: float,
     too, under a zero-mean Gaussian prior of those spreads (sets spread over time make them
     observable). ``iterations``: solved by that many steps at most of
     :func:`robust_gauss_newton` (for a ``T_init`` near the solution) instead of the trust-region
-    solver. Returns None if the fit fails or has under four corners.
+    solver, which takes over when it gives up. Returns None if the fit fails or has under four corners.
     """
     n_points = sum(len(s.points_cube_m) for s in sets)
     if n_points < 4:
@@ -129,8 +139,9 @@ def solve_joint(sets: Sequence[CornerSet], T_init: np.ndarray, t_ref_s: float,
         return J
 
     f_scale = f_scale_px / corner_noise_px
-    solved = (robust_gauss_newton(residuals, jacobian, n, f_scale, iterations) if iterations
-              else robust_least_squares(residuals, jacobian, np.full(n, 0.01), f_scale, 80))
+    solved = robust_gauss_newton(residuals, jacobian, n, f_scale, iterations) if iterations else None
+    if solved is None:  # not asked for, or it gave up: the trust-region solver
+        solved = robust_least_squares(residuals, jacobian, np.full(n, 0.01), f_scale, 80)
     if solved is None:
         return None
     x, covariance, fun = solved
