@@ -82,9 +82,14 @@ class DetectorSpy:
         self.detector = detector
         self.calls: list[list | None] = []
 
-    def find(self, gray, regions=None, lens=None):
+    def find(self, gray, regions=None, lens=None, predicted=()):
         self.calls.append(None if regions is None else list(regions))
-        return self.detector.find(gray, regions, lens)
+        return self.detector.find(gray, regions, lens, predicted)
+
+
+def corners_m(robot: str) -> np.ndarray:
+    """The corners of ``robot``'s cube's markers, (M x 4, 3) in the cube's frame."""
+    return {"red": RED, "blue": BLUE}[robot].layout.corners_m.reshape(-1, 3)
 
 
 def tracker(params: StageParams, robots=(RED, BLUE), extrinsics=EXTRINSICS, **kw) -> Tracker:
@@ -206,7 +211,7 @@ def test_regions_while_every_robot_is_tracked_and_a_whole_frame_every_n(scenes):
             assert len(boxes) == 2
             for robot in ("red", "blue"):
                 px = project_points(INTR, T_WORLD_CAM[frame.camera],
-                                    (TRUTH[robot][:3, :3] @ t.cube_points_m[robot].T).T + TRUTH[robot][:3, 3])
+                                    (TRUTH[robot][:3, :3] @ corners_m(robot).T).T + TRUTH[robot][:3, 3])
                 assert any(np.all((px >= (x0, y0)) & (px < (x1, y1))) for x0, y0, x1, y1 in boxes), (frame, robot)
     poses = [p for _f, _c, ps in results for p in ps]
     assert {p.robot for p in poses} == {"red", "blue"}
