@@ -19,6 +19,7 @@ searches the regions as before.
 from __future__ import annotations
 
 import functools
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import TYPE_CHECKING
@@ -76,27 +77,39 @@ def predicted_view(T_cam_cube: np.ndarray, layout: CubeLayout, intrinsics: Camer
     return PredictedView((x0, y0, x1, y1), markers)
 
 
+@numba.njit(cache=True, nogil=True)
+def _facing_quads(quads: np.ndarray, min_perimeter_px: float, border_px: float, width: int, height: int,
+                  area: np.ndarray) -> np.ndarray:
+    """(M,) bool for the quads (M, 4, 2) that are clockwise and convex in the image, at least
+    ``min_perimeter_px`` around and ``border_px`` inside the image; ``area`` (M,): their areas."""
+    keep = np.zeros(quads.shape[0], dtype=np.bool_)
+    for q in range(quads.shape[0]):
+        perimeter, twice_area, convex, inside = 0.0, 0.0, True, True
+        for c in range(4):
+            x, y = quads[q, c, 0], quads[q, c, 1]
+            x1, y1 = quads[q, (c + 1) % 4, 0], quads[q, (c + 1) % 4, 1]
+            ex, ey, fx, fy = x1 - x, y1 - y, quads[q, (c + 2) % 4, 0] - x1, quads[q, (c + 2) % 4, 1] - y1
+            convex &= ex * fy - ey * fx > 0.0      # a right turn at every corner: clockwise (y down)
+            inside &= border_px <= x <= width - 1 - border_px and border_px <= y <= height - 1 - border_px
+            perimeter += math.hypot(ex, ey)
+            twice_area += x * y1 - y * x1
+        area[q] = 0.5 * twice_area
+        keep[q] = convex and inside and perimeter >= min_perimeter_px
+    return keep
+
+
 def predicted_markers(quads_px: np.ndarray, layout: CubeLayout, width: int, height: int,
                       min_perimeter_px: float, border_px: float) -> tuple[Detection, ...]:
     """The markers of ``layout`` whose projected corners ``quads_px`` ((M x 4, 2) or (M, 4, 2), the
     layout's order) face the camera (a clockwise convex quad in the image), are at least
     ``min_perimeter_px`` around and lie ``border_px`` inside the ``width`` x ``height`` image, as
     Detections (the area is the projected quad's)."""
-    quads = np.asarray(quads_px, dtype=np.float64).reshape(-1, 4, 2)
-    following = quads[:, [1, 2, 3, 0]]
-    edges = following - quads
-    turns = edges[..., 0] * np.roll(edges[..., 1], -1, axis=1) - edges[..., 1] * np.roll(edges[..., 0], -1, axis=1)
-    area = 0.5 * (quads[..., 0] * following[..., 1] - quads[..., 1] * following[..., 0]).sum(axis=1)
-    perimeter = np.hypot(edges[..., 0], edges[..., 1]).sum(axis=1)
-    inside = ((quads[..., 0] >= border_px) & (quads[..., 0] <= width - 1 - border_px)
-              & (quads[..., 1] >= border_px) & (quads[..., 1] <= height - 1 - border_px)).all(axis=1)
-    keep = (turns.min(axis=1) > 0.0) & (perimeter >= min_perimeter_px) & inside
-    out = []
-    for i in np.flatnonzero(keep).tolist():
-        corners = quads[i].copy()
-        corners.setflags(write=False)
-        out.append(Detection(int(layout.marker_ids[i]), corners, float(area[i]), layout.marker_dictionaries[i]))
-    return tuple(out)
+    quads = np.array(quads_px, dtype=np.float64).reshape(-1, 4, 2)   # a copy: the Detections' corners
+    quads.setflags(write=False)
+    area = np.empty(len(quads))
+    keep = _facing_quads(quads, float(min_perimeter_px), float(border_px), int(width), int(height), area)
+    ids, names = layout.marker_ids, layout.marker_dictionaries
+    return tuple(Detection(int(ids[i]), quads[i], float(area[i]), names[i]) for i in np.flatnonzero(keep).tolist())
 
 
 @functools.lru_cache(maxsize=256)
@@ -221,12 +234,14 @@ def readable_markers(gray: np.ndarray, fitted_px: np.ndarray, predicted: tuple[D
 
 
 def compile_cell_reader() -> None:
-    """Compile the bit-cell reader (or load it from numba's on-disk cache) before the first frame,
-    by reading one synthetic marker (the detector calls it at start-up, as the edge fit's)."""
+    """Compile the bit-cell reader and the projected quads' check (or load them from numba's
+    on-disk cache) before the first frame, on one synthetic marker (the detector calls it at
+    start-up, as the edge fit's)."""
     gray = np.full((48, 48), 200, dtype=np.uint8)
     gray[12:36, 12:36] = 20
     corners = np.array([[[11.5, 11.5], [35.5, 11.5], [35.5, 35.5], [11.5, 35.5]]])
     cell_errors(gray, corners, [Detection(0, corners[0], 576.0, "DICT_4X4_50")])
+    _facing_quads(corners, 19.0, 3.0, 48, 48, np.empty(1))
 
 
 def marker_box(corners_px: np.ndarray, shape: tuple[int, ...]) -> tuple[int, int, int, int]:
