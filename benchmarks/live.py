@@ -715,7 +715,7 @@ def speed(args: argparse.Namespace, rec: Path, work: Path, live: dict | None) ->
 
 def worker_split(args: argparse.Namespace, rec: Path, work: Path) -> dict:
     """Where a camera worker process's CPU goes (issue 31): the loop of one camera worker process
-    (:func:`cubetrack.app.camera_workers._work_cameras`, as each of the live run's runs it) on this
+    (:func:`cubetrack.app.camera_workers.work_cameras`, as each of the live run's runs it) on this
     process's main thread over half the emulated cameras (the live run deals them to 2 processes), for
     --duration seconds; a second thread stands for the tracker's process: it fuses the results as they
     come, in the same process, and sends a new forecast after each. Thread CPU per processed frame of
@@ -728,7 +728,7 @@ def worker_split(args: argparse.Namespace, rec: Path, work: Path) -> dict:
 
     import cv2
 
-    from cubetrack.app.camera_workers import _work_cameras
+    from cubetrack.app.camera_workers import work_cameras
     from cubetrack.app.config import load_config, recording_intrinsics
     from cubetrack.app.emulated import EmulatedCameras
     from cubetrack.app.tracker import Tracker
@@ -790,7 +790,7 @@ def worker_split(args: argparse.Namespace, rec: Path, work: Path) -> dict:
         side = threading.Thread(target=tracker_process, daemon=True)
         side.start()
         t0 = time.thread_time()
-        _work_cameras(theirs, urls, settings.source, worker, False, time.time, working, taken, 0)
+        work_cameras(theirs, urls, settings.source, worker, False, time.time, working, taken, 0)
         total_s = time.thread_time() - t0
         side.join()
     frames = max(int(taken[0]), 1)
