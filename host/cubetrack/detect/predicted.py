@@ -248,7 +248,8 @@ def marker_box(corners_px: np.ndarray, shape: tuple[int, ...]) -> tuple[int, int
     """The box (x0, y0, x1, y1) around a predicted marker's corners, grown by half its longest
     side (at least ``MIN_BOX_PX`` / 2) and cut to an image of ``shape`` (H, W): where a search for
     a marker that its prediction did not find looks."""
-    sides = np.hypot(*(np.roll(corners_px, -1, axis=0) - corners_px).T)
-    grow = max(0.5 * float(sides.max()), 0.5 * MIN_BOX_PX)
-    (x0, y0), (x1, y1) = corners_px.min(axis=0) - grow, corners_px.max(axis=0) + grow
-    return max(int(x0), 0), max(int(y0), 0), min(int(np.ceil(x1)), shape[1]), min(int(np.ceil(y1)), shape[0])
+    xy = corners_px.tolist()   # four corners: plain floats cost less than numpy calls
+    grow = max(0.5 * max(math.dist(xy[c - 1], xy[c]) for c in range(4)), 0.5 * MIN_BOX_PX)
+    xs, ys = [x for x, _ in xy], [y for _, y in xy]
+    return (max(int(min(xs) - grow), 0), max(int(min(ys) - grow), 0),
+            min(math.ceil(max(xs) + grow), shape[1]), min(math.ceil(max(ys) + grow), shape[0]))

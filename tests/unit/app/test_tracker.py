@@ -81,10 +81,13 @@ class DetectorSpy:
     def __init__(self, detector):
         self.detector = detector
         self.calls: list[list | None] = []
+        self.predicted: list[tuple[int, bool]] = []  # per call: markers predicted, found at their predictions
 
     def find(self, gray, regions=None, lens=None, predicted=()):
         self.calls.append(None if regions is None else list(regions))
-        return self.detector.find(gray, regions, lens, predicted)
+        found = self.detector.find(gray, regions, lens, predicted)
+        self.predicted.append((len(predicted), found.predicted))
+        return found
 
 
 def corners_m(robot: str) -> np.ndarray:
@@ -205,6 +208,9 @@ def test_regions_while_every_robot_is_tracked_and_a_whole_frame_every_n(scenes):
         assert "RRRF" in "".join(kinds), cam        # tracked: regions, with a whole frame every 4th
         assert "RRRR" not in "".join(kinds), cam
     assert t.stats.region_detections == sum(k.count("R") for k in by_camera.values())
+    # each region search came with the predicted cubes' markers, and found them there (no OpenCV search)
+    searches = [p for c, p in zip(t.processor.detector.calls, t.processor.detector.predicted, strict=True) if c]
+    assert searches and all(n > 0 for n, _ in searches) and all(found for _, found in searches), searches
     # every region search covered both predicted cubes, where the cubes really are
     for frame, calls, _poses in results:
         for boxes in (c for c in calls if c is not None):
