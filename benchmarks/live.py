@@ -216,6 +216,9 @@ def process_cpu_rss(pid: int) -> tuple[float, int] | None:
     return (int(fields[11]) + int(fields[12])) / TICK, rss_pages * PAGE
 
 
+RSS_EVERY_S = 30.0  # the report's RSS over time: one sample this often
+
+
 class TreeSampler:
     """Samples a process and its descendants every ``period_s``: CPU seconds (each process's last
     value is kept, so processes that ended still count) and the summed RSS."""
@@ -425,6 +428,10 @@ def run_live(args: argparse.Namespace, rec: Path, work: Path, name: str = "live"
         "rss_start_mb": warm[2] / 1e6,
         "rss_mid_mb": sampler.at(started + 0.5 * (warm[0] - started + full[0] - started))[2] / 1e6,
         "rss_end_mb": full[2] / 1e6,
+        # (s from the tracker's command, MB, processes) every RSS_EVERY_S: flat or not, and whether a
+        # change is a process starting or ending rather than one growing
+        "rss_over_time": [(round(t - started, 1), round(rss / 1e6, 1), alive)
+                          for t, _cpu, rss, alive in sampler.samples[::max(1, round(RSS_EVERY_S / sampler.period_s))]],
         "first_pose_s": first_pose_s,
         "poses": len(fused),
         "arrival_ms": percentiles(arrival),
@@ -893,6 +900,8 @@ def print_report(args: argparse.Namespace, report: dict) -> list[str]:
              if len(shown) < len(intervals) else "") + "): "
           + " | ".join(f"{i['from_s']:.1f}-{i['to_s']:.1f}: {i['dropped']}, {i['poses']}, {i['arrival_p95_ms']:.1f}, "
                        f"{i['cores']:.2f}" for i in shown))
+    print("  RSS over time (s: MB, processes): "
+          + ", ".join(f"{t:.0f}: {mb:.0f}, {n}" for t, mb, n in live["rss_over_time"]))
     print(f"  RSS: {live['rss_start_mb']:.0f} MB at {args.warmup:g} s, {live['rss_mid_mb']:.0f} MB half-way after it, "
           f"{live['rss_end_mb']:.0f} MB at the end ({(live['rss_end_mb'] / live['rss_start_mb'] - 1) * 100:+.1f} %); "
           f"first pose {live['first_pose_s']:.2f} s after the tracker's command started; before it, the kernels "
