@@ -3,9 +3,9 @@
 The paper fuses per-marker poses; each of those is a monocular estimate of a small marker, weak
 in depth and prone to planar flips. Here the unknown is the body pose itself and the residual is
 the reprojection error of every matched corner in every camera (see
-:mod:`cubetrack.estimate.reprojection`; compiled: :func:`cubetrack.fuse.filter_kernels.reprojection`), with a
-robust loss. Used to start a track from sightings
-of several cameras.
+:mod:`cubetrack.estimate.reprojection`), with a robust (soft-L1) loss; the fit is compiled
+(:func:`cubetrack.fuse.filter_kernels.joint_fit`: the minimum scipy's ``least_squares`` finds).
+Used to start a track from sightings of several cameras.
 """
 
 from __future__ import annotations
@@ -16,9 +16,10 @@ from dataclasses import dataclass
 import numpy as np
 from scipy.optimize import least_squares
 
-from cubetrack.core.geometry import so3_left_jacobian
 from cubetrack.estimate.reprojection import CornerSet, perturbed
-from cubetrack.fuse.filter_kernels import packed_sets, reprojection
+from cubetrack.fuse.filter_kernels import joint_fit, packed_sets
+
+JOINT_FIT_STEPS = 100  # Gauss-Newton steps at most (a fit converges in 5-15)
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -73,33 +74,12 @@ def solve_joint(sets: Sequence[CornerSet], T_init: np.ndarray, t_ref_s: float,
     if n_points < 4:
         return None
     n = 6 if velocity_sigma is None else 12
-    packed, zero = packed_sets(sets), np.zeros(3)   # the compiled reprojection's arrays (fuse.filter_kernels)
-
-    def residuals(x: np.ndarray) -> np.ndarray:
-        if velocity_sigma is None:  # n == 6
-            return reprojection(perturbed(T_init, x[:6]), *packed, 0.0, zero, zero, False, False)[0] / corner_noise_px
-        v, w = x[6:9].copy(), x[9:12].copy()
-        r = reprojection(perturbed(T_init, x[:6]), *packed, t_ref_s, v, w, True, False)[0] / corner_noise_px
-        return np.concatenate([r, v / velocity_sigma[0], w / velocity_sigma[1]])
-
-    def jacobian(x: np.ndarray) -> np.ndarray:
-        T = perturbed(T_init, x[:6])
-        if n == 6:
-            _, J = reprojection(T, *packed, 0.0, zero, zero, False, True)
-        else:
-            _, J = reprojection(T, *packed, t_ref_s, x[6:9].copy(), x[9:12].copy(), True, True)
-        J[:, 3:6] = J[:, 3:6] @ so3_left_jacobian(x[3:6])  # x holds a finite rotation increment
-        J /= corner_noise_px
-        if n == 12:
-            prior = np.zeros((6, 12))
-            prior[:, 6:] = np.diag(np.repeat(1.0 / np.asarray(velocity_sigma, dtype=float), 3))
-            J = np.vstack([J, prior])
-        return J
-
-    solved = robust_least_squares(residuals, jacobian, np.full(n, 0.01), f_scale_px / corner_noise_px, 80)
-    if solved is None:
+    sigma_v, sigma_w = (1.0, 1.0) if velocity_sigma is None else velocity_sigma
+    ok, x, covariance, fun = joint_fit(np.array(T_init, dtype=np.float64), n, *packed_sets(sets), t_ref_s,
+                                       corner_noise_px, f_scale_px / corner_noise_px, float(sigma_v), float(sigma_w),
+                                       JOINT_FIT_STEPS)
+    if not ok:
         return None
-    x, covariance, fun = solved
     r_px = fun[: 2 * n_points] * corner_noise_px
     return JointSolution(
         T_world_cube=perturbed(T_init, x[:6]),
