@@ -38,7 +38,7 @@ from cubetrack.core.errors import ConfigError
 from cubetrack.core.records import CameraHealth, Frame, FrameJob, FrameOutcome, FrameResult
 from cubetrack.io.config import TrackerConfig
 from cubetrack.io.run import RUN_FILE
-from cubetrack.io.sighting_wire import SightingMessage, SightingWireError, decode_sighting
+from cubetrack.io.sighting_wire import SightingMessage, SightingWireError, camera_health, decode_sighting
 from cubetrack.io.worker_bus import (
     ROBOT_CLAIMS_KEY,
     SHARD_POOL_KEY,
@@ -110,19 +110,6 @@ def frame_result(tracker: Tracker, message: SightingMessage) -> FrameResult | No
     robots = None if message.body is None else tuple(r for r in tracker.robots if r.name == message.body)
     sightings = tracker.processor.sightings(job, message.detections, T_world_cam, robots)
     return FrameResult(job, FrameOutcome(message.outcome), sightings, dropped=message.dropped)
-
-
-def camera_health(message: SightingMessage, previous: CameraHealth | None, now_s: float) -> CameraHealth:
-    """The outputs' health snapshot of a camera from its latest message (frames/s since the
-    previous snapshot)."""
-    h, c = message.health, message.clock
-    fps = math.nan
-    if previous is not None and now_s > previous.time_s:
-        fps = (h.frames - previous.frames) / (now_s - previous.time_s)
-    synced = c.method == "round-trip"
-    return CameraHealth(message.camera, now_s, h.connected, fps, h.frames, h.dropped, h.bad, h.reconnects,
-                        c.offset_s if synced else math.nan, c.drift * 1e6 if synced else math.nan,
-                        message.arrival_time_s - message.capture_time_s)
 
 
 class _Inbox:

@@ -37,7 +37,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from cubetrack.core.errors import CubetrackError
-from cubetrack.core.records import Detection
+from cubetrack.core.records import CameraHealth, Detection
 
 MAGIC = b"CTSG"
 VERSION = 1
@@ -225,3 +225,16 @@ def decode_sighting(data: bytes) -> SightingMessage:
                            WireClock(_CLOCK_METHODS[method], offset_s, drift, ref_s),
                            WireHealth(bool(connected), frames, dropped_frames, bad, reconnects), T_world_cam, dropped,
                            body)
+
+
+def camera_health(message: SightingMessage, previous: CameraHealth | None, now_s: float) -> CameraHealth:
+    """The outputs' health snapshot of a camera from its latest message (frames/s since the
+    previous snapshot)."""
+    h, c = message.health, message.clock
+    fps = math.nan
+    if previous is not None and now_s > previous.time_s:
+        fps = (h.frames - previous.frames) / (now_s - previous.time_s)
+    synced = c.method == "round-trip"
+    return CameraHealth(message.camera, now_s, h.connected, fps, h.frames, h.dropped, h.bad, h.reconnects,
+                        c.offset_s if synced else math.nan, c.drift * 1e6 if synced else math.nan,
+                        message.arrival_time_s - message.capture_time_s)
