@@ -109,9 +109,10 @@ def test_joint_fit_estimates_velocity_from_sightings_spread_in_time():
     assert np.linalg.norm(sol.velocity_m_s - v_true) < 0.05
 
 
-def test_the_gauss_newton_joint_fit_finds_the_trust_region_solution_and_covariance():
+def test_a_joint_fit_capped_at_few_steps_finds_the_full_fits_solution_and_covariance():
     """solve_joint(iterations=N) (the camera watcher's fits): the same pose, velocities and
-    covariance as the trust-region solver, with an outlier corner the soft-L1 loss must discount."""
+    covariance as the uncapped fit (itself checked against scipy's trust-region solver in
+    test_filter_kernels), with an outlier corner the soft-L1 loss must discount."""
     rng = np.random.default_rng(5)
     v_true = np.array([0.2, 0.05, 0.0])
     T0 = cube_pose()
