@@ -9,6 +9,8 @@ indices, ROLE ``preset`` / ``development`` / ``held-out``, reported apart):
   ``--duration`` + ``--drive`` s, only the frames after the session's end), then ``cubetrack
   track --extrinsics``, both as commands from this checkout's ``host/``; scored as accuracy.py
   scores (position and rotation RMSE against the truth at each pose's time, detection ratio);
+- **the cameras** the workflow wrote against the truth (worst mm and °; Build item 2 asks 3 mm
+  and 0.05° on clean renders);
 - **the floor** (issue 26, Build item 6): what a per-instant fit with the true cameras and the
   body as built reaches with the corners the detector gives (``benchmarks/corner_ceiling.py
   --floor``'s edge-fit row over all sightings: every camera frame alone, RMS over sightings).
@@ -124,21 +126,36 @@ def run_scene(bench, ceiling, scene: Scene, args: argparse.Namespace) -> dict:
                                   None)
     floor = ceiling.floor_summary(errors)["all"]
     out = cell(scene, workflow, floor)
+    out["cameras"] = camera_errors(rec / "track" / bench.WORKFLOW / "extrinsics.toml", rec / "true_extrinsics.toml")
     out["name"], out["seconds"] = name, time.monotonic() - t0
     return out
+
+
+def camera_errors(extrinsics: Path, truth: Path) -> dict:
+    """The workflow's cameras against the truth (issue 26 Build item 2: within 3 mm and 0.05° on
+    clean renders): the worst position (mm) and rotation (°) error; NaN without the file."""
+    from cubetrack.calib.extrinsics import extrinsics_errors
+    from cubetrack.io.config import read_extrinsics
+
+    if not extrinsics.exists():
+        return {"worst_mm": math.nan, "worst_deg": math.nan}
+    errors = extrinsics_errors(read_extrinsics(extrinsics), read_extrinsics(truth)).values()
+    return {"worst_mm": 1000.0 * max(e[0] for e in errors), "worst_deg": max(e[1] for e in errors)}
 
 
 def print_table(rows: list[dict]) -> None:
     """The markdown table, a block per role."""
     print("| role | preset | scene | seed | README workflow: position cm / rotation ° / DR | floor: position cm / "
-          "rotation ° | workflow / floor | position | rotation | DR |")
-    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+          "rotation ° | workflow / floor | position | rotation | DR | cameras vs truth: worst mm / ° |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- | --- | --- |")
     for role in ROLES:
         for r in (r for r in rows if r["scene"]["role"] == role):
             w, f, v, s = r["workflow"], r["floor"], r["verdict"], r["scene"]
+            cams = r.get("cameras", {"worst_mm": math.nan, "worst_deg": math.nan})
             print(f"| {role} | {s['preset']} | {r['name']} | {s['seed']} | {w['pos_cm']:.2f} / {w['rot_deg']:.3f} / "
                   f"{w['dr']:.3f} | {f['pos_cm']:.2f} / {f['rot_deg']:.3f} | {r['pos_over_floor']:.2f}x / "
-                  f"{r['rot_over_floor']:.2f}x | {v['position']} | {v['rotation']} | {v['dr']} |")
+                  f"{r['rot_over_floor']:.2f}x | {v['position']} | {v['rotation']} | {v['dr']} | "
+                  f"{cams['worst_mm']:.1f} / {cams['worst_deg']:.3f} |")
 
 
 def parse_args(argv: list[str] | None) -> argparse.Namespace:
@@ -174,6 +191,14 @@ def main(argv: list[str] | None = None) -> int:
     args = parse_args(argv)
     if args.tables:
         reports = [json.loads(p.read_text(encoding="utf-8")) for p in args.tables]
+        sys.path.insert(0, str(BENCHMARKS))
+        import accuracy
+
+        for row in (row for r in reports for row in r["rows"] if "cameras" not in row):  # a report from before
+            s = row["scene"]
+            rec = accuracy.scene_dir(args.out / f"w{s['seed']}", s["config"], s["seed"], s["preset"])
+            row["cameras"] = camera_errors(rec / "track" / accuracy.WORKFLOW / "extrinsics.toml",
+                                           rec / "true_extrinsics.toml")
         sources = (f"{p} ({r.get('code', 'code not recorded')}, load {r['load']})"
                    for p, r in zip(args.tables, reports, strict=True))
         print("issue 26 'Done when' from " + "; ".join(sources))
@@ -185,7 +210,7 @@ def main(argv: list[str] | None = None) -> int:
     import corner_ceiling
 
     args.out.mkdir(parents=True, exist_ok=True)
-    load = " ".join(f"{v:.1f}" for v in os.getloadavg())
+    load, code = " ".join(f"{v:.1f}" for v in os.getloadavg()), accuracy.code_version()  # the code the commands run
     rows = []
     for n, scene in enumerate(args.scenes, 1):
         rows.append(run_scene(accuracy, corner_ceiling, scene, args))
@@ -193,12 +218,12 @@ def main(argv: list[str] | None = None) -> int:
         print(f"[{n}/{len(args.scenes)}] {scene.preset} {r['name']} seed {scene.seed}: workflow "
               f"{r['workflow']['pos_cm']:.2f} cm / {r['workflow']['rot_deg']:.3f}°, floor {r['floor']['pos_cm']:.2f} "
               f"cm / {r['floor']['rot_deg']:.3f}° ({r['seconds']:.0f} s)", file=sys.stderr, flush=True)
-    print(f"issue 26 'Done when': README workflow, default settings ({accuracy.code_version()}; {args.duration:g} s "
+    print(f"issue 26 'Done when': README workflow, default settings ({code}; {args.duration:g} s "
           f"sessions, {args.drive:g} s drive; load {load} -> "
           f"{' '.join(f'{v:.1f}' for v in os.getloadavg())}, {os.cpu_count()} cores)")
     print_table(rows)
     if args.json:
-        args.json.write_text(json.dumps({"rows": rows, "load": load, "code": accuracy.code_version()}, indent=1),
+        args.json.write_text(json.dumps({"rows": rows, "load": load, "code": code}, indent=1),
                              encoding="utf-8")
     print_summary(rows)
     return 0
