@@ -226,6 +226,7 @@ class FrameJob:
     capture_time_s: float
     regions: tuple[tuple[int, int, int, int], ...] | None  # (x0, y0, x1, y1) image boxes
     estimate_robots: frozenset[str]
+    predicted: tuple[Detection, ...] = ()  # the markers where the forecast puts them (projected corners)
 
 
 @enum.unique

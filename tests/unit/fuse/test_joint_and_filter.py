@@ -109,9 +109,10 @@ def test_joint_fit_estimates_velocity_from_sightings_spread_in_time():
     assert np.linalg.norm(sol.velocity_m_s - v_true) < 0.05
 
 
-def test_the_gauss_newton_joint_fit_finds_the_trust_region_solution_and_covariance():
+def test_a_joint_fit_capped_at_few_steps_finds_the_full_fits_solution_and_covariance():
     """solve_joint(iterations=N) (the camera watcher's fits): the same pose, velocities and
-    covariance as the trust-region solver, with an outlier corner the soft-L1 loss must discount."""
+    covariance as the uncapped fit (itself checked against scipy's trust-region solver in
+    test_filter_kernels), with an outlier corner the soft-L1 loss must discount."""
     rng = np.random.default_rng(5)
     v_true = np.array([0.2, 0.05, 0.0])
     T0 = cube_pose()
@@ -126,21 +127,32 @@ def test_the_gauss_newton_joint_fit_finds_the_trust_region_solution_and_covarian
     assert rotation_angle(gn.T_world_cube[:3, :3], trf.T_world_cube[:3, :3], "deg") < 1e-3
     assert np.allclose(gn.velocity_m_s, trf.velocity_m_s, atol=1e-4)
     assert np.allclose(gn.covariance, trf.covariance, rtol=1e-3, atol=1e-12) and gn.rms_px == pytest.approx(trf.rms_px)
-    # a start it runs off from (turned by 40 deg), or too few steps to converge: it gives up and the
-    # trust-region solver takes over, so the answer is the same
-    from cubetrack.fuse import multi_view_fit
 
-    gave_up = []
-    original = multi_view_fit.robust_gauss_newton
-    multi_view_fit.robust_gauss_newton = lambda *a: gave_up.append(original(*a)) or gave_up[-1]
-    try:
-        far = cube_pose(x=0.105, y=-0.21, yaw_deg=70.0)
-        for T_start, steps in [(far, 30), (start, 1)]:
-            fallback = solve_joint(sets, T_start, 0.0, velocity_sigma=(1.0, 4.0), iterations=steps)
-            assert np.linalg.norm(fallback.T_world_cube[:3, 3] - trf.T_world_cube[:3, 3]) < 1e-5
-    finally:
-        multi_view_fit.robust_gauss_newton = original
-    assert gave_up == [None, None]
+
+def test_the_camera_refit_falls_back_to_the_trust_region_solver_where_gauss_newton_gives_up(monkeypatch):
+    """refit_camera (the camera watcher's resection) by robust_gauss_newton; from a start it would
+    run off from (turned 25 deg), or with too few steps to converge, that gives up (None) and the
+    trust-region solver finds the same camera pose."""
+    from cubetrack.fuse import camera_watch
+    from cubetrack.fuse.multi_view_fit import robust_gauss_newton
+
+    rng = np.random.default_rng(4)
+    T_cam = CAMS["cam1"]
+    X = np.column_stack([rng.uniform(-0.6, 0.6, 60), rng.uniform(-0.6, 0.6, 60), rng.uniform(0.2, 0.4, 60)])
+    in_cam = (X - T_cam[:3, 3]) @ T_cam[:3, :3]
+    uv = in_cam[:, :2] / in_cam[:, 2:] + rng.normal(0, 0.3 / INTR.K[0, 0], (60, 2))
+    told = []
+    monkeypatch.setattr(camera_watch, "robust_gauss_newton",
+                        lambda *a: told.append(robust_gauss_newton(*a)) or told[-1])
+    near = make_T(Rotation.from_euler("z", 1.0, degrees=True).as_matrix() @ T_cam[:3, :3], T_cam[:3, 3] + 0.02)
+    far = make_T(Rotation.from_euler("xz", [20.0, 15.0], degrees=True).as_matrix() @ T_cam[:3, :3], T_cam[:3, 3])
+    fits = [camera_watch.refit_camera(X, uv, INTR.K[0, 0], start) for start in (near, far)]
+    monkeypatch.setattr(camera_watch, "FIT_ITERATIONS", 1)
+    fits.append(camera_watch.refit_camera(X, uv, INTR.K[0, 0], near))
+    assert told[0] is not None and told[1:] == [None, None]
+    for fit in fits:
+        assert np.linalg.norm(fit.T_world_cam[:3, 3] - T_cam[:3, 3]) < 0.005
+        assert rotation_angle(fit.T_world_cam[:3, :3], T_cam[:3, :3], "deg") < 0.1
 
 
 def started_filter(truth, t=0.0):
