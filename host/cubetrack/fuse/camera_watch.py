@@ -97,6 +97,8 @@ class WatchParams:
                                           "one form its reference cube pose, seconds")
     reference_cameras: int = param(2, "other cameras that must see the cube for a reference (one alone is weak in "
                                       "depth: the watcher then says so and waits)")
+    reference_cameras_max: int = param(4, "other cameras in a reference at most (those with a sighting nearest in "
+                                          "time): with many cameras a check stays a small fit")
     reference_rms_px: float = param(3.0, "a reference fit with a larger RMS corner residual is not used, pixels")
     window_s: float = param(2.0, "sliding window of a camera's checked sightings, seconds")
     check_every_s: float = param(0.5, "how often each camera's window is fitted, seconds")
@@ -139,6 +141,8 @@ class WatchParams:
                        "moved_deg", "rejoin_sigma_m", "rejoin_sigma_deg", "rejoin_agree_m", "rejoin_agree_deg",
                        "corner_noise_px", "gate_px", "suspect_px", "gate_prediction_ratio")
         check_at_least(self, 1, "reference_cameras", "suspect_samples")
+        check(self.reference_cameras_max >= self.reference_cameras, f"reference_cameras_max "
+              f"({self.reference_cameras_max}) must be at least reference_cameras ({self.reference_cameras})")
         check_at_least(self, 0, "rejoin_rounds")
         check_at_least(self, 6, "min_points", "rejoin_points")
         check(self.check_every_s <= self.window_s,
@@ -618,9 +622,13 @@ class CameraWatch:
             self.stats["no cube matched"] += 1
             return None
         t, span = sighting.capture_time_s, self.params.reference_span_s
-        others = [s for o in self._recent[sighting.robot]
-                  if o.camera != sighting.camera and not self.excluded(o.camera) and abs(o.capture_time_s - t) <= span
-                  for s in self._corner_sets(o)[1]]
+        near = [o for o in self._recent[sighting.robot]
+                if o.camera != sighting.camera and abs(o.capture_time_s - t) <= span and not self.excluded(o.camera)]
+        gap: dict[str, float] = {}  # each other camera: how near in time its nearest sighting is
+        for o in near:
+            gap[o.camera] = min(gap.get(o.camera, math.inf), abs(o.capture_time_s - t))
+        chosen = set(sorted(gap, key=lambda c: gap[c])[:self.params.reference_cameras_max])
+        others = [s for o in near if o.camera in chosen for s in self._corner_sets(o)[1]]
         if len({s.camera for s in others}) < self.params.reference_cameras:
             self.stats["too few other cameras"] += 1
             return None

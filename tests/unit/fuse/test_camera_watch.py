@@ -185,10 +185,36 @@ def test_with_one_other_camera_the_watcher_says_so_and_waits():
     assert watch.stats["checked"] == 0 and watch.stats["too few other cameras"] > 30
 
 
+def test_a_reference_takes_the_other_cameras_nearest_in_time_at_most_reference_cameras_max(monkeypatch):
+    """With many cameras a check stays a small fit: of the three other cameras, the two whose
+    sightings are nearest in time to the checked one, every sighting of theirs within the span."""
+    from cubetrack.fuse import camera_watch
+
+    rng = np.random.default_rng(5)
+    fits = []
+    original = camera_watch.solve_joint
+    monkeypatch.setattr(camera_watch, "solve_joint",
+                        lambda sets, T, t, *a, **k: fits.append((t, sets)) or original(sets, T, t, *a, **k))
+    params = WatchParams(enabled=True, reference_cameras_max=2)
+    watch = CameraWatch({"bot": LAYOUT}, CAMERAS, params)
+    seen = sightings(3.0, lambda camera, t: CAMERAS[camera], dict(CAMERAS), rng)
+    for s in seen:
+        watch.add(s)
+    assert watch.stats["checked"] > 30 and len(fits) == watch.stats["checked"]
+    for t, sets in fits:
+        checked = next(s.camera for s in seen if s.capture_time_s == t)
+        span = [s for s in seen if s.camera != checked and abs(s.capture_time_s - t) <= params.reference_span_s]
+        gap = {c: min(abs(s.capture_time_s - t) for s in span if s.camera == c) for c in {s.camera for s in span}}
+        used = {s.camera for s in sets}
+        assert len(used) == 2 and max(gap[c] for c in used) <= min(g for c, g in gap.items() if c not in used)
+        assert len(sets) == sum(s.camera in used for s in span)  # all their sightings in the span (a set each)
+
+
 @pytest.mark.parametrize(("changes", "message"), [
     ({"moved_px": 0.0}, "moved_px"),
     ({"reference_cameras": 0}, "reference_cameras"),
     ({"window_s": 40.0}, "window_s"),
+    ({"reference_cameras_max": 1}, "reference_cameras_max"),
 ])
 def test_bad_watch_settings_are_refused_with_a_clear_message(changes, message):
     from cubetrack.core.errors import ParamsError
