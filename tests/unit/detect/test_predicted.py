@@ -113,3 +113,20 @@ def test_predicted_markers_keep_the_faces_that_face_the_camera_inside_the_image(
     kept = predicted_markers(quads, layout, INTR.width, INTR.height, min_perimeter_px=19.0, border_px=3.0)
     assert [d.marker_id for d in kept] == [int(i) for k, i in enumerate(layout.marker_ids) if k not in (1, 2, 3)]
     assert all(d.dictionary == layout.marker_dictionaries[0] and d.area_px2 == pytest.approx(1600.0) for d in kept)
+
+
+def test_the_predicted_path_runs_kernels_compiled_when_the_detector_was_built(scenes):
+    """Planning (predicted_markers) and a frame found at its predictions run no kernel compile: a
+    read-only array, or another integer type, would be a new signature compiled on a frame."""
+    from cubetrack.detect import predicted as module
+
+    det = Detector()
+    kernels = (module._facing_quads, module._cell_errors)
+    compiled = [len(k.signatures) for k in kernels]
+    assert all(n >= 1 for n in compiled)
+    gray, truth = scenes[1]
+    layout = paper_cube_layout()
+    predicted_markers(np.repeat(truth[None], len(layout.marker_ids), axis=0), layout, INTR.width, INTR.height,
+                      19.0, 3)
+    assert det.find(gray, [_box(truth)], INTR, predicted=[_prediction(truth)]).predicted
+    assert [len(k.signatures) for k in kernels] == compiled
