@@ -132,4 +132,4 @@ def test_the_predicted_path_runs_kernels_compiled_when_the_detector_was_built(sc
     assert det.find(gray, [_box(truth)], INTR, predicted=[_prediction(truth)]).predicted
     # this process's signatures (other tests' calls included) are the start-up ones: no read-only arrays
     assert [set(k.signatures) for k in kernels] == built
-    assert not any(getattr(t, "readonly", False) for k in kernels for sig in k.signatures for t in sig)
+    assert all(getattr(t, "mutable", True) for k in kernels for sig in k.signatures for t in sig)
