@@ -191,7 +191,7 @@ _FUSION_HOOKS = (("cubetrack.fuse.fusion", "match_faces"), ("cubetrack.fuse.fusi
                  ("cubetrack.fuse.corner_filter", "solve_update"), ("cubetrack.fuse.corner_filter", "packed_sets"),
                  ("cubetrack.fuse.corner_filter", "predicted_covariance"),
                  ("cubetrack.fuse.corner_filter", "perturbed"), ("cubetrack.fuse.corner_filter", "moved_pose"),
-                 ("cubetrack.fuse.multi_view_fit", "reprojection"), ("cubetrack.fuse.multi_view_fit", "packed_sets"))
+                 ("cubetrack.fuse.multi_view_fit", "joint_fit"), ("cubetrack.fuse.multi_view_fit", "packed_sets"))
 # Per-frame estimate/ functions of the frame worker, micro-benchmarked like the fusion's.
 _WORKER_HOOKS = (("cubetrack.app.tracker", "estimate_cube"), ("cubetrack.app.tracker", "body_detections"))
 
