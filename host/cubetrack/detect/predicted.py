@@ -105,9 +105,9 @@ def predicted_markers(quads_px: np.ndarray, layout: CubeLayout, width: int, heig
     ``min_perimeter_px`` around and lie ``border_px`` inside the ``width`` x ``height`` image, as
     Detections (the area is the projected quad's)."""
     quads = np.array(quads_px, dtype=np.float64).reshape(-1, 4, 2)   # a copy: the Detections' corners
-    quads.setflags(write=False)
     area = np.empty(len(quads))
     keep = _facing_quads(quads, float(min_perimeter_px), float(border_px), int(width), int(height), area)
+    quads.setflags(write=False)   # after the call: a read-only array is another type to numba (another compile)
     ids, names = layout.marker_ids, layout.marker_dictionaries
     return tuple(Detection(int(ids[i]), quads[i], float(area[i]), names[i]) for i in np.flatnonzero(keep).tolist())
 

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from numba.types import Array
 from scenes import T_WORLD_CAM_UP, marker_corners_px, render_in_front
 from test_detect_markers import INTR, _two_markers_image, facing
 
@@ -113,3 +114,24 @@ def test_predicted_markers_keep_the_faces_that_face_the_camera_inside_the_image(
     kept = predicted_markers(quads, layout, INTR.width, INTR.height, min_perimeter_px=19.0, border_px=3.0)
     assert [d.marker_id for d in kept] == [int(i) for k, i in enumerate(layout.marker_ids) if k not in (1, 2, 3)]
     assert all(d.dictionary == layout.marker_dictionaries[0] and d.area_px2 == pytest.approx(1600.0) for d in kept)
+
+
+def test_the_predicted_path_runs_kernels_compiled_when_the_detector_was_built(scenes):
+    """Planning (predicted_markers) and a frame found at its predictions run no kernel compile: each
+    call's argument types are those the detector compiled at start-up (a read-only array, or another
+    integer type, would be a new signature compiled on a frame)."""
+    from cubetrack.detect import predicted as module
+
+    det = Detector()
+    kernels = (module._facing_quads, module._cell_errors)
+    built = [set(k.signatures) for k in kernels]
+    assert all(built)
+    gray, truth = scenes[1]
+    layout = paper_cube_layout()
+    predicted_markers(np.repeat(truth[None], len(layout.marker_ids), axis=0), layout, INTR.width, INTR.height,
+                      19.0, 3)
+    assert det.find(gray, [_box(truth)], INTR, predicted=[_prediction(truth)]).predicted
+    # this process's signatures (other tests' calls included) are the start-up ones: no read-only arrays
+    assert [set(k.signatures) for k in kernels] == built
+    read_only = [t for k in kernels for sig in k.signatures for t in sig if isinstance(t, Array) and not t.mutable]
+    assert not read_only, read_only
