@@ -57,6 +57,7 @@ from benchmarks.real_footage import DATA, charuco_reference, score, track  # noq
 from tests.helpers.plain_mjpeg import PlainMjpegServer  # noqa: E402
 
 LEAD_S = 1.5  # the servers start releasing this long after they are made (the tracker connects first)
+ORDER_STEP_S = 0.005  # --mode order: the simulated clock steps at most this far (results held for their order)
 FRAME_MATCH_S = 1e-4  # a pose is its frame's when their times are this close (frames of a camera are 0.17 s apart)
 
 
@@ -151,7 +152,8 @@ def order_run(config_path: Path, recording_path: Path, extrinsics_path: Path, ou
     (:mod:`cubetrack.source.order`: arrival order until a frame has waited longer than
     ``behind_intervals`` of its camera's interval, then the oldest of the freshest instant; inf:
     always arrival order); each job is planned with the fusion as it is when taken,
-    and results are fused when done (together: oldest capture first). No ``/time`` round trips
+    and results are fused as the live feed fuses them (:class:`cubetrack.source.order.CaptureOrder`:
+    in capture order, a result waiting for older ones at most half its camera's interval). No ``/time`` round trips
     are fed: a polled camera's capture times come from a fit to its arrivals (compare rules with
     each other on such a recording, not with its replay). Prints the poses, late
     sightings, frames dropped and arrival -> fused p50 / p95; returns the TUM file written in
@@ -161,22 +163,23 @@ def order_run(config_path: Path, recording_path: Path, extrinsics_path: Path, ou
     from cubetrack.app.tracker import Tracker
     from cubetrack.io.config import read_extrinsics, read_tracker_config
     from cubetrack.io.recording import Recording
-    from cubetrack.source.order import FrameIntervals
+    from cubetrack.source.order import CaptureOrder, FrameIntervals
 
     config = read_tracker_config(config_path)
     recording = Recording.open(recording_path)
     tracker = Tracker(recording_intrinsics(config, recording), config.world, config.robots,
                       read_extrinsics(extrinsics_path), config_params(config).stages)
     frames = sorted(recording.merged_frames(), key=lambda f: f.host_time_s)
-    intervals = FrameIntervals()
+    intervals, order = FrameIntervals(), CaptureOrder()
     waiting: dict[str, Frame] = {}
     busy: list[tuple[float, FrameResult]] = []  # (done at, result)
     poses, waits_s, dropped, i = [], [], 0, 0
-    while i < len(frames) or waiting or busy:
+    now_s = frames[0].host_time_s
+    while i < len(frames) or waiting or busy or order.held():
         arrives_s = frames[i].host_time_s if i < len(frames) else math.inf
-        now_s = min(arrives_s, min((done_s for done_s, _ in busy), default=math.inf))
+        now_s = min(arrives_s, min((done_s for done_s, _ in busy), default=math.inf), now_s + ORDER_STEP_S)
         if now_s < arrives_s:
-            for _, result in sorted((b for b in busy if b[0] <= now_s), key=lambda b: b[1].job.capture_time_s):
+            for result in order.ready([r for done_s, r in busy if done_s <= now_s], now_s):
                 poses += tracker.fuse(result, now_s)
                 waits_s.append(now_s - result.job.frame.host_time_s)
             busy = [b for b in busy if b[0] > now_s]
@@ -191,7 +194,7 @@ def order_run(config_path: Path, recording_path: Path, extrinsics_path: Path, ou
             frame = intervals.freshest_instant(ordered) if behind else ordered[0]
             del waiting[frame.camera]
             if (job := tracker.admit(frame, hold=False)) is not None:
-                busy.append((now_s + work_s, tracker.processor.work(job)))
+                busy.append((now_s + work_s, tracker.processor.work(order.started(job))))
     poses += tracker.finish(now_s)
     out.mkdir(parents=True, exist_ok=True)
     tum = out / f"order-{behind_intervals}.tum"

@@ -279,7 +279,7 @@ def run_fusion(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
         r for r in config.robots if r.name in names))
     outputs, files = open_outputs(mine, intrinsics, extrinsics, out_dir, sinks)
     zenoh, declared, behind = None, [], 0
-    watch_log = attach_watch_log(tracker.fusion, out_dir, extrinsics, extrinsics_path if update_extrinsics else None)
+    watch_log = attach_watch_log(tracker, outputs, out_dir, extrinsics, extrinsics_path if update_extrinsics else None)
     try:
         stream = PoseStream(tracker, outputs, clock)
         stream.robots = []

@@ -43,6 +43,7 @@ from cubetrack.io.recording import CameraEntry, RecordingWriter
 from cubetrack.io.run import RUN_FILE
 from cubetrack.sink.base import Outputs, Sink
 from cubetrack.source.health import HEALTH_EVERY_S, HealthMeter, LiveStatus, StatusRates
+from cubetrack.source.order import CaptureOrder
 from cubetrack.source.streams import CameraStats, ClockReading, LiveCameras, SourceParams
 
 log = logging.getLogger(__name__)
@@ -115,18 +116,16 @@ class LiveResult:
     ended_by: str | None = None  # the signal that ended the session (Ctrl-C: SIGINT), if one did
 
 
-
 class _FramePoolFeed:
     """Live frames read by :class:`LiveCameras`' threads, their per-frame work done on a
     :class:`FramePool` of ``[live] workers``; this thread plans each frame when a worker is free
-    (the fusion's prediction tells detection where to look) and fuses each result as soon as it
-    is ready. A frame still waiting when its camera's next one arrives is dropped (counted per
-    camera)."""
+    (the fusion's prediction tells detection where to look) and fuses the results in capture order
+    (:class:`CaptureOrder`). A frame still waiting when its camera's next one arrives is dropped."""
 
     def __init__(self, stream: PoseStream, urls: dict[str, str], source: SourceParams, live_params: LiveParams,
                  recorder: _Recorder | None, fused: Callable[[FrameResult], None], clock: Callable[[], float]):
         tracker = stream.tracker
-        self.stream, self.tracker, self.fused = stream, tracker, fused
+        self.stream, self.tracker, self.fused, self.order, self.clock = stream, tracker, fused, CaptureOrder(), clock
         self.wake = threading.Event()
         make_worker = functools.partial(FrameProcessor, tracker.intrinsics, tracker.world, tracker.robots,
                                         tracker.T_world_cam, tracker.params)
@@ -143,7 +142,7 @@ class _FramePoolFeed:
     def step(self, timeout_s: float) -> None:
         self.wake.wait(timeout_s)
         self.wake.clear()
-        for result in by_capture_time(self.pool.take()):
+        for result in self.order.ready(self.pool.take(), self.clock()):
             self.fused(result)
         self._take_events()
 
@@ -157,13 +156,13 @@ class _FramePoolFeed:
                 self.stream.clock_sample(event.camera, event.sample)
             elif (job := self.tracker.admit(event, hold=False)) is not None:
                 if pool.ready:
-                    pool.submit(job)
+                    pool.submit(self.order.started(job))
                 else:
                     self.fused(self.tracker.processor.work(job))
 
     def working(self) -> bool:
         """Work that had arrived when the session ended is still being done."""
-        return self.pool.busy() > 0 or self.live.pending() > 0
+        return self.pool.busy() > 0 or self.live.pending() > 0 or self.order.held() > 0
 
     def stats(self) -> TrackStats:
         return self.tracker.stats
@@ -270,7 +269,7 @@ def track_live(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
     recorder = _Recorder(record_to, config, urls) if record_to is not None else None
     outputs, files = open_outputs(config, intrinsics, extrinsics, out_dir, sinks)
     feed: _FramePoolFeed | _CameraProcessFeed | None = None
-    watch_log = attach_watch_log(tracker.fusion, out_dir, extrinsics, extrinsics_path if update_extrinsics else None)
+    watch_log = attach_watch_log(tracker, outputs, out_dir, extrinsics, extrinsics_path if update_extrinsics else None)
     try:
         session = Session(duration_s=duration_s, stop=stop, status_every_s=status_every_s, record=RunSpec(
             out_dir / RUN_FILE, command, {**parameter_tables(params), "source": source},

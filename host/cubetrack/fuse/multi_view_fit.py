@@ -14,7 +14,6 @@ from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 
 import numpy as np
-from scipy.optimize import least_squares
 
 from cubetrack.estimate.reprojection import CornerSet, perturbed
 from cubetrack.fuse.filter_kernels import joint_fit, packed_sets
@@ -38,37 +37,50 @@ class JointSolution:
     points: int
 
 
-def robust_least_squares(residuals: Callable[[np.ndarray], np.ndarray], jacobian: Callable[[np.ndarray], np.ndarray],
-                         x_scale: np.ndarray, f_scale: float, max_nfev: int
-                         ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
-    """A soft-L1 least-squares fit of increments started at zero (``residuals`` in units of their
-    noise): the solution, its covariance ``(JᵀJ)⁻¹`` and the residuals there; None when the fit
-    fails or its information is singular."""
+def robust_gauss_newton(residuals: Callable[[np.ndarray], np.ndarray], jacobian: Callable[[np.ndarray], np.ndarray],
+                        n: int, f_scale: float, iterations: int
+                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray] | None:
+    """A soft-L1 fit of increments started at zero (``residuals`` in units of their noise): the
+    solution, its covariance and the residuals there (None when a matrix is singular or the fit is not
+    finite), by at most ``iterations`` steps of iteratively
+    reweighted Gauss-Newton (the soft-L1 loss's weights ``1 / sqrt(1 + (r / f_scale)²)``), stopping
+    once a step is under 1e-7 in every unknown: for a start already near the solution, where the
+    trust-region solver's own work costs many times the compiled residuals."""
+    x = np.zeros(n)
+    for _ in range(iterations):
+        r, J = residuals(x), jacobian(x)
+        w = 1.0 / np.sqrt(1.0 + (r / f_scale) ** 2)
+        Jw = J * w[:, None]
+        try:
+            step = np.linalg.solve(Jw.T @ J, -(Jw.T @ r))
+        except np.linalg.LinAlgError:
+            return None
+        x = x + step
+        if not np.all(np.isfinite(x)):
+            return None
+        if np.max(np.abs(step)) < 1e-7:
+            break
+    r, J = residuals(x), jacobian(x)
+    t = 1.0 + (r / f_scale) ** 2  # the covariance as scipy's: J scaled by the loss, sqrt(rho' + 2 rho'' r²) = t^-3/4
     try:
-        result = least_squares(residuals, np.zeros(len(x_scale)), jac=jacobian, method="trf", loss="soft_l1",
-                               f_scale=f_scale, x_scale=x_scale, max_nfev=max_nfev)
-    except (ValueError, np.linalg.LinAlgError):
-        return None
-    if not np.all(np.isfinite(result.x)):
-        return None
-    J = np.asarray(result.jac)  # of residuals in units of their noise: J^T J is the information
-    try:
-        covariance = np.linalg.inv(J.T @ J)
+        covariance = np.linalg.inv((J * t[:, None] ** -1.5).T @ J)
     except np.linalg.LinAlgError:
         return None
-    return result.x, covariance, np.asarray(result.fun)
+    return x, covariance, r
 
 
 def solve_joint(sets: Sequence[CornerSet], T_init: np.ndarray, t_ref_s: float,
                 corner_noise_px: float = 0.5, f_scale_px: float = 1.5,
-                velocity_sigma: tuple[float, float] | None = None) -> JointSolution | None:
+                velocity_sigma: tuple[float, float] | None = None, iterations: int = 0) -> JointSolution | None:
     """Least-squares cube pose at ``t_ref_s`` over all corner sets (robust soft-L1 loss),
     starting from ``T_init``.
 
     Without ``velocity_sigma`` the cube is taken as still between the sets' times. With
     ``velocity_sigma = (σ_v m/s, σ_ω rad/s)`` the linear and angular velocities are estimated
     too, under a zero-mean Gaussian prior of those spreads (sets spread over time make them
-    observable). Returns None if the fit fails or has under four corners.
+    observable). ``iterations``: Gauss-Newton steps at most (0: ``JOINT_FIT_STEPS``; the camera
+    watcher's fits start near the solution and stop sooner). Returns None if the fit fails or has under
+    four corners.
     """
     n_points = sum(len(s.points_cube_m) for s in sets)
     if n_points < 4:
@@ -77,7 +89,7 @@ def solve_joint(sets: Sequence[CornerSet], T_init: np.ndarray, t_ref_s: float,
     sigma_v, sigma_w = (1.0, 1.0) if velocity_sigma is None else velocity_sigma
     ok, x, covariance, fun = joint_fit(np.array(T_init, dtype=np.float64), n, *packed_sets(sets), t_ref_s,
                                        corner_noise_px, f_scale_px / corner_noise_px, float(sigma_v), float(sigma_w),
-                                       JOINT_FIT_STEPS)
+                                       iterations or JOINT_FIT_STEPS)
     if not ok:
         return None
     r_px = fun[: 2 * n_points] * corner_noise_px
