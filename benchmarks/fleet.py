@@ -59,9 +59,6 @@ CAMERA_RING_M, CAMERA_HEIGHT_M, CUBE_HEIGHT_M = 2.2, 1.8, 0.3
 MIN_SIDE_PX, MAX_VIEW_DEG = 12.0, 75.0
 COS_VIEW = math.cos(math.radians(MAX_VIEW_DEG))
 DELAY_S = (0.040, 0.060)  # capture -> publish (transfer + detection), uniform
-# a publisher sleeps at least this long when nothing is due, then sends every frame due by then (each late by
-# under this): one wake-up per frame was most of a pre-encoded publisher's CPU (session 13)
-PUBLISH_TICK_S = 0.002
 
 
 @dataclass(frozen=True)
@@ -296,8 +293,7 @@ def publisher_main(fleet: Fleet, index: int, count: int, ports: list[int], ready
     publishers: dict = {}
     cpu0 = time.process_time()
     for i, (publish_s, k, seq, capture_s, d) in enumerate(frames):
-        if (wait_s := t0 + publish_s - time.time()) > 0:   # at most one wake-up per PUBLISH_TICK_S
-            time.sleep(max(wait_s, PUBLISH_TICK_S))
+        time.sleep(max(0.0, t0 + publish_s - time.time()))
         out["late_s"].append(time.time() - t0 - publish_s)
         messages = made[i] if made is not None else frame_messages(fleet, cameras[k], seq, capture_s, d)
         send(messages, cameras[k], capture_s, t0, publishers, bus, out)
