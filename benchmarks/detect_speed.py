@@ -183,13 +183,15 @@ def main(argv: list[str] | None = None) -> int:
 # the detector's own ``detect`` is wrapped on the worker's instance.
 _FRAME_HOOKS = (("cubetrack.app.tracker", "decode_gray", "decode"),
                 ("cubetrack.detect.detector", "refine_corners_edges", "edge"))
+# What the search of predicted markers calls besides the edge fit (module attribute, name printed).
+_PREDICTED_HOOKS = (("cubetrack.detect.detector", "readable_markers"),)
 # What the fusion calls per sighting (module attribute, name printed).
 _FUSION_HOOKS = (("cubetrack.fuse.fusion", "match_faces"), ("cubetrack.fuse.fusion", "corner_set"),
                  ("cubetrack.fuse.fusion", "estimate_cube"),
                  ("cubetrack.fuse.corner_filter", "solve_update"), ("cubetrack.fuse.corner_filter", "packed_sets"),
                  ("cubetrack.fuse.corner_filter", "predicted_covariance"),
                  ("cubetrack.fuse.corner_filter", "perturbed"), ("cubetrack.fuse.corner_filter", "moved_pose"),
-                 ("cubetrack.fuse.multi_view_fit", "reprojection"), ("cubetrack.fuse.multi_view_fit", "packed_sets"))
+                 ("cubetrack.fuse.multi_view_fit", "joint_fit"), ("cubetrack.fuse.multi_view_fit", "packed_sets"))
 # Per-frame estimate/ functions of the frame worker, micro-benchmarked like the fusion's.
 _WORKER_HOOKS = (("cubetrack.app.tracker", "estimate_cube"), ("cubetrack.app.tracker", "body_detections"))
 
@@ -344,9 +346,18 @@ def stage_costs(args: argparse.Namespace) -> int:
         for module, attr, key in _FRAME_HOOKS:
             hooks.wrap(importlib.import_module(module), attr, key)
         hooks.wrap(tracker.processor.detector, "find", "detect")
-        for module, attr in _FUSION_HOOKS + _WORKER_HOOKS:
+        timed_find = tracker.processor.detector.find
+
+        def find(*a, **kw):   # counts the region searches skipped for verified predicted markers
+            found = timed_find(*a, **kw)
+            cpu["predicted_frames"] += found.predicted
+            return found
+
+        tracker.processor.detector.find = find
+        for module, attr in _FUSION_HOOKS + _WORKER_HOOKS + _PREDICTED_HOOKS:
             hooks.wrap(importlib.import_module(module), attr, f"{module.rsplit('.', 1)[1]}.{attr}")
-        cpu = {"plan": 0.0, "work": 0.0, "fuse": 0.0, "decode_empty": 0.0, "empty_frames": 0.0}
+        cpu = {"plan": 0.0, "work": 0.0, "fuse": 0.0, "decode_empty": 0.0, "empty_frames": 0.0, "predicted_frames": 0.0,
+               "region_frames": 0.0}
         poses = []
         clock = time.thread_time
         pauses = _GcPauses()
@@ -362,6 +373,7 @@ def stage_costs(args: argparse.Namespace) -> int:
                 decoded_s = hooks.cpu_s["decode"]
                 result = tracker.processor.work(job)
                 t2 = clock()
+                cpu["region_frames"] += bool(job.regions)
                 if job.regions == ():   # every robot predicted out of view: nothing to search
                     cpu["empty_frames"] += 1
                     cpu["decode_empty"] += hooks.cpu_s["decode"] - decoded_s
@@ -414,6 +426,8 @@ def stage_costs(args: argparse.Namespace) -> int:
     print(f"frames whose regions are empty (every robot predicted out of view): "
           f"{rounds[0]['empty_frames']:.0f} of {n}; decoding them costs {ms([c['decode_empty'] for c in rounds]):.3f} "
           f"ms/frame (of all frames), what skipping their decode would save")
+    print(f"frames with regions: {rounds[0]['region_frames']:.0f} of {n}; of them found at their predicted markers, "
+          f"verified, without OpenCV's search: {rounds[0]['predicted_frames']:.0f}")
     inside = [k for k in rounds[0] if "." in k]
     print("in place (inclusive, incl. timer overhead):")
     for key in inside:

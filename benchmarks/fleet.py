@@ -312,6 +312,7 @@ class Recorder(Sink):
 
     def __init__(self) -> None:
         self.poses: list[tuple] = []
+        self.starts: list[tuple[str, float]] = []  # (robot, wall time) of each track start (a pose of 2+ cameras)
         self.cpu_first = math.nan
 
     def pose(self, pose: TrackedPose) -> None:
@@ -320,6 +321,8 @@ class Recorder(Sink):
         if not self.poses:
             self.cpu_first = time.process_time()
         self.poses.append((pose.robot, pose.time_s, tuple(pose.position_m), pose.arrival_latency_s, time.time()))
+        if len(pose.cameras) > 1:   # the filter's track start fits 2+ cameras' sightings; an update is one camera's
+            self.starts.append((pose.robot, time.time()))
 
 
 def shard_main(config_path: str, extrinsics_path: str, index: int, ports: list[int], stop, out_path: str) -> None:
@@ -338,7 +341,7 @@ def shard_main(config_path: str, extrinsics_path: str, index: int, ports: list[i
                         settings.stages, stop=stop, sinks=[recorder], shard=True)
     Path(out_path).write_bytes(pickle.dumps({
         "fused": sum(result.heard.values()), "behind": result.behind, "poses": recorder.poses,
-        "cpu_s": time.process_time() - recorder.cpu_first if recorder.poses else math.nan,
+        "starts": recorder.starts, "cpu_s": time.process_time() - recorder.cpu_first if recorder.poses else math.nan,
         "claims": result.claims, "refused": result.bad_messages}))
 
 
@@ -353,13 +356,22 @@ class Observer:
 
     def __init__(self, ports: list[int]):
         from cubetrack.app.worker import worker_endpoints
-        from cubetrack.io.worker_bus import ROBOT_CLAIMS_KEY
+        from cubetrack.io.worker_bus import ROBOT_CLAIMS_KEY, STATES_KEY
         from cubetrack.sink.zenoh_session import open_session
 
         self.events: list[tuple[float, str, str, bool]] = []  # (time, robot, shard, alive)
+        self.states: list[tuple] = []  # the shards' states: (time, robot, pose time, position, velocity)
         self.lock = threading.Lock()
         self.bus = open_session(worker_endpoints(connect=tuple(f"tcp/127.0.0.1:{p}" for p in ports)), "observer")
         self.watch = self.bus.liveliness().declare_subscriber(f"{ROBOT_CLAIMS_KEY}/**", self.token, history=True)
+        self.state_watch = self.bus.declare_subscriber(f"{STATES_KEY}/*", self.state)
+
+    def state(self, sample) -> None:
+        from cubetrack.io.sighting_wire import decode_state
+
+        state = decode_state(bytes(sample.payload))
+        with self.lock:
+            self.states.append((time.time(), state.robot, state.time_s, state.T_world_cube[:3, 3], state.velocity_m_s))
 
     def token(self, sample) -> None:
         _, _, robot, shard = str(sample.key_expr).split("/")
@@ -388,6 +400,7 @@ class Observer:
         return max([longest] + [time.time() - t for t in since.values()])
 
     def close(self) -> None:
+        self.state_watch.undeclare()
         self.watch.undeclare()
         self.bus.close()
 
@@ -461,7 +474,7 @@ def run_fleet(args: argparse.Namespace, work: Path) -> dict:
         stop.set()
         for p in publishers + shards[1 if kill else 0:]:
             p.join(120)
-        events = list(observer.events)
+        events, states = list(observer.events), list(observer.states)
     finally:
         for p in shards + publishers:
             if p.is_alive():
@@ -474,7 +487,7 @@ def run_fleet(args: argparse.Namespace, work: Path) -> dict:
                if (work / f"shard{i}.pkl").exists()}
     return {"fleet": fleet, "config": config, "extrinsics": extrinsics, "t0": t0, "load": load, "publishers": outs,
             "shards": results, "shard_cpu_s": [b - a for a, b in zip(cpu0, cpu1, strict=True)], "kill": kill,
-            "events": events, "double_claims_s": double_s, "load_after": os.getloadavg()}
+            "events": events, "states": states, "double_claims_s": double_s, "load_after": os.getloadavg()}
 
 
 def replay(run: dict) -> dict[tuple[str, float], np.ndarray]:
@@ -511,12 +524,22 @@ def takeover(run: dict, poses: list[tuple]) -> dict:
     for at_s, robot, _, alive in run["events"]:
         if alive and robot in kill["robots"] and at_s > kill["at"]:
             claimed.setdefault(robot, at_s - kill["at"])
-    for robot, _, _, _, wall_s in sorted(poses, key=lambda p: p[4]):
-        if robot in kill["robots"] and wall_s > kill["at"]:
-            resumed.setdefault(robot, wall_s - kill["at"])
+    last = {robot: (time_s, p, v) for at_s, robot, time_s, p, v in run["states"] if at_s < kill["at"]}
+    gaps, jumps = {}, {}  # the first resumed pose against the last state the killed shard published, moved on to it
+    for robot, time_s, position, _, wall_s in sorted(poses, key=lambda p: p[4]):
+        if robot in kill["robots"] and wall_s > kill["at"] and robot not in resumed:
+            resumed[robot] = wall_s - kill["at"]
+            if robot in last:
+                t_s, p, v = last[robot]
+                gaps[robot] = time_s - t_s
+                jumps[robot] = 1000 * float(np.linalg.norm(np.array(position) - p - v * (time_s - t_s)))
+    starts = [robot for r in run["shards"].values() for robot, wall_s in r["starts"]
+              if robot in kill["robots"] and wall_s > kill["at"]]
     return {"how": kill["how"], "robots": kill["robots"],
             "claimed_after_s": max((claimed.get(r, math.inf) for r in kill["robots"]), default=math.nan),
-            "poses_resumed_after_s": max((resumed.get(r, math.inf) for r in kill["robots"]), default=math.nan)}
+            "poses_resumed_after_s": max((resumed.get(r, math.inf) for r in kill["robots"]), default=math.nan),
+            "resumed_gap_s": {r: round(v, 3) for r, v in gaps.items()},
+            "resumed_jump_mm": {r: round(v, 1) for r, v in jumps.items()}, "track_starts_after": len(starts)}
 
 
 def report(run: dict, args: argparse.Namespace) -> dict:
@@ -583,7 +606,10 @@ def print_report(r: dict) -> None:
         t = r["takeover"]
         how = "killed (SIGKILL)" if t["how"] == "kill" else "frozen (SIGSTOP)"
         print(f"shard 0 {how} holding {', '.join(t['robots'])}: claimed by another after "
-              f"{t['claimed_after_s']:.2f} s, poses resumed after {t['poses_resumed_after_s']:.2f} s")
+              f"{t['claimed_after_s']:.2f} s, poses resumed after {t['poses_resumed_after_s']:.2f} s; "
+              f"first resumed pose against the last state shard 0 published: {t['resumed_gap_s']} s later, "
+              f"{t['resumed_jump_mm']} mm from where that state's velocity puts it; track starts of those robots "
+              f"after the kill: {t['track_starts_after']} (0: the track went on from the state)")
 
 
 def main(argv: list[str] | None = None) -> int:

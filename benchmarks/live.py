@@ -216,6 +216,9 @@ def process_cpu_rss(pid: int) -> tuple[float, int] | None:
     return (int(fields[11]) + int(fields[12])) / TICK, rss_pages * PAGE
 
 
+RSS_EVERY_S = 30.0  # the report's RSS over time: one sample this often
+
+
 class TreeSampler:
     """Samples a process and its descendants every ``period_s``: CPU seconds (each process's last
     value is kept, so processes that ended still count) and the summed RSS."""
@@ -425,6 +428,10 @@ def run_live(args: argparse.Namespace, rec: Path, work: Path, name: str = "live"
         "rss_start_mb": warm[2] / 1e6,
         "rss_mid_mb": sampler.at(started + 0.5 * (warm[0] - started + full[0] - started))[2] / 1e6,
         "rss_end_mb": full[2] / 1e6,
+        # (s from the tracker's command, MB, processes) every RSS_EVERY_S: flat or not, and whether a
+        # change is a process starting or ending rather than one growing
+        "rss_over_time": [(round(t - started, 1), round(rss / 1e6, 1), alive)
+                          for t, _cpu, rss, alive in sampler.samples[::max(1, round(RSS_EVERY_S / sampler.period_s))]],
         "first_pose_s": first_pose_s,
         "poses": len(fused),
         "arrival_ms": percentiles(arrival),
@@ -715,7 +722,7 @@ def speed(args: argparse.Namespace, rec: Path, work: Path, live: dict | None) ->
 
 def worker_split(args: argparse.Namespace, rec: Path, work: Path) -> dict:
     """Where a camera worker process's CPU goes (issue 31): the loop of one camera worker process
-    (:func:`cubetrack.app.camera_workers._work_cameras`, as each of the live run's runs it) on this
+    (:func:`cubetrack.app.camera_workers.work_cameras`, as each of the live run's runs it) on this
     process's main thread over half the emulated cameras (the live run deals them to 2 processes), for
     --duration seconds; a second thread stands for the tracker's process: it fuses the results as they
     come, in the same process, and sends a new forecast after each. Thread CPU per processed frame of
@@ -728,7 +735,7 @@ def worker_split(args: argparse.Namespace, rec: Path, work: Path) -> dict:
 
     import cv2
 
-    from cubetrack.app.camera_workers import _work_cameras
+    from cubetrack.app.camera_workers import work_cameras
     from cubetrack.app.config import load_config, recording_intrinsics
     from cubetrack.app.emulated import EmulatedCameras
     from cubetrack.app.tracker import Tracker
@@ -790,7 +797,7 @@ def worker_split(args: argparse.Namespace, rec: Path, work: Path) -> dict:
         side = threading.Thread(target=tracker_process, daemon=True)
         side.start()
         t0 = time.thread_time()
-        _work_cameras(theirs, urls, settings.source, worker, False, time.time, working, taken, 0)
+        work_cameras(theirs, urls, settings.source, worker, False, time.time, working, taken, 0)
         total_s = time.thread_time() - t0
         side.join()
     frames = max(int(taken[0]), 1)
@@ -893,6 +900,8 @@ def print_report(args: argparse.Namespace, report: dict) -> list[str]:
              if len(shown) < len(intervals) else "") + "): "
           + " | ".join(f"{i['from_s']:.1f}-{i['to_s']:.1f}: {i['dropped']}, {i['poses']}, {i['arrival_p95_ms']:.1f}, "
                        f"{i['cores']:.2f}" for i in shown))
+    print("  RSS over time (s: MB, processes): "
+          + ", ".join(f"{t:.0f}: {mb:.0f}, {n}" for t, mb, n in live["rss_over_time"]))
     print(f"  RSS: {live['rss_start_mb']:.0f} MB at {args.warmup:g} s, {live['rss_mid_mb']:.0f} MB half-way after it, "
           f"{live['rss_end_mb']:.0f} MB at the end ({(live['rss_end_mb'] / live['rss_start_mb'] - 1) * 100:+.1f} %); "
           f"first pose {live['first_pose_s']:.2f} s after the tracker's command started; before it, the kernels "

@@ -42,6 +42,10 @@ def test_stages_report_every_stage_and_a_bit_identical_replay(capsys):
                       text, re.MULTILINE)
     assert empty, text
     assert int(empty.group(1)) <= int(empty.group(2)) and float(empty.group(3)) <= ms("decode (JPEG -> gray)")
+    # the tracked cube's markers were found at their predictions (no region search) in some region frames
+    predicted = re.search(r"^frames with regions: (\d+) of (\d+); of them found at their predicted markers, "
+                          r"verified, without OpenCV's search: (\d+)$", text, re.MULTILINE)
+    assert predicted and 0 < int(predicted.group(3)) <= int(predicted.group(1)) <= int(predicted.group(2)), text
     # the fusion ran (a track started) and its estimate/ calls were timed alone
     for name in ("fusion.match_faces", "corner_filter.solve_update", "corner_filter.packed_sets"):
         assert re.search(rf"^  {re.escape(name)}\s+[0-9.]+ calls/frame\s+[0-9.]+ us/call", text, re.MULTILINE), name

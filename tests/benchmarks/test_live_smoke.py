@@ -46,6 +46,9 @@ def test_quick_run_prints_and_saves_a_complete_report(tmp_path):
     assert live["poses"] > 0 and live["cpu_ms_per_frame"] > 0 and live["cpu_ms_per_frame_warm"] > 0
     assert live["rss_end_mb"] > 0 and live["processed_fps_warm"] > 0  # frames were processed after the warm-up
     assert live["rss_start_mb"] > 0 and live["rss_mid_mb"] > 0
+    rss = live["rss_over_time"]   # from the start on, the tracker and its worker processes
+    assert rss and [t for t, _mb, _n in rss] == sorted(t for t, _mb, _n in rss)
+    assert all(mb > 0 and n >= 1 for _t, mb, n in rss)
     assert 0 < live["first_pose_s"] < live["wall_s"]  # start-up: the first pose came during the session
     rss_line = next(line for line in lines if line.startswith("  RSS: "))
     assert live["kernels_warm_s"] > 0 and "before it, the kernels " in rss_line  # warmed before the timed run

@@ -16,7 +16,8 @@ frames and never receives old ones. The accepted sockets get a small send buffer
 Faults (:class:`Faults`) make the node misbehave in the ways a Wi-Fi camera does: added
 latency and jitter, frames dropped at capture (gaps in X-Frame), a bandwidth cap in bytes/s
 shared by the camera's clients (the GS2200M manages some 100 kB/s), a disconnect every N s, a
-stalled connection, and corrupted parts.
+stalled connection, and corrupted parts. A camera can be knocked on its tripod mid-stream
+(:mod:`cubecam.bump`: ``bumps`` at given times, :meth:`Emulator.bump` at once).
 """
 
 from __future__ import annotations
@@ -35,7 +36,10 @@ from collections import Counter, deque
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
+
 from cubecam import __version__, mjpeg
+from cubecam.bump import Bump, RotationWarp, camera_intrinsics
 from cubecam.errors import EmulatorError
 from cubecam.replay import CameraTrack, Release, Timeline, jpeg_size, load_images, load_recording
 from cubecam.request import ParseStatus, RequestParser, Route, RouteDecision, route
@@ -489,7 +493,8 @@ class Emulator:
     def __init__(self, recording: str | Path | None = None, *, images: str | Path | None = None,
                  fps: float | None = None, name: str | None = None, host: str = "127.0.0.1", port: int = 0,
                  addresses: list[str] | str | None = None, loop: bool = False, faults: Faults | None = None,
-                 max_clients: int = 4, jpeg_quality: int = 80, send_buffer_bytes: int = 8 * 1024):
+                 max_clients: int = 4, jpeg_quality: int = 80, send_buffer_bytes: int = 8 * 1024,
+                 bumps: tuple[Bump, ...] = ()):
         if (recording is None) == (images is None):
             raise EmulatorError("give either a recording folder or an image folder")
         if images is not None:
@@ -529,6 +534,12 @@ class Emulator:
         self._rng_lock = threading.Lock()
         self._start_mono: float | None = None
         self._unix_minus_mono = 0.0
+        self._recording = None if recording is None else Path(recording)
+        self._scheduled = sorted((b for b in bumps if b.at_s is not None), key=lambda b: b.at_s or 0.0)
+        self._warps: dict[str, tuple[np.ndarray, RotationWarp]] = {}
+        self.bumped: list[tuple[float, Bump]] = []  # (Unix time, bump) of every bump applied: the truth
+        for b in bumps:
+            self._bump_warp(b)  # a bad camera name or a recording without its intrinsics fails here, not mid-run
         for cam in self._cameras:
             try:
                 first_jpeg = cam.track.frames[0].path.read_bytes()
@@ -642,7 +653,24 @@ class Emulator:
                 return c.status()
         raise EmulatorError(f"no camera {camera!r} (has {', '.join(self.cameras)})")
 
+    def bump(self, bump: Bump) -> None:
+        """Turn a camera now (``bump.at_s`` is ignored): its frames from the next one on are
+        resampled as the turned camera sees them (:mod:`cubecam.bump`); a second bump adds to the first."""
+        R, warp = self._bump_warp(bump)
+        self._warps[bump.camera] = R, warp
+        self.bumped.append((time.time(), bump))
+        log.warning("%s", bump.describe())
+
     # --- internals ---
+
+    def _bump_warp(self, bump: Bump) -> tuple[np.ndarray, RotationWarp]:
+        if bump.camera not in self.cameras:
+            raise EmulatorError(f"bump: no camera {bump.camera!r} (has {', '.join(self.cameras)})")
+        if self._recording is None:
+            raise EmulatorError("bump: needs a recording (its camera_info says how to turn the frames)")
+        before = self._warps.get(bump.camera)
+        R = bump.R_old_new if before is None else before[0] @ bump.R_old_new
+        return R, RotationWarp(camera_intrinsics(self._recording, bump.camera), R, self.jpeg_quality)
 
     def _random(self, scale: float) -> float:
         with self._rng_lock:
@@ -688,6 +716,10 @@ class Emulator:
                 if cacheable:
                     cache[r.path] = data
             cam = self._cameras[i]
+            while self._scheduled and (self._scheduled[0].at_s or 0.0) <= at_s:
+                self.bump(self._scheduled.pop(0))
+            if cam.name in self._warps:
+                data = self._warps[cam.name][1](data)
             cam.publish(LiveFrame(r.seq, int(round(r.device_time_s * 1e6)), data, self._start_mono + at_s))
         if not stop.is_set():
             self.finished.set()

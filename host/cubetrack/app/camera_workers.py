@@ -257,7 +257,7 @@ def _worker_main(conn: Connection, urls: dict[str, str], source: SourceParams, m
     end_with_parent()
     cv2.setNumThreads(1)
     try:
-        _work_cameras(conn, urls, source, make_tracker(), views, clock, working, taken, lane)
+        work_cameras(conn, urls, source, make_tracker(), views, clock, working, taken, lane)
     except (EOFError, BrokenPipeError):
         pass
     except Exception as exc:  # a bug or a broken camera source: the tracker's process re-raises it
@@ -265,9 +265,11 @@ def _worker_main(conn: Connection, urls: dict[str, str], source: SourceParams, m
         conn.send(("failed", f"{type(exc).__name__}: {exc}"))
 
 
-def _work_cameras(conn: Connection, urls: dict[str, str], source: SourceParams, tracker: Tracker, views: bool,
-                  clock: Callable[[], float], working: MutableSequence[float], taken: Sequence[int],
-                  lane: int) -> None:
+def work_cameras(conn: Connection, urls: dict[str, str], source: SourceParams, tracker: Tracker, views: bool,
+                 clock: Callable[[], float], working: MutableSequence[float], taken: Sequence[int],
+                 lane: int) -> None:
+    """A camera worker process's loop on this thread (also ``benchmarks/live.py --worker-split``'s): read
+    ``urls``, plan and work each frame with ``tracker``, send results on ``conn`` until it sends None."""
     forecast = Forecast({}, frozenset(r.name for r in tracker.robots))  # until the fusion sends one
     live = LiveCameras(urls, source, clock=clock, thread=False)  # read on this thread, between frames
     live.start()
@@ -307,7 +309,8 @@ def _work_cameras(conn: Connection, urls: dict[str, str], source: SourceParams, 
                 result = tracker.processor.work(job)
                 if result.outcome is not FrameOutcome.CORRUPT:  # counted (and logged) by the fusion's tracker
                     tracker.count(result)  # when this camera's whole frame was last searched
-                done = job if views else dataclasses.replace(job, frame=dataclasses.replace(job.frame, jpeg=b""))
+                done = dataclasses.replace(job, predicted=(),  # the fusion needs no markers, and no JPEG without views
+                                           frame=job.frame if views else dataclasses.replace(job.frame, jpeg=b""))
                 # the next frame, if one has come, is in work before this result goes: were it older, the
                 # tracker's process holds this result for it rather than folding it in late
                 job = None

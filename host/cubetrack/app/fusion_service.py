@@ -36,9 +36,10 @@ from cubetrack.app.worker import CHECK_EVERY_S, worker_id
 from cubetrack.core.cameras import CameraExtrinsics
 from cubetrack.core.errors import ConfigError
 from cubetrack.core.records import CameraHealth, Frame, FrameJob, FrameOutcome, FrameResult
+from cubetrack.fuse.fusion import FilterFusion
 from cubetrack.io.config import TrackerConfig
 from cubetrack.io.run import RUN_FILE
-from cubetrack.io.sighting_wire import SightingMessage, SightingWireError, decode_sighting
+from cubetrack.io.sighting_wire import SightingMessage, SightingWireError, camera_health, decode_sighting
 from cubetrack.io.worker_bus import (
     ROBOT_CLAIMS_KEY,
     SHARD_POOL_KEY,
@@ -47,6 +48,7 @@ from cubetrack.io.worker_bus import (
     WORKERS_KEY,
     Claims,
     FusedRobots,
+    StateRelay,
     key_chunk,
 )
 from cubetrack.sink.base import Sink
@@ -112,19 +114,6 @@ def frame_result(tracker: Tracker, message: SightingMessage) -> FrameResult | No
     return FrameResult(job, FrameOutcome(message.outcome), sightings, dropped=message.dropped)
 
 
-def camera_health(message: SightingMessage, previous: CameraHealth | None, now_s: float) -> CameraHealth:
-    """The outputs' health snapshot of a camera from its latest message (frames/s since the
-    previous snapshot)."""
-    h, c = message.health, message.clock
-    fps = math.nan
-    if previous is not None and now_s > previous.time_s:
-        fps = (h.frames - previous.frames) / (now_s - previous.time_s)
-    synced = c.method == "round-trip"
-    return CameraHealth(message.camera, now_s, h.connected, fps, h.frames, h.dropped, h.bad, h.reconnects,
-                        c.offset_s if synced else math.nan, c.drift * 1e6 if synced else math.nan,
-                        message.arrival_time_s - message.capture_time_s)
-
-
 class _Inbox:
     """The sightings the Zenoh threads deliver, taken by the fusion's thread: each decoded, the
     ones of a known camera fused oldest capture first (second copies of a frame dropped), each
@@ -140,10 +129,14 @@ class _Inbox:
         self.started = time.monotonic()
         self.claims: list[tuple[float, str, bool]] = []
         self.fusing: set[str] = set()  # the robots this fusion fuses (their predictions: stream.robots)
+        self.relay: StateRelay | None = None  # a shard's: the fleet's last states, a taken robot's track goes on from
 
     def fused(self, robot: str, held: bool) -> None:
         """The fusion took (``held``) or gave up ``robot``: its poses and predictions start or stop."""
         self.fusing = self.fusing | {robot} if held else self.fusing - {robot}
+        state = self.relay.last(robot) if held and self.relay else None
+        if state and (fusion := filter_fusion(self.tracker)) and fusion.seed(*state):
+            log.info("fuse: %s: track from its last state (%.2f s old)", robot, self.stream.clock() - state.time_s)
         self.stream.robots = [r.name for r in self.tracker.robots if r.name in self.fusing]
         self.claims.append((time.monotonic() - self.started, robot, held))
         log.info("fuse: %s robot %s", "fusing" if held else "no longer fusing", robot)
@@ -214,6 +207,12 @@ class _Inbox:
                 + (f" | duplicates {self.duplicates}" if self.duplicates else ""))
 
 
+def filter_fusion(tracker: Tracker) -> FilterFusion | None:
+    """The tracker's filter fusion (inside a camera watch too), whose track a shard can take over; else None."""
+    fusion = getattr(tracker.fusion, "fusion", tracker.fusion)
+    return fusion if isinstance(fusion, FilterFusion) else None
+
+
 def chosen_robots(config: TrackerConfig, robots: Sequence[str]) -> list[str]:
     """``robots`` checked against the config and as key chunks (every robot when empty)."""
     known = [r.name for r in config.robots]
@@ -235,6 +234,10 @@ def _join_bus(zenoh: Any, inbox: _Inbox, session: Session, names: list[str], sha
     if every:
         declared.append(zenoh.declare_subscriber(f"{SIGHTINGS_KEY}/**", inbox.receive))
     if shard:
+        fusion = filter_fusion(inbox.tracker)
+        inbox.relay = StateRelay(zenoh, fusion.last_state if fusion else lambda robot: None)
+        inbox.stream.on_poses = inbox.relay.poses
+        declared.append(inbox.relay)
         claims = Claims(zenoh, me, names, lambda: robots.held, robots.take, robots.give_up,
                         (SHARD_POOL_KEY, ROBOT_CLAIMS_KEY))
         claims.watch()
@@ -250,7 +253,7 @@ def _join_bus(zenoh: Any, inbox: _Inbox, session: Session, names: list[str], sha
 
 def _close(declared: list[Any]) -> None:
     for item in declared:
-        (item.close if isinstance(item, (Claims, FusedRobots)) else item.undeclare)()
+        (item.close if isinstance(item, (Claims, FusedRobots, StateRelay)) else item.undeclare)()
 
 
 def run_fusion(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | None, out_dir: str | Path,
@@ -276,7 +279,7 @@ def run_fusion(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
         r for r in config.robots if r.name in names))
     outputs, files = open_outputs(mine, intrinsics, extrinsics, out_dir, sinks)
     zenoh, declared, behind = None, [], 0
-    watch_log = attach_watch_log(tracker.fusion, out_dir, extrinsics, extrinsics_path if update_extrinsics else None)
+    watch_log = attach_watch_log(tracker, outputs, out_dir, extrinsics, extrinsics_path if update_extrinsics else None)
     try:
         stream = PoseStream(tracker, outputs, clock)
         stream.robots = []

@@ -269,7 +269,7 @@ def track_live(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
     recorder = _Recorder(record_to, config, urls) if record_to is not None else None
     outputs, files = open_outputs(config, intrinsics, extrinsics, out_dir, sinks)
     feed: _FramePoolFeed | _CameraProcessFeed | None = None
-    watch_log = attach_watch_log(tracker.fusion, out_dir, extrinsics, extrinsics_path if update_extrinsics else None)
+    watch_log = attach_watch_log(tracker, outputs, out_dir, extrinsics, extrinsics_path if update_extrinsics else None)
     try:
         session = Session(duration_s=duration_s, stop=stop, status_every_s=status_every_s, record=RunSpec(
             out_dir / RUN_FILE, command, {**parameter_tables(params), "source": source},

@@ -15,16 +15,16 @@ from collections import Counter, deque
 from dataclasses import dataclass, field
 from typing import Protocol
 
-import cv2
 import numpy as np
 
 from cubetrack.calib.recalibrate import WatchedFusion
 from cubetrack.core.cameras import CameraExtrinsics, CameraIntrinsics, ClockSample, WorldConfig
 from cubetrack.core.errors import ConfigError, ImageError
-from cubetrack.core.geometry import invert_T, transform_points
+from cubetrack.core.geometry import invert_T
 from cubetrack.core.params import check, param
 from cubetrack.core.records import CubeSighting, Detection, Frame, FrameJob, FrameOutcome, FrameResult, TrackedPose
 from cubetrack.detect.detector import Box, Detector, DetectorParams, DetectResult, decode_gray
+from cubetrack.detect.predicted import predicted_view
 from cubetrack.estimate.match import body_detections
 from cubetrack.estimate.params import EstimatorParams
 from cubetrack.estimate.pose import estimate_cube, world_marker_pose
@@ -38,7 +38,6 @@ from cubetrack.source.clock import ClockFitMethod, ClockSync
 
 log = logging.getLogger(__name__)
 
-_NO_ROTATION = np.zeros(3)  # (and no translation) for cv2.projectPoints of camera-frame points
 HELD_FRAMES = 32  # per camera, waiting for the first clock round trip (about 4 s at 7.5 fps)
 
 
@@ -141,7 +140,7 @@ class FrameProcessor:
     def work(self, job: FrameJob) -> FrameResult:
         frame = job.frame
         try:
-            found, outcome = self._detect(frame.jpeg, f"{frame.camera} frame {frame.seq}", job.regions,
+            found, outcome = self._detect(frame.jpeg, f"{frame.camera} frame {frame.seq}", job,
                                           self.intrinsics[frame.camera])
         except ImageError as exc:
             return FrameResult(job, FrameOutcome.CORRUPT, error=str(exc))
@@ -186,21 +185,21 @@ class FrameProcessor:
                                           mine, estimate, T_world_cam, intrinsics))
         return tuple(sightings)
 
-    def _detect(self, jpeg: bytes, source: str, regions: tuple[Box, ...] | None,
+    def _detect(self, jpeg: bytes, source: str, job: FrameJob,
                 lens: CameraIntrinsics) -> tuple[DetectResult, FrameOutcome]:
-        """Detections in the regions (cut to the image; the frame decoded only down to their lowest
-        edge, ``decode_gray(rows=...)``), or in the whole frame (also when the regions find
-        nothing). No regions at all (every robot predicted out of this camera's view): nothing to
-        search, so the frame is not decoded (a corrupt one then goes unnoticed). ImageError: the
-        frame does not decode."""
-        if regions == ():
+        """Detections in the job's regions (cut to the image; the frame decoded only down to their
+        lowest edge, ``decode_gray(rows=...)``; its predicted markers first), or in the whole frame
+        (also when the regions find nothing). No regions at all (every robot predicted out of this
+        camera's view): nothing to search, so the frame is not decoded (a corrupt one then goes
+        unnoticed). ImageError: the frame does not decode."""
+        if (regions := job.regions) == ():
             return DetectResult(()), FrameOutcome.REGIONS
         if regions is not None:
             gray = decode_gray(jpeg, source, rows=max((box[3] for box in regions), default=None))
             height, width = gray.shape
             regions = tuple(box for box in ((x0, y0, min(x1, width), min(y1, height)) for x0, y0, x1, y1 in regions)
                             if box[2] - box[0] >= 16 and box[3] - box[1] >= 16)
-            found = self.detector.find(gray, regions, lens)
+            found = self.detector.find(gray, regions, lens, job.predicted)
             if found.detections or not regions:
                 return found, FrameOutcome.REGIONS
         return self.detector.find(decode_gray(jpeg, source), lens=lens), FrameOutcome.FULL_FRAME
@@ -272,7 +271,6 @@ class Tracker:
         self.synced_cameras = synced_cameras
         self.held: dict[str, deque[Frame]] = {}  # frames waiting for their camera's first round trip
         self.frames_since_full: Counter[str] = Counter()  # per camera, for region detection
-        self.cube_points_m = {r.name: r.layout.corners_m.reshape(-1, 3) for r in robots}
         self.stats = TrackStats()
         self.last_now_s = 0.0  # the host time the last frame became available
 
@@ -346,8 +344,9 @@ class Tracker:
         ``forecast`` None: this tracker's own fusion; a camera worker process, which has no
         fusion, gives the fusion's latest :class:`cubetrack.fuse.forecast.Forecast`."""
         forecast = self.fusion if forecast is None else forecast
-        return FrameJob(frame, capture_time_s, self._regions(frame.camera, capture_time_s, forecast),
-                        frozenset(r.name for r in self.robots if forecast.needs_estimate(r.name)))
+        regions, predicted = self._regions(frame.camera, capture_time_s, forecast)
+        return FrameJob(frame, capture_time_s, regions,
+                        frozenset(r.name for r in self.robots if forecast.needs_estimate(r.name)), predicted)
 
     def fuse(self, result: FrameResult, now_s: float) -> list[TrackedPose]:
         """Count what the per-frame work found and fuse its sightings (``now_s``: the host time
@@ -394,34 +393,28 @@ class Tracker:
             self.stats.frames_without_camera_pose += 1
         return True
 
-    def _regions(self, camera: str, time_s: float, forecast: Forecaster) -> tuple[Box, ...] | None:
-        """Image boxes (x0, y0, x1, y1) around every robot's predicted cube, or None when the
+    def _regions(self, camera: str, time_s: float,
+                 forecast: Forecaster) -> tuple[tuple[Box, ...] | None, tuple[Detection, ...]]:
+        """Image boxes (x0, y0, x1, y1) around every robot's predicted cube and its markers' predicted
+        corners (:func:`cubetrack.detect.predicted.predicted_view`), or None (and no markers) when the
         full frame must be searched (a robot not predicted, a full search due, region search off)."""
         track = self.params.track
         if (not track.roi_detection or track.camera_poses is not CameraPoseSource.EXTRINSICS
                 or self.frames_since_full[camera] + 1 >= track.full_frame_every):
-            return None
-        intrinsics = self.intrinsics[camera]
-        T_cam_world = self.T_cam_world[camera]
-        width, height = intrinsics.width, intrinsics.height
-        boxes = []
+            return None, ()
+        boxes: list[Box] = []
+        markers: list[Detection] = []
         for robot in self.robots:
             T_world_cube = forecast.predicted_pose(robot.name, time_s)
-            if T_world_cube is None:
-                return None
-            pc = transform_points(T_cam_world @ T_world_cube, self.cube_points_m[robot.name])
-            nearest_m = float(pc[:, 2].min())
-            if nearest_m <= 0.05:
-                return None
-            px, _ = cv2.projectPoints(pc, _NO_ROTATION, _NO_ROTATION, intrinsics.K, intrinsics.dist)
-            px = px.reshape(-1, 2)
-            grow = float(intrinsics.K[0, 0]) * track.roi_margin_m / nearest_m + 8.0
-            x0, y0 = np.floor(px.min(axis=0) - grow).astype(int)
-            x1, y1 = np.ceil(px.max(axis=0) + grow).astype(int)
-            x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, width), min(y1, height)
-            if x1 - x0 >= 16 and y1 - y0 >= 16:
-                boxes.append((x0, y0, x1, y1))  # else: predicted out of this camera's view
-        return tuple(boxes)
+            view = None if T_world_cube is None else predicted_view(
+                self.T_cam_world[camera] @ T_world_cube, robot.layout, self.intrinsics[camera], track.roi_margin_m,
+                self.params.detector)
+            if view is None:
+                return None, ()
+            if view.box is not None:  # else: predicted out of this camera's view
+                boxes.append(view.box)
+                markers.extend(view.markers)
+        return tuple(boxes), tuple(markers)
 
     def finish(self, now_s: float | None = None) -> list[TrackedPose]:
         """Poses still held back by the fusion (call at the end of a session); ``now_s``: the host

@@ -6,45 +6,31 @@ in ``<out_dir>/camera_watch.jsonl``, one status line in the log ("cam2 moved 2.1
 session (``extrinsics.watch-<n>.toml``: every camera, the re-calibrated one at its new pose),
 written over the user's extrinsics file only when asked (``update_path``, the CLI's
 ``--update-extrinsics``). :func:`attach_watch_log` also moves the re-calibration fits onto a
-background thread, so that the tracking thread never waits for one.
+background thread, so that the tracking thread never waits for one, and gives the outputs each
+camera's watch state (the dashboard's camera tile: moved, re-calibrating, rejoined).
 """
 
 from __future__ import annotations
 
 import dataclasses
-import datetime
 import json
 import logging
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
 from typing import Any
 
+from cubetrack.app.tracker import Tracker
 from cubetrack.calib.recalibrate import WatchedFusion
 from cubetrack.core.cameras import CameraExtrinsics
-from cubetrack.core.geometry import position_quat_from_T
-from cubetrack.fuse.base import Fusion
-from cubetrack.fuse.camera_watch import EventKind, WatchEvent
+from cubetrack.fuse.camera_watch import EventKind, WatchEvent, clock_text, event_record
 from cubetrack.io.config import write_extrinsics
+from cubetrack.sink.base import Outputs
 
 log = logging.getLogger(__name__)
 
 EVENTS_FILE = "camera_watch.jsonl"
 EXTRINSICS_PATTERN = "extrinsics.watch-{n}.toml"
 RECALIBRATED_METHOD = "re-calibrated while tracking"
-
-
-def clock_text(time_s: float) -> str:
-    """A host time (Unix seconds) as the UTC wall-clock time of the status line, HH:MM:SS."""
-    return datetime.datetime.fromtimestamp(time_s, datetime.UTC).strftime("%H:%M:%S")
-
-
-def event_record(event: WatchEvent) -> dict[str, Any]:
-    """One event as a JSON object (a line of ``camera_watch.jsonl`` and an entry of run.json)."""
-    position, q = position_quat_from_T(event.T_world_cam)
-    return {"event": event.kind.value, "camera": event.camera, "time": round(event.time_s, 6),
-            "utc": clock_text(event.time_s), "offset_m": round(event.offset_m, 5),
-            "offset_deg": round(event.offset_deg, 4), "sightings": event.sightings,
-            "position": [round(float(v), 6) for v in position], "quaternion_xyzw": [round(float(v), 9) for v in q]}
 
 
 class WatchLog:
@@ -105,14 +91,19 @@ class WatchLog:
             self.executor.shutdown(wait=True, cancel_futures=True)
 
 
-def attach_watch_log(fusion: Fusion, out_dir: str | Path, extrinsics: dict[str, CameraExtrinsics] | None,
+def attach_watch_log(tracker: Tracker, outputs: Outputs, out_dir: str | Path,
+                     extrinsics: dict[str, CameraExtrinsics] | None,
                      update_path: str | Path | None = None) -> WatchLog | None:
-    """Give a watched fusion (``[camera_watch] enabled``) a :class:`WatchLog` and a background
-    thread for its re-calibrations; None for a fusion that is not watched."""
+    """Give a tracker's watched fusion (``[camera_watch] enabled``) a :class:`WatchLog`, a
+    background thread for its re-calibrations, and the outputs what it says of each camera
+    (:meth:`cubetrack.sink.base.Sink.camera_watch`: the dashboard's tile); None for a fusion
+    that is not watched."""
+    fusion = tracker.fusion
     if not isinstance(fusion, WatchedFusion):
         return None
     executor = ThreadPoolExecutor(max_workers=1, thread_name_prefix="recalibrate")
     watch_log = WatchLog(out_dir, extrinsics or {}, update_path, executor)
     fusion.executor = executor
     fusion.listeners.append(watch_log)
+    fusion.state_listeners.append(outputs.camera_watch)
     return watch_log

@@ -47,6 +47,10 @@ memory; ``cubetrack.app.calibrate.adjust_recording_extrinsics`` feeds it recordi
    *absolute* solve runs: cube corners of every camera plus the world-marker corners of the
    cameras that did not move.
 
+4. The check (:func:`worse_world_fit`): a camera whose refined pose reprojects its world-marker
+   corners more than ``world_corner_noise_px`` worse than its world-marker pose did means the cube
+   contradicts the marker; the refinement is then refused (warning; the prior extrinsics returned).
+
 Without a calibration recording the result of step 2 (aligned to the prior extrinsics) is
 returned. Several floor markers are not supported: the config names one world marker.
 A camera with no multi-camera cube sightings keeps its prior pose (and is named in a warning).
@@ -883,6 +887,7 @@ def adjust_extrinsics(frames: Mapping[str, Iterable[Frame]], extrinsics: Mapping
             warn("no usable world-marker sightings in the calibration recording; the refined poses keep the prior "
                  "calibration's frame (aligned to the cameras that agree)")
     # without world-marker corners the gauge stays held by weak priors at the aligned poses
+    K_prior, dist_prior = ref.model.K.copy(), ref.model.dist.copy()
     for _round in range(params.rounds):
         ref.update_velocities()
         ref.rematch()
@@ -891,16 +896,41 @@ def adjust_extrinsics(frames: Mapping[str, Iterable[Frame]], extrinsics: Mapping
         ref.solve(ref.freedom(camera_prior=gauge, intrinsics=params.refine_intrinsics,
                               free_scale=params.free_cube_scale and bool(world_terms)), world_terms)
 
-    return _adjustment_report(ref, extrinsics, intrinsics, cameras, T_prior, moved, world_terms, warn, warnings)
+    prior = ref.model.replace(T_cams=np.array([T_prior[c] for c in used]), K=K_prior, dist=dist_prior)
+    worse = worse_world_fit(ref.observations(world_terms), prior, ref.model, used, params.world_corner_noise_px)
+    if worse:
+        warn(f"refinement refused: {'; '.join(worse)}: the cube sightings disagree with the world marker beyond its "
+             f"corners' noise ({params.world_corner_noise_px:g} px; a wrong marker or cube size in the config, a body "
+             "that is not rigid, or the world marker moved); the world-marker calibration is kept")
+    return _adjustment_report(ref, extrinsics, intrinsics, cameras, T_prior, moved, world_terms, warn, warnings,
+                              refused=bool(worse))
+
+
+def worse_world_fit(obs: Observations, prior: Model, refined: Model, cameras: Sequence[str],
+                    noise_px: float) -> list[str]:
+    """The refinement's check by the data's own residuals (issue 26): per camera with world-marker
+    terms in ``obs``, its world-marker corners' RMS reprojection error with the ``prior`` (the
+    world-marker calibration) and the ``refined`` model; one line per camera the refinement fits
+    more than ``noise_px`` worse (the refinement must never leave the cameras worse than the world
+    marker left them), empty when none."""
+    before, after = world_residuals_px(obs, prior), world_residuals_px(obs, refined)
+    out = []
+    for i, c in enumerate(cameras):
+        mine = obs.world_cam == i
+        if mine.any() and rms_px(after[mine]) > rms_px(before[mine]) + noise_px:
+            out.append(f"{c}'s world marker reprojects {rms_px(after[mine]):.2f} px off after refinement, "
+                       f"{rms_px(before[mine]):.2f} px before")
+    return out
 
 
 def _adjustment_report(ref: Refinement, extrinsics: Mapping[str, CameraExtrinsics],
                        intrinsics: Mapping[str, CameraIntrinsics], cameras: Sequence[str],
                        T_prior: Mapping[str, np.ndarray], moved: Sequence[str],
                        world_terms: dict[str, tuple[np.ndarray, np.ndarray]], warn: Callable[[str], None],
-                       warnings: list[str]) -> BundleAdjustmentReport:
+                       warnings: list[str], refused: bool = False) -> BundleAdjustmentReport:
     """The refined extrinsics and each camera's residuals after the last solve (see
-    :func:`adjust_extrinsics`); a moved camera is also warned about."""
+    :func:`adjust_extrinsics`); a moved camera is also warned about. ``refused``: the residuals
+    are reported but the extrinsics (and intrinsics) stay the prior ones."""
     used = ref.cameras
     ref.update_velocities()
     obs, r, rw = ref.residuals(world_terms)
@@ -920,5 +950,8 @@ def _adjustment_report(ref: Refinement, extrinsics: Mapping[str, CameraExtrinsic
     for c in cameras:
         if c not in report_cams:
             report_cams[c] = CameraResidual(c, float("nan"), 0, 0, float("nan"), 0.0, 0.0, False)
+    if refused:
+        return BundleAdjustmentReport(dict(extrinsics), dict(extrinsics), report_cams, (), len(ref.instants),
+                                      tuple(warnings), dict(intrinsics))
     return BundleAdjustmentReport(refined, dict(extrinsics), report_cams, tuple(moved), len(ref.instants),
                                   tuple(warnings), {**dict(intrinsics), **ref.intrinsics()})

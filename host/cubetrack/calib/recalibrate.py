@@ -9,7 +9,10 @@ to ``rejoin_agree_m`` / ``rejoin_agree_deg``. :class:`WatchedFusion` puts the wa
 of any fusion: it keeps a moved camera's sightings out, runs the fit on an executor (a
 background thread live, never the tracking thread; inline when none is given, as offline
 replay does, so a replay is reproducible), lets the camera back in at its new pose and gives
-the fusion that camera's sightings at that pose from then on.
+the fusion that camera's sightings at that pose from then on, and tells its ``state_listeners``
+what it says of each camera whenever that changes (:class:`cubetrack.core.records.CameraWatchState`:
+settling, watched, suspect, moved, re-calibrating with its progress in tenths, rejoined: the
+dashboard's camera tile).
 """
 
 from __future__ import annotations
@@ -27,16 +30,18 @@ import numpy as np
 from cubetrack.calib.solver import apply_increments, pose_offsets
 from cubetrack.core.geometry import invert_T, transform_points
 from cubetrack.core.layout import CubeLayout
-from cubetrack.core.records import CubeSighting, TrackedPose
+from cubetrack.core.records import CameraWatchState, CubeSighting, TrackedPose
 from cubetrack.estimate.params import EstimatorParams
 from cubetrack.estimate.pose import estimate_cube
 from cubetrack.estimate.reprojection import moved_pose
 from cubetrack.fuse.base import Fusion
 from cubetrack.fuse.camera_watch import (
+    FIT_ITERATIONS,
     VELOCITY_SIGMA,
     CameraFit,
     CameraState,
     CameraWatch,
+    EventKind,
     WatchEvent,
     WatchParams,
     WatchSample,
@@ -76,7 +81,7 @@ def joint_sample(sample: WatchSample, T_world_cam: np.ndarray, corner_noise_px: 
     T_cam_world = invert_T(T_world_cam)
     own = [dataclasses.replace(s, T_cam_world=T_cam_world) for s in sample.own_sets]
     solved = solve_joint([*sample.reference_sets, *own], sample.T_world_cube, sample.time_s, corner_noise_px,
-                         velocity_sigma=VELOCITY_SIGMA)
+                         velocity_sigma=VELOCITY_SIGMA, iterations=FIT_ITERATIONS)
     if solved is None:
         return sample
     points = np.concatenate([transform_points(moved_pose(solved.T_world_cube, solved.velocity_m_s,
@@ -137,9 +142,10 @@ def recalibrate(camera: str, samples: Sequence[WatchSample], T_world_cam_init: n
 class WatchedFusion:
     """A :class:`cubetrack.fuse.base.Fusion` behind a :class:`CameraWatch` (see the module doc).
     ``events``: the watcher's decisions in order; ``listeners``: called with each event as it
-    happens (on the thread that calls :meth:`add`); ``stats``: sightings kept out while their
-    camera was set aside, re-calibrations tried and refused; ``executor``: where the
-    re-calibration fits run (None: inline)."""
+    happens (on the thread that calls :meth:`add`); ``state_listeners``: called, on that thread,
+    with a camera's :class:`CameraWatchState` when it changes (see the module doc); ``stats``:
+    sightings kept out while their camera was set aside, re-calibrations tried and refused;
+    ``executor``: where the re-calibration fits run (None: inline)."""
 
     def __init__(self, fusion: Fusion, layouts: dict[str, CubeLayout], T_world_cams: dict[str, np.ndarray],
                  params: WatchParams, estimator_params: EstimatorParams | None = None,
@@ -151,6 +157,8 @@ class WatchedFusion:
         self.executor = executor
         self.stats: Counter[str] = Counter()
         self.listeners: list[Callable[[WatchEvent], None]] = []
+        self.state_listeners: list[Callable[[CameraWatchState], None]] = []
+        self._announced: dict[str, tuple[str, int]] = {}  # camera -> (state, progress in tenths) last told
         self._running: dict[str, Future[Recalibration | None]] = {}
         self._tried: dict[str, int] = {}  # camera -> corners it had at its last refused re-calibration
 
@@ -179,6 +187,7 @@ class WatchedFusion:
         for event in self.watch.add(sighting):
             self._tell(event)
         self._start(now_s)
+        self._announce(sighting.camera, now_s)
         state = self.watch.state.get(sighting.camera)
         if state is CameraState.SUSPECT:
             self.stats["suspect sighting"] += 1
@@ -197,6 +206,7 @@ class WatchedFusion:
             points = self.watch.points(camera)
             if camera in self._running or points < RETRY_GROWTH * self._tried.get(camera, 0):
                 continue
+            self._announce(camera, now_s)  # at 100 %: its pose is being fitted
             samples = tuple(self.watch.samples[camera])
             start = next(e.T_world_cam for e in reversed(self.watch.events) if e.camera == camera)
             params = self.watch.params
@@ -225,6 +235,34 @@ class WatchedFusion:
         log.log(logging.INFO if self.listeners else logging.WARNING, "%s", event.message)
         for listener in self.listeners:
             listener(event)
+        state = "moved" if event.kind is EventKind.MOVED else "rejoined"
+        self._announce(event.camera, event.time_s, (state, 0), event.message.removeprefix(event.camera + " "))
+
+    def _announce(self, camera: str, now_s: float, said: tuple[str, int] | None = None, message: str = "") -> None:
+        """Tell the state listeners what the watcher says of ``camera`` (``said``: the state and
+        progress in tenths; None: from the watcher) when it differs from what they were told last.
+        After a move the camera stays ``moved`` until its first corners are gathered; after a
+        rejoin ``rejoined`` until it has a settled pose again."""
+        if camera not in self.watch.state or not self.state_listeners:
+            return
+        last, progress = self._announced.get(camera, ("", 0)), 0.0
+        state = self.watch.state[camera]
+        if said is None and state is CameraState.SUSPECT:
+            said, message = ("suspect", 0), "disagrees with the other cameras: out of the fusion"
+        elif said is None and state is CameraState.RECALIBRATING:
+            points = self.watch.points(camera)
+            needed = max(self.watch.params.rejoin_points, math.ceil(RETRY_GROWTH * self._tried.get(camera, 0)))
+            progress = min(1.0, points / needed)
+            said, message = ("re-calibrating", int(10 * progress)), f"{points} / {needed} corners gathered"
+        elif said is None:  # watched, once it has a settled pose
+            settling = last if last[0] == "rejoined" else ("settling", 0)
+            said = ("watched", 0) if camera in self.watch.settled else settling
+        if said == last or (said[0] == "re-calibrating" and last[0] == "moved" and progress == 0.0):
+            return
+        self._announced[camera] = said
+        state_now = CameraWatchState(camera, now_s, said[0], progress, message)
+        for listener in self.state_listeners:
+            listener(state_now)
 
     def _reposed(self, sighting: CubeSighting) -> CubeSighting:
         """The sighting at its camera's re-calibrated pose (unchanged for a camera that never moved)."""

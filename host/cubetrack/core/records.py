@@ -184,6 +184,21 @@ class CameraHealth:
     timing: str = ""
 
 
+@dataclass(frozen=True, slots=True)
+class CameraWatchState:
+    """What the camera watching (issue 27, docs/calibration.md) says of one camera now, as the
+    dashboard's camera tile shows it: ``state`` ``settling`` (no settled pose to judge it by yet),
+    ``watched``, ``suspect``, ``moved``, ``re-calibrating`` or ``rejoined``; ``progress`` of a
+    re-calibration (corners gathered over the corners it needs, 0..1); ``message`` one line;
+    ``time_s`` host Unix time."""
+
+    camera: str
+    time_s: float
+    state: str
+    progress: float = 0.0
+    message: str = ""
+
+
 @dataclass(frozen=True, slots=True, eq=False)
 class CameraView:
     """One processed camera frame, for outputs that show images (Foxglove, the dashboard).
@@ -211,6 +226,7 @@ class FrameJob:
     capture_time_s: float
     regions: tuple[tuple[int, int, int, int], ...] | None  # (x0, y0, x1, y1) image boxes
     estimate_robots: frozenset[str]
+    predicted: tuple[Detection, ...] = ()  # the markers where the forecast puts them (projected corners)
 
 
 @enum.unique

@@ -39,6 +39,7 @@ from cubetrack.core.records import Detection
 from cubetrack.detect.decode import decode_gray as decode_gray  # also imported from here by other stages
 from cubetrack.detect.decode import read_gray as read_gray
 from cubetrack.detect.edge_fit import NEXT_I, compile_edge_fit, refine_corners_edges
+from cubetrack.detect.predicted import compile_cell_reader, marker_box, modules_of, readable_markers
 from cubetrack.detect.template_fit import LensMap, compile_template_fit, fast_template_corners
 
 log = logging.getLogger(__name__)
@@ -261,10 +262,12 @@ def is_valid_quad(corners_px: np.ndarray, min_area_px2: float = 0.0) -> bool:
 @dataclass(frozen=True, slots=True)
 class DetectResult:
     """One frame's detections, and how many markers OpenCV found that were then dropped, per
-    reason (``DROP_EDGE_FIT``, ``DROP_QUAD``): a run that finds markers and keeps none can say so."""
+    reason (``DROP_EDGE_FIT``, ``DROP_QUAD``): a run that finds markers and keeps none can say so.
+    ``predicted``: the detections are the predicted markers, verified; no candidate search ran."""
 
     detections: tuple[Detection, ...]
     dropped: Mapping[str, int] = field(default_factory=dict)
+    predicted: bool = False
 
 
 DROP_EDGE_FIT = "edge fit failed"
@@ -336,7 +339,7 @@ class Detector:
         self._lens_maps: dict[tuple, LensMap] = {}
         kernels = []   # the compiled kernels, before the first frame
         if self.params.corner_refinement in (CornerRefinement.EDGE, CornerRefinement.TEMPLATE):
-            kernels.append(compile_edge_fit)
+            kernels += [compile_edge_fit, compile_cell_reader]
         if self.params.corner_refinement is CornerRefinement.TEMPLATE:
             kernels.append(compile_template_fit)
         compile_kernels("corner fits", *kernels)
@@ -347,7 +350,7 @@ class Detector:
         return self.find(gray, regions, lens).detections
 
     def find(self, gray: np.ndarray, regions: Sequence[Box] | None = None,
-             lens: CameraIntrinsics | None = None) -> DetectResult:
+             lens: CameraIntrinsics | None = None, predicted: Sequence[Detection] = ()) -> DetectResult:
         """Detect markers in an 8-bit single-channel image (H, W); sorted by dictionary, id, x.
 
         ``regions``: None searches the whole image. Otherwise only these boxes ``(x0, y0, x1,
@@ -360,8 +363,23 @@ class Detector:
         ``lens``: the camera's intrinsics, for the ``template`` refinement's lens model (None:
         the image is taken as undistorted); the other refinements ignore it.
 
+        ``predicted``: with ``regions``, the markers where the tracker predicts them (corners
+        projected, :func:`cubetrack.detect.predicted.predicted_markers`). With the ``edge`` or
+        ``template`` refinement and no inverted markers, their edges are fitted from the predicted
+        corners and their bit cells read (:mod:`cubetrack.detect.predicted`); one that does not
+        read as its id is searched for by OpenCV in a small box around it. When at least one reads
+        at its prediction, the markers found so are the detections and OpenCV's search of the
+        regions is skipped (``DetectResult.predicted``).
+
         Also counts, per reason, the markers OpenCV found that were dropped (:class:`DetectResult`)."""
         gray = _checked_gray(gray)
+        if predicted and regions is not None and self._fits_predictions:
+            dropped_near: Counter[str] = Counter()
+            kept = self._predicted(gray, tuple(predicted), dropped_near)
+            if kept is not None:
+                if self.params.corner_refinement is CornerRefinement.TEMPLATE:
+                    kept = self._template_refined(gray, kept, lens)
+                return DetectResult(kept, dict(dropped_near), predicted=True)
         if regions is not None:
             height, width = gray.shape
             for box in regions:
@@ -383,6 +401,41 @@ class Detector:
         if len(images) > 1 or regions is not None and len(regions) > 1:
             found.sort(key=_detection_order)
         return DetectResult(tuple(found), dict(dropped))
+
+    @property
+    def _fits_predictions(self) -> bool:
+        """Whether :meth:`find` may take verified predictions for a search (see there)."""
+        return (self.params.corner_refinement in (CornerRefinement.EDGE, CornerRefinement.TEMPLATE)
+                and not self.params.detect_inverted_marker)
+
+    def _predicted(self, gray: np.ndarray, predicted: tuple[Detection, ...],
+                   dropped: Counter[str]) -> tuple[Detection, ...] | None:
+        """The ``predicted`` markers edge-fitted from their predicted corners where they are a valid
+        quad that reads as their id there (:func:`cubetrack.detect.predicted.readable_markers`), and
+        the others as OpenCV finds them in a box around their prediction
+        (:func:`cubetrack.detect.predicted.marker_box`; its drops counted into ``dropped``) — one
+        not found there either is not seen, as OpenCV's search would not see it; None when none
+        reads at its prediction (nothing confirms it: the regions are searched)."""
+        quads = np.array([d.corners_px for d in predicted], dtype=np.float64)
+        modules = np.array([modules_of(d.dictionary) for d in predicted])
+        fitted = refine_corners_edges(gray, quads, modules, self.params.edge_iterations)  # NaN: failed
+        valid, areas = _quad_checks(fitted, self.params.min_area_px2)
+        read = valid & readable_markers(gray, np.where(valid[:, None, None], fitted, np.nan), predicted,
+                                        self.params.error_correction_rate)
+        if not read.any():
+            return None
+        fitted.setflags(write=False)
+        found = {i: Detection(d.marker_id, fitted[i], float(areas[i]), d.dictionary)
+                 for i, d in enumerate(predicted) if read[i]}
+        centres = quads.mean(axis=1)
+        for i in np.flatnonzero(~read).tolist():
+            # a marker of its id whose centre is nearer its prediction than any other's (a cube may
+            # carry one id on every face: the box can show a neighbouring face, found already)
+            key = predicted[i].dictionary, predicted[i].marker_id
+            found.update((i, d) for d in self._detect_box(gray, marker_box(quads[i], gray.shape), dropped)
+                         if (d.dictionary, d.marker_id) == key
+                         and int(np.abs(centres - d.corners_px.mean(axis=0)).sum(axis=1).argmin()) == i)
+        return tuple(sorted(found.values(), key=_detection_order))
 
     def _lens_map(self, lens: CameraIntrinsics | None) -> LensMap:
         """This camera's :class:`LensMap`, built on first use."""

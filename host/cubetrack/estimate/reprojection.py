@@ -14,7 +14,6 @@ scaled by the camera's focal length, so they are in pixels.
 
 from __future__ import annotations
 
-import math
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -26,6 +25,7 @@ from cubetrack.core.cameras import CameraIntrinsics
 from cubetrack.core.geometry import R_from_rotvec, invert_T, make_T
 from cubetrack.core.layout import CubeLayout
 from cubetrack.core.records import Detection
+from cubetrack.estimate.kernels import exp_and_left_jacobian
 from cubetrack.estimate.match import FaceMatch, match_faces
 
 
@@ -146,26 +146,11 @@ _NEG_SKEW.setflags(write=False)
 
 def _exp_and_left_jacobian(omega: list[float], dt: float) -> np.ndarray:
     """``[Exp(ω dt) | J_l(ω dt) dt]`` (3, 6) for an angular velocity ``omega`` (rad/s, 3 floats): the
-    rotation of a body turning at ``omega`` for ``dt`` seconds and its left Jacobian times ``dt`` (the
-    chain rule to ``δω``). Rodrigues, ``I + a K + b K²`` and ``I + b K + c K²`` with ``K = [v]×``,
-    ``K² = v vᵀ - θ² I``, in plain floats (one array made; it runs for every corner set of every
-    Gauss-Newton step); below 0.01 rad the coefficients' Taylor series, where the closed forms lose
-    digits to cancellation."""
-    x, y, z = omega[0] * dt, omega[1] * dt, omega[2] * dt
-    t2 = x * x + y * y + z * z
-    if t2 < 1e-4:
-        a, b, c = 1.0 - t2 / 6.0 * (1.0 - t2 / 20.0), 0.5 - t2 / 24.0 * (1.0 - t2 / 30.0), \
-            1.0 / 6.0 - t2 / 120.0 * (1.0 - t2 / 42.0)
-    else:
-        theta = math.sqrt(t2)
-        sin, cos = math.sin(theta), math.cos(theta)
-        a, b, c = sin / theta, (1.0 - cos) / t2, (theta - sin) / (t2 * theta)
-    xx, yy, zz, xy, xz, yz = x * x - t2, y * y - t2, z * z - t2, x * y, x * z, y * z   # K² = v vᵀ - θ² I
-    bd, cd = b * dt, c * dt
-    return np.array([
-        [1.0 + b * xx, -a * z + b * xy, a * y + b * xz, dt + cd * xx, -bd * z + cd * xy, bd * y + cd * xz],
-        [a * z + b * xy, 1.0 + b * yy, -a * x + b * yz, bd * z + cd * xy, dt + cd * yy, -bd * x + cd * yz],
-        [-a * y + b * xz, a * x + b * yz, 1.0 + b * zz, -bd * y + cd * xz, bd * x + cd * yz, dt + cd * zz]])
+    rotation of a body turning at ``omega`` for ``dt`` seconds and its left Jacobian times ``dt``
+    (:func:`cubetrack.estimate.kernels.exp_and_left_jacobian`, which the filter's kernels use too)."""
+    out = np.empty((3, 6))
+    exp_and_left_jacobian(omega[0], omega[1], omega[2], dt, out)
+    return out
 
 
 def reprojection_jacobian_px(T_world_cube: np.ndarray, sets: Sequence[CornerSet], t_ref_s: float = 0.0,

@@ -10,7 +10,7 @@ corner set) and :mod:`cubetrack.fuse.corner_filter` (the update's steps, in the 
 the small inverses and solves are an LU with partial pivoting, as OpenCV's ``DECOMP_LU`` that
 the numpy version called (singular when a pivot is below ``100 * DBL_EPSILON``). Results agree
 with the numpy version to rounding (tests/unit/fuse/test_filter_kernels.py). The multi-camera fit that
-starts a track (:mod:`cubetrack.fuse.multi_view_fit`) uses the compiled reprojection too.
+starts a track (:mod:`cubetrack.fuse.multi_view_fit`) is compiled too (:func:`joint_fit`).
 
 A corner set's arrays are passed packed (:func:`packed_sets`): one row per corner
 (``points_cube_m``, ``normalized``, its set's index) and one per set (``R_cam_world``,
@@ -27,11 +27,13 @@ import numba
 import numpy as np
 
 from cubetrack.detect.detector import compile_kernels
+from cubetrack.estimate.kernels import exp_and_left_jacobian
 from cubetrack.estimate.match import compile_match_kernels
 from cubetrack.estimate.reprojection import CornerSet
 
 SINGULAR = 1.0e2 * np.finfo(np.float64).eps  # OpenCV's LU: a pivot below this is a singular matrix
 _LARGEST = float(np.finfo(np.float64).max)
+_EPS = float(np.finfo(np.float64).eps)
 BEHIND_PX = 1.0e3  # the residual of a corner behind its camera (or one that did not undistort)
 
 # status of solve_update: the prior's or a step's matrix was singular (np.linalg.LinAlgError in the numpy version)
@@ -44,38 +46,16 @@ Packed = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.nd
 def packed_sets(sets: Sequence[CornerSet]) -> Packed:
     """The kernels' arrays of ``sets``: ``(points_cube_m (N, 3), normalized (N, 2), set of each
     corner (N,), R_cam_world (S, 3, 3), t_cam_world (S, 3), focal_px (S,), time_s (S,))``."""
-    T_cw = np.array([s.T_cam_world for s in sets], dtype=np.float64)
-    which = np.repeat(np.arange(len(sets)), [len(s.points_cube_m) for s in sets])
+    if len(sets) == 1:   # most sightings (per call: numpy's cost of making each array is most of it)
+        T_cw, which = sets[0].T_cam_world[None], np.zeros(len(sets[0].points_cube_m), dtype=np.int64)
+    else:
+        T_cw = np.array([s.T_cam_world for s in sets], dtype=np.float64)
+        which = np.repeat(np.arange(len(sets)), [len(s.points_cube_m) for s in sets])
     return (np.concatenate([s.points_cube_m for s in sets], dtype=np.float64),
             np.concatenate([s.normalized for s in sets], dtype=np.float64), which,
-            T_cw[:, :3, :3].copy(), T_cw[:, :3, 3].copy(),
+            T_cw[:, :3, :3].astype(np.float64), T_cw[:, :3, 3].astype(np.float64),
             np.array([s.focal_px for s in sets], dtype=np.float64),
             np.array([s.time_s for s in sets], dtype=np.float64))
-
-
-@numba.njit(cache=True, nogil=True)
-def _exp_and_jacobian(x: float, y: float, z: float, dt: float, out: np.ndarray) -> None:  # pragma: no cover
-    """``out`` (3, 6) = ``[Exp(v dt) | J_l(v dt) dt]`` for ``v = (x, y, z)``: Rodrigues
-    ``I + a K + b K²`` and the left Jacobian ``I + b K + c K²`` (``K = [v dt]×``), with the
-    coefficients' Taylor series below 0.01 rad (see ``reprojection._exp_and_left_jacobian``)."""
-    x, y, z = x * dt, y * dt, z * dt
-    t2 = x * x + y * y + z * z
-    if t2 < 1e-4:
-        a = 1.0 - t2 / 6.0 * (1.0 - t2 / 20.0)
-        b = 0.5 - t2 / 24.0 * (1.0 - t2 / 30.0)
-        c = 1.0 / 6.0 - t2 / 120.0 * (1.0 - t2 / 42.0)
-    else:
-        theta = math.sqrt(t2)
-        sin, cos = math.sin(theta), math.cos(theta)
-        a, b, c = sin / theta, (1.0 - cos) / t2, (theta - sin) / (t2 * theta)
-    xx, yy, zz, xy, xz, yz = x * x - t2, y * y - t2, z * z - t2, x * y, x * z, y * z
-    bd, cd = b * dt, c * dt
-    out[0, 0], out[0, 1], out[0, 2] = 1.0 + b * xx, -a * z + b * xy, a * y + b * xz
-    out[1, 0], out[1, 1], out[1, 2] = a * z + b * xy, 1.0 + b * yy, -a * x + b * yz
-    out[2, 0], out[2, 1], out[2, 2] = -a * y + b * xz, a * x + b * yz, 1.0 + b * zz
-    out[0, 3], out[0, 4], out[0, 5] = dt + cd * xx, -bd * z + cd * xy, bd * y + cd * xz
-    out[1, 3], out[1, 4], out[1, 5] = bd * z + cd * xy, dt + cd * yy, -bd * x + cd * yz
-    out[2, 3], out[2, 4], out[2, 5] = -bd * y + cd * xz, bd * x + cd * yz, dt + cd * zz
 
 
 @numba.njit(cache=True, nogil=True)
@@ -130,7 +110,7 @@ def _moved_sets(R0: np.ndarray, p0: np.ndarray, times: np.ndarray, t_ref: float,
     for k in range(S):
         if moving:
             dt = times[k] - t_ref
-            _exp_and_jacobian(w[0], w[1], w[2], dt, chain[k])
+            exp_and_left_jacobian(w[0], w[1], w[2], dt, chain[k])
             for a in range(3):
                 for b in range(3):
                     R[k, a, b] = chain[k, a, 0] * R0[0, b] + chain[k, a, 1] * R0[1, b] + chain[k, a, 2] * R0[2, b]
@@ -206,7 +186,7 @@ def _perturbed(T0: np.ndarray, delta: np.ndarray, out: np.ndarray) -> None:  # p
     """``out`` (4x4) = ``T0`` moved by the world-frame increment ``delta[:6] = [δp, δθ]``
     (``reprojection.perturbed``)."""
     chain = np.empty((3, 6))
-    _exp_and_jacobian(delta[3], delta[4], delta[5], 1.0, chain)
+    exp_and_left_jacobian(delta[3], delta[4], delta[5], 1.0, chain)
     out[:] = 0.0
     out[3, 3] = 1.0
     for a in range(3):
@@ -391,6 +371,120 @@ def solve_update(T0: np.ndarray, P: np.ndarray, t_ref: float, v0: np.ndarray, w0
 
 
 @numba.njit(cache=True, nogil=True)
+def _joint_residuals(T_init: np.ndarray, x: np.ndarray, points: np.ndarray, normalized: np.ndarray,
+                     which: np.ndarray, R_cw: np.ndarray, t_cw: np.ndarray, focal: np.ndarray, times: np.ndarray,
+                     t_ref: float, noise_px: float, sigma_v: float, sigma_w: float,
+                     jacobian: bool) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover
+    """The joint fit's residuals at the increment ``x`` (6: pose; 12: and velocities), in units of their
+    noise (the corners' over ``noise_px``, then with velocities ``v / sigma_v``, ``w / sigma_w``), and
+    (``jacobian``) their Jacobian in ``x``: the rotation columns chained through the left Jacobian of the
+    finite increment ``x[3:6]`` (``multi_view_fit.solve_joint``)."""
+    n = x.shape[0]
+    moving = n == 12
+    T = np.empty((4, 4))
+    _perturbed(T_init, x, T)
+    v, w = np.zeros(3), np.zeros(3)
+    if moving:
+        v[:], w[:] = x[6:9], x[9:12]
+    r, H = reprojection(T, points, normalized, which, R_cw, t_cw, focal, times, t_ref if moving else 0.0, v, w,
+                        moving, jacobian)
+    rows = r.shape[0]
+    f = np.empty(rows + (6 if moving else 0))
+    for i in range(rows):   # as reprojection without its Jacobian: a NaN residual becomes BEHIND_PX
+        e = r[i]
+        if math.isnan(e):
+            e = BEHIND_PX
+        elif math.isinf(e):
+            e = _LARGEST if e > 0 else -_LARGEST
+        f[i] = e / noise_px
+    if moving:
+        for a in range(3):
+            f[rows + a], f[rows + 3 + a] = v[a] / sigma_v, w[a] / sigma_w
+    J = np.zeros((f.shape[0] if jacobian else 0, n))
+    if jacobian:
+        chain = np.empty((3, 6))
+        exp_and_left_jacobian(x[3], x[4], x[5], 1.0, chain)   # chain[:, 3:] = J_l(x[3:6])
+        for i in range(rows):
+            for a in range(n):
+                J[i, a] = H[i, a] / noise_px
+            for a in range(3):
+                J[i, 3 + a] = (H[i, 3] * chain[0, 3 + a] + H[i, 4] * chain[1, 3 + a]
+                               + H[i, 5] * chain[2, 3 + a]) / noise_px
+        if moving:
+            for a in range(3):
+                J[rows + a, 6 + a], J[rows + 3 + a, 9 + a] = 1.0 / sigma_v, 1.0 / sigma_w
+    return f, J
+
+
+@numba.njit(cache=True, nogil=True)
+def _soft_l1_cost(f: np.ndarray, f_scale: float) -> float:  # pragma: no cover
+    """``Σ f_scale² (sqrt(1 + (f / f_scale)²) - 1)``: the soft-L1 cost (scipy's ``least_squares``, halved)."""
+    cost = 0.0
+    for e in f:
+        cost += math.sqrt(1.0 + (e / f_scale) ** 2) - 1.0
+    return cost * f_scale * f_scale
+
+
+@numba.njit(cache=True, nogil=True)
+def joint_fit(T_init: np.ndarray, n: int, points: np.ndarray, normalized: np.ndarray, which: np.ndarray,
+              R_cw: np.ndarray, t_cw: np.ndarray, focal: np.ndarray, times: np.ndarray, t_ref: float, noise_px: float,
+              f_scale: float, sigma_v: float, sigma_w: float, max_steps: int) -> tuple:  # pragma: no cover
+    """The soft-L1 least-squares fit of ``multi_view_fit.solve_joint`` (the minimum scipy's
+    ``least_squares(method="trf", loss="soft_l1")`` finds): Gauss-Newton on the increment ``x`` (``n`` = 6:
+    the pose; 12: and velocities) from zero, with the loss's curvature in the normal equations as scipy
+    puts it (``ρ' + 2 ρ'' f²`` weighting each row of ``JᵀJ``), each step halved while it does not lower
+    the cost (or, at the cost's rounding, keeps it with a step under half the last), until no step does
+    (or ``max_steps``). Returns
+    ``(ok, x, covariance, residuals)``: the covariance ``(JsᵀJs)⁻¹`` with ``Js`` the Jacobian scaled as
+    scipy scales it for the loss (each row by ``(1 + (f / f_scale)²)^-3/4``), the residuals in units of
+    their noise; ``ok`` False when a matrix is singular or the fit is not finite."""
+    x = np.zeros(n)
+    f, J = _joint_residuals(T_init, x, points, normalized, which, R_cw, t_cw, focal, times, t_ref, noise_px,
+                            sigma_v, sigma_w, True)
+    cost, last_size = _soft_l1_cost(f, f_scale), math.inf
+    for _ in range(max_steps):
+        A, step = np.zeros((n, n)), np.zeros((n, 1))
+        for i in range(f.shape[0]):   # the gradient Jᵀ ρ' f, the loss's curvature ρ' + 2 ρ'' f² on JᵀJ
+            t = 1.0 + (f[i] / f_scale) ** 2
+            gradient, curvature = f[i] / math.sqrt(t), max(t**-1.5, _EPS)
+            for a in range(n):
+                step[a, 0] -= gradient * J[i, a]
+                for b in range(n):
+                    A[a, b] += curvature * J[i, a] * J[i, b]
+        if not _lu_solve(A, step):
+            return False, x, np.zeros((n, n)), f
+        scale, moved = 1.0, False
+        for _halving in range(30):
+            x_new = x + scale * step[:, 0]
+            if np.all(x_new == x):
+                break
+            f_new, _ = _joint_residuals(T_init, x_new, points, normalized, which, R_cw, t_cw, focal, times, t_ref,
+                                        noise_px, sigma_v, sigma_w, False)
+            cost_new = _soft_l1_cost(f_new, f_scale)
+            # at the cost's rounding a full step that keeps it is taken while the steps still shrink fast
+            size = np.abs(step).max()
+            if cost_new < cost or (cost_new == cost and scale == 1.0 and size < 0.5 * last_size):
+                x, cost, moved, last_size = x_new, cost_new, True, size
+                break
+            scale *= 0.5
+        if not moved:
+            break
+        f, J = _joint_residuals(T_init, x, points, normalized, which, R_cw, t_cw, focal, times, t_ref, noise_px,
+                                sigma_v, sigma_w, True)
+    if not np.all(np.isfinite(x)):
+        return False, x, np.zeros((n, n)), f
+    information = np.zeros((n, n))
+    for i in range(f.shape[0]):   # JsᵀJs, Js: scipy's scaling of the Jacobian for the loss, at the solution
+        s2 = max((1.0 + (f[i] / f_scale) ** 2) ** -1.5, _EPS)
+        for a in range(n):
+            for b in range(n):
+                information[a, b] += s2 * J[i, a] * J[i, b]
+    covariance = np.empty((n, n))
+    ok = _inverse(information, covariance)
+    return ok, x, covariance, f
+
+
+@numba.njit(cache=True, nogil=True)
 def moved_pose(T: np.ndarray, v: np.ndarray, w: np.ndarray, dt: float) -> np.ndarray:  # pragma: no cover
     """The pose after ``dt`` seconds at constant world-frame velocities ``v``, ``w``
     (``reprojection.moved_pose``)."""
@@ -471,11 +565,10 @@ def _run_kernels() -> None:
     for moving in (False, True):
         solve_update(T, P, 0.0, np.zeros(3), np.zeros(3), points, normalized, which, R_cw, t_cw, np.ones(1),
                      np.full(1, 0.01 if moving else 0.0), moving, 2, 1.5, 4.0, 0.002, 0.002, 0.005)
-    T_fit = T.copy()   # the joint fit's poses (multi_view_fit) are writable arrays
-    for moving in (False, True):
-        for jacobian in (False, True):
-            reprojection(T_fit, points, normalized, which, R_cw, t_cw, np.ones(1), np.zeros(1), 0.0, np.zeros(3),
-                         np.zeros(3), moving, jacobian)
+    for n in (6, 12):   # the joint fit's start pose (multi_view_fit) is a writable array
+        joint_fit(T.copy(), n, points, normalized, which, R_cw, t_cw, np.ones(1), np.zeros(1), 0.0, 0.5, 3.0, 1.0,
+                  1.0, 2)
     moved_pose(T, np.zeros(3), np.zeros(3), 0.01)
+    exp_and_left_jacobian(0.0, 0.0, 1.0, 0.01, np.empty((3, 6)))   # as estimate.reprojection calls it
     spread_m(P, 0.1)
     predicted_covariance(P, 0.01, noise, noise, noise)

@@ -334,6 +334,28 @@ class FilterFusion:
         """A per-camera estimate is only needed to start a track: not while one runs."""
         return self.state[robot].filter is None
 
+    def last_state(self, robot: str) -> tuple[str, float, np.ndarray, np.ndarray, np.ndarray, np.ndarray] | None:
+        """The robot's filter state after its newest sighting (None while not tracked): ``(robot, time_s,
+        T_world_cube, velocity_m_s, angular_velocity_rad_s, covariance (12x12 over [δp, δθ, v, ω]))``,
+        what :meth:`seed` takes."""
+        state = self.state.get(robot)
+        f = None if state is None else state.filter
+        return None if f is None else (robot, f.time_s, f.T_world_cube, f.velocity_m_s, f.angular_velocity_rad_s, f.P)
+
+    def seed(self, robot: str, time_s: float, T_world_cube: np.ndarray, velocity_m_s: np.ndarray,
+             angular_velocity_rad_s: np.ndarray, covariance: np.ndarray) -> bool:
+        """Take over a robot's track from another fusion's :meth:`last_state` (a fleet's shard that
+        died: docs/scaling.md): its filter goes on from that state as if its sighting had just been
+        accepted here (this fusion's camera corrections kept), unless this fusion's own state of the
+        robot is as new. Whether it was taken."""
+        state = self.state.get(robot)
+        if state is None or state.last_accepted_s >= time_s:
+            return False
+        f = PoseFilter(self.filter_params, time_s, T_world_cube, covariance, velocity_m_s, angular_velocity_rad_s)
+        self.state[robot] = RobotState(f, time_s, 0, state.corrections)
+        self.stats["track taken over"] += 1
+        return True
+
     def predicted_pose(self, robot: str, time_s: float) -> np.ndarray | None:
         """Where the robot's cube is expected at ``time_s`` (None while it is not tracked, or once
         it has not been seen for ``lost_after_s``), from the state after its newest sighting

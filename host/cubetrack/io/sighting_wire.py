@@ -33,11 +33,12 @@ import math
 import struct
 from collections.abc import Mapping
 from dataclasses import dataclass, field
+from typing import NamedTuple
 
 import numpy as np
 
 from cubetrack.core.errors import CubetrackError
-from cubetrack.core.records import Detection
+from cubetrack.core.records import CameraHealth, Detection
 
 MAGIC = b"CTSG"
 VERSION = 1
@@ -225,3 +226,57 @@ def decode_sighting(data: bytes) -> SightingMessage:
                            WireClock(_CLOCK_METHODS[method], offset_s, drift, ref_s),
                            WireHealth(bool(connected), frames, dropped_frames, bad, reconnects), T_world_cam, dropped,
                            body)
+
+
+def camera_health(message: SightingMessage, previous: CameraHealth | None, now_s: float) -> CameraHealth:
+    """The outputs' health snapshot of a camera from its latest message (frames/s since the
+    previous snapshot)."""
+    h, c = message.health, message.clock
+    fps = math.nan
+    if previous is not None and now_s > previous.time_s:
+        fps = (h.frames - previous.frames) / (now_s - previous.time_s)
+    synced = c.method == "round-trip"
+    return CameraHealth(message.camera, now_s, h.connected, fps, h.frames, h.dropped, h.bad, h.reconnects,
+                        c.offset_s if synced else math.nan, c.drift * 1e6 if synced else math.nan,
+                        message.arrival_time_s - message.capture_time_s)
+
+
+# A fleet's fused state (docs/scaling.md, "When a shard dies"): a shard's filter state of a robot after its
+# newest sighting, passed to the shard that takes the robot over. magic "CTFS" | version u8 | robot: u8 length +
+# UTF-8 | time_s f64 | T_world_cube rows 0-2, 12 f64 | velocity 3 f64 | angular velocity 3 f64 | covariance 144 f64
+# (12x12 over [δp, δθ, v, ω])
+STATE_MAGIC = b"CTFS"
+_STATE = struct.Struct("<d12d3d3d144d")
+
+
+class FusedState(NamedTuple):
+    """A robot's filter state as a state message carries it (``FilterFusion.last_state`` / ``seed``)."""
+
+    robot: str
+    time_s: float
+    T_world_cube: np.ndarray
+    velocity_m_s: np.ndarray
+    angular_velocity_rad_s: np.ndarray
+    covariance: np.ndarray
+
+
+def encode_state(state: FusedState) -> bytes:
+    """A robot's filter state as a state message."""
+    values = (state.T_world_cube[:3], state.velocity_m_s, state.angular_velocity_rad_s, state.covariance)
+    return (STATE_MAGIC + _U8.pack(VERSION) + _name(state.robot, "robot name")
+            + _STATE.pack(state.time_s, *np.concatenate([np.ravel(v) for v in values]).tolist()))
+
+
+def decode_state(data: bytes) -> FusedState:
+    """The filter state in a state message; SightingWireError (one line) for anything else."""
+    data = bytes(data)
+    if data[:4] != STATE_MAGIC or len(data) < 5 or data[4] != VERSION:
+        raise SightingWireError(f"not a cubetrack state message of version {VERSION} (starts {data[:5]!r})")
+    r = _Reader(data)
+    r.at = 5
+    robot = r.name("robot name")
+    time_s, *rest = r.take(_STATE, "state")
+    v = np.array(rest, dtype=np.float64)
+    T = np.eye(4)
+    T[:3] = v[:12].reshape(3, 4)
+    return FusedState(robot, time_s, T, v[12:15], v[15:18], v[18:].reshape(12, 12))

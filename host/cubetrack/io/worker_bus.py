@@ -19,6 +19,7 @@ each of its robots (:func:`robot_sightings_key`), a fusion of every robot to ``c
 from __future__ import annotations
 
 import hashlib
+import math
 import re
 import threading
 import time
@@ -26,6 +27,8 @@ from collections.abc import Callable, Iterable, Mapping, Sequence
 from typing import Any
 
 from cubetrack.core.errors import ConfigError
+from cubetrack.core.records import TrackedPose
+from cubetrack.io.sighting_wire import FusedState, SightingWireError, decode_state, encode_state
 
 SIGHTINGS_KEY = "cubetrack/sightings"  # cubetrack/sightings/<camera>[/<robot>]: a frame or one robot's share of it
 WORKERS_KEY = "cubetrack/workers"  # a liveliness token per running worker: cubetrack/workers/<host>-<pid>
@@ -34,6 +37,8 @@ POOL_KEY = "cubetrack/pool"  # a liveliness token per automatic worker: cubetrac
 SHARDS_KEY = "cubetrack/shards"  # a liveliness token per running fusion: cubetrack/shards/<host>-<pid>
 ROBOT_CLAIMS_KEY = "cubetrack/robot-claims"  # per robot a fusion fuses: cubetrack/robot-claims/<robot>/<shard>
 SHARD_POOL_KEY = "cubetrack/shard-pool"  # a liveliness token per automatic fusion shard
+STATES_KEY = "cubetrack/fused-states"  # cubetrack/fused-states/<robot>: a shard's latest pose of a robot it fuses
+STATE_EVERY_S = 0.1  # a shard publishes each robot's state at most this often (wall clock)
 SETTLE_S = 1.0  # an automatic member on the bus listens this long to the others' tokens before it claims
 
 
@@ -209,3 +214,41 @@ class FusedRobots:
     def close(self) -> None:
         for robot in list(self.held):
             self.give_up(robot)
+
+
+class StateRelay:
+    """A fleet's fused states on the bus, so that a robot's new shard takes its track over from the last
+    state its old shard published (docs/scaling.md, "When a shard dies"). :meth:`poses`, given the poses
+    this fusion makes, publishes the robot's filter state (``state_of(robot)``: the fusion's, or None),
+    each robot's at most every ``STATE_EVERY_S``, under ``cubetrack/fused-states/<robot>``; every state
+    message on the bus is kept, undecoded, as its robot's latest (a Zenoh thread stores the bytes: each
+    shard pays one receive per robot of the fleet and ``STATE_EVERY_S``); :meth:`last` decodes one."""
+
+    def __init__(self, bus: Any, state_of: Callable[[str], tuple | None]) -> None:
+        self.bus, self.state_of = bus, state_of
+        self.latest: dict[str, bytes] = {}
+        self._sent_s: dict[str, float] = {}
+        self._subscriber = bus.declare_subscriber(f"{STATES_KEY}/*", self._receive)
+
+    def _receive(self, sample: Any) -> None:  # a Zenoh thread
+        self.latest[str(sample.key_expr).rsplit("/", 1)[-1]] = bytes(sample.payload)
+
+    def poses(self, poses: Sequence[TrackedPose]) -> None:
+        """Publish the state of each robot with a measured pose here whose state was last sent ``STATE_EVERY_S`` ago."""
+        now = time.monotonic()
+        for robot in {p.robot for p in poses if not p.predicted}:
+            state = self.state_of(robot)
+            if state is not None and now - self._sent_s.get(robot, -math.inf) >= STATE_EVERY_S:
+                self._sent_s[robot] = now
+                self.bus.put(f"{STATES_KEY}/{robot}", encode_state(FusedState(*state)))
+
+    def last(self, robot: str) -> FusedState | None:
+        """The latest state of ``robot`` heard on the bus (None: none, or not readable)."""
+        payload = self.latest.get(robot)
+        try:
+            return None if payload is None else decode_state(payload)
+        except SightingWireError:
+            return None
+
+    def close(self) -> None:
+        self._subscriber.undeclare()

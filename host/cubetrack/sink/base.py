@@ -24,7 +24,7 @@ import numpy as np
 from cubetrack.core.cameras import CameraIntrinsics, WorldConfig
 from cubetrack.core.errors import CubetrackError
 from cubetrack.core.layout import CubeLayout
-from cubetrack.core.records import CameraHealth, CameraView, TrackedPose
+from cubetrack.core.records import CameraHealth, CameraView, CameraWatchState, TrackedPose
 from cubetrack.io.trajectory import PoseWriter
 
 log = logging.getLogger(__name__)
@@ -87,6 +87,9 @@ class Sink(abc.ABC):
 
     def camera_view(self, view: CameraView) -> None:
         """A processed frame (only for sinks that ask for views: ``wants_views``)."""
+
+    def camera_watch(self, state: CameraWatchState) -> None:
+        """What the camera watching says of a camera, when it changes (live, ``[camera_watch] enabled``)."""
 
     #: whether :meth:`camera_view` should be called (views carry JPEGs: only sinks that show images)
     wants_views: bool = False
@@ -162,6 +165,9 @@ class Decoupled(Sink):
 
     def camera_view(self, view: CameraView) -> None:
         self._put(("camera_view", view))
+
+    def camera_watch(self, state: CameraWatchState) -> None:
+        self._put(("camera_watch", state))
 
     def _put(self, item: tuple) -> None:
         with self._ready:
@@ -256,6 +262,9 @@ class Guarded(Sink):
     def camera_view(self, view: CameraView) -> None:
         self.deliver([("camera_view", view)])
 
+    def camera_watch(self, state: CameraWatchState) -> None:
+        self.deliver([("camera_watch", state)])
+
     def close(self) -> None:
         try:
             self.inner.close()
@@ -289,6 +298,10 @@ class Outputs:
     def camera_health(self, health: CameraHealth) -> None:
         for sink in self.sinks:
             sink.camera_health(health)
+
+    def camera_watch(self, state: CameraWatchState) -> None:
+        for sink in self.sinks:
+            sink.camera_watch(state)
 
     def camera_view(self, view: CameraView) -> None:
         for i, sink in enumerate(self._views):

@@ -131,6 +131,9 @@ class OutputProcess(Sink):
     def camera_view(self, view) -> None:
         self.deliver([("camera_view", view)])
 
+    def camera_watch(self, state) -> None:
+        self.deliver([("camera_watch", state)])  # a small frozen record: pickled as it is
+
     def close(self) -> None:
         """Let the child deliver what it holds and close its outputs (harmless twice)."""
         if self._process is None:

@@ -81,10 +81,18 @@ class DetectorSpy:
     def __init__(self, detector):
         self.detector = detector
         self.calls: list[list | None] = []
+        self.predicted: list[tuple[int, bool]] = []  # per call: markers predicted, found at their predictions
 
-    def find(self, gray, regions=None, lens=None):
+    def find(self, gray, regions=None, lens=None, predicted=()):
         self.calls.append(None if regions is None else list(regions))
-        return self.detector.find(gray, regions, lens)
+        found = self.detector.find(gray, regions, lens, predicted)
+        self.predicted.append((len(predicted), found.predicted))
+        return found
+
+
+def corners_m(robot: str) -> np.ndarray:
+    """The corners of ``robot``'s cube's markers, (M x 4, 3) in the cube's frame."""
+    return {"red": RED, "blue": BLUE}[robot].layout.corners_m.reshape(-1, 3)
 
 
 def tracker(params: StageParams, robots=(RED, BLUE), extrinsics=EXTRINSICS, **kw) -> Tracker:
@@ -200,13 +208,16 @@ def test_regions_while_every_robot_is_tracked_and_a_whole_frame_every_n(scenes):
         assert "RRRF" in "".join(kinds), cam        # tracked: regions, with a whole frame every 4th
         assert "RRRR" not in "".join(kinds), cam
     assert t.stats.region_detections == sum(k.count("R") for k in by_camera.values())
+    # each region search came with the predicted cubes' markers, and found them there (no OpenCV search)
+    searches = [p for c, p in zip(t.processor.detector.calls, t.processor.detector.predicted, strict=True) if c]
+    assert searches and all(n > 0 for n, _ in searches) and all(found for _, found in searches), searches
     # every region search covered both predicted cubes, where the cubes really are
     for frame, calls, _poses in results:
         for boxes in (c for c in calls if c is not None):
             assert len(boxes) == 2
             for robot in ("red", "blue"):
                 px = project_points(INTR, T_WORLD_CAM[frame.camera],
-                                    (TRUTH[robot][:3, :3] @ t.cube_points_m[robot].T).T + TRUTH[robot][:3, 3])
+                                    (TRUTH[robot][:3, :3] @ corners_m(robot).T).T + TRUTH[robot][:3, 3])
                 assert any(np.all((px >= (x0, y0)) & (px < (x1, y1))) for x0, y0, x1, y1 in boxes), (frame, robot)
     poses = [p for _f, _c, ps in results for p in ps]
     assert {p.robot for p in poses} == {"red", "blue"}

@@ -12,6 +12,7 @@ import concurrent.futures
 import json
 import math
 import threading
+from types import SimpleNamespace
 
 import numpy as np
 import pytest
@@ -20,10 +21,11 @@ from test_joint_and_filter import CAMS, INTR, LAYOUT, detections, look_at
 
 from cubetrack.calib.recalibrate import WatchedFusion
 from cubetrack.core.geometry import make_T, rotation_angle
-from cubetrack.core.records import CubeSighting
+from cubetrack.core.records import CameraWatchState, CubeSighting
 from cubetrack.estimate.pose import estimate_cube
 from cubetrack.fuse.camera_watch import CameraState, CameraWatch, EventKind, WatchEvent, WatchParams
 from cubetrack.fuse.fusion import FilterFusion
+from cubetrack.sink.base import Outputs
 
 FPS = 7.5
 SPEED_M_S = 0.5
@@ -115,6 +117,8 @@ def test_the_fusion_keeps_the_moved_camera_out_then_takes_it_back_at_its_new_pos
     executor = ThreadExecutor()  # as live (cubetrack.app.watch_log): the refit on another thread
     fused = WatchedFusion(FilterFusion({"bot": LAYOUT}), {"bot": LAYOUT}, CAMERAS, WatchParams(enabled=True),
                           executor=executor)
+    told: list[CameraWatchState] = []  # what the dashboard's tiles are told
+    fused.state_listeners.append(told.append)
     used: list[tuple[float, tuple[str, ...]]] = []  # each pose's time and the cameras it used
     suspect_from = math.inf  # when cam2 first went out of the fusion as suspect
     for s in seen:
@@ -138,6 +142,23 @@ def test_the_fusion_keeps_the_moved_camera_out_then_takes_it_back_at_its_new_pos
     assert len(aside) > 30 and not any("cam2" in c for c in aside)
     assert sum("cam2" in c for c in back) > 30
     assert fused.stats["set-aside sighting"] > 30
+    # the tile: cam2 settles, is watched, goes suspect and moved, re-calibrates in tenths, rejoins
+    # (and is watched again once it has a settled pose at its new place)
+    cam2 = [(x.state, x.progress) for x in told if x.camera == "cam2"]
+    states = [state for state, _ in cam2]
+    assert states[:4] == ["settling", "watched", "suspect", "moved"], states
+    rejoined = states.index("rejoined")
+    assert states[rejoined + 1:] in ([], ["watched"]), states
+    progress = [p for state, p in cam2 if state == "re-calibrating"]
+    assert states[4:rejoined] == ["re-calibrating"] * len(progress) and len(progress) >= 5, cam2
+    # it grows towards the corners needed; a refused try raises the need (by RETRY_GROWTH) and it drops once
+    drops = sum(b < a for a, b in zip(progress, progress[1:], strict=False))
+    assert drops <= fused.stats["re-calibration refused"] and 0.0 < progress[0] < 0.5, (progress, fused.stats)
+    assert max(progress) == 1.0, (progress, fused.stats)
+    assert {(x.camera, x.state) for x in told if x.camera != "cam2"} == {(c, s) for c in ("cam1", "cam3", "cam4")
+                                                                          for s in ("settling", "watched")}
+    moved_told = next(x for x in told if x.state == "moved")
+    assert moved_told.time_s == moved_at and moved_told.message == fused.events[0].message.removeprefix("cam2 ")
 
 
 @pytest.mark.slow
@@ -251,4 +272,4 @@ def test_a_session_keeps_what_was_learnt(tmp_path, update):
     else:
         assert user_file.read_bytes() == before
     # only a watched fusion gets one
-    assert attach_watch_log(FilterFusion({"bot": LAYOUT}), tmp_path, None) is None
+    assert attach_watch_log(SimpleNamespace(fusion=FilterFusion({"bot": LAYOUT})), Outputs([]), tmp_path, None) is None

@@ -308,3 +308,26 @@ def test_a_track_started_in_a_sharp_turn_is_as_good_from_its_first_pose():
                       for p in poses[:3]])
     first = np.degrees(first)
     assert first[:, 0].mean() < 0.8 and first.max() < 2.5, first
+
+
+def test_a_track_taken_over_from_another_fusions_last_state_goes_on_without_a_restart():
+    """FilterFusion.last_state / seed (a fleet's shard taking a robot over, docs/scaling.md): a second
+    fusion seeded with the first one's state gives a pose from the next sighting on, where an unseeded
+    one waits for a track start, and its poses are those of the first fusion going on (camera
+    corrections aside) to within a millimetre."""
+    rng = np.random.default_rng(4)
+    items = sightings(2.0, rng)
+    first = FilterFusion({"bot": LAYOUT})
+    last = run(first, [s for s in items if s.capture_time_s < 1.0])[-1]
+    state = first.last_state("bot")
+    assert state is not None and state[1] == last.time_s and FilterFusion({"bot": LAYOUT}).last_state("bot") is None
+    after = [s for s in items if s.capture_time_s > last.time_s + 0.1]   # taken over 0.1 s later
+    seeded, fresh = FilterFusion({"bot": LAYOUT}), FilterFusion({"bot": LAYOUT})
+    assert seeded.seed(*state) and not seeded.seed(*state)   # not over a state as new as it
+    poses, unseeded, going_on = run(seeded, after), run(fresh, after), run(first, after)
+    assert poses[0].time_s == after[0].capture_time_s and seeded.stats["track start"] == 0
+    assert unseeded[0].time_s > after[0].capture_time_s and fresh.stats["track start"] == 1
+    assert [p.time_s for p in poses] == [p.time_s for p in going_on]
+    assert max(np.linalg.norm(p.position_m - q.position_m) for p, q in zip(poses, going_on, strict=True)) < 1e-3
+    errors = [np.linalg.norm(p.position_m - truth(p.time_s)[:3, 3]) for p in poses]
+    assert np.median(errors) < 0.002

@@ -179,3 +179,58 @@ def test_the_associations_projection_is_opencvs(coefficients: int) -> None:
     dist = rng.normal(0.0, 0.05, coefficients)
     expected = cv2.projectPoints(points, np.zeros(3), np.zeros(3), K, dist)[0].reshape(-1, 2)
     np.testing.assert_allclose(_projected(points, K, dist), expected, rtol=0, atol=1e-9)
+
+
+@pytest.mark.parametrize("angle_rad", [1e-7, 3e-3, 0.4, 2.5])   # both sides of the Taylor series' 0.01 rad
+def test_the_shared_exp_kernel_is_rodrigues_and_the_left_jacobian(angle_rad: float) -> None:
+    """estimate.kernels.exp_and_left_jacobian, which the filter's kernels and estimate.reprojection
+    both call: [Exp(ω dt) | J_l(ω dt) dt] against core.geometry's Rodrigues and left Jacobian."""
+    from cubetrack.core.geometry import so3_left_jacobian
+    from cubetrack.estimate.kernels import exp_and_left_jacobian
+
+    axis = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
+    dt = 0.04
+    omega = axis * angle_rad / dt
+    out = np.empty((3, 6))
+    exp_and_left_jacobian(float(omega[0]), float(omega[1]), float(omega[2]), dt, out)
+    np.testing.assert_allclose(out[:, :3], R_from_rotvec(omega * dt), atol=1e-14)
+    np.testing.assert_allclose(out[:, 3:], so3_left_jacobian(omega * dt) * dt, atol=1e-15)
+
+
+@pytest.mark.parametrize("n", [6, 12])
+def test_the_joint_fit_finds_scipys_soft_l1_minimum(n: int) -> None:
+    """fuse.filter_kernels.joint_fit (the track start's fit) against scipy's least_squares on the
+    numpy model's residuals, soft-L1 loss, one corner an outlier: the same increment, and the
+    covariance from the loss-scaled Jacobian at the solution, as scipy returns it."""
+    from scipy.optimize import least_squares
+
+    from cubetrack.core.geometry import so3_left_jacobian
+
+    rng = np.random.default_rng(11)
+    sets = _sets(rng, [0.0, 0.012, 0.025])
+    sets[1].normalized[2] += 6.0 / sets[1].focal_px   # a corner 6 px off
+    T_init = make_T(R_from_rotvec([0.02, -0.03, 0.01]), np.array([0.004, -0.003, 0.006]))
+    noise, f_scale, sigma_v, sigma_w = 0.5, 3.0, 0.5, 1.0
+
+    def fun(x: np.ndarray) -> np.ndarray:
+        T = perturbed(T_init, x[:6])
+        if n == 6:
+            return reprojection_residuals_px(T, sets) / noise
+        r = reprojection_residuals_px(T, sets, 0.0, x[6:9], x[9:12]) / noise
+        return np.concatenate([r, x[6:9] / sigma_v, x[9:12] / sigma_w])
+
+    def jac(x: np.ndarray) -> np.ndarray:
+        T = perturbed(T_init, x[:6])
+        moving = (0.0, x[6:9], x[9:12]) if n == 12 else ()
+        J = reprojection_jacobian_px(T, sets, *moving)[1] / noise
+        J[:, 3:6] = J[:, 3:6] @ so3_left_jacobian(x[3:6])   # x[3:6] is a finite rotation increment
+        return J if n == 6 else np.vstack([J, np.diag(np.repeat([1.0 / sigma_v, 1.0 / sigma_w], 3)) @ np.eye(6, 12, 6)])
+
+    ref = least_squares(fun, np.zeros(n), jac=jac, loss="soft_l1", f_scale=f_scale, x_scale=np.full(n, 0.01),
+                        ftol=1e-15, xtol=1e-15, gtol=1e-15, max_nfev=500)
+    ok, x, covariance, f = fk.joint_fit(T_init.copy(), n, *fk.packed_sets(sets), 0.0, noise, f_scale, sigma_v, sigma_w,
+                                        100)
+    assert ok
+    np.testing.assert_allclose(x, ref.x, rtol=0.0, atol=1e-8)   # the velocities are weakly observed: flat there
+    np.testing.assert_allclose(f, ref.fun, rtol=0.0, atol=1e-8)
+    np.testing.assert_allclose(covariance, np.linalg.inv(ref.jac.T @ ref.jac), rtol=1e-5, atol=1e-16)

@@ -109,6 +109,28 @@ def test_joint_fit_estimates_velocity_from_sightings_spread_in_time():
     assert np.linalg.norm(sol.velocity_m_s - v_true) < 0.05
 
 
+def test_a_joint_fit_capped_at_few_steps_finds_the_full_fits_solution_and_covariance():
+    """solve_joint(iterations=N) (the camera watcher's fits): the same pose, velocities and
+    covariance as the uncapped fit (itself checked against scipy's trust-region solver in
+    test_filter_kernels), with an outlier corner the soft-L1 loss must discount."""
+    rng = np.random.default_rng(5)
+    v_true = np.array([0.2, 0.05, 0.0])
+    T0 = cube_pose()
+    sets = []
+    for cam, t in [("cam1", -0.1), ("cam2", -0.05), ("cam3", 0.0)]:
+        sets.append(corner_set(make_T(T0[:3, :3], T0[:3, 3] + v_true * t), cam, rng, t=t))
+    sets[1].normalized[0] += 8.0 / sets[1].focal_px  # one corner 8 px off
+    start = cube_pose(x=0.105, y=-0.21)  # about 2 cm off, as a camera's own estimate after a bump
+    trf = solve_joint(sets, start, 0.0, velocity_sigma=(1.0, 4.0))
+    gn = solve_joint(sets, start, 0.0, velocity_sigma=(1.0, 4.0), iterations=30)
+    assert np.linalg.norm(gn.T_world_cube[:3, 3] - trf.T_world_cube[:3, 3]) < 1e-5
+    assert rotation_angle(gn.T_world_cube[:3, :3], trf.T_world_cube[:3, :3], "deg") < 1e-3
+    assert np.allclose(gn.velocity_m_s, trf.velocity_m_s, atol=1e-4)
+    assert np.allclose(gn.covariance, trf.covariance, rtol=1e-3, atol=1e-12) and gn.rms_px == pytest.approx(trf.rms_px)
+    one_step = solve_joint(sets, start, 0.0, velocity_sigma=(1.0, 4.0), iterations=1)
+    assert np.linalg.norm(one_step.T_world_cube[:3, 3] - trf.T_world_cube[:3, 3]) > 1e-4  # it does iterate
+
+
 def started_filter(truth, t=0.0):
     cov = np.diag([1e-4] * 3 + [1e-4] * 3)
     return PoseFilter(FilterParams(), t, truth, cov)

@@ -167,3 +167,20 @@ def test_a_restamped_message_is_the_same_message_at_its_new_times(pose):
     assert data == encode_sighting(expected)
     with pytest.raises(SightingWireError, match="not a sighting"):
         restamped(b"CTXX" + data[4:], 0.0, 0.0, 0.0, 0.0)
+
+
+def test_a_fused_state_round_trips_bit_exactly_and_anything_else_is_refused():
+    from cubetrack.io.sighting_wire import FusedState, decode_state, encode_state
+
+    rng = np.random.default_rng(5)
+    T = np.eye(4)
+    T[:3] = rng.normal(size=(3, 4))
+    state = FusedState("r1", 1700000000.123456, T, rng.normal(size=3), rng.normal(size=3), rng.normal(size=(12, 12)))
+    back = decode_state(encode_state(state))
+    assert back.robot == "r1" and back.time_s == state.time_s
+    for a, b in zip(back[2:], state[2:], strict=True):
+        assert np.array_equal(a, b)
+    data = encode_state(state)
+    for bad in (data[:-1], b"CTSG" + data[4:], data[:4] + bytes([9]) + data[5:]):
+        with pytest.raises(SightingWireError):
+            decode_state(bad)

@@ -193,3 +193,54 @@ def test_a_shard_claims_its_share_only_once_on_the_bus_and_gives_way_to_a_smalle
     assert held == {r for r in owner if owner[r] == "s-2"}  # s-1's share given up: the greater name gives way
     claims.close()
     assert bus.tokens == []
+
+
+class StateBus:
+    """What StateRelay uses of a Zenoh session: put, and a subscriber that sees every put (as Zenoh's does)."""
+
+    def __init__(self) -> None:
+        self.puts: list[str] = []
+        self.callback = None
+
+    def declare_subscriber(self, key: str, callback) -> FakeToken:
+        assert key == "cubetrack/fused-states/*"
+        self.callback = callback
+        return FakeToken(FakeBus(), None)
+
+    def put(self, key: str, payload: bytes) -> None:
+        self.puts.append(key)
+        self.callback(type("Sample", (), {"key_expr": key, "payload": payload})())
+
+
+def test_the_state_relay_publishes_each_robots_state_at_most_every_period_and_keeps_the_latest(monkeypatch):
+    import numpy as np
+
+    from cubetrack.core.records import TrackedPose
+    from cubetrack.io.worker_bus import StateRelay
+
+    clock = [100.0]
+    monkeypatch.setattr("cubetrack.io.worker_bus.time.monotonic", lambda: clock[0])
+
+    def state_of(robot: str) -> tuple | None:
+        T = np.eye(4)
+        T[:3, 3] = [clock[0], 2.0, 3.0]
+        return None if robot == "untracked" else (robot, clock[0], T, np.ones(3), np.zeros(3), np.eye(12))
+
+    def pose(robot: str, predicted: bool = False) -> TrackedPose:
+        return TrackedPose(robot, clock[0], np.zeros(3), np.array([0.0, 0.0, 0.0, 1.0]), (), (), 0.0,
+                           predicted=predicted)
+
+    bus = StateBus()
+    relay = StateRelay(bus, state_of)
+    relay.poses([pose("r1"), pose("r1"), pose("r2", predicted=True), pose("untracked")])
+    assert bus.puts == ["cubetrack/fused-states/r1"]   # once per robot; not for predictions nor untracked robots
+    clock[0] += 0.05
+    relay.poses([pose("r1")])
+    assert len(bus.puts) == 1   # within STATE_EVERY_S
+    clock[0] += 0.06
+    relay.poses([pose("r1")])
+    last = relay.last("r1")
+    assert len(bus.puts) == 2 and last is not None and last.time_s == clock[0] and last.T_world_cube[0, 3] == clock[0]
+    assert relay.last("r2") is None
+    relay.latest["r2"] = b"junk"
+    assert relay.last("r2") is None   # an unreadable state is none

@@ -181,3 +181,25 @@ def test_params_refuse_bad_values():
     with pytest.raises(ParamsError, match="jpeg_quality"):
         DashboardParams(jpeg_quality=0)
     assert np.isfinite(DashboardParams().tick_s)
+
+
+def test_what_the_camera_watching_says_reaches_the_tile_through_the_outputs_queue():
+    """Sink.camera_watch through Outputs (behind its Decoupled queue) to the state: the camera's JSON
+    carries it and every change is announced to the page at once, transient states included."""
+    from cubetrack.core.records import CameraWatchState
+    from cubetrack.sink.base import Outputs
+    from cubetrack.sink.dashboard.server import DashboardServer, DashboardSink
+
+    server = DashboardServer(port=0)
+    try:
+        sub = server.state.events.subscribe()
+        with Outputs([DashboardSink(server)]) as outputs:
+            for state, progress in [("watched", 0.0), ("moved", 0.0), ("re-calibrating", 0.3), ("rejoined", 0.0)]:
+                outputs.camera_watch(CameraWatchState("cam-a", 5.0, state, progress, f"{state} message"))
+        told = [data["watch"]["state"] for kind, data in sub.take(5.0) if kind == "camera"]
+        assert told == ["watched", "moved", "re-calibrating", "rejoined"]
+        assert server.state.camera_json("cam-a")["watch"] == {"state": "rejoined", "progress": 0.0,
+                                                              "message": "rejoined message", "time_s": 5.0}
+        assert server.state.camera_json("cam-b") is None
+    finally:
+        server.close()

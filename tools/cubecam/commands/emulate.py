@@ -19,6 +19,8 @@ Fault options mimic a Wi-Fi node, to test clients: --latency/--jitter (s, on eve
 and part), --drop-rate (frames lost at capture), --bandwidth (bytes/s per camera, suffix k
 or M; a GS2200M manages roughly 100k), --disconnect-every (s), --stall-after/--stall-for
 (s; a connection that goes silent), --corrupt-every N with --corrupt-kind jpeg|truncate.
+--bump CAM:AT_S:DEG[:X,Y,Z] knocks a camera of a recording on its tripod AT_S seconds after the
+start: from then on its frames are those of the camera turned by DEG degrees (docs/emulator.md).
 """
 
 from __future__ import annotations
@@ -88,6 +90,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     f.add_argument("--corrupt-kind", choices=("jpeg", "truncate"), default="jpeg",
                    help="jpeg: garbage JPEG data, framing intact; truncate: part shorter than its Content-Length")
     f.add_argument("--seed", type=int, metavar="N", help="random seed for drops, jitter and garbage")
+    f.add_argument("--bump", action="append", default=[], metavar="CAM:AT_S:DEG[:X,Y,Z]",
+                   help="turn camera CAM by DEG degrees about its vertical image axis (or the axis X,Y,Z of its "
+                        "frame: x right, y down, z forward) AT_S seconds after the start, as a knock on its tripod "
+                        "would; repeatable (--recording only)")
 
 
 def _addresses(text: str | None) -> list[str] | str | None:
@@ -116,6 +122,7 @@ def write_ready_file(path: str, emu) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
+    from cubecam.bump import parse_bump
     from cubecam.emulator import Emulator, Faults, skipped_summary
 
     if args.parent_pid is not None:
@@ -128,7 +135,8 @@ def run(args: argparse.Namespace) -> int:
                     corrupt_every=args.corrupt_every, corrupt_kind=args.corrupt_kind, seed=args.seed)
     emu = Emulator(args.recording, images=args.images, fps=args.fps, name=args.name, host=args.bind,
                    port=args.port, addresses=_addresses(args.addresses),
-                   loop=args.loop, faults=faults, max_clients=args.max_clients, jpeg_quality=args.jpeg_quality)
+                   loop=args.loop, faults=faults, max_clients=args.max_clients, jpeg_quality=args.jpeg_quality,
+                   bumps=tuple(parse_bump(text) for text in args.bump))
     source = args.recording or args.images
     print(f"cubecam emulate: {source}: {len(emu.cameras)} camera(s), {skipped_summary(emu.skipped)} "
           "corrupt or missing frame(s)", file=sys.stderr)

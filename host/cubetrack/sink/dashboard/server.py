@@ -45,7 +45,7 @@ from typing import Any
 from urllib.parse import quote, unquote, urlsplit
 
 from cubetrack.core.errors import CubetrackError
-from cubetrack.core.records import CameraHealth, CameraView, TrackedPose
+from cubetrack.core.records import CameraHealth, CameraView, CameraWatchState, TrackedPose
 from cubetrack.sink.base import OutputError, SessionInfo, Sink, is_loopback_host
 from cubetrack.sink.dashboard.draw import annotated_jpeg, floor_footprint, view_overlay
 from cubetrack.sink.dashboard.state import DashboardParams, DashboardState
@@ -452,6 +452,9 @@ class DashboardSink(Sink):
 
     def camera_view(self, view: CameraView) -> None:
         self.server.state.camera_view(view)
+
+    def camera_watch(self, state: CameraWatchState) -> None:
+        self.server.state.camera_watch(state)
 
     def close(self) -> None:
         if self._open:

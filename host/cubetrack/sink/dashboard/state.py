@@ -39,7 +39,7 @@ import numpy as np
 
 from cubetrack.core.geometry import T_from_position_quat
 from cubetrack.core.params import check, check_positive, param
-from cubetrack.core.records import CameraHealth, CameraView, TrackedPose
+from cubetrack.core.records import CameraHealth, CameraView, CameraWatchState, TrackedPose
 from cubetrack.sink.base import CameraSetup, SessionInfo
 
 HEALTH_FIELDS = tuple(f.name for f in dataclasses.fields(CameraHealth))
@@ -222,6 +222,7 @@ class _Camera:
         self.view_announced_s = -math.inf
         self.status = ("waiting", "no answer from the camera yet")
         self.status_sent_s = -math.inf
+        self.watch: CameraWatchState | None = None  # what the camera watching says of it (issue 27)
 
 
 class _Robot:
@@ -284,6 +285,12 @@ class DashboardState:
                 cam.last_frame_s = max(cam.last_frame_s or -math.inf, health.time_s)
             cam.frames = health.frames
             cam.health = health
+            self._update_status(cam, force=True)
+
+    def camera_watch(self, state: CameraWatchState) -> None:
+        with self._lock:
+            cam = self._camera(state.camera)
+            cam.watch = state
             self._update_status(cam, force=True)
 
     def camera_view(self, view: CameraView) -> None:
@@ -412,6 +419,8 @@ class DashboardState:
             "frame_age_s": None if cam.last_frame_s is None else max(0.0, now_s - cam.last_frame_s),
             "health": None if cam.health is None else health_json(cam.health),
             "view": self.view_meta(cam),
+            "watch": None if cam.watch is None else {"state": cam.watch.state, "progress": cam.watch.progress,
+                                                     "message": cam.watch.message, "time_s": cam.watch.time_s},
         }
 
     @staticmethod

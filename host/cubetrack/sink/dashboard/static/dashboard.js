@@ -75,6 +75,7 @@ function tileFor(name) {
     el("header", {}, el("span", { class: "name", text: name }), el("span", { class: "status", text: "waiting" })),
     el("div", { class: "frame" }, el("img", { alt: `${name}: newest frame`, hidden: true }), el("span", { class: "hint", text: "no frame yet" })),
     el("p", { class: "reason" }),
+    el("p", { class: "watch" }),
     el("dl", { class: "stats" },
       stat("fps", "fps"), stat("dropped", "dropped"), stat("latency", "transfer"), stat("jpeg", "JPEG"),
       stat("offset", "clock offset"), stat("drift", "drift"), stat("reconnects", "reconnects"), stat("bad", "bad parts"),
@@ -104,6 +105,18 @@ function setFrame(name, view) {
   loadFrame(tile);
 }
 
+// what the camera watching says of it (docs/calibration.md): moved / re-calibrating (progress) / rejoined ...
+function renderWatch(tile, w) {
+  const p = $(".watch", tile);
+  if (!w) { delete tile.dataset.watch; p.replaceChildren(); return; }
+  tile.dataset.watch = w.state;
+  const text = `${w.state}${w.message ? " · " + w.message : ""}`;
+  if (w.state === "re-calibrating")
+    p.replaceChildren(el("progress", { max: 1, value: w.progress }), el("span", { text: ` ${text}` }));
+  else
+    p.replaceChildren(el("span", { text }));
+}
+
 // host minus device clock: for a node counting seconds since it booted, the Unix time it booted
 function clockOffset(s) {
   if (s === null || s === undefined) return "–";
@@ -117,6 +130,7 @@ function renderCamera(cam) {
   tile.dataset.status = cam.status;
   $(".status", tile).textContent = cam.status + (cam.calibrated ? " · calibrated" : "");
   $(".reason", tile).textContent = cam.reason;
+  renderWatch(tile, cam.watch);
   const h = cam.health || {};
   const put = (key, text) => { $(`[data-stat="${key}"]`, tile).textContent = text; };
   put("fps", fmt(h.frames_per_s, 1));

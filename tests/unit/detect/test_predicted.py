@@ -1,0 +1,115 @@
+"""Markers found at their predicted corners (no candidate search), and every way that falls back."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+from scenes import T_WORLD_CAM_UP, marker_corners_px, render_in_front
+from test_detect_markers import INTR, _two_markers_image, facing
+
+from cubetrack.core.layout import paper_cube_layout
+from cubetrack.core.records import Detection
+from cubetrack.detect.detector import CornerRefinement, Detector, DetectorParams
+from cubetrack.detect.predicted import cell_errors, marker_cells, predicted_markers
+
+SIZE_M = 0.08
+POSES = [facing(0.7, 30, 10, 15, 0.05, -0.03), facing(1.2, -40, 25, 100, -0.2, 0.1), facing(0.9, 5, 50, 200, 0.0, 0.1)]
+
+
+@pytest.fixture(scope="module")
+def scenes() -> list[tuple[np.ndarray, np.ndarray]]:
+    out = []
+    for i, T in enumerate(POSES):
+        img = render_in_front(INTR, [(T, "DICT_4X4_50", 7, SIZE_M, 0.04)], blur_px=0.7, noise_std=2.0,
+                              jpeg_quality=85, rng=np.random.default_rng(i))
+        out.append((img, marker_corners_px(INTR, T_WORLD_CAM_UP, T_WORLD_CAM_UP @ T, SIZE_M)))
+    return out
+
+
+def _prediction(corners_px: np.ndarray, marker_id: int = 7) -> Detection:
+    return Detection(marker_id, np.asarray(corners_px, dtype=float), 0.0, "DICT_4X4_50")
+
+
+def _box(corners_px: np.ndarray, grow_px: float = 20.0) -> tuple[int, int, int, int]:
+    (x0, y0), (x1, y1) = corners_px.min(axis=0) - grow_px, corners_px.max(axis=0) + grow_px
+    return max(int(x0), 0), max(int(y0), 0), min(int(x1), INTR.width), min(int(y1), INTR.height)
+
+
+@pytest.mark.parametrize("refinement", [CornerRefinement.EDGE, CornerRefinement.TEMPLATE])
+def test_a_good_prediction_gives_the_searched_corners_without_a_search(scenes, refinement):
+    det = Detector(DetectorParams(corner_refinement=refinement))
+    rng = np.random.default_rng(3)
+    for gray, truth in scenes:
+        box = _box(truth)
+        searched = det.find(gray, [box], INTR)
+        guess = truth + rng.uniform(-1.5, 1.5, truth.shape)      # a prediction 1-2 px off
+        fast = det.find(gray, [box], INTR, predicted=[_prediction(guess)])
+        assert fast.predicted and not searched.predicted
+        assert [d.marker_id for d in fast.detections] == [7]
+        # the same edge fit, started elsewhere: the same corners to well under the fit's own error
+        np.testing.assert_allclose(fast.detections[0].corners_px, searched.detections[0].corners_px, atol=0.02)
+        assert np.abs(fast.detections[0].corners_px - truth).max() < 0.5
+
+
+def test_a_wrong_id_or_a_marker_far_from_its_prediction_falls_back_to_the_search(scenes):
+    det = Detector()
+    gray, truth = scenes[0]
+    box = _box(truth, 100.0)
+    searched = det.find(gray, [box], INTR).detections
+    for prediction in (_prediction(truth, marker_id=8),             # another id where the marker is
+                       _prediction(truth + (80.0, 0.0))):            # the marker is far from its prediction
+        found = det.find(gray, [box], INTR, predicted=[prediction])
+        assert not found.predicted
+        assert [d.marker_id for d in found.detections] == [7]
+        np.testing.assert_array_equal(found.detections[0].corners_px, searched[0].corners_px)
+    # one prediction reads, another is not there (nor in a box around it): not seen, as a search would not see it
+    both = det.find(gray, [box], INTR, predicted=[_prediction(truth), _prediction(truth + (80.0, 0.0), 9)])
+    assert both.predicted and [d.marker_id for d in both.detections] == [7]
+
+
+def test_a_marker_that_does_not_read_at_its_prediction_is_searched_for_near_it():
+    gray = _two_markers_image()              # ids 3 and 5, 60 px squares at x, y 300, 200 and 80, 300
+    det = Detector()
+    box = (40, 150, 420, 400)
+    searched = det.find(gray, [box]).detections
+    assert [d.marker_id for d in searched] == [3, 5]
+    square = np.array([[-0.5, -0.5], [59.5, -0.5], [59.5, 59.5], [-0.5, 59.5]])
+    at_3 = _prediction(square + (300.0, 200.0), 3)
+    for at_5 in (_prediction(square + (80.0 + 12.0, 300.0), 5),           # off by more than the edge fit reaches
+                 _prediction(np.roll(square + (80.0, 300.0), 1, axis=0), 5)):   # turned a quarter
+        found = det.find(gray, [box], predicted=[at_3, at_5])
+        assert found.predicted and [d.marker_id for d in found.detections] == [3, 5]
+        np.testing.assert_allclose(found.detections[1].corners_px, searched[1].corners_px, atol=1e-6)
+        np.testing.assert_allclose(found.detections[0].corners_px, searched[0].corners_px, atol=0.02)
+
+
+def test_predictions_are_ignored_without_regions_or_for_inverted_markers_or_other_refinements(scenes):
+    gray, truth = scenes[0]
+    box = _box(truth)
+    for params in (DetectorParams(detect_inverted_marker=True),
+                   DetectorParams(corner_refinement=CornerRefinement.NONE)):
+        assert not Detector(params).find(gray, [box], INTR, predicted=[_prediction(truth)]).predicted
+    assert not Detector().find(gray, None, INTR, predicted=[_prediction(truth)]).predicted
+
+
+def test_cells_read_the_dictionary_bits_and_an_empty_patch_is_unreadable(scenes):
+    gray, truth = scenes[0]
+    errors = cell_errors(gray, np.array([truth, truth]), [_prediction(truth), _prediction(truth, 8)])
+    assert errors[0].tolist() == [0, 0] and errors[1, 0] == 0 and errors[1, 1] > 0   # 8's bits are not 7's
+    assert cell_errors(np.full_like(gray, 128), truth[None], [_prediction(truth)]).tolist() == [[-1, -1]]
+    shifted = cell_errors(gray, (truth + (truth[1] - truth[0]) / 6.0)[None], [_prediction(truth)])  # a cell right
+    assert shifted[0, 0] > 0
+    assert marker_cells("DICT_4X4_50", 7).shape == (6, 6)
+
+
+def test_predicted_markers_keep_the_faces_that_face_the_camera_inside_the_image():
+    layout = paper_cube_layout()
+    M = len(layout.marker_ids)
+    square = np.array([[100.0, 100.0], [140.0, 100.0], [140.0, 140.0], [100.0, 140.0]])
+    quads = np.repeat(square[None], M, axis=0)
+    quads[1] = square[::-1]                                  # counter-clockwise: seen from behind
+    quads[2] = square * 0.1                                  # 16 px around
+    quads[3] = square + (500.0, 0.0)                         # reaches x = 640
+    kept = predicted_markers(quads, layout, INTR.width, INTR.height, min_perimeter_px=19.0, border_px=3.0)
+    assert [d.marker_id for d in kept] == [int(i) for k, i in enumerate(layout.marker_ids) if k not in (1, 2, 3)]
+    assert all(d.dictionary == layout.marker_dictionaries[0] and d.area_px2 == pytest.approx(1600.0) for d in kept)
