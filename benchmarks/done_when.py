@@ -118,7 +118,9 @@ def run_scene(bench, ceiling, scene: Scene, args: argparse.Namespace) -> dict:
                              bench.read_sim_start_s(full) + args.duration)
     robot = read_tracker_config(rec / "config.toml").robots[0].name
     t0 = time.monotonic()
-    tum = bench.readme_workflow(str(HOST), rec, drive, rec / "track" / bench.WORKFLOW, robot)
+    tum = rec / "track" / bench.WORKFLOW / f"{robot}.tum"
+    if not (args.score_only and tum.exists()):
+        tum = bench.readme_workflow(str(HOST), rec, drive, rec / "track" / bench.WORKFLOW, robot)
     workflow = bench.score(tum, read_tum(rec / "ground_truth.tum"))
     sightings = ceiling.cached(rec / ceiling.CACHE / "sightings.pkl", lambda: ceiling.capture_sightings(rec))
     truth = ceiling.Truth(rec)
@@ -169,6 +171,9 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--drive", type=float, default=30.0, help="seconds of the separate drive the workflow refines with")
     ap.add_argument("--calibration-frames", type=int, default=12, help="frames of the world-marker recording")
     ap.add_argument("--json", type=Path, help="also write the report here")
+    ap.add_argument("--score-only", action="store_true",
+                    help="score the workflow's files an earlier run left under --out instead of running its commands "
+                         "again (a scene without them is run)")
     ap.add_argument("--tables", type=Path, nargs="+", metavar="JSON",
                     help="run nothing: print one table from these reports (--json of earlier runs)")
     args = ap.parse_args(argv)
