@@ -238,8 +238,8 @@ class TreeSampler:
             for p in _tree(self.pid):
                 got = process_cpu_rss(p)
                 if got is not None:
-                    self.cpu[p], r = got
-                    rss, alive = rss + r, alive + 1
+                    self.cpu[p], r = got   # an ended process's CPU still counts; a zombie (no RSS) is not alive
+                    rss, alive = rss + r, alive + (r > 0)
             if rss:
                 self.samples.append((time.monotonic(), sum(self.cpu.values()), rss, alive))
                 self.main_cpu.append(self.cpu.get(self.pid, 0.0))

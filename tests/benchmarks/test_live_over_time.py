@@ -4,6 +4,8 @@ No live run here (test_live_smoke.py has one): a status file written by the test
 CPU samples whose intervals are known by construction."""
 
 import math
+import subprocess
+import sys
 import time
 
 import pytest
@@ -76,3 +78,34 @@ def test_a_long_runs_line_shows_its_start_and_its_worst_intervals_in_time_order(
     assert [r["from_s"] / 5.0 for r in shown] == [0, 1, 2, 3, 5, 7, 10, 12]
     rows[12]["dropped"] = 0                                 # now interval 13's p95 beats the other no-drop ones
     assert [r["from_s"] / 5.0 for r in live.shown_intervals(rows)] == [0, 1, 2, 3, 5, 7, 10, 13]
+
+
+def test_a_child_that_ended_is_not_counted_alive_by_the_tree_sampler():
+    """The end-of-run RSS is the last sample with every process alive: a worker that has exited but
+    is not yet reaped (a zombie, no resident memory) must not count, or that sample reads the tree
+    half torn down (a 16 x 30 run printed 249 MB "at the end" after 719 MB with four processes)."""
+    live = load_benchmark("live")
+    parent = subprocess.Popen([sys.executable, "-c", "import subprocess, sys, time\n"
+                               "subprocess.Popen([sys.executable, '-c', 'pass'])\ntime.sleep(30)"])
+    try:
+        deadline = time.monotonic() + 20.0
+        while time.monotonic() < deadline:   # until the child has exited, unreaped
+            children = live._children(parent.pid)
+            if children and _state(children[0]) == "Z":
+                break
+            time.sleep(0.02)
+        else:
+            pytest.fail("the child never became a zombie")
+        sampler = live.TreeSampler(parent.pid, period_s=0.01)
+        while not sampler.samples and time.monotonic() < deadline:
+            time.sleep(0.01)
+        sampler.stop()
+        assert sampler.samples[-1][3] == 1   # the parent alone
+    finally:
+        parent.kill()
+        parent.wait()
+
+
+def _state(pid: int) -> str:
+    with open(f"/proc/{pid}/stat") as f:
+        return f.read().rsplit(")", 1)[1].split()[0]
