@@ -40,6 +40,7 @@ correction, its covariance, how many frames made it and the running innovation s
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -47,8 +48,10 @@ from types import MappingProxyType
 
 import numpy as np
 
-from cubetrack.core.geometry import R_from_rotvec, make_T
-from cubetrack.estimate.reprojection import CornerSet, reprojection_jacobian_px
+from cubetrack.core.geometry import R_from_rotvec, invert_T, make_T
+from cubetrack.estimate.reprojection import CornerSet, reprojection_jacobian_px, reprojection_residuals_px
+from cubetrack.fuse.filter_kernels import moved_pose
+from cubetrack.fuse.multi_view_fit import solve_joint
 
 CLIP_SIGMAS = 4.0  # a correction is bounded to this many prior standard deviations per axis
 SIZE = 7  # [δt (3, m), δφ (3, rad), τ (1, s)]
@@ -119,15 +122,49 @@ def corrected_T_world_cam(T_world_cam: np.ndarray, offset: np.ndarray) -> np.nda
     return make_T(R_from_rotvec(offset[3:6]) @ T_world_cam[:3, :3], T_world_cam[:3, 3] + offset[0:3])
 
 
+TERM_PRIOR_SAMPLES = 5  # the calibration term as set counts as this many samples of a camera's disagreement ...
+TERM_MEMORY_SAMPLES = 20  # ... and the running estimate averages over about this many
+TERM_SCALE_BOUNDS = (0.25, 4.0)  # a camera's term is kept within these factors of the term as set
+TERM_SPAN_S = 0.05  # the other cameras' sightings at most this far in time from a sample make its reference
+TERM_FIT_ITERATIONS = 30  # Gauss-Newton steps at most of a reference fit (it starts at the filter's pose)
+TERM_REFERENCE_RMS_PX = 3.0  # a reference fit whose own corners are further off than this (RMS) is not used
+
+
+@dataclass(frozen=True, slots=True)
+class CameraTerm:
+    """How much one camera disagrees with the others, against the filter's calibration term:
+    ``log_ratio2`` the running mean of log((its corners' distance from the pose the other cameras
+    make, px)² over (the term's own spread there, px)²), each sample within the squared
+    ``TERM_SCALE_BOUNDS`` (a log mean: one wild sample, e.g. at a track start, moves it little),
+    starting at 0 (the term as set) and moving towards the samples; ``samples`` how many made it;
+    ``time_s`` the capture time of the newest."""
+
+    samples: int
+    log_ratio2: float
+    time_s: float
+
+    @property
+    def scale(self) -> float:
+        """The factor on the camera's calibration term (its sigmas), within ``TERM_SCALE_BOUNDS``."""
+        return float(np.clip(math.exp(self.log_ratio2 / 2.0), *TERM_SCALE_BOUNDS))
+
+
 @dataclass(frozen=True, slots=True)
 class CameraCorrections:
     """Every camera's :class:`CameraCorrection` so far (camera name -> correction; none yet: zero)
     and ``common`` (7,): what all cameras share (the mean of the extrinsic parts, the median of the
     time offsets: module doc), the rig's, not a camera's, so a camera's frames get its offset less
-    the common one (:meth:`applied`)."""
+    the common one (:meth:`applied`); ``terms``: each camera's :class:`CameraTerm` (how its
+    calibration term is sized, :func:`term_observed`)."""
 
     by_camera: Mapping[str, CameraCorrection] = field(default_factory=lambda: MappingProxyType({}))
     common: np.ndarray = field(default_factory=lambda: np.zeros(SIZE))
+    terms: Mapping[str, CameraTerm] = field(default_factory=lambda: MappingProxyType({}))
+
+    def term_scale(self, camera: str) -> float:
+        """The factor on the filter's calibration term for ``camera``'s frames (1: none measured yet)."""
+        term = self.terms.get(camera)
+        return 1.0 if term is None else term.scale
 
     def get(self, camera: str) -> CameraCorrection | None:
         return self.by_camera.get(camera)
@@ -217,7 +254,7 @@ def observed(corrections: CameraCorrections, priors: CorrectionPriors, sets: Seq
     if len(by_camera) > 1:
         offsets = np.array([c.offset for c in by_camera.values()])
         common[:6], common[6] = offsets[:, :6].mean(axis=0), np.median(offsets[:, 6])
-    return CameraCorrections(MappingProxyType(by_camera), _read_only(common))
+    return CameraCorrections(MappingProxyType(by_camera), _read_only(common), corrections.terms)
 
 
 def combined(all_corrections: Sequence[CameraCorrections], priors: CorrectionPriors) -> dict[str, CameraCorrection]:
@@ -236,3 +273,77 @@ def combined(all_corrections: Sequence[CameraCorrections], priors: CorrectionPri
                              rms_px=math.sqrt(sum(p.frames * p.rms_px**2 for p in parts) / frames),
                              chi2=sum(p.frames * p.chi2 for p in parts) / frames)
     return out
+
+
+def term_spread_px2(sets: Sequence[CornerSet], T_world_cube: np.ndarray, sigma_t_m: float, sigma_phi_rad: float,
+                    sigma_s: float) -> float:
+    """The calibration term's spread in one camera's corners, px² per coordinate (the mean of the
+    diagonal of ``H Σ Hᵀ``): ``Σ`` the body's apparent motion from a camera error of ``sigma_t_m``
+    per axis, ``sigma_phi_rad`` per axis and scale ``sigma_s``, as
+    :func:`cubetrack.fuse.filter_kernels.calibration_discount` models it."""
+    _, H = reprojection_jacobian_px(T_world_cube, sets)
+    T_cam_world = sets[0].T_cam_world
+    z = T_cam_world[2, :3]  # the optical axis in the world frame
+    d = T_world_cube[:3, 3] + T_cam_world[:3, :3].T @ T_cam_world[:3, 3]  # p - c
+    M = camera_jacobian(np.eye(6), T_world_cube, T_cam_world, np.zeros(3), np.zeros(3))[:, :6]
+    u = np.concatenate([z * float(z @ d), np.zeros(3)])
+    sigma = M @ np.diag(np.repeat([sigma_t_m**2, sigma_phi_rad**2], 3)) @ M.T + sigma_s**2 * np.outer(u, u)
+    return float(np.einsum("ij,jk,ik->i", H, sigma, H).mean())
+
+
+def term_due(corrections: CameraCorrections, cameras: Sequence[str], time_s: float, every_s: float) -> str | None:
+    """Of ``cameras``, the one whose term sample is most overdue at ``time_s`` (none for
+    ``every_s`` seconds or never), or None."""
+    def last(camera: str) -> float:
+        term = corrections.terms.get(camera)
+        return float("-inf") if term is None else term.time_s
+
+    due = sorted((last(c), c) for c in cameras if time_s - last(c) >= every_s)
+    return due[0][1] if due else None
+
+
+def seen_at(sets: Sequence[CornerSet], T_world_cube: np.ndarray, velocity_m_s: np.ndarray,
+            angular_velocity_rad_s: np.ndarray, time_s: float) -> list[CornerSet]:
+    """``sets`` as if taken at ``time_s``: each camera moved by the body's motion (at the given
+    velocities, from ``T_world_cube`` at ``time_s``) between the two times, backwards, so a
+    fit of the still body at ``time_s`` explains them."""
+    out = []
+    for s in sets:
+        G = moved_pose(T_world_cube, velocity_m_s, angular_velocity_rad_s, s.time_s - time_s) @ invert_T(T_world_cube)
+        out.append(dataclasses.replace(s, T_cam_world=s.T_cam_world @ G, time_s=time_s))
+    return out
+
+
+def term_observed(corrections: CameraCorrections, own: Sequence[CornerSet], others: Sequence[CornerSet],
+                  T_world_cube: np.ndarray, velocity_m_s: np.ndarray, angular_velocity_rad_s: np.ndarray,
+                  sigmas: tuple[float, float, float], corner_noise_px: float) -> CameraCorrections:
+    """``corrections`` with one sample of a camera's disagreement: ``own`` (its corners, one
+    frame) against the body's pose that ``others`` (at least two other cameras' corners, a few
+    milliseconds away) make by themselves at ``own``'s time (a leave-one-out fit, started at the
+    filter's pose ``T_world_cube`` predicted to that time; the others' frames moved to that time
+    at the filter's velocities, :func:`seen_at`: a few frames milliseconds apart cannot tell
+    velocity from the cameras' disagreement). The sample is the camera's corner spread there (robust: the median squared
+    distance of a corner, as a Gaussian's per-coordinate variance), less the corners' own noise,
+    over the calibration term's spread (``sigmas``: position m, orientation rad, scale; as set);
+    it moves the camera's :class:`CameraTerm` (prior: the term as set, ``TERM_PRIOR_SAMPLES``
+    samples' worth). Unchanged if the reference cannot be made or ``own`` has under two faces."""
+    if len({s.camera for s in others}) < 2 or sum(len(s.faces) for s in own) < 2:
+        return corrections
+    t = own[0].time_s
+    reference = solve_joint(seen_at(others, T_world_cube, velocity_m_s, angular_velocity_rad_s, t), T_world_cube, t,
+                            corner_noise_px, iterations=TERM_FIT_ITERATIONS)
+    if reference is None or reference.rms_px > TERM_REFERENCE_RMS_PX:
+        return corrections
+    r = reprojection_residuals_px(reference.T_world_cube, own, t).reshape(-1, 2)
+    spread_px2 = float(np.median(np.sum(r**2, axis=1))) / (2.0 * math.log(2.0))
+    term_px2 = term_spread_px2(own, reference.T_world_cube, *sigmas)
+    if not (math.isfinite(spread_px2) and term_px2 > 0.0):
+        return corrections
+    low, high = TERM_SCALE_BOUNDS
+    sample = math.log(min(max(max(spread_px2 - corner_noise_px**2, 0.0) / term_px2, low**2), high**2))
+    camera = own[0].camera
+    old = corrections.terms.get(camera) or CameraTerm(0, 0.0, float("-inf"))
+    k = 1.0 / min(old.samples + 1 + TERM_PRIOR_SAMPLES, TERM_MEMORY_SAMPLES)
+    term = CameraTerm(old.samples + 1, (1.0 - k) * old.log_ratio2 + k * sample, max(t, old.time_s))
+    return CameraCorrections(corrections.by_camera, corrections.common,
+                             MappingProxyType({**corrections.terms, camera: term}))

@@ -65,6 +65,10 @@ class FilterParams:
         "(1 sigma), which moves the body along the camera's optical axis by that fraction of its depth, so a "
         "camera's depth is trusted less than its view across (docs/tracking.md \"Cameras that disagree\"; 0: none; "
         "0.005 since issue 25's third round)")
+    camera_term_samples_per_s: float = param(
+        4.0, "the calibration term above sized per camera (docs/tracking.md \"Each camera's term from the others\"): "
+        "this many of a camera's frames a second are compared with the pose the other cameras make without it, and "
+        "its term follows how far off it is (within 1/4-4x of the term as set); 0: every camera gets the term as set")
     correction_time_sigma_s: float = param(
         0.0, "per-camera corrections estimated over the session (docs/tracking.md \"Per-camera corrections\"): the "
         "prior (1 sigma) of a camera's time offset (its frames taken that much before or after their stamps), seconds; "
@@ -101,7 +105,7 @@ class FilterParams:
                        "sharp_turn_rad_s", "turn_hold_s", "corner_noise_px", "huber_px", "gate_rms_px", "face_gate_px",
                        "init_velocity_sigma", "init_angular_velocity_sigma")
         check_non_negative(self, "camera_position_sigma_m", unit="metres")
-        check_non_negative(self, "camera_scale_sigma")
+        check_non_negative(self, "camera_scale_sigma", "camera_term_samples_per_s")
         check_non_negative(self, "camera_rotation_sigma_deg", "correction_rotation_sigma_deg", unit="degrees")
         check_non_negative(self, "correction_position_sigma_m", unit="metres")
         check_non_negative(self, "correction_time_sigma_s", "correction_memory_s", unit="seconds")
@@ -235,8 +239,10 @@ class PoseFilter:
         moved.P = (covariance + covariance.T) / 2.0
         return moved
 
-    def _solve(self, sets: Sequence[CornerSet]) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, np.ndarray]:
-        """Gauss-Newton on prior + Huber-weighted corner residuals: (δ (12,), the covariance after
+    def _solve(self, sets: Sequence[CornerSet], term_scale: float
+               ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, np.ndarray]:
+        """Gauss-Newton on prior + Huber-weighted corner residuals (the cameras' calibration term
+        times ``term_scale``): (δ (12,), the covariance after
         it (None if its information is singular), the pose moved by δ (4x4 ``T_world_cube``),
         residuals px there, less what the cameras' calibration error explains
         (:func:`cubetrack.fuse.filter_kernels.calibration_discount`)). Compiled:
@@ -248,17 +254,19 @@ class PoseFilter:
         informs the velocities too (the full 12-column Jacobian)."""
         prm = self.params
         moving = any(s.time_s != self.time_s for s in sets)
+        k = term_scale
         status, delta, _info, T, r, P, P_ok = solve_update(
             self.T_world_cube, self.P, self.time_s, self.velocity_m_s, self.angular_velocity_rad_s, *packed_sets(sets),
-            moving, prm.iterations, prm.huber_px, 1.0 / prm.corner_noise_px**2, prm.camera_position_sigma_m,
-            math.radians(prm.camera_rotation_sigma_deg), prm.camera_scale_sigma)
+            moving, prm.iterations, prm.huber_px, 1.0 / prm.corner_noise_px**2, k * prm.camera_position_sigma_m,
+            k * math.radians(prm.camera_rotation_sigma_deg), k * prm.camera_scale_sigma)
         if status != OK:
             raise np.linalg.LinAlgError("singular matrix")
         return delta, (P if P_ok else None), T, r
 
-    def update(self, sets: Sequence[CornerSet]) -> UpdateResult:
+    def update(self, sets: Sequence[CornerSet], term_scale: float = 1.0) -> UpdateResult:
         """Iterated EKF update with the corners of ``sets``, each taken at its ``time_s`` (the
-        filter's time, or near it: a rolling-shutter row time).
+        filter's time, or near it: a rolling-shutter row time); ``term_scale``: the factor on the
+        calibration term for their camera (:meth:`cubetrack.fuse.camera_corrections.CameraCorrections.term_scale`).
 
         A face whose corners stay more than ``face_gate_px`` (RMS) off after the update is
         dropped and the update redone; the whole sighting is rejected if its RMS residual is
@@ -266,7 +274,7 @@ class PoseFilter:
         """
         sets = [s for s in sets if s is not None and len(s.faces)]
         while sets:
-            delta, P, T, r = self._solve(sets)
+            delta, P, T, r = self._solve(sets, term_scale)
             face_rms = np.sqrt((r * r).reshape(-1, 8).sum(axis=1) / 8.0)  # RMS of 4 corners x (x, y) per face
             if len(face_rms) == 1:
                 break

@@ -50,12 +50,15 @@ from cubetrack.estimate.params import EstimatorParams
 from cubetrack.estimate.pose import estimate_cube
 from cubetrack.estimate.reprojection import CornerSet, corner_set, normalize_px
 from cubetrack.fuse.camera_corrections import (
+    TERM_SPAN_S,
     CameraCorrection,
     CameraCorrections,
     CorrectionPriors,
     combined,
     corrected_T_world_cam,
     observed,
+    term_due,
+    term_observed,
 )
 from cubetrack.fuse.corner_filter import FilterParams, PoseFilter
 from cubetrack.fuse.filter_kernels import compile_filter_kernels, spread_m
@@ -517,7 +520,7 @@ class FilterFusion:
         f.predict(t)
         corners = self._corners(sighting, f.T_world_cube, state.corrections, f.pose_covariance)
         prior, outcome = f.copy(), "accepted sighting"
-        if not (corners and f.update(corners).accepted):
+        if not (corners and f.update(corners, state.corrections.term_scale(sighting.camera)).accepted):
             again = self._reacquire(sighting, f, state.corrections)
             if again is not None:
                 (f, corners), outcome = again, "re-acquired sighting"
@@ -535,6 +538,7 @@ class FilterFusion:
             corrections = observed(corrections, self._priors, corners, prior.T_world_cube, prior.velocity_m_s,
                                    prior.angular_velocity_rad_s, prior.time_s, prior.P,
                                    fp.corner_noise_px, fp.huber_px)
+            corrections = self._term_sample(history, index, f, corrections)
         new = RobotState(f, t, 0, corrections)
         if not record:
             return new, None, outcome
@@ -561,7 +565,37 @@ class FilterFusion:
         prior = np.diag(np.repeat([self.params.reacquire_m**2, np.radians(30.0) ** 2], 3))
         g = PoseFilter(self.filter_params, f.time_s, estimate.T_world_cube, prior, f.velocity_m_s,
                        f.angular_velocity_rad_s)
-        return (g, corners) if g.update(corners).accepted else None
+        return (g, corners) if g.update(corners, corrections.term_scale(sighting.camera)).accepted else None
+
+    def _term_sample(self, history: list[HistoryStep], index: int, f: PoseFilter,
+                     corrections: CameraCorrections) -> CameraCorrections:
+        """``corrections`` with a sample of the most overdue camera's calibration term
+        (:func:`cubetrack.fuse.camera_corrections.term_observed`): its newest sighting up to
+        ``history[index]`` against each other camera's sighting nearest to it within
+        ``TERM_SPAN_S``, matched at the filter ``f``'s pose; unchanged when no camera is due."""
+        fp = self.filter_params
+        if fp.camera_term_samples_per_s <= 0:
+            return corrections
+        t, recent = history[index].key[0], list[CubeSighting]()
+        for step in reversed(history[max(0, index + 1 - self.START_WINDOW): index + 1]):
+            if t - step.key[0] > 2 * TERM_SPAN_S:
+                break
+            recent.append(step.sighting)
+        newest = {s.camera: s for s in reversed(recent) if t - s.capture_time_s <= TERM_SPAN_S}
+        camera = term_due(corrections, sorted(newest), t, 1.0 / fp.camera_term_samples_per_s)
+        if camera is None or len(newest) < 3:
+            return corrections
+        own, nearest = newest[camera], dict[str, CubeSighting]()
+        for s in recent:
+            gap = abs(s.capture_time_s - own.capture_time_s)
+            if s.camera != camera and gap <= TERM_SPAN_S and (
+                    s.camera not in nearest or gap < abs(nearest[s.camera].capture_time_s - own.capture_time_s)):
+                nearest[s.camera] = s
+        T_own = f.predicted(own.capture_time_s)
+        others = [c for s in nearest.values() for c in self._corners(s, T_own, corrections)]
+        sigmas = (fp.camera_position_sigma_m, math.radians(fp.camera_rotation_sigma_deg), fp.camera_scale_sigma)
+        return term_observed(corrections, self._corners(own, T_own, corrections), others, T_own, f.velocity_m_s,
+                             f.angular_velocity_rad_s, sigmas, fp.corner_noise_px)
 
     def _start(self, state: RobotState, sighting: CubeSighting, recent: list[CubeSighting], now_s: float,
                record: bool) -> tuple[RobotState, TrackedPose | None, str]:
