@@ -137,7 +137,7 @@ class CameraTerm:
     make, px)² over (the term's own spread there, px)²), each sample within the squared
     ``TERM_SCALE_BOUNDS`` (a log mean: one wild sample, e.g. at a track start, moves it little),
     starting at 0 (the term as set) and moving towards the samples; ``samples`` how many made it;
-    ``time_s`` the capture time of the newest."""
+    ``time_s`` the capture time of the newest sample or attempt."""
 
     samples: int
     log_ratio2: float
@@ -326,24 +326,31 @@ def term_observed(corrections: CameraCorrections, own: Sequence[CornerSet], othe
     distance of a corner, as a Gaussian's per-coordinate variance), less the corners' own noise,
     over the calibration term's spread (``sigmas``: position m, orientation rad, scale; as set);
     it moves the camera's :class:`CameraTerm` (prior: the term as set, ``TERM_PRIOR_SAMPLES``
-    samples' worth). Unchanged if the reference cannot be made or ``own`` has under two faces."""
-    if len({s.camera for s in others}) < 2 or sum(len(s.faces) for s in own) < 2:
+    samples' worth). Where the reference cannot be made, only the attempt's time is kept (the camera
+    waits for its next turn, as after a sample)."""
+    if not own:
         return corrections
-    t = own[0].time_s
+    t, camera = own[0].time_s, own[0].camera
+    old = corrections.terms.get(camera) or CameraTerm(0, 0.0, float("-inf"))
+    tried = _with_term(corrections, camera, CameraTerm(old.samples, old.log_ratio2, max(t, old.time_s)))
+    if len({s.camera for s in others}) < 2:
+        return tried
     reference = solve_joint(seen_at(others, T_world_cube, velocity_m_s, angular_velocity_rad_s, t), T_world_cube, t,
                             corner_noise_px, iterations=TERM_FIT_ITERATIONS)
     if reference is None or reference.rms_px > TERM_REFERENCE_RMS_PX:
-        return corrections
+        return tried
     r = reprojection_residuals_px(reference.T_world_cube, own, t).reshape(-1, 2)
     spread_px2 = float(np.median(np.sum(r**2, axis=1))) / (2.0 * math.log(2.0))
     term_px2 = term_spread_px2(own, reference.T_world_cube, *sigmas)
     if not (math.isfinite(spread_px2) and term_px2 > 0.0):
-        return corrections
+        return tried
     low, high = TERM_SCALE_BOUNDS
     sample = math.log(min(max(max(spread_px2 - corner_noise_px**2, 0.0) / term_px2, low**2), high**2))
-    camera = own[0].camera
-    old = corrections.terms.get(camera) or CameraTerm(0, 0.0, float("-inf"))
     k = 1.0 / min(old.samples + 1 + TERM_PRIOR_SAMPLES, TERM_MEMORY_SAMPLES)
-    term = CameraTerm(old.samples + 1, (1.0 - k) * old.log_ratio2 + k * sample, max(t, old.time_s))
+    return _with_term(corrections, camera,
+                      CameraTerm(old.samples + 1, (1.0 - k) * old.log_ratio2 + k * sample, max(t, old.time_s)))
+
+
+def _with_term(corrections: CameraCorrections, camera: str, term: CameraTerm) -> CameraCorrections:
     return CameraCorrections(corrections.by_camera, corrections.common,
                              MappingProxyType({**corrections.terms, camera: term}))
