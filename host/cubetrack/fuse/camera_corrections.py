@@ -322,10 +322,11 @@ def term_observed(corrections: CameraCorrections, own: Sequence[CornerSet], othe
     milliseconds away) make by themselves at ``own``'s time (a leave-one-out fit, started at the
     filter's pose ``T_world_cube`` predicted to that time; the others' frames moved to that time
     at the filter's velocities, :func:`seen_at`: a few frames milliseconds apart cannot tell
-    velocity from the cameras' disagreement). The sample is the camera's corner spread there (robust: the median squared
-    distance of a corner, as a Gaussian's per-coordinate variance), less the corners' own noise,
-    over the calibration term's spread (``sigmas``: position m, orientation rad, scale; as set);
-    it moves the camera's :class:`CameraTerm` (prior: the term as set, ``TERM_PRIOR_SAMPLES``
+    velocity from the cameras' disagreement). The sample is the camera's corner spread there
+    (robust: the median squared distance of a corner, as a Gaussian's per-coordinate variance),
+    less the corners' own noise, over the calibration term's spread (``sigmas``: position m,
+    orientation rad, scale; as set); its log (a geometric mean: one wild sample, e.g. at a track
+    start, moves it little) moves the camera's :class:`CameraTerm` (prior: the term as set, ``TERM_PRIOR_SAMPLES``
     samples' worth). Where the reference cannot be made, only the attempt's time is kept (the camera
     waits for its next turn, as after a sample)."""
     if not own:
@@ -339,7 +340,8 @@ def term_observed(corrections: CameraCorrections, own: Sequence[CornerSet], othe
                             corner_noise_px, iterations=TERM_FIT_ITERATIONS)
     if reference is None or reference.rms_px > TERM_REFERENCE_RMS_PX:
         return tried
-    r = reprojection_residuals_px(reference.T_world_cube, own, t).reshape(-1, 2)
+    r = reprojection_residuals_px(reference.T_world_cube, own, t, velocity_m_s,  # a rolling shutter's faces
+                                  angular_velocity_rad_s).reshape(-1, 2)
     spread_px2 = float(np.median(np.sum(r**2, axis=1))) / (2.0 * math.log(2.0))
     term_px2 = term_spread_px2(own, reference.T_world_cube, *sigmas)
     if not (math.isfinite(spread_px2) and term_px2 > 0.0):

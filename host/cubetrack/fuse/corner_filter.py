@@ -66,9 +66,10 @@ class FilterParams:
         "camera's depth is trusted less than its view across (docs/tracking.md \"Cameras that disagree\"; 0: none; "
         "0.005 since issue 25's third round)")
     camera_term_samples_per_s: float = param(
-        4.0, "the calibration term above sized per camera (docs/tracking.md \"Each camera's term from the others\"): "
-        "this many of a camera's frames a second are compared with the pose the other cameras make without it, and "
-        "its term follows how far off it is (within 1/4-4x of the term as set); 0: every camera gets the term as set")
+        0.0, "the calibration term above sized per camera (docs/tracking.md \"Each camera's term from the others\"): "
+        "this many of a camera's frames a second (e.g. 4) are compared with the pose the other cameras make without "
+        "it, and its term follows how far off it is (within 1/4-4x of the term as set); 0: every camera gets the term "
+        "as set (not the default: it costs the simulator's presets position accuracy, docs/tracking.md)")
     correction_time_sigma_s: float = param(
         0.0, "per-camera corrections estimated over the session (docs/tracking.md \"Per-camera corrections\"): the "
         "prior (1 sigma) of a camera's time offset (its frames taken that much before or after their stamps), seconds; "
