@@ -10,10 +10,14 @@ from scipy.spatial.transform import Rotation
 from test_joint_and_filter import CAMS, INTR, LAYOUT, cube_pose, detections
 
 from cubetrack.core.geometry import make_T
+from cubetrack.core.records import CubeSighting
 from cubetrack.estimate import reprojection
 from cubetrack.estimate.match import match_faces
+from cubetrack.estimate.pose import estimate_cube
 from cubetrack.fuse.camera_corrections import CameraCorrections, CameraTerm, term_due, term_observed
+from cubetrack.fuse.corner_filter import FilterParams
 from cubetrack.fuse.filter_kernels import moved_pose
+from cubetrack.fuse.fusion import FilterFusion, FusionParams
 
 TURN = make_T(Rotation.from_rotvec(np.radians(0.3) * np.array([0.8, 0.6, 0.0])).as_matrix(), [0.0, 0.0, 0.0])
 SIGMAS = (0.002, np.radians(0.1), 0.005)  # the filter's default term
@@ -73,3 +77,26 @@ def test_a_camera_waits_its_turn():
     assert after.term_scale("cam1") == 1.0 and after.term_scale("cam3") == 1.0
     assert term_due(after, ["cam1", "cam2"], 1.1, 0.25) == "cam2"
     assert term_due(after, ["cam1"], 1.1, 0.25) is None and term_due(after, ["cam1"], 1.25, 0.25) == "cam1"
+
+
+def test_the_fusion_samples_each_camera_in_turn_and_only_when_asked():
+    """A still cube seen by three cameras 0 / 5 / 10 ms apart at 6 fps for 3 s: with 4 samples a
+    second each camera is sampled (one per instant at most: the most overdue camera), cam2 seeing
+    one face as the others see two or three (it starved them before a failed sample counted as its
+    turn); with the setting at 0 (the default) nothing is."""
+    for rate in (4.0, 0.0):
+        rng = np.random.default_rng(5)
+        fusion = FilterFusion({"bot": LAYOUT}, FusionParams(), FilterParams(camera_term_samples_per_s=rate))
+        for k in range(18):
+            for camera, lag in zip(CAMS, (0.0, 0.005, 0.010), strict=True):
+                t = k / 6.0 + lag
+                dets = detections(cube_pose(), CAMS[camera], rng)
+                estimate = estimate_cube(dets, LAYOUT, INTR, CAMS[camera], camera=camera, robot="bot", seq=k,
+                                         capture_time_s=t, arrival_time_s=t)
+                fusion.add(CubeSighting(camera, "bot", k, t, t, dets, estimate, CAMS[camera], INTR), t)
+        terms = fusion.state["bot"].corrections.terms
+        if rate:
+            assert sorted(terms) == sorted(CAMS) and all(4 <= term.samples <= 6 for term in terms.values()), terms
+            assert all(term.scale < 1.0 for term in terms.values()), terms  # cameras that agree
+        else:
+            assert not terms
