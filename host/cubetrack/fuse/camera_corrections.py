@@ -333,7 +333,7 @@ def term_observed(corrections: CameraCorrections, own: Sequence[CornerSet], othe
         return corrections
     t, camera = own[0].time_s, own[0].camera
     old = corrections.terms.get(camera) or CameraTerm(0, 0.0, float("-inf"))
-    tried = _with_term(corrections, camera, CameraTerm(old.samples, old.log_ratio2, max(t, old.time_s)))
+    tried = term_tried(corrections, camera, t)
     if len({s.camera for s in others}) < 2:
         return tried
     reference = solve_joint(seen_at(others, T_world_cube, velocity_m_s, angular_velocity_rad_s, t), T_world_cube, t,
@@ -351,6 +351,13 @@ def term_observed(corrections: CameraCorrections, own: Sequence[CornerSet], othe
     k = 1.0 / min(old.samples + 1 + TERM_PRIOR_SAMPLES, TERM_MEMORY_SAMPLES)
     return _with_term(corrections, camera,
                       CameraTerm(old.samples + 1, (1.0 - k) * old.log_ratio2 + k * sample, max(t, old.time_s)))
+
+
+def term_tried(corrections: CameraCorrections, camera: str, time_s: float) -> CameraCorrections:
+    """``corrections`` with ``camera``'s turn at ``time_s`` taken and no sample (no reference, or
+    none of its corners matched): it waits for its next turn, as after a sample."""
+    old = corrections.terms.get(camera) or CameraTerm(0, 0.0, float("-inf"))
+    return _with_term(corrections, camera, CameraTerm(old.samples, old.log_ratio2, max(time_s, old.time_s)))
 
 
 def _with_term(corrections: CameraCorrections, camera: str, term: CameraTerm) -> CameraCorrections:

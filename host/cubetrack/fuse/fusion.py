@@ -59,6 +59,7 @@ from cubetrack.fuse.camera_corrections import (
     observed,
     term_due,
     term_observed,
+    term_tried,
 )
 from cubetrack.fuse.corner_filter import FilterParams, PoseFilter
 from cubetrack.fuse.filter_kernels import compile_filter_kernels, spread_m
@@ -592,10 +593,13 @@ class FilterFusion:
                     s.camera not in nearest or gap < abs(nearest[s.camera].capture_time_s - own.capture_time_s)):
                 nearest[s.camera] = s
         T_own = f.predicted(own.capture_time_s)
+        mine = self._corners(own, T_own, corrections)
+        if not mine:
+            return term_tried(corrections, camera, own.capture_time_s)
         others = [c for s in nearest.values() for c in self._corners(s, T_own, corrections)]
         sigmas = (fp.camera_position_sigma_m, math.radians(fp.camera_rotation_sigma_deg), fp.camera_scale_sigma)
-        return term_observed(corrections, self._corners(own, T_own, corrections), others, T_own, f.velocity_m_s,
-                             f.angular_velocity_rad_s, sigmas, fp.corner_noise_px)
+        return term_observed(corrections, mine, others, T_own, f.velocity_m_s, f.angular_velocity_rad_s, sigmas,
+                             fp.corner_noise_px)
 
     def _start(self, state: RobotState, sighting: CubeSighting, recent: list[CubeSighting], now_s: float,
                record: bool) -> tuple[RobotState, TrackedPose | None, str]:

@@ -14,7 +14,7 @@ from cubetrack.core.records import CubeSighting
 from cubetrack.estimate import reprojection
 from cubetrack.estimate.match import match_faces
 from cubetrack.estimate.pose import estimate_cube
-from cubetrack.fuse.camera_corrections import CameraCorrections, CameraTerm, term_due, term_observed
+from cubetrack.fuse.camera_corrections import CameraCorrections, CameraTerm, term_due, term_observed, term_tried
 from cubetrack.fuse.corner_filter import FilterParams
 from cubetrack.fuse.filter_kernels import moved_pose
 from cubetrack.fuse.fusion import FilterFusion, FusionParams
@@ -77,6 +77,8 @@ def test_a_camera_waits_its_turn():
     assert after.term_scale("cam1") == 1.0 and after.term_scale("cam3") == 1.0
     assert term_due(after, ["cam1", "cam2"], 1.1, 0.25) == "cam2"
     assert term_due(after, ["cam1"], 1.1, 0.25) is None and term_due(after, ["cam1"], 1.25, 0.25) == "cam1"
+    # a camera none of whose corners matched takes its turn too (else it is due at every sighting)
+    assert term_due(term_tried(after, "cam2", 1.1), ["cam1", "cam2"], 1.2, 0.25) is None
 
 
 def test_the_fusion_samples_each_camera_in_turn_and_only_when_asked():
