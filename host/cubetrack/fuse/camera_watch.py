@@ -56,7 +56,6 @@ run in the background).
 
 from __future__ import annotations
 
-import dataclasses
 import datetime
 import enum
 import math
@@ -68,7 +67,6 @@ from typing import Any
 import numpy as np
 
 from cubetrack.core.geometry import (
-    invert_T,
     position_quat_from_T,
     rotation_angle,
     so3_left_jacobian,
@@ -93,6 +91,9 @@ class WatchParams:
                                  "re-calibrate it from the robots' sightings")
     samples_per_s: float = param(8.0, "sightings per camera and second checked against the other cameras (the "
                                       "rest are not: each check is a multi-camera fit)")
+    checks_per_s: float = param(40.0, "sightings checked per second over all cameras at most: with more cameras than "
+                                      "checks_per_s / samples_per_s each camera is checked less often, in turn, so "
+                                      "16 cameras cost what 5 do")
     reference_span_s: float = param(0.15, "the other cameras' sightings within this many seconds of a checked "
                                           "one form its reference cube pose, seconds")
     reference_cameras: int = param(2, "other cameras that must see the cube for a reference (one alone is weak in "
@@ -136,7 +137,7 @@ class WatchParams:
 
     def __post_init__(self) -> None:
         check_at_least(self, 0, "gate_prediction_px")
-        check_positive(self, "baseline_s", "baseline_every_s", "samples_per_s", "reference_span_s",
+        check_positive(self, "baseline_s", "baseline_every_s", "samples_per_s", "checks_per_s", "reference_span_s",
                        "reference_rms_px", "window_s", "check_every_s", "moved_px", "moved_ratio", "moved_m",
                        "moved_deg", "rejoin_sigma_m", "rejoin_sigma_deg", "rejoin_agree_m", "rejoin_agree_deg",
                        "corner_noise_px", "gate_px", "suspect_px", "gate_prediction_ratio")
@@ -226,6 +227,12 @@ VELOCITY_SIGMA = (1.0, 4.0)  # the reference fits' prior spread of the cube's ve
 # 0.012 mm / 0.01 deg of the trust-region solver's solutions, 5.2x (reference fits) and 1.8x (camera refits)
 # cheaper (docs/calibration.md, "The reference fit by Gauss-Newton")
 FIT_ITERATIONS = 30
+# the watcher matches a sighting's faces where the fused prediction projects them, within this (ids distinct): a
+# bumped camera's corners land several pixels off (1 deg ~ 10 px here), the prediction's own error is a few px
+PREDICTION_GATE_PX = 40.0
+# a check's reference fit takes this many sightings of each other camera, those nearest the checked one in time (more
+# average the corners' noise; each costs the fit and the matching)
+REFERENCE_SIGHTINGS = 2
 WINDOW_PRIOR_M = 0.05  # a window's fit: prior spread of the camera's position about its settled pose, metres
 WINDOW_PRIOR_DEG = 3.0  # ... and of its orientation, degrees
 
@@ -254,6 +261,15 @@ class CameraFit:
         (m) and the angle between the orientations (deg)."""
         return (float(np.linalg.norm(self.T_world_cam[:3, 3] - T_world_cam[:3, 3])),
                 rotation_angle(T_world_cam[:3, :3], self.T_world_cam[:3, :3], unit="deg"))
+
+
+def set_medians(values: np.ndarray, lengths: Sequence[int]) -> list[float]:
+    """The median of each consecutive run of ``values`` (runs of ``lengths``, none empty), in
+    one sort: each run's middle one or two values once sorted within the runs."""
+    n = np.asarray(lengths)
+    start = np.concatenate([[0], np.cumsum(n)[:-1]])
+    ordered = values[np.lexsort((values, np.repeat(np.arange(len(n)), n)))]
+    return ((ordered[start + (n - 1) // 2] + ordered[start + n // 2]) / 2.0).tolist()
 
 
 def residuals_px(T_world_cam: np.ndarray, points_world_m: np.ndarray, normalized: np.ndarray,
@@ -413,6 +429,7 @@ class CameraWatch:
         self.stats: Counter[str] = Counter()
         self._recent: dict[str, deque[CubeSighting]] = {r: deque() for r in layouts}
         self._sets: dict[tuple[str, str, int], tuple[np.ndarray | None, list[CornerSet]]] = {}
+        self._predicted: dict[tuple[str, str, int], np.ndarray] = {}  # a recent sighting's fused prediction
         self._pending: deque[CubeSighting] = deque()
         self._next_sample_s: dict[str, float] = {}
         self._newest_s = -math.inf
@@ -434,10 +451,12 @@ class CameraWatch:
         settled = self.settled.get(sighting.camera)
         if p.gate_prediction_px <= 0 or settled is None or sighting.robot not in self.layouts:
             return False
-        sets = [dataclasses.replace(s, T_cam_world=invert_T(settled)) for s in self._corner_sets(sighting)[1]]
+        sets = self._corner_sets(sighting)[1]
         if not sets:
             return False
-        residual = reprojection_residuals_px(T_world_cube, sets, sighting.capture_time_s).reshape(-1, 2)
+        points_world_m = transform_points(T_world_cube, np.concatenate([s.points_cube_m for s in sets]))
+        residual = residuals_px(settled, points_world_m, np.concatenate([s.normalized for s in sets]),
+                                np.repeat([s.focal_px for s in sets], [len(s.normalized) for s in sets]))
         miss = float(np.median(np.linalg.norm(residual, axis=1)))
         latest = self._off_prediction[sighting.robot]
         latest[sighting.camera] = (sighting.capture_time_s, miss)
@@ -459,22 +478,26 @@ class CameraWatch:
         return [c for c, s in self.state.items()
                 if s is CameraState.RECALIBRATING and self.points(c) >= self.params.rejoin_points]
 
-    def add(self, sighting: CubeSighting) -> list[WatchEvent]:
-        """Take one sighting (any camera, any robot, in about capture order); returns the events
-        it led to (a camera declared moved)."""
+    def add(self, sighting: CubeSighting, T_world_cube: np.ndarray | None = None) -> list[WatchEvent]:
+        """Take one sighting (any camera, any robot, in about capture order) and the fused
+        prediction of its cube's pose at its capture time (None: no track), which its faces are
+        matched by; returns the events it led to (a camera declared moved)."""
         if sighting.robot not in self.layouts or sighting.camera not in self.state:
             return []
-        t = sighting.capture_time_s
+        t, p = sighting.capture_time_s, self.params
         self._newest_s = max(self._newest_s, t)
         recent = self._recent[sighting.robot]
         recent.append(sighting)
-        keep_s = 2.0 * self.params.reference_span_s + 1.0
+        if T_world_cube is not None:
+            self._predicted[(sighting.camera, sighting.robot, sighting.seq)] = T_world_cube
+        keep_s = 2.0 * p.reference_span_s + 1.0
         while recent and recent[0].capture_time_s < self._newest_s - keep_s:
             old = recent.popleft()
             self._sets.pop((old.camera, old.robot, old.seq), None)
-        if t >= self._next_sample_s.get(sighting.camera, -math.inf):
+            self._predicted.pop((old.camera, old.robot, old.seq), None)
+        if t >= self._next_sample_s.get(sighting.camera, -math.inf):  # checks_per_s shared by the cameras in turn
             self._pending.append(sighting)
-            self._next_sample_s[sighting.camera] = t + 1.0 / self.params.samples_per_s
+            self._next_sample_s[sighting.camera] = t + max(1.0 / p.samples_per_s, len(self.state) / p.checks_per_s)
         while self._pending and self._pending[0].capture_time_s + self.params.reference_span_s <= self._newest_s:
             sample = self._sample(self._pending.popleft())
             if sample is not None:
@@ -595,12 +618,23 @@ class CameraWatch:
                 self.settled[camera] = fit.T_world_cam
 
     def _corner_sets(self, sighting: CubeSighting) -> tuple[np.ndarray | None, list[CornerSet]]:
-        """The sighting's own cube pose (its camera's estimate) and its corners matched to faces
-        by it (once per sighting)."""
+        """A cube pose for the sighting and its corners matched to faces by it (once per
+        sighting): the fused prediction given to :meth:`add` where it matches a face (a compiled
+        projection; within ``PREDICTION_GATE_PX``, or ``gate_px`` where an id is on several faces),
+        else the sighting's own estimate (a per-marker pose search, ~10x dearer)."""
         key = (sighting.camera, sighting.robot, sighting.seq)
         found = self._sets.get(key)
+        layout = self.layouts[sighting.robot]
+        predicted = self._predicted.get(key)
+        if found is None and predicted is not None:
+            gate_px = self.params.gate_px if layout.has_repeated_ids else PREDICTION_GATE_PX
+            matches = match_faces(sighting.detections, layout, sighting.intrinsics, sighting.T_world_cam, predicted,
+                                  gate_px=gate_px)
+            if matches:
+                found = predicted, sighting_corner_sets(matches, sighting.intrinsics, sighting.T_world_cam,
+                                                        sighting.camera, sighting.capture_time_s)
+                self._sets[key] = found
         if found is None:
-            layout = self.layouts[sighting.robot]
             estimate = sighting.estimate or estimate_cube(
                 sighting.detections, layout, sighting.intrinsics, sighting.T_world_cam, camera=sighting.camera,
                 robot=sighting.robot, seq=sighting.seq, capture_time_s=sighting.capture_time_s,
@@ -615,35 +649,44 @@ class CameraWatch:
             self._sets[key] = found
         return found
 
+    def _reference_sets(self, sighting: CubeSighting) -> list[CornerSet]:
+        """The corner sets of the other cameras' reference for a checked sighting: of the
+        ``reference_cameras_max`` other cameras in use with a sighting nearest in time within
+        ``reference_span_s``, the ``REFERENCE_SIGHTINGS`` sightings of each nearest in time."""
+        t, span = sighting.capture_time_s, self.params.reference_span_s
+        near = sorted(((abs(o.capture_time_s - t), o) for o in self._recent[sighting.robot]
+                       if o.camera != sighting.camera and abs(o.capture_time_s - t) <= span), key=lambda item: item[0])
+        taken: Counter[str] = Counter()
+        chosen: list[CubeSighting] = []
+        for _, o in near:
+            if taken[o.camera] < REFERENCE_SIGHTINGS and not self.excluded(o.camera) and (
+                    o.camera in taken or len(taken) < self.params.reference_cameras_max):
+                taken[o.camera] += 1
+                chosen.append(o)
+        return [s for o in chosen for s in self._corner_sets(o)[1]]
+
     def _sample(self, sighting: CubeSighting) -> WatchSample | None:
         """The sighting against the other watched cameras' cube pose at its time, or None (counted)."""
         T_own, mine = self._corner_sets(sighting)
         if T_own is None or not mine:
             self.stats["no cube matched"] += 1
             return None
-        t, span = sighting.capture_time_s, self.params.reference_span_s
-        near = [o for o in self._recent[sighting.robot]
-                if o.camera != sighting.camera and abs(o.capture_time_s - t) <= span and not self.excluded(o.camera)]
-        gap: dict[str, float] = {}  # each other camera: how near in time its nearest sighting is
-        for o in near:
-            gap[o.camera] = min(gap.get(o.camera, math.inf), abs(o.capture_time_s - t))
-        chosen = set(sorted(gap, key=lambda c: gap[c])[:self.params.reference_cameras_max])
-        others = [s for o in near if o.camera in chosen for s in self._corner_sets(o)[1]]
+        others = self._reference_sets(sighting)
         if len({s.camera for s in others}) < self.params.reference_cameras:
             self.stats["too few other cameras"] += 1
             return None
-        # started from the camera's own cube pose: off by what the camera moved, a few cm and degrees at most
+        # started from the sighting's cube pose (the fused prediction, or its camera's own estimate)
+        t = sighting.capture_time_s
         reference = solve_joint(others, T_own, t, self.params.corner_noise_px, velocity_sigma=VELOCITY_SIGMA,
                                 iterations=FIT_ITERATIONS)
         if reference is None or reference.rms_px > self.params.reference_rms_px:
             self.stats["reference fit refused"] += 1
             return None
         self.stats["checked"] += 1
-        r = reprojection_residuals_px(reference.T_world_cube, others, t, reference.velocity_m_s,
-                                      reference.angular_velocity_rad_s).reshape(-1, 2)
-        rows = np.cumsum([0] + [len(s.points_cube_m) for s in others])
-        for s, a, b in zip(others, rows[:-1], rows[1:], strict=True):
-            self._disagreement[s.camera].append((t, float(np.median(np.linalg.norm(r[a:b], axis=1)))))
+        r = np.linalg.norm(reprojection_residuals_px(reference.T_world_cube, others, t, reference.velocity_m_s,
+                                                     reference.angular_velocity_rad_s).reshape(-1, 2), axis=1)
+        for s, disagreement in zip(others, set_medians(r, [len(s.points_cube_m) for s in others]), strict=True):
+            self._disagreement[s.camera].append((t, disagreement))
         points = [transform_points(moved_pose(reference.T_world_cube, reference.velocity_m_s,
                                               reference.angular_velocity_rad_s, s.time_s - t), s.points_cube_m)
                   for s in mine]
