@@ -56,6 +56,7 @@ run in the background).
 
 from __future__ import annotations
 
+import dataclasses
 import datetime
 import enum
 import math
@@ -67,6 +68,7 @@ from typing import Any
 import numpy as np
 
 from cubetrack.core.geometry import (
+    invert_T,
     position_quat_from_T,
     rotation_angle,
     so3_left_jacobian,
@@ -210,7 +212,8 @@ class WatchSample:
     normalised image coordinates; ``focal_px`` (N,) its focal length). For the re-calibration's
     joint fit (:func:`cubetrack.calib.recalibrate.recalibrate`): the sighting's own corner sets
     (``own_sets``), the other cameras' (``reference_sets``) and the cube pose they gave
-    (``T_world_cube``, None when not kept)."""
+    (``T_world_cube``, None when not kept); ``reference_rms_px`` the RMS corner residual of that
+    fit (how well the other cameras agree among themselves)."""
 
     camera: str
     time_s: float
@@ -220,6 +223,7 @@ class WatchSample:
     own_sets: tuple[CornerSet, ...] = ()
     reference_sets: tuple[CornerSet, ...] = ()
     T_world_cube: np.ndarray | None = None
+    reference_rms_px: float = 0.0
 
 
 VELOCITY_SIGMA = (1.0, 4.0)  # the reference fits' prior spread of the cube's velocities: m/s, rad/s
@@ -428,7 +432,7 @@ class CameraWatch:
         self.events: list[WatchEvent] = []
         self.stats: Counter[str] = Counter()
         self._recent: dict[str, deque[CubeSighting]] = {r: deque() for r in layouts}
-        self._sets: dict[tuple[str, str, int], tuple[np.ndarray | None, list[CornerSet]]] = {}
+        self._sets: dict[tuple[str, str, int, bool], tuple[np.ndarray | None, list[CornerSet]]] = {}
         self._predicted: dict[tuple[str, str, int], np.ndarray] = {}  # a recent sighting's fused prediction
         self._pending: deque[CubeSighting] = deque()
         self._next_sample_s: dict[str, float] = {}
@@ -493,7 +497,8 @@ class CameraWatch:
         keep_s = 2.0 * p.reference_span_s + 1.0
         while recent and recent[0].capture_time_s < self._newest_s - keep_s:
             old = recent.popleft()
-            self._sets.pop((old.camera, old.robot, old.seq), None)
+            for by_prediction in (True, False):
+                self._sets.pop((old.camera, old.robot, old.seq, by_prediction), None)
             self._predicted.pop((old.camera, old.robot, old.seq), None)
         if t >= self._next_sample_s.get(sighting.camera, -math.inf):  # checks_per_s shared by the cameras in turn
             self._pending.append(sighting)
@@ -575,10 +580,50 @@ class CameraWatch:
         if suspects:  # named by its disagreement when it became suspect; no one's reference since
             top = max(suspects, key=lambda c: verdicts[c].shift_px)
             return top, verdicts[top]
+        if len(moved) > 1:  # each in turn put where its window's newer half says: the one that makes the others agree
+            miss = {c: self._others_miss_px(c, self._newer_pose(c, verdicts[c], now_s), now_s) for c in moved}
+            top = min(moved, key=lambda c: miss[c])
+            return top, verdicts[top]
         score = {c: float(np.median([d for _, d in self._disagreement[c]])) if self._disagreement[c] else 0.0
                  for c in verdicts}
         top = max(score, key=lambda c: score[c])
         return (top, verdicts[top]) if top in moved else None
+
+    def _newer_pose(self, camera: str, verdict: Verdict, now_s: float) -> np.ndarray:
+        """The camera's pose fitted to its samples of the window's newer half (the window's own
+        fit straddles the move), or the window's when that fit fails."""
+        newer = [s for s in self.samples[camera] if s.time_s >= now_s - self.params.window_s / 2]
+        fit = refit_camera(*stacked(newer), verdict.fit.T_world_cam, self.params.corner_noise_px,
+                           prior_sigma=(WINDOW_PRIOR_M, math.radians(WINDOW_PRIOR_DEG))) if newer else None
+        return verdict.fit.T_world_cam if fit is None else fit.T_world_cam
+
+    def _others_miss_px(self, camera: str, T_world_cam: np.ndarray, now_s: float) -> float:
+        """If ``camera`` were at ``T_world_cam``: the median corner miss (px, at their settled
+        poses) of the other watched cameras' samples of the window's newer half (after the move,
+        as the one declared keeps) whose reference it took part in, the
+        references fitted again with it there. With three cameras a moved one spoils both others'
+        references, and their windows can say moved as loudly as its own; put at its window's pose,
+        only the camera that really moved makes the others' references agree with them again."""
+        T_cam_world, p, misses = invert_T(T_world_cam), self.params, []
+        for other, samples in self.samples.items():
+            settled = self.settled.get(other)
+            if other == camera or settled is None or self.state[other] is CameraState.RECALIBRATING:
+                continue
+            for sample in samples:
+                if (sample.T_world_cube is None or sample.time_s < now_s - p.window_s / 2
+                        or not any(s.camera == camera for s in sample.reference_sets)):
+                    continue
+                sets = [dataclasses.replace(s, T_cam_world=T_cam_world) if s.camera == camera else s
+                        for s in sample.reference_sets]
+                refit = solve_joint(sets, sample.T_world_cube, sample.time_s, p.corner_noise_px,
+                                    velocity_sigma=VELOCITY_SIGMA, iterations=FIT_ITERATIONS)
+                if refit is not None:
+                    points = np.concatenate([transform_points(moved_pose(
+                        refit.T_world_cube, refit.velocity_m_s, refit.angular_velocity_rad_s, s.time_s - sample.time_s),
+                        s.points_cube_m) for s in sample.own_sets])
+                    residual = residuals_px(settled, points, sample.normalized, sample.focal_px)
+                    misses.append(float(np.median(np.linalg.norm(residual, axis=1))))
+        return float(np.median(misses)) if misses else math.inf
 
     def _judge(self, sample: WatchSample) -> None:
         """Make the sample's camera suspect, or clear it: its last ``suspect_samples`` samples all
@@ -617,15 +662,17 @@ class CameraWatch:
             if fit is not None:
                 self.settled[camera] = fit.T_world_cam
 
-    def _corner_sets(self, sighting: CubeSighting) -> tuple[np.ndarray | None, list[CornerSet]]:
+    def _corner_sets(self, sighting: CubeSighting, by_prediction: bool = True
+                     ) -> tuple[np.ndarray | None, list[CornerSet]]:
         """A cube pose for the sighting and its corners matched to faces by it (once per
-        sighting): the fused prediction given to :meth:`add` where it matches a face (a compiled
-        projection; within ``PREDICTION_GATE_PX``, or ``gate_px`` where an id is on several faces),
-        else the sighting's own estimate (a per-marker pose search, ~10x dearer)."""
-        key = (sighting.camera, sighting.robot, sighting.seq)
+        sighting): with ``by_prediction``, the fused prediction given to :meth:`add` where it
+        matches a face (a compiled projection; within ``PREDICTION_GATE_PX``, or ``gate_px`` where
+        an id is on several faces); else the sighting's own estimate (a per-marker pose search,
+        ~10x dearer, but the faces a moved camera really saw: a checked sighting's own corners)."""
+        key = (sighting.camera, sighting.robot, sighting.seq, by_prediction)
         found = self._sets.get(key)
         layout = self.layouts[sighting.robot]
-        predicted = self._predicted.get(key)
+        predicted = self._predicted.get(key[:3]) if by_prediction else None
         if found is None and predicted is not None:
             gate_px = self.params.gate_px if layout.has_repeated_ids else PREDICTION_GATE_PX
             matches = match_faces(sighting.detections, layout, sighting.intrinsics, sighting.T_world_cam, predicted,
@@ -658,8 +705,10 @@ class CameraWatch:
                        if o.camera != sighting.camera and abs(o.capture_time_s - t) <= span), key=lambda item: item[0])
         taken: Counter[str] = Counter()
         chosen: list[CubeSighting] = []
+        # a re-calibrating camera's samples are its new pose's data (calib.recalibrate): every sighting in the span
+        per_camera = math.inf if self.state[sighting.camera] is CameraState.RECALIBRATING else REFERENCE_SIGHTINGS
         for _, o in near:
-            if taken[o.camera] < REFERENCE_SIGHTINGS and not self.excluded(o.camera) and (
+            if taken[o.camera] < per_camera and not self.excluded(o.camera) and (
                     o.camera in taken or len(taken) < self.params.reference_cameras_max):
                 taken[o.camera] += 1
                 chosen.append(o)
@@ -667,7 +716,7 @@ class CameraWatch:
 
     def _sample(self, sighting: CubeSighting) -> WatchSample | None:
         """The sighting against the other watched cameras' cube pose at its time, or None (counted)."""
-        T_own, mine = self._corner_sets(sighting)
+        T_own, mine = self._corner_sets(sighting, by_prediction=False)
         if T_own is None or not mine:
             self.stats["no cube matched"] += 1
             return None
@@ -693,5 +742,5 @@ class CameraWatch:
         normalized = np.concatenate([s.normalized for s in mine])
         focal = np.concatenate([np.full(len(s.normalized), s.focal_px) for s in mine])
         return WatchSample(sighting.camera, t, np.concatenate(points), normalized, focal, tuple(mine), tuple(others),
-                           reference.T_world_cube)
+                           reference.T_world_cube, reference.rms_px)
 
