@@ -218,35 +218,35 @@ def cameras_of(fleet: Fleet, index: int, publishers: int) -> list[Camera]:
     return out
 
 
-def frame_messages(fleet: Fleet, camera: Camera, seq: int, capture_s: float, dropped: int) -> list[tuple[str, bytes]]:
+def frame_messages(fleet: Fleet, camera: Camera, seq: int, capture_s: float,
+                   dropped: int) -> list[tuple[str | None, bytes]]:
     """Camera's frame ``seq`` captured ``capture_s`` after the run's start: one message per robot seen
-    (or the empty frame), as (key, bytes), stamped as if the run started at 0 (:func:`send` restamps
-    them with the run's start and the time of sending)."""
+    (or the empty frame), as (robot or None, bytes), stamped as if the run started at 0 (:func:`send`
+    restamps them with the run's start and the time the frame was ready)."""
     from cubetrack.io.sighting_wire import SightingMessage, WireClock, WireHealth, encode_sighting
-    from cubetrack.io.worker_bus import sighting_key
 
     found = frame_detections(fleet, camera.markers, camera.T_cam_world, capture_s, camera.rng)
     clock = WireClock("round-trip", camera.stamp_error_s - camera.offset_s, 0.0, capture_s + camera.offset_s)
     health = WireHealth(True, seq + 1, dropped)
-    return [(sighting_key(camera.name, body),
+    return [(body,
              encode_sighting(SightingMessage(camera.name, seq, capture_s + camera.offset_s,
                                              capture_s + camera.stamp_error_s, 0.0, "full frame", dets, clock, health,
                                              body=body)))
             for body, dets in (found.items() if found else [(None, ())])]
 
 
-def send(messages: list[tuple[str, bytes]], camera: Camera, capture_s: float, t0: float, publishers: dict, bus,
-         out: dict) -> None:
-    """Put a frame's messages on the bus, their times moved to the run's start ``t0`` and the sending time."""
+def send(messages: list[tuple[str | None, bytes]], camera: Camera, capture_s: float, t0: float, ready_s: float,
+         batches, out: dict) -> None:
+    """A frame's messages to the publisher's batches (``io/worker_bus.SightingBatches``, as a worker's), their
+    times moved to the run's start ``t0``; their arrival time ``ready_s``, when the frame was due (so the time
+    a batch holds it counts in the latency)."""
     from cubetrack.io.sighting_wire import restamped
 
     device_s = t0 + capture_s + camera.offset_s
-    for key, data in messages:
-        if key not in publishers:
-            publishers[key] = bus.declare_publisher(key)
-        data = restamped(data, device_s, t0 + capture_s + camera.stamp_error_s, time.time(), device_s)
-        publishers[key].put(data)
-        if key.count("/") == 3:   # cubetrack/sightings/<camera>/<robot>: a cube sighting
+    for body, data in messages:
+        data = restamped(data, device_s, t0 + capture_s + camera.stamp_error_s, ready_s, device_s)
+        batches.add(camera.name, body, data)
+        if body is not None:   # a cube sighting
             out["sightings"].append(data)
 
 
@@ -274,10 +274,13 @@ def plan(fleet: Fleet, cameras: list[Camera],
 
 
 def publisher_main(fleet: Fleet, index: int, count: int, ports: list[int], ready, start_at, duration_s: float,
-                   out_path: str, pre_encoded: bool) -> None:
+                   out_path: str, pre_encoded: bool, hold_s: float) -> None:
     """One publisher process: its share of the cameras, at their rate, from ``start_at`` for ``duration_s``.
-    With ``pre_encoded`` every message is made before the start and only restamped and put when due."""
-    from cubetrack.app.worker import worker_endpoints
+    With ``pre_encoded`` every message is made before the start and only restamped and put when due. As a
+    worker does (``io/worker_bus.SightingBatches``), it publishes one message per robot per tick: a tick
+    puts every frame due by ``hold_s`` after the first one due (0: each frame when due)."""
+    from cubetrack.app.worker import worker_endpoints, worker_id
+    from cubetrack.io.worker_bus import SightingBatches
     from cubetrack.sink.zenoh_session import open_session
 
     bus = open_session(worker_endpoints(connect=tuple(f"tcp/127.0.0.1:{p}" for p in ports)), "publisher")
@@ -289,16 +292,24 @@ def publisher_main(fleet: Fleet, index: int, count: int, ports: list[int], ready
     while start_at.value == 0:
         time.sleep(0.01)
     t0 = start_at.value
-    out: dict = {"sightings": [], "frames": 0, "dropped": dropped, "late_s": []}
-    publishers: dict = {}
+    out: dict = {"sightings": [], "frames": 0, "messages": 0, "dropped": dropped, "late_s": []}
+    batches = SightingBatches(bus, f"{worker_id()}-p{index}")
     cpu0 = time.process_time()
-    for i, (publish_s, k, seq, capture_s, d) in enumerate(frames):
-        time.sleep(max(0.0, t0 + publish_s - time.time()))
-        out["late_s"].append(time.time() - t0 - publish_s)
-        messages = made[i] if made is not None else frame_messages(fleet, cameras[k], seq, capture_s, d)
-        send(messages, cameras[k], capture_s, t0, publishers, bus, out)
-        out["frames"] += 1
+    i = 0
+    while i < len(frames):
+        tick_s = t0 + frames[i][0] + hold_s
+        time.sleep(max(0.0, tick_s - time.time()))
+        now = time.time()
+        out["late_s"].append(now - tick_s)
+        while i < len(frames) and t0 + frames[i][0] <= now:
+            publish_s, k, seq, capture_s, d = frames[i]
+            messages = made[i] if made is not None else frame_messages(fleet, cameras[k], seq, capture_s, d)
+            send(messages, cameras[k], capture_s, t0, t0 + publish_s, batches, out)
+            out["frames"] += 1
+            i += 1
+        out["messages"] += batches.flush()
     out["cpu_s"] = time.process_time() - cpu0
+    batches.close()
     bus.close()
     Path(out_path).write_bytes(pickle.dumps(out))
 
@@ -448,7 +459,7 @@ def run_fleet(args: argparse.Namespace, work: Path) -> dict:
     ready, start_at = ctx.Queue(), ctx.Value("d", 0.0)
     publishers = [ctx.Process(target=publisher_main, args=(fleet, i, args.publishers, ports, ready, start_at,
                                                            args.duration, str(work / f"publisher{i}.pkl"),
-                                                           args.pre_encoded))
+                                                           args.pre_encoded, args.batch_ms / 1000))
                   for i in range(args.publishers)]
     observer, kill = None, {}
     try:
@@ -569,6 +580,9 @@ def report(run: dict, args: argparse.Namespace) -> dict:
         "shard_sightings": {i: r["fused"] for i, r in shards.items()},
         "publisher_cpu_s": [round(o["cpu_s"], 2) for o in run["publishers"]],
         "publisher_cpu_ms_per_frame": round(1000 * sum(o["cpu_s"] for o in run["publishers"]) / max(1, frames), 3),
+        "publisher_cpu_ms_per_sighting": round(1000 * sum(o["cpu_s"] for o in run["publishers"]) / max(1, offered), 4),
+        "messages_per_s": round(sum(o["messages"] for o in run["publishers"]) / duration_s, 1),
+        "batch_ms": args.batch_ms,
         "publish_behind_ms_p95": percentiles_ms([v for o in run["publishers"] for v in o["late_s"]])[1],
         "error_mm_median_per_robot": {r: round(1000 * statistics.median(e), 2) if e else math.nan
                                       for r, e in errors.items()},
@@ -595,7 +609,8 @@ def print_report(r: dict) -> None:
     print(f"shards: sightings fused {r['shard_sightings']}, CPU during the run {r['shard_cpu_s']} s, "
           f"CPU per sighting {r['shard_cpu_ms_per_sighting']} ms")
     print(f"publishers{' (pre-encoded)' if r['pre_encoded'] else ''}: CPU {r['publisher_cpu_s']} s, "
-          f"{r['publisher_cpu_ms_per_frame']} ms per frame, "
+          f"{r['publisher_cpu_ms_per_frame']} ms per frame, {r['publisher_cpu_ms_per_sighting']} ms per cube sighting; "
+          f"{r['messages_per_s']} Zenoh messages/s (batches held up to {r['batch_ms']} ms), "
           f"behind schedule p95 {r['publish_behind_ms_p95']} ms")
     print(f"accuracy vs truth, median position error per robot (mm): {r['error_mm_median_per_robot']}")
     if "replay_difference_mm_median_p95" in r:
@@ -628,14 +643,22 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--pre-encoded", action="store_true",
                    help="publishers make every message before the start and only restamp and put it when due: the "
                         "stand-in for workers on other hosts (only Zenoh's sending is on this machine's CPU)")
+    p.add_argument("--batch-ms", type=float, default=None,
+                   help="a publisher's tick: frames due within this of the first are put together, one message per "
+                        "robot (default: a worker's BATCH_HOLD_S; 0: each frame when due)")
     p.add_argument("--json", type=Path, help="also write the report here")
     p.add_argument("--quick", action="store_true", help="2 robots, 4 cameras, 10 fps, 3 s (the CI smoke)")
     args = p.parse_args(argv)
+    if args.batch_ms is None:
+        from cubetrack.io.worker_bus import BATCH_HOLD_S
+
+        args.batch_ms = 1000 * BATCH_HOLD_S
     if args.quick:
         args.robots, args.cameras, args.fps, args.duration = 2, 4, 10.0, 3.0
     if not (1 <= args.robots <= 49 and args.cameras >= 1 and args.shards >= 1 and args.publishers >= 1
-            and args.fps > 0 and args.duration > 0):
-        p.error("need 1-49 robots, at least one camera, shard and publisher, a positive rate and duration")
+            and args.fps > 0 and args.duration > 0 and args.batch_ms >= 0):
+        p.error("need 1-49 robots, at least one camera, shard and publisher, a positive rate and duration, "
+                "--batch-ms >= 0")
     if args.kill_shard and args.shards < 2:
         p.error("--kill-shard needs --shards 2 or more")
     with tempfile.TemporaryDirectory(prefix="fleet_") as work:

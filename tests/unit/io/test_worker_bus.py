@@ -244,3 +244,56 @@ def test_the_state_relay_publishes_each_robots_state_at_most_every_period_and_ke
     assert relay.last("r2") is None
     relay.latest["r2"] = b"junk"
     assert relay.last("r2") is None   # an unreadable state is none
+
+
+class BatchBus:
+    """A bus that records what each declared publisher puts."""
+
+    def __init__(self) -> None:
+        self.puts: list[tuple[str, bytes]] = []
+        self.declared: list[str] = []
+        self.undeclared = 0
+
+    def declare_publisher(self, key: str):
+        self.declared.append(key)
+        bus = self
+
+        class Publisher:
+            def put(self, payload: bytes) -> None:
+                bus.puts.append((key, payload))
+
+            def undeclare(self) -> None:
+                bus.undeclared += 1
+
+        return Publisher()
+
+
+def test_a_workers_sightings_go_out_as_one_message_per_robot_per_tick_and_decode_as_sent(monkeypatch):
+    import zenoh
+
+    from cubetrack.io.sighting_wire import SightingMessage, decode_messages, encode_sighting
+    from cubetrack.io.worker_bus import BATCH_HOLD_S, SightingBatches
+
+    clock = [10.0]
+    monkeypatch.setattr("cubetrack.io.worker_bus.time.monotonic", lambda: clock[0])
+    sent = {(camera, robot): encode_sighting(SightingMessage(camera, seq, 1.0, 2.0 + seq, 3.0, "full frame", (),
+                                                             body=robot))
+            for seq, (camera, robot) in enumerate([("cam1", "r1"), ("cam2", "r1"), ("cam2", "r2"), ("cam3", None)])}
+    bus = BatchBus()
+    batches = SightingBatches(bus, "host-7")
+    for (camera, robot), data in sent.items():
+        batches.add(camera, robot, data)
+    clock[0] += BATCH_HOLD_S / 2
+    assert batches.flush(due_only=True) == 0 and bus.puts == []   # not held long enough yet
+    clock[0] += BATCH_HOLD_S / 2
+    assert batches.flush(due_only=True) == 3 and batches.held_s() == 0.0
+    got = {key: decode_messages(payload) for key, payload in bus.puts}
+    assert list(got) == ["cubetrack/sightings/host-7/r1", "cubetrack/sightings/host-7/r2", "cubetrack/sightings/cam3"]
+    assert [(m.camera, m.body, m.seq) for m in got["cubetrack/sightings/host-7/r1"]] == [("cam1", "r1", 0),
+                                                                                      ("cam2", "r1", 1)]
+    assert dict(bus.puts)["cubetrack/sightings/host-7/r2"] == sent[("cam2", "r2")]   # one alone: as itself
+    shard = zenoh.KeyExpr(robot_sightings_key("r1"))
+    assert [k for k in got if shard.intersects(zenoh.KeyExpr(k))] == ["cubetrack/sightings/host-7/r1"]
+    batches.add("cam1", "r1", sent[("cam1", "r1")])
+    batches.close()   # flushes what is left, then undeclares
+    assert len(bus.puts) == 4 and bus.declared.count("cubetrack/sightings/host-7/r1") == 1 and bus.undeclared == 3
