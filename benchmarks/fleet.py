@@ -294,7 +294,7 @@ def publisher_main(fleet: Fleet, index: int, count: int, ports: list[int], ready
     t0 = start_at.value
     out: dict = {"sightings": [], "frames": 0, "messages": 0, "dropped": dropped, "late_s": []}
     batches = SightingBatches(bus, f"{worker_id()}-p{index}")
-    cpu0 = time.process_time()
+    cpu0, split0 = time.process_time(), threads_cpu(os.getpid())
     i = 0
     while i < len(frames):
         tick_s = t0 + frames[i][0] + hold_s
@@ -309,6 +309,7 @@ def publisher_main(fleet: Fleet, index: int, count: int, ports: list[int], ready
             i += 1
         out["messages"] += batches.flush()
     out["cpu_s"] = time.process_time() - cpu0
+    out["threads_cpu_s"] = {k: v - split0[k] for k, v in threads_cpu(os.getpid()).items()}
     batches.close()
     bus.close()
     Path(out_path).write_bytes(pickle.dumps(out))
@@ -430,10 +431,24 @@ def settled(holders: dict[str, set[str]], robots: list[str], shards: int) -> boo
             and len({s for r in robots for s in holders[r]}) == min(shards, len(robots)))
 
 
-def cpu_of(pid: int) -> float:
-    """A process's CPU seconds so far (Linux /proc)."""
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+def cpu_of(pid: int, task: int | None = None) -> float:
+    """A process's (or one of its threads') CPU seconds so far (Linux /proc)."""
+    path = f"/proc/{pid}/stat" if task is None else f"/proc/{pid}/task/{task}/stat"
+    fields = Path(path).read_text().rsplit(")", 1)[1].split()
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def threads_cpu(pid: int) -> dict[str, float]:
+    """A process's CPU seconds so far by thread: "main" (the Python interpreter's thread: the fusion, decoding,
+    the outputs; a publisher's loop) and "other" (Zenoh's runtime threads, which run the subscribers' Python
+    callbacks too, and any other thread)."""
+    out = {"main": 0.0, "other": 0.0}
+    for task in os.listdir(f"/proc/{pid}/task"):
+        try:
+            out["main" if int(task) == pid else "other"] += cpu_of(pid, int(task))
+        except (FileNotFoundError, ProcessLookupError):
+            continue  # a thread that ended meanwhile
+    return out
 
 
 def shard_name(pid: int) -> str:
@@ -473,6 +488,7 @@ def run_fleet(args: argparse.Namespace, work: Path) -> dict:
         time.sleep(1.0)  # the shards' subscriptions reach the publishers
         load = os.getloadavg()
         cpu0 = [cpu_of(p.pid) for p in shards]
+        split0 = [threads_cpu(p.pid) for p in shards]
         start_at.value = t0 = time.time() + 0.2
         if args.kill_shard:
             time.sleep(max(0.0, t0 + args.duration / 2 - time.time()))
@@ -481,6 +497,8 @@ def run_fleet(args: argparse.Namespace, work: Path) -> dict:
             kill = {"at": time.time(), "robots": sorted(held), "how": args.kill_shard}
         time.sleep(max(0.0, t0 + args.duration + 0.5 - time.time()))
         cpu1 = [cpu_of(p.pid) if p.is_alive() else math.nan for p in shards]
+        split = [{k: v - a[k] for k, v in threads_cpu(p.pid).items()} if p.is_alive() else {}
+                 for p, a in zip(shards, split0, strict=True)]
         double_s = observer.double_claims_s()
         stop.set()
         for p in publishers + shards[1 if kill else 0:]:
@@ -498,11 +516,14 @@ def run_fleet(args: argparse.Namespace, work: Path) -> dict:
                if (work / f"shard{i}.pkl").exists()}
     return {"fleet": fleet, "config": config, "extrinsics": extrinsics, "t0": t0, "load": load, "publishers": outs,
             "shards": results, "shard_cpu_s": [b - a for a, b in zip(cpu0, cpu1, strict=True)], "kill": kill,
+            "shard_threads_cpu_s": split,
             "events": events, "states": states, "double_claims_s": double_s, "load_after": os.getloadavg()}
 
 
-def replay(run: dict) -> dict[tuple[str, float], np.ndarray]:
-    """The single-process replay of every sighting published: (robot, time) -> position."""
+def replay(run: dict) -> tuple[dict[tuple[str, float], np.ndarray], dict[str, float]]:
+    """The single-process replay of every sighting published: (robot, time) -> position; and its CPU per
+    sighting (ms) in decoding, in making the per-frame result (the robot's sightings and estimates) and in the
+    fusion (the tracker's: association, filter)."""
     from cubetrack.app.config import load_config
     from cubetrack.app.fusion_service import frame_result
     from cubetrack.app.live import live_intrinsics
@@ -513,11 +534,22 @@ def replay(run: dict) -> dict[tuple[str, float], np.ndarray]:
     config, settings = load_config(run["config"])
     tracker = Tracker(live_intrinsics(config), config.world, config.robots, read_extrinsics(run["extrinsics"]),
                       settings.stages)
+    cpu = [time.process_time()]
     messages = sorted((decode_sighting(d) for out in run["publishers"] for d in out["sightings"]),
                       key=lambda m: (m.capture_time_s, m.camera))
-    poses = [p for m in messages for p in tracker.fuse(frame_result(tracker, m), m.arrival_time_s)]
+    spent = {"decode": time.process_time() - cpu[0], "frame_result": 0.0, "fuse": 0.0}
+    poses = []
+    for m in messages:  # one at a time, as a shard does: an estimate is made only when the fusion asks for one
+        cpu = [time.process_time()]
+        result = frame_result(tracker, m)
+        cpu.append(time.process_time())
+        poses += tracker.fuse(result, m.arrival_time_s)
+        cpu.append(time.process_time())
+        spent["frame_result"] += cpu[1] - cpu[0]
+        spent["fuse"] += cpu[2] - cpu[1]
     poses += tracker.finish()
-    return {(p.robot, p.time_s): p.position_m for p in poses}
+    split = {k: round(1000 * v / max(1, len(messages)), 4) for k, v in spent.items()}
+    return {(p.robot, p.time_s): p.position_m for p in poses}, split
 
 
 def percentiles_ms(values: list[float]) -> list[float]:
@@ -577,6 +609,10 @@ def report(run: dict, args: argparse.Namespace) -> dict:
         "latency_ms_p50_p95_p99": percentiles_ms([p[3] for p in poses if p[3] is not None]),
         "shard_cpu_ms_per_sighting": {i: round(1000 * r["cpu_s"] / max(1, r["fused"]), 3) for i, r in shards.items()},
         "shard_cpu_s": [round(v, 2) for v in run["shard_cpu_s"]],
+        "shard_threads_ms_per_sighting": {i: {k: round(1000 * v / max(1, shards[i]["fused"]), 3) for k, v in t.items()}
+                                          for i, t in enumerate(run["shard_threads_cpu_s"]) if i in shards and t},
+        "publisher_threads_ms_per_sighting": {k: round(1000 * sum(o["threads_cpu_s"][k] for o in run["publishers"])
+                                                       / max(1, offered), 4) for k in ("main", "other")},
         "shard_sightings": {i: r["fused"] for i, r in shards.items()},
         "publisher_cpu_s": [round(o["cpu_s"], 2) for o in run["publishers"]],
         "publisher_cpu_ms_per_frame": round(1000 * sum(o["cpu_s"] for o in run["publishers"]) / max(1, frames), 3),
@@ -590,7 +626,7 @@ def report(run: dict, args: argparse.Namespace) -> dict:
         "takeover": takeover(run, poses),
     }
     if args.replay:
-        single = replay(run)
+        single, out["replay_ms_per_sighting"] = replay(run)
         diffs = [float(np.linalg.norm(np.array(p[2]) - single[(p[0], p[1])])) for p in poses if (p[0], p[1]) in single]
         out["replay_matched_poses"] = f"{len(diffs)} of {len(poses)} (replay {len(single)})"
         out["replay_difference_mm_median_p95"] = [round(1000 * float(v), 3) for v in np.percentile(diffs, [50, 95])] \
@@ -612,10 +648,13 @@ def print_report(r: dict) -> None:
           f"{r['publisher_cpu_ms_per_frame']} ms per frame, {r['publisher_cpu_ms_per_sighting']} ms per cube sighting; "
           f"{r['messages_per_s']} Zenoh messages/s (batches held up to {r['batch_ms']} ms), "
           f"behind schedule p95 {r['publish_behind_ms_p95']} ms")
+    print(f"CPU per cube sighting by thread (main: Python's; other: Zenoh's, with the subscribers' callbacks): "
+          f"shards {r['shard_threads_ms_per_sighting']} ms, publishers {r['publisher_threads_ms_per_sighting']} ms")
     print(f"accuracy vs truth, median position error per robot (mm): {r['error_mm_median_per_robot']}")
     if "replay_difference_mm_median_p95" in r:
         print(f"against the single-process replay of the same sightings: poses matched {r['replay_matched_poses']}, "
-              f"difference median / p95 {r['replay_difference_mm_median_p95']} mm")
+              f"difference median / p95 {r['replay_difference_mm_median_p95']} mm; its CPU per sighting "
+              f"{r['replay_ms_per_sighting']} ms")
     print(f"longest time a robot had two shards' claims: {r['double_claims_longest_s']} s")
     if r["takeover"]:
         t = r["takeover"]
