@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import hashlib
 import math
+import queue
 import re
 import threading
 import time
@@ -270,13 +271,31 @@ class StateRelay:
     this fusion makes, publishes the robot's filter state (``state_of(robot)``: the fusion's, or None),
     each robot's at most every ``STATE_EVERY_S``, under ``cubetrack/fused-states/<robot>``; every state
     message on the bus is kept, undecoded, as its robot's latest (a Zenoh thread stores the bytes: each
-    shard pays one receive per robot of the fleet and ``STATE_EVERY_S``); :meth:`last` decodes one."""
+    shard pays one receive per robot of the fleet and ``STATE_EVERY_S``); :meth:`last` decodes one. The puts
+    run on a thread of the relay's own: a put in a process whose Zenoh threads call back into Python waits for
+    the interpreter's lock, milliseconds on a busy machine (measured in a shard: 2-3 ms a put at load ~20,
+    docs/scaling.md), which the fusion's thread must not."""
 
     def __init__(self, bus: Any, state_of: Callable[[str], tuple | None]) -> None:
         self.bus, self.state_of = bus, state_of
         self.latest: dict[str, bytes] = {}
         self._sent_s: dict[str, float] = {}
+        self._outbox: queue.Queue[tuple[str, bytes] | None] = queue.Queue()
         self._subscriber = bus.declare_subscriber(f"{STATES_KEY}/*", self._receive)
+        self._sender = threading.Thread(target=self._send, name="state-relay", daemon=True)
+        self._sender.start()
+
+    def _send(self) -> None:  # the relay's thread
+        publishers: dict[str, Any] = {}  # robot -> its state's publisher
+        while (item := self._outbox.get()) is not None:
+            robot, data = item
+            if robot not in publishers:
+                publishers[robot] = self.bus.declare_publisher(f"{STATES_KEY}/{robot}")
+            publishers[robot].put(data)
+            self._outbox.task_done()
+        for publisher in publishers.values():
+            publisher.undeclare()
+        self._outbox.task_done()
 
     def _receive(self, sample: Any) -> None:  # a Zenoh thread
         self.latest[str(sample.key_expr).rsplit("/", 1)[-1]] = bytes(sample.payload)
@@ -285,10 +304,13 @@ class StateRelay:
         """Publish the state of each robot with a measured pose here whose state was last sent ``STATE_EVERY_S`` ago."""
         now = time.monotonic()
         for robot in {p.robot for p in poses if not p.predicted}:
-            state = self.state_of(robot)
-            if state is not None and now - self._sent_s.get(robot, -math.inf) >= STATE_EVERY_S:
+            if now - self._sent_s.get(robot, -math.inf) >= STATE_EVERY_S and (state := self.state_of(robot)):
                 self._sent_s[robot] = now
-                self.bus.put(f"{STATES_KEY}/{robot}", encode_state(FusedState(*state)))
+                self._outbox.put((robot, encode_state(FusedState(*state))))
+
+    def sent(self) -> None:
+        """Wait until every state handed over so far is put."""
+        self._outbox.join()
 
     def last(self, robot: str) -> FusedState | None:
         """The latest state of ``robot`` heard on the bus (None: none, or not readable)."""
@@ -299,4 +321,6 @@ class StateRelay:
             return None
 
     def close(self) -> None:
+        self._outbox.put(None)
+        self._sender.join()
         self._subscriber.undeclare()

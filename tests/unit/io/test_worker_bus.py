@@ -196,10 +196,11 @@ def test_a_shard_claims_its_share_only_once_on_the_bus_and_gives_way_to_a_smalle
 
 
 class StateBus:
-    """What StateRelay uses of a Zenoh session: put, and a subscriber that sees every put (as Zenoh's does)."""
+    """What StateRelay uses of a Zenoh session: publishers, and a subscriber that sees every put (as Zenoh's does)."""
 
     def __init__(self) -> None:
         self.puts: list[str] = []
+        self.undeclared: list[str] = []
         self.callback = None
 
     def declare_subscriber(self, key: str, callback) -> FakeToken:
@@ -210,6 +211,18 @@ class StateBus:
     def put(self, key: str, payload: bytes) -> None:
         self.puts.append(key)
         self.callback(type("Sample", (), {"key_expr": key, "payload": payload})())
+
+    def declare_publisher(self, key: str):
+        bus = self
+
+        class Publisher:
+            def put(self, payload: bytes) -> None:
+                bus.put(key, payload)
+
+            def undeclare(self) -> None:
+                bus.undeclared.append(key)
+
+        return Publisher()
 
 
 def test_the_state_relay_publishes_each_robots_state_at_most_every_period_and_keeps_the_latest(monkeypatch):
@@ -233,17 +246,22 @@ def test_the_state_relay_publishes_each_robots_state_at_most_every_period_and_ke
     bus = StateBus()
     relay = StateRelay(bus, state_of)
     relay.poses([pose("r1"), pose("r1"), pose("r2", predicted=True), pose("untracked")])
+    relay.sent()
     assert bus.puts == ["cubetrack/fused-states/r1"]   # once per robot; not for predictions nor untracked robots
     clock[0] += 0.05
     relay.poses([pose("r1")])
+    relay.sent()
     assert len(bus.puts) == 1   # within STATE_EVERY_S
     clock[0] += 0.06
     relay.poses([pose("r1")])
+    relay.sent()
     last = relay.last("r1")
     assert len(bus.puts) == 2 and last is not None and last.time_s == clock[0] and last.T_world_cube[0, 3] == clock[0]
     assert relay.last("r2") is None
     relay.latest["r2"] = b"junk"
     assert relay.last("r2") is None   # an unreadable state is none
+    relay.close()
+    assert bus.undeclared == ["cubetrack/fused-states/r1"]   # the relay's thread ended, its publisher gone
 
 
 class BatchBus:
