@@ -221,7 +221,7 @@ def run_worker(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
     urls = {n: u for n, u in live_camera_urls(config).items() if n in names}
     for n in names:
         for robot in config.robots:
-            sighting_key(n, robot.name)  # every name a key chunk, before anything starts
+            sighting_key(n), sighting_key(worker_id(), robot.name)  # every name a key chunk, before anything starts
     intrinsics = {n: i for n, i in live_intrinsics(config).items() if n in names}
     tracker = Tracker(intrinsics, config.world, config.robots, extrinsics, params, synced_cameras=frozenset(urls))
     zenoh = open_session(endpoints, "worker")

@@ -56,7 +56,7 @@ def sighting_key(source: str, robot: str | None = None) -> str:
     """The key expression ``source``'s sightings of ``robot`` are published under (a worker's: one message per
     robot per tick, :class:`SightingBatches`; older workers published one per camera frame under the camera's
     name); ``robot`` None: camera ``source``'s frames with no robot's markers."""
-    key = f"{SIGHTINGS_KEY}/{key_chunk('source', source)}"
+    key = f"{SIGHTINGS_KEY}/{key_chunk('camera' if robot is None else 'worker', source)}"
     return key if robot is None else f"{key}/{key_chunk('robot', robot)}"
 
 
