@@ -9,15 +9,18 @@ normal or smaller than 12 px left out, frames dropped at random (--drop, default
 each camera's device clock offset by hundreds of seconds and its worker's mapping of it off by a
 constant of 1 ms sigma, and the frame published 40-60 ms after its capture (transfer and detection).
 
---publishers processes publish those sightings as ``cubetrack worker`` does (one message per robot
-of a frame under ``cubetrack/sightings/<camera>/<robot>``, a frame without a robot under
-``cubetrack/sightings/<camera>``) at the cameras' real rate (--fps), over loopback Zenoh; with
+--publishers processes publish those sightings as ``cubetrack worker`` does, through the same
+``io/worker_bus.SightingBatches`` (a robot's sightings of a tick as one message under
+``cubetrack/sightings/<publisher>/<robot>``, a frame without a robot under ``cubetrack/sightings/<camera>``;
+a tick puts the frames due within --batch-ms of the first, each stamped as arriving when it was due, so the
+hold counts in the latency) at the cameras' real rate (--fps), over loopback Zenoh; with
 --pre-encoded they make every message before the run and only restamp it with the run's times and put
 it when due (the stand-in for workers on other hosts: what stays on this machine's CPU is Zenoh's
 sending, as a remote worker's traffic would cost the host its receiving only). Then to --shards
 fusion processes (``run_fusion(..., shard=True)``: each claims its share of the robots). Printed:
 sightings/s offered and fused, the share dropped (not fused before the end of the run, or lost),
-latency from publish to pose (p50/p95/p99), each shard's CPU per sighting and the publishers' CPU,
+latency from publish to pose (p50/p95/p99), each shard's CPU per sighting and the publishers' CPU (and
+both by thread: Python's and Zenoh's), the Zenoh messages per second,
 accuracy against the fleet's truth and against a single-process replay of the same sightings, with
 the core count and the load average. --kill-shard kill (SIGKILL) or freeze (SIGSTOP) stops shard 0
 half way: how long until its robots' poses come from another shard, and how long any robot had two
