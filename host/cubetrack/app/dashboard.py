@@ -534,7 +534,8 @@ class DashboardApp:
         with self._lock:
             self.candidate, self.refined, self.warnings = run, refined, list(adjusted.warnings)
             moved = [n for n, r in refined.items() if r["moved"]]
-            self._computed("refined", f"Refined with {adjusted.instants} instants. "
+            self._computed("refined", "Refinement refused (see the warning): saving keeps the world-marker poses."
+                           if adjusted.refused else f"Refined with {adjusted.instants} instants. "
                            + (f"{', '.join(moved)} moved since the world-marker calibration. " if moved else "")
                            + "Save to use the refined poses.")
 

@@ -277,7 +277,8 @@ class CameraResidual:
 class BundleAdjustmentReport:
     """What :func:`adjust_extrinsics` found: the refined ``extrinsics`` (all prior cameras; those
     without multi-camera sightings unchanged), the ``prior`` ones, per-camera residuals, the
-    cameras that moved after calibration, the instants used and the warnings issued."""
+    cameras that moved after calibration, the instants used and the warnings issued; ``refused``
+    when the refinement was refused (its residuals reported, the prior extrinsics kept)."""
 
     extrinsics: dict[str, CameraExtrinsics]
     prior: dict[str, CameraExtrinsics]
@@ -286,6 +287,7 @@ class BundleAdjustmentReport:
     instants: int
     warnings: tuple[str, ...] = field(default_factory=tuple)
     intrinsics: dict[str, CameraIntrinsics] = field(default_factory=dict)  # refined (refine_intrinsics) or as given
+    refused: bool = False  # the refinement was refused (worse_world_fit): extrinsics are the prior ones
 
 
 def robust_average_corners(corners_px: np.ndarray, threshold_px: float) -> tuple[np.ndarray, int]:
@@ -952,6 +954,6 @@ def _adjustment_report(ref: Refinement, extrinsics: Mapping[str, CameraExtrinsic
             report_cams[c] = CameraResidual(c, float("nan"), 0, 0, float("nan"), 0.0, 0.0, False)
     if refused:
         return BundleAdjustmentReport(dict(extrinsics), dict(extrinsics), report_cams, (), len(ref.instants),
-                                      tuple(warnings), dict(intrinsics))
+                                      tuple(warnings), dict(intrinsics), refused=True)
     return BundleAdjustmentReport(refined, dict(extrinsics), report_cams, tuple(moved), len(ref.instants),
                                   tuple(warnings), {**dict(intrinsics), **ref.intrinsics()})

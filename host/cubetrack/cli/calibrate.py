@@ -90,7 +90,8 @@ def run(args: argparse.Namespace) -> int:
     if refined is None:
         print(f"method {params.method.value}; wrote {args.out} ({result.run_record_path.name})")
     else:
-        print(f"method {params.method.value}, refined with {args.refine_with}; wrote {args.out} (refined; "
+        what = "refinement refused, the world-marker calibration kept" if refined.refused else "refined"
+        print(f"method {params.method.value}, refined with {args.refine_with}; wrote {args.out} ({what}; "
               f"{result.run_record_path.name})")
     header = f"{'camera':<10} {'samples':>7} {'frames':>6}  {'position [m]':<26} {'spread cm':>9} {'spread deg':>10}"
     if truth:
@@ -125,7 +126,8 @@ def run(args: argparse.Namespace) -> int:
 
 
 def _print_refined(refined, errors: dict) -> None:
-    print(f"refined with {refined.instants} multi-camera instants:")
+    print(f"{'the refused refinement' if refined.refused else 'refined'} with {refined.instants} multi-camera "
+          "instants:")
     header = (f"{'camera':<10} {'instants':>8} {'corners':>7} {'rms px':>6} {'world px':>8} "
               f"{'shift cm':>8} {'shift deg':>9}")
     if errors:

@@ -125,11 +125,11 @@ class CaptureOrder:
         return out
 
     def _may_go(self, result: FrameResult, now_s: float) -> bool:
-        camera, capture_s = result.job.frame.camera, result.job.capture_time_s
         """Nothing older is being worked on, and no other camera's frame of this instant is due
         (or the result has waited its longest)."""
+        camera, capture_s = result.job.frame.camera, result.job.capture_time_s
         if any(t < capture_s for t in self._working):
-            return False  # a started job always ends: wait for it
+            return False  # a started job always ends (a worker that fails ends the session): wait for it
         interval_s = self._intervals.interval_s(camera)
         if interval_s is None or now_s - capture_s >= ORDER_WAIT_INTERVALS * interval_s:
             return True  # a camera's first frame, or waited its longest

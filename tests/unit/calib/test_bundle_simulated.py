@@ -109,3 +109,4 @@ def test_a_refinement_that_contradicts_the_world_marker_is_refused(tmp_path):
     (refusal,) = [w for w in report.warnings if "refinement refused" in w]
     assert all(f"{c}'s world marker reprojects" in refusal for c in prior) and "\n" not in refusal, refusal
     assert all(np.array_equal(report.extrinsics[c].T_world_cam, prior[c].T_world_cam) for c in prior)
+    assert report.refused  # what `cubetrack calibrate` prints: "refinement refused", never "refined"
