@@ -489,11 +489,28 @@ def workflow_start(sc: dict) -> dict:
 # --------------------------------------------------------------------------------- report
 
 
+def error_parts(got: np.ndarray, oracle: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """One marker's corner error ``got - oracle`` (4, 2) split: per corner, along the ray from the
+    oracle quad's centre (radial, + outward) and across it (tangential); per side (corner i to
+    i + 1), the error of its line's offset along its outward normal (+ outward; the mean of its two
+    corners' errors there)."""
+    z = oracle[:, 0] + 1j * oracle[:, 1]
+    e = (got[:, 0] - oracle[:, 0]) + 1j * (got[:, 1] - oracle[:, 1])
+    ray = (z - z.mean()) / np.abs(z - z.mean())
+    parts = e * ray.conjugate()
+    side = np.roll(z, -1) - z
+    normal = side * -1j / np.abs(side)   # outward for a clockwise quad (y down)
+    offset = 0.5 * ((e * normal.conjugate()).real + (np.roll(e, -1) * normal.conjugate()).real)
+    return parts.real, parts.imag, offset
+
+
 def residual_table(scenes: list[dict], which: str) -> dict:
-    """RMS per corner coordinate of (``which`` corners - oracle) by view-angle bin, and counts."""
+    """Per view-angle bin: RMS per corner coordinate of (``which`` corners - oracle), and whether
+    that error is bias or noise (:func:`error_parts`' mean and standard deviation: radial and
+    tangential per corner, the sides' outward offsets), with counts."""
     out = {}
     for lo, hi in itertools.pairwise(VIEW_BINS_DEG):
-        d = []
+        d, parts = [], []
         for sc in scenes:
             for k, (s, _) in enumerate(sc["sightings"]):
                 for i, det in enumerate(s.detections):
@@ -503,9 +520,13 @@ def residual_table(scenes: list[dict], which: str) -> dict:
                     got = det.corners_px if which == "edge" else sc["template"][k][i][0]
                     if got is not None:
                         d.append(got - oracle)
+                        parts.append(error_parts(got, oracle))
         d = np.array(d).reshape(-1, 2)
-        out[f"{lo:g}-{hi:g}"] = {"rms_px": float(np.sqrt(np.mean(d ** 2))) if len(d) else math.nan,
-                                 "corners": len(d)}
+        cell = {"rms_px": float(np.sqrt(np.mean(d ** 2))) if len(d) else math.nan, "corners": len(d)}
+        for n, name in enumerate(("radial", "tangential", "side_offset")):
+            v = np.concatenate([p[n] for p in parts]) if parts else np.full(1, math.nan)
+            cell[f"{name}_mean_px"], cell[f"{name}_sd_px"] = float(np.mean(v)), float(np.std(v))
+        out[f"{lo:g}-{hi:g}"] = cell
     return out
 
 
@@ -570,9 +591,14 @@ def print_report(report: dict) -> None:
     print(f"oracle corners for {report['oracle_matched']} of {report['detections']} detections "
           f"(the others, no true marker within {MATCH_PX:g} px, keep their detected corners)")
     for which, table in report["residuals"].items():
-        print(f"\n{which} corners - oracle, RMS per coordinate by view angle:")
+        print(f"\n{which} corners - oracle by view angle: RMS per coordinate; bias (mean) and noise (sd) of the "
+              "corners' radial (+ outward) and tangential errors and of the sides' outward offsets, px")
+        print("| view angle | corners | RMS | radial mean / sd | tangential mean / sd | side offset mean / sd |")
+        print("| --- | --- | --- | --- | --- | --- |")
         for name, v in table.items():
-            print(f"  {name:>6}°  {v['rms_px']:.3f} px  ({v['corners']} corners)")
+            print(f"| {name}° | {v['corners']} | {v['rms_px']:.3f} | " + " | ".join(
+                f"{v[f'{p}_mean_px']:+.3f} / {v[f'{p}_sd_px']:.3f}" for p in ("radial", "tangential", "side_offset"))
+                + " |")
     if "template_cpu_ms" in report:
         t = report["template_cpu_ms"]
         print(f"\ntemplate fit CPU per marker: median {t['median']:.1f} ms, mean {t['mean']:.1f} ms, "

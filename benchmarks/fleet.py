@@ -9,15 +9,18 @@ normal or smaller than 12 px left out, frames dropped at random (--drop, default
 each camera's device clock offset by hundreds of seconds and its worker's mapping of it off by a
 constant of 1 ms sigma, and the frame published 40-60 ms after its capture (transfer and detection).
 
---publishers processes publish those sightings as ``cubetrack worker`` does (one message per robot
-of a frame under ``cubetrack/sightings/<camera>/<robot>``, a frame without a robot under
-``cubetrack/sightings/<camera>``) at the cameras' real rate (--fps), over loopback Zenoh; with
+--publishers processes publish those sightings as ``cubetrack worker`` does, through the same
+``io/worker_bus.SightingBatches`` (a robot's sightings of a tick as one message under
+``cubetrack/sightings/<publisher>/<robot>``, a frame without a robot under ``cubetrack/sightings/<camera>``;
+a tick puts the frames due within --batch-ms of the first, each stamped as arriving when it was due, so the
+hold counts in the latency) at the cameras' real rate (--fps), over loopback Zenoh; with
 --pre-encoded they make every message before the run and only restamp it with the run's times and put
 it when due (the stand-in for workers on other hosts: what stays on this machine's CPU is Zenoh's
 sending, as a remote worker's traffic would cost the host its receiving only). Then to --shards
 fusion processes (``run_fusion(..., shard=True)``: each claims its share of the robots). Printed:
 sightings/s offered and fused, the share dropped (not fused before the end of the run, or lost),
-latency from publish to pose (p50/p95/p99), each shard's CPU per sighting and the publishers' CPU,
+latency from publish to pose (p50/p95/p99), each shard's CPU per sighting and the publishers' CPU (and
+both by thread: Python's and Zenoh's), the Zenoh messages per second,
 accuracy against the fleet's truth and against a single-process replay of the same sightings, with
 the core count and the load average. --kill-shard kill (SIGKILL) or freeze (SIGSTOP) stops shard 0
 half way: how long until its robots' poses come from another shard, and how long any robot had two
@@ -218,35 +221,35 @@ def cameras_of(fleet: Fleet, index: int, publishers: int) -> list[Camera]:
     return out
 
 
-def frame_messages(fleet: Fleet, camera: Camera, seq: int, capture_s: float, dropped: int) -> list[tuple[str, bytes]]:
+def frame_messages(fleet: Fleet, camera: Camera, seq: int, capture_s: float,
+                   dropped: int) -> list[tuple[str | None, bytes]]:
     """Camera's frame ``seq`` captured ``capture_s`` after the run's start: one message per robot seen
-    (or the empty frame), as (key, bytes), stamped as if the run started at 0 (:func:`send` restamps
-    them with the run's start and the time of sending)."""
+    (or the empty frame), as (robot or None, bytes), stamped as if the run started at 0 (:func:`send`
+    restamps them with the run's start and the time the frame was ready)."""
     from cubetrack.io.sighting_wire import SightingMessage, WireClock, WireHealth, encode_sighting
-    from cubetrack.io.worker_bus import sighting_key
 
     found = frame_detections(fleet, camera.markers, camera.T_cam_world, capture_s, camera.rng)
     clock = WireClock("round-trip", camera.stamp_error_s - camera.offset_s, 0.0, capture_s + camera.offset_s)
     health = WireHealth(True, seq + 1, dropped)
-    return [(sighting_key(camera.name, body),
+    return [(body,
              encode_sighting(SightingMessage(camera.name, seq, capture_s + camera.offset_s,
                                              capture_s + camera.stamp_error_s, 0.0, "full frame", dets, clock, health,
                                              body=body)))
             for body, dets in (found.items() if found else [(None, ())])]
 
 
-def send(messages: list[tuple[str, bytes]], camera: Camera, capture_s: float, t0: float, publishers: dict, bus,
-         out: dict) -> None:
-    """Put a frame's messages on the bus, their times moved to the run's start ``t0`` and the sending time."""
+def send(messages: list[tuple[str | None, bytes]], camera: Camera, capture_s: float, t0: float, ready_s: float,
+         batches, out: dict) -> None:
+    """A frame's messages to the publisher's batches (``io/worker_bus.SightingBatches``, as a worker's), their
+    times moved to the run's start ``t0``; their arrival time ``ready_s``, when the frame was due (so the time
+    a batch holds it counts in the latency)."""
     from cubetrack.io.sighting_wire import restamped
 
     device_s = t0 + capture_s + camera.offset_s
-    for key, data in messages:
-        if key not in publishers:
-            publishers[key] = bus.declare_publisher(key)
-        data = restamped(data, device_s, t0 + capture_s + camera.stamp_error_s, time.time(), device_s)
-        publishers[key].put(data)
-        if key.count("/") == 3:   # cubetrack/sightings/<camera>/<robot>: a cube sighting
+    for body, data in messages:
+        data = restamped(data, device_s, t0 + capture_s + camera.stamp_error_s, ready_s, device_s)
+        batches.add(camera.name, body, data)
+        if body is not None:   # a cube sighting
             out["sightings"].append(data)
 
 
@@ -274,10 +277,13 @@ def plan(fleet: Fleet, cameras: list[Camera],
 
 
 def publisher_main(fleet: Fleet, index: int, count: int, ports: list[int], ready, start_at, duration_s: float,
-                   out_path: str, pre_encoded: bool) -> None:
+                   out_path: str, pre_encoded: bool, hold_s: float) -> None:
     """One publisher process: its share of the cameras, at their rate, from ``start_at`` for ``duration_s``.
-    With ``pre_encoded`` every message is made before the start and only restamped and put when due."""
-    from cubetrack.app.worker import worker_endpoints
+    With ``pre_encoded`` every message is made before the start and only restamped and put when due. As a
+    worker does (``io/worker_bus.SightingBatches``), it publishes one message per robot per tick: a tick
+    puts every frame due by ``hold_s`` after the first one due (0: each frame when due)."""
+    from cubetrack.app.worker import worker_endpoints, worker_id
+    from cubetrack.io.worker_bus import SightingBatches
     from cubetrack.sink.zenoh_session import open_session
 
     bus = open_session(worker_endpoints(connect=tuple(f"tcp/127.0.0.1:{p}" for p in ports)), "publisher")
@@ -289,16 +295,25 @@ def publisher_main(fleet: Fleet, index: int, count: int, ports: list[int], ready
     while start_at.value == 0:
         time.sleep(0.01)
     t0 = start_at.value
-    out: dict = {"sightings": [], "frames": 0, "dropped": dropped, "late_s": []}
-    publishers: dict = {}
-    cpu0 = time.process_time()
-    for i, (publish_s, k, seq, capture_s, d) in enumerate(frames):
-        time.sleep(max(0.0, t0 + publish_s - time.time()))
-        out["late_s"].append(time.time() - t0 - publish_s)
-        messages = made[i] if made is not None else frame_messages(fleet, cameras[k], seq, capture_s, d)
-        send(messages, cameras[k], capture_s, t0, publishers, bus, out)
-        out["frames"] += 1
+    out: dict = {"sightings": [], "frames": 0, "messages": 0, "dropped": dropped, "late_s": []}
+    batches = SightingBatches(bus, f"{worker_id()}-p{index}")
+    cpu0, split0 = time.process_time(), threads_cpu(os.getpid())
+    i = 0
+    while i < len(frames):
+        tick_s = t0 + frames[i][0] + hold_s
+        time.sleep(max(0.0, tick_s - time.time()))
+        now = time.time()
+        out["late_s"].append(now - tick_s)
+        while i < len(frames) and t0 + frames[i][0] <= now:
+            publish_s, k, seq, capture_s, d = frames[i]
+            messages = made[i] if made is not None else frame_messages(fleet, cameras[k], seq, capture_s, d)
+            send(messages, cameras[k], capture_s, t0, t0 + publish_s, batches, out)
+            out["frames"] += 1
+            i += 1
+        out["messages"] += batches.flush()
     out["cpu_s"] = time.process_time() - cpu0
+    out["threads_cpu_s"] = {k: v - split0[k] for k, v in threads_cpu(os.getpid()).items()}
+    batches.close()
     bus.close()
     Path(out_path).write_bytes(pickle.dumps(out))
 
@@ -419,10 +434,24 @@ def settled(holders: dict[str, set[str]], robots: list[str], shards: int) -> boo
             and len({s for r in robots for s in holders[r]}) == min(shards, len(robots)))
 
 
-def cpu_of(pid: int) -> float:
-    """A process's CPU seconds so far (Linux /proc)."""
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+def cpu_of(pid: int, task: int | None = None) -> float:
+    """A process's (or one of its threads') CPU seconds so far (Linux /proc)."""
+    path = f"/proc/{pid}/stat" if task is None else f"/proc/{pid}/task/{task}/stat"
+    fields = Path(path).read_text().rsplit(")", 1)[1].split()
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
+
+
+def threads_cpu(pid: int) -> dict[str, float]:
+    """A process's CPU seconds so far by thread: "main" (the Python interpreter's thread: the fusion, decoding,
+    the outputs; a publisher's loop) and "other" (Zenoh's runtime threads, which run the subscribers' Python
+    callbacks too, and any other thread)."""
+    out = {"main": 0.0, "other": 0.0}
+    for task in os.listdir(f"/proc/{pid}/task"):
+        try:
+            out["main" if int(task) == pid else "other"] += cpu_of(pid, int(task))
+        except (FileNotFoundError, ProcessLookupError):
+            continue  # a thread that ended meanwhile
+    return out
 
 
 def shard_name(pid: int) -> str:
@@ -448,7 +477,7 @@ def run_fleet(args: argparse.Namespace, work: Path) -> dict:
     ready, start_at = ctx.Queue(), ctx.Value("d", 0.0)
     publishers = [ctx.Process(target=publisher_main, args=(fleet, i, args.publishers, ports, ready, start_at,
                                                            args.duration, str(work / f"publisher{i}.pkl"),
-                                                           args.pre_encoded))
+                                                           args.pre_encoded, args.batch_ms / 1000))
                   for i in range(args.publishers)]
     observer, kill = None, {}
     try:
@@ -462,6 +491,7 @@ def run_fleet(args: argparse.Namespace, work: Path) -> dict:
         time.sleep(1.0)  # the shards' subscriptions reach the publishers
         load = os.getloadavg()
         cpu0 = [cpu_of(p.pid) for p in shards]
+        split0 = [threads_cpu(p.pid) for p in shards]
         start_at.value = t0 = time.time() + 0.2
         if args.kill_shard:
             time.sleep(max(0.0, t0 + args.duration / 2 - time.time()))
@@ -470,6 +500,8 @@ def run_fleet(args: argparse.Namespace, work: Path) -> dict:
             kill = {"at": time.time(), "robots": sorted(held), "how": args.kill_shard}
         time.sleep(max(0.0, t0 + args.duration + 0.5 - time.time()))
         cpu1 = [cpu_of(p.pid) if p.is_alive() else math.nan for p in shards]
+        split = [{k: v - a[k] for k, v in threads_cpu(p.pid).items()} if p.is_alive() else {}
+                 for p, a in zip(shards, split0, strict=True)]
         double_s = observer.double_claims_s()
         stop.set()
         for p in publishers + shards[1 if kill else 0:]:
@@ -487,11 +519,14 @@ def run_fleet(args: argparse.Namespace, work: Path) -> dict:
                if (work / f"shard{i}.pkl").exists()}
     return {"fleet": fleet, "config": config, "extrinsics": extrinsics, "t0": t0, "load": load, "publishers": outs,
             "shards": results, "shard_cpu_s": [b - a for a, b in zip(cpu0, cpu1, strict=True)], "kill": kill,
+            "shard_threads_cpu_s": split,
             "events": events, "states": states, "double_claims_s": double_s, "load_after": os.getloadavg()}
 
 
-def replay(run: dict) -> dict[tuple[str, float], np.ndarray]:
-    """The single-process replay of every sighting published: (robot, time) -> position."""
+def replay(run: dict) -> tuple[dict[tuple[str, float], np.ndarray], dict[str, float]]:
+    """The single-process replay of every sighting published: (robot, time) -> position; and its CPU per
+    sighting (ms) in decoding, in making the per-frame result (the robot's sightings and estimates) and in the
+    fusion (the tracker's: association, filter)."""
     from cubetrack.app.config import load_config
     from cubetrack.app.fusion_service import frame_result
     from cubetrack.app.live import live_intrinsics
@@ -502,11 +537,22 @@ def replay(run: dict) -> dict[tuple[str, float], np.ndarray]:
     config, settings = load_config(run["config"])
     tracker = Tracker(live_intrinsics(config), config.world, config.robots, read_extrinsics(run["extrinsics"]),
                       settings.stages)
+    cpu = [time.process_time()]
     messages = sorted((decode_sighting(d) for out in run["publishers"] for d in out["sightings"]),
                       key=lambda m: (m.capture_time_s, m.camera))
-    poses = [p for m in messages for p in tracker.fuse(frame_result(tracker, m), m.arrival_time_s)]
+    spent = {"decode": time.process_time() - cpu[0], "frame_result": 0.0, "fuse": 0.0}
+    poses = []
+    for m in messages:  # one at a time, as a shard does: an estimate is made only when the fusion asks for one
+        cpu = [time.process_time()]
+        result = frame_result(tracker, m)
+        cpu.append(time.process_time())
+        poses += tracker.fuse(result, m.arrival_time_s)
+        cpu.append(time.process_time())
+        spent["frame_result"] += cpu[1] - cpu[0]
+        spent["fuse"] += cpu[2] - cpu[1]
     poses += tracker.finish()
-    return {(p.robot, p.time_s): p.position_m for p in poses}
+    split = {k: round(1000 * v / max(1, len(messages)), 4) for k, v in spent.items()}
+    return {(p.robot, p.time_s): p.position_m for p in poses}, split
 
 
 def percentiles_ms(values: list[float]) -> list[float]:
@@ -566,9 +612,16 @@ def report(run: dict, args: argparse.Namespace) -> dict:
         "latency_ms_p50_p95_p99": percentiles_ms([p[3] for p in poses if p[3] is not None]),
         "shard_cpu_ms_per_sighting": {i: round(1000 * r["cpu_s"] / max(1, r["fused"]), 3) for i, r in shards.items()},
         "shard_cpu_s": [round(v, 2) for v in run["shard_cpu_s"]],
+        "shard_threads_ms_per_sighting": {i: {k: round(1000 * v / max(1, shards[i]["fused"]), 3) for k, v in t.items()}
+                                          for i, t in enumerate(run["shard_threads_cpu_s"]) if i in shards and t},
+        "publisher_threads_ms_per_sighting": {k: round(1000 * sum(o["threads_cpu_s"][k] for o in run["publishers"])
+                                                       / max(1, offered), 4) for k in ("main", "other")},
         "shard_sightings": {i: r["fused"] for i, r in shards.items()},
         "publisher_cpu_s": [round(o["cpu_s"], 2) for o in run["publishers"]],
         "publisher_cpu_ms_per_frame": round(1000 * sum(o["cpu_s"] for o in run["publishers"]) / max(1, frames), 3),
+        "publisher_cpu_ms_per_sighting": round(1000 * sum(o["cpu_s"] for o in run["publishers"]) / max(1, offered), 4),
+        "messages_per_s": round(sum(o["messages"] for o in run["publishers"]) / duration_s, 1),
+        "batch_ms": args.batch_ms,
         "publish_behind_ms_p95": percentiles_ms([v for o in run["publishers"] for v in o["late_s"]])[1],
         "error_mm_median_per_robot": {r: round(1000 * statistics.median(e), 2) if e else math.nan
                                       for r, e in errors.items()},
@@ -576,7 +629,7 @@ def report(run: dict, args: argparse.Namespace) -> dict:
         "takeover": takeover(run, poses),
     }
     if args.replay:
-        single = replay(run)
+        single, out["replay_ms_per_sighting"] = replay(run)
         diffs = [float(np.linalg.norm(np.array(p[2]) - single[(p[0], p[1])])) for p in poses if (p[0], p[1]) in single]
         out["replay_matched_poses"] = f"{len(diffs)} of {len(poses)} (replay {len(single)})"
         out["replay_difference_mm_median_p95"] = [round(1000 * float(v), 3) for v in np.percentile(diffs, [50, 95])] \
@@ -595,12 +648,16 @@ def print_report(r: dict) -> None:
     print(f"shards: sightings fused {r['shard_sightings']}, CPU during the run {r['shard_cpu_s']} s, "
           f"CPU per sighting {r['shard_cpu_ms_per_sighting']} ms")
     print(f"publishers{' (pre-encoded)' if r['pre_encoded'] else ''}: CPU {r['publisher_cpu_s']} s, "
-          f"{r['publisher_cpu_ms_per_frame']} ms per frame, "
+          f"{r['publisher_cpu_ms_per_frame']} ms per frame, {r['publisher_cpu_ms_per_sighting']} ms per cube sighting; "
+          f"{r['messages_per_s']} Zenoh messages/s (batches held up to {r['batch_ms']} ms), "
           f"behind schedule p95 {r['publish_behind_ms_p95']} ms")
+    print(f"CPU per cube sighting by thread (main: Python's; other: Zenoh's, with the subscribers' callbacks): "
+          f"shards {r['shard_threads_ms_per_sighting']} ms, publishers {r['publisher_threads_ms_per_sighting']} ms")
     print(f"accuracy vs truth, median position error per robot (mm): {r['error_mm_median_per_robot']}")
     if "replay_difference_mm_median_p95" in r:
         print(f"against the single-process replay of the same sightings: poses matched {r['replay_matched_poses']}, "
-              f"difference median / p95 {r['replay_difference_mm_median_p95']} mm")
+              f"difference median / p95 {r['replay_difference_mm_median_p95']} mm; its CPU per sighting "
+              f"{r['replay_ms_per_sighting']} ms")
     print(f"longest time a robot had two shards' claims: {r['double_claims_longest_s']} s")
     if r["takeover"]:
         t = r["takeover"]
@@ -628,14 +685,22 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--pre-encoded", action="store_true",
                    help="publishers make every message before the start and only restamp and put it when due: the "
                         "stand-in for workers on other hosts (only Zenoh's sending is on this machine's CPU)")
+    p.add_argument("--batch-ms", type=float, default=None,
+                   help="a publisher's tick: frames due within this of the first are put together, one message per "
+                        "robot (default: a worker's BATCH_HOLD_S; 0: each frame when due)")
     p.add_argument("--json", type=Path, help="also write the report here")
     p.add_argument("--quick", action="store_true", help="2 robots, 4 cameras, 10 fps, 3 s (the CI smoke)")
     args = p.parse_args(argv)
+    if args.batch_ms is None:
+        from cubetrack.io.worker_bus import BATCH_HOLD_S
+
+        args.batch_ms = 1000 * BATCH_HOLD_S
     if args.quick:
         args.robots, args.cameras, args.fps, args.duration = 2, 4, 10.0, 3.0
     if not (1 <= args.robots <= 49 and args.cameras >= 1 and args.shards >= 1 and args.publishers >= 1
-            and args.fps > 0 and args.duration > 0):
-        p.error("need 1-49 robots, at least one camera, shard and publisher, a positive rate and duration")
+            and args.fps > 0 and args.duration > 0 and args.batch_ms >= 0):
+        p.error("need 1-49 robots, at least one camera, shard and publisher, a positive rate and duration, "
+                "--batch-ms >= 0")
     if args.kill_shard and args.shards < 2:
         p.error("--kill-shard needs --shards 2 or more")
     with tempfile.TemporaryDirectory(prefix="fleet_") as work:

@@ -8,6 +8,7 @@ import json
 import math
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 pytestmark = pytest.mark.slow
@@ -37,6 +38,7 @@ def test_oracle_corners_are_the_pictures_truth_and_exact_ones_track_better(tmp_p
     assert report["oracle_matched"][0] >= 0.95 * report["detections"][0] > 0
     head_on = [v for name, v in report["residuals"]["edge"].items() if float(name.split("-")[1]) <= 60 and v["corners"]]
     assert head_on and all(v["rms_px"] < 0.3 for v in head_on), head_on
+    assert all(math.isfinite(v["radial_sd_px"]) and abs(v["radial_mean_px"]) < 0.3 for v in head_on), head_on
 
     exact = rows[("oracle", 0.0, bench.TRUE)]["default"]["mean"]["rot_deg"]
     noisy = rows[("oracle", 0.3, bench.TRUE)]["default"]["mean"]["rot_deg"]
@@ -67,3 +69,21 @@ def test_the_floor_with_exact_corners_on_a_clean_scene_is_zero(tmp_path, capsys,
                for r in rows.values() for k in ("causal", "smoothed")), rows
     everything = rows["body + cameras + stamps + corners"]["causal"]
     assert everything["rot_deg"] < rows["nothing"]["causal"]["rot_deg"], rows
+
+
+def test_error_parts_tell_a_marker_grown_outward_from_one_shifted(monkeypatch):
+    """The bias / noise split (issue 26): corners pushed out from the quad's centre are a radial
+    error and an outward offset of every side; the same corners shifted sideways are neither on
+    average (the radial parts cancel over the four corners)."""
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
+    bench = importlib.import_module("corner_ceiling")
+    square = np.array([[10.0, 10.0], [30.0, 10.0], [30.0, 30.0], [10.0, 30.0]])   # clockwise, y down
+    grown = square + 0.1 * (square - square.mean(axis=0)) / np.linalg.norm(square - square.mean(axis=0), axis=1,
+                                                                             keepdims=True)
+    radial, tangential, offset = bench.error_parts(grown, square)
+    np.testing.assert_allclose(radial, 0.1, atol=1e-12)
+    np.testing.assert_allclose(tangential, 0.0, atol=1e-12)
+    np.testing.assert_allclose(offset, 0.1 / math.sqrt(2.0), atol=1e-12)
+    radial, _, offset = bench.error_parts(square + [0.2, 0.0], square)
+    assert abs(radial.mean()) < 1e-12 and abs(offset.mean()) < 1e-12
+    np.testing.assert_allclose(np.sort(offset), [-0.2, 0.0, 0.0, 0.2], atol=1e-12)

@@ -35,6 +35,9 @@ def test_a_killed_shards_robots_are_fused_by_the_other_within_3_s(tmp_path):
     assert list(r["shard_sightings"]) == ["1"]  # the killed shard reports nothing; the survivor fused
     assert r["shard_sightings"]["1"] > 0 and r["shard_cpu_ms_per_sighting"]["1"] > 0
     assert all(v > 0 for v in r["publisher_cpu_s"])
+    assert 0 < r["messages_per_s"] <= r["offered_per_s"] + r["frames_per_s"]   # at most one per sighting or frame
+    assert r["shard_threads_ms_per_sighting"]["1"]["main"] > 0 and r["publisher_threads_ms_per_sighting"]["main"] > 0
+    assert set(r["replay_ms_per_sighting"]) == {"decode", "frame_result", "fuse"}
     takeover = r["takeover"]
     assert takeover["robots"], "shard 0 held no robot when it was killed"
     assert takeover["claimed_after_s"] <= takeover["poses_resumed_after_s"] < 3.0

@@ -173,7 +173,7 @@ class Bus:
     def __init__(self, port: int, hub: bool = False):
         """``hub``: listen on ``port`` (the workers' default peer) instead of connecting there."""
         from cubetrack.app.worker import fuse_endpoints, worker_endpoints
-        from cubetrack.io.sighting_wire import decode_sighting
+        from cubetrack.io.sighting_wire import decode_messages
         from cubetrack.io.worker_bus import CLAIMS_KEY, SIGHTINGS_KEY, ClaimBoard
         from cubetrack.sink.zenoh_session import open_session
 
@@ -184,10 +184,10 @@ class Bus:
         endpoints = fuse_endpoints(listen=locator) if hub else worker_endpoints(connect=locator)
         self.session = open_session(endpoints, "test")
 
-        def sighting(sample) -> None:
-            message = decode_sighting(bytes(sample.payload))
-            self.received.setdefault(message.camera, []).append(time.monotonic())
-            self.stamped.setdefault(message.camera, []).append(message.arrival_time_s)
+        def sighting(sample) -> None:   # a lone sighting or a worker's batch of a robot's (docs/scaling.md)
+            for message in decode_messages(bytes(sample.payload)):
+                self.received.setdefault(message.camera, []).append(time.monotonic())
+                self.stamped.setdefault(message.camera, []).append(message.arrival_time_s)
 
         self.subscriber = self.session.declare_subscriber(f"{SIGHTINGS_KEY}/**", sighting)
         self.watcher = self.session.liveliness().declare_subscriber(

@@ -39,7 +39,7 @@ from cubetrack.core.records import CameraHealth, Frame, FrameJob, FrameOutcome, 
 from cubetrack.fuse.fusion import FilterFusion
 from cubetrack.io.config import TrackerConfig
 from cubetrack.io.run import RUN_FILE
-from cubetrack.io.sighting_wire import SightingMessage, SightingWireError, camera_health, decode_sighting
+from cubetrack.io.sighting_wire import SightingMessage, SightingWireError, camera_health, decode_messages
 from cubetrack.io.worker_bus import (
     ROBOT_CLAIMS_KEY,
     SHARD_POOL_KEY,
@@ -164,7 +164,7 @@ class _Inbox:
         while self.messages:
             self.received += 1
             try:
-                messages.append(decode_sighting(self.messages.popleft()))
+                messages.extend(decode_messages(self.messages.popleft()))
             except SightingWireError as exc:
                 self.bad += 1
                 if self.bad == 1 or self.bad % 1000 == 0:

@@ -3,9 +3,10 @@
 A worker reads its cameras (:class:`cubetrack.source.streams.LiveCameras`), stamps each frame with its
 capture time through the camera's ``/time`` round trips and does the tracker's per-frame work
 (:meth:`cubetrack.app.tracker.FrameProcessor.work`: decode, detect, the camera's pose), then
-publishes each frame (:mod:`cubetrack.io.sighting_wire`) as one message per robot whose markers it
-holds under ``cubetrack/sightings/<camera>/<robot>`` (:func:`body_messages`), a frame without any
-under ``cubetrack/sightings/<camera>``. The fusion (:mod:`cubetrack.app.fusion_service`) subscribes
+publishes each frame (:mod:`cubetrack.io.sighting_wire`) as one sighting per robot whose markers it
+holds (:func:`body_messages`), gathered over a pass over its cameras (at most ``BATCH_HOLD_S``) into one
+message per robot under ``cubetrack/sightings/<worker>/<robot>``, a frame without any under
+``cubetrack/sightings/<camera>``. The fusion (:mod:`cubetrack.app.fusion_service`) subscribes
 to ``cubetrack/sightings/**``, a fusion shard to its robots' keys. A worker holds no fusion state,
 so detection searches whole frames (there is no prediction to search around) and per-camera
 estimates are made by the fusion, from the corners, when it asks for one (as in one process: only
@@ -48,7 +49,7 @@ from cubetrack.core.records import Detection, Frame, FrameResult
 from cubetrack.fuse.forecast import NO_FORECAST
 from cubetrack.io.config import TrackerConfig
 from cubetrack.io.sighting_wire import SightingMessage, WireClock, WireHealth, encode_sighting
-from cubetrack.io.worker_bus import SIGHTINGS_KEY, WORKERS_KEY, Claims, claim_key, sighting_key
+from cubetrack.io.worker_bus import SIGHTINGS_KEY, WORKERS_KEY, Claims, SightingBatches, claim_key, sighting_key
 from cubetrack.sink.zenoh_session import ZenohEndpoints, open_session
 from cubetrack.source.clock import ClockSync
 from cubetrack.source.streams import CameraStats, ClockReading, LiveCameras, SourceParams
@@ -144,8 +145,8 @@ class ZenohWorker:
         self.bus, self.tracker, self.urls, self.source, self.clock = session, tracker, urls, source, clock
         self.with_pose = with_pose
         self.me = worker_id()
-        # camera -> its reader, publishers (None: frames without a robot's markers, else by robot), claim token
-        self.readers: dict[str, tuple[LiveCameras, dict[str | None, Any], Any]] = {}
+        self.readers: dict[str, tuple[LiveCameras, Any]] = {}  # camera -> its reader, its claim token
+        self.batches = SightingBatches(session, self.me)
         self.last_stats: dict[str, CameraStats] = {}
         self.claims: list[tuple[float, str, bool]] = []
         self.wake = threading.Event()
@@ -155,28 +156,28 @@ class ZenohWorker:
     def take(self, camera: str) -> None:
         token = self.bus.liveliness().declare_token(claim_key(camera, self.me))
         live = LiveCameras({camera: self.urls[camera]}, self.source, clock=self.clock, wake=self.wake.set)
-        self.readers[camera] = (live, {None: self.bus.declare_publisher(sighting_key(camera))}, token)
+        self.readers[camera] = (live, token)
         live.start()
         self.claims.append((time.monotonic() - self.started, camera, True))
         log.info("worker %s: reading %s", self.me, camera)
 
     def give_up(self, camera: str) -> None:
-        live, publishers, token = self.readers.pop(camera)
+        live, token = self.readers.pop(camera)
         live.stop()
         self.last_stats.update(live.stats())
-        for publisher in publishers.values():
-            publisher.undeclare()
         token.undeclare()
         self.claims.append((time.monotonic() - self.started, camera, False))
         log.info("worker %s: no longer reading %s", self.me, camera)
 
     def step(self, timeout_s: float) -> None:
-        """One event of every camera read (waiting up to ``timeout_s`` when none had one)."""
+        """One event of every camera read (waiting up to ``timeout_s`` when none had one), published per robot."""
         busy = False
-        for camera, (live, _, _) in list(self.readers.items()):
+        for camera, (live, _) in list(self.readers.items()):
             if (event := live.get(0)) is not None:
                 self.handle(camera, event)
                 busy = True
+                self.batches.flush(due_only=True)
+        self.batches.flush()
         if not busy:
             self.wake.wait(timeout_s)
             self.wake.clear()
@@ -188,15 +189,13 @@ class ZenohWorker:
             self.tracker.add_clock_sample(event.camera, event.sample)
         elif (job := self.tracker.admit(event, hold=False, forecast=NO_FORECAST)) is not None:
             result = self.tracker.processor.work(job)
-            live, publishers, _ = self.readers[camera]
-            for message in body_messages(result, self.tracker.clocks[camera], live.stats()[camera], self.with_pose):
-                if message.body not in publishers:
-                    publishers[message.body] = self.bus.declare_publisher(sighting_key(camera, message.body))
-                publishers[message.body].put(encode_sighting(message))
+            stats = self.readers[camera][0].stats()[camera]
+            for message in body_messages(result, self.tracker.clocks[camera], stats, self.with_pose):
+                self.batches.add(camera, message.body, encode_sighting(message))
             self.published += 1
 
     def camera_stats(self) -> dict[str, CameraStats]:
-        return self.last_stats | {n: s for live, _, _ in self.readers.values() for n, s in live.stats().items()}
+        return self.last_stats | {n: s for live, _ in self.readers.values() for n, s in live.stats().items()}
 
     def line(self, elapsed_s: float) -> str:
         return (f"{elapsed_s:5.0f}s published {self.published} | "
@@ -222,7 +221,7 @@ def run_worker(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
     urls = {n: u for n, u in live_camera_urls(config).items() if n in names}
     for n in names:
         for robot in config.robots:
-            sighting_key(n, robot.name)  # every name a key chunk, before anything starts
+            sighting_key(n), sighting_key(worker_id(), robot.name)  # every name a key chunk, before anything starts
     intrinsics = {n: i for n, i in live_intrinsics(config).items() if n in names}
     tracker = Tracker(intrinsics, config.world, config.robots, extrinsics, params, synced_cameras=frozenset(urls))
     zenoh = open_session(endpoints, "worker")
@@ -246,6 +245,7 @@ def run_worker(config: TrackerConfig, extrinsics: dict[str, CameraExtrinsics] | 
     finally:
         for camera in list(worker.readers):
             worker.give_up(camera)
+        worker.batches.close()
         claims.close()
         token.undeclare()
         zenoh.close()

@@ -184,7 +184,8 @@ class WatchedFusion:
         it was re-calibrated)."""
         self._collect(now_s)
         sighting = self._reposed(sighting)
-        for event in self.watch.add(sighting):
+        predicted = self.fusion.predicted_pose(sighting.robot, sighting.capture_time_s)
+        for event in self.watch.add(sighting, predicted):
             self._tell(event)
         self._start(now_s)
         self._announce(sighting.camera, now_s)
@@ -195,7 +196,6 @@ class WatchedFusion:
         if self.watch.excluded(sighting.camera):
             self.stats["set-aside sighting"] += 1
             return []
-        predicted = self.fusion.predicted_pose(sighting.robot, sighting.capture_time_s)
         if predicted is not None and self.watch.off_prediction(sighting, predicted):
             return []
         return self.fusion.add(sighting, now_s)

@@ -39,7 +39,7 @@ from cubetrack.core.records import Detection
 from cubetrack.detect.decode import decode_gray as decode_gray  # also imported from here by other stages
 from cubetrack.detect.decode import read_gray as read_gray
 from cubetrack.detect.edge_fit import NEXT_I, compile_edge_fit, refine_corners_edges
-from cubetrack.detect.predicted import compile_cell_reader, marker_box, modules_of, readable_markers
+from cubetrack.detect.predicted import compile_cell_reader, marker_box, modules_of, readable_markers, resolvable_markers
 from cubetrack.detect.template_fit import LensMap, compile_template_fit, fast_template_corners
 
 log = logging.getLogger(__name__)
@@ -367,7 +367,8 @@ class Detector:
         projected, :func:`cubetrack.detect.predicted.predicted_markers`). With the ``edge`` or
         ``template`` refinement and no inverted markers, their edges are fitted from the predicted
         corners and their bit cells read (:mod:`cubetrack.detect.predicted`); one that does not
-        read as its id is searched for by OpenCV in a small box around it. When at least one reads
+        read as its id is searched for by OpenCV in a small box around it (unless its cells are
+        predicted narrower than a pixel: unreadable). When at least one reads
         at its prediction, the markers found so are the detections and OpenCV's search of the
         regions is skipped (``DetectResult.predicted``).
 
@@ -414,7 +415,9 @@ class Detector:
         quad that reads as their id there (:func:`cubetrack.detect.predicted.readable_markers`), and
         the others as OpenCV finds them in a box around their prediction
         (:func:`cubetrack.detect.predicted.marker_box`; its drops counted into ``dropped``) — one
-        not found there either is not seen, as OpenCV's search would not see it; None when none
+        not found there either is not seen, as OpenCV's search would not see it, and one predicted
+        with cells narrower than a pixel is not searched for (nothing can read it:
+        :func:`cubetrack.detect.predicted.resolvable_markers`); None when none
         reads at its prediction (nothing confirms it: the regions are searched)."""
         quads = np.array([d.corners_px for d in predicted], dtype=np.float64)
         modules = np.array([modules_of(d.dictionary) for d in predicted])
@@ -428,7 +431,7 @@ class Detector:
         found = {i: Detection(d.marker_id, fitted[i], float(areas[i]), d.dictionary)
                  for i, d in enumerate(predicted) if read[i]}
         centres = quads.mean(axis=1)
-        for i in np.flatnonzero(~read).tolist():
+        for i in np.flatnonzero(~read & resolvable_markers(quads, modules)).tolist():
             # a marker of its id whose centre is nearer its prediction than any other's (a cube may
             # carry one id on every face: the box can show a neighbouring face, found already)
             key = predicted[i].dictionary, predicted[i].marker_id

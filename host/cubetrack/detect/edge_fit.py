@@ -25,7 +25,7 @@ NEXT_I = np.array([1, 2, 3, 0])
 PREV_I = np.array([3, 0, 1, 2])
 
 
-_EDGE_SPAN = (0.2, 0.8)       # the detector's edge samples: the middle 60 % of each side
+_EDGE_SPAN = (0.1, 0.9)       # the detector's edge samples: the middle 80 % of each side
 _EDGE_SAMPLES_ACROSS = 17     # profile samples across an edge
 _EDGE_FOCUS_PX = 3.0          # focus='tent': half-width of the tent that re-centres each edge point, px
 _PEAK_WINDOW_PX = 1.25        # focus='peak': half-width of the window around the gradient's peak, px

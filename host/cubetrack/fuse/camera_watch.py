@@ -93,6 +93,9 @@ class WatchParams:
                                  "re-calibrate it from the robots' sightings")
     samples_per_s: float = param(8.0, "sightings per camera and second checked against the other cameras (the "
                                       "rest are not: each check is a multi-camera fit)")
+    checks_per_s: float = param(40.0, "sightings checked per second over all cameras at most: with more cameras than "
+                                      "checks_per_s / samples_per_s each camera is checked less often, in turn, so "
+                                      "16 cameras cost what 5 do")
     reference_span_s: float = param(0.15, "the other cameras' sightings within this many seconds of a checked "
                                           "one form its reference cube pose, seconds")
     reference_cameras: int = param(2, "other cameras that must see the cube for a reference (one alone is weak in "
@@ -136,7 +139,7 @@ class WatchParams:
 
     def __post_init__(self) -> None:
         check_at_least(self, 0, "gate_prediction_px")
-        check_positive(self, "baseline_s", "baseline_every_s", "samples_per_s", "reference_span_s",
+        check_positive(self, "baseline_s", "baseline_every_s", "samples_per_s", "checks_per_s", "reference_span_s",
                        "reference_rms_px", "window_s", "check_every_s", "moved_px", "moved_ratio", "moved_m",
                        "moved_deg", "rejoin_sigma_m", "rejoin_sigma_deg", "rejoin_agree_m", "rejoin_agree_deg",
                        "corner_noise_px", "gate_px", "suspect_px", "gate_prediction_ratio")
@@ -209,7 +212,8 @@ class WatchSample:
     normalised image coordinates; ``focal_px`` (N,) its focal length). For the re-calibration's
     joint fit (:func:`cubetrack.calib.recalibrate.recalibrate`): the sighting's own corner sets
     (``own_sets``), the other cameras' (``reference_sets``) and the cube pose they gave
-    (``T_world_cube``, None when not kept)."""
+    (``T_world_cube``, None when not kept); ``reference_rms_px`` the RMS corner residual of that
+    fit (how well the other cameras agree among themselves)."""
 
     camera: str
     time_s: float
@@ -219,6 +223,7 @@ class WatchSample:
     own_sets: tuple[CornerSet, ...] = ()
     reference_sets: tuple[CornerSet, ...] = ()
     T_world_cube: np.ndarray | None = None
+    reference_rms_px: float = 0.0
 
 
 VELOCITY_SIGMA = (1.0, 4.0)  # the reference fits' prior spread of the cube's velocities: m/s, rad/s
@@ -226,6 +231,12 @@ VELOCITY_SIGMA = (1.0, 4.0)  # the reference fits' prior spread of the cube's ve
 # 0.012 mm / 0.01 deg of the trust-region solver's solutions, 5.2x (reference fits) and 1.8x (camera refits)
 # cheaper (docs/calibration.md, "The reference fit by Gauss-Newton")
 FIT_ITERATIONS = 30
+# the watcher matches a sighting's faces where the fused prediction projects them, within this (ids distinct): a
+# bumped camera's corners land several pixels off (1 deg ~ 10 px here), the prediction's own error is a few px
+PREDICTION_GATE_PX = 40.0
+# a check's reference fit takes this many sightings of each other camera, those nearest the checked one in time (more
+# average the corners' noise; each costs the fit and the matching)
+REFERENCE_SIGHTINGS = 2
 WINDOW_PRIOR_M = 0.05  # a window's fit: prior spread of the camera's position about its settled pose, metres
 WINDOW_PRIOR_DEG = 3.0  # ... and of its orientation, degrees
 
@@ -254,6 +265,15 @@ class CameraFit:
         (m) and the angle between the orientations (deg)."""
         return (float(np.linalg.norm(self.T_world_cam[:3, 3] - T_world_cam[:3, 3])),
                 rotation_angle(T_world_cam[:3, :3], self.T_world_cam[:3, :3], unit="deg"))
+
+
+def set_medians(values: np.ndarray, lengths: Sequence[int]) -> list[float]:
+    """The median of each consecutive run of ``values`` (runs of ``lengths``, none empty), in
+    one sort: each run's middle one or two values once sorted within the runs."""
+    n = np.asarray(lengths)
+    start = np.concatenate([[0], np.cumsum(n)[:-1]])
+    ordered = values[np.lexsort((values, np.repeat(np.arange(len(n)), n)))]
+    return ((ordered[start + (n - 1) // 2] + ordered[start + n // 2]) / 2.0).tolist()
 
 
 def residuals_px(T_world_cam: np.ndarray, points_world_m: np.ndarray, normalized: np.ndarray,
@@ -412,7 +432,8 @@ class CameraWatch:
         self.events: list[WatchEvent] = []
         self.stats: Counter[str] = Counter()
         self._recent: dict[str, deque[CubeSighting]] = {r: deque() for r in layouts}
-        self._sets: dict[tuple[str, str, int], tuple[np.ndarray | None, list[CornerSet]]] = {}
+        self._sets: dict[tuple[str, str, int, bool], tuple[np.ndarray | None, list[CornerSet]]] = {}
+        self._predicted: dict[tuple[str, str, int], np.ndarray] = {}  # a recent sighting's fused prediction
         self._pending: deque[CubeSighting] = deque()
         self._next_sample_s: dict[str, float] = {}
         self._newest_s = -math.inf
@@ -434,10 +455,12 @@ class CameraWatch:
         settled = self.settled.get(sighting.camera)
         if p.gate_prediction_px <= 0 or settled is None or sighting.robot not in self.layouts:
             return False
-        sets = [dataclasses.replace(s, T_cam_world=invert_T(settled)) for s in self._corner_sets(sighting)[1]]
+        sets = self._corner_sets(sighting)[1]
         if not sets:
             return False
-        residual = reprojection_residuals_px(T_world_cube, sets, sighting.capture_time_s).reshape(-1, 2)
+        points_world_m = transform_points(T_world_cube, np.concatenate([s.points_cube_m for s in sets]))
+        residual = residuals_px(settled, points_world_m, np.concatenate([s.normalized for s in sets]),
+                                np.repeat([s.focal_px for s in sets], [len(s.normalized) for s in sets]))
         miss = float(np.median(np.linalg.norm(residual, axis=1)))
         latest = self._off_prediction[sighting.robot]
         latest[sighting.camera] = (sighting.capture_time_s, miss)
@@ -459,22 +482,27 @@ class CameraWatch:
         return [c for c, s in self.state.items()
                 if s is CameraState.RECALIBRATING and self.points(c) >= self.params.rejoin_points]
 
-    def add(self, sighting: CubeSighting) -> list[WatchEvent]:
-        """Take one sighting (any camera, any robot, in about capture order); returns the events
-        it led to (a camera declared moved)."""
+    def add(self, sighting: CubeSighting, T_world_cube: np.ndarray | None = None) -> list[WatchEvent]:
+        """Take one sighting (any camera, any robot, in about capture order) and the fused
+        prediction of its cube's pose at its capture time (None: no track), which its faces are
+        matched by; returns the events it led to (a camera declared moved)."""
         if sighting.robot not in self.layouts or sighting.camera not in self.state:
             return []
-        t = sighting.capture_time_s
+        t, p = sighting.capture_time_s, self.params
         self._newest_s = max(self._newest_s, t)
         recent = self._recent[sighting.robot]
         recent.append(sighting)
-        keep_s = 2.0 * self.params.reference_span_s + 1.0
+        if T_world_cube is not None:
+            self._predicted[(sighting.camera, sighting.robot, sighting.seq)] = T_world_cube
+        keep_s = 2.0 * p.reference_span_s + 1.0
         while recent and recent[0].capture_time_s < self._newest_s - keep_s:
             old = recent.popleft()
-            self._sets.pop((old.camera, old.robot, old.seq), None)
-        if t >= self._next_sample_s.get(sighting.camera, -math.inf):
+            for by_prediction in (True, False):
+                self._sets.pop((old.camera, old.robot, old.seq, by_prediction), None)
+            self._predicted.pop((old.camera, old.robot, old.seq), None)
+        if t >= self._next_sample_s.get(sighting.camera, -math.inf):  # checks_per_s shared by the cameras in turn
             self._pending.append(sighting)
-            self._next_sample_s[sighting.camera] = t + 1.0 / self.params.samples_per_s
+            self._next_sample_s[sighting.camera] = t + max(1.0 / p.samples_per_s, len(self.state) / p.checks_per_s)
         while self._pending and self._pending[0].capture_time_s + self.params.reference_span_s <= self._newest_s:
             sample = self._sample(self._pending.popleft())
             if sample is not None:
@@ -552,10 +580,50 @@ class CameraWatch:
         if suspects:  # named by its disagreement when it became suspect; no one's reference since
             top = max(suspects, key=lambda c: verdicts[c].shift_px)
             return top, verdicts[top]
+        if len(moved) > 1:  # each in turn put where its window's newer half says: the one that makes the others agree
+            miss = {c: self._others_miss_px(c, self._newer_pose(c, verdicts[c], now_s), now_s) for c in moved}
+            top = min(moved, key=lambda c: miss[c])
+            return top, verdicts[top]
         score = {c: float(np.median([d for _, d in self._disagreement[c]])) if self._disagreement[c] else 0.0
                  for c in verdicts}
         top = max(score, key=lambda c: score[c])
         return (top, verdicts[top]) if top in moved else None
+
+    def _newer_pose(self, camera: str, verdict: Verdict, now_s: float) -> np.ndarray:
+        """The camera's pose fitted to its samples of the window's newer half (the window's own
+        fit straddles the move), or the window's when that fit fails."""
+        newer = [s for s in self.samples[camera] if s.time_s >= now_s - self.params.window_s / 2]
+        fit = refit_camera(*stacked(newer), verdict.fit.T_world_cam, self.params.corner_noise_px,
+                           prior_sigma=(WINDOW_PRIOR_M, math.radians(WINDOW_PRIOR_DEG))) if newer else None
+        return verdict.fit.T_world_cam if fit is None else fit.T_world_cam
+
+    def _others_miss_px(self, camera: str, T_world_cam: np.ndarray, now_s: float) -> float:
+        """If ``camera`` were at ``T_world_cam``: the median corner miss (px, at their settled
+        poses) of the other watched cameras' samples of the window's newer half (after the move,
+        as the one declared keeps) whose reference it took part in, the
+        references fitted again with it there. With three cameras a moved one spoils both others'
+        references, and their windows can say moved as loudly as its own; put at its window's pose,
+        only the camera that really moved makes the others' references agree with them again."""
+        T_cam_world, p, misses = invert_T(T_world_cam), self.params, []
+        for other, samples in self.samples.items():
+            settled = self.settled.get(other)
+            if other == camera or settled is None or self.state[other] is CameraState.RECALIBRATING:
+                continue
+            for sample in samples:
+                if (sample.T_world_cube is None or sample.time_s < now_s - p.window_s / 2
+                        or not any(s.camera == camera for s in sample.reference_sets)):
+                    continue
+                sets = [dataclasses.replace(s, T_cam_world=T_cam_world) if s.camera == camera else s
+                        for s in sample.reference_sets]
+                refit = solve_joint(sets, sample.T_world_cube, sample.time_s, p.corner_noise_px,
+                                    velocity_sigma=VELOCITY_SIGMA, iterations=FIT_ITERATIONS)
+                if refit is not None:
+                    points = np.concatenate([transform_points(moved_pose(
+                        refit.T_world_cube, refit.velocity_m_s, refit.angular_velocity_rad_s, s.time_s - sample.time_s),
+                        s.points_cube_m) for s in sample.own_sets])
+                    residual = residuals_px(settled, points, sample.normalized, sample.focal_px)
+                    misses.append(float(np.median(np.linalg.norm(residual, axis=1))))
+        return float(np.median(misses)) if misses else math.inf
 
     def _judge(self, sample: WatchSample) -> None:
         """Make the sample's camera suspect, or clear it: its last ``suspect_samples`` samples all
@@ -594,13 +662,26 @@ class CameraWatch:
             if fit is not None:
                 self.settled[camera] = fit.T_world_cam
 
-    def _corner_sets(self, sighting: CubeSighting) -> tuple[np.ndarray | None, list[CornerSet]]:
-        """The sighting's own cube pose (its camera's estimate) and its corners matched to faces
-        by it (once per sighting)."""
-        key = (sighting.camera, sighting.robot, sighting.seq)
+    def _corner_sets(self, sighting: CubeSighting, by_prediction: bool = True
+                     ) -> tuple[np.ndarray | None, list[CornerSet]]:
+        """A cube pose for the sighting and its corners matched to faces by it (once per
+        sighting): with ``by_prediction``, the fused prediction given to :meth:`add` where it
+        matches a face (a compiled projection; within ``PREDICTION_GATE_PX``, or ``gate_px`` where
+        an id is on several faces); else the sighting's own estimate (a per-marker pose search,
+        ~10x dearer, but the faces a moved camera really saw: a checked sighting's own corners)."""
+        key = (sighting.camera, sighting.robot, sighting.seq, by_prediction)
         found = self._sets.get(key)
+        layout = self.layouts[sighting.robot]
+        predicted = self._predicted.get(key[:3]) if by_prediction else None
+        if found is None and predicted is not None:
+            gate_px = self.params.gate_px if layout.has_repeated_ids else PREDICTION_GATE_PX
+            matches = match_faces(sighting.detections, layout, sighting.intrinsics, sighting.T_world_cam, predicted,
+                                  gate_px=gate_px)
+            if matches:
+                found = predicted, sighting_corner_sets(matches, sighting.intrinsics, sighting.T_world_cam,
+                                                        sighting.camera, sighting.capture_time_s)
+                self._sets[key] = found
         if found is None:
-            layout = self.layouts[sighting.robot]
             estimate = sighting.estimate or estimate_cube(
                 sighting.detections, layout, sighting.intrinsics, sighting.T_world_cam, camera=sighting.camera,
                 robot=sighting.robot, seq=sighting.seq, capture_time_s=sighting.capture_time_s,
@@ -615,40 +696,51 @@ class CameraWatch:
             self._sets[key] = found
         return found
 
+    def _reference_sets(self, sighting: CubeSighting) -> list[CornerSet]:
+        """The corner sets of the other cameras' reference for a checked sighting: of the
+        ``reference_cameras_max`` other cameras in use with a sighting nearest in time within
+        ``reference_span_s``, the ``REFERENCE_SIGHTINGS`` sightings of each nearest in time."""
+        t, span = sighting.capture_time_s, self.params.reference_span_s
+        near = sorted(((abs(o.capture_time_s - t), o) for o in self._recent[sighting.robot]
+                       if o.camera != sighting.camera and abs(o.capture_time_s - t) <= span), key=lambda item: item[0])
+        taken: Counter[str] = Counter()
+        chosen: list[CubeSighting] = []
+        # a re-calibrating camera's samples are its new pose's data (calib.recalibrate): every sighting in the span
+        per_camera = math.inf if self.state[sighting.camera] is CameraState.RECALIBRATING else REFERENCE_SIGHTINGS
+        for _, o in near:
+            if taken[o.camera] < per_camera and not self.excluded(o.camera) and (
+                    o.camera in taken or len(taken) < self.params.reference_cameras_max):
+                taken[o.camera] += 1
+                chosen.append(o)
+        return [s for o in chosen for s in self._corner_sets(o)[1]]
+
     def _sample(self, sighting: CubeSighting) -> WatchSample | None:
         """The sighting against the other watched cameras' cube pose at its time, or None (counted)."""
-        T_own, mine = self._corner_sets(sighting)
+        T_own, mine = self._corner_sets(sighting, by_prediction=False)
         if T_own is None or not mine:
             self.stats["no cube matched"] += 1
             return None
-        t, span = sighting.capture_time_s, self.params.reference_span_s
-        near = [o for o in self._recent[sighting.robot]
-                if o.camera != sighting.camera and abs(o.capture_time_s - t) <= span and not self.excluded(o.camera)]
-        gap: dict[str, float] = {}  # each other camera: how near in time its nearest sighting is
-        for o in near:
-            gap[o.camera] = min(gap.get(o.camera, math.inf), abs(o.capture_time_s - t))
-        chosen = set(sorted(gap, key=lambda c: gap[c])[:self.params.reference_cameras_max])
-        others = [s for o in near if o.camera in chosen for s in self._corner_sets(o)[1]]
+        others = self._reference_sets(sighting)
         if len({s.camera for s in others}) < self.params.reference_cameras:
             self.stats["too few other cameras"] += 1
             return None
-        # started from the camera's own cube pose: off by what the camera moved, a few cm and degrees at most
+        # started from the sighting's cube pose (the fused prediction, or its camera's own estimate)
+        t = sighting.capture_time_s
         reference = solve_joint(others, T_own, t, self.params.corner_noise_px, velocity_sigma=VELOCITY_SIGMA,
                                 iterations=FIT_ITERATIONS)
         if reference is None or reference.rms_px > self.params.reference_rms_px:
             self.stats["reference fit refused"] += 1
             return None
         self.stats["checked"] += 1
-        r = reprojection_residuals_px(reference.T_world_cube, others, t, reference.velocity_m_s,
-                                      reference.angular_velocity_rad_s).reshape(-1, 2)
-        rows = np.cumsum([0] + [len(s.points_cube_m) for s in others])
-        for s, a, b in zip(others, rows[:-1], rows[1:], strict=True):
-            self._disagreement[s.camera].append((t, float(np.median(np.linalg.norm(r[a:b], axis=1)))))
+        r = np.linalg.norm(reprojection_residuals_px(reference.T_world_cube, others, t, reference.velocity_m_s,
+                                                     reference.angular_velocity_rad_s).reshape(-1, 2), axis=1)
+        for s, disagreement in zip(others, set_medians(r, [len(s.points_cube_m) for s in others]), strict=True):
+            self._disagreement[s.camera].append((t, disagreement))
         points = [transform_points(moved_pose(reference.T_world_cube, reference.velocity_m_s,
                                               reference.angular_velocity_rad_s, s.time_s - t), s.points_cube_m)
                   for s in mine]
         normalized = np.concatenate([s.normalized for s in mine])
         focal = np.concatenate([np.full(len(s.normalized), s.focal_px) for s in mine])
         return WatchSample(sighting.camera, t, np.concatenate(points), normalized, focal, tuple(mine), tuple(others),
-                           reference.T_world_cube)
+                           reference.T_world_cube, reference.rms_px)
 

@@ -25,13 +25,21 @@ seconds after the worker's clock mapping (``capture = device + offset + drift * 
 device_ref)``), so the fusion orders sightings exactly as one process would; the mapping itself
 travels along for inspection. Floats are float64, so a decoded message is bit-identical to what
 the worker computed. A newer version is refused, never guessed at.
+
+A batch (docs/scaling.md, "Fewer, larger messages"): several sighting messages that one worker publishes
+together, one Zenoh message per robot per tick, each inside exactly as it would travel alone::
+
+    magic "CTSB" | version u8 | count u16 | count x (u32 length + a sighting message)
+
+:func:`decode_messages` reads either a batch or a lone sighting message (what workers before batches
+published); a batch of a newer version is refused with its version named.
 """
 
 from __future__ import annotations
 
 import math
 import struct
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from typing import NamedTuple
 
@@ -143,6 +151,43 @@ def encode_sighting(message: SightingMessage) -> bytes:
         for reason, count in sorted(message.dropped.items()):
             parts += [_name(reason, "drop reason"), _U32.pack(min(count, 0xFFFFFFFF))]
     return b"".join(parts)
+
+
+BATCH_MAGIC = b"CTSB"
+BATCH_VERSION = 1
+_BATCH_HEAD = struct.Struct("<4sBH")
+
+
+def encode_batch(messages: Sequence[bytes]) -> bytes:
+    """Encoded sighting messages as one batch (see the module docstring)."""
+    if not 0 < len(messages) <= 0xFFFF:
+        raise SightingWireError(f"sighting batch: {len(messages)} messages, 1 to 65535")
+    parts = [_BATCH_HEAD.pack(BATCH_MAGIC, BATCH_VERSION, len(messages))]
+    for data in messages:
+        parts += [_U32.pack(len(data)), data]
+    return b"".join(parts)
+
+
+def decode_messages(data: bytes) -> list[SightingMessage]:
+    """The sighting messages in ``data``: a batch's, or a lone message (as workers published before batches);
+    :class:`SightingWireError` (one line) for anything else, a truncated batch or a newer batch version."""
+    data = bytes(data)
+    if data[:4] != BATCH_MAGIC:
+        return [decode_sighting(data)]
+    if len(data) > 4 and data[4] != BATCH_VERSION:
+        raise SightingWireError(f"sighting batch version {data[4]}, this cubetrack reads version {BATCH_VERSION}")
+    r = _Reader(data)
+    (_, _, count) = r.take(_BATCH_HEAD, "batch header")
+    out: list[SightingMessage] = []
+    for _ in range(count):
+        (n,) = r.take(_U32, "batch")
+        if r.at + n > len(data):
+            raise SightingWireError(f"sighting batch truncated in its message {len(out) + 1} of {count}")
+        out.append(decode_sighting(data[r.at:r.at + n]))
+        r.at += n
+    if r.at != len(data):
+        raise SightingWireError(f"sighting batch: {len(data) - r.at} bytes after its end")
+    return out
 
 
 class _Reader:

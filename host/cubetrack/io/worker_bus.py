@@ -10,8 +10,9 @@ sees the same tokens); :func:`claim_changes` says what a worker takes and gives 
 their own keys (``cubetrack/robot-claims/<robot>/<shard>``, ``cubetrack/shard-pool/<shard>``):
 :class:`Claims` runs the rule for either.
 
-A worker publishes each frame once per robot it holds markers of, under
-``cubetrack/sightings/<camera>/<robot>`` (:func:`sighting_key`), and a frame with no robot's markers
+A worker publishes each frame's share of each robot it holds markers of, gathered over a tick
+(:class:`SightingBatches`: at most ``BATCH_HOLD_S``) into one message per robot under
+``cubetrack/sightings/<worker>/<robot>`` (:func:`sighting_key`), and a frame with no robot's markers
 under ``cubetrack/sightings/<camera>``: a shard subscribes to ``cubetrack/sightings/*/<robot>`` for
 each of its robots (:func:`robot_sightings_key`), a fusion of every robot to ``cubetrack/sightings/**``.
 """
@@ -20,6 +21,7 @@ from __future__ import annotations
 
 import hashlib
 import math
+import queue
 import re
 import threading
 import time
@@ -28,9 +30,9 @@ from typing import Any
 
 from cubetrack.core.errors import ConfigError
 from cubetrack.core.records import TrackedPose
-from cubetrack.io.sighting_wire import FusedState, SightingWireError, decode_state, encode_state
+from cubetrack.io.sighting_wire import FusedState, SightingWireError, decode_state, encode_batch, encode_state
 
-SIGHTINGS_KEY = "cubetrack/sightings"  # cubetrack/sightings/<camera>[/<robot>]: a frame or one robot's share of it
+SIGHTINGS_KEY = "cubetrack/sightings"  # cubetrack/sightings/<worker>/<robot>: a robot's; /<camera>: empty frames
 WORKERS_KEY = "cubetrack/workers"  # a liveliness token per running worker: cubetrack/workers/<host>-<pid>
 CLAIMS_KEY = "cubetrack/claims"  # a liveliness token per camera a worker reads: cubetrack/claims/<camera>/<worker>
 POOL_KEY = "cubetrack/pool"  # a liveliness token per automatic worker: cubetrack/pool/<worker>
@@ -39,6 +41,7 @@ ROBOT_CLAIMS_KEY = "cubetrack/robot-claims"  # per robot a fusion fuses: cubetra
 SHARD_POOL_KEY = "cubetrack/shard-pool"  # a liveliness token per automatic fusion shard
 STATES_KEY = "cubetrack/fused-states"  # cubetrack/fused-states/<robot>: a shard's latest pose of a robot it fuses
 STATE_EVERY_S = 0.1  # a shard publishes each robot's state at most this often (wall clock)
+BATCH_HOLD_S = 0.01  # a worker holds a sighting at most this long to publish it with others of its robot
 SETTLE_S = 1.0  # an automatic member on the bus listens this long to the others' tokens before it claims
 
 
@@ -49,10 +52,11 @@ def key_chunk(what: str, name: str) -> str:
     return name
 
 
-def sighting_key(camera: str, robot: str | None = None) -> str:
-    """The key expression ``camera``'s frames with ``robot``'s markers are published under (one
-    message per robot of a frame); ``robot`` None: its frames with no robot's markers."""
-    key = f"{SIGHTINGS_KEY}/{key_chunk('camera', camera)}"
+def sighting_key(source: str, robot: str | None = None) -> str:
+    """The key expression ``source``'s sightings of ``robot`` are published under (a worker's: one message per
+    robot per tick, :class:`SightingBatches`; older workers published one per camera frame under the camera's
+    name); ``robot`` None: camera ``source``'s frames with no robot's markers."""
+    key = f"{SIGHTINGS_KEY}/{key_chunk('camera' if robot is None else 'worker', source)}"
     return key if robot is None else f"{key}/{key_chunk('robot', robot)}"
 
 
@@ -216,19 +220,82 @@ class FusedRobots:
             self.give_up(robot)
 
 
+class SightingBatches:
+    """What worker ``me`` (or benchmarks/fleet.py's stand-in for one) publishes, gathered over a tick: each
+    robot's sightings under ``cubetrack/sightings/<me>/<robot>``, a camera's frames without a robot under
+    ``cubetrack/sightings/<camera>`` (:func:`sighting_key`). :meth:`flush` puts each key's encoded sighting
+    messages as one Zenoh message (one alone as itself, several as a batch:
+    :func:`cubetrack.io.sighting_wire.encode_batch`), through a publisher declared per key on first use. Fewer,
+    larger messages: Zenoh's cost is mostly per message, on both sides (docs/scaling.md)."""
+
+    def __init__(self, bus: Any, me: str) -> None:
+        self.bus, self.me = bus, me
+        self.pending: dict[str, list[bytes]] = {}
+        self.publishers: dict[str, Any] = {}
+        self._since_s = math.inf  # time.monotonic() of the oldest pending message
+
+    def add(self, camera: str, robot: str | None, data: bytes) -> None:
+        """An encoded sighting message of ``camera`` holding ``robot``'s markers (None: no robot's)."""
+        key = sighting_key(camera) if robot is None else sighting_key(self.me, robot)
+        if not self.pending:
+            self._since_s = time.monotonic()
+        self.pending.setdefault(key, []).append(data)
+
+    def held_s(self) -> float:
+        """How long the oldest pending message has waited (0 when none)."""
+        return time.monotonic() - self._since_s if self.pending else 0.0
+
+    def flush(self, due_only: bool = False) -> int:
+        """Put what is pending, one message per key (``due_only``: only once the oldest has waited
+        ``BATCH_HOLD_S``); how many messages were put."""
+        if due_only and self.held_s() < BATCH_HOLD_S:
+            return 0
+        for key, parts in self.pending.items():
+            if key not in self.publishers:
+                self.publishers[key] = self.bus.declare_publisher(key)
+            self.publishers[key].put(parts[0] if len(parts) == 1 else encode_batch(parts))
+        count, self.pending = len(self.pending), {}
+        return count
+
+    def close(self) -> None:
+        """Flush, then undeclare the publishers."""
+        self.flush()
+        for publisher in self.publishers.values():
+            publisher.undeclare()
+        self.publishers = {}
+
+
 class StateRelay:
     """A fleet's fused states on the bus, so that a robot's new shard takes its track over from the last
     state its old shard published (docs/scaling.md, "When a shard dies"). :meth:`poses`, given the poses
     this fusion makes, publishes the robot's filter state (``state_of(robot)``: the fusion's, or None),
     each robot's at most every ``STATE_EVERY_S``, under ``cubetrack/fused-states/<robot>``; every state
     message on the bus is kept, undecoded, as its robot's latest (a Zenoh thread stores the bytes: each
-    shard pays one receive per robot of the fleet and ``STATE_EVERY_S``); :meth:`last` decodes one."""
+    shard pays one receive per robot of the fleet and ``STATE_EVERY_S``); :meth:`last` decodes one. The puts
+    run on a thread of the relay's own: a put in a process whose Zenoh threads call back into Python waits for
+    the interpreter's lock, milliseconds on a busy machine (measured in a shard: 2-3 ms a put at load ~20,
+    docs/scaling.md), which the fusion's thread must not."""
 
     def __init__(self, bus: Any, state_of: Callable[[str], tuple | None]) -> None:
         self.bus, self.state_of = bus, state_of
         self.latest: dict[str, bytes] = {}
         self._sent_s: dict[str, float] = {}
+        self._outbox: queue.Queue[tuple[str, bytes] | None] = queue.Queue()
         self._subscriber = bus.declare_subscriber(f"{STATES_KEY}/*", self._receive)
+        self._sender = threading.Thread(target=self._send, name="state-relay", daemon=True)
+        self._sender.start()
+
+    def _send(self) -> None:  # the relay's thread
+        publishers: dict[str, Any] = {}  # robot -> its state's publisher
+        while (item := self._outbox.get()) is not None:
+            robot, data = item
+            if robot not in publishers:
+                publishers[robot] = self.bus.declare_publisher(f"{STATES_KEY}/{robot}")
+            publishers[robot].put(data)
+            self._outbox.task_done()
+        for publisher in publishers.values():
+            publisher.undeclare()
+        self._outbox.task_done()
 
     def _receive(self, sample: Any) -> None:  # a Zenoh thread
         self.latest[str(sample.key_expr).rsplit("/", 1)[-1]] = bytes(sample.payload)
@@ -237,10 +304,13 @@ class StateRelay:
         """Publish the state of each robot with a measured pose here whose state was last sent ``STATE_EVERY_S`` ago."""
         now = time.monotonic()
         for robot in {p.robot for p in poses if not p.predicted}:
-            state = self.state_of(robot)
-            if state is not None and now - self._sent_s.get(robot, -math.inf) >= STATE_EVERY_S:
+            if now - self._sent_s.get(robot, -math.inf) >= STATE_EVERY_S and (state := self.state_of(robot)):
                 self._sent_s[robot] = now
-                self.bus.put(f"{STATES_KEY}/{robot}", encode_state(FusedState(*state)))
+                self._outbox.put((robot, encode_state(FusedState(*state))))
+
+    def sent(self) -> None:
+        """Wait until every state handed over so far is put."""
+        self._outbox.join()
 
     def last(self, robot: str) -> FusedState | None:
         """The latest state of ``robot`` heard on the bus (None: none, or not readable)."""
@@ -251,4 +321,6 @@ class StateRelay:
             return None
 
     def close(self) -> None:
+        self._outbox.put(None)
+        self._sender.join()
         self._subscriber.undeclare()

@@ -135,3 +135,18 @@ def test_the_predicted_path_runs_kernels_compiled_when_the_detector_was_built(sc
     assert [set(k.signatures) for k in kernels] == built
     read_only = [t for k in kernels for sig in k.signatures for t in sig if isinstance(t, Array) and not t.mutable]
     assert not read_only, read_only
+
+
+def test_a_marker_predicted_with_cells_narrower_than_a_pixel_is_not_searched_for():
+    gray = _two_markers_image()              # ids 3 and 5, 60 px squares at x, y 300, 200 and 80, 300
+    det = Detector()
+    at_3 = _prediction(np.array([[-0.5, -0.5], [59.5, -0.5], [59.5, 59.5], [-0.5, 59.5]]) + (300.0, 200.0), 3)
+    # id 5 predicted edge-on where it is: 70 x 5 px, under a pixel per cell (6 cells across) on its short
+    # sides; the box around it holds the whole marker, which OpenCV would find there
+    thin = np.array([[75.0, 327.0], [145.0, 327.0], [145.0, 332.0], [75.0, 332.0]])
+    found = det.find(gray, [(40, 150, 420, 400)], predicted=[at_3, _prediction(thin, 5)])
+    assert found.predicted and [d.marker_id for d in found.detections] == [3]
+    # 6 px on its short sides (a pixel per cell): searched for, and found
+    wider = det.find(gray, [(40, 150, 420, 400)], predicted=[at_3, _prediction(thin + [[0, -0.5], [0, -0.5],
+                                                                                      [0, 0.5], [0, 0.5]], 5)])
+    assert [d.marker_id for d in wider.detections] == [3, 5]

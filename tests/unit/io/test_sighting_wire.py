@@ -184,3 +184,29 @@ def test_a_fused_state_round_trips_bit_exactly_and_anything_else_is_refused():
     for bad in (data[:-1], b"CTSG" + data[4:], data[:4] + bytes([9]) + data[5:]):
         with pytest.raises(SightingWireError):
             decode_state(bad)
+
+
+def test_a_batch_holds_its_messages_bit_exact_and_a_lone_message_still_reads():
+    from cubetrack.io.sighting_wire import decode_messages, encode_batch
+
+    one, two = encode_sighting(message(pose=True)), encode_sighting(dataclasses.replace(message(), body="r1"))
+    got = decode_messages(encode_batch([one, two]))
+    assert [encode_sighting(m) for m in got] == [one, two] and got[1].body == "r1"
+    assert [encode_sighting(m) for m in decode_messages(one)] == [one]   # what workers sent before batches
+
+
+def test_a_bad_batch_is_refused_in_one_line():
+    from cubetrack.io.sighting_wire import decode_messages, encode_batch
+
+    data = encode_batch([encode_sighting(message()), encode_sighting(message(detections=1))])
+    for n in (5, 7, 12, len(data) - 1):
+        with pytest.raises(SightingWireError, match="truncated"):
+            decode_messages(data[:n])
+    with pytest.raises(SightingWireError, match="after its end"):
+        decode_messages(data + b"\0")
+    with pytest.raises(SightingWireError, match="batch version 2, this cubetrack reads version 1"):
+        decode_messages(data[:4] + b"\x02" + data[5:])
+    with pytest.raises(SightingWireError, match="not a cubetrack sighting"):
+        decode_messages(data[:11] + b"XXXX" + data[15:])   # a batch of something else
+    with pytest.raises(SightingWireError, match="1 to 65535"):
+        encode_batch([])

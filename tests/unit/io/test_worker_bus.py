@@ -196,10 +196,11 @@ def test_a_shard_claims_its_share_only_once_on_the_bus_and_gives_way_to_a_smalle
 
 
 class StateBus:
-    """What StateRelay uses of a Zenoh session: put, and a subscriber that sees every put (as Zenoh's does)."""
+    """What StateRelay uses of a Zenoh session: publishers, and a subscriber that sees every put (as Zenoh's does)."""
 
     def __init__(self) -> None:
         self.puts: list[str] = []
+        self.undeclared: list[str] = []
         self.callback = None
 
     def declare_subscriber(self, key: str, callback) -> FakeToken:
@@ -210,6 +211,18 @@ class StateBus:
     def put(self, key: str, payload: bytes) -> None:
         self.puts.append(key)
         self.callback(type("Sample", (), {"key_expr": key, "payload": payload})())
+
+    def declare_publisher(self, key: str):
+        bus = self
+
+        class Publisher:
+            def put(self, payload: bytes) -> None:
+                bus.put(key, payload)
+
+            def undeclare(self) -> None:
+                bus.undeclared.append(key)
+
+        return Publisher()
 
 
 def test_the_state_relay_publishes_each_robots_state_at_most_every_period_and_keeps_the_latest(monkeypatch):
@@ -233,14 +246,72 @@ def test_the_state_relay_publishes_each_robots_state_at_most_every_period_and_ke
     bus = StateBus()
     relay = StateRelay(bus, state_of)
     relay.poses([pose("r1"), pose("r1"), pose("r2", predicted=True), pose("untracked")])
+    relay.sent()
     assert bus.puts == ["cubetrack/fused-states/r1"]   # once per robot; not for predictions nor untracked robots
     clock[0] += 0.05
     relay.poses([pose("r1")])
+    relay.sent()
     assert len(bus.puts) == 1   # within STATE_EVERY_S
     clock[0] += 0.06
     relay.poses([pose("r1")])
+    relay.sent()
     last = relay.last("r1")
     assert len(bus.puts) == 2 and last is not None and last.time_s == clock[0] and last.T_world_cube[0, 3] == clock[0]
     assert relay.last("r2") is None
     relay.latest["r2"] = b"junk"
     assert relay.last("r2") is None   # an unreadable state is none
+    relay.close()
+    assert bus.undeclared == ["cubetrack/fused-states/r1"]   # the relay's thread ended, its publisher gone
+
+
+class BatchBus:
+    """A bus that records what each declared publisher puts."""
+
+    def __init__(self) -> None:
+        self.puts: list[tuple[str, bytes]] = []
+        self.declared: list[str] = []
+        self.undeclared = 0
+
+    def declare_publisher(self, key: str):
+        self.declared.append(key)
+        bus = self
+
+        class Publisher:
+            def put(self, payload: bytes) -> None:
+                bus.puts.append((key, payload))
+
+            def undeclare(self) -> None:
+                bus.undeclared += 1
+
+        return Publisher()
+
+
+def test_a_workers_sightings_go_out_as_one_message_per_robot_per_tick_and_decode_as_sent(monkeypatch):
+    import zenoh
+
+    from cubetrack.io.sighting_wire import SightingMessage, decode_messages, encode_sighting
+    from cubetrack.io.worker_bus import BATCH_HOLD_S, SightingBatches
+
+    clock = [10.0]
+    monkeypatch.setattr("cubetrack.io.worker_bus.time.monotonic", lambda: clock[0])
+    sent = {(camera, robot): encode_sighting(SightingMessage(camera, seq, 1.0, 2.0 + seq, 3.0, "full frame", (),
+                                                             body=robot))
+            for seq, (camera, robot) in enumerate([("cam1", "r1"), ("cam2", "r1"), ("cam2", "r2"), ("cam3", None)])}
+    bus = BatchBus()
+    batches = SightingBatches(bus, "host-7")
+    for (camera, robot), data in sent.items():
+        batches.add(camera, robot, data)
+    clock[0] += BATCH_HOLD_S / 2
+    assert batches.flush(due_only=True) == 0 and bus.puts == []   # not held long enough yet
+    clock[0] += BATCH_HOLD_S / 2
+    assert batches.flush(due_only=True) == 3 and batches.held_s() == 0.0
+    got = {key: decode_messages(payload) for key, payload in bus.puts}
+    assert list(got) == ["cubetrack/sightings/host-7/r1", "cubetrack/sightings/host-7/r2", "cubetrack/sightings/cam3"]
+    assert [(m.camera, m.body, m.seq) for m in got["cubetrack/sightings/host-7/r1"]] == [("cam1", "r1", 0),
+                                                                                      ("cam2", "r1", 1)]
+    assert dict(bus.puts)["cubetrack/sightings/host-7/r2"] == sent[("cam2", "r2")]   # one alone: as itself
+    shard = zenoh.KeyExpr(robot_sightings_key("r1"))
+    assert [k for k in got if shard.intersects(zenoh.KeyExpr(k))] == ["cubetrack/sightings/host-7/r1"]
+    batches.add("cam1", "r1", sent[("cam1", "r1")])
+    batches.close()   # flushes what is left, then undeclares
+    assert len(bus.puts) == 4 and bus.declared.count("cubetrack/sightings/host-7/r1") == 1 and bus.undeclared == 3
