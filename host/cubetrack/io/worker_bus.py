@@ -20,6 +20,7 @@ each of its robots (:func:`robot_sightings_key`), a fusion of every robot to ``c
 from __future__ import annotations
 
 import hashlib
+import logging
 import math
 import queue
 import re
@@ -40,6 +41,7 @@ SHARDS_KEY = "cubetrack/shards"  # a liveliness token per running fusion: cubetr
 ROBOT_CLAIMS_KEY = "cubetrack/robot-claims"  # per robot a fusion fuses: cubetrack/robot-claims/<robot>/<shard>
 SHARD_POOL_KEY = "cubetrack/shard-pool"  # a liveliness token per automatic fusion shard
 STATES_KEY = "cubetrack/fused-states"  # cubetrack/fused-states/<robot>: a shard's latest pose of a robot it fuses
+log = logging.getLogger(__name__)
 STATE_EVERY_S = 0.1  # a shard publishes each robot's state at most this often (wall clock)
 BATCH_HOLD_S = 0.01  # a worker holds a sighting at most this long to publish it with others of its robot
 SETTLE_S = 1.0  # an automatic member on the bus listens this long to the others' tokens before it claims
@@ -289,10 +291,14 @@ class StateRelay:
         publishers: dict[str, Any] = {}  # robot -> its state's publisher
         while (item := self._outbox.get()) is not None:
             robot, data = item
-            if robot not in publishers:
-                publishers[robot] = self.bus.declare_publisher(f"{STATES_KEY}/{robot}")
-            publishers[robot].put(data)
-            self._outbox.task_done()
+            try:
+                if robot not in publishers:
+                    publishers[robot] = self.bus.declare_publisher(f"{STATES_KEY}/{robot}")
+                publishers[robot].put(data)
+            except Exception as exc:  # a closing or broken session: the state is lost, the fusion goes on
+                log.warning("fused state of %s not published: %s", robot, exc)
+            finally:
+                self._outbox.task_done()
         for publisher in publishers.values():
             publisher.undeclare()
         self._outbox.task_done()

@@ -315,3 +315,33 @@ def test_a_workers_sightings_go_out_as_one_message_per_robot_per_tick_and_decode
     batches.add("cam1", "r1", sent[("cam1", "r1")])
     batches.close()   # flushes what is left, then undeclares
     assert len(bus.puts) == 4 and bus.declared.count("cubetrack/sightings/host-7/r1") == 1 and bus.undeclared == 3
+
+
+def test_a_state_the_bus_refuses_is_logged_and_the_relay_goes_on(caplog):
+    """A put that raises (a closing or broken Zenoh session) must not end the relay's thread: the
+    next state is still published and waiting for the puts never hangs."""
+    import numpy as np
+
+    from cubetrack.core.records import TrackedPose
+    from cubetrack.io.worker_bus import StateRelay
+
+    class BrokenOnce(StateBus):
+        failed = False
+
+        def put(self, key: str, payload: bytes) -> None:
+            if not self.failed:   # the first put only
+                self.failed = True
+                raise RuntimeError("session closed")
+            super().put(key, payload)
+
+    bus = BrokenOnce()
+    relay = StateRelay(bus, lambda robot: (robot, 1.0, np.eye(4), np.ones(3), np.zeros(3), np.eye(12)))
+    pose = TrackedPose("r1", 1.0, np.zeros(3), np.array([0.0, 0.0, 0.0, 1.0]), (), (), 0.0)
+    relay.poses([pose])
+    relay.sent()
+    assert bus.puts == [] and "fused state of r1 not published: session closed" in caplog.text
+    relay._sent_s.clear()   # the next state is due
+    relay.poses([pose])
+    relay.sent()
+    assert bus.puts == ["cubetrack/fused-states/r1"]
+    relay.close()
