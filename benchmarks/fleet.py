@@ -435,9 +435,12 @@ def settled(holders: dict[str, set[str]], robots: list[str], shards: int) -> boo
 
 
 def cpu_of(pid: int, task: int | None = None) -> float:
-    """A process's (or one of its threads') CPU seconds so far (Linux /proc)."""
-    path = f"/proc/{pid}/stat" if task is None else f"/proc/{pid}/task/{task}/stat"
-    fields = Path(path).read_text().rsplit(")", 1)[1].split()
+    """A process's CPU seconds so far (Linux /proc/<pid>/stat, in clock ticks), or one of its threads'
+    (/proc/<pid>/task/<tid>/schedstat, in nanoseconds: a thread's share of a short run can be under one 10 ms
+    tick, which read 0 from its stat and failed test_fleet in CI)."""
+    if task is not None:
+        return int(Path(f"/proc/{pid}/task/{task}/schedstat").read_text().split()[0]) / 1e9
+    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
