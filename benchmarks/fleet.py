@@ -438,9 +438,11 @@ def cpu_of(pid: int, task: int | None = None) -> float:
     """A process's CPU seconds so far (Linux /proc/<pid>/stat, in clock ticks), or one of its threads'
     (/proc/<pid>/task/<tid>/schedstat, in nanoseconds: a thread's share of a short run can be under one 10 ms
     tick, which read 0 from its stat and failed test_fleet in CI)."""
-    if task is not None:
-        return int(Path(f"/proc/{pid}/task/{task}/schedstat").read_text().split()[0]) / 1e9
-    fields = Path(f"/proc/{pid}/stat").read_text().rsplit(")", 1)[1].split()
+    schedstat = Path(f"/proc/{pid}/task/{task}/schedstat")
+    if task is not None and schedstat.exists():  # (a kernel without schedstats: the thread's stat below)
+        return int(schedstat.read_text().split()[0]) / 1e9
+    stat = Path(f"/proc/{pid}/stat" if task is None else f"/proc/{pid}/task/{task}/stat").read_text()
+    fields = stat.rsplit(")", 1)[1].split()
     return (int(fields[11]) + int(fields[12])) / os.sysconf("SC_CLK_TCK")
 
 
