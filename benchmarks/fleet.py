@@ -391,11 +391,12 @@ class Observer:
         self.state_watch = self.bus.declare_subscriber(f"{STATES_KEY}/*", self.state)
 
     def state(self, sample) -> None:
-        from cubetrack.io.sighting_wire import decode_state
+        from cubetrack.io.sighting_wire import decode_states
 
-        state = decode_state(bytes(sample.payload))
+        at_s = time.time()
+        states = decode_states(bytes(sample.payload))   # a shard's states of a tick
         with self.lock:
-            self.states.append((time.time(), state.robot, state.time_s, state.T_world_cube[:3, 3], state.velocity_m_s))
+            self.states += [(at_s, s.robot, s.time_s, s.T_world_cube[:3, 3], s.velocity_m_s) for s in states]
 
     def token(self, sample) -> None:
         _, _, robot, shard = str(sample.key_expr).split("/")

@@ -235,7 +235,7 @@ def _join_bus(zenoh: Any, inbox: _Inbox, session: Session, names: list[str], sha
         declared.append(zenoh.declare_subscriber(f"{SIGHTINGS_KEY}/**", inbox.receive))
     if shard:
         fusion = filter_fusion(inbox.tracker)
-        inbox.relay = StateRelay(zenoh, fusion.last_state if fusion else lambda robot: None)
+        inbox.relay = StateRelay(zenoh, me, fusion.last_state if fusion else lambda robot: None)
         inbox.stream.on_poses = inbox.relay.poses
         declared.append(inbox.relay)
         claims = Claims(zenoh, me, names, lambda: robots.held, robots.take, robots.give_up,
