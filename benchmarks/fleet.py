@@ -720,13 +720,26 @@ def find_ceiling(measure: Callable[[float], dict], fps: float, steps: int) -> di
     return {"ceiling_per_s": best["offered_per_s"] if best else math.nan, "at": best, "steps": tried}
 
 
+def step_main(args: argparse.Namespace, work: str) -> None:
+    """One run of the ceiling search, its report written to ``work``/step.json."""
+    (Path(work) / "step.json").write_text(json.dumps(report(run_fleet(args, Path(work)), args)))
+
+
 def ceilings(args: argparse.Namespace) -> dict:
     """1 shard's ceiling from --fps, then --shards shards' from 1.8x that rate (the issue's target): each step a
     fresh run of --duration s; their ratio, with the publishers' CPU per sighting at each ceiling."""
     def measure(shards: int, fps: float) -> dict:
         step = argparse.Namespace(**{**vars(args), "shards": shards, "fps": fps, "replay": False, "kill_shard": None})
+        # each step in a child forked from this process, which never opens Zenoh: a process forked after Zenoh's
+        # runtime started (run_fleet's observer) inherits its pools without their threads and hangs opening a session
+        ctx = multiprocessing.get_context("fork")
         with tempfile.TemporaryDirectory(prefix="fleet_") as work:
-            r = report(run_fleet(step, Path(work)), step)
+            child = ctx.Process(target=step_main, args=(step, work))
+            child.start()
+            child.join()
+            if child.exitcode != 0:
+                raise SystemExit(f"fleet: the run of {shards} shard(s) at {fps:.2f} fps failed (exit {child.exitcode})")
+            r = json.loads((Path(work) / "step.json").read_text())
         print(f"  {shards} shard(s) at {fps:.2f} fps: offered {r['offered_per_s']}/s, dropped {r['dropped_pct']} %, "
               f"p95 {r['latency_ms_p50_p95_p99'][1]} ms -> {'kept up' if keeps_up(r) else 'did not keep up'}; shard "
               f"CPU per sighting {r['shard_cpu_ms_per_sighting']} ms, publishers {r['publisher_cpu_ms_per_sighting']} "
