@@ -228,7 +228,7 @@ def _join_bus(zenoh: Any, inbox: _Inbox, session: Session, names: list[str], sha
     with ``shard`` its share of ``names`` claimed (checked every ``CHECK_EVERY_S`` and whenever a
     token comes or goes). What to close, in order, at the end."""
     me = worker_id()
-    robots = FusedRobots(zenoh, me, None if every else inbox.receive, inbox.fused)
+    robots = FusedRobots(zenoh, me, inbox.receive, inbox.fused, per_robot=not every)
     declared: list[Any] = [zenoh.liveliness().declare_token(f"{SHARDS_KEY}/{me}")]
     declared.append(zenoh.liveliness().declare_subscriber(f"{WORKERS_KEY}/*", inbox.worker_event, history=True))
     if every:

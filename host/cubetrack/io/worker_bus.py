@@ -47,6 +47,7 @@ POOL_KEY = "cubetrack/pool"  # a liveliness token per automatic worker: cubetrac
 SHARDS_KEY = "cubetrack/shards"  # a liveliness token per running fusion: cubetrack/shards/<host>-<pid>
 ROBOT_CLAIMS_KEY = "cubetrack/robot-claims"  # per robot a fusion fuses: cubetrack/robot-claims/<robot>/<shard>
 SHARD_POOL_KEY = "cubetrack/shard-pool"  # a liveliness token per automatic fusion shard
+SHARD_SIGHTINGS_KEY = "cubetrack/shard-sightings"  # .../<fusion>/<worker>: a tick's sightings of its robots
 STATES_KEY = "cubetrack/fused-states"  # cubetrack/fused-states/<shard>: its robots' filter states (each tick)
 log = logging.getLogger(__name__)
 STATE_EVERY_S = 0.1  # a shard publishes its robots' states at most this often (wall clock), in one message
@@ -67,6 +68,13 @@ def sighting_key(source: str, robot: str | None = None) -> str:
     name); ``robot`` None: camera ``source``'s frames with no robot's markers."""
     key = f"{SIGHTINGS_KEY}/{key_chunk('camera' if robot is None else 'worker', source)}"
     return key if robot is None else f"{key}/{key_chunk('robot', robot)}"
+
+
+def shard_sightings_key(fusion: str, worker: str = "*") -> str:
+    """The key expression under which ``worker`` publishes a tick's sightings of the robots ``fusion`` alone claims,
+    in one message (:class:`SightingBatches`); ``worker`` "*": every worker's (what the fusion subscribes to)."""
+    source = worker if worker == "*" else key_chunk("worker", worker)
+    return f"{SHARD_SIGHTINGS_KEY}/{key_chunk('fusion', fusion)}/{source}"
 
 
 def robot_sightings_key(robot: str) -> str:
@@ -141,6 +149,12 @@ class ClaimBoard:
                 return
         self.changed.set()
 
+    def sole_holder(self, name: str) -> str | None:
+        """The one member claiming ``name`` (None: nobody, or several at once)."""
+        with self._lock:
+            holders = self.holders.get(name)
+            return next(iter(holders)) if holders is not None and len(holders) == 1 else None
+
     def snapshot(self) -> tuple[set[str], dict[str, set[str]]]:
         with self._lock:
             return set(self.pool), {c: set(w) for c, w in self.holders.items()}
@@ -200,20 +214,21 @@ class Claims:
 
 class FusedRobots:
     """The robots one fusion fuses, on the bus: per robot its claim token
-    ``cubetrack/robot-claims/<robot>/<me>`` and, when ``receive`` is given, its subscriber to
+    ``cubetrack/robot-claims/<robot>/<me>`` and, with ``per_robot``, its subscriber to
     ``cubetrack/sightings/*/<robot>`` (a shard; a fusion of every robot subscribes to everything
-    once). ``changed(robot, held)`` is called after each take and give-up."""
+    once); and, from the start, the subscriber to ``cubetrack/shard-sightings/<me>/*``, where workers put the
+    sightings of the robots only this fusion claims (:class:`SightingBatches`). ``changed(robot, held)`` is called
+    after each take and give-up."""
 
-    def __init__(self, bus: Any, me: str, receive: Callable[[Any], None] | None,
-                 changed: Callable[[str, bool], None]):
-        self.bus, self.me, self.receive, self.changed = bus, me, receive, changed
+    def __init__(self, bus: Any, me: str, receive: Callable[[Any], None], changed: Callable[[str, bool], None],
+                 per_robot: bool):
+        self.bus, self.me, self.receive, self.changed, self.per_robot = bus, me, receive, changed, per_robot
         self.held: dict[str, tuple[Any, Any]] = {}  # robot -> its claim token, its subscriber (or None)
+        self._own = bus.declare_subscriber(shard_sightings_key(me), receive)
 
     def take(self, robot: str) -> None:
         token = self.bus.liveliness().declare_token(claim_key(robot, self.me, ROBOT_CLAIMS_KEY))
-        subscriber = None
-        if self.receive is not None:
-            subscriber = self.bus.declare_subscriber(robot_sightings_key(robot), self.receive)
+        subscriber = self.bus.declare_subscriber(robot_sightings_key(robot), self.receive) if self.per_robot else None
         self.held[robot] = (token, subscriber)
         self.changed(robot, True)
 
@@ -227,25 +242,34 @@ class FusedRobots:
     def close(self) -> None:
         for robot in list(self.held):
             self.give_up(robot)
+        self._own.undeclare()
 
 
 class SightingBatches:
-    """What worker ``me`` (or benchmarks/fleet.py's stand-in for one) publishes, gathered over a tick: each
-    robot's sightings under ``cubetrack/sightings/<me>/<robot>``, a camera's frames without a robot under
-    ``cubetrack/sightings/<camera>`` (:func:`sighting_key`). :meth:`flush` puts each key's encoded sighting
-    messages as one Zenoh message (one alone as itself, several as a batch:
-    :func:`cubetrack.io.sighting_wire.encode_batch`), through a publisher declared per key on first use. Fewer,
-    larger messages: Zenoh's cost is mostly per message, on both sides (docs/scaling.md)."""
+    """What worker ``me`` (or benchmarks/fleet.py's stand-in for one) publishes, gathered over a tick: the sightings of
+    the robots one fusion alone claims under ``cubetrack/shard-sightings/<fusion>/<me>`` (:func:`shard_sightings_key`:
+    a tick's sightings of all that fusion's robots in one message), those of any other robot (claimed by nobody, or
+    by two fusions while a claim changes hands) under ``cubetrack/sightings/<me>/<robot>``, a camera's frames without
+    a robot under ``cubetrack/sightings/<camera>`` (:func:`sighting_key`). The claims are followed from the fusions'
+    claim tokens (a :class:`ClaimBoard`). :meth:`flush` puts each key's encoded sighting messages as one Zenoh message
+    (one alone as itself, several as a batch: :func:`cubetrack.io.sighting_wire.encode_batch`), through a publisher
+    declared per key on first use. Fewer, larger messages: Zenoh's cost is mostly per message, on both sides
+    (docs/scaling.md)."""
 
     def __init__(self, bus: Any, me: str) -> None:
         self.bus, self.me = bus, me
         self.pending: dict[str, list[bytes]] = {}
         self.publishers: dict[str, Any] = {}
         self._since_s = math.inf  # time.monotonic() of the oldest pending message
+        self.claims = ClaimBoard(SHARD_POOL_KEY, ROBOT_CLAIMS_KEY)
+        self._watch = bus.liveliness().declare_subscriber(f"{ROBOT_CLAIMS_KEY}/**", lambda sample: self.claims.token(
+            str(sample.key_expr), not str(sample.kind).endswith("DELETE")), history=True)
 
     def add(self, camera: str, robot: str | None, data: bytes) -> None:
         """An encoded sighting message of ``camera`` holding ``robot``'s markers (None: no robot's)."""
-        key = sighting_key(camera) if robot is None else sighting_key(self.me, robot)
+        fusion = None if robot is None else self.claims.sole_holder(robot)
+        key = (sighting_key(camera) if robot is None else sighting_key(self.me, robot) if fusion is None
+               else shard_sightings_key(fusion, self.me))
         if not self.pending:
             self._since_s = time.monotonic()
         self.pending.setdefault(key, []).append(data)
@@ -267,11 +291,12 @@ class SightingBatches:
         return count
 
     def close(self) -> None:
-        """Flush, then undeclare the publishers."""
+        """Flush, then undeclare the publishers and stop following the claims."""
         self.flush()
         for publisher in self.publishers.values():
             publisher.undeclare()
         self.publishers = {}
+        self._watch.undeclare()
 
 
 class StateRelay:

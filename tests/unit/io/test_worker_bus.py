@@ -285,12 +285,32 @@ def test_the_state_relay_publishes_one_message_per_tick_with_every_fresh_robot_a
 
 
 class BatchBus:
-    """A bus that records what each declared publisher puts."""
+    """A bus that records what each declared publisher puts, and passes liveliness tokens to the one watching them."""
 
     def __init__(self) -> None:
         self.puts: list[tuple[str, bytes]] = []
         self.declared: list[str] = []
         self.undeclared = 0
+        self.watched: list[str] = []
+        self.callback = None
+
+    def liveliness(self) -> BatchBus:
+        return self
+
+    def declare_subscriber(self, key: str, callback, history: bool = False):
+        assert history   # the tokens already there count
+        self.watched.append(key)
+        self.callback = callback
+        bus = self
+
+        class Watch:
+            def undeclare(self) -> None:
+                bus.watched.remove(key)
+
+        return Watch()
+
+    def token(self, key: str, alive: bool) -> None:
+        self.callback(type("Sample", (), {"key_expr": key, "kind": "SampleKind.PUT" if alive else "SampleKind.DELETE"}))
 
     def declare_publisher(self, key: str):
         self.declared.append(key)
@@ -365,3 +385,39 @@ def test_a_state_the_bus_refuses_is_logged_and_the_relay_goes_on(caplog):
     relay.sent()
     assert [key for key, _ in bus.puts] == ["cubetrack/fused-states/host-1"]
     relay.close()
+
+
+def test_a_tick_of_the_robots_one_fusion_alone_claims_goes_to_it_in_one_message(monkeypatch):
+    """Issue 28 (session 15): a worker puts its sightings of every robot that one fusion alone claims under that
+    fusion's own key, one message per tick however many of its robots; a robot claimed by nobody or by two (a claim
+    changing hands) under its own key, as before, which the claiming shards subscribe to."""
+    import zenoh
+
+    from cubetrack.io.sighting_wire import SightingMessage, decode_messages, encode_sighting
+    from cubetrack.io.worker_bus import SHARD_SIGHTINGS_KEY, SightingBatches, shard_sightings_key
+
+    bus = BatchBus()
+    batches = SightingBatches(bus, "host-7")
+    assert bus.watched == ["cubetrack/robot-claims/**"]
+    for robot, fusion in (("r1", "s-1"), ("r2", "s-1"), ("r3", "s-2"), ("r4", "s-1"), ("r4", "s-2")):
+        bus.token(claim_key(robot, fusion, ROBOT_CLAIMS_KEY), True)
+    sent = [(camera, robot, encode_sighting(SightingMessage(camera, seq, 1.0, 2.0 + seq, 3.0, "full frame", (),
+                                                            body=robot)))
+            for seq, (camera, robot) in enumerate([("cam1", "r1"), ("cam2", "r2"), ("cam2", "r3"), ("cam3", "r4"),
+                                                   ("cam3", "r5")])]
+    for camera, robot, data in sent:
+        batches.add(camera, robot, data)
+    assert batches.flush() == 4
+    got = {key: [m.body for m in decode_messages(payload)] for key, payload in bus.puts}
+    assert got == {f"{SHARD_SIGHTINGS_KEY}/s-1/host-7": ["r1", "r2"], f"{SHARD_SIGHTINGS_KEY}/s-2/host-7": ["r3"],
+                   "cubetrack/sightings/host-7/r4": ["r4"], "cubetrack/sightings/host-7/r5": ["r5"]}
+    mine = zenoh.KeyExpr(shard_sightings_key("s-1"))
+    assert [k for k in got if mine.intersects(zenoh.KeyExpr(k))] == [f"{SHARD_SIGHTINGS_KEY}/s-1/host-7"]
+    every, r1 = zenoh.KeyExpr(f"{SIGHTINGS_KEY}/**"), zenoh.KeyExpr(robot_sightings_key("r1"))
+    assert not every.intersects(mine) and not r1.intersects(zenoh.KeyExpr(f"{SHARD_SIGHTINGS_KEY}/s-1/host-7"))
+    bus.token(claim_key("r1", "s-1", ROBOT_CLAIMS_KEY), False)   # s-1 gave r1 up (or died): r1's own key again
+    batches.add("cam1", "r1", sent[0][2])
+    batches.flush()
+    assert bus.puts[-1][0] == "cubetrack/sightings/host-7/r1"
+    batches.close()
+    assert bus.watched == []
