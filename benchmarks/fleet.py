@@ -10,8 +10,9 @@ each camera's device clock offset by hundreds of seconds and its worker's mappin
 constant of 1 ms sigma, and the frame published 40-60 ms after its capture (transfer and detection).
 
 --publishers processes publish those sightings as ``cubetrack worker`` does, through the same
-``io/worker_bus.SightingBatches`` (a robot's sightings of a tick as one message under
-``cubetrack/sightings/<publisher>/<robot>``, a frame without a robot under ``cubetrack/sightings/<camera>``;
+``io/worker_bus.SightingBatches`` (a tick's sightings of the robots a shard alone claims as one message under
+``cubetrack/shard-sightings/<shard>/<publisher>``, of any other robot under ``cubetrack/sightings/<publisher>/<robot>``,
+a frame without a robot under ``cubetrack/sightings/<camera>``;
 a tick puts the frames due within --batch-ms of the first, each stamped as arriving when it was due, so the
 hold counts in the latency) at the cameras' real rate (--fps), over loopback Zenoh; with
 --pre-encoded they make every message before the run and only restamp it with the run's times and put
