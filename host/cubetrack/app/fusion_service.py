@@ -1,9 +1,9 @@
 """``cubetrack fuse``: the fusion half of tracking, fed by ``cubetrack worker`` processes over
 Zenoh (docs/scaling.md).
 
-It subscribes to ``cubetrack/sightings/**`` (:mod:`cubetrack.app.worker`), or as a shard of a fleet
-to ``cubetrack/sightings/*/<robot>`` of the robots it fuses (named, or claimed like workers claim
-cameras: :class:`cubetrack.io.worker_bus.Claims`), turns each message
+It subscribes to ``cubetrack/shard-sightings/<itself>/*`` and ``cubetrack/sightings/**`` (:mod:`cubetrack.app.worker`),
+or as a shard to ``cubetrack/sightings/*/<robot>`` of the robots it fuses instead of the latter (named, or claimed
+as workers claim cameras: :class:`cubetrack.io.worker_bus.Claims`), turns each message
 back into the per-frame work's result (each robot's own detections, and its per-camera
 estimate from the corners when the fusion asks for one) and runs the tracker's fusion
 (:meth:`cubetrack.app.tracker.Tracker.fuse`) and the outputs on the session runtime
