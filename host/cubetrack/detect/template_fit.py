@@ -390,10 +390,16 @@ def _blurred(image: np.ndarray, sigma: float) -> np.ndarray:
     half = (int(np.rint(sigma * 8.0 + 1.0)) | 1) // 2
     kernel = np.exp(-0.5 * (np.arange(-half, half + 1) / sigma) ** 2)
     kernel /= kernel.sum()
-    ny, nx = image.shape[0], image.shape[1]
+    return _filtered_across(_filtered_across(image, kernel), kernel).astype(np.float32)
+
+
+@numba.njit(cache=True, nogil=True)
+def _filtered_across(image: np.ndarray, kernel: np.ndarray) -> np.ndarray:
+    """(nx, ny, 2) float64: the (ny, nx, 2) ``image`` filtered along its rows by the odd-sized
+    ``kernel``, border replicated, and transposed (so that a second call filters the columns)."""
+    ny, nx, half = image.shape[0], image.shape[1], len(kernel) // 2
     cols = np.minimum(np.maximum(np.arange(-half, nx + half), 0), nx - 1)  # replicated border
-    rows = np.minimum(np.maximum(np.arange(-half, ny + half), 0), ny - 1)
-    across, out = np.empty((ny, nx, 2)), np.empty((ny, nx, 2), np.float32)
+    out = np.empty((nx, ny, 2))
     for i in range(ny):
         for j in range(nx):
             a = b = 0.0
@@ -401,15 +407,7 @@ def _blurred(image: np.ndarray, sigma: float) -> np.ndarray:
                 c = cols[j + k]
                 a += kernel[k] * image[i, c, 0]
                 b += kernel[k] * image[i, c, 1]
-            across[i, j, 0], across[i, j, 1] = a, b
-    for i in range(ny):
-        for j in range(nx):
-            a = b = 0.0
-            for k in range(2 * half + 1):
-                r = rows[i + k]
-                a += kernel[k] * across[r, j, 0]
-                b += kernel[k] * across[r, j, 1]
-            out[i, j, 0], out[i, j, 1] = a, b
+            out[j, i, 0], out[j, i, 1] = a, b
     return out
 
 
