@@ -97,7 +97,9 @@ def _homography_system(corners: np.ndarray, side: float) -> np.ndarray:
 
 
 def _corner_array(corners: np.ndarray) -> np.ndarray:
-    return np.ascontiguousarray(corners, dtype=np.float64).reshape(4, 2)
+    """A writable float64 (4, 2) copy of ``corners``: the compiled kernels' one argument type (numba
+    types a read-only array apart, and a detection's corners are read-only)."""
+    return np.array(corners, dtype=np.float64).reshape(4, 2)
 
 
 def square_homography(corners: np.ndarray, side: float) -> np.ndarray:
@@ -136,7 +138,7 @@ class LensMap:
         float64."""
         if self.map is None:
             return np.asarray(points_px, np.float64)
-        flat = np.ascontiguousarray(points_px, np.float64).reshape(-1, 2)
+        flat = np.array(points_px, np.float64).reshape(-1, 2)  # writable: numba types read-only arrays apart
         return _map_read(self.map, flat).reshape(np.shape(points_px))
 
 
@@ -193,7 +195,7 @@ def marker_region(gray: np.ndarray, corners_px: np.ndarray, modules: int, K: np.
     -> ideal pinhole pixels of ``K``, e.g. :func:`cubetrack.core.geometry.undistort_points` or
     :meth:`LensMap.undistort`); None when the corners do not undistort or the marker with its
     margin and the blur's reach is not wholly inside the image."""
-    start = undistort(np.asarray(corners_px, float).reshape(4, 2))
+    start = undistort(_corner_array(corners_px))
     if not np.isfinite(start).all():
         return None
     m = margin_modules
