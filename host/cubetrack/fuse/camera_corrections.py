@@ -328,26 +328,28 @@ def term_observed(corrections: CameraCorrections, own: Sequence[CornerSet], othe
     less the corners' own noise, over the calibration term's spread (``sigmas``: position m,
     orientation rad, scale; as set); its log (a geometric mean: one wild sample, e.g. at a track
     start, moves it little) moves the camera's :class:`CameraTerm` (prior: the term as set, ``TERM_PRIOR_SAMPLES``
-    samples' worth). Where the reference cannot be made, only the attempt's time is kept (the camera
-    waits for its next turn, as after a sample)."""
+    samples' worth). Where the reference cannot be made, or the spread is within the corners' own
+    noise (the statistic sees nothing of the cameras' error there: on the simulator's renders every
+    sample was, and pulled the term to its lower bound where the renders need it as set,
+    docs/tracking.md "Why the renders want the full term"), only the attempt's time is kept (the
+    camera waits for its next turn, as after a sample)."""
     if not own:
         return corrections
     t, camera = own[0].time_s, own[0].camera
     old = corrections.terms.get(camera) or CameraTerm(0, 0.0, float("-inf"))
-    tried = term_tried(corrections, camera, t)
     if len({s.camera for s in others}) < 2:
-        return tried
+        return term_tried(corrections, camera, t)
     reference = solve_joint(seen_at(others, T_world_cube, velocity_m_s, angular_velocity_rad_s, t), T_world_cube, t,
                             corner_noise_px, iterations=TERM_FIT_ITERATIONS)
     if reference is None or reference.rms_px > TERM_REFERENCE_RMS_PX:
-        return tried
+        return term_tried(corrections, camera, t)
     moving = any(c.time_s != t for c in own)  # a rolling shutter's faces: at their rows' times
     r, H = reprojection(reference.T_world_cube, *packed_sets(own), t, velocity_m_s, angular_velocity_rad_s, moving,
                         True)
     spread_px2 = statistics.median((r[0::2] ** 2 + r[1::2] ** 2).tolist()) / (2.0 * math.log(2.0))
     term_px2 = term_spread_px2(H[:, :6], reference.T_world_cube, own[0].T_cam_world, *sigmas)
-    if not (math.isfinite(spread_px2) and term_px2 > 0.0):
-        return tried
+    if not (math.isfinite(spread_px2) and term_px2 > 0.0) or spread_px2 <= corner_noise_px**2:
+        return term_tried(corrections, camera, t)  # within the corners' own noise: it cannot see the term
     low, high = TERM_SCALE_BOUNDS
     sample = math.log(min(max(max(spread_px2 - corner_noise_px**2, 0.0) / term_px2, low**2), high**2))
     k = 1.0 / min(old.samples + 1 + TERM_PRIOR_SAMPLES, TERM_MEMORY_SAMPLES)
