@@ -23,8 +23,10 @@ import numpy as np
 
 from cubetrack.core.cameras import CameraIntrinsics
 from cubetrack.core.geometry import R_from_rotvec, invert_T, make_T
-from cubetrack.core.layout import CubeLayout
+from cubetrack.core.layout import DEFAULT_DICTIONARY, CubeLayout
 from cubetrack.core.records import Detection
+from cubetrack.detect.predicted import modules_of
+from cubetrack.estimate.corner_noise import corner_noise_scale
 from cubetrack.estimate.kernels import exp_and_left_jacobian
 from cubetrack.estimate.match import FaceMatch, match_faces
 
@@ -36,7 +38,9 @@ class CornerSet:
     ``points_cube_m`` (N, 3) in the cube frame; ``normalized`` (N, 2) the detected corners
     undistorted to normalised image coordinates; ``focal_px`` scales them back to pixels;
     ``T_cam_world`` the camera's extrinsics; ``time_s`` its capture time (host clock); ``faces``
-    the matched faces' names, four rows each, in order.
+    the matched faces' names, four rows each, in order; ``noise_scale`` (N,) each corner's
+    measurement noise over the nominal one (:func:`cubetrack.estimate.corner_noise.corner_noise_scale`;
+    None: 1 for every corner).
     """
 
     camera: str
@@ -46,6 +50,7 @@ class CornerSet:
     points_cube_m: np.ndarray
     normalized: np.ndarray
     faces: tuple[str, ...]
+    noise_scale: np.ndarray | None = None
 
 
 def normalize_px(corners_px: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:
@@ -64,7 +69,15 @@ def corner_set(matches: Sequence[FaceMatch], intrinsics: CameraIntrinsics, T_wor
     return CornerSet(camera, time_s, invert_T(T_world_cam), float((K[0, 0] + K[1, 1]) / 2.0),
                      np.concatenate([m.points_body_m for m in matches]),
                      normalize_px(np.concatenate([m.detection.corners_px for m in matches]), K, dist),
-                     tuple(m.face for m in matches))
+                     tuple(m.face for m in matches), noise_scales(matches))
+
+
+def noise_scales(matches: Sequence[FaceMatch]) -> np.ndarray:
+    """(4 x len(matches),) each matched corner's noise over the nominal one, in the matches' order
+    (:func:`cubetrack.estimate.corner_noise.corner_noise_scale`: from each marker's own quad)."""
+    return np.concatenate([corner_noise_scale(m.detection.corners_px, modules_of(m.detection.dictionary or
+                                                                                 DEFAULT_DICTIONARY))
+                           for m in matches])
 
 
 def associate(detections: Sequence[Detection], layout: CubeLayout, T_world_cube: np.ndarray,

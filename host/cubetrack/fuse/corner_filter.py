@@ -258,8 +258,9 @@ class PoseFilter:
         k = term_scale
         status, delta, _info, T, r, P, P_ok = solve_update(
             self.T_world_cube, self.P, self.time_s, self.velocity_m_s, self.angular_velocity_rad_s, *packed_sets(sets),
-            moving, prm.iterations, prm.huber_px, 1.0 / prm.corner_noise_px**2, k * prm.camera_position_sigma_m,
-            k * math.radians(prm.camera_rotation_sigma_deg), k * prm.camera_scale_sigma)
+            moving, prm.iterations, prm.huber_px, inverse_variances(sets, prm.corner_noise_px),
+            k * prm.camera_position_sigma_m, k * math.radians(prm.camera_rotation_sigma_deg),
+            k * prm.camera_scale_sigma)
         if status != OK:
             raise np.linalg.LinAlgError("singular matrix")
         return delta, (P if P_ok else None), T, r
@@ -298,6 +299,14 @@ class PoseFilter:
         return UpdateResult(True, rms, r.size // 2)
 
 
+def inverse_variances(sets: Sequence[CornerSet], corner_noise_px: float) -> np.ndarray:
+    """(N,) each corner's inverse variance (1/px^2) in the stacking order of ``sets``: the nominal
+    ``corner_noise_px`` times the corner's own factor (:attr:`CornerSet.noise_scale`; 1 without one)."""
+    scales = [np.ones(len(s.points_cube_m)) if s.noise_scale is None else s.noise_scale for s in sets]
+    sigma_px = corner_noise_px * (scales[0] if len(scales) == 1 else np.concatenate(scales))
+    return 1.0 / (sigma_px * sigma_px)
+
+
 def _without_face(sets: Sequence[CornerSet], index: int) -> list[CornerSet]:
     """The corner sets with their ``index``-th face overall (in stacking order) removed."""
     out = []
@@ -308,6 +317,7 @@ def _without_face(sets: Sequence[CornerSet], index: int) -> list[CornerSet]:
             keep[4 * index: 4 * index + 4] = False
             if n > 1:
                 out.append(dataclasses.replace(s, points_cube_m=s.points_cube_m[keep], normalized=s.normalized[keep],
+                                               noise_scale=None if s.noise_scale is None else s.noise_scale[keep],
                                                faces=s.faces[:index] + s.faces[index + 1:]))
         else:
             out.append(s)

@@ -298,14 +298,15 @@ def _explained(H: np.ndarray, WH: np.ndarray, K: np.ndarray, x: np.ndarray) -> n
 
 @numba.njit(cache=True, nogil=True)
 def _normal_equations(H: np.ndarray, r: np.ndarray, explained: np.ndarray, delta: np.ndarray, huber: float,
-                      inv_var: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover
-    """Huber weights on ``r - explained``: ``(W H, Hᵀ W H, (W H)ᵀ (H δ - r))``."""
+                      inv_var: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover
+    """Huber weights on ``r - explained`` times each corner's inverse variance ``inv_var`` (N,),
+    rows ``2i`` and ``2i + 1`` being corner ``i``: ``(W H, Hᵀ W H, (W H)ᵀ (H δ - r))``."""
     rows, n = H.shape
     WH = np.empty((rows, n))
     Hd_r = np.empty(rows)
     for i in range(rows):
         e = abs(r[i] - explained[i])
-        weight = e if math.isnan(e) else min(huber / max(e, 1e-12), 1.0) * inv_var
+        weight = e if math.isnan(e) else min(huber / max(e, 1e-12), 1.0) * inv_var[i // 2]
         s = 0.0
         for a in range(n):
             WH[i, a] = weight * H[i, a]
@@ -324,7 +325,7 @@ def _normal_equations(H: np.ndarray, r: np.ndarray, explained: np.ndarray, delta
 @numba.njit(cache=True, nogil=True)
 def solve_update(T0: np.ndarray, P: np.ndarray, t_ref: float, v0: np.ndarray, w0: np.ndarray, points: np.ndarray,
                  normalized: np.ndarray, which: np.ndarray, R_cw: np.ndarray, t_cw: np.ndarray, focal: np.ndarray,
-                 times: np.ndarray, moving: bool, iterations: int, huber: float, inv_var: float, sigma_t: float,
+                 times: np.ndarray, moving: bool, iterations: int, huber: float, inv_var: np.ndarray, sigma_t: float,
                  sigma_phi: float, sigma_s: float) -> tuple:  # pragma: no cover
     """``PoseFilter._solve`` on packed corner sets: Gauss-Newton on the prior (``P``, the state at
     ``T0``, ``v0``, ``w0``, time ``t_ref``) plus the Huber-weighted corner residuals less what the
@@ -564,7 +565,7 @@ def _run_kernels() -> None:
     which, R_cw, t_cw = np.zeros(4, dtype=np.int64), np.eye(3)[None].copy(), np.zeros((1, 3))
     for moving in (False, True):
         solve_update(T, P, 0.0, np.zeros(3), np.zeros(3), points, normalized, which, R_cw, t_cw, np.ones(1),
-                     np.full(1, 0.01 if moving else 0.0), moving, 2, 1.5, 4.0, 0.002, 0.002, 0.005)
+                     np.full(1, 0.01 if moving else 0.0), moving, 2, 1.5, np.full(4, 4.0), 0.002, 0.002, 0.005)
     for n in (6, 12):   # the joint fit's start pose (multi_view_fit) is a writable array
         joint_fit(T.copy(), n, points, normalized, which, R_cw, t_cw, np.ones(1), np.zeros(1), 0.0, 0.5, 3.0, 1.0,
                   1.0, 2)

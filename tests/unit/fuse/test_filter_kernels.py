@@ -128,18 +128,19 @@ def test_the_prediction_kernels_are_the_constant_velocity_model() -> None:
 
 
 def test_one_gauss_newton_step_is_the_normal_equations_by_hand() -> None:
-    """One iteration, no calibration discount: δ = (P⁻¹ + Hᵀ W H)⁻¹ Hᵀ W (-r) with Huber weights;
-    the residuals after it are at the moved state; the covariance is that information's inverse."""
+    """One iteration, no calibration discount: δ = (P⁻¹ + Hᵀ W H)⁻¹ Hᵀ W (-r) with Huber weights
+    times each corner's own inverse variance (both its rows); the residuals after it are at the
+    moved state; the covariance is that information's inverse."""
     rng = np.random.default_rng(8)
     sets = _sets(rng, [0.004, -0.006])
     T, v, w = _read_only(_pose(rng)), rng.normal(0.0, 0.3, 3), rng.normal(0.0, 1.0, 3)
     P = np.diag(np.repeat([1e-4, 1e-3, 0.25, 4.0], 3))
-    huber, inv_var = 1.5, 4.0
+    huber, inv_var = 1.5, rng.uniform(0.5, 8.0, sum(len(s.points_cube_m) for s in sets))
     status, delta, info, T_new, r_new, P_new, ok = fk.solve_update(
         T, P, 0.0, v, w, *fk.packed_sets(sets), True, 1, huber, inv_var, 0.0, 0.0, 0.0)
     assert status == fk.OK and ok
     r, H = reprojection_jacobian_px(T, sets, 0.0, v, w)
-    weights = np.minimum(huber / np.abs(r), 1.0) * inv_var
+    weights = np.minimum(huber / np.abs(r), 1.0) * np.repeat(inv_var, 2)
     expected_info = np.linalg.inv(P) + H.T @ (weights[:, None] * H)
     expected = np.linalg.solve(expected_info, H.T @ (weights * -r))
     np.testing.assert_allclose(info, expected_info, rtol=1e-9)

@@ -1,0 +1,45 @@
+"""Each detected corner's measurement noise from what its marker's image shows (issue 26).
+
+The edge fit (:mod:`cubetrack.detect.edge_fit`) locates a side from the dark-to-bright step of
+the marker's one-module black border; where that border is narrow in the image its step runs into
+the next cell's and the fitted lines, extended to meet at the corners, wander. Against the
+simulator's exact corners (``benchmarks/corner_ceiling.py``, clean and realistic development
+scenes, docs/detection.md "Each corner's noise") the error of a corner follows the width in pixels
+of the border modules of the two sides that meet there, measured across each side (the quad's
+height over that side, over the modules across the marker): RMS per coordinate ~0.27 px /
+width^1.7 (0.18 px at 1.2 px, 0.05 px at 2.8 px). That width falls with the marker's distance and
+with how obliquely it is seen, so it carries both the size and the view angle, and it is read off
+the detected quad alone.
+
+:func:`corner_noise_scale` turns it into a factor on the filter's ``corner_noise_px`` (which
+stands for every error of a corner the filter does not model, not only the edge fit's): 1 for
+corners whose border modules are at least :data:`WIDE_MODULE_PX` wide, growing as the modules
+narrow, so the filter leans on the corners the frame measures well.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+WIDE_MODULE_PX = 2.5  # border modules this wide (across their side) or wider: the nominal corner noise
+EXPONENT = 1.7  # the edge fit's corner error against the border module's width: ~ width^-EXPONENT
+MAX_SCALE = 8.0  # the largest factor (a module under ~0.9 px: such a marker is barely decoded)
+
+
+def border_module_px(corners_px: np.ndarray, modules: int) -> np.ndarray:
+    """(4,) per corner of a marker's quad (4, 2) px: the narrower width in pixels, across its side,
+    of the border modules of the two sides that meet there (the quad's height over each side,
+    area / side length, over ``modules``, the cells across the marker with its border)."""
+    q = np.asarray(corners_px, dtype=np.float64).reshape(4, 2)
+    x, y = q[:, 0], q[:, 1]
+    area_px2 = 0.5 * abs(float(x @ np.roll(y, -1) - y @ np.roll(x, -1)))
+    side_px = np.linalg.norm(np.roll(q, -1, axis=0) - q, axis=1)  # side i: corner i -> i + 1
+    across_px = area_px2 / np.maximum(side_px, 1e-9) / modules
+    return np.minimum(across_px, np.roll(across_px, 1))  # corner i: sides i and i - 1
+
+
+def corner_noise_scale(corners_px: np.ndarray, modules: int) -> np.ndarray:
+    """(4,) per corner of a marker's quad: its noise over the nominal corner noise, from
+    :func:`border_module_px` (1 at :data:`WIDE_MODULE_PX` and wider, at most :data:`MAX_SCALE`)."""
+    width_px = np.maximum(border_module_px(corners_px, modules), 1e-9)
+    return np.clip((WIDE_MODULE_PX / width_px) ** EXPONENT, 1.0, MAX_SCALE)
