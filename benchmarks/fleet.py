@@ -287,7 +287,7 @@ def plan(fleet: Fleet, cameras: list[Camera],
 
 
 def publisher_main(fleet: Fleet, index: int, count: int, ports: list[int], ready, start_at, duration_s: float,
-                   out_path: str, pre_encoded: bool, hold_s: float) -> None:
+                   out_path: str, pre_encoded: bool, hold_s: float, shards: int) -> None:
     """One publisher process: its share of the cameras, at their rate, from ``start_at`` for ``duration_s``.
     With ``pre_encoded`` every message is made before the start and only restamped and put when due. As a
     worker does (``io/worker_bus.SightingBatches``), it publishes one message per robot per tick: a tick
@@ -301,12 +301,16 @@ def publisher_main(fleet: Fleet, index: int, count: int, ports: list[int], ready
     frames, dropped = plan(fleet, cameras, duration_s)
     made = [frame_messages(fleet, cameras[k], seq, capture_s, d) for _, k, seq, capture_s, d in frames] \
         if pre_encoded else None
+    batches = SightingBatches(bus, f"{worker_id()}-p{index}")
+    # ready once this publisher sees the shards settled as the observer does: every robot's sightings then go to its
+    # shard's key, which the shard subscribed to before it claimed anything
+    wait_for(lambda: settled(batches.claims.snapshot()[1], fleet.robot_names(), shards), 120,
+             "a publisher did not see every robot claimed by one shard")
     ready.put(index)
     while start_at.value == 0:
         time.sleep(0.01)
     t0 = start_at.value
     out: dict = {"sightings": [], "frames": 0, "messages": 0, "dropped": dropped, "late_s": []}
-    batches = SightingBatches(bus, f"{worker_id()}-p{index}")
     cpu0, split0 = time.process_time(), threads_cpu(os.getpid())
     i = 0
     while i < len(frames):
@@ -493,7 +497,7 @@ def run_fleet(args: argparse.Namespace, work: Path) -> dict:
     ready, start_at = ctx.Queue(), ctx.Value("d", 0.0)
     publishers = [ctx.Process(target=publisher_main, args=(fleet, i, args.publishers, ports, ready, start_at,
                                                            args.duration, str(work / f"publisher{i}.pkl"),
-                                                           args.pre_encoded, args.batch_ms / 1000))
+                                                           args.pre_encoded, args.batch_ms / 1000, args.shards))
                   for i in range(args.publishers)]
     observer, kill = None, {}
     try:
@@ -504,7 +508,6 @@ def run_fleet(args: argparse.Namespace, work: Path) -> dict:
                  "the shards did not each claim a share of the robots, every robot once")
         for _ in publishers:
             ready.get(timeout=120)
-        time.sleep(1.0)  # the shards' subscriptions reach the publishers
         load = os.getloadavg()
         cpu0 = [cpu_of(p.pid) for p in shards]
         split0 = [threads_cpu(p.pid) for p in shards]
