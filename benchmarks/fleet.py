@@ -342,13 +342,13 @@ class Recorder(Sink):
     def __init__(self) -> None:
         self.poses: list[tuple] = []
         self.starts: list[tuple[str, float]] = []  # (robot, wall time) of each track start (a pose of 2+ cameras)
-        self.cpu_first = math.nan
+        self.cpu_first = self.main_first = math.nan  # the process's and its Python thread's CPU at the first pose
 
     def pose(self, pose: TrackedPose) -> None:
         if pose.predicted:
             return
         if not self.poses:
-            self.cpu_first = time.process_time()
+            self.cpu_first, self.main_first = time.process_time(), time.thread_time()  # the fusion's thread calls
         self.poses.append((pose.robot, pose.time_s, tuple(pose.position_m), pose.arrival_latency_s, time.time()))
         if len(pose.cameras) > 1:   # the filter's track start fits 2+ cameras' sightings; an update is one camera's
             self.starts.append((pose.robot, time.time()))
@@ -371,6 +371,7 @@ def shard_main(config_path: str, extrinsics_path: str, index: int, ports: list[i
     Path(out_path).write_bytes(pickle.dumps({
         "fused": sum(result.heard.values()), "behind": result.behind, "poses": recorder.poses,
         "starts": recorder.starts, "cpu_s": time.process_time() - recorder.cpu_first if recorder.poses else math.nan,
+        "main_cpu_s": time.thread_time() - recorder.main_first if recorder.poses else math.nan,
         "claims": result.claims, "refused": result.bad_messages}))
 
 
@@ -510,7 +511,6 @@ def run_fleet(args: argparse.Namespace, work: Path) -> dict:
             ready.get(timeout=120)
         load = os.getloadavg()
         cpu0 = [cpu_of(p.pid) for p in shards]
-        split0 = [threads_cpu(p.pid) for p in shards]
         start_at.value = t0 = time.time() + 0.2
         if args.kill_shard:
             time.sleep(max(0.0, t0 + args.duration / 2 - time.time()))
@@ -519,8 +519,6 @@ def run_fleet(args: argparse.Namespace, work: Path) -> dict:
             kill = {"at": time.time(), "robots": sorted(held), "how": args.kill_shard}
         time.sleep(max(0.0, t0 + args.duration + 0.5 - time.time()))
         cpu1 = [cpu_of(p.pid) if p.is_alive() else math.nan for p in shards]
-        split = [{k: v - a[k] for k, v in threads_cpu(p.pid).items()} if p.is_alive() else {}
-                 for p, a in zip(shards, split0, strict=True)]
         double_s = observer.double_claims_s()
         stop.set()
         for p in publishers + shards[1 if kill else 0:]:
@@ -538,7 +536,6 @@ def run_fleet(args: argparse.Namespace, work: Path) -> dict:
                if (work / f"shard{i}.pkl").exists()}
     return {"fleet": fleet, "config": config, "extrinsics": extrinsics, "t0": t0, "load": load, "publishers": outs,
             "shards": results, "shard_cpu_s": [b - a for a, b in zip(cpu0, cpu1, strict=True)], "kill": kill,
-            "shard_threads_cpu_s": split,
             "events": events, "states": states, "double_claims_s": double_s, "load_after": os.getloadavg()}
 
 
@@ -631,8 +628,9 @@ def report(run: dict, args: argparse.Namespace) -> dict:
         "latency_ms_p50_p95_p99": percentiles_ms([p[3] for p in poses if p[3] is not None]),
         "shard_cpu_ms_per_sighting": {i: round(1000 * r["cpu_s"] / max(1, r["fused"]), 3) for i, r in shards.items()},
         "shard_cpu_s": [round(v, 2) for v in run["shard_cpu_s"]],
-        "shard_threads_ms_per_sighting": {i: {k: round(1000 * v / max(1, shards[i]["fused"]), 3) for k, v in t.items()}
-                                          for i, t in enumerate(run["shard_threads_cpu_s"]) if i in shards and t},
+        # from the first pose to the shard's end, as "fused" counts (a shard behind fuses its queue after the run)
+        "shard_threads_ms_per_sighting": {i: {k: round(1000 * v / max(1, r["fused"]), 3) for k, v in (
+            ("main", r["main_cpu_s"]), ("other", r["cpu_s"] - r["main_cpu_s"]))} for i, r in shards.items()},
         "publisher_threads_ms_per_sighting": {k: round(1000 * sum(o["threads_cpu_s"][k] for o in run["publishers"])
                                                        / max(1, offered), 4) for k in ("main", "other")},
         "shard_sightings": {i: r["fused"] for i, r in shards.items()},
