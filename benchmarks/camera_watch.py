@@ -141,15 +141,30 @@ def rmse(err: np.ndarray) -> float:
     return float(np.sqrt(np.mean(err**2))) if len(err) else math.nan
 
 
-def bump_rows(rec: Path, events: list, moves: Moves, start: float) -> dict:
-    """Per bumped camera: moved declared and rejoined (s after its bump), the new pose's error."""
+def principal_point_floor_deg(rec: Path, camera: str) -> float:
+    """The turn (deg) that the camera's principal point error (its camera_info against
+    true_camera_info) amounts to: no pose fitted to its images gets closer to the true rotation."""
+    from cubetrack.io.camera_info import read_camera_info
+
+    told = read_camera_info(rec / "camera_info" / f"{camera}.yaml").K
+    true = read_camera_info(rec / "true_camera_info" / f"{camera}.yaml").K
+    return math.degrees(math.atan(math.hypot(*(told[:2, 2] - true[:2, 2])) / true[0, 0]))
+
+
+def bump_rows(rec: Path, events: list, moves: Moves, start: float, extrinsics: dict) -> dict:
+    """Per bumped camera: moved declared and rejoined (s after its bump), the new pose's error,
+    and what bounds it: the camera's calibrated pose against its true pose before the bump, and its
+    principal point's error as a turn."""
     out = {}
     for number, at_s in zip(moves.bump_cameras, moves.bump_at_s, strict=True):
         camera = f"cam{number}"
         moved = [e for e in events if e.kind.value == "moved" and e.camera == camera]
         rejoined = [e for e in events if e.kind.value == "rejoined" and e.camera == camera]
         row: dict = {"moved_after_s": moved[0].time_s - start - at_s if moved else None,
-                     "rejoined_after_s": rejoined[0].time_s - start - at_s if rejoined else None}
+                     "rejoined_after_s": rejoined[0].time_s - start - at_s if rejoined else None,
+                     "calibrated_error": pose_error(true_camera_pose(rec, camera, start + at_s - 1.0),
+                                                    extrinsics[camera].T_world_cam),
+                     "principal_point_floor_deg": principal_point_floor_deg(rec, camera)}
         if rejoined:
             row["new_pose_error"] = pose_error(true_camera_pose(rec, camera), rejoined[0].T_world_cam)
             row["sightings"] = rejoined[0].sightings
@@ -201,7 +216,7 @@ def run_scene(work: Path, cameras: int, seed: int, duration_s: float, moves: Mov
                      "false_alarms": [e.camera for e in run["events"] if e.kind.value == "moved"
                                       and (key.startswith("still") or e.camera not in bumped)]}
         if key == "watched":
-            row["bumps"] = bump_rows(rec, run["events"], moves, start)
+            row["bumps"] = bump_rows(rec, run["events"], moves, start, extrinsics)
             if drifting:
                 row["drift"] = drift_rows(rec, drifting, run["camera_poses"], start)
         out[key] = row
@@ -284,8 +299,8 @@ def main(argv: list[str] | None = None) -> int:
 
 def print_table(rows: list[dict]) -> None:
     print(f"\n{os.cpu_count()} cores, load {os.getloadavg()[0]:.1f}")
-    print("cams seed moves              camera  moved after  rejoined after  new pose error    max err (before/after "
-          "the first move)  RMSE watched/base  alarms (still)")
+    print("cams seed moves              camera  moved after  rejoined after  new pose error    calibrated before    "
+          "pp floor  max err (before/after the first move)  RMSE watched/base  alarms (still)")
     for r in rows:
         w = r["watched"]
         alarms = f"{len(w['false_alarms'])} ({len(r['still']['false_alarms']) if 'still' in r else '-'})"
@@ -294,7 +309,8 @@ def print_table(rows: list[dict]) -> None:
                 f"{r['rmse_ratio']:27.3f}  {alarms}")
         for camera, b in (w.get("bumps") or {"-": {}}).items():
             print(f"{head}{camera:>6}  {_s(b.get('moved_after_s')):>11}  {_s(b.get('rejoined_after_s')):>14}  "
-                  f"{_pose(b.get('new_pose_error')):>16}  {tail}")
+                  f"{_pose(b.get('new_pose_error')):>16}  {_pose(b.get('calibrated_error')):>18}  "
+                  f"{_deg(b.get('principal_point_floor_deg')):>9}  {tail}")
         for t, in_use, settled in w.get("drift", []):
             print(f"    drift at {t:6.1f} s: pose in use {in_use:6.2f} mm off, settled pose "
                   f"{'-' if settled is None else f'{settled:.2f} mm'} off")
@@ -302,6 +318,10 @@ def print_table(rows: list[dict]) -> None:
 
 def _s(value: float | None) -> str:
     return "never" if value is None else f"{value:.1f} s"
+
+
+def _deg(value: float | None) -> str:
+    return "-" if value is None else f"{value:.3f} deg"
 
 
 def _pose(value: tuple[float, float] | None) -> str:

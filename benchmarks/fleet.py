@@ -10,8 +10,9 @@ each camera's device clock offset by hundreds of seconds and its worker's mappin
 constant of 1 ms sigma, and the frame published 40-60 ms after its capture (transfer and detection).
 
 --publishers processes publish those sightings as ``cubetrack worker`` does, through the same
-``io/worker_bus.SightingBatches`` (a robot's sightings of a tick as one message under
-``cubetrack/sightings/<publisher>/<robot>``, a frame without a robot under ``cubetrack/sightings/<camera>``;
+``io/worker_bus.SightingBatches`` (a tick's sightings of the robots a shard alone claims as one message under
+``cubetrack/shard-sightings/<shard>/<publisher>``, of any other robot under ``cubetrack/sightings/<publisher>/<robot>``,
+a frame without a robot under ``cubetrack/sightings/<camera>``;
 a tick puts the frames due within --batch-ms of the first, each stamped as arriving when it was due, so the
 hold counts in the latency) at the cameras' real rate (--fps), over loopback Zenoh; with
 --pre-encoded they make every message before the run and only restamp it with the run's times and put
@@ -29,6 +30,14 @@ shards' claims.
     .venv/bin/python benchmarks/fleet.py --robots 8 --cameras 16 --fps 30 --shards 2 --duration 20
     .venv/bin/python benchmarks/fleet.py --shards 2 --kill-shard kill
     .venv/bin/python benchmarks/fleet.py --quick          # 2 robots, 4 cameras, 10 fps, 3 s (the CI smoke)
+
+--find-ceiling measures issue 28's item 1: each configuration's ceiling, the highest rate of cube sightings kept
+up with (<= 1 % dropped, p95 publish -> pose <= 20 ms), found by stepping the cameras' rate (a fresh run of
+--duration s per step, at most --steps per configuration), 1 shard's and then --shards shards', and their ratio,
+printed with the core count and the publishers' CPU at each ceiling:
+
+    .venv/bin/python benchmarks/fleet.py --robots 40 --cameras 80 --fps 15 --shards 2 --pre-encoded --duration 3 \
+        --find-ceiling
 """
 
 from __future__ import annotations
@@ -47,6 +56,7 @@ import sys
 import tempfile
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -382,11 +392,12 @@ class Observer:
         self.state_watch = self.bus.declare_subscriber(f"{STATES_KEY}/*", self.state)
 
     def state(self, sample) -> None:
-        from cubetrack.io.sighting_wire import decode_state
+        from cubetrack.io.sighting_wire import decode_states
 
-        state = decode_state(bytes(sample.payload))
+        at_s = time.time()
+        states = decode_states(bytes(sample.payload))   # a shard's states of a tick
         with self.lock:
-            self.states.append((time.time(), state.robot, state.time_s, state.T_world_cube[:3, 3], state.velocity_m_s))
+            self.states += [(at_s, s.robot, s.time_s, s.T_world_cube[:3, 3], s.velocity_m_s) for s in states]
 
     def token(self, sample) -> None:
         _, _, robot, shard = str(sample.key_expr).split("/")
@@ -674,6 +685,89 @@ def print_report(r: dict) -> None:
               f"after the kill: {t['track_starts_after']} (0: the track went on from the state)")
 
 
+CEILING_DROPPED_PCT, CEILING_P95_MS = 1.0, 20.0  # issue 28: a rate is kept up with at <= 1 % dropped, p95 <= 20 ms
+CEILING_FACTOR = 1.25  # the ceiling search's step in rate
+
+
+def keeps_up(r: dict) -> bool:
+    """Whether a run kept up with its rate: at most CEILING_DROPPED_PCT dropped and p95 publish -> pose at most
+    CEILING_P95_MS (NaN, no pose at all, does not)."""
+    return r["dropped_pct"] <= CEILING_DROPPED_PCT and r["latency_ms_p50_p95_p99"][1] <= CEILING_P95_MS
+
+
+def find_ceiling(measure: Callable[[float], dict], fps: float, steps: int) -> dict:
+    """One configuration's ceiling: ``measure(fps)`` (a run's report) at most ``steps`` times, the cameras' rate
+    going up by CEILING_FACTOR after a run that kept up (:func:`keeps_up`) and down after one that did not, then,
+    once both are seen, to the geometric middle of the highest rate that kept up and the lowest that did not,
+    until they are within half a step. The ceiling: the sightings/s offered in the highest rate that kept up
+    (NaN: none did)."""
+    tried, good, bad = [], 0.0, math.inf
+    for _ in range(steps):
+        r = measure(fps)
+        tried.append({"fps": round(fps, 2), "offered_per_s": r["offered_per_s"], "dropped_pct": r["dropped_pct"],
+                      "p95_ms": r["latency_ms_p50_p95_p99"][1], "kept_up": keeps_up(r),
+                      "shard_cpu_ms_per_sighting": r["shard_cpu_ms_per_sighting"],
+                      "shard_threads_ms_per_sighting": r["shard_threads_ms_per_sighting"],
+                      "publisher_cpu_ms_per_sighting": r["publisher_cpu_ms_per_sighting"],
+                      "load_before": r["load_before"]})
+        good, bad = (max(good, fps), bad) if keeps_up(r) else (good, min(bad, fps))
+        if good and bad < math.inf:
+            if bad / good < 1 + (CEILING_FACTOR - 1) / 2:
+                break
+            fps = math.sqrt(good * bad)
+        else:
+            fps = fps * CEILING_FACTOR if keeps_up(r) else fps / CEILING_FACTOR
+    best = max((t for t in tried if t["kept_up"]), key=lambda t: t["offered_per_s"], default=None)
+    return {"ceiling_per_s": best["offered_per_s"] if best else math.nan, "at": best, "steps": tried}
+
+
+def step_main(args: argparse.Namespace, work: str) -> None:
+    """One run of the ceiling search, its report written to ``work``/step.json."""
+    (Path(work) / "step.json").write_text(json.dumps(report(run_fleet(args, Path(work)), args)))
+
+
+def ceilings(args: argparse.Namespace) -> dict:
+    """1 shard's ceiling from --fps, then --shards shards' from 1.8x that rate (the issue's target): each step a
+    fresh run of --duration s; their ratio, with the publishers' CPU per sighting at each ceiling."""
+    def measure(shards: int, fps: float) -> dict:
+        step = argparse.Namespace(**{**vars(args), "shards": shards, "fps": fps, "replay": False, "kill_shard": None})
+        # each step in a child forked from this process, which never opens Zenoh: a process forked after Zenoh's
+        # runtime started (run_fleet's observer) inherits its pools without their threads and hangs opening a session
+        ctx = multiprocessing.get_context("fork")
+        with tempfile.TemporaryDirectory(prefix="fleet_") as work:
+            child = ctx.Process(target=step_main, args=(step, work))
+            child.start()
+            child.join()
+            if child.exitcode != 0:
+                raise SystemExit(f"fleet: the run of {shards} shard(s) at {fps:.2f} fps failed (exit {child.exitcode})")
+            r = json.loads((Path(work) / "step.json").read_text())
+        print(f"  {shards} shard(s) at {fps:.2f} fps: offered {r['offered_per_s']}/s, dropped {r['dropped_pct']} %, "
+              f"p95 {r['latency_ms_p50_p95_p99'][1]} ms -> {'kept up' if keeps_up(r) else 'did not keep up'}; shard "
+              f"CPU per sighting {r['shard_cpu_ms_per_sighting']} ms, publishers {r['publisher_cpu_ms_per_sighting']} "
+              f"ms; load {r['load_before'][0]}", flush=True)
+        return r
+
+    one = find_ceiling(functools.partial(measure, 1), args.fps, args.steps)
+    start = 1.8 * one["at"]["fps"] if one["at"] else args.fps
+    many = find_ceiling(functools.partial(measure, args.shards), start, args.steps)
+    return {"cores": os.cpu_count(), "robots": args.robots, "cameras": args.cameras, "duration_s": args.duration,
+            "criteria": {"dropped_pct_at_most": CEILING_DROPPED_PCT, "p95_ms_at_most": CEILING_P95_MS},
+            "shards": args.shards, "one_shard": one, "many_shards": many,
+            "ratio": round(many["ceiling_per_s"] / one["ceiling_per_s"], 3) if one["at"] and many["at"] else math.nan}
+
+
+def print_ceilings(c: dict) -> None:
+    print(f"cores: {c['cores']}; {c['robots']} robots, {c['cameras']} cameras, {c['duration_s']} s a step; a rate is "
+          f"kept up with at <= {CEILING_DROPPED_PCT} % dropped and p95 publish -> pose <= {CEILING_P95_MS} ms")
+    for label, key in (("1 shard", "one_shard"), (f"{c['shards']} shards", "many_shards")):
+        at = c[key]["at"]
+        print(f"ceiling, {label}: {c[key]['ceiling_per_s']} cube sightings/s"
+              + (f" (at {at['fps']} fps: dropped {at['dropped_pct']} %, p95 {at['p95_ms']} ms; shard CPU per sighting "
+                 f"{at['shard_cpu_ms_per_sighting']} ms, by thread {at['shard_threads_ms_per_sighting']}; publishers "
+                 f"{at['publisher_cpu_ms_per_sighting']} ms per sighting)" if at else " (no rate kept up with)"))
+    print(f"{c['shards']} shards / 1 shard: {c['ratio']}x (issue 28 asks >= 1.8x)")
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--robots", type=int, default=4)
@@ -693,6 +787,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--batch-ms", type=float, default=None,
                    help="a publisher's tick: frames due within this of the first are put together, one message per "
                         "robot (default: a worker's BATCH_HOLD_S; 0: each frame when due)")
+    p.add_argument("--find-ceiling", action="store_true",
+                   help="step the cameras' rate (from --fps) to find 1 shard's ceiling, then --shards shards' (from "
+                        "1.8x that): the highest rate at <= 1 %% dropped and p95 <= 20 ms; each step a fresh run")
+    p.add_argument("--steps", type=int, default=5, help="with --find-ceiling: runs per configuration at most")
     p.add_argument("--json", type=Path, help="also write the report here")
     p.add_argument("--quick", action="store_true", help="2 robots, 4 cameras, 10 fps, 3 s (the CI smoke)")
     args = p.parse_args(argv)
@@ -703,11 +801,17 @@ def main(argv: list[str] | None = None) -> int:
     if args.quick:
         args.robots, args.cameras, args.fps, args.duration = 2, 4, 10.0, 3.0
     if not (1 <= args.robots <= 49 and args.cameras >= 1 and args.shards >= 1 and args.publishers >= 1
-            and args.fps > 0 and args.duration > 0 and args.batch_ms >= 0):
+            and args.fps > 0 and args.duration > 0 and args.batch_ms >= 0 and args.steps >= 1):
         p.error("need 1-49 robots, at least one camera, shard and publisher, a positive rate and duration, "
-                "--batch-ms >= 0")
-    if args.kill_shard and args.shards < 2:
-        p.error("--kill-shard needs --shards 2 or more")
+                "--batch-ms >= 0, --steps >= 1")
+    if (args.kill_shard or args.find_ceiling) and args.shards < 2:
+        p.error("--kill-shard and --find-ceiling need --shards 2 or more")
+    if args.find_ceiling:
+        c = ceilings(args)
+        print_ceilings(c)
+        if args.json:
+            args.json.write_text(json.dumps(c, indent=1))
+        return 0
     with tempfile.TemporaryDirectory(prefix="fleet_") as work:
         r = report(run_fleet(args, Path(work)), args)
     print_report(r)

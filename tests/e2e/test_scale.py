@@ -174,7 +174,7 @@ class Bus:
         """``hub``: listen on ``port`` (the workers' default peer) instead of connecting there."""
         from cubetrack.app.worker import fuse_endpoints, worker_endpoints
         from cubetrack.io.sighting_wire import decode_messages
-        from cubetrack.io.worker_bus import CLAIMS_KEY, SIGHTINGS_KEY, ClaimBoard
+        from cubetrack.io.worker_bus import CLAIMS_KEY, SHARD_SIGHTINGS_KEY, SIGHTINGS_KEY, ClaimBoard
         from cubetrack.sink.zenoh_session import open_session
 
         self.received: dict[str, list[float]] = {}  # camera -> time.monotonic() each sighting came here
@@ -189,7 +189,9 @@ class Bus:
                 self.received.setdefault(message.camera, []).append(time.monotonic())
                 self.stamped.setdefault(message.camera, []).append(message.arrival_time_s)
 
-        self.subscriber = self.session.declare_subscriber(f"{SIGHTINGS_KEY}/**", sighting)
+        # a robot's own key, or (once the fusion claims the robot) the fusion's: both are what the workers publish
+        self.subscribers = [self.session.declare_subscriber(f"{key}/**", sighting)
+                            for key in (SIGHTINGS_KEY, SHARD_SIGHTINGS_KEY)]
         self.watcher = self.session.liveliness().declare_subscriber(
             f"{CLAIMS_KEY}/**", lambda s: self.board.token(str(s.key_expr), not str(s.kind).endswith("DELETE")),
             history=True)
@@ -207,7 +209,8 @@ class Bus:
         return float(np.max(np.diff([start_s, *stamps, end_s])))
 
     def close(self) -> None:
-        self.subscriber.undeclare()
+        for subscriber in self.subscribers:
+            subscriber.undeclare()
         self.watcher.undeclare()
         self.session.close()
 

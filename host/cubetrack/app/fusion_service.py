@@ -1,9 +1,9 @@
 """``cubetrack fuse``: the fusion half of tracking, fed by ``cubetrack worker`` processes over
 Zenoh (docs/scaling.md).
 
-It subscribes to ``cubetrack/sightings/**`` (:mod:`cubetrack.app.worker`), or as a shard of a fleet
-to ``cubetrack/sightings/*/<robot>`` of the robots it fuses (named, or claimed like workers claim
-cameras: :class:`cubetrack.io.worker_bus.Claims`), turns each message
+It subscribes to ``cubetrack/shard-sightings/<itself>/*`` and ``cubetrack/sightings/**`` (:mod:`cubetrack.app.worker`),
+or as a shard to ``cubetrack/sightings/*/<robot>`` of the robots it fuses instead of the latter (named, or claimed
+as workers claim cameras: :class:`cubetrack.io.worker_bus.Claims`), turns each message
 back into the per-frame work's result (each robot's own detections, and its per-camera
 estimate from the corners when the fusion asks for one) and runs the tracker's fusion
 (:meth:`cubetrack.app.tracker.Tracker.fuse`) and the outputs on the session runtime
@@ -228,14 +228,14 @@ def _join_bus(zenoh: Any, inbox: _Inbox, session: Session, names: list[str], sha
     with ``shard`` its share of ``names`` claimed (checked every ``CHECK_EVERY_S`` and whenever a
     token comes or goes). What to close, in order, at the end."""
     me = worker_id()
-    robots = FusedRobots(zenoh, me, None if every else inbox.receive, inbox.fused)
+    robots = FusedRobots(zenoh, me, inbox.receive, inbox.fused, per_robot=not every)
     declared: list[Any] = [zenoh.liveliness().declare_token(f"{SHARDS_KEY}/{me}")]
     declared.append(zenoh.liveliness().declare_subscriber(f"{WORKERS_KEY}/*", inbox.worker_event, history=True))
     if every:
         declared.append(zenoh.declare_subscriber(f"{SIGHTINGS_KEY}/**", inbox.receive))
     if shard:
         fusion = filter_fusion(inbox.tracker)
-        inbox.relay = StateRelay(zenoh, fusion.last_state if fusion else lambda robot: None)
+        inbox.relay = StateRelay(zenoh, me, fusion.last_state if fusion else lambda robot: None)
         inbox.stream.on_poses = inbox.relay.poses
         declared.append(inbox.relay)
         claims = Claims(zenoh, me, names, lambda: robots.held, robots.take, robots.give_up,

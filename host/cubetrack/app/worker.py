@@ -5,9 +5,9 @@ capture time through the camera's ``/time`` round trips and does the tracker's p
 (:meth:`cubetrack.app.tracker.FrameProcessor.work`: decode, detect, the camera's pose), then
 publishes each frame (:mod:`cubetrack.io.sighting_wire`) as one sighting per robot whose markers it
 holds (:func:`body_messages`), gathered over a pass over its cameras (at most ``BATCH_HOLD_S``) into one
-message per robot under ``cubetrack/sightings/<worker>/<robot>``, a frame without any under
-``cubetrack/sightings/<camera>``. The fusion (:mod:`cubetrack.app.fusion_service`) subscribes
-to ``cubetrack/sightings/**``, a fusion shard to its robots' keys. A worker holds no fusion state,
+message per fusion claiming robots (``cubetrack/shard-sightings/<fusion>/<worker>``) or per unclaimed robot
+(``cubetrack/sightings/<worker>/<robot>``), a frame without any under ``cubetrack/sightings/<camera>``
+(:class:`cubetrack.io.worker_bus.SightingBatches`: the fusion and its shards subscribe). A worker holds no fusion state,
 so detection searches whole frames (there is no prediction to search around) and per-camera
 estimates are made by the fusion, from the corners, when it asks for one (as in one process: only
 then). Each running worker holds a Zenoh liveliness token ``cubetrack/workers/<host>-<pid>``; the

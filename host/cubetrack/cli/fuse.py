@@ -1,4 +1,5 @@
-"""Fuse the sightings `cubetrack worker` processes publish on Zenoh (cubetrack/sightings/**) into
+"""Fuse the sightings `cubetrack worker` processes publish on Zenoh (cubetrack/sightings/**, and under
+cubetrack/shard-sightings/<this fusion>/* those of the robots it claims) into
 DIR/<robot>.tum and DIR/<robot>.jsonl and the outputs the flags or the config's [[outputs]] ask
 for (the same as `cubetrack track --live`; docs/scaling.md). A status line on stderr says which
 cameras it hears from and which are silent.

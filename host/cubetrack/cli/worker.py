@@ -1,7 +1,8 @@
 """Read some of the config's cameras live and publish each frame's sighting (corners, capture
 time, the camera's clock mapping and health; never images) on Zenoh under
-cubetrack/sightings/<camera>/<robot> (one message per robot seen; cubetrack/sightings/<camera> for
-a frame without any), for `cubetrack fuse` (docs/scaling.md).
+cubetrack/shard-sightings/<fusion>/<worker> (the robots a fusion claims, one message per fusion and pass) or
+cubetrack/sightings/<worker>/<robot> (a robot no fusion claims; cubetrack/sightings/<camera> for a frame
+without any), for `cubetrack fuse` (docs/scaling.md).
 
 Without --cameras the worker claims its share of the cameras no other worker reads (automatic
 assignment through Zenoh liveliness tokens: start as many workers as you like, each takes a fair

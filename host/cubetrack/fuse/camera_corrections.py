@@ -42,6 +42,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import statistics
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
 from types import MappingProxyType
@@ -49,8 +50,8 @@ from types import MappingProxyType
 import numpy as np
 
 from cubetrack.core.geometry import R_from_rotvec, invert_T, make_T
-from cubetrack.estimate.reprojection import CornerSet, reprojection_jacobian_px, reprojection_residuals_px
-from cubetrack.fuse.filter_kernels import moved_pose
+from cubetrack.estimate.reprojection import CornerSet, reprojection_jacobian_px
+from cubetrack.fuse.filter_kernels import moved_pose, packed_sets, reprojection
 from cubetrack.fuse.multi_view_fit import solve_joint
 
 CLIP_SIGMAS = 4.0  # a correction is bounded to this many prior standard deviations per axis
@@ -146,7 +147,8 @@ class CameraTerm:
     @property
     def scale(self) -> float:
         """The factor on the camera's calibration term (its sigmas), within ``TERM_SCALE_BOUNDS``."""
-        return float(np.clip(math.exp(self.log_ratio2 / 2.0), *TERM_SCALE_BOUNDS))
+        low, high = TERM_SCALE_BOUNDS
+        return min(max(math.exp(self.log_ratio2 / 2.0), low), high)  # (np.clip costs more than a sample's update)
 
 
 @dataclass(frozen=True, slots=True)
@@ -275,20 +277,19 @@ def combined(all_corrections: Sequence[CameraCorrections], priors: CorrectionPri
     return out
 
 
-def term_spread_px2(sets: Sequence[CornerSet], T_world_cube: np.ndarray, sigma_t_m: float, sigma_phi_rad: float,
-                    sigma_s: float) -> float:
+def term_spread_px2(H: np.ndarray, T_world_cube: np.ndarray, T_cam_world: np.ndarray, sigma_t_m: float,
+                    sigma_phi_rad: float, sigma_s: float) -> float:
     """The calibration term's spread in one camera's corners, px² per coordinate (the mean of the
-    diagonal of ``H Σ Hᵀ``): ``Σ`` the body's apparent motion from a camera error of ``sigma_t_m``
-    per axis, ``sigma_phi_rad`` per axis and scale ``sigma_s``, as
+    diagonal of ``H Σ Hᵀ``, i.e. ``trace(Σ HᵀH) / rows``): ``H`` (2N, 6) the corners' Jacobian by the
+    body pose ``T_world_cube`` seen from ``T_cam_world``, ``Σ`` the body's apparent motion from a camera
+    error of ``sigma_t_m`` per axis, ``sigma_phi_rad`` per axis and scale ``sigma_s``, as
     :func:`cubetrack.fuse.filter_kernels.calibration_discount` models it."""
-    _, H = reprojection_jacobian_px(T_world_cube, sets)
-    T_cam_world = sets[0].T_cam_world
     z = T_cam_world[2, :3]  # the optical axis in the world frame
     d = T_world_cube[:3, 3] + T_cam_world[:3, :3].T @ T_cam_world[:3, 3]  # p - c
     M = camera_jacobian(np.eye(6), T_world_cube, T_cam_world, np.zeros(3), np.zeros(3))[:, :6]
     u = np.concatenate([z * float(z @ d), np.zeros(3)])
     sigma = M @ np.diag(np.repeat([sigma_t_m**2, sigma_phi_rad**2], 3)) @ M.T + sigma_s**2 * np.outer(u, u)
-    return float(np.einsum("ij,jk,ik->i", H, sigma, H).mean())
+    return float(np.sum(sigma * (H.T @ H))) / len(H)
 
 
 def term_due(corrections: CameraCorrections, cameras: Sequence[str], time_s: float, every_s: float) -> str | None:
@@ -327,25 +328,28 @@ def term_observed(corrections: CameraCorrections, own: Sequence[CornerSet], othe
     less the corners' own noise, over the calibration term's spread (``sigmas``: position m,
     orientation rad, scale; as set); its log (a geometric mean: one wild sample, e.g. at a track
     start, moves it little) moves the camera's :class:`CameraTerm` (prior: the term as set, ``TERM_PRIOR_SAMPLES``
-    samples' worth). Where the reference cannot be made, only the attempt's time is kept (the camera
-    waits for its next turn, as after a sample)."""
+    samples' worth). Where the reference cannot be made, or the spread is within the corners' own
+    noise (the statistic sees nothing of the cameras' error there: on the simulator's renders every
+    sample was, and pulled the term to its lower bound where the renders need it as set,
+    docs/tracking.md "Why the renders want the full term"), only the attempt's time is kept (the
+    camera waits for its next turn, as after a sample)."""
     if not own:
         return corrections
     t, camera = own[0].time_s, own[0].camera
     old = corrections.terms.get(camera) or CameraTerm(0, 0.0, float("-inf"))
-    tried = term_tried(corrections, camera, t)
     if len({s.camera for s in others}) < 2:
-        return tried
+        return term_tried(corrections, camera, t)
     reference = solve_joint(seen_at(others, T_world_cube, velocity_m_s, angular_velocity_rad_s, t), T_world_cube, t,
                             corner_noise_px, iterations=TERM_FIT_ITERATIONS)
     if reference is None or reference.rms_px > TERM_REFERENCE_RMS_PX:
-        return tried
-    r = reprojection_residuals_px(reference.T_world_cube, own, t, velocity_m_s,  # a rolling shutter's faces
-                                  angular_velocity_rad_s).reshape(-1, 2)
-    spread_px2 = float(np.median(np.sum(r**2, axis=1))) / (2.0 * math.log(2.0))
-    term_px2 = term_spread_px2(own, reference.T_world_cube, *sigmas)
-    if not (math.isfinite(spread_px2) and term_px2 > 0.0):
-        return tried
+        return term_tried(corrections, camera, t)
+    moving = any(c.time_s != t for c in own)  # a rolling shutter's faces: at their rows' times
+    r, H = reprojection(reference.T_world_cube, *packed_sets(own), t, velocity_m_s, angular_velocity_rad_s, moving,
+                        True)
+    spread_px2 = statistics.median((r[0::2] ** 2 + r[1::2] ** 2).tolist()) / (2.0 * math.log(2.0))
+    term_px2 = term_spread_px2(H[:, :6], reference.T_world_cube, own[0].T_cam_world, *sigmas)
+    if not (math.isfinite(spread_px2) and term_px2 > 0.0) or spread_px2 <= corner_noise_px**2:
+        return term_tried(corrections, camera, t)  # within the corners' own noise: it cannot see the term
     low, high = TERM_SCALE_BOUNDS
     sample = math.log(min(max(max(spread_px2 - corner_noise_px**2, 0.0) / term_px2, low**2), high**2))
     k = 1.0 / min(old.samples + 1 + TERM_PRIOR_SAMPLES, TERM_MEMORY_SAMPLES)

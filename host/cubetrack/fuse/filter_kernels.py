@@ -570,6 +570,9 @@ def _run_kernels() -> None:
         joint_fit(T.copy(), n, points, normalized, which, R_cw, t_cw, np.ones(1), np.zeros(1), 0.0, 0.5, 3.0, 1.0,
                   1.0, 2)
     moved_pose(T, np.zeros(3), np.zeros(3), 0.01)
+    for moving in (False, True):   # as a camera's term sample calls it (fuse.camera_corrections.term_observed)
+        reprojection(T.copy(), points, normalized, which, R_cw, t_cw, np.ones(1), np.zeros(1), 0.0, np.zeros(3),
+                     np.zeros(3), moving, True)
     exp_and_left_jacobian(0.0, 0.0, 1.0, 0.01, np.empty((3, 6)))   # as estimate.reprojection calls it
     spread_m(P, 0.1)
     predicted_covariance(P, 0.01, noise, noise, noise)

@@ -59,7 +59,6 @@ from cubetrack.fuse.camera_corrections import (
     observed,
     term_due,
     term_observed,
-    term_tried,
 )
 from cubetrack.fuse.corner_filter import FilterParams, PoseFilter
 from cubetrack.fuse.filter_kernels import compile_filter_kernels, spread_m
@@ -258,6 +257,7 @@ class HistoryStep:
     outcome: str = ""
     poses: list[TrackedPose] = field(default_factory=list)  # what applying it gave, due
     pose: TrackedPose | None = None  # its pose, due or not, while the fusion keeps a trail
+    corners: list[CornerSet] = field(default_factory=list)  # the corner sets its update took (none: not applied)
 
 
 class FilterFusion:
@@ -512,6 +512,7 @@ class FilterFusion:
         Returns the new state, the pose it gives (None unless ``record``) and its outcome (a stats key)."""
         sighting = history[index].sighting
         robot, t = sighting.robot, sighting.capture_time_s
+        history[index].corners = []
         if state.filter is not None and t - state.last_accepted_s > self.params.lost_after_s:
             log.info("%s: not seen for %.2f s; track restarts", robot, t - state.last_accepted_s)
             state = replace(state, filter=None)
@@ -534,7 +535,7 @@ class FilterFusion:
                 log.info("%s: %d sightings rejected in a row; track restarts", robot, rejections)
                 return replace(state, filter=None, rejections=rejections), None, "rejected sighting"
             return replace(state, filter=f, rejections=rejections), None, "rejected sighting"
-        corrections = state.corrections
+        corrections, history[index].corners = state.corrections, corners
         if outcome == "accepted sighting":  # the camera against the prediction (the others' consensus)
             fp = self.filter_params
             corrections = observed(corrections, self._priors, corners, prior.T_world_cube, prior.velocity_m_s,
@@ -572,35 +573,33 @@ class FilterFusion:
     def _term_sample(self, history: list[HistoryStep], index: int, f: PoseFilter,
                      corrections: CameraCorrections) -> CameraCorrections:
         """``corrections`` with a sample of the most overdue camera's calibration term
-        (:func:`cubetrack.fuse.camera_corrections.term_observed`): its newest sighting up to
-        ``history[index]`` against each other camera's sighting nearest to it within
-        ``TERM_SPAN_S``, matched at the filter ``f``'s pose; unchanged when no camera is due."""
+        (:func:`cubetrack.fuse.camera_corrections.term_observed`): its newest accepted sighting up to
+        ``history[index]`` against each other camera's accepted sighting nearest to it within
+        ``TERM_SPAN_S``, each with the corner sets its own update took (no association again);
+        unchanged when no camera is due."""
         fp = self.filter_params
         if fp.camera_term_samples_per_s <= 0:
             return corrections
-        t, recent = history[index].key[0], list[CubeSighting]()
+        t, recent = history[index].key[0], list[HistoryStep]()
         for step in reversed(history[max(0, index + 1 - self.START_WINDOW): index + 1]):
             if t - step.key[0] > 2 * TERM_SPAN_S:
                 break
-            recent.append(step.sighting)
-        newest = {s.camera: s for s in reversed(recent) if t - s.capture_time_s <= TERM_SPAN_S}
+            if step.corners:
+                recent.append(step)
+        newest = {s.sighting.camera: s for s in reversed(recent) if t - s.key[0] <= TERM_SPAN_S}
         camera = term_due(corrections, sorted(newest), t, 1.0 / fp.camera_term_samples_per_s)
         if camera is None or len(newest) < 3:
             return corrections
-        own, nearest = newest[camera], dict[str, CubeSighting]()
+        own, nearest = newest[camera], dict[str, HistoryStep]()
         for s in recent:
-            gap = abs(s.capture_time_s - own.capture_time_s)
-            if s.camera != camera and gap <= TERM_SPAN_S and (
-                    s.camera not in nearest or gap < abs(nearest[s.camera].capture_time_s - own.capture_time_s)):
-                nearest[s.camera] = s
-        T_own = f.predicted(own.capture_time_s)
-        mine = self._corners(own, T_own, corrections)
-        if not mine:
-            return term_tried(corrections, camera, own.capture_time_s)
-        others = [c for s in nearest.values() for c in self._corners(s, T_own, corrections)]
+            gap = abs(s.key[0] - own.key[0])
+            if s.sighting.camera != camera and gap <= TERM_SPAN_S and (
+                    s.sighting.camera not in nearest or gap < abs(nearest[s.sighting.camera].key[0] - own.key[0])):
+                nearest[s.sighting.camera] = s
+        others = [c for s in nearest.values() for c in s.corners]
         sigmas = (fp.camera_position_sigma_m, math.radians(fp.camera_rotation_sigma_deg), fp.camera_scale_sigma)
-        return term_observed(corrections, mine, others, T_own, f.velocity_m_s, f.angular_velocity_rad_s, sigmas,
-                             fp.corner_noise_px)
+        return term_observed(corrections, own.corners, others, f.predicted(own.key[0]), f.velocity_m_s,
+                             f.angular_velocity_rad_s, sigmas, fp.corner_noise_px)
 
     def _start(self, state: RobotState, sighting: CubeSighting, recent: list[CubeSighting], now_s: float,
                record: bool) -> tuple[RobotState, TrackedPose | None, str]:

@@ -158,14 +158,40 @@ BATCH_VERSION = 1
 _BATCH_HEAD = struct.Struct("<4sBH")
 
 
+def _envelope(magic: bytes, version: int, parts: Sequence[bytes], what: str) -> bytes:
+    """``parts`` in one envelope: magic | version u8 | count u16 | count x (u32 length + a part)."""
+    if not 0 < len(parts) <= 0xFFFF:
+        raise SightingWireError(f"{what}: {len(parts)} messages, 1 to 65535")
+    out = [_BATCH_HEAD.pack(magic, version, len(parts))]
+    for data in parts:
+        out += [_U32.pack(len(data)), data]
+    return b"".join(out)
+
+
+def _opened(data: bytes, magic: bytes, version: int, what: str) -> list[bytes]:
+    """The parts of an envelope of ``magic`` and ``version`` (:func:`_envelope`); SightingWireError (one line) for
+    another version, another message or a truncated envelope."""
+    if data[:4] != magic:
+        raise SightingWireError(f"not a {what} (starts {data[:5]!r})")
+    if len(data) > 4 and data[4] != version:
+        raise SightingWireError(f"{what} version {data[4]}, this cubetrack reads version {version}")
+    r = _Reader(data)
+    (_, _, count) = r.take(_BATCH_HEAD, f"{what} header")
+    out: list[bytes] = []
+    for _ in range(count):
+        (n,) = r.take(_U32, what)
+        if r.at + n > len(data):
+            raise SightingWireError(f"{what} truncated in its message {len(out) + 1} of {count}")
+        out.append(data[r.at:r.at + n])
+        r.at += n
+    if r.at != len(data):
+        raise SightingWireError(f"{what}: {len(data) - r.at} bytes after its end")
+    return out
+
+
 def encode_batch(messages: Sequence[bytes]) -> bytes:
     """Encoded sighting messages as one batch (see the module docstring)."""
-    if not 0 < len(messages) <= 0xFFFF:
-        raise SightingWireError(f"sighting batch: {len(messages)} messages, 1 to 65535")
-    parts = [_BATCH_HEAD.pack(BATCH_MAGIC, BATCH_VERSION, len(messages))]
-    for data in messages:
-        parts += [_U32.pack(len(data)), data]
-    return b"".join(parts)
+    return _envelope(BATCH_MAGIC, BATCH_VERSION, messages, "sighting batch")
 
 
 def decode_messages(data: bytes) -> list[SightingMessage]:
@@ -174,20 +200,7 @@ def decode_messages(data: bytes) -> list[SightingMessage]:
     data = bytes(data)
     if data[:4] != BATCH_MAGIC:
         return [decode_sighting(data)]
-    if len(data) > 4 and data[4] != BATCH_VERSION:
-        raise SightingWireError(f"sighting batch version {data[4]}, this cubetrack reads version {BATCH_VERSION}")
-    r = _Reader(data)
-    (_, _, count) = r.take(_BATCH_HEAD, "batch header")
-    out: list[SightingMessage] = []
-    for _ in range(count):
-        (n,) = r.take(_U32, "batch")
-        if r.at + n > len(data):
-            raise SightingWireError(f"sighting batch truncated in its message {len(out) + 1} of {count}")
-        out.append(decode_sighting(data[r.at:r.at + n]))
-        r.at += n
-    if r.at != len(data):
-        raise SightingWireError(f"sighting batch: {len(data) - r.at} bytes after its end")
-    return out
+    return [decode_sighting(part) for part in _opened(data, BATCH_MAGIC, BATCH_VERSION, "sighting batch")]
 
 
 class _Reader:
@@ -325,3 +338,28 @@ def decode_state(data: bytes) -> FusedState:
     T = np.eye(4)
     T[:3] = v[:12].reshape(3, 4)
     return FusedState(robot, time_s, T, v[12:15], v[15:18], v[18:].reshape(12, 12))
+
+
+# A shard's fused states of a tick (docs/scaling.md, "When a shard dies"): one message per shard every
+# STATE_EVERY_S holding the state message of each robot it fused since its last, in an envelope as a batch's:
+# magic "CTFB" | version u8 | count u16 | count x (u32 length + a state message). Shards before session 15 put each
+# robot's state alone under the robot's key: not read (refused with one line), as is a newer envelope version.
+STATES_MAGIC = b"CTFB"
+STATES_VERSION = 1
+
+
+def encode_states(states: Sequence[FusedState]) -> bytes:
+    """Robots' filter states as one states message."""
+    return _envelope(STATES_MAGIC, STATES_VERSION, [encode_state(state) for state in states], "fused states message")
+
+
+def states_error(data: bytes) -> str | None:
+    """Why ``data`` is not a states message this cubetrack reads, judged by its head only (None: it is one)."""
+    if data[:4] != STATES_MAGIC or len(data) < 5:
+        return f"not a fused states message (starts {bytes(data[:5])!r})"
+    return None if data[4] == STATES_VERSION else f"fused states version {data[4]}, this reads {STATES_VERSION}"
+
+
+def decode_states(data: bytes) -> list[FusedState]:
+    """The filter states in a states message; SightingWireError (one line) for anything else."""
+    return [decode_state(part) for part in _opened(bytes(data), STATES_MAGIC, STATES_VERSION, "fused states message")]

@@ -31,7 +31,14 @@ from typing import Any
 
 from cubetrack.core.errors import ConfigError
 from cubetrack.core.records import TrackedPose
-from cubetrack.io.sighting_wire import FusedState, SightingWireError, decode_state, encode_batch, encode_state
+from cubetrack.io.sighting_wire import (
+    FusedState,
+    SightingWireError,
+    decode_states,
+    encode_batch,
+    encode_states,
+    states_error,
+)
 
 SIGHTINGS_KEY = "cubetrack/sightings"  # cubetrack/sightings/<worker>/<robot>: a robot's; /<camera>: empty frames
 WORKERS_KEY = "cubetrack/workers"  # a liveliness token per running worker: cubetrack/workers/<host>-<pid>
@@ -40,9 +47,10 @@ POOL_KEY = "cubetrack/pool"  # a liveliness token per automatic worker: cubetrac
 SHARDS_KEY = "cubetrack/shards"  # a liveliness token per running fusion: cubetrack/shards/<host>-<pid>
 ROBOT_CLAIMS_KEY = "cubetrack/robot-claims"  # per robot a fusion fuses: cubetrack/robot-claims/<robot>/<shard>
 SHARD_POOL_KEY = "cubetrack/shard-pool"  # a liveliness token per automatic fusion shard
-STATES_KEY = "cubetrack/fused-states"  # cubetrack/fused-states/<robot>: a shard's latest pose of a robot it fuses
+SHARD_SIGHTINGS_KEY = "cubetrack/shard-sightings"  # .../<fusion>/<worker>: a tick's sightings of its robots
+STATES_KEY = "cubetrack/fused-states"  # cubetrack/fused-states/<shard>: its robots' filter states (each tick)
 log = logging.getLogger(__name__)
-STATE_EVERY_S = 0.1  # a shard publishes each robot's state at most this often (wall clock)
+STATE_EVERY_S = 0.1  # a shard publishes its robots' states at most this often (wall clock), in one message
 BATCH_HOLD_S = 0.01  # a worker holds a sighting at most this long to publish it with others of its robot
 SETTLE_S = 1.0  # an automatic member on the bus listens this long to the others' tokens before it claims
 
@@ -60,6 +68,13 @@ def sighting_key(source: str, robot: str | None = None) -> str:
     name); ``robot`` None: camera ``source``'s frames with no robot's markers."""
     key = f"{SIGHTINGS_KEY}/{key_chunk('camera' if robot is None else 'worker', source)}"
     return key if robot is None else f"{key}/{key_chunk('robot', robot)}"
+
+
+def shard_sightings_key(fusion: str, worker: str = "*") -> str:
+    """The key expression under which ``worker`` publishes a tick's sightings of the robots ``fusion`` alone claims,
+    in one message (:class:`SightingBatches`); ``worker`` "*": every worker's (what the fusion subscribes to)."""
+    source = worker if worker == "*" else key_chunk("worker", worker)
+    return f"{SHARD_SIGHTINGS_KEY}/{key_chunk('fusion', fusion)}/{source}"
 
 
 def robot_sightings_key(robot: str) -> str:
@@ -134,6 +149,12 @@ class ClaimBoard:
                 return
         self.changed.set()
 
+    def sole_holder(self, name: str) -> str | None:
+        """The one member claiming ``name`` (None: nobody, or several at once)."""
+        with self._lock:
+            holders = self.holders.get(name)
+            return next(iter(holders)) if holders is not None and len(holders) == 1 else None
+
     def snapshot(self) -> tuple[set[str], dict[str, set[str]]]:
         with self._lock:
             return set(self.pool), {c: set(w) for c, w in self.holders.items()}
@@ -193,20 +214,21 @@ class Claims:
 
 class FusedRobots:
     """The robots one fusion fuses, on the bus: per robot its claim token
-    ``cubetrack/robot-claims/<robot>/<me>`` and, when ``receive`` is given, its subscriber to
+    ``cubetrack/robot-claims/<robot>/<me>`` and, with ``per_robot``, its subscriber to
     ``cubetrack/sightings/*/<robot>`` (a shard; a fusion of every robot subscribes to everything
-    once). ``changed(robot, held)`` is called after each take and give-up."""
+    once); and, from the start, the subscriber to ``cubetrack/shard-sightings/<me>/*``, where workers put the
+    sightings of the robots only this fusion claims (:class:`SightingBatches`). ``changed(robot, held)`` is called
+    after each take and give-up."""
 
-    def __init__(self, bus: Any, me: str, receive: Callable[[Any], None] | None,
-                 changed: Callable[[str, bool], None]):
-        self.bus, self.me, self.receive, self.changed = bus, me, receive, changed
+    def __init__(self, bus: Any, me: str, receive: Callable[[Any], None], changed: Callable[[str, bool], None],
+                 per_robot: bool):
+        self.bus, self.me, self.receive, self.changed, self.per_robot = bus, me, receive, changed, per_robot
         self.held: dict[str, tuple[Any, Any]] = {}  # robot -> its claim token, its subscriber (or None)
+        self._own = bus.declare_subscriber(shard_sightings_key(me), receive)
 
     def take(self, robot: str) -> None:
         token = self.bus.liveliness().declare_token(claim_key(robot, self.me, ROBOT_CLAIMS_KEY))
-        subscriber = None
-        if self.receive is not None:
-            subscriber = self.bus.declare_subscriber(robot_sightings_key(robot), self.receive)
+        subscriber = self.bus.declare_subscriber(robot_sightings_key(robot), self.receive) if self.per_robot else None
         self.held[robot] = (token, subscriber)
         self.changed(robot, True)
 
@@ -220,25 +242,34 @@ class FusedRobots:
     def close(self) -> None:
         for robot in list(self.held):
             self.give_up(robot)
+        self._own.undeclare()
 
 
 class SightingBatches:
-    """What worker ``me`` (or benchmarks/fleet.py's stand-in for one) publishes, gathered over a tick: each
-    robot's sightings under ``cubetrack/sightings/<me>/<robot>``, a camera's frames without a robot under
-    ``cubetrack/sightings/<camera>`` (:func:`sighting_key`). :meth:`flush` puts each key's encoded sighting
-    messages as one Zenoh message (one alone as itself, several as a batch:
-    :func:`cubetrack.io.sighting_wire.encode_batch`), through a publisher declared per key on first use. Fewer,
-    larger messages: Zenoh's cost is mostly per message, on both sides (docs/scaling.md)."""
+    """What worker ``me`` (or benchmarks/fleet.py's stand-in for one) publishes, gathered over a tick: the sightings of
+    the robots one fusion alone claims under ``cubetrack/shard-sightings/<fusion>/<me>`` (:func:`shard_sightings_key`:
+    a tick's sightings of all that fusion's robots in one message), those of any other robot (claimed by nobody, or
+    by two fusions while a claim changes hands) under ``cubetrack/sightings/<me>/<robot>``, a camera's frames without
+    a robot under ``cubetrack/sightings/<camera>`` (:func:`sighting_key`). The claims are followed from the fusions'
+    claim tokens (a :class:`ClaimBoard`). :meth:`flush` puts each key's encoded sighting messages as one Zenoh message
+    (one alone as itself, several as a batch: :func:`cubetrack.io.sighting_wire.encode_batch`), through a publisher
+    declared per key on first use. Fewer, larger messages: Zenoh's cost is mostly per message, on both sides
+    (docs/scaling.md)."""
 
     def __init__(self, bus: Any, me: str) -> None:
         self.bus, self.me = bus, me
         self.pending: dict[str, list[bytes]] = {}
         self.publishers: dict[str, Any] = {}
         self._since_s = math.inf  # time.monotonic() of the oldest pending message
+        self.claims = ClaimBoard(SHARD_POOL_KEY, ROBOT_CLAIMS_KEY)
+        self._watch = bus.liveliness().declare_subscriber(f"{ROBOT_CLAIMS_KEY}/**", lambda sample: self.claims.token(
+            str(sample.key_expr), not str(sample.kind).endswith("DELETE")), history=True)
 
     def add(self, camera: str, robot: str | None, data: bytes) -> None:
         """An encoded sighting message of ``camera`` holding ``robot``'s markers (None: no robot's)."""
-        key = sighting_key(camera) if robot is None else sighting_key(self.me, robot)
+        fusion = None if robot is None else self.claims.sole_holder(robot)
+        key = (sighting_key(camera) if robot is None else sighting_key(self.me, robot) if fusion is None
+               else shard_sightings_key(fusion, self.me))
         if not self.pending:
             self._since_s = time.monotonic()
         self.pending.setdefault(key, []).append(data)
@@ -260,71 +291,88 @@ class SightingBatches:
         return count
 
     def close(self) -> None:
-        """Flush, then undeclare the publishers."""
+        """Flush, then undeclare the publishers and stop following the claims."""
         self.flush()
         for publisher in self.publishers.values():
             publisher.undeclare()
         self.publishers = {}
+        self._watch.undeclare()
 
 
 class StateRelay:
     """A fleet's fused states on the bus, so that a robot's new shard takes its track over from the last
     state its old shard published (docs/scaling.md, "When a shard dies"). :meth:`poses`, given the poses
-    this fusion makes, publishes the robot's filter state (``state_of(robot)``: the fusion's, or None),
-    each robot's at most every ``STATE_EVERY_S``, under ``cubetrack/fused-states/<robot>``; every state
-    message on the bus is kept, undecoded, as its robot's latest (a Zenoh thread stores the bytes: each
-    shard pays one receive per robot of the fleet and ``STATE_EVERY_S``); :meth:`last` decodes one. The puts
-    run on a thread of the relay's own: a put in a process whose Zenoh threads call back into Python waits for
-    the interpreter's lock, milliseconds on a busy machine (measured in a shard: 2-3 ms a put at load ~20,
-    docs/scaling.md), which the fusion's thread must not."""
+    this fusion makes, publishes at most every ``STATE_EVERY_S`` one message under ``cubetrack/fused-states/<me>``
+    holding the filter state (``state_of(robot)``: the fusion's, or None) of each robot with a measured pose since
+    the last (:func:`cubetrack.io.sighting_wire.encode_states`: one message per shard and tick, not one per robot,
+    since Zenoh's cost is mostly per message and every shard receives every shard's states); every states message
+    on the bus is kept, undecoded, as its shard's latest (a Zenoh thread stores the bytes; another message or
+    version is refused, one line per sender); :meth:`last` decodes a robot's newest. The puts run on a thread of
+    the relay's own: a put in a process whose Zenoh threads call back into Python waits for the interpreter's
+    lock, milliseconds on a busy machine (measured in a shard: 2-3 ms a put at load ~20, docs/scaling.md), which
+    the fusion's thread must not."""
 
-    def __init__(self, bus: Any, state_of: Callable[[str], tuple | None]) -> None:
+    def __init__(self, bus: Any, me: str, state_of: Callable[[str], tuple | None]) -> None:
         self.bus, self.state_of = bus, state_of
-        self.latest: dict[str, bytes] = {}
-        self._sent_s: dict[str, float] = {}
-        self._outbox: queue.Queue[tuple[str, bytes] | None] = queue.Queue()
+        self.key = f"{STATES_KEY}/{key_chunk('fusion', me)}"
+        self.latest: dict[str, bytes] = {}  # sender -> its latest states message
+        self._refused: set[str] = set()  # senders whose messages were refused (logged once each)
+        self._fresh: set[str] = set()  # robots with a measured pose since the last states message
+        self._sent_s = -math.inf
+        self._outbox: queue.Queue[bytes | None] = queue.Queue()
         self._subscriber = bus.declare_subscriber(f"{STATES_KEY}/*", self._receive)
         self._sender = threading.Thread(target=self._send, name="state-relay", daemon=True)
         self._sender.start()
 
     def _send(self) -> None:  # the relay's thread
-        publishers: dict[str, Any] = {}  # robot -> its state's publisher
-        while (item := self._outbox.get()) is not None:
-            robot, data = item
+        publisher = None
+        while (data := self._outbox.get()) is not None:
             try:
-                if robot not in publishers:
-                    publishers[robot] = self.bus.declare_publisher(f"{STATES_KEY}/{robot}")
-                publishers[robot].put(data)
-            except Exception as exc:  # a closing or broken session: the state is lost, the fusion goes on
-                log.warning("fused state of %s not published: %s", robot, exc)
+                publisher = publisher or self.bus.declare_publisher(self.key)
+                publisher.put(data)
+            except Exception as exc:  # a closing or broken session: the states are lost, the fusion goes on
+                log.warning("fused states not published: %s", exc)
             finally:
                 self._outbox.task_done()
-        for publisher in publishers.values():
+        if publisher is not None:
             publisher.undeclare()
         self._outbox.task_done()
 
     def _receive(self, sample: Any) -> None:  # a Zenoh thread
-        self.latest[str(sample.key_expr).rsplit("/", 1)[-1]] = bytes(sample.payload)
+        sender, data = str(sample.key_expr).rsplit("/", 1)[-1], bytes(sample.payload)
+        if (error := states_error(data)) is None:
+            self.latest[sender] = data
+        elif sender not in self._refused:
+            self._refused.add(sender)
+            log.warning("fused states from %s refused: %s", sender, error)
 
     def poses(self, poses: Sequence[TrackedPose]) -> None:
-        """Publish the state of each robot with a measured pose here whose state was last sent ``STATE_EVERY_S`` ago."""
+        """Publish the states of the robots with a measured pose since the last states message, once
+        ``STATE_EVERY_S`` has passed since it."""
+        self._fresh.update(p.robot for p in poses if not p.predicted)
         now = time.monotonic()
-        for robot in {p.robot for p in poses if not p.predicted}:
-            if now - self._sent_s.get(robot, -math.inf) >= STATE_EVERY_S and (state := self.state_of(robot)):
-                self._sent_s[robot] = now
-                self._outbox.put((robot, encode_state(FusedState(*state))))
+        if self._fresh and now - self._sent_s >= STATE_EVERY_S:
+            states = [FusedState(*state) for robot in sorted(self._fresh) if (state := self.state_of(robot))]
+            self._fresh, self._sent_s = set(), now
+            if states:
+                self._outbox.put(encode_states(states))
 
     def sent(self) -> None:
         """Wait until every state handed over so far is put."""
         self._outbox.join()
 
     def last(self, robot: str) -> FusedState | None:
-        """The latest state of ``robot`` heard on the bus (None: none, or not readable)."""
-        payload = self.latest.get(robot)
-        try:
-            return None if payload is None else decode_state(payload)
-        except SightingWireError:
-            return None
+        """The newest state of ``robot`` heard on the bus, from any shard (None: none, or not readable)."""
+        newest = None
+        for data in list(self.latest.values()):
+            try:
+                states = decode_states(data)
+            except SightingWireError:
+                continue
+            for state in states:
+                if state.robot == robot and (newest is None or state.time_s > newest.time_s):
+                    newest = state
+        return newest
 
     def close(self) -> None:
         self._outbox.put(None)

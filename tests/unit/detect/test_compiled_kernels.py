@@ -12,8 +12,9 @@ from cubetrack.core.cameras import CameraIntrinsics
 from cubetrack.detect import edge_fit, template_fit
 from cubetrack.detect.detector import CornerRefinement, Detector, DetectorParams
 
-TEMPLATE_KERNELS = (template_fit._template_maps, template_fit._pixel_areas, template_fit._brightness_system,
-                    template_fit._step_system)
+# the kernels the fit calls from Python (the ones they call are compiled, or loaded from numba's cache, with them)
+TEMPLATE_KERNELS = (template_fit._fitted_offsets, template_fit._map_read, template_fit._pixel_grid,
+                    template_fit._compared_pixels, template_fit._homography_system)
 
 
 def _kernel_signatures() -> int:

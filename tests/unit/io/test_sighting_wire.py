@@ -210,3 +210,27 @@ def test_a_bad_batch_is_refused_in_one_line():
         decode_messages(data[:11] + b"XXXX" + data[15:])   # a batch of something else
     with pytest.raises(SightingWireError, match="1 to 65535"):
         encode_batch([])
+
+
+def test_a_shards_states_travel_in_one_message_bit_exactly_and_another_version_is_refused():
+    from cubetrack.io.sighting_wire import (
+        FusedState,
+        decode_states,
+        encode_state,
+        encode_states,
+        states_error,
+    )
+
+    rng = np.random.default_rng(6)
+    states = [FusedState(f"r{k}", 1.7e9 + k, np.eye(4), rng.normal(size=3), rng.normal(size=3),
+                         rng.normal(size=(12, 12))) for k in (1, 2, 3)]
+    data = encode_states(states)
+    assert states_error(data) is None
+    for got, sent in zip(decode_states(data), states, strict=True):
+        assert encode_state(got) == encode_state(sent)
+    newer = data[:4] + bytes([2]) + data[5:]
+    assert states_error(newer) == "fused states version 2, this reads 1"
+    for bad, why in ((newer, "version 2"), (encode_state(states[0]), "not a fused states"),
+                     (data[:-1], "truncated"), (data + b"x", "after its end")):
+        with pytest.raises(SightingWireError, match=why):
+            decode_states(bad)

@@ -5,6 +5,7 @@ for fusion shards and robots, and the per-robot keys of the sightings."""
 from __future__ import annotations
 
 import itertools
+import math
 
 import pytest
 
@@ -209,7 +210,7 @@ class StateBus:
         return FakeToken(FakeBus(), None)
 
     def put(self, key: str, payload: bytes) -> None:
-        self.puts.append(key)
+        self.puts.append((key, payload))
         self.callback(type("Sample", (), {"key_expr": key, "payload": payload})())
 
     def declare_publisher(self, key: str):
@@ -225,10 +226,12 @@ class StateBus:
         return Publisher()
 
 
-def test_the_state_relay_publishes_each_robots_state_at_most_every_period_and_keeps_the_latest(monkeypatch):
+def test_the_state_relay_publishes_one_message_per_tick_with_every_fresh_robot_and_keeps_the_newest(
+        monkeypatch, caplog):
     import numpy as np
 
     from cubetrack.core.records import TrackedPose
+    from cubetrack.io.sighting_wire import FusedState, decode_states, encode_state, encode_states
     from cubetrack.io.worker_bus import StateRelay
 
     clock = [100.0]
@@ -244,33 +247,70 @@ def test_the_state_relay_publishes_each_robots_state_at_most_every_period_and_ke
                            predicted=predicted)
 
     bus = StateBus()
-    relay = StateRelay(bus, state_of)
+    relay = StateRelay(bus, "host-1", state_of)
     relay.poses([pose("r1"), pose("r1"), pose("r2", predicted=True), pose("untracked")])
     relay.sent()
-    assert bus.puts == ["cubetrack/fused-states/r1"]   # once per robot; not for predictions nor untracked robots
+    assert [k for k, _ in bus.puts] == ["cubetrack/fused-states/host-1"]   # not for predictions nor untracked
+    assert [s.robot for s in decode_states(bus.puts[0][1])] == ["r1"]
     clock[0] += 0.05
+    relay.poses([pose("r2")])
     relay.poses([pose("r1")])
     relay.sent()
-    assert len(bus.puts) == 1   # within STATE_EVERY_S
+    assert len(bus.puts) == 1   # within STATE_EVERY_S: r2 and r1 wait for the next tick
     clock[0] += 0.06
-    relay.poses([pose("r1")])
+    relay.poses([pose("r3")])
     relay.sent()
+    assert len(bus.puts) == 2 and [s.robot for s in decode_states(bus.puts[1][1])] == ["r1", "r2", "r3"]
     last = relay.last("r1")
-    assert len(bus.puts) == 2 and last is not None and last.time_s == clock[0] and last.T_world_cube[0, 3] == clock[0]
-    assert relay.last("r2") is None
-    relay.latest["r2"] = b"junk"
-    assert relay.last("r2") is None   # an unreadable state is none
+    assert last is not None and last.time_s == clock[0] and last.T_world_cube[0, 3] == clock[0]
+    assert relay.last("r4") is None
+    # another shard's newer state of r1 wins; an older one does not
+    newer = FusedState(*state_of("r1"))._replace(time_s=clock[0] + 1)
+    bus.put("cubetrack/fused-states/host-2", encode_states([newer]))
+    assert relay.last("r1").time_s == clock[0] + 1
+    bus.put("cubetrack/fused-states/host-3", encode_states([newer._replace(time_s=clock[0] - 5)]))
+    assert relay.last("r1").time_s == clock[0] + 1
+    # a shard before session 15 (one state alone per robot) and a newer envelope: refused, one line per sender
+    for _ in range(2):
+        bus.put("cubetrack/fused-states/r9", encode_state(newer._replace(robot="r9")))
+        bus.put("cubetrack/fused-states/host-4", b"CTFB\x02" + encode_states([newer])[5:])
+    assert relay.last("r9") is None and set(relay.latest) == {"host-1", "host-2", "host-3"}
+    refused = [r.getMessage() for r in caplog.records if "refused" in r.getMessage()]
+    assert refused == ["fused states from r9 refused: not a fused states message (starts b'CTFS\\x01')",
+                       "fused states from host-4 refused: fused states version 2, this reads 1"]
+    relay.latest["host-2"] = b"CTFB\x01junk"
+    assert relay.last("r1").time_s == clock[0]   # an unreadable message is skipped: host-1's is the newest left
     relay.close()
-    assert bus.undeclared == ["cubetrack/fused-states/r1"]   # the relay's thread ended, its publisher gone
+    assert bus.undeclared == ["cubetrack/fused-states/host-1"]   # the relay's thread ended, its publisher gone
 
 
 class BatchBus:
-    """A bus that records what each declared publisher puts."""
+    """A bus that records what each declared publisher puts, and passes liveliness tokens to the one watching them."""
 
     def __init__(self) -> None:
         self.puts: list[tuple[str, bytes]] = []
         self.declared: list[str] = []
         self.undeclared = 0
+        self.watched: list[str] = []
+        self.callback = None
+
+    def liveliness(self) -> BatchBus:
+        return self
+
+    def declare_subscriber(self, key: str, callback, history: bool = False):
+        assert history   # the tokens already there count
+        self.watched.append(key)
+        self.callback = callback
+        bus = self
+
+        class Watch:
+            def undeclare(self) -> None:
+                bus.watched.remove(key)
+
+        return Watch()
+
+    def token(self, key: str, alive: bool) -> None:
+        self.callback(type("Sample", (), {"key_expr": key, "kind": "SampleKind.PUT" if alive else "SampleKind.DELETE"}))
 
     def declare_publisher(self, key: str):
         self.declared.append(key)
@@ -335,13 +375,49 @@ def test_a_state_the_bus_refuses_is_logged_and_the_relay_goes_on(caplog):
             super().put(key, payload)
 
     bus = BrokenOnce()
-    relay = StateRelay(bus, lambda robot: (robot, 1.0, np.eye(4), np.ones(3), np.zeros(3), np.eye(12)))
+    relay = StateRelay(bus, "host-1", lambda robot: (robot, 1.0, np.eye(4), np.ones(3), np.zeros(3), np.eye(12)))
     pose = TrackedPose("r1", 1.0, np.zeros(3), np.array([0.0, 0.0, 0.0, 1.0]), (), (), 0.0)
     relay.poses([pose])
     relay.sent()
-    assert bus.puts == [] and "fused state of r1 not published: session closed" in caplog.text
-    relay._sent_s.clear()   # the next state is due
+    assert bus.puts == [] and "fused states not published: session closed" in caplog.text
+    relay._sent_s = -math.inf   # the next states message is due
     relay.poses([pose])
     relay.sent()
-    assert bus.puts == ["cubetrack/fused-states/r1"]
+    assert [key for key, _ in bus.puts] == ["cubetrack/fused-states/host-1"]
     relay.close()
+
+
+def test_a_tick_of_the_robots_one_fusion_alone_claims_goes_to_it_in_one_message(monkeypatch):
+    """Issue 28 (session 15): a worker puts its sightings of every robot that one fusion alone claims under that
+    fusion's own key, one message per tick however many of its robots; a robot claimed by nobody or by two (a claim
+    changing hands) under its own key, as before, which the claiming shards subscribe to."""
+    import zenoh
+
+    from cubetrack.io.sighting_wire import SightingMessage, decode_messages, encode_sighting
+    from cubetrack.io.worker_bus import SHARD_SIGHTINGS_KEY, SightingBatches, shard_sightings_key
+
+    bus = BatchBus()
+    batches = SightingBatches(bus, "host-7")
+    assert bus.watched == ["cubetrack/robot-claims/**"]
+    for robot, fusion in (("r1", "s-1"), ("r2", "s-1"), ("r3", "s-2"), ("r4", "s-1"), ("r4", "s-2")):
+        bus.token(claim_key(robot, fusion, ROBOT_CLAIMS_KEY), True)
+    sent = [(camera, robot, encode_sighting(SightingMessage(camera, seq, 1.0, 2.0 + seq, 3.0, "full frame", (),
+                                                            body=robot)))
+            for seq, (camera, robot) in enumerate([("cam1", "r1"), ("cam2", "r2"), ("cam2", "r3"), ("cam3", "r4"),
+                                                   ("cam3", "r5")])]
+    for camera, robot, data in sent:
+        batches.add(camera, robot, data)
+    assert batches.flush() == 4
+    got = {key: [m.body for m in decode_messages(payload)] for key, payload in bus.puts}
+    assert got == {f"{SHARD_SIGHTINGS_KEY}/s-1/host-7": ["r1", "r2"], f"{SHARD_SIGHTINGS_KEY}/s-2/host-7": ["r3"],
+                   "cubetrack/sightings/host-7/r4": ["r4"], "cubetrack/sightings/host-7/r5": ["r5"]}
+    mine = zenoh.KeyExpr(shard_sightings_key("s-1"))
+    assert [k for k in got if mine.intersects(zenoh.KeyExpr(k))] == [f"{SHARD_SIGHTINGS_KEY}/s-1/host-7"]
+    every, r1 = zenoh.KeyExpr(f"{SIGHTINGS_KEY}/**"), zenoh.KeyExpr(robot_sightings_key("r1"))
+    assert not every.intersects(mine) and not r1.intersects(zenoh.KeyExpr(f"{SHARD_SIGHTINGS_KEY}/s-1/host-7"))
+    bus.token(claim_key("r1", "s-1", ROBOT_CLAIMS_KEY), False)   # s-1 gave r1 up (or died): r1's own key again
+    batches.add("cam1", "r1", sent[0][2])
+    batches.flush()
+    assert bus.puts[-1][0] == "cubetrack/sightings/host-7/r1"
+    batches.close()
+    assert bus.watched == []
