@@ -13,7 +13,13 @@ from cubetrack.core.cameras import CameraIntrinsics
 from cubetrack.core.geometry import invert_T, make_T, shoelace_area
 from cubetrack.core.layout import paper_cube_layout
 from cubetrack.core.records import Detection
-from cubetrack.estimate.corner_noise import EXPONENT, WIDE_MODULE_PX, border_module_px, corner_noise_scale
+from cubetrack.estimate.corner_noise import (
+    EXPONENT,
+    WIDE_MODULE_PX,
+    border_module_px,
+    corner_noise_factors,
+    corner_noise_scale,
+)
 from cubetrack.estimate.match import match_faces
 from cubetrack.estimate.reprojection import corner_set
 from cubetrack.fuse.corner_filter import FilterParams, PoseFilter, _without_face, inverse_variances
@@ -39,10 +45,12 @@ def test_wide_border_modules_keep_the_nominal_noise_and_narrow_ones_follow_the_m
     small = rectangle(9, 9)   # far away, head-on: 1.5 px modules
     assert np.allclose(corner_noise_scale(small, 6), (WIDE_MODULE_PX / 1.5) ** EXPONENT)
     assert corner_noise_scale(rectangle(1, 1), 6).max() <= 8.0   # bounded for a quad that is barely a marker
-    # a quad narrower at one end (perspective): the narrow end's corners get more noise than the wide end's
+    # a quad narrower at one end (perspective), 12 px across: symmetric about its axis, every factor above 1,
+    # and the plain-list path the tracker takes gives the same factors
     trapezoid = np.array([[100.0, 100.0], [112.0, 104.0], [112.0, 126.0], [100.0, 130.0]])
     scale = corner_noise_scale(trapezoid, 6)
-    assert scale.min() >= 1.0 and scale[1] == scale[2] and scale[0] == scale[3] and scale[1] > 1.0
+    assert scale[1] == scale[2] and scale[0] == scale[3] and scale.min() > 1.0
+    assert corner_noise_factors(trapezoid.tolist(), 6) == scale.tolist()
 
 
 def detections(T_world_cube: np.ndarray) -> tuple[Detection, ...]:
