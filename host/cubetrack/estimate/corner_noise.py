@@ -24,6 +24,7 @@ import numpy as np
 WIDE_MODULE_PX = 2.5  # border modules this wide (across their side) or wider: the nominal corner noise
 EXPONENT = 1.7  # the edge fit's corner error against the border module's width: ~ width^-EXPONENT
 MAX_SCALE = 8.0  # the largest factor (a module under ~0.9 px: such a marker is barely decoded)
+_NEXT, _PREVIOUS = np.array([1, 2, 3, 0]), np.array([3, 0, 1, 2])  # each corner's neighbours in the quad
 
 
 def border_module_px(corners_px: np.ndarray, modules: int) -> np.ndarray:
@@ -32,14 +33,14 @@ def border_module_px(corners_px: np.ndarray, modules: int) -> np.ndarray:
     area / side length, over ``modules``, the cells across the marker with its border)."""
     q = np.asarray(corners_px, dtype=np.float64).reshape(4, 2)
     x, y = q[:, 0], q[:, 1]
-    area_px2 = 0.5 * abs(float(x @ np.roll(y, -1) - y @ np.roll(x, -1)))
-    side_px = np.linalg.norm(np.roll(q, -1, axis=0) - q, axis=1)  # side i: corner i -> i + 1
+    area_px2 = 0.5 * abs(float(x @ y[_NEXT] - y @ x[_NEXT]))
+    side_px = np.linalg.norm(q[_NEXT] - q, axis=1)  # side i: corner i -> i + 1
     across_px = area_px2 / np.maximum(side_px, 1e-9) / modules
-    return np.minimum(across_px, np.roll(across_px, 1))  # corner i: sides i and i - 1
+    return np.minimum(across_px, across_px[_PREVIOUS])  # corner i: sides i and i - 1
 
 
 def corner_noise_scale(corners_px: np.ndarray, modules: int) -> np.ndarray:
     """(4,) per corner of a marker's quad: its noise over the nominal corner noise, from
     :func:`border_module_px` (1 at :data:`WIDE_MODULE_PX` and wider, at most :data:`MAX_SCALE`)."""
     width_px = np.maximum(border_module_px(corners_px, modules), 1e-9)
-    return np.clip((WIDE_MODULE_PX / width_px) ** EXPONENT, 1.0, MAX_SCALE)
+    return np.minimum(np.maximum((WIDE_MODULE_PX / width_px) ** EXPONENT, 1.0), MAX_SCALE)  # np.clip costs more
