@@ -38,7 +38,11 @@ body as built, to the detected corners, the oracle corners and the template corn
 against the truth at the instant the fitted corners' rows were exposed (their mean row under the
 rolling shutter), RMS over sightings, all and split by one marker / two or more. The tracker's
 filter pools several frames and cameras, so it can go below this floor; a per-instant fit cannot.
-``--preset`` picks accuracy.py's preset of the scenes (default realistic).
+``--preset`` picks accuracy.py's preset of the scenes (default realistic). ``--decompose --split``
+(issue 26) adds the first and last ladder rows with one corner noise for every corner (the filter
+without :mod:`cubetrack.estimate.corner_noise`) and which sightings carry the filter's error over
+the floor. Every run also tables the edge fit's corner error by the border module's width in
+pixels (the per-corner noise model's evidence).
 
     nice -n 19 .venv/bin/python benchmarks/corner_ceiling.py [--out /tmp/corner_ceiling] [--duration 15]
                                                               [--configs 1 3] [--sigmas 0 0.02 0.05 0.1 0.2]
@@ -51,6 +55,7 @@ The process lowers its own priority (``os.nice``). The exit code is 0 for a comp
 from __future__ import annotations
 
 import argparse
+import contextlib
 import dataclasses
 import itertools
 import json
@@ -412,6 +417,7 @@ def floor_report(scenes: list[dict], corner_sets: list[str]) -> dict:
 # the last row, the filter with nothing left to get wrong: its own floor)
 LADDER = ((), ("body",), ("cameras",), ("body", "cameras"), ("body", "cameras", "stamps"),
           ("body", "cameras", "stamps", "corners"))
+ONE_NOISE = ", one corner noise"  # a row with every corner at the nominal corner_noise_px (no per-corner model)
 
 
 def with_truth(sc: dict, truth: Truth, true: tuple[str, ...], start: dict) -> tuple[list, dict]:
@@ -455,21 +461,94 @@ def with_truth(sc: dict, truth: Truth, true: tuple[str, ...], start: dict) -> tu
     return out, layouts
 
 
-def decompose_report(scenes: list[dict], starts: dict[str, dict]) -> dict:
+def decompose_report(scenes: list[dict], starts: dict[str, dict], split: bool = False) -> dict:
     """Per start (``starts``: name -> ``extrinsics`` and ``layouts`` the tracker starts from) and
-    scene: the default filter's :func:`score` (causal and smoothed) on each :data:`LADDER` row."""
+    scene: the default filter's :func:`score` (causal and smoothed) on each :data:`LADDER` row;
+    with ``split`` also on the first and last rows with every corner given the nominal noise
+    (:data:`ONE_NOISE`: the filter before each corner's own noise, :mod:`cubetrack.estimate.corner_noise`)
+    and, under ``"split"``, :func:`excess_split` per start and scene."""
+    from unittest import mock
+
+    import cubetrack.estimate.reprojection as reprojection
+
     out: dict = {}
     for sc in scenes:
         truth = Truth(sc["rec"])
         for name, start in starts.items():
             rows = {}
-            for true in LADDER:
+            one_noise = [(LADDER[0], True), (LADDER[-1], True)] if split else []
+            for true, nominal in [(t, False) for t in LADDER] + one_noise:
                 sightings, layouts = with_truth(sc, truth, true, start(sc) if callable(start) else start)
-                rows[" + ".join(true) or "nothing"] = {
-                    "causal": score(replay(sightings, layouts, sc["params"], {}), sc["truth"]),
-                    "smoothed": score(replay(sightings, layouts, sc["params"], {}, smooth=True), sc["truth"])}
+                with mock.patch.object(reprojection, "corner_noise_factors", lambda c, m: [1.0] * len(c)) \
+                        if nominal else contextlib.nullcontext():
+                    rows[(" + ".join(true) or "nothing") + (ONE_NOISE if nominal else "")] = {
+                        "causal": score(replay(sightings, layouts, sc["params"], {}), sc["truth"]),
+                        "smoothed": score(replay(sightings, layouts, sc["params"], {}, smooth=True), sc["truth"])}
             out.setdefault(name, {})[sc["name"]] = rows
+            if split:
+                out.setdefault("split", {}).setdefault(name, {})[sc["name"]] = excess_split(
+                    sc, truth, start(sc) if callable(start) else start)
             say(f"  decomposition {sc['name']}, {name}: done")
+    return out
+
+
+def pose_errors_deg(poses: list, truth) -> dict[float, float]:
+    """Each pose's rotation error (°) against the truth at its time, by its time (host seconds)."""
+    from scipy.spatial.transform import Rotation
+
+    from cubetrack.evaluate.metrics import truth_at
+
+    times = np.array([p.time_s for p in poses])
+    inside = (times >= truth.times_s[0]) & (times <= truth.times_s[-1])
+    _, r_truth = truth_at(truth, times[inside])
+    r = Rotation.from_quat(np.array([p.quaternion_xyzw for p in poses])[inside])
+    return dict(zip(times[inside].tolist(), np.degrees((r * r_truth.inv()).magnitude()).tolist(), strict=True))
+
+
+# --decompose's split of the excess over the floor: each bin of a sighting's (and the pose it makes) conditions
+SPLITS = {"turn rate < 0.5 rad/s": lambda c: c["turn"] < 0.5, "turn rate 0.5-2 rad/s": lambda c: 0.5 <= c["turn"] < 2,
+          "turn rate >= 2 rad/s": lambda c: c["turn"] >= 2.0, "first 2 s": lambda c: c["time"] < 2.0,
+          "after 2 s": lambda c: c["time"] >= 2.0, "stamp error < 2 ms": lambda c: abs(c["stamp_ms"]) < 2.0,
+          "stamp error >= 2 ms": lambda c: abs(c["stamp_ms"]) >= 2.0, "1 marker": lambda c: c["markers"] == 1,
+          "2+ markers": lambda c: c["markers"] > 1}
+
+
+def excess_split(sc: dict, truth: Truth, start: dict) -> dict:
+    """Which sightings carry the filter's excess over the floor: per :data:`SPLITS` bin (the true turn
+    rate about the world's z at the sighting, its time in the session, its capture stamp's error, the
+    markers it shows), the RMS rotation error of the poses the filter makes at those sightings (from
+    ``start``, nothing true; and with body, cameras and stamps true) and of their per-instant floor
+    fits, and the bin's share of the filter's squared error."""
+    markers = true_markers(truth, sc["sightings"])
+    floors = floor_errors(truth, sc["sightings"], markers, None)
+    start_s = truth.params.start_unix_s
+    conditions = {}
+    for s, _ in sc["sightings"]:
+        t = truth.capture_s[(s.camera, s.seq)]
+        R0, R1 = truth.scene.T_world_cube(t - 0.005)[:3, :3], truth.scene.T_world_cube(t + 0.005)[:3, :3]
+        turn = abs(float(np.arctan2((R1 @ R0.T)[1, 0], (R1 @ R0.T)[0, 0]))) / 0.01
+        conditions[s.capture_time_s] = {"turn": turn, "time": t, "stamp_ms": 1000.0 * (s.capture_time_s - start_s - t),
+                                        "markers": len(s.detections)}
+    floor_by_time = {}  # the floor's fits are of the sightings with a true marker, in order
+    fitted = [s for k, (s, _) in enumerate(sc["sightings"]) if any(m is not None for m in markers[k])]
+    for s, (_, rot, _) in zip(fitted, floors, strict=True):
+        floor_by_time[s.capture_time_s] = rot
+    errors = {}
+    for name, true in (("nothing", ()), ("body + cameras + stamps", ("body", "cameras", "stamps"))):
+        sightings, layouts = with_truth(sc, truth, true, start)
+        errors[name] = pose_errors_deg(replay(sightings, layouts, sc["params"], {}), sc["truth"])
+    stamps = {start_s + truth.capture_s[(s.camera, s.seq)]: s.capture_time_s for s, _ in sc["sightings"]}
+    errors["body + cameras + stamps"] = {stamps.get(t, t): e for t, e in errors["body + cameras + stamps"].items()}
+    total = sum(e * e for e in errors["nothing"].values())
+    out = {}
+    for name, keep in SPLITS.items():
+        times = [t for t, c in conditions.items() if keep(c)]
+        cell = {}
+        for row, by_time in (*errors.items(), ("floor", floor_by_time)):
+            e = np.array([by_time[t] for t in times if t in by_time])
+            cell[row] = {"n": len(e), "rms_deg": float(np.sqrt(np.mean(e**2))) if len(e) else math.nan}
+        cell["share"] = sum(errors["nothing"].get(t, 0.0) ** 2 for t in times) / total if total else math.nan
+        out[name] = cell
     return out
 
 
@@ -530,6 +609,39 @@ def residual_table(scenes: list[dict], which: str) -> dict:
     return out
 
 
+MODULE_BINS_PX = (0.0, 1.5, 2.0, 2.5, 3.0, 4.0, math.inf)
+
+
+def module_table(scenes: list[dict]) -> dict:
+    """Per bin of a corner's border module width in pixels (read off the detected quad by
+    :func:`cubetrack.estimate.corner_noise.border_module_px`): RMS per coordinate of (edge corners -
+    oracle), the mean view angle, and the noise factor the tracker gives those corners
+    (:func:`cubetrack.estimate.corner_noise.corner_noise_scale`), with counts (the model's evidence)."""
+    from cubetrack.detect.predicted import modules_of
+    from cubetrack.estimate.corner_noise import border_module_px, corner_noise_scale
+
+    rows = []
+    for sc in scenes:
+        for k, (s, _) in enumerate(sc["sightings"]):
+            for i, det in enumerate(s.detections):
+                oracle, angle = sc["oracle"][k][i]
+                if oracle is None:
+                    continue
+                modules = modules_of(det.dictionary or "DICT_4X4_50")
+                e2 = np.sum((det.corners_px - oracle) ** 2, axis=1) / 2.0
+                rows += zip(border_module_px(det.corners_px, modules), e2, [angle] * 4,
+                            corner_noise_scale(det.corners_px, modules), strict=True)
+    table = np.array(rows).reshape(-1, 4)
+    out = {}
+    for lo, hi in itertools.pairwise(MODULE_BINS_PX):
+        t = table[(table[:, 0] >= lo) & (table[:, 0] < hi)]
+        out[f"{lo:g}-{hi:g}"] = {"corners": len(t), "rms_px": float(np.sqrt(t[:, 1].mean())) if len(t) else math.nan,
+                                 "width_px": float(t[:, 0].mean()) if len(t) else math.nan,
+                                 "view_deg": float(t[:, 2].mean()) if len(t) else math.nan,
+                                 "scale": float(t[:, 3].mean()) if len(t) else math.nan}
+    return out
+
+
 def run_rows(scenes: list[dict], label: str, corners_key: str, sigma: float, tune: bool) -> list[dict]:
     """Rows for one corner set (both layouts, default and tuned filter), means over the scenes."""
     rows = []
@@ -579,11 +691,26 @@ def print_decomposition(report: dict) -> None:
           "rotation ° |")
     print("| --- | --- | --- | --- | --- | --- | --- | --- |")
     for start, scenes in report["decomposition"].items():
+        if start == "split":
+            continue
         for scene, rows in scenes.items():
             for true, r in rows.items():
                 c, m = r["causal"], r["smoothed"]
                 print(f"| {start} | {scene} | {true} | {c['pos_cm']:.3f} | {c['rot_deg']:.3f} | "
                       f"{c['rollpitch_deg']:.3f} | {c['yaw_deg']:.3f} | {m['pos_cm']:.3f} / {m['rot_deg']:.3f} |")
+    if "split" not in report["decomposition"]:
+        return
+    print("\nwhich sightings carry the filter's excess over the floor: rotation RMS (°) of the poses the filter makes "
+          "at them and of their per-instant floor fits, and their share of the filter's squared error")
+    print("| start | scene | sightings | poses | filter ° | filter, body + cameras + stamps true ° | floor ° | "
+          "filter / floor | share of the filter's error |")
+    print("| --- | --- | --- | --- | --- | --- | --- | --- | --- |")
+    for start, scenes in report["decomposition"]["split"].items():
+        for scene, bins in scenes.items():
+            for name, c in bins.items():
+                f, t, fl = c["nothing"], c["body + cameras + stamps"], c["floor"]
+                print(f"| {start} | {scene} | {name} | {f['n']} | {f['rms_deg']:.3f} | {t['rms_deg']:.3f} | "
+                      f"{fl['rms_deg']:.3f} | {f['rms_deg'] / fl['rms_deg']:.2f}x | {100 * c['share']:.0f} % |")
 
 
 def print_report(report: dict) -> None:
@@ -599,6 +726,13 @@ def print_report(report: dict) -> None:
             print(f"| {name}° | {v['corners']} | {v['rms_px']:.3f} | " + " | ".join(
                 f"{v[f'{p}_mean_px']:+.3f} / {v[f'{p}_sd_px']:.3f}" for p in ("radial", "tangential", "side_offset"))
                 + " |")
+    print("\nedge corners - oracle by the border module's width across the corner's sides (px, from the detected "
+          "quad): RMS per coordinate, and the noise factor the tracker gives them (estimate/corner_noise.py)")
+    print("| module width px | corners | mean width px | mean view angle ° | RMS px | noise factor |")
+    print("| --- | --- | --- | --- | --- | --- |")
+    for name, v in report["modules"].items():
+        print(f"| {name} | {v['corners']} | {v['width_px']:.2f} | {v['view_deg']:.1f} | {v['rms_px']:.3f} | "
+              f"{v['scale']:.2f} |")
     if "template_cpu_ms" in report:
         t = report["template_cpu_ms"]
         print(f"\ntemplate fit CPU per marker: median {t['median']:.1f} ms, mean {t['mean']:.1f} ms, "
@@ -633,6 +767,10 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     ap.add_argument("--workflow", action="store_true",
                     help="with --decompose: also start from the README workflow's extrinsics and body (accuracy.py "
                          "--workflow's files in the scene's track/readme_workflow)")
+    ap.add_argument("--split", action="store_true",
+                    help="with --decompose: also the first and last rows with one corner noise for every corner, and "
+                         "which sightings carry the filter's error over the floor (turn rate, time, stamp error, "
+                         "markers)")
     ap.add_argument("--duration", type=float, default=15.0, help="seconds per scene")
     ap.add_argument("--configs", type=int, nargs="+", default=list(CONFIGS),
                     help="accuracy.py's configuration indices (0-3)")
@@ -718,7 +856,7 @@ def main(argv: list[str] | None = None) -> int:
     scenes = [load_scene(bench, args, c) for c in args.configs]
     report = {"scenes": ", ".join(f"{sc['name']} {args.preset} seed {args.seed} {args.duration:g} s" for sc in scenes),
               "load": " ".join(f"{v:.1f}" for v in os.getloadavg()), "cores": os.cpu_count(),
-              "residuals": {"edge": residual_table(scenes, "edge")}, "rows": [],
+              "residuals": {"edge": residual_table(scenes, "edge")}, "modules": module_table(scenes), "rows": [],
               "oracle_matched": [sum(o is not None for row in sc["oracle"].values() for o, _ in row) for sc in scenes],
               "detections": [sum(len(row) for row in sc["oracle"].values()) for sc in scenes]}
     tune = not args.no_tune
@@ -738,7 +876,7 @@ def main(argv: list[str] | None = None) -> int:
         starts = {"as tracked": lambda sc: {"extrinsics": None, "layouts": sc["layouts"]}}
         if args.workflow:
             starts["README workflow"] = workflow_start
-        report["decomposition"] = decompose_report(scenes, starts)
+        report["decomposition"] = decompose_report(scenes, starts, args.split)
     report["load_end"] = " ".join(f"{v:.1f}" for v in os.getloadavg())
     print_report(report)
     if args.json:

@@ -19,6 +19,8 @@ narrow, so the filter leans on the corners the frame measures well.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 WIDE_MODULE_PX = 2.5  # border modules this wide (across their side) or wider: the nominal corner noise
@@ -30,16 +32,27 @@ def border_module_px(corners_px: np.ndarray, modules: int) -> np.ndarray:
     """(4,) per corner of a marker's quad (4, 2) px: the narrower width in pixels, across its side,
     of the border modules of the two sides that meet there (the quad's height over each side,
     area / side length, over ``modules``, the cells across the marker with its border)."""
-    q = np.asarray(corners_px, dtype=np.float64).reshape(4, 2)
-    x, y = q[:, 0], q[:, 1]
-    area_px2 = 0.5 * abs(float(x @ np.roll(y, -1) - y @ np.roll(x, -1)))
-    side_px = np.linalg.norm(np.roll(q, -1, axis=0) - q, axis=1)  # side i: corner i -> i + 1
-    across_px = area_px2 / np.maximum(side_px, 1e-9) / modules
-    return np.minimum(across_px, np.roll(across_px, 1))  # corner i: sides i and i - 1
+    return np.array(_border_widths(np.asarray(corners_px, dtype=np.float64).reshape(4, 2).tolist(), modules))
 
 
 def corner_noise_scale(corners_px: np.ndarray, modules: int) -> np.ndarray:
     """(4,) per corner of a marker's quad: its noise over the nominal corner noise, from
     :func:`border_module_px` (1 at :data:`WIDE_MODULE_PX` and wider, at most :data:`MAX_SCALE`)."""
-    width_px = np.maximum(border_module_px(corners_px, modules), 1e-9)
-    return np.clip((WIDE_MODULE_PX / width_px) ** EXPONENT, 1.0, MAX_SCALE)
+    return np.array(corner_noise_factors(np.asarray(corners_px, dtype=np.float64).reshape(4, 2).tolist(), modules))
+
+
+def corner_noise_factors(quad: list[list[float]], modules: int) -> list[float]:
+    """:func:`corner_noise_scale` of a quad given as four ``[x, y]`` lists (plain arithmetic: this runs
+    for every marker of every sighting, where numpy's per-call cost on 4 points would be most of it)."""
+    return [min(max((WIDE_MODULE_PX / max(w, 1e-9)) ** EXPONENT, 1.0), MAX_SCALE)
+            for w in _border_widths(quad, modules)]
+
+
+def _border_widths(quad: list[list[float]], modules: int) -> list[float]:
+    """:func:`border_module_px` of a quad given as four ``[x, y]`` lists."""
+    (x0, y0), (x1, y1), (x2, y2), (x3, y3) = quad
+    area_px2 = 0.5 * abs((x0 * y1 - x1 * y0) + (x1 * y2 - x2 * y1) + (x2 * y3 - x3 * y2) + (x3 * y0 - x0 * y3))
+    sides_px = (math.hypot(x1 - x0, y1 - y0), math.hypot(x2 - x1, y2 - y1), math.hypot(x3 - x2, y3 - y2),
+                math.hypot(x0 - x3, y0 - y3))  # side i: corner i -> i + 1
+    across = [area_px2 / max(side, 1e-9) / modules for side in sides_px]
+    return [min(across[i], across[i - 1]) for i in range(4)]  # corner i: sides i and i - 1

@@ -26,7 +26,7 @@ from cubetrack.core.geometry import R_from_rotvec, invert_T, make_T
 from cubetrack.core.layout import DEFAULT_DICTIONARY, CubeLayout
 from cubetrack.core.records import Detection
 from cubetrack.detect.predicted import modules_of
-from cubetrack.estimate.corner_noise import corner_noise_scale
+from cubetrack.estimate.corner_noise import corner_noise_factors
 from cubetrack.estimate.kernels import exp_and_left_jacobian
 from cubetrack.estimate.match import FaceMatch, match_faces
 
@@ -75,9 +75,11 @@ def corner_set(matches: Sequence[FaceMatch], intrinsics: CameraIntrinsics, T_wor
 def noise_scales(matches: Sequence[FaceMatch]) -> np.ndarray:
     """(4 x len(matches),) each matched corner's noise over the nominal one, in the matches' order
     (:func:`cubetrack.estimate.corner_noise.corner_noise_scale`: from each marker's own quad)."""
-    return np.concatenate([corner_noise_scale(m.detection.corners_px, modules_of(m.detection.dictionary or
-                                                                                 DEFAULT_DICTIONARY))
-                           for m in matches])
+    factors: list[float] = []
+    for m in matches:
+        factors += corner_noise_factors(m.detection.corners_px.tolist(),
+                                        modules_of(m.detection.dictionary or DEFAULT_DICTIONARY))
+    return np.array(factors)
 
 
 def associate(detections: Sequence[Detection], layout: CubeLayout, T_world_cube: np.ndarray,

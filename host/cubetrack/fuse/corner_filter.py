@@ -53,7 +53,9 @@ class FilterParams:
                                                "rad/s^2/sqrt(Hz)")
     sharp_turn_rad_s: float = param(2.0, "a yaw rate above this is a sharp turn, rad/s")
     turn_hold_s: float = param(3.0, "the turning noise holds this long after the last sharp turn, seconds")
-    corner_noise_px: float = param(0.5, "corner measurement noise (1 sigma), pixels")
+    corner_noise_px: float = param(0.5, "corner measurement noise (1 sigma), pixels, of a corner whose marker's border "
+                                   "modules are 2.5 px wide or wider; narrower ones get more, each its own (issue 26, "
+                                   "docs/tracking.md \"Each corner's own noise\")")
     camera_position_sigma_m: float = param(
         0.002, "how far a calibrated camera may be from where its extrinsics put it (1 sigma per axis), metres: "
         "every corner of one camera frame shares this error, so cameras that disagree by it are not read as "
