@@ -479,7 +479,7 @@ def decompose_report(scenes: list[dict], starts: dict[str, dict], split: bool = 
             one_noise = [(LADDER[0], True), (LADDER[-1], True)] if split else []
             for true, nominal in [(t, False) for t in LADDER] + one_noise:
                 sightings, layouts = with_truth(sc, truth, true, start(sc) if callable(start) else start)
-                with mock.patch.object(reprojection, "corner_noise_factors", lambda c, m: [1.0] * len(c)) \
+                with mock.patch.object(reprojection, "corner_noise_factors", lambda c, m: np.ones(len(c))) \
                         if nominal else contextlib.nullcontext():
                     rows[(" + ".join(true) or "nothing") + (ONE_NOISE if nominal else "")] = {
                         "causal": score(replay(sightings, layouts, sc["params"], {}), sc["truth"]),

@@ -20,7 +20,9 @@ narrow, so the filter leans on the corners the frame measures well.
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 
+import numba
 import numpy as np
 
 WIDE_MODULE_PX = 2.5  # border modules this wide (across their side) or wider: the nominal corner noise
@@ -28,31 +30,52 @@ EXPONENT = 1.7  # the edge fit's corner error against the border module's width:
 MAX_SCALE = 8.0  # the largest factor (a module under ~0.9 px: such a marker is barely decoded)
 
 
+@numba.njit(cache=True, nogil=True)
+def _border_widths(quads_px: np.ndarray, modules: np.ndarray, out: np.ndarray) -> None:  # pragma: no cover
+    """``out`` (4M,): :func:`border_module_px` of each of the M quads stacked in ``quads_px`` (4M, 2) px,
+    marker ``k`` having ``modules[k]`` cells across."""
+    for k in range(len(modules)):
+        q = quads_px[4 * k: 4 * k + 4]
+        area_px2 = 0.0
+        across = np.empty(4)
+        for i in range(4):  # side i: corner i -> i + 1
+            j = (i + 1) % 4
+            area_px2 += q[i, 0] * q[j, 1] - q[j, 0] * q[i, 1]
+            across[i] = math.hypot(q[j, 0] - q[i, 0], q[j, 1] - q[i, 1])
+        area_px2 = 0.5 * abs(area_px2)
+        for i in range(4):
+            across[i] = area_px2 / max(across[i], 1e-9) / modules[k]
+        for i in range(4):  # corner i: sides i and i - 1
+            out[4 * k + i] = min(across[i], across[i - 1])
+
+
+@numba.njit(cache=True, nogil=True)
+def _noise_factors(quads_px: np.ndarray, modules: np.ndarray) -> np.ndarray:  # pragma: no cover
+    """(4M,) :func:`corner_noise_scale` of each of the M quads stacked in ``quads_px`` (4M, 2) px."""
+    out = np.empty(len(quads_px))
+    _border_widths(quads_px, modules, out)
+    for i in range(len(out)):
+        out[i] = min(max((WIDE_MODULE_PX / max(out[i], 1e-9)) ** EXPONENT, 1.0), MAX_SCALE)
+    return out
+
+
 def border_module_px(corners_px: np.ndarray, modules: int) -> np.ndarray:
     """(4,) per corner of a marker's quad (4, 2) px: the narrower width in pixels, across its side,
     of the border modules of the two sides that meet there (the quad's height over each side,
     area / side length, over ``modules``, the cells across the marker with its border)."""
-    return np.array(_border_widths(np.asarray(corners_px, dtype=np.float64).reshape(4, 2).tolist(), modules))
+    out = np.empty(4)
+    _border_widths(np.array(corners_px, dtype=np.float64).reshape(4, 2), np.array([modules], dtype=np.int64), out)
+    return out
 
 
 def corner_noise_scale(corners_px: np.ndarray, modules: int) -> np.ndarray:
     """(4,) per corner of a marker's quad: its noise over the nominal corner noise, from
     :func:`border_module_px` (1 at :data:`WIDE_MODULE_PX` and wider, at most :data:`MAX_SCALE`)."""
-    return np.array(corner_noise_factors(np.asarray(corners_px, dtype=np.float64).reshape(4, 2).tolist(), modules))
+    return corner_noise_factors(np.array(corners_px, dtype=np.float64).reshape(4, 2), np.array([modules]))
 
 
-def corner_noise_factors(quad: list[list[float]], modules: int) -> list[float]:
-    """:func:`corner_noise_scale` of a quad given as four ``[x, y]`` lists (plain arithmetic: this runs
-    for every marker of every sighting, where numpy's per-call cost on 4 points would be most of it)."""
-    return [min(max((WIDE_MODULE_PX / max(w, 1e-9)) ** EXPONENT, 1.0), MAX_SCALE)
-            for w in _border_widths(quad, modules)]
-
-
-def _border_widths(quad: list[list[float]], modules: int) -> list[float]:
-    """:func:`border_module_px` of a quad given as four ``[x, y]`` lists."""
-    (x0, y0), (x1, y1), (x2, y2), (x3, y3) = quad
-    area_px2 = 0.5 * abs((x0 * y1 - x1 * y0) + (x1 * y2 - x2 * y1) + (x2 * y3 - x3 * y2) + (x3 * y0 - x0 * y3))
-    sides_px = (math.hypot(x1 - x0, y1 - y0), math.hypot(x2 - x1, y2 - y1), math.hypot(x3 - x2, y3 - y2),
-                math.hypot(x0 - x3, y0 - y3))  # side i: corner i -> i + 1
-    across = [area_px2 / max(side, 1e-9) / modules for side in sides_px]
-    return [min(across[i], across[i - 1]) for i in range(4)]  # corner i: sides i and i - 1
+def corner_noise_factors(quads_px: np.ndarray, modules: Sequence[int] | np.ndarray) -> np.ndarray:
+    """(4M,) :func:`corner_noise_scale` of each of the M quads stacked in ``quads_px`` (4M, 2) px (a writable
+    float64 array), marker ``k`` with ``modules[k]`` cells across: one compiled call for a sighting's markers
+    (this runs for every sighting; numpy's per-call cost on 4 points would be most of it)."""
+    return _noise_factors(quads_px, np.asarray(modules, dtype=np.int64))

@@ -66,20 +66,18 @@ def corner_set(matches: Sequence[FaceMatch], intrinsics: CameraIntrinsics, T_wor
     if not matches:
         return None
     K, dist = intrinsics.K, intrinsics.dist
+    corners_px = np.concatenate([m.detection.corners_px for m in matches])
     return CornerSet(camera, time_s, invert_T(T_world_cam), float((K[0, 0] + K[1, 1]) / 2.0),
-                     np.concatenate([m.points_body_m for m in matches]),
-                     normalize_px(np.concatenate([m.detection.corners_px for m in matches]), K, dist),
-                     tuple(m.face for m in matches), noise_scales(matches))
+                     np.concatenate([m.points_body_m for m in matches]), normalize_px(corners_px, K, dist),
+                     tuple(m.face for m in matches), noise_scales(matches, corners_px))
 
 
-def noise_scales(matches: Sequence[FaceMatch]) -> np.ndarray:
+def noise_scales(matches: Sequence[FaceMatch], corners_px: np.ndarray) -> np.ndarray:
     """(4 x len(matches),) each matched corner's noise over the nominal one, in the matches' order
-    (:func:`cubetrack.estimate.corner_noise.corner_noise_scale`: from each marker's own quad)."""
-    factors: list[float] = []
-    for m in matches:
-        factors += corner_noise_factors(m.detection.corners_px.tolist(),
-                                        modules_of(m.detection.dictionary or DEFAULT_DICTIONARY))
-    return np.array(factors)
+    (:func:`cubetrack.estimate.corner_noise.corner_noise_scale`: from each marker's own quad);
+    ``corners_px`` their corners stacked (4 x len(matches), 2)."""
+    return corner_noise_factors(corners_px, [modules_of(m.detection.dictionary or DEFAULT_DICTIONARY)
+                                             for m in matches])
 
 
 def associate(detections: Sequence[Detection], layout: CubeLayout, T_world_cube: np.ndarray,

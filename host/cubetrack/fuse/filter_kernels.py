@@ -27,6 +27,7 @@ import numba
 import numpy as np
 
 from cubetrack.detect.detector import compile_kernels
+from cubetrack.estimate.corner_noise import corner_noise_factors
 from cubetrack.estimate.kernels import exp_and_left_jacobian
 from cubetrack.estimate.match import compile_match_kernels
 from cubetrack.estimate.reprojection import CornerSet
@@ -570,6 +571,7 @@ def _run_kernels() -> None:
         joint_fit(T.copy(), n, points, normalized, which, R_cw, t_cw, np.ones(1), np.zeros(1), 0.0, 0.5, 3.0, 1.0,
                   1.0, 2)
     moved_pose(T, np.zeros(3), np.zeros(3), 0.01)
+    corner_noise_factors(points[:, :2] * 1000.0 + 100.0, [6])   # each corner's noise (the association's corner sets)
     for moving in (False, True):   # as a camera's term sample calls it (fuse.camera_corrections.term_observed)
         reprojection(T.copy(), points, normalized, which, R_cw, t_cw, np.ones(1), np.zeros(1), 0.0, np.zeros(3),
                      np.zeros(3), moving, True)

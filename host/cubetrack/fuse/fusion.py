@@ -231,7 +231,7 @@ def sighting_corner_sets(matches: Sequence[FaceMatch], intrinsics: CameraIntrins
     normalized = normalize_px(corners_px, intrinsics.K, intrinsics.dist)
     rows = corners_px[:, 1].reshape(-1, 4).sum(axis=1).tolist()
     T_cam_world, focal_px = invert_T(T_world_cam), float((intrinsics.K[0, 0] + intrinsics.K[1, 1]) / 2.0)
-    scales = noise_scales(matches)
+    scales = noise_scales(matches, corners_px)
     return [CornerSet(camera, time_s + (rows[i] / 4.0 - middle) * row_s, T_cam_world, focal_px, m.points_body_m,
                       normalized[4 * i: 4 * i + 4], (m.face,), scales[4 * i: 4 * i + 4]) for i, m in enumerate(matches)]
 

@@ -46,11 +46,12 @@ def test_wide_border_modules_keep_the_nominal_noise_and_narrow_ones_follow_the_m
     assert np.allclose(corner_noise_scale(small, 6), (WIDE_MODULE_PX / 1.5) ** EXPONENT)
     assert corner_noise_scale(rectangle(1, 1), 6).max() <= 8.0   # bounded for a quad that is barely a marker
     # a quad narrower at one end (perspective), 12 px across: symmetric about its axis, every factor above 1,
-    # and the plain-list path the tracker takes gives the same factors
+    # and the path the tracker takes (a sighting's quads stacked, one compiled call) gives the same factors
     trapezoid = np.array([[100.0, 100.0], [112.0, 104.0], [112.0, 126.0], [100.0, 130.0]])
     scale = corner_noise_scale(trapezoid, 6)
     assert scale[1] == scale[2] and scale[0] == scale[3] and scale.min() > 1.0
-    assert corner_noise_factors(trapezoid.tolist(), 6) == scale.tolist()
+    stacked = corner_noise_factors(np.concatenate([squashed, trapezoid]), [6, 6])
+    assert stacked[4:].tolist() == scale.tolist() and np.allclose(stacked[:4], corner_noise_scale(squashed, 6))
 
 
 def detections(T_world_cube: np.ndarray) -> tuple[Detection, ...]:
