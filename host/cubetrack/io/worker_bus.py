@@ -302,15 +302,15 @@ class SightingBatches:
 class StateRelay:
     """A fleet's fused states on the bus, so that a robot's new shard takes its track over from the last
     state its old shard published (docs/scaling.md, "When a shard dies"). :meth:`poses`, given the poses
-    this fusion makes, publishes at most every ``STATE_EVERY_S`` one message under ``cubetrack/fused-states/<me>``
-    holding the filter state (``state_of(robot)``: the fusion's, or None) of each robot with a measured pose since
-    the last (:func:`cubetrack.io.sighting_wire.encode_states`: one message per shard and tick, not one per robot,
-    since Zenoh's cost is mostly per message and every shard receives every shard's states); every states message
-    on the bus is kept, undecoded, as its shard's latest (a Zenoh thread stores the bytes; another message or
-    version is refused, one line per sender); :meth:`last` decodes a robot's newest. The puts run on a thread of
-    the relay's own: a put in a process whose Zenoh threads call back into Python waits for the interpreter's
-    lock, milliseconds on a busy machine (measured in a shard: 2-3 ms a put at load ~20, docs/scaling.md), which
-    the fusion's thread must not."""
+    this fusion makes, publishes at most every ``STATE_EVERY_S``, once a robot has a measured pose since the
+    last, one message under ``cubetrack/fused-states/<me>`` holding the filter state (``state_of(robot)``: the
+    fusion's, or None) of every robot with a measured pose here (:func:`cubetrack.io.sighting_wire.encode_states`:
+    one message per shard and tick, not one per robot, since Zenoh's cost is mostly per message and every shard
+    receives every shard's states); every states message on the bus is kept, undecoded, as its shard's latest (a
+    Zenoh thread stores the bytes; another message or version is refused, one line per sender); :meth:`last`
+    decodes a robot's newest. The puts run on a thread of the relay's own: a put in a process whose Zenoh threads
+    call back into Python waits for the interpreter's lock, milliseconds on a busy machine (measured in a shard:
+    2-3 ms a put at load ~20, docs/scaling.md), which the fusion's thread must not."""
 
     def __init__(self, bus: Any, me: str, state_of: Callable[[str], tuple | None]) -> None:
         self.bus, self.state_of = bus, state_of
@@ -318,6 +318,7 @@ class StateRelay:
         self.latest: dict[str, bytes] = {}  # sender -> its latest states message
         self._refused: set[str] = set()  # senders whose messages were refused (logged once each)
         self._fresh: set[str] = set()  # robots with a measured pose since the last states message
+        self._measured: set[str] = set()  # robots with a measured pose here, ever: each states message holds them all
         self._sent_s = -math.inf
         self._outbox: queue.Queue[bytes | None] = queue.Queue()
         self._subscriber = bus.declare_subscriber(f"{STATES_KEY}/*", self._receive)
@@ -347,12 +348,15 @@ class StateRelay:
             log.warning("fused states from %s refused: %s", sender, error)
 
     def poses(self, poses: Sequence[TrackedPose]) -> None:
-        """Publish the states of the robots with a measured pose since the last states message, once
-        ``STATE_EVERY_S`` has passed since it."""
+        """Publish the states of every robot measured here, once ``STATE_EVERY_S`` has passed since the last
+        states message and one of them has a measured pose since it."""
         self._fresh.update(p.robot for p in poses if not p.predicted)
         now = time.monotonic()
         if self._fresh and now - self._sent_s >= STATE_EVERY_S:
-            states = [FusedState(*state) for robot in sorted(self._fresh) if (state := self.state_of(robot))]
+            # every robot measured here, not only the fresh ones: a shard's newest message replaces its older
+            # ones (:attr:`latest`), so a robot left out would lose the state a take-over starts from
+            self._measured |= self._fresh
+            states = [FusedState(*state) for robot in sorted(self._measured) if (state := self.state_of(robot))]
             self._fresh, self._sent_s = set(), now
             if states:
                 self._outbox.put(encode_states(states))

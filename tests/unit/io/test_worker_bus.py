@@ -226,7 +226,7 @@ class StateBus:
         return Publisher()
 
 
-def test_the_state_relay_publishes_one_message_per_tick_with_every_fresh_robot_and_keeps_the_newest(
+def test_the_state_relay_publishes_one_message_per_tick_with_every_measured_robot_and_keeps_the_newest(
         monkeypatch, caplog):
     import numpy as np
 
@@ -261,6 +261,10 @@ def test_the_state_relay_publishes_one_message_per_tick_with_every_fresh_robot_a
     relay.poses([pose("r3")])
     relay.sent()
     assert len(bus.puts) == 2 and [s.robot for s in decode_states(bus.puts[1][1])] == ["r1", "r2", "r3"]
+    clock[0] += 0.11
+    relay.poses([pose("r3")])
+    relay.sent()   # only r3 is fresh, but this message replaces the last: it still holds r1's and r2's states
+    assert len(bus.puts) == 3 and [s.robot for s in decode_states(bus.puts[2][1])] == ["r1", "r2", "r3"]
     last = relay.last("r1")
     assert last is not None and last.time_s == clock[0] and last.T_world_cube[0, 3] == clock[0]
     assert relay.last("r4") is None
