@@ -34,7 +34,9 @@ def test_quick_run_reports_both_sides_per_sighting(tmp_path, capsys):
         assert m["stages_ms"][stage] > 0, stage
     assert m["stages_ms"]["filter update"] < m["stages_total_ms"]
     diff = m["difference"]
-    assert diff["identical"] or (diff["poses_equal_times"] and diff["max_position_mm"] < 1.0)
+    # since each corner has its own noise (issue 26, session 15; no setting turns it off) ours weighs the corners
+    # apart from the baseline: the same instants, poses a few mm apart (3.0 measured), never the same to 1 mm
+    assert diff["poses_equal_times"] and diff["max_position_mm"] < 10.0, diff
     line = re.search(r"^3 cameras: (\d+) sightings, (\d+) poses; CPU per cube sighting baseline ([0-9.]+) ms, "
                      r"ours ([0-9.]+) ms: ours/baseline ([0-9.]+)", text, re.MULTILINE)
     assert line, text
