@@ -351,11 +351,12 @@ def run_scene(work: str, preset: str, config_index: int, seed: int, duration: fl
         variants[LAGGED] = (dataclasses.replace(base, filter=dataclasses.replace(base.filter, smooth_lag_s=lag_s)),
                             ours_ext)
     if template:
-        templated = dataclasses.replace(base, detector=dataclasses.replace(
-            base.detector, corner_refinement=CornerRefinement.TEMPLATE))
+        templated = dataclasses.replace(  # as a config saying corner_refinement = "template" resolves (app.config)
+            base, detector=dataclasses.replace(base.detector, corner_refinement=CornerRefinement.TEMPLATE),
+            filter=dataclasses.replace(base.filter, corner_noise_by_width=False))
         variants[TEMPLATE] = (templated, ours_ext)
         if body:
-            trusting = dataclasses.replace(templated, filter=dataclasses.replace(base.filter, **TRUSTING_FILTER))
+            trusting = dataclasses.replace(templated, filter=dataclasses.replace(templated.filter, **TRUSTING_FILTER))
             variants[BODY_TEMPLATE] = (trusting, ours_ext)
             if lag_s > 0:
                 variants[BODY_TEMPLATE_LAG] = (dataclasses.replace(trusting, filter=dataclasses.replace(

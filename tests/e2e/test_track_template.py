@@ -40,10 +40,11 @@ def test_template_corners_track_closer_to_the_truth(rec, tmp_path, capsys):
     assert read_run_record(tmp_path / "template")["parameters"]["detector"]["corner_refinement"] == "template"
     assert read_run_record(tmp_path / "edge")["parameters"]["detector"]["corner_refinement"] == "edge"
     assert template["detection_ratio"] >= 0.99 and template["poses_total"] >= edge["poses_total"] > 60
-    # measured (seed 8, issue 26's edge fit over 80 % of each side): rotation 0.22 against 0.32 deg; position
-    # 0.12 against 0.085 cm — with the default filter the edge fit's corners now track position as closely (the
-    # position claim holds with a filter that trusts the corners, below)
-    assert template["rotation_rmse_deg"] < 0.75 * edge["rotation_rmse_deg"]
+    # measured (seed 8): rotation 0.221 against 0.293 deg (0.32 before the edge fit's corners got each their own
+    # noise, issue 26, session 15; with that law applied to template corners too, 0.316: it is the edge fit's);
+    # position 0.12 against 0.09 cm — with the default filter the edge fit's corners track position as closely
+    # (the position claim holds with a filter that trusts the corners, below)
+    assert template["rotation_rmse_deg"] < 0.85 * edge["rotation_rmse_deg"]
 
 
 def test_a_filter_that_trusts_template_corners_does_better_than_one_that_trusts_edge_corners(rec, tmp_path, capsys):

@@ -83,6 +83,9 @@ def config_params(config: TrackerConfig) -> ConfigParams:
     hints = typing.get_type_hints(ConfigParams)
     params = ConfigParams(**{name: params_from_table(hints[name], config.section(name), f"{config.path}: [{name}]")
                              for name in SECTIONS})
+    if params.detector.corner_refinement is not CornerRefinement.EDGE and "corner_noise_by_width" not in (
+            config.section("filter") or {}):  # the width law is the edge fit's (FilterParams.corner_noise_by_width)
+        params = dataclasses.replace(params, filter=dataclasses.replace(params.filter, corner_noise_by_width=False))
     for warning in corner_trust_warnings(params, config.robots):
         log.warning("%s: %s", config.path, warning)
     return params

@@ -56,6 +56,10 @@ class FilterParams:
     corner_noise_px: float = param(0.5, "corner measurement noise (1 sigma), pixels, of a corner whose marker's border "
                                    "modules are 2.5 px wide or wider; narrower ones get more, each its own (issue 26, "
                                    "docs/tracking.md \"Each corner's own noise\")")
+    corner_noise_by_width: bool = param(
+        True, "weigh each corner by the edge fit's error law (its border modules' width, issue 26); the corners of "
+        "another [detector] corner_refinement do not follow it, and a config with one turns this off unless it says "
+        "otherwise (the template fit's: rotation 0.32 against 0.22 deg with it, tests/e2e/test_track_template.py)")
     camera_position_sigma_m: float = param(
         0.002, "how far a calibrated camera may be from where its extrinsics put it (1 sigma per axis), metres: "
         "every corner of one camera frame shares this error, so cameras that disagree by it are not read as "
@@ -260,7 +264,8 @@ class PoseFilter:
         k = term_scale
         status, delta, _info, T, r, P, P_ok = solve_update(
             self.T_world_cube, self.P, self.time_s, self.velocity_m_s, self.angular_velocity_rad_s, *packed_sets(sets),
-            moving, prm.iterations, prm.huber_px, inverse_variances(sets, prm.corner_noise_px),
+            moving, prm.iterations, prm.huber_px,
+            inverse_variances(sets, prm.corner_noise_px, prm.corner_noise_by_width),
             k * prm.camera_position_sigma_m, k * math.radians(prm.camera_rotation_sigma_deg),
             k * prm.camera_scale_sigma)
         if status != OK:
@@ -301,10 +306,12 @@ class PoseFilter:
         return UpdateResult(True, rms, r.size // 2)
 
 
-def inverse_variances(sets: Sequence[CornerSet], corner_noise_px: float) -> np.ndarray:
+def inverse_variances(sets: Sequence[CornerSet], corner_noise_px: float, by_width: bool = True) -> np.ndarray:
     """(N,) each corner's inverse variance (1/px^2) in the stacking order of ``sets``: the nominal
-    ``corner_noise_px`` times the corner's own factor (:attr:`CornerSet.noise_scale`; 1 without one)."""
-    scales = [np.ones(len(s.points_cube_m)) if s.noise_scale is None else s.noise_scale for s in sets]
+    ``corner_noise_px`` times the corner's own factor (:attr:`CornerSet.noise_scale`; 1 without one,
+    and for every corner when not ``by_width``)."""
+    scales = [s.noise_scale if by_width and s.noise_scale is not None else np.ones(len(s.points_cube_m))
+              for s in sets]
     sigma_px = corner_noise_px * (scales[0] if len(scales) == 1 else np.concatenate(scales))
     return 1.0 / (sigma_px * sigma_px)
 

@@ -1,8 +1,10 @@
 """The template refinement's config: [detector] corner_refinement = "template" reaches the
-tracker's detector and changes nothing else (the filter keeps its settings); a [filter] that
+tracker's detector and changes nothing else in the filter than the edge fit's per-corner noise law
+(the template fit's corners do not follow it) unless the [filter] says otherwise; a [filter] that
 trusts the corners gets a one-line warning unless the corners are template-fitted and every cube's
 layout is calibrated (a layout as designed: a marker 1 mm off reads as a turned cube)."""
 
+import dataclasses
 import logging
 
 import numpy as np
@@ -42,9 +44,22 @@ def config_file(tmp_path, layout: CubeLayout, *sections: str):
 def test_the_switch_reaches_the_detector_and_leaves_the_filter_as_it_was(tmp_path):
     config, params = load_config(config_file(tmp_path, paper_cube_layout(), TEMPLATE))
     assert params.detector.corner_refinement is CornerRefinement.TEMPLATE
-    assert params.filter == FilterParams()  # no trusting filter behind the user's back
+    # no trusting filter behind the user's back; only the edge fit's per-corner noise law is off
+    assert params.filter == dataclasses.replace(FilterParams(), corner_noise_by_width=False)
     worker = FrameProcessor({}, WorldConfig("DICT_4X4_50", 0, 0.25), config.robots, {}, params.stages)
     assert worker.detector.params.corner_refinement is CornerRefinement.TEMPLATE
+
+
+@pytest.mark.parametrize("sections,by_width", [
+    ((), True),                                                        # the edge fit: its law
+    (('[detector]\ncorner_refinement = "subpix"\n',), False),        # another refinement: every corner the same
+    ((TEMPLATE,), False),
+    ((TEMPLATE, "[filter]\ncorner_noise_by_width = true\n"), True),  # the user's word stands
+    (("[filter]\ncorner_noise_by_width = false\n",), False),
+])
+def test_the_per_corner_noise_law_is_the_edge_fits_unless_the_filter_says(tmp_path, sections, by_width):
+    assert config_params(read_tracker_config(config_file(tmp_path, paper_cube_layout(), *sections))
+                         ).filter.corner_noise_by_width is by_width
 
 
 @pytest.mark.parametrize("sections,calibrated,warned", [

@@ -86,6 +86,7 @@ def test_corner_sets_carry_each_corners_noise_from_its_own_quad(readout_s: float
         assert np.array_equal(corner_set(matches, intrinsics, T_WORLD_CAM, "cam", 1.0).noise_scale, expected)
     noise_px = FilterParams().corner_noise_px
     assert np.allclose(inverse_variances(sets, noise_px), 1.0 / (noise_px * expected) ** 2)
+    assert np.allclose(inverse_variances(sets, noise_px, by_width=False), 1.0 / noise_px**2)
     kept = _without_face(sets, 0)
     assert np.array_equal(np.concatenate([s.noise_scale for s in kept]), expected[4:])
     assert not np.array_equal(expected[:4], expected[4:])
