@@ -30,10 +30,10 @@ rejoining). The camera is **moved** when
 Until it is declared, a bumped camera would pull the fused pose towards its own for the seconds
 its window takes; so each checked sighting is also judged on its own (:meth:`CameraWatch._judge`):
 a camera whose last ``suspect_samples`` samples each miss the other cameras' cube pose by more
-than ``suspect_px`` (median corner residual at its settled pose), and which disagreed most with
-the others in the recent reference fits, is **suspect**: out of the fusion and no one's reference,
-still checked, until as many samples in a row agree again or it is declared moved (at least
-``reference_cameras`` others stay in use).
+than ``suspect_px`` (median corner residual at its settled pose), and which misses most now (the
+fused prediction, else the other cameras' cube pose: :meth:`CameraWatch._misses_most`), is
+**suspect**: out of the fusion and no one's reference, still checked, until as many samples in
+a row agree again or it is declared moved (at least ``reference_cameras`` others stay in use).
 And since a check waits for the other cameras' sightings around it, the very first sightings
 after a bump come before any check: :meth:`CameraWatch.off_prediction` holds a sighting out of
 the fusion when it misses the fused prediction by more than ``gate_prediction_px`` and
@@ -427,7 +427,9 @@ class CameraWatch:
         self.settled: dict[str, np.ndarray] = {}
         self._next_baseline_s = -math.inf
         self._disagreement: dict[str, deque[tuple[float, float]]] = {c: deque() for c in T_world_cams}
-        self._misses: dict[str, deque[float]] = {c: deque(maxlen=params.suspect_samples) for c in T_world_cams}
+        # camera -> its latest samples' (time, median corner miss at its settled pose, px)
+        self._misses: dict[str, deque[tuple[float, float]]] = {c: deque(maxlen=params.suspect_samples)
+                                                               for c in T_world_cams}
         self._off_prediction: dict[str, dict[str, tuple[float, float]]] = {r: {} for r in layouts}
         self.events: list[WatchEvent] = []
         self.stats: Counter[str] = Counter()
@@ -502,12 +504,13 @@ class CameraWatch:
             self._predicted.pop((old.camera, old.robot, old.seq), None)
         if t >= self._next_sample_s.get(sighting.camera, -math.inf):  # checks_per_s shared by the cameras in turn
             self._pending.append(sighting)
-            self._next_sample_s[sighting.camera] = t + max(1.0 / p.samples_per_s, len(self.state) / p.checks_per_s)
+            self._next_sample_s[sighting.camera] = t + self._sample_interval_s()
         while self._pending and self._pending[0].capture_time_s + self.params.reference_span_s <= self._newest_s:
-            sample = self._sample(self._pending.popleft())
+            checked = self._pending.popleft()
+            sample = self._sample(checked)
             if sample is not None:
                 self.samples[sample.camera].append(sample)
-                self._judge(sample)
+                self._judge(sample, checked.robot)
         if self._newest_s < self._next_check_s:
             return []
         self._next_check_s = self._newest_s + self.params.check_every_s
@@ -625,34 +628,51 @@ class CameraWatch:
                     misses.append(float(np.median(np.linalg.norm(residual, axis=1))))
         return float(np.median(misses)) if misses else math.inf
 
-    def _judge(self, sample: WatchSample) -> None:
+    def _judge(self, sample: WatchSample, robot: str) -> None:
         """Make the sample's camera suspect, or clear it: its last ``suspect_samples`` samples all
         miss the other cameras' cube pose by more than ``suspect_px`` at its settled pose, and it is
-        the camera that disagreed most with the others in the recent reference fits (a suspect
-        spoils its partners' references too); cleared once as many in a row are within
-        ``suspect_px``. At least ``reference_cameras`` others must stay in use."""
+        the camera that misses most now (:meth:`_misses_most`); cleared once as many in a row are
+        within ``suspect_px``. At least ``reference_cameras`` others must stay in use."""
         camera, p = sample.camera, self.params
         settled = self.settled.get(camera)
         if settled is None or self.state[camera] is CameraState.RECALIBRATING:
             return
         misses = self._misses[camera]
         residual = residuals_px(settled, sample.points_world_m, sample.normalized, sample.focal_px)
-        misses.append(float(np.median(np.linalg.norm(residual, axis=1))))
+        misses.append((sample.time_s, float(np.median(np.linalg.norm(residual, axis=1)))))
         if len(misses) < p.suspect_samples:
             return
         if self.state[camera] is CameraState.SUSPECT:
             self.stats["checked while suspect"] += 1
-            if max(misses) <= p.suspect_px:
+            if max(m for _, m in misses) <= p.suspect_px:
                 self.state[camera] = CameraState.WATCHED
             return
         in_use = [c for c, s in self.state.items() if s is CameraState.WATCHED]
-        if min(misses) <= p.suspect_px or len(in_use) - 1 < p.reference_cameras:
+        if min(m for _, m in misses) <= p.suspect_px or len(in_use) - 1 < p.reference_cameras:
             return
-        since_s = sample.time_s - p.suspect_samples / p.samples_per_s - p.reference_span_s
-        score = {c: float(np.median([d for t, d in self._disagreement[c] if t >= since_s] or [0.0])) for c in in_use}
-        if score[camera] > 0.0 and max(score, key=lambda c: score[c]) == camera:
+        if self._misses_most(camera, robot, in_use, sample.time_s):
             self.state[camera] = CameraState.SUSPECT
             self.stats["suspect"] += 1
+
+    def _misses_most(self, camera: str, robot: str, in_use: Sequence[str], time_s: float) -> bool:
+        """Whether ``camera`` misses most of the cameras in use right now (each one's latest miss
+        within ``suspect_samples`` sampling intervals and ``reference_span_s`` of ``time_s``): by
+        its miss of the fused prediction (:meth:`off_prediction`'s), else, without a recent one, by
+        its checks' miss of the other cameras' cube pose. A moved camera spoils its partners'
+        references, so with three cameras a partner's check can miss more than its own (issue
+        27's seed 31: cam1 15.5 px, the bumped cam2 14.0 px); the fused prediction, made by the
+        cameras before the move, is missed by the moved camera alone (cam2 15.5 px, cam1 2.7 px)."""
+        since_s = time_s - self.params.suspect_samples * self._sample_interval_s() - self.params.reference_span_s
+        latest = self._off_prediction.get(robot, {})
+        if latest.get(camera, (-math.inf, 0.0))[0] < since_s:
+            latest = {c: m[-1] for c, m in self._misses.items() if m}  # holds this camera's sample just judged
+        others = [m for c, (t, m) in latest.items() if c != camera and c in in_use and t >= since_s]
+        return latest[camera][1] >= max(others, default=0.0)
+
+    def _sample_interval_s(self) -> float:
+        """How often each camera's sightings are checked at most, seconds (``samples_per_s``, or
+        less often in turn when ``checks_per_s`` is shared by many cameras)."""
+        return max(1.0 / self.params.samples_per_s, len(self.state) / self.params.checks_per_s)
 
     def _settle(self, camera: str, samples: Sequence[WatchSample]) -> None:
         """Fit the camera's settled pose to its samples before the window, given enough of them."""

@@ -24,7 +24,15 @@ from cubetrack.calib.recalibrate import WatchedFusion
 from cubetrack.core.geometry import make_T, rotation_angle
 from cubetrack.core.records import CameraWatchState, CubeSighting
 from cubetrack.estimate.pose import estimate_cube
-from cubetrack.fuse.camera_watch import CameraState, CameraWatch, EventKind, WatchEvent, WatchParams
+from cubetrack.fuse.camera_watch import (
+    CameraState,
+    CameraWatch,
+    EventKind,
+    WatchEvent,
+    WatchParams,
+    WatchSample,
+    residuals_px,
+)
 from cubetrack.fuse.fusion import FilterFusion
 from cubetrack.sink.base import Outputs
 
@@ -260,6 +268,38 @@ def test_with_three_cameras_the_camera_that_moved_is_named_not_its_partners():
     watch = CameraWatch({"bot": LAYOUT}, believed, WatchParams(enabled=True, suspect_px=1000.0))
     events = [e for s in seen for e in watch.add(s)]
     assert [(e.camera, 10.0 < e.time_s < 13.0) for e in events] == [(victim, True)], events
+
+
+def _missing(camera: str, time_s: float, miss_px: float) -> WatchSample:
+    """A checked sighting of ``camera`` whose corners all miss by ``miss_px`` at its pose in CAMERAS."""
+    points = np.array([[0.1 * i, 0.05 * i, 0.2] for i in range(8)])
+    in_cam = (points - CAMERAS[camera][:3, 3]) @ CAMERAS[camera][:3, :3]
+    normalized = in_cam[:, :2] / in_cam[:, 2:] + miss_px / (math.sqrt(2.0) * INTR.K[0, 0])
+    return WatchSample(camera, time_s, points, normalized, np.full(8, INTR.K[0, 0]))
+
+
+@pytest.mark.parametrize(("fused", "suspect"), [
+    # issue 27's seed 31 (3 cameras, cam2 bumped): cam1's checks miss more than cam2's (cam2 spoils cam1's
+    # reference); the fused prediction, made before the bump, is missed by cam2 alone
+    ({"cam1": 2.7, "cam2": 15.5, "cam3": 1.1}, "cam2"),
+    ({}, "cam1"),  # no fused prediction (no track): the checks' misses decide
+])
+def test_the_camera_made_suspect_is_the_one_that_misses_most_now(fused, suspect):
+    """Three cameras: cam1's two checks miss by 10.3 and 15.5 px, cam2's by 14.0 px each, cam3's by
+    5.7 px. Only the camera that misses most now is made suspect: by the fused prediction where
+    there is one (as CameraWatch.off_prediction leaves it), else by the checks."""
+    three = {c: CAMERAS[c] for c in ("cam1", "cam2", "cam3")}
+    watch = CameraWatch({"bot": LAYOUT}, three, WatchParams(enabled=True))
+    watch.settled.update(three)
+    t0 = 100.0
+    watch._off_prediction["bot"].update({c: (t0 + 0.1, m) for c, m in fused.items()})
+    for camera, time_s, miss_px in [("cam3", 0.0, 5.7), ("cam1", 0.0, 10.3), ("cam2", 0.05, 14.0),
+                                    ("cam3", 0.13, 5.7), ("cam1", 0.14, 15.5), ("cam2", 0.18, 14.0)]:
+        sample = _missing(camera, t0 + time_s, miss_px)
+        assert np.median(np.linalg.norm(residuals_px(three[camera], sample.points_world_m, sample.normalized,
+                                                     sample.focal_px), axis=1)) == pytest.approx(miss_px)
+        watch._judge(sample, "bot")
+    assert [c for c, s in watch.state.items() if s is CameraState.SUSPECT] == [suspect], watch.state
 
 
 @pytest.mark.parametrize(("changes", "message"), [
