@@ -406,6 +406,17 @@ def window_verdict(samples: Sequence[WatchSample], T_world_cam: np.ndarray, para
     return Verdict(fit, shift, off_m, off_deg, moved)
 
 
+# a camera declared moved moved after the start of its window (its newer half is after the move; it was suspect, in
+# no one's reference, within a quarter second of the move as a rule): a re-calibrating camera's samples of this many
+# windows before the declaration whose reference held it are dropped
+SPOILT_WINDOWS = 2.0
+
+
+def spoilt_by(sample: WatchSample, camera: str, since_s: float) -> bool:
+    """Whether the sample is from ``since_s`` on and its reference held ``camera``'s sightings."""
+    return sample.time_s >= since_s and any(s.camera == camera for s in sample.reference_sets)
+
+
 class CameraWatch:
     """Every camera watched against the others (see the module doc). Visible state: ``state``
     (camera -> :class:`CameraState`), ``T_world_cam`` (camera -> the pose the tracker uses: the
@@ -554,11 +565,23 @@ class CameraWatch:
         worst = self._culprit(verdicts, now_s)
         if worst is None:
             return []
-        camera, verdict = worst
+        return [self._declare(*worst, now_s)]
+
+    def _declare(self, camera: str, verdict: Verdict, now_s: float) -> WatchEvent:
+        """Declare ``camera`` moved (its ``verdict``, at ``now_s``): set it aside with its window's
+        newer half as its first samples; every watched camera's window restarts; a re-calibrating
+        camera keeps what it gathered but the samples this one may have spoilt (:func:`spoilt_by`):
+        a second camera moved before the first rejoined."""
+        p = self.params
         window = [s for s in self.samples[camera] if s.time_s >= now_s - p.window_s]
         for other, samples in self.samples.items():
-            samples.clear()
             self._misses[other].clear()
+            if self.state[other] is CameraState.RECALIBRATING:  # keeps what it gathered, but what this one spoilt
+                kept = [s for s in samples if not spoilt_by(s, camera, now_s - SPOILT_WINDOWS * p.window_s)]
+                samples.clear()
+                samples.extend(kept)
+                continue
+            samples.clear()
             if self.state[other] is CameraState.SUSPECT:
                 self.state[other] = CameraState.WATCHED
         self.samples[camera].extend(window[len(window) // 2:])  # the newer half: after the move
@@ -567,7 +590,7 @@ class CameraWatch:
         event = WatchEvent(EventKind.MOVED, camera, now_s, verdict.offset_m, verdict.offset_deg,
                            verdict.fit.T_world_cam.copy())
         self.events.append(event)
-        return [event]
+        return event
 
     def _culprit(self, verdicts: dict[str, Verdict], now_s: float) -> tuple[str, Verdict] | None:
         """The camera to declare moved, if any: of the cameras whose window says moved, the one
