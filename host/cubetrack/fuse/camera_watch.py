@@ -457,6 +457,19 @@ class CameraWatch:
         reference): it is suspect, or it moved and has not rejoined."""
         return self.state.get(camera, CameraState.WATCHED) is not CameraState.WATCHED
 
+    def referee(self, camera: str) -> bool:
+        """Whether the camera's sightings may serve in the others' references: not while it
+        re-calibrates; not while suspect either, where every check keeps ``reference_cameras``
+        others without it (four cameras or more). With three, a suspect camera set aside would
+        leave the other two unchecked, and its own window judged against references holding the
+        camera that really moved (issue 27's seed 58: cam3 bumped, the suspect cam2 declared)."""
+        state = self.state.get(camera, CameraState.WATCHED)
+        return state is CameraState.WATCHED or (state is CameraState.SUSPECT and not self._suspects_aside())
+
+    def _suspects_aside(self) -> bool:
+        """Whether a suspect camera is no one's reference (see :meth:`referee`)."""
+        return len(self.state) - 2 >= self.params.reference_cameras
+
     def off_prediction(self, sighting: CubeSighting, T_world_cube: np.ndarray) -> bool:
         """Whether a watched camera's sighting must be held out of the fusion: it misses the
         fused prediction ``T_world_cube`` (at its capture time) by more than ``gate_prediction_px``
@@ -602,8 +615,8 @@ class CameraWatch:
         moved = [c for c, v in verdicts.items() if v.moved]
         if not moved:
             return None
-        suspects = [c for c in moved if self.state[c] is CameraState.SUSPECT]
-        if suspects:  # named by its disagreement when it became suspect; no one's reference since
+        suspects = [c for c in moved if self.state[c] is CameraState.SUSPECT and self._suspects_aside()]
+        if suspects:  # named when it became suspect; no one's reference since
             top = max(suspects, key=lambda c: verdicts[c].shift_px)
             return top, verdicts[top]
         if len(moved) > 1:  # each in turn put where its window's newer half says: the one that makes the others agree
@@ -751,7 +764,7 @@ class CameraWatch:
         # a re-calibrating camera's samples are its new pose's data (calib.recalibrate): every sighting in the span
         per_camera = math.inf if self.state[sighting.camera] is CameraState.RECALIBRATING else REFERENCE_SIGHTINGS
         for _, o in near:
-            if taken[o.camera] < per_camera and not self.excluded(o.camera) and (
+            if taken[o.camera] < per_camera and self.referee(o.camera) and (
                     o.camera in taken or len(taken) < self.params.reference_cameras_max):
                 taken[o.camera] += 1
                 chosen.append(o)

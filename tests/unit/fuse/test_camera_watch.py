@@ -302,6 +302,28 @@ def test_the_camera_made_suspect_is_the_one_that_misses_most_now(fused, suspect)
     assert [c for c, s in watch.state.items() if s is CameraState.SUSPECT] == [suspect], watch.state
 
 
+@pytest.mark.parametrize("cameras", [3, 4])
+def test_a_suspect_camera_serves_in_the_references_only_where_it_would_leave_the_others_unchecked(cameras):
+    """With three cameras a suspect one stays in the others' references (set aside, each check of
+    the other two would lack a second reference camera, and only the suspect's own window, against
+    references holding whichever camera really moved, would be judged: issue 27's seed 58 named
+    the wrong camera so), and a suspect whose window says moved is not declared for that alone;
+    with four or more it is no one's reference. Out of the fusion either way; re-calibrating:
+    no one's reference."""
+    some = {c: CAMERAS[c] for c in list(CAMERAS)[:cameras]}
+    watch = CameraWatch({"bot": LAYOUT}, some, WatchParams(enabled=True))
+    watch.state["cam1"], watch.state["cam2"] = CameraState.SUSPECT, CameraState.RECALIBRATING
+    assert watch.excluded("cam1") and watch.referee("cam1") is (cameras == 3)
+    assert not watch.referee("cam2") and watch.referee("cam3")
+    from cubetrack.fuse import camera_watch
+
+    fit = camera_watch.CameraFit(CAMERAS["cam1"], 0.0, 0.0, 0.0, 8)
+    verdicts = {c: camera_watch.Verdict(fit, 9.0, 0.02, 1.0, c == "cam1") for c in ("cam1", "cam3")}
+    watch._disagreement["cam3"].append((0.0, 1.0))  # cam3 disagreed most: only the suspect shortcut names cam1
+    named = watch._culprit(verdicts, 0.0)
+    assert (named is not None and named[0] == "cam1") is (cameras > 3)
+
+
 def test_a_second_camera_declared_moved_leaves_the_first_ones_gathered_samples_but_those_it_spoilt():
     """Two of five bumped 10 s apart (issue 27): cam2 re-calibrating since 22 s when cam4 is declared
     at 32 s. cam2 keeps what it gathered (every sample was dropped before: cam2 started over, 43 s
