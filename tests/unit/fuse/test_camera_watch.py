@@ -24,15 +24,8 @@ from cubetrack.calib.recalibrate import WatchedFusion
 from cubetrack.core.geometry import make_T, rotation_angle
 from cubetrack.core.records import CameraWatchState, CubeSighting
 from cubetrack.estimate.pose import estimate_cube
-from cubetrack.fuse.camera_watch import (
-    CameraState,
-    CameraWatch,
-    EventKind,
-    WatchEvent,
-    WatchParams,
-    WatchSample,
-    residuals_px,
-)
+from cubetrack.fuse import camera_watch
+from cubetrack.fuse.camera_watch import CameraState, CameraWatch, EventKind, WatchEvent, WatchParams, WatchSample
 from cubetrack.fuse.fusion import FilterFusion
 from cubetrack.sink.base import Outputs
 
@@ -296,8 +289,8 @@ def test_the_camera_made_suspect_is_the_one_that_misses_most_now(fused, suspect)
     for camera, time_s, miss_px in [("cam3", 0.0, 5.7), ("cam1", 0.0, 10.3), ("cam2", 0.05, 14.0),
                                     ("cam3", 0.13, 5.7), ("cam1", 0.14, 15.5), ("cam2", 0.18, 14.0)]:
         sample = _missing(camera, t0 + time_s, miss_px)
-        assert np.median(np.linalg.norm(residuals_px(three[camera], sample.points_world_m, sample.normalized,
-                                                     sample.focal_px), axis=1)) == pytest.approx(miss_px)
+        residual = camera_watch.residuals_px(three[camera], sample.points_world_m, sample.normalized, sample.focal_px)
+        assert np.median(np.linalg.norm(residual, axis=1)) == pytest.approx(miss_px)
         watch._judge(sample, "bot")
     assert [c for c, s in watch.state.items() if s is CameraState.SUSPECT] == [suspect], watch.state
 
@@ -315,8 +308,6 @@ def test_a_suspect_camera_serves_in_the_references_only_where_it_would_leave_the
     watch.state["cam1"], watch.state["cam2"] = CameraState.SUSPECT, CameraState.RECALIBRATING
     assert watch.excluded("cam1") and watch.referee("cam1") is (cameras == 3)
     assert not watch.referee("cam2") and watch.referee("cam3")
-    from cubetrack.fuse import camera_watch
-
     fit = camera_watch.CameraFit(CAMERAS["cam1"], 0.0, 0.0, 0.0, 8)
     verdicts = {c: camera_watch.Verdict(fit, 9.0, 0.02, 1.0, c == "cam1") for c in ("cam1", "cam3")}
     watch._disagreement["cam3"].append((0.0, 1.0))  # cam3 disagreed most: only the suspect shortcut names cam1
@@ -329,8 +320,6 @@ def test_a_second_camera_declared_moved_leaves_the_first_ones_gathered_samples_b
     at 32 s. cam2 keeps what it gathered (every sample was dropped before: cam2 started over, 43 s
     to rejoin on seed 31's scene) except those of the last SPOILT_WINDOWS windows whose reference
     held cam4; the watched cameras' windows restart; cam4 starts from its window's newer half."""
-    from cubetrack.fuse import camera_watch
-
     watch = CameraWatch({"bot": LAYOUT}, CAMERAS, WatchParams(enabled=True))
     watch.settled.update(CAMERAS)
     watch.state["cam2"] = CameraState.RECALIBRATING
