@@ -406,15 +406,18 @@ def window_verdict(samples: Sequence[WatchSample], T_world_cam: np.ndarray, para
     return Verdict(fit, shift, off_m, off_deg, moved)
 
 
-# a camera declared moved moved after the start of its window (its newer half is after the move; it was suspect, in
-# no one's reference, within a quarter second of the move as a rule): a re-calibrating camera's samples of this many
-# windows before the declaration whose reference held it are dropped
-SPOILT_WINDOWS = 2.0
-
-
-def spoilt_by(sample: WatchSample, camera: str, since_s: float) -> bool:
-    """Whether the sample is from ``since_s`` on and its reference held ``camera``'s sightings."""
-    return sample.time_s >= since_s and any(s.camera == camera for s in sample.reference_sets)
+def without_camera(sample: WatchSample, camera: str, reference_cameras: int) -> WatchSample | None:
+    """The sample with ``camera``'s sightings taken out of its reference (a camera declared moved
+    since: they may be from after its move, and the older and newer halves of a re-calibration
+    would otherwise hold different cameras' calibrations), or None when fewer than
+    ``reference_cameras`` other cameras are left in it. Its corners' world points stay the old
+    reference's until the re-calibration's joint fit places them again
+    (:func:`cubetrack.calib.recalibrate.joint_fit`, from its first round)."""
+    if not any(s.camera == camera for s in sample.reference_sets):
+        return sample
+    sets = tuple(s for s in sample.reference_sets if s.camera != camera)
+    return dataclasses.replace(sample, reference_sets=sets) if len({s.camera for s in sets}) >= reference_cameras \
+        else None
 
 
 class CameraWatch:
@@ -583,14 +586,14 @@ class CameraWatch:
     def _declare(self, camera: str, verdict: Verdict, now_s: float) -> WatchEvent:
         """Declare ``camera`` moved (its ``verdict``, at ``now_s``): set it aside with its window's
         newer half as its first samples; every watched camera's window restarts; a re-calibrating
-        camera keeps what it gathered but the samples this one may have spoilt (:func:`spoilt_by`):
-        a second camera moved before the first rejoined."""
+        camera keeps what it gathered with this one taken out of its references
+        (:func:`without_camera`): a second camera moved before the first rejoined."""
         p = self.params
         window = [s for s in self.samples[camera] if s.time_s >= now_s - p.window_s]
         for other, samples in self.samples.items():
             self._misses[other].clear()
-            if self.state[other] is CameraState.RECALIBRATING:  # keeps what it gathered, but what this one spoilt
-                kept = [s for s in samples if not spoilt_by(s, camera, now_s - SPOILT_WINDOWS * p.window_s)]
+            if self.state[other] is CameraState.RECALIBRATING:  # keeps what it gathered, without this one
+                kept = [k for k in (without_camera(s, camera, p.reference_cameras) for s in samples) if k is not None]
                 samples.clear()
                 samples.extend(kept)
                 continue
