@@ -32,19 +32,21 @@ its window takes; so each checked sighting is also judged on its own (:meth:`Cam
 a camera whose last ``suspect_samples`` samples each miss the other cameras' cube pose by more
 than ``suspect_px`` (median corner residual at its settled pose), and which misses most now (the
 fused prediction, else the other cameras' cube pose: :meth:`CameraWatch._misses_most`), is
-**suspect**: out of the fusion and no one's reference, still checked, until as many samples in
-a row agree again or it is declared moved (at least ``reference_cameras`` others stay in use).
+**suspect**: out of the fusion and, with four cameras or more, no one's reference
+(:meth:`CameraWatch.referee`), still checked, until as many samples in a row agree again or it is
+declared moved (at least ``reference_cameras`` others stay in use).
 And since a check waits for the other cameras' sightings around it, the very first sightings
 after a bump come before any check: :meth:`CameraWatch.off_prediction` holds a sighting out of
 the fusion when it misses the fused prediction by more than ``gate_prediction_px`` and
 ``gate_prediction_ratio`` times more than every other camera's latest sighting.
 
 A moved camera spoils the references it takes part in, so its partners' windows shift too (with
-three cameras, about as much as its own). A suspect camera whose window says moved is declared;
-otherwise, of the cameras whose window says moved, the one declared
-is the one that disagreed most with the others inside the reference fits it took part in over the
-window (the median corner residual of its sets there); if that camera's own window does not say
-moved, none is declared yet. Then every camera's window restarts. A moved camera is set aside
+three cameras, about as much as its own). With four cameras or more a suspect camera whose window
+says moved is declared; otherwise, of several cameras whose window says moved, the one whose pose
+fitted to its window's newer half makes the others' references agree with them again
+(:meth:`CameraWatch._others_miss_px`); of one, it is declared if it is the one that disagreed most
+with the others inside the reference fits it took part in over the window (the median corner
+residual of its sets there), else none is declared yet. Then every camera's window restarts. A moved camera is set aside
 (:meth:`CameraWatch.excluded`: its sightings leave the fusion, and it serves nobody as a
 reference) and its samples are gathered for its re-calibration until :meth:`CameraWatch.rejoin`.
 Offsets under the thresholds (what a calibration leaves, a slow drift's first millimetres) are
@@ -456,8 +458,8 @@ class CameraWatch:
         self._next_check_s = -math.inf
 
     def excluded(self, camera: str) -> bool:
-        """Whether the camera's sightings must stay out of the fusion (and serve nobody as a
-        reference): it is suspect, or it moved and has not rejoined."""
+        """Whether the camera's sightings must stay out of the fusion: it is suspect, or it moved
+        and has not rejoined (who serves as a reference: :meth:`referee`)."""
         return self.state.get(camera, CameraState.WATCHED) is not CameraState.WATCHED
 
     def referee(self, camera: str) -> bool:
