@@ -5,7 +5,7 @@ settled pose), the emulator knocks cam2 on its tripod (`cubecam.bump`: a 1.5 deg
 resampled from then on); cam2's tile goes moved -> re-calibrating -> rejoined, no other tile
 leaves watched, and the session keeps the event and the new pose (camera_watch.jsonl,
 extrinsics.watch-1.toml), the new pose within 0.3 degrees of the bump. A short CI run (issue 27's
-seventh session: 30.3 -> 23.7 s at load 11-14): every sighting checked (`samples_per_s` above the
+seventh session: 27.2 -> 17.0 s at load 3, 35 -> 28 s at load 11): every sighting checked (`samples_per_s` above the
 cameras' rate), a 1 s window checked every 0.25 s, settled poses refitted every half second, and
 the re-calibration asks less than a lab's defaults (150 corners; its fit known to 5 mm / 0.15 deg,
 its halves agreeing to 10 mm / 0.2 deg: the first or second try rejoins, where the lab's limits
