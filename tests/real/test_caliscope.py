@@ -50,7 +50,9 @@ def test_the_import_writes_what_track_reads(imported):
     result, _work = imported
     assert result.frames == {f"cam{i}": 111 for i in range(4)}
     config, params = load_config(result.config)
-    assert params.detector.detect_inverted_marker and not params.estimator.use_upright_prior
+    # the board is printed inverted: white-on-black markers only, one search per frame (not the image and its negative)
+    assert params.detector.detect_inverted_marker and not params.detector.detect_normal_marker
+    assert not params.estimator.use_upright_prior
     assert sorted(config.robots[0].layout.ids) == list(range(10))
     recording = Recording.open(result.recording)
     assert all(len(recording.clock_samples(c)) == 111 for c in recording.camera_names)
