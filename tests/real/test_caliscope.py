@@ -107,6 +107,9 @@ def test_the_default_tracker_follows_the_board_better_than_the_mean_fusion(score
     0.62 deg). Not met, so not asserted: median <= 2 mm (docs/tracking.md "Real footage")."""
     ours, mean = scores["default"], scores["mean"]
     assert ours.fraction >= 0.98, ours.line("default")
+    # each error knows its reference's cameras (2-4 agreeing ones; every count occurs on this footage)
+    assert len(ours.reference_cameras) == len(ours.position_mm) and set(ours.reference_cameras) == {2, 3, 4}
+    assert ours.by_reference("default").count(" instants, median ") == 3, ours.by_reference("default")
     assert ours.position_mm.max() <= 20.0 and np.median(ours.rotation_deg) <= 0.6, ours.line("default")
     assert np.percentile(ours.position_mm, 95) <= 6.0, ours.line("default")
     assert np.median(ours.position_mm) < np.median(mean.position_mm), (ours.line("default"), mean.line("mean"))
