@@ -7,7 +7,7 @@ the offset is known to within half the round trip — independent of how long fr
 arrive. A line host = device + offset + drift * (device - device_ref) is fitted to the fastest
 recent round trips, which follows tens of ppm of drift.
 
-The start (docs/live.md, "The clock's first seconds"): each round trip weighs by the inverse square of its
+The start (docs/tracking.md, "The camera clocks' first seconds"): each round trip weighs by the inverse square of its
 width (one 35 ms trip is worth 1/25 of a 7 ms one), and the drift has a prior (``drift_prior_ppm``, a
 crystal's rate error): two round trips a second apart bound the offset to a few milliseconds each, so
 their slope alone could read thousands of ppm and carry a stamp error that grows with every frame until
