@@ -7,12 +7,6 @@ the offset is known to within half the round trip — independent of how long fr
 arrive. A line host = device + offset + drift * (device - device_ref) is fitted to the fastest
 recent round trips, which follows tens of ppm of drift.
 
-The start (docs/tracking.md, "The camera clocks' first seconds"): each round trip weighs by the inverse square of its
-width (one 35 ms trip is worth 1/25 of a 7 ms one), and the drift has a prior (``drift_prior_ppm``, a
-crystal's rate error): two round trips a second apart bound the offset to a few milliseconds each, so
-their slope alone could read thousands of ppm and carry a stamp error that grows with every frame until
-more trips come; with the prior the line stays level until the trips span enough time to show a drift.
-
 :class:`ClockSync` is causal: it only uses round trips it has been given so far, so a recording
 replayed through it stamps frames exactly as the live tracker did. Without round trips it falls
 back to frame arrival times (the lower envelope of arrival - device time, i.e. the fastest
@@ -43,14 +37,11 @@ class ClockSyncParams:
                                           "loosely), seconds")
     min_samples: int = param(1, "round trips needed before they are trusted over arrival times (one fast round trip "
                                 "already beats arrival times)")
-    drift_prior_ppm: float = param(100.0, "the clock rate error expected before the round trips show it (the sd of "
-                                          "a prior on the drift), parts per million")
 
     def __post_init__(self) -> None:
         check(self.window >= 2 and self.min_samples >= 1 and 0.0 < self.fastest_fraction <= 1.0,
               "need window >= 2, min_samples >= 1 and 0 < fastest_fraction <= 1")
         check(self.max_round_trip_s > 0, "max_round_trip_s must be positive")
-        check(self.drift_prior_ppm > 0, "drift_prior_ppm must be positive")
 
 
 @enum.unique
@@ -86,27 +77,9 @@ def fit_line(device_s: np.ndarray, offset_s: np.ndarray) -> tuple[float, float, 
     return a, float(np.dot(x, offset_s - a) / np.dot(x, x)), ref
 
 
-ROUND_TRIP_FLOOR_S = 1e-4  # a round trip narrower than this weighs as this (declared samples are 0 wide)
-
-
-def fit_weighted_line(device_s: np.ndarray, offset_s: np.ndarray, sd_s: np.ndarray,
-                      drift_sd: float) -> tuple[float, float, float]:
-    """offset = a + b (device - ref) by weighted least squares (each point's weight 1 / ``sd_s``^2)
-    with a zero-mean prior of sd ``drift_sd`` on the slope b; returns (a, b, ref), ref the
-    weighted mean device time (where a and b are independent)."""
-    w = 1.0 / np.square(sd_s)
-    ref = float(np.dot(w, device_s) / w.sum())
-    x = device_s - ref
-    a = float(np.dot(w, offset_s) / w.sum())
-    b = float(np.dot(w * x, offset_s - a) / (np.dot(w * x, x) + drift_sd ** -2))
-    return a, b, ref
-
-
 def fit_round_trips(host_send_s: np.ndarray, device_s: np.ndarray, host_recv_s: np.ndarray,
-                    fastest_fraction: float = 0.3, drift_prior_ppm: float = 100.0) -> ClockFit:
-    """Fit the clock line to the fastest round trips (their midpoints, each weighed by its width:
-    the device read its clock somewhere inside it), robust to slow ones; the drift held to its
-    prior (``drift_prior_ppm``) until the trips span enough time to show it."""
+                    fastest_fraction: float = 0.3) -> ClockFit:
+    """Fit the clock line to the fastest round trips (their midpoints), robust to slow ones."""
     host_send_s, device_s, host_recv_s = (np.asarray(a, dtype=float) for a in (host_send_s, device_s, host_recv_s))
     rtt = host_recv_s - host_send_s
     ok = np.isfinite(rtt) & (rtt >= 0)
@@ -116,8 +89,7 @@ def fit_round_trips(host_send_s: np.ndarray, device_s: np.ndarray, host_recv_s: 
     keep = max(min(2, rtt.size), int(np.ceil(fastest_fraction * rtt.size)))  # two points give the drift
     order = np.argsort(rtt, kind="stable")[:keep]
     mid = (host_send_s[order] + host_recv_s[order]) / 2.0
-    sd = np.maximum(rtt[order], ROUND_TRIP_FLOOR_S) / 2.0
-    a, b, ref = fit_weighted_line(device_s[order], mid - device_s[order], sd, drift_prior_ppm * 1e-6)
+    a, b, ref = fit_line(device_s[order], mid - device_s[order])
     return ClockFit(a, b, ref, ClockFitMethod.ROUND_TRIP, float(np.max(rtt[order]) / 2.0))
 
 
@@ -160,7 +132,7 @@ class ClockSync:
         if self._fit is None:
             if len(self._trips) >= self.params.min_samples:
                 s, d, r = (np.array(v) for v in zip(*self._trips, strict=True))
-                self._fit = fit_round_trips(s, d, r, self.params.fastest_fraction, self.params.drift_prior_ppm)
+                self._fit = fit_round_trips(s, d, r, self.params.fastest_fraction)
             elif self._arrivals:  # refitted per frame until a round trip comes: one array, few numpy calls
                 arrivals = np.array(self._arrivals)
                 self._fit = fit_arrivals(arrivals[:, 0], arrivals[:, 1])
