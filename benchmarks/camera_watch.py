@@ -137,6 +137,16 @@ def pose_error(T_a: np.ndarray, T_b: np.ndarray) -> tuple[float, float]:
     return float(np.linalg.norm(T_a[:3, 3] - T_b[:3, 3])), rotation_angle(T_a[:3, :3], T_b[:3, :3], unit="deg")
 
 
+def move_error(T_new: np.ndarray, T_calibrated: np.ndarray, T_true_after: np.ndarray, T_true_before: np.ndarray
+               ) -> tuple[float, float]:
+    """How far (m, deg) the move the re-calibration found (its new pose against the calibrated
+    one, in the camera's frame) is from the true move: the new pose's error without what the
+    calibration left (the other cameras' calibration error that every re-fit inherits)."""
+    from cubetrack.core.geometry import invert_T
+
+    return pose_error(invert_T(T_calibrated) @ T_new, invert_T(T_true_before) @ T_true_after)
+
+
 def rmse(err: np.ndarray) -> float:
     return float(np.sqrt(np.mean(err**2))) if len(err) else math.nan
 
@@ -160,13 +170,15 @@ def bump_rows(rec: Path, events: list, moves: Moves, start: float, extrinsics: d
         camera = f"cam{number}"
         moved = [e for e in events if e.kind.value == "moved" and e.camera == camera]
         rejoined = [e for e in events if e.kind.value == "rejoined" and e.camera == camera]
+        true_before = true_camera_pose(rec, camera, start + at_s - 1.0)
         row: dict = {"moved_after_s": moved[0].time_s - start - at_s if moved else None,
                      "rejoined_after_s": rejoined[0].time_s - start - at_s if rejoined else None,
-                     "calibrated_error": pose_error(true_camera_pose(rec, camera, start + at_s - 1.0),
-                                                    extrinsics[camera].T_world_cam),
+                     "calibrated_error": pose_error(true_before, extrinsics[camera].T_world_cam),
                      "principal_point_floor_deg": principal_point_floor_deg(rec, camera)}
         if rejoined:
             row["new_pose_error"] = pose_error(true_camera_pose(rec, camera), rejoined[0].T_world_cam)
+            row["move_error"] = move_error(rejoined[0].T_world_cam, extrinsics[camera].T_world_cam,
+                                           true_camera_pose(rec, camera), true_before)
             row["sightings"] = rejoined[0].sightings
         out[camera] = row
     return out
@@ -311,6 +323,8 @@ def print_table(rows: list[dict]) -> None:
             print(f"{head}{camera:>6}  {_s(b.get('moved_after_s')):>11}  {_s(b.get('rejoined_after_s')):>14}  "
                   f"{_pose(b.get('new_pose_error')):>16}  {_pose(b.get('calibrated_error')):>18}  "
                   f"{_deg(b.get('principal_point_floor_deg')):>9}  {tail}")
+            if b.get("move_error"):
+                print(f"{'':29}the move found against the true move: {_pose(b['move_error'])}")
         for t, in_use, settled in w.get("drift", []):
             print(f"    drift at {t:6.1f} s: pose in use {in_use:6.2f} mm off, settled pose "
                   f"{'-' if settled is None else f'{settled:.2f} mm'} off")

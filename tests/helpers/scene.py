@@ -6,13 +6,13 @@ from __future__ import annotations
 from pathlib import Path
 
 
-def simulated_recording(rec: Path, duration_s: float, seed: int = 8, cameras: int = 3) -> Path:
-    """A short simulated recording in ``rec`` (one calibration frame, one render worker: for tests
-    that replay it with ``cubetrack track``)."""
+def simulated_recording(rec: Path, duration_s: float, seed: int = 8, cameras: int = 3, workers: int = 1) -> Path:
+    """A short simulated recording in ``rec`` (one calibration frame, ``workers`` render workers:
+    for tests that replay it with ``cubetrack track``; the frames do not depend on ``workers``)."""
     from cubetrack.cli.main import main
 
     assert main(["simulate", "--out", str(rec), "--cameras", str(cameras), "--duration", str(duration_s),
-                 "--seed", str(seed), "--calibration-frames", "1", "--workers", "1"]) == 0
+                 "--seed", str(seed), "--calibration-frames", "1", "--workers", str(workers)]) == 0
     return rec
 
 

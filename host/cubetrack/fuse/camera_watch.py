@@ -30,21 +30,23 @@ rejoining). The camera is **moved** when
 Until it is declared, a bumped camera would pull the fused pose towards its own for the seconds
 its window takes; so each checked sighting is also judged on its own (:meth:`CameraWatch._judge`):
 a camera whose last ``suspect_samples`` samples each miss the other cameras' cube pose by more
-than ``suspect_px`` (median corner residual at its settled pose), and which disagreed most with
-the others in the recent reference fits, is **suspect**: out of the fusion and no one's reference,
-still checked, until as many samples in a row agree again or it is declared moved (at least
-``reference_cameras`` others stay in use).
+than ``suspect_px`` (median corner residual at its settled pose), and which misses most now (the
+fused prediction, else the other cameras' cube pose: :meth:`CameraWatch._misses_most`), is
+**suspect**: out of the fusion and, with four cameras or more, no one's reference
+(:meth:`CameraWatch.referee`), still checked, until as many samples in a row agree again or it is
+declared moved (at least ``reference_cameras`` others stay in use).
 And since a check waits for the other cameras' sightings around it, the very first sightings
 after a bump come before any check: :meth:`CameraWatch.off_prediction` holds a sighting out of
 the fusion when it misses the fused prediction by more than ``gate_prediction_px`` and
 ``gate_prediction_ratio`` times more than every other camera's latest sighting.
 
 A moved camera spoils the references it takes part in, so its partners' windows shift too (with
-three cameras, about as much as its own). A suspect camera whose window says moved is declared;
-otherwise, of the cameras whose window says moved, the one declared
-is the one that disagreed most with the others inside the reference fits it took part in over the
-window (the median corner residual of its sets there); if that camera's own window does not say
-moved, none is declared yet. Then every camera's window restarts. A moved camera is set aside
+three cameras, about as much as its own). With four cameras or more a suspect camera whose window
+says moved is declared; otherwise, of several cameras whose window says moved, the one whose pose
+fitted to its window's newer half makes the others' references agree with them again
+(:meth:`CameraWatch._others_miss_px`); of one, it is declared if it is the one that disagreed most
+with the others inside the reference fits it took part in over the window (the median corner
+residual of its sets there), else none is declared yet. Then every camera's window restarts. A moved camera is set aside
 (:meth:`CameraWatch.excluded`: its sightings leave the fusion, and it serves nobody as a
 reference) and its samples are gathered for its re-calibration until :meth:`CameraWatch.rejoin`.
 Offsets under the thresholds (what a calibration leaves, a slow drift's first millimetres) are
@@ -406,6 +408,20 @@ def window_verdict(samples: Sequence[WatchSample], T_world_cam: np.ndarray, para
     return Verdict(fit, shift, off_m, off_deg, moved)
 
 
+def without_camera(sample: WatchSample, camera: str, reference_cameras: int) -> WatchSample | None:
+    """The sample with ``camera``'s sightings taken out of its reference (a camera declared moved
+    since: they may be from after its move, and the older and newer halves of a re-calibration
+    would otherwise hold different cameras' calibrations), or None when fewer than
+    ``reference_cameras`` other cameras are left in it. Its corners' world points stay the old
+    reference's until the re-calibration's joint fit places them again
+    (:func:`cubetrack.calib.recalibrate.joint_fit`, from its first round)."""
+    if not any(s.camera == camera for s in sample.reference_sets):
+        return sample
+    sets = tuple(s for s in sample.reference_sets if s.camera != camera)
+    return dataclasses.replace(sample, reference_sets=sets) if len({s.camera for s in sets}) >= reference_cameras \
+        else None
+
+
 class CameraWatch:
     """Every camera watched against the others (see the module doc). Visible state: ``state``
     (camera -> :class:`CameraState`), ``T_world_cam`` (camera -> the pose the tracker uses: the
@@ -427,7 +443,9 @@ class CameraWatch:
         self.settled: dict[str, np.ndarray] = {}
         self._next_baseline_s = -math.inf
         self._disagreement: dict[str, deque[tuple[float, float]]] = {c: deque() for c in T_world_cams}
-        self._misses: dict[str, deque[float]] = {c: deque(maxlen=params.suspect_samples) for c in T_world_cams}
+        # camera -> its latest samples' (time, median corner miss at its settled pose, px)
+        self._misses: dict[str, deque[tuple[float, float]]] = {c: deque(maxlen=params.suspect_samples)
+                                                               for c in T_world_cams}
         self._off_prediction: dict[str, dict[str, tuple[float, float]]] = {r: {} for r in layouts}
         self.events: list[WatchEvent] = []
         self.stats: Counter[str] = Counter()
@@ -440,9 +458,22 @@ class CameraWatch:
         self._next_check_s = -math.inf
 
     def excluded(self, camera: str) -> bool:
-        """Whether the camera's sightings must stay out of the fusion (and serve nobody as a
-        reference): it is suspect, or it moved and has not rejoined."""
+        """Whether the camera's sightings must stay out of the fusion: it is suspect, or it moved
+        and has not rejoined (who serves as a reference: :meth:`referee`)."""
         return self.state.get(camera, CameraState.WATCHED) is not CameraState.WATCHED
+
+    def referee(self, camera: str) -> bool:
+        """Whether the camera's sightings may serve in the others' references: not while it
+        re-calibrates; not while suspect either, where every check keeps ``reference_cameras``
+        others without it (four cameras or more). With three, a suspect camera set aside would
+        leave the other two unchecked, and its own window judged against references holding the
+        camera that really moved (issue 27's seed 58: cam3 bumped, the suspect cam2 declared)."""
+        state = self.state.get(camera, CameraState.WATCHED)
+        return state is CameraState.WATCHED or (state is CameraState.SUSPECT and not self._suspects_aside())
+
+    def _suspects_aside(self) -> bool:
+        """Whether a suspect camera is no one's reference (see :meth:`referee`)."""
+        return len(self.state) - 2 >= self.params.reference_cameras
 
     def off_prediction(self, sighting: CubeSighting, T_world_cube: np.ndarray) -> bool:
         """Whether a watched camera's sighting must be held out of the fusion: it misses the
@@ -502,12 +533,13 @@ class CameraWatch:
             self._predicted.pop((old.camera, old.robot, old.seq), None)
         if t >= self._next_sample_s.get(sighting.camera, -math.inf):  # checks_per_s shared by the cameras in turn
             self._pending.append(sighting)
-            self._next_sample_s[sighting.camera] = t + max(1.0 / p.samples_per_s, len(self.state) / p.checks_per_s)
+            self._next_sample_s[sighting.camera] = t + self._sample_interval_s()
         while self._pending and self._pending[0].capture_time_s + self.params.reference_span_s <= self._newest_s:
-            sample = self._sample(self._pending.popleft())
+            checked = self._pending.popleft()
+            sample = self._sample(checked)
             if sample is not None:
                 self.samples[sample.camera].append(sample)
-                self._judge(sample)
+                self._judge(sample, checked.robot)
         if self._newest_s < self._next_check_s:
             return []
         self._next_check_s = self._newest_s + self.params.check_every_s
@@ -551,11 +583,23 @@ class CameraWatch:
         worst = self._culprit(verdicts, now_s)
         if worst is None:
             return []
-        camera, verdict = worst
+        return [self._declare(*worst, now_s)]
+
+    def _declare(self, camera: str, verdict: Verdict, now_s: float) -> WatchEvent:
+        """Declare ``camera`` moved (its ``verdict``, at ``now_s``): set it aside with its window's
+        newer half as its first samples; every watched camera's window restarts; a re-calibrating
+        camera keeps what it gathered with this one taken out of its references
+        (:func:`without_camera`): a second camera moved before the first rejoined."""
+        p = self.params
         window = [s for s in self.samples[camera] if s.time_s >= now_s - p.window_s]
         for other, samples in self.samples.items():
-            samples.clear()
             self._misses[other].clear()
+            if self.state[other] is CameraState.RECALIBRATING:  # keeps what it gathered, without this one
+                kept = [k for k in (without_camera(s, camera, p.reference_cameras) for s in samples) if k is not None]
+                samples.clear()
+                samples.extend(kept)
+                continue
+            samples.clear()
             if self.state[other] is CameraState.SUSPECT:
                 self.state[other] = CameraState.WATCHED
         self.samples[camera].extend(window[len(window) // 2:])  # the newer half: after the move
@@ -564,7 +608,7 @@ class CameraWatch:
         event = WatchEvent(EventKind.MOVED, camera, now_s, verdict.offset_m, verdict.offset_deg,
                            verdict.fit.T_world_cam.copy())
         self.events.append(event)
-        return [event]
+        return event
 
     def _culprit(self, verdicts: dict[str, Verdict], now_s: float) -> tuple[str, Verdict] | None:
         """The camera to declare moved, if any: of the cameras whose window says moved, the one
@@ -576,8 +620,8 @@ class CameraWatch:
         moved = [c for c, v in verdicts.items() if v.moved]
         if not moved:
             return None
-        suspects = [c for c in moved if self.state[c] is CameraState.SUSPECT]
-        if suspects:  # named by its disagreement when it became suspect; no one's reference since
+        suspects = [c for c in moved if self.state[c] is CameraState.SUSPECT and self._suspects_aside()]
+        if suspects:  # named when it became suspect; no one's reference since
             top = max(suspects, key=lambda c: verdicts[c].shift_px)
             return top, verdicts[top]
         if len(moved) > 1:  # each in turn put where its window's newer half says: the one that makes the others agree
@@ -625,34 +669,51 @@ class CameraWatch:
                     misses.append(float(np.median(np.linalg.norm(residual, axis=1))))
         return float(np.median(misses)) if misses else math.inf
 
-    def _judge(self, sample: WatchSample) -> None:
+    def _judge(self, sample: WatchSample, robot: str) -> None:
         """Make the sample's camera suspect, or clear it: its last ``suspect_samples`` samples all
         miss the other cameras' cube pose by more than ``suspect_px`` at its settled pose, and it is
-        the camera that disagreed most with the others in the recent reference fits (a suspect
-        spoils its partners' references too); cleared once as many in a row are within
-        ``suspect_px``. At least ``reference_cameras`` others must stay in use."""
+        the camera that misses most now (:meth:`_misses_most`); cleared once as many in a row are
+        within ``suspect_px``. At least ``reference_cameras`` others must stay in use."""
         camera, p = sample.camera, self.params
         settled = self.settled.get(camera)
         if settled is None or self.state[camera] is CameraState.RECALIBRATING:
             return
         misses = self._misses[camera]
         residual = residuals_px(settled, sample.points_world_m, sample.normalized, sample.focal_px)
-        misses.append(float(np.median(np.linalg.norm(residual, axis=1))))
+        misses.append((sample.time_s, float(np.median(np.linalg.norm(residual, axis=1)))))
         if len(misses) < p.suspect_samples:
             return
         if self.state[camera] is CameraState.SUSPECT:
             self.stats["checked while suspect"] += 1
-            if max(misses) <= p.suspect_px:
+            if max(m for _, m in misses) <= p.suspect_px:
                 self.state[camera] = CameraState.WATCHED
             return
         in_use = [c for c, s in self.state.items() if s is CameraState.WATCHED]
-        if min(misses) <= p.suspect_px or len(in_use) - 1 < p.reference_cameras:
+        if min(m for _, m in misses) <= p.suspect_px or len(in_use) - 1 < p.reference_cameras:
             return
-        since_s = sample.time_s - p.suspect_samples / p.samples_per_s - p.reference_span_s
-        score = {c: float(np.median([d for t, d in self._disagreement[c] if t >= since_s] or [0.0])) for c in in_use}
-        if score[camera] > 0.0 and max(score, key=lambda c: score[c]) == camera:
+        if self._misses_most(camera, robot, in_use, sample.time_s):
             self.state[camera] = CameraState.SUSPECT
             self.stats["suspect"] += 1
+
+    def _misses_most(self, camera: str, robot: str, in_use: Sequence[str], time_s: float) -> bool:
+        """Whether ``camera`` misses most of the cameras in use right now (each one's latest miss
+        within ``suspect_samples`` sampling intervals and ``reference_span_s`` of ``time_s``): by
+        its miss of the fused prediction (:meth:`off_prediction`'s), else, without a recent one, by
+        its checks' miss of the other cameras' cube pose. A moved camera spoils its partners'
+        references, so with three cameras a partner's check can miss more than its own (issue
+        27's seed 31: cam1 15.5 px, the bumped cam2 14.0 px); the fused prediction, made by the
+        cameras before the move, is missed by the moved camera alone (cam2 15.5 px, cam1 2.7 px)."""
+        since_s = time_s - self.params.suspect_samples * self._sample_interval_s() - self.params.reference_span_s
+        latest = self._off_prediction.get(robot, {})
+        if latest.get(camera, (-math.inf, 0.0))[0] < since_s:
+            latest = {c: m[-1] for c, m in self._misses.items() if m}  # holds this camera's sample just judged
+        others = [m for c, (t, m) in latest.items() if c != camera and c in in_use and t >= since_s]
+        return latest[camera][1] >= max(others, default=0.0)
+
+    def _sample_interval_s(self) -> float:
+        """How often each camera's sightings are checked at most, seconds (``samples_per_s``, or
+        less often in turn when ``checks_per_s`` is shared by many cameras)."""
+        return max(1.0 / self.params.samples_per_s, len(self.state) / self.params.checks_per_s)
 
     def _settle(self, camera: str, samples: Sequence[WatchSample]) -> None:
         """Fit the camera's settled pose to its samples before the window, given enough of them."""
@@ -708,7 +769,7 @@ class CameraWatch:
         # a re-calibrating camera's samples are its new pose's data (calib.recalibrate): every sighting in the span
         per_camera = math.inf if self.state[sighting.camera] is CameraState.RECALIBRATING else REFERENCE_SIGHTINGS
         for _, o in near:
-            if taken[o.camera] < per_camera and not self.excluded(o.camera) and (
+            if taken[o.camera] < per_camera and self.referee(o.camera) and (
                     o.camera in taken or len(taken) < self.params.reference_cameras_max):
                 taken[o.camera] += 1
                 chosen.append(o)

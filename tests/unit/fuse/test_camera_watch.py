@@ -24,7 +24,8 @@ from cubetrack.calib.recalibrate import WatchedFusion
 from cubetrack.core.geometry import make_T, rotation_angle
 from cubetrack.core.records import CameraWatchState, CubeSighting
 from cubetrack.estimate.pose import estimate_cube
-from cubetrack.fuse.camera_watch import CameraState, CameraWatch, EventKind, WatchEvent, WatchParams
+from cubetrack.fuse import camera_watch
+from cubetrack.fuse.camera_watch import CameraState, CameraWatch, EventKind, WatchEvent, WatchParams, WatchSample
 from cubetrack.fuse.fusion import FilterFusion
 from cubetrack.sink.base import Outputs
 
@@ -260,6 +261,86 @@ def test_with_three_cameras_the_camera_that_moved_is_named_not_its_partners():
     watch = CameraWatch({"bot": LAYOUT}, believed, WatchParams(enabled=True, suspect_px=1000.0))
     events = [e for s in seen for e in watch.add(s)]
     assert [(e.camera, 10.0 < e.time_s < 13.0) for e in events] == [(victim, True)], events
+
+
+def _missing(camera: str, time_s: float, miss_px: float) -> WatchSample:
+    """A checked sighting of ``camera`` whose corners all miss by ``miss_px`` at its pose in CAMERAS."""
+    points = np.array([[0.1 * i, 0.05 * i, 0.2] for i in range(8)])
+    in_cam = (points - CAMERAS[camera][:3, 3]) @ CAMERAS[camera][:3, :3]
+    normalized = in_cam[:, :2] / in_cam[:, 2:] + miss_px / (math.sqrt(2.0) * INTR.K[0, 0])
+    return WatchSample(camera, time_s, points, normalized, np.full(8, INTR.K[0, 0]))
+
+
+@pytest.mark.parametrize(("fused", "suspect"), [
+    # issue 27's seed 31 (3 cameras, cam2 bumped): cam1's checks miss more than cam2's (cam2 spoils cam1's
+    # reference); the fused prediction, made before the bump, is missed by cam2 alone
+    ({"cam1": 2.7, "cam2": 15.5, "cam3": 1.1}, "cam2"),
+    ({}, "cam1"),  # no fused prediction (no track): the checks' misses decide
+])
+def test_the_camera_made_suspect_is_the_one_that_misses_most_now(fused, suspect):
+    """Three cameras: cam1's two checks miss by 10.3 and 15.5 px, cam2's by 14.0 px each, cam3's by
+    5.7 px. Only the camera that misses most now is made suspect: by the fused prediction where
+    there is one (as CameraWatch.off_prediction leaves it), else by the checks."""
+    three = {c: CAMERAS[c] for c in ("cam1", "cam2", "cam3")}
+    watch = CameraWatch({"bot": LAYOUT}, three, WatchParams(enabled=True))
+    watch.settled.update(three)
+    t0 = 100.0
+    watch._off_prediction["bot"].update({c: (t0 + 0.1, m) for c, m in fused.items()})
+    for camera, time_s, miss_px in [("cam3", 0.0, 5.7), ("cam1", 0.0, 10.3), ("cam2", 0.05, 14.0),
+                                    ("cam3", 0.13, 5.7), ("cam1", 0.14, 15.5), ("cam2", 0.18, 14.0)]:
+        sample = _missing(camera, t0 + time_s, miss_px)
+        residual = camera_watch.residuals_px(three[camera], sample.points_world_m, sample.normalized, sample.focal_px)
+        assert np.median(np.linalg.norm(residual, axis=1)) == pytest.approx(miss_px)
+        watch._judge(sample, "bot")
+    assert [c for c, s in watch.state.items() if s is CameraState.SUSPECT] == [suspect], watch.state
+
+
+@pytest.mark.parametrize("cameras", [3, 4])
+def test_a_suspect_camera_serves_in_the_references_only_where_it_would_leave_the_others_unchecked(cameras):
+    """With three cameras a suspect one stays in the others' references (set aside, each check of
+    the other two would lack a second reference camera, and only the suspect's own window, against
+    references holding whichever camera really moved, would be judged: issue 27's seed 58 named
+    the wrong camera so), and a suspect whose window says moved is not declared for that alone;
+    with four or more it is no one's reference. Out of the fusion either way; re-calibrating:
+    no one's reference."""
+    some = {c: CAMERAS[c] for c in list(CAMERAS)[:cameras]}
+    watch = CameraWatch({"bot": LAYOUT}, some, WatchParams(enabled=True))
+    watch.state["cam1"], watch.state["cam2"] = CameraState.SUSPECT, CameraState.RECALIBRATING
+    assert watch.excluded("cam1") and watch.referee("cam1") is (cameras == 3)
+    assert not watch.referee("cam2") and watch.referee("cam3")
+    fit = camera_watch.CameraFit(CAMERAS["cam1"], 0.0, 0.0, 0.0, 8)
+    verdicts = {c: camera_watch.Verdict(fit, 9.0, 0.02, 1.0, c == "cam1") for c in ("cam1", "cam3")}
+    watch._disagreement["cam3"].append((0.0, 1.0))  # cam3 disagreed most: only the suspect shortcut names cam1
+    named = watch._culprit(verdicts, 0.0)
+    assert (named is not None and named[0] == "cam1") is (cameras > 3)
+
+
+def test_a_second_camera_declared_moved_is_taken_out_of_the_first_ones_gathered_samples():
+    """Two of five bumped 10 s apart (issue 27): cam2 re-calibrating since 22 s when cam4 is declared
+    at 32 s. cam2 keeps what it gathered (every sample was dropped before: cam2 started over, 43 s to
+    rejoin on seed 31's scene) with cam4 taken out of each sample's reference, but a sample left with
+    one other camera; the watched cameras' windows restart; cam4 starts from its window's newer half."""
+    watch = CameraWatch({"bot": LAYOUT}, CAMERAS, WatchParams(enabled=True))
+    watch.settled.update(CAMERAS)
+    watch.state["cam2"] = CameraState.RECALIBRATING
+
+    def sample(camera: str, time_s: float, references: tuple[str, ...]) -> WatchSample:
+        return dataclasses.replace(_missing(camera, time_s, 0.0),
+                                   reference_sets=tuple(SimpleNamespace(camera=c) for c in references))
+
+    held = {0.0: ("cam1", "cam3"), 0.25: ("cam1", "cam4", "cam4", "cam3"), 0.5: ("cam4", "cam3"), 0.75: ("cam4",)}
+    times = np.arange(22.0, 32.0, 0.25)
+    for t in times:
+        watch.samples["cam2"].append(sample("cam2", t, held[t % 1.0]))
+        for camera in ("cam1", "cam3", "cam4"):
+            watch.samples[camera].append(sample(camera, t, ("cam1", "cam3", "cam4")))
+    verdict = camera_watch.Verdict(camera_watch.CameraFit(CAMERAS["cam4"], 0.0, 0.0, 0.0, 8), 9.0, 0.02, 1.0, True)
+    event = watch._declare("cam4", verdict, 32.0)
+    assert (event.kind, event.camera, watch.state["cam4"]) == (EventKind.MOVED, "cam4", CameraState.RECALIBRATING)
+    kept = [(s.time_s, tuple(r.camera for r in s.reference_sets)) for s in watch.samples["cam2"]]
+    assert kept == [(t, ("cam1", "cam3")) for t in times if t % 1.0 in (0.0, 0.25)]
+    assert not watch.samples["cam1"] and not watch.samples["cam3"]
+    assert [s.time_s for s in watch.samples["cam4"]] == [t for t in times if t >= 31.0]
 
 
 @pytest.mark.parametrize(("changes", "message"), [
