@@ -49,10 +49,9 @@ _BEYOND_MIN = 0.05  # the fast fit measures the brightness beyond the margin whe
 _AREA_STEP = 0.25  # template samples: the fast fit's pre-blurred templates are cached at multiples of this
 
 
-def distort_px(points_px: np.ndarray, K: np.ndarray, dist: np.ndarray, K_inv: np.ndarray | None = None) -> np.ndarray:
-    """Where ideal pinhole image points (..., 2) of ``K`` lie in the distorted image (``K_inv``:
-    ``np.linalg.inv(K)``, if the caller keeps it)."""
-    Kinv = np.linalg.inv(K) if K_inv is None else K_inv
+def distort_px(points_px: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:
+    """Where ideal pinhole image points (..., 2) of ``K`` lie in the distorted image."""
+    Kinv = np.linalg.inv(K)
     xy = points_px.reshape(-1, 2) @ Kinv[:2, :2].T + Kinv[:2, 2]
     rays = np.concatenate([xy, np.ones((len(xy), 1))], axis=1).reshape(-1, 1, 3)
     out, _ = cv2.projectPoints(rays, np.zeros(3), np.zeros(3), K, dist)
@@ -129,10 +128,10 @@ class LensMap:
         self.intrinsics = intrinsics
         if intrinsics is None:
             self.K, self.dist, self.map = np.eye(3), np.zeros(5), None
-            self.K_inv = np.linalg.inv(self.K)
+            self.K_inv = np.eye(3)
             return
         self.K, self.dist = np.asarray(intrinsics.K, float), np.asarray(intrinsics.dist, float).ravel()
-        self.K_inv = np.linalg.inv(self.K)  # distort_px's, kept: a marker's fit distorts twice
+        self.K_inv = np.linalg.inv(self.K)  # (:meth:`distort`'s)
         xs, ys = np.meshgrid(np.arange(-1.0, intrinsics.width + 1.0), np.arange(-1.0, intrinsics.height + 1.0))
         self.map = undistort_points(np.stack([xs, ys], axis=-1), self.K, self.dist, self.K).astype(np.float32)
 
@@ -144,6 +143,36 @@ class LensMap:
         flat = np.require(points_px, np.float64, ("C", "W")).reshape(-1, 2)  # writable: numba types read-only
         # arrays apart (a copy only when needed)
         return _map_read(self.map, flat).reshape(np.shape(points_px))
+
+    def distort(self, points_px: np.ndarray) -> np.ndarray:
+        """:func:`distort_px` through this lens: compiled for the 4 or 5 coefficients of OpenCV's
+        model (:func:`_distorted`, the same values as ``cv2.projectPoints``), else OpenCV's."""
+        if self.dist.shape[0] > 5:
+            return distort_px(points_px, self.K, self.dist)
+        flat = np.require(points_px, np.float64, ("C", "W")).reshape(-1, 2)
+        return _distorted(flat, self.K, self.K_inv, self.dist).reshape(np.shape(points_px))
+
+
+@numba.njit(cache=True, nogil=True)
+def _distorted(points_px: np.ndarray, K: np.ndarray, K_inv: np.ndarray, dist: np.ndarray) -> np.ndarray:
+    """(n, 2): ``cv2.projectPoints`` of the rays of ideal pinhole pixels ``points_px`` (n, 2) of
+    ``K`` (``K_inv`` its inverse) through OpenCV's lens model with 4 or 5 coefficients ``dist``
+    (k1 k2 p1 p2 [k3]), its arithmetic in its order (no skew: OpenCV reads fx, fy, cx, cy only)."""
+    k1, k2, p1, p2 = dist[0], dist[1], dist[2], dist[3]
+    k3 = dist[4] if dist.shape[0] > 4 else 0.0
+    out = np.empty_like(points_px)
+    for n in range(points_px.shape[0]):
+        u, v = points_px[n, 0], points_px[n, 1]
+        x = u * K_inv[0, 0] + v * K_inv[0, 1] + K_inv[0, 2]
+        y = u * K_inv[1, 0] + v * K_inv[1, 1] + K_inv[1, 2]
+        r2 = x * x + y * y
+        r4 = r2 * r2
+        r6 = r4 * r2
+        a1, a2, a3 = 2 * x * y, r2 + 2 * x * x, r2 + 2 * y * y
+        cdist = 1 + k1 * r2 + k2 * r4 + k3 * r6
+        out[n, 0] = (x * cdist + p1 * a1 + p2 * a2) * K[0, 0] + K[0, 2]
+        out[n, 1] = (y * cdist + p1 * a3 + p2 * a1) * K[1, 1] + K[1, 2]
+    return out
 
 
 @numba.njit(cache=True, nogil=True)
@@ -195,11 +224,13 @@ class MarkerRegion:
 
 def marker_region(gray: np.ndarray, corners_px: np.ndarray, modules: int, K: np.ndarray, dist: np.ndarray,
                   undistort: Callable[[np.ndarray], np.ndarray], supersample: int,
-                  margin_modules: float, K_inv: np.ndarray | None = None) -> MarkerRegion | None:
+                  margin_modules: float, distort: Callable[[np.ndarray], np.ndarray] | None = None
+                  ) -> MarkerRegion | None:
     """The region a template fit of the marker near ``corners_px`` (distorted, TL TR BR BL)
     compares (see :class:`MarkerRegion`), with lens ``K``, ``dist`` and ``undistort`` (distorted
     -> ideal pinhole pixels of ``K``, e.g. :func:`cubetrack.core.geometry.undistort_points` or
-    :meth:`LensMap.undistort`); None when the corners do not undistort or the marker with its
+    :meth:`LensMap.undistort`) and ``distort`` (the way back: :func:`distort_px` unless given, e.g.
+    :meth:`LensMap.distort`); None when the corners do not undistort or the marker with its
     margin and the blur's reach is not wholly inside the image."""
     start = undistort(_corner_array(corners_px))
     if not np.isfinite(start).all():
@@ -207,7 +238,8 @@ def marker_region(gray: np.ndarray, corners_px: np.ndarray, modules: int, K: np.
     m = margin_modules
     ring = np.array([[-m, -m], [modules + m, -m], [modules + m, modules + m], [-m, modules + m]])
     H0 = square_homography(start, modules)
-    ring_px = distort_px(cv2.perspectiveTransform(ring.reshape(-1, 1, 2), H0).reshape(-1, 2), K, dist, K_inv)
+    ring = cv2.perspectiveTransform(ring.reshape(-1, 1, 2), H0).reshape(-1, 2)
+    ring_px = distort_px(ring, K, dist) if distort is None else distort(ring)
     if not np.isfinite(ring_px).all():
         return None
     x0, y0 = np.floor(ring_px.min(axis=0)).astype(int) - REGION_PAD_PX
@@ -356,7 +388,7 @@ class _FastRegion:
 def _fast_region(gray: np.ndarray, corners_px: np.ndarray, modules: int, lens: LensMap,
                  settings: TemplateFitSettings) -> _FastRegion | None:
     region = marker_region(gray, corners_px, modules, lens.K, lens.dist, lens.undistort, settings.supersample,
-                           settings.margin_modules, lens.K_inv)
+                           settings.margin_modules, lens.distort)
     if region is None:
         return None
     return _FastRegion(region, region.samples_px.reshape(-1, 2), region.centres_px, _lens_jacobian(lens, corners_px),
@@ -623,7 +655,7 @@ def fast_template_corners(gray: np.ndarray, corners_px: np.ndarray, dictionary: 
         return None
     if not np.isfinite(p).all() or np.abs(p).max() > settings.max_move_px:
         return None
-    return distort_px(start + p.reshape(4, 2), lens.K, lens.dist, lens.K_inv)
+    return lens.distort(start + p.reshape(4, 2))
 
 
 def compile_template_fit() -> None:
