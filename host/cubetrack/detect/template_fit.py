@@ -128,10 +128,10 @@ class LensMap:
         self.intrinsics = intrinsics
         if intrinsics is None:
             self.K, self.dist, self.map = np.eye(3), np.zeros(5), None
-            self.K_inv = np.eye(3)
+            self.K_inv: np.ndarray = np.eye(3)  # (:meth:`distort`'s)
             return
         self.K, self.dist = np.asarray(intrinsics.K, float), np.asarray(intrinsics.dist, float).ravel()
-        self.K_inv = np.linalg.inv(self.K)  # (:meth:`distort`'s)
+        self.K_inv = np.linalg.inv(self.K)
         xs, ys = np.meshgrid(np.arange(-1.0, intrinsics.width + 1.0), np.arange(-1.0, intrinsics.height + 1.0))
         self.map = undistort_points(np.stack([xs, ys], axis=-1), self.K, self.dist, self.K).astype(np.float32)
 
