@@ -147,7 +147,7 @@ class LensMap:
     def distort(self, points_px: np.ndarray) -> np.ndarray:
         """:func:`distort_px` through this lens: compiled for the 4 or 5 coefficients of OpenCV's
         model (:func:`_distorted`, the same values as ``cv2.projectPoints``), else OpenCV's."""
-        if self.dist.shape[0] > 5:
+        if self.dist.shape[0] not in (4, 5):
             return distort_px(points_px, self.K, self.dist)
         flat = np.require(points_px, np.float64, ("C", "W")).reshape(-1, 2)
         return _distorted(flat, self.K, self.K_inv, self.dist).reshape(np.shape(points_px))
