@@ -87,6 +87,7 @@ TARGET_SPEED = 4.0            # issue 31: throughput ours / naive on the same fr
 TARGET_SPEED_TEMPLATE = 2.5   # the same with --template
 TARGET_CPU = 0.25             # issue 31: CPU per processed live frame / the naive loop's CPU per frame
 TARGET_ACCURACY = 0.10
+STATUS_EVERY_S = 5.0          # the tracker's status lines (``--status-every``): the report's intervals
 TICK = os.sysconf("SC_CLK_TCK")
 PAGE = os.sysconf("SC_PAGE_SIZE")
 
@@ -267,8 +268,8 @@ class StatusFollower:
     that it gives; the moments are what put the drops beside the poses and the CPU samples
     (:func:`over_time`)."""
 
-    def __init__(self, path: Path, period_s: float = 0.25):
-        self.path, self.period_s = path, period_s
+    def __init__(self, path: Path, period_s: float = 0.05):
+        self.path, self.period_s = path, period_s  # (0.25 s made the start-up a multiple of it, give or take)
         self.lines: list[tuple[float, int]] = []  # (monotonic s, dropped so far)
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True)
@@ -361,7 +362,7 @@ def run_live(args: argparse.Namespace, rec: Path, work: Path, name: str = "live"
             config.write_text(config.read_text(encoding="utf-8") + sections, encoding="utf-8")
         command = [sys.executable, "-m", "cubetrack.cli.main", "track", "--config", str(config),
                    "--extrinsics", str(rec / "extrinsics.toml"), "--live", "--out", str(out),
-                   "--duration", str(args.duration), "--status-every", "5",
+                   "--duration", str(args.duration), "--status-every", f"{STATUS_EVERY_S:g}",
                    *(["--record", str(session)] if args.record and name == "live" else []), *outputs,
                    *args.tracker_arg]
         emulator = TreeSampler(emu._process.pid, 1.0)
@@ -425,6 +426,11 @@ def run_live(args: argparse.Namespace, rec: Path, work: Path, name: str = "live"
         "main_cores_used": main_cpu / max(full[0] - warm[0], 1e-9),
         "emulator_cores_used": cpu_emulator / max(emulator.samples[-1][0] - emulator.samples[0][0], 1e-9)
         if len(emulator.samples) > 1 else float("nan"),
+        # yardsticks of the machine's speed in this run, from code that is the same in every tree compared: the
+        # emulator's CPU per frame it served, and the tracker's start-up (its command to the start of its session,
+        # the first status line's moment less the status interval: before any frame is read)
+        "emulator_ms_per_frame": cpu_emulator / max(offered, 1) * 1000.0,
+        "startup_s": status.lines[0][0] - started - STATUS_EVERY_S if status.lines else float("nan"),
         "rss_start_mb": warm[2] / 1e6,
         "rss_mid_mb": sampler.at(started + 0.5 * (warm[0] - started + full[0] - started))[2] / 1e6,
         "rss_end_mb": full[2] / 1e6,
@@ -442,7 +448,7 @@ def run_live(args: argparse.Namespace, rec: Path, work: Path, name: str = "live"
     }
 
 
-def offered_after(warmup_s: float, stderr: str, every_s: float = 5.0) -> float:
+def offered_after(warmup_s: float, stderr: str, every_s: float = STATUS_EVERY_S) -> float:
     """Frames/s received from all cameras after ``warmup_s``: the mean over the tracker's status
     lines (every ``every_s``) whose interval began after it; NaN when there is none."""
     rates = [sum(float(v) for v in re.findall(r" ([\d.]+) fps", rest))
@@ -891,6 +897,10 @@ def print_report(args: argparse.Namespace, report: dict) -> list[str]:
           f"which the main process {live['main_cores_used']:.2f} (with thread workers everything but the emulator; "
           f"with camera-process workers the fusion and outputs) "
           f"(the emulator: {live['emulator_cores_used']:.2f} cores)")
+    print(f"  the machine's speed in this run (code the same in every tree): the emulator's CPU "
+          f"{live['emulator_ms_per_frame']:.3f} ms per frame served, the tracker's start-up {live['startup_s']:.2f} s; "
+          f"the tracker's CPU per processed frame (after the first {args.warmup:g} s) / the emulator's "
+          f"{live['cpu_ms_per_frame_warm'] / live['emulator_ms_per_frame']:.1f}")
     print(f"  arrival -> pose ms: p50 {a['p50']:.1f}  p95 {a['p95']:.1f}  p99 {a['p99']:.1f}   "
           f"capture -> pose ms: p50 {c['p50']:.1f}  p95 {c['p95']:.1f}  p99 {c['p99']:.1f}  ({live['poses']} poses)")
     intervals = live["over_time"]

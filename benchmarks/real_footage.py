@@ -326,6 +326,7 @@ class Score:
     with_pose: int         # of those, the ones with a pose (errors: where the reference has a pose)
     position_mm: np.ndarray
     rotation_deg: np.ndarray
+    reference_cameras: np.ndarray = field(default_factory=lambda: np.zeros(0, int))  # per error: cameras in reference
 
     @property
     def fraction(self) -> float:
@@ -339,6 +340,13 @@ class Score:
                 f"position median {np.median(p):.2f} p95 {np.percentile(p, 95):.2f} max {p.max():.2f} mm; "
                 f"rotation median {np.median(r):.3f} p95 {np.percentile(r, 95):.3f} max {r.max():.3f} deg")
 
+    def by_reference(self, name: str) -> str:
+        """The position errors grouped by how many agreeing cameras made the instant's reference (a reference
+        of two cameras is the weakest: no camera can be checked against the others)."""
+        groups = [f"{k} cameras: {n} instants, median {np.median(self.position_mm[self.reference_cameras == k]):.2f} mm"
+                  for k, n in zip(*np.unique(self.reference_cameras, return_counts=True), strict=True)]
+        return f"{name:<28} by reference: " + "; ".join(groups)
+
 
 def score(tum: Path, reference: Mapping[int, Instant], frame_times_s: np.ndarray | None = None) -> Score:
     """Score a TUM trajectory against ``reference`` (module docstring). ``frame_times_s``: per pose,
@@ -351,7 +359,7 @@ def score(tum: Path, reference: Mapping[int, Instant], frame_times_s: np.ndarray
     ref_t = np.array([reference[s].t_s for s in syncs])
     ref_T = np.array([reference[s].T_world_body for s in syncs])
     ref_p, slerp = ref_T[:, :3, 3], Slerp(ref_t, Rotation.from_matrix(ref_T[:, :3, :3]))
-    pos_err, rot_err = [], []
+    pos_err, rot_err, used = [], [], []
     with_pose = 0
     for _sync, inst in sorted(reference.items()):
         inside = np.flatnonzero((placed >= inst.t0_s - TIME_SLACK_S) & (placed <= inst.t1_s + TIME_SLACK_S))
@@ -365,7 +373,8 @@ def score(tum: Path, reference: Mapping[int, Instant], frame_times_s: np.ndarray
         p_ref = np.array([np.interp(t, ref_t, ref_p[:, k]) for k in range(3)])
         pos_err.append(1000.0 * np.linalg.norm(positions[i] - p_ref))
         rot_err.append(np.degrees((slerp([t])[0].inv() * Rotation.from_quat(quats[i])).magnitude()))
-    return Score(len(reference), with_pose, np.array(pos_err), np.array(rot_err))
+        used.append(len(inst.used))
+    return Score(len(reference), with_pose, np.array(pos_err), np.array(rot_err), np.array(used, dtype=int))
 
 
 def track(work: Path, name: str, sections: Mapping[str, Mapping[str, object]] | None = None) -> Path:
@@ -423,7 +432,8 @@ def main(argv: list[str] | None = None) -> int:
             custom.setdefault(section, {})[name] = tomllib.loads(f"v = {value}")["v"]
         runs["custom " + " ".join(args.set)] = custom
     for i, (name, sections) in enumerate(runs.items()):
-        print(score(track(work, f"run{i}", sections), reference).line(name), flush=True)
+        result = score(track(work, f"run{i}", sections), reference)
+        print(result.line(name) + "\n" + result.by_reference(name), flush=True)
     return 0
 
 

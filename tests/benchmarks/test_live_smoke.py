@@ -26,7 +26,7 @@ def test_quick_run_prints_and_saves_a_complete_report(tmp_path):
     assert run.returncode == 0, run.stderr[-3000:]
     lines = run.stdout.splitlines()
     for start in ("live benchmark: 2 cameras x 10 fps", "  command: ", "  after the first ", "  frames/s: offered",
-                  "  CPU: ", "  CPU per frame: naive loop ",
+                  "  CPU: ", "  CPU per frame: naive loop ", "  the machine's speed in this run ",
                   "  arrival -> pose ms: p50", "  over time (", "  RSS: ", "  accuracy vs ground truth: live",
                   "  same ", "  per frame, one thread: ", "  outputs: files only ", "SUMMARY: "):
         assert sum(line.startswith(start) for line in lines) == 1, start
@@ -50,6 +50,9 @@ def test_quick_run_prints_and_saves_a_complete_report(tmp_path):
     assert rss and [t for t, _mb, _n in rss] == sorted(t for t, _mb, _n in rss)
     assert all(mb > 0 and n >= 1 for _t, mb, n in rss)
     assert 0 < live["first_pose_s"] < live["wall_s"]  # start-up: the first pose came during the session
+    # the machine's speed in the run: the emulator's CPU per frame served, the tracker's start-up before its session
+    assert live["emulator_ms_per_frame"] > 0
+    assert 0 < live["startup_s"] < live["first_pose_s"] if live["over_time"] else math.isnan(live["startup_s"])
     rss_line = next(line for line in lines if line.startswith("  RSS: "))
     assert live["kernels_warm_s"] > 0 and "before it, the kernels " in rss_line  # warmed before the timed run
     # interval by interval (between status lines): in order, within the run, no more poses than the run's

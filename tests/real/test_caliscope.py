@@ -50,7 +50,9 @@ def test_the_import_writes_what_track_reads(imported):
     result, _work = imported
     assert result.frames == {f"cam{i}": 111 for i in range(4)}
     config, params = load_config(result.config)
-    assert params.detector.detect_inverted_marker and not params.estimator.use_upright_prior
+    # the board is printed inverted: white-on-black markers only, one search per frame (not the image and its negative)
+    assert params.detector.detect_inverted_marker and not params.detector.detect_normal_marker
+    assert not params.estimator.use_upright_prior
     assert sorted(config.robots[0].layout.ids) == list(range(10))
     recording = Recording.open(result.recording)
     assert all(len(recording.clock_samples(c)) == 111 for c in recording.camera_names)
@@ -105,6 +107,9 @@ def test_the_default_tracker_follows_the_board_better_than_the_mean_fusion(score
     0.62 deg). Not met, so not asserted: median <= 2 mm (docs/tracking.md "Real footage")."""
     ours, mean = scores["default"], scores["mean"]
     assert ours.fraction >= 0.98, ours.line("default")
+    # each error knows its reference's cameras (2-4 agreeing ones; every count occurs on this footage)
+    assert len(ours.reference_cameras) == len(ours.position_mm) and set(ours.reference_cameras) == {2, 3, 4}
+    assert ours.by_reference("default").count(" instants, median ") == 3, ours.by_reference("default")
     assert ours.position_mm.max() <= 20.0 and np.median(ours.rotation_deg) <= 0.6, ours.line("default")
     assert np.percentile(ours.position_mm, 95) <= 6.0, ours.line("default")
     assert np.median(ours.position_mm) < np.median(mean.position_mm), (ours.line("default"), mean.line("mean"))

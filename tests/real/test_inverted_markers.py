@@ -14,6 +14,7 @@ import cv2
 import numpy as np
 import pytest
 
+from cubetrack.core.errors import ParamsError
 from cubetrack.detect.detector import CornerRefinement, Detector, DetectorParams
 from cubetrack.io.caliscope import read_caliscope_rig
 
@@ -59,6 +60,18 @@ def test_every_refinement_finds_inverted_markers_where_the_board_is(scene, refin
     ids = [d.marker_id for d in found.detections]
     assert len(ids) >= 9 and set(ids) <= set(truth), ids
     assert not found.dropped
+    # white-on-black only (the negative searched alone, as `cubetrack import` sets for this board): the same
+    only = Detector(DetectorParams(dictionary=dictionary, corner_refinement=refinement, detect_inverted_marker=True,
+                                   detect_normal_marker=False))
+    alone = only.find(gray, lens=intr)
+    assert [d.marker_id for d in alone.detections] == ids and alone.dropped == found.dropped
+    np.testing.assert_array_equal([d.corners_px for d in alone.detections], [d.corners_px for d in found.detections])
+    assert only.detect(255 - gray, lens=intr) == ()                 # the board's markers made dark-on-white
     errors = np.concatenate([np.linalg.norm(d.corners_px - truth[d.marker_id], axis=1) for d in found.detections])
     median_px, max_px = TOLERANCE_PX[refinement]
     assert np.median(errors) < median_px and errors.max() < max_px, (np.median(errors), errors.max())
+
+
+def test_searching_for_neither_polarity_is_refused():
+    with pytest.raises(ParamsError, match="detect_normal_marker = false needs detect_inverted_marker = true"):
+        DetectorParams(detect_normal_marker=False)

@@ -13,8 +13,8 @@ host's, so frames are stamped at capture, not at arrival; ``camera_info/camN.yam
 ``extrinsics.toml``, ``board.toml`` (the ChArUco board as a body: its markers where OpenCV's
 ``CharucoBoard`` puts them, body frame = the board's centre, x along its rows, y towards its first
 row, z out of the printed face) and ``config.toml`` (the board as the one robot; a world marker of
-the board's dictionary that is not on the board, since the world frame is the calibration's;
-``[detector] detect_inverted_marker`` from the board; ``[estimator] use_upright_prior = false``,
+the board's dictionary that is not on the board, since the world frame is the calibration's; a board printed
+inverted: ``[detector]`` white-on-black markers only; ``[estimator] use_upright_prior = false``,
 since the calibration's world frame need not have z up and a hand-held board tilts freely).
 """
 
@@ -101,7 +101,7 @@ def import_caliscope(project: str | Path, out: str | Path, jpeg_quality: int = 9
         "world": _world_table(rig.board),
         "cameras": [{"name": n} for n in names.values()],
         "robots": [{"name": "board", "layout": layout_path.name}],
-        "detector": {"detect_inverted_marker": rig.inverted},
+        "detector": {"detect_inverted_marker": rig.inverted, "detect_normal_marker": not rig.inverted},
         "estimator": {"use_upright_prior": False},
     }, config_path)
     return ImportResult(config_path, recording, extrinsics_path, layout_path, counts)

@@ -173,6 +173,10 @@ class DetectorParams:
         False, "also detect white-on-black (inverted) markers: the image and its negative are searched (twice the "
         "detection's CPU), so every corner refinement works on both (docs/detection.md)",
     )
+    detect_normal_marker: bool = param(
+        True, "detect ordinary dark-on-white markers; false with detect_inverted_marker = true: white-on-black ones "
+        "only, the negative searched alone (half the CPU of both; docs/detection.md)",
+    )
     april_tag_quad_decimate: float = param(
         0.0, "apriltag refinement only: image decimation for quad search (0 = off; 2 halves its cost)",
     )
@@ -208,6 +212,8 @@ class DetectorParams:
               f"error_correction_rate must be in [0, 1], got {self.error_correction_rate}")
         check(self.min_area_px2 >= 0.0 and self.min_distance_to_border_px >= 0,
               "min_area_px2 and min_distance_to_border_px must not be negative")
+        check(self.detect_normal_marker or self.detect_inverted_marker,
+              "detect_normal_marker = false needs detect_inverted_marker = true (no marker would be searched for)")
         check(self.edge_iterations >= 1 and self.template_iterations >= 1,
               f"edge_iterations and template_iterations must be at least 1, got {self.edge_iterations} and "
               f"{self.template_iterations}")
@@ -310,7 +316,7 @@ class Detector:
     With ``detect_inverted_marker`` every search runs twice: on the image, for dark-on-white
     markers, and on its negative, where white-on-black markers are dark-on-white — so every corner
     refinement (OpenCV's, the edge fit, the template fit) sees the polarity it is made for. Twice
-    the detection's CPU.
+    the detection's CPU; with ``detect_normal_marker`` false too, the negative alone is searched.
 
     The ``template`` refinement's lens maps (one per camera, :class:`LensMap`) belong to the
     detector: built on a camera's first frame, kept while the detector lives.
@@ -388,7 +394,8 @@ class Detector:
                 if not (0 <= x0 < x1 <= width and 0 <= y0 < y1 <= height):
                     raise ImageError(f"region {tuple(box)} is not inside the {width}x{height} image")
             regions = merged_boxes(regions)
-        images = (gray, 255 - gray) if self.params.detect_inverted_marker else (gray,)
+        images = ((gray,) if self.params.detect_normal_marker else ()) + (
+            (255 - gray,) if self.params.detect_inverted_marker else ())
         found: list[Detection] = []
         dropped: Counter[str] = Counter()
         for image in images:

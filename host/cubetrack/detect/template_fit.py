@@ -128,8 +128,10 @@ class LensMap:
         self.intrinsics = intrinsics
         if intrinsics is None:
             self.K, self.dist, self.map = np.eye(3), np.zeros(5), None
+            self.K_inv: np.ndarray = np.eye(3)  # (:meth:`distort`'s)
             return
         self.K, self.dist = np.asarray(intrinsics.K, float), np.asarray(intrinsics.dist, float).ravel()
+        self.K_inv = np.linalg.inv(self.K)
         xs, ys = np.meshgrid(np.arange(-1.0, intrinsics.width + 1.0), np.arange(-1.0, intrinsics.height + 1.0))
         self.map = undistort_points(np.stack([xs, ys], axis=-1), self.K, self.dist, self.K).astype(np.float32)
 
@@ -138,8 +140,39 @@ class LensMap:
         float64."""
         if self.map is None:
             return np.asarray(points_px, np.float64)
-        flat = np.array(points_px, np.float64).reshape(-1, 2)  # writable: numba types read-only arrays apart
+        flat = np.require(points_px, np.float64, ("C", "W")).reshape(-1, 2)  # writable: numba types read-only
+        # arrays apart (a copy only when needed)
         return _map_read(self.map, flat).reshape(np.shape(points_px))
+
+    def distort(self, points_px: np.ndarray) -> np.ndarray:
+        """:func:`distort_px` through this lens: compiled for the 4 or 5 coefficients of OpenCV's
+        model (:func:`_distorted`, the same values as ``cv2.projectPoints``), else OpenCV's."""
+        if self.dist.shape[0] not in (4, 5):
+            return distort_px(points_px, self.K, self.dist)
+        flat = np.require(points_px, np.float64, ("C", "W")).reshape(-1, 2)
+        return _distorted(flat, self.K, self.K_inv, self.dist).reshape(np.shape(points_px))
+
+
+@numba.njit(cache=True, nogil=True)
+def _distorted(points_px: np.ndarray, K: np.ndarray, K_inv: np.ndarray, dist: np.ndarray) -> np.ndarray:
+    """(n, 2): ``cv2.projectPoints`` of the rays of ideal pinhole pixels ``points_px`` (n, 2) of
+    ``K`` (``K_inv`` its inverse) through OpenCV's lens model with 4 or 5 coefficients ``dist``
+    (k1 k2 p1 p2 [k3]), its arithmetic in its order (no skew: OpenCV reads fx, fy, cx, cy only)."""
+    k1, k2, p1, p2 = dist[0], dist[1], dist[2], dist[3]
+    k3 = dist[4] if dist.shape[0] > 4 else 0.0
+    out = np.empty_like(points_px)
+    for n in range(points_px.shape[0]):
+        u, v = points_px[n, 0], points_px[n, 1]
+        x = u * K_inv[0, 0] + v * K_inv[0, 1] + K_inv[0, 2]
+        y = u * K_inv[1, 0] + v * K_inv[1, 1] + K_inv[1, 2]
+        r2 = x * x + y * y
+        r4 = r2 * r2
+        r6 = r4 * r2
+        a1, a2, a3 = 2 * x * y, r2 + 2 * x * x, r2 + 2 * y * y
+        cdist = 1 + k1 * r2 + k2 * r4 + k3 * r6
+        out[n, 0] = (x * cdist + p1 * a1 + p2 * a2) * K[0, 0] + K[0, 2]
+        out[n, 1] = (y * cdist + p1 * a3 + p2 * a1) * K[1, 1] + K[1, 2]
+    return out
 
 
 @numba.njit(cache=True, nogil=True)
@@ -174,7 +207,8 @@ class MarkerRegion:
     pixel's area; ``centres_px`` (n, 2): undistorted centres of the n compared pixels (those
     whose centre lies on the marker or within ``margin`` modules of it), ``fitted`` (ny nx,)
     marks them, ``pixels`` (n,) are their values and ``gradient`` (n, 2) their position across
-    the region (for the brightness's linear variation)."""
+    the region (for the brightness's linear variation); ``H0`` the homography from the square
+    of ``modules`` to ``start_px`` (:func:`square_homography`)."""
 
     start_px: np.ndarray
     modules: int
@@ -185,15 +219,18 @@ class MarkerRegion:
     fitted: np.ndarray
     pixels: np.ndarray
     gradient: np.ndarray
+    H0: np.ndarray
 
 
 def marker_region(gray: np.ndarray, corners_px: np.ndarray, modules: int, K: np.ndarray, dist: np.ndarray,
                   undistort: Callable[[np.ndarray], np.ndarray], supersample: int,
-                  margin_modules: float) -> MarkerRegion | None:
+                  margin_modules: float, distort: Callable[[np.ndarray], np.ndarray] | None = None
+                  ) -> MarkerRegion | None:
     """The region a template fit of the marker near ``corners_px`` (distorted, TL TR BR BL)
     compares (see :class:`MarkerRegion`), with lens ``K``, ``dist`` and ``undistort`` (distorted
     -> ideal pinhole pixels of ``K``, e.g. :func:`cubetrack.core.geometry.undistort_points` or
-    :meth:`LensMap.undistort`); None when the corners do not undistort or the marker with its
+    :meth:`LensMap.undistort`) and ``distort`` (the way back: :func:`distort_px` unless given, e.g.
+    :meth:`LensMap.distort`); None when the corners do not undistort or the marker with its
     margin and the blur's reach is not wholly inside the image."""
     start = undistort(_corner_array(corners_px))
     if not np.isfinite(start).all():
@@ -201,7 +238,8 @@ def marker_region(gray: np.ndarray, corners_px: np.ndarray, modules: int, K: np.
     m = margin_modules
     ring = np.array([[-m, -m], [modules + m, -m], [modules + m, modules + m], [-m, modules + m]])
     H0 = square_homography(start, modules)
-    ring_px = distort_px(cv2.perspectiveTransform(ring.reshape(-1, 1, 2), H0).reshape(-1, 2), K, dist)
+    ring = cv2.perspectiveTransform(ring.reshape(-1, 1, 2), H0).reshape(-1, 2)
+    ring_px = distort_px(ring, K, dist) if distort is None else distort(ring)
     if not np.isfinite(ring_px).all():
         return None
     x0, y0 = np.floor(ring_px.min(axis=0)).astype(int) - REGION_PAD_PX
@@ -213,7 +251,7 @@ def marker_region(gray: np.ndarray, corners_px: np.ndarray, modules: int, K: np.
     centres = undistort(_pixel_grid(int(x0), int(y0), nx, ny, 1).reshape(-1, 2))
     fitted, gradient = _compared_pixels(centres, np.linalg.inv(H0), modules, m, nx, ny)
     return MarkerRegion(start, modules, (int(x0), int(y0)), (ny, nx), samples, centres[fitted], fitted,
-                        gray[y0:y1, x0:x1].astype(np.float64).ravel()[fitted], gradient)
+                        gray[y0:y1, x0:x1].astype(np.float64).ravel()[fitted], gradient, H0)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -279,10 +317,25 @@ FAST_SETTINGS = TemplateFitSettings(supersample=2)  # tracking's fit (fast_templ
 
 def _lens_jacobian(lens: LensMap, corners_px: np.ndarray) -> np.ndarray:
     """(2, 2): distorted pixels per undistorted pixel at the marker's centre (the lens's local
-    linear map, from ``lens``'s undistortion one pixel either way)."""
+    linear map, from ``lens``'s undistortion one pixel either way; compiled with a lens map:
+    :func:`_map_jacobian`)."""
+    if lens.map is not None:
+        return _map_jacobian(lens.map, _corner_array(corners_px))
     mid = np.asarray(corners_px, float).reshape(4, 2).mean(axis=0)
     probe = lens.undistort(np.array([mid, mid + [1.0, 0.0], mid + [0.0, 1.0]]))
     return np.linalg.inv(np.column_stack([probe[1] - probe[0], probe[2] - probe[0]]))
+
+
+@numba.njit(cache=True, nogil=True)
+def _map_jacobian(table: np.ndarray, corners_px: np.ndarray) -> np.ndarray:
+    """:func:`_lens_jacobian` through a :class:`LensMap`'s ``table`` at the mean of ``corners_px``
+    (4, 2)."""
+    mid_x = (corners_px[0, 0] + corners_px[1, 0] + corners_px[2, 0] + corners_px[3, 0]) / 4.0
+    mid_y = (corners_px[0, 1] + corners_px[1, 1] + corners_px[2, 1] + corners_px[3, 1]) / 4.0
+    probe = _map_read(table, np.array([[mid_x, mid_y], [mid_x + 1.0, mid_y], [mid_x, mid_y + 1.0]]))
+    J = np.empty((2, 2))
+    J[:, 0], J[:, 1] = probe[1] - probe[0], probe[2] - probe[0]
+    return np.ascontiguousarray(np.linalg.inv(J))  # C order, as numpy's: the fit's kernels take one layout
 
 
 @functools.lru_cache(maxsize=256)
@@ -304,12 +357,18 @@ def _area_steps(H: np.ndarray, modules: int, lens_jacobian: np.ndarray, supersam
     1 / (12 s^2) px^2 along each axis) pulled back into the template through the homography ``H``
     and the lens at the marker's centre: its standard deviations along x and y in units of
     ``_AREA_STEP`` template samples."""
+    sx, sy = _area_sigmas(H, float(modules), lens_jacobian, float(supersample))
+    return int(round(sx)), int(round(sy))
+
+
+@numba.njit(cache=True, nogil=True)
+def _area_sigmas(H: np.ndarray, modules: float, lens_jacobian: np.ndarray, supersample: float) -> tuple[float, float]:
+    """:func:`_area_steps` before rounding, compiled."""
     c = np.array([modules / 2.0, modules / 2.0, 1.0])
     h = H @ c
     J = lens_jacobian @ (H[:2, :2] - np.outer(h[:2] / h[2], H[2, :2])) / h[2]  # distorted px per module
     cov = np.linalg.inv(J.T @ J) * (TEMPLATE_RES ** 2 / (12.0 * supersample ** 2))
-    sx, sy = np.sqrt(np.diag(cov)) / _AREA_STEP
-    return int(round(sx)), int(round(sy))
+    return np.sqrt(cov[0, 0]) / _AREA_STEP, np.sqrt(cov[1, 1]) / _AREA_STEP
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -329,7 +388,7 @@ class _FastRegion:
 def _fast_region(gray: np.ndarray, corners_px: np.ndarray, modules: int, lens: LensMap,
                  settings: TemplateFitSettings) -> _FastRegion | None:
     region = marker_region(gray, corners_px, modules, lens.K, lens.dist, lens.undistort, settings.supersample,
-                           settings.margin_modules)
+                           settings.margin_modules, lens.distort)
     if region is None:
         return None
     return _FastRegion(region, region.samples_px.reshape(-1, 2), region.centres_px, _lens_jacobian(lens, corners_px),
@@ -587,7 +646,7 @@ def fast_template_corners(gray: np.ndarray, corners_px: np.ndarray, dictionary: 
     start = f.region.start_px
     s = settings.supersample
     template = _area_template(dictionary, marker_id, settings.white_modules,
-                              _area_steps(square_homography(start, modules), modules, f.lens, s))
+                              _area_steps(f.region.H0, modules, f.lens, s))
     r = f.region
     try:
         p = _fitted_offsets(template, f.samples, r.shape, s, f.index, r.gradient, r.pixels, f.centres, f.lens, start,
@@ -596,7 +655,7 @@ def fast_template_corners(gray: np.ndarray, corners_px: np.ndarray, dictionary: 
         return None
     if not np.isfinite(p).all() or np.abs(p).max() > settings.max_move_px:
         return None
-    return distort_px(start + p.reshape(4, 2), lens.K, lens.dist)
+    return lens.distort(start + p.reshape(4, 2))
 
 
 def compile_template_fit() -> None:

@@ -257,7 +257,9 @@ class HistoryStep:
     outcome: str = ""
     poses: list[TrackedPose] = field(default_factory=list)  # what applying it gave, due
     pose: TrackedPose | None = None  # its pose, due or not, while the fusion keeps a trail
-    corners: list[CornerSet] = field(default_factory=list)  # the corner sets its update took (none: not applied)
+    # the corner sets its update took, kept for the calibration term's samples only (none: not applied, or the
+    # term is off: a step holds no corner set it will not read)
+    corners: list[CornerSet] = field(default_factory=list)
 
 
 class FilterFusion:
@@ -535,9 +537,10 @@ class FilterFusion:
                 log.info("%s: %d sightings rejected in a row; track restarts", robot, rejections)
                 return replace(state, filter=None, rejections=rejections), None, "rejected sighting"
             return replace(state, filter=f, rejections=rejections), None, "rejected sighting"
-        corrections, history[index].corners = state.corrections, corners
+        fp, corrections = self.filter_params, state.corrections
+        if fp.camera_term_samples_per_s > 0:
+            history[index].corners = corners
         if outcome == "accepted sighting":  # the camera against the prediction (the others' consensus)
-            fp = self.filter_params
             corrections = observed(corrections, self._priors, corners, prior.T_world_cube, prior.velocity_m_s,
                                    prior.angular_velocity_rad_s, prior.time_s, prior.P,
                                    fp.corner_noise_px, fp.huber_px)

@@ -37,10 +37,17 @@ class ClockSyncParams:
                                           "loosely), seconds")
     min_samples: int = param(1, "round trips needed before they are trusted over arrival times (one fast round trip "
                                 "already beats arrival times)")
+    trusted_width_s: float = param(0.02, "a round trip at most this wide is trusted alone; wider ones only once "
+                                         "start_round_trips have come, and only while no narrow one is in the window "
+                                         "(a lone trip's midpoint can be half its width off), seconds")
+    start_round_trips: int = param(3, "round trips after which they are trusted however wide (a network whose round "
+                                      "trips are all slow still gets a clock)")
 
     def __post_init__(self) -> None:
         check(self.window >= 2 and self.min_samples >= 1 and 0.0 < self.fastest_fraction <= 1.0,
               "need window >= 2, min_samples >= 1 and 0 < fastest_fraction <= 1")
+        check(self.trusted_width_s >= 0 and self.start_round_trips >= 1,
+              "need trusted_width_s >= 0 and start_round_trips >= 1")
         check(self.max_round_trip_s > 0, "max_round_trip_s must be positive")
 
 
@@ -125,13 +132,23 @@ class ClockSync:
 
     def add_arrival(self, device_time_s: float, arrival_s: float) -> None:
         self._arrivals.append((device_time_s, arrival_s))
-        if len(self._trips) < self.params.min_samples:
+        if not self._trusted():
             self._fit = None
+
+    def _trusted(self) -> bool:
+        """Whether the round trips are trusted over arrival times: ``min_samples`` of them, and one
+        at most ``trusted_width_s`` wide or ``start_round_trips`` in all (docs/tracking.md, "The
+        camera clocks' first seconds": a lone 35 ms trip stamped a camera's first second 15.7 ms late)."""
+        p, trips = self.params, self._trips
+        if len(trips) < p.min_samples:
+            return False
+        return len(trips) >= p.start_round_trips or any(recv - send <= p.trusted_width_s for send, _, recv in trips)
 
     def fit(self) -> ClockFit:
         if self._fit is None:
-            if len(self._trips) >= self.params.min_samples:
-                s, d, r = (np.array(v) for v in zip(*self._trips, strict=True))
+            if self._trusted():
+                narrow = [t for t in self._trips if t[2] - t[0] <= self.params.trusted_width_s]
+                s, d, r = (np.array(v) for v in zip(*(narrow or self._trips), strict=True))
                 self._fit = fit_round_trips(s, d, r, self.params.fastest_fraction)
             elif self._arrivals:  # refitted per frame until a round trip comes: one array, few numpy calls
                 arrivals = np.array(self._arrivals)

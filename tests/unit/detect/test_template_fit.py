@@ -135,13 +135,17 @@ def test_homography_derivatives_match_finite_differences():
 @pytest.mark.parametrize("shape", [(7, 2), (300, 200, 2)])  # 60000 points: more than cv2.remap takes in one row
 def test_lens_map_reads_the_undistortion(shape):
     """Exact at whole pixels; between them cv2.remap reads in 1/32 px steps (the fit's samples
-    then sit up to 1/64 px off their nominal place in the pixel, where the map is exact)."""
+    then sit up to 1/64 px off their nominal place in the pixel, where the map is exact). Its
+    compiled distortion is cv2.projectPoints' (distort_px) to the bit, tangential terms and k3 too."""
     lens = camera()
     points = np.random.default_rng(1).uniform([0.0, 0.0], [WIDTH - 1.0, HEIGHT - 1.0], shape)
     mapping = LensMap(lens)
     for p, tolerance in ((np.rint(points), 2e-4), (points, 0.03)):
         np.testing.assert_allclose(mapping.undistort(p), undistort_points(p, lens.K, lens.dist, lens.K), atol=tolerance)
     np.testing.assert_array_equal(LensMap(None).undistort(points), points)
+    for other in (lens, camera((-0.28, 0.09, 0.002, -0.0015, -0.02)), camera((-0.3, 0.1, 0.001, 0.001))):
+        np.testing.assert_array_equal(LensMap(other).distort(points), distort_px(points, other.K, other.dist))
+    np.testing.assert_array_equal(LensMap(None).distort(points), points)
 
 
 def test_the_detector_owns_one_lens_map_per_camera():

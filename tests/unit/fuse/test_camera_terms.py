@@ -93,8 +93,9 @@ def test_the_fusion_samples_each_camera_in_turn_and_only_when_asked():
     filter's 0.5 px: a camera whose corners are within it gives no sample): with 4 samples a
     second each camera is sampled (one per instant at most: the most overdue camera), cam2 seeing
     one face as the others see two or three (it starved them before a failed sample counted as its
-    turn); with the setting at 0 (the default) nothing is. A sample takes the corner sets the sightings'
-    own updates matched: it matches no face again (it did before issue 25's sixth round)."""
+    turn); with the setting at 0 (the default) nothing is, and the history holds no corner sets (they are kept for
+    the samples only). A sample takes the corner sets the sightings' own updates matched: it matches no face again
+    (it did before issue 25's sixth round)."""
     matched = {}
     for rate in (4.0, 0.0):
         rng = np.random.default_rng(5)
@@ -108,8 +109,10 @@ def test_the_fusion_samples_each_camera_in_turn_and_only_when_asked():
                                          capture_time_s=t, arrival_time_s=t)
                 fusion.add(CubeSighting(camera, "bot", k, t, t, dets, estimate, CAMS[camera], INTR), t)
         terms, matched[rate] = fusion.state["bot"].corrections.terms, association.call_count
+        kept = sum(len(step.corners) for step in fusion.history["bot"])
         if rate:
             assert sorted(terms) == sorted(CAMS) and all(3 <= term.samples <= 6 for term in terms.values()), terms
+            assert kept > 0
         else:
-            assert not terms
+            assert not terms and kept == 0
     assert matched[4.0] == matched[0.0] > 0, matched

@@ -82,3 +82,30 @@ def test_reversed_round_trip_is_ignored():
     sync = ClockSync()
     sync.add_round_trip(5.0, 1.0, 4.0)
     assert sync.method is ClockFitMethod.NONE
+
+
+def test_a_lone_wide_round_trip_is_not_trusted_until_a_narrow_one_comes():
+    """Realistic scene 717's cam1: a first round trip 35 ms wide whose answer's leg was slow (its
+    midpoint 15.7 ms after the node's read), a second of 7 ms a second later. The first alone
+    stamped the camera's first second 15.7 ms late; now the frames wait for the narrow trip, and
+    once it is in the wide one does not pull the line (a line through both read -14,000 ppm)."""
+    sync = ClockSync()
+    h = device_to_host(100.0)
+    sync.add_round_trip(h - 0.0018, 100.0, h + 0.0331)
+    assert sync.method is not ClockFitMethod.ROUND_TRIP
+    h = device_to_host(101.0)
+    sync.add_round_trip(h - 0.0020, 101.0, h + 0.0050)
+    assert sync.method is ClockFitMethod.ROUND_TRIP
+    for d in (100.5, 101.0, 102.0):
+        assert abs(sync.to_host(d) - device_to_host(d)) < 0.002
+
+
+def test_round_trips_that_are_all_wide_are_trusted_after_a_few():
+    """A network whose round trips are all slow still gets a clock: after ``start_round_trips``."""
+    sync = ClockSync()
+    for k, d in enumerate((10.0, 11.0, 12.0)):
+        assert sync.method is not ClockFitMethod.ROUND_TRIP
+        h = device_to_host(d)
+        sync.add_round_trip(h - 0.015, d, h + 0.015)
+        assert (sync.method is ClockFitMethod.ROUND_TRIP) == (k == 2)
+    assert sync.to_host(12.0) == pytest.approx(device_to_host(12.0), abs=1e-3)
