@@ -341,6 +341,31 @@ def test_client_limit_and_slow_clients(session_info):
         srv.close()
 
 
+def test_close_ends_the_connections_it_is_serving_before_it_returns(server, rendered):
+    """A connection still being served when the command ends must not outlive close(): its thread may be
+    in OpenCV drawing a tile, and a thread ended there by the interpreter's exit aborts the process
+    (`cubetrack demo --dashboard` stopped by Ctrl-C with the page open exited -6 before). One client
+    sends half a request and waits (its thread blocked for client_timeout_s), one streams events."""
+    feed_scene(server, rendered, time.time())
+    half = socket.create_connection(("127.0.0.1", server.port))
+    half.sendall(b"GET /api/state HTTP/1.1\r\n")  # and never the rest
+    events = requests.get(server.url + "api/events", stream=True, timeout=10)
+    assert events.status_code == 200
+
+    def serving() -> list[threading.Thread]:
+        return [t for t in threading.enumerate() if "process_request_thread" in t.name]
+
+    deadline = time.monotonic() + 5.0
+    while len(serving()) < 2:  # both taken by the server
+        assert time.monotonic() < deadline
+        time.sleep(0.01)
+    started = time.monotonic()
+    server.close()
+    assert serving() == [] and time.monotonic() - started < 2.0 + 1.0  # cut, not waited out (2 s timeout)
+    half.close()
+    events.close()
+
+
 def test_a_port_in_use_is_an_output_error_and_other_addresses_are_warned_about(caplog):
     with socket.socket() as taken:
         taken.bind(("127.0.0.1", 0))

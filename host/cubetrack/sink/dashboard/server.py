@@ -119,7 +119,10 @@ def topview_json(state: DashboardState, range_m: float) -> dict:
 
 
 class _Server(http.server.ThreadingHTTPServer):
-    """A threading HTTP server that serves at most ``max_clients`` connections at once."""
+    """A threading HTTP server that serves at most ``max_clients`` connections at once, and whose
+    :meth:`end_requests` waits for the connections it is serving (a tile's JPEG is drawn by OpenCV
+    in its connection's thread: one still drawing when the interpreter exits is ended inside C++,
+    which aborts the process — Ctrl-C with a page open exited -6, "FATAL: exception not rethrown")."""
 
     daemon_threads = True
     allow_reuse_address = True
@@ -127,6 +130,8 @@ class _Server(http.server.ThreadingHTTPServer):
     def __init__(self, address, handler, dashboard: DashboardServer):
         self.dashboard = dashboard
         self.slots = threading.BoundedSemaphore(dashboard.state.params.max_clients)
+        self._serving: dict[threading.Thread, socket.socket] = {}  # each connection's thread -> its socket
+        self._serving_lock = threading.Lock()
         self.address_family = socket.AF_INET6 if ":" in address[0] else socket.AF_INET
         super().__init__(address, handler)
 
@@ -142,10 +147,34 @@ class _Server(http.server.ThreadingHTTPServer):
         super().process_request(request, client_address)
 
     def process_request_thread(self, request, client_address):
+        with self._serving_lock:
+            self._serving[threading.current_thread()] = request
         try:
             super().process_request_thread(request, client_address)
         finally:
+            with self._serving_lock:
+                del self._serving[threading.current_thread()]
             self.slots.release()
+
+    def end_requests(self, timeout_s: float) -> None:
+        """Once nothing new is accepted: wait up to ``timeout_s`` for the connections being served to end,
+        then cut those still open (a client that does not read: its blocked write returns) and wait as long
+        again."""
+        for cut in (False, True):
+            with self._serving_lock:
+                serving = dict(self._serving)
+            for request in serving.values() if cut else ():
+                try:
+                    request.shutdown(socket.SHUT_RDWR)
+                except OSError:
+                    pass  # already closed by its thread
+            deadline = time.monotonic() + timeout_s
+            for thread in serving:
+                thread.join(max(0.0, deadline - time.monotonic()))
+
+    def handle_error(self, request, client_address) -> None:
+        if not self.dashboard.closing.is_set():  # a connection cut by end_requests: not an error
+            super().handle_error(request, client_address)
 
 
 class _Handler(http.server.BaseHTTPRequestHandler):
@@ -423,6 +452,7 @@ class DashboardServer:
         self._http.server_close()
         for t in self._threads:
             t.join(2.0)
+        self._http.end_requests(1.0)
 
 
 class DashboardSink(Sink):
