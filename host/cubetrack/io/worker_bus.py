@@ -304,7 +304,7 @@ class StateRelay:
     state its old shard published (docs/scaling.md, "When a shard dies"). :meth:`poses`, given the poses
     this fusion makes, publishes at most every ``STATE_EVERY_S``, once a robot has a measured pose since the
     last, one message under ``cubetrack/fused-states/<me>`` holding the filter state (``state_of(robot)``: the
-    fusion's, or None) of every robot with a measured pose here (:func:`cubetrack.io.sighting_wire.encode_states`:
+    fusion's, or None) of every robot measured here and still tracked (:func:`cubetrack.io.sighting_wire.encode_states`:
     one message per shard and tick, not one per robot, since Zenoh's cost is mostly per message and every shard
     receives every shard's states); every states message on the bus is kept, undecoded, as its shard's latest (a
     Zenoh thread stores the bytes; another message or version is refused, one line per sender); :meth:`last`
@@ -318,7 +318,7 @@ class StateRelay:
         self.latest: dict[str, bytes] = {}  # sender -> its latest states message
         self._refused: set[str] = set()  # senders whose messages were refused (logged once each)
         self._fresh: set[str] = set()  # robots with a measured pose since the last states message
-        self._measured: set[str] = set()  # robots with a measured pose here, ever: each states message holds them all
+        self._measured: set[str] = set()  # robots measured here and still tracked: each states message holds them all
         self._sent_s = -math.inf
         self._outbox: queue.Queue[bytes | None] = queue.Queue()
         self._subscriber = bus.declare_subscriber(f"{STATES_KEY}/*", self._receive)
@@ -357,6 +357,7 @@ class StateRelay:
             # ones (:attr:`latest`), so a robot left out would lose the state a take-over starts from
             self._measured |= self._fresh
             states = [FusedState(*state) for robot in sorted(self._measured) if (state := self.state_of(robot))]
+            self._measured = {state.robot for state in states}  # one no longer tracked here leaves until measured again
             self._fresh, self._sent_s = set(), now
             if states:
                 self._outbox.put(encode_states(states))

@@ -237,10 +237,12 @@ def test_the_state_relay_publishes_one_message_per_tick_with_every_measured_robo
     clock = [100.0]
     monkeypatch.setattr("cubetrack.io.worker_bus.time.monotonic", lambda: clock[0])
 
+    untracked = {"untracked"}
+
     def state_of(robot: str) -> tuple | None:
         T = np.eye(4)
         T[:3, 3] = [clock[0], 2.0, 3.0]
-        return None if robot == "untracked" else (robot, clock[0], T, np.ones(3), np.zeros(3), np.eye(12))
+        return None if robot in untracked else (robot, clock[0], T, np.ones(3), np.zeros(3), np.eye(12))
 
     def pose(robot: str, predicted: bool = False) -> TrackedPose:
         return TrackedPose(robot, clock[0], np.zeros(3), np.array([0.0, 0.0, 0.0, 1.0]), (), (), 0.0,
@@ -265,6 +267,16 @@ def test_the_state_relay_publishes_one_message_per_tick_with_every_measured_robo
     relay.poses([pose("r3")])
     relay.sent()   # only r3 is fresh, but this message replaces the last: it still holds r1's and r2's states
     assert len(bus.puts) == 3 and [s.robot for s in decode_states(bus.puts[2][1])] == ["r1", "r2", "r3"]
+    # r2's track ends here: it leaves the messages, and the relay forgets it until it is measured here again
+    untracked.add("r2")
+    clock[0] += 0.11
+    relay.poses([pose("r3")])
+    untracked.discard("r2")
+    clock[0] += 0.11
+    relay.poses([pose("r3")])
+    relay.sent()
+    assert [[s.robot for s in decode_states(data)] for _, data in bus.puts[3:]] == [["r1", "r3"], ["r1", "r3"]]
+    del bus.puts[3:]
     last = relay.last("r1")
     assert last is not None and last.time_s == clock[0] and last.T_world_cube[0, 3] == clock[0]
     assert relay.last("r4") is None
