@@ -25,6 +25,11 @@ its last camera frame (1 ms slack); the instant's last such pose is compared wit
 interpolated to that pose's time (linear in position, slerp in rotation, between neighbouring
 instants). Position error in mm, rotation error in degrees.
 
+What the scoring allows (:func:`instant_fits`, printed last): the corners the default run's filter got,
+one fit per instant, scored the same way — every camera taken as exact (a triangulation, as the reference
+is), the reference's own cameras only, and weighed by the calibration term as set (the filter's
+measurement model without its motion model).
+
 Usage: python benchmarks/real_footage.py [--data DIR] [--work DIR] [--reference-only]   (prints a table)
 """
 
@@ -35,7 +40,8 @@ import csv
 import os
 import sys
 import tempfile
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Iterator, Mapping, Sequence
+from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -46,6 +52,10 @@ from scipy.spatial.transform import Rotation, Slerp
 
 if TYPE_CHECKING:
     from cubetrack.core.cameras import CameraIntrinsics
+    from cubetrack.core.layout import CubeLayout
+    from cubetrack.core.records import CubeSighting
+    from cubetrack.estimate.reprojection import CornerSet
+    from cubetrack.fuse.corner_filter import FilterParams
 
 DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "real" / "caliscope-4cam"
 MIN_CORNERS = 6
@@ -348,6 +358,21 @@ class Score:
         return f"{name:<28} by reference: " + "; ".join(groups)
 
 
+def _interpolated(reference: Mapping[int, Instant]) -> Callable[[float], tuple[np.ndarray, Rotation]]:
+    """The reference as a function of time: t (s) -> the board's position (m) and rotation in the world,
+    linear in position and slerp in rotation between neighbouring instants (held at either end)."""
+    syncs = sorted(s for s, i in reference.items() if i.T_world_body is not None)
+    ref_t = np.array([reference[s].t_s for s in syncs])
+    ref_T = np.array([reference[s].T_world_body for s in syncs])
+    ref_p, slerp = ref_T[:, :3, 3], Slerp(ref_t, Rotation.from_matrix(ref_T[:, :3, :3]))
+
+    def at(t_s: float) -> tuple[np.ndarray, Rotation]:
+        t = float(np.clip(t_s, ref_t[0], ref_t[-1]))
+        return np.array([np.interp(t, ref_t, ref_p[:, k]) for k in range(3)]), slerp([t])[0]
+
+    return at
+
+
 def score(tum: Path, reference: Mapping[int, Instant], frame_times_s: np.ndarray | None = None) -> Score:
     """Score a TUM trajectory against ``reference`` (module docstring). ``frame_times_s``: per pose,
     the recorded time of the frame it was made from (NaN: none), which then places the pose in its
@@ -355,10 +380,7 @@ def score(tum: Path, reference: Mapping[int, Instant], frame_times_s: np.ndarray
     are still taken at the pose's own time."""
     times, positions, quats = read_tum(tum)
     placed = times if frame_times_s is None else np.asarray(frame_times_s, float)
-    syncs = sorted(s for s, i in reference.items() if i.T_world_body is not None)
-    ref_t = np.array([reference[s].t_s for s in syncs])
-    ref_T = np.array([reference[s].T_world_body for s in syncs])
-    ref_p, slerp = ref_T[:, :3, 3], Slerp(ref_t, Rotation.from_matrix(ref_T[:, :3, :3]))
+    reference_at = _interpolated(reference)
     pos_err, rot_err, used = [], [], []
     with_pose = 0
     for _sync, inst in sorted(reference.items()):
@@ -369,17 +391,123 @@ def score(tum: Path, reference: Mapping[int, Instant], frame_times_s: np.ndarray
         if inst.T_world_body is None:
             continue
         i = inside[-1]
-        t = float(np.clip(times[i], ref_t[0], ref_t[-1]))
-        p_ref = np.array([np.interp(t, ref_t, ref_p[:, k]) for k in range(3)])
+        p_ref, r_ref = reference_at(float(times[i]))
         pos_err.append(1000.0 * np.linalg.norm(positions[i] - p_ref))
-        rot_err.append(np.degrees((slerp([t])[0].inv() * Rotation.from_quat(quats[i])).magnitude()))
+        rot_err.append(np.degrees((r_ref.inv() * Rotation.from_quat(quats[i])).magnitude()))
         used.append(len(inst.used))
     return Score(len(reference), with_pose, np.array(pos_err), np.array(rot_err), np.array(used, dtype=int))
 
 
-def track(work: Path, name: str, sections: Mapping[str, Mapping[str, object]] | None = None) -> Path:
+MATCH_GATE_PX = 30.0  # instant fits: a detection is the board's marker within this (px) of where the reference puts it
+INSTANT_FITS = ("every camera as exact", "its cameras as exact", "the calibration term")
+
+
+def instant_fits(reference: Mapping[int, Instant], sightings: Sequence[CubeSighting], layout: CubeLayout,
+                 filter_params: FilterParams, max_view_angle_deg: float) -> dict[str, Score]:
+    """What the scoring allows (its floor): one fit per instant of the corners the tracker got (its own
+    detections, not the reference's ChArUco corners), scored as :func:`score` scores a tracker (the pose at
+    the stamp of the instant's last frame). ``sightings``: the fusion's (:func:`track`'s ``sightings``).
+    Each camera frame of the instant's span is matched to the board's markers where the reference puts
+    the board (``MATCH_GATE_PX``; faces seen more obliquely than ``max_view_angle_deg`` left out, as the
+    tracker does), then three fits, named in ``INSTANT_FITS``: every camera's corners in one multi-camera fit,
+    each camera taken as exact (a triangulation, as the reference is); the same of the cameras the reference
+    kept; and each camera's own fit weighed by its covariance plus the calibration term as ``filter_params``
+    set it (the filter's measurement model at one instant, without its motion model: docs/tracking.md
+    "Cameras that disagree")."""
+    from cubetrack.core.geometry import make_T
+    from cubetrack.estimate.match import match_faces
+    from cubetrack.fuse.fusion import sighting_corner_sets
+
+    reference_at = _interpolated(reference)
+    errors: dict[str, list[tuple[float, float, int]]] = {name: [] for name in INSTANT_FITS}
+    for inst in reference.values():
+        inside = [s for s in sightings if inst.t0_s - TIME_SLACK_S <= s.capture_time_s <= inst.t1_s + TIME_SLACK_S]
+        if inst.T_world_body is None or not inside:
+            continue
+        sets: dict[str, list[CornerSet]] = {}
+        for s in inside:
+            p, r = reference_at(s.capture_time_s)
+            matches = match_faces(s.detections, layout, s.intrinsics, s.T_world_cam, make_T(r.as_matrix(), p),
+                                  gate_px=MATCH_GATE_PX, max_view_angle_deg=max_view_angle_deg)
+            sets.setdefault(s.camera, []).extend(sighting_corner_sets(matches, s.intrinsics, s.T_world_cam,
+                                                                      s.camera, s.capture_time_s))
+        t_s = max(s.capture_time_s for s in inside)
+        p_ref, r_ref = reference_at(t_s)
+        T_ref = make_T(r_ref.as_matrix(), p_ref)
+        kept = {c: v for c, v in sets.items() if int(c.removeprefix("cam")) in inst.used}  # the import's names
+        fitted = (_exact_fit(sets, T_ref, t_s, filter_params), _exact_fit(kept, T_ref, t_s, filter_params),
+                  _term_fit(sets, T_ref, t_s, filter_params))
+        for name, T in zip(INSTANT_FITS, fitted, strict=True):
+            if T is not None:
+                errors[name].append((1000.0 * float(np.linalg.norm(T[:3, 3] - p_ref)),
+                                     float(np.degrees((r_ref.inv() * Rotation.from_matrix(T[:3, :3])).magnitude())),
+                                     len(inst.used)))
+    posed = sum(inst.T_world_body is not None for inst in reference.values())
+    return {name: Score(posed, len(e), np.array([x[0] for x in e]), np.array([x[1] for x in e]),
+                        np.array([x[2] for x in e], dtype=int)) for name, e in errors.items()}
+
+
+def _exact_fit(sets: Mapping[str, Sequence[CornerSet]], T_init: np.ndarray, t_s: float,
+               filter_params: FilterParams) -> np.ndarray | None:
+    """T_world_body of one multi-camera fit of every corner set, every camera taken as exact (None: no fit)."""
+    from cubetrack.fuse.multi_view_fit import solve_joint
+
+    every = [cs for camera_sets in sets.values() for cs in camera_sets]
+    fit = solve_joint(every, T_init, t_s, filter_params.corner_noise_px) if every else None
+    return None if fit is None else fit.T_world_cube
+
+
+def _term_fit(sets: Mapping[str, Sequence[CornerSet]], T_init: np.ndarray, t_s: float,
+              filter_params: FilterParams) -> np.ndarray | None:
+    """T_world_body of each camera's own fit (linearised at ``T_init``) weighed by the inverse of its
+    covariance plus the calibration term's ``Σ`` (:func:`cubetrack.fuse.filter_kernels.calibration_discount`
+    with no corner information gives ``Σ`` itself): the generalised least squares the filter's update
+    makes of one instant's frames (None: no camera's fit)."""
+    from cubetrack.estimate.reprojection import perturbed
+    from cubetrack.fuse.filter_kernels import calibration_discount, packed_sets
+    from cubetrack.fuse.multi_view_fit import solve_joint
+
+    fp = filter_params
+    information, weighted = np.zeros((6, 6)), np.zeros(6)
+    for camera_sets in sets.values():
+        fit = solve_joint(camera_sets, T_init, t_s, fp.corner_noise_px) if camera_sets else None
+        if fit is None:
+            continue
+        _, _, _, R_cw, t_cw, _, _ = packed_sets(camera_sets)
+        term = np.zeros((6, 6))
+        if not calibration_discount(T_init, R_cw, t_cw, np.zeros((6, 6)), fp.camera_position_sigma_m,
+                                    np.radians(fp.camera_rotation_sigma_deg), fp.camera_scale_sigma, term):
+            term[:] = 0.0  # the cameras taken as exact
+        W = np.linalg.inv(fit.covariance[:6, :6] + term)
+        T = fit.T_world_cube
+        delta = np.concatenate([T[:3, 3] - T_init[:3, 3],
+                                Rotation.from_matrix(T[:3, :3] @ T_init[:3, :3].T).as_rotvec()])
+        information += W
+        weighted += W @ delta
+    return perturbed(T_init, np.linalg.solve(information, weighted)) if information.any() else None
+
+
+@contextmanager
+def _recorded(sightings: list[CubeSighting]) -> Iterator[None]:
+    """Within it, every sighting a tracker's filter fusion gets is appended to ``sightings``."""
+    from unittest import mock
+
+    from cubetrack.app import tracker as tracker_module
+
+    class Recorded(tracker_module.FilterFusion):
+        def add(self, sighting: CubeSighting, now_s: float) -> list:
+            sightings.append(sighting)
+            return super().add(sighting, now_s)
+
+    with mock.patch.object(tracker_module, "FilterFusion", Recorded):
+        yield
+
+
+def track(work: Path, name: str, sections: Mapping[str, Mapping[str, object]] | None = None,
+          sightings: list[CubeSighting] | None = None) -> Path:
     """Track the imported recording in ``work`` with the config's settings plus ``sections``
-    (extra TOML tables); the TUM file written."""
+    (extra TOML tables); the TUM file written. ``sightings``: a list to which every sighting the
+    filter fusion gets is appended (for :func:`instant_fits`)."""
     import tomllib
 
     from cubetrack.app.config import config_params
@@ -395,8 +523,9 @@ def track(work: Path, name: str, sections: Mapping[str, Mapping[str, object]] | 
     write_toml(doc, config_path)
     config = read_tracker_config(config_path)
     out = work / f"track-{name}"
-    track_recording(config, Recording.open(work / "recording"), read_extrinsics(work / "extrinsics.toml"), out,
-                    config_params(config).stages, workers=0)
+    with _recorded(sightings) if sightings is not None else nullcontext():
+        track_recording(config, Recording.open(work / "recording"), read_extrinsics(work / "extrinsics.toml"), out,
+                        config_params(config).stages, workers=0)
     return out / "board.tum"
 
 
@@ -431,10 +560,25 @@ def main(argv: list[str] | None = None) -> int:
             section, name = key.split(".", 1)
             custom.setdefault(section, {})[name] = tomllib.loads(f"v = {value}")["v"]
         runs["custom " + " ".join(args.set)] = custom
+    sightings: list[CubeSighting] = []
     for i, (name, sections) in enumerate(runs.items()):
-        result = score(track(work, f"run{i}", sections), reference)
+        result = score(track(work, f"run{i}", sections, sightings if i == 0 else None), reference)
         print(result.line(name) + "\n" + result.by_reference(name), flush=True)
+    print_instant_fits(work, reference, sightings)
     return 0
+
+
+def print_instant_fits(work: Path, reference: Mapping[int, Instant], sightings: Sequence[CubeSighting]) -> None:
+    """Print :func:`instant_fits` of the default run's sightings, with the config's settings."""
+    from cubetrack.app.config import config_params
+    from cubetrack.io.config import read_tracker_config
+
+    config = read_tracker_config(work / "config.toml")
+    stages = config_params(config).stages
+    print("the scoring's floor: one fit per instant of the tracker's own corners (no motion model)")
+    for name, result in instant_fits(reference, sightings, config.robots[0].layout, stages.filter,
+                                     stages.fusion.max_view_angle_deg).items():
+        print(result.line(name) + "\n" + result.by_reference(name), flush=True)
 
 
 if __name__ == "__main__":
