@@ -741,10 +741,12 @@ def worker_split(args: argparse.Namespace, rec: Path, work: Path) -> dict:
 
     import cv2
 
+    from cubetrack.app import camera_workers
     from cubetrack.app.camera_workers import work_cameras
     from cubetrack.app.config import load_config, recording_intrinsics
     from cubetrack.app.emulated import EmulatedCameras
     from cubetrack.app.tracker import Tracker
+    from cubetrack.core.records import FrameJob
     from cubetrack.fuse.forecast import forecast_of
     from cubetrack.io.config import read_extrinsics
     from cubetrack.io.frame_wire import unpack_result
@@ -773,6 +775,7 @@ def worker_split(args: argparse.Namespace, rec: Path, work: Path) -> dict:
         worker.admit = timed(worker.admit, "plan")   # type: ignore[method-assign]
         ours, theirs = multiprocessing.Pipe()
         theirs.send = timed(theirs.send, "send")   # type: ignore[method-assign]
+        camera_workers.send_plain = timed(camera_workers.send_plain, "send")   # a result: pickled and sent
         working, taken = multiprocessing.RawArray("d", [math.inf]), multiprocessing.RawArray("q", 1)
         robots = [r.name for r in config.robots]
         received = [0]   # frames the worker's cameras delivered, as its last counters say
@@ -794,7 +797,9 @@ def worker_split(args: argparse.Namespace, rec: Path, work: Path) -> dict:
                 if kind == "clock":
                     fusing.add_clock_sample(payload.camera, payload.sample)
                 elif kind == "result":
-                    fusing.fuse(unpack_result(*payload, intrinsics=fusing.intrinsics, T_world_cam=fusing.T_world_cam),
+                    job, packed = payload
+                    fusing.fuse(unpack_result(FrameJob.from_plain(job), packed, intrinsics=fusing.intrinsics,
+                                              T_world_cam=fusing.T_world_cam),
                                 time.time())
                     taken[0] += 1
                     ours.send(forecast_of(fusing.fusion, robots, time.time()))
