@@ -802,7 +802,7 @@ def worker_split(args: argparse.Namespace, rec: Path, work: Path) -> dict:
                                               T_world_cam=fusing.T_world_cam),
                                 time.time())
                     taken[0] += 1
-                    ours.send(forecast_of(fusing.fusion, robots, time.time()))
+                    ours.send(forecast_of(fusing.fusion, robots, time.time()).plain())
                 cpu_s["fusion"] += time.thread_time() - t0
 
         side = threading.Thread(target=tracker_process, daemon=True)

@@ -26,7 +26,6 @@ from collections.abc import Callable, Mapping, MutableSequence, Sequence
 from dataclasses import dataclass
 from multiprocessing.connection import Connection, wait
 from multiprocessing.process import BaseProcess
-from multiprocessing.reduction import ForkingPickler
 from typing import cast
 
 import cv2
@@ -197,7 +196,7 @@ class CameraProcesses:
         how many were taken from shared memory, so only one that may be waiting for that count
         (``IN_FLIGHT`` taken since its last message: a process that waits sends nothing more, and
         :meth:`take` reads all it sent) is sent a message to wake it."""
-        message = None if forecast is None else bytes(ForkingPickler.dumps(forecast))  # pickled once for all
+        message = None if forecast is None else pickle.dumps(forecast.plain(), pickle.HIGHEST_PROTOCOL)  # once for all
         for conn, lane in self._open.items():
             if message is None and self._taken[lane] - self._told[lane] < IN_FLIGHT:
                 continue
@@ -295,8 +294,8 @@ def work_cameras(conn: Connection, urls: dict[str, str], source: SourceParams, t
                 if message is None:
                     stopping = True
                     live.stop()
-                elif isinstance(message, Forecast):  # else a wake: the count taken changed
-                    forecast = message
+                elif isinstance(message, tuple):  # else a wake: the count taken changed
+                    forecast = Forecast.from_plain(message)
             if job is None:
                 room = stopping or sent - taken[lane] < IN_FLIGHT
                 # in arrival order: the fusion gets fewer late sightings to fold in (each costs re-applying the
