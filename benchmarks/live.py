@@ -734,17 +734,20 @@ def worker_split(args: argparse.Namespace, rec: Path, work: Path) -> dict:
     come, in the same process, and sends a new forecast after each. Thread CPU per processed frame of
     the per-frame work (``FrameProcessor.work``), the planning (``Tracker.admit``), sending the results
     (pickling, the pipe) and the rest of the loop (reading and parsing the streams, the clock round
-    trips), and the stand-in's unpacking + fusion + forecast."""
+    trips), and the stand-in's unpickling + unpacking + fusion + forecast (until session 17 without the
+    unpickling)."""
     import functools
     import math
     import multiprocessing
 
     import cv2
 
+    from cubetrack.app import camera_workers
     from cubetrack.app.camera_workers import work_cameras
     from cubetrack.app.config import load_config, recording_intrinsics
     from cubetrack.app.emulated import EmulatedCameras
     from cubetrack.app.tracker import Tracker
+    from cubetrack.core.records import FrameJob
     from cubetrack.fuse.forecast import forecast_of
     from cubetrack.io.config import read_extrinsics
     from cubetrack.io.frame_wire import unpack_result
@@ -773,6 +776,7 @@ def worker_split(args: argparse.Namespace, rec: Path, work: Path) -> dict:
         worker.admit = timed(worker.admit, "plan")   # type: ignore[method-assign]
         ours, theirs = multiprocessing.Pipe()
         theirs.send = timed(theirs.send, "send")   # type: ignore[method-assign]
+        camera_workers.send_plain = timed(camera_workers.send_plain, "send")   # a result: pickled and sent
         working, taken = multiprocessing.RawArray("d", [math.inf]), multiprocessing.RawArray("q", 1)
         robots = [r.name for r in config.robots]
         received = [0]   # frames the worker's cameras delivered, as its last counters say
@@ -785,19 +789,21 @@ def worker_split(args: argparse.Namespace, rec: Path, work: Path) -> dict:
                     stopped = True
                 if not ours.poll(0.05):
                     continue
-                kind, payload = ours.recv()
+                t0 = time.thread_time()
+                kind, payload = ours.recv()  # the unpickling counted: the tracker's process does it too
                 if kind == "done":
                     return
-                t0 = time.thread_time()
                 if kind == "update":
                     received[0] = sum(c.frames for c in payload.cameras.values())
                 if kind == "clock":
                     fusing.add_clock_sample(payload.camera, payload.sample)
                 elif kind == "result":
-                    fusing.fuse(unpack_result(*payload, intrinsics=fusing.intrinsics, T_world_cam=fusing.T_world_cam),
+                    job, packed = payload
+                    fusing.fuse(unpack_result(FrameJob.from_plain(job), packed, intrinsics=fusing.intrinsics,
+                                              T_world_cam=fusing.T_world_cam),
                                 time.time())
                     taken[0] += 1
-                    ours.send(forecast_of(fusing.fusion, robots, time.time()))
+                    ours.send(forecast_of(fusing.fusion, robots, time.time()).plain())
                 cpu_s["fusion"] += time.thread_time() - t0
 
         side = threading.Thread(target=tracker_process, daemon=True)
@@ -851,7 +857,7 @@ def print_worker_split(args: argparse.Namespace, split: dict) -> None:
           f"of {split['received']} received; thread CPU per processed frame: work (decode, detection, estimates) "
           f"{ms['work']:.3f} ms, planning {ms['plan']:.3f} ms, sending the result {ms['send']:.3f} ms, the rest of "
           f"the loop (reading the streams, clock round trips) {ms['rest']:.3f} ms; the tracker's process standing "
-          f"in (unpack, fuse, forecast) {ms['fusion']:.3f} ms")
+          f"in (unpickle, unpack, fuse, forecast) {ms['fusion']:.3f} ms")
 
 
 def speed_failures(args: argparse.Namespace, sp: dict) -> list[str]:

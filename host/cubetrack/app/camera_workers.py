@@ -16,17 +16,16 @@ work.
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import math
 import multiprocessing
+import pickle
 import signal
 import time
 from collections.abc import Callable, Mapping, MutableSequence, Sequence
 from dataclasses import dataclass
 from multiprocessing.connection import Connection, wait
 from multiprocessing.process import BaseProcess
-from multiprocessing.reduction import ForkingPickler
 from typing import cast
 
 import cv2
@@ -104,7 +103,8 @@ class CameraProcesses:
     :class:`~cubetrack.source.streams.LiveCameras`' interface the live loop uses (``urls``,
     :meth:`stats`, :meth:`pending`, :meth:`stop`). ``make_tracker`` builds each process's
     tracker (picklable: a ``functools.partial``); its results come as
-    :func:`cubetrack.io.frame_wire.pack_result` packs them, and ``unpack`` (``unpack_result`` with
+    :func:`cubetrack.io.frame_wire.pack_result` packs them (their jobs as ``FrameJob.plain`` values,
+    without JPEG or predicted markers unless ``views``), and ``unpack`` (``unpack_result`` with
     the intrinsics and camera poses of a tracker made with the same arguments) turns them back.
     Wait for and take what came with :meth:`take` (on the caller's thread: no thread of this
     process reads the pipes, so none competes with the fusion for the GIL); send each new
@@ -172,7 +172,8 @@ class CameraProcesses:
                 raise SourceError("a camera worker process ended unexpectedly "
                                   f"(exit code {self._lanes[lane][1].exitcode})") from None
             if kind == "result":
-                results.append(self._unpack(*payload))
+                job, packed = payload
+                results.append(self._unpack(FrameJob.from_plain(job), packed))
                 self._taken[lane] += 1
             elif kind == "clock":
                 clocks.append(payload)
@@ -195,7 +196,7 @@ class CameraProcesses:
         how many were taken from shared memory, so only one that may be waiting for that count
         (``IN_FLIGHT`` taken since its last message: a process that waits sends nothing more, and
         :meth:`take` reads all it sent) is sent a message to wake it."""
-        message = None if forecast is None else bytes(ForkingPickler.dumps(forecast))  # pickled once for all
+        message = None if forecast is None else pickle.dumps(forecast.plain(), pickle.HIGHEST_PROTOCOL)  # once for all
         for conn, lane in self._open.items():
             if message is None and self._taken[lane] - self._told[lane] < IN_FLIGHT:
                 continue
@@ -293,8 +294,8 @@ def work_cameras(conn: Connection, urls: dict[str, str], source: SourceParams, t
                 if message is None:
                     stopping = True
                     live.stop()
-                elif isinstance(message, Forecast):  # else a wake: the count taken changed
-                    forecast = message
+                elif isinstance(message, tuple):  # else a wake: the count taken changed
+                    forecast = Forecast.from_plain(message)
             if job is None:
                 room = stopping or sent - taken[lane] < IN_FLIGHT
                 # in arrival order: the fusion gets fewer late sightings to fold in (each costs re-applying the
@@ -309,8 +310,7 @@ def work_cameras(conn: Connection, urls: dict[str, str], source: SourceParams, t
                 result = tracker.processor.work(job)
                 if result.outcome is not FrameOutcome.CORRUPT:  # counted (and logged) by the fusion's tracker
                     tracker.count(result)  # when this camera's whole frame was last searched
-                done = dataclasses.replace(job, predicted=(),  # the fusion needs no markers, and no JPEG without views
-                                           frame=job.frame if views else dataclasses.replace(job.frame, jpeg=b""))
+                done = job.plain(jpeg=views, predicted=False)  # the fusion needs no markers, and no JPEG without views
                 # the next frame, if one has come, is in work before this result goes: were it older, the
                 # tracker's process holds this result for it rather than folding it in late
                 job = None
@@ -319,7 +319,7 @@ def work_cameras(conn: Connection, urls: dict[str, str], source: SourceParams, t
                         if (job := admitted(event)) is not None:
                             break
                 working[lane] = math.inf if job is None else job.capture_time_s
-                conn.send(("result", (done, pack_result(result, tracker.T_world_cam))))  # plain values: pickled fast
+                send_plain(conn, ("result", (done, pack_result(result, tracker.T_world_cam))))
                 sent += 1
             if time.monotonic() >= next_update:
                 next_update = time.monotonic() + STATS_EVERY_S
@@ -328,6 +328,12 @@ def work_cameras(conn: Connection, urls: dict[str, str], source: SourceParams, t
         live.stop()
     conn.send(("update", _update(live, tracker)))
     conn.send(("done", None))
+
+
+def send_plain(conn: Connection, message: tuple) -> None:
+    """Send a message of plain values (read by ``recv()``), pickled by the C pickler alone:
+    ``Connection.send``'s ``ForkingPickler`` copies a dispatch table per call."""
+    conn.send_bytes(pickle.dumps(message, pickle.HIGHEST_PROTOCOL))
 
 
 def _update(live: LiveCameras, tracker: Tracker) -> WorkerUpdate:

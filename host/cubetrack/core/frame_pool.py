@@ -31,7 +31,7 @@ import cv2
 from cubetrack.core.errors import SourceError
 from cubetrack.core.lifetime import end_with_parent
 from cubetrack.core.params import check, param
-from cubetrack.core.records import Detection, Frame, FrameJob, FrameResult
+from cubetrack.core.records import FrameJob, FrameResult
 
 
 @enum.unique
@@ -284,10 +284,7 @@ class _ProcessLane:
         self.claims[ticket] = _WAITING
         self.jobs.append(job)
         self.tickets[job] = ticket
-        f = job.frame
-        self.conn.send((ticket, f.camera, f.seq, f.device_time_s, f.host_time_s, f.jpeg, job.capture_time_s,
-                        job.regions, tuple(job.estimate_robots),
-                        tuple((d.marker_id, d.corners_px, d.area_px2, d.dictionary) for d in job.predicted)))
+        self.conn.send((ticket, job.plain()))
 
     def reclaim(self, job: FrameJob) -> bool:
         """Take ``job`` back unless the worker has started it (its answer will be None)."""
@@ -354,17 +351,14 @@ def _process_main(conn: Connection, make_worker: Callable[[], FrameWorker], clai
         worker = make_worker()
         conn.send("ready")
         while (message := conn.recv()) is not None:
-            (ticket, camera, seq, device_time_s, host_time_s, jpeg, capture_time_s, regions, estimate_robots,
-             predicted) = message
+            ticket, values = message
             with claim_lock:
                 mine = claims[ticket] == _WAITING
                 claims[ticket] = _STARTED if mine else claims[ticket]
             if not mine:
                 conn.send(None)
                 continue
-            job = FrameJob(Frame(camera, seq, device_time_s, host_time_s, jpeg), capture_time_s, regions,
-                           frozenset(estimate_robots), tuple(Detection(*marker) for marker in predicted))
-            conn.send(worker.pack(worker.work(job)))
+            conn.send(worker.pack(worker.work(FrameJob.from_plain(values))))
     except (EOFError, KeyboardInterrupt):
         pass
 

@@ -99,6 +99,32 @@ def test_auto_takes_camera_processes_for_many_cameras_unless_recording_or_on_one
     assert LiveParams(worker_kind=WorkerKind.CAMERA_PROCESS).kind_for(3, recording=True) is WorkerKind.THREAD
 
 
+def test_a_job_comes_back_whole_as_plain_values():
+    """FrameJob.plain (a job between the processes of one tracker) pickles into plain values that
+    FrameJob.from_plain turns back into the same job; without the JPEG or the predicted markers when
+    asked to leave them out (a camera worker's result: the fusion needs neither)."""
+    import pickle
+
+    import numpy as np
+
+    from cubetrack.core.records import Detection
+
+    corners = np.array([[10.0, 20.0], [30.5, 20.0], [30.5, 40.25], [10.0, 40.25]])
+    job = FrameJob(Frame("cam2", 7, 1.5, 2.5, b"\xff\xd8jpeg\xff\xd9"), 2.25, ((0, 8, 320, 240), (1, 2, 30, 40)),
+                   frozenset({"red", "blue"}), (Detection(3, corners, 420.5, "DICT_4X4_50"),))
+
+    def fields(j: FrameJob) -> tuple:
+        f = j.frame
+        return ((f.camera, f.seq, f.device_time_s, f.host_time_s, f.jpeg), j.capture_time_s, j.regions,
+                j.estimate_robots,
+                [(d.marker_id, d.corners_px.tobytes(), d.area_px2, d.dictionary) for d in j.predicted])
+
+    back = FrameJob.from_plain(pickle.loads(pickle.dumps(job.plain())))
+    assert fields(back) == fields(job)
+    bare = FrameJob.from_plain(pickle.loads(pickle.dumps(job.plain(jpeg=False, predicted=False))))
+    assert fields(bare) == ((("cam2", 7, 1.5, 2.5, b""),) + fields(job)[1:4] + ([],))
+
+
 def test_a_packed_result_comes_back_whole_through_pickle(scenes):
     """What a worker process sends (cubetrack.io.frame_wire.pack_result) is unpacked into the result it made: every
     detection's id, corners, area and dictionary, the estimate, the error; the camera pose and

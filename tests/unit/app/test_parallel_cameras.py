@@ -49,6 +49,19 @@ def test_a_robot_lost_within_the_span_is_forecast_standing_still(fusion):
     assert FORECAST_SPAN_S > 0.05
 
 
+def test_a_forecast_crosses_to_the_workers_as_plain_values_unchanged(fusion):
+    """Forecast.plain (what the tracker's process sends its camera worker processes) pickles and
+    comes back through Forecast.from_plain predicting the same poses to the bit, with writable arrays."""
+    import pickle
+
+    forecast = forecast_of(fusion, ["tracked", "lost"], 100.2)
+    back = Forecast.from_plain(pickle.loads(pickle.dumps(forecast.plain())))
+    assert back.estimate_robots == forecast.estimate_robots and set(back.motions) == {"tracked"}
+    for t in (100.15, 100.26):
+        assert back.predicted_pose("tracked", t).tobytes() == forecast.predicted_pose("tracked", t).tobytes()
+    assert all(a.flags.writeable for a in back.motions["tracked"][1:])
+
+
 def test_an_empty_forecast_plans_whole_frames_and_asks_for_every_estimate():
     forecast = Forecast({}, frozenset({"a", "b"}))
     assert forecast.predicted_pose("a", 1.0) is None and forecast.needs_estimate("b")
