@@ -46,3 +46,37 @@ def test_a_cell_states_its_ratios_to_the_floor_and_the_presets_rule(bench):
 def test_a_malformed_scene_is_refused(bench, text):
     with pytest.raises(ValueError, match="PRESET:CONFIG:SEED:ROLE"):
         bench.parse_scene(text)
+
+
+def test_the_markers_frame_truth_puts_the_calibrated_markers_where_the_built_ones_are(bench):
+    """A body calibrated exactly (the built markers in the nominal layout's best-fit frame, as
+    calibrate-body writes it) posed by the moved truth places every marker where the cube as built
+    has it under the truth's pose; a cube built as designed leaves the truth as it was."""
+    import numpy as np
+    from scipy.spatial.transform import Rotation
+
+    from cubetrack.calib.body import best_fit_transform, moved_layout
+    from cubetrack.core.geometry import make_T
+    from cubetrack.core.layout import paper_cube_layout
+    from cubetrack.io.trajectory import Trajectory
+    from cubetrack.simulate import SimulationParams
+    from cubetrack.simulate.imperfections import built_layout
+
+    nominal = paper_cube_layout()
+    built = built_layout(nominal, SimulationParams.realistic(), np.random.default_rng(505))
+    calibrated = moved_layout(built, best_fit_transform(built.corners_m.reshape(-1, 3),
+                                                        nominal.corners_m.reshape(-1, 3)))
+    turns = Rotation.from_rotvec([[0.0, 0.0, 0.3], [0.05, -0.04, 2.0], [0.1, 0.0, -1.0]])
+    truth = Trajectory(np.array([0.0, 0.1, 0.2]), np.array([[0.1, 0.2, 0.3], [0.4, -0.1, 0.3], [-0.2, 0.0, 0.31]]),
+                       turns.as_quat())
+    moved = bench.markers_frame_truth(truth, nominal, built)
+    offset = Rotation.from_quat(moved.quats_xyzw[0]) * Rotation.from_quat(truth.quats_xyzw[0]).inv()
+    assert np.degrees(offset.magnitude()) > 0.1  # the build errors turn the frame
+    for k in range(3):
+        T_world_design = make_T(turns[k].as_matrix(), truth.positions_m[k])
+        T_world_markers = make_T(Rotation.from_quat(moved.quats_xyzw[k]).as_matrix(), moved.positions_m[k])
+        for b, c in zip(built.markers, calibrated.markers, strict=True):
+            np.testing.assert_allclose(T_world_markers @ c.T_cube_marker, T_world_design @ b.T_cube_marker, atol=1e-9)
+    same = bench.markers_frame_truth(truth, nominal, nominal)
+    np.testing.assert_allclose(same.positions_m, truth.positions_m, atol=1e-12)
+    np.testing.assert_allclose(np.abs(np.sum(same.quats_xyzw * truth.quats_xyzw, axis=1)), 1.0, atol=1e-12)
