@@ -54,8 +54,9 @@ move: the settled pose follows them, and the filter's per-camera term copes with
 (docs/tracking.md). A slow drift is **followed** (:class:`DriftFollow`): the pose in use is the
 calibrated one moved by the settled pose's change since the camera's first settled pose, that change
 read off a straight line fitted to the settled poses of the last ``follow_s`` (so a steady drift is
-followed without lag, and a settled pose's own scatter is averaged over that span), less what the
-cameras' changes share (a rigid move of the world: :meth:`CameraWatch._follow`); no event.
+followed without lag, and a settled pose's own scatter is averaged over that span), on the camera
+whose change stands out (a drift shows, weaker, in the others' references: :meth:`CameraWatch._follow`);
+no event.
 
 Pure: sightings in, events out; no clock, no thread (the re-calibration fit is the caller's to
 run in the background).
@@ -251,6 +252,8 @@ PREDICTION_GATE_PX = 40.0
 REFERENCE_SIGHTINGS = 2
 WINDOW_PRIOR_M = 0.05  # a window's fit: prior spread of the camera's position about its settled pose, metres
 WINDOW_PRIOR_DEG = 3.0  # ... and of its orientation, degrees
+# a drift is followed on the camera whose change is this many times every other camera's (CameraWatch._follow)
+FOLLOW_STANDS_OUT = 2.0
 
 
 def pose_increment(T_from: np.ndarray, T_to: np.ndarray) -> np.ndarray:
@@ -802,24 +805,25 @@ class CameraWatch:
             self.changes[camera] = follow.add(now_s, self.settled[camera])
 
     def _follow(self) -> None:
-        """Move each watched camera's pose in use by its drift (:class:`DriftFollow`) less what
-        the cameras' drifts share: a camera's settled pose is fitted against the others' poses in
-        use, so a drift of one shows, turned round, in the others' settled poses, and followed as
-        it is, all the poses in use slide together (the world frame moving). The shared part is a
-        rigid move of the world, ``δp = t + θ × c``, ``δθ = θ`` (``c`` each camera's centre), taken
-        as the median over the cameras (one drifting camera of three or more leaves it at what the
-        others show); with fewer than three cameras' changes none is followed."""
+        """Move the pose in use of the camera whose drift stands out (:class:`DriftFollow`) by its
+        change. A camera's settled pose is fitted against the others' poses in use, so one camera's
+        drift shows, turned round and weaker, in the others' settled poses too (with three cameras
+        each reference holds the drifting one; synthetic 4 cameras, one drifting: the others' changes
+        4-7 mm against its 15 mm): followed as they are, the still cameras' poses in use go off. The
+        drifting camera's own references hold only still cameras, so its change is its drift. So
+        only the camera whose change (in ``moved_m`` and ``moved_deg``) is ``FOLLOW_STANDS_OUT``
+        times every other's is moved, the others keep their poses in use; it takes three cameras'
+        changes."""
+        p = self.params
         changes = {c: x for c, x in self.changes.items()
                    if x is not None and c in self.follows and self.state[c] is CameraState.WATCHED}
         if len(changes) < 3:
             return
-        x = np.array(list(changes.values()))
-        centres = np.array([self.follows[c].T_in_use_0[:3, 3] for c in changes])
-        turn = np.median(x[:, 3:], axis=0)
-        shift = np.median(x[:, :3] - np.cross(turn, centres), axis=0)
-        for (camera, change), centre in zip(changes.items(), centres, strict=True):
-            own = change - np.concatenate([shift + np.cross(turn, centre), turn])
-            self.T_world_cam[camera] = perturbed(self.follows[camera].T_in_use_0, own)
+        size = {c: float(np.linalg.norm(x[:3])) / p.moved_m + math.degrees(float(np.linalg.norm(x[3:]))) / p.moved_deg
+                for c, x in changes.items()}
+        top = max(size, key=lambda c: size[c])
+        if size[top] >= FOLLOW_STANDS_OUT * max(v for c, v in size.items() if c != top):
+            self.T_world_cam[top] = perturbed(self.follows[top].T_in_use_0, changes[top])
 
     def _corner_sets(self, sighting: CubeSighting, by_prediction: bool = True
                      ) -> tuple[np.ndarray | None, list[CornerSet]]:
