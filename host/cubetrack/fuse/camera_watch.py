@@ -49,14 +49,8 @@ with the others inside the reference fits it took part in over the window (the m
 residual of its sets there), else none is declared yet. Then every camera's window restarts. A moved camera is set aside
 (:meth:`CameraWatch.excluded`: its sightings leave the fusion, and it serves nobody as a
 reference) and its samples are gathered for its re-calibration until :meth:`CameraWatch.rejoin`.
-Offsets under the thresholds (what a calibration leaves, a slow drift's first millimetres) are no
-move: the settled pose follows them, and the filter's per-camera term copes with a few millimetres
-(docs/tracking.md). A slow drift is **followed** (:class:`DriftFollow`): the pose in use is the
-calibrated one moved by the settled pose's change since the camera's first settled pose, that change
-read off a straight line fitted to the settled poses of the last ``follow_s`` (so a steady drift is
-followed without lag, and a settled pose's own scatter is averaged over that span), on the camera
-whose change stands out (a drift shows, weaker, in the others' references: :meth:`CameraWatch._follow`);
-no event.
+Offsets under the thresholds (what a calibration leaves, a slow drift's first millimetres) are
+not this module's business: they are the per-camera pose bias the filter follows (docs/tracking.md).
 
 Pure: sightings in, events out; no clock, no thread (the re-calibration fit is the caller's to
 run in the background).
@@ -77,10 +71,8 @@ import numpy as np
 
 from cubetrack.core.geometry import (
     invert_T,
-    make_T,
     position_quat_from_T,
     rotation_angle,
-    rvec_tvec_from_T,
     so3_left_jacobian,
     transform_points,
 )
@@ -146,12 +138,9 @@ class WatchParams:
                                            "settled pose) and gate_prediction_ratio times more than any other "
                                            "camera's latest sighting, pixels; 0: never")
     gate_prediction_ratio: float = param(4.0, "... see gate_prediction_px")
-    follow_s: float = param(120.0, "a watched camera's pose in use follows its settled pose's change since its "
-                                   "first one (a slow drift, no event), read off a straight line fitted to the "
-                                   "settled poses of this many seconds, seconds; 0: the pose in use stays put")
 
     def __post_init__(self) -> None:
-        check_at_least(self, 0, "gate_prediction_px", "follow_s")
+        check_at_least(self, 0, "gate_prediction_px")
         check_positive(self, "baseline_s", "baseline_every_s", "samples_per_s", "checks_per_s", "reference_span_s",
                        "reference_rms_px", "window_s", "check_every_s", "moved_px", "moved_ratio", "moved_m",
                        "moved_deg", "rejoin_sigma_m", "rejoin_sigma_deg", "rejoin_agree_m", "rejoin_agree_deg",
@@ -252,49 +241,6 @@ PREDICTION_GATE_PX = 40.0
 REFERENCE_SIGHTINGS = 2
 WINDOW_PRIOR_M = 0.05  # a window's fit: prior spread of the camera's position about its settled pose, metres
 WINDOW_PRIOR_DEG = 3.0  # ... and of its orientation, degrees
-# a drift is followed on the camera whose change is this many times every other camera's (CameraWatch._follow)
-FOLLOW_STANDS_OUT = 2.0
-
-
-def pose_increment(T_from: np.ndarray, T_to: np.ndarray) -> np.ndarray:
-    """The world-frame increment ``[δp (m), δθ (rad)]`` that takes ``T_from`` to ``T_to`` (the
-    inverse of :func:`cubetrack.estimate.reprojection.perturbed`)."""
-    rotvec, _ = rvec_tvec_from_T(make_T(T_to[:3, :3] @ T_from[:3, :3].T, np.zeros(3)))
-    return np.concatenate([T_to[:3, 3] - T_from[:3, 3], np.ravel(rotvec)])
-
-
-class DriftFollow:
-    """A watched camera's slow drift (see the module doc): fed its settled poses as they are
-    refitted, ``change`` is how far (a world-frame increment ``[δp (m), δθ (rad)]`` about the
-    camera's centre) the settled pose moved since ``T_settled_0``, its first, when ``T_in_use_0``
-    was the pose in use. The change is read off a straight line fitted to the settled poses'
-    increments from ``T_settled_0`` over the last ``span_s``, at the newest one, less the same
-    line's value at the first settled pose once the first ``span_s`` are in (a single settled pose
-    scatters by millimetres along the sideways-shift / turn ambiguity of a camera seeing a small
-    working area; a steady drift leaves no lag)."""
-
-    def __init__(self, span_s: float, time_s: float, T_settled_0: np.ndarray, T_in_use_0: np.ndarray):
-        self.span_s = span_s
-        self.T_settled_0 = T_settled_0.copy()
-        self.T_in_use_0 = T_in_use_0.copy()
-        self.trail: deque[tuple[float, np.ndarray]] = deque([(time_s, np.zeros(6))])
-        self.start_level: np.ndarray | None = None  # the line's value at the first settled pose
-
-    def add(self, time_s: float, T_settled: np.ndarray) -> np.ndarray | None:
-        """Take the camera's settled pose refitted at ``time_s``; the change since the first, or
-        None while the first ``span_s`` are not in yet."""
-        first_s = self.trail[0][0] if self.start_level is None else -math.inf
-        self.trail.append((time_s, pose_increment(self.T_settled_0, T_settled)))
-        while self.start_level is not None and self.trail[0][0] < time_s - self.span_s:
-            self.trail.popleft()
-        if self.start_level is None and time_s - first_s < self.span_s:
-            return None
-        t = np.array([s for s, _ in self.trail])
-        x = np.array([v for _, v in self.trail])
-        slope = ((t - t.mean()) @ (x - x.mean(axis=0))) / max(float(np.sum((t - t.mean()) ** 2)), 1e-12)
-        if self.start_level is None:
-            self.start_level = x.mean(axis=0) + slope * (first_s - t.mean())
-        return x.mean(axis=0) + slope * (time_s - t.mean()) - self.start_level
 
 
 def stacked(samples: Sequence[WatchSample]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -479,11 +425,9 @@ def without_camera(sample: WatchSample, camera: str, reference_cameras: int) -> 
 class CameraWatch:
     """Every camera watched against the others (see the module doc). Visible state: ``state``
     (camera -> :class:`CameraState`), ``T_world_cam`` (camera -> the pose the tracker uses: the
-    calibrated one, or the re-calibrated one after :meth:`rejoin`, each moved by its drift followed),
-    ``settled`` (camera -> its settled pose), ``follows`` (camera -> its :class:`DriftFollow`; every
-    one restarts, from the pose in use, when a camera is set aside or rejoins: the references
-    change), ``samples`` (camera -> its checked sightings: the window and the settled pose's span
-    while watched, everything since the move while re-calibrating), ``moved_pose`` (camera ->
+    calibrated one, or the re-calibrated one after :meth:`rejoin`), ``settled`` (camera -> its
+    settled pose), ``samples`` (camera -> its checked sightings: the window and the settled pose's
+    span while watched, everything since the move while re-calibrating), ``moved_pose`` (camera ->
     its settled pose when it moved), ``events`` (every decision so far) and ``stats`` (counts of
     checked sightings and why others were not)."""
 
@@ -497,8 +441,6 @@ class CameraWatch:
         self.samples: dict[str, deque[WatchSample]] = {c: deque() for c in T_world_cams}
         self.moved_pose: dict[str, np.ndarray] = {}
         self.settled: dict[str, np.ndarray] = {}
-        self.follows: dict[str, DriftFollow] = {}
-        self.changes: dict[str, np.ndarray | None] = {}  # camera -> its DriftFollow's latest change
         self._next_baseline_s = -math.inf
         self._disagreement: dict[str, deque[tuple[float, float]]] = {c: deque() for c in T_world_cams}
         # camera -> its latest samples' (time, median corner miss at its settled pose, px)
@@ -611,8 +553,6 @@ class CameraWatch:
         self.state[camera] = CameraState.WATCHED
         self.samples[camera].clear()
         self.settled.pop(camera, None)
-        self.follows.clear()
-        self.changes.clear()
         fit = CameraFit(self.T_world_cam[camera], 0.0, 0.0, 0.0, 0)
         offset_m, offset_deg = fit.offset_from(before)
         event = WatchEvent(EventKind.REJOINED, camera, time_s, offset_m, offset_deg, self.T_world_cam[camera].copy(),
@@ -632,18 +572,14 @@ class CameraWatch:
                 continue
             while samples and samples[0].time_s < now_s - p.window_s - p.baseline_s:
                 samples.popleft()
-            if baseline and self._settle(camera, [s for s in samples if s.time_s < now_s - p.window_s]):
-                # a follow starts from a settled pose fitted over a whole baseline_s (the first ones, over
-                # the first seconds' samples, scatter by centimetres)
-                self._track(camera, now_s, samples[0].time_s <= now_s - p.window_s - p.baseline_s + p.check_every_s)
+            if baseline:
+                self._settle(camera, [s for s in samples if s.time_s < now_s - p.window_s])
             if camera not in self.settled:
                 continue
             window = [s for s in samples if s.time_s >= now_s - p.window_s]
             verdict = window_verdict(window, self.settled[camera], p)
             if verdict is not None:
                 verdicts[camera] = verdict
-        if baseline:
-            self._follow()
         worst = self._culprit(verdicts, now_s)
         if worst is None:
             return []
@@ -669,8 +605,6 @@ class CameraWatch:
         self.samples[camera].extend(window[len(window) // 2:])  # the newer half: after the move
         self.state[camera] = CameraState.RECALIBRATING
         self.moved_pose[camera] = self.settled.pop(camera)
-        self.follows.clear()
-        self.changes.clear()
         event = WatchEvent(EventKind.MOVED, camera, now_s, verdict.offset_m, verdict.offset_deg,
                            verdict.fit.T_world_cam.copy())
         self.events.append(event)
@@ -781,49 +715,13 @@ class CameraWatch:
         less often in turn when ``checks_per_s`` is shared by many cameras)."""
         return max(1.0 / self.params.samples_per_s, len(self.state) / self.params.checks_per_s)
 
-    def _settle(self, camera: str, samples: Sequence[WatchSample]) -> bool:
-        """Fit the camera's settled pose to its samples before the window, given enough of them;
-        whether it was."""
+    def _settle(self, camera: str, samples: Sequence[WatchSample]) -> None:
+        """Fit the camera's settled pose to its samples before the window, given enough of them."""
         if sum(len(s.points_world_m) for s in samples) >= 4 * self.params.min_points:
             start = self.settled.get(camera, self.T_world_cam[camera])
             fit = refit_camera(*stacked(samples), start, self.params.corner_noise_px)
             if fit is not None:
                 self.settled[camera] = fit.T_world_cam
-                return True
-        return False
-
-    def _track(self, camera: str, now_s: float, whole: bool) -> None:
-        """Give the camera's new settled pose to its :class:`DriftFollow`, started once a settled
-        pose is fitted over a ``whole`` baseline."""
-        if self.params.follow_s <= 0 or self.state[camera] is not CameraState.WATCHED:
-            return
-        follow = self.follows.get(camera)
-        if follow is None and whole:
-            self.follows[camera] = DriftFollow(self.params.follow_s, now_s, self.settled[camera],
-                                               self.T_world_cam[camera])
-        elif follow is not None:
-            self.changes[camera] = follow.add(now_s, self.settled[camera])
-
-    def _follow(self) -> None:
-        """Move the pose in use of the camera whose drift stands out (:class:`DriftFollow`) by its
-        change. A camera's settled pose is fitted against the others' poses in use, so one camera's
-        drift shows, turned round and weaker, in the others' settled poses too (with three cameras
-        each reference holds the drifting one; synthetic 4 cameras, one drifting: the others' changes
-        4-7 mm against its 15 mm): followed as they are, the still cameras' poses in use go off. The
-        drifting camera's own references hold only still cameras, so its change is its drift. So
-        only the camera whose change (in ``moved_m`` and ``moved_deg``) is ``FOLLOW_STANDS_OUT``
-        times every other's is moved, the others keep their poses in use; it takes three cameras'
-        changes."""
-        p = self.params
-        changes = {c: x for c, x in self.changes.items()
-                   if x is not None and c in self.follows and self.state[c] is CameraState.WATCHED}
-        if len(changes) < 3:
-            return
-        size = {c: float(np.linalg.norm(x[:3])) / p.moved_m + math.degrees(float(np.linalg.norm(x[3:]))) / p.moved_deg
-                for c, x in changes.items()}
-        top = max(size, key=lambda c: size[c])
-        if size[top] >= FOLLOW_STANDS_OUT * max(v for c, v in size.items() if c != top):
-            self.T_world_cam[top] = perturbed(self.follows[top].T_in_use_0, changes[top])
 
     def _corner_sets(self, sighting: CubeSighting, by_prediction: bool = True
                      ) -> tuple[np.ndarray | None, list[CornerSet]]:
