@@ -72,9 +72,9 @@ def scene(work: Path, cameras: int, seed: int, duration_s: float, moves: Moves, 
 def replay(rec: Path, extrinsics: dict, watch: bool, config_path: Path | None = None,
            camera: str | None = None) -> dict:
     """Replay a recording through a Tracker (frames and /time round trips in arrival order);
-    returns its ``poses``, the watcher's ``events`` and ``stats``, the ``cpu_s`` it took, for
+    returns its ``poses``, the watcher's ``events`` and ``stats``, the ``cpu_s`` it took and, for
     ``camera``, ``camera_poses``: (host time, the pose the fusion uses, the watcher's settled pose
-    or None) every 5 s, and ``in_use``: every camera's pose in use then (camera -> list)."""
+    or None) every 5 s."""
     from cubetrack.app.track import recording_intrinsics
     from cubetrack.app.tracker import StageParams, Tracker
     from cubetrack.calib.recalibrate import WatchedFusion
@@ -92,7 +92,6 @@ def replay(rec: Path, extrinsics: dict, watch: bool, config_path: Path | None = 
     trips = sorted(((s.host_recv_s, c, s) for c in recording.camera_names for s in recording.clock_samples(c)),
                    key=lambda item: (item[0], item[1]))
     poses, k, camera_poses, next_s = [], 0, [], -math.inf
-    in_use: dict[str, list] = {c: [] for c in extrinsics}
     c0 = time.process_time()
     for frame in recording.merged_frames():
         while k < len(trips) and trips[k][0] <= frame.host_time_s:
@@ -103,12 +102,9 @@ def replay(rec: Path, extrinsics: dict, watch: bool, config_path: Path | None = 
             next_s = frame.host_time_s + 5.0
             camera_poses.append((frame.host_time_s, fusion.watch.T_world_cam[camera].copy(),
                                  fusion.watch.settled.get(camera)))
-            for c, T in fusion.watch.T_world_cam.items():
-                in_use[c].append(T.copy())
     poses += tracker.finish()
     return {"poses": poses, "events": list(fusion.events) if fusion else [], "cpu_s": time.process_time() - c0,
-            "stats": {**fusion.stats, **fusion.watch.stats} if fusion else {}, "camera_poses": camera_poses,
-            "in_use": in_use}
+            "stats": {**fusion.stats, **fusion.watch.stats} if fusion else {}, "camera_poses": camera_poses}
 
 
 def errors_m(poses: list, rec: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -235,10 +231,6 @@ def run_scene(work: Path, cameras: int, seed: int, duration_s: float, moves: Mov
             row["bumps"] = bump_rows(rec, run["events"], moves, start, extrinsics)
             if drifting:
                 row["drift"] = drift_rows(rec, drifting, run["camera_poses"], start)
-                # the cameras that did not drift: how far their pose in use went from the calibrated one
-                row["still_cameras_moved_mm"] = {c: max((1000 * pose_error(T, extrinsics[c].T_world_cam)[0]
-                                                         for T in run["in_use"][c]), default=0.0)
-                                                 for c in sorted(run["in_use"]) if c != drifting}
         out[key] = row
     base = out["still_unwatched"] if still_rec is not None else out["unwatched"]
     out["rmse_ratio"] = out["watched"]["rmse_m"] / base["rmse_m"]
@@ -336,8 +328,6 @@ def print_table(rows: list[dict]) -> None:
         for t, in_use, settled in w.get("drift", []):
             print(f"    drift at {t:6.1f} s: pose in use {in_use:6.2f} mm off, settled pose "
                   f"{'-' if settled is None else f'{settled:.2f} mm'} off")
-        for camera, mm in w.get("still_cameras_moved_mm", {}).items():
-            print(f"    {camera} (not drifting): pose in use at most {mm:.2f} mm from its calibrated pose")
 
 
 def _s(value: float | None) -> str:
