@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import os
 import shutil
 import subprocess
 import sys
@@ -14,10 +13,9 @@ REPO = Path(__file__).resolve().parents[2]
 if str(REPO) not in sys.path:  # tests.helpers, also when pytest is not run as "python -m pytest"
     sys.path.insert(0, str(REPO))
 
-from tests.helpers.native import FIRMWARE_DIR  # noqa: E402
+from tests.helpers.native import FIRMWARE_DIR, make_firmware  # noqa: E402
 
 BUILD_DIR = FIRMWARE_DIR / "build"
-JOBS = str(max(1, min(4, os.cpu_count() or 1)))
 
 
 def require_tools(*tools: str) -> None:
@@ -33,9 +31,7 @@ _made: dict[str, subprocess.CompletedProcess[str]] = {}
 def make(target: str) -> subprocess.CompletedProcess[str]:
     """Run `make -C firmware <target>` once per session; fail the test with its output on error."""
     if target not in _made:
-        result = subprocess.run(
-            ["make", "-C", str(FIRMWARE_DIR), "-j", JOBS, target], capture_output=True, text=True
-        )
+        result = make_firmware(target)
         if result.returncode != 0:
             pytest.fail(f"make {target} failed:\n{result.stdout[-6000:]}\n{result.stderr[-6000:]}")
         _made[target] = result

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 from arduino_build import VENDOR, require_vendor
-from firmware_tools import BUILD_DIR, FIRMWARE_DIR, JOBS, require_tools
+from firmware_tools import BUILD_DIR, FIRMWARE_DIR, make_firmware, require_tools
 from PIL import Image
 
 CASES = sorted(
@@ -32,8 +32,7 @@ def hostlib_binary():
     require_vendor()
     require_tools("make", "g++")
     if not _built:
-        result = subprocess.run(["make", "-C", str(FIRMWARE_DIR), "-j", JOBS, "hostlib", f"VENDOR={VENDOR}"],
-                                capture_output=True, text=True)
+        result = make_firmware("hostlib", f"VENDOR={VENDOR}")
         if result.returncode != 0:
             pytest.fail(f"make hostlib failed:\n{result.stdout[-4000:]}\n{result.stderr[-6000:]}")
         _built.append(True)

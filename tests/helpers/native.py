@@ -16,6 +16,7 @@ contracts (sections 1 and 2) exactly as the firmware on the board does; see
 
 from __future__ import annotations
 
+import fcntl
 import os
 import queue
 import shutil
@@ -37,17 +38,25 @@ class NativeNodeError(RuntimeError):
     """cubecam-native could not be built or did not come up."""
 
 
+def make_firmware(*args: str) -> subprocess.CompletedProcess[str]:
+    """``make -C firmware -j N *args``, one at a time across processes: the test suite runs in two
+    pytest-xdist workers, and two makes writing the same ``firmware/build`` at once could link a
+    binary that the other is running, or interleave half-written objects. The lock is a file in
+    ``firmware/build``; the second make finds the targets up to date."""
+    build = FIRMWARE_DIR / "build"
+    build.mkdir(exist_ok=True)
+    jobs = str(max(1, min(4, os.cpu_count() or 1)))
+    with open(build / ".make.lock", "w") as lock:
+        fcntl.flock(lock, fcntl.LOCK_EX)
+        return subprocess.run(["make", "-C", str(FIRMWARE_DIR), "-j", jobs, *args], capture_output=True, text=True)
+
+
 def build_native() -> Path:
     """Build ``firmware/build/cubecam-native`` (once per session) and return its path."""
     global _built
     with _build_lock:
         if _built is None:
-            jobs = str(max(1, min(4, os.cpu_count() or 1)))
-            result = subprocess.run(
-                ["make", "-C", str(FIRMWARE_DIR), "-j", jobs, "native"],
-                capture_output=True,
-                text=True,
-            )
+            result = make_firmware("native")
             if result.returncode != 0:
                 raise NativeNodeError(
                     "make -C firmware native failed:\n" + result.stdout[-4000:] + result.stderr[-4000:]
