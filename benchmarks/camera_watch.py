@@ -70,12 +70,13 @@ def scene(work: Path, cameras: int, seed: int, duration_s: float, moves: Moves, 
 
 
 def replay(rec: Path, extrinsics: dict, watch: bool, config_path: Path | None = None,
-           camera: str | None = None) -> dict:
+           camera: str | None = None, keep_samples: bool = False) -> dict:
     """Replay a recording through a Tracker (frames and /time round trips in arrival order);
-    returns its ``poses``, the watcher's ``events`` and ``stats``, the ``cpu_s`` it took, every
-    checked sighting the watcher kept (``samples``, in time order: its samples are read every 5 s, before
-    they leave its ``baseline_s`` span) and, for ``camera``, ``camera_poses``: (host time, the pose
-    the fusion uses, the watcher's settled pose or None) every 5 s."""
+    returns its ``poses``, the watcher's ``events`` and ``stats``, the ``cpu_s`` it took, with
+    ``keep_samples`` every checked sighting the watcher kept (``samples``, in time order: its
+    samples are read every 5 s, before they leave its ``baseline_s`` span) and, for ``camera``,
+    ``camera_poses``: (host time, the pose the fusion uses, the watcher's settled pose or None)
+    every 5 s."""
     from cubetrack.app.track import recording_intrinsics
     from cubetrack.app.tracker import StageParams, Tracker
     from cubetrack.calib.recalibrate import WatchedFusion
@@ -101,12 +102,13 @@ def replay(rec: Path, extrinsics: dict, watch: bool, config_path: Path | None = 
         poses += tracker.process(frame)
         if fusion is not None and frame.host_time_s >= next_s:
             next_s = frame.host_time_s + 5.0
-            kept.update((id(s), s) for samples in fusion.watch.samples.values() for s in samples)
+            if keep_samples:
+                kept.update((id(s), s) for samples in fusion.watch.samples.values() for s in samples)
             if camera is not None:
                 camera_poses.append((frame.host_time_s, fusion.watch.T_world_cam[camera].copy(),
                                      fusion.watch.settled.get(camera)))
     poses += tracker.finish()
-    if fusion is not None:
+    if fusion is not None and keep_samples:
         kept.update((id(s), s) for samples in fusion.watch.samples.values() for s in samples)
     return {"poses": poses, "events": list(fusion.events) if fusion else [], "cpu_s": time.process_time() - c0,
             "stats": {**fusion.stats, **fusion.watch.stats} if fusion else {}, "camera_poses": camera_poses,
@@ -326,7 +328,7 @@ def run_scene(work: Path, cameras: int, seed: int, duration_s: float, moves: Mov
     if still_rec is not None:
         runs += [("still", still_rec, True), ("still_unwatched", still_rec, False)]
     for key, rec, watch in runs:
-        run = replay(rec, extrinsics, watch, camera=drifting)
+        run = replay(rec, extrinsics, watch, camera=drifting, keep_samples=bool(joint) and key == "watched")
         times, err = errors_m(run["poses"], rec)
         after = times - start >= first_move_s
         row: dict = {"rmse_m": rmse(err), "max_m": float(err.max()), "poses": len(err), "cpu_s": run["cpu_s"],
