@@ -70,11 +70,13 @@ def scene(work: Path, cameras: int, seed: int, duration_s: float, moves: Moves, 
 
 
 def replay(rec: Path, extrinsics: dict, watch: bool, config_path: Path | None = None,
-           camera: str | None = None) -> dict:
+           camera: str | None = None, keep_samples: bool = False) -> dict:
     """Replay a recording through a Tracker (frames and /time round trips in arrival order);
-    returns its ``poses``, the watcher's ``events`` and ``stats``, the ``cpu_s`` it took and, for
-    ``camera``, ``camera_poses``: (host time, the pose the fusion uses, the watcher's settled pose
-    or None) every 5 s."""
+    returns its ``poses``, the watcher's ``events`` and ``stats``, the ``cpu_s`` it took, with
+    ``keep_samples`` every checked sighting the watcher kept (``samples``, in time order: its
+    samples are read every 5 s, before they leave its ``baseline_s`` span) and, for ``camera``,
+    ``camera_poses``: (host time, the pose the fusion uses, the watcher's settled pose or None)
+    every 5 s."""
     from cubetrack.app.track import recording_intrinsics
     from cubetrack.app.tracker import StageParams, Tracker
     from cubetrack.calib.recalibrate import WatchedFusion
@@ -91,20 +93,26 @@ def replay(rec: Path, extrinsics: dict, watch: bool, config_path: Path | None = 
     fusion = tracker.fusion if isinstance(tracker.fusion, WatchedFusion) else None
     trips = sorted(((s.host_recv_s, c, s) for c in recording.camera_names for s in recording.clock_samples(c)),
                    key=lambda item: (item[0], item[1]))
-    poses, k, camera_poses, next_s = [], 0, [], -math.inf
+    poses, k, camera_poses, next_s, kept = [], 0, [], -math.inf, {}
     c0 = time.process_time()
     for frame in recording.merged_frames():
         while k < len(trips) and trips[k][0] <= frame.host_time_s:
             poses += tracker.add_clock_sample(trips[k][1], trips[k][2])
             k += 1
         poses += tracker.process(frame)
-        if fusion is not None and camera is not None and frame.host_time_s >= next_s:
+        if fusion is not None and frame.host_time_s >= next_s:
             next_s = frame.host_time_s + 5.0
-            camera_poses.append((frame.host_time_s, fusion.watch.T_world_cam[camera].copy(),
-                                 fusion.watch.settled.get(camera)))
+            if keep_samples:
+                kept.update((id(s), s) for samples in fusion.watch.samples.values() for s in samples)
+            if camera is not None:
+                camera_poses.append((frame.host_time_s, fusion.watch.T_world_cam[camera].copy(),
+                                     fusion.watch.settled.get(camera)))
     poses += tracker.finish()
+    if fusion is not None and keep_samples:
+        kept.update((id(s), s) for samples in fusion.watch.samples.values() for s in samples)
     return {"poses": poses, "events": list(fusion.events) if fusion else [], "cpu_s": time.process_time() - c0,
-            "stats": {**fusion.stats, **fusion.watch.stats} if fusion else {}, "camera_poses": camera_poses}
+            "stats": {**fusion.stats, **fusion.watch.stats} if fusion else {}, "camera_poses": camera_poses,
+            "samples": sorted(kept.values(), key=lambda s: s.time_s)}
 
 
 def errors_m(poses: list, rec: Path) -> tuple[np.ndarray, np.ndarray]:
@@ -195,10 +203,114 @@ def drift_rows(rec: Path, camera: str, camera_poses: list, start: float) -> list
     return rows
 
 
-def run_scene(work: Path, cameras: int, seed: int, duration_s: float, moves: Moves, still: bool = True) -> dict:
+REACH_M = 2.0  # a camera pose as its centre and a point this far along each axis: a turn weighs as its sideways move
+
+
+def pose_points(T_world_cam: np.ndarray) -> np.ndarray:
+    """(4, 3): the camera's optical centre and a point REACH_M along each of its axes."""
+    return T_world_cam[:3, 3] + np.vstack([np.zeros(3), REACH_M * T_world_cam[:3, :3].T])
+
+
+def similarity(src: np.ndarray, dst: np.ndarray, scale: bool) -> tuple[np.ndarray, float, np.ndarray, np.ndarray]:
+    """(R, s, a, b): the rotation, scale (1 unless ``scale``) and centroids with ``s R (src - a) + b`` ~ ``dst``."""
+    a, b = src.mean(axis=0), dst.mean(axis=0)
+    U, S, Vt = np.linalg.svd((src - a).T @ (dst - b))
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(Vt.T @ U.T))])
+    s = float((S * np.diag(D)).sum() / ((src - a) ** 2).sum()) if scale else 1.0
+    return Vt.T @ D @ U.T, s, a, b
+
+
+def joint_poses(samples: list, T_world_cams: dict, rounds: int = 30) -> tuple[dict, int]:
+    """Every camera's pose fitted with every sample's cube pose (a bundle adjustment by alternation:
+    each sample's cube pose from all its corners, the cameras where the last round put them, then each
+    camera's resection against its own samples' corners placed by those cube poses), the world held
+    where ``T_world_cams`` put it (after each round the cameras are moved back by the rigid motion
+    that best maps them onto it), until a round moves every camera by under 0.2 mm / 0.005 deg.
+    Returns the poses and the rounds taken."""
+    import dataclasses as dc
+
+    from cubetrack.core.geometry import invert_T, rotation_angle, transform_points
+    from cubetrack.estimate.reprojection import moved_pose
+    from cubetrack.fuse.camera_watch import FIT_ITERATIONS, VELOCITY_SIGMA, refit_camera
+    from cubetrack.fuse.multi_view_fit import solve_joint
+
+    T = {c: np.asarray(t, float).copy() for c, t in T_world_cams.items()}
+    cubes = {id(s): s.T_world_cube for s in samples}
+    anchor = np.vstack([pose_points(T[c]) for c in T])
+    done = 0
+    while done < rounds:
+        done += 1
+        seen: dict = {c: ([], [], []) for c in T}
+        for s in samples:
+            sets = [dc.replace(x, T_cam_world=invert_T(T[x.camera])) for x in (*s.own_sets, *s.reference_sets)]
+            fit = solve_joint(sets, cubes[id(s)], s.time_s, velocity_sigma=VELOCITY_SIGMA, iterations=FIT_ITERATIONS)
+            if fit is None:
+                continue
+            cubes[id(s)] = fit.T_world_cube
+            for x in s.own_sets:
+                T_world_cube = moved_pose(fit.T_world_cube, fit.velocity_m_s, fit.angular_velocity_rad_s,
+                                          x.time_s - s.time_s)
+                seen[x.camera][0].append(transform_points(T_world_cube, x.points_cube_m))
+                seen[x.camera][1].append(x.normalized)
+                seen[x.camera][2].append(np.full(len(x.normalized), x.focal_px))
+        new = {}
+        for c, (points, normalized, focal) in seen.items():
+            fit_c = refit_camera(np.concatenate(points), np.concatenate(normalized), np.concatenate(focal), T[c]) \
+                if points else None
+            new[c] = T[c] if fit_c is None else fit_c.T_world_cam
+        R, _, a, b = similarity(np.vstack([pose_points(new[c]) for c in T]), anchor, False)
+        G = np.eye(4)
+        G[:3, :3], G[:3, 3] = R, b - R @ a
+        new = {c: G @ t for c, t in new.items()}
+        small = all(np.linalg.norm(new[c][:3, 3] - T[c][:3, 3]) < 2e-4
+                    and rotation_angle(new[c][:3, :3], T[c][:3, :3], unit="deg") < 0.005 for c in T)
+        T = new
+        if small:
+            break
+    return T, done
+
+
+def drift_joint_rows(rec: Path, samples: list, extrinsics: dict, start: float, span_s: float, every_s: float) -> list:
+    """Whether a camera's slow drift shows in the joint fit of all cameras (docs/calibration.md):
+    :func:`joint_poses` over each ``span_s`` of the watcher's samples, ending every ``every_s``;
+    each span's poses against the first span's, one camera left out at a time: the others aligned
+    onto the first span's (rigid, and with scale free), how far the left-out camera then moved
+    (mm, its pose points' RMS) and the largest of the others'. Per span: its end (s after the
+    start), rounds, each camera's true move since the first span's end (mm), and per left-out camera
+    (its move, the others' largest) rigid and with scale."""
+    cams = sorted(extrinsics)
+    T0 = {c: extrinsics[c].T_world_cam for c in cams}
+    rows, first, end = [], None, span_s
+    last = samples[-1].time_s - start if samples else 0.0
+    while end <= last + 1e-6:
+        poses, done = joint_poses([s for s in samples if end - span_s <= s.time_s - start < end], T0)
+        first = first or (end, poses)
+        row: dict = {"end_s": end, "rounds": done, "true_mm": {c: round(1000 * float(np.linalg.norm(
+            true_camera_pose(rec, c, start + end)[:3, 3] - true_camera_pose(rec, c, start + first[0])[:3, 3])), 2)
+            for c in cams}}
+        for scale in (False, True):
+            out = {}
+            for left in cams:
+                others = [c for c in cams if c != left]
+                R, s, a, b = similarity(np.vstack([pose_points(poses[c]) for c in others]),
+                                        np.vstack([pose_points(first[1][c]) for c in others]), scale)
+                moved = {c: 1000 * float(np.sqrt(np.mean(np.sum(
+                    ((s * (pose_points(poses[c]) - a) @ R.T + b) - pose_points(first[1][c])) ** 2, axis=1))))
+                    for c in cams}
+                out[left] = (round(moved[left], 2), round(max(moved[c] for c in others), 2))
+            row["scaled" if scale else "rigid"] = out
+        rows.append(row)
+        print(json.dumps(row), flush=True)
+        end += every_s
+    return rows
+
+
+def run_scene(work: Path, cameras: int, seed: int, duration_s: float, moves: Moves, still: bool = True,
+              joint: tuple[float, float] | None = None) -> dict:
     """One scene's replays (see the module doc). An unmoved scene (``--long``) is replayed watched
     and unwatched; a scene with moves also, with ``still``, its unmoved twin (doubles the rendering;
-    without it there is no RMSE ratio nor false-alarm count on the twin)."""
+    without it there is no RMSE ratio nor false-alarm count on the twin). ``joint``: (span, every), seconds:
+    the drift scene's :func:`drift_joint_rows` too."""
     from cubetrack.app.calibrate import calibrate_recording
     from cubetrack.io.config import read_tracker_config
     from cubetrack.io.recording import Recording
@@ -216,7 +328,7 @@ def run_scene(work: Path, cameras: int, seed: int, duration_s: float, moves: Mov
     if still_rec is not None:
         runs += [("still", still_rec, True), ("still_unwatched", still_rec, False)]
     for key, rec, watch in runs:
-        run = replay(rec, extrinsics, watch, camera=drifting)
+        run = replay(rec, extrinsics, watch, camera=drifting, keep_samples=bool(joint) and key == "watched")
         times, err = errors_m(run["poses"], rec)
         after = times - start >= first_move_s
         row: dict = {"rmse_m": rmse(err), "max_m": float(err.max()), "poses": len(err), "cpu_s": run["cpu_s"],
@@ -231,6 +343,8 @@ def run_scene(work: Path, cameras: int, seed: int, duration_s: float, moves: Mov
             row["bumps"] = bump_rows(rec, run["events"], moves, start, extrinsics)
             if drifting:
                 row["drift"] = drift_rows(rec, drifting, run["camera_poses"], start)
+            if joint:
+                row["joint"] = drift_joint_rows(rec, run["samples"], extrinsics, start, *joint)
         out[key] = row
     base = out["still_unwatched"] if still_rec is not None else out["unwatched"]
     out["rmse_ratio"] = out["watched"]["rmse_m"] / base["rmse_m"]
@@ -283,6 +397,12 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--drift-mm-per-min", type=float, default=2.0, help="its drift, mm per minute (default: 2)")
     parser.add_argument("--long", action="store_true",
                         help="no bump, no drift: --duration 600 unless given (10 minutes), the false-alarm run")
+    parser.add_argument("--joint-span", type=float, default=0.0,
+                        help="also fit all cameras jointly over spans of this many seconds of the watched replay's "
+                             "checked sightings and say which camera moved since the first span, one left out at a "
+                             "time (docs/calibration.md, the drift's observability; 0: not)")
+    parser.add_argument("--joint-every", type=float, default=30.0, help="a joint-fit span ending every this many "
+                        "seconds (default: 30)")
     parser.add_argument("--report", type=Path, default=None, help="write the JSON report here")
     parser.add_argument("--no-still", action="store_true", help="skip the unbumped twin (half the rendering)")
     parser.add_argument("--real", action="store_true", help="also replay the caliscope-4cam real footage watched")
@@ -301,7 +421,8 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     for cameras in args.cameras:
         for seed in args.seeds:
-            rows.append(run_scene(args.work, cameras, seed, args.duration, moves, not args.no_still))
+            rows.append(run_scene(args.work, cameras, seed, args.duration, moves, not args.no_still,
+                                  (args.joint_span, args.joint_every) if args.joint_span > 0 else None))
             print(json.dumps(rows[-1], indent=1, default=float), flush=True)
     print_table(rows)
     if args.report:
