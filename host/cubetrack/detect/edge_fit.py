@@ -19,10 +19,6 @@ from cubetrack.core.geometry import undistort_points
 from cubetrack.detect.template_fit import distort_px
 
 _ROI_MARGIN_PX = 16  # refine_corners_edges: float copy of the quads' region plus this
-# side i of a quad runs from corner i to corner i + 1; x.take(NEXT_I, axis=1) is x[:, NEXT_I]
-# at a fifth of the cost (no fancy-indexing machinery for a handful of markers)
-NEXT_I = np.array([1, 2, 3, 0])
-PREV_I = np.array([3, 0, 1, 2])
 
 
 _EDGE_SPAN = (0.1, 0.9)       # the detector's edge samples: the middle 80 % of each side

@@ -9,6 +9,7 @@ from scenes import render_in_front
 from test_detect_markers import INTR, K, facing
 
 from cubetrack.core.cameras import CameraIntrinsics
+from cubetrack.detect import detector as detector_module
 from cubetrack.detect import edge_fit, template_fit
 from cubetrack.detect.detector import CornerRefinement, Detector, DetectorParams
 
@@ -18,7 +19,8 @@ TEMPLATE_KERNELS = (template_fit._fitted_offsets, template_fit._map_read, templa
                     template_fit._area_sigmas, template_fit._distorted)
 
 
-EDGE_KERNELS = (edge_fit._finite_box, edge_fit._side_samples, edge_fit._fitted_corners, edge_fit._fit_result)
+EDGE_KERNELS = (edge_fit._finite_box, edge_fit._side_samples, edge_fit._fitted_corners, edge_fit._fit_result,
+                detector_module._quad_kernel)
 
 
 def _kernel_signatures() -> int:
