@@ -179,10 +179,17 @@ def _cell_errors(gray: np.ndarray, quads: np.ndarray, modules: np.ndarray, expec
                  min_contrast: float, out: np.ndarray) -> None:
     """For each marker ``q`` of ``quads`` (N, 4, 2): ``out[q]`` = (white border cells, inner cells
     unlike ``expected[q]`` (N, M, M bool, True = white)), each cell white above the midpoint of the
-    darkest and brightest; (-1, -1) when they differ by less than ``min_contrast``."""
+    darkest and brightest; (-1, -1) when they differ by less than ``min_contrast``, or for a quad
+    with a corner not finite (not read)."""
     means = np.empty((expected.shape[1], expected.shape[2]))
     for q in range(quads.shape[0]):
         m = modules[q]
+        finite = True
+        for c in range(4):
+            finite = finite and math.isfinite(quads[q, c, 0]) and math.isfinite(quads[q, c, 1])
+        if not finite:
+            out[q, 0], out[q, 1] = -1, -1
+            continue
         _cell_means(gray, quads[q], m, means)
         lo, hi = means[0, 0], means[0, 0]
         for r in range(m):
@@ -203,17 +210,34 @@ def _cell_errors(gray: np.ndarray, quads: np.ndarray, modules: np.ndarray, expec
         out[q, 0], out[q, 1] = border, inner
 
 
+@functools.lru_cache(maxsize=1024)
+def _expected_cells(markers: tuple[tuple[str, int], ...]) -> tuple[np.ndarray, np.ndarray]:
+    """For markers (dictionary name, id): their cells across (N,) and their cells (N, S, S; True =
+    white, S the largest), as :func:`_cell_errors` takes them (shared: not to be written)."""
+    modules = np.array([modules_of(name) for name, _ in markers], dtype=np.int64)
+    size = int(modules.max()) if len(modules) else 0
+    expected = np.zeros((len(markers), size, size), dtype=np.bool_)
+    for k, (name, marker_id) in enumerate(markers):
+        expected[k, :modules[k], :modules[k]] = marker_cells(name, marker_id)
+    return modules, expected
+
+
+@functools.lru_cache(maxsize=64)
+def _error_limits(dictionary_name: str, error_correction_rate: float) -> tuple[int, int]:
+    """The white border cells and the wrong inner cells a marker of ``dictionary_name`` may have
+    and still read (OpenCV's limits, as the module's docstring describes)."""
+    dictionary = _dictionary(dictionary_name)
+    return (int(dictionary.markerSize ** 2 * BORDER_ERROR_RATE),
+            int(dictionary.maxCorrectionBits * error_correction_rate))
+
+
 def cell_errors(gray: np.ndarray, quads_px: np.ndarray, predicted: Sequence[Detection]) -> np.ndarray:
-    """(N, 2) int: for the markers of ``predicted`` at corners ``quads_px`` (N, 4, 2, finite; TL, TR,
-    BR, BL), the white cells in each one's border and its inner cells unlike its id's bits, each
+    """(N, 2) int: for the markers of ``predicted`` at corners ``quads_px`` (N, 4, 2; TL, TR, BR,
+    BL), the white cells in each one's border and its inner cells unlike its id's bits, each
     cell's mean of 3 x 3 bilinear samples taken as white above the midpoint of the marker's darkest
     and brightest cell; (-1, -1) for a marker whose cells differ by less than ``MIN_CELL_CONTRAST``
-    grey levels (nothing readable there)."""
-    modules = np.array([modules_of(d.dictionary) for d in predicted], dtype=np.int64)
-    size = int(modules.max()) if len(modules) else 0
-    expected = np.zeros((len(predicted), size, size), dtype=np.bool_)
-    for k, d in enumerate(predicted):
-        expected[k, :modules[k], :modules[k]] = marker_cells(d.dictionary, d.marker_id)
+    grey levels (nothing readable there) or whose corners are not all finite."""
+    modules, expected = _expected_cells(tuple((d.dictionary, d.marker_id) for d in predicted))
     out = np.zeros((len(predicted), 2), dtype=np.int64)
     _cell_errors(np.ascontiguousarray(gray), np.ascontiguousarray(quads_px, dtype=np.float64), modules, expected,
                  MIN_CELL_CONTRAST, out)
@@ -224,15 +248,11 @@ def readable_markers(gray: np.ndarray, fitted_px: np.ndarray, predicted: tuple[D
                      error_correction_rate: float) -> np.ndarray:
     """(N,) bool: which markers of ``predicted`` read as their ids at their fitted corners
     ``fitted_px`` (N, 4, 2; NaN where the edge fit failed), as the module's docstring describes."""
-    out = np.isfinite(fitted_px).all(axis=(1, 2))
-    index = np.flatnonzero(out)
-    if len(index):
-        errors = cell_errors(gray, fitted_px[index], [predicted[i] for i in index.tolist()])
-        for k, i in enumerate(index.tolist()):
-            dictionary = _dictionary(predicted[i].dictionary)
-            out[i] = (errors[k, 0] >= 0 and errors[k, 0] <= int(dictionary.markerSize ** 2 * BORDER_ERROR_RATE)
-                      and errors[k, 1] <= int(dictionary.maxCorrectionBits * error_correction_rate))
-    return out
+    errors = cell_errors(gray, fitted_px, predicted).tolist()   # plain ints: a handful of markers
+    return np.array([0 <= border <= border_max and inner <= inner_max
+                     for (border, inner), (border_max, inner_max)
+                     in zip(errors, (_error_limits(d.dictionary, error_correction_rate) for d in predicted),
+                            strict=True)], dtype=bool)
 
 
 def compile_cell_reader() -> None:
