@@ -69,14 +69,24 @@ def predicted_view(T_cam_cube: np.ndarray, layout: CubeLayout, intrinsics: Camer
     px = px.reshape(-1, 2)
     grow = float(intrinsics.K[0, 0]) * margin_m / nearest_m + 8.0
     width, height = intrinsics.width, intrinsics.height
-    x0, y0 = np.floor(px.min(axis=0) - grow).astype(int).tolist()
-    x1, y1 = np.ceil(px.max(axis=0) + grow).astype(int).tolist()
-    x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, width), min(y1, height)
+    x0, y0, x1, y1 = _grown_box(px, grow, width, height)
     if x1 - x0 < MIN_BOX_PX or y1 - y0 < MIN_BOX_PX:
         return PredictedView(None, ())
     markers = predicted_markers(px, layout, width, height, detector.min_marker_perimeter_rate * max(width, height),
                                 detector.min_distance_to_border_px)
     return PredictedView((x0, y0, x1, y1), markers)
+
+
+@numba.njit(cache=True, nogil=True)
+def _grown_box(px: np.ndarray, grow: float, width: int, height: int) -> tuple[int, int, int, int]:
+    """The box (x0, y0, x1, y1; pixels, end exclusive) around the points ``px`` (N, 2), grown by
+    ``grow`` px on every side (out to whole pixels) and cut to a ``width`` x ``height`` image."""
+    lo_x, lo_y, hi_x, hi_y = px[0, 0], px[0, 1], px[0, 0], px[0, 1]
+    for i in range(1, px.shape[0]):
+        lo_x, hi_x = min(lo_x, px[i, 0]), max(hi_x, px[i, 0])
+        lo_y, hi_y = min(lo_y, px[i, 1]), max(hi_y, px[i, 1])
+    return (max(int(math.floor(lo_x - grow)), 0), max(int(math.floor(lo_y - grow)), 0),
+            min(int(math.ceil(hi_x + grow)), width), min(int(math.ceil(hi_y + grow)), height))
 
 
 @numba.njit(cache=True, nogil=True)
@@ -110,8 +120,8 @@ def predicted_markers(quads_px: np.ndarray, layout: CubeLayout, width: int, heig
     area = np.empty(len(quads))
     keep = _facing_quads(quads, float(min_perimeter_px), float(border_px), int(width), int(height), area)
     quads.setflags(write=False)   # after the call: a read-only array is another type to numba (another compile)
-    ids, names = layout.marker_ids, layout.marker_dictionaries
-    return tuple(Detection(int(ids[i]), quads[i], float(area[i]), names[i]) for i in np.flatnonzero(keep).tolist())
+    ids, names, areas = layout.marker_ids.tolist(), layout.marker_dictionaries, area.tolist()
+    return tuple(Detection(ids[i], quads[i], areas[i], names[i]) for i, facing in enumerate(keep.tolist()) if facing)
 
 
 @functools.lru_cache(maxsize=256)
@@ -264,6 +274,7 @@ def compile_cell_reader() -> None:
     corners = np.array([[[11.5, 11.5], [35.5, 11.5], [35.5, 35.5], [11.5, 35.5]]])
     cell_errors(gray, corners, [Detection(0, corners[0], 576.0, "DICT_4X4_50")])
     _facing_quads(corners, 19.0, 3.0, 48, 48, np.empty(1))
+    _grown_box(corners[0], 8.0, 48, 48)
 
 
 def resolvable_markers(quads_px: np.ndarray, modules: np.ndarray) -> np.ndarray:
