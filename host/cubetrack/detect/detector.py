@@ -454,25 +454,27 @@ class Detector:
         modules = np.array([modules_of(d.dictionary) for d in predicted])
         fitted = refine_corners_edges(gray, quads, modules, self.params.edge_iterations)  # NaN: failed
         valid, areas = _quad_checks(fitted, self.params.min_area_px2)
-        read = valid & readable_markers(gray, np.where(valid[:, None, None], fitted, np.nan), predicted,
-                                        self.params.error_correction_rate)
-        if not read.any():
+        read = (valid & readable_markers(gray, np.where(valid[:, None, None], fitted, np.nan), predicted,
+                                         self.params.error_correction_rate)).tolist()
+        if not any(read):
             return None
         fitted.setflags(write=False)
-        found = {i: Detection(d.marker_id, fitted[i], float(areas[i]), d.dictionary)
-                 for i, d in enumerate(predicted) if read[i]}
-        unread = np.flatnonzero(~read)
-        if len(unread) == 0:
-            return tuple(sorted(found.values(), key=_detection_order))
-        centres = quads.mean(axis=1)
-        for i in unread[resolvable_markers(quads[unread], modules[unread])].tolist():
-            # a marker of its id whose centre is nearer its prediction than any other's (a cube may
-            # carry one id on every face: the box can show a neighbouring face, found already)
-            key = predicted[i].dictionary, predicted[i].marker_id
-            found.update((i, d) for d in self._detect_box(gray, marker_box(quads[i], gray.shape), dropped)
-                         if (d.dictionary, d.marker_id) == key
-                         and int(np.abs(centres - d.corners_px.mean(axis=0)).sum(axis=1).argmin()) == i)
-        return tuple(sorted(found.values(), key=_detection_order))
+        # plain Python from here: a handful of markers
+        found = {i: Detection(d.marker_id, fitted[i], area, d.dictionary)
+                 for i, (d, area) in enumerate(zip(predicted, areas.tolist(), strict=True)) if read[i]}
+        unread = [i for i, is_read in enumerate(read) if not is_read]
+        if unread:
+            centres = None
+            for i in np.array(unread)[resolvable_markers(quads[unread], modules[unread])].tolist():
+                # a marker of its id whose centre is nearer its prediction than any other's (a cube may
+                # carry one id on every face: the box can show a neighbouring face, found already)
+                key = predicted[i].dictionary, predicted[i].marker_id
+                for d in self._detect_box(gray, marker_box(quads[i], gray.shape), dropped):
+                    if (d.dictionary, d.marker_id) == key:
+                        centres = quads.mean(axis=1) if centres is None else centres
+                        if int(np.abs(centres - d.corners_px.mean(axis=0)).sum(axis=1).argmin()) == i:
+                            found[i] = d
+        return tuple(found.values()) if len(found) == 1 else tuple(sorted(found.values(), key=_detection_order))
 
     def _lens_map(self, lens: CameraIntrinsics | None) -> LensMap:
         """This camera's :class:`LensMap`, built on first use."""
