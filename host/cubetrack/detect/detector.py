@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import enum
 import logging
+import math
 import time
 import warnings
 from collections import Counter
@@ -29,6 +30,7 @@ from collections.abc import Callable, Iterable, Mapping, Sequence
 from dataclasses import dataclass, field
 
 import cv2
+import numba
 import numpy as np
 
 from cubetrack.core.cameras import CameraIntrinsics
@@ -38,7 +40,7 @@ from cubetrack.core.params import check, param
 from cubetrack.core.records import Detection
 from cubetrack.detect.decode import decode_gray as decode_gray  # also imported from here by other stages
 from cubetrack.detect.decode import read_gray as read_gray
-from cubetrack.detect.edge_fit import NEXT_I, compile_edge_fit, refine_corners_edges
+from cubetrack.detect.edge_fit import compile_edge_fit, refine_corners_edges
 from cubetrack.detect.predicted import compile_cell_reader, marker_box, modules_of, readable_markers, resolvable_markers
 from cubetrack.detect.template_fit import LensMap, compile_template_fit, fast_template_corners
 
@@ -243,25 +245,47 @@ def _cv_parameters(p: DetectorParams) -> cv2.aruco.DetectorParameters:
     return cv
 
 
+@numba.njit(cache=True, nogil=True)
+def _quad_kernel(quads: np.ndarray, min_area_px2: float, ok: np.ndarray, area: np.ndarray) -> None:
+    """:func:`_quad_checks` into ``ok`` and ``area`` (one compiled pass: as numpy, a dozen calls
+    over a handful of quads, and the calls were the cost)."""
+    for q in range(quads.shape[0]):
+        finite = True
+        for c in range(4):
+            finite = finite and math.isfinite(quads[q, c, 0]) and math.isfinite(quads[q, c, 1])
+        if not finite:
+            ok[q], area[q] = False, 0.0
+            continue
+        twice_area, min_turn = 0.0, math.inf
+        for c in range(4):   # edge c: corner c -> c + 1; a right turn (> 0) at its end when clockwise (y down)
+            x, y = quads[q, c, 0], quads[q, c, 1]
+            x1, y1 = quads[q, (c + 1) % 4, 0], quads[q, (c + 1) % 4, 1]
+            x2, y2 = quads[q, (c + 2) % 4, 0], quads[q, (c + 2) % 4, 1]
+            ex, ey, fx, fy = x1 - x, y1 - y, x2 - x1, y2 - y1
+            min_turn = min(min_turn, ex * fy - ey * fx)
+            twice_area += x * y1 - y * x1
+        area[q] = 0.5 * abs(twice_area)
+        ok[q] = min_turn > 0.0 and area[q] > max(min_area_px2, 0.0)
+
+
 def _quad_checks(quads: np.ndarray, min_area_px2: float) -> tuple[np.ndarray, np.ndarray]:
-    """For (N, 4, 2) quads: which are finite, strictly convex, clockwise in the image (y down)
-    and larger than ``min_area_px2``, and their shoelace areas (px^2; 0 for a non-finite quad)."""
-    finite = np.isfinite(quads).all(axis=(1, 2))
-    if not finite.all():   # zeros instead: no invalid-value warnings, and a zero area fails below
-        quads = np.where(finite[:, None, None], quads, 0.0)
-    following = quads.take(NEXT_I, axis=1)                             # corner i + 1 of each corner i
-    e = following - quads                                               # edge i: corner i -> i+1
-    e_next = e.take(NEXT_I, axis=1)
-    turns = e[..., 0] * e_next[..., 1] - e[..., 1] * e_next[..., 0]     # > 0: a right turn (clockwise)
-    area = 0.5 * np.abs((quads[..., 0] * following[..., 1] - quads[..., 1] * following[..., 0]).sum(axis=1))
-    ok = finite & (turns.min(axis=1) > 0.0) & (area > max(min_area_px2, 0.0))
+    """For (N, 4, 2) quads (float64, writable: the kernel's one signature): which are finite,
+    strictly convex, clockwise in the image (y down) and larger than ``min_area_px2``, and their
+    shoelace areas (px^2; 0 for a non-finite quad)."""
+    ok, area = np.empty(len(quads), dtype=bool), np.empty(len(quads))
+    _quad_kernel(np.ascontiguousarray(quads), float(min_area_px2), ok, area)
     return ok, area
+
+
+def compile_quad_checks() -> None:
+    """Compile :func:`_quad_checks`' kernel (or load it from numba's cache) before the first frame."""
+    _quad_checks(np.array([[[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]]]), 0.0)
 
 
 def is_valid_quad(corners_px: np.ndarray, min_area_px2: float = 0.0) -> bool:
     """True for finite (4, 2) corners forming a strictly convex quad, clockwise in the image
     (y down), whose area exceeds ``min_area_px2``."""
-    c = np.asarray(corners_px, dtype=float)
+    c = np.array(corners_px, dtype=np.float64)   # a writable copy
     return c.shape == (4, 2) and bool(_quad_checks(c[None], min_area_px2)[0][0])
 
 
@@ -343,7 +367,7 @@ class Detector:
                            if self.params.corner_refinement is CornerRefinement.APRILTAG else 0.0)
         self._modules = tuple(d.markerSize + 2 for d in dicts)  # cells across, with a 1-bit border
         self._lens_maps: dict[tuple, LensMap] = {}
-        kernels = []   # the compiled kernels, before the first frame
+        kernels = [compile_quad_checks]   # the compiled kernels, before the first frame
         if self.params.corner_refinement in (CornerRefinement.EDGE, CornerRefinement.TEMPLATE):
             kernels += [compile_edge_fit, compile_cell_reader]
         if self.params.corner_refinement is CornerRefinement.TEMPLATE:
@@ -430,22 +454,27 @@ class Detector:
         modules = np.array([modules_of(d.dictionary) for d in predicted])
         fitted = refine_corners_edges(gray, quads, modules, self.params.edge_iterations)  # NaN: failed
         valid, areas = _quad_checks(fitted, self.params.min_area_px2)
-        read = valid & readable_markers(gray, np.where(valid[:, None, None], fitted, np.nan), predicted,
-                                        self.params.error_correction_rate)
-        if not read.any():
+        read = (valid & readable_markers(gray, np.where(valid[:, None, None], fitted, np.nan), predicted,
+                                         self.params.error_correction_rate)).tolist()
+        if not any(read):
             return None
         fitted.setflags(write=False)
-        found = {i: Detection(d.marker_id, fitted[i], float(areas[i]), d.dictionary)
-                 for i, d in enumerate(predicted) if read[i]}
-        centres = quads.mean(axis=1)
-        for i in np.flatnonzero(~read & resolvable_markers(quads, modules)).tolist():
-            # a marker of its id whose centre is nearer its prediction than any other's (a cube may
-            # carry one id on every face: the box can show a neighbouring face, found already)
-            key = predicted[i].dictionary, predicted[i].marker_id
-            found.update((i, d) for d in self._detect_box(gray, marker_box(quads[i], gray.shape), dropped)
-                         if (d.dictionary, d.marker_id) == key
-                         and int(np.abs(centres - d.corners_px.mean(axis=0)).sum(axis=1).argmin()) == i)
-        return tuple(sorted(found.values(), key=_detection_order))
+        # plain Python from here: a handful of markers
+        found = {i: Detection(d.marker_id, fitted[i], area, d.dictionary)
+                 for i, (d, area) in enumerate(zip(predicted, areas.tolist(), strict=True)) if read[i]}
+        unread = [i for i, is_read in enumerate(read) if not is_read]
+        if unread:
+            centres = None
+            for i in np.array(unread)[resolvable_markers(quads[unread], modules[unread])].tolist():
+                # a marker of its id whose centre is nearer its prediction than any other's (a cube may
+                # carry one id on every face: the box can show a neighbouring face, found already)
+                key = predicted[i].dictionary, predicted[i].marker_id
+                for d in self._detect_box(gray, marker_box(quads[i], gray.shape), dropped):
+                    if (d.dictionary, d.marker_id) == key:
+                        centres = quads.mean(axis=1) if centres is None else centres
+                        if int(np.abs(centres - d.corners_px.mean(axis=0)).sum(axis=1).argmin()) == i:
+                            found[i] = d
+        return tuple(found.values()) if len(found) == 1 else tuple(sorted(found.values(), key=_detection_order))
 
     def _lens_map(self, lens: CameraIntrinsics | None) -> LensMap:
         """This camera's :class:`LensMap`, built on first use."""

@@ -19,10 +19,6 @@ from cubetrack.core.geometry import undistort_points
 from cubetrack.detect.template_fit import distort_px
 
 _ROI_MARGIN_PX = 16  # refine_corners_edges: float copy of the quads' region plus this
-# side i of a quad runs from corner i to corner i + 1; x.take(NEXT_I, axis=1) is x[:, NEXT_I]
-# at a fifth of the cost (no fancy-indexing machinery for a handful of markers)
-NEXT_I = np.array([1, 2, 3, 0])
-PREV_I = np.array([3, 0, 1, 2])
 
 
 _EDGE_SPAN = (0.1, 0.9)       # the detector's edge samples: the middle 80 % of each side
@@ -112,18 +108,20 @@ def _line_fit(weight: np.ndarray, off: np.ndarray, t: np.ndarray) -> tuple[float
 
 
 @numba.njit(cache=True, nogil=True)
-def _side_samples(z: np.ndarray, width_per_side: np.ndarray, t: np.ndarray,
-                  unit: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Where the edge fit samples the quads ``z`` (M, 4; complex x + iy): ``(p, v, n, length, w)``,
-    the positions (M, 4, k, m) at fractions ``t`` along each side and ``unit`` half-widths across
-    it, each side's vector (corner i -> i + 1), outward unit normal (clockwise, y down) and length,
-    and its half-width ``w``: ``width_per_side`` (M, 1; or 1, 1 for all) x the two neighbouring
-    sides, in [1.5, 4] px."""
+def _side_samples(z: np.ndarray, width_per_side: np.ndarray, t: np.ndarray, unit: np.ndarray
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Where the edge fit samples the quads ``z`` (M, 4; complex x + iy): ``(p, xy, v, n, length,
+    w)``, the positions (M, 4, k, m) at fractions ``t`` along each side and ``unit`` half-widths
+    across it, the same as ``cv2.remap``'s map (1, M x 4 x k x m, 2; float32 x, y), each side's
+    vector (corner i -> i + 1), outward unit normal (clockwise, y down) and length, and its
+    half-width ``w``: ``width_per_side`` (M, 1; or 1, 1 for all) x the two neighbouring sides, in
+    [1.5, 4] px."""
     n_markers, k, m = z.shape[0], t.shape[0], unit.shape[0]
     last = width_per_side.shape[0] - 1
     v, n = np.empty((n_markers, 4), np.complex128), np.empty((n_markers, 4), np.complex128)
     length, w = np.empty((n_markers, 4)), np.empty((n_markers, 4))
     p = np.empty((n_markers, 4, k, m), np.complex128)
+    xy = np.empty((1, n_markers * 4 * k * m, 2), np.float32)
     for q in range(n_markers):
         for side in range(4):
             v[q, side] = z[q, (side + 1) % 4] - z[q, side]
@@ -137,7 +135,54 @@ def _side_samples(z: np.ndarray, width_per_side: np.ndarray, t: np.ndarray,
                 at = z[q, side] + t[i] * v[q, side]
                 for j in range(m):
                     p[q, side, i, j] = at + unit[j] * across
-    return p, v, n, length, w
+                    at_map = ((q * 4 + side) * k + i) * m + j
+                    xy[0, at_map, 0], xy[0, at_map, 1] = p[q, side, i, j].real, p[q, side, i, j].imag
+    return p, xy, v, n, length, w
+
+
+@numba.njit(cache=True, nogil=True)
+def _finite_box(quads: np.ndarray, margin_px: int) -> tuple[np.ndarray, bool, int, int, int, int]:
+    """For (M, 4, 2) quads: which have four finite corners, whether all do, and the box (x0, y0,
+    x1, y1; pixels, end exclusive) around those quads' corners grown by ``margin_px`` (+ 2 at the
+    far end), its start not below 0 (no quad finite: 0, 0, 0, 0)."""
+    good = np.empty(quads.shape[0], dtype=np.bool_)
+    lo_x, lo_y, hi_x, hi_y = math.inf, math.inf, -math.inf, -math.inf
+    for q in range(quads.shape[0]):
+        good[q] = True
+        for c in range(4):
+            good[q] &= math.isfinite(quads[q, c, 0]) and math.isfinite(quads[q, c, 1])
+        if good[q]:
+            for c in range(4):
+                lo_x, hi_x = min(lo_x, quads[q, c, 0]), max(hi_x, quads[q, c, 0])
+                lo_y, hi_y = min(lo_y, quads[q, c, 1]), max(hi_y, quads[q, c, 1])
+    if not good.any():
+        return good, False, 0, 0, 0, 0
+    return (good, bool(good.all()), max(int(lo_x) - margin_px, 0), max(int(lo_y) - margin_px, 0),
+            int(hi_x) + margin_px + 2, int(hi_y) + margin_px + 2)
+
+
+@numba.njit(cache=True, nogil=True)
+def _fit_result(z: np.ndarray, z_in: np.ndarray, inv_modules: np.ndarray, fitted: np.ndarray, good: np.ndarray,
+                origin: complex) -> np.ndarray:
+    """The fitted corners ``z`` (M, 4; complex, in the region) as (M, 4, 2) pixels of the image
+    (+ ``origin``); NaN for a marker whose start ``z_in`` was not finite (``good``), whose fit
+    failed on a side or corner (``fitted``), or one of whose corners moved more than two modules
+    (at least 3 px) from ``z_in``: more than 0.5 x the start's perimeter x ``inv_modules`` (M, 1;
+    or 1, 1 for all)."""
+    out = np.empty((z.shape[0], 4, 2))
+    last = inv_modules.shape[0] - 1
+    for q in range(z.shape[0]):
+        perimeter = 0.0
+        for c in range(4):
+            perimeter += abs(z_in[q, (c + 1) % 4] - z_in[q, c])
+        limit = max(0.5 * perimeter * inv_modules[min(q, last), 0], 3.0)
+        ok = good[q]
+        for c in range(4):
+            ok = ok and fitted[q, c] and abs(z[q, c] - z_in[q, c]) <= limit
+        for c in range(4):
+            corner = z[q, c] + origin if ok else complex(math.nan, math.nan)
+            out[q, c, 0], out[q, c, 1] = corner.real, corner.imag
+    return out
 
 
 @numba.njit(cache=True, nogil=True)
@@ -253,20 +298,15 @@ def refine_corners_edges(gray: np.ndarray, corners_px: np.ndarray, modules: int 
     img = np.asarray(gray)
     c_in = np.ascontiguousarray(corners_px, dtype=np.float64)
     single = c_in.ndim == 2
+    good, all_good, x0, y0, x1, y1 = _finite_box(c_in.reshape(-1, 4, 2), _ROI_MARGIN_PX)
     z_in = c_in.view(np.complex128).reshape(-1, 4)                     # (M, 4) x + iy (a view)
-    # numpy's stubs type .all(axis=1) as a bool or an array; along an axis it is an array
-    good: np.ndarray = np.isfinite(z_in).all(axis=1)  # type: ignore[assignment]
-    if not good.all():
+    if not all_good:
         z_in = np.where(good[:, None], z_in, 0.0)
     origin: complex = 0.0
     if img.dtype != np.float32:
         # only the region around the quads, as float (cv2.remap of an 8-bit image rounds its
         # samples: a ~0.03 px edge bias); the margin covers the sampling half-width and the moves
-        if good.any():
-            xy = c_in.reshape(-1, 2) if good.all() else c_in.reshape(-1, 4, 2)[good].reshape(-1, 2)
-            (x0, y0), (x1, y1) = xy.min(axis=0).tolist(), xy.max(axis=0).tolist()
-            x0, y0 = max(int(x0) - _ROI_MARGIN_PX, 0), max(int(y0) - _ROI_MARGIN_PX, 0)
-            x1, y1 = int(x1) + _ROI_MARGIN_PX + 2, int(y1) + _ROI_MARGIN_PX + 2
+        if all_good or good.any():
             img, origin = img[y0:y1, x0:x1], complex(x0, y0)
             z_in = z_in - origin
         img = img.astype(np.float32)
@@ -288,29 +328,23 @@ def refine_corners_edges(gray: np.ndarray, corners_px: np.ndarray, modules: int 
         focus_px = _PEAK_WINDOW_PX if peak else _EDGE_FOCUS_PX
     t, unit, unit_mid = _edge_sampling(samples_along, samples_across, tuple(span))
     z = z0
-    side_px = np.abs(z.take(NEXT_I, axis=1) - z)  # the initial quad's side lengths (pinhole image)
     fitted = np.ones(z.shape, dtype=bool)   # per side and corner: the fit held (a failed marker's
     # corners restart from the initial ones, so the next iteration samples finite positions)
-    # few numpy calls per iteration, each over every marker, side and sample at once: they, not
-    # the arithmetic, are the cost; the per-sample work is one compiled call (_side_lines)
+    # few calls per iteration, each over every marker, side and sample at once: they, not the
+    # arithmetic, are the cost; the sampling, the edge points and lines are compiled calls
     for _ in range(iterations):
-        p, v, n, length, w = _side_samples(z, width_per_side, t, unit)   # p: (M, 4, k, m)
+        p, xy, v, n, length, w = _side_samples(z, width_per_side, t, unit)   # p: (M, 4, k, m); xy: remap's map
         if lens is not None:
             p = _distort_c(p, *lens)
-        xy = p.view(np.float64).reshape(1, -1, 2).astype(np.float32)  # interleaved x, y: one map
+            xy = p.view(np.float64).reshape(1, -1, 2).astype(np.float32)  # interleaved x, y: one map
         # map1 holds both coordinates, so map2 is None (OpenCV's stubs do not allow None there)
         prof = cv2.remap(img, xy, None, cv2.INTER_LINEAR,  # type: ignore[call-overload]
                          borderMode=cv2.BORDER_REPLICATE).reshape(p.shape)
         # edge points, each side's robust line, and the corners where they meet
         z = _fitted_corners(prof, z, z0, v, n, length, w, t, unit_mid, (peak, float(focus_px), float(min_contrast)),
                             fitted)
-    good &= fitted.all(axis=1)
     if lens is not None:
         z = _distort_c(z, *lens)
-        side_px = np.abs(z_in.take(NEXT_I, axis=1) - z_in)
     # a corner moving more than two modules (at least 3 px) is a failed fit
-    moved = np.abs(z - z_in).max(axis=1)
-    good &= moved <= np.maximum(0.5 * side_px.sum(axis=1) * inv_modules[:, 0], 3.0)   # 2 x mean side
-    z = np.where(good[:, None], z + origin, complex(np.nan, np.nan))
-    c = z.view(np.float64).reshape(*z.shape, 2)
+    c = _fit_result(z, z_in, inv_modules, fitted, good, complex(origin))
     return c[0] if single else c

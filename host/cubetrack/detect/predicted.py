@@ -69,14 +69,24 @@ def predicted_view(T_cam_cube: np.ndarray, layout: CubeLayout, intrinsics: Camer
     px = px.reshape(-1, 2)
     grow = float(intrinsics.K[0, 0]) * margin_m / nearest_m + 8.0
     width, height = intrinsics.width, intrinsics.height
-    x0, y0 = np.floor(px.min(axis=0) - grow).astype(int).tolist()
-    x1, y1 = np.ceil(px.max(axis=0) + grow).astype(int).tolist()
-    x0, y0, x1, y1 = max(x0, 0), max(y0, 0), min(x1, width), min(y1, height)
+    x0, y0, x1, y1 = _grown_box(px, grow, width, height)
     if x1 - x0 < MIN_BOX_PX or y1 - y0 < MIN_BOX_PX:
         return PredictedView(None, ())
     markers = predicted_markers(px, layout, width, height, detector.min_marker_perimeter_rate * max(width, height),
                                 detector.min_distance_to_border_px)
     return PredictedView((x0, y0, x1, y1), markers)
+
+
+@numba.njit(cache=True, nogil=True)
+def _grown_box(px: np.ndarray, grow: float, width: int, height: int) -> tuple[int, int, int, int]:
+    """The box (x0, y0, x1, y1; pixels, end exclusive) around the points ``px`` (N, 2), grown by
+    ``grow`` px on every side (out to whole pixels) and cut to a ``width`` x ``height`` image."""
+    lo_x, lo_y, hi_x, hi_y = px[0, 0], px[0, 1], px[0, 0], px[0, 1]
+    for i in range(1, px.shape[0]):
+        lo_x, hi_x = min(lo_x, px[i, 0]), max(hi_x, px[i, 0])
+        lo_y, hi_y = min(lo_y, px[i, 1]), max(hi_y, px[i, 1])
+    return (max(int(math.floor(lo_x - grow)), 0), max(int(math.floor(lo_y - grow)), 0),
+            min(int(math.ceil(hi_x + grow)), width), min(int(math.ceil(hi_y + grow)), height))
 
 
 @numba.njit(cache=True, nogil=True)
@@ -110,8 +120,8 @@ def predicted_markers(quads_px: np.ndarray, layout: CubeLayout, width: int, heig
     area = np.empty(len(quads))
     keep = _facing_quads(quads, float(min_perimeter_px), float(border_px), int(width), int(height), area)
     quads.setflags(write=False)   # after the call: a read-only array is another type to numba (another compile)
-    ids, names = layout.marker_ids, layout.marker_dictionaries
-    return tuple(Detection(int(ids[i]), quads[i], float(area[i]), names[i]) for i in np.flatnonzero(keep).tolist())
+    ids, names, areas = layout.marker_ids.tolist(), layout.marker_dictionaries, area.tolist()
+    return tuple(Detection(ids[i], quads[i], areas[i], names[i]) for i, facing in enumerate(keep.tolist()) if facing)
 
 
 @functools.lru_cache(maxsize=256)
@@ -179,10 +189,17 @@ def _cell_errors(gray: np.ndarray, quads: np.ndarray, modules: np.ndarray, expec
                  min_contrast: float, out: np.ndarray) -> None:
     """For each marker ``q`` of ``quads`` (N, 4, 2): ``out[q]`` = (white border cells, inner cells
     unlike ``expected[q]`` (N, M, M bool, True = white)), each cell white above the midpoint of the
-    darkest and brightest; (-1, -1) when they differ by less than ``min_contrast``."""
+    darkest and brightest; (-1, -1) when they differ by less than ``min_contrast``, or for a quad
+    with a corner not finite (not read)."""
     means = np.empty((expected.shape[1], expected.shape[2]))
     for q in range(quads.shape[0]):
         m = modules[q]
+        finite = True
+        for c in range(4):
+            finite = finite and math.isfinite(quads[q, c, 0]) and math.isfinite(quads[q, c, 1])
+        if not finite:
+            out[q, 0], out[q, 1] = -1, -1
+            continue
         _cell_means(gray, quads[q], m, means)
         lo, hi = means[0, 0], means[0, 0]
         for r in range(m):
@@ -203,17 +220,34 @@ def _cell_errors(gray: np.ndarray, quads: np.ndarray, modules: np.ndarray, expec
         out[q, 0], out[q, 1] = border, inner
 
 
+@functools.lru_cache(maxsize=1024)
+def _expected_cells(markers: tuple[tuple[str, int], ...]) -> tuple[np.ndarray, np.ndarray]:
+    """For markers (dictionary name, id): their cells across (N,) and their cells (N, S, S; True =
+    white, S the largest), as :func:`_cell_errors` takes them (shared: not to be written)."""
+    modules = np.array([modules_of(name) for name, _ in markers], dtype=np.int64)
+    size = int(modules.max()) if len(modules) else 0
+    expected = np.zeros((len(markers), size, size), dtype=np.bool_)
+    for k, (name, marker_id) in enumerate(markers):
+        expected[k, :modules[k], :modules[k]] = marker_cells(name, marker_id)
+    return modules, expected
+
+
+@functools.lru_cache(maxsize=64)
+def _error_limits(dictionary_name: str, error_correction_rate: float) -> tuple[int, int]:
+    """The white border cells and the wrong inner cells a marker of ``dictionary_name`` may have
+    and still read (OpenCV's limits, as the module's docstring describes)."""
+    dictionary = _dictionary(dictionary_name)
+    return (int(dictionary.markerSize ** 2 * BORDER_ERROR_RATE),
+            int(dictionary.maxCorrectionBits * error_correction_rate))
+
+
 def cell_errors(gray: np.ndarray, quads_px: np.ndarray, predicted: Sequence[Detection]) -> np.ndarray:
-    """(N, 2) int: for the markers of ``predicted`` at corners ``quads_px`` (N, 4, 2, finite; TL, TR,
-    BR, BL), the white cells in each one's border and its inner cells unlike its id's bits, each
+    """(N, 2) int: for the markers of ``predicted`` at corners ``quads_px`` (N, 4, 2; TL, TR, BR,
+    BL), the white cells in each one's border and its inner cells unlike its id's bits, each
     cell's mean of 3 x 3 bilinear samples taken as white above the midpoint of the marker's darkest
     and brightest cell; (-1, -1) for a marker whose cells differ by less than ``MIN_CELL_CONTRAST``
-    grey levels (nothing readable there)."""
-    modules = np.array([modules_of(d.dictionary) for d in predicted], dtype=np.int64)
-    size = int(modules.max()) if len(modules) else 0
-    expected = np.zeros((len(predicted), size, size), dtype=np.bool_)
-    for k, d in enumerate(predicted):
-        expected[k, :modules[k], :modules[k]] = marker_cells(d.dictionary, d.marker_id)
+    grey levels (nothing readable there) or whose corners are not all finite."""
+    modules, expected = _expected_cells(tuple((d.dictionary, d.marker_id) for d in predicted))
     out = np.zeros((len(predicted), 2), dtype=np.int64)
     _cell_errors(np.ascontiguousarray(gray), np.ascontiguousarray(quads_px, dtype=np.float64), modules, expected,
                  MIN_CELL_CONTRAST, out)
@@ -224,15 +258,11 @@ def readable_markers(gray: np.ndarray, fitted_px: np.ndarray, predicted: tuple[D
                      error_correction_rate: float) -> np.ndarray:
     """(N,) bool: which markers of ``predicted`` read as their ids at their fitted corners
     ``fitted_px`` (N, 4, 2; NaN where the edge fit failed), as the module's docstring describes."""
-    out = np.isfinite(fitted_px).all(axis=(1, 2))
-    index = np.flatnonzero(out)
-    if len(index):
-        errors = cell_errors(gray, fitted_px[index], [predicted[i] for i in index.tolist()])
-        for k, i in enumerate(index.tolist()):
-            dictionary = _dictionary(predicted[i].dictionary)
-            out[i] = (errors[k, 0] >= 0 and errors[k, 0] <= int(dictionary.markerSize ** 2 * BORDER_ERROR_RATE)
-                      and errors[k, 1] <= int(dictionary.maxCorrectionBits * error_correction_rate))
-    return out
+    errors = cell_errors(gray, fitted_px, predicted).tolist()   # plain ints: a handful of markers
+    return np.array([0 <= border <= border_max and inner <= inner_max
+                     for (border, inner), (border_max, inner_max)
+                     in zip(errors, (_error_limits(d.dictionary, error_correction_rate) for d in predicted),
+                            strict=True)], dtype=bool)
 
 
 def compile_cell_reader() -> None:
@@ -244,6 +274,7 @@ def compile_cell_reader() -> None:
     corners = np.array([[[11.5, 11.5], [35.5, 11.5], [35.5, 35.5], [11.5, 35.5]]])
     cell_errors(gray, corners, [Detection(0, corners[0], 576.0, "DICT_4X4_50")])
     _facing_quads(corners, 19.0, 3.0, 48, 48, np.empty(1))
+    _grown_box(corners[0], 8.0, 48, 48)
 
 
 def resolvable_markers(quads_px: np.ndarray, modules: np.ndarray) -> np.ndarray:
@@ -254,8 +285,13 @@ def resolvable_markers(quads_px: np.ndarray, modules: np.ndarray) -> np.ndarray:
     can read it: the detector spends no search on such a marker that did not read at its
     prediction. (On the live benchmark's 16-camera scene, seed 7, 3,000 frames: 1,055 of 3,037
     searches around unread predictions were of such markers, and none found one; issue 31.)"""
-    sides = np.linalg.norm(quads_px - np.roll(quads_px, 1, axis=1), axis=2).min(axis=1)
-    return np.asarray(sides >= MIN_PX_PER_MODULE * np.asarray(modules), dtype=bool)
+    out = np.empty(len(quads_px), dtype=bool)
+    # plain floats: a handful of quads, and numpy's per-call cost was most of this
+    for q, (quad, cells) in enumerate(zip(np.asarray(quads_px).tolist(), np.asarray(modules).tolist(), strict=True)):
+        shortest = min(math.sqrt((x - x0) * (x - x0) + (y - y0) * (y - y0))
+                       for (x0, y0), (x, y) in zip(quad[-1:] + quad[:-1], quad, strict=True))
+        out[q] = shortest >= MIN_PX_PER_MODULE * cells
+    return out
 
 
 def marker_box(corners_px: np.ndarray, shape: tuple[int, ...]) -> tuple[int, int, int, int]:

@@ -11,7 +11,7 @@ from test_detect_markers import INTR, _two_markers_image, facing
 from cubetrack.core.layout import paper_cube_layout
 from cubetrack.core.records import Detection
 from cubetrack.detect.detector import CornerRefinement, Detector, DetectorParams
-from cubetrack.detect.predicted import cell_errors, marker_cells, predicted_markers
+from cubetrack.detect.predicted import cell_errors, marker_cells, predicted_markers, predicted_view
 
 SIZE_M = 0.08
 POSES = [facing(0.7, 30, 10, 15, 0.05, -0.03), facing(1.2, -40, 25, 100, -0.2, 0.1), facing(0.9, 5, 50, 200, 0.0, 0.1)]
@@ -123,13 +123,16 @@ def test_the_predicted_path_runs_kernels_compiled_when_the_detector_was_built(sc
     from cubetrack.detect import predicted as module
 
     det = Detector()
-    kernels = (module._facing_quads, module._cell_errors)
+    kernels = (module._facing_quads, module._cell_errors, module._grown_box)
     built = [set(k.signatures) for k in kernels]
     assert all(built)
     gray, truth = scenes[1]
     layout = paper_cube_layout()
     predicted_markers(np.repeat(truth[None], len(layout.marker_ids), axis=0), layout, INTR.width, INTR.height,
                       19.0, 3)
+    T_cam_cube = np.eye(4)
+    T_cam_cube[:3, 3] = (0.05, 0.02, 0.9)
+    assert predicted_view(T_cam_cube, layout, INTR, 0.05, det.params).box is not None
     assert det.find(gray, [_box(truth)], INTR, predicted=[_prediction(truth)]).predicted
     # this process's signatures (other tests' calls included) are the start-up ones: no read-only arrays
     assert [set(k.signatures) for k in kernels] == built
