@@ -556,8 +556,10 @@ class FilterFusion:
         """The other hypothesis for a sighting the predicted pose ``f`` does not explain: the
         camera's own cube pose from its detections (another face, a flip, a turn the motion model
         missed). If it lies within ``reacquire_m`` of the prediction and its matched corners pass
-        the filter's gate, the track goes on from it (the prediction's velocities, a broad pose
-        prior): (the new filter, its corners); else None."""
+        the filter's gate, the track goes on from it (a broad pose prior, the prediction's velocities
+        with their covariance: a start's ``init_velocity_sigma`` here would let the next frame of a
+        camera that disagrees, a few ms later, become velocity; issue 25): (the new filter, its
+        corners); else None."""
         estimate = sighting.estimate or estimate_cube(
             sighting.detections, self.layouts[sighting.robot], sighting.intrinsics, sighting.T_world_cam,
             camera=sighting.camera, robot=sighting.robot, seq=sighting.seq,
@@ -568,7 +570,9 @@ class FilterFusion:
         corners = self._corners(sighting, estimate.T_world_cube, corrections)
         if not corners:
             return None
-        prior = np.diag(np.repeat([self.params.reacquire_m**2, np.radians(30.0) ** 2], 3))
+        prior = np.zeros((12, 12))
+        prior[:6, :6] = np.diag(np.repeat([self.params.reacquire_m**2, np.radians(30.0) ** 2], 3))
+        prior[6:, 6:] = f.P[6:, 6:]
         g = PoseFilter(self.filter_params, f.time_s, estimate.T_world_cube, prior, f.velocity_m_s,
                        f.angular_velocity_rad_s)
         return (g, corners) if g.update(corners, corrections.term_scale(sighting.camera)).accepted else None

@@ -91,6 +91,15 @@ def test_re_acquisition_finds_the_cameras_own_pose_with_the_estimator_settings(m
     fusion.add(CubeSighting("cam1", "bot", 12, t, t, dets, None, CAMS["cam1"], INTR), t)
     assert fusion.stats["re-acquired sighting"] == 1, dict(fusion.stats)
     assert seen and all(p is settings for p in seen)
+    # the track goes on with the prediction's velocities and their covariance, not a start's spreads
+    # (init_velocity_sigma 0.5 m/s, 3 rad/s), which would let the next frame of a camera that disagrees, a few ms
+    # later, become velocity (issue 25, tenth round); the re-acquiring update informs the pose only
+    predicted = fusion.history["bot"][-1].before.filter.copy()
+    predicted.predict(t)
+    after = fusion.state["bot"].filter.P
+    assert np.allclose(after[6:, 6:], predicted.P[6:, 6:]), (np.sqrt(after.diagonal()[6:]),
+                                                            np.sqrt(predicted.P.diagonal()[6:]))
+    assert np.sqrt(after.diagonal()[6:9]).max() < 0.3, np.sqrt(after.diagonal()[6:9])
 
 
 def focal_errors(filter_params: FilterParams, seed: int) -> list[float]:
