@@ -126,8 +126,9 @@ def test_project_jacobian_matches_finite_differences():
 
 
 def test_solver_jacobian_matches_finite_differences():
-    """The analytic sparse Jacobian of every block (cameras, intrinsics, bodies, heights, scale,
-    markers, priors) against central differences at the start of a solve."""
+    """The analytic sparse Jacobian of every block (cameras, intrinsics, bodies, heights, the floor's
+    tilt, scale, markers, priors) against central differences at the start of a solve and at a
+    point away from it (a tilted floor)."""
     from cubetrack.calib import solver
 
     scene = Scene(instants=6)
@@ -135,7 +136,7 @@ def test_solver_jacobian_matches_finite_differences():
     free = Freedom(camera_prior=PosePrior(scene.T_cams, 0.01, 0.01),
                    intrinsics=IntrinsicsPrior(scene.K, scene.dist, 0.005, 3.0, 0.01, 0.03),
                    body=BodyPrior(scene.nominal, np.full(5, 0.08), 0.003, 0.03, 0.02), free_scale=True,
-                   height_sigma_m=0.002, upright_sigma_rad=0.02)
+                   height_sigma_m=0.002, upright_sigma_rad=0.02, floor_tilt_sigma_rad=0.01)
     captured = {}
 
     def capture(fun, x0, jac, **_kw):
@@ -149,12 +150,25 @@ def test_solver_jacobian_matches_finite_differences():
     finally:
         solver.least_squares = original
     fun, x0 = captured["fun"], captured["x0"]
-    J = captured["jac"](x0).toarray()
     h = 1e-7
-    numeric = np.column_stack([(fun(x0 + h * e) - fun(x0 - h * e)) / (2 * h) for e in np.eye(len(x0))])
+
+    def jacobians(x):
+        return captured["jac"](x).toarray(), np.column_stack([(fun(x + h * e) - fun(x - h * e)) / (2 * h)
+                                                              for e in np.eye(len(x))])
+
+    J, numeric = jacobians(x0)
     # the pose priors' rotation part is linearised at the prior (the start here is 0.3 deg off)
     assert np.abs(J - numeric).max() < 2e-3 * np.abs(numeric).max()
     assert (np.abs(J - numeric) < 1e-4 * np.abs(numeric).max() + 1e-3)[:2 * len(scene.obs.cam)].all()
+    # the ground rows (after the corners and world points: heights, upright, the floor's tilt prior) on a
+    # floor tilted by 0.5 and -0.3 degrees, where the slopes enter the heights' and uprights' Jacobians
+    L = solver._columns(scene.obs, start, free)
+    x = x0.copy()
+    x[L.slopes:L.slopes + 2] = np.radians([0.5, -0.3])
+    J, numeric = jacobians(x)
+    first = 2 * (len(scene.obs.cam) + len(scene.obs.world_cam))
+    ground = slice(first, first + 3 * len(scene.T_bodies) + 2)
+    assert np.abs(J - numeric)[ground].max() < 1e-5 * np.abs(numeric[ground]).max()
 
 
 def test_bundle_adjustment_recovers_cameras_from_exact_corners():
