@@ -133,6 +133,10 @@ class BundleAdjustmentParams:
     height_sigma_m: float = param(0.002, "planar motion: spread (1 sigma) of the cube's height along the path, metres")
     upright_sigma_deg: float = param(1.0, "spread (1 sigma) of each cube's tilt from world up (ground robots: the "
                                           "estimator's upright prior); 0 = no such prior, degrees")
+    floor_tilt_sigma_deg: float = param(0.0, "ground robots: the floor under the robot's path is a plane that may tilt "
+                                             "from the world marker's by this much (1 sigma; the cube's height and "
+                                             "upright prior are taken along it); 0 = that plane is the marker's, "
+                                             "degrees")
     free_cube_scale: bool = param(False, "absolute solves: estimate each cube's scale too, so the world marker sets "
                                          "the scale (measured worse on simulations: the obliquely seen marker's scale "
                                          "is less sure than the cube's): a corner bias of 0.01 px on a 20 px cube "
@@ -156,7 +160,7 @@ class BundleAdjustmentParams:
                        "gauge_prior_position_m", "gauge_prior_rotation_deg", "height_sigma_m",
                        "intrinsics_focal_sigma", "intrinsics_principal_sigma_px", "intrinsics_k1_sigma",
                        "intrinsics_k2_sigma")
-        check(self.upright_sigma_deg >= 0, f"upright_sigma_deg must not be negative, got {self.upright_sigma_deg}")
+        check_non_negative(self, "upright_sigma_deg", "floor_tilt_sigma_deg")
         check(self.world_samples >= 1, f"world_samples must be at least 1, got {self.world_samples}")
         check(self.min_cameras >= 2 and self.max_instants >= 1 and self.rounds >= 1 and self.max_nfev >= 1,
               "need min_cameras >= 2, max_instants >= 1, rounds >= 1, max_nfev >= 1")
@@ -641,8 +645,8 @@ class Refinement:
                                    body.position_sigma_m, np.radians(body.rotation_sigma_deg), body.size_sigma)
         return Freedom(cameras, camera_prior, intrinsics_prior, body_prior, free_scale, p.corner_noise_px,
                        p.world_corner_noise_px, p.f_scale_px, p.height_sigma_m if p.planar_motion else 0.0,
-                       float(np.radians(p.upright_sigma_deg)), p.max_nfev,
-                       body.motion_noise_px_per_s if body is not None else 0.0)
+                       float(np.radians(p.upright_sigma_deg)), float(np.radians(p.floor_tilt_sigma_deg)),
+                       p.max_nfev, body.motion_noise_px_per_s if body is not None else 0.0)
 
     def solve(self, free: Freedom, world: Mapping[str, tuple[np.ndarray, np.ndarray]] | None = None) -> None:
         self.model = solve(self.observations(world), self.model, free)

@@ -26,7 +26,9 @@ of the way from knot ``k`` to knot ``k + 1`` sees the body at the interpolated p
 their positions and rotations (``Freedom.accel_sigma_m_s2``, ``angular_accel_sigma_rad_s2``),
 which also carries the trajectory across knots no corner sees.
 Residuals are pixel errors over their noise, a soft-L1 loss over all of them; for ground robots
-the body's height against one height per robot and its tilt from world up; and priors: camera
+the body's height against one height per robot and its tilt from world up (or, with
+``Freedom.floor_tilt_sigma_rad``, against a plane per robot through that height and its
+normal, the plane's tilt from world level held by that prior); and priors: camera
 poses (a weak gauge prior, or the extrinsics a body calibration starts from), intrinsics (the
 camera_info they start from: focal length, principal point, k1, k2) and marker poses and sizes
 (the nominal layout). Every Jacobian is analytic (cv2.projectPoints gives the lens model's) and
@@ -157,7 +159,10 @@ class Freedom:
     corner's noise grows with its time from the instant, ``sqrt(corner_noise_px^2 + (motion_noise_px_per_s
     dt)^2)``: the constant-velocity motion between an instant's frames misses turns and vibration);
     ground robots: ``height_sigma_m``
-    (0 = no common height), ``upright_sigma_rad`` (0 = no upright prior); ``max_nfev``; a
+    (0 = no common height), ``upright_sigma_rad`` (0 = no upright prior), ``floor_tilt_sigma_rad``
+    (the floor the robot drives on is a plane that may tilt from world level by this much, 1
+    sigma: the height is taken along it and the upright prior holds the body to its normal; 0 =
+    the floor is level in the world frame); ``max_nfev``; a
     continuous-time trajectory's smoothness: ``accel_sigma_m_s2``, ``angular_accel_sigma_rad_s2``
     (1 sigma of the second difference of the knots' positions and rotations over the squared
     knot spacing)."""
@@ -172,6 +177,7 @@ class Freedom:
     f_scale_px: float = 1.5
     height_sigma_m: float = 0.0
     upright_sigma_rad: float = 0.0
+    floor_tilt_sigma_rad: float = 0.0
     max_nfev: int = 60
     motion_noise_px_per_s: float = 0.0
     accel_sigma_m_s2: float = 10.0
@@ -300,6 +306,7 @@ class _Layout:
     intr: int
     bodies: int
     heights: int
+    slopes: int
     scales: int
     markers: int
     n: int
@@ -307,12 +314,13 @@ class _Layout:
 
 def _columns(obs: Observations, model: Model, free: Freedom) -> _Layout:
     C, K, G, R = len(model.T_cams), len(model.T_bodies), len(model.T_body_markers), obs.robots
+    ground = free.height_sigma_m > 0 or free.upright_sigma_rad > 0
     sizes = [6 * C if free.cameras else 0, 6 * C if free.intrinsics is not None else 0, 6 * K,
-             R if free.height_sigma_m > 0 else 0, R if free.free_scale else 0,
-             7 * G if free.body is not None else 0]
+             R if free.height_sigma_m > 0 else 0, 2 * R if ground and free.floor_tilt_sigma_rad > 0 else 0,
+             R if free.free_scale else 0, 7 * G if free.body is not None else 0]
     starts = np.concatenate([[0], np.cumsum(sizes)])
-    cams, intr, bodies, heights, scales, markers, n = (int(s) for s in starts)
-    return _Layout(C, K, G, R, cams, intr, bodies, heights, scales, markers, n)
+    cams, intr, bodies, heights, slopes, scales, markers, n = (int(s) for s in starts)
+    return _Layout(C, K, G, R, cams, intr, bodies, heights, slopes, scales, markers, n)
 
 
 def solve(obs: Observations, model: Model, free: Freedom) -> Model:
@@ -383,6 +391,9 @@ class _Problem:
         sigma = free.corner_noise_px
         self.heights0 = np.array([np.median(model.T_bodies[obs.robot == j, 2, 3]) if (obs.robot == j).any() else 0.0
                                   for j in range(L.R)])
+        # each robot's floor plane turns about the middle of its path (so its height and tilt are apart)
+        self.xy0 = np.array([model.T_bodies[obs.robot == j, :2, 3].mean(axis=0) if (obs.robot == j).any()
+                             else np.zeros(2) for j in range(L.R)])
         corner_sigma = np.full((len(obs.cam), 1), sigma)  # (N, 1) each body corner's noise
         if free.motion_noise_px_per_s > 0 and obs.dt_s is not None:
             corner_sigma = np.hypot(sigma, free.motion_noise_px_per_s * obs.dt_s)[:, None]
@@ -508,19 +519,35 @@ class _Problem:
                                               (L.bodies + 6 * k[:, None] + np.arange(6), eye)])
 
     def _ground(self, m: Model, x: np.ndarray, blocks: _Blocks) -> None:
-        """Ground robots: one height per robot, body z near world up."""
+        """Ground robots: one height per robot, body z near world up; with a floor tilt, both
+        taken against each robot's floor plane ``z = h + s . (xy - xy0)`` (normal ``(-s, 1)``,
+        small slopes ``s`` held near level by ``floor_tilt_sigma_rad``)."""
         obs, free, L = self.obs, self.free, self.L
         k_idx = np.arange(L.K)
+        tilted = L.slopes < L.scales
+        s = x[L.slopes:L.scales].reshape(L.R, 2) if tilted else np.zeros((L.R, 2))
+        s_cols = L.slopes + 2 * obs.robot[:, None] + np.arange(2)  # (K, 2)
         if free.height_sigma_m > 0:
             h = self.heights0 + x[L.heights:L.heights + L.R]
-            r = ((m.T_bodies[:, 2, 3] - h[obs.robot]) / free.height_sigma_m)[:, None]
+            xy = m.T_bodies[:, :2, 3] - self.xy0[obs.robot]
+            sk = s[obs.robot]
+            r = ((m.T_bodies[:, 2, 3] - h[obs.robot] - np.sum(sk * xy, axis=1)) / free.height_sigma_m)[:, None]
             ones = np.full((L.K, 1, 1), 1.0 / free.height_sigma_m)
-            blocks.add(r, [(L.bodies + 6 * k_idx[:, None] + 2, ones), (L.heights + obs.robot[:, None], -ones)])
+            parts = [(L.bodies + 6 * k_idx[:, None] + 2, ones), (L.heights + obs.robot[:, None], -ones)]
+            if tilted:
+                parts += [(L.bodies + 6 * k_idx[:, None] + np.arange(2), -sk[:, None, :] / free.height_sigma_m),
+                          (s_cols, -xy[:, None, :] / free.height_sigma_m)]
+            blocks.add(r, parts)
         if free.upright_sigma_rad > 0:
             up = m.T_bodies[:, :3, 2]
-            blocks.add(up[:, :2] / free.upright_sigma_rad,
-                       [(L.bodies + 6 * k_idx[:, None] + 3 + np.arange(3),
-                         -skew(up)[:, :2, :] / free.upright_sigma_rad)])
+            parts = [(L.bodies + 6 * k_idx[:, None] + 3 + np.arange(3), -skew(up)[:, :2, :] / free.upright_sigma_rad)]
+            if tilted:
+                parts.append((s_cols, np.broadcast_to(np.eye(2) / free.upright_sigma_rad, (L.K, 2, 2))))
+            blocks.add((up[:, :2] + s[obs.robot]) / free.upright_sigma_rad, parts)
+        if tilted:
+            blocks.add(s / free.floor_tilt_sigma_rad,
+                       [(L.slopes + 2 * np.arange(L.R)[:, None] + np.arange(2),
+                         np.broadcast_to(np.eye(2) / free.floor_tilt_sigma_rad, (L.R, 2, 2)))])
 
     def _priors(self, m: Model, blocks: _Blocks) -> None:
         """The priors on the cameras' poses, their intrinsics and the markers on the body."""

@@ -45,7 +45,7 @@ class Scene:
     """Three cameras 2.2 m out (a wide-angle lens) see the paper's cube at 40 instants, and the
     world marker; every observation is the exact projection of the true model."""
 
-    def __init__(self, seed=1, instants=40):
+    def __init__(self, seed=1, instants=40, floor_slope_deg=0.0):
         rng = np.random.default_rng(seed)
         layout = paper_cube_layout()
         self.T_cams = np.array([look_at(np.array([2.2 * np.cos(a), 2.2 * np.sin(a), 1.0]))
@@ -59,7 +59,8 @@ class Scene:
                                    for T in self.nominal])
         self.sizes = np.full(5, 0.08) * (1 - rng.uniform(0.005, 0.015, 5))
         self.T_bodies = np.array([make_T(Rotation.from_euler("zx", [0.3 * k, 0.15 * np.sin(k)]).as_matrix(),
-                                         [0.6 * np.sin(0.08 * k), 0.4 * np.sin(0.16 * k), 0.35])
+                                         [0.6 * np.sin(0.08 * k), 0.4 * np.sin(0.16 * k),
+                                          0.35 + np.tan(np.radians(floor_slope_deg)) * 0.6 * np.sin(0.08 * k)])
                                   for k in range(instants)])
         true = Model(self.T_cams, self.K, self.dist, self.T_bodies, self.T_markers, self.sizes, np.zeros(5, int),
                      np.ones(1))
@@ -126,8 +127,9 @@ def test_project_jacobian_matches_finite_differences():
 
 
 def test_solver_jacobian_matches_finite_differences():
-    """The analytic sparse Jacobian of every block (cameras, intrinsics, bodies, heights, scale,
-    markers, priors) against central differences at the start of a solve."""
+    """The analytic sparse Jacobian of every block (cameras, intrinsics, bodies, heights, the floor's
+    tilt, scale, markers, priors) against central differences at the start of a solve and at a
+    point away from it (a tilted floor)."""
     from cubetrack.calib import solver
 
     scene = Scene(instants=6)
@@ -135,7 +137,7 @@ def test_solver_jacobian_matches_finite_differences():
     free = Freedom(camera_prior=PosePrior(scene.T_cams, 0.01, 0.01),
                    intrinsics=IntrinsicsPrior(scene.K, scene.dist, 0.005, 3.0, 0.01, 0.03),
                    body=BodyPrior(scene.nominal, np.full(5, 0.08), 0.003, 0.03, 0.02), free_scale=True,
-                   height_sigma_m=0.002, upright_sigma_rad=0.02)
+                   height_sigma_m=0.002, upright_sigma_rad=0.02, floor_tilt_sigma_rad=0.01)
     captured = {}
 
     def capture(fun, x0, jac, **_kw):
@@ -149,12 +151,25 @@ def test_solver_jacobian_matches_finite_differences():
     finally:
         solver.least_squares = original
     fun, x0 = captured["fun"], captured["x0"]
-    J = captured["jac"](x0).toarray()
     h = 1e-7
-    numeric = np.column_stack([(fun(x0 + h * e) - fun(x0 - h * e)) / (2 * h) for e in np.eye(len(x0))])
+
+    def jacobians(x):
+        return captured["jac"](x).toarray(), np.column_stack([(fun(x + h * e) - fun(x - h * e)) / (2 * h)
+                                                              for e in np.eye(len(x))])
+
+    J, numeric = jacobians(x0)
     # the pose priors' rotation part is linearised at the prior (the start here is 0.3 deg off)
     assert np.abs(J - numeric).max() < 2e-3 * np.abs(numeric).max()
     assert (np.abs(J - numeric) < 1e-4 * np.abs(numeric).max() + 1e-3)[:2 * len(scene.obs.cam)].all()
+    # the ground rows (after the corners and world points: heights, upright, the floor's tilt prior) on a
+    # floor tilted by 0.5 and -0.3 degrees, where the slopes enter the heights' and uprights' Jacobians
+    L = solver._columns(scene.obs, start, free)
+    x = x0.copy()
+    x[L.slopes:L.slopes + 2] = np.radians([0.5, -0.3])
+    J, numeric = jacobians(x)
+    first = 2 * (len(scene.obs.cam) + len(scene.obs.world_cam))
+    ground = slice(first, first + 3 * len(scene.T_bodies) + 2)
+    assert np.abs(J - numeric)[ground].max() < 1e-5 * np.abs(numeric[ground]).max()
 
 
 def test_bundle_adjustment_recovers_cameras_from_exact_corners():
@@ -163,6 +178,23 @@ def test_bundle_adjustment_recovers_cameras_from_exact_corners():
     model = solve(scene.obs, scene.start(), Freedom(max_nfev=100))
     pos, rot = _pose_errors(model.T_cams, scene.T_cams)
     assert pos < 1e-5 and rot < 1e-4
+
+
+def test_a_floor_that_slopes_is_not_read_as_the_worlds_tilt():
+    """The cube driven on a floor sloping 1 deg along x (exact corners): held at one height on a
+    level floor the refined world turns toward that slope against the world marker; with the
+    floor's tilt held only loosely (floor_tilt_sigma_rad 5 deg) the world marker keeps the world level."""
+    scene = Scene(floor_slope_deg=1.0)
+    start = scene.start()
+
+    def world_tilt_deg(model):
+        R = np.array([T[:3, :3] @ U[:3, :3].T for T, U in zip(model.T_cams, scene.T_cams, strict=True)])
+        return np.degrees(np.linalg.norm(Rotation.from_matrix(R).mean().as_rotvec()[:2]))
+
+    level = solve(scene.obs, start, Freedom(height_sigma_m=0.002, max_nfev=100))
+    tilted = solve(scene.obs, start, Freedom(height_sigma_m=0.002, floor_tilt_sigma_rad=np.radians(5.0), max_nfev=100))
+    assert world_tilt_deg(level) > 0.5 and world_tilt_deg(tilted) < 0.05, (world_tilt_deg(level),
+                                                                            world_tilt_deg(tilted))
 
 
 def test_bundle_adjustment_recovers_intrinsics_from_exact_corners():
