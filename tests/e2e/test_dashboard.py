@@ -312,8 +312,12 @@ def test_the_dashboard_guides_a_calibration_in_the_browser(lab, tmp_path):
         # as many instants as the adjustment uses ([bundle_adjustment] max_instants): about a lap of the path
         browser.wait_for("document.querySelector('#drive-progress progress').value >= 30", 120)
         browser.click("#calibration-refine")
-        browser.wait_for("document.querySelector('li.current[data-step=refine]') !== null && "
-                         "document.querySelector('#calibration-message').textContent.startsWith('Refined')", 180)
+        # a hang guard, not a speed check: the refinement detects every drive frame and adjusts, beside live
+        # tracking, and CI's other test worker may be busy (206 s once there)
+        message = browser.wait_for("(m => /^Refine(d|ment) /.test(m) && m)"   # done: refined, refused or failed
+                                   "(document.querySelector('#calibration-message').textContent)", 600)
+        assert message.startswith("Refined"), message
+        assert browser.eval("document.querySelector('li.current[data-step=refine]') !== null")
         panel = api(url, "/api/calibration")
         refined = {c["name"]: c["refined"] for c in panel["cameras"] if c["refined"]}
         assert set(refined) == {"cam1", "cam2", "cam3"}

@@ -199,9 +199,9 @@ def test_ctrl_c_stops_a_recording_and_keeps_what_was_recorded(scene, tmp_path):
                                 text=True, env={**os.environ, "PYTHONUNBUFFERED": "1"})
         try:
             deadline = time.monotonic() + 60
-            while time.monotonic() < deadline:  # until some frames are on disk
-                index = tmp_path / "rec" / "cam1" / "index.csv"
-                if index.exists() and len(index.read_text().splitlines()) > 10:
+            indexes = [tmp_path / "rec" / camera / "index.csv" for camera in emu.urls]
+            while time.monotonic() < deadline:  # until every camera has some frames on disk
+                if all(index.exists() and len(index.read_text().splitlines()) > 10 for index in indexes):
                     break
                 time.sleep(0.2)
             proc.send_signal(signal.SIGINT)
