@@ -80,14 +80,14 @@ class _Tick:
         return max(0.0, self.next_s - self.clock())
 
     def run_if_due(self) -> None:
-        now = self.clock()
-        if now < self.next_s:
+        if self.clock() < self.next_s:
             return
-        if self.grid:
-            self.next_s = (math.floor(now / self.period_s) + 1) * self.period_s
-        else:
+        if not self.grid:
             self.next_s += self.period_s
         self.action()
+        if self.grid:  # the multiple after the action's end: an action that reads the clock late (a loaded
+            # machine) has its cell, and the next one runs in a later cell, never twice in one
+            self.next_s = (math.floor(self.clock() / self.period_s) + 1) * self.period_s
 
 
 class Session:

@@ -12,7 +12,7 @@ import threading
 
 import pytest
 
-from cubetrack.app.session import RunSpec, Session
+from cubetrack.app.session import RunSpec, Session, _Tick
 from cubetrack.io.run import read_run_record
 
 
@@ -144,3 +144,19 @@ def test_track_live_resolves_its_config_once(tmp_path, capsys, caplog):
     warnings = [r for r in caplog.records if "corner_noise_px = 0.05 trusts" in r.getMessage()]
     assert len(warnings) == 1, [r.getMessage() for r in warnings]
     assert read_run_record(tmp_path / "out")["session"]["ended"] == "duration"
+
+
+def test_a_grid_tick_whose_action_reads_the_clock_late_runs_once_in_that_cell():
+    now, stamps = [0.96], []
+
+    def action():  # a loaded machine: the action reads the clock after the next multiple has passed
+        now[0] += 0.06
+        stamps.append(now[0])
+
+    tick = _Tick(0.5, action, lambda: now[0], 0.5, grid=True)
+    tick.run_if_due()          # due at 0.5 (clock 0.96): the action's clock says 1.02, in the cell from 1.0
+    now[0] = 1.2
+    tick.run_if_due()          # the same cell as the action's stamp: not again
+    now[0] = 1.5
+    tick.run_if_due()
+    assert [int(s // 0.5) for s in stamps] == [2, 3]
