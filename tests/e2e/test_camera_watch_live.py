@@ -102,10 +102,11 @@ def _bumped_live_session(tmp_path: Path, browser: Browser, took: dict[str, float
             port = s.getsockname()[1]
         out = tmp_path / "out"
         track = cubetrack("track", "--config", str(config), "--extrinsics", str(rec / "true_extrinsics.toml"),
-                          "--live", "--out", str(out), "--duration", "120", "--dashboard", f"127.0.0.1:{port}",
-                          cwd=tmp_path)
+                          "--live", "--out", str(out), "--duration", "600", "--dashboard", f"127.0.0.1:{port}",
+                          cwd=tmp_path)  # --duration: a hang guard; Ctrl-C ends it
         try:
             url = track.wait_line(r"output: dashboard: (http://127\.0\.0\.1:\d+/)").group(1)
+            browser.serving = track.proc
             browser.call("Page.addScriptToEvaluateOnNewDocument", source=TRAIL)
             browser.goto(url)
             took["page"] = time.monotonic()

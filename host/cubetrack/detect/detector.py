@@ -42,6 +42,7 @@ from cubetrack.detect.decode import decode_gray as decode_gray  # also imported 
 from cubetrack.detect.decode import read_gray as read_gray
 from cubetrack.detect.edge_fit import compile_edge_fit, refine_corners_edges
 from cubetrack.detect.predicted import compile_cell_reader, marker_box, modules_of, readable_markers, resolvable_markers
+from cubetrack.detect.quads import corners_finite
 from cubetrack.detect.template_fit import LensMap, compile_template_fit, fast_template_corners
 
 log = logging.getLogger(__name__)
@@ -250,10 +251,7 @@ def _quad_kernel(quads: np.ndarray, min_area_px2: float, ok: np.ndarray, area: n
     """:func:`_quad_checks` into ``ok`` and ``area`` (one compiled pass: as numpy, a dozen calls
     over a handful of quads, and the calls were the cost)."""
     for q in range(quads.shape[0]):
-        finite = True
-        for c in range(4):
-            finite = finite and math.isfinite(quads[q, c, 0]) and math.isfinite(quads[q, c, 1])
-        if not finite:
+        if not corners_finite(quads, q):
             ok[q], area[q] = False, 0.0
             continue
         twice_area, min_turn = 0.0, math.inf

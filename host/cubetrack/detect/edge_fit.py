@@ -16,6 +16,7 @@ import numba
 import numpy as np
 
 from cubetrack.core.geometry import undistort_points
+from cubetrack.detect.quads import corners_finite
 from cubetrack.detect.template_fit import distort_px
 
 _ROI_MARGIN_PX = 16  # refine_corners_edges: float copy of the quads' region plus this
@@ -148,9 +149,7 @@ def _finite_box(quads: np.ndarray, margin_px: int) -> tuple[np.ndarray, bool, in
     good = np.empty(quads.shape[0], dtype=np.bool_)
     lo_x, lo_y, hi_x, hi_y = math.inf, math.inf, -math.inf, -math.inf
     for q in range(quads.shape[0]):
-        good[q] = True
-        for c in range(4):
-            good[q] &= math.isfinite(quads[q, c, 0]) and math.isfinite(quads[q, c, 1])
+        good[q] = corners_finite(quads, q)
         if good[q]:
             for c in range(4):
                 lo_x, hi_x = min(lo_x, quads[q, c, 0]), max(hi_x, quads[q, c, 0])

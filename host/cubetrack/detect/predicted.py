@@ -33,6 +33,7 @@ from cubetrack.core.cameras import CameraIntrinsics
 from cubetrack.core.geometry import transform_points
 from cubetrack.core.layout import CubeLayout
 from cubetrack.core.records import Detection
+from cubetrack.detect.quads import corners_finite
 
 if TYPE_CHECKING:
     from cubetrack.detect.detector import DetectorParams
@@ -194,10 +195,7 @@ def _cell_errors(gray: np.ndarray, quads: np.ndarray, modules: np.ndarray, expec
     means = np.empty((expected.shape[1], expected.shape[2]))
     for q in range(quads.shape[0]):
         m = modules[q]
-        finite = True
-        for c in range(4):
-            finite = finite and math.isfinite(quads[q, c, 0]) and math.isfinite(quads[q, c, 1])
-        if not finite:
+        if not corners_finite(quads, q):
             out[q, 0], out[q, 1] = -1, -1
             continue
         _cell_means(gray, quads[q], m, means)
