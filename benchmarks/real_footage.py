@@ -476,7 +476,8 @@ def _term_fit(sets: Mapping[str, Sequence[CornerSet]], T_init: np.ndarray, t_s: 
         _, _, _, R_cw, t_cw, _, _ = packed_sets(camera_sets)
         term = np.zeros((6, 6))
         if not calibration_discount(T_init, R_cw, t_cw, np.zeros((6, 6)), fp.camera_position_sigma_m,
-                                    np.radians(fp.camera_rotation_sigma_deg), fp.camera_scale_sigma, term):
+                                    np.radians(fp.camera_rotation_sigma_deg), fp.camera_scale_sigma,
+                                    np.radians(fp.wobble_sigma_deg), term):
             term[:] = 0.0  # the cameras taken as exact
         W = np.linalg.inv(fit.covariance[:6, :6] + term)
         T = fit.T_world_cube

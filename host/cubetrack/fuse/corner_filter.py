@@ -71,6 +71,11 @@ class FilterParams:
         "(1 sigma), which moves the body along the camera's optical axis by that fraction of its depth, so a "
         "camera's depth is trusted less than its view across (docs/tracking.md \"Cameras that disagree\"; 0: none; "
         "0.005 since issue 25's third round)")
+    wobble_sigma_deg: float = param(
+        0.0, "a robot's wobble on an uneven floor: each camera frame sees the body rolled and pitched about the floor "
+        "point below it by this much (1 sigma per axis, independent from frame to frame: a vibration faster than the "
+        "motion model follows), degrees; 0: none (docs/tracking.md \"What the term absorbs on the renders\": 0.5 "
+        "gains 3-5 % position on the realistic renders and costs the clean ones 0.001 cm; not the default)")
     camera_term_samples_per_s: float = param(
         0.0, "the calibration term above sized per camera (docs/tracking.md \"Each camera's term from the others\"): "
         "this many of a camera's frames a second (e.g. 4) are compared with the pose the other cameras make without "
@@ -113,7 +118,8 @@ class FilterParams:
                        "init_velocity_sigma", "init_angular_velocity_sigma")
         check_non_negative(self, "camera_position_sigma_m", unit="metres")
         check_non_negative(self, "camera_scale_sigma", "camera_term_samples_per_s")
-        check_non_negative(self, "camera_rotation_sigma_deg", "correction_rotation_sigma_deg", unit="degrees")
+        check_non_negative(self, "camera_rotation_sigma_deg", "correction_rotation_sigma_deg", "wobble_sigma_deg",
+                           unit="degrees")
         check_non_negative(self, "correction_position_sigma_m", unit="metres")
         check_non_negative(self, "correction_time_sigma_s", "correction_memory_s", unit="seconds")
         check_at_least(self, 1, "iterations")
@@ -249,7 +255,7 @@ class PoseFilter:
     def _solve(self, sets: Sequence[CornerSet], term_scale: float
                ) -> tuple[np.ndarray, np.ndarray | None, np.ndarray, np.ndarray]:
         """Gauss-Newton on prior + Huber-weighted corner residuals (the cameras' calibration term
-        times ``term_scale``): (δ (12,), the covariance after
+        times ``term_scale``, and the body's wobble): (δ (12,), the covariance after
         it (None if its information is singular), the pose moved by δ (4x4 ``T_world_cube``),
         residuals px there, less what the cameras' calibration error explains
         (:func:`cubetrack.fuse.filter_kernels.calibration_discount`)). Compiled:
@@ -267,7 +273,7 @@ class PoseFilter:
             moving, prm.iterations, prm.huber_px,
             inverse_variances(sets, prm.corner_noise_px, prm.corner_noise_by_width),
             k * prm.camera_position_sigma_m, k * math.radians(prm.camera_rotation_sigma_deg),
-            k * prm.camera_scale_sigma)
+            k * prm.camera_scale_sigma, math.radians(prm.wobble_sigma_deg))
         if status != OK:
             raise np.linalg.LinAlgError("singular matrix")
         return delta, (P if P_ok else None), T, r

@@ -198,7 +198,7 @@ def _perturbed(T0: np.ndarray, delta: np.ndarray, out: np.ndarray) -> None:  # p
 
 @numba.njit(cache=True, nogil=True)
 def calibration_discount(T: np.ndarray, R_cw: np.ndarray, t_cw: np.ndarray, info_add: np.ndarray, sigma_t: float,
-                         sigma_phi: float, sigma_s: float, K: np.ndarray) -> bool:  # pragma: no cover
+                         sigma_phi: float, sigma_s: float, sigma_w: float, K: np.ndarray) -> bool:  # pragma: no cover
     """What one camera frame's corners tell about the pose, less what its camera's calibration
     error could make them say: ``K`` (written into ``K``, 6x6), with the corners' information
     becoming ``H^T W H - C K C^T`` (``C = H^T W H_pose``); False with the camera taken as exact
@@ -206,7 +206,8 @@ def calibration_discount(T: np.ndarray, R_cw: np.ndarray, t_cw: np.ndarray, info
     ``R_cw``, ``t_cw``: the packed sets' cameras (the first one's is used: all sets of one update
     come from one camera frame); ``info_add``: the corners' information (its 6x6 pose block is
     ``H_pose^T W H_pose``); ``sigma_t`` (m), ``sigma_phi`` (rad): the camera's position and
-    orientation error, 1 sigma per axis; ``sigma_s``: its scale error (a fraction, 1 sigma; 0: none).
+    orientation error, 1 sigma per axis; ``sigma_s``: its scale error (a fraction, 1 sigma; 0: none);
+    ``sigma_w`` (rad): the body's wobble, 1 sigma per axis (0: none).
 
     A camera whose true pose is off from its extrinsics by ``ε = (δt, δφ)`` (world frame,
     rotation about its centre ``c``) sees the body as if it had moved by ``δp = -δt + [p - c]× δφ``,
@@ -218,7 +219,10 @@ def calibration_discount(T: np.ndarray, R_cw: np.ndarray, t_cw: np.ndarray, info
     ``σ_t² I``): ``[[I, D], [Dᵀ, σ_t²/σ_φ² I + DᵀD]] / σ_t²`` with ``D = [p - c]×``. A scale error
     ``s`` of the camera (its focal length off by that fraction) moves the body along the camera's
     optical axis ``z`` by ``s`` times its depth: ``Σ`` gains ``σ_s² u uᵀ`` with ``u = [z (z · (p - c)); 0]``,
-    taken into ``Σ⁻¹`` by Sherman-Morrison."""
+    taken into ``Σ⁻¹`` by Sherman-Morrison. A wobble of the body (a robot on an uneven floor: roll
+    and pitch ``δθ`` about the world's x and y, about the floor point ``h`` below it, ``h`` the body's
+    height above the world's z = 0) adds ``σ_w² (u_x u_xᵀ + u_y u_yᵀ)`` with ``u_x = [-h y; x]``,
+    ``u_y = [h x; y]`` (``δp = δθ × h z``), two more Sherman-Morrison updates."""
     if sigma_t <= 0.0 or sigma_phi <= 0.0:
         return False
     d = np.empty(3)
@@ -245,6 +249,16 @@ def calibration_discount(T: np.ndarray, R_cw: np.ndarray, t_cw: np.ndarray, info
         for a in range(6):
             for b in range(6):
                 M[a, b] -= v[a] * v[b] * factor
+    if sigma_w > 0.0:   # Σ⁻¹ less the wobble's two directions, u_x = [-h y; x], u_y = [h x; y]
+        for axis in range(2):
+            u = np.zeros(6)
+            u[1 - axis] = T[2, 3] if axis else -T[2, 3]
+            u[3 + axis] = 1.0
+            v = _matvec(M, u)
+            factor = sigma_w**2 / (1.0 + sigma_w**2 * (u[0] * v[0] + u[1] * v[1] + u[3] * v[3] + u[4] * v[4]))
+            for a in range(6):
+                for b in range(6):
+                    M[a, b] -= v[a] * v[b] * factor
     M += info_add[:6, :6]
     return _inverse(M, K)
 
@@ -327,7 +341,7 @@ def _normal_equations(H: np.ndarray, r: np.ndarray, explained: np.ndarray, delta
 def solve_update(T0: np.ndarray, P: np.ndarray, t_ref: float, v0: np.ndarray, w0: np.ndarray, points: np.ndarray,
                  normalized: np.ndarray, which: np.ndarray, R_cw: np.ndarray, t_cw: np.ndarray, focal: np.ndarray,
                  times: np.ndarray, moving: bool, iterations: int, huber: float, inv_var: np.ndarray, sigma_t: float,
-                 sigma_phi: float, sigma_s: float) -> tuple:  # pragma: no cover
+                 sigma_phi: float, sigma_s: float, sigma_w: float) -> tuple:  # pragma: no cover
     """``PoseFilter._solve`` on packed corner sets: Gauss-Newton on the prior (``P``, the state at
     ``T0``, ``v0``, ``w0``, time ``t_ref``) plus the Huber-weighted corner residuals less what the
     camera's calibration error explains. Returns ``(status, δ (12,), information (12x12), the pose
@@ -349,7 +363,7 @@ def solve_update(T0: np.ndarray, P: np.ndarray, t_ref: float, v0: np.ndarray, w0
         r, H = reprojection(T, points, normalized, which, R_cw, t_cw, focal, times, t_ref, v0 + delta[6:9],
                             w0 + delta[9:12], moving, True)
         WH, info_add, grad = _normal_equations(H, r, explained, delta, huber, inv_var)
-        have_K = calibration_discount(T, R_cw, t_cw, info_add, sigma_t, sigma_phi, sigma_s, K)
+        have_K = calibration_discount(T, R_cw, t_cw, info_add, sigma_t, sigma_phi, sigma_s, sigma_w, K)
         if have_K:
             _discounted(info_add, grad, K)
         info[:] = info_prior
@@ -566,7 +580,7 @@ def _run_kernels() -> None:
     which, R_cw, t_cw = np.zeros(4, dtype=np.int64), np.eye(3)[None].copy(), np.zeros((1, 3))
     for moving in (False, True):
         solve_update(T, P, 0.0, np.zeros(3), np.zeros(3), points, normalized, which, R_cw, t_cw, np.ones(1),
-                     np.full(1, 0.01 if moving else 0.0), moving, 2, 1.5, np.full(4, 4.0), 0.002, 0.002, 0.005)
+                     np.full(1, 0.01 if moving else 0.0), moving, 2, 1.5, np.full(4, 4.0), 0.002, 0.002, 0.005, 0.01)
     for n in (6, 12):   # the joint fit's start pose (multi_view_fit) is a writable array
         joint_fit(T.copy(), n, points, normalized, which, R_cw, t_cw, np.ones(1), np.zeros(1), 0.0, 0.5, 3.0, 1.0,
                   1.0, 2)

@@ -82,7 +82,8 @@ def test_a_corner_behind_the_camera_or_not_undistorted_is_a_large_residual() -> 
 
 
 def test_the_calibration_discount_is_the_covariances_inverse() -> None:
-    """K = (Σ⁻¹ + H_poseᵀ W H_pose)⁻¹ with Σ built from the camera's errors, not the closed form."""
+    """K = (Σ⁻¹ + H_poseᵀ W H_pose)⁻¹ with Σ built from the camera's errors and the body's wobble, not the
+    closed form."""
     rng = np.random.default_rng(5)
     sets = _sets(rng, [0.0])
     T = _pose(rng)
@@ -97,11 +98,14 @@ def test_the_calibration_discount_is_the_covariances_inverse() -> None:
     A = np.vstack([D, -np.eye(3)])
     z = sets[0].T_cam_world[2, :3]   # the optical axis: a scale error moves the body along it by s x its depth
     u = np.concatenate([z * (z @ d), np.zeros(3)])
-    for sigma_s in (0.0, 0.005):
-        assert fk.calibration_discount(T, R_cw, t_cw, info, sigma_t, sigma_phi, sigma_s, K)
-        sigma = sigma_t**2 * np.diag([1.0, 1, 1, 0, 0, 0]) + sigma_phi**2 * A @ A.T + sigma_s**2 * np.outer(u, u)
+    h = T[2, 3]   # the wobble: the body rolled / pitched about the floor point below it, δp = δθ × (h z)
+    wobble = np.array([[0.0, -h, 0, 1, 0, 0], [h, 0, 0, 0, 1, 0]]).T
+    for sigma_s, sigma_w in ((0.0, 0.0), (0.005, 0.0), (0.005, math.radians(0.5)), (0.0, math.radians(0.5))):
+        assert fk.calibration_discount(T, R_cw, t_cw, info, sigma_t, sigma_phi, sigma_s, sigma_w, K)
+        sigma = (sigma_t**2 * np.diag([1.0, 1, 1, 0, 0, 0]) + sigma_phi**2 * A @ A.T + sigma_s**2 * np.outer(u, u)
+                 + sigma_w**2 * wobble @ wobble.T)
         np.testing.assert_allclose(K, np.linalg.inv(np.linalg.inv(sigma) + info), rtol=1e-7, atol=1e-15)
-    assert not fk.calibration_discount(T, R_cw, t_cw, info, 0.0, sigma_phi, 0.0, K)   # the camera taken as exact
+    assert not fk.calibration_discount(T, R_cw, t_cw, info, 0.0, sigma_phi, 0.0, 0.0, K)   # the camera taken as exact
 
 
 def test_the_lu_solves_and_finds_singular_matrices() -> None:
@@ -137,7 +141,7 @@ def test_one_gauss_newton_step_is_the_normal_equations_by_hand() -> None:
     P = np.diag(np.repeat([1e-4, 1e-3, 0.25, 4.0], 3))
     huber, inv_var = 1.5, rng.uniform(0.5, 8.0, sum(len(s.points_cube_m) for s in sets))
     status, delta, info, T_new, r_new, P_new, ok = fk.solve_update(
-        T, P, 0.0, v, w, *fk.packed_sets(sets), True, 1, huber, inv_var, 0.0, 0.0, 0.0)
+        T, P, 0.0, v, w, *fk.packed_sets(sets), True, 1, huber, inv_var, 0.0, 0.0, 0.0, 0.0)
     assert status == fk.OK and ok
     r, H = reprojection_jacobian_px(T, sets, 0.0, v, w)
     weights = np.minimum(huber / np.abs(r), 1.0) * np.repeat(inv_var, 2)
@@ -151,7 +155,7 @@ def test_one_gauss_newton_step_is_the_normal_equations_by_hand() -> None:
     np.testing.assert_allclose(P_new, np.linalg.inv(expected_info), rtol=1e-7, atol=1e-15)
     singular = np.zeros((12, 12))
     assert fk.solve_update(T, singular, 0.0, v, w, *fk.packed_sets(sets), True, 1, huber, inv_var, 0.0,
-                           0.0, 0.0)[0] == fk.SINGULAR_PRIOR
+                           0.0, 0.0, 0.0)[0] == fk.SINGULAR_PRIOR
 
 
 def test_the_largest_eigenvalue_and_the_spread() -> None:
