@@ -75,7 +75,7 @@ class FilterParams:
         0.0, "a robot's wobble on an uneven floor: each camera frame sees the body rolled and pitched about the floor "
         "point below it by this much (1 sigma per axis, independent from frame to frame: a vibration faster than the "
         "motion model follows), degrees; 0: none (docs/tracking.md \"What the term absorbs on the renders\": 0.5 "
-        "gains 3-5 % position on the realistic renders and costs the clean ones 0.001 cm; not the default)")
+        "gains 3-6 % position on the realistic renders and costs the clean ones 0.001 cm; not the default)")
     camera_term_samples_per_s: float = param(
         0.0, "the calibration term above sized per camera (docs/tracking.md \"Each camera's term from the others\"): "
         "this many of a camera's frames a second (e.g. 4) are compared with the pose the other cameras make without "
