@@ -92,14 +92,14 @@ def match_faces(detections: Iterable[Detection], layout: CubeLayout, intrinsics:
     come largest first, each with its ``observation`` (``params``: the estimator's thresholds);
     with one, in detection order (``gate_px``, ``max_view_angle_deg``). A face is matched at
     most once; detections of other bodies and of no face are left out. EstimationError when
-    ``T_world_cam`` is not a finite rigid pose (``camera_checked``: the caller has checked it with
-    :func:`checked_camera_pose` already, as the filter does once per camera pose).
+    ``T_world_cam`` is not a finite rigid pose (``camera_checked``: the caller has found it one
+    already, a float array, as the filter does once per camera pose).
     """
     mine = body_detections(detections, layout)
     if not mine:
         return ()
     if not camera_checked:
-        T_world_cam = checked_camera_pose(T_world_cam)
+        T_world_cam = _checked_camera_pose(T_world_cam)
     if T_world_cube is not None:
         return _match_by_prediction(mine, layout, intrinsics, T_world_cam, np.asarray(T_world_cube, dtype=float),
                                     gate_px, max_view_angle_deg)
@@ -125,12 +125,11 @@ def identify_faces(marker_poses: Iterable[MarkerPose], layout: CubeLayout, T_wor
     ``upright_tolerance_deg`` wins. Result: one FaceObservation per identified face, largest
     area first, whose ``marker_pose.T_cam_marker`` is the chosen solution.
     """
-    return tuple(obs for _k, obs in _identify(marker_poses, layout, checked_camera_pose(T_world_cam),
+    return tuple(obs for _k, obs in _identify(marker_poses, layout, _checked_camera_pose(T_world_cam),
                                               params or EstimatorParams()))
 
 
-def checked_camera_pose(T_world_cam: np.ndarray) -> np.ndarray:
-    """``T_world_cam`` as a float array; EstimationError when it is not a finite rigid 4x4 pose."""
+def _checked_camera_pose(T_world_cam: np.ndarray) -> np.ndarray:
     T_world_cam = np.asarray(T_world_cam, dtype=float)
     if not is_finite_pose(T_world_cam):
         raise EstimationError("T_world_cam must be a finite rigid 4x4 pose")

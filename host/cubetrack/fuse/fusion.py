@@ -41,11 +41,11 @@ import numpy as np
 
 from cubetrack.core.cameras import CameraIntrinsics
 from cubetrack.core.errors import ParamsError
-from cubetrack.core.geometry import invert_T, mean_rotation, quat_xyzw_from_R
+from cubetrack.core.geometry import invert_T, is_finite_pose, mean_rotation, quat_xyzw_from_R
 from cubetrack.core.layout import CubeLayout
 from cubetrack.core.params import check, check_at_least, check_non_negative, check_positive, param
 from cubetrack.core.records import CameraEstimate, CubeSighting, TrackedPose
-from cubetrack.estimate.match import FaceMatch, checked_camera_pose, match_faces
+from cubetrack.estimate.match import FaceMatch, match_faces
 from cubetrack.estimate.params import EstimatorParams
 from cubetrack.estimate.pose import estimate_cube
 from cubetrack.estimate.reprojection import CornerSet, corner_set, noise_scales, normalize_px
@@ -306,7 +306,7 @@ class FilterFusion:
         self._gains = {r: Gains() for r in layouts}  # robot -> the fixed lag's smoother gains, from pass to pass
         self.stats: Counter[str] = Counter()
         self._trails: dict[str, list[TrailStep]] | None = None  # robot -> steps no late sighting can reach
-        self._cameras: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}  # see _camera_pose
+        self._cameras: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray | None]] = {}  # see _camera_pose
         if filter_params.smooth_lag_s > params.history_s:
             raise ParamsError(f"[filter] smooth_lag_s ({filter_params.smooth_lag_s}) must not exceed [fusion] "
                               f"history_s ({params.history_s}): the steps it waits for are kept that long")
@@ -515,7 +515,8 @@ class FilterFusion:
                                           self._reach_m[sighting.robot])
         T_world_cam, T_cam_world = self._camera_pose(sighting.camera, T_world_cam)
         matches = match_faces(sighting.detections, layout, intrinsics, T_world_cam, T_world_cube, gate_px=gate_px,
-                              max_view_angle_deg=self.params.max_view_angle_deg, camera_checked=True)
+                              max_view_angle_deg=self.params.max_view_angle_deg,
+                              camera_checked=T_cam_world is not None)
         if made is None or offset is not None:   # a correction moves the camera and the stamp: sets of its own
             return sighting_corner_sets(matches, intrinsics, T_world_cam, sighting.camera, t, T_cam_world)
         faces = tuple((m.marker, id(m.detection)) for m in matches)   # the detections are the sighting's own
@@ -525,14 +526,15 @@ class FilterFusion:
                                                       T_cam_world)
         return list(sets)
 
-    def _camera_pose(self, camera: str, T_world_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """``T_world_cam`` checked (:func:`cubetrack.estimate.match.checked_camera_pose`) and its
-        inverse, made once per array: a camera's sightings share the tracker's array of its pose (a
-        camera that moves gets a new array, a correction a new one per sighting; none is written in place)."""
+    def _camera_pose(self, camera: str, T_world_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """``T_world_cam`` as a float array and its inverse (None unless it is a finite rigid pose:
+        :func:`cubetrack.estimate.match.match_faces` then says what is wrong), made once per array: a
+        camera's sightings share the tracker's array of its pose (a camera that moves gets a new
+        array, a correction a new one per sighting; none is written in place)."""
         held = self._cameras.get(camera)
         if held is None or held[0] is not T_world_cam:
-            checked = checked_camera_pose(T_world_cam)
-            held = self._cameras[camera] = (T_world_cam, checked, invert_T(checked))
+            pose = np.asarray(T_world_cam, dtype=float)
+            held = self._cameras[camera] = (T_world_cam, pose, invert_T(pose) if is_finite_pose(pose) else None)
         return held[1], held[2]
 
     def _apply(self, state: RobotState, history: list[HistoryStep], index: int, now_s: float,
