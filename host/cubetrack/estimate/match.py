@@ -84,7 +84,7 @@ def body_detections(detections: Iterable[Detection], layout: CubeLayout) -> tupl
 def match_faces(detections: Iterable[Detection], layout: CubeLayout, intrinsics: CameraIntrinsics,
                 T_world_cam: np.ndarray, T_world_cube: np.ndarray | None = None, *,
                 params: EstimatorParams | None = None, gate_px: float = 12.0,
-                max_view_angle_deg: float = 80.0) -> tuple[FaceMatch, ...]:
+                max_view_angle_deg: float = 80.0, camera_checked: bool = False) -> tuple[FaceMatch, ...]:
     """Match one camera frame's detections to the faces of the body ``layout`` describes.
 
     ``T_world_cam``: the camera's pose; ``T_world_cube``: the predicted body pose, or None (see
@@ -92,12 +92,14 @@ def match_faces(detections: Iterable[Detection], layout: CubeLayout, intrinsics:
     come largest first, each with its ``observation`` (``params``: the estimator's thresholds);
     with one, in detection order (``gate_px``, ``max_view_angle_deg``). A face is matched at
     most once; detections of other bodies and of no face are left out. EstimationError when
-    ``T_world_cam`` is not a finite rigid pose.
+    ``T_world_cam`` is not a finite rigid pose (``camera_checked``: the caller has found it one
+    already, a float array, as the filter does once per camera pose).
     """
     mine = body_detections(detections, layout)
     if not mine:
         return ()
-    T_world_cam = _checked_camera_pose(T_world_cam)
+    if not camera_checked:
+        T_world_cam = _checked_camera_pose(T_world_cam)
     if T_world_cube is not None:
         return _match_by_prediction(mine, layout, intrinsics, T_world_cam, np.asarray(T_world_cube, dtype=float),
                                     gate_px, max_view_angle_deg)

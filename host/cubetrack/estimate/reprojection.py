@@ -60,14 +60,15 @@ def normalize_px(corners_px: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.
 
 
 def corner_set(matches: Sequence[FaceMatch], intrinsics: CameraIntrinsics, T_world_cam: np.ndarray,
-               camera: str, time_s: float) -> CornerSet | None:
+               camera: str, time_s: float, T_cam_world: np.ndarray | None = None) -> CornerSet | None:
     """The corner set of one camera frame's matched faces (in the order of ``matches``), or
-    None when nothing matched."""
+    None when nothing matched. ``T_cam_world``: ``T_world_cam``'s inverse if the caller holds it."""
     if not matches:
         return None
     K, dist = intrinsics.K, intrinsics.dist
     corners_px = np.concatenate([m.detection.corners_px for m in matches])
-    return CornerSet(camera, time_s, invert_T(T_world_cam), float((K[0, 0] + K[1, 1]) / 2.0),
+    return CornerSet(camera, time_s, invert_T(T_world_cam) if T_cam_world is None else T_cam_world,
+                     float((K[0, 0] + K[1, 1]) / 2.0),
                      np.concatenate([m.points_body_m for m in matches]), normalize_px(corners_px, K, dist),
                      tuple(m.face for m in matches), noise_scales(matches, corners_px))
 

@@ -290,9 +290,9 @@ class PoseFilter:
         sets = [s for s in sets if s is not None and len(s.faces)]
         while sets:
             delta, P, T, r = self._solve(sets, term_scale)
-            face_rms = np.sqrt((r * r).reshape(-1, 8).sum(axis=1) / 8.0)  # RMS of 4 corners x (x, y) per face
-            if len(face_rms) == 1:
+            if len(sets) == 1 and len(sets[0].faces) == 1:   # one face: none to leave out
                 break
+            face_rms = np.sqrt((r * r).reshape(-1, 8).sum(axis=1) / 8.0)  # RMS of 4 corners x (x, y) per face
             worst = int(face_rms.argmax())
             if face_rms[worst] <= self.params.face_gate_px:
                 break

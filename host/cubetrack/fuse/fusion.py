@@ -41,7 +41,7 @@ import numpy as np
 
 from cubetrack.core.cameras import CameraIntrinsics
 from cubetrack.core.errors import ParamsError
-from cubetrack.core.geometry import invert_T, mean_rotation, quat_xyzw_from_R
+from cubetrack.core.geometry import invert_T, is_finite_pose, mean_rotation, quat_xyzw_from_R
 from cubetrack.core.layout import CubeLayout
 from cubetrack.core.params import check, check_at_least, check_non_negative, check_positive, param
 from cubetrack.core.records import CameraEstimate, CubeSighting, TrackedPose
@@ -216,21 +216,23 @@ def pose_record(sighting: CubeSighting, f: PoseFilter, now_s: float, cameras: tu
 
 
 def sighting_corner_sets(matches: Sequence[FaceMatch], intrinsics: CameraIntrinsics, T_world_cam: np.ndarray,
-                         camera: str, time_s: float) -> list[CornerSet]:
+                         camera: str, time_s: float, T_cam_world: np.ndarray | None = None) -> list[CornerSet]:
     """A camera frame's matched faces as corner sets: one, taken at its capture time ``time_s``;
     under a rolling shutter (the camera's ``readout_s``) one per face, taken when the rows of its
-    corners were (their mean row's time); none when nothing matched."""
+    corners were (their mean row's time); none when nothing matched. ``T_cam_world``:
+    ``T_world_cam``'s inverse if the caller holds it."""
     if not matches:
         return []
+    T_cam_world = invert_T(T_world_cam) if T_cam_world is None else T_cam_world
     if intrinsics.readout_s <= 0:
-        sets = [corner_set(matches, intrinsics, T_world_cam, camera, time_s)]
+        sets = [corner_set(matches, intrinsics, T_world_cam, camera, time_s, T_cam_world)]
         return [s for s in sets if s is not None]  # (none is: it has matches)
     # the faces' sets share one undistortion and one camera pose (a set per face of corner_set's making)
     row_s, middle = intrinsics.readout_s / intrinsics.height, (intrinsics.height - 1) / 2.0
     corners_px = np.concatenate([m.detection.corners_px for m in matches])
     normalized = normalize_px(corners_px, intrinsics.K, intrinsics.dist)
     rows = corners_px[:, 1].reshape(-1, 4).sum(axis=1).tolist()
-    T_cam_world, focal_px = invert_T(T_world_cam), float((intrinsics.K[0, 0] + intrinsics.K[1, 1]) / 2.0)
+    focal_px = float((intrinsics.K[0, 0] + intrinsics.K[1, 1]) / 2.0)
     scales = noise_scales(matches, corners_px)
     return [CornerSet(camera, time_s + (rows[i] / 4.0 - middle) * row_s, T_cam_world, focal_px, m.points_body_m,
                       normalized[4 * i: 4 * i + 4], (m.face,), scales[4 * i: 4 * i + 4]) for i, m in enumerate(matches)]
@@ -260,6 +262,9 @@ class HistoryStep:
     # the corner sets its update took, kept for the calibration term's samples only (none: not applied, or the
     # term is off: a step holds no corner set it will not read)
     corners: list[CornerSet] = field(default_factory=list)
+    # its corner sets by the faces its detections matched (FilterFusion._corners): a re-application that matches
+    # them alike takes them from here instead of undistorting the same corners again
+    sets: dict[tuple[tuple[int, int], ...], list[CornerSet]] = field(default_factory=dict)
 
 
 class FilterFusion:
@@ -301,6 +306,7 @@ class FilterFusion:
         self._gains = {r: Gains() for r in layouts}  # robot -> the fixed lag's smoother gains, from pass to pass
         self.stats: Counter[str] = Counter()
         self._trails: dict[str, list[TrailStep]] | None = None  # robot -> steps no late sighting can reach
+        self._cameras: dict[str, tuple[np.ndarray, np.ndarray, np.ndarray | None]] = {}  # see _camera_pose
         if filter_params.smooth_lag_s > params.history_s:
             raise ParamsError(f"[filter] smooth_lag_s ({filter_params.smooth_lag_s}) must not exceed [fusion] "
                               f"history_s ({params.history_s}): the steps it waits for are kept that long")
@@ -486,7 +492,8 @@ class FilterFusion:
             del history[:n], keys[:n]
 
     def _corners(self, sighting: CubeSighting, T_world_cube: np.ndarray, corrections: CameraCorrections | None = None,
-                 covariance: np.ndarray | None = None) -> list[CornerSet]:
+                 covariance: np.ndarray | None = None,
+                 made: dict[tuple[tuple[int, int], ...], list[CornerSet]] | None = None) -> list[CornerSet]:
         """The sighting's corners matched to faces where ``T_world_cube`` projects them, seen
         from its camera as ``corrections`` put it (its extrinsics corrected, its stamp moved by its
         time offset: :mod:`cubetrack.fuse.camera_corrections`): one set, taken at the capture time;
@@ -494,7 +501,9 @@ class FilterFusion:
         per face, taken when the rows of its corners were (their mean row's time). ``covariance``
         (6x6 over ``[δp, δθ]``): how uncertain that pose is, which widens the association gate
         (:func:`prediction_gate_px`) of a body whose ids are all distinct (where an id repeats, the
-        gate is what tells its faces apart: it stays ``association_gate_px``)."""
+        gate is what tells its faces apart: it stays ``association_gate_px``). ``made``: the sighting's
+        corner sets made before (:attr:`HistoryStep.sets`), by the faces matched, which a camera without a
+        correction applied takes again when its detections match the same faces."""
         intrinsics, t, T_world_cam = sighting.intrinsics, sighting.capture_time_s, sighting.T_world_cam
         offset = None if corrections is None else corrections.applied(sighting.camera)
         if offset is not None:
@@ -504,9 +513,29 @@ class FilterFusion:
         if covariance is not None and not layout.has_repeated_ids:  # a repeated id's face is told by the gate
             gate_px += prediction_gate_px(covariance, T_world_cube, T_world_cam, intrinsics,
                                           self._reach_m[sighting.robot])
-        matches = match_faces(sighting.detections, layout, intrinsics, T_world_cam, T_world_cube,
-                              gate_px=gate_px, max_view_angle_deg=self.params.max_view_angle_deg)
-        return sighting_corner_sets(matches, intrinsics, T_world_cam, sighting.camera, t)
+        T_world_cam, T_cam_world = self._camera_pose(sighting.camera, T_world_cam)
+        matches = match_faces(sighting.detections, layout, intrinsics, T_world_cam, T_world_cube, gate_px=gate_px,
+                              max_view_angle_deg=self.params.max_view_angle_deg,
+                              camera_checked=T_cam_world is not None)
+        if made is None or offset is not None:   # a correction moves the camera and the stamp: sets of its own
+            return sighting_corner_sets(matches, intrinsics, T_world_cam, sighting.camera, t, T_cam_world)
+        faces = tuple((m.marker, id(m.detection)) for m in matches)   # the detections are the sighting's own
+        sets = made.get(faces)
+        if sets is None:
+            sets = made[faces] = sighting_corner_sets(matches, intrinsics, T_world_cam, sighting.camera, t,
+                                                      T_cam_world)
+        return list(sets)
+
+    def _camera_pose(self, camera: str, T_world_cam: np.ndarray) -> tuple[np.ndarray, np.ndarray | None]:
+        """``T_world_cam`` as a float array and its inverse (None unless it is a finite rigid pose:
+        :func:`cubetrack.estimate.match.match_faces` then says what is wrong), made once per array: a
+        camera's sightings share the tracker's array of its pose (a camera that moves gets a new
+        array, a correction a new one per sighting; none is written in place)."""
+        held = self._cameras.get(camera)
+        if held is None or held[0] is not T_world_cam:
+            pose = np.asarray(T_world_cam, dtype=float)
+            held = self._cameras[camera] = (T_world_cam, pose, invert_T(pose) if is_finite_pose(pose) else None)
+        return held[1], held[2]
 
     def _apply(self, state: RobotState, history: list[HistoryStep], index: int, now_s: float,
                record: bool) -> tuple[RobotState, TrackedPose | None, str]:
@@ -523,7 +552,7 @@ class FilterFusion:
             return self._start(state, sighting, [s.sighting for s in window], now_s, record)
         f = state.filter.copy()
         f.predict(t)
-        corners = self._corners(sighting, f.T_world_cube, state.corrections, f.pose_covariance)
+        corners = self._corners(sighting, f.T_world_cube, state.corrections, f.pose_covariance, history[index].sets)
         prior, outcome = f.copy(), "accepted sighting"
         if not (corners and f.update(corners, state.corrections.term_scale(sighting.camera)).accepted):
             again = self._reacquire(sighting, f, state.corrections)

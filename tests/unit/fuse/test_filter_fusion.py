@@ -331,3 +331,28 @@ def test_a_track_taken_over_from_another_fusions_last_state_goes_on_without_a_re
     assert max(np.linalg.norm(p.position_m - q.position_m) for p, q in zip(poses, going_on, strict=True)) < 1e-3
     errors = [np.linalg.norm(p.position_m - truth(p.time_s)[:3, 3]) for p in poses]
     assert np.median(errors) < 0.002
+
+
+def test_a_re_applied_sighting_takes_its_corner_sets_again_and_a_moved_camera_gets_its_own(monkeypatch):
+    """Re-applying a sighting after a late one matches its faces again but does not make their corner
+    sets again when they match alike (the same poses as making them: the late-sightings test); a
+    camera whose pose is a new array (moved) gets sets seen from that pose."""
+    import cubetrack.fuse.fusion as fusion_module
+
+    made = []
+    real = fusion_module.sighting_corner_sets
+    monkeypatch.setattr(fusion_module, "sighting_corner_sets", lambda *a: made.append(a[3]) or real(*a))
+    rng = np.random.default_rng(5)
+    items = in_capture_order(sightings(2.5, rng))
+    fusion = FilterFusion({"bot": LAYOUT})
+    run(fusion, items[:30] + items[36:37])
+    for s in items[30:36]:
+        fusion.add(s, 2.0)
+    del made[:]
+    fusion.add(items[37], 2.0)
+    assert fusion.stats["replayed sighting"] == 1 and len(made) == 7  # the six late ones and the newest: once each
+    moved = items[38].T_world_cam.copy()
+    moved[0, 3] += 0.01
+    fusion.add(dataclasses.replace(items[38], T_world_cam=moved), 2.1)
+    sets = [c for step in fusion.history["bot"][-1:] for found in step.sets.values() for c in found]
+    assert sets and all(np.allclose(c.T_cam_world, np.linalg.inv(moved), atol=1e-12) for c in sets)
