@@ -55,6 +55,7 @@ log = logging.getLogger(__name__)
 JOINT_STOP_M = 2e-4  # the joint fit stops once a round moves the camera by less than this, metres
 JOINT_STOP_DEG = 0.005  # ... and turns it by less than this, degrees
 JOINT_MAX_RATIO = 0.8  # the joint fit's extrapolation assumes at most this ratio of one round's step to the last's
+JOINT_SAME_DIRECTION = 0.9  # ... and only of steps this aligned (cosine of the angle between them)
 RETRY_GROWTH = 1.25  # a refused re-calibration is tried again once the camera has this many times the corners
 
 
@@ -90,6 +91,21 @@ def joint_sample(sample: WatchSample, T_world_cam: np.ndarray, corner_noise_px: 
     return dataclasses.replace(sample, points_world_m=points, T_world_cube=solved.T_world_cube)
 
 
+def extrapolation_ratio(step: np.ndarray, last_step: np.ndarray) -> float:
+    """How much of the way a round of :func:`joint_fit` takes the camera, from its ``step`` and
+    the round's before (pose increments ``[δp (m), δθ (rad)]``): when the cube poses hold the camera
+    back, each round goes a steady fraction of what is left, along the same direction, and the
+    rest is ``step * ratio / (1 - ratio)`` (Aitken's extrapolation; at most ``JOINT_MAX_RATIO``).
+    0 (the step as it is) unless the step is shorter than the last and within
+    ``JOINT_SAME_DIRECTION`` of its direction: a step that grows or turns away is no such
+    contraction, and extrapolating it ran away (two of five, synthetic: 5x a growing step each
+    round, the camera 4.8 m off after 13 rounds)."""
+    size, last = float(np.linalg.norm(step)), float(np.linalg.norm(last_step))
+    if not 0.0 < size < last or float(step @ last_step) < JOINT_SAME_DIRECTION * size * last:
+        return 0.0
+    return min(size / last, JOINT_MAX_RATIO)
+
+
 def joint_fit(samples: Sequence[WatchSample], T_world_cam_init: np.ndarray, params: WatchParams
               ) -> tuple[CameraFit | None, list[WatchSample]]:
     """The camera's pose fitted jointly with the cube's pose at every sample: alternately the
@@ -100,7 +116,7 @@ def joint_fit(samples: Sequence[WatchSample], T_world_cam_init: np.ndarray, para
     samples = list(samples)
     fit = refit_camera(*stacked(samples), T_world_cam_init, params.corner_noise_px)
     T_next = None if fit is None else fit.T_world_cam
-    last_step = math.inf
+    last_step = np.zeros(6)
     for _ in range(params.rejoin_rounds):
         if fit is None or T_next is None:
             break
@@ -109,13 +125,9 @@ def joint_fit(samples: Sequence[WatchSample], T_world_cam_init: np.ndarray, para
         if fit is None or all(a < b for a, b in zip(fit.offset_from(T_next), (JOINT_STOP_M, JOINT_STOP_DEG),
                                                     strict=True)):
             break
-        # a round takes the camera a steady fraction of the way when the cube poses hold it back:
-        # go as far as the rounds' ratio says is left (Aitken's extrapolation; 1x when they do not)
-        step = pose_offsets(fit.T_world_cam[None], T_next[None])
-        size = float(np.linalg.norm(step))
-        ratio = min(size / last_step, JOINT_MAX_RATIO)
-        last_step = size
-        T_next = apply_increments(T_next[None], step / (1.0 - ratio))[0]
+        step = pose_offsets(fit.T_world_cam[None], T_next[None])[0]
+        T_next = apply_increments(T_next[None], (step / (1.0 - extrapolation_ratio(step, last_step)))[None])[0]
+        last_step = step
     return fit, samples
 
 

@@ -20,7 +20,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 from test_joint_and_filter import CAMS, INTR, LAYOUT, detections, look_at
 
-from cubetrack.calib.recalibrate import WatchedFusion
+from cubetrack.calib.recalibrate import JOINT_MAX_RATIO, WatchedFusion, extrapolation_ratio
 from cubetrack.core.geometry import make_T, rotation_angle
 from cubetrack.core.records import CameraWatchState, CubeSighting
 from cubetrack.estimate.pose import estimate_cube
@@ -341,6 +341,19 @@ def test_a_second_camera_declared_moved_is_taken_out_of_the_first_ones_gathered_
     assert kept == [(t, ("cam1", "cam3")) for t in times if t % 1.0 in (0.0, 0.25)]
     assert not watch.samples["cam1"] and not watch.samples["cam3"]
     assert [s.time_s for s in watch.samples["cam4"]] == [t for t in times if t >= 31.0]
+
+
+def test_the_joint_fits_extrapolation_takes_only_a_shrinking_step_along_the_last():
+    """The re-calibration's rounds are extrapolated (Aitken) only where they contract: a step shorter
+    than the last and along it. A growing step extrapolated 5x each round ran away (two of five,
+    synthetic: cam2 4.8 m / 148 deg off after 13 rounds, never rejoined, and cam1 declared moved)."""
+    last = np.array([2e-3, -1e-3, 0.0, 1e-4, 0.0, 2e-4])
+    assert extrapolation_ratio(0.5 * last, last) == pytest.approx(0.5)
+    assert extrapolation_ratio(0.95 * last, last) == JOINT_MAX_RATIO
+    assert extrapolation_ratio(1.5 * last, last) == 0.0  # growing: the plain step
+    turned = 0.5 * np.array([1e-3, 2e-3, 0.0, 0.0, 1e-4, 0.0])  # shorter, but at right angles
+    assert abs(turned @ last) < 1e-12 and extrapolation_ratio(turned, last) == 0.0
+    assert extrapolation_ratio(last, np.zeros(6)) == 0.0  # the first round
 
 
 @pytest.mark.parametrize(("changes", "message"), [
