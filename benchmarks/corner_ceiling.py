@@ -225,20 +225,24 @@ def template_corners(rec: Path, sightings: list) -> dict:
     """Per sighting, per detection: (template-fitted corners or None on failure, thread CPU s)."""
     from cubetrack.calib.marker_fit import template_fitted_corners
     from cubetrack.detect.detector import decode_gray
+    from cubetrack.detect.template_fit import LensMap
     from cubetrack.io.recording import Recording
 
     recording = Recording.open(rec)
     wanted = {(s.camera, s.seq) for s, _ in sightings}
     jpegs = {(c, f.seq): f.jpeg for c in recording.camera_names for f in recording.frames(c) if (c, f.seq) in wanted}
     layouts = {}
+    lenses = {}  # camera -> its lens map (built once)
     out = {}
     for k, (s, _) in enumerate(sightings):
         gray = decode_gray(jpegs[(s.camera, s.seq)])
+        if s.camera not in lenses:
+            lenses[s.camera] = LensMap(s.intrinsics)
         row = []
         for d in s.detections:
             dictionary = d.dictionary or layouts.setdefault(s.robot, _dictionary(rec))
             c0 = time.thread_time()
-            fitted = template_fitted_corners(gray, d.corners_px, dictionary, d.marker_id, s.intrinsics)
+            fitted = template_fitted_corners(gray, d.corners_px, dictionary, d.marker_id, lenses[s.camera])
             cpu = time.thread_time() - c0
             row.append((fitted if np.isfinite(fitted).all() else None, cpu))
         out[k] = row

@@ -98,6 +98,7 @@ from cubetrack.core.params import check, check_non_negative, check_positive, par
 from cubetrack.core.progress import Progress
 from cubetrack.core.records import Detection, Frame
 from cubetrack.detect.detector import Detector, DetectorParams, decode_gray
+from cubetrack.detect.template_fit import LensMap
 from cubetrack.estimate.match import body_detections, match_faces
 from cubetrack.estimate.reprojection import moved_pose
 
@@ -195,8 +196,8 @@ class BodyCalibrationParams:
                                                      "sigma), rad/s^2 (the robot's wobble reaches tens)")
     edge_corners: bool = param(True, "re-measure the body's marker corners by the calibration's edge fit (as the world "
                                      "marker's) and then by fitting each marker's whole image "
-                                     "(cubetrack.calib.marker_fit; about 70 ms per marker seen, docs/calibration.md "
-                                     "has the measured errors)")
+                                     "(cubetrack.calib.marker_fit, compiled: a few ms per marker seen; "
+                                     "docs/calibration.md has the measured errors)")
 
     def __post_init__(self) -> None:
         check_positive(self, "position_sigma_m", "rotation_sigma_deg", "size_sigma", "camera_sigma_m",
@@ -400,6 +401,7 @@ def cube_frames(frames: Mapping[str, Iterable[Frame]], layouts: Mapping[str, Cub
     out: list[CubeFrame] = []
     done = 0
     for camera, camera_frames in frames.items():
+        lens_map: LensMap | None = None  # the template fit's, built at the camera's first cube sighting
         seen: list[tuple[int, float, tuple[tuple[str, tuple[Detection, ...]], ...]]] = []
         device_s, host_s = [], []
         for frame in camera_frames:
@@ -418,7 +420,8 @@ def cube_frames(frames: Mapping[str, Iterable[Frame]], layouts: Mapping[str, Cub
             for robot, lay in layouts.items():
                 mine = body_detections(detections, lay)
                 if mine and lenses is not None and camera in lenses:
-                    mine = _edge_fitted(gray, mine, lenses[camera], edge_min_contrast)
+                    lens_map = lens_map or LensMap(lenses[camera])
+                    mine = _edge_fitted(gray, mine, lenses[camera], lens_map, edge_min_contrast)
                 if mine:
                     robots.append((robot, mine))
             if robots:
@@ -433,13 +436,13 @@ def cube_frames(frames: Mapping[str, Iterable[Frame]], layouts: Mapping[str, Cub
     return out
 
 
-def _edge_fitted(gray: np.ndarray, detections: Sequence[Detection], lens: CameraIntrinsics,
+def _edge_fitted(gray: np.ndarray, detections: Sequence[Detection], lens: CameraIntrinsics, lens_map: LensMap,
                  min_contrast: float) -> tuple[Detection, ...]:
-    """Detections with their corners re-measured by the calibration's edge fit and then the
-    template fit (those either cannot fit left out); one marker at a time (the dense sampling of
-    several would exceed cv2.remap's row length)."""
+    """Detections with their corners re-measured by the calibration's edge fit (the camera's
+    ``lens``) and then the template fit (through ``lens_map``, the same lens as a map); those
+    either cannot fit are left out."""
     corners = [edge_fitted_corners(gray, d.corners_px, d.dictionary, lens, min_contrast) for d in detections]
-    corners = [c if np.isnan(c).any() else template_fitted_corners(gray, c, d.dictionary, d.marker_id, lens)
+    corners = [c if np.isnan(c).any() else template_fitted_corners(gray, c, d.dictionary, d.marker_id, lens_map)
                for d, c in zip(detections, corners, strict=True)]
     return tuple(Detection(d.marker_id, c, shoelace_area(c), d.dictionary)
                  for d, c in zip(detections, corners, strict=True) if not np.isnan(c).any())

@@ -21,8 +21,8 @@ mapping (:func:`distort_px`, :class:`LensMap`) and the pixels a fit compares
 on the 8 corner coordinates and the blur with the brightness model solved jointly, the Jacobian
 at pixel level (the template's gradient images resampled like the prediction, times the
 homography mapping's analytic derivative at the pixel centre), the lens undistortion read from
-a per-camera map. The body calibration's fit (:func:`cubetrack.calib.marker_fit.template_fitted_corners`,
-finite differences through ``scipy.optimize.least_squares``, 5-6x the CPU) uses the same core.
+a per-camera map. The calibration's fit (:func:`cubetrack.calib.marker_fit.template_fitted_corners`)
+is :func:`fast_template_corners` with more samples per pixel and more iterations.
 """
 
 from __future__ import annotations
@@ -287,14 +287,6 @@ def _compared_pixels(centres_px: np.ndarray, H0_inv: np.ndarray, modules: int, m
     return fitted, gradient
 
 
-def photometric_columns(predicted: np.ndarray, gradient: np.ndarray) -> np.ndarray:
-    """The brightness model's design matrix (n, 5) from the predicted reflectance and beyond-margin
-    images (n, 2) of the compared pixels: offset, the marker's brightness and its gradient across
-    the region, the brightness beyond the margin."""
-    P = predicted[:, 0]
-    return np.column_stack([np.ones_like(P), P, P * gradient[:, 0], P * gradient[:, 1], predicted[:, 1]])
-
-
 @dataclass(frozen=True, slots=True)
 class TemplateFitSettings:
     """What every template fit of a marker is told.
@@ -475,9 +467,11 @@ def _filtered_across(image: np.ndarray, kernel: np.ndarray) -> np.ndarray:
 @numba.njit(cache=True, nogil=True)
 def _brightness_system(image: np.ndarray, index: np.ndarray, gradient: np.ndarray,
                        pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
-    """The brightness model's normal equations (:func:`photometric_columns` against the compared
-    pixels' values) at the predicted ``image`` (ny, nx, 2), and whether any compared pixel sees
-    the beyond-margin image (``_BEYOND_MIN``; if none, that column is left out: zero)."""
+    """The brightness model's normal equations (its columns per compared pixel: offset, the
+    marker's brightness and its gradient across the region, the brightness beyond the margin;
+    against the compared pixels' values) at the predicted ``image`` (ny, nx, 2), and whether any
+    compared pixel sees the beyond-margin image (``_BEYOND_MIN``; if none, that column is left
+    out: zero)."""
     flat = image.reshape(-1, 2)
     seen = 0.0
     for i in range(index.shape[0]):
