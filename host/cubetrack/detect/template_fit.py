@@ -28,7 +28,6 @@ is :func:`fast_template_corners` with more samples per pixel and more iterations
 from __future__ import annotations
 
 import functools
-from collections.abc import Callable
 from dataclasses import dataclass
 
 import cv2
@@ -222,24 +221,20 @@ class MarkerRegion:
     H0: np.ndarray
 
 
-def marker_region(gray: np.ndarray, corners_px: np.ndarray, modules: int, K: np.ndarray, dist: np.ndarray,
-                  undistort: Callable[[np.ndarray], np.ndarray], supersample: int,
-                  margin_modules: float, distort: Callable[[np.ndarray], np.ndarray] | None = None
-                  ) -> MarkerRegion | None:
+def marker_region(gray: np.ndarray, corners_px: np.ndarray, modules: int, lens: LensMap, supersample: int,
+                  margin_modules: float) -> MarkerRegion | None:
     """The region a template fit of the marker near ``corners_px`` (distorted, TL TR BR BL)
-    compares (see :class:`MarkerRegion`), with lens ``K``, ``dist`` and ``undistort`` (distorted
-    -> ideal pinhole pixels of ``K``, e.g. :func:`cubetrack.core.geometry.undistort_points` or
-    :meth:`LensMap.undistort`) and ``distort`` (the way back: :func:`distort_px` unless given, e.g.
-    :meth:`LensMap.distort`); None when the corners do not undistort or the marker with its
-    margin and the blur's reach is not wholly inside the image."""
-    start = undistort(_corner_array(corners_px))
+    compares (see :class:`MarkerRegion`), through the camera's ``lens`` (distorted -> ideal pinhole
+    pixels and back); None when the corners do not undistort or the marker with its margin and the
+    blur's reach is not wholly inside the image."""
+    start = lens.undistort(_corner_array(corners_px))
     if not np.isfinite(start).all():
         return None
     m = margin_modules
     ring = np.array([[-m, -m], [modules + m, -m], [modules + m, modules + m], [-m, modules + m]])
     H0 = square_homography(start, modules)
     ring = cv2.perspectiveTransform(ring.reshape(-1, 1, 2), H0).reshape(-1, 2)
-    ring_px = distort_px(ring, K, dist) if distort is None else distort(ring)
+    ring_px = lens.distort(ring)
     if not np.isfinite(ring_px).all():
         return None
     x0, y0 = np.floor(ring_px.min(axis=0)).astype(int) - REGION_PAD_PX
@@ -247,8 +242,8 @@ def marker_region(gray: np.ndarray, corners_px: np.ndarray, modules: int, K: np.
     if x0 < 0 or y0 < 0 or x1 > gray.shape[1] or y1 > gray.shape[0]:
         return None
     ny, nx = int(y1 - y0), int(x1 - x0)
-    samples = undistort(_pixel_grid(int(x0), int(y0), nx, ny, supersample))
-    centres = undistort(_pixel_grid(int(x0), int(y0), nx, ny, 1).reshape(-1, 2))
+    samples = lens.undistort(_pixel_grid(int(x0), int(y0), nx, ny, supersample))
+    centres = lens.undistort(_pixel_grid(int(x0), int(y0), nx, ny, 1).reshape(-1, 2))
     fitted, gradient = _compared_pixels(centres, np.linalg.inv(H0), modules, m, nx, ny)
     return MarkerRegion(start, modules, (int(x0), int(y0)), (ny, nx), samples, centres[fitted], fitted,
                         gray[y0:y1, x0:x1].astype(np.float64).ravel()[fitted], gradient, H0)
@@ -379,8 +374,7 @@ class _FastRegion:
 
 def _fast_region(gray: np.ndarray, corners_px: np.ndarray, modules: int, lens: LensMap,
                  settings: TemplateFitSettings) -> _FastRegion | None:
-    region = marker_region(gray, corners_px, modules, lens.K, lens.dist, lens.undistort, settings.supersample,
-                           settings.margin_modules, lens.distort)
+    region = marker_region(gray, corners_px, modules, lens, settings.supersample, settings.margin_modules)
     if region is None:
         return None
     return _FastRegion(region, region.samples_px.reshape(-1, 2), region.centres_px, _lens_jacobian(lens, corners_px),
