@@ -130,9 +130,12 @@ class Browser:
 
     def screenshot(self, path: Path) -> None:
         """The page as it is once every streaming camera's tile shows its frame (the shots in
-        docs/ show the tiles as a user sees them a moment after opening the page)."""
+        docs/ show the tiles as a user sees them a moment after opening the page). Not "every
+        image complete": a tile asks for its next frame as soon as one has loaded, so on a busy
+        machine some tile is always loading its next one, while showing the last. A hang guard,
+        not a speed check: at a load of 26 on two cores a tile took over 15 s."""
         self.wait_for("[...document.querySelectorAll('.tile[data-status=ok] .frame img')]"
-                      ".every(i => !i.hidden && i.complete && i.naturalWidth > 0)", 15)
+                      ".every(i => !i.hidden && i.naturalWidth > 0)", 60)
         data = self.call("Page.captureScreenshot", format="png", captureBeyondViewport=True)["data"]
         path.write_bytes(base64.b64decode(data))
         if os.environ.get("CUBETRACK_SCREENSHOTS"):

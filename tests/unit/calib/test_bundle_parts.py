@@ -5,7 +5,14 @@ import re
 import numpy as np
 from scipy.spatial.transform import Rotation
 
-from cubetrack.calib.bundle import CubeFrame, group_instants, robust_average_corners, velocities, worse_world_fit
+from cubetrack.calib.bundle import (
+    CubeFrame,
+    group_instants,
+    robust_average_corners,
+    spread_instants,
+    velocities,
+    worse_world_fit,
+)
 from cubetrack.calib.solver import BodyPrior, Freedom, IntrinsicsPrior, Model, Observations, PosePrior, project, solve
 from cubetrack.core.geometry import R_from_rotvec, invert_T, make_T, rotation_angle
 from cubetrack.core.layout import marker_corners_m, paper_cube_layout
@@ -31,6 +38,27 @@ def test_velocities_of_a_constant_twist():
     Ts = np.array([make_T(Rotation.from_rotvec([0, 0, 0.5 * ti]).as_matrix(), [0.2 * ti, -0.1 * ti, 0.15]) for ti in t])
     v, w = velocities(t, Ts, 0.3)
     assert np.allclose(v, [0.2, -0.1, 0.0], atol=1e-9) and np.allclose(w, [0, 0, 0.5], atol=1e-9)
+
+
+def test_few_instants_kept_of_a_long_drive_still_get_velocities():
+    """A drive's instants (three cameras at 15 frames/s, 10 s) cut to 30: each kept instant has the
+    neighbours the velocity fit needs, so a robot at 0.4 m/s is not taken for standing still. An
+    even spread of single instants (0.33 s apart) leaves nearly all without (checked: fails so)."""
+    f = lambda cam, t: CubeFrame(cam, "r", 0, t, ())
+    frames = [f(cam, k / 15 + 0.02 * i) for k in range(150) for i, cam in enumerate("abc")]
+    groups = group_instants(frames, 0.1, 2)
+    assert len(groups) > 100
+    times = lambda gs: np.array([g[0].time_s for g in gs])
+    poses = lambda t: np.array([make_T(np.eye(3), [0.4 * ti, 0.0, 0.15]) for ti in t])
+    kept = spread_instants(groups, 30, 0.3)
+    assert 27 <= len(kept) <= 30 and np.ptp(times(kept)) > 9.0  # the whole drive
+    v, _ = velocities(times(kept), poses(times(kept)), 0.3)
+    assert np.allclose(v[:, 0], 0.4)
+    single = [groups[i] for i in np.linspace(0, len(groups) - 1, 30).round().astype(int)]
+    assert np.mean(velocities(times(single), poses(times(single)), 0.3)[0][:, 0] == 0.0) > 0.9
+    assert spread_instants(groups, 400, 0.3) == groups  # enough room: all kept
+    dense = spread_instants(groups, 100, 0.3)  # 0.1 s apart: evenly spread, no runs needed
+    assert len(dense) == 100 and np.diff(times(dense)).min() > 0.05
 
 
 def test_robust_average_ignores_a_bumped_frame():
