@@ -45,7 +45,7 @@ from cubetrack.app.tracker import CameraPoseSource
 from cubetrack.calib.check import world_marker_reprojection
 from cubetrack.calib.extrinsics import CalibrationReport, world_detector
 from cubetrack.core.cameras import CameraExtrinsics, CameraIntrinsics, WorldConfig
-from cubetrack.core.errors import CalibrationError, ConfigError, CubetrackError, ImageError, RecordingError
+from cubetrack.core.errors import ConfigError, CubetrackError, ImageError
 from cubetrack.core.records import CameraView, Detection, TrackedPose
 from cubetrack.detect.detector import DetectorParams, decode_gray
 from cubetrack.estimate.match import detections_of
@@ -85,22 +85,6 @@ def camera_result(report: CalibrationReport, name: str, recording: Recording, in
             "spread_deg": e.spread_rotation_deg, "reprojection_px": rms_px if math.isfinite(rms_px) else None,
             "marker_side_px": side_px if math.isfinite(side_px) else None, "checked_frames": used,
             "poor": bool(advice), "advice": advice, "error": ""}
-
-
-def recorded_cameras(path: Path) -> tuple[Recording, dict[str, str]]:
-    """The recording at ``path`` restricted to the cameras that recorded frames (a camera that
-    was down while recording has an empty index), and why each other camera was left out."""
-    recording = Recording.open(path)
-    kept, empty = [], {}
-    for camera in recording.cameras:
-        try:
-            recording.index(camera.name)
-            kept.append(camera)
-        except RecordingError as exc:
-            empty[camera.name] = str(exc)
-    if not kept:
-        raise CalibrationError(f"{path}: no camera recorded a frame")
-    return Recording(recording.path, tuple(kept), recording.created), empty
 
 
 # --- the session loop --------------------------------------------------------------------------
@@ -494,7 +478,7 @@ class DashboardApp:
 
     def _calibrate(self, recording_path: Path) -> None:
         try:
-            recording, empty = recorded_cameras(recording_path)
+            recording, empty = Recording.open(recording_path).with_frames()
             run = run_calibration(self.config, recording, self._calibration_folder() / "extrinsics.toml", self.settings,
                                   allow_missing=True, progress=self._progress)
             results = {}
@@ -518,9 +502,9 @@ class DashboardApp:
 
     def _refine_with(self, drive_path: Path) -> None:
         try:
-            run = run_calibration(self.config, recorded_cameras(self._calibration_folder() / "world")[0],
+            run = run_calibration(self.config, Recording.open(self._calibration_folder() / "world").with_frames()[0],
                                   self._calibration_folder() / "refined.toml", self.settings,
-                                  adjust_with=recorded_cameras(drive_path)[0], allow_missing=True,
+                                  adjust_with=Recording.open(drive_path).with_frames()[0], allow_missing=True,
                                   progress=self._progress)
         except CubetrackError as exc:
             return self._computed("result", f"Refinement failed: {exc}")

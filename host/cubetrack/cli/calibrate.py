@@ -48,7 +48,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--samples", type=int, default=None, metavar="N",
                    help="world-marker sightings to use per camera; overrides [calibration] samples")
     p.add_argument("--allow-missing", action="store_true",
-                   help="leave out cameras that do not see the world marker instead of failing")
+                   help="leave out cameras that do not see the world marker, or recorded no frame, instead of failing")
     p.add_argument("--refine-with", type=Path, metavar="REC",
                    help="tracking recording (the robot driving where several cameras see it): refine the "
                         "calibrated poses with its cube sightings (bundle adjustment); --out gets the refined poses")
@@ -80,8 +80,12 @@ def run(args: argparse.Namespace) -> int:
     settings = dataclasses.replace(settings, calibration=calibration)
     params = calibration
     truth = read_extrinsics(args.truth) if args.truth else None
-    recording = Recording.open(args.recording)
-    adjust_with = Recording.open(args.refine_with) if args.refine_with is not None else None
+    recording, empty = Recording.open(args.recording), dict[str, str]()
+    if args.allow_missing:  # a camera that was down while recording (its index empty) is one more missing
+        recording, empty = recording.with_frames()
+    adjust_with, left_out = None, dict[str, str]()
+    if args.refine_with is not None:  # the refinement keeps the calibration of a camera with no frames in it
+        adjust_with, left_out = Recording.open(args.refine_with).with_frames()
     result = run_calibration(config, recording, args.out, settings, adjust_with=adjust_with,
                              allow_missing=args.allow_missing, progress=StderrProgress(),
                              with_bodies=not args.no_body)
@@ -107,8 +111,10 @@ def run(args: argparse.Namespace) -> int:
         print(line)
         if cal.skipped:
             print(f"{'':<10} skipped: " + ", ".join(f"{n} {why}" for why, n in sorted(cal.skipped.items())))
-    for name, why in report.missing.items():
+    for name, why in {**report.missing, **empty}.items():
         print(f"{name:<10} NOT CALIBRATED: {why}")
+    for name, why in left_out.items():
+        print(f"refinement: {name} left out ({why})")
     for why, n in sorted(recording.skipped.items()):
         print(f"recording: skipped {n} ({why})")
     if refined is not None:

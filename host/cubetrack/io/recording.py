@@ -134,6 +134,21 @@ class Recording:
             self._index[camera] = self._read_index(camera)
         return list(self._index[camera])
 
+    def with_frames(self) -> tuple[Recording, dict[str, str]]:
+        """This recording restricted to the cameras that recorded frames (a camera that was down
+        while recording has an empty index), and why each other camera was left out. RecordingError
+        when no camera recorded a frame."""
+        kept, empty = [], {}
+        for camera in self.cameras:
+            try:
+                self.index(camera.name)
+                kept.append(camera)
+            except RecordingError as exc:
+                empty[camera.name] = str(exc)
+        if not kept:
+            raise RecordingError(f"{self.path}: no camera recorded a frame")
+        return Recording(self.path, tuple(kept), self.created), empty
+
     def _read_index(self, camera: str) -> list[IndexRow]:
         index_path = self.camera_dir(camera) / "index.csv"
         rows = self._read_rows(index_path, INDEX_HEADER, _parse_index_row, "bad index row")

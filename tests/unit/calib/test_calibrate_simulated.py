@@ -2,6 +2,10 @@
 own renderer, placement errors, lighting, noise) the robust calibration puts every camera within
 1.5 cm and 0.3 deg of its true pose (REC/true_extrinsics.toml). Short: ~100 calibration frames."""
 
+import json
+import re
+import shutil
+
 import pytest
 
 from cubetrack.app.calibrate import calibrate_recording
@@ -45,3 +49,24 @@ def test_cli_with_the_paper_method_writes_every_camera(simulated, tmp_path, monk
     ext = read_extrinsics(out)
     assert set(ext) == set(read_extrinsics(rec / "true_extrinsics.toml"))
     assert all(e.method == CalibrationMethod.CMA.value and e.samples == 40 for e in ext.values())
+
+
+def test_cli_allow_missing_leaves_out_a_camera_that_recorded_nothing(simulated, tmp_path, monkeypatch, capsys):
+    """A camera that was down while recording (the dashboard records it: an empty index) is one
+    more missing camera with --allow-missing, named with why; without it, a one-line error."""
+    rec = tmp_path / "calibration"
+    shutil.copytree(simulated / "calibration", rec)
+    meta = json.loads((rec / "recording.json").read_text())
+    meta["cameras"].append({"name": "cam9", "source": "http://127.0.0.1:9/stream"})
+    (rec / "recording.json").write_text(json.dumps(meta))
+    (rec / "cam9").mkdir()
+    (rec / "cam9" / "index.csv").write_text("seq,device_time,host_time,file\n")
+    shutil.copyfile(rec / "camera_info" / "cam1.yaml", rec / "camera_info" / "cam9.yaml")  # the config's, copied
+    monkeypatch.setattr(cli_main, "COMMANDS", {"calibrate": "calibrate"})
+    args = ["calibrate", "--config", str(simulated / "config.toml"), "--recording", str(rec), "--samples", "20"]
+    assert cli_main.main([*args, "--out", str(tmp_path / "refused.toml")]) != 0
+    assert "empty index (no frames recorded for cam9)" in capsys.readouterr().err
+    assert not (tmp_path / "refused.toml").exists()
+    assert cli_main.main([*args, "--out", str(tmp_path / "ext.toml"), "--allow-missing"]) == 0
+    assert set(read_extrinsics(tmp_path / "ext.toml")) == set(read_extrinsics(simulated / "true_extrinsics.toml"))
+    assert re.search(r"cam9 +NOT CALIBRATED: .*no frames recorded for cam9", capsys.readouterr().out)

@@ -13,14 +13,14 @@ import requests
 from sink_helpers import INTRINSICS, look_at
 
 from cubetrack.app.config import load_config
-from cubetrack.app.dashboard import DashboardApp, recorded_cameras
+from cubetrack.app.dashboard import DashboardApp
 from cubetrack.calib.check import world_marker_reprojection
 from cubetrack.core.cameras import WorldConfig
-from cubetrack.core.errors import CalibrationError
+from cubetrack.core.errors import RecordingError
 from cubetrack.core.geometry import make_T
 from cubetrack.core.records import Frame
 from cubetrack.io.camera_info import write_camera_info
-from cubetrack.io.recording import CameraEntry, RecordingWriter
+from cubetrack.io.recording import CameraEntry, Recording, RecordingWriter
 from cubetrack.sink.dashboard.calibration import calibration_advice, missing_advice
 from cubetrack.sink.dashboard.server import DashboardServer
 from cubetrack.sink.dashboard.state import DashboardParams
@@ -87,13 +87,13 @@ def test_a_recording_with_a_silent_camera_is_read_without_it(tmp_path, marker_fr
     with RecordingWriter(tmp_path / "rec", [CameraEntry("cam1", "u1"), CameraEntry("cam2", "u2")]) as w:
         for f in frames:
             w.add_frame("cam1", f.seq, f.device_time_s, f.host_time_s, f.jpeg)
-    recording, left_out = recorded_cameras(tmp_path / "rec")
+    recording, left_out = Recording.open(tmp_path / "rec").with_frames()
     assert recording.camera_names == ("cam1",) and len(recording.index("cam1")) == 5
     assert list(left_out) == ["cam2"] and "no frames recorded for cam2" in left_out["cam2"]
     with RecordingWriter(tmp_path / "none", [CameraEntry("cam1", "u1")]):
         pass
-    with pytest.raises(CalibrationError, match="no camera recorded a frame"):
-        recorded_cameras(tmp_path / "none")
+    with pytest.raises(RecordingError, match="no camera recorded a frame"):
+        Recording.open(tmp_path / "none").with_frames()
 
 
 @pytest.fixture
