@@ -30,6 +30,10 @@ one fit per instant, scored the same way — every camera taken as exact (a tria
 is), the reference's own cameras only, and weighed by the calibration term as set (the filter's
 measurement model without its motion model).
 
+Runs: the default filter (the import's board: ``motion = "free"``, a hand-held body: docs/tracking.md "A motion
+switch per body"), the mean fusion, the default filter with the board's ``motion = "floor"`` (the robot body's
+default), and ``--set``'s.
+
 Usage: python benchmarks/real_footage.py [--data DIR] [--work DIR] [--reference-only]   (prints a table)
 """
 
@@ -505,14 +509,17 @@ def _recorded(sightings: list[CubeSighting]) -> Iterator[None]:
 
 
 def track(work: Path, name: str, sections: Mapping[str, Mapping[str, object]] | None = None,
-          sightings: list[CubeSighting] | None = None) -> Path:
+          sightings: list[CubeSighting] | None = None, motion: str | None = None) -> Path:
     """Track the imported recording in ``work`` with the config's settings plus ``sections``
     (extra TOML tables); the TUM file written. ``sightings``: a list to which every sighting the
-    filter fusion gets is appended (for :func:`instant_fits`)."""
+    filter fusion gets is appended (for :func:`instant_fits`). ``motion``: the board's body file's
+    ``motion`` instead of the import's ("free")."""
+    import dataclasses
     import tomllib
 
     from cubetrack.app.config import config_params
     from cubetrack.app.track import track_recording
+    from cubetrack.core.layout import layout_to_table, read_layout
     from cubetrack.io.config import read_extrinsics, read_tracker_config, write_toml
     from cubetrack.io.recording import Recording
 
@@ -520,6 +527,10 @@ def track(work: Path, name: str, sections: Mapping[str, Mapping[str, object]] | 
         doc = tomllib.load(f)
     for section, table in (sections or {}).items():
         doc[section] = {**doc.get(section, {}), **table}
+    for robot in doc["robots"] if motion is not None else ():
+        layout = dataclasses.replace(read_layout(work / robot["layout"]), motion=motion)
+        robot["layout"] = f"{Path(robot['layout']).stem}-{name}.toml"
+        write_toml(layout_to_table(layout), work / robot["layout"])
     config_path = work / f"config-{name}.toml"
     write_toml(doc, config_path)
     config = read_tracker_config(config_path)
@@ -551,7 +562,8 @@ def main(argv: list[str] | None = None) -> int:
     work = args.work or Path(tempfile.mkdtemp(prefix="real-footage-"))
     if not (work / "config.toml").exists():
         import_caliscope(args.data, work)
-    runs: dict[str, dict] = {"default (filter)": {}, "mean fusion": {"fusion": {"method": "mean"}}}
+    runs: dict[str, dict] = {"default (filter)": {}, "mean fusion": {"fusion": {"method": "mean"}},
+                             "board motion = floor": {}}
     if args.set:
         import tomllib
 
@@ -563,7 +575,8 @@ def main(argv: list[str] | None = None) -> int:
         runs["custom " + " ".join(args.set)] = custom
     sightings: list[CubeSighting] = []
     for i, (name, sections) in enumerate(runs.items()):
-        result = score(track(work, f"run{i}", sections, sightings if i == 0 else None), reference)
+        result = score(track(work, f"run{i}", sections, sightings if i == 0 else None,
+                             "floor" if name == "board motion = floor" else None), reference)
         print(result.line(name) + "\n" + result.by_reference(name), flush=True)
     print_instant_fits(work, reference, sightings)
     return 0

@@ -12,7 +12,8 @@ frame times as both device and host times, and a ``clock.csv`` saying the camera
 host's, so frames are stamped at capture, not at arrival; ``camera_info/camN.yaml``),
 ``extrinsics.toml``, ``board.toml`` (the ChArUco board as a body: its markers where OpenCV's
 ``CharucoBoard`` puts them, body frame = the board's centre, x along its rows, y towards its first
-row, z out of the printed face) and ``config.toml`` (the board as the one robot; a world marker of
+row, z out of the printed face; ``motion = "free"``: a calibration board is moved by hand, docs/tracking.md "A
+motion switch per body") and ``config.toml`` (the board as the one robot; a world marker of
 the board's dictionary that is not on the board, since the world frame is the calibration's; a board printed
 inverted: ``[detector]`` white-on-black markers only; ``[estimator] use_upright_prior = false``,
 since the calibration's world frame need not have z up and a hand-held board tilts freely).
@@ -55,10 +56,10 @@ class ImportResult:
 def board_layout(board: WorldBoard) -> CubeLayout:
     """The ChArUco ``board`` as a body: one marker per face ``mID`` where OpenCV's board puts it,
     in the board frame (:class:`~cubetrack.core.cameras.WorldBoard`: centre, x along the rows, y
-    towards the first row, z out of the printed face)."""
+    towards the first row, z out of the printed face), moved freely (by hand)."""
     markers = tuple(LayoutMarker(f"m{m.marker_id}", m.marker_id, m.size_m, m.T_world_marker)
                     for m in board_markers(board))
-    return CubeLayout(board.dictionary, markers)
+    return CubeLayout(board.dictionary, markers, "free")
 
 
 def _world_table(board: WorldBoard) -> dict[str, Any]:

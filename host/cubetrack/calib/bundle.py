@@ -533,11 +533,11 @@ _OPENCV_DIST_LENGTHS = (5, 8, 12, 14)  # distortion vector lengths cv2.projectPo
 
 
 def layout_with(layout: CubeLayout, T_body_markers: np.ndarray, sizes_m: np.ndarray) -> CubeLayout:
-    """``layout`` with its markers (same faces, ids, dictionary) at ``T_body_markers`` (M, 4, 4)
-    and of sides ``sizes_m`` (M,)."""
+    """``layout`` with its markers (same faces, ids, dictionary; its motion) at ``T_body_markers``
+    (M, 4, 4) and of sides ``sizes_m`` (M,)."""
     markers = zip(layout.markers, T_body_markers, sizes_m, strict=True)
     return CubeLayout(layout.dictionary, tuple(LayoutMarker(m.face, m.marker_id, float(s), np.array(T, float))
-                                               for m, T, s in markers))
+                                               for m, T, s in markers), layout.motion)
 
 
 def _intrinsics_arrays(intrinsics: Sequence[CameraIntrinsics]) -> tuple[np.ndarray, np.ndarray]:

@@ -63,6 +63,9 @@ class LayoutMarker:
         return (marker_corners_m(self.size_m) @ self.T_cube_marker[:3, :3].T) + self.T_cube_marker[:3, 3]
 
 
+BODY_MOTIONS = ("floor", "free")  # a body on a robot that drives on a floor; a body moved freely (hand-held)
+
+
 @dataclass(frozen=True, slots=True, eq=False)
 class CubeLayout:
     """A dictionary name and the markers on one cube.
@@ -84,6 +87,7 @@ class CubeLayout:
 
     dictionary: str
     markers: tuple[LayoutMarker, ...]
+    motion: str = "floor"  # how the body moves, one of BODY_MOTIONS (the file's ``motion``; docs/tracking.md)
     corners_m: np.ndarray = field(init=False, repr=False)
     normals: np.ndarray = field(init=False, repr=False)
     T_marker_cube: np.ndarray = field(init=False, repr=False)
@@ -99,6 +103,8 @@ class CubeLayout:
     def __post_init__(self) -> None:
         if not self.markers:
             raise ConfigError("a cube layout needs at least one marker")
+        if self.motion not in BODY_MOTIONS:
+            raise ConfigError(f"a cube layout's motion must be one of {', '.join(BODY_MOTIONS)}, got {self.motion!r}")
         faces = [m.face for m in self.markers]
         if len(set(faces)) != len(faces):
             raise ConfigError(f"cube layout repeats a face name: {faces}")
@@ -233,7 +239,10 @@ def layout_from_table(table: dict, where: str) -> CubeLayout:
             raise ConfigError(f"{w}.dictionary must be a name like {DEFAULT_DICTIONARY!r}")
         markers.append(LayoutMarker(str(row["face"]), int(row["id"]), float(size), T,
                                     "" if own == dictionary else own))
-    return CubeLayout(dictionary=dictionary, markers=tuple(markers))
+    motion = table.get("motion", "floor")
+    if motion not in BODY_MOTIONS:
+        raise ConfigError(f"{where}: 'motion' must be one of {', '.join(BODY_MOTIONS)}, got {motion!r}")
+    return CubeLayout(dictionary=dictionary, markers=tuple(markers), motion=motion)
 
 
 def layout_to_table(layout: CubeLayout) -> dict:
@@ -251,7 +260,8 @@ def layout_to_table(layout: CubeLayout) -> dict:
                 **({"dictionary": m.dictionary} if m.dictionary and m.dictionary != layout.dictionary else {}),
             }
         )
-    return {"dictionary": layout.dictionary, "markers": rows}
+    return {"dictionary": layout.dictionary, **({"motion": layout.motion} if layout.motion != "floor" else {}),
+            "markers": rows}
 
 
 def read_layout(path: str | Path) -> CubeLayout:

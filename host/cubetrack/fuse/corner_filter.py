@@ -76,6 +76,11 @@ class FilterParams:
         "point below it by this much (1 sigma per axis, independent from frame to frame: a vibration faster than the "
         "motion model follows), degrees; 0: none (docs/tracking.md \"What the term absorbs on the renders\": 0.5 "
         "gains 3-6 % position on the realistic renders and costs the clean ones 0.001 cm; not the default)")
+    free_body_term_scale: float = param(
+        0.5, "the calibration term (the three camera sigmas above) is multiplied by this for a body whose cube "
+        "layout file says motion = \"free\" (hand-held, not driving on a floor), which also gets no wobble: on renders "
+        "the term as set stands in for a floor robot's wobble, which a free body has not (docs/tracking.md \"A motion "
+        "switch per body\"); bodies with motion = \"floor\" (the default) get the term as set")
     camera_term_samples_per_s: float = param(
         0.0, "the calibration term above sized per camera (docs/tracking.md \"Each camera's term from the others\"): "
         "this many of a camera's frames a second (e.g. 4) are compared with the pose the other cameras make without "
@@ -117,13 +122,21 @@ class FilterParams:
                        "sharp_turn_rad_s", "turn_hold_s", "corner_noise_px", "huber_px", "gate_rms_px", "face_gate_px",
                        "init_velocity_sigma", "init_angular_velocity_sigma")
         check_non_negative(self, "camera_position_sigma_m", unit="metres")
-        check_non_negative(self, "camera_scale_sigma", "camera_term_samples_per_s")
+        check_non_negative(self, "camera_scale_sigma", "camera_term_samples_per_s", "free_body_term_scale")
         check_non_negative(self, "camera_rotation_sigma_deg", "correction_rotation_sigma_deg", "wobble_sigma_deg",
                            unit="degrees")
         check_non_negative(self, "correction_position_sigma_m", unit="metres")
         check_non_negative(self, "correction_time_sigma_s", "correction_memory_s", unit="seconds")
         check_at_least(self, 1, "iterations")
         check_non_negative(self, "smooth_lag_s", "smooth_margin_s", unit="seconds")
+
+    def for_free_body(self) -> FilterParams:
+        """These settings for a body with ``motion = "free"``: the calibration term times
+        ``free_body_term_scale``, no wobble (a free body has no floor to wobble about)."""
+        k = self.free_body_term_scale
+        return dataclasses.replace(self, camera_position_sigma_m=k * self.camera_position_sigma_m,
+                                   camera_rotation_sigma_deg=k * self.camera_rotation_sigma_deg,
+                                   camera_scale_sigma=k * self.camera_scale_sigma, wobble_sigma_deg=0.0)
 
 
 @dataclass(frozen=True, slots=True)

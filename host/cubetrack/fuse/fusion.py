@@ -290,10 +290,14 @@ class FilterFusion:
     def __init__(self, layouts: dict[str, CubeLayout], params: FusionParams = FusionParams(),
                  filter_params: FilterParams = FilterParams(), estimator_params: EstimatorParams | None = None):
         """``estimator_params``: how a camera's own cube pose is found where the filter needs one
-        (re-acquiring a track), as the per-camera estimates are."""
+        (re-acquiring a track), as the per-camera estimates are. A body whose layout says
+        ``motion = "free"`` (hand-held) is tracked with :meth:`FilterParams.for_free_body`, the
+        others with ``filter_params``."""
         self.layouts = layouts
         self.params = params
         self.filter_params = filter_params
+        self._body_params = {r: filter_params.for_free_body() if layout.motion == "free" else filter_params
+                             for r, layout in layouts.items()}
         self.estimator_params = estimator_params or EstimatorParams()
         fp = filter_params
         self._priors = CorrectionPriors(fp.correction_position_sigma_m, math.radians(fp.correction_rotation_sigma_deg),
@@ -364,7 +368,7 @@ class FilterFusion:
         state = self.state.get(robot)
         if state is None or state.last_accepted_s >= time_s:
             return False
-        f = PoseFilter(self.filter_params, time_s, T_world_cube, covariance, velocity_m_s, angular_velocity_rad_s)
+        f = PoseFilter(self._body_params[robot], time_s, T_world_cube, covariance, velocity_m_s, angular_velocity_rad_s)
         self.state[robot] = RobotState(f, time_s, 0, state.corrections)
         self.stats["track taken over"] += 1
         return True
@@ -602,7 +606,7 @@ class FilterFusion:
         prior = np.zeros((12, 12))
         prior[:6, :6] = np.diag(np.repeat([self.params.reacquire_m**2, np.radians(30.0) ** 2], 3))
         prior[6:, 6:] = f.P[6:, 6:]
-        g = PoseFilter(self.filter_params, f.time_s, estimate.T_world_cube, prior, f.velocity_m_s,
+        g = PoseFilter(f.params, f.time_s, estimate.T_world_cube, prior, f.velocity_m_s,
                        f.angular_velocity_rad_s)
         return (g, corners) if g.update(corners, corrections.term_scale(sighting.camera)).accepted else None
 
@@ -663,8 +667,8 @@ class FilterFusion:
         if best is None:
             return state, None, "failed track start"
         solution, sets = best
-        f = PoseFilter(fp, t, solution.T_world_cube, solution.covariance, solution.velocity_m_s,
-                       solution.angular_velocity_rad_s)
+        f = PoseFilter(self._body_params[sighting.robot], t, solution.T_world_cube, solution.covariance,
+                       solution.velocity_m_s, solution.angular_velocity_rad_s)
         if not record:
             return RobotState(f, t, 0, state.corrections), None, "track start"
         cameras = tuple(sorted({s.camera for s in sets}))

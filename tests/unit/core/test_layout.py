@@ -35,6 +35,20 @@ def test_layout_toml_round_trip(tmp_path):
         np.testing.assert_allclose(a.T_cube_marker, b.T_cube_marker, atol=1e-9)
 
 
+def test_a_layouts_motion_is_kept_and_checked(tmp_path):
+    """``motion`` (issue 25: "floor", the default, or "free") survives the file; anything else is refused."""
+    import dataclasses
+
+    write_layout(dataclasses.replace(paper_cube_layout(), motion="free"), tmp_path / "cube.toml")
+    assert read_layout(tmp_path / "cube.toml").motion == "free"
+    write_layout(paper_cube_layout(), tmp_path / "floor.toml")
+    assert read_layout(tmp_path / "floor.toml").motion == "floor"
+    assert "motion" not in (tmp_path / "floor.toml").read_text()  # files without the switch stay as they were
+    (tmp_path / "bad.toml").write_text('motion = "hand"\n' + (tmp_path / "floor.toml").read_text())
+    with pytest.raises(ConfigError, match=r"bad\.toml: 'motion' must be one of floor, free, got 'hand'"):
+        read_layout(tmp_path / "bad.toml")
+
+
 def test_bad_layout_names_the_file(tmp_path):
     p = tmp_path / "cube.toml"
     p.write_text('[[markers]]\nface = "top"\nid = 1\nsize = 0.08\nposition = [0, 0]\nquaternion_xyzw = [0, 0, 0, 1]\n')

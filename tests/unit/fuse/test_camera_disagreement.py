@@ -13,6 +13,7 @@ from test_joint_and_filter import CAMS, INTR, LAYOUT, cube_pose, detections
 
 from cubetrack.core.cameras import CameraIntrinsics
 from cubetrack.core.geometry import make_T
+from cubetrack.core.layout import CubeLayout
 from cubetrack.core.records import CubeSighting
 from cubetrack.estimate.pose import estimate_cube
 from cubetrack.fuse.corner_filter import FilterParams
@@ -22,14 +23,14 @@ TURN = make_T(Rotation.from_rotvec(np.radians(0.25) * np.array([0.6, 0.0, 0.8]))
 
 
 def still_cube(filter_params: FilterParams, believed: dict[str, tuple[np.ndarray, CameraIntrinsics]],
-               seed: int = 3) -> tuple[list[float], list[float]]:
+               seed: int = 3, layout: CubeLayout = LAYOUT) -> tuple[list[float], list[float]]:
     """The filter's speed (m/s) after each sighting past the first second, and its position error (m):
     a still cube seen by the two cameras of ``believed`` at 6 fps, the second 5 ms after the first,
     the corners projected through the true cameras, the filter given each camera as ``believed``
-    (its T_world_cam, its intrinsics)."""
+    (its T_world_cam, its intrinsics); the fusion told the body's ``layout`` (its motion)."""
     rng = np.random.default_rng(seed)
     truth = cube_pose()
-    fusion = FilterFusion({"bot": LAYOUT}, FusionParams(), filter_params)
+    fusion = FilterFusion({"bot": layout}, FusionParams(), filter_params)
     speed, error = [], []
     for k in range(18):
         for (camera, (T_world_cam, intrinsics)), lag in zip(believed.items(), (0.0, 0.005), strict=True):
@@ -162,3 +163,16 @@ def test_a_robots_wobble_is_not_taken_as_its_motion():
         with_term = wobbling_cube(FilterParams(wobble_sigma_deg=0.5), seed)
         assert with_term[0] < 0.92 * without[0], (with_term, without)
         assert with_term[1] < without[1], (with_term, without)
+
+
+def test_a_free_body_is_tracked_with_half_the_calibration_term_and_no_wobble():
+    """A body whose layout says motion = "free" (hand-held, issue 25 twelfth round) gets the three camera
+    sigmas times free_body_term_scale (0.5) and no wobble; a floor body (the default) the term as set."""
+    believed = {"cam1": (CAMS["cam1"], INTR), "cam2": (CAMS["cam2"] @ TURN, INTR)}
+    free = dataclasses.replace(LAYOUT, motion="free")
+    halved = FilterParams(camera_position_sigma_m=0.001, camera_rotation_sigma_deg=0.05, camera_scale_sigma=0.0025)
+    as_free = still_cube(FilterParams(wobble_sigma_deg=0.5), believed, layout=free)
+    assert as_free == still_cube(halved, believed)  # the same arithmetic, to the bit
+    assert still_cube(FilterParams(), believed) != as_free
+    assert still_cube(FilterParams(free_body_term_scale=1.0), believed, layout=free) == still_cube(FilterParams(),
+                                                                                                  believed)
