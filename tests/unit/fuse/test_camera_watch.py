@@ -263,6 +263,37 @@ def test_with_three_cameras_the_camera_that_moved_is_named_not_its_partners():
     assert [(e.camera, 10.0 < e.time_s < 13.0) for e in events] == [(victim, True)], events
 
 
+def test_the_prediction_gate_judges_a_sighting_by_the_other_cameras_at_the_same_instant():
+    """The fused prediction drifted 3 cm (as along the ray of a camera that sees one marker, which
+    it cannot tell), so every camera's sightings miss it by several pixels: a camera that sees
+    what the others see at the same instant is fused, a freshly bumped one is held (cam2 turned
+    1 deg at 2 s). The ratio test alone (no same-instant pose) holds neither here: every other
+    camera misses the drifted prediction too."""
+    rng = np.random.default_rng(11)
+    moved = bumped(CAMERAS["cam2"], 0.0, 1.0, rng)
+    seen = sightings(2.6, lambda c, t: moved if c == "cam2" and t >= 2.0 else CAMERAS[c], dict(CAMERAS), rng)
+
+    def drifted(t: float) -> np.ndarray:
+        T = cube_at(t).copy()
+        T[:3, 3] += [0.03, 0.0, 0.0]
+        return T
+
+    held: dict[bool, dict[str, list[tuple[float, bool]]]] = {}
+    for same_instant in (True, False):
+        watch = CameraWatch({"bot": LAYOUT}, CAMERAS, WatchParams(enabled=True, suspect_px=1000.0))
+        watch.settled.update(CAMERAS)
+        held[same_instant] = {c: [] for c in CAMERAS}
+        for s in seen:
+            watch.add(s, drifted(s.capture_time_s))
+            if s.capture_time_s >= 1.0:
+                verdict = watch.off_prediction(s, drifted(s.capture_time_s), drifted if same_instant else None)
+                held[same_instant][s.camera].append((s.capture_time_s, verdict))
+    new, old = held[True], held[False]
+    assert not any(h for c in ("cam1", "cam3", "cam4") for _, h in new[c]), new
+    assert all(h == (t >= 2.0) for t, h in new["cam2"]), new["cam2"]
+    assert not any(h for c in CAMERAS for _, h in old[c]), old
+
+
 def _missing(camera: str, time_s: float, miss_px: float) -> WatchSample:
     """A checked sighting of ``camera`` whose corners all miss by ``miss_px`` at its pose in CAMERAS."""
     points = np.array([[0.1 * i, 0.05 * i, 0.2] for i in range(8)])
