@@ -509,15 +509,15 @@ class CameraWatch:
         latest[sighting.camera] = (sighting.capture_time_s, miss)
         if miss <= p.gate_prediction_px:
             return False
-        instant = None if predict is None else self._instant_miss_px(sighting, sets, settled, T_world_cube, predict)
-        if instant is not None:
-            held = instant > p.gate_prediction_px
-            self.stats["held off the other cameras"] += held
-        else:
-            others = [m for c, (t, m) in latest.items() if c != sighting.camera and not self.excluded(c)
-                      and t >= sighting.capture_time_s - p.window_s]
-            held = len(others) >= p.reference_cameras and miss > p.gate_prediction_ratio * max(others)
-            self.stats["held off the prediction"] += held
+        others = [m for c, (t, m) in latest.items() if c != sighting.camera and not self.excluded(c)
+                  and t >= sighting.capture_time_s - p.window_s]
+        held = len(others) >= p.reference_cameras and miss > p.gate_prediction_ratio * max(others)
+        if held and predict is not None and p.gate_span_s > 0:
+            instant = self._instant_miss_px(sighting, sets, settled, T_world_cube, predict)
+            if instant is not None and instant <= p.gate_prediction_px:  # it sees what the others see now
+                self.stats["kept by the other cameras"] += 1
+                held = False
+        self.stats["held off the prediction"] += held
         if held:
             self._held.add((sighting.camera, sighting.robot, sighting.seq))
         return held
