@@ -208,8 +208,7 @@ class WatchedFusion:
         if self.watch.excluded(sighting.camera):
             self.stats["set-aside sighting"] += 1
             return []
-        if predicted is not None and self.watch.off_prediction(
-                sighting, predicted, lambda time_s: self.fusion.predicted_pose(sighting.robot, time_s)):
+        if predicted is not None and self.watch.off_prediction(sighting, predicted):
             return []
         return self.fusion.add(sighting, now_s)
 

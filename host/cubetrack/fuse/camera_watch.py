@@ -63,7 +63,7 @@ import datetime
 import enum
 import math
 from collections import Counter, deque
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -138,15 +138,9 @@ class WatchParams:
                                            "settled pose) and gate_prediction_ratio times more than any other "
                                            "camera's latest sighting, pixels; 0: never")
     gate_prediction_ratio: float = param(4.0, "... see gate_prediction_px")
-    gate_span_s: float = param(0.15, "a sighting that misses the fused prediction by more than gate_prediction_px is "
-                                     "judged against the other cameras in use at the same instant instead: their "
-                                     "sightings within this many seconds of it (at least reference_cameras cameras) "
-                                     "fitted as one cube pose; held when it misses that by more than "
-                                     "gate_prediction_px too, fused otherwise (the ratio test only without such a "
-                                     "fit), seconds; 0: the ratio test always")
 
     def __post_init__(self) -> None:
-        check_at_least(self, 0, "gate_prediction_px", "gate_span_s")
+        check_at_least(self, 0, "gate_prediction_px")
         check_positive(self, "baseline_s", "baseline_every_s", "samples_per_s", "checks_per_s", "reference_span_s",
                        "reference_rms_px", "window_s", "check_every_s", "moved_px", "moved_ratio", "moved_m",
                        "moved_deg", "rejoin_sigma_m", "rejoin_sigma_deg", "rejoin_agree_m", "rejoin_agree_deg",
@@ -458,7 +452,6 @@ class CameraWatch:
         self._recent: dict[str, deque[CubeSighting]] = {r: deque() for r in layouts}
         self._sets: dict[tuple[str, str, int, bool], tuple[np.ndarray | None, list[CornerSet]]] = {}
         self._predicted: dict[tuple[str, str, int], np.ndarray] = {}  # a recent sighting's fused prediction
-        self._held: set[tuple[str, str, int]] = set()  # the recent sightings off_prediction held
         self._pending: deque[CubeSighting] = deque()
         self._next_sample_s: dict[str, float] = {}
         self._newest_s = -math.inf
@@ -482,21 +475,13 @@ class CameraWatch:
         """Whether a suspect camera is no one's reference (see :meth:`referee`)."""
         return len(self.state) - 2 >= self.params.reference_cameras
 
-    def off_prediction(self, sighting: CubeSighting, T_world_cube: np.ndarray,
-                       predict: Callable[[float], np.ndarray | None] | None = None) -> bool:
+    def off_prediction(self, sighting: CubeSighting, T_world_cube: np.ndarray) -> bool:
         """Whether a watched camera's sighting must be held out of the fusion: it misses the
         fused prediction ``T_world_cube`` (at its capture time) by more than ``gate_prediction_px``
-        (median corner residual at the camera's settled pose), and misses by as much the cube pose
-        the other cameras in use give at the same instant (:meth:`_instant_miss_px`; ``predict``:
-        the fused prediction at any time, which carries their sightings to this one's instant).
-        Without that pose (fewer than ``reference_cameras`` of them within ``gate_span_s``, or no
-        ``predict``): it misses the prediction ``gate_prediction_ratio`` times more than the
-        latest sighting of any other camera in use (within ``window_s``; at least
-        ``reference_cameras`` of them). The first sightings after a bump come before any check can
-        judge them (a check waits for the other cameras' sightings around it); this keeps them out.
-        The same-instant pose keeps a camera in that sees what the others see while the prediction
-        has drifted (along the ray of a camera that sees one or two markers, which it then cannot
-        tell): the ratio alone held such sightings and the drift grew (issue 27, docs/calibration.md)."""
+        (median corner residual at the camera's settled pose), and ``gate_prediction_ratio`` times
+        more than the latest sighting of any other camera in use (within ``window_s``; at least
+        ``reference_cameras`` of them). The first sightings after a bump come before any check can judge them (a
+        check waits for the other cameras' sightings around it); this keeps them out."""
         p = self.params
         settled = self.settled.get(sighting.camera)
         if p.gate_prediction_px <= 0 or settled is None or sighting.robot not in self.layouts:
@@ -504,7 +489,10 @@ class CameraWatch:
         sets = self._corner_sets(sighting)[1]
         if not sets:
             return False
-        miss = self._miss_px(settled, sets, [T_world_cube] * len(sets))
+        points_world_m = transform_points(T_world_cube, np.concatenate([s.points_cube_m for s in sets]))
+        residual = residuals_px(settled, points_world_m, np.concatenate([s.normalized for s in sets]),
+                                np.repeat([s.focal_px for s in sets], [len(s.normalized) for s in sets]))
+        miss = float(np.median(np.linalg.norm(residual, axis=1)))
         latest = self._off_prediction[sighting.robot]
         latest[sighting.camera] = (sighting.capture_time_s, miss)
         if miss <= p.gate_prediction_px:
@@ -512,61 +500,8 @@ class CameraWatch:
         others = [m for c, (t, m) in latest.items() if c != sighting.camera and not self.excluded(c)
                   and t >= sighting.capture_time_s - p.window_s]
         held = len(others) >= p.reference_cameras and miss > p.gate_prediction_ratio * max(others)
-        if held and predict is not None and p.gate_span_s > 0:
-            instant = self._instant_miss_px(sighting, sets, settled, T_world_cube, predict)
-            if instant is not None and instant <= p.gate_prediction_px:  # it sees what the others see now
-                self.stats["kept by the other cameras"] += 1
-                held = False
         self.stats["held off the prediction"] += held
-        if held:
-            self._held.add((sighting.camera, sighting.robot, sighting.seq))
         return held
-
-    @staticmethod
-    def _miss_px(T_world_cam: np.ndarray, sets: Sequence[CornerSet], T_world_cubes: Sequence[np.ndarray]) -> float:
-        """The median corner residual (px) of ``sets`` seen by a camera at ``T_world_cam``, the
-        cube at ``T_world_cubes`` (one pose per set)."""
-        points_world_m = np.concatenate([transform_points(T, s.points_cube_m) for T, s in zip(T_world_cubes, sets,
-                                                                                               strict=True)])
-        residual = residuals_px(T_world_cam, points_world_m, np.concatenate([s.normalized for s in sets]),
-                                np.repeat([s.focal_px for s in sets], [len(s.normalized) for s in sets]))
-        return float(np.median(np.linalg.norm(residual, axis=1)))
-
-    def _instant_miss_px(self, sighting: CubeSighting, sets: Sequence[CornerSet], settled: np.ndarray,
-                         T_world_cube: np.ndarray, predict: Callable[[float], np.ndarray | None]) -> float | None:
-        """How far (median corner residual at its ``settled`` pose, px) the sighting's corner
-        ``sets`` are from the cube pose the other cameras in use give at its instant, or None
-        without one: a joint fit of their sightings within ``gate_span_s`` of it (at least
-        ``reference_cameras`` cameras, not set aside, none this gate held; RMS residual within
-        ``reference_rms_px``), each set carried to
-        this instant by the fused prediction's own motion in between (``predict``: its pose at any
-        time; over a fraction of a second that motion is good to millimetres, where the
-        prediction's place itself may be centimetres off)."""
-        p, t = self.params, sighting.capture_time_s
-        T_now = predict(t)
-        if T_now is None:
-            return None
-        T_cube_now = invert_T(T_now)
-        carried: list[CornerSet] = []
-        for other in self._recent[sighting.robot]:
-            if other.camera == sighting.camera or self.excluded(other.camera) or abs(
-                    other.capture_time_s - t) > p.gate_span_s or (other.camera, other.robot, other.seq) in self._held:
-                continue
-            for s in self._corner_sets(other)[1]:
-                T_then = predict(s.time_s)
-                if T_then is not None:  # the cube at s.time_s is the cube now moved as the prediction moves
-                    carried.append(dataclasses.replace(s, time_s=t, points_cube_m=transform_points(
-                        T_cube_now @ T_then, s.points_cube_m)))
-        if len({s.camera for s in carried}) < p.reference_cameras:
-            return None
-        reference = solve_joint(carried, T_world_cube, t, p.corner_noise_px, iterations=FIT_ITERATIONS)
-        if reference is None or reference.rms_px > p.reference_rms_px:
-            return None
-        own = []
-        for s in sets:
-            T_then = predict(s.time_s)
-            own.append(reference.T_world_cube @ (T_cube_now @ T_then) if T_then is not None else reference.T_world_cube)
-        return self._miss_px(settled, sets, own)
 
     def points(self, camera: str) -> int:
         """Corners the camera's samples hold (a re-calibrating camera's progress towards ``rejoin_points``)."""
@@ -596,7 +531,6 @@ class CameraWatch:
             for by_prediction in (True, False):
                 self._sets.pop((old.camera, old.robot, old.seq, by_prediction), None)
             self._predicted.pop((old.camera, old.robot, old.seq), None)
-            self._held.discard((old.camera, old.robot, old.seq))
         if t >= self._next_sample_s.get(sighting.camera, -math.inf):  # checks_per_s shared by the cameras in turn
             self._pending.append(sighting)
             self._next_sample_s[sighting.camera] = t + self._sample_interval_s()
