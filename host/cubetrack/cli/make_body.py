@@ -15,17 +15,23 @@ cut, dashed: fold; glue tabs close the box), each marker where the layout puts i
 the folded box shows it; any other body (or --tiles) as one cut-out tile per marker, labelled with
 its face. Print at 100 % (no "fit to page") and check the 100 mm scale bar with a ruler.
 
+A body on a robot drives on a floor (the default); a body carried or waved by hand is written with
+--motion free, so the tracker follows it without a floor's assumptions (docs/tracking.md, "A
+motion switch per body").
+
 Writes OUT.svg, OUT.toml (the layout; not with --layout) and with --pdf OUT.pdf (needs cairosvg).
 Point a robot's [[robots]] layout at OUT.toml. Existing files are kept unless --force.
 
 Example:
   cubetrack make-body --out cube                      # the paper's cube: cube.svg, cube.toml
   cubetrack make-body --out crate --preset box --size 0.30 0.20 0.15 --distinct-ids --pdf
+  cubetrack make-body --out wand --preset box --size 0.06 0.06 0.06 --distinct-ids --motion free
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 from pathlib import Path
 
 HELP = "write a printable sheet (SVG/PDF: markers at exact size, a cube net) and the layout of a body"
@@ -44,6 +50,8 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--marker-id", type=int, default=1, metavar="N", help="(first) marker id (default 1)")
     p.add_argument("--distinct-ids", action="store_true", help="ids counting up from --marker-id, one per face")
     p.add_argument("--dictionary", default="DICT_4X4_50", metavar="NAME", help="ArUco dictionary (default DICT_4X4_50)")
+    p.add_argument("--motion", metavar="KIND",
+                   help="floor: on a robot (the default); free: hand-held, waved, carried (not with --layout)")
     p.add_argument("--tiles", action="store_true", help="one tile per marker instead of a net")
     p.add_argument("--pdf", action="store_true", help="also write NAME.pdf (through cairosvg)")
     p.add_argument("--force", action="store_true", help="replace existing output files")
@@ -56,6 +64,8 @@ def run(args: argparse.Namespace) -> int:
     from cubetrack.detect.detector import aruco_dictionary
 
     aruco_dictionary(args.dictionary)  # a one-line error naming the valid names
+    if args.layout is not None and args.motion is not None:
+        raise ConfigError("--motion is for the presets; a --layout file says its own motion (its 'motion' key)")
     if args.layout is not None:
         layout, title = read_layout(args.layout), f"cubetrack body {args.layout.name}"
     elif args.preset == "paper":
@@ -68,6 +78,8 @@ def run(args: argparse.Namespace) -> int:
         faces = [f.strip() for f in args.faces.split(",") if f.strip()]
         layout = box_layout(args.size, args.marker_size, args.marker_id, args.dictionary, args.distinct_ids, faces)
         title = "cubetrack: box " + " x ".join(f"{1000 * s:.0f}" for s in args.size) + " mm"
+    if args.motion is not None:
+        layout = dataclasses.replace(layout, motion=args.motion)  # the layout's own check names the kinds
     ids = ", ".join(f"{m.face} {m.marker_id} ({1000 * m.size_m:.1f} mm)" for m in layout.markers)
     title += f"; {'/'.join(layout.dictionaries)}: {ids}"
     files = write_body(layout, args.out, title, pdf=args.pdf, net=not args.tiles,

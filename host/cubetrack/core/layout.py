@@ -239,10 +239,10 @@ def layout_from_table(table: dict, where: str) -> CubeLayout:
             raise ConfigError(f"{w}.dictionary must be a name like {DEFAULT_DICTIONARY!r}")
         markers.append(LayoutMarker(str(row["face"]), int(row["id"]), float(size), T,
                                     "" if own == dictionary else own))
-    motion = table.get("motion", "floor")
-    if motion not in BODY_MOTIONS:
-        raise ConfigError(f"{where}: 'motion' must be one of {', '.join(BODY_MOTIONS)}, got {motion!r}")
-    return CubeLayout(dictionary=dictionary, markers=tuple(markers), motion=motion)
+    try:  # the layout's own checks (its motion, its faces), named by the file
+        return CubeLayout(dictionary=dictionary, markers=tuple(markers), motion=table.get("motion", "floor"))
+    except ConfigError as exc:
+        raise ConfigError(f"{where}: {exc}") from None
 
 
 def layout_to_table(layout: CubeLayout) -> dict:

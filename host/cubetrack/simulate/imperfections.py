@@ -73,7 +73,7 @@ def built_layout(nominal: CubeLayout, p: SimulationParams, rng: np.random.Genera
         scale = 1.0 - p.marker_undersize * (1.0 + _UNDERSIZE_SPREAD * float(np.clip(rng.normal(), -1.0, 1.0)))
         T_marker_built = make_T(Rotation.from_rotvec(angles).as_matrix(), shift)
         markers.append(LayoutMarker(m.face, m.marker_id, m.size_m * scale, m.T_cube_marker @ T_marker_built))
-    return CubeLayout(nominal.dictionary, tuple(markers))
+    return CubeLayout(nominal.dictionary, tuple(markers), nominal.motion)
 
 
 def auto_exposure_gains(p: SimulationParams, times_s: np.ndarray, start_s: float, end_s: float,

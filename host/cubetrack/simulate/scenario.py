@@ -261,6 +261,8 @@ def build_scene(p: SimulationParams) -> Scene:
         # robots share one path and one floor (same streams), each its own cube and vibration
         path = make_path(p.path, (p.path_size_m[0], p.path_size_m[1]), p.speed_m_s, (start + k * p.robot_spacing) % 1.0,
                          p.accel_m_s2, math.radians(p.turn_rate_deg_s), p.turn_radius_m, rng_for(p.seed, STREAM_PATH))
+        if isinstance(path, HandPath):  # a body carried by hand says so, as a user's layout would
+            layout = replace(layout, motion="free")
         terrain = None
         if uneven:
             terrain = Terrain(1e-3 * p.floor_bumps_mm, 1e-3 * p.bounce_mm, math.radians(p.wobble_deg),

@@ -45,7 +45,7 @@ def test_a_layouts_motion_is_kept_and_checked(tmp_path):
     assert read_layout(tmp_path / "floor.toml").motion == "floor"
     assert "motion" not in (tmp_path / "floor.toml").read_text()  # files without the switch stay as they were
     (tmp_path / "bad.toml").write_text('motion = "hand"\n' + (tmp_path / "floor.toml").read_text())
-    with pytest.raises(ConfigError, match=r"bad\.toml: 'motion' must be one of floor, free, got 'hand'"):
+    with pytest.raises(ConfigError, match=r"bad\.toml: a cube layout's motion must be one of floor, free, got 'hand'"):
         read_layout(tmp_path / "bad.toml")
 
 

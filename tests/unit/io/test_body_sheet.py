@@ -154,6 +154,7 @@ def test_make_body_cli_writes_the_sheet_and_a_layout_that_reads_back(tmp_path, m
     assert cli_main.main(args) == 0
     assert "wrote" in capsys.readouterr().out
     layout = read_layout(out.with_suffix(".toml"))
+    assert layout.motion == "floor"  # a body on a robot unless told (--motion free: below)
     expected = box_layout((0.3, 0.2, 0.15), None, 4, "DICT_5X5_100", True)
     assert [(m.face, m.marker_id, m.size_m) for m in layout.markers] == [
         (m.face, m.marker_id, m.size_m) for m in expected.markers]
@@ -170,7 +171,12 @@ def test_make_body_cli_writes_the_sheet_and_a_layout_that_reads_back(tmp_path, m
     for bad, message in ((["--preset", "box"], "needs --size"),
                          (["--preset", "box", "--size", "0.1", "0.1", "0.1", "--marker-size", "0.2"], "does not fit"),
                          (["--marker-size", "0.2"], "must be positive and fit the cube side"),
-                         (["--dictionary", "DICT_NOPE"], "DICT_NOPE")):
+                         (["--dictionary", "DICT_NOPE"], "DICT_NOPE"),
+                         (["--motion", "hand"], "motion must be one of floor, free, got 'hand'"),
+                         (["--layout", str(out.with_suffix(".toml")), "--motion", "free"], "says its own motion")):
         assert cli_main.main(["make-body", "--out", str(tmp_path / "x")] + bad) == 1
         err = capsys.readouterr().err
         assert message in err and err.count("\n") == 1, err
+    assert not (tmp_path / "x.toml").exists()
+    assert cli_main.main(["make-body", "--out", str(tmp_path / "wand"), "--motion", "free"]) == 0
+    assert read_layout(tmp_path / "wand.toml").motion == "free"

@@ -74,3 +74,5 @@ def test_the_hand_held_path_carries_one_body_and_leaves_the_floor():
     heights = [scene.T_world_cube(t)[2, 3] for t in np.arange(0.0, 2.0, 0.1)]
     assert min(heights) > scene.params.cube_centre_height_m  # lifted off the floor
     assert np.ptp(heights) > 0.005  # and moving up and down
+    assert [r.layout.motion for r in scene.robots] == ["free"]  # the tracker is told it is hand-held
+    assert build_scene(SimulationParams(calibration_frames=0, duration_s=2.0)).robots[0].layout.motion == "floor"
