@@ -24,15 +24,15 @@ import signal
 import time
 from collections.abc import Callable, Mapping, MutableSequence, Sequence
 from dataclasses import dataclass
-from multiprocessing.connection import Connection, wait
+from multiprocessing.connection import Connection
 from multiprocessing.process import BaseProcess
-from typing import cast
 
 import cv2
 
 from cubetrack.app.tracker import Tracker
 from cubetrack.core.errors import SourceError
 from cubetrack.core.lifetime import end_with_parent
+from cubetrack.core.pipes import PipePoll
 from cubetrack.core.records import Frame, FrameJob, FrameOutcome, FrameResult
 from cubetrack.fuse.forecast import Forecast
 from cubetrack.io.frame_wire import pack_result
@@ -120,7 +120,7 @@ class CameraProcesses:
         self._stats = {name: CameraStats(url=url) for name, url in self.urls.items()}
         self._counts: dict[int, tuple[int, int]] = {}  # per worker process: frames admitted, given up before clock
         self._lanes: list[tuple[Connection, BaseProcess]] = []
-        self._open: dict[Connection, int] = {}  # the pipes of processes that have not finished -> lane
+        self._open = PipePoll[int]()  # the pipes of processes that have not finished -> lane
         self._held = HeldResults()
         context = multiprocessing.get_context("spawn")  # fork would copy this process's threads' locks
         shares = deal_cameras(self.urls, count)
@@ -148,7 +148,7 @@ class CameraProcesses:
         timeout_s = min(timeout_s, self._held.wait_s(time.monotonic()))  # wake when a held result is due
         results: list[FrameResult] = []
         clocks: list[ClockReading] = []
-        ready = [cast(Connection, c) for c in wait(list(self._open), timeout_s)] if self._open else []
+        ready = self._open.ready(timeout_s)
         working = math.inf
         for _ in range(4):
             for conn in ready:
@@ -156,7 +156,7 @@ class CameraProcesses:
             # a process marks its frame done only once its result is in the pipe: whatever is not
             # in work now has been read, or is read in the next round
             working = min((self._working[lane] for lane in self._open.values()), default=math.inf)
-            ready = [conn for conn in self._open if conn.poll()]
+            ready = self._open.ready()
             if not ready:
                 break
         return self._held.due(results, working, time.monotonic(), everything=not self._open), clocks
@@ -186,7 +186,7 @@ class CameraProcesses:
             if kind == "done":
                 del self._open[conn]
                 break
-            if not conn.poll():
+            if conn not in self._open.ready():
                 break
 
     def forecast(self, forecast: Forecast | None) -> None:
@@ -218,7 +218,7 @@ class CameraProcesses:
         return sum(f for f, _ in self._counts.values()), sum(b for _, b in self._counts.values())
 
     def pending(self) -> int:
-        return sum(conn.poll() for conn in self._open) + len(self._held)
+        return len(self._open.ready()) + len(self._held)
 
     @property
     def running(self) -> bool:
@@ -272,6 +272,7 @@ def work_cameras(conn: Connection, urls: dict[str, str], source: SourceParams, t
     """A camera worker process's loop on this thread (also ``benchmarks/live.py --worker-split``'s): read
     ``urls``, plan and work each frame with ``tracker``, send results on ``conn`` until it sends None."""
     forecast = Forecast({}, frozenset(r.name for r in tracker.robots))  # until the fusion sends one
+    inbox = PipePoll({conn: lane})
     live = LiveCameras(urls, source, clock=clock, thread=False)  # read on this thread, between frames
     live.start()
     live.wake_on(conn)
@@ -289,7 +290,7 @@ def work_cameras(conn: Connection, urls: dict[str, str], source: SourceParams, t
 
     try:
         while True:
-            while conn.poll():
+            while inbox.ready():
                 message = conn.recv()
                 if message is None:
                     stopping = True

@@ -23,7 +23,6 @@ from collections import deque
 from collections.abc import Callable
 from dataclasses import dataclass
 from multiprocessing.connection import Connection
-from multiprocessing.connection import wait as connection_wait
 from typing import Protocol
 
 import cv2
@@ -31,6 +30,7 @@ import cv2
 from cubetrack.core.errors import SourceError
 from cubetrack.core.lifetime import end_with_parent
 from cubetrack.core.params import check, param
+from cubetrack.core.pipes import PipePoll
 from cubetrack.core.records import FrameJob, FrameResult
 
 
@@ -123,6 +123,8 @@ class FramePool:
             context = multiprocessing.get_context("spawn")  # fork would copy this process's threads' locks
             self._lanes = [_ProcessLane(context, make_worker, self, depth, threaded=wake is not None)
                            for _ in range(count)]
+        # the worker processes' pipes, read by wait() and poll() (a lane that ended leaves)
+        self._pipes = PipePoll({lane.conn: lane for lane in self._lanes})
         self.started = len(self._idle)
 
     def __enter__(self) -> FramePool:
@@ -171,7 +173,7 @@ class FramePool:
         try:
             lane.send(job)
         except OSError:  # the worker process is gone (BrokenPipeError)
-            lane.ended()
+            self._ended(lane)
             raise self._failure or SourceError("a frame worker process ended unexpectedly") from None
 
     def wait(self, timeout_s: float) -> None:
@@ -181,25 +183,23 @@ class FramePool:
             self._event.wait(timeout_s)
             self._event.clear()
             return
-        lanes = [lane for lane in self._lanes if not lane.closing]
-        if len(lanes) == 1:  # one pipe: poll it (connection_wait sets up a selector on every call)
-            ready = lanes if lanes[0].conn.poll(timeout_s) else []
-        else:
-            by_conn = {lane.conn: lane for lane in lanes}
-            ready = [by_conn[conn] for conn in connection_wait(list(by_conn), timeout_s)]
-        self._read(ready)
+        self._read([self._pipes[conn] for conn in self._pipes.ready(timeout_s)])
 
     def poll(self) -> None:
         """Without a ``wake``: read the worker processes' messages that are already there (never blocks)."""
-        self._read([lane for lane in self._lanes if not lane.closing])
+        self._read(list(self._pipes.values()))
 
     def _read(self, lanes: list[_ProcessLane]) -> None:
         for lane in lanes:
             try:
-                while lane.conn.poll():
+                while lane.conn in self._pipes.ready():
                     lane.receive()
             except (EOFError, OSError):
-                lane.ended()
+                self._ended(lane)
+
+    def _ended(self, lane: _ProcessLane) -> None:
+        self._pipes.pop(lane.conn, None)  # its pipe, at its end, is read no more
+        lane.ended()
 
     def reclaim(self, job: FrameJob) -> bool:
         """Take a submitted job back if its worker process has not started it (then no result
