@@ -134,8 +134,15 @@ class Browser:
         image complete": a tile asks for its next frame as soon as one has loaded, so on a busy
         machine some tile is always loading its next one, while showing the last. A hang guard,
         not a speed check: at a load of 26 on two cores a tile took over 15 s."""
-        self.wait_for("[...document.querySelectorAll('.tile[data-status=ok] .frame img')]"
-                      ".every(i => !i.hidden && i.naturalWidth > 0)", 60)
+        try:
+            self.wait_for("[...document.querySelectorAll('.tile[data-status=ok] .frame img')]"
+                          ".every(i => !i.hidden && i.naturalWidth > 0)", 60)
+        except TimeoutError as exc:  # say which tile, and in what state, so a failure can be traced
+            tiles = self.eval("[...document.querySelectorAll('.tile')].map(t => { const i = t.querySelector('img'); "
+                              "return [t.dataset.camera, t.dataset.status, i.hidden, i.naturalWidth, i.complete, "
+                              "i.dataset.loading, i.dataset.src, t.dataset.frame]; })")
+            raise TimeoutError(f"{exc}; tiles (camera, status, hidden, naturalWidth, complete, loading, src, "
+                               f"newest): {tiles}") from None
         data = self.call("Page.captureScreenshot", format="png", captureBeyondViewport=True)["data"]
         path.write_bytes(base64.b64decode(data))
         if os.environ.get("CUBETRACK_SCREENSHOTS"):
