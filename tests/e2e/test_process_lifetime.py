@@ -141,7 +141,7 @@ def start(kind: str, lab: dict, out: Path) -> tuple[Command, int]:
     if kind == "worker":
         cmd = Command(["worker", "--config", str(configs["camera-process"]), "--extrinsics", extrinsics,
                        "--bus-connect", bus, "--status-every", "1"], lab["work"])
-        cmd.wait_line(r"^worker:")
+        cmd.wait_line(r"^worker: +\d+s published")  # its session runs (stopped before, it ends as interrupted)
         return cmd, 0  # its cameras are read by threads
     cmd = Command(["fuse", "--config", str(configs["camera-process"]), "--extrinsics", extrinsics, "--out", str(out),
                    "--bus-listen", bus, "--status-every", "1", *vrpn], lab["work"])
@@ -157,8 +157,9 @@ KINDS = ["demo", "track", "dashboard", "worker", "fuse"]
 def test_no_process_of_ours_outlives_a_stopped_command(lab, tmp_path, kind, number):
     cmd, children = start(kind, lab, tmp_path / "out")
     try:
-        time.sleep(2.0)  # worker processes start in the background
-        running = family(cmd.mark)
+        deadline = time.monotonic() + 60  # worker processes start in the background (seconds when loaded)
+        while len(running := family(cmd.mark)) < 1 + children and time.monotonic() < deadline:
+            time.sleep(0.1)
         print(f"{kind}: {len(running)} processes: " + "; ".join(c[:90] for c in running.values()))
         assert cmd.proc.pid in running and len(running) >= 1 + children, running
         cmd.proc.send_signal(number)
