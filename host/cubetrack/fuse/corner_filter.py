@@ -44,6 +44,10 @@ class FilterParams:
     """The motion model and measurement model of :class:`PoseFilter`."""
 
     accel_noise: float = param(0.5, "white-noise acceleration spectral density, m/s^2/sqrt(Hz)")
+    vertical_accel_noise: float = param(
+        0.5, "the same along the world's z axis for a body with motion = \"floor\" (a robot on a floor hardly "
+        "moves up or down; a free body gets accel_noise), m/s^2/sqrt(Hz): the less, the more the track's height "
+        "pins one camera's depth along its ray (docs/tracking.md \"A floor robot's height\")")
     angular_accel_noise: float = param(0.5, "white-noise angular acceleration spectral density about the "
                                        "world's x and y axes (tilting), rad/s^2/sqrt(Hz)")
     yaw_accel_noise: float = param(5.0, "white-noise angular acceleration spectral density about the world's z axis "
@@ -118,7 +122,8 @@ class FilterParams:
                                    "anyway, smoothed over the sightings there are, seconds")
 
     def __post_init__(self) -> None:
-        check_positive(self, "accel_noise", "angular_accel_noise", "yaw_accel_noise", "steady_yaw_accel_noise",
+        check_positive(self, "accel_noise", "vertical_accel_noise", "angular_accel_noise", "yaw_accel_noise",
+                       "steady_yaw_accel_noise",
                        "sharp_turn_rad_s", "turn_hold_s", "corner_noise_px", "huber_px", "gate_rms_px", "face_gate_px",
                        "init_velocity_sigma", "init_angular_velocity_sigma")
         check_non_negative(self, "camera_position_sigma_m", unit="metres")
@@ -132,9 +137,11 @@ class FilterParams:
 
     def for_free_body(self) -> FilterParams:
         """These settings for a body with ``motion = "free"``: the calibration term times
-        ``free_body_term_scale``, no wobble (a free body has no floor to wobble about)."""
+        ``free_body_term_scale``, no wobble (a free body has no floor to wobble about), its vertical
+        acceleration as its horizontal one."""
         k = self.free_body_term_scale
-        return dataclasses.replace(self, camera_position_sigma_m=k * self.camera_position_sigma_m,
+        return dataclasses.replace(self, vertical_accel_noise=self.accel_noise,
+                                   camera_position_sigma_m=k * self.camera_position_sigma_m,
                                    camera_rotation_sigma_deg=k * self.camera_rotation_sigma_deg,
                                    camera_scale_sigma=k * self.camera_scale_sigma, wobble_sigma_deg=0.0)
 
@@ -159,7 +166,8 @@ def _motion_noise(params: FilterParams, turning: bool) -> tuple[np.ndarray, np.n
     """``(A, B, C)`` with the process noise over a step of ``dt`` = ``A |dt|³/3 + B dt²/2 + C |dt|``
     (white acceleration and angular acceleration, per axis; the yaw's while turning sharply or not)."""
     yaw = params.yaw_accel_noise if turning else params.steady_yaw_accel_noise
-    q = np.repeat([params.accel_noise**2, params.angular_accel_noise**2, yaw**2], [3, 2, 1])  # p, θ
+    q = np.repeat([params.accel_noise**2, params.vertical_accel_noise**2, params.angular_accel_noise**2, yaw**2],
+                  [2, 1, 2, 1])  # p (x, y; z), θ (x, y; z)
     A, B, C = np.zeros((12, 12)), np.zeros((12, 12)), np.zeros((12, 12))
     A[0:6, 0:6] = np.diag(q)
     B[0:6, 6:12] = B[6:12, 0:6] = np.diag(q)
