@@ -45,7 +45,7 @@ class FilterParams:
 
     accel_noise: float = param(0.5, "white-noise acceleration spectral density, m/s^2/sqrt(Hz)")
     vertical_accel_noise: float = param(
-        0.5, "the same along the world's z axis for a body with motion = \"floor\" (a robot on a floor hardly "
+        0.05, "the same along the world's z axis for a body with motion = \"floor\" (a robot on a floor hardly "
         "moves up or down; a free body gets accel_noise), m/s^2/sqrt(Hz): the less, the more the track's height "
         "pins one camera's depth along its ray (docs/tracking.md \"A floor robot's height\")")
     angular_accel_noise: float = param(0.5, "white-noise angular acceleration spectral density about the "
