@@ -6,10 +6,11 @@ error state ``[δp, δθ, δv, δω]`` with ``R = exp(δθ) R̂`` (world-frame r
 block first, the order of :func:`cubetrack.fuse.multi_view_fit.solve_joint`.
 
 Prediction: white-noise acceleration and angular acceleration (``accel_noise``, ``angular_accel_noise``,
-spectral densities). About the world's z axis the angular acceleration noise has two levels: the
-turning one (``yaw_accel_noise``) from a sharp turn (yaw rate above ``sharp_turn_rad_s``) until
-``turn_hold_s`` after the last, the steady one (``steady_yaw_accel_noise``) otherwise, so a robot
-that turns sharply is followed through its turns and one that does not gets a smoother heading.
+spectral densities; along the world's z axis ``vertical_accel_noise``: a floor robot's height hardly
+changes). About the world's z axis the angular acceleration noise has two levels: the turning one
+(``yaw_accel_noise``) from a sharp turn (yaw rate above ``sharp_turn_rad_s``) until ``turn_hold_s``
+after the last, the steady one (``steady_yaw_accel_noise``) otherwise, so a robot that turns sharply
+is followed through its turns and one that does not gets a smoother heading.
 The level is part of the state (a function of the sightings in capture order). Update: an
 iterated EKF (Gauss-Newton on the prior plus the reprojection error of every matched corner of one
 camera frame), with Huber weights per coordinate, so one camera's weak monocular depth is
