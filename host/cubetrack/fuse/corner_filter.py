@@ -6,10 +6,11 @@ error state ``[δp, δθ, δv, δω]`` with ``R = exp(δθ) R̂`` (world-frame r
 block first, the order of :func:`cubetrack.fuse.multi_view_fit.solve_joint`.
 
 Prediction: white-noise acceleration and angular acceleration (``accel_noise``, ``angular_accel_noise``,
-spectral densities). About the world's z axis the angular acceleration noise has two levels: the
-turning one (``yaw_accel_noise``) from a sharp turn (yaw rate above ``sharp_turn_rad_s``) until
-``turn_hold_s`` after the last, the steady one (``steady_yaw_accel_noise``) otherwise, so a robot
-that turns sharply is followed through its turns and one that does not gets a smoother heading.
+spectral densities; along the world's z axis ``vertical_accel_noise``: a floor robot's height hardly
+changes). About the world's z axis the angular acceleration noise has two levels: the turning one
+(``yaw_accel_noise``) from a sharp turn (yaw rate above ``sharp_turn_rad_s``) until ``turn_hold_s``
+after the last, the steady one (``steady_yaw_accel_noise``) otherwise, so a robot that turns sharply
+is followed through its turns and one that does not gets a smoother heading.
 The level is part of the state (a function of the sightings in capture order). Update: an
 iterated EKF (Gauss-Newton on the prior plus the reprojection error of every matched corner of one
 camera frame), with Huber weights per coordinate, so one camera's weak monocular depth is
@@ -44,6 +45,10 @@ class FilterParams:
     """The motion model and measurement model of :class:`PoseFilter`."""
 
     accel_noise: float = param(0.5, "white-noise acceleration spectral density, m/s^2/sqrt(Hz)")
+    vertical_accel_noise: float = param(
+        0.05, "the same along the world's z axis for a body with motion = \"floor\" (a robot on a floor hardly "
+        "moves up or down; a free body gets accel_noise), m/s^2/sqrt(Hz): the less, the more the track's height "
+        "pins one camera's depth along its ray (docs/tracking.md \"A floor robot's height\")")
     angular_accel_noise: float = param(0.5, "white-noise angular acceleration spectral density about the "
                                        "world's x and y axes (tilting), rad/s^2/sqrt(Hz)")
     yaw_accel_noise: float = param(5.0, "white-noise angular acceleration spectral density about the world's z axis "
@@ -118,7 +123,8 @@ class FilterParams:
                                    "anyway, smoothed over the sightings there are, seconds")
 
     def __post_init__(self) -> None:
-        check_positive(self, "accel_noise", "angular_accel_noise", "yaw_accel_noise", "steady_yaw_accel_noise",
+        check_positive(self, "accel_noise", "vertical_accel_noise", "angular_accel_noise", "yaw_accel_noise",
+                       "steady_yaw_accel_noise",
                        "sharp_turn_rad_s", "turn_hold_s", "corner_noise_px", "huber_px", "gate_rms_px", "face_gate_px",
                        "init_velocity_sigma", "init_angular_velocity_sigma")
         check_non_negative(self, "camera_position_sigma_m", unit="metres")
@@ -132,9 +138,11 @@ class FilterParams:
 
     def for_free_body(self) -> FilterParams:
         """These settings for a body with ``motion = "free"``: the calibration term times
-        ``free_body_term_scale``, no wobble (a free body has no floor to wobble about)."""
+        ``free_body_term_scale``, no wobble (a free body has no floor to wobble about), its vertical
+        acceleration as its horizontal one."""
         k = self.free_body_term_scale
-        return dataclasses.replace(self, camera_position_sigma_m=k * self.camera_position_sigma_m,
+        return dataclasses.replace(self, vertical_accel_noise=self.accel_noise,
+                                   camera_position_sigma_m=k * self.camera_position_sigma_m,
                                    camera_rotation_sigma_deg=k * self.camera_rotation_sigma_deg,
                                    camera_scale_sigma=k * self.camera_scale_sigma, wobble_sigma_deg=0.0)
 
@@ -159,7 +167,8 @@ def _motion_noise(params: FilterParams, turning: bool) -> tuple[np.ndarray, np.n
     """``(A, B, C)`` with the process noise over a step of ``dt`` = ``A |dt|³/3 + B dt²/2 + C |dt|``
     (white acceleration and angular acceleration, per axis; the yaw's while turning sharply or not)."""
     yaw = params.yaw_accel_noise if turning else params.steady_yaw_accel_noise
-    q = np.repeat([params.accel_noise**2, params.angular_accel_noise**2, yaw**2], [3, 2, 1])  # p, θ
+    q = np.repeat([params.accel_noise**2, params.vertical_accel_noise**2, params.angular_accel_noise**2, yaw**2],
+                  [2, 1, 2, 1])  # p (x, y; z), θ (x, y; z)
     A, B, C = np.zeros((12, 12)), np.zeros((12, 12)), np.zeros((12, 12))
     A[0:6, 0:6] = np.diag(q)
     B[0:6, 6:12] = B[6:12, 0:6] = np.diag(q)
