@@ -15,9 +15,12 @@ jointly from
     ``clock.csv``, as the tracker stamps them). Frames of one instant are motion-compensated to
     its mean time with the constant-velocity model of :mod:`cubetrack.estimate.reprojection`; velocities come
     from the instants' own poses (a local linear fit over ``velocity_window_s``), re-estimated
-    after each solve. The corners are edge-fitted and then template-fitted (:func:`cube_frames`
-    with the lenses, as the body calibration measures them): the edge fit's outward bias on
-    obliquely seen markers scaled the refined cameras out (issue 26).
+    after each solve; or (``knot_s`` > 0) each robot's pose is a continuous-time trajectory
+    (:class:`Trajectory`, the body calibration's) through the instants' frames, each corner at the
+    pose interpolated to its row's time, no velocity assumed. The corners are edge-fitted and
+    then template-fitted (:func:`cube_frames` with the lenses, as the body calibration measures
+    them): the edge fit's outward bias on obliquely seen markers scaled the refined cameras out
+    (issue 26).
 
 Unknowns: each camera's 6-dof pose, the cube pose at each instant and (``planar_motion``) one
 cube height per robot. Residuals: reprojection errors (pixels, on undistorted points scaled by
