@@ -40,15 +40,14 @@ import numpy as np
 from cubetrack.calib.bundle import (
     BodyCalibrationParams,
     BundleAdjustmentParams,
-    CubeFrame,
-    FrameCorners,
     Refinement,
-    _frame_corners,
+    Trajectory,
+    TrajectorySpec,
     layout_with,
     rms_px,
     start_refinement,
 )
-from cubetrack.calib.solver import Freedom, Observations, PosePrior, corner_residuals_px, interpolated_poses, solve
+from cubetrack.calib.solver import Observations, PosePrior, corner_residuals_px
 from cubetrack.core.cameras import CameraExtrinsics, CameraIntrinsics, ClockSample
 from cubetrack.core.errors import CalibrationError
 from cubetrack.core.geometry import invert_T, make_T, rotation_angle
@@ -56,7 +55,6 @@ from cubetrack.core.layout import CubeLayout
 from cubetrack.core.progress import Progress
 from cubetrack.core.records import Frame
 from cubetrack.detect.detector import DetectorParams
-from cubetrack.estimate.reprojection import moved_pose
 
 log = logging.getLogger(__name__)
 
@@ -184,7 +182,8 @@ def calibrate_body(frames: Mapping[str, Iterable[Frame]], extrinsics: Mapping[st
     # plane; docs/calibration.md); the cameras' prior holds the world frame without them
     free = dataclasses.replace(ref.freedom(camera_prior=camera_prior, intrinsics=params.refine_intrinsics, body=body),
                                height_sigma_m=0.0, upright_sigma_rad=0.0)
-    trajectory = Trajectory.start(ref, body) if body.knot_s > 0 else None
+    trajectory = Trajectory.start(ref, TrajectorySpec(body.knot_s, body.max_span_s, body.accel_sigma_m_s2,
+                                                      body.angular_accel_sigma_rad_s2)) if body.knot_s > 0 else None
     for done in range(params.rounds + 1):
         if progress is not None:
             progress("body calibration: solves", done, params.rounds + 1)
@@ -204,106 +203,8 @@ def calibrate_body(frames: Mapping[str, Iterable[Frame]], extrinsics: Mapping[st
         sample = obs.inst
     else:
         obs, frame_count = trajectory.observations(), len(trajectory.frames)
-        sample = np.repeat(np.arange(frame_count), [4 * len(s.markers) for s in trajectory.sets])
+        sample = trajectory.frame_of_corner()
     return _report(ref, obs, sample, frame_count, robot, layout, extrinsics, intrinsics, warn, warnings)
-
-
-@dataclass(eq=False)
-class Trajectory:
-    """The body's continuous-time trajectory through a refinement's frames (``body.knot_s`` > 0):
-    body poses at knots ``times_s`` (K,) spaced ``body.knot_s`` apart within pieces of the
-    recording where the frames follow each other within ``body.max_span_s`` (``first`` (K,):
-    whether a knot starts a piece), each corner seen at the pose interpolated to the time its
-    row was exposed, the knots tied by the solver's smoothness prior (``body.accel_sigma_m_s2``,
-    ``body.angular_accel_sigma_rad_s2``). The frames are every frame of the refinement's
-    instants, each with its corners matched (``sets``) at the trajectory's pose. From
-    :meth:`start` on, ``ref.model``'s body poses are the knots' (its instants no longer apply)."""
-
-    ref: Refinement
-    body: BodyCalibrationParams
-    times_s: np.ndarray
-    first: np.ndarray
-    frames: list[CubeFrame]
-    sets: list[FrameCorners]
-
-    @classmethod
-    def start(cls, ref: Refinement, body: BodyCalibrationParams) -> Trajectory:
-        """Knots over the instants' frames, started from the instants' poses moved with their
-        velocities, and the frames matched at them."""
-        if len(ref.robots) != 1:
-            raise CalibrationError(f"a body trajectory follows one robot, not {len(ref.robots)}")
-        frames = sorted({id(f): f for i in ref.instants for f in i.frames}.values(), key=lambda f: (f.time_s, f.camera))
-        t = np.array([f.time_s for f in frames])
-        margin = max(ref.readout_s.values(), default=0.0) / 2 + body.knot_s
-        breaks = np.flatnonzero(np.diff(t) > body.max_span_s) + 1
-        times, first = [], []
-        for piece in np.split(t, breaks):
-            n = int(np.ceil((piece[-1] - piece[0] + 2 * margin) / body.knot_s)) + 1
-            times.append(piece[0] - margin + body.knot_s * np.arange(n))
-            first.append(np.arange(n) == 0)
-        times_s = np.concatenate(times)
-        inst_t = np.array([i.time_s for i in ref.instants])
-        after = np.searchsorted(inst_t, times_s).clip(0, len(inst_t) - 1)  # the instants are in time order
-        before = (after - 1).clip(0)
-        near = np.where(np.abs(times_s - inst_t[before]) < np.abs(times_s - inst_t[after]), before, after)
-        knots = np.array([moved_pose(ref.model.T_bodies[k], ref.vel[k], ref.angvel[k], tk - inst_t[k])
-                          for k, tk in zip(near, times_s, strict=True)])
-        ref.model = ref.model.replace(T_bodies=knots)
-        trajectory = cls(ref, body, times_s, np.concatenate(first), frames, [])
-        trajectory.rematch()
-        return trajectory
-
-    def _knot(self, t: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """The knot before each time (its piece's last-but-one at most) and the fraction to the next."""
-        k = np.clip(np.searchsorted(self.times_s, t, side="right") - 1, 0, len(self.times_s) - 2)
-        last = np.r_[self.first[1:], True]  # a piece's last knot: the next knot starts a piece
-        k = np.where(last[k], k - 1, k)
-        return k, (t - self.times_s[k]) / (self.times_s[k + 1] - self.times_s[k])
-
-    def pose_at(self, time_s: float) -> np.ndarray:
-        """The body's pose (4, 4) at ``time_s`` on the trajectory."""
-        k, alpha = self._knot(np.array([time_s]))
-        R, p = interpolated_poses(self.ref.model.T_bodies[k], self.ref.model.T_bodies[k + 1], alpha)
-        return make_T(R[0], p[0])
-
-    def rematch(self) -> None:
-        """Every frame's detections matched to the body's markers at the trajectory's pose (frames
-        where nothing matches are left out)."""
-        ref = self.ref
-        intrinsics, T_world_cam, layout = ref.intrinsics(), ref.T_world_cam(), ref.layout(ref.robots[0])
-        found = [(f, _frame_corners(f, layout, intrinsics[f.camera], T_world_cam[f.camera], ref.params,
-                                    self.pose_at(f.time_s))) for f in self.frames]
-        pairs = [(f, s) for f, s in found if s is not None]
-        if not pairs:
-            raise CalibrationError("no cube sightings fit the body's trajectory")
-        self.frames, self.sets = [f for f, _ in pairs], [s for _, s in pairs]
-
-    def observations(self) -> Observations:
-        """The solver's observations: every matched corner at the time its row was exposed (as
-        :meth:`Refinement.observations` times them) on the trajectory."""
-        ref = self.ref
-        cam_index = {c: i for i, c in enumerate(ref.cameras)}
-        cam = np.concatenate([np.full(4 * len(s.markers), cam_index[s.camera]) for s in self.sets])
-        marker = np.concatenate([np.repeat(s.markers, 4) for s in self.sets])
-        pixels = np.vstack([s.corners_px.reshape(-1, 2) for s in self.sets])
-        height = np.array([ref.given[s.camera].height for s in self.sets for _ in range(4 * len(s.markers))], float)
-        row_s = np.array([ref.readout_s.get(s.camera, 0.0)
-                          for s in self.sets for _ in range(4 * len(s.markers))]) / height
-        times = np.concatenate([np.full(4 * len(s.markers), s.time_s) for s in self.sets])
-        k, alpha = self._knot(times + (pixels[:, 1] - (height - 1) / 2.0) * row_s)
-        n, K = len(cam), len(self.times_s)
-        inner = np.flatnonzero(~self.first[1:-1] & ~self.first[2:]) + 1  # knots with both neighbours in their piece
-        return Observations(cam, k, marker, np.tile(np.arange(4), n // 4), pixels, np.tile(np.eye(3), (n, 1, 1)),
-                            np.zeros((n, 3)), np.zeros(K, int), 1, np.zeros(0, int), np.zeros((0, 3)),
-                            np.zeros((0, 2)), knot_alpha=alpha,
-                            knot_triples=np.column_stack([inner - 1, inner, inner + 1]),
-                            knot_spacing_s=self.body.knot_s)
-
-    def solve(self, free: Freedom) -> None:
-        """Solve the knots, markers and cameras (``free``; no motion noise: nothing is extrapolated)."""
-        free = dataclasses.replace(free, motion_noise_px_per_s=0.0, accel_sigma_m_s2=self.body.accel_sigma_m_s2,
-                                   angular_accel_sigma_rad_s2=self.body.angular_accel_sigma_rad_s2)
-        self.ref.model = solve(self.observations(), self.ref.model, free)
 
 
 def _fix_gauge(ref: Refinement, nominal: CubeLayout) -> None:

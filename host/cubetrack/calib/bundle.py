@@ -15,9 +15,12 @@ jointly from
     ``clock.csv``, as the tracker stamps them). Frames of one instant are motion-compensated to
     its mean time with the constant-velocity model of :mod:`cubetrack.estimate.reprojection`; velocities come
     from the instants' own poses (a local linear fit over ``velocity_window_s``), re-estimated
-    after each solve. The corners are edge-fitted and then template-fitted (:func:`cube_frames`
-    with the lenses, as the body calibration measures them): the edge fit's outward bias on
-    obliquely seen markers scaled the refined cameras out (issue 26).
+    after each solve; or (``knot_s`` > 0) each robot's pose is a continuous-time trajectory
+    (:class:`Trajectory`, the body calibration's) through the instants' frames, each corner at the
+    pose interpolated to its row's time, no velocity assumed. The corners are edge-fitted and
+    then template-fitted (:func:`cube_frames` with the lenses, as the body calibration measures
+    them): the edge fit's outward bias on obliquely seen markers scaled the refined cameras out
+    (issue 26).
 
 Unknowns: each camera's 6-dof pose, the cube pose at each instant and (``planar_motion``) one
 cube height per robot. Residuals: reprojection errors (pixels, on undistorted points scaled by
@@ -86,6 +89,7 @@ from cubetrack.calib.solver import (
     Observations,
     PosePrior,
     corner_residuals_px,
+    interpolated_poses,
     padded_dist,
     solve,
     world_residuals_px,
@@ -145,6 +149,13 @@ class BundleAdjustmentParams:
                                          "radially by 2 mm")
     world_samples: int = param(60, "world-marker sightings averaged per camera of the calibration recording "
                                    "(the first N found)")
+    knot_s: float = param(0.0, "the body's pose is a continuous-time trajectory with knots this many seconds apart "
+                                "through every instant's frames (each corner at the pose interpolated to its row's "
+                                "time, the knots tied by the accel sigmas; as [body_calibration] knot_s); 0 = one pose "
+                                "per instant, moved to each frame's time with a fitted velocity")
+    accel_sigma_m_s2: float = param(10.0, "trajectory: the body's acceleration between knots (1 sigma), m/s^2")
+    angular_accel_sigma_rad_s2: float = param(100.0, "trajectory: the body's angular acceleration between knots "
+                                                     "(1 sigma), rad/s^2")
     rounds: int = param(2, "absolute solves, each after re-matching faces and re-estimating velocities")
     max_nfev: int = param(60, "function evaluations per least-squares solve")
     refine_intrinsics: bool = param(False, "absolute solves: refine each camera's focal lengths, principal point, k1 "
@@ -160,8 +171,8 @@ class BundleAdjustmentParams:
                        "association_gate_px", "velocity_window_s", "moved_position_m", "moved_rotation_deg",
                        "gauge_prior_position_m", "gauge_prior_rotation_deg", "height_sigma_m",
                        "intrinsics_focal_sigma", "intrinsics_principal_sigma_px", "intrinsics_k1_sigma",
-                       "intrinsics_k2_sigma")
-        check_non_negative(self, "upright_sigma_deg", "floor_tilt_sigma_deg")
+                       "intrinsics_k2_sigma", "accel_sigma_m_s2", "angular_accel_sigma_rad_s2")
+        check_non_negative(self, "upright_sigma_deg", "floor_tilt_sigma_deg", "knot_s")
         check(self.world_samples >= 1, f"world_samples must be at least 1, got {self.world_samples}")
         check(self.min_cameras >= 2 and self.max_instants >= 1 and self.rounds >= 1 and self.max_nfev >= 1,
               "need min_cameras >= 2, max_instants >= 1, rounds >= 1, max_nfev >= 1")
@@ -696,11 +707,138 @@ class Refinement:
         self.model = self.model.replace(T_bodies=self.model.T_bodies[keep])
         self.vel, self.angvel = self.vel[keep], self.angvel[keep]
 
-    def residuals(self, world: Mapping[str, tuple[np.ndarray, np.ndarray]] | None = None
-                  ) -> tuple[Observations, np.ndarray, np.ndarray]:
-        """(observations, body-corner residuals (N, 2) px, world-point residuals (M, 2) px) now."""
-        obs = self.observations(world)
-        return obs, corner_residuals_px(obs, self.model), world_residuals_px(obs, self.model)
+
+@dataclass(frozen=True, slots=True)
+class TrajectorySpec:
+    """A continuous-time trajectory's settings (:class:`Trajectory`): knots ``knot_s`` apart, a new
+    piece where the frames lie more than ``gap_s`` apart, the smoothness prior's sigmas."""
+
+    knot_s: float
+    gap_s: float
+    accel_sigma_m_s2: float
+    angular_accel_sigma_rad_s2: float
+
+
+@dataclass(eq=False)
+class Trajectory:
+    """Each body's continuous-time trajectory through a refinement's frames (the body calibration's
+    and, with ``[bundle_adjustment] knot_s`` > 0, the extrinsics refinement's): body poses at knots
+    ``times_s`` (K,) ``spec.knot_s`` apart within pieces of the recording where a robot's frames
+    follow each other within ``spec.gap_s`` (``first`` (K,): whether a knot starts a piece;
+    ``robot`` (K,): whose body, each robot's knots together), each corner seen at the pose
+    interpolated to the time its row was exposed, the knots tied by the solver's smoothness prior.
+    So frames of different cameras up to ``max_span_s`` apart are compared at their own times, with
+    no velocity assumed (a constant velocity across an instant's frames misses turns and the
+    robot's wobble). The frames are every frame of the refinement's instants, each with its corners
+    matched (``sets``) at the trajectory's pose. From :meth:`start` on, ``ref.model``'s body poses
+    are the knots' (its instants no longer apply)."""
+
+    ref: Refinement
+    spec: TrajectorySpec
+    times_s: np.ndarray
+    first: np.ndarray
+    robot: np.ndarray
+    frames: list[CubeFrame]
+    sets: list[FrameCorners]
+
+    @classmethod
+    def start(cls, ref: Refinement, spec: TrajectorySpec) -> Trajectory:
+        """Knots over the instants' frames, started from the instants' poses moved with their
+        velocities, and the frames matched at them."""
+        frames = sorted({id(f): f for i in ref.instants for f in i.frames}.values(), key=lambda f: (f.time_s, f.camera))
+        margin = max(ref.readout_s.values(), default=0.0) / 2 + spec.knot_s
+        times, first, robot, knots = [], [], [], []
+        for j, name in enumerate(ref.robots):
+            t = np.array([f.time_s for f in frames if f.robot == name])
+            mine = [k for k, i in enumerate(ref.instants) if i.robot == name]
+            inst_t = np.array([ref.instants[k].time_s for k in mine])  # in time order
+            for piece in np.split(t, np.flatnonzero(np.diff(t) > spec.gap_s) + 1):
+                n = int(np.ceil((piece[-1] - piece[0] + 2 * margin) / spec.knot_s)) + 1
+                piece_s = piece[0] - margin + spec.knot_s * np.arange(n)
+                after = np.searchsorted(inst_t, piece_s).clip(0, len(inst_t) - 1)
+                before = (after - 1).clip(0)
+                near = np.where(np.abs(piece_s - inst_t[before]) < np.abs(piece_s - inst_t[after]), before, after)
+                knots += [moved_pose(ref.model.T_bodies[mine[k]], ref.vel[mine[k]], ref.angvel[mine[k]],
+                                     tk - inst_t[k]) for k, tk in zip(near, piece_s, strict=True)]
+                times.append(piece_s)
+                first.append(np.arange(n) == 0)
+                robot.append(np.full(n, j))
+        ref.model = ref.model.replace(T_bodies=np.array(knots))
+        trajectory = cls(ref, spec, np.concatenate(times), np.concatenate(first), np.concatenate(robot), frames, [])
+        trajectory.rematch()
+        return trajectory
+
+    def _knot(self, t: np.ndarray, robot: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The knot of each ``robot`` (index) before each time (its piece's last-but-one at most)
+        and the fraction to the next."""
+        k = np.empty(len(t), dtype=int)
+        for j in np.unique(robot):
+            mine = np.flatnonzero(self.robot == j)
+            at = robot == j
+            k[at] = mine[0] + np.clip(np.searchsorted(self.times_s[mine], t[at], side="right") - 1, 0, len(mine) - 2)
+        last = np.r_[self.first[1:], True]  # a piece's last knot: the next knot starts a piece
+        k = np.where(last[k], k - 1, k)
+        return k, (t - self.times_s[k]) / (self.times_s[k + 1] - self.times_s[k])
+
+    def pose_at(self, robot: str, time_s: float) -> np.ndarray:
+        """The ``robot``'s body pose (4, 4) at ``time_s`` on the trajectory."""
+        k, alpha = self._knot(np.array([time_s]), np.array([self.ref.robots.index(robot)]))
+        R, p = interpolated_poses(self.ref.model.T_bodies[k], self.ref.model.T_bodies[k + 1], alpha)
+        return make_T(R[0], p[0])
+
+    def rematch(self) -> None:
+        """Every frame's detections matched to its body's markers at the trajectory's pose (frames
+        where nothing matches are left out)."""
+        ref = self.ref
+        intrinsics, T_world_cam = ref.intrinsics(), ref.T_world_cam()
+        layouts = {r: ref.layout(r) for r in ref.robots}
+        found = [(f, _frame_corners(f, layouts[f.robot], intrinsics[f.camera], T_world_cam[f.camera], ref.params,
+                                    self.pose_at(f.robot, f.time_s))) for f in self.frames]
+        pairs = [(f, s) for f, s in found if s is not None]
+        if not pairs:
+            raise CalibrationError("no cube sightings fit the body's trajectory")
+        self.frames, self.sets = [f for f, _ in pairs], [s for _, s in pairs]
+
+    def frame_of_corner(self) -> np.ndarray:
+        """(N,) each observed corner's frame (index into ``frames``), in :meth:`observations`' order."""
+        return np.repeat(np.arange(len(self.sets)), [4 * len(s.markers) for s in self.sets])
+
+    def observations(self, world: Mapping[str, tuple[np.ndarray, np.ndarray]] | None = None) -> Observations:
+        """The solver's observations: every matched corner at the time its row was exposed (as
+        :meth:`Refinement.observations` times them) on the trajectory, and ``world`` points (as
+        there)."""
+        ref = self.ref
+        cam_index = {c: i for i, c in enumerate(ref.cameras)}
+        firsts = {r: ref.first_marker(r) for r in ref.robots}
+        frame = self.frame_of_corner()
+        cam = np.array([cam_index[s.camera] for s in self.sets], dtype=int)[frame]
+        robot = np.array([ref.robots.index(f.robot) for f in self.frames], dtype=int)[frame]
+        marker = np.concatenate([np.repeat(s.markers + firsts[f.robot], 4) for f, s in zip(self.frames, self.sets,
+                                                                                         strict=True)])
+        pixels = np.vstack([s.corners_px.reshape(-1, 2) for s in self.sets])
+        height = np.array([ref.given[s.camera].height for s in self.sets], float)[frame]
+        row_s = np.array([ref.readout_s.get(s.camera, 0.0) for s in self.sets])[frame] / height
+        times = np.array([s.time_s for s in self.sets])[frame]
+        k, alpha = self._knot(times + (pixels[:, 1] - (height - 1) / 2.0) * row_s, robot)
+        n = len(cam)
+        inner = np.flatnonzero(~self.first[1:-1] & ~self.first[2:]) + 1  # knots with both neighbours in their piece
+        wc, wp, wx = [], [], []
+        for name, (points, px) in (world or {}).items():
+            wc.append(np.full(len(points), cam_index[name]))
+            wp.append(points)
+            wx.append(px)
+        return Observations(cam, k, marker, np.tile(np.arange(4), n // 4), pixels, np.tile(np.eye(3), (n, 1, 1)),
+                            np.zeros((n, 3)), self.robot, len(ref.robots),
+                            np.concatenate(wc) if wc else np.zeros(0, int), np.vstack(wp) if wp else np.zeros((0, 3)),
+                            np.vstack(wx) if wx else np.zeros((0, 2)), knot_alpha=alpha,
+                            knot_triples=np.column_stack([inner - 1, inner, inner + 1]),
+                            knot_spacing_s=self.spec.knot_s)
+
+    def solve(self, free: Freedom, world: Mapping[str, tuple[np.ndarray, np.ndarray]] | None = None) -> None:
+        """Solve the knots and what ``free`` frees (no motion noise: nothing is extrapolated)."""
+        free = dataclasses.replace(free, motion_noise_px_per_s=0.0, accel_sigma_m_s2=self.spec.accel_sigma_m_s2,
+                                   angular_accel_sigma_rad_s2=self.spec.angular_accel_sigma_rad_s2)
+        self.ref.model = solve(self.observations(world), self.ref.model, free)
 
 
 def rms_px(residuals: np.ndarray) -> float:
@@ -889,11 +1027,14 @@ def adjust_extrinsics(frames: Mapping[str, Iterable[Frame]], extrinsics: Mapping
                                     calibration_corners=True)
     T_prior = {c: extrinsics[c].T_world_cam for c in cameras}
     used = ref.cameras
+    trajectory = Trajectory.start(ref, TrajectorySpec(params.knot_s, params.max_span_s, params.accel_sigma_m_s2,
+                                                      params.angular_accel_sigma_rad_s2)) if params.knot_s > 0 else None
+    poses: Refinement | Trajectory = trajectory or ref  # what the solves move: the instants' poses or the knots
 
     # 1. the relative solve: cube corners only, the gauge held by weak priors on the cameras
     gauge: PosePrior | None = PosePrior(ref.model.T_cams.copy(), params.gauge_prior_position_m,
                                         np.radians(params.gauge_prior_rotation_deg))
-    ref.solve(ref.freedom(camera_prior=gauge))
+    poses.solve(ref.freedom(camera_prior=gauge))
     G, consistent, moved = _align(ref.T_world_cam(), T_prior, params)
     if moved and len(consistent) < 2:
         # two cameras disagree (or none agree): the data cannot say which one moved
@@ -917,21 +1058,24 @@ def adjust_extrinsics(frames: Mapping[str, Iterable[Frame]], extrinsics: Mapping
     # without world-marker corners the gauge stays held by weak priors at the aligned poses
     K_prior, dist_prior = ref.model.K.copy(), ref.model.dist.copy()
     for _round in range(params.rounds):
-        ref.update_velocities()
-        ref.rematch()
+        if trajectory is None:
+            ref.update_velocities()
+            ref.rematch()
+        else:
+            trajectory.rematch()
         gauge = None if world_terms else PosePrior(ref.model.T_cams.copy(), params.gauge_prior_position_m,
                                                    np.radians(params.gauge_prior_rotation_deg))
-        ref.solve(ref.freedom(camera_prior=gauge, intrinsics=params.refine_intrinsics,
+        poses.solve(ref.freedom(camera_prior=gauge, intrinsics=params.refine_intrinsics,
                               free_scale=params.free_cube_scale and bool(world_terms)), world_terms)
 
     prior = ref.model.replace(T_cams=np.array([T_prior[c] for c in used]), K=K_prior, dist=dist_prior)
-    worse = worse_world_fit(ref.observations(world_terms), prior, ref.model, used, params.world_corner_noise_px)
+    worse = worse_world_fit(poses.observations(world_terms), prior, ref.model, used, params.world_corner_noise_px)
     if worse:
         warn(f"refinement refused: {'; '.join(worse)}: the cube sightings disagree with the world marker beyond its "
              f"corners' noise ({params.world_corner_noise_px:g} px; a wrong marker or cube size in the config, a body "
              "that is not rigid, or the world marker moved); the world-marker calibration is kept")
-    return _adjustment_report(ref, extrinsics, intrinsics, cameras, T_prior, moved, world_terms, warn, warnings,
-                              refused=bool(worse))
+    return _adjustment_report(ref, trajectory, extrinsics, intrinsics, cameras, T_prior, moved, world_terms, warn,
+                              warnings, refused=bool(worse))
 
 
 def worse_world_fit(obs: Observations, prior: Model, refined: Model, cameras: Sequence[str],
@@ -951,23 +1095,30 @@ def worse_world_fit(obs: Observations, prior: Model, refined: Model, cameras: Se
     return out
 
 
-def _adjustment_report(ref: Refinement, extrinsics: Mapping[str, CameraExtrinsics],
+def _adjustment_report(ref: Refinement, trajectory: Trajectory | None, extrinsics: Mapping[str, CameraExtrinsics],
                        intrinsics: Mapping[str, CameraIntrinsics], cameras: Sequence[str],
                        T_prior: Mapping[str, np.ndarray], moved: Sequence[str],
                        world_terms: dict[str, tuple[np.ndarray, np.ndarray]], warn: Callable[[str], None],
                        warnings: list[str], refused: bool = False) -> BundleAdjustmentReport:
     """The refined extrinsics and each camera's residuals after the last solve (see
-    :func:`adjust_extrinsics`); a moved camera is also warned about. ``refused``: the residuals
-    are reported but the extrinsics (and intrinsics) stay the prior ones."""
+    :func:`adjust_extrinsics`; ``trajectory``: the body poses were its knots); a moved camera is
+    also warned about. ``refused``: the residuals are reported but the extrinsics (and
+    intrinsics) stay the prior ones. A camera's ``instants`` are, on a trajectory, its frames."""
     used = ref.cameras
-    ref.update_velocities()
-    obs, r, rw = ref.residuals(world_terms)
+    if trajectory is None:
+        ref.update_velocities()
+        obs = ref.observations(world_terms)
+        sample = obs.inst
+    else:
+        obs = trajectory.observations(world_terms)
+        sample = trajectory.frame_of_corner()
+    r, rw = corner_residuals_px(obs, ref.model), world_residuals_px(obs, ref.model)
     refined = dict(extrinsics)
     report_cams = {}
     for i, c in enumerate(used):
         mine = obs.cam == i
         shift_m, shift_deg = _pose_distance(ref.model.T_cams[i], T_prior[c])
-        n_inst = len(np.unique(obs.inst[mine]))
+        n_inst = len(np.unique(sample[mine]))
         report_cams[c] = CameraResidual(c, rms_px(r[mine]), int(mine.sum()), n_inst, rms_px(rw[obs.world_cam == i]),
                                         shift_m, shift_deg, c in moved)
         refined[c] = CameraExtrinsics(ref.model.T_cams[i], n_inst, 0.0, 0.0, METHOD)
