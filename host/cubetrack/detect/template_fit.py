@@ -176,24 +176,33 @@ def _distorted(points_px: np.ndarray, K: np.ndarray, K_inv: np.ndarray, dist: np
 
 @numba.njit(cache=True, nogil=True)
 def _map_read(table: np.ndarray, points_px: np.ndarray) -> np.ndarray:
-    """(n, 2) float64: ``table`` (a :class:`LensMap`'s map: pixel (-1, -1) at [0, 0]) read
-    bilinearly at ``points_px`` (n, 2), its border replicated, as ``cv2.remap``'s
-    ``INTER_LINEAR`` reads a float32 image at float32 points: each point rounded to 1/32 px, the
-    result rounded to float32 (here without remap's 32767-column limit and its call overhead)."""
-    rows, cols = table.shape[0], table.shape[1]
+    """(n, 2) float64: ``table`` (a :class:`LensMap`'s map) read at ``points_px`` (n, 2) by
+    :func:`_map_point`."""
     out = np.empty((points_px.shape[0], 2))
     for n in range(points_px.shape[0]):
-        qx = int(np.rint((np.float32(points_px[n, 0]) + np.float32(1.0)) * np.float32(32.0)))
-        qy = int(np.rint((np.float32(points_px[n, 1]) + np.float32(1.0)) * np.float32(32.0)))
-        fx, fy = np.float32((qx & 31) / 32.0), np.float32((qy & 31) / 32.0)
-        c0, r0 = qx >> 5, qy >> 5
-        ca, cb = min(max(c0, 0), cols - 1), min(max(c0 + 1, 0), cols - 1)
-        ra, rb = min(max(r0, 0), rows - 1), min(max(r0 + 1, 0), rows - 1)
-        for k in range(2):
-            top = table[ra, ca, k] * (np.float32(1.0) - fx) + table[ra, cb, k] * fx
-            bottom = table[rb, ca, k] * (np.float32(1.0) - fx) + table[rb, cb, k] * fx
-            out[n, k] = np.float32(top * (np.float32(1.0) - fy) + bottom * fy)
+        out[n, 0], out[n, 1] = _map_point(table, points_px[n, 0], points_px[n, 1])
     return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _map_point(table: np.ndarray, x: float, y: float) -> tuple[float, float]:
+    """``table`` (a :class:`LensMap`'s map: pixel (-1, -1) at [0, 0]) read bilinearly at (``x``,
+    ``y``), its border replicated, as ``cv2.remap``'s ``INTER_LINEAR`` reads a float32 image at
+    float32 points: the point rounded to 1/32 px, the result rounded to float32 (here without
+    remap's 32767-column limit and its call overhead)."""
+    rows, cols = table.shape[0], table.shape[1]
+    qx = int(np.rint((np.float32(x) + np.float32(1.0)) * np.float32(32.0)))
+    qy = int(np.rint((np.float32(y) + np.float32(1.0)) * np.float32(32.0)))
+    fx, fy = np.float32((qx & 31) / 32.0), np.float32((qy & 31) / 32.0)
+    c0, r0 = qx >> 5, qy >> 5
+    ca, cb = min(max(c0, 0), cols - 1), min(max(c0 + 1, 0), cols - 1)
+    ra, rb = min(max(r0, 0), rows - 1), min(max(r0 + 1, 0), rows - 1)
+    top = table[ra, ca, 0] * (np.float32(1.0) - fx) + table[ra, cb, 0] * fx
+    bottom = table[rb, ca, 0] * (np.float32(1.0) - fx) + table[rb, cb, 0] * fx
+    u = np.float64(np.float32(top * (np.float32(1.0) - fy) + bottom * fy))
+    top = table[ra, ca, 1] * (np.float32(1.0) - fx) + table[ra, cb, 1] * fx
+    bottom = table[rb, ca, 1] * (np.float32(1.0) - fx) + table[rb, cb, 1] * fx
+    return u, np.float64(np.float32(top * (np.float32(1.0) - fy) + bottom * fy))
 
 
 @dataclass(frozen=True, slots=True, eq=False)
@@ -242,23 +251,35 @@ def marker_region(gray: np.ndarray, corners_px: np.ndarray, modules: int, lens: 
     if x0 < 0 or y0 < 0 or x1 > gray.shape[1] or y1 > gray.shape[0]:
         return None
     ny, nx = int(y1 - y0), int(x1 - x0)
-    samples = lens.undistort(_pixel_grid(int(x0), int(y0), nx, ny, supersample))
-    centres = lens.undistort(_pixel_grid(int(x0), int(y0), nx, ny, 1).reshape(-1, 2))
+    table = _NO_TABLE if lens.map is None else lens.map
+    samples, centres = _pixel_grid(table, int(x0), int(y0), nx, ny, supersample)
     fitted, gradient = _compared_pixels(centres, np.linalg.inv(H0), modules, m, nx, ny)
     return MarkerRegion(start, modules, (int(x0), int(y0)), (ny, nx), samples, centres[fitted], fitted,
                         gray[y0:y1, x0:x1].astype(np.float64).ravel()[fitted], gradient, H0)
 
 
+_NO_TABLE = np.zeros((0, 0, 2), np.float32)  # :func:`_pixel_grid`'s lens map of the identity (no lens)
+
+
 @numba.njit(cache=True, nogil=True)
-def _pixel_grid(x0: int, y0: int, nx: int, ny: int, s: int) -> np.ndarray:
-    """(ny s, nx s, 2): the centres (x, y) of ``s`` x ``s`` equal parts of each pixel of the
-    ``ny`` x ``nx`` pixels from (``x0``, ``y0``), row by row (s = 1: the pixels' centres)."""
-    out = np.empty((ny * s, nx * s, 2))
+def _pixel_grid(table: np.ndarray, x0: int, y0: int, nx: int, ny: int, s: int) -> tuple[np.ndarray, np.ndarray]:
+    """The ``ny`` x ``nx`` pixels from (``x0``, ``y0``) undistorted through the lens map
+    ``table`` (:func:`_map_point`; an empty one: the identity): (ny s, nx s, 2) the centres (x,
+    y) of ``s`` x ``s`` equal parts of each pixel, and (ny nx, 2) the pixels' centres, both row by
+    row."""
+    identity = table.shape[0] == 0
+    samples = np.empty((ny * s, nx * s, 2))
     for i in range(ny * s):
+        y = y0 + i // s + ((i % s) + 0.5) / s - 0.5
         for j in range(nx * s):
-            out[i, j, 0] = x0 + j // s + ((j % s) + 0.5) / s - 0.5
-            out[i, j, 1] = y0 + i // s + ((i % s) + 0.5) / s - 0.5
-    return out
+            x = x0 + j // s + ((j % s) + 0.5) / s - 0.5
+            samples[i, j, 0], samples[i, j, 1] = (x, y) if identity else _map_point(table, x, y)
+    centres = np.empty((ny * nx, 2))
+    for i in range(ny):
+        for j in range(nx):
+            x, y = float(x0 + j), float(y0 + i)
+            centres[i * nx + j, 0], centres[i * nx + j, 1] = (x, y) if identity else _map_point(table, x, y)
+    return samples, centres
 
 
 @numba.njit(cache=True, nogil=True)
