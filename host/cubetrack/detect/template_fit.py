@@ -348,14 +348,14 @@ def _map_jacobian(table: np.ndarray, corners_px: np.ndarray) -> np.ndarray:
 
 @functools.lru_cache(maxsize=256)
 def _area_template(dictionary: str, marker_id: int, white_modules: float, steps: tuple[int, int]) -> np.ndarray:
-    """(2, n, n) float32: :func:`marker_template`'s two images blurred by a Gaussian of
+    """(n, n, 2) float32: :func:`marker_template`'s two images blurred by a Gaussian of
     ``steps`` x ``_AREA_STEP`` template samples along x and y (a sample's area, see
     :func:`_area_steps`), so that reading them at a few points per pixel keeps the sub-pixel place
     of every cell edge; cached per marker and blur: per marker size."""
     template, _ = marker_template(dictionary, marker_id, white_modules)
     sx, sy = (max(k * _AREA_STEP, 0.01) for k in steps)
     out = np.stack([cv2.GaussianBlur(t, (0, 0), sigmaX=sx, sigmaY=sy, borderType=cv2.BORDER_REPLICATE)
-                    for t in template])
+                    for t in template], axis=-1)  # (n, n, 2): a bilinear read's four corners hold both images
     out.setflags(write=False)
     return out
 
@@ -410,7 +410,7 @@ def _pixel_areas(template: np.ndarray, samples: np.ndarray, H_inv: np.ndarray, n
     them through the inverse homography ``H_inv`` bilinearly, 0 and 1 beyond them
     (``cv2.remap``'s ``INTER_LINEAR`` and ``BORDER_CONSTANT``, at the exact point where OpenCV
     rounds it to 1/32 of a sample)."""
-    rows, cols = template.shape[1], template.shape[2]
+    rows, cols = template.shape[0], template.shape[1]
     out = np.empty((ny, nx, 2), np.float32)
     cols_s, scale = nx * s, 1.0 / (s * s)
     for i in range(ny):
@@ -426,26 +426,27 @@ def _pixel_areas(template: np.ndarray, samples: np.ndarray, H_inv: np.ndarray, n
                     fx, fy = u - c0, v - r0
                     if 0 <= c0 < cols - 1 and 0 <= r0 < rows - 1:
                         w00, w01, w10, w11 = (1.0 - fx) * (1.0 - fy), fx * (1.0 - fy), (1.0 - fx) * fy, fx * fy
-                        a += (w00 * template[0, r0, c0] + w01 * template[0, r0, c0 + 1]
-                              + w10 * template[0, r0 + 1, c0] + w11 * template[0, r0 + 1, c0 + 1])
-                        b += (w00 * template[1, r0, c0] + w01 * template[1, r0, c0 + 1]
-                              + w10 * template[1, r0 + 1, c0] + w11 * template[1, r0 + 1, c0 + 1])
+                        a += (w00 * template[r0, c0, 0] + w01 * template[r0, c0 + 1, 0]
+                              + w10 * template[r0 + 1, c0, 0] + w11 * template[r0 + 1, c0 + 1, 0])
+                        b += (w00 * template[r0, c0, 1] + w01 * template[r0, c0 + 1, 1]
+                              + w10 * template[r0 + 1, c0, 1] + w11 * template[r0 + 1, c0 + 1, 1])
                     else:  # at or beyond the template's edge: the border values
-                        a += _border_read(template[0], r0, c0, fx, fy, 0.0)
-                        b += _border_read(template[1], r0, c0, fx, fy, 1.0)
+                        a += _border_read(template, 0, r0, c0, fx, fy, 0.0)
+                        b += _border_read(template, 1, r0, c0, fx, fy, 1.0)
             out[i, j, 0], out[i, j, 1] = a * scale, b * scale
     return out
 
 
 @numba.njit(cache=True, nogil=True)
-def _border_read(image: np.ndarray, r0: int, c0: int, fx: float, fy: float, border: float) -> float:
-    """A bilinear read of ``image`` between rows ``r0``, ``r0 + 1`` and columns ``c0``, ``c0 + 1``
-    (weights ``fx``, ``fy``) where some of the four lie beyond it: those read ``border``."""
+def _border_read(image: np.ndarray, k: int, r0: int, c0: int, fx: float, fy: float, border: float) -> float:
+    """A bilinear read of the (rows, cols, 2) ``image``'s image ``k`` between rows ``r0``, ``r0 + 1``
+    and columns ``c0``, ``c0 + 1`` (weights ``fx``, ``fy``) where some of the four lie beyond it:
+    those read ``border``."""
     total = 0.0
     for dr in range(2):
         for dc in range(2):
             r, c = r0 + dr, c0 + dc
-            value = image[r, c] if 0 <= r < image.shape[0] and 0 <= c < image.shape[1] else border
+            value = image[r, c, k] if 0 <= r < image.shape[0] and 0 <= c < image.shape[1] else border
             total += value * (fx if dc else 1.0 - fx) * (fy if dr else 1.0 - fy)
     return total
 
