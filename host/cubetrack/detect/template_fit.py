@@ -83,7 +83,7 @@ def marker_template(dictionary: str, marker_id: int, white_modules: float) -> tu
 _SQUARE = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _homography_system(corners: np.ndarray, side: float) -> np.ndarray:
     """The 8x8 matrix of the homography from the square of ``side`` to ``corners`` (4, 2) (h22 = 1)."""
     A = np.zeros((8, 8))
@@ -152,7 +152,7 @@ class LensMap:
         return _distorted(flat, self.K, self.K_inv, self.dist).reshape(np.shape(points_px))
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _distorted(points_px: np.ndarray, K: np.ndarray, K_inv: np.ndarray, dist: np.ndarray) -> np.ndarray:
     """(n, 2): ``cv2.projectPoints`` of the rays of ideal pinhole pixels ``points_px`` (n, 2) of
     ``K`` (``K_inv`` its inverse) through OpenCV's lens model with 4 or 5 coefficients ``dist``
@@ -174,7 +174,7 @@ def _distorted(points_px: np.ndarray, K: np.ndarray, K_inv: np.ndarray, dist: np
     return out
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _map_read(table: np.ndarray, points_px: np.ndarray) -> np.ndarray:
     """(n, 2) float64: ``table`` (a :class:`LensMap`'s map) read at ``points_px`` (n, 2) by
     :func:`_map_point`."""
@@ -184,7 +184,7 @@ def _map_read(table: np.ndarray, points_px: np.ndarray) -> np.ndarray:
     return out
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _map_point(table: np.ndarray, x: float, y: float) -> tuple[float, float]:
     """``table`` (a :class:`LensMap`'s map: pixel (-1, -1) at [0, 0]) read bilinearly at (``x``,
     ``y``), its border replicated, as ``cv2.remap``'s ``INTER_LINEAR`` reads a float32 image at
@@ -261,7 +261,7 @@ def marker_region(gray: np.ndarray, corners_px: np.ndarray, modules: int, lens: 
 _NO_TABLE = np.zeros((0, 0, 2), np.float32)  # :func:`_pixel_grid`'s lens map of the identity (no lens)
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _pixel_grid(table: np.ndarray, x0: int, y0: int, nx: int, ny: int, s: int) -> tuple[np.ndarray, np.ndarray]:
     """The ``ny`` x ``nx`` pixels from (``x0``, ``y0``) undistorted through the lens map
     ``table`` (:func:`_map_point`; an empty one: the identity): (ny s, nx s, 2) the centres (x,
@@ -282,7 +282,7 @@ def _pixel_grid(table: np.ndarray, x0: int, y0: int, nx: int, ny: int, s: int) -
     return samples, centres
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _compared_pixels(centres_px: np.ndarray, H0_inv: np.ndarray, modules: int, margin: float, nx: int,
                      ny: int) -> tuple[np.ndarray, np.ndarray]:
     """Which of a region's ``ny`` x ``nx`` pixels (undistorted ``centres_px``, row by row) a fit
@@ -334,7 +334,7 @@ def _lens_jacobian(lens: LensMap, corners_px: np.ndarray) -> np.ndarray:
     return np.linalg.inv(np.column_stack([probe[1] - probe[0], probe[2] - probe[0]]))
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _map_jacobian(table: np.ndarray, corners_px: np.ndarray) -> np.ndarray:
     """:func:`_lens_jacobian` through a :class:`LensMap`'s ``table`` at the mean of ``corners_px``
     (4, 2)."""
@@ -369,7 +369,7 @@ def _area_steps(H: np.ndarray, modules: int, lens_jacobian: np.ndarray, supersam
     return int(round(sx)), int(round(sy))
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _area_sigmas(H: np.ndarray, modules: float, lens_jacobian: np.ndarray, supersample: float) -> tuple[float, float]:
     """:func:`_area_steps` before rounding, compiled."""
     c = np.array([modules / 2.0, modules / 2.0, 1.0])
@@ -402,7 +402,7 @@ def _fast_region(gray: np.ndarray, corners_px: np.ndarray, modules: int, lens: L
                        np.flatnonzero(region.fitted))
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _pixel_areas(template: np.ndarray, samples: np.ndarray, H_inv: np.ndarray, ny: int, nx: int,
                  s: int) -> np.ndarray:
     """(ny, nx, 2) float32: each pixel's mean of its ``s`` x ``s`` samples' reads of both template
@@ -437,7 +437,7 @@ def _pixel_areas(template: np.ndarray, samples: np.ndarray, H_inv: np.ndarray, n
     return out
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _border_read(image: np.ndarray, k: int, r0: int, c0: int, fx: float, fy: float, border: float) -> float:
     """A bilinear read of the (rows, cols, 2) ``image``'s image ``k`` between rows ``r0``, ``r0 + 1``
     and columns ``c0``, ``c0 + 1`` (weights ``fx``, ``fy``) where some of the four lie beyond it:
@@ -451,7 +451,7 @@ def _border_read(image: np.ndarray, k: int, r0: int, c0: int, fx: float, fy: flo
     return total
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _blurred(image: np.ndarray, sigma: float) -> np.ndarray:
     """(ny, nx, 2) ``image`` blurred by a Gaussian of ``sigma`` px, border replicated:
     ``cv2.GaussianBlur(image, (0, 0), sigma, borderType=cv2.BORDER_REPLICATE)``'s kernel (4 sigma
@@ -462,7 +462,7 @@ def _blurred(image: np.ndarray, sigma: float) -> np.ndarray:
     return _filtered_across(_filtered_across(image, kernel), kernel).astype(np.float32)
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _filtered_across(image: np.ndarray, kernel: np.ndarray) -> np.ndarray:
     """(nx, ny, 2) float64: the (ny, nx, 2) ``image`` filtered along its rows by the odd-sized
     ``kernel``, border replicated, and transposed (so that a second call filters the columns)."""
@@ -480,7 +480,7 @@ def _filtered_across(image: np.ndarray, kernel: np.ndarray) -> np.ndarray:
     return out
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _brightness_system(image: np.ndarray, index: np.ndarray, gradient: np.ndarray,
                        pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
     """The brightness model's normal equations (its columns per compared pixel: offset, the
@@ -505,7 +505,7 @@ def _brightness_system(image: np.ndarray, index: np.ndarray, gradient: np.ndarra
     return N, rhs, beyond
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _step_system(image: np.ndarray, wider: np.ndarray, gx: np.ndarray, gy: np.ndarray, index: np.ndarray,
                  gradient: np.ndarray, pixels: np.ndarray, centres: np.ndarray, lens: np.ndarray,
                  H_inv: np.ndarray, dH: np.ndarray, coef: np.ndarray, beyond: bool) -> tuple[np.ndarray, np.ndarray]:
@@ -551,7 +551,7 @@ def _step_system(image: np.ndarray, wider: np.ndarray, gx: np.ndarray, gy: np.nd
     return N, rhs
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _central_differences(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The (ny, nx, 2) ``image``'s gradient along x and y, half the difference of the two
     neighbours, border replicated (``cv2.Sobel`` with ``ksize=1, scale=0.5``)."""
@@ -565,7 +565,7 @@ def _central_differences(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return gx, gy
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _normal_solution(N: np.ndarray, rhs: np.ndarray) -> np.ndarray:
     """The least-squares solution from its normal equations ``N x = rhs`` (``N = A^T A``,
     ``rhs = A^T b``); a column of ``A`` that vanishes (no pixel of the region lies beyond the
@@ -582,7 +582,7 @@ def _normal_solution(N: np.ndarray, rhs: np.ndarray) -> np.ndarray:
     return x
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _homography_with_derivatives(corners: np.ndarray, side: float) -> tuple[np.ndarray, np.ndarray]:
     """:func:`square_homography_derivatives`, compiled."""
     A = _homography_system(corners, side)
@@ -597,7 +597,7 @@ def _homography_with_derivatives(corners: np.ndarray, side: float) -> tuple[np.n
     return h.reshape(3, 3), dH.reshape(8, 3, 3)
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _gauss_newton_step(template: np.ndarray, samples: np.ndarray, shape: tuple[int, int], s: int,
                        index: np.ndarray, gradient: np.ndarray, pixels: np.ndarray, centres: np.ndarray,
                        lens: np.ndarray, H: np.ndarray, dH: np.ndarray, blur: float) -> np.ndarray:
@@ -619,7 +619,7 @@ def _gauss_newton_step(template: np.ndarray, samples: np.ndarray, shape: tuple[i
     return _normal_solution(N, rhs)
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _fitted_offsets(template: np.ndarray, samples: np.ndarray, shape: tuple[int, int], s: int,
                     index: np.ndarray, gradient: np.ndarray, pixels: np.ndarray, centres: np.ndarray,
                     lens: np.ndarray, start: np.ndarray, modules: int, blur: float, iterations: int) -> np.ndarray:
