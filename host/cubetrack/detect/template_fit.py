@@ -413,15 +413,18 @@ def _pixel_areas(template: np.ndarray, samples: np.ndarray, H_inv: np.ndarray, n
     rows, cols = template.shape[0], template.shape[1]
     out = np.empty((ny, nx, 2), np.float32)
     cols_s, scale = nx * s, 1.0 / (s * s)
+    h00, h01, h02, h10, h11, h12 = H_inv[0, 0], H_inv[0, 1], H_inv[0, 2], H_inv[1, 0], H_inv[1, 1], H_inv[1, 2]
+    h20, h21, h22 = H_inv[2, 0], H_inv[2, 1], H_inv[2, 2]  # locals: the loop reloads array elements
     for i in range(ny):
         for j in range(nx):
             a = b = 0.0
             for di in range(s):
                 for dj in range(s):
-                    x, y = samples[(i * s + di) * cols_s + j * s + dj]
-                    z = H_inv[2, 0] * x + H_inv[2, 1] * y + H_inv[2, 2]
-                    u = TEMPLATE_RES * (H_inv[0, 0] * x + H_inv[0, 1] * y + H_inv[0, 2]) / z + _TEMPLATE_SHIFT
-                    v = TEMPLATE_RES * (H_inv[1, 0] * x + H_inv[1, 1] * y + H_inv[1, 2]) / z + _TEMPLATE_SHIFT
+                    k = (i * s + di) * cols_s + j * s + dj
+                    x, y = samples[k, 0], samples[k, 1]
+                    z = h20 * x + h21 * y + h22
+                    u = TEMPLATE_RES * (h00 * x + h01 * y + h02) / z + _TEMPLATE_SHIFT
+                    v = TEMPLATE_RES * (h10 * x + h11 * y + h12) / z + _TEMPLATE_SHIFT
                     c0, r0 = int(np.floor(u)), int(np.floor(v))
                     fx, fy = u - c0, v - r0
                     if 0 <= c0 < cols - 1 and 0 <= r0 < rows - 1:
