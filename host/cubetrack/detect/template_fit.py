@@ -17,7 +17,9 @@ cell's edge then helps, none biases.
 This module holds what every template fit shares — the marker's template image
 (:func:`marker_template`), the square's homography (:func:`square_homography`), the lens
 mapping (:func:`distort_px`, :class:`LensMap`) and the pixels a fit compares
-(:func:`marker_region`) — and the tracking-time fit, :func:`fast_template_corners`: Gauss-Newton
+(:func:`_region_start`, :func:`_region_arrays`: compiled, as the whole fit is but for a lens
+model OpenCV alone knows and the cached templates) — and the tracking-time fit,
+:func:`fast_template_corners`: Gauss-Newton
 on the 8 corner coordinates and the blur with the brightness model solved jointly, the Jacobian
 at pixel level (the template's gradient images resampled like the prediction, times the
 homography mapping's analytic derivative at the pixel centre), the lens undistortion read from
@@ -205,57 +207,59 @@ def _map_point(table: np.ndarray, x: float, y: float) -> tuple[float, float]:
     return u, np.float64(np.float32(top * (np.float32(1.0) - fy) + bottom * fy))
 
 
-@dataclass(frozen=True, slots=True, eq=False)
-class MarkerRegion:
-    """The pixels a template fit of one marker compares, with everything the fit needs of them.
-
-    ``start_px`` (4, 2): the starting corners, undistorted; ``modules``: modules across the
-    marker; ``origin``: the region's top-left pixel (x, y) and ``shape`` (ny, nx) its size;
-    ``samples_px`` (ny s, nx s, 2): undistorted positions of the ``s`` x ``s`` samples of each
-    pixel's area; ``centres_px`` (n, 2): undistorted centres of the n compared pixels (those
-    whose centre lies on the marker or within ``margin`` modules of it), ``fitted`` (ny nx,)
-    marks them, ``pixels`` (n,) are their values and ``gradient`` (n, 2) their position across
-    the region (for the brightness's linear variation); ``H0`` the homography from the square
-    of ``modules`` to ``start_px`` (:func:`square_homography`)."""
-
-    start_px: np.ndarray
-    modules: int
-    origin: tuple[int, int]
-    shape: tuple[int, int]
-    samples_px: np.ndarray
-    centres_px: np.ndarray
-    fitted: np.ndarray
-    pixels: np.ndarray
-    gradient: np.ndarray
-    H0: np.ndarray
-
-
-def marker_region(gray: np.ndarray, corners_px: np.ndarray, modules: int, lens: LensMap, supersample: int,
-                  margin_modules: float) -> MarkerRegion | None:
-    """The region a template fit of the marker near ``corners_px`` (distorted, TL TR BR BL)
-    compares (see :class:`MarkerRegion`), through the camera's ``lens`` (distorted -> ideal pinhole
-    pixels and back); None when the corners do not undistort or the marker with its margin and the
-    blur's reach is not wholly inside the image."""
-    start = lens.undistort(_corner_array(corners_px))
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _region_start(table: np.ndarray, corners_px: np.ndarray, modules: int,
+                  margin: float) -> tuple[bool, np.ndarray, np.ndarray, np.ndarray]:
+    """A fit's start from the marker's distorted ``corners_px`` (4, 2, TL TR BR BL) through the
+    lens map ``table`` (:func:`_map_point`; empty: the identity): whether they undistort, the
+    undistorted corners (4, 2), the homography ``H0`` from the square of ``modules`` to them
+    (:func:`square_homography`) and the undistorted ring (4, 2) ``margin`` modules around the
+    marker (``cv2.perspectiveTransform``'s arithmetic)."""
+    start = corners_px.copy() if table.shape[0] == 0 else _map_read(table, corners_px)
+    H0, ring = np.eye(3), np.empty((4, 2))
     if not np.isfinite(start).all():
-        return None
-    m = margin_modules
-    ring = np.array([[-m, -m], [modules + m, -m], [modules + m, modules + m], [-m, modules + m]])
-    H0 = square_homography(start, modules)
-    ring = cv2.perspectiveTransform(ring.reshape(-1, 1, 2), H0).reshape(-1, 2)
-    ring_px = lens.distort(ring)
+        return False, start, H0, ring
+    h = np.linalg.solve(_homography_system(start, float(modules)), start.ravel())
+    H0.ravel()[:8] = h
+    for i in range(4):
+        x = -margin if i in (0, 3) else modules + margin
+        y = -margin if i in (0, 1) else modules + margin
+        w = x * H0[2, 0] + y * H0[2, 1] + H0[2, 2]
+        w = 1.0 / w if abs(w) > np.finfo(np.float32).eps else 0.0
+        ring[i, 0] = (x * H0[0, 0] + y * H0[0, 1] + H0[0, 2]) * w
+        ring[i, 1] = (x * H0[1, 0] + y * H0[1, 1] + H0[1, 2]) * w
+    return True, start, H0, ring
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _region_arrays(table: np.ndarray, corners_px: np.ndarray, H0: np.ndarray, ring_px: np.ndarray, modules: int,
+                   margin: float, s: int, width: int,
+                   height: int) -> tuple[bool, tuple[int, int, int, int], np.ndarray, np.ndarray, np.ndarray,
+                                         np.ndarray, np.ndarray]:
+    """The pixels a fit of the marker (distorted ``corners_px``, its homography ``H0`` and its
+    ring ``ring_px`` (4, 2) in the distorted image, :func:`_region_start`) compares, through the
+    lens map ``table``: whether its region (the ring's bounds and ``REGION_PAD_PX``, what the blur
+    reads) lies wholly inside the ``width`` x ``height`` image; the region (x0, y0, nx, ny); its
+    pixels' ``s`` x ``s`` samples (ny s nx s, 2), undistorted; the compared pixels (those whose
+    centre lies on the marker or within ``margin`` modules of it): their flat indices (n,) in
+    the region, their undistorted centres (n, 2) and their places across the region (n, 2,
+    :func:`_compared_pixels`) and the lens's local map (2, 2) at the marker's centre
+    (:func:`_map_jacobian`; the identity without a lens)."""
+    empty = np.empty((0, 2))
     if not np.isfinite(ring_px).all():
-        return None
-    x0, y0 = np.floor(ring_px.min(axis=0)).astype(int) - REGION_PAD_PX
-    x1, y1 = np.ceil(ring_px.max(axis=0)).astype(int) + REGION_PAD_PX + 1
-    if x0 < 0 or y0 < 0 or x1 > gray.shape[1] or y1 > gray.shape[0]:
-        return None
-    ny, nx = int(y1 - y0), int(x1 - x0)
-    table = _NO_TABLE if lens.map is None else lens.map
-    samples, centres = _pixel_grid(table, int(x0), int(y0), nx, ny, supersample)
-    fitted, gradient = _compared_pixels(centres, np.linalg.inv(H0), modules, m, nx, ny)
-    return MarkerRegion(start, modules, (int(x0), int(y0)), (ny, nx), samples, centres[fitted], fitted,
-                        gray[y0:y1, x0:x1].astype(np.float64).ravel()[fitted], gradient, H0)
+        return False, (0, 0, 0, 0), empty, np.empty(0, np.int64), empty, empty, np.eye(2)
+    x0 = int(np.floor(ring_px[:, 0].min())) - REGION_PAD_PX
+    y0 = int(np.floor(ring_px[:, 1].min())) - REGION_PAD_PX
+    x1 = int(np.ceil(ring_px[:, 0].max())) + REGION_PAD_PX + 1
+    y1 = int(np.ceil(ring_px[:, 1].max())) + REGION_PAD_PX + 1
+    if x0 < 0 or y0 < 0 or x1 > width or y1 > height:
+        return False, (0, 0, 0, 0), empty, np.empty(0, np.int64), empty, empty, np.eye(2)
+    nx, ny = x1 - x0, y1 - y0
+    samples, centres = _pixel_grid(table, x0, y0, nx, ny, s)
+    fitted, gradient = _compared_pixels(centres, np.linalg.inv(H0), modules, margin, nx, ny)
+    index = np.flatnonzero(fitted)
+    lens = np.eye(2) if table.shape[0] == 0 else _map_jacobian(table, corners_px)
+    return True, (x0, y0, nx, ny), samples.reshape(-1, 2), index, centres[index], gradient, lens
 
 
 _NO_TABLE = np.zeros((0, 0, 2), np.float32)  # :func:`_pixel_grid`'s lens map of the identity (no lens)
@@ -323,21 +327,10 @@ class TemplateFitSettings:
 FAST_SETTINGS = TemplateFitSettings(supersample=2)  # tracking's fit (fast_template_corners)
 
 
-def _lens_jacobian(lens: LensMap, corners_px: np.ndarray) -> np.ndarray:
-    """(2, 2): distorted pixels per undistorted pixel at the marker's centre (the lens's local
-    linear map, from ``lens``'s undistortion one pixel either way; compiled with a lens map:
-    :func:`_map_jacobian`)."""
-    if lens.map is not None:
-        return _map_jacobian(lens.map, _corner_array(corners_px))
-    mid = np.asarray(corners_px, float).reshape(4, 2).mean(axis=0)
-    probe = lens.undistort(np.array([mid, mid + [1.0, 0.0], mid + [0.0, 1.0]]))
-    return np.linalg.inv(np.column_stack([probe[1] - probe[0], probe[2] - probe[0]]))
-
-
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _map_jacobian(table: np.ndarray, corners_px: np.ndarray) -> np.ndarray:
-    """:func:`_lens_jacobian` through a :class:`LensMap`'s ``table`` at the mean of ``corners_px``
-    (4, 2)."""
+    """(2, 2): distorted pixels per undistorted pixel at the mean of ``corners_px`` (4, 2) (the
+    lens's local linear map, from a :class:`LensMap`'s ``table`` one pixel either way)."""
     mid_x = (corners_px[0, 0] + corners_px[1, 0] + corners_px[2, 0] + corners_px[3, 0]) / 4.0
     mid_y = (corners_px[0, 1] + corners_px[1, 1] + corners_px[2, 1] + corners_px[3, 1]) / 4.0
     probe = _map_read(table, np.array([[mid_x, mid_y], [mid_x + 1.0, mid_y], [mid_x, mid_y + 1.0]]))
@@ -377,29 +370,6 @@ def _area_sigmas(H: np.ndarray, modules: float, lens_jacobian: np.ndarray, super
     J = lens_jacobian @ (H[:2, :2] - np.outer(h[:2] / h[2], H[2, :2])) / h[2]  # distorted px per module
     cov = np.linalg.inv(J.T @ J) * (TEMPLATE_RES ** 2 / (12.0 * supersample ** 2))
     return np.sqrt(cov[0, 0]) / _AREA_STEP, np.sqrt(cov[1, 1]) / _AREA_STEP
-
-
-@dataclass(frozen=True, slots=True, eq=False)
-class _FastRegion:
-    """What :func:`fast_template_corners` compares: the region's ``shape`` (ny, nx); ``samples``
-    (ny s nx s, 2) its pixels' samples and ``centres`` (n, 2) the compared pixels' centres,
-    undistorted; ``lens`` (2, 2) the lens's local map (:func:`_lens_jacobian`) and the
-    rest as :class:`MarkerRegion`'s."""
-
-    region: MarkerRegion
-    samples: np.ndarray
-    centres: np.ndarray
-    lens: np.ndarray
-    index: np.ndarray  # (n,) the compared pixels' flat indices in the region
-
-
-def _fast_region(gray: np.ndarray, corners_px: np.ndarray, modules: int, lens: LensMap,
-                 settings: TemplateFitSettings) -> _FastRegion | None:
-    region = marker_region(gray, corners_px, modules, lens, settings.supersample, settings.margin_modules)
-    if region is None:
-        return None
-    return _FastRegion(region, region.samples_px.reshape(-1, 2), region.centres_px, _lens_jacobian(lens, corners_px),
-                       np.flatnonzero(region.fitted))
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
@@ -653,16 +623,20 @@ def fast_template_corners(gray: np.ndarray, corners_px: np.ndarray, dictionary: 
     a quarter of the body calibration's fit's reads) and takes the corners' Jacobian from the
     predicted image's own gradient (:func:`_gauss_newton_step`)."""
     _, modules = marker_template(dictionary, marker_id, settings.white_modules)
-    f = _fast_region(gray, corners_px, modules, lens, settings)
-    if f is None:
-        return None
-    start = f.region.start_px
-    s = settings.supersample
-    template = _area_template(dictionary, marker_id, settings.white_modules,
-                              _area_steps(f.region.H0, modules, f.lens, s))
-    r = f.region
+    table = _NO_TABLE if lens.map is None else lens.map
+    corners = _corner_array(corners_px)
+    s, m = settings.supersample, settings.margin_modules
     try:
-        p = _fitted_offsets(template, f.samples, r.shape, s, f.index, r.gradient, r.pixels, f.centres, f.lens, start,
+        ok, start, H0, ring = _region_start(table, corners, modules, m)
+        if not ok:
+            return None
+        ok, (x0, y0, nx, ny), samples, index, centres, gradient, local = _region_arrays(
+            table, corners, H0, lens.distort(ring), modules, m, s, gray.shape[1], gray.shape[0])
+        if not ok:
+            return None
+        template = _area_template(dictionary, marker_id, settings.white_modules, _area_steps(H0, modules, local, s))
+        pixels = np.take(gray[y0:y0 + ny, x0:x0 + nx], index).astype(np.float64)
+        p = _fitted_offsets(template, samples, (ny, nx), s, index, gradient, pixels, centres, local, start,
                             modules, settings.start_blur_px, iterations)
     except np.linalg.LinAlgError:  # a degenerate homography
         return None
