@@ -472,9 +472,10 @@ def _brightness_system(image: np.ndarray, index: np.ndarray, gradient: np.ndarra
         row[0], row[1], row[2], row[3] = 1.0, P, P * gradient[i, 0], P * gradient[i, 1]
         row[4] = np.float64(flat[index[i], 1]) if beyond else 0.0
         for a in range(5):
-            rhs[a] += row[a] * pixels[i]
+            ra = row[a]  # a local, as in _step_system
+            rhs[a] += ra * pixels[i]
             for b in range(5):
-                N[a, b] += row[a] * row[b]
+                N[a, b] += ra * row[b]
     return N, rhs, beyond
 
 
@@ -515,9 +516,10 @@ def _step_system(image: np.ndarray, wider: np.ndarray, gx: np.ndarray, gy: np.nd
         row[9], row[10], row[11], row[12], row[13] = 1.0, P, P * g0, P * g1, B
         r = pixels[i] - (coef[0] + coef[1] * P + coef[2] * P * g0 + coef[3] * P * g1 + coef[4] * B)
         for a in range(14):
-            rhs[a] += row[a] * r
+            ra = row[a]  # a local: the matrix's stores would reload it
+            rhs[a] += ra * r
             for b in range(a, 14):
-                N[a, b] += row[a] * row[b]
+                N[a, b] += ra * row[b]
     for a in range(14):
         for b in range(a):
             N[a, b] = N[b, a]
