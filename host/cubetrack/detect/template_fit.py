@@ -17,7 +17,9 @@ cell's edge then helps, none biases.
 This module holds what every template fit shares — the marker's template image
 (:func:`marker_template`), the square's homography (:func:`square_homography`), the lens
 mapping (:func:`distort_px`, :class:`LensMap`) and the pixels a fit compares
-(:func:`marker_region`) — and the tracking-time fit, :func:`fast_template_corners`: Gauss-Newton
+(:func:`_region_start`, :func:`_region_arrays`: compiled, as the whole fit is but for a lens
+model OpenCV alone knows and the cached templates) — and the tracking-time fit,
+:func:`fast_template_corners`: Gauss-Newton
 on the 8 corner coordinates and the blur with the brightness model solved jointly, the Jacobian
 at pixel level (the template's gradient images resampled like the prediction, times the
 homography mapping's analytic derivative at the pixel centre), the lens undistortion read from
@@ -83,7 +85,7 @@ def marker_template(dictionary: str, marker_id: int, white_modules: float) -> tu
 _SQUARE = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _homography_system(corners: np.ndarray, side: float) -> np.ndarray:
     """The 8x8 matrix of the homography from the square of ``side`` to ``corners`` (4, 2) (h22 = 1)."""
     A = np.zeros((8, 8))
@@ -152,7 +154,7 @@ class LensMap:
         return _distorted(flat, self.K, self.K_inv, self.dist).reshape(np.shape(points_px))
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _distorted(points_px: np.ndarray, K: np.ndarray, K_inv: np.ndarray, dist: np.ndarray) -> np.ndarray:
     """(n, 2): ``cv2.projectPoints`` of the rays of ideal pinhole pixels ``points_px`` (n, 2) of
     ``K`` (``K_inv`` its inverse) through OpenCV's lens model with 4 or 5 coefficients ``dist``
@@ -174,94 +176,117 @@ def _distorted(points_px: np.ndarray, K: np.ndarray, K_inv: np.ndarray, dist: np
     return out
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _map_read(table: np.ndarray, points_px: np.ndarray) -> np.ndarray:
-    """(n, 2) float64: ``table`` (a :class:`LensMap`'s map: pixel (-1, -1) at [0, 0]) read
-    bilinearly at ``points_px`` (n, 2), its border replicated, as ``cv2.remap``'s
-    ``INTER_LINEAR`` reads a float32 image at float32 points: each point rounded to 1/32 px, the
-    result rounded to float32 (here without remap's 32767-column limit and its call overhead)."""
-    rows, cols = table.shape[0], table.shape[1]
+    """(n, 2) float64: ``table`` (a :class:`LensMap`'s map) read at ``points_px`` (n, 2) by
+    :func:`_map_point`."""
     out = np.empty((points_px.shape[0], 2))
     for n in range(points_px.shape[0]):
-        qx = int(np.rint((np.float32(points_px[n, 0]) + np.float32(1.0)) * np.float32(32.0)))
-        qy = int(np.rint((np.float32(points_px[n, 1]) + np.float32(1.0)) * np.float32(32.0)))
-        fx, fy = np.float32((qx & 31) / 32.0), np.float32((qy & 31) / 32.0)
-        c0, r0 = qx >> 5, qy >> 5
-        ca, cb = min(max(c0, 0), cols - 1), min(max(c0 + 1, 0), cols - 1)
-        ra, rb = min(max(r0, 0), rows - 1), min(max(r0 + 1, 0), rows - 1)
-        for k in range(2):
-            top = table[ra, ca, k] * (np.float32(1.0) - fx) + table[ra, cb, k] * fx
-            bottom = table[rb, ca, k] * (np.float32(1.0) - fx) + table[rb, cb, k] * fx
-            out[n, k] = np.float32(top * (np.float32(1.0) - fy) + bottom * fy)
+        out[n, 0], out[n, 1] = _map_point(table, points_px[n, 0], points_px[n, 1])
     return out
 
 
-@dataclass(frozen=True, slots=True, eq=False)
-class MarkerRegion:
-    """The pixels a template fit of one marker compares, with everything the fit needs of them.
-
-    ``start_px`` (4, 2): the starting corners, undistorted; ``modules``: modules across the
-    marker; ``origin``: the region's top-left pixel (x, y) and ``shape`` (ny, nx) its size;
-    ``samples_px`` (ny s, nx s, 2): undistorted positions of the ``s`` x ``s`` samples of each
-    pixel's area; ``centres_px`` (n, 2): undistorted centres of the n compared pixels (those
-    whose centre lies on the marker or within ``margin`` modules of it), ``fitted`` (ny nx,)
-    marks them, ``pixels`` (n,) are their values and ``gradient`` (n, 2) their position across
-    the region (for the brightness's linear variation); ``H0`` the homography from the square
-    of ``modules`` to ``start_px`` (:func:`square_homography`)."""
-
-    start_px: np.ndarray
-    modules: int
-    origin: tuple[int, int]
-    shape: tuple[int, int]
-    samples_px: np.ndarray
-    centres_px: np.ndarray
-    fitted: np.ndarray
-    pixels: np.ndarray
-    gradient: np.ndarray
-    H0: np.ndarray
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _map_point(table: np.ndarray, x: float, y: float) -> tuple[float, float]:
+    """``table`` (a :class:`LensMap`'s map: pixel (-1, -1) at [0, 0]) read bilinearly at (``x``,
+    ``y``), its border replicated, as ``cv2.remap``'s ``INTER_LINEAR`` reads a float32 image at
+    float32 points: the point rounded to 1/32 px, the result rounded to float32 (here without
+    remap's 32767-column limit and its call overhead)."""
+    rows, cols = table.shape[0], table.shape[1]
+    qx = int(np.rint((np.float32(x) + np.float32(1.0)) * np.float32(32.0)))
+    qy = int(np.rint((np.float32(y) + np.float32(1.0)) * np.float32(32.0)))
+    fx, fy = np.float32((qx & 31) / 32.0), np.float32((qy & 31) / 32.0)
+    c0, r0 = qx >> 5, qy >> 5
+    ca, cb = min(max(c0, 0), cols - 1), min(max(c0 + 1, 0), cols - 1)
+    ra, rb = min(max(r0, 0), rows - 1), min(max(r0 + 1, 0), rows - 1)
+    top = table[ra, ca, 0] * (np.float32(1.0) - fx) + table[ra, cb, 0] * fx
+    bottom = table[rb, ca, 0] * (np.float32(1.0) - fx) + table[rb, cb, 0] * fx
+    u = np.float64(np.float32(top * (np.float32(1.0) - fy) + bottom * fy))
+    top = table[ra, ca, 1] * (np.float32(1.0) - fx) + table[ra, cb, 1] * fx
+    bottom = table[rb, ca, 1] * (np.float32(1.0) - fx) + table[rb, cb, 1] * fx
+    return u, np.float64(np.float32(top * (np.float32(1.0) - fy) + bottom * fy))
 
 
-def marker_region(gray: np.ndarray, corners_px: np.ndarray, modules: int, lens: LensMap, supersample: int,
-                  margin_modules: float) -> MarkerRegion | None:
-    """The region a template fit of the marker near ``corners_px`` (distorted, TL TR BR BL)
-    compares (see :class:`MarkerRegion`), through the camera's ``lens`` (distorted -> ideal pinhole
-    pixels and back); None when the corners do not undistort or the marker with its margin and the
-    blur's reach is not wholly inside the image."""
-    start = lens.undistort(_corner_array(corners_px))
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _region_start(table: np.ndarray, corners_px: np.ndarray, modules: int,
+                  margin: float) -> tuple[bool, np.ndarray, np.ndarray, np.ndarray]:
+    """A fit's start from the marker's distorted ``corners_px`` (4, 2, TL TR BR BL) through the
+    lens map ``table`` (:func:`_map_point`; empty: the identity): whether they undistort, the
+    undistorted corners (4, 2), the homography ``H0`` from the square of ``modules`` to them
+    (:func:`square_homography`) and the undistorted ring (4, 2) ``margin`` modules around the
+    marker (``cv2.perspectiveTransform``'s arithmetic)."""
+    start = corners_px.copy() if table.shape[0] == 0 else _map_read(table, corners_px)
+    H0, ring = np.eye(3), np.empty((4, 2))
     if not np.isfinite(start).all():
-        return None
-    m = margin_modules
-    ring = np.array([[-m, -m], [modules + m, -m], [modules + m, modules + m], [-m, modules + m]])
-    H0 = square_homography(start, modules)
-    ring = cv2.perspectiveTransform(ring.reshape(-1, 1, 2), H0).reshape(-1, 2)
-    ring_px = lens.distort(ring)
+        return False, start, H0, ring
+    h = np.linalg.solve(_homography_system(start, float(modules)), start.ravel())
+    H0.ravel()[:8] = h
+    for i in range(4):
+        x = -margin if i in (0, 3) else modules + margin
+        y = -margin if i in (0, 1) else modules + margin
+        w = x * H0[2, 0] + y * H0[2, 1] + H0[2, 2]
+        w = 1.0 / w if abs(w) > np.finfo(np.float32).eps else 0.0
+        ring[i, 0] = (x * H0[0, 0] + y * H0[0, 1] + H0[0, 2]) * w
+        ring[i, 1] = (x * H0[1, 0] + y * H0[1, 1] + H0[1, 2]) * w
+    return True, start, H0, ring
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _region_arrays(table: np.ndarray, corners_px: np.ndarray, H0: np.ndarray, ring_px: np.ndarray, modules: int,
+                   margin: float, s: int, width: int,
+                   height: int) -> tuple[bool, tuple[int, int, int, int], np.ndarray, np.ndarray, np.ndarray,
+                                         np.ndarray, np.ndarray]:
+    """The pixels a fit of the marker (distorted ``corners_px``, its homography ``H0`` and its
+    ring ``ring_px`` (4, 2) in the distorted image, :func:`_region_start`) compares, through the
+    lens map ``table``: whether its region (the ring's bounds and ``REGION_PAD_PX``, what the blur
+    reads) lies wholly inside the ``width`` x ``height`` image; the region (x0, y0, nx, ny); its
+    pixels' ``s`` x ``s`` samples (ny s nx s, 2), undistorted; the compared pixels (those whose
+    centre lies on the marker or within ``margin`` modules of it): their flat indices (n,) in
+    the region, their undistorted centres (n, 2) and their places across the region (n, 2,
+    :func:`_compared_pixels`) and the lens's local map (2, 2) at the marker's centre
+    (:func:`_map_jacobian`; the identity without a lens)."""
+    empty = np.empty((0, 2))
     if not np.isfinite(ring_px).all():
-        return None
-    x0, y0 = np.floor(ring_px.min(axis=0)).astype(int) - REGION_PAD_PX
-    x1, y1 = np.ceil(ring_px.max(axis=0)).astype(int) + REGION_PAD_PX + 1
-    if x0 < 0 or y0 < 0 or x1 > gray.shape[1] or y1 > gray.shape[0]:
-        return None
-    ny, nx = int(y1 - y0), int(x1 - x0)
-    samples = lens.undistort(_pixel_grid(int(x0), int(y0), nx, ny, supersample))
-    centres = lens.undistort(_pixel_grid(int(x0), int(y0), nx, ny, 1).reshape(-1, 2))
-    fitted, gradient = _compared_pixels(centres, np.linalg.inv(H0), modules, m, nx, ny)
-    return MarkerRegion(start, modules, (int(x0), int(y0)), (ny, nx), samples, centres[fitted], fitted,
-                        gray[y0:y1, x0:x1].astype(np.float64).ravel()[fitted], gradient, H0)
+        return False, (0, 0, 0, 0), empty, np.empty(0, np.int64), empty, empty, np.eye(2)
+    x0 = int(np.floor(ring_px[:, 0].min())) - REGION_PAD_PX
+    y0 = int(np.floor(ring_px[:, 1].min())) - REGION_PAD_PX
+    x1 = int(np.ceil(ring_px[:, 0].max())) + REGION_PAD_PX + 1
+    y1 = int(np.ceil(ring_px[:, 1].max())) + REGION_PAD_PX + 1
+    if x0 < 0 or y0 < 0 or x1 > width or y1 > height:
+        return False, (0, 0, 0, 0), empty, np.empty(0, np.int64), empty, empty, np.eye(2)
+    nx, ny = x1 - x0, y1 - y0
+    samples, centres = _pixel_grid(table, x0, y0, nx, ny, s)
+    fitted, gradient = _compared_pixels(centres, np.linalg.inv(H0), modules, margin, nx, ny)
+    index = np.flatnonzero(fitted)
+    lens = np.eye(2) if table.shape[0] == 0 else _map_jacobian(table, corners_px)
+    return True, (x0, y0, nx, ny), samples.reshape(-1, 2), index, centres[index], gradient, lens
 
 
-@numba.njit(cache=True, nogil=True)
-def _pixel_grid(x0: int, y0: int, nx: int, ny: int, s: int) -> np.ndarray:
-    """(ny s, nx s, 2): the centres (x, y) of ``s`` x ``s`` equal parts of each pixel of the
-    ``ny`` x ``nx`` pixels from (``x0``, ``y0``), row by row (s = 1: the pixels' centres)."""
-    out = np.empty((ny * s, nx * s, 2))
+_NO_TABLE = np.zeros((0, 0, 2), np.float32)  # :func:`_pixel_grid`'s lens map of the identity (no lens)
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _pixel_grid(table: np.ndarray, x0: int, y0: int, nx: int, ny: int, s: int) -> tuple[np.ndarray, np.ndarray]:
+    """The ``ny`` x ``nx`` pixels from (``x0``, ``y0``) undistorted through the lens map
+    ``table`` (:func:`_map_point`; an empty one: the identity): (ny s, nx s, 2) the centres (x,
+    y) of ``s`` x ``s`` equal parts of each pixel, and (ny nx, 2) the pixels' centres, both row by
+    row."""
+    identity = table.shape[0] == 0
+    samples = np.empty((ny * s, nx * s, 2))
     for i in range(ny * s):
+        y = y0 + i // s + ((i % s) + 0.5) / s - 0.5
         for j in range(nx * s):
-            out[i, j, 0] = x0 + j // s + ((j % s) + 0.5) / s - 0.5
-            out[i, j, 1] = y0 + i // s + ((i % s) + 0.5) / s - 0.5
-    return out
+            x = x0 + j // s + ((j % s) + 0.5) / s - 0.5
+            samples[i, j, 0], samples[i, j, 1] = (x, y) if identity else _map_point(table, x, y)
+    centres = np.empty((ny * nx, 2))
+    for i in range(ny):
+        for j in range(nx):
+            x, y = float(x0 + j), float(y0 + i)
+            centres[i * nx + j, 0], centres[i * nx + j, 1] = (x, y) if identity else _map_point(table, x, y)
+    return samples, centres
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _compared_pixels(centres_px: np.ndarray, H0_inv: np.ndarray, modules: int, margin: float, nx: int,
                      ny: int) -> tuple[np.ndarray, np.ndarray]:
     """Which of a region's ``ny`` x ``nx`` pixels (undistorted ``centres_px``, row by row) a fit
@@ -302,21 +327,10 @@ class TemplateFitSettings:
 FAST_SETTINGS = TemplateFitSettings(supersample=2)  # tracking's fit (fast_template_corners)
 
 
-def _lens_jacobian(lens: LensMap, corners_px: np.ndarray) -> np.ndarray:
-    """(2, 2): distorted pixels per undistorted pixel at the marker's centre (the lens's local
-    linear map, from ``lens``'s undistortion one pixel either way; compiled with a lens map:
-    :func:`_map_jacobian`)."""
-    if lens.map is not None:
-        return _map_jacobian(lens.map, _corner_array(corners_px))
-    mid = np.asarray(corners_px, float).reshape(4, 2).mean(axis=0)
-    probe = lens.undistort(np.array([mid, mid + [1.0, 0.0], mid + [0.0, 1.0]]))
-    return np.linalg.inv(np.column_stack([probe[1] - probe[0], probe[2] - probe[0]]))
-
-
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _map_jacobian(table: np.ndarray, corners_px: np.ndarray) -> np.ndarray:
-    """:func:`_lens_jacobian` through a :class:`LensMap`'s ``table`` at the mean of ``corners_px``
-    (4, 2)."""
+    """(2, 2): distorted pixels per undistorted pixel at the mean of ``corners_px`` (4, 2) (the
+    lens's local linear map, from a :class:`LensMap`'s ``table`` one pixel either way)."""
     mid_x = (corners_px[0, 0] + corners_px[1, 0] + corners_px[2, 0] + corners_px[3, 0]) / 4.0
     mid_y = (corners_px[0, 1] + corners_px[1, 1] + corners_px[2, 1] + corners_px[3, 1]) / 4.0
     probe = _map_read(table, np.array([[mid_x, mid_y], [mid_x + 1.0, mid_y], [mid_x, mid_y + 1.0]]))
@@ -327,14 +341,14 @@ def _map_jacobian(table: np.ndarray, corners_px: np.ndarray) -> np.ndarray:
 
 @functools.lru_cache(maxsize=256)
 def _area_template(dictionary: str, marker_id: int, white_modules: float, steps: tuple[int, int]) -> np.ndarray:
-    """(2, n, n) float32: :func:`marker_template`'s two images blurred by a Gaussian of
+    """(n, n, 2) float32: :func:`marker_template`'s two images blurred by a Gaussian of
     ``steps`` x ``_AREA_STEP`` template samples along x and y (a sample's area, see
     :func:`_area_steps`), so that reading them at a few points per pixel keeps the sub-pixel place
     of every cell edge; cached per marker and blur: per marker size."""
     template, _ = marker_template(dictionary, marker_id, white_modules)
     sx, sy = (max(k * _AREA_STEP, 0.01) for k in steps)
     out = np.stack([cv2.GaussianBlur(t, (0, 0), sigmaX=sx, sigmaY=sy, borderType=cv2.BORDER_REPLICATE)
-                    for t in template])
+                    for t in template], axis=-1)  # (n, n, 2): a bilinear read's four corners hold both images
     out.setflags(write=False)
     return out
 
@@ -348,7 +362,7 @@ def _area_steps(H: np.ndarray, modules: int, lens_jacobian: np.ndarray, supersam
     return int(round(sx)), int(round(sy))
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _area_sigmas(H: np.ndarray, modules: float, lens_jacobian: np.ndarray, supersample: float) -> tuple[float, float]:
     """:func:`_area_steps` before rounding, compiled."""
     c = np.array([modules / 2.0, modules / 2.0, 1.0])
@@ -358,30 +372,7 @@ def _area_sigmas(H: np.ndarray, modules: float, lens_jacobian: np.ndarray, super
     return np.sqrt(cov[0, 0]) / _AREA_STEP, np.sqrt(cov[1, 1]) / _AREA_STEP
 
 
-@dataclass(frozen=True, slots=True, eq=False)
-class _FastRegion:
-    """What :func:`fast_template_corners` compares: the region's ``shape`` (ny, nx); ``samples``
-    (ny s nx s, 2) its pixels' samples and ``centres`` (n, 2) the compared pixels' centres,
-    undistorted; ``lens`` (2, 2) the lens's local map (:func:`_lens_jacobian`) and the
-    rest as :class:`MarkerRegion`'s."""
-
-    region: MarkerRegion
-    samples: np.ndarray
-    centres: np.ndarray
-    lens: np.ndarray
-    index: np.ndarray  # (n,) the compared pixels' flat indices in the region
-
-
-def _fast_region(gray: np.ndarray, corners_px: np.ndarray, modules: int, lens: LensMap,
-                 settings: TemplateFitSettings) -> _FastRegion | None:
-    region = marker_region(gray, corners_px, modules, lens, settings.supersample, settings.margin_modules)
-    if region is None:
-        return None
-    return _FastRegion(region, region.samples_px.reshape(-1, 2), region.centres_px, _lens_jacobian(lens, corners_px),
-                       np.flatnonzero(region.fitted))
-
-
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _pixel_areas(template: np.ndarray, samples: np.ndarray, H_inv: np.ndarray, ny: int, nx: int,
                  s: int) -> np.ndarray:
     """(ny, nx, 2) float32: each pixel's mean of its ``s`` x ``s`` samples' reads of both template
@@ -389,47 +380,51 @@ def _pixel_areas(template: np.ndarray, samples: np.ndarray, H_inv: np.ndarray, n
     them through the inverse homography ``H_inv`` bilinearly, 0 and 1 beyond them
     (``cv2.remap``'s ``INTER_LINEAR`` and ``BORDER_CONSTANT``, at the exact point where OpenCV
     rounds it to 1/32 of a sample)."""
-    rows, cols = template.shape[1], template.shape[2]
+    rows, cols = template.shape[0], template.shape[1]
     out = np.empty((ny, nx, 2), np.float32)
     cols_s, scale = nx * s, 1.0 / (s * s)
+    h00, h01, h02, h10, h11, h12 = H_inv[0, 0], H_inv[0, 1], H_inv[0, 2], H_inv[1, 0], H_inv[1, 1], H_inv[1, 2]
+    h20, h21, h22 = H_inv[2, 0], H_inv[2, 1], H_inv[2, 2]  # locals: the loop reloads array elements
     for i in range(ny):
         for j in range(nx):
             a = b = 0.0
             for di in range(s):
                 for dj in range(s):
-                    x, y = samples[(i * s + di) * cols_s + j * s + dj]
-                    z = H_inv[2, 0] * x + H_inv[2, 1] * y + H_inv[2, 2]
-                    u = TEMPLATE_RES * (H_inv[0, 0] * x + H_inv[0, 1] * y + H_inv[0, 2]) / z + _TEMPLATE_SHIFT
-                    v = TEMPLATE_RES * (H_inv[1, 0] * x + H_inv[1, 1] * y + H_inv[1, 2]) / z + _TEMPLATE_SHIFT
+                    k = (i * s + di) * cols_s + j * s + dj
+                    x, y = samples[k, 0], samples[k, 1]
+                    z = h20 * x + h21 * y + h22
+                    u = TEMPLATE_RES * (h00 * x + h01 * y + h02) / z + _TEMPLATE_SHIFT
+                    v = TEMPLATE_RES * (h10 * x + h11 * y + h12) / z + _TEMPLATE_SHIFT
                     c0, r0 = int(np.floor(u)), int(np.floor(v))
                     fx, fy = u - c0, v - r0
                     if 0 <= c0 < cols - 1 and 0 <= r0 < rows - 1:
                         w00, w01, w10, w11 = (1.0 - fx) * (1.0 - fy), fx * (1.0 - fy), (1.0 - fx) * fy, fx * fy
-                        a += (w00 * template[0, r0, c0] + w01 * template[0, r0, c0 + 1]
-                              + w10 * template[0, r0 + 1, c0] + w11 * template[0, r0 + 1, c0 + 1])
-                        b += (w00 * template[1, r0, c0] + w01 * template[1, r0, c0 + 1]
-                              + w10 * template[1, r0 + 1, c0] + w11 * template[1, r0 + 1, c0 + 1])
+                        a += (w00 * template[r0, c0, 0] + w01 * template[r0, c0 + 1, 0]
+                              + w10 * template[r0 + 1, c0, 0] + w11 * template[r0 + 1, c0 + 1, 0])
+                        b += (w00 * template[r0, c0, 1] + w01 * template[r0, c0 + 1, 1]
+                              + w10 * template[r0 + 1, c0, 1] + w11 * template[r0 + 1, c0 + 1, 1])
                     else:  # at or beyond the template's edge: the border values
-                        a += _border_read(template[0], r0, c0, fx, fy, 0.0)
-                        b += _border_read(template[1], r0, c0, fx, fy, 1.0)
+                        a += _border_read(template, 0, r0, c0, fx, fy, 0.0)
+                        b += _border_read(template, 1, r0, c0, fx, fy, 1.0)
             out[i, j, 0], out[i, j, 1] = a * scale, b * scale
     return out
 
 
-@numba.njit(cache=True, nogil=True)
-def _border_read(image: np.ndarray, r0: int, c0: int, fx: float, fy: float, border: float) -> float:
-    """A bilinear read of ``image`` between rows ``r0``, ``r0 + 1`` and columns ``c0``, ``c0 + 1``
-    (weights ``fx``, ``fy``) where some of the four lie beyond it: those read ``border``."""
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _border_read(image: np.ndarray, k: int, r0: int, c0: int, fx: float, fy: float, border: float) -> float:
+    """A bilinear read of the (rows, cols, 2) ``image``'s image ``k`` between rows ``r0``, ``r0 + 1``
+    and columns ``c0``, ``c0 + 1`` (weights ``fx``, ``fy``) where some of the four lie beyond it:
+    those read ``border``."""
     total = 0.0
     for dr in range(2):
         for dc in range(2):
             r, c = r0 + dr, c0 + dc
-            value = image[r, c] if 0 <= r < image.shape[0] and 0 <= c < image.shape[1] else border
+            value = image[r, c, k] if 0 <= r < image.shape[0] and 0 <= c < image.shape[1] else border
             total += value * (fx if dc else 1.0 - fx) * (fy if dr else 1.0 - fy)
     return total
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _blurred(image: np.ndarray, sigma: float) -> np.ndarray:
     """(ny, nx, 2) ``image`` blurred by a Gaussian of ``sigma`` px, border replicated:
     ``cv2.GaussianBlur(image, (0, 0), sigma, borderType=cv2.BORDER_REPLICATE)``'s kernel (4 sigma
@@ -440,7 +435,7 @@ def _blurred(image: np.ndarray, sigma: float) -> np.ndarray:
     return _filtered_across(_filtered_across(image, kernel), kernel).astype(np.float32)
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _filtered_across(image: np.ndarray, kernel: np.ndarray) -> np.ndarray:
     """(nx, ny, 2) float64: the (ny, nx, 2) ``image`` filtered along its rows by the odd-sized
     ``kernel``, border replicated, and transposed (so that a second call filters the columns)."""
@@ -458,7 +453,7 @@ def _filtered_across(image: np.ndarray, kernel: np.ndarray) -> np.ndarray:
     return out
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _brightness_system(image: np.ndarray, index: np.ndarray, gradient: np.ndarray,
                        pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
     """The brightness model's normal equations (its columns per compared pixel: offset, the
@@ -477,13 +472,14 @@ def _brightness_system(image: np.ndarray, index: np.ndarray, gradient: np.ndarra
         row[0], row[1], row[2], row[3] = 1.0, P, P * gradient[i, 0], P * gradient[i, 1]
         row[4] = np.float64(flat[index[i], 1]) if beyond else 0.0
         for a in range(5):
-            rhs[a] += row[a] * pixels[i]
+            ra = row[a]  # a local, as in _step_system
+            rhs[a] += ra * pixels[i]
             for b in range(5):
-                N[a, b] += row[a] * row[b]
+                N[a, b] += ra * row[b]
     return N, rhs, beyond
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _step_system(image: np.ndarray, wider: np.ndarray, gx: np.ndarray, gy: np.ndarray, index: np.ndarray,
                  gradient: np.ndarray, pixels: np.ndarray, centres: np.ndarray, lens: np.ndarray,
                  H_inv: np.ndarray, dH: np.ndarray, coef: np.ndarray, beyond: bool) -> tuple[np.ndarray, np.ndarray]:
@@ -520,16 +516,17 @@ def _step_system(image: np.ndarray, wider: np.ndarray, gx: np.ndarray, gy: np.nd
         row[9], row[10], row[11], row[12], row[13] = 1.0, P, P * g0, P * g1, B
         r = pixels[i] - (coef[0] + coef[1] * P + coef[2] * P * g0 + coef[3] * P * g1 + coef[4] * B)
         for a in range(14):
-            rhs[a] += row[a] * r
+            ra = row[a]  # a local: the matrix's stores would reload it
+            rhs[a] += ra * r
             for b in range(a, 14):
-                N[a, b] += row[a] * row[b]
+                N[a, b] += ra * row[b]
     for a in range(14):
         for b in range(a):
             N[a, b] = N[b, a]
     return N, rhs
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _central_differences(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """The (ny, nx, 2) ``image``'s gradient along x and y, half the difference of the two
     neighbours, border replicated (``cv2.Sobel`` with ``ksize=1, scale=0.5``)."""
@@ -543,7 +540,7 @@ def _central_differences(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return gx, gy
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _normal_solution(N: np.ndarray, rhs: np.ndarray) -> np.ndarray:
     """The least-squares solution from its normal equations ``N x = rhs`` (``N = A^T A``,
     ``rhs = A^T b``); a column of ``A`` that vanishes (no pixel of the region lies beyond the
@@ -560,7 +557,7 @@ def _normal_solution(N: np.ndarray, rhs: np.ndarray) -> np.ndarray:
     return x
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _homography_with_derivatives(corners: np.ndarray, side: float) -> tuple[np.ndarray, np.ndarray]:
     """:func:`square_homography_derivatives`, compiled."""
     A = _homography_system(corners, side)
@@ -575,7 +572,7 @@ def _homography_with_derivatives(corners: np.ndarray, side: float) -> tuple[np.n
     return h.reshape(3, 3), dH.reshape(8, 3, 3)
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _gauss_newton_step(template: np.ndarray, samples: np.ndarray, shape: tuple[int, int], s: int,
                        index: np.ndarray, gradient: np.ndarray, pixels: np.ndarray, centres: np.ndarray,
                        lens: np.ndarray, H: np.ndarray, dH: np.ndarray, blur: float) -> np.ndarray:
@@ -597,7 +594,7 @@ def _gauss_newton_step(template: np.ndarray, samples: np.ndarray, shape: tuple[i
     return _normal_solution(N, rhs)
 
 
-@numba.njit(cache=True, nogil=True)
+@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _fitted_offsets(template: np.ndarray, samples: np.ndarray, shape: tuple[int, int], s: int,
                     index: np.ndarray, gradient: np.ndarray, pixels: np.ndarray, centres: np.ndarray,
                     lens: np.ndarray, start: np.ndarray, modules: int, blur: float, iterations: int) -> np.ndarray:
@@ -628,16 +625,20 @@ def fast_template_corners(gray: np.ndarray, corners_px: np.ndarray, dictionary: 
     a quarter of the body calibration's fit's reads) and takes the corners' Jacobian from the
     predicted image's own gradient (:func:`_gauss_newton_step`)."""
     _, modules = marker_template(dictionary, marker_id, settings.white_modules)
-    f = _fast_region(gray, corners_px, modules, lens, settings)
-    if f is None:
-        return None
-    start = f.region.start_px
-    s = settings.supersample
-    template = _area_template(dictionary, marker_id, settings.white_modules,
-                              _area_steps(f.region.H0, modules, f.lens, s))
-    r = f.region
+    table = _NO_TABLE if lens.map is None else lens.map
+    corners = _corner_array(corners_px)
+    s, m = settings.supersample, settings.margin_modules
     try:
-        p = _fitted_offsets(template, f.samples, r.shape, s, f.index, r.gradient, r.pixels, f.centres, f.lens, start,
+        ok, start, H0, ring = _region_start(table, corners, modules, m)
+        if not ok:
+            return None
+        ok, (x0, y0, nx, ny), samples, index, centres, gradient, local = _region_arrays(
+            table, corners, H0, lens.distort(ring), modules, m, s, gray.shape[1], gray.shape[0])
+        if not ok:
+            return None
+        template = _area_template(dictionary, marker_id, settings.white_modules, _area_steps(H0, modules, local, s))
+        pixels = np.take(gray[y0:y0 + ny, x0:x0 + nx], index).astype(np.float64)
+        p = _fitted_offsets(template, samples, (ny, nx), s, index, gradient, pixels, centres, local, start,
                             modules, settings.start_blur_px, iterations)
     except np.linalg.LinAlgError:  # a degenerate homography
         return None

@@ -14,8 +14,7 @@ from cubetrack.detect import edge_fit, template_fit
 from cubetrack.detect.detector import CornerRefinement, Detector, DetectorParams
 
 # the kernels the fit calls from Python (the ones they call are compiled, or loaded from numba's cache, with them)
-TEMPLATE_KERNELS = (template_fit._fitted_offsets, template_fit._map_read, template_fit._pixel_grid,
-                    template_fit._compared_pixels, template_fit._homography_system, template_fit._map_jacobian,
+TEMPLATE_KERNELS = (template_fit._fitted_offsets, template_fit._region_start, template_fit._region_arrays,
                     template_fit._area_sigmas, template_fit._distorted)
 
 
