@@ -145,7 +145,7 @@ def start(kind: str, lab: dict, out: Path) -> tuple[Command, int]:
         return cmd, 0  # its cameras are read by threads
     cmd = Command(["fuse", "--config", str(configs["camera-process"]), "--extrinsics", extrinsics, "--out", str(out),
                    "--bus-listen", bus, "--status-every", "1", *vrpn], lab["work"])
-    cmd.wait_line(r"^fusing into")
+    cmd.wait_line(r"^fuse: +\d+s fusing")  # its session runs (stopped before, it ends as interrupted)
     return cmd, 1  # the outputs' process
 
 

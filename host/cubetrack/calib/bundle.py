@@ -1031,20 +1031,7 @@ def adjust_extrinsics(frames: Mapping[str, Iterable[Frame]], extrinsics: Mapping
                                                       params.angular_accel_sigma_rad_s2)) if params.knot_s > 0 else None
     poses: Refinement | Trajectory = trajectory or ref  # what the solves move: the instants' poses or the knots
 
-    # 1. the relative solve: cube corners only, the gauge held by weak priors on the cameras
-    gauge: PosePrior | None = PosePrior(ref.model.T_cams.copy(), params.gauge_prior_position_m,
-                                        np.radians(params.gauge_prior_rotation_deg))
-    poses.solve(ref.freedom(camera_prior=gauge))
-    G, consistent, moved = _align(ref.T_world_cam(), T_prior, params)
-    if moved and len(consistent) < 2:
-        # two cameras disagree (or none agree): the data cannot say which one moved
-        names = ", ".join(used)
-        d = max(_pose_distance(G @ T, T_prior[c])[0] for c, T in ref.T_world_cam().items())
-        warn(f"cameras {names} disagree with their calibration by up to {100 * d:.1f} cm: one of them moved "
-             "after calibration, but it takes three cameras to tell which; recalibrate")
-        moved = []
-    ref.model = ref.model.replace(T_cams=np.einsum("ij,cjk->cik", G, ref.model.T_cams),
-                                  T_bodies=np.einsum("ij,kjl->kil", G, ref.model.T_bodies))
+    moved = _relative_solve(ref, poses, T_prior, params, warn)
 
     # 2. absolute solves: re-matched faces, re-estimated velocities, world-marker corners
     world_terms: dict[str, tuple[np.ndarray, np.ndarray]] = {}
@@ -1076,6 +1063,26 @@ def adjust_extrinsics(frames: Mapping[str, Iterable[Frame]], extrinsics: Mapping
              "that is not rigid, or the world marker moved); the world-marker calibration is kept")
     return _adjustment_report(ref, trajectory, extrinsics, intrinsics, cameras, T_prior, moved, world_terms, warn,
                               warnings, refused=bool(worse))
+
+
+def _relative_solve(ref: Refinement, poses: Refinement | Trajectory, T_prior: dict[str, np.ndarray],
+                    params: BundleAdjustmentParams, warn: Callable[[str], None]) -> list[str]:
+    """Step 1 of :func:`adjust_extrinsics`: the cube corners only, the gauge held by weak priors on
+    the cameras; then the whole solution aligned to the cameras that agree with ``T_prior``.
+    Returns the cameras that moved (none when fewer than two agree: the data cannot say which)."""
+    gauge = PosePrior(ref.model.T_cams.copy(), params.gauge_prior_position_m,
+                      np.radians(params.gauge_prior_rotation_deg))
+    poses.solve(ref.freedom(camera_prior=gauge))
+    G, consistent, moved = _align(ref.T_world_cam(), T_prior, params)
+    if moved and len(consistent) < 2:
+        # two cameras disagree (or none agree): the data cannot say which one moved
+        d = max(_pose_distance(G @ T, T_prior[c])[0] for c, T in ref.T_world_cam().items())
+        warn(f"cameras {', '.join(ref.cameras)} disagree with their calibration by up to {100 * d:.1f} cm: one of "
+             "them moved after calibration, but it takes three cameras to tell which; recalibrate")
+        moved = []
+    ref.model = ref.model.replace(T_cams=np.einsum("ij,cjk->cik", G, ref.model.T_cams),
+                                  T_bodies=np.einsum("ij,kjl->kil", G, ref.model.T_bodies))
+    return list(moved)
 
 
 def worse_world_fit(obs: Observations, prior: Model, refined: Model, cameras: Sequence[str],

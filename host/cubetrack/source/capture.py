@@ -49,7 +49,7 @@ from cubetrack.source.timing import ArrivalEnvelope, CameraTiming, monotonic_sam
 log = logging.getLogger(__name__)
 
 MAX_DRIVER_AGE_S = 2.0  # a driver timestamp older than this (or in the future) is not trusted
-MAX_FILE_LATE_S = 0.1  # a file's frame whose media time passed longer ago than this is skipped
+MAX_FILE_LATE_S = 0.1  # a file's frame read later than this after its media time (and after the next one's) is skipped
 
 
 @dataclass(frozen=True, slots=True)
@@ -120,6 +120,7 @@ class CaptureReader:
         self._thread: threading.Thread | None = None
         self._next_clock_s = 0.0
         self._file_start_mono = 0.0
+        self._file_late_s = MAX_FILE_LATE_S
         self._file_skipped = 0
         self._envelope = ArrivalEnvelope(settings.envelope_frames) if settings.envelope_frames else None
 
@@ -129,6 +130,9 @@ class CaptureReader:
         if self.spec.kind is CameraKind.FILE:
             at_s = self.spec.at_s or time.time()
             self._file_start_mono = time.monotonic() + (at_s - time.time())
+            # a live camera sends its newest frame: one read late is skipped only once the next is due too
+            fps = self.capture.get(cv2.CAP_PROP_FPS)
+            self._file_late_s = max(MAX_FILE_LATE_S, 1.0 / fps if fps > 0 else 0.0)
         self.taps.count(self.name, connects=1, connected=True)
         self._thread = threading.Thread(target=self._run, name=f"cubetrack-capture-{self.name}", daemon=True)
         self._thread.start()
@@ -193,7 +197,7 @@ class CaptureReader:
         pos_s = self.capture.get(cv2.CAP_PROP_POS_MSEC) / 1000.0
         if self.spec.kind is CameraKind.FILE:
             device_s = self._file_start_mono + pos_s
-            if read_mono - device_s > MAX_FILE_LATE_S:  # already past: a live camera would not send it now
+            if read_mono - device_s > self._file_late_s:  # a newer frame is due: a live camera would send that
                 self._file_skipped += 1
                 return True
             if self._stop.wait(max(0.0, device_s - time.monotonic())):

@@ -68,6 +68,15 @@ def test_a_file_started_in_the_past_skips_what_a_live_camera_would_not_send(tmp_
     assert xs[-1] == 8 * 14 and 8 * 4 <= xs[0] <= 8 * 6  # frames 0..4 had passed (100 ms slack)
 
 
+def test_a_slow_files_frame_read_late_is_sent_while_it_is_the_newest(tmp_path):
+    """At 2 fps a frame read 0.2 s late is still the camera's newest (the next is due 0.3 s later):
+    sent, as a live camera's driver would; one read after the next was due is skipped."""
+    video = write_video(tmp_path / "cam.avi", 4, fps=2.0)
+    with LiveCameras({"cam": f"file:{video}?at={time.time() - 0.7}"}, PARAMS) as live:
+        frames, _ = collect(live, 5.0, until=lambda f, c: f and square_x(f[-1].jpeg) == 8 * 3)
+    assert [square_x(f.jpeg) for f in frames] == [8, 16, 24]  # frame 0 (0.7 s late) skipped, frame 1 (0.2 s) sent
+
+
 def test_capture_frames_wake_a_consumer_without_a_reading_thread(tmp_path):
     video = write_video(tmp_path / "cam.avi", 8)
     live = LiveCameras({"cam": f"file:{video}"}, PARAMS, thread=False).start()
