@@ -16,8 +16,8 @@ the folded box shows it; any other body (or --tiles) as one cut-out tile per mar
 its face. Print at 100 % (no "fit to page") and check the 100 mm scale bar with a ruler.
 
 A body on a robot drives on a floor (the default); a body carried or waved by hand is written with
---motion free, so the tracker follows it without a floor's assumptions (docs/tracking.md, "A
-motion switch per body").
+--motion free, so the tracker follows it without a floor's assumptions (no upright prior: give it
+--distinct-ids, or faces sharing an id keep it; docs/tracking.md, "A motion switch per body").
 
 Writes OUT.svg, OUT.toml (the layout; not with --layout) and with --pdf OUT.pdf (needs cairosvg).
 Point a robot's [[robots]] layout at OUT.toml. Existing files are kept unless --force.
@@ -87,5 +87,8 @@ def run(args: argparse.Namespace) -> int:
     for path in (files.svg, files.layout, files.pdf):
         if path is not None:
             print(f"wrote {path}")
+    if layout.motion == "free" and layout.has_repeated_ids:
+        print("note: faces share an id, so this free body is still held near upright to tell them apart (tilts "
+              "beyond [estimator] upright_tolerance_deg are lost); --distinct-ids lets it tilt freely")
     print("print at 100 % (no fit to page) and check the 100 mm scale bar")
     return 0

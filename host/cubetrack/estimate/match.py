@@ -21,7 +21,8 @@ gets settled
   solutions, :func:`cubetrack.estimate.marker.marker_pose`) for each face with its id imply a
   body pose, scored by a MAP cost: reprojection (``corner_noise_px``) plus an upright prior on
   the body's z axis against world up (``upright_sigma_deg``, hard gate
-  ``upright_tolerance_deg``). With one id on five faces the prior is what tells the faces apart
+  ``upright_tolerance_deg``; :func:`uses_upright_prior`: floor bodies, or repeated ids). With one
+  id on five faces the prior is what tells the faces apart
   (they differ by 90° in the implied tilt) and what resolves IPPE's planar flip; with distinct
   ids the face is given by the id and the prior only resolves the flip. A face seen twice keeps
   its larger detection; faces implying a body centre farther than ``max_face_spread_m`` from the
@@ -129,6 +130,13 @@ def identify_faces(marker_poses: Iterable[MarkerPose], layout: CubeLayout, T_wor
                                               params or EstimatorParams()))
 
 
+def uses_upright_prior(layout: CubeLayout, params: EstimatorParams) -> bool:
+    """Whether the upright prior (and its ``upright_tolerance_deg`` gate) applies to ``layout``'s body:
+    ``use_upright_prior`` for a body on a floor robot (``motion = "floor"``); never for a free body (held by
+    hand: any tilt), unless one id is on several faces, where the prior is the only way to tell them apart."""
+    return layout.has_repeated_ids or (params.use_upright_prior and layout.motion == "floor")
+
+
 def _checked_camera_pose(T_world_cam: np.ndarray) -> np.ndarray:
     T_world_cam = np.asarray(T_world_cam, dtype=float)
     if not is_finite_pose(T_world_cam):
@@ -139,7 +147,7 @@ def _checked_camera_pose(T_world_cam: np.ndarray) -> np.ndarray:
 def _identify(marker_poses: Iterable[MarkerPose], layout: CubeLayout, T_world_cam: np.ndarray,
               params: EstimatorParams) -> list[tuple[int, FaceObservation]]:
     """:func:`identify_faces` with each face's index in ``layout.markers``."""
-    with_prior = params.use_upright_prior or layout.has_repeated_ids
+    with_prior = uses_upright_prior(layout, params)
     reprojection_weight = 4.0 / (2.0 * params.corner_noise_px ** 2)   # 4 corners
     tilt_weight = 1.0 / (2.0 * params.upright_sigma_deg ** 2)
     chosen: list[tuple[int, FaceObservation]] = []

@@ -19,9 +19,9 @@ class EstimatorParams:
         "upright prior when choosing a face and an IPPE solution",
     )
     use_upright_prior: bool = param(
-        True, "assume the cube stands upright (ground robot): its z axis near world up. Needed to "
-        "tell apart faces that share an id; with distinct ids, false picks solutions by "
-        "reprojection error alone",
+        True, "assume a floor body's cube (layout motion = \"floor\") stands upright: its z axis near "
+        "world up. A free body (motion = \"free\") never has it, unless faces share an id: then it "
+        "is what tells them apart; with distinct ids, false picks solutions by reprojection error alone",
     )
     upright_sigma_deg: float = param(
         10.0, "spread (1 sigma) of the cube's tilt from world up in the upright prior, degrees",

@@ -38,7 +38,7 @@ from cubetrack.core.geometry import T_from_rvec_tvec, invert_T, rvec_tvec_from_T
 from cubetrack.core.layout import CubeLayout
 from cubetrack.core.records import CameraEstimate, Detection, FaceObservation, MarkerPose
 from cubetrack.estimate.marker import in_front, marker_pose, reprojection_rms_px
-from cubetrack.estimate.match import FaceMatch, detections_of, match_faces
+from cubetrack.estimate.match import FaceMatch, detections_of, match_faces, uses_upright_prior
 from cubetrack.estimate.params import EstimatorParams
 
 log = logging.getLogger(__name__)
@@ -160,7 +160,7 @@ def estimate_cube(detections: Iterable[Detection], layout: CubeLayout, intrinsic
     T_world_cube, err = first.T_world_cube, first.marker_pose.reprojection_error_px
     used = faces[:1]
     if len(faces) >= 2 and params.joint_pnp:
-        with_prior = params.use_upright_prior or layout.has_repeated_ids
+        with_prior = uses_upright_prior(layout, params)
         # all faces first; if their joint fit fails, the best subset one face smaller, ...
         for n in range(len(faces), 1, -1):
             fits = []

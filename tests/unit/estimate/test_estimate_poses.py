@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import cv2
 import numpy as np
 import pytest
@@ -283,6 +285,21 @@ def test_tilted_cubes_and_far_outliers_are_rejected():
                         capture_time_s=0, arrival_time_s=0)
     assert np.allclose(est.T_world_cube, near, atol=1e-6)
     assert len(est.faces) == len(dets)
+
+
+def test_a_free_body_is_estimated_at_any_tilt_unless_faces_share_an_id():
+    T_world_cam = look_at([1.2, 0.4, 0.9], [0.0, 0.0, 0.2])
+    tilted = T_world_cube_at(0.0, 0.0, 30.0, tilt_deg=60.0)
+    distinct = paper_cube_layout(cube_size_m=CUBE_M, distinct_ids=True)
+    repeated = paper_cube_layout(cube_size_m=CUBE_M)
+    for layout, found in ((distinct, False), (dataclasses.replace(distinct, motion="free"), True),
+                          (dataclasses.replace(repeated, motion="free"), False)):
+        dets = [d for _, d in cube_detections(layout, PINHOLE, invert_T(T_world_cam) @ tilted)]
+        est = estimate_cube(dets, layout, PINHOLE, T_world_cam, camera="c", robot="r", seq=0,
+                            capture_time_s=0, arrival_time_s=0)
+        assert (est is not None) == found, (layout.motion, layout.has_repeated_ids)
+        if found:
+            assert est is not None and np.allclose(est.T_world_cube, tilted, atol=1e-6)
 
 
 def test_other_markers_and_dictionaries_are_ignored():

@@ -180,3 +180,6 @@ def test_make_body_cli_writes_the_sheet_and_a_layout_that_reads_back(tmp_path, m
     assert not (tmp_path / "x.toml").exists()
     assert cli_main.main(["make-body", "--out", str(tmp_path / "wand"), "--motion", "free"]) == 0
     assert read_layout(tmp_path / "wand.toml").motion == "free"
+    assert "held near upright" in capsys.readouterr().out  # one id on five faces: the prior stays
+    assert cli_main.main(["make-body", "--out", str(tmp_path / "wand2"), "--motion", "free", "--distinct-ids"]) == 0
+    assert "upright" not in capsys.readouterr().out
