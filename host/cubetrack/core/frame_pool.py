@@ -17,6 +17,7 @@ from __future__ import annotations
 import enum
 import multiprocessing
 import os
+import pickle
 import queue
 import threading
 from collections import deque
@@ -284,7 +285,9 @@ class _ProcessLane:
         self.claims[ticket] = _WAITING
         self.jobs.append(job)
         self.tickets[job] = ticket
-        self.conn.send((ticket, job.plain()))
+        # pickled by the C pickler alone (the bytes ``Connection.send``'s ForkingPickler makes, without the
+        # dispatch table it copies per call: 72 -> 58 us per job of a 22 KB JPEG, session 22)
+        self.conn.send_bytes(pickle.dumps((ticket, job.plain())))
 
     def reclaim(self, job: FrameJob) -> bool:
         """Take ``job`` back unless the worker has started it (its answer will be None)."""
@@ -358,7 +361,7 @@ def _process_main(conn: Connection, make_worker: Callable[[], FrameWorker], clai
             if not mine:
                 conn.send(None)
                 continue
-            conn.send(worker.pack(worker.work(FrameJob.from_plain(values))))
+            conn.send_bytes(pickle.dumps(worker.pack(worker.work(FrameJob.from_plain(values)))))  # as _ProcessLane.send
     except (EOFError, KeyboardInterrupt):
         pass
 

@@ -210,18 +210,20 @@ def _match_by_prediction(detections: Sequence[Detection], layout: CubeLayout, in
     R_wc = T_world_cam[:3, :3]
     R_cb = R_wc.T @ T_world_cube[:3, :3]
     t_cb = (T_world_cube[:3, 3] - T_world_cam[:3, 3]) @ R_wc
-    corners_cam, visible = _faces_in_camera(layout.corners_m, layout.normals, R_cb, t_cb,
-                                            math.cos(math.radians(max_view_angle_deg)))
-    if not visible.any():
-        return ()
+    cos_max = math.cos(math.radians(max_view_angle_deg))
+    detected = np.array([det.corners_px for det in detections], dtype=np.float64)
     dist = intrinsics.dist.ravel()
     if len(dist) <= 12:   # OpenCV's model without its tilted sensor: compiled (cv2.projectPoints also makes a Jacobian)
-        proj = _projected(corners_cam, intrinsics.K, dist)
+        found, visible = _predicted_distances(layout.corners_m, layout.normals, R_cb, t_cb, cos_max, intrinsics.K,
+                                              dist, detected)
     else:
-        proj = cv2.projectPoints(corners_cam, _ZERO3, _ZERO3, intrinsics.K, dist)[0].reshape(-1, 2)
-    distances = _mean_corner_distances(proj, np.array([det.corners_px for det in detections],
-                                                      dtype=np.float64)).tolist()   # (D, M)
+        corners_cam, visible = _faces_in_camera(layout.corners_m, layout.normals, R_cb, t_cb, cos_max)
+        found = _mean_corner_distances(
+            cv2.projectPoints(corners_cam, _ZERO3, _ZERO3, intrinsics.K, dist)[0].reshape(-1, 2), detected)
     free = visible.tolist()
+    if not any(free):
+        return ()
+    distances = found.tolist()   # (D, M)
     ids = layout.marker_ids.tolist()
     by_dictionary = len(layout.dictionaries) > 1
     out: list[FaceMatch] = []
@@ -303,6 +305,16 @@ def _mean_corner_distances(projected: np.ndarray, detected: np.ndarray) -> np.nd
     return out
 
 
+@numba.njit(cache=True, nogil=True)
+def _predicted_distances(corners_m: np.ndarray, normals: np.ndarray, R_cb: np.ndarray, t_cb: np.ndarray,
+                         cos_max: float, K: np.ndarray, dist: np.ndarray,
+                         detected: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover
+    """:func:`_faces_in_camera`, :func:`_projected` and :func:`_mean_corner_distances` in one call from
+    Python (each call costs a few microseconds of dispatch): the (D, M) distances and the (M,) candidates."""
+    corners_cam, visible = _faces_in_camera(corners_m, normals, R_cb, t_cb, cos_max)
+    return _mean_corner_distances(_projected(corners_cam, K, dist), detected), visible
+
+
 def compile_match_kernels() -> None:
     """Compile the matcher's kernels (or load them from numba's on-disk cache) for the argument
     types it passes (a layout's read-only arrays), so that no sighting pays it."""
@@ -312,3 +324,5 @@ def compile_match_kernels() -> None:
         a.setflags(write=False)
     cam, _ = _faces_in_camera(corners, normals, np.eye(3), np.array([0.0, 0.0, 1.0]), 0.5)
     _mean_corner_distances(_projected(cam, np.eye(3), np.zeros(5)), np.zeros((1, 4, 2)))
+    _predicted_distances(corners, normals, np.eye(3), np.array([0.0, 0.0, 1.0]), 0.5, np.eye(3), np.zeros(5),
+                         np.zeros((1, 4, 2)))
