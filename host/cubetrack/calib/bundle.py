@@ -25,9 +25,10 @@ jointly from
 Unknowns: each camera's 6-dof pose, the cube pose at each instant and (``planar_motion``) one
 cube height per robot. Residuals: reprojection errors (pixels, on undistorted points scaled by
 the focal length, as in :mod:`cubetrack.estimate.reprojection`) of every corner, with a soft-L1 loss; for ground
-robots also the cube's height against its robot's common height and its tilt from world up (the
-floor the world marker lies on is the plane the robot drives on: this fixes the world frame's
-tilt, the weak direction of one obliquely seen marker). ``scipy.optimize.least_squares`` with an
+robots also the cube's height against its robot's common height and its tilt from its floor's up,
+the floor a plane that may tilt from the world marker's by ``floor_tilt_sigma_deg`` (so the world
+marker, not the drive's floor, sets the world frame's tilt: the contract's world frame; 0 = the
+floor is the marker's plane and holds the tilt). ``scipy.optimize.least_squares`` with an
 analytic sparse Jacobian (a corner depends on one camera and one instant), so 5 cameras x
 hundreds of instants solve in seconds. Pose increments are world-frame, as in
 :mod:`cubetrack.estimate.reprojection`.
@@ -132,16 +133,17 @@ class BundleAdjustmentParams:
     gauge_prior_position_m: float = param(0.1, "relative solve: weak prior on each camera's position (holds "
                                                "the gauge), metres")
     gauge_prior_rotation_deg: float = param(3.0, "relative solve: weak prior on each camera's rotation, degrees")
-    planar_motion: bool = param(True, "each robot's cube stays at one height above the floor the world marker lies on "
-                                      "(ground robots, level floor): fixes the world frame's tilt far better than one "
-                                      "marker; false for robots that climb")
+    planar_motion: bool = param(True, "each robot's cube stays at one height above the floor it drives on (ground "
+                                      "robots; a plane that may tilt from the world marker's by floor_tilt_sigma_deg); "
+                                      "false for robots that climb")
     height_sigma_m: float = param(0.002, "planar motion: spread (1 sigma) of the cube's height along the path, metres")
     upright_sigma_deg: float = param(1.0, "spread (1 sigma) of each cube's tilt from world up (ground robots: the "
                                           "estimator's upright prior); 0 = no such prior, degrees")
-    floor_tilt_sigma_deg: float = param(0.0, "ground robots: the floor under the robot's path is a plane that may tilt "
+    floor_tilt_sigma_deg: float = param(1.0, "ground robots: the floor under the robot's path is a plane that may tilt "
                                              "from the world marker's by this much (1 sigma; the cube's height and "
-                                             "upright prior are taken along it); 0 = that plane is the marker's, "
-                                             "degrees")
+                                             "upright prior are taken along it), so the world marker sets the world's "
+                                             "tilt (contracts: the world frame is the marker's); 0 = that plane is the "
+                                             "marker's (a level floor sets the tilt), degrees")
     free_cube_scale: bool = param(False, "absolute solves: estimate each cube's scale too, so the world marker sets "
                                          "the scale (measured worse on simulations: the obliquely seen marker's scale "
                                          "is less sure than the cube's): a corner bias of 0.01 px on a 20 px cube "
@@ -149,7 +151,7 @@ class BundleAdjustmentParams:
                                          "radially by 2 mm")
     world_samples: int = param(60, "world-marker sightings averaged per camera of the calibration recording "
                                    "(the first N found)")
-    knot_s: float = param(0.0, "the body's pose is a continuous-time trajectory with knots this many seconds apart "
+    knot_s: float = param(0.05, "the body's pose is a continuous-time trajectory with knots this many seconds apart "
                                 "through every instant's frames (each corner at the pose interpolated to its row's "
                                 "time, the knots tied by the accel sigmas; as [body_calibration] knot_s); 0 = one pose "
                                 "per instant, moved to each frame's time with a fitted velocity")
