@@ -196,8 +196,9 @@ class WatchedFusion:
         it was re-calibrated)."""
         self._collect(now_s)
         sighting = self._reposed(sighting)
-        predicted = self.fusion.predicted_pose(sighting.robot, sighting.capture_time_s)
-        for event in self.watch.add(sighting, predicted):
+        watched = self._restamped(sighting)
+        predicted = self.fusion.predicted_pose(sighting.robot, watched.capture_time_s)
+        for event in self.watch.add(watched, predicted):
             self._tell(event)
         self._start(now_s)
         self._announce(sighting.camera, now_s)
@@ -211,6 +212,18 @@ class WatchedFusion:
         if predicted is not None and self.watch.off_prediction(sighting, predicted):
             return []
         return self.fusion.add(sighting, now_s)
+
+    def _restamped(self, sighting: CubeSighting) -> CubeSighting:
+        """The sighting as the watcher judges it: taken when the fusion's estimate of its camera's
+        time offset says (``[filter] correction_time_sigma_s`` > 0; docs/tracking.md "Per-camera
+        corrections"), as the fusion itself takes it. A camera whose stamps are 20 ms off the others'
+        misses their cube pose of a moving body by pixels, which the suspect test read as a camera that
+        moved (issue 27, the real footage's cam0 and cam1)."""
+        state = getattr(self.fusion, "state", {}).get(sighting.robot)
+        offset = None if state is None else state.corrections.applied(sighting.camera)
+        if offset is None or offset[6] == 0.0:
+            return sighting
+        return dataclasses.replace(sighting, capture_time_s=sighting.capture_time_s + float(offset[6]))
 
     def _start(self, now_s: float) -> None:
         """Start the re-calibration of each camera that has gathered enough (again)."""

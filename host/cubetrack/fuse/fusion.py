@@ -62,7 +62,7 @@ from cubetrack.fuse.camera_corrections import (
 )
 from cubetrack.fuse.corner_filter import FilterParams, PoseFilter
 from cubetrack.fuse.filter_kernels import compile_filter_kernels, spread_m
-from cubetrack.fuse.multi_view_fit import solve_joint
+from cubetrack.fuse.multi_view_fit import JointSolution, solve_joint
 from cubetrack.fuse.smoother import Gains, TrailStep, smoothed_poses
 
 log = logging.getLogger(__name__)
@@ -641,6 +641,23 @@ class FilterFusion:
         return term_observed(corrections, own.corners, others, f.predicted(own.key[0]), f.velocity_m_s,
                              f.angular_velocity_rad_s, sigmas, fp.corner_noise_px)
 
+    def _started_filter(self, robot: str, time_s: float, solution: JointSolution,
+                        frames: list[tuple[str, list[CornerSet]]], corrections: CameraCorrections) -> PoseFilter | None:
+        """The filter a track starts with: at the joint fit's pose and velocities at ``time_s`` (the
+        newest sighting's), from a broad prior (``reacquire_m``, 30 deg, the start's velocity spreads),
+        updated with each camera frame of the fit in turn as every later frame is (each corner's
+        own noise, its camera's calibration term; an older frame informs the velocities too). Its
+        covariance is then what the sightings pin: the joint fit's own counts the corners' noise
+        alone, and a start from a few markers far away claimed a centimetre's depth too little
+        (issue 27). None if no frame passes the filter's gate."""
+        fp = self._body_params[robot]
+        prior = np.diag(np.repeat([self.params.reacquire_m**2, math.radians(30.0) ** 2,
+                                   fp.init_velocity_sigma**2, fp.init_angular_velocity_sigma**2], 3))
+        f = PoseFilter(fp, time_s, solution.T_world_cube, prior,
+                       solution.velocity_m_s, solution.angular_velocity_rad_s)
+        accepted = [f.update(frame, corrections.term_scale(camera)).accepted for camera, frame in frames if frame]
+        return f if any(accepted) else None
+
     def _start(self, state: RobotState, sighting: CubeSighting, recent: list[CubeSighting], now_s: float,
                record: bool) -> tuple[RobotState, TrackedPose | None, str]:
         """Start a track from a joint fit of pose and velocity over the recent sightings.
@@ -655,7 +672,8 @@ class FilterFusion:
         fp = self.filter_params
         best = None
         for guess in {id(s.estimate): s.estimate for s in window if s.estimate is not None}.values():
-            sets = [c for s in window for c in self._corners(s, guess.T_world_cube, state.corrections)]
+            frames = [(s.camera, self._corners(s, guess.T_world_cube, state.corrections)) for s in window]
+            sets = [c for _, frame in frames for c in frame]
             if len({c.camera for c in sets}) < 2:
                 continue
             solution = solve_joint(sets, guess.T_world_cube, t, corner_noise_px=fp.corner_noise_px,
@@ -663,12 +681,14 @@ class FilterFusion:
             if solution is None or solution.rms_px > fp.gate_rms_px or solution.inlier_fraction < 0.9:
                 continue
             if best is None or (solution.points, -solution.rms_px) > (best[0].points, -best[0].rms_px):
-                best = (solution, sets)
+                best = (solution, frames)
         if best is None:
             return state, None, "failed track start"
-        solution, sets = best
-        f = PoseFilter(self._body_params[sighting.robot], t, solution.T_world_cube, solution.covariance,
-                       solution.velocity_m_s, solution.angular_velocity_rad_s)
+        solution, frames = best
+        f = self._started_filter(sighting.robot, t, solution, frames, state.corrections)
+        if f is None:
+            return state, None, "failed track start"
+        sets = [c for _, frame in frames for c in frame]
         if not record:
             return RobotState(f, t, 0, state.corrections), None, "track start"
         cameras = tuple(sorted({s.camera for s in sets}))

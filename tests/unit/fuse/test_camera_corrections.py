@@ -162,3 +162,29 @@ def test_corrections_are_the_same_whatever_order_the_sightings_arrive_in():
     for cam in CAMS:
         np.testing.assert_allclose(got[cam].offset, want[cam].offset, rtol=1e-9, atol=1e-12)
         assert got[cam].frames == want[cam].frames
+
+
+@pytest.mark.parametrize("params", [OFF, TIME], ids=["off", "time"])
+def test_the_camera_watcher_takes_a_sighting_when_the_fusion_says_it_was_taken(params, monkeypatch):
+    """A camera stamped 60 ms late misses the other cameras' cube pose of a moving body by pixels,
+    which the watcher's suspect test read as a moved camera (issue 27: the real footage's cam0 and
+    cam1, 20 ms off): with the time offsets estimated, the watcher judges each sighting at the time
+    the fusion takes it; without, at its stamp."""
+    from cubetrack.calib.recalibrate import WatchedFusion
+    from cubetrack.fuse.camera_watch import CameraWatch, WatchParams
+
+    watched: list[tuple[str, float, float]] = []
+    monkeypatch.setattr(CameraWatch, "add", lambda self, s, predicted=None: watched.append(
+        (s.camera, s.capture_time_s, s.seq)) or [])
+    rng = np.random.default_rng(4)
+    fused = WatchedFusion(FilterFusion({"bot": LAYOUT}, FusionParams(), params), {"bot": LAYOUT}, CAMS,
+                          WatchParams(enabled=True))
+    for t, cam in sorted((t, cam) for k, cam in enumerate(CAMS) for t in np.arange(k * 0.044, 6.0, 1 / FPS)):
+        stamp = t + (0.06 if cam == "cam2" else 0.0)
+        dets = detections(truth(t), CAMS[cam], rng, noise_px=0.2)
+        est = estimate_cube(dets, LAYOUT, INTR, CAMS[cam], camera=cam, robot="bot", seq=round(1000 * t),
+                            capture_time_s=stamp, arrival_time_s=stamp)
+        fused.add(CubeSighting(cam, "bot", round(1000 * t), stamp, stamp, dets, est, CAMS[cam], INTR), stamp)
+    late = [time_s - seq / 1000 for cam, time_s, seq in watched if cam == "cam2" and seq > 4000]
+    expected = 0.0 if params is TIME else 0.06
+    assert len(late) > 5 and np.median(np.abs(np.array(late) - expected)) < 0.012, late
