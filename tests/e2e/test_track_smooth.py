@@ -115,8 +115,9 @@ def test_a_fixed_lag_live_from_emulated_cameras(rec, tmp_path):
 
 @pytest.mark.parametrize("kind", ["thread", "camera-process"])
 def test_a_fixed_lag_live_gives_the_held_poses_on_time_when_every_camera_stalls(rec, tmp_path, kind):
-    """Live from emulated cameras whose streams all go silent 2 s after they connect (the session
-    goes on 2.5 s more): the poses the lag holds leave within smooth_lag_s + smooth_margin_s of their
+    """Live from emulated cameras whose streams all go silent 3 s after they connect (the session
+    goes on 2.5 s more; a camera worker process loaded by a busy machine may take most of a second
+    before its first frame): the poses the lag holds leave within smooth_lag_s + smooth_margin_s of their
     capture (and the loop's idle wait), not at the session's end; each once, in capture order,
     the last ones saying how much they were smoothed over. Both live paths: worker threads and
     camera worker processes."""
@@ -124,12 +125,12 @@ def test_a_fixed_lag_live_gives_the_held_poses_on_time_when_every_camera_stalls(
     from cubetrack.app.demo import write_live_config
 
     lag_s, margin_s = 0.05, 0.1
-    with Emulator(rec, host="127.0.0.1", port=0, loop=True, faults=Faults(stall_after_s=2.0)) as emu:
+    with Emulator(rec, host="127.0.0.1", port=0, loop=True, faults=Faults(stall_after_s=3.0)) as emu:
         config = write_live_config(rec / "config.toml", emu.urls, tmp_path / "config.toml")
         config.write_text(config.read_text() + f"\n[filter]\nsmooth_lag_s = {lag_s}\nsmooth_margin_s = {margin_s}\n"
                           f'\n[live]\nworker_kind = "{kind}"\nworkers = 1\n')
         assert main(["track", "--config", str(config), "--extrinsics", str(rec / "true_extrinsics.toml"),
-                     "--live", "--out", str(tmp_path / "live"), "--duration", "4.5"]) == 0
+                     "--live", "--out", str(tmp_path / "live"), "--duration", "5.5"]) == 0
     lines = [json.loads(line) for line in (tmp_path / "live" / "robot.jsonl").read_text().splitlines()]
     assert len(lines) > 5
     times = [line["time"] for line in lines]
