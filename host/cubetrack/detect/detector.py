@@ -195,7 +195,7 @@ class DetectorParams:
         "against 0.125 px, cube position p95 27 against 22 mm; docs/detection.md)",
     )
     template_iterations: int = param(
-        3, "template only: Gauss-Newton iterations of each marker's fit, from the edge fit's corners",
+        2, "template only: Gauss-Newton iterations of each marker's fit, from the edge fit's corners",
     )
 
     def __post_init__(self) -> None:

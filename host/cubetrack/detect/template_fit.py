@@ -21,7 +21,7 @@ mapping (:func:`distort_px`, :class:`LensMap`) and the pixels a fit compares
 model OpenCV alone knows and the cached templates) — and the tracking-time fit,
 :func:`fast_template_corners`: Gauss-Newton
 on the 8 corner coordinates and the blur with the brightness model solved jointly, the Jacobian
-at pixel level (the template's gradient images resampled like the prediction, times the
+at pixel level (the predicted image's gradient, its blur's kernel differentiated, times the
 homography mapping's analytic derivative at the pixel centre), the lens undistortion read from
 a per-camera map. The calibration's fit (:func:`cubetrack.calib.marker_fit.template_fitted_corners`)
 is :func:`fast_template_corners` with more samples per pixel and more iterations.
@@ -30,6 +30,7 @@ is :func:`fast_template_corners` with more samples per pixel and more iterations
 from __future__ import annotations
 
 import functools
+import math
 from dataclasses import dataclass
 
 import cv2
@@ -428,11 +429,43 @@ def _border_read(image: np.ndarray, k: int, r0: int, c0: int, fx: float, fy: flo
 def _blurred(image: np.ndarray, sigma: float) -> np.ndarray:
     """(ny, nx, 2) ``image`` blurred by a Gaussian of ``sigma`` px, border replicated:
     ``cv2.GaussianBlur(image, (0, 0), sigma, borderType=cv2.BORDER_REPLICATE)``'s kernel (4 sigma
-    either side for a float image), summed in float64."""
-    half = (int(np.rint(sigma * 8.0 + 1.0)) | 1) // 2
-    kernel = np.exp(-0.5 * (np.arange(-half, half + 1) / sigma) ** 2)
-    kernel /= kernel.sum()
+    either side for a float image, :func:`_gaussian_kernel`), summed in float64."""
+    kernel, _ = _gaussian_kernel(sigma)
     return _filtered_across(_filtered_across(image, kernel), kernel).astype(np.float32)
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _gaussian_kernel(sigma: float) -> tuple[np.ndarray, np.ndarray]:
+    """``cv2.GaussianBlur``'s kernel for ``sigma`` px (odd, 4 sigma either side, summing to 1) and,
+    on the same taps, the slope of the image it blurs taken as linear between the pixel centres,
+    blurred by the Gaussian (the derivative by the place it is centred on of the triangle's
+    convolution with it: ``-(Phi(k + 1) - 2 Phi(k) + Phi(k - 1))`` at offset k, Phi the Gaussian's
+    integral; half the difference of the two neighbours as sigma goes to 0)."""
+    half = (int(np.rint(sigma * 8.0 + 1.0)) | 1) // 2
+    offsets = np.arange(-half, half + 1).astype(np.float64)
+    kernel = np.exp(-0.5 * (offsets / sigma) ** 2)
+    kernel /= kernel.sum()
+    slope = np.empty_like(offsets)
+    scale = 1.0 / (sigma * np.sqrt(2.0))
+    for k in range(len(offsets)):
+        t = offsets[k]
+        slope[k] = -0.5 * (math.erf((t + 1.0) * scale) - 2.0 * math.erf(t * scale) + math.erf((t - 1.0) * scale))
+    return kernel, slope
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _blurred_with_gradient(image: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`_blurred` of the (ny, nx, 2) ``image`` (float32) and that blurred image's gradient
+    along x and y (float64): the blur's kernel differentiated along one axis (the derivative of
+    the sampled Gaussian sum at each pixel, where half the difference of the two neighbours
+    understates an edge blurred by ~0.8 px by ~20 %: the Gauss-Newton steps overshot, the fit
+    was not converged at three; docs/detection.md)."""
+    kernel, slope = _gaussian_kernel(sigma)
+    rows = _filtered_across(image, kernel)
+    blurred = _filtered_across(rows, kernel).astype(np.float32)
+    gy = _filtered_across(rows, slope)
+    gx = _filtered_across(_filtered_across(image, slope), kernel)
+    return blurred, gx, gy
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
@@ -527,20 +560,6 @@ def _step_system(image: np.ndarray, wider: np.ndarray, gx: np.ndarray, gy: np.nd
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _central_differences(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """The (ny, nx, 2) ``image``'s gradient along x and y, half the difference of the two
-    neighbours, border replicated (``cv2.Sobel`` with ``ksize=1, scale=0.5``)."""
-    ny, nx = image.shape[0], image.shape[1]
-    gx, gy = np.empty_like(image), np.empty_like(image)
-    for i in range(ny):
-        for j in range(nx):
-            for c in range(2):
-                gx[i, j, c] = 0.5 * (image[i, min(j + 1, nx - 1), c] - image[i, max(j - 1, 0), c])
-                gy[i, j, c] = 0.5 * (image[min(i + 1, ny - 1), j, c] - image[max(i - 1, 0), j, c])
-    return gx, gy
-
-
-@numba.njit(cache=True, nogil=True, error_model="numpy")
 def _normal_solution(N: np.ndarray, rhs: np.ndarray) -> np.ndarray:
     """The least-squares solution from its normal equations ``N x = rhs`` (``N = A^T A``,
     ``rhs = A^T b``); a column of ``A`` that vanishes (no pixel of the region lies beyond the
@@ -585,11 +604,10 @@ def _gauss_newton_step(template: np.ndarray, samples: np.ndarray, shape: tuple[i
     ny, nx = shape
     H_inv = np.linalg.inv(H)
     area = _pixel_areas(template, samples, H_inv, ny, nx, s)
-    image = _blurred(area, blur)
+    image, gx, gy = _blurred_with_gradient(area, blur)
     wider = _blurred(area, blur + _BLUR_STEP_PX)
     N, rhs, beyond = _brightness_system(image, index, gradient, pixels)
     coef = _normal_solution(N, rhs)
-    gx, gy = _central_differences(image)
     N, rhs = _step_system(image, wider, gx, gy, index, gradient, pixels, centres, lens, H_inv, dH, coef, beyond)
     return _normal_solution(N, rhs)
 
@@ -612,7 +630,7 @@ def _fitted_offsets(template: np.ndarray, samples: np.ndarray, shape: tuple[int,
 
 
 def fast_template_corners(gray: np.ndarray, corners_px: np.ndarray, dictionary: str, marker_id: int,
-                          lens: LensMap, iterations: int = 3,
+                          lens: LensMap, iterations: int = 2,
                           settings: TemplateFitSettings = FAST_SETTINGS) -> np.ndarray | None:
     """The (4, 2) corners (TL TR BR BL, px in ``gray``) of marker ``marker_id`` of ``dictionary``
     near ``corners_px`` (the edge fit's), re-measured by the template fit (module docstring):

@@ -132,6 +132,33 @@ def test_homography_derivatives_match_finite_differences():
         np.testing.assert_allclose(dH[k], numeric, atol=1e-5 * np.abs(numeric).max() + 1e-9)
 
 
+def test_the_fits_image_gradient_is_the_blurred_images_slope():
+    """The Jacobian's image gradient (template_fit._blurred_with_gradient): along the right axis
+    with the right sign and scale (a ramp's slope, to the kernel's 4-sigma tails), steeper than half the difference of
+    the two neighbours across an edge blurred by 0.8 px (which understates it: the Gauss-Newton
+    steps overshot), and that difference again as the blur goes to nothing (a plain derivative of
+    the Gaussian would vanish there: the fit diverged on the real photographs)."""
+    from cubetrack.detect.template_fit import _blurred, _blurred_with_gradient
+
+    ys, xs = np.mgrid[0:24, 0:30].astype(np.float32)
+    ramp = np.stack([0.03 * xs - 0.02 * ys, 0.05 * ys], axis=-1)
+    blurred, gx, gy = _blurred_with_gradient(ramp, 0.8)
+    np.testing.assert_array_equal(blurred, _blurred(ramp, 0.8))
+    inside = (slice(6, -6), slice(6, -6))
+    np.testing.assert_allclose(gx[inside], np.broadcast_to([0.03, 0.0], gx[inside].shape), atol=1e-4)
+    np.testing.assert_allclose(gy[inside], np.broadcast_to([-0.02, 0.05], gy[inside].shape), atol=1e-4)
+
+    edge = np.zeros((24, 30, 2), np.float32)
+    edge[:, 13:, 0] = 1.0
+    blurred, gx, _ = _blurred_with_gradient(edge, 0.8)
+    assert gx[10, 13, 0] > 1.05 * 0.5 * (blurred[10, 14, 0] - blurred[10, 12, 0]) > 0.0
+    rng = np.random.default_rng(5)
+    noise = rng.uniform(0.0, 1.0, (24, 30, 2)).astype(np.float32)
+    blurred, gx, gy = _blurred_with_gradient(noise, 0.3)
+    np.testing.assert_allclose(gx[:, 1:-1], 0.5 * (blurred[:, 2:] - blurred[:, :-2]), atol=0.02)
+    np.testing.assert_allclose(gy[1:-1], 0.5 * (blurred[2:] - blurred[:-2]), atol=0.02)
+
+
 @pytest.mark.parametrize("shape", [(7, 2), (300, 200, 2)])  # 60000 points: more than cv2.remap takes in one row
 def test_lens_map_reads_the_undistortion(shape):
     """Exact at whole pixels; between them cv2.remap reads in 1/32 px steps (the fit's samples
