@@ -22,6 +22,17 @@ from cubetrack.fuse.fusion import FilterFusion, FusionParams
 TURN = make_T(Rotation.from_rotvec(np.radians(0.25) * np.array([0.6, 0.0, 0.8])).as_matrix(), [0.0, 0.0, 0.0])
 
 
+def sight(fusion: FilterFusion, camera: str, truth: np.ndarray, k: int, t: float, rng: np.random.Generator,
+          intrinsics: CameraIntrinsics = INTR, T_world_cam: np.ndarray | None = None) -> None:
+    """``camera`` (at ``CAMS[camera]`` unless ``T_world_cam`` says where it is believed to be, with the
+    ``intrinsics`` it is believed to have) sees the cube at ``truth`` as frame ``k`` taken at ``t``."""
+    T_world_cam = CAMS[camera] if T_world_cam is None else T_world_cam
+    dets = detections(truth, CAMS[camera], rng)
+    estimate = estimate_cube(dets, LAYOUT, intrinsics, T_world_cam, camera=camera, robot="bot", seq=k,
+                             capture_time_s=t, arrival_time_s=t)
+    fusion.add(CubeSighting(camera, "bot", k, t, t, dets, estimate, T_world_cam, intrinsics), t)
+
+
 def still_cube(filter_params: FilterParams, believed: dict[str, tuple[np.ndarray, CameraIntrinsics]],
                seed: int = 3, layout: CubeLayout = LAYOUT) -> tuple[list[float], list[float]]:
     """The filter's speed (m/s) after each sighting past the first second, and its position error (m):
@@ -35,10 +46,7 @@ def still_cube(filter_params: FilterParams, believed: dict[str, tuple[np.ndarray
     for k in range(18):
         for (camera, (T_world_cam, intrinsics)), lag in zip(believed.items(), (0.0, 0.005), strict=True):
             t = k / 6.0 + lag
-            dets = detections(truth, CAMS[camera], rng)
-            estimate = estimate_cube(dets, LAYOUT, intrinsics, T_world_cam, camera=camera, robot="bot", seq=k,
-                                     capture_time_s=t, arrival_time_s=t)
-            fusion.add(CubeSighting(camera, "bot", k, t, t, dets, estimate, T_world_cam, intrinsics), t)
+            sight(fusion, camera, truth, k, t, rng, intrinsics, T_world_cam)
             f = fusion.state["bot"].filter
             if t > 1.0 and f is not None:
                 speed.append(float(np.linalg.norm(f.velocity_m_s)))
@@ -82,10 +90,7 @@ def test_re_acquisition_finds_the_cameras_own_pose_with_the_estimator_settings(m
     for k in range(12):   # a still cube: the track starts and settles
         for camera in ("cam1", "cam2"):
             t = k / 7.5 + (0.01 if camera == "cam2" else 0.0)
-            dets = detections(cube_pose(), CAMS[camera], rng)
-            estimate = estimate_cube(dets, LAYOUT, INTR, CAMS[camera], camera=camera, robot="bot", seq=k,
-                                     capture_time_s=t, arrival_time_s=t)
-            fusion.add(CubeSighting(camera, "bot", k, t, t, dets, estimate, CAMS[camera], INTR), t)
+            sight(fusion, camera, cube_pose(), k, t, rng)
     t = 12 / 7.5
     moved = cube_pose(y=-0.11)   # 9 cm across cam1 in one frame: beyond the association gate, within reacquire_m
     dets = detections(moved, CAMS["cam1"], rng)
@@ -141,10 +146,7 @@ def wobbling_cube(filter_params: FilterParams, seed: int) -> tuple[float, float]
         truth = floor @ tilt @ np.linalg.inv(floor) @ rest
         for camera, lag in (("cam1", 0.0), ("cam2", 0.004), ("cam3", 0.009)):
             t = k / 7.5 + lag
-            dets = detections(truth, CAMS[camera], rng)
-            estimate = estimate_cube(dets, LAYOUT, INTR, CAMS[camera], camera=camera, robot="bot", seq=k,
-                                     capture_time_s=t, arrival_time_s=t)
-            fusion.add(CubeSighting(camera, "bot", k, t, t, dets, estimate, CAMS[camera], INTR), t)
+            sight(fusion, camera, truth, k, t, rng)
             f = fusion.state["bot"].filter
             if t > 1.0 and f is not None:
                 speed.append(float(np.linalg.norm(f.velocity_m_s)))
@@ -195,10 +197,7 @@ def lone_camera_errors(filter_params: FilterParams, seed: int, layout: CubeLayou
     for k in range(9):
         for camera, lag in (("cam1", 0.0), ("cam3", 0.005))[: 2 if k < 6 else 1]:
             t = k / 6.0 + lag
-            dets = detections(truth, CAMS[camera], rng)
-            estimate = estimate_cube(dets, LAYOUT, believed[camera], CAMS[camera], camera=camera, robot="bot", seq=k,
-                                     capture_time_s=t, arrival_time_s=t)
-            fusion.add(CubeSighting(camera, "bot", k, t, t, dets, estimate, CAMS[camera], believed[camera]), t)
+            sight(fusion, camera, truth, k, t, rng, believed[camera])
             if camera == "cam1" and k > 1:
                 errors.append(float(np.linalg.norm(fusion.state["bot"].filter.position_m - truth[:3, 3])))
     return errors
@@ -230,10 +229,7 @@ def start_nees(seed: int, partner: str) -> float:
     for k in range(3):
         for camera, lag in (("cam1", 0.0), (partner, 0.005)):
             t = k / 6.0 + lag
-            dets = detections(truth, CAMS[camera], rng)
-            estimate = estimate_cube(dets, LAYOUT, believed, CAMS[camera], camera=camera, robot="bot", seq=k,
-                                     capture_time_s=t, arrival_time_s=t)
-            fusion.add(CubeSighting(camera, "bot", k, t, t, dets, estimate, CAMS[camera], believed), t)
+            sight(fusion, camera, truth, k, t, rng, believed)
             f = fusion.state["bot"].filter
             if f is not None:
                 error = f.position_m - truth[:3, 3]
