@@ -260,14 +260,17 @@ class WatchedFusion:
         log.log(logging.INFO if self.listeners else logging.WARNING, "%s", event.message)
         for listener in self.listeners:
             listener(event)
-        state = "moved" if event.kind is EventKind.MOVED else "rejoined"
-        self._announce(event.camera, event.time_s, (state, 0), event.message.removeprefix(event.camera + " "))
+        moved = event.kind is EventKind.MOVED
+        self._announce(event.camera, event.time_s, ("moved" if moved else "rejoined", 0),
+                       event.message.removeprefix(event.camera + " "), None if moved else event.T_world_cam)
 
-    def _announce(self, camera: str, now_s: float, said: tuple[str, int] | None = None, message: str = "") -> None:
+    def _announce(self, camera: str, now_s: float, said: tuple[str, int] | None = None, message: str = "",
+                  T_world_cam: np.ndarray | None = None) -> None:
         """Tell the state listeners what the watcher says of ``camera`` (``said``: the state and
-        progress in tenths; None: from the watcher) when it differs from what they were told last.
-        After a move the camera stays ``moved`` until its first corners are gathered; after a
-        rejoin ``rejoined`` until it has a settled pose again."""
+        progress in tenths; None: from the watcher; ``T_world_cam``: its new pose, on a rejoin)
+        when it differs from what they were told last. After a move the camera stays ``moved``
+        until its first corners are gathered; after a rejoin ``rejoined`` until it has a settled
+        pose again."""
         if camera not in self.watch.state or not self.state_listeners:
             return
         last, progress = self._announced.get(camera, ("", 0)), 0.0
@@ -285,7 +288,7 @@ class WatchedFusion:
         if said == last or (said[0] == "re-calibrating" and last[0] == "moved" and progress == 0.0):
             return
         self._announced[camera] = said
-        state_now = CameraWatchState(camera, now_s, said[0], progress, message)
+        state_now = CameraWatchState(camera, now_s, said[0], progress, message, T_world_cam)
         for listener in self.state_listeners:
             listener(state_now)
 

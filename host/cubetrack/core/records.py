@@ -190,13 +190,15 @@ class CameraWatchState:
     dashboard's camera tile shows it: ``state`` ``settling`` (no settled pose to judge it by yet),
     ``watched``, ``suspect``, ``moved``, ``re-calibrating`` or ``rejoined``; ``progress`` of a
     re-calibration (corners gathered over the corners it needs, 0..1); ``message`` one line;
-    ``time_s`` host Unix time."""
+    ``time_s`` host Unix time; ``T_world_cam`` the camera's new pose on ``rejoined`` (the pose the
+    fusion uses from then on, which outputs publish in place of the session's), None otherwise."""
 
     camera: str
     time_s: float
     state: str
     progress: float = 0.0
     message: str = ""
+    T_world_cam: np.ndarray | None = None
 
 
 @dataclass(frozen=True, slots=True, eq=False)

@@ -11,6 +11,7 @@ is computed). Live tracking and offline replay drive the same calls in the same 
 from __future__ import annotations
 
 import abc
+import dataclasses
 import logging
 import math
 import threading
@@ -64,6 +65,16 @@ class SessionInfo:
     world: WorldConfig
     cameras: tuple[CameraSetup, ...]
     robots: dict[str, CubeLayout] = field(default_factory=dict)
+
+    def rejoined(self, state: CameraWatchState) -> SessionInfo | None:
+        """The session with the camera ``state`` names at the new pose it rejoined at (issue 27:
+        outputs publish a re-calibrated camera's pose); None when ``state`` carries no new pose
+        of one of this session's cameras."""
+        if state.T_world_cam is None or all(c.name != state.camera for c in self.cameras):
+            return None
+        cameras = tuple(dataclasses.replace(c, T_world_cam=np.array(state.T_world_cam, float))
+                        if c.name == state.camera else c for c in self.cameras)
+        return dataclasses.replace(self, cameras=cameras)
 
 
 class Sink(abc.ABC):

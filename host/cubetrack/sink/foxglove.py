@@ -22,7 +22,8 @@ Where a view carries no predicted corners, the cube is projected from the robot'
 fused pose. The live server binds 127.0.0.1 unless another address is given. With both a server
 and an MCAP file, one foxglove-sdk ``Context`` feeds both: each message is built and encoded
 once. Per pose only the pose and its transform are sent; what changes slowly (the scene, the
-camera transforms and calibrations) is re-sent every ``static_every_s`` for viewers that join late.
+camera transforms and calibrations) is re-sent every ``static_every_s`` for viewers that join late,
+and at once with a camera's new pose when the camera watching re-calibrates it (issue 27).
 """
 
 from __future__ import annotations
@@ -39,7 +40,7 @@ import numpy as np
 from cubetrack.core.cameras import CameraIntrinsics
 from cubetrack.core.geometry import T_from_position_quat, invert_T, position_quat_from_T, transform_points
 from cubetrack.core.params import check
-from cubetrack.core.records import CameraHealth, CameraView, TrackedPose
+from cubetrack.core.records import CameraHealth, CameraView, CameraWatchState, TrackedPose
 from cubetrack.sink.base import CameraSetup, OutputError, SessionInfo, Sink, is_loopback_host
 from cubetrack.sink.names import identifiers
 
@@ -207,6 +208,7 @@ class FoxgloveSink(Sink):
         self.cube_world_m: dict[str, np.ndarray] = {}  # marker corners at the last pose, once a view needed them
         self.channels: dict[str, Any] = {}  # foxglove-sdk channels (no common base class)
         self.static_sent_s = -math.inf
+        self.session: SessionInfo | None = None
 
     @property
     def port(self) -> int:
@@ -227,12 +229,23 @@ class FoxgloveSink(Sink):
             self.channels[topic] = channel
         return channel
 
-    def open(self, session: SessionInfo) -> None:
-        self.robots = identifiers(list(session.robots), "robot")
-        self.camera_ids = identifiers([c.name for c in session.cameras], "camera")
+    def _set_cameras(self, session: SessionInfo) -> None:
+        self.session = session
         self.cameras = {c.name: c for c in session.cameras}
         self.projectors = {c.name: _Projector(c.T_world_cam, c.intrinsics) for c in session.cameras
                            if c.T_world_cam is not None and c.intrinsics is not None}
+
+    def camera_watch(self, state: CameraWatchState) -> None:
+        """A re-calibrated camera's new pose: its transform, frustum and projection, sent at once."""
+        session = None if self.session is None else self.session.rejoined(state)
+        if session is not None:
+            self._set_cameras(session)
+            self._send_static(state.time_s)
+
+    def open(self, session: SessionInfo) -> None:
+        self.robots = identifiers(list(session.robots), "robot")
+        self.camera_ids = identifiers([c.name for c in session.cameras], "camera")
+        self._set_cameras(session)
         for robot, layout in session.robots.items():
             corners = layout.corners_m.reshape(-1, 4, 3)
             self.cube_markers_m[robot] = corners

@@ -8,7 +8,8 @@ Per robot ``<r>`` (names made valid ROS names, :mod:`cubetrack.sink.names`), in 
   its twist in the robot frame (zeros where the fusion gives none);
 - ``/tf``: ``tf2_msgs/msg/TFMessage``, world -> ``<r>`` at every pose;
 - ``/tf_static``: world -> ``<camera>_optical_frame`` for every calibrated camera (the optical
-  frame: x right, y down, z forward), published once and kept for late subscribers.
+  frame: x right, y down, z forward), published once and kept for late subscribers; again with
+  the new pose when the camera watching re-calibrates a camera (issue 27).
 
 Two profiles. ``rmw_zenoh`` (default) talks to ROS 2 nodes that use ``rmw_zenoh_cpp``: keys,
 33-byte attachments and liveliness tokens as :mod:`cubetrack.sink.rmw_zenoh` describes, type
@@ -30,7 +31,7 @@ from typing import Any
 import numpy as np
 
 from cubetrack.core.geometry import position_quat_from_T
-from cubetrack.core.records import TrackedPose
+from cubetrack.core.records import CameraWatchState, TrackedPose
 from cubetrack.sink import cdr, rmw_zenoh
 from cubetrack.sink.base import OutputError, SessionInfo, Sink
 from cubetrack.sink.names import identifier, identifiers
@@ -133,6 +134,7 @@ class Ros2Sink(Sink):
         self.tf: _Publisher | None = None
         self.tf_static: _Publisher | None = None
         self.static_payload: bytes | None = None
+        self.session: SessionInfo | None = None
         self.static_sent_s = 0.0
         endpoints = endpoints or ros_endpoints()
         self.where = (f"ROS 2 ({params.profile.value}, {params.distro.value}, domain {params.domain_id}) over Zenoh "
@@ -154,6 +156,13 @@ class Ros2Sink(Sink):
                                   self._publisher(f"{prefix}/{frame}/odom", cdr.ODOMETRY, TOPIC_QOS))
         self.tf = self._publisher("/tf", cdr.TF_MESSAGE, TF_QOS)
         self.tf_static = self._publisher("/tf_static", cdr.TF_MESSAGE, TF_STATIC_QOS)
+        self._statics(session)
+        log.info("ROS 2 output (%s, %s, domain %d): %s", p.profile.value, p.distro.value, p.domain_id,
+                 ", ".join(pub.topic for pub in self.publishers))
+
+    def _statics(self, session: SessionInfo) -> None:
+        """``/tf_static`` of ``session``'s calibrated cameras, sent now (and kept to send again)."""
+        self.session = session
         now = time.time()
         cameras = identifiers([c.name for c in session.cameras], "camera")
         statics = []
@@ -164,8 +173,13 @@ class Ros2Sink(Sink):
                                              position, quaternion))
         self.static_payload = cdr.tf_message(statics)
         self._send_static(now)
-        log.info("ROS 2 output (%s, %s, domain %d): %s", p.profile.value, p.distro.value, p.domain_id,
-                 ", ".join(pub.topic for pub in self.publishers))
+
+    def camera_watch(self, state: CameraWatchState) -> None:
+        """A re-calibrated camera's new pose goes out on ``/tf_static`` at once (latched: a
+        late subscriber gets the new one)."""
+        session = None if self.session is None else self.session.rejoined(state)
+        if session is not None:
+            self._statics(session)
 
     def _send_static(self, now_s: float) -> None:
         assert self.tf_static is not None and self.static_payload is not None  # set by open()

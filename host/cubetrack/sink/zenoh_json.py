@@ -12,7 +12,8 @@ Key expressions (``<prefix>`` default ``cubetrack``; robot and camera names made
   "cameras"}`` about once a second
 - ``<prefix>/cameras/<c>/health``: a :class:`cubetrack.core.records.CameraHealth` (NaN -> null)
 - ``<prefix>/session``: world marker, cameras (pose in the world, intrinsics), robots and the key
-  names; also answered as a query
+  names; also answered as a query; put again with a camera's new pose when the camera watching
+  re-calibrates it (issue 27)
 
 ``tracking`` turns false when a robot's last pose is older than ``lost_after_s``; status is
 sent with poses and with camera health (live sessions), so a lost robot is reported as such.
@@ -30,7 +31,7 @@ from typing import Any
 import numpy as np
 
 from cubetrack.core.geometry import position_quat_from_T
-from cubetrack.core.records import CameraHealth, TrackedPose
+from cubetrack.core.records import CameraHealth, CameraWatchState, TrackedPose
 from cubetrack.io.trajectory import pose_to_json
 from cubetrack.sink.base import SessionInfo, Sink
 from cubetrack.sink.names import identifier, identifiers
@@ -92,6 +93,7 @@ class ZenohJsonSink(Sink):
         self.status: dict[str, _RobotStatus] = {}
         self.publishers: dict[str, Any] = {}  # zenoh publishers
         self.session_doc: bytes = b"{}"
+        self.session: SessionInfo | None = None
         self.queryable = None
 
     def _put(self, key: str, value: dict) -> None:
@@ -109,6 +111,22 @@ class ZenohJsonSink(Sink):
         self.robot_ids = identifiers(list(session.robots), "robot")
         self.camera_ids = identifiers([c.name for c in session.cameras], "camera")
         self.status = {robot: _RobotStatus() for robot in session.robots}
+        key = f"{self.prefix}/session"
+        self._put_session(session)
+        self.queryable = self.zenoh.declare_queryable(
+            key, lambda query: query.reply(key, self.session_doc, encoding=zenoh.Encoding.APPLICATION_JSON))
+        log.info("Zenoh output: JSON under %s/** (robots: %s)", self.prefix,
+                 ", ".join(f"{self.prefix}/robots/{r}" for r in self.robot_ids.values()))
+
+    def camera_watch(self, state: CameraWatchState) -> None:
+        """A re-calibrated camera's new pose: the session document again, put and answered."""
+        session = None if self.session is None else self.session.rejoined(state)
+        if session is not None:
+            self._put_session(session)
+
+    def _put_session(self, session: SessionInfo) -> None:
+        """The session document (world, cameras, robots and their keys), put and kept for queries."""
+        self.session = session
         cameras = []
         for c in session.cameras:
             entry: dict[str, Any] = {"name": c.name,
@@ -126,12 +144,7 @@ class ZenohJsonSink(Sink):
                                  for k in ("pose", "velocity", "status")}} for r in session.robots]
         doc = {"world": asdict(session.world), "cameras": cameras, "robots": robots}
         self.session_doc = _json(doc)
-        key = f"{self.prefix}/session"
-        self.queryable = self.zenoh.declare_queryable(
-            key, lambda query: query.reply(key, self.session_doc, encoding=zenoh.Encoding.APPLICATION_JSON))
-        self._put(key, doc)
-        log.info("Zenoh output: JSON under %s/** (robots: %s)", self.prefix,
-                 ", ".join(f"{self.prefix}/robots/{r}" for r in self.robot_ids.values()))
+        self._put(f"{self.prefix}/session", doc)
 
     def pose(self, pose: TrackedPose) -> None:
         robot_id = self.robot_ids.get(pose.robot)

@@ -151,6 +151,10 @@ def test_the_fusion_keeps_the_moved_camera_out_then_takes_it_back_at_its_new_pos
     assert states[:4] == ["settling", "watched", "suspect", "moved"], states
     rejoined = states.index("rejoined")
     assert states[rejoined + 1:] in ([], ["watched"]), states
+    # only the rejoin carries a pose: the one the fusion uses from then on (what outputs publish)
+    posed = [x for x in told if x.T_world_cam is not None]
+    assert [(x.camera, x.state) for x in posed] == [("cam2", "rejoined")]
+    np.testing.assert_array_equal(posed[0].T_world_cam, fused.watch.T_world_cam["cam2"])
     progress = [p for state, p in cam2 if state == "re-calibrating"]
     assert states[4:rejoined] == ["re-calibrating"] * len(progress) and len(progress) >= 5, cam2
     # it grows towards the corners needed; a refused try raises the need (by RETRY_GROWTH) and it drops once

@@ -8,7 +8,7 @@ import socket
 import numpy as np
 
 from cubetrack.core.cameras import CameraIntrinsics
-from cubetrack.core.records import TrackedPose
+from cubetrack.core.records import CameraWatchState, TrackedPose
 
 
 def free_port(kind: int = socket.SOCK_STREAM) -> int:
@@ -93,3 +93,10 @@ def tracked(robot: str, i: int, *, velocity=True) -> TrackedPose:
                        velocity_m_s=np.array([0.2, 0.0, 0.0]) if velocity else None,
                        angular_velocity_rad_s=np.array([0.0, 0.0, 0.5]) if velocity else None,
                        covariance=cov)
+
+
+def rejoined(camera: str, position, time_s: float = 1_700_000_001.0) -> CameraWatchState:
+    """What the camera watching tells outputs when ``camera`` rejoins, re-calibrated to a pose at
+    ``position`` looking at the origin (issue 27)."""
+    return CameraWatchState(camera, time_s, "rejoined", message="re-calibrated from 200 sightings; rejoined",
+                            T_world_cam=look_at(np.array(position, float), [0, 0, 0]))

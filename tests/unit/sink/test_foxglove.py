@@ -2,15 +2,16 @@
 by a WebSocket client, each message decoded with the schema its channel carries."""
 
 import json
+import time
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 from foxglove_client import LiveClient, read_mcap
-from sink_helpers import INTRINSICS, tracked
+from sink_helpers import INTRINSICS, rejoined, tracked
 
-from cubetrack.core.records import CameraHealth, CameraView, Detection
+from cubetrack.core.records import CameraHealth, CameraView, CameraWatchState, Detection
 from cubetrack.sink.base import OutputError
 from cubetrack.sink.foxglove import FoxgloveSink, layout, project
 
@@ -94,6 +95,25 @@ def test_the_mcap_file_holds_every_channel_and_reads_back(tmp_path, session_info
     check_messages(messages, session_info, picture)
     with pytest.raises(OutputError, match="cannot write the MCAP file"):
         FoxgloveSink(mcap=path)  # never overwrites a recording
+
+
+def test_a_recalibrated_camera_is_shown_at_its_new_pose_at_once(tmp_path, session_info):
+    path = tmp_path / "moved.mcap"
+    sink = FoxgloveSink(mcap=path)
+    sink.open(session_info)
+    now = time.time()  # the watching's states carry the host time, after the session opened
+    sink.camera_watch(CameraWatchState("cam-a", now + 0.5, "moved"))  # set aside: no pose to show
+    sink.camera_watch(rejoined("cam-a", [1.1, 0.2, 1.0], now + 1.0))
+    sink.camera_watch(rejoined("cam-z", [0.0, 0.0, 2.0], now + 1.5))  # not a camera of the session: ignored
+    sink.close()
+    _, messages = read_mcap(path)
+    cam_a = [t.translation for _, m in messages["/tf"] for t in m.transforms
+             if t.child_frame_id == "cam_a_optical_frame"]
+    assert [[v.x, v.y, v.z] for v in cam_a] == [pytest.approx([1.0, 0.0, 1.0]), pytest.approx([1.1, 0.2, 1.0])]
+    frusta = [e.lines[0].pose.position for _, m in messages["/scene"] for e in m.entities if e.id == "camera/cam_a"]
+    assert [frusta[-1].x, frusta[-1].y] == pytest.approx([1.1, 0.2])
+    cam_b = [t for _, m in messages["/tf"] for t in m.transforms if t.child_frame_id == "cam_b_optical_frame"]
+    assert [[t.translation.x, t.translation.y] for t in cam_b] == [pytest.approx([0.0, 1.0])] * 2  # as it was
 
 
 def test_the_live_server_advertises_every_channel_and_serves_each(session_info):

@@ -16,7 +16,7 @@ import numpy as np
 import pytest
 import xxhash
 from rosbags.typesys import Stores, get_typestore
-from sink_helpers import peer, tracked, wait_connected
+from sink_helpers import peer, rejoined, tracked, wait_connected
 
 from cubetrack.core.geometry import R_from_quat_xyzw
 from cubetrack.sink import rmw_zenoh
@@ -200,6 +200,27 @@ def test_liveliness_tokens_announce_the_node_and_each_publisher_and_go_away(rout
             gone.add(str(sample.key_expr))
     listener.close()
     assert gone == keys
+
+
+def test_a_recalibrated_cameras_new_pose_goes_out_on_tf_static(router, session_info):
+    from cubetrack.core.records import CameraWatchState
+
+    listener = Listener(router, "0/tf_static/**")
+    sink = ros_sink(router, listener)
+    try:
+        sink.open(session_info)
+        listener.take(1)
+        sink.camera_watch(CameraWatchState("cam b", 1_700_000_000.5, "moved"))  # set aside: no new pose
+        sink.camera_watch(rejoined("cam b", [0.1, 1.2, 1.0]))
+        (static,) = listener.take(1)
+    finally:
+        sink.close()
+        listener.close()
+    tf = JAZZY.deserialize_cdr(static.payload.to_bytes(), "tf2_msgs/msg/TFMessage")
+    moved = {t.child_frame_id: t.transform.translation for t in tf.transforms}
+    assert set(moved) == {"cam_a_optical_frame", "cam_b_optical_frame"}  # every camera, as a latched message must
+    assert [moved["cam_b_optical_frame"].x, moved["cam_b_optical_frame"].y] == pytest.approx([0.1, 1.2])
+    assert [moved["cam_a_optical_frame"].x, moved["cam_a_optical_frame"].y] == pytest.approx([1.0, 0.0])
 
 
 def test_a_late_subscriber_still_gets_the_static_transforms(router, session_info):

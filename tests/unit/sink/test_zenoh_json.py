@@ -6,7 +6,7 @@ import queue
 import time
 
 import pytest
-from sink_helpers import free_port, peer, tracked, wait_connected
+from sink_helpers import free_port, peer, rejoined, tracked, wait_connected
 
 from cubetrack.core.records import CameraHealth
 from cubetrack.sink.base import OutputError
@@ -58,9 +58,15 @@ def test_a_subscriber_receives_pose_velocity_status_health_and_the_session(sessi
         lost = "lab/cubetrack/robots/robot_1/status"
         samples = drain(got, lambda s: any(not st["tracking"] for st in s.get(lost, [])))
         replies = list(consumer.get("lab/cubetrack/session", timeout=5))
+        sink.camera_watch(rejoined("cam b", [0.1, 1.2, 1.0]))  # re-calibrated: the session again
+        put = drain(got, lambda s: "lab/cubetrack/session" in s)["lab/cubetrack/session"]
+        (again,) = list(consumer.get("lab/cubetrack/session", timeout=5))
     finally:
         sink.close()
         consumer.close()
+    for doc in (put[-1], json.loads(again.ok.payload.to_bytes())):
+        assert [c["position"] for c in doc["cameras"]] == [pytest.approx([1.0, 0.0, 1.0]),
+                                                           pytest.approx([0.1, 1.2, 1.0]), None]
     robot = "lab/cubetrack/robots/robot_1"
     poses = samples[f"{robot}/pose"]
     assert [p["time"] for p in poses] == [tracked("robot 1!", i).time_s for i in range(3)]
