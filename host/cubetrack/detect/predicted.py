@@ -41,10 +41,11 @@ if TYPE_CHECKING:
 BORDER_ERROR_RATE = 0.35   # OpenCV's DetectorParameters.maxErroneousBitsInBorderRate default
 MIN_CELL_CONTRAST = 30.0   # grey levels between the darkest and brightest cell of a readable marker
 _CELL_SAMPLES = (-0.25, 0.0, 0.25)   # 3 x 3 samples per cell, module units from its centre (the middle half)
-_NO_ROTATION = np.zeros(3)  # (and no translation) for cv2.projectPoints of camera-frame points
+_NO_ROTATION = np.zeros(3)  # (and no translation) for cv2.projectPoints of camera-frame points (a tilted sensor)
 NEAREST_M = 0.05   # a cube predicted closer to the camera than this is not projected (the whole frame is searched)
 MIN_BOX_PX = 16    # a predicted box narrower or lower than this (cut to the image) is out of view
 MIN_PX_PER_MODULE = 1.0   # a marker's shortest side over its cells across, below which its bits are not resolved
+COMPILED_DISTORTION = 12  # projected_px takes up to this many coefficients (OpenCV's tilted sensor, 14: cv2's own)
 
 
 @dataclass(frozen=True, slots=True)
@@ -66,8 +67,11 @@ def predicted_view(T_cam_cube: np.ndarray, layout: CubeLayout, intrinsics: Camer
     nearest_m = float(pc[:, 2].min())
     if nearest_m <= NEAREST_M:
         return None
-    px, _ = cv2.projectPoints(pc, _NO_ROTATION, _NO_ROTATION, intrinsics.K, intrinsics.dist)
-    px = px.reshape(-1, 2)
+    dist = intrinsics.dist.ravel()
+    if len(dist) <= COMPILED_DISTORTION:   # (cv2.projectPoints' pixels to the bit; it also makes a Jacobian)
+        px = projected_px(pc, intrinsics.K, dist)
+    else:
+        px = cv2.projectPoints(pc, _NO_ROTATION, _NO_ROTATION, intrinsics.K, dist)[0].reshape(-1, 2)
     grow = float(intrinsics.K[0, 0]) * margin_m / nearest_m + 8.0
     width, height = intrinsics.width, intrinsics.height
     x0, y0, x1, y1 = _grown_box(px, grow, width, height)
@@ -76,6 +80,32 @@ def predicted_view(T_cam_cube: np.ndarray, layout: CubeLayout, intrinsics: Camer
     markers = predicted_markers(px, layout, width, height, detector.min_marker_perimeter_rate * max(width, height),
                                 detector.min_distance_to_border_px)
     return PredictedView((x0, y0, x1, y1), markers)
+
+
+@numba.njit(cache=True, nogil=True)
+def projected_px(points: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:  # pragma: no cover
+    """(N, 2) pixels of camera-frame points (N, 3) through camera matrix ``K`` and up to
+    ``COMPILED_DISTORTION`` coefficients ``dist`` (k1 k2 p1 p2 [k3 [k4 k5 k6 [s1 s2 s3 s4]]]): the
+    arithmetic of ``cv2.projectPoints`` (its ``cvProjectPoints2Internal``) with no rotation nor
+    translation, in its order (``r6 = r4 r2``, the rational term as a reciprocal), so the same
+    pixels to the bit (a test holds them so for each coefficient count), without its Jacobian."""
+    k = np.zeros(12)
+    k[:dist.shape[0]] = dist
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    out = np.empty((points.shape[0], 2))
+    for i in range(points.shape[0]):
+        z = points[i, 2]
+        iz = 1.0 / z if z != 0.0 else 1.0
+        x, y = points[i, 0] * iz, points[i, 1] * iz
+        r2 = x * x + y * y
+        r4 = r2 * r2
+        r6 = r4 * r2
+        a1, a2, a3 = 2.0 * x * y, r2 + 2.0 * x * x, r2 + 2.0 * y * y
+        cdist = 1.0 + k[0] * r2 + k[1] * r4 + k[4] * r6
+        icdist2 = 1.0 / (1.0 + k[5] * r2 + k[6] * r4 + k[7] * r6)
+        out[i, 0] = (x * cdist * icdist2 + k[2] * a1 + k[3] * a2 + k[8] * r2 + k[9] * r4) * fx + cx
+        out[i, 1] = (y * cdist * icdist2 + k[2] * a3 + k[3] * a1 + k[10] * r2 + k[11] * r4) * fy + cy
+    return out
 
 
 @numba.njit(cache=True, nogil=True)
@@ -273,6 +303,7 @@ def compile_cell_reader() -> None:
     cell_errors(gray, corners, [Detection(0, corners[0], 576.0, "DICT_4X4_50")])
     _facing_quads(corners, 19.0, 3.0, 48, 48, np.empty(1))
     _grown_box(corners[0], 8.0, 48, 48)
+    projected_px(np.array([[0.0, 0.0, 1.0]]), np.eye(3), np.zeros(5))
 
 
 def resolvable_markers(quads_px: np.ndarray, modules: np.ndarray) -> np.ndarray:

@@ -45,6 +45,7 @@ from cubetrack.core.errors import EstimationError
 from cubetrack.core.geometry import is_finite_pose
 from cubetrack.core.layout import CubeLayout
 from cubetrack.core.records import Detection, FaceObservation, MarkerPose
+from cubetrack.detect.predicted import COMPILED_DISTORTION, projected_px
 from cubetrack.estimate.marker import marker_pose
 from cubetrack.estimate.params import EstimatorParams
 
@@ -205,15 +206,15 @@ def _match_by_prediction(detections: Sequence[Detection], layout: CubeLayout, in
                          max_view_angle_deg: float) -> tuple[FaceMatch, ...]:
     """Each detection, in order, takes the nearest unclaimed visible face with its id where
     ``T_world_cube`` projects the faces (see the module doc). Runs per sighting in the filter:
-    compiled steps (:func:`_faces_in_camera`, :func:`_projected`, :func:`_mean_corner_distances`) and
-    plain Python over the handful of faces."""
+    compiled steps (:func:`_faces_in_camera`, :func:`~cubetrack.detect.predicted.projected_px`,
+    :func:`_mean_corner_distances`) and plain Python over the handful of faces."""
     R_wc = T_world_cam[:3, :3]
     R_cb = R_wc.T @ T_world_cube[:3, :3]
     t_cb = (T_world_cube[:3, 3] - T_world_cam[:3, 3]) @ R_wc
     cos_max = math.cos(math.radians(max_view_angle_deg))
     detected = np.array([det.corners_px for det in detections], dtype=np.float64)
     dist = intrinsics.dist.ravel()
-    if len(dist) <= 12:   # OpenCV's model without its tilted sensor: compiled (cv2.projectPoints also makes a Jacobian)
+    if len(dist) <= COMPILED_DISTORTION:   # OpenCV's model without its tilted sensor: compiled (the same pixels)
         found, visible = _predicted_distances(layout.corners_m, layout.normals, R_cb, t_cb, cos_max, intrinsics.K,
                                               dist, detected)
     else:
@@ -269,27 +270,6 @@ def _faces_in_camera(corners_m: np.ndarray, normals: np.ndarray, R_cb: np.ndarra
 
 
 @numba.njit(cache=True, nogil=True)
-def _projected(points: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:  # pragma: no cover
-    """(N, 2) pixels of camera-frame points (N, 3): ``cv2.projectPoints``' model (its
-    ``cvProjectPoints2Internal``) for up to 12 coefficients, k1 k2 p1 p2 [k3 [k4 k5 k6 [s1 s2 s3 s4]]]."""
-    k = np.zeros(12)
-    k[:dist.shape[0]] = dist
-    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-    out = np.empty((points.shape[0], 2))
-    for i in range(points.shape[0]):
-        z = points[i, 2]
-        iz = 1.0 / z if z != 0.0 else 1.0
-        x, y = points[i, 0] * iz, points[i, 1] * iz
-        r2 = x * x + y * y
-        r4 = r2 * r2
-        a1, a2, a3 = 2.0 * x * y, r2 + 2.0 * x * x, r2 + 2.0 * y * y
-        radial = (1.0 + k[0] * r2 + k[1] * r4 + k[4] * r4 * r2) / (1.0 + k[5] * r2 + k[6] * r4 + k[7] * r4 * r2)
-        out[i, 0] = (x * radial + k[2] * a1 + k[3] * a2 + k[8] * r2 + k[9] * r4) * fx + cx
-        out[i, 1] = (y * radial + k[2] * a3 + k[3] * a1 + k[10] * r2 + k[11] * r4) * fy + cy
-    return out
-
-
-@numba.njit(cache=True, nogil=True)
 def _mean_corner_distances(projected: np.ndarray, detected: np.ndarray) -> np.ndarray:  # pragma: no cover
     """(D, M): each detection's (``detected`` (D, 4, 2)) mean corner distance to each face's
     projected corners (``projected`` (4M, 2)), pixels."""
@@ -309,10 +289,11 @@ def _mean_corner_distances(projected: np.ndarray, detected: np.ndarray) -> np.nd
 def _predicted_distances(corners_m: np.ndarray, normals: np.ndarray, R_cb: np.ndarray, t_cb: np.ndarray,
                          cos_max: float, K: np.ndarray, dist: np.ndarray,
                          detected: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover
-    """:func:`_faces_in_camera`, :func:`_projected` and :func:`_mean_corner_distances` in one call from
-    Python (each call costs a few microseconds of dispatch): the (D, M) distances and the (M,) candidates."""
+    """:func:`_faces_in_camera`, :func:`~cubetrack.detect.predicted.projected_px` and
+    :func:`_mean_corner_distances` in one call from Python (each call costs a few microseconds of
+    dispatch): the (D, M) distances and the (M,) candidates."""
     corners_cam, visible = _faces_in_camera(corners_m, normals, R_cb, t_cb, cos_max)
-    return _mean_corner_distances(_projected(corners_cam, K, dist), detected), visible
+    return _mean_corner_distances(projected_px(corners_cam, K, dist), detected), visible
 
 
 def compile_match_kernels() -> None:
@@ -323,6 +304,6 @@ def compile_match_kernels() -> None:
     for a in (corners, normals):
         a.setflags(write=False)
     cam, _ = _faces_in_camera(corners, normals, np.eye(3), np.array([0.0, 0.0, 1.0]), 0.5)
-    _mean_corner_distances(_projected(cam, np.eye(3), np.zeros(5)), np.zeros((1, 4, 2)))
+    _mean_corner_distances(projected_px(cam, np.eye(3), np.zeros(5)), np.zeros((1, 4, 2)))
     _predicted_distances(corners, normals, np.eye(3), np.array([0.0, 0.0, 1.0]), 0.5, np.eye(3), np.zeros(5),
                          np.zeros((1, 4, 2)))

@@ -32,7 +32,12 @@ def os_errors_as(error: type[Exception], path: str | Path) -> Iterator[None]:
     try:
         yield
     except OSError as exc:
-        raise error(f"{path}: cannot write: {exc.strerror or exc}") from None
+        raise error(cannot_write(path, exc)) from None
+
+
+def cannot_write(path: str | Path, exc: OSError) -> str:
+    """The one line :func:`os_errors_as` says for ``exc`` writing ``path``."""
+    return f"{path}: cannot write: {exc.strerror or exc}"
 
 
 class LineFile:

@@ -171,19 +171,24 @@ def test_the_largest_eigenvalue_and_the_spread() -> None:
 
 
 @pytest.mark.parametrize("coefficients", [4, 5, 8, 12])
-def test_the_associations_projection_is_opencvs(coefficients: int) -> None:
-    """The filter's association (estimate.match) projects the faces with a compiled copy of
-    cv2.projectPoints' model; a tilted sensor (14 coefficients) still goes to OpenCV."""
+def test_the_compiled_projection_gives_opencvs_pixels_to_the_bit(coefficients: int) -> None:
+    """The filter's association (estimate.match) and the detector's predicted markers
+    (detect.predicted.predicted_view) project with a compiled copy of cv2.projectPoints' arithmetic,
+    in its order: the same pixels to the bit, so a prediction's corners (where the edge fit starts)
+    do not depend on which of the two made them. A tilted sensor (14 coefficients) still goes to OpenCV."""
     import cv2
 
-    from cubetrack.estimate.match import _projected
+    from cubetrack.detect.predicted import projected_px
 
     rng = np.random.default_rng(10 + coefficients)
-    points = rng.uniform(-0.5, 0.5, (24, 3)) + [0.0, 0.0, 2.0]
-    K = np.array([[610.0, 0.0, 330.0], [0.0, 600.0, 245.0], [0.0, 0.0, 1.0]])
-    dist = rng.normal(0.0, 0.05, coefficients)
-    expected = cv2.projectPoints(points, np.zeros(3), np.zeros(3), K, dist)[0].reshape(-1, 2)
-    np.testing.assert_allclose(_projected(points, K, dist), expected, rtol=0, atol=1e-9)
+    scales = np.array([0.3, 0.1, 0.01, 0.01, 0.05, 0.1, 0.05, 0.02, 0.01, 0.01, 0.01, 0.01])
+    for _ in range(50):
+        points = np.column_stack([rng.normal(0.0, 0.5, (24, 2)), rng.uniform(0.3, 5.0, 24)])
+        K = np.array([[rng.uniform(300.0, 900.0), 0.0, 330.0], [0.0, rng.uniform(300.0, 900.0), 245.0],
+                      [0.0, 0.0, 1.0]])
+        dist = rng.normal(0.0, scales[:coefficients])
+        expected = cv2.projectPoints(points, np.zeros(3), np.zeros(3), K, dist)[0].reshape(-1, 2)
+        np.testing.assert_array_equal(projected_px(points, K, dist), expected)
 
 
 @pytest.mark.parametrize("angle_rad", [1e-7, 3e-3, 0.4, 2.5])   # both sides of the Taylor series' 0.01 rad

@@ -61,3 +61,26 @@ def test_the_smoother_fields_are_the_jsonl_objects_last_keys_only_when_set(tmp_p
     assert [list(o)[-2:] for o in objects] == [["latency", "arrival_latency"], ["arrival_latency", "smoothed"],
                                                ["smoothed", "smooth_lag_s"]]
     assert objects[1]["smoothed"] is True and objects[2]["smooth_lag_s"] == 0.05
+
+
+@pytest.mark.parametrize("failing", ["tum", "jsonl"])
+def test_a_pose_line_the_disk_refuses_is_an_error_naming_its_file(tmp_path, monkeypatch, failing):
+    """PoseWriter writes both lines under one error handler: a refused write names the file it was
+    writing (not the other), in one line with the system's reason."""
+    import errno
+
+    from cubetrack.io.files import LineFile
+
+    write_line = LineFile.write_line
+
+    def refusing(self, line):
+        if self.path.suffix == f".{failing}":
+            raise OSError(errno.ENOSPC, "No space left on device")
+        write_line(self, line)
+
+    pose = TrackedPose("bot", 12.5, np.array([1.0, 2.0, 3.0]), np.array([0, 0, 0, 1.0]), ("cam1",), (), 0.04)
+    with PoseWriter(tmp_path, "bot") as w:
+        monkeypatch.setattr(LineFile, "write_line", refusing)
+        with pytest.raises(TrajectoryError) as caught:
+            w.write(pose)
+    assert str(caught.value) == f"{tmp_path / ('bot.' + failing)}: cannot write: No space left on device"
