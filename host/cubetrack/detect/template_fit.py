@@ -297,20 +297,21 @@ def _needed(fitted: np.ndarray, half: int) -> tuple[np.ndarray, np.ndarray]:
     """What a blur of ``half`` taps either side reads to give the compared pixels ``fitted`` (ny,
     nx): the pixels its pass along the rows must give (``fitted`` widened by ``half`` rows, within
     the region) and the pixel areas that pass reads (that, widened by ``half`` columns)."""
-    ny, nx = fitted.shape
-    rows = np.zeros((ny, nx), np.bool_)
-    for i in range(ny):
-        for j in range(nx):
-            if fitted[i, j]:
-                for r in range(max(i - half, 0), min(i + half + 1, ny)):
-                    rows[r, j] = True
-    areas = np.zeros((ny, nx), np.bool_)
-    for i in range(ny):
-        for j in range(nx):
-            if rows[i, j]:
-                for c in range(max(j - half, 0), min(j + half + 1, nx)):
-                    areas[i, c] = True
-    return rows, areas
+    rows = _widened(fitted, half)
+    return rows, np.ascontiguousarray(_widened(np.ascontiguousarray(rows.T), half).T)
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _widened(mask: np.ndarray, half: int) -> np.ndarray:
+    """(n, m) bool: ``mask`` (n, m) widened by ``half`` along its first axis, within it."""
+    n, m = mask.shape
+    out = np.zeros((n, m), np.bool_)
+    for i in range(n):
+        for j in range(m):
+            if mask[i, j]:
+                for r in range(max(i - half, 0), min(i + half + 1, n)):
+                    out[r, j] = True
+    return out
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
