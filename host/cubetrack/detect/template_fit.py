@@ -236,55 +236,95 @@ def _region_start(table: np.ndarray, corners_px: np.ndarray, modules: int,
 def _region_arrays(table: np.ndarray, corners_px: np.ndarray, H0: np.ndarray, ring_px: np.ndarray, modules: int,
                    margin: float, s: int, width: int,
                    height: int) -> tuple[bool, tuple[int, int, int, int], np.ndarray, np.ndarray, np.ndarray,
-                                         np.ndarray, np.ndarray]:
+                                         np.ndarray, np.ndarray, np.ndarray]:
     """The pixels a fit of the marker (distorted ``corners_px``, its homography ``H0`` and its
     ring ``ring_px`` (4, 2) in the distorted image, :func:`_region_start`) compares, through the
     lens map ``table``: whether its region (the ring's bounds and ``REGION_PAD_PX``, what the blur
-    reads) lies wholly inside the ``width`` x ``height`` image; the region (x0, y0, nx, ny); its
-    pixels' ``s`` x ``s`` samples (ny s nx s, 2), undistorted; the compared pixels (those whose
-    centre lies on the marker or within ``margin`` modules of it): their flat indices (n,) in
-    the region, their undistorted centres (n, 2) and their places across the region (n, 2,
+    reads) lies wholly inside the ``width`` x ``height`` image; the region (x0, y0, nx, ny); room
+    for its pixels' ``s`` x ``s`` samples (ny s nx s, 2), filled only where a step reads them
+    (:func:`_filled_samples`); the compared pixels (those whose centre lies on the marker or
+    within ``margin`` modules of it): which (ny, nx), their flat indices (n,) in the region,
+    their undistorted centres (n, 2) and their places across the region (n, 2,
     :func:`_compared_pixels`) and the lens's local map (2, 2) at the marker's centre
     (:func:`_map_jacobian`; the identity without a lens)."""
     empty = np.empty((0, 2))
     if not np.isfinite(ring_px).all():
-        return False, (0, 0, 0, 0), empty, np.empty(0, np.int64), empty, empty, np.eye(2)
+        return (False, (0, 0, 0, 0), empty, np.zeros((0, 0), np.bool_), np.empty(0, np.int64), empty, empty,
+                np.eye(2))
     x0 = int(np.floor(ring_px[:, 0].min())) - REGION_PAD_PX
     y0 = int(np.floor(ring_px[:, 1].min())) - REGION_PAD_PX
     x1 = int(np.ceil(ring_px[:, 0].max())) + REGION_PAD_PX + 1
     y1 = int(np.ceil(ring_px[:, 1].max())) + REGION_PAD_PX + 1
     if x0 < 0 or y0 < 0 or x1 > width or y1 > height:
-        return False, (0, 0, 0, 0), empty, np.empty(0, np.int64), empty, empty, np.eye(2)
+        return (False, (0, 0, 0, 0), empty, np.zeros((0, 0), np.bool_), np.empty(0, np.int64), empty, empty,
+                np.eye(2))
     nx, ny = x1 - x0, y1 - y0
-    samples, centres = _pixel_grid(table, x0, y0, nx, ny, s)
+    centres = _pixel_centres(table, x0, y0, nx, ny)
     fitted, gradient = _compared_pixels(centres, np.linalg.inv(H0), modules, margin, nx, ny)
     index = np.flatnonzero(fitted)
     lens = np.eye(2) if table.shape[0] == 0 else _map_jacobian(table, corners_px)
-    return True, (x0, y0, nx, ny), samples.reshape(-1, 2), index, centres[index], gradient, lens
+    return (True, (x0, y0, nx, ny), np.empty((ny * s * nx * s, 2)), fitted.reshape(ny, nx), index, centres[index],
+            gradient, lens)
 
 
-_NO_TABLE = np.zeros((0, 0, 2), np.float32)  # :func:`_pixel_grid`'s lens map of the identity (no lens)
+_NO_TABLE = np.zeros((0, 0, 2), np.float32)  # :func:`_pixel_centres`'s lens map of the identity (no lens)
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _pixel_grid(table: np.ndarray, x0: int, y0: int, nx: int, ny: int, s: int) -> tuple[np.ndarray, np.ndarray]:
-    """The ``ny`` x ``nx`` pixels from (``x0``, ``y0``) undistorted through the lens map
-    ``table`` (:func:`_map_point`; an empty one: the identity): (ny s, nx s, 2) the centres (x,
-    y) of ``s`` x ``s`` equal parts of each pixel, and (ny nx, 2) the pixels' centres, both row by
-    row."""
+def _filled_samples(table: np.ndarray, x0: int, y0: int, s: int, samples: np.ndarray, have: np.ndarray,
+                    need: np.ndarray) -> None:
+    """Fill in ``samples`` (ny s nx s, 2, row by row) the centres (x, y) of ``s`` x ``s`` equal
+    parts of each pixel of the region from (``x0``, ``y0``) that ``need`` (ny, nx) names and
+    ``have`` does not (then marked there), undistorted through the lens map ``table``
+    (:func:`_map_point`; an empty one: the identity)."""
     identity = table.shape[0] == 0
-    samples = np.empty((ny * s, nx * s, 2))
-    for i in range(ny * s):
-        y = y0 + i // s + ((i % s) + 0.5) / s - 0.5
-        for j in range(nx * s):
-            x = x0 + j // s + ((j % s) + 0.5) / s - 0.5
-            samples[i, j, 0], samples[i, j, 1] = (x, y) if identity else _map_point(table, x, y)
+    ny, nx = need.shape
+    for pi in range(ny):
+        for pj in range(nx):
+            if not need[pi, pj] or have[pi, pj]:
+                continue
+            have[pi, pj] = True
+            for di in range(s):
+                y = y0 + pi + (di + 0.5) / s - 0.5
+                for dj in range(s):
+                    x = x0 + pj + (dj + 0.5) / s - 0.5
+                    k = (pi * s + di) * nx * s + pj * s + dj
+                    samples[k, 0], samples[k, 1] = (x, y) if identity else _map_point(table, x, y)
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _needed(fitted: np.ndarray, half: int) -> tuple[np.ndarray, np.ndarray]:
+    """What a blur of ``half`` taps either side reads to give the compared pixels ``fitted`` (ny,
+    nx): the pixels its pass along the rows must give (``fitted`` widened by ``half`` rows, within
+    the region) and the pixel areas that pass reads (that, widened by ``half`` columns)."""
+    rows = _widened(fitted, half)
+    return rows, np.ascontiguousarray(_widened(np.ascontiguousarray(rows.T), half).T)
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _widened(mask: np.ndarray, half: int) -> np.ndarray:
+    """(n, m) bool: ``mask`` (n, m) widened by ``half`` along its first axis, within it."""
+    n, m = mask.shape
+    out = np.zeros((n, m), np.bool_)
+    for i in range(n):
+        for j in range(m):
+            if mask[i, j]:
+                for r in range(max(i - half, 0), min(i + half + 1, n)):
+                    out[r, j] = True
+    return out
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _pixel_centres(table: np.ndarray, x0: int, y0: int, nx: int, ny: int) -> np.ndarray:
+    """(ny nx, 2) the centres of the ``ny`` x ``nx`` pixels from (``x0``, ``y0``), row by row,
+    undistorted through the lens map ``table`` (:func:`_map_point`; an empty one: the identity)."""
+    identity = table.shape[0] == 0
     centres = np.empty((ny * nx, 2))
     for i in range(ny):
         for j in range(nx):
             x, y = float(x0 + j), float(y0 + i)
             centres[i * nx + j, 0], centres[i * nx + j, 1] = (x, y) if identity else _map_point(table, x, y)
-    return samples, centres
+    return centres
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
@@ -374,20 +414,24 @@ def _area_sigmas(H: np.ndarray, modules: float, lens_jacobian: np.ndarray, super
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _pixel_areas(template: np.ndarray, samples: np.ndarray, H_inv: np.ndarray, ny: int, nx: int,
+def _pixel_areas(template: np.ndarray, samples: np.ndarray, H_inv: np.ndarray, need: np.ndarray,
                  s: int) -> np.ndarray:
     """(ny, nx, 2) float32: each pixel's mean of its ``s`` x ``s`` samples' reads of both template
-    images; a sample (undistorted px, ``samples`` (ny s nx s, 2) row by row) reads
-    them through the inverse homography ``H_inv`` bilinearly, 0 and 1 beyond them
+    images, where ``need`` (ny, nx) asks for it (elsewhere unset); a sample (undistorted px,
+    ``samples`` (ny s nx s, 2) row by row) reads them through the inverse homography ``H_inv``
+    bilinearly, 0 and 1 beyond them
     (``cv2.remap``'s ``INTER_LINEAR`` and ``BORDER_CONSTANT``, at the exact point where OpenCV
     rounds it to 1/32 of a sample)."""
     rows, cols = template.shape[0], template.shape[1]
+    ny, nx = need.shape
     out = np.empty((ny, nx, 2), np.float32)
     cols_s, scale = nx * s, 1.0 / (s * s)
     h00, h01, h02, h10, h11, h12 = H_inv[0, 0], H_inv[0, 1], H_inv[0, 2], H_inv[1, 0], H_inv[1, 1], H_inv[1, 2]
     h20, h21, h22 = H_inv[2, 0], H_inv[2, 1], H_inv[2, 2]  # locals: the loop reloads array elements
     for i in range(ny):
         for j in range(nx):
+            if not need[i, j]:
+                continue
             a = b = 0.0
             for di in range(s):
                 for dj in range(s):
@@ -426,12 +470,14 @@ def _border_read(image: np.ndarray, k: int, r0: int, c0: int, fx: float, fy: flo
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _blurred(image: np.ndarray, sigma: float) -> np.ndarray:
+def _blurred(image: np.ndarray, sigma: float, rows: np.ndarray, fitted_t: np.ndarray) -> np.ndarray:
     """(ny, nx, 2) ``image`` blurred by a Gaussian of ``sigma`` px, border replicated:
     ``cv2.GaussianBlur(image, (0, 0), sigma, borderType=cv2.BORDER_REPLICATE)``'s kernel (4 sigma
-    either side for a float image, :func:`_gaussian_kernel`), summed in float64."""
+    either side for a float image, :func:`_gaussian_kernel`), summed in float64; given where
+    ``fitted_t`` (nx, ny) says, from the pass along the rows where ``rows`` (ny, nx) says
+    (:func:`_needed`: ``image`` is read where that pass needs it, within the kernel's half)."""
     kernel, _ = _gaussian_kernel(sigma)
-    return _filtered_across(_filtered_across(image, kernel), kernel).astype(np.float32)
+    return _filtered_across(_filtered_across(image, kernel, rows), kernel, fitted_t).astype(np.float32)
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
@@ -441,7 +487,7 @@ def _gaussian_kernel(sigma: float) -> tuple[np.ndarray, np.ndarray]:
     blurred by the Gaussian (the derivative by the place it is centred on of the triangle's
     convolution with it: ``-(Phi(k + 1) - 2 Phi(k) + Phi(k - 1))`` at offset k, Phi the Gaussian's
     integral; half the difference of the two neighbours as sigma goes to 0)."""
-    half = (int(np.rint(sigma * 8.0 + 1.0)) | 1) // 2
+    half = _kernel_half(sigma)
     offsets = np.arange(-half, half + 1).astype(np.float64)
     kernel = np.exp(-0.5 * (offsets / sigma) ** 2)
     kernel /= kernel.sum()
@@ -454,29 +500,39 @@ def _gaussian_kernel(sigma: float) -> tuple[np.ndarray, np.ndarray]:
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _blurred_with_gradient(image: np.ndarray, sigma: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _kernel_half(sigma: float) -> int:
+    """The taps either side of ``cv2.GaussianBlur``'s kernel for ``sigma`` px (float images)."""
+    return (int(np.rint(sigma * 8.0 + 1.0)) | 1) // 2
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _blurred_with_gradient(image: np.ndarray, sigma: float, rows_mask: np.ndarray,
+                           fitted_t: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`_blurred` of the (ny, nx, 2) ``image`` (float32) and that blurred image's gradient
     along x and y (float64): the blur's kernel differentiated along one axis (the derivative of
     the sampled Gaussian sum at each pixel, where half the difference of the two neighbours
     understates an edge blurred by ~0.8 px by ~20 %: the Gauss-Newton steps overshot, the fit
-    was not converged at three; docs/detection.md)."""
+    was not converged at three; docs/detection.md), where :func:`_blurred` gives them."""
     kernel, slope = _gaussian_kernel(sigma)
-    rows = _filtered_across(image, kernel)
-    blurred = _filtered_across(rows, kernel).astype(np.float32)
-    gy = _filtered_across(rows, slope)
-    gx = _filtered_across(_filtered_across(image, slope), kernel)
+    rows = _filtered_across(image, kernel, rows_mask)
+    blurred = _filtered_across(rows, kernel, fitted_t).astype(np.float32)
+    gy = _filtered_across(rows, slope, fitted_t)
+    gx = _filtered_across(_filtered_across(image, slope, rows_mask), kernel, fitted_t)
     return blurred, gx, gy
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _filtered_across(image: np.ndarray, kernel: np.ndarray) -> np.ndarray:
+def _filtered_across(image: np.ndarray, kernel: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """(nx, ny, 2) float64: the (ny, nx, 2) ``image`` filtered along its rows by the odd-sized
-    ``kernel``, border replicated, and transposed (so that a second call filters the columns)."""
+    ``kernel``, border replicated, and transposed (so that a second call filters the columns);
+    only where ``mask`` (ny, nx) says (elsewhere unset)."""
     ny, nx, half = image.shape[0], image.shape[1], len(kernel) // 2
     cols = np.minimum(np.maximum(np.arange(-half, nx + half), 0), nx - 1)  # replicated border
     out = np.empty((nx, ny, 2))
     for i in range(ny):
         for j in range(nx):
+            if not mask[i, j]:
+                continue
             a = b = 0.0
             for k in range(2 * half + 1):
                 c = cols[j + k]
@@ -592,20 +648,26 @@ def _homography_with_derivatives(corners: np.ndarray, side: float) -> tuple[np.n
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _gauss_newton_step(template: np.ndarray, samples: np.ndarray, shape: tuple[int, int], s: int,
-                       index: np.ndarray, gradient: np.ndarray, pixels: np.ndarray, centres: np.ndarray,
-                       lens: np.ndarray, H: np.ndarray, dH: np.ndarray, blur: float) -> np.ndarray:
+def _gauss_newton_step(template: np.ndarray, region: tuple[np.ndarray, int, int, int, np.ndarray, np.ndarray],
+                       fitted: np.ndarray, index: np.ndarray, gradient: np.ndarray, pixels: np.ndarray,
+                       centres: np.ndarray, lens: np.ndarray, H: np.ndarray, dH: np.ndarray,
+                       blur: float) -> np.ndarray:
     """One Gauss-Newton step of the fast fit at homography ``H`` (derivatives ``dH``) and blur:
     the update of the 8 corner coordinates, the blur and the 5 brightness terms (their values, not
     an update). The Jacobian by the corners is the predicted image's own gradient (in the
     distorted image, through the lens's local map) times the motion of each compared pixel's
     template point when a corner moves. Compiled whole (numba): as OpenCV calls and numpy it was
-    ~0.45 ms per step on 30 px markers, nearly all of it per-call overhead."""
-    ny, nx = shape
+    ~0.45 ms per step on 30 px markers, nearly all of it per-call overhead. Only what the blurs
+    need for the compared pixels ``fitted`` (ny, nx) is read and filtered (:func:`_needed`; the
+    ``region``'s samples, :func:`_fitted_offsets`, filled as they are first read)."""
+    table, x0, y0, s, samples, have = region
+    rows, need = _needed(fitted, _kernel_half(blur + _BLUR_STEP_PX))  # the wider blur's reach: the larger
+    _filled_samples(table, x0, y0, s, samples, have, need)
     H_inv = np.linalg.inv(H)
-    area = _pixel_areas(template, samples, H_inv, ny, nx, s)
-    image, gx, gy = _blurred_with_gradient(area, blur)
-    wider = _blurred(area, blur + _BLUR_STEP_PX)
+    area = _pixel_areas(template, samples, H_inv, need, s)
+    fitted_t = np.ascontiguousarray(fitted.T)
+    image, gx, gy = _blurred_with_gradient(area, blur, rows, fitted_t)
+    wider = _blurred(area, blur + _BLUR_STEP_PX, rows, fitted_t)
     N, rhs, beyond = _brightness_system(image, index, gradient, pixels)
     coef = _normal_solution(N, rhs)
     N, rhs = _step_system(image, wider, gx, gy, index, gradient, pixels, centres, lens, H_inv, dH, coef, beyond)
@@ -613,15 +675,19 @@ def _gauss_newton_step(template: np.ndarray, samples: np.ndarray, shape: tuple[i
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _fitted_offsets(template: np.ndarray, samples: np.ndarray, shape: tuple[int, int], s: int,
-                    index: np.ndarray, gradient: np.ndarray, pixels: np.ndarray, centres: np.ndarray,
-                    lens: np.ndarray, start: np.ndarray, modules: int, blur: float, iterations: int) -> np.ndarray:
+def _fitted_offsets(template: np.ndarray, table: np.ndarray, box: tuple[int, int], s: int, samples: np.ndarray,
+                    fitted: np.ndarray, index: np.ndarray, gradient: np.ndarray, pixels: np.ndarray,
+                    centres: np.ndarray, lens: np.ndarray, start: np.ndarray, modules: int, blur: float,
+                    iterations: int) -> np.ndarray:
     """The fast fit's Gauss-Newton iterations from the undistorted corners ``start`` (4, 2): the
-    corners' offsets (8,) from it (NaN where it diverged); LinAlgError on a degenerate homography."""
+    corners' offsets (8,) from it (NaN where it diverged); LinAlgError on a degenerate homography.
+    ``samples``: room for the ``s`` x ``s`` samples of the pixels of the region whose corner is
+    ``box`` (x0, y0), undistorted through the lens map ``table`` as the steps first read them."""
     p = np.zeros(8)
+    region = (table, box[0], box[1], s, samples, np.zeros(fitted.shape, np.bool_))
     for _ in range(iterations):
         H, dH = _homography_with_derivatives(start + p.reshape(4, 2), float(modules))
-        delta = _gauss_newton_step(template, samples, shape, s, index, gradient, pixels, centres, lens, H, dH, blur)
+        delta = _gauss_newton_step(template, region, fitted, index, gradient, pixels, centres, lens, H, dH, blur)
         p = p + delta[:8]
         blur = min(max(blur + delta[8], _BLUR_RANGE_PX[0]), _BLUR_RANGE_PX[1])
         if not np.isfinite(p).all() or np.abs(delta[:8]).max() < _CONVERGED_PX:
@@ -650,14 +716,14 @@ def fast_template_corners(gray: np.ndarray, corners_px: np.ndarray, dictionary: 
         ok, start, H0, ring = _region_start(table, corners, modules, m)
         if not ok:
             return None
-        ok, (x0, y0, nx, ny), samples, index, centres, gradient, local = _region_arrays(
+        ok, (x0, y0, nx, ny), samples, fitted, index, centres, gradient, local = _region_arrays(
             table, corners, H0, lens.distort(ring), modules, m, s, gray.shape[1], gray.shape[0])
         if not ok:
             return None
         template = _area_template(dictionary, marker_id, settings.white_modules, _area_steps(H0, modules, local, s))
         pixels = np.take(gray[y0:y0 + ny, x0:x0 + nx], index).astype(np.float64)
-        p = _fitted_offsets(template, samples, (ny, nx), s, index, gradient, pixels, centres, local, start,
-                            modules, settings.start_blur_px, iterations)
+        p = _fitted_offsets(template, table, (x0, y0), s, samples, fitted, index, gradient, pixels, centres, local,
+                            start, modules, settings.start_blur_px, iterations)
     except np.linalg.LinAlgError:  # a degenerate homography
         return None
     if not np.isfinite(p).all() or np.abs(p).max() > settings.max_move_px:

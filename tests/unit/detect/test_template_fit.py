@@ -142,21 +142,44 @@ def test_the_fits_image_gradient_is_the_blurred_images_slope():
 
     ys, xs = np.mgrid[0:24, 0:30].astype(np.float32)
     ramp = np.stack([0.03 * xs - 0.02 * ys, 0.05 * ys], axis=-1)
-    blurred, gx, gy = _blurred_with_gradient(ramp, 0.8)
-    np.testing.assert_array_equal(blurred, _blurred(ramp, 0.8))
+    every = np.ones((24, 30), np.bool_), np.ones((30, 24), np.bool_)  # every pixel wanted (_needed's masks)
+    blurred, gx, gy = _blurred_with_gradient(ramp, 0.8, *every)
+    np.testing.assert_array_equal(blurred, _blurred(ramp, 0.8, *every))
     inside = (slice(6, -6), slice(6, -6))
     np.testing.assert_allclose(gx[inside], np.broadcast_to([0.03, 0.0], gx[inside].shape), atol=1e-4)
     np.testing.assert_allclose(gy[inside], np.broadcast_to([-0.02, 0.05], gy[inside].shape), atol=1e-4)
 
     edge = np.zeros((24, 30, 2), np.float32)
     edge[:, 13:, 0] = 1.0
-    blurred, gx, _ = _blurred_with_gradient(edge, 0.8)
+    blurred, gx, _ = _blurred_with_gradient(edge, 0.8, *every)
     assert gx[10, 13, 0] > 1.05 * 0.5 * (blurred[10, 14, 0] - blurred[10, 12, 0]) > 0.0
     rng = np.random.default_rng(5)
     noise = rng.uniform(0.0, 1.0, (24, 30, 2)).astype(np.float32)
-    blurred, gx, gy = _blurred_with_gradient(noise, 0.3)
+    blurred, gx, gy = _blurred_with_gradient(noise, 0.3, *every)
     np.testing.assert_allclose(gx[:, 1:-1], 0.5 * (blurred[:, 2:] - blurred[:, :-2]), atol=0.02)
     np.testing.assert_allclose(gy[1:-1], 0.5 * (blurred[2:] - blurred[:-2]), atol=0.02)
+
+
+def test_the_fits_blurs_read_only_what_the_compared_pixels_need():
+    """A step reads and filters only the pixels its blurs need for the compared ones
+    (template_fit._needed): there, every value is the whole region's to the bit, and pixel
+    areas beyond the blur's reach are never read (NaN there changes nothing)."""
+    from cubetrack.detect.template_fit import _blurred, _blurred_with_gradient, _kernel_half, _needed
+
+    rng = np.random.default_rng(8)
+    image = rng.uniform(0.0, 1.0, (30, 34, 2)).astype(np.float32)
+    ys, xs = np.mgrid[0:30, 0:34]
+    fitted = (np.abs(xs - 17 + 0.4 * (ys - 15)) < 9) & (np.abs(ys - 15) < 8)  # a slanted patch inside the region
+    every = np.ones((30, 34), np.bool_), np.ones((34, 30), np.bool_)
+    for sigma in (0.6, 1.3):
+        rows, need = _needed(fitted, _kernel_half(sigma))
+        assert not need.all()
+        far = np.where(need[..., None], image, np.float32(np.nan))
+        wanted = rows, np.ascontiguousarray(fitted.T)
+        for full, part in zip(_blurred_with_gradient(image, sigma, *every), _blurred_with_gradient(far, sigma, *wanted),
+                              strict=True):
+            np.testing.assert_array_equal(part[fitted], full[fitted])
+        np.testing.assert_array_equal(_blurred(far, sigma, *wanted)[fitted], _blurred(image, sigma, *every)[fitted])
 
 
 @pytest.mark.parametrize("shape", [(7, 2), (300, 200, 2)])  # 60000 points: more than cv2.remap takes in one row
