@@ -297,6 +297,7 @@ def work_cameras(conn: Connection, urls: dict[str, str], source: SourceParams, t
                     live.stop()
                 elif isinstance(message, tuple):  # else a wake: the count taken changed
                     forecast = Forecast.from_plain(message)
+                    tracker.plan_cameras_at(forecast.camera_poses)
             if job is None:
                 room = stopping or sent - taken[lane] < IN_FLIGHT
                 # in arrival order: the fusion gets fewer late sightings to fold in (each costs re-applying the

@@ -201,7 +201,7 @@ class _CameraProcessFeed:
             forecast = None
             if now_s >= self.next_forecast_s:
                 self.next_forecast_s = now_s + FORECAST_EVERY_S
-                forecast = forecast_of(self.tracker.fusion, self.stream.robots, now_s)
+                forecast = forecast_of(self.tracker.fusion, self.stream.robots, now_s, self.tracker.recalibrated)
             self.live.forecast(forecast)
 
     def working(self) -> bool:

@@ -12,6 +12,7 @@ from __future__ import annotations
 import enum
 import logging
 from collections import Counter, deque
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Protocol
 
@@ -29,7 +30,7 @@ from cubetrack.estimate.match import body_detections
 from cubetrack.estimate.params import EstimatorParams
 from cubetrack.estimate.pose import estimate_cube, world_marker_pose
 from cubetrack.fuse.base import Fusion
-from cubetrack.fuse.camera_watch import WatchParams
+from cubetrack.fuse.camera_watch import EventKind, WatchEvent, WatchParams
 from cubetrack.fuse.corner_filter import FilterParams
 from cubetrack.fuse.fusion import FilterFusion, FusionMethod, FusionParams, LatestEstimateFusion
 from cubetrack.io.config import RobotConfig, TrackerConfig
@@ -256,7 +257,8 @@ class Tracker:
             self.T_world_cam = {name: e.T_world_cam for name, e in (extrinsics or {}).items()}
         else:
             self.T_world_cam = {}
-        self.T_cam_world = {name: invert_T(T) for name, T in self.T_world_cam.items()}
+        self.T_cam_world = {name: invert_T(T) for name, T in self.T_world_cam.items()}  # what regions are planned by
+        self.recalibrated: dict[str, np.ndarray] = {}  # camera -> its pose re-calibrated while tracking (issue 27)
         self.processor = FrameProcessor(intrinsics, world, robots, self.T_world_cam, params)
         self.fusion: Fusion
         if params.fusion.method is FusionMethod.FILTER:
@@ -267,12 +269,28 @@ class Tracker:
         if params.camera_watch.enabled and self.T_world_cam:  # docs/calibration.md, "Watching the cameras"
             self.fusion = WatchedFusion(self.fusion, {r.name: r.layout for r in robots}, self.T_world_cam,
                                         params.camera_watch, params.estimator)
+            self.fusion.listeners.append(self._rejoined)
         self.clocks = {name: ClockSync() for name in intrinsics}
         self.synced_cameras = synced_cameras
         self.held: dict[str, deque[Frame]] = {}  # frames waiting for their camera's first round trip
         self.frames_since_full: Counter[str] = Counter()  # per camera, for region detection
         self.stats = TrackStats()
         self.last_now_s = 0.0  # the host time the last frame became available
+
+    def _rejoined(self, event: WatchEvent) -> None:
+        if event.kind is EventKind.REJOINED:
+            self.plan_cameras_at({event.camera: event.T_world_cam})
+
+    def plan_cameras_at(self, poses: Mapping[str, np.ndarray]) -> None:
+        """Plan the frames of each camera of ``poses`` (camera -> ``T_world_cam``, re-calibrated
+        while tracking) through that pose: their regions are where the robots are predicted in the
+        camera as it now stands. Sightings keep the calibrated pose (a frame worker process made
+        them with it); the watched fusion moves them to the new one."""
+        for camera, T_world_cam in poses.items():
+            before = self.recalibrated.get(camera)
+            if camera in self.T_cam_world and (before is None or not np.array_equal(before, T_world_cam)):
+                self.recalibrated[camera] = T_world_cam
+                self.T_cam_world[camera] = invert_T(T_world_cam)
 
     def add_clock_sample(self, camera: str, sample: ClockSample) -> list[TrackedPose]:
         """Take one /time round trip of ``camera`` (feed them as they complete). Frames held back

@@ -332,3 +332,38 @@ def test_a_workers_message_gives_the_fusion_what_its_own_per_frame_work_gives(sc
             if a.estimate is not None:
                 assert np.array_equal(a.estimate.T_world_cube, b.estimate.T_world_cube)
         run(t, stream(scenes["both"], 0, 16))  # now the filter tracks both robots
+
+
+def test_a_camera_re_calibrated_while_tracking_is_planned_through_its_new_pose():
+    """Issue 27: once the camera watching rejoins a camera at a new pose, its frames' regions are
+    where the robots are predicted in the camera as it now stands (not through its calibrated
+    pose, which would leave the cube to the whole-frame fallback); a camera worker process, which
+    has no fusion, learns the new pose from the forecast it is sent."""
+    import pickle
+
+    from cubetrack.core.geometry import invert_T
+    from cubetrack.detect.predicted import predicted_view
+    from cubetrack.fuse.camera_watch import EventKind, WatchEvent, WatchParams
+    from cubetrack.fuse.forecast import Forecast
+
+    params = dataclasses.replace(FILTER, camera_watch=WatchParams(enabled=True))
+    t = Tracker(INTRINSICS, WORLD, (RED,), EXTRINSICS, params)
+    forecast = Forecast({"red": (START_S, TRUTH["red"], np.zeros(3), np.zeros(3))}, frozenset())
+    frames = {cam: Frame(cam, 1, START_S - CLOCK_OFFSET_S, START_S + LATENCY_S, b"") for cam in T_WORLD_CAM}
+    before = {cam: t.plan(frame, START_S, forecast).regions for cam, frame in frames.items()}
+    bumped = T_WORLD_CAM["cam2"] @ make_T(Rotation.from_euler("y", 3, degrees=True).as_matrix(), [0.02, 0.0, 0.0])
+    for listener in t.fusion.listeners:  # what the watcher tells at a rejoin
+        listener(WatchEvent(EventKind.REJOINED, "cam2", START_S, 0.02, 3.0, bumped, 200))
+    after = {cam: t.plan(frame, START_S, forecast).regions for cam, frame in frames.items()}
+    expected = predicted_view(invert_T(bumped) @ TRUTH["red"], RED.layout, INTR, params.track.roi_margin_m,
+                              params.detector)
+    assert expected is not None and after["cam2"] == (expected.box,) != before["cam2"]
+    assert after["cam1"] == before["cam1"] and after["cam3"] == before["cam3"]
+    assert t.processor.T_world_cam["cam2"] is EXTRINSICS["cam2"].T_world_cam  # sightings: the fusion moves them
+
+    worker = Tracker(INTRINSICS, WORLD, (RED,), EXTRINSICS, FILTER)
+    sent = Forecast(forecast.motions, forecast.estimate_robots, t.recalibrated)
+    received = Forecast.from_plain(pickle.loads(pickle.dumps(sent.plain())))
+    assert worker.plan(frames["cam2"], START_S, received).regions == before["cam2"]  # until told
+    worker.plan_cameras_at(received.camera_poses)
+    assert worker.plan(frames["cam2"], START_S, received).regions == after["cam2"]
