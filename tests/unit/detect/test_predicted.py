@@ -37,19 +37,21 @@ def _box(corners_px: np.ndarray, grow_px: float = 20.0) -> tuple[int, int, int, 
 
 
 @pytest.mark.parametrize("refinement", [CornerRefinement.EDGE, CornerRefinement.TEMPLATE])
-def test_a_good_prediction_gives_the_searched_corners_without_a_search(scenes, refinement):
+def test_a_prediction_pixels_off_gives_the_searched_corners_without_a_search(scenes, refinement):
+    """At a turn the prediction is pixels off: the fit from it must keep none of that (the filter would
+    get its own prediction back as a measurement; 2 edge fits from 3 px off left up to 0.11 px here)."""
     det = Detector(DetectorParams(corner_refinement=refinement))
-    rng = np.random.default_rng(3)
-    for gray, truth in scenes:
-        box = _box(truth)
-        searched = det.find(gray, [box], INTR)
-        guess = truth + rng.uniform(-1.5, 1.5, truth.shape)      # a prediction 1-2 px off
-        fast = det.find(gray, [box], INTR, predicted=[_prediction(guess)])
-        assert fast.predicted and not searched.predicted
-        assert [d.marker_id for d in fast.detections] == [7]
-        # the same edge fit, started elsewhere: the same corners to well under the fit's own error
-        np.testing.assert_allclose(fast.detections[0].corners_px, searched.detections[0].corners_px, atol=0.02)
-        assert np.abs(fast.detections[0].corners_px - truth).max() < 0.5
+    for seed in range(5):
+        rng = np.random.default_rng(seed)
+        for gray, truth in scenes:
+            box = _box(truth)
+            searched = det.find(gray, [box], INTR)
+            fast = det.find(gray, [box], INTR, predicted=[_prediction(truth + 3.0 * rng.choice([-1.0, 1.0], (4, 2)))])
+            assert fast.predicted and not searched.predicted
+            assert [d.marker_id for d in fast.detections] == [7]
+            # the same edge fit, started elsewhere: the same corners to well under the fit's own error
+            np.testing.assert_allclose(fast.detections[0].corners_px, searched.detections[0].corners_px, atol=0.01)
+            assert np.abs(fast.detections[0].corners_px - truth).max() < 0.5
 
 
 def test_a_wrong_id_or_a_marker_far_from_its_prediction_falls_back_to_the_search(scenes):
