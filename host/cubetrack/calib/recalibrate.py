@@ -4,15 +4,15 @@
 gathers its sightings against the cube poses the other cameras give. :func:`recalibrate` fits
 the camera's new pose to them (the resection of :func:`cubetrack.fuse.camera_watch.refit_camera`
 over every corner gathered) and says whether it is good enough to rejoin: known to
-``rejoin_sigma_m`` / ``rejoin_sigma_deg``, and the poses fitted to the older and the newer half
-of the sightings placing its corners within ``rejoin_agree_px`` of each other.
-:class:`WatchedFusion` puts the watcher in front of any fusion: it keeps a moved camera's
-sightings out, runs the fit on an executor (a background thread live, never the tracking thread;
-inline when none is given, as offline replay does, so a replay is reproducible), lets the camera
-back in at its new pose and gives the fusion that camera's sightings at that pose from then on,
-and tells its ``state_listeners`` what it says of each camera whenever that changes
-(:class:`cubetrack.core.records.CameraWatchState`: settling, watched, suspect, moved,
-re-calibrating with its progress in tenths, rejoined: the dashboard's camera tile).
+``rejoin_sigma_m`` / ``rejoin_sigma_deg`` and the older and newer halves of the sightings agreeing
+to ``rejoin_agree_m`` / ``rejoin_agree_deg``. :class:`WatchedFusion` puts the watcher in front
+of any fusion: it keeps a moved camera's sightings out, runs the fit on an executor (a
+background thread live, never the tracking thread; inline when none is given, as offline
+replay does, so a replay is reproducible), lets the camera back in at its new pose and gives
+the fusion that camera's sightings at that pose from then on, and tells its ``state_listeners``
+what it says of each camera whenever that changes (:class:`cubetrack.core.records.CameraWatchState`:
+settling, watched, suspect, moved, re-calibrating with its progress in tenths, rejoined: the
+dashboard's camera tile).
 """
 
 from __future__ import annotations
@@ -46,7 +46,6 @@ from cubetrack.fuse.camera_watch import (
     WatchParams,
     WatchSample,
     refit_camera,
-    shift_px,
     stacked,
 )
 from cubetrack.fuse.multi_view_fit import solve_joint
@@ -62,15 +61,15 @@ RETRY_GROWTH = 1.25  # a refused re-calibration is tried again once the camera h
 
 @dataclass(frozen=True, slots=True, eq=False)
 class Recalibration:
-    """A moved camera's new pose: ``fit`` over all its ``sightings``; ``agree_px`` how far apart
-    (RMS, px, over all the sightings' corners) the poses fitted to the older and the newer half of
-    them place its corners; ``consistent``: good enough to rejoin (the thresholds of
-    :class:`cubetrack.fuse.camera_watch.WatchParams`)."""
+    """A moved camera's new pose: ``fit`` over all its ``sightings``; ``agree_m`` / ``agree_deg``
+    how far the fits of the older and the newer half of them are apart; ``consistent``: good
+    enough to rejoin (the thresholds of :class:`cubetrack.fuse.camera_watch.WatchParams`)."""
 
     camera: str
     fit: CameraFit
     sightings: int
-    agree_px: float
+    agree_m: float
+    agree_deg: float
     consistent: bool
 
 
@@ -135,11 +134,7 @@ def joint_fit(samples: Sequence[WatchSample], T_world_cam_init: np.ndarray, para
 def recalibrate(camera: str, samples: Sequence[WatchSample], T_world_cam_init: np.ndarray,
                 params: WatchParams) -> Recalibration | None:
     """Fit ``camera``'s pose to its gathered samples (:func:`joint_fit`), started from
-    ``T_world_cam_init`` (the pose the watcher's window found when it moved); None when a fit fails.
-    The halves are compared where it matters to the fusion, in the image: the poses of two halves
-    can differ by several millimetres and tenths of a degree along a sideways shift with the turn
-    that cancels it in the image (what a robot's sightings pin worst; issue 27's two of five: 6-18 mm /
-    0.2-0.6 deg apart while moving the corners by 0.1-0.7 px)."""
+    ``T_world_cam_init`` (the pose the watcher's window found when it moved); None when a fit fails."""
     if len(samples) < 4:
         return None
     fit, joint = joint_fit(samples, T_world_cam_init, params)
@@ -150,10 +145,10 @@ def recalibrate(camera: str, samples: Sequence[WatchSample], T_world_cam_init: n
     newer = refit_camera(*stacked(joint[middle:]), fit.T_world_cam, params.corner_noise_px)
     if older is None or newer is None:
         return None
-    agree_px = shift_px(older, newer.T_world_cam, joint)
+    agree_m, agree_deg = older.offset_from(newer.T_world_cam)
     consistent = (fit.sigma_m <= params.rejoin_sigma_m and fit.sigma_deg <= params.rejoin_sigma_deg
-                  and agree_px <= params.rejoin_agree_px)
-    return Recalibration(camera, fit, len(samples), agree_px, consistent)
+                  and agree_m <= params.rejoin_agree_m and agree_deg <= params.rejoin_agree_deg)
+    return Recalibration(camera, fit, len(samples), agree_m, agree_deg, consistent)
 
 
 class WatchedFusion:

@@ -123,8 +123,9 @@ class WatchParams:
     rejoin_sigma_m: float = param(0.002, "a re-calibrated pose rejoins when its position is known to this "
                                          "(standard deviation), metres")
     rejoin_sigma_deg: float = param(0.05, "... and its orientation to this (standard deviation), degrees")
-    rejoin_agree_px: float = param(0.5, "... and the poses fitted to the older and the newer half of its sightings "
-                                        "place its corners within this of each other (RMS over all of them), pixels")
+    rejoin_agree_m: float = param(0.004, "... and the fits of the older and the newer half of its sightings agree "
+                                         "to this, metres")
+    rejoin_agree_deg: float = param(0.1, "... and to this, degrees")
     corner_noise_px: float = param(0.5, "corner noise the fits assume (scales their uncertainty), pixels")
     gate_px: float = param(12.0, "a sighting's detections are matched to faces within this of where its own "
                                  "camera's cube pose projects them, pixels")
@@ -142,7 +143,7 @@ class WatchParams:
         check_at_least(self, 0, "gate_prediction_px")
         check_positive(self, "baseline_s", "baseline_every_s", "samples_per_s", "checks_per_s", "reference_span_s",
                        "reference_rms_px", "window_s", "check_every_s", "moved_px", "moved_ratio", "moved_m",
-                       "moved_deg", "rejoin_sigma_m", "rejoin_sigma_deg", "rejoin_agree_px",
+                       "moved_deg", "rejoin_sigma_m", "rejoin_sigma_deg", "rejoin_agree_m", "rejoin_agree_deg",
                        "corner_noise_px", "gate_px", "suspect_px", "gate_prediction_ratio")
         check_at_least(self, 1, "reference_cameras", "suspect_samples")
         check(self.reference_cameras_max >= self.reference_cameras, f"reference_cameras_max "
