@@ -119,7 +119,7 @@ def test_a_fixed_lag_live_gives_the_held_poses_on_time_when_every_camera_stalls(
     goes on 2.5 s more; a camera worker process loaded by a busy machine may take most of a second
     before its first frame): the poses the lag holds leave within smooth_lag_s + smooth_margin_s of their
     capture (and the loop's idle wait), not at the session's end; each once, in capture order,
-    the last ones saying how much they were smoothed over. Both live paths: worker threads and
+    those released early saying how much they were smoothed over. Both live paths: worker threads and
     camera worker processes."""
     from cubecam.emulator import Emulator, Faults
     from cubetrack.app.demo import write_live_config
@@ -135,7 +135,9 @@ def test_a_fixed_lag_live_gives_the_held_poses_on_time_when_every_camera_stalls(
     assert len(lines) > 5
     times = [line["time"] for line in lines]
     assert times == sorted(times) and len(set(times)) == len(times)
-    early = [line for line in lines if line["smooth_lag_s"] < lag_s]  # left before a sighting that much later came
-    assert early and early[-1] is lines[-1]
+    # some left before a sighting that much later came: the ones held at the stall (the very last pose may be
+    # one smoothed over the whole lag when the last sighting made no pose of its own: a CI run saw that)
+    early = [line for line in lines if line["smooth_lag_s"] < lag_s]
+    assert early
     # on time, give or take a loaded machine's 0.25 s; without the release they leave at the end, > 2 s late
     assert max(line["latency"] for line in lines) < lag_s + margin_s + margin_s / 2 + 0.25
