@@ -428,7 +428,8 @@ def run_live(args: argparse.Namespace, rec: Path, work: Path, name: str = "live"
         if len(emulator.samples) > 1 else float("nan"),
         # yardsticks of the machine's speed in this run, from code that is the same in every tree compared: the
         # emulator's CPU per frame it served, and the tracker's start-up (its command to the start of its session,
-        # the first status line's moment less the status interval: before any frame is read)
+        # the first status line's moment less the status interval: before any frame is read; an upper bound, as
+        # a busy loop prints its first status line late)
         "emulator_ms_per_frame": cpu_emulator / max(offered, 1) * 1000.0,
         "startup_s": status.lines[0][0] - started - STATUS_EVERY_S if status.lines else float("nan"),
         "rss_start_mb": warm[2] / 1e6,

@@ -52,7 +52,9 @@ def test_quick_run_prints_and_saves_a_complete_report(tmp_path):
     assert 0 < live["first_pose_s"] < live["wall_s"]  # start-up: the first pose came during the session
     # the machine's speed in the run: the emulator's CPU per frame served, the tracker's start-up before its session
     assert live["emulator_ms_per_frame"] > 0
-    assert 0 < live["startup_s"] < live["first_pose_s"] if live["over_time"] else math.isnan(live["startup_s"])
+    # (the start-up is read off the first status line, which a busy loop prints late: an upper bound that can
+    # exceed the first pose's moment, as a clean-clone CI run at load ~4 saw; it is within the run)
+    assert 0 < live["startup_s"] < live["wall_s"] if live["over_time"] else math.isnan(live["startup_s"])
     rss_line = next(line for line in lines if line.startswith("  RSS: "))
     assert live["kernels_warm_s"] > 0 and "before it, the kernels " in rss_line  # warmed before the timed run
     # interval by interval (between status lines): in order, within the run, no more poses than the run's
