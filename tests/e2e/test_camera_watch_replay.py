@@ -4,9 +4,10 @@ at 6 s; its true pose over time in the recording's true_camera_poses/) is replay
 `[camera_watch] enabled` (the live e2e test's quick settings). The replay keeps what was learnt as
 a live session does: camera_watch.jsonl, run.json's session.camera_watch, the status lines, and
 extrinsics.watch-1.toml with cam2 near its new true pose, the user's --extrinsics file untouched.
-A second replay into the same folder is the same (the fits run inline), numbers its extrinsics file
-after the first one's instead of writing over it, and with --update-extrinsics also updates the
-user's file. An output folder that cannot be made is one error line, and nothing is written over."""
+A second replay into the same folder, with a frame worker process where the first had none, is the
+same (the fits run inline), numbers its extrinsics file after the first one's instead of writing
+over it, and with --update-extrinsics also updates the user's file. An output folder that cannot
+be made is one error line, and nothing is written over."""
 
 from __future__ import annotations
 
@@ -37,7 +38,7 @@ def bumped(tmp_path_factory) -> tuple[Path, Path, Path]:
     work/extrinsics.toml (the cameras' true poses before the bump: the user's file)."""
     work = tmp_path_factory.mktemp("watch-replay")
     rec = work / "rec"
-    assert main(["simulate", "--out", str(rec), "--cameras", "4", "--duration", "18", "--seed", "5",
+    assert main(["simulate", "--out", str(rec), "--cameras", "4", "--duration", "25", "--seed", "5",
                  "--calibration-frames", "1", "--workers", "2", "--bump-camera", "2", "--bump-at", str(BUMP_AT_S),
                  "--bump-step", str(BUMP_STEP_M), "--bump-turn", str(BUMP_TURN_DEG)]) == 0
     config = rec / "watched.toml"  # beside the config: its relative paths (cube layout, camera_info) hold
@@ -66,7 +67,7 @@ def test_an_offline_replay_keeps_what_the_watching_learnt(bumped):
     user_file = work / "extrinsics.toml"
     user_bytes = user_file.read_bytes()
     out = work / "out"
-    first = _track(config, rec, user_file, out)
+    first = _track(config, rec, user_file, out, "--replay-workers", "0")
     assert first.returncode == 0, first.stderr[-3000:]
 
     events = _events(out)
@@ -95,10 +96,10 @@ def test_an_offline_replay_keeps_what_the_watching_learnt(bumped):
         assert np.allclose(new[camera].T_world_cam, user[camera].T_world_cam, atol=1e-9), camera
     assert user_file.read_bytes() == user_bytes  # never over the user's file without --update-extrinsics
 
-    # again into the same folder, with --update-extrinsics: the same events and pose (the fits run
-    # inline), the first replay's extrinsics file kept, the user's file updated
+    # again into the same folder, with a frame worker process and --update-extrinsics: the same events
+    # and pose (the fits run inline), the first replay's extrinsics file kept, the user's file updated
     kept = (out / "extrinsics.watch-1.toml").read_bytes()
-    second = _track(config, rec, user_file, out, "--update-extrinsics")
+    second = _track(config, rec, user_file, out, "--replay-workers", "1", "--update-extrinsics")
     assert second.returncode == 0, second.stderr[-3000:]
     again = _events(out)
     assert [{**e, "extrinsics": None} for e in again[2:]] == [{**e, "extrinsics": None} for e in events]
