@@ -88,3 +88,13 @@ def test_an_output_folder_that_cannot_be_made_keeps_the_pose_in_the_record(tmp_p
     assert np.allclose(rejoined["position"], NEW[:3, 3]) and log_.written == []
     assert blocker.read_text(encoding="utf-8") == "keep me"
     assert len(caplog.records) == 2  # the events file, the extrinsics file: one line each
+
+
+def test_update_extrinsics_without_an_extrinsics_file_is_one_error_line(tmp_path, capsys):
+    from cubetrack.cli.main import main
+
+    assert main(["track", "--config", str(tmp_path / "lab.toml"), "--uncalibrated", "--recording", str(tmp_path),
+                 "--out", str(tmp_path / "out"), "--update-extrinsics"]) == 1
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--update-extrinsics" in err and "give --extrinsics" in err, err
+    assert not (tmp_path / "out").exists()
