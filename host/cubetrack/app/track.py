@@ -24,6 +24,7 @@ from cubetrack.app.config import config_params, parameter_tables, recording_intr
 from cubetrack.app.outputs import open_outputs
 from cubetrack.app.session import RunSpec, Session
 from cubetrack.app.tracker import FrameProcessor, StageParams, Tracker, TrackStats
+from cubetrack.app.watch_log import WatchLog
 from cubetrack.core.cameras import CameraExtrinsics, CameraIntrinsics, ClockSample, WorldConfig
 from cubetrack.core.errors import ConfigError
 from cubetrack.core.frame_pool import FramePool, WorkerKind
@@ -142,7 +143,8 @@ def track_frames(frames: Iterable[Frame], intrinsics: Mapping[str, CameraIntrins
                  output: Sink | Outputs, params: StageParams | None = None, *,
                  clock_samples: Mapping[str, Sequence[ClockSample]] | None = None,
                  progress: Progress | None = None, frame_count: int = 0, pool: FramePool | None = None,
-                 smoothed: Sink | None = None, session: Session | None = None) -> TrackStats:
+                 smoothed: Sink | None = None, session: Session | None = None,
+                 watch_log: WatchLog | None = None) -> TrackStats:
     """Track ``frames`` (in host arrival order, as a live run receives them) and hand every fused
     pose to ``output``; returns the run's counters. ``smoothed`` (the filter fusion only): after the
     last frame, also hand it every robot's poses smoothed over the whole recording
@@ -154,6 +156,10 @@ def track_frames(frames: Iterable[Frame], intrinsics: Mapping[str, CameraIntrins
     with round trips has its first frames held until one arrives. ``frame_count`` only sizes
     the progress. ``session``: the runtime the replay's loop runs on (:mod:`cubetrack.app.session`;
     None: one of its own): Ctrl-C or SIGTERM end the replay there, the frames taken so far fused.
+    ``watch_log``: with ``[camera_watch] enabled``, what the camera watching decides goes there as
+    live (:meth:`cubetrack.app.watch_log.WatchLog.attach`: events, versioned extrinsics, the
+    outputs' camera states); give it no executor, so that the re-calibration fits run inline and
+    the replay stays reproducible.
 
     The per-frame work (decode, detection, per-camera estimates) runs on ``pool``'s workers
     (:func:`replay_pool`; None: on this thread) while this thread plans and fuses: a worker's
@@ -177,6 +183,8 @@ def track_frames(frames: Iterable[Frame], intrinsics: Mapping[str, CameraIntrins
     trail = tracker.fusion if isinstance(tracker.fusion, FilterFusion) else None  # --smooth: the filter's
     if smoothed is not None and trail is not None:
         trail.keep_trail()
+    if watch_log is not None:
+        watch_log.attach(tracker, output)
     replay = _Replay(tracker, output, pool, clock_samples)
     session = session or Session()
     numbered = enumerate(frames, start=1)
@@ -262,8 +270,10 @@ def replay_pool(intrinsics: Mapping[str, CameraIntrinsics], world: WorldConfig, 
 @dataclass(frozen=True, slots=True)
 class TrackResult:
     """What :func:`track_recording` produced: the stats, the files per robot, the frames skipped
-    by reason, the run record, the smoothed poses' files per robot (with ``smooth``), and the
-    signal that ended the replay early (Ctrl-C: ``SIGINT``; None: it ran to the end)."""
+    by reason, the run record, the smoothed poses' files per robot (with ``smooth``), the
+    signal that ended the replay early (Ctrl-C: ``SIGINT``; None: it ran to the end) and, with
+    ``[camera_watch] enabled``, what the camera watching kept (its events, status lines and
+    versioned extrinsics files; None when the cameras were not watched)."""
 
     stats: TrackStats
     outputs: dict[str, tuple[Path, Path]]
@@ -271,13 +281,15 @@ class TrackResult:
     run_record: Path
     smoothed: dict[str, tuple[Path, Path]] = field(default_factory=dict)
     ended_by: str | None = None
+    camera_watch: WatchLog | None = None
 
 
 def track_recording(config: TrackerConfig, recording: Recording,
                     extrinsics: dict[str, CameraExtrinsics] | None, out_dir: str | Path,
                     params: StageParams | None = None, progress: Progress | None = None,
                     sinks: Sequence[Sink] = (), *, extrinsics_path: str | Path | None = None,
-                    workers: int | None = None, smooth: bool = False) -> TrackResult:
+                    workers: int | None = None, smooth: bool = False,
+                    update_extrinsics: bool = False) -> TrackResult:
     """Replay a recording through the tracker, writing ``<out_dir>/<robot>.tum`` and ``.jsonl``,
     feeding ``sinks`` (other outputs) the same poses, and recording how in ``<out_dir>/run.json``
     (``extrinsics_path``: where ``extrinsics`` were read, for that record). ``smooth``: also
@@ -286,7 +298,11 @@ def track_recording(config: TrackerConfig, recording: Recording,
     filter fusion only), the causal files unchanged. ``params`` None: the
     config's sections. ``workers``: frame worker processes beside this thread (None:
     :func:`replay_workers`; 0, and for recordings of fewer than ``MIN_FRAMES_FOR_WORKERS``
-    frames: none, one thread); the poses are the same whatever their number (:func:`track_frames`)."""
+    frames: none, one thread); the poses are the same whatever their number (:func:`track_frames`).
+    With ``[camera_watch] enabled`` the session keeps what the watching learnt as a live one does
+    (:mod:`cubetrack.app.watch_log`: ``<out_dir>/camera_watch.jsonl``, the log, run.json, a
+    re-calibrated camera's new pose in a versioned extrinsics file beside them, and over
+    ``extrinsics_path`` with ``update_extrinsics``), its re-calibration fits inline (reproducible)."""
     if workers is not None and workers < 0:
         raise ConfigError(f"frame worker processes must not be negative, got {workers}")
     params = params or config_params(config).stages
@@ -310,6 +326,7 @@ def track_recording(config: TrackerConfig, recording: Recording,
         workers = replay_workers()
     layouts = {r.name: r.layout for r in config.robots}
     outputs, files = open_outputs(config, intrinsics, extrinsics, out_dir, sinks)
+    watch_log = WatchLog(out_dir, extrinsics or {}, extrinsics_path if update_extrinsics else None)
     smoothed = FileSink(out_dir / SMOOTHED_DIR, tuple(layouts)) if smooth else None
     pool = replay_pool(intrinsics, config.world, layouts, extrinsics, params, workers) if workers else None
     opencv_threads = cv2.getNumThreads()
@@ -319,7 +336,7 @@ def track_recording(config: TrackerConfig, recording: Recording,
         session = Session(record=run)
         stats = track_frames(recording.merged_frames(), intrinsics, config.world, layouts, extrinsics, outputs,
                              params, clock_samples=clock, progress=progress, frame_count=total, pool=pool,
-                             smoothed=smoothed, session=session)
+                             smoothed=smoothed, session=session, watch_log=watch_log)
     finally:
         cv2.setNumThreads(opencv_threads)
         if pool is not None:
@@ -330,6 +347,8 @@ def track_recording(config: TrackerConfig, recording: Recording,
     skipped = dict(recording.skipped)
     if stats.corrupt_frames:
         skipped["corrupt frame"] = stats.corrupt_frames
-    session.finish({"frames": stats.frames, "of_frames": total, "poses": dict(stats.poses), "skipped": skipped})
+    watched = watch_log if watch_log.attached else None
+    session.finish({"frames": stats.frames, "of_frames": total, "poses": dict(stats.poses), "skipped": skipped,
+                    **(watched.summary() if watched is not None else {})})
     return TrackResult(stats, files.outputs, skipped, run.path, smoothed.outputs if smoothed is not None else {},
-                       session.ended_by)
+                       session.ended_by, watched)

@@ -19,6 +19,12 @@ minute at 16 cameras x 30 fps) and about 10 % more fusion CPU, after the replay 
 Live (or in a replay), [filter] smooth_lag_s = 0.05 in the config gives every pose smoothed over
 the sightings of the next 0.05 s, that much later: most of the offline gain (docs/tracking.md).
 
+With [camera_watch] enabled (docs/calibration.md, "Watching the cameras while tracking"), live or in a
+replay, a camera the watching finds moved is set aside and re-calibrated: DIR/camera_watch.jsonl and
+run.json keep its events, a status line is logged for each, and its new pose is written to
+DIR/extrinsics.watch-<n>.toml (over the --extrinsics file too with --update-extrinsics). A replay fits
+the new pose inline, so it gives the same events and files run after run.
+
 Live: poses are written (and flushed) as they come; a status line on stderr shows poses/s per
 robot, frames/s per camera and the latency. Runs for --duration seconds or until Ctrl-C (the
 outputs are kept either way); --record REC also records the session for replay.
@@ -68,10 +74,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def add_update_extrinsics_argument(p: argparse.ArgumentParser) -> None:
-    """``--update-extrinsics``: live, with ``[camera_watch] enabled``, a re-calibrated camera's new
-    pose is also written over the ``--extrinsics`` file (docs/calibration.md)."""
+    """``--update-extrinsics``: with ``[camera_watch] enabled``, a re-calibrated camera's new pose is
+    also written over the ``--extrinsics`` file (docs/calibration.md)."""
     p.add_argument("--update-extrinsics", action="store_true",
-                   help="live, with [camera_watch] enabled: write a re-calibrated camera's new pose over the "
+                   help="with [camera_watch] enabled: write a re-calibrated camera's new pose over the "
                         "--extrinsics file too (without it only OUT/extrinsics.watch-<n>.toml is written)")
 
 
@@ -102,6 +108,9 @@ def run(args: argparse.Namespace) -> int:
         raise ConfigError(f"--duration must be a positive number of seconds, got {args.duration}")
     if not args.status_every > 0:
         raise ConfigError(f"--status-every must be a positive number of seconds, got {args.status_every}")
+    if args.update_extrinsics and args.extrinsics is None:
+        raise ConfigError("--update-extrinsics writes a re-calibrated camera's pose over the --extrinsics file: "
+                          "give --extrinsics")
     config, settings = load_config(args.config)
     if args.fusion:
         settings = dataclasses.replace(settings, fusion=params_with(settings.fusion, "--fusion", method=args.fusion))
@@ -122,7 +131,8 @@ def run(args: argparse.Namespace) -> int:
         if recording is None:
             return _run_live(args, config, extrinsics, settings, sinks)
         result = track_recording(config, recording, extrinsics, args.out, settings.stages, StderrProgress(), sinks,
-                                 extrinsics_path=args.extrinsics, workers=args.replay_workers, smooth=args.smooth)
+                                 extrinsics_path=args.extrinsics, workers=args.replay_workers, smooth=args.smooth,
+                                 update_extrinsics=args.update_extrinsics)
     finally:
         close_sinks(sinks)
     s = result.stats
@@ -132,11 +142,26 @@ def run(args: argparse.Namespace) -> int:
         print(f"{robot}: {s.poses[robot]} poses -> {tum}, {jsonl}")
     for robot, (tum, jsonl) in result.smoothed.items():
         print(f"{robot}: smoothed poses -> {tum}, {jsonl}")
+    if result.camera_watch is not None:
+        print(watch_line(result.camera_watch))
     if result.ended_by is not None:
         print(f"track: {result.ended_by}: the replay stopped early; the poses of the frames taken so far are saved "
               f"(run.json says how it ended)", file=sys.stderr)
         return 130
     return 0
+
+
+def watch_line(watch_log) -> str:
+    """The run summary's line on the camera watching: its events and the extrinsics files it wrote."""
+    from cubetrack.app.watch_log import EVENTS_FILE
+
+    events = len(watch_log.records)
+    line = f"camera watch: {events} event{'' if events == 1 else 's'}"
+    if events:
+        line += f" -> {watch_log.out_dir / EVENTS_FILE}"
+    if watch_log.written:
+        line += "; new extrinsics -> " + ", ".join(str(p) for p in watch_log.written)
+    return line
 
 
 def dropped_line(stats) -> str:

@@ -100,7 +100,7 @@ class Sink(abc.ABC):
         """A processed frame (only for sinks that ask for views: ``wants_views``)."""
 
     def camera_watch(self, state: CameraWatchState) -> None:
-        """What the camera watching says of a camera, when it changes (live, ``[camera_watch] enabled``)."""
+        """What the camera watching says of a camera, when it changes (``[camera_watch] enabled``)."""
 
     #: whether :meth:`camera_view` should be called (views carry JPEGs: only sinks that show images)
     wants_views: bool = False
