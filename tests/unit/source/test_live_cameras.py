@@ -387,9 +387,9 @@ def test_a_part_that_comes_in_pieces_is_read_once_it_is_whole(monkeypatch):
         srv.shutdown()
         srv.server_close()
     assert [f.seq for f in frames] == list(range(1, _Pieces.parts + 1)) and all(decodes(f) for f in frames)
-    # per part: the piece that ends the part before it and starts this one's headers, the rest when
-    # whole (a third read at most when a piece splits the headers); one read per piece without it
-    assert reads[0] <= 3 * _Pieces.parts, reads[0]
+    # per part: its first piece (headers, the body's start), then the rest when whole (a third read at
+    # most when a piece splits the headers), and a few reads to connect; one read per piece without it
+    assert reads[0] <= 3 * _Pieces.parts + 4, reads[0]
     lasts = [f.host_time_s - (f.device_time_s - time.monotonic() + time.time()) for f in frames]
     assert min(lasts) >= (_Pieces.pieces - 1) * _Pieces.gap_s  # stamped at the last piece, not the first
 
