@@ -740,6 +740,7 @@ def worker_split(args: argparse.Namespace, rec: Path, work: Path) -> dict:
     import functools
     import math
     import multiprocessing
+    import pickle
 
     import cv2
 
@@ -748,6 +749,7 @@ def worker_split(args: argparse.Namespace, rec: Path, work: Path) -> dict:
     from cubetrack.app.config import load_config, recording_intrinsics
     from cubetrack.app.emulated import EmulatedCameras
     from cubetrack.app.tracker import Tracker
+    from cubetrack.core import pipes
     from cubetrack.core.records import FrameJob
     from cubetrack.fuse.forecast import forecast_of
     from cubetrack.io.config import read_extrinsics
@@ -776,6 +778,8 @@ def worker_split(args: argparse.Namespace, rec: Path, work: Path) -> dict:
         worker.processor.work = timed(worker.processor.work, "work")   # type: ignore[method-assign]
         worker.admit = timed(worker.admit, "plan")   # type: ignore[method-assign]
         ours, theirs = multiprocessing.Pipe()
+        # forecasts as the tracker's process hands them over: posted to shared memory (since session 24), or sent
+        board = pipes.LatestBytes(multiprocessing.get_context()) if hasattr(pipes, "LatestBytes") else None
         theirs.send = timed(theirs.send, "send")   # type: ignore[method-assign]
         camera_workers.send_plain = timed(camera_workers.send_plain, "send")   # a result: pickled and sent
         working, taken = multiprocessing.RawArray("d", [math.inf]), multiprocessing.RawArray("q", 1)
@@ -804,13 +808,18 @@ def worker_split(args: argparse.Namespace, rec: Path, work: Path) -> dict:
                                               T_world_cam=fusing.T_world_cam),
                                 time.time())
                     taken[0] += 1
-                    ours.send(forecast_of(fusing.fusion, robots, time.time()).plain())
+                    plain = forecast_of(fusing.fusion, robots, time.time()).plain()
+                    if board is None:
+                        ours.send(plain)
+                    else:
+                        board.post(pickle.dumps(plain, pickle.HIGHEST_PROTOCOL))
                 cpu_s["fusion"] += time.thread_time() - t0
 
         side = threading.Thread(target=tracker_process, daemon=True)
         side.start()
         t0 = time.thread_time()
-        work_cameras(theirs, urls, settings.source, worker, False, time.time, working, taken, 0)
+        work_cameras(theirs, urls, settings.source, worker, False, time.time, working, taken, 0,
+                     *(() if board is None else (board,)))
         total_s = time.thread_time() - t0
         side.join()
     frames = max(int(taken[0]), 1)

@@ -7,7 +7,9 @@ sockets; frames in arrival order, the freshest first once behind, each camera's 
 stamps capture times with its own clock fits, plans each frame and does the per-frame work
 (decode, detection, per-camera estimates) with a :class:`~cubetrack.app.tracker.Tracker` of its
 own, whose plans come from a :class:`~cubetrack.fuse.forecast.Forecast`: each robot's motion as
-the fusion predicts it, sent by the tracker's process after every batch of fused results. Results
+the fusion predicts it, posted by the tracker's process after a batch of fused results into shared
+memory (:class:`~cubetrack.core.pipes.LatestBytes`: it wakes no worker process; each takes the newest
+when it plans a frame). Results
 go back over a pipe without the JPEG (unless an output shows camera frames), with the clock
 samples and the cameras' counters; the tracker's process only fuses them, in one ordered
 consumer. No JPEG crosses processes, and the GIL of one process no longer limits the per-frame
@@ -32,7 +34,7 @@ import cv2
 from cubetrack.app.tracker import Tracker
 from cubetrack.core.errors import SourceError
 from cubetrack.core.lifetime import end_with_parent
-from cubetrack.core.pipes import PipePoll
+from cubetrack.core.pipes import LatestBytes, PipePoll
 from cubetrack.core.records import Frame, FrameJob, FrameOutcome, FrameResult
 from cubetrack.fuse.forecast import Forecast
 from cubetrack.io.frame_wire import pack_result
@@ -128,10 +130,11 @@ class CameraProcesses:
         # time of the frame its process is working on (inf: none), and how many of its results were taken
         self._working = context.RawArray("d", [math.inf] * len(shares))
         self._taken = context.RawArray("q", len(shares))
+        self._forecasts = LatestBytes(context)  # the newest forecast, for every worker process
         for lane, share in enumerate(shares):
             parent, child = context.Pipe()
             process = context.Process(target=_worker_main, args=(child, share, source, make_tracker, views, clock,
-                                                                 self._working, self._taken, lane),
+                                                                 self._working, self._taken, lane, self._forecasts),
                                       daemon=True, name="cubetrack-camera-worker")
             process.start()
             child.close()
@@ -190,13 +193,16 @@ class CameraProcesses:
                 break
 
     def forecast(self, forecast: Forecast | None) -> None:
-        """Hand every worker process the fusion's newest forecast (None: no new one). A worker
-        process keeps at most ``IN_FLIGHT`` results that the fusion has not taken (when the fusion
-        is behind, frames wait in the source, where each camera keeps only its newest); it reads
-        how many were taken from shared memory, so only one that may be waiting for that count
-        (``IN_FLIGHT`` taken since its last message: a process that waits sends nothing more, and
-        :meth:`take` reads all it sent) is sent a message to wake it."""
+        """Post the fusion's newest forecast for every worker process (None: no new one); one too
+        large for the shared memory goes down every pipe instead. A worker process keeps at most
+        ``IN_FLIGHT`` results that the fusion has not taken (when the fusion is behind, frames wait
+        in the source, where each camera keeps only its newest); it reads how many were taken from
+        shared memory, so only one that may be waiting for that count (``IN_FLIGHT`` taken since its
+        last message: a process that waits sends nothing more, and :meth:`take` reads all it sent)
+        is sent a message to wake it."""
         message = None if forecast is None else pickle.dumps(forecast.plain(), pickle.HIGHEST_PROTOCOL)  # once for all
+        if message is not None and self._forecasts.post(message):
+            message = None  # posted: the worker processes take it when they plan their next frames
         for conn, lane in self._open.items():
             if message is None and self._taken[lane] - self._told[lane] < IN_FLIGHT:
                 continue
@@ -251,14 +257,14 @@ class CameraProcesses:
 
 def _worker_main(conn: Connection, urls: dict[str, str], source: SourceParams, make_tracker: Callable[[], Tracker],
                  views: bool, clock: Callable[[], float], working: MutableSequence[float],
-                 taken: Sequence[int], lane: int) -> None:
+                 taken: Sequence[int], lane: int, forecasts: LatestBytes) -> None:
     """A camera worker process: its cameras' frames in, results out, until None comes (Ctrl-C
     is the tracker's process's business: it ends the session, then this process)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     end_with_parent()
     cv2.setNumThreads(1)
     try:
-        work_cameras(conn, urls, source, make_tracker(), views, clock, working, taken, lane)
+        work_cameras(conn, urls, source, make_tracker(), views, clock, working, taken, lane, forecasts)
     except (EOFError, BrokenPipeError):
         pass
     except Exception as exc:  # a bug or a broken camera source: the tracker's process re-raises it
@@ -268,10 +274,12 @@ def _worker_main(conn: Connection, urls: dict[str, str], source: SourceParams, m
 
 def work_cameras(conn: Connection, urls: dict[str, str], source: SourceParams, tracker: Tracker, views: bool,
                  clock: Callable[[], float], working: MutableSequence[float], taken: Sequence[int],
-                 lane: int) -> None:
+                 lane: int, forecasts: LatestBytes | None = None) -> None:
     """A camera worker process's loop on this thread (also ``benchmarks/live.py --worker-split``'s): read
-    ``urls``, plan and work each frame with ``tracker``, send results on ``conn`` until it sends None."""
+    ``urls``, plan and work each frame with ``tracker``, send results on ``conn`` until it sends None;
+    each frame is planned with the newest forecast posted to ``forecasts`` or sent on ``conn``."""
     forecast = Forecast({}, frozenset(r.name for r in tracker.robots))  # until the fusion sends one
+    version = 0  # of the newest forecast taken from ``forecasts``
     inbox = PipePoll({conn: lane})
     live = LiveCameras(urls, source, clock=clock, thread=False)  # read on this thread, between frames
     live.start()
@@ -281,12 +289,21 @@ def work_cameras(conn: Connection, urls: dict[str, str], source: SourceParams, t
     sent = 0
     job = None  # the next frame's, admitted before the result of the one before it went
 
+    def planned_with(values: tuple) -> Forecast:
+        tracker.plan_cameras_at((new := Forecast.from_plain(values)).camera_poses)
+        return new
+
     def admitted(event: Frame | ClockReading | None) -> FrameJob | None:
+        nonlocal forecast, version
         if isinstance(event, ClockReading):
             tracker.add_clock_sample(event.camera, event.sample)
             conn.send(("clock", event))
             return None
-        return None if event is None else tracker.admit(event, hold=False, forecast=forecast)
+        if event is None:
+            return None
+        if forecasts is not None and (posted := forecasts.newer(version))[1] is not None:
+            version, forecast = posted[0], planned_with(pickle.loads(posted[1]))
+        return tracker.admit(event, hold=False, forecast=forecast)
 
     try:
         while True:
@@ -295,9 +312,8 @@ def work_cameras(conn: Connection, urls: dict[str, str], source: SourceParams, t
                 if message is None:
                     stopping = True
                     live.stop()
-                elif isinstance(message, tuple):  # else a wake: the count taken changed
-                    forecast = Forecast.from_plain(message)
-                    tracker.plan_cameras_at(forecast.camera_poses)
+                elif isinstance(message, tuple):  # a forecast too large to post; else a wake: the count taken changed
+                    forecast = planned_with(message)
             if job is None:
                 room = stopping or sent - taken[lane] < IN_FLIGHT
                 # in arrival order: the fusion gets fewer late sightings to fold in (each costs re-applying the

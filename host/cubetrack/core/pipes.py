@@ -11,10 +11,12 @@ readable" is "a message (or the pipe's end) is there", as ``Connection.poll()`` 
 
 from __future__ import annotations
 
+import ctypes
 import math
 import select
 from collections.abc import Iterator, Mapping, MutableMapping
 from multiprocessing.connection import Connection
+from multiprocessing.context import BaseContext
 from typing import TypeVar
 
 V = TypeVar("V")
@@ -61,3 +63,35 @@ class PipePoll(MutableMapping[Connection, V]):
             return []
         ms = None if timeout_s is None or math.isinf(timeout_s) else max(0, math.ceil(timeout_s * 1000.0))
         return [self._by_fd[fd] for fd, _events in self._poll.poll(ms)]  # POLLIN, or the end: POLLHUP, POLLERR
+
+
+class LatestBytes:
+    """The newest of a series of messages from one process to others, in shared memory: a new one
+    replaces the last and wakes nobody (a pipe message wakes its reader's ``poll``); each reader
+    takes it when it next looks (:meth:`newer`), e.g. a camera worker process before it plans a
+    frame. Made before the processes start (its memory and lock go to them as ``Process``
+    arguments); a message over ``capacity`` bytes is refused (:meth:`post` returns False)."""
+
+    def __init__(self, context: BaseContext, capacity: int = 65536):
+        self.capacity = capacity
+        self._head = context.RawArray("q", 2)  # the version (0: nothing posted yet), the length in bytes
+        self._data = context.RawArray("B", capacity)
+        self._lock = context.Lock()
+
+    def post(self, message: bytes) -> bool:
+        """Replace the message (False, nothing posted: over ``capacity``)."""
+        if len(message) > self.capacity:
+            return False
+        with self._lock:
+            ctypes.memmove(self._data, message, len(message))
+            self._head[1] = len(message)
+            self._head[0] += 1
+        return True
+
+    def newer(self, version: int) -> tuple[int, bytes | None]:
+        """(the newest version, its message) if one newer than ``version`` (0: none seen) was
+        posted, else (``version``, None)."""
+        if self._head[0] == version:  # read without the lock: a stale read only defers the message to the next look
+            return version, None
+        with self._lock:
+            return self._head[0], ctypes.string_at(ctypes.addressof(self._data), self._head[1])

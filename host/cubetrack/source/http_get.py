@@ -30,6 +30,8 @@ MAX_HEAD_BYTES = 16384  # a response head (or a chunk-size line) longer than thi
 _SO_TIMESTAMPNS = 35 if sys.platform.startswith("linux") else None  # SCM_TIMESTAMPNS too (asm-generic/socket.h)
 _TIMESPEC = struct.Struct("@qq")
 _ANC_SPACE = socket.CMSG_SPACE(_TIMESPEC.size) if hasattr(socket, "CMSG_SPACE") else 0
+_SO_RCVLOWAT = getattr(socket, "SO_RCVLOWAT", None)
+MAX_LOW_WATER_BYTES = 65536  # the most a socket is told to gather before it counts as readable
 
 
 class HttpError(Exception):
@@ -72,6 +74,7 @@ class HttpGet:
         self.sent_s = float("nan")
         self.received_s = float("nan")
         self.filled = False
+        self._low_water = 1 if _SO_RCVLOWAT is not None else 0  # bytes it gathers before it is readable (0: cannot)
         try:
             self.sock.setsockopt(socket.IPPROTO_TCP, socket.TCP_NODELAY, 1)
             if self.kernel_stamps and _SO_TIMESTAMPNS is not None:  # (kernel_stamps: it is not None)
@@ -89,6 +92,22 @@ class HttpGet:
 
     def close(self) -> None:
         self.sock.close()
+
+    def wake_after(self, n_bytes: int) -> None:
+        """Have a selector report the socket readable only once ``n_bytes`` more bytes have come
+        (``SO_RCVLOWAT``; at most ``MAX_LOW_WATER_BYTES``, at least 1), or when the peer closes or
+        fails: a caller that knows how much of a message is still to come is then not woken for
+        each piece of it. A read still returns whatever is there. Where the platform does not
+        have it, the socket stays readable at every byte."""
+        want = max(1, min(int(n_bytes), MAX_LOW_WATER_BYTES))
+        if not self._low_water or want == self._low_water or _SO_RCVLOWAT is None:
+            return
+        try:
+            self.sock.setsockopt(socket.SOL_SOCKET, _SO_RCVLOWAT, want)
+        except OSError:
+            self._low_water = 0
+            return
+        self._low_water = want
 
     def handle(self) -> bytes:
         if not self.connected:

@@ -77,6 +77,12 @@ class MjpegParser:
             return bool(self._buf.strip())
         return self._state != self._SEEK
 
+    @property
+    def awaiting(self) -> int:
+        """Bytes still to come before the part being read is whole (its Content-Length less what is
+        buffered); 0 when that is not known (between parts, or a part cut by its next delimiter)."""
+        return max(0, self._length - len(self._buf)) if self._state == self._BODY else 0
+
     def close(self) -> None:
         """The stream ended: a part still in progress is counted as truncated."""
         if self.in_part:

@@ -500,6 +500,9 @@ class LiveCameras:
                 if now >= camera.reconnect_at:
                     self._connect(camera, now)
             elif now >= camera.deadline:
+                if camera.parser is not None and camera.parser.awaiting:
+                    self._on_stream(camera)  # bytes below the low-water mark woke nobody: read what came
+            if camera.stream is not None and now >= camera.deadline:
                 what = "connect" if not camera.stream.connected else (
                     "the answer" if camera.stream.head is None else "the next bytes")
                 limit = p.connect_timeout_s if what == "connect" else p.read_timeout_s
@@ -553,6 +556,8 @@ class LiveCameras:
                 if data:
                     camera.deadline = time.monotonic() + self.params.read_timeout_s
                     self._parts(camera, data, get.received_s)
+                    # a part whose length is known wakes the loop once, when it is whole (not per piece)
+                    get.wake_after(camera.parser.awaiting if camera.parser is not None else 0)
                 if get.ended:
                     raise _StreamEnded(closed_reason(camera.url))
                 if not get.filled:

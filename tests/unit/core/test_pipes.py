@@ -5,7 +5,7 @@ from __future__ import annotations
 import multiprocessing
 import time
 
-from cubetrack.core.pipes import PipePoll
+from cubetrack.core.pipes import LatestBytes, PipePoll
 
 
 def test_ready_is_what_wait_says_in_the_order_added():
@@ -38,3 +38,22 @@ def test_ready_waits_up_to_the_timeout():
     t0 = time.monotonic()
     assert pipes.ready(5.0) == [a]
     assert time.monotonic() - t0 < 1.0
+
+
+def _read_latest(board: LatestBytes, seen: int, out) -> None:
+    out.send(board.newer(seen))
+
+
+def test_latest_bytes_hands_another_process_the_newest_message():
+    context = multiprocessing.get_context("spawn")
+    board = LatestBytes(context, capacity=64)
+    here, there = context.Pipe()
+    assert board.newer(0) == (0, None)  # nothing posted yet
+    assert board.post(b"first") and board.post(b"second")
+    assert not board.post(b"x" * 65)  # over its capacity: refused, the last one stays
+    child = context.Process(target=_read_latest, args=(board, 0, there))
+    child.start()
+    assert here.recv() == (2, b"second")  # the newest, read in another process; one version per post
+    child.join(10.0)
+    assert board.newer(2) == (2, None)  # already seen: nothing
+    assert board.post(b"") and board.newer(2) == (3, b"")

@@ -321,3 +321,102 @@ def test_without_a_thread_frames_are_read_inside_get_and_stamped_when_they_arriv
     assert len(stamps) >= 2  # frames that came while nobody read, all kept (frames_per_camera 50)
     assert all(t < read_from - 0.8 for t in stamps)  # they arrived before the stream went silent
     assert woke_s < 1.0
+
+
+class _Pieces(http.server.BaseHTTPRequestHandler):
+    """A stream whose every part (headers, then the JPEG) comes in ``pieces`` writes ``gap_s`` apart,
+    as a camera on a slow link sends it; then ``pause_s`` before the next part."""
+
+    protocol_version = "HTTP/1.0"
+    pieces, gap_s, pause_s, parts = 8, 0.004, 0.05, 12
+
+    def do_GET(self):  # noqa: N802
+        if self.path == "/time":
+            _Esp32Style.do_GET(self)  # type: ignore[arg-type]  # the same clock answer
+            return
+        self.send_response(200)
+        self.send_header("Content-Type", "multipart/x-mixed-replace;boundary=frame")
+        self.end_headers()
+        self.wfile.flush()
+        try:
+            for i in range(self.parts):
+                jpeg = synthetic_jpeg(i, 160, 120)
+                part = (f"--frame\r\nContent-Type: image/jpeg\r\nContent-Length: {len(jpeg)}\r\n"
+                        f"X-Frame: {i + 1}\r\nX-Timestamp: {time.monotonic():.6f}\r\n\r\n").encode() + jpeg + b"\r\n"
+                size = -(-len(part) // self.pieces)
+                for k in range(0, len(part), size):
+                    self.wfile.write(part[k:k + size])
+                    self.wfile.flush()
+                    time.sleep(self.gap_s)
+                time.sleep(self.pause_s)
+            time.sleep(30.0)  # then silence, the connection open
+        except OSError:
+            pass
+
+    def log_message(self, *args):
+        pass
+
+
+def _serve(handler):
+    srv = http.server.ThreadingHTTPServer(("127.0.0.1", 0), handler)
+    threading.Thread(target=srv.serve_forever, daemon=True).start()
+    return srv, f"http://127.0.0.1:{srv.server_address[1]}/stream"
+
+
+def test_a_part_that_comes_in_pieces_is_read_once_it_is_whole(monkeypatch):
+    """A part whose Content-Length is known wakes the reading loop once, when its last byte has
+    come (SO_RCVLOWAT), not once per piece; its arrival stamp is its last byte's."""
+    from cubetrack.source import http_get
+
+    reads = [0]
+    handle = http_get.HttpGet.handle
+
+    def counted(self):
+        reads[0] += 1
+        return handle(self)
+
+    monkeypatch.setattr(http_get.HttpGet, "handle", counted)
+    srv, url = _serve(_Pieces)
+    try:
+        live = LiveCameras({"cam1": url}, dataclasses.replace(FAST, frames_per_camera=50), thread=False).start()
+        try:
+            frames, _ = collect(live, 10.0, until=lambda f, c: len(f) >= _Pieces.parts)
+        finally:
+            live.stop()
+    finally:
+        srv.shutdown()
+        srv.server_close()
+    assert [f.seq for f in frames] == list(range(1, _Pieces.parts + 1)) and all(decodes(f) for f in frames)
+    # per part: its first piece (headers, the body's start), then the rest when whole (a third read at
+    # most when a piece splits the headers), and a few reads to connect; one read per piece without it
+    assert reads[0] <= 3 * _Pieces.parts + 4, reads[0]
+    lasts = [f.host_time_s - (f.device_time_s - time.monotonic() + time.time()) for f in frames]
+    assert min(lasts) >= (_Pieces.pieces - 1) * _Pieces.gap_s  # stamped at the last piece, not the first
+
+
+class _Trickle(_Pieces):
+    """One part trickling in over longer than the read timeout (slower than the low-water mark
+    wakes anyone), then silence."""
+
+    pieces, gap_s, pause_s, parts = 6, 0.4, 0.0, 1
+
+
+def test_a_part_slower_than_the_read_timeout_is_read_and_then_the_silence_times_out(caplog):
+    caplog.set_level(logging.WARNING, logger="cubetrack.source.streams")
+    srv, url = _serve(_Trickle)
+    params = dataclasses.replace(FAST, read_timeout_s=1.0, backoff_initial_s=5.0, backoff_max_s=5.0)
+    try:
+        live = LiveCameras({"cam1": url}, params, thread=False).start()
+        try:
+            t0 = time.monotonic()
+            frames, _ = collect(live, 8.0, until=lambda f, c: len(f) >= 1)
+            took_s = time.monotonic() - t0
+            wait_until(lambda: live.get(0.05) is None and live.stats()["cam1"].reconnects >= 1, 10.0)
+        finally:
+            live.stop()
+    finally:
+        srv.shutdown()
+        srv.server_close()
+    # the part took ~2.4 s (> the 1 s read timeout): bytes were coming, so it was read whole, not timed out
+    assert len(frames) == 1 and decodes(frames[0]) and took_s > 2.0
+    assert any("stopped for 1 s" in r.getMessage() for r in caplog.records)  # then the silence times out
