@@ -148,10 +148,12 @@ class WatchParams:
                                            "settled pose) and gate_prediction_ratio times more than any other "
                                            "camera's latest sighting, pixels; 0: never")
     gate_prediction_ratio: float = param(4.0, "... see gate_prediction_px")
-    follow_m: float = param(0.002, "drift: a camera whose settled pose has moved more than this since its anchor "
-                                   "(its settled pose over its first whole baseline_s, or at its last follow) is "
-                                   "followed when moving it by that much makes the other cameras' settled poses "
-                                   "agree with their anchors again (follow_ratio), metres; 0: never")
+    follow_m: float = param(0.0, "drift: a camera whose settled pose has moved more than this since its anchor "
+                                 "(its settled pose over its first whole baseline_s, or at its last follow) is "
+                                 "followed when moving it by that much makes the other cameras' settled poses "
+                                 "agree with their anchors again (follow_ratio), metres; 0: never (the default: "
+                                 "0.002 followed the drift on the development scenes but not on a held-out one, "
+                                 "docs/calibration.md)")
     follow_px: float = param(0.3, "drift: ... and when that move shifts its corners by more than this (RMS): a still "
                                   "camera's settled pose wanders up to 0.25 px from its anchor in ten minutes "
                                   "(references joined over unsynchronised sightings of a robot turning), pixels")
