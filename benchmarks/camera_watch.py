@@ -313,8 +313,8 @@ def run_scene(work: Path, cameras: int, seed: int, duration_s: float, moves: Mov
     """One scene's replays (see the module doc). An unmoved scene (``--long``) is replayed watched
     and unwatched; a scene with moves also, with ``still``, its unmoved twin (doubles the rendering;
     without it there is no RMSE ratio nor false-alarm count on the twin). ``joint``: (span, every), seconds:
-    the drift scene's :func:`drift_joint_rows` too. ``follow_m``: the watcher's (None: the config's); a
-    drifting scene is also replayed watched with no drift followed (``watched_no_follow``)."""
+    the drift scene's :func:`drift_joint_rows` too. ``follow_m``: the watcher's (None: the config's); with
+    one set, a drifting scene is also replayed watched with no drift followed (``watched_no_follow``)."""
     from cubetrack.app.calibrate import calibrate_recording
     from cubetrack.io.config import read_tracker_config
     from cubetrack.io.recording import Recording
@@ -329,7 +329,7 @@ def run_scene(work: Path, cameras: int, seed: int, duration_s: float, moves: Mov
     bumped = {f"cam{c}" for c in moves.bump_cameras} | ({drifting} if drifting else set())
     out: dict = {"cameras": cameras, "seed": seed, "duration_s": duration_s, "moves": moves.name}
     runs = [("watched", moved_rec, True), ("unwatched", moved_rec, False)]
-    if drifting:
+    if drifting and follow_m:
         runs.append(("watched_no_follow", moved_rec, True))
     if still_rec is not None:
         runs += [("still", still_rec, True), ("still_unwatched", still_rec, False)]
