@@ -70,13 +70,13 @@ def scene(work: Path, cameras: int, seed: int, duration_s: float, moves: Moves, 
 
 
 def replay(rec: Path, extrinsics: dict, watch: bool, config_path: Path | None = None,
-           camera: str | None = None, keep_samples: bool = False) -> dict:
+           camera: str | None = None, keep_samples: bool = False, follow_m: float | None = None) -> dict:
     """Replay a recording through a Tracker (frames and /time round trips in arrival order);
     returns its ``poses``, the watcher's ``events`` and ``stats``, the ``cpu_s`` it took, with
     ``keep_samples`` every checked sighting the watcher kept (``samples``, in time order: its
     samples are read every 5 s, before they leave its ``baseline_s`` span) and, for ``camera``,
     ``camera_poses``: (host time, the pose the fusion uses, the watcher's settled pose or None)
-    every 5 s."""
+    every 5 s. ``follow_m``: the watcher's ``follow_m`` (None: the config's; 0: no drift followed)."""
     from cubetrack.app.track import recording_intrinsics
     from cubetrack.app.tracker import StageParams, Tracker
     from cubetrack.calib.recalibrate import WatchedFusion
@@ -86,7 +86,8 @@ def replay(rec: Path, extrinsics: dict, watch: bool, config_path: Path | None = 
     config = read_tracker_config(config_path or rec / "config.toml")
     recording = Recording.open(rec)
     params = StageParams.from_config(config)
-    params = dataclasses.replace(params, camera_watch=dataclasses.replace(params.camera_watch, enabled=watch))
+    follow = {} if follow_m is None else {"follow_m": follow_m}
+    params = dataclasses.replace(params, camera_watch=dataclasses.replace(params.camera_watch, enabled=watch, **follow))
     synced = frozenset(c for c in recording.camera_names if recording.clock_samples(c))
     tracker = Tracker(recording_intrinsics(config, recording), config.world, config.robots, extrinsics, params,
                       synced)
@@ -111,6 +112,8 @@ def replay(rec: Path, extrinsics: dict, watch: bool, config_path: Path | None = 
     if fusion is not None and keep_samples:
         kept.update((id(s), s) for samples in fusion.watch.samples.values() for s in samples)
     return {"poses": poses, "events": list(fusion.events) if fusion else [], "cpu_s": time.process_time() - c0,
+            "follows": list(fusion.watch.follows) if fusion else [],
+            "in_use": {c: T.copy() for c, T in fusion.watch.T_world_cam.items()} if fusion else {},
             "stats": {**fusion.stats, **fusion.watch.stats} if fusion else {}, "camera_poses": camera_poses,
             "samples": sorted(kept.values(), key=lambda s: s.time_s)}
 
@@ -306,11 +309,12 @@ def drift_joint_rows(rec: Path, samples: list, extrinsics: dict, start: float, s
 
 
 def run_scene(work: Path, cameras: int, seed: int, duration_s: float, moves: Moves, still: bool = True,
-              joint: tuple[float, float] | None = None) -> dict:
+              joint: tuple[float, float] | None = None, follow_m: float | None = None) -> dict:
     """One scene's replays (see the module doc). An unmoved scene (``--long``) is replayed watched
     and unwatched; a scene with moves also, with ``still``, its unmoved twin (doubles the rendering;
     without it there is no RMSE ratio nor false-alarm count on the twin). ``joint``: (span, every), seconds:
-    the drift scene's :func:`drift_joint_rows` too."""
+    the drift scene's :func:`drift_joint_rows` too. ``follow_m``: the watcher's (None: the config's); with
+    one set, a drifting scene is also replayed watched with no drift followed (``watched_no_follow``)."""
     from cubetrack.app.calibrate import calibrate_recording
     from cubetrack.io.config import read_tracker_config
     from cubetrack.io.recording import Recording
@@ -325,10 +329,13 @@ def run_scene(work: Path, cameras: int, seed: int, duration_s: float, moves: Mov
     bumped = {f"cam{c}" for c in moves.bump_cameras} | ({drifting} if drifting else set())
     out: dict = {"cameras": cameras, "seed": seed, "duration_s": duration_s, "moves": moves.name}
     runs = [("watched", moved_rec, True), ("unwatched", moved_rec, False)]
+    if drifting and follow_m:
+        runs.append(("watched_no_follow", moved_rec, True))
     if still_rec is not None:
         runs += [("still", still_rec, True), ("still_unwatched", still_rec, False)]
     for key, rec, watch in runs:
-        run = replay(rec, extrinsics, watch, camera=drifting, keep_samples=bool(joint) and key == "watched")
+        run = replay(rec, extrinsics, watch, camera=drifting, keep_samples=bool(joint) and key == "watched",
+                     follow_m=0.0 if key == "watched_no_follow" else follow_m)
         times, err = errors_m(run["poses"], rec)
         after = times - start >= first_move_s
         row: dict = {"rmse_m": rmse(err), "max_m": float(err.max()), "poses": len(err), "cpu_s": run["cpu_s"],
@@ -338,11 +345,18 @@ def run_scene(work: Path, cameras: int, seed: int, duration_s: float, moves: Mov
                      "suspect": run["stats"].get("suspect", 0),
                      "suspect_sightings": run["stats"].get("suspect sighting", 0),
                      "false_alarms": [e.camera for e in run["events"] if e.kind.value == "moved"
-                                      and (key.startswith("still") or e.camera not in bumped)]}
+                                      and (key.startswith("still") or e.camera not in bumped)],
+                     "follows": [(f.camera, round(f.time_s - start, 1), round(1000 * f.offset_m, 2),
+                                  round(f.shift_px, 2), round(f.others_px, 2), round(f.others_after_px, 2))
+                                 for f in run["follows"]],
+                     # a drift followed in a camera that never moved: how far its pose in use went from its calibration
+                     "false_follows_mm": {c: round(1000 * pose_error(T, extrinsics[c].T_world_cam)[0], 2)
+                                          for c, T in run["in_use"].items() if c not in bumped
+                                          and any(f.camera == c for f in run["follows"])}}
+        if drifting and key.startswith("watched"):
+            row["drift"] = drift_rows(rec, drifting, run["camera_poses"], start)
         if key == "watched":
             row["bumps"] = bump_rows(rec, run["events"], moves, start, extrinsics)
-            if drifting:
-                row["drift"] = drift_rows(rec, drifting, run["camera_poses"], start)
             if joint:
                 row["joint"] = drift_joint_rows(rec, run["samples"], extrinsics, start, *joint)
         out[key] = row
@@ -406,6 +420,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--report", type=Path, default=None, help="write the JSON report here")
     parser.add_argument("--no-still", action="store_true", help="skip the unbumped twin (half the rendering)")
     parser.add_argument("--real", action="store_true", help="also replay the caliscope-4cam real footage watched")
+    parser.add_argument("--follow-m", type=float, default=None,
+                        help="the watcher's follow_m, metres (default: the config's; 0: no drift followed)")
     args = parser.parse_args(argv)
     if args.long:
         args.bump_camera, args.bump_at, args.drift_camera = [], [], 0
@@ -422,7 +438,8 @@ def main(argv: list[str] | None = None) -> int:
     for cameras in args.cameras:
         for seed in args.seeds:
             rows.append(run_scene(args.work, cameras, seed, args.duration, moves, not args.no_still,
-                                  (args.joint_span, args.joint_every) if args.joint_span > 0 else None))
+                                  (args.joint_span, args.joint_every) if args.joint_span > 0 else None,
+                                  args.follow_m))
             print(json.dumps(rows[-1], indent=1, default=float), flush=True)
     print_table(rows)
     if args.report:
@@ -446,9 +463,17 @@ def print_table(rows: list[dict]) -> None:
                   f"{_deg(b.get('principal_point_floor_deg')):>9}  {tail}")
             if b.get("move_error"):
                 print(f"{'':29}the move found against the true move: {_pose(b['move_error'])}")
+        print(f"    drift followed: {len(w['follows'])} steps {sorted({f[0] for f in w['follows']})}; cameras that "
+              f"never moved followed (mm from their calibration at the end): {w['false_follows_mm']} "
+              f"(still twin: {r['still']['false_follows_mm'] if 'still' in r else '-'})")
+        plain = {t: in_use for t, in_use, _ in r.get("watched_no_follow", {}).get("drift", [])}
         for t, in_use, settled in w.get("drift", []):
-            print(f"    drift at {t:6.1f} s: pose in use {in_use:6.2f} mm off, settled pose "
-                  f"{'-' if settled is None else f'{settled:.2f} mm'} off")
+            print(f"    drift at {t:6.1f} s: pose in use {in_use:6.2f} mm off ({plain.get(t, math.nan):6.2f} with no "
+                  f"follow), settled pose {'-' if settled is None else f'{settled:.2f} mm'} off")
+        if "watched_no_follow" in r:
+            plain_rmse = r["watched_no_follow"]["rmse_m"]
+            print(f"    RMSE watched {100 * w['rmse_m']:.3f} cm, with no follow {100 * plain_rmse:.3f} cm, "
+                  f"unwatched {100 * r['unwatched']['rmse_m']:.3f} cm")
 
 
 def _s(value: float | None) -> str:

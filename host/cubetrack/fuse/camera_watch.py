@@ -49,8 +49,18 @@ with the others inside the reference fits it took part in over the window (the m
 residual of its sets there), else none is declared yet. Then every camera's window restarts. A moved camera is set aside
 (:meth:`CameraWatch.excluded`: its sightings leave the fusion, and it serves nobody as a
 reference) and its samples are gathered for its re-calibration until :meth:`CameraWatch.rejoin`.
-Offsets under the thresholds (what a calibration leaves, a slow drift's first millimetres) are
-not this module's business: they are the per-camera pose bias the filter follows (docs/tracking.md).
+
+A slow drift (a clamp slipping millimetres a minute) never makes a window say moved; it is followed
+instead, without an event (:meth:`CameraWatch._follow`, every ``baseline_every_s``). Each camera's
+settled pose over its first whole ``baseline_s`` is its **anchor**. A camera's own settled pose is
+fitted against the OTHER cameras' references, so when one camera drifts its settled pose moves with
+it; but every other camera's moves too, as the drifting camera sits in their references (the
+gauge), about as much. So a camera whose settled pose has moved more than ``follow_m`` from its
+anchor is followed only when that move, put into the others' references (:func:`with_camera_at`),
+takes their settled poses back to their anchors: the shift its move makes in its own corners must
+be ``follow_ratio`` times the largest shift left in any other's. Its pose in use then moves by its
+settled pose's move (the fusion takes its sightings there), its anchor becomes its settled pose,
+and the others keep their samples with their references fitted again.
 
 Pure: sightings in, events out; no clock, no thread (the re-calibration fit is the caller's to
 run in the background).
@@ -138,13 +148,25 @@ class WatchParams:
                                            "settled pose) and gate_prediction_ratio times more than any other "
                                            "camera's latest sighting, pixels; 0: never")
     gate_prediction_ratio: float = param(4.0, "... see gate_prediction_px")
+    follow_m: float = param(0.0, "drift: a camera whose settled pose has moved more than this since its anchor "
+                                 "(its settled pose over its first whole baseline_s, or at its last follow) is "
+                                 "followed when moving it by that much makes the other cameras' settled poses "
+                                 "agree with their anchors again (follow_ratio), metres; 0: never (the default: "
+                                 "0.002 followed the drift on the development scenes but not on a held-out one, "
+                                 "docs/calibration.md)")
+    follow_px: float = param(0.3, "drift: ... and when that move shifts its corners by more than this (RMS): a still "
+                                  "camera's settled pose wanders up to 0.25 px from its anchor in ten minutes "
+                                  "(references joined over unsynchronised sightings of a robot turning), pixels")
+    follow_ratio: float = param(2.0, "drift: ... when the camera's own move shifts its corners this many times more "
+                                     "(RMS px) than the largest shift left in any other camera's settled pose once "
+                                     "it is moved")
 
     def __post_init__(self) -> None:
-        check_at_least(self, 0, "gate_prediction_px")
+        check_at_least(self, 0, "gate_prediction_px", "follow_m")
         check_positive(self, "baseline_s", "baseline_every_s", "samples_per_s", "checks_per_s", "reference_span_s",
                        "reference_rms_px", "window_s", "check_every_s", "moved_px", "moved_ratio", "moved_m",
                        "moved_deg", "rejoin_sigma_m", "rejoin_sigma_deg", "rejoin_agree_m", "rejoin_agree_deg",
-                       "corner_noise_px", "gate_px", "suspect_px", "gate_prediction_ratio")
+                       "corner_noise_px", "gate_px", "suspect_px", "gate_prediction_ratio", "follow_px", "follow_ratio")
         check_at_least(self, 1, "reference_cameras", "suspect_samples")
         check(self.reference_cameras_max >= self.reference_cameras, f"reference_cameras_max "
               f"({self.reference_cameras_max}) must be at least reference_cameras ({self.reference_cameras})")
@@ -191,6 +213,24 @@ class WatchEvent:
             return f"{self.camera} moved {100 * self.offset_m:.1f} cm / {self.offset_deg:.1f} deg; set aside"
         return (f"{self.camera} re-calibrated from {self.sightings} sightings ({100 * self.offset_m:.1f} cm / "
                 f"{self.offset_deg:.1f} deg from its old pose); rejoined")
+
+
+@dataclass(frozen=True, slots=True, eq=False)
+class DriftStep:
+    """A drift followed (no event: no alarm per millimetre): at host time ``time_s`` the pose in
+    use of ``camera`` moved by ``offset_m`` / ``offset_deg`` to ``T_world_cam``, its settled pose's
+    move since its anchor; ``shift_px`` that move's shift of its corners (RMS), ``others_px`` /
+    ``others_after_px`` the largest shift of another camera's settled pose from its anchor before
+    and after the camera was moved in their references."""
+
+    camera: str
+    time_s: float
+    offset_m: float
+    offset_deg: float
+    shift_px: float
+    others_px: float
+    others_after_px: float
+    T_world_cam: np.ndarray
 
 
 def clock_text(time_s: float) -> str:
@@ -241,6 +281,11 @@ PREDICTION_GATE_PX = 40.0
 REFERENCE_SIGHTINGS = 2
 WINDOW_PRIOR_M = 0.05  # a window's fit: prior spread of the camera's position about its settled pose, metres
 WINDOW_PRIOR_DEG = 3.0  # ... and of its orientation, degrees
+# a drift's follow: the settled pose fitted again with a prior of this spread about its anchor (metres, degrees): a
+# robot's sightings pin a camera's sideways shift against its turn, and its distance, weakly, and a span's settled
+# pose wanders millimetres along them from one span to the next while its corners move by a tenth of a pixel
+FOLLOW_PRIOR_M = 0.002
+FOLLOW_PRIOR_DEG = 0.05
 
 
 def stacked(samples: Sequence[WatchSample]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -408,6 +453,34 @@ def window_verdict(samples: Sequence[WatchSample], T_world_cam: np.ndarray, para
     return Verdict(fit, shift, off_m, off_deg, moved)
 
 
+def holds(sample: WatchSample, camera: str) -> bool:
+    """Whether ``camera``'s sightings are in the sample's reference."""
+    return any(s.camera == camera for s in sample.reference_sets)
+
+
+def with_camera_at(sample: WatchSample, camera: str, T_cam_world: np.ndarray, corner_noise_px: float
+                   ) -> WatchSample | None:
+    """The sample as if ``camera`` stood at ``T_cam_world``: its sightings in the reference taken
+    there and the reference fitted again, the sample's corners placed in the world by that fit
+    (the sample itself when its reference does not hold ``camera``); None when it kept no cube
+    pose or corner sets, or the fit fails."""
+    if not holds(sample, camera):
+        return sample
+    if sample.T_world_cube is None or not sample.own_sets:
+        return None
+    sets = tuple(dataclasses.replace(s, T_cam_world=T_cam_world) if s.camera == camera else s
+                 for s in sample.reference_sets)
+    refit = solve_joint(sets, sample.T_world_cube, sample.time_s, corner_noise_px, velocity_sigma=VELOCITY_SIGMA,
+                        iterations=FIT_ITERATIONS)
+    if refit is None:
+        return None
+    points = np.concatenate([transform_points(moved_pose(refit.T_world_cube, refit.velocity_m_s,
+                                                         refit.angular_velocity_rad_s, s.time_s - sample.time_s),
+                                              s.points_cube_m) for s in sample.own_sets])
+    return dataclasses.replace(sample, points_world_m=points, reference_sets=sets, T_world_cube=refit.T_world_cube,
+                               reference_rms_px=refit.rms_px)
+
+
 def without_camera(sample: WatchSample, camera: str, reference_cameras: int) -> WatchSample | None:
     """The sample with ``camera``'s sightings taken out of its reference (a camera declared moved
     since: they may be from after its move, and the older and newer halves of a re-calibration
@@ -415,7 +488,7 @@ def without_camera(sample: WatchSample, camera: str, reference_cameras: int) -> 
     ``reference_cameras`` other cameras are left in it. Its corners' world points stay the old
     reference's until the re-calibration's joint fit places them again
     (:func:`cubetrack.calib.recalibrate.joint_fit`, from its first round)."""
-    if not any(s.camera == camera for s in sample.reference_sets):
+    if not holds(sample, camera):
         return sample
     sets = tuple(s for s in sample.reference_sets if s.camera != camera)
     return dataclasses.replace(sample, reference_sets=sets) if len({s.camera for s in sets}) >= reference_cameras \
@@ -448,6 +521,10 @@ class CameraWatch:
                                                                for c in T_world_cams}
         self._off_prediction: dict[str, dict[str, tuple[float, float]]] = {r: {} for r in layouts}
         self.events: list[WatchEvent] = []
+        self.follows: list[DriftStep] = []
+        # camera -> its settled pose over its first whole baseline_s, or at its last follow: what a drift is
+        # measured from
+        self.anchor: dict[str, np.ndarray] = {}
         self.stats: Counter[str] = Counter()
         self._recent: dict[str, deque[CubeSighting]] = {r: deque() for r in layouts}
         self._sets: dict[tuple[str, str, int, bool], tuple[np.ndarray | None, list[CornerSet]]] = {}
@@ -553,6 +630,7 @@ class CameraWatch:
         self.state[camera] = CameraState.WATCHED
         self.samples[camera].clear()
         self.settled.pop(camera, None)
+        self.anchor.clear()
         fit = CameraFit(self.T_world_cam[camera], 0.0, 0.0, 0.0, 0)
         offset_m, offset_deg = fit.offset_from(before)
         event = WatchEvent(EventKind.REJOINED, camera, time_s, offset_m, offset_deg, self.T_world_cam[camera].copy(),
@@ -582,8 +660,65 @@ class CameraWatch:
                 verdicts[camera] = verdict
         worst = self._culprit(verdicts, now_s)
         if worst is None:
+            if baseline and not any(v.moved for v in verdicts.values()):
+                self._follow(now_s)
             return []
         return [self._declare(*worst, now_s)]
+
+    def _follow(self, now_s: float) -> None:
+        """Follow a drift (see the module doc). With every camera watched, each one's settled pose
+        over a whole ``baseline_s`` is fitted again near its anchor (a prior of ``FOLLOW_PRIOR_M`` /
+        ``FOLLOW_PRIOR_DEG``); each camera that has moved more than ``follow_m`` is tried: moved so
+        in the others' references, how far (RMS px of their corners) do their settled poses stay
+        from their anchors? The one that leaves the least is followed if its own move shifts its
+        corners by more than ``follow_px`` and ``follow_ratio`` times more: its pose in use moves by
+        that much, its anchor becomes that pose, and the others keep their samples with their
+        references fitted again."""
+        p = self.params
+        if p.follow_m <= 0 or any(s is not CameraState.WATCHED for s in self.state.values()):
+            return
+        start_s = now_s - p.window_s - p.baseline_s + p.baseline_every_s
+        spans = {c: [s for s in self.samples[c] if s.time_s < now_s - p.window_s] for c in self.settled}
+        spans = {c: span for c, span in spans.items() if span and span[0].time_s <= start_s}
+        for camera in spans:
+            self.anchor.setdefault(camera, self.settled[camera])
+        if len(spans) < p.reference_cameras + 1:
+            return
+        prior = (FOLLOW_PRIOR_M, math.radians(FOLLOW_PRIOR_DEG))
+        near = {c: refit_camera(*stacked(span), self.anchor[c], p.corner_noise_px, prior_sigma=prior)
+                for c, span in spans.items()}
+        best: tuple[float, str, CameraFit, dict[str, CameraFit], dict[str, list[WatchSample]]] | None = None
+        for camera, fit in near.items():
+            if fit is None or np.linalg.norm(fit.T_world_cam[:3, 3] - self.anchor[camera][:3, 3]) <= p.follow_m:
+                continue
+            T_cam_world = invert_T(self.T_world_cam[camera] @ invert_T(self.anchor[camera]) @ fit.T_world_cam)
+            again = {c: [m for m in (with_camera_at(s, camera, T_cam_world, p.corner_noise_px)
+                                     for s in self.samples[c]) if m is not None] for c in spans if c != camera}
+            refits = {c: refit_camera(*stacked(kept), self.settled[c], p.corner_noise_px)
+                      for c, kept in ((c, [s for s in again[c] if s.time_s < now_s - p.window_s]) for c in again)
+                      if kept}
+            if len(refits) < len(again) or any(f is None for f in refits.values()):
+                continue
+            others = {c: f for c, f in refits.items() if f is not None}
+            left = max(shift_px(f, self.anchor[c], spans[c]) for c, f in others.items())
+            if best is None or left < best[0]:
+                best = left, camera, fit, others, again
+        if best is None:
+            return
+        left, camera, fit, others, again = best
+        shift = shift_px(fit, self.anchor[camera], spans[camera])
+        if shift <= p.follow_px or shift < p.follow_ratio * left:
+            return
+        T_new = self.T_world_cam[camera] @ invert_T(self.anchor[camera]) @ fit.T_world_cam
+        off_m, off_deg = CameraFit(T_new, 0.0, 0.0, 0.0, 0).offset_from(self.T_world_cam[camera])
+        before = max(shift_px(CameraFit(self.settled[c], 0.0, 0.0, 0.0, 0), self.anchor[c], spans[c]) for c in others)
+        self.follows.append(DriftStep(camera, now_s, off_m, off_deg, shift, before, left, T_new.copy()))
+        self.stats["drift followed"] += 1
+        self.T_world_cam[camera] = T_new
+        self.anchor[camera] = fit.T_world_cam
+        for other, refit in others.items():
+            self.settled[other] = refit.T_world_cam
+            self.samples[other] = deque(again[other])
 
     def _declare(self, camera: str, verdict: Verdict, now_s: float) -> WatchEvent:
         """Declare ``camera`` moved (its ``verdict``, at ``now_s``): set it aside with its window's
@@ -602,6 +737,7 @@ class CameraWatch:
             samples.clear()
             if self.state[other] is CameraState.SUSPECT:
                 self.state[other] = CameraState.WATCHED
+        self.anchor.clear()  # the others' settled poses were fitted against references that held it
         self.samples[camera].extend(window[len(window) // 2:])  # the newer half: after the move
         self.state[camera] = CameraState.RECALIBRATING
         self.moved_pose[camera] = self.settled.pop(camera)
@@ -654,18 +790,11 @@ class CameraWatch:
             if other == camera or settled is None or self.state[other] is CameraState.RECALIBRATING:
                 continue
             for sample in samples:
-                if (sample.T_world_cube is None or sample.time_s < now_s - p.window_s / 2
-                        or not any(s.camera == camera for s in sample.reference_sets)):
+                if sample.time_s < now_s - p.window_s / 2 or not holds(sample, camera):
                     continue
-                sets = [dataclasses.replace(s, T_cam_world=T_cam_world) if s.camera == camera else s
-                        for s in sample.reference_sets]
-                refit = solve_joint(sets, sample.T_world_cube, sample.time_s, p.corner_noise_px,
-                                    velocity_sigma=VELOCITY_SIGMA, iterations=FIT_ITERATIONS)
-                if refit is not None:
-                    points = np.concatenate([transform_points(moved_pose(
-                        refit.T_world_cube, refit.velocity_m_s, refit.angular_velocity_rad_s, s.time_s - sample.time_s),
-                        s.points_cube_m) for s in sample.own_sets])
-                    residual = residuals_px(settled, points, sample.normalized, sample.focal_px)
+                moved = with_camera_at(sample, camera, T_cam_world, p.corner_noise_px)
+                if moved is not None:
+                    residual = residuals_px(settled, moved.points_world_m, moved.normalized, moved.focal_px)
                     misses.append(float(np.median(np.linalg.norm(residual, axis=1))))
         return float(np.median(misses)) if misses else math.inf
 

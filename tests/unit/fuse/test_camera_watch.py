@@ -182,6 +182,46 @@ def test_noisy_imperfectly_calibrated_cameras_are_never_declared_moved():
     assert watch.stats["checked"] > 700 and watch.stats["checked while suspect"] < 0.01 * watch.stats["checked"]
 
 
+@pytest.mark.slow
+def test_a_drifting_camera_is_followed_without_an_event_and_no_still_camera_is():
+    """With ``follow_m`` set (off by default). A clamp slipping: cam3 drifts 6 mm/min along a random
+    direction for 100 s; the four cameras are as calibration leaves them (1 cm / 0.2 deg off), 0.6 px
+    corners. Every camera's settled pose moves (cam3 sits in the others' references), but only cam3
+    is followed: its pose in use moves with its true motion (the calibration's offset kept), the
+    others' stay as calibrated, nothing is declared moved, and moving cam3 in the others' references
+    took their settled poses back towards their anchors."""
+    rng = np.random.default_rng(23)
+    believed = {c: bumped(T, 0.01, 0.2, rng) for c, T in CAMERAS.items()}
+    direction = rng.normal(size=3)
+    direction /= np.linalg.norm(direction)
+    rate_m_s = 0.006 / 60.0
+
+    def true_pose(camera: str, t: float) -> np.ndarray:
+        T = CAMERAS[camera].copy()
+        if camera == "cam3":
+            T[:3, 3] += direction * rate_m_s * t
+        return T
+
+    seen = sightings(100.0, true_pose, believed, rng, noise_px=0.6)
+    watch = CameraWatch({"bot": LAYOUT}, believed, WatchParams(enabled=True, follow_m=0.002))
+    behind_mm = []  # cam3's pose in use against its calibrated pose moved as it truly moved
+    for s in seen:
+        s = dataclasses.replace(s, T_world_cam=watch.T_world_cam[s.camera])  # as WatchedFusion gives it
+        assert watch.add(s) == []
+        followed = believed["cam3"][:3, 3] + true_pose("cam3", s.capture_time_s)[:3, 3] - CAMERAS["cam3"][:3, 3]
+        behind_mm.append((s.capture_time_s, 1000 * float(np.linalg.norm(watch.T_world_cam["cam3"][:3, 3] - followed))))
+    assert watch.follows and {f.camera for f in watch.follows} == {"cam3"}, watch.follows
+    assert all(f.others_after_px < f.others_px for f in watch.follows), watch.follows
+    for c in ("cam1", "cam2", "cam4"):
+        np.testing.assert_array_equal(watch.T_world_cam[c], believed[c])
+    # unfollowed it would be 10 mm behind at the end; followed, what it drifted before its anchor (its first
+    # settled pose over a whole baseline, ~2 mm) and up to a follow step (follow_px: ~2 mm here) behind
+    end_s, end_mm = behind_mm[-1]
+    assert end_mm < 0.5 * 1000 * rate_m_s * end_s, behind_mm[-1]
+    assert all(b < 6.0 for t, b in behind_mm if t > watch.follows[0].time_s + 1.0), watch.follows
+    assert watch.stats["drift followed"] == len(watch.follows)
+
+
 def test_with_one_other_camera_the_watcher_says_so_and_waits():
     rng = np.random.default_rng(3)
     two = {c: CAMERAS[c] for c in ("cam1", "cam2")}
@@ -365,6 +405,8 @@ def test_the_joint_fits_extrapolation_takes_only_a_shrinking_step_along_the_last
     ({"reference_cameras": 0}, "reference_cameras"),
     ({"window_s": 40.0}, "window_s"),
     ({"reference_cameras_max": 1}, "reference_cameras_max"),
+    ({"follow_m": -0.001}, "follow_m"),
+    ({"follow_px": 0.0}, "follow_px"),
 ])
 def test_bad_watch_settings_are_refused_with_a_clear_message(changes, message):
     from cubetrack.core.errors import ParamsError
