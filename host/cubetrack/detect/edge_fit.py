@@ -315,6 +315,38 @@ def _fitted_loop(img: np.ndarray, z0: np.ndarray, width_per_side: np.ndarray, t:
     return out
 
 
+@numba.njit(cache=True, nogil=True)
+def _region(img: np.ndarray, quads: np.ndarray, crop: bool) -> tuple[np.ndarray, complex, np.ndarray, np.ndarray]:
+    """What the fit of the (M, 4, 2) ``quads`` reads of ``img``: ``(region, origin, good, z)``,
+    with ``crop`` the box around the finite quads grown by ``_ROI_MARGIN_PX`` (a view; the margin
+    covers the sampling half-width and the moves) and its top-left corner (complex x + iy), else
+    the whole image and 0; which quads are finite, and their corners in the region (M, 4;
+    complex), a quad that is not finite at the image's origin."""
+    good, _all_good, x0, y0, x1, y1 = _finite_box(quads, _ROI_MARGIN_PX)
+    region, origin = img[:, :], 0j
+    if crop and good.any():
+        region, origin = img[y0:y1, x0:x1], complex(x0, y0)
+    z = np.empty((quads.shape[0], 4), np.complex128)
+    for q in range(quads.shape[0]):
+        for c in range(4):
+            z[q, c] = (complex(quads[q, c, 0], quads[q, c, 1]) if good[q] else 0j) - origin
+    return region, origin, good, z
+
+
+@numba.njit(cache=True, nogil=True)
+def _pinhole_refined(img: np.ndarray, quads: np.ndarray, crop: bool, inv_modules: np.ndarray, t: np.ndarray,
+                     unit: np.ndarray, unit_mid: np.ndarray, focus: tuple[bool, float, float], iterations: int,
+                     settled_px: float) -> np.ndarray:
+    """:func:`refine_corners_edges` without a lens model, in one call (at a few markers a frame the
+    calls, not the arithmetic, are the cost): :func:`_region`, :func:`_fitted_loop`,
+    :func:`_fit_result`."""
+    region, origin, good, z_in = _region(img, quads, crop)
+    fitted = np.ones(z_in.shape, np.bool_)   # per side and corner: the fit held
+    # half-width 0.8 module = 0.4 x (sum of two neighbouring sides) / modules
+    z = _fitted_loop(region, z_in, 0.4 * inv_modules, t, unit, unit_mid, focus, iterations, settled_px, fitted)
+    return _fit_result(z, z_in, inv_modules, fitted, good, origin)
+
+
 def compile_edge_fit() -> None:
     """Compile the edge fit's kernels (or load them from numba's on-disk cache, ``__pycache__``)
     for the argument types :func:`refine_corners_edges` passes, by fitting one synthetic marker
@@ -375,49 +407,37 @@ def refine_corners_edges(gray: np.ndarray, corners_px: np.ndarray, modules: int 
     per frame), its corners those of the earlier ``cv2.remap`` sampling to the bit.
     """
     img = np.asarray(gray)
+    crop = img.dtype != np.float32   # only the quads' region of an 8-bit image is read
+    # samples as float32 (of an 8-bit image, exact: rounded ones bias an edge by ~0.03 px)
+    img = np.ascontiguousarray(img if img.dtype in (np.uint8, np.float32) else img.astype(np.float32))
     c_in = np.ascontiguousarray(corners_px, dtype=np.float64)
     single = c_in.ndim == 2
-    good, all_good, x0, y0, x1, y1 = _finite_box(c_in.reshape(-1, 4, 2), _ROI_MARGIN_PX)
-    z_in = c_in.view(np.complex128).reshape(-1, 4)                     # (M, 4) x + iy (a view)
-    if not all_good:
-        z_in = np.where(good[:, None], z_in, 0.0)
-    origin: complex = 0.0
-    if img.dtype != np.float32 and (all_good or good.any()):
-        # only the region around the quads (the margin covers the sampling half-width and the moves)
-        img, origin = img[y0:y1, x0:x1], complex(x0, y0)
-        z_in = z_in - origin
-    # samples as float32 (of an 8-bit image, exact: rounded ones bias an edge by ~0.03 px)
-    img = np.ascontiguousarray(img if img.dtype == np.uint8 else img.astype(np.float32, copy=False))
+    quads = c_in.reshape(-1, 4, 2)
     inv_modules = 1.0 / np.asarray(modules, dtype=np.float64).reshape(-1, 1)
-    width_per_side = 0.4 * inv_modules      # half-width 0.8 module = 0.4 x (sum of two neighbouring sides) / modules
-    lens = None
-    if K is not None and dist is not None and np.any(np.asarray(dist) != 0.0):
-        K = np.array(K, dtype=np.float64)
-        K[0, 2] -= origin.real  # the region's own principal point
-        K[1, 2] -= origin.imag
-        lens = (K, np.asarray(dist, dtype=np.float64).reshape(-1))
-        z0 = _undistort_c(z_in, *lens)                                  # corners in the pinhole image
-    else:
-        z0 = np.ascontiguousarray(z_in)
     if focus not in ("tent", "peak"):
         raise ValueError(f"focus must be 'tent' or 'peak', got {focus!r}")
     peak = focus == "peak"
     if focus_px is None:
         focus_px = _PEAK_WINDOW_PX if peak else _EDGE_FOCUS_PX
     t, unit, unit_mid = _edge_sampling(samples_along, samples_across, tuple(span))
+    fit_focus = (peak, float(focus_px), float(min_contrast))
+    if K is None or dist is None or not np.any(np.asarray(dist) != 0.0):
+        c = _pinhole_refined(img, quads, crop, inv_modules, t, unit, unit_mid, fit_focus, iterations, settled_px)
+        return c[0] if single else c
+    region, origin, good, z_in = _region(img, quads, crop)
+    region = np.ascontiguousarray(region)   # one layout for the kernels, whichever box it is
+    K = np.array(K, dtype=np.float64)
+    K[0, 2] -= origin.real  # the region's own principal point
+    K[1, 2] -= origin.imag
+    lens = (K, np.asarray(dist, dtype=np.float64).reshape(-1))
+    z0 = _undistort_c(z_in, *lens)                                      # corners in the pinhole image
     fitted = np.ones(z0.shape, dtype=bool)   # per side and corner: the fit held (a failed marker's
     # corners restart from the initial ones, so the next iteration samples finite positions)
-    fit_focus = (peak, float(focus_px), float(min_contrast))
-    if lens is None:   # one compiled call: the calls, not the arithmetic, are the cost at a few markers
-        z = _fitted_loop(img, z0, width_per_side, t, unit, unit_mid, fit_focus, iterations, settled_px, fitted)
-    else:   # the same steps, each sample looked up at its distorted position
-        z = z0
-        for _ in range(iterations):
-            p, v, n, length, w = _side_samples(z, width_per_side, t, unit)
-            z = _fitted_corners(_profiles(img, _distort_c(p, *lens)), z, z0, v, n, length, w, t, unit_mid,
-                                fit_focus, fitted)
-    if lens is not None:
-        z = _distort_c(z, *lens)
+    z = z0
+    for _ in range(iterations):   # _fitted_loop's steps, each sample looked up at its distorted position
+        p, v, n, length, w = _side_samples(z, 0.4 * inv_modules, t, unit)
+        z = _fitted_corners(_profiles(region, _distort_c(p, *lens)), z, z0, v, n, length, w, t, unit_mid,
+                            fit_focus, fitted)
     # a corner moving more than two modules (at least 3 px) is a failed fit
-    c = _fit_result(z, z_in, inv_modules, fitted, good, complex(origin))
+    c = _fit_result(_distort_c(z, *lens), z_in, inv_modules, fitted, good, origin)
     return c[0] if single else c

@@ -19,7 +19,8 @@ TEMPLATE_KERNELS = (template_fit._fitted_offsets, template_fit._region_start, te
 
 
 EDGE_KERNELS = (edge_fit._finite_box, edge_fit._side_samples, edge_fit._fitted_corners, edge_fit._fit_result,
-                edge_fit._fitted_loop, edge_fit._profiles, detector_module._quad_kernel)
+                edge_fit._fitted_loop, edge_fit._profiles, edge_fit._region, edge_fit._pinhole_refined,
+                detector_module._quad_kernel)
 
 
 def _kernel_signatures() -> int:
