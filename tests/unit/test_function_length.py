@@ -11,8 +11,6 @@ MAX_LINES = 80
 
 # "path:qualified name" -> why it is still longer than MAX_LINES
 ALLOWED = {
-    "host/cubetrack/detect/edge_fit.py:refine_corners_edges":
-        "one vectorised pass over every side of every quad; its steps share a dozen (M, 4, k) arrays",
 }
 
 

@@ -201,6 +201,13 @@ class DetectorParams:
         "filter its own prediction back (from 3 px off: 0.94 px p95 left after 2 fits, 0.09 after 4; "
         "docs/detection.md \"Predicted markers\")",
     )
+    predicted_edge_settled_px: float = param(
+        0.01, "edge and template: a marker fitted from its prediction gets no more fits after one that moved none "
+        "of its corners by this much along either axis, pixels (0: always predicted_edge_iterations fits). A fit "
+        "leaves about 0.4x its move still to go, so a marker stops ~0.004 px from where more fits take it, what 4 "
+        "fits leave from 1 px off; on the 16 x 30 recording 3.3 fits a marker instead of 4, corners within 0.0017 "
+        "px of 4 fits' (p95; docs/detection.md \"Predicted markers\")",
+    )
     template_iterations: int = param(
         2, "template only: Gauss-Newton iterations of each marker's fit, from the edge fit's corners",
     )
@@ -224,6 +231,8 @@ class DetectorParams:
               "min_area_px2 and min_distance_to_border_px must not be negative")
         check(self.detect_normal_marker or self.detect_inverted_marker,
               "detect_normal_marker = false needs detect_inverted_marker = true (no marker would be searched for)")
+        check(self.predicted_edge_settled_px >= 0.0,
+              f"predicted_edge_settled_px must not be negative, got {self.predicted_edge_settled_px}")
         check(min(self.edge_iterations, self.predicted_edge_iterations, self.template_iterations) >= 1,
               f"edge_iterations, predicted_edge_iterations and template_iterations must be at least 1, got "
               f"{self.edge_iterations}, {self.predicted_edge_iterations} and {self.template_iterations}")
@@ -457,7 +466,8 @@ class Detector:
         reads at its prediction (nothing confirms it: the regions are searched)."""
         quads = np.array([d.corners_px for d in predicted], dtype=np.float64)
         modules = np.array([modules_of(d.dictionary) for d in predicted])
-        fitted = refine_corners_edges(gray, quads, modules, self.params.predicted_edge_iterations)  # NaN: failed
+        fitted = refine_corners_edges(gray, quads, modules, self.params.predicted_edge_iterations,  # NaN: failed
+                                      settled_px=self.params.predicted_edge_settled_px)
         valid, areas = _quad_checks(fitted, self.params.min_area_px2)
         read = (valid & readable_markers(gray, np.where(valid[:, None, None], fitted, np.nan), predicted,
                                          self.params.error_correction_rate)).tolist()

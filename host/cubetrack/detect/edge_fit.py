@@ -10,16 +10,20 @@ from __future__ import annotations
 
 import functools
 import math
+from collections.abc import Callable
+from typing import cast
 
-import cv2
 import numba
 import numpy as np
+from llvmlite import ir
+from numba.core import types
+from numba.extending import intrinsic
 
 from cubetrack.core.geometry import undistort_points
 from cubetrack.detect.quads import corners_finite
 from cubetrack.detect.template_fit import distort_px
 
-_ROI_MARGIN_PX = 16  # refine_corners_edges: float copy of the quads' region plus this
+_ROI_MARGIN_PX = 16  # refine_corners_edges: the quads' region plus this is read
 
 
 _EDGE_SPAN = (0.1, 0.9)       # the detector's edge samples: the middle 80 % of each side
@@ -110,19 +114,17 @@ def _line_fit(weight: np.ndarray, off: np.ndarray, t: np.ndarray) -> tuple[float
 
 @numba.njit(cache=True, nogil=True)
 def _side_samples(z: np.ndarray, width_per_side: np.ndarray, t: np.ndarray, unit: np.ndarray
-                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Where the edge fit samples the quads ``z`` (M, 4; complex x + iy): ``(p, xy, v, n, length,
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Where the edge fit samples the quads ``z`` (M, 4; complex x + iy): ``(p, v, n, length,
     w)``, the positions (M, 4, k, m) at fractions ``t`` along each side and ``unit`` half-widths
-    across it, the same as ``cv2.remap``'s map (1, M x 4 x k x m, 2; float32 x, y), each side's
-    vector (corner i -> i + 1), outward unit normal (clockwise, y down) and length, and its
-    half-width ``w``: ``width_per_side`` (M, 1; or 1, 1 for all) x the two neighbouring sides, in
-    [1.5, 4] px."""
+    across it, each side's vector (corner i -> i + 1), outward unit normal (clockwise, y down) and
+    length, and its half-width ``w``: ``width_per_side`` (M, 1; or 1, 1 for all) x the two
+    neighbouring sides, in [1.5, 4] px."""
     n_markers, k, m = z.shape[0], t.shape[0], unit.shape[0]
     last = width_per_side.shape[0] - 1
     v, n = np.empty((n_markers, 4), np.complex128), np.empty((n_markers, 4), np.complex128)
     length, w = np.empty((n_markers, 4)), np.empty((n_markers, 4))
     p = np.empty((n_markers, 4, k, m), np.complex128)
-    xy = np.empty((1, n_markers * 4 * k * m, 2), np.float32)
     for q in range(n_markers):
         for side in range(4):
             v[q, side] = z[q, (side + 1) % 4] - z[q, side]
@@ -136,9 +138,52 @@ def _side_samples(z: np.ndarray, width_per_side: np.ndarray, t: np.ndarray, unit
                 at = z[q, side] + t[i] * v[q, side]
                 for j in range(m):
                     p[q, side, i, j] = at + unit[j] * across
-                    at_map = ((q * 4 + side) * k + i) * m + j
-                    xy[0, at_map, 0], xy[0, at_map, 1] = p[q, side, i, j].real, p[q, side, i, j].imag
-    return p, xy, v, n, length, w
+    return p, v, n, length, w
+
+
+def _fma32_typed(typingctx: object, a: object, b: object, c: object) -> tuple[object, Callable[..., object]]:
+    """numba's typing and code of :data:`_fma32`."""
+    def codegen(context: object, builder: ir.IRBuilder, sig: object, args: list[ir.Value]) -> ir.Value:
+        f32 = ir.FloatType()
+        return builder.call(builder.module.declare_intrinsic("llvm.fma", [f32], ir.FunctionType(f32, [f32] * 3)),
+                            args)
+    return types.float32(types.float32, types.float32, types.float32), codegen
+
+
+# a * b + c of float32 values rounded once (LLVM's fused multiply-add), as OpenCV's vectorised remap computes it
+_fma32 = cast(Callable[[np.float32, np.float32, np.float32], np.float32], intrinsic(_fma32_typed))
+
+
+@numba.njit(cache=True, nogil=True)
+def _profiles(img: np.ndarray, p: np.ndarray) -> np.ndarray:
+    """``img`` (H, W; 8-bit or float32) sampled at the positions ``p`` (C-contiguous, any shape;
+    complex x + iy, pixels), float32 of ``p``'s shape: what ``cv2.remap`` of ``img`` as float32
+    at ``p`` as a float32 map (``INTER_LINEAR``, ``BORDER_REPLICATE``) gives in OpenCV 5, to the
+    bit — its arithmetic in its order: the float32 position's fractions, two fused multiply-adds
+    along x and one along y (tests/unit/detect/test_compiled_kernels.py compares the two) —
+    without a call per fit."""
+    height, width = img.shape
+    out = np.empty(p.shape, np.float32)
+    flat, values = p.reshape(-1), out.reshape(-1)
+    x_inside, y_inside = np.float32(width - 1), np.float32(height - 1)
+    for s in range(flat.shape[0]):
+        x, y = np.float32(flat[s].real), np.float32(flat[s].imag)
+        if x >= 0.0 and x < x_inside and y >= 0.0 and y < y_inside:
+            ix, iy = int(x), int(y)
+            x0, y0, x1, y1 = ix, iy, ix + 1, iy + 1
+        else:   # the border's pixels replicated (a position beyond -1 or NaN as at -1, beyond the end as at it)
+            x = x if x > -1.0 else np.float32(-1.0)
+            y = y if y > -1.0 else np.float32(-1.0)
+            x, y = min(x, np.float32(width)), min(y, np.float32(height))
+            ix, iy = int(math.floor(x)), int(math.floor(y))
+            x0, x1 = min(max(ix, 0), width - 1), min(max(ix + 1, 0), width - 1)
+            y0, y1 = min(max(iy, 0), height - 1), min(max(iy + 1, 0), height - 1)
+        ax, ay = x - np.float32(ix), y - np.float32(iy)
+        p00, p01 = np.float32(img[y0, x0]), np.float32(img[y0, x1])
+        p10, p11 = np.float32(img[y1, x0]), np.float32(img[y1, x1])
+        top, bottom = _fma32(ax, p01 - p00, p00), _fma32(ax, p11 - p10, p10)
+        values[s] = _fma32(ay, bottom - top, top)
+    return out
 
 
 @numba.njit(cache=True, nogil=True)
@@ -244,27 +289,91 @@ def _fitted_corners(prof: np.ndarray, z: np.ndarray, z0: np.ndarray, v: np.ndarr
     return out
 
 
+@numba.njit(cache=True, nogil=True)
+def _fitted_loop(img: np.ndarray, z0: np.ndarray, width_per_side: np.ndarray, t: np.ndarray, unit: np.ndarray,
+                 unit_mid: np.ndarray, focus: tuple[bool, float, float], iterations: int, settled_px: float,
+                 fitted: np.ndarray) -> np.ndarray:
+    """The edge fits of the quads ``z0`` (M, 4) in ``img`` without a lens model, marker by marker:
+    up to ``iterations`` fits, each sampling along the previous fit's sides (:func:`_side_samples`,
+    :func:`_profiles`, :func:`_fitted_corners`), ending after a fit that moved none of the marker's
+    corners by ``settled_px`` or more along either axis (0: never before ``iterations``)."""
+    out = np.empty_like(z0)
+    last = width_per_side.shape[0] - 1
+    for q in range(z0.shape[0]):
+        start, held, width = z0[q:q + 1], fitted[q:q + 1], width_per_side[min(q, last):min(q, last) + 1]
+        z = start
+        for _ in range(iterations):
+            p, v, n, length, w = _side_samples(z, width, t, unit)
+            fit = _fitted_corners(_profiles(img, p), z, start, v, n, length, w, t, unit_mid, focus, held)
+            moved = 0.0
+            for c in range(4):
+                moved = max(moved, abs(fit[0, c].real - z[0, c].real), abs(fit[0, c].imag - z[0, c].imag))
+            z = fit
+            if moved < settled_px:
+                break
+        out[q] = z[0]
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _region(img: np.ndarray, quads: np.ndarray, crop: bool) -> tuple[np.ndarray, complex, np.ndarray, np.ndarray]:
+    """What the fit of the (M, 4, 2) ``quads`` reads of ``img``: ``(region, origin, good, z)``,
+    with ``crop`` the box around the finite quads grown by ``_ROI_MARGIN_PX`` (a view; the margin
+    covers the sampling half-width and the moves) and its top-left corner (complex x + iy), else
+    the whole image and 0; which quads are finite, and their corners in the region (M, 4;
+    complex), a quad that is not finite at the image's origin."""
+    good, _all_good, x0, y0, x1, y1 = _finite_box(quads, _ROI_MARGIN_PX)
+    region, origin = img[:, :], 0j
+    if crop and good.any():
+        region, origin = img[y0:y1, x0:x1], complex(x0, y0)
+    z = np.empty((quads.shape[0], 4), np.complex128)
+    for q in range(quads.shape[0]):
+        for c in range(4):
+            z[q, c] = (complex(quads[q, c, 0], quads[q, c, 1]) if good[q] else 0j) - origin
+    return region, origin, good, z
+
+
+@numba.njit(cache=True, nogil=True)
+def _pinhole_refined(img: np.ndarray, quads: np.ndarray, crop: bool, inv_modules: np.ndarray, t: np.ndarray,
+                     unit: np.ndarray, unit_mid: np.ndarray, focus: tuple[bool, float, float], iterations: int,
+                     settled_px: float) -> np.ndarray:
+    """:func:`refine_corners_edges` without a lens model, in one call (at a few markers a frame the
+    calls, not the arithmetic, are the cost): :func:`_region`, :func:`_fitted_loop`,
+    :func:`_fit_result`."""
+    region, origin, good, z_in = _region(img, quads, crop)
+    fitted = np.ones(z_in.shape, np.bool_)   # per side and corner: the fit held
+    # half-width 0.8 module = 0.4 x (sum of two neighbouring sides) / modules
+    z = _fitted_loop(region, z_in, 0.4 * inv_modules, t, unit, unit_mid, focus, iterations, settled_px, fitted)
+    return _fit_result(z, z_in, inv_modules, fitted, good, origin)
+
+
 def compile_edge_fit() -> None:
-    """Compile the edge fit's kernel (or load it from numba's on-disk cache, ``__pycache__``) for
-    the argument types :func:`refine_corners_edges` passes, by fitting one synthetic marker both
-    ways (``tent`` and ``peak``), so that no frame pays it: called at start-up, before the first
-    frame (:class:`cubetrack.detect.detector.Detector` does)."""
+    """Compile the edge fit's kernels (or load them from numba's on-disk cache, ``__pycache__``)
+    for the argument types :func:`refine_corners_edges` passes, by fitting one synthetic marker
+    both ways (``tent`` and ``peak``) in an 8-bit and a float32 image, with and without a lens
+    model, so that no frame pays it: called at start-up, before the first frame
+    (:class:`cubetrack.detect.detector.Detector` does)."""
     gray = np.full((48, 48), 200, dtype=np.uint8)
     gray[12:36, 12:36] = 20
     corners = np.array([[12.0, 12.0], [36.0, 12.0], [36.0, 36.0], [12.0, 36.0]])
-    for focus in ("tent", "peak"):
-        refine_corners_edges(gray, corners, 6, focus=focus)
+    K = np.array([[50.0, 0.0, 24.0], [0.0, 50.0, 24.0], [0.0, 0.0, 1.0]])
+    for image in (gray, gray.astype(np.float32)):
+        for focus in ("tent", "peak"):
+            refine_corners_edges(image, corners, 6, focus=focus)
+        refine_corners_edges(image, corners, 6, K=K, dist=np.array([-0.01, 0.0, 0.0, 0.0, 0.0]))
+
 
 def refine_corners_edges(gray: np.ndarray, corners_px: np.ndarray, modules: int | np.ndarray,
                          iterations: int = 2, *, K: np.ndarray | None = None,
                          dist: np.ndarray | None = None, samples_along: int = 12,
                          samples_across: int = _EDGE_SAMPLES_ACROSS, span: tuple[float, float] = _EDGE_SPAN,
                          focus: str = "tent", focus_px: float | None = None,
-                         min_contrast: float = 8.0) -> np.ndarray:
+                         min_contrast: float = 8.0, settled_px: float = 0.0) -> np.ndarray:
     """Refine marker corners by fitting a line to each side's outer edge (the ``edge`` method).
 
-    ``gray``: the image (8-bit: only the quads' region is converted to float, since an 8-bit
-    ``cv2.remap`` rounds its samples, a ~0.03 px edge bias; or float32); ``corners_px``: (4, 2)
+    ``gray``: the image (8-bit: only the quads' region is read, its samples interpolated in
+    float32, as ``cv2.remap`` of a float32 image: rounded samples bias an edge by ~0.03 px; or
+    float32); ``corners_px``: (4, 2)
     or (M, 4, 2) initial corners (TL, TR, BR, BL, clockwise in the image); ``modules``: cells
     across each marker including its black border (6 for a 4x4 dictionary).
 
@@ -281,7 +390,9 @@ def refine_corners_edges(gray: np.ndarray, corners_px: np.ndarray, modules: int 
     than ``min_contrast`` grey levels from its inner to its outer end. Each side's edge points
     get a weighted least-squares line (offset across the side against position along it), once
     more without points beyond 2.5 sigma; neighbouring lines intersect in the corners. This
-    repeats ``iterations`` times, each sampling along the previous fit's sides.
+    repeats ``iterations`` times, each sampling along the previous fit's sides; with
+    ``settled_px`` above 0 (without a lens model) a marker's fits end sooner, after one that moved
+    none of its corners by ``settled_px`` or more along either axis.
 
     With the camera's lens model (``K`` and plumb_bob ``dist``) the sides are straight lines in
     the undistorted image, not in this one: the sampling runs along them there, each sample is
@@ -291,59 +402,42 @@ def refine_corners_edges(gray: np.ndarray, corners_px: np.ndarray, modules: int 
     Returns corners of the input's shape, in the input image; a marker whose fit fails (low
     contrast, fewer than 3 edge points on a side, a degenerate quad, a corner moving more than
     two modules) gets NaN corners, so the caller can keep its initial ones or drop the marker.
-    Vectorised over markers and sides (complex x + iy positions keep the numpy calls few: they,
-    not the arithmetic, are the cost at a few markers per frame).
+    Compiled over markers and sides (complex x + iy positions); without a lens model all the
+    iterations are one compiled call (the calls, not the arithmetic, are the cost at a few markers
+    per frame), its corners those of the earlier ``cv2.remap`` sampling to the bit.
     """
     img = np.asarray(gray)
+    crop = img.dtype != np.float32   # only the quads' region of an 8-bit image is read
+    # samples as float32 (of an 8-bit image, exact: rounded ones bias an edge by ~0.03 px)
+    img = np.ascontiguousarray(img if img.dtype in (np.uint8, np.float32) else img.astype(np.float32))
     c_in = np.ascontiguousarray(corners_px, dtype=np.float64)
     single = c_in.ndim == 2
-    good, all_good, x0, y0, x1, y1 = _finite_box(c_in.reshape(-1, 4, 2), _ROI_MARGIN_PX)
-    z_in = c_in.view(np.complex128).reshape(-1, 4)                     # (M, 4) x + iy (a view)
-    if not all_good:
-        z_in = np.where(good[:, None], z_in, 0.0)
-    origin: complex = 0.0
-    if img.dtype != np.float32:
-        # only the region around the quads, as float (cv2.remap of an 8-bit image rounds its
-        # samples: a ~0.03 px edge bias); the margin covers the sampling half-width and the moves
-        if all_good or good.any():
-            img, origin = img[y0:y1, x0:x1], complex(x0, y0)
-            z_in = z_in - origin
-        img = img.astype(np.float32)
+    quads = c_in.reshape(-1, 4, 2)
     inv_modules = 1.0 / np.asarray(modules, dtype=np.float64).reshape(-1, 1)
-    width_per_side = 0.4 * inv_modules      # half-width 0.8 module = 0.4 x (sum of two neighbouring sides) / modules
-    lens = None
-    if K is not None and dist is not None and np.any(np.asarray(dist) != 0.0):
-        K = np.array(K, dtype=np.float64)
-        K[0, 2] -= origin.real  # the region's own principal point
-        K[1, 2] -= origin.imag
-        lens = (K, np.asarray(dist, dtype=np.float64).reshape(-1))
-        z0 = _undistort_c(z_in, *lens)                                  # corners in the pinhole image
-    else:
-        z0 = z_in
     if focus not in ("tent", "peak"):
         raise ValueError(f"focus must be 'tent' or 'peak', got {focus!r}")
     peak = focus == "peak"
     if focus_px is None:
         focus_px = _PEAK_WINDOW_PX if peak else _EDGE_FOCUS_PX
     t, unit, unit_mid = _edge_sampling(samples_along, samples_across, tuple(span))
-    z = z0
-    fitted = np.ones(z.shape, dtype=bool)   # per side and corner: the fit held (a failed marker's
+    fit_focus = (peak, float(focus_px), float(min_contrast))
+    if K is None or dist is None or not np.any(np.asarray(dist) != 0.0):
+        c = _pinhole_refined(img, quads, crop, inv_modules, t, unit, unit_mid, fit_focus, iterations, settled_px)
+        return c[0] if single else c
+    region, origin, good, z_in = _region(img, quads, crop)
+    region = np.ascontiguousarray(region)   # one layout for the kernels, whichever box it is
+    K = np.array(K, dtype=np.float64)
+    K[0, 2] -= origin.real  # the region's own principal point
+    K[1, 2] -= origin.imag
+    lens = (K, np.asarray(dist, dtype=np.float64).reshape(-1))
+    z0 = _undistort_c(z_in, *lens)                                      # corners in the pinhole image
+    fitted = np.ones(z0.shape, dtype=bool)   # per side and corner: the fit held (a failed marker's
     # corners restart from the initial ones, so the next iteration samples finite positions)
-    # few calls per iteration, each over every marker, side and sample at once: they, not the
-    # arithmetic, are the cost; the sampling, the edge points and lines are compiled calls
-    for _ in range(iterations):
-        p, xy, v, n, length, w = _side_samples(z, width_per_side, t, unit)   # p: (M, 4, k, m); xy: remap's map
-        if lens is not None:
-            p = _distort_c(p, *lens)
-            xy = p.view(np.float64).reshape(1, -1, 2).astype(np.float32)  # interleaved x, y: one map
-        # map1 holds both coordinates, so map2 is None (OpenCV's stubs do not allow None there)
-        prof = cv2.remap(img, xy, None, cv2.INTER_LINEAR,  # type: ignore[call-overload]
-                         borderMode=cv2.BORDER_REPLICATE).reshape(p.shape)
-        # edge points, each side's robust line, and the corners where they meet
-        z = _fitted_corners(prof, z, z0, v, n, length, w, t, unit_mid, (peak, float(focus_px), float(min_contrast)),
-                            fitted)
-    if lens is not None:
-        z = _distort_c(z, *lens)
+    z = z0
+    for _ in range(iterations):   # _fitted_loop's steps, each sample looked up at its distorted position
+        p, v, n, length, w = _side_samples(z, 0.4 * inv_modules, t, unit)
+        z = _fitted_corners(_profiles(region, _distort_c(p, *lens)), z, z0, v, n, length, w, t, unit_mid,
+                            fit_focus, fitted)
     # a corner moving more than two modules (at least 3 px) is a failed fit
-    c = _fit_result(z, z_in, inv_modules, fitted, good, complex(origin))
+    c = _fit_result(_distort_c(z, *lens), z_in, inv_modules, fitted, good, origin)
     return c[0] if single else c

@@ -19,6 +19,7 @@ TEMPLATE_KERNELS = (template_fit._fitted_offsets, template_fit._region_start, te
 
 
 EDGE_KERNELS = (edge_fit._finite_box, edge_fit._side_samples, edge_fit._fitted_corners, edge_fit._fit_result,
+                edge_fit._fitted_loop, edge_fit._profiles, edge_fit._region, edge_fit._pinhole_refined,
                 detector_module._quad_kernel)
 
 
@@ -79,6 +80,44 @@ def test_the_fit_follows_a_known_edge_to_a_fraction_of_a_pixel():
     truth = np.array([[40.0, 30.0], [100.0, 30.0], [100.0, 90.0], [40.0, 90.0]]) - 0.5   # pixel edges
     start = truth + np.array([[1.0, -0.8], [-0.7, 0.9], [0.8, 1.0], [-1.0, -0.6]])
     assert np.abs(edge_fit.refine_corners_edges(gray, start, 6) - truth).max() < 1e-3
+
+
+def test_the_fit_samples_the_image_as_cv2_remap_does():
+    """The compiled sampler gives ``cv2.remap``'s bilinear samples (float32 map, replicated border)
+    to the bit, inside the image and beyond its border, of an 8-bit and a float32 image: the
+    corners do not depend on which of the two samples them."""
+    rng = np.random.default_rng(11)
+    gray = rng.integers(0, 256, (37, 53), dtype=np.uint8)
+    for image in (gray, (gray * 0.731).astype(np.float32)):
+        for lo, hi in (((0.0, 0.0), (52.0, 36.0)), ((-6.0, -6.0), (60.0, 44.0))):
+            xy = rng.uniform(lo, hi, (3, 7, 2 * 17 + 1, 2))
+            xy[0, 0, :4] = [[0.0, 0.0], [52.0, 36.0], [51.999, 35.5], [-1.0, 36.0]]   # on the edges
+            p = xy[..., 0] + 1j * xy[..., 1]
+            want = cv2.remap(image.astype(np.float32), xy.reshape(1, -1, 2).astype(np.float32), None,
+                             cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).reshape(p.shape)
+            np.testing.assert_array_equal(edge_fit._profiles(image, p), want)
+
+
+def test_a_marker_stops_after_the_first_fit_that_moves_it_less_than_settled_px():
+    """With ``settled_px`` each marker's fits end after the first one that moved none of its
+    corners by that much along either axis (the corners then are those of that many fits, to the
+    bit); 0 fits ``iterations`` times."""
+    gray = _two_marker_frame()
+    quads = np.array([d.corners_px for d in Detector(DetectorParams(corner_refinement=CornerRefinement.EDGE))
+                      .detect(gray)])
+    start = quads + np.array([[[0.05, -0.04]], [[1.5, -1.2]]])      # one a twentieth of a pixel off, one 1.5 px
+    fits = [start] + [edge_fit.refine_corners_edges(gray, start, 6, k) for k in range(1, 7)]
+    settled_px = 0.01
+    stops = []
+    for q in range(2):
+        moves = [np.abs(fits[k][q] - fits[k - 1][q]).max() for k in range(1, 7)]
+        stops.append(next((k for k, move in enumerate(moves, 1) if move < settled_px), 6))
+    assert stops[0] < stops[1] < 6, stops                     # the near one stops sooner; both before 6 fits
+    settled = edge_fit.refine_corners_edges(gray, start, 6, 6, settled_px=settled_px)
+    for q in range(2):
+        np.testing.assert_array_equal(settled[q], fits[stops[q]][q])
+    np.testing.assert_array_equal(edge_fit.refine_corners_edges(gray, start, 6, 6, settled_px=0.0), fits[6])
+    np.testing.assert_array_equal(edge_fit.refine_corners_edges(gray, start, 6, 6, settled_px=100.0), fits[1])
 
 
 def test_a_template_detector_compiles_the_template_fit_before_its_first_frame():
