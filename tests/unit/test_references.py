@@ -38,7 +38,7 @@ NOT_NAMES = {
 def texts() -> list[Path]:
     """The files whose references are checked."""
     sources = sorted((ROOT / "host").rglob("*.py")) + sorted((ROOT / "tools").rglob("*.py"))
-    return [*sources, ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+    return [*sources, ROOT / "README.md", *sorted((ROOT / "docs").rglob("*.md"))]
 
 
 def references(text: str) -> set[str]:
