@@ -86,6 +86,9 @@ def test_the_fit_samples_the_image_as_cv2_remap_does():
     """The compiled sampler gives ``cv2.remap``'s bilinear samples (float32 map, replicated border)
     to the bit, inside the image and beyond its border, of an 8-bit and a float32 image: the
     corners do not depend on which of the two samples them."""
+    # Equal to the bit where OpenCV runs its remap in code dispatched to AVX2 (fused multiply-adds; the machines
+    # this was measured on). On a CPU without AVX2 OpenCV takes another path: held to float32 rounding there.
+    exact = "*AVX2" in cv2.getCPUFeaturesLine()
     rng = np.random.default_rng(11)
     gray = rng.integers(0, 256, (37, 53), dtype=np.uint8)
     for image in (gray, (gray * 0.731).astype(np.float32)):
@@ -95,7 +98,10 @@ def test_the_fit_samples_the_image_as_cv2_remap_does():
             p = xy[..., 0] + 1j * xy[..., 1]
             want = cv2.remap(image.astype(np.float32), xy.reshape(1, -1, 2).astype(np.float32), None,
                              cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE).reshape(p.shape)
-            np.testing.assert_array_equal(edge_fit._profiles(image, p), want)
+            if exact:
+                np.testing.assert_array_equal(edge_fit._profiles(image, p), want)
+            else:
+                np.testing.assert_allclose(edge_fit._profiles(image, p), want, rtol=0, atol=1e-4)
 
 
 def test_a_marker_stops_after_the_first_fit_that_moves_it_less_than_settled_px():
