@@ -346,6 +346,7 @@ def test_close_ends_the_connections_it_is_serving_before_it_returns(server, rend
     in OpenCV drawing a tile, and a thread ended there by the interpreter's exit aborts the process
     (`cubetrack demo --dashboard` stopped by Ctrl-C with the page open exited -6 before). One client
     sends half a request and waits (its thread blocked for client_timeout_s), one streams events."""
+    others = set(threading.enumerate())  # connection threads of earlier tests' servers, still ending, are not ours
     feed_scene(server, rendered, time.time())
     half = socket.create_connection(("127.0.0.1", server.port))
     half.sendall(b"GET /api/state HTTP/1.1\r\n")  # and never the rest
@@ -353,7 +354,7 @@ def test_close_ends_the_connections_it_is_serving_before_it_returns(server, rend
     assert events.status_code == 200
 
     def serving() -> list[threading.Thread]:
-        return [t for t in threading.enumerate() if "process_request_thread" in t.name]
+        return [t for t in threading.enumerate() if "process_request_thread" in t.name and t not in others]
 
     deadline = time.monotonic() + 5.0
     while len(serving()) < 2:  # both taken by the server
