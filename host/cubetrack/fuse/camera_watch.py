@@ -271,7 +271,7 @@ class WatchSample:
 VELOCITY_SIGMA = (1.0, 4.0)  # the reference fits' prior spread of the cube's velocities: m/s, rad/s
 # the watcher's fits' Gauss-Newton steps at most (they stop on convergence): on a bumped 4-camera scene within
 # 0.012 mm / 0.01 deg of the trust-region solver's solutions, 5.2x (reference fits) and 1.8x (camera refits)
-# cheaper (docs/calibration.md, "The reference fit by Gauss-Newton")
+# cheaper (docs/history/camera-watch.md, "The reference fit by Gauss-Newton")
 FIT_ITERATIONS = 30
 # the watcher matches a sighting's faces where the fused prediction projects them, within this (ids distinct): a
 # bumped camera's corners land several pixels off (1 deg ~ 10 px here), the prediction's own error is a few px
