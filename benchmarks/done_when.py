@@ -18,7 +18,7 @@ indices, ROLE ``preset`` / ``development`` / ``held-out``, reported apart):
   the truth moved into the body frame the cube's markers define (:func:`markers_frame_truth`: the
   nominal layout's best fit to the cube as built, the frame ``calibrate-body`` gives). The truth's
   own body frame sits off it by the mean of the markers' build errors, which no image shows; the
-  floor, fitted with the body as built, is the same in either frame (docs/tracking.md, "Axes,
+  floor, fitted with the body as built, is the same in either frame (docs/history/accuracy.md, "Axes,
   cameras, time, and the truth's body frame").
 
 Verdicts, per figure: **target** (realistic preset: position <= 0.6 cm, rotation <= 1.0°;

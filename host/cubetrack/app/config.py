@@ -38,7 +38,7 @@ from cubetrack.source.streams import SourceParams
 log = logging.getLogger(__name__)
 
 # [filter] corner_noise_px below this trusts the corners more than the edge fit measures them
-# (0.08-0.35 px by view angle; its best setting is 0.2): docs/tracking.md "What better corners would buy"
+# (0.08-0.35 px by view angle; its best setting is 0.2): docs/history/accuracy.md "What better corners would buy"
 TRUSTING_CORNER_NOISE_PX = 0.2
 
 

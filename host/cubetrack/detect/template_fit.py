@@ -5,7 +5,7 @@ black border from the brightness profile across it. A profile also holds the cel
 border and, on an obliquely seen marker, they are within a pixel or two of the edge: under the
 lens's blur a white cell beside the one-module border pulls the edge, by an amount that depends
 on the marker's pattern and on how foreshortened it is (4-7x the template fit's corner error on
-the realistic simulation, docs/tracking.md "What better corners would buy").
+the realistic simulation, docs/history/accuracy.md "What better corners would buy").
 
 A template fit instead predicts the whole marker image — its cells (from the dictionary), its
 black border and a white margin, through the homography its corners give and the camera's lens

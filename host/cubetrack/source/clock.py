@@ -137,7 +137,7 @@ class ClockSync:
 
     def _trusted(self) -> bool:
         """Whether the round trips are trusted over arrival times: ``min_samples`` of them, and one
-        at most ``trusted_width_s`` wide or ``start_round_trips`` in all (docs/tracking.md, "The
+        at most ``trusted_width_s`` wide or ``start_round_trips`` in all (docs/history/accuracy.md, "The
         camera clocks' first seconds": a lone 35 ms trip stamped a camera's first second 15.7 ms late)."""
         p, trips = self.params, self._trips
         if len(trips) < p.min_samples:
