@@ -286,6 +286,7 @@ WINDOW_PRIOR_DEG = 3.0  # ... and of its orientation, degrees
 # pose wanders millimetres along them from one span to the next while its corners move by a tenth of a pixel
 FOLLOW_PRIOR_M = 0.002
 FOLLOW_PRIOR_DEG = 0.05
+FOLLOW_POSITION_ONLY = True
 
 
 def stacked(samples: Sequence[WatchSample]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -360,40 +361,47 @@ def resection_jacobian_px(T_world_cam: np.ndarray, points_world_m: np.ndarray, f
 
 def refit_camera(points_world_m: np.ndarray, normalized: np.ndarray, focal_px: np.ndarray,
                  T_world_cam_init: np.ndarray, corner_noise_px: float = 0.5,
-                 f_scale_px: float = 2.0, prior_sigma: tuple[float, float] | None = None) -> CameraFit | None:
+                 f_scale_px: float = 2.0, prior_sigma: tuple[float, float] | None = None,
+                 position_only: bool = False) -> CameraFit | None:
     """The camera pose that best explains ``normalized`` (N, 2) as images of ``points_world_m``
     (N, 3), started from ``T_world_cam_init``; None with fewer than six points or when the fit
     fails. ``corner_noise_px`` scales the covariance; ``f_scale_px`` is the robust loss's knee;
     ``prior_sigma`` (m, rad): a Gaussian prior keeping the pose near ``T_world_cam_init`` (a
     window of points bunched in one spot leaves a translation and a rotation that mimic each
-    other free)."""
+    other free); ``position_only``: the orientation kept as ``T_world_cam_init``'s, the position
+    alone fitted (``sigma_deg`` 0)."""
     X = np.asarray(points_world_m, float).reshape(-1, 3)
     uv = np.asarray(normalized, float).reshape(-1, 2)
     f = np.broadcast_to(np.asarray(focal_px, float), (len(X),))
     if len(X) < 6:
         return None
     T0 = np.asarray(T_world_cam_init, float)
+    n = 3 if position_only else 6
+    prior = np.zeros(0) if prior_sigma is None else np.repeat(1.0 / np.asarray(prior_sigma, float), 3)[:n]
 
-    prior = np.zeros(0) if prior_sigma is None else np.repeat(1.0 / np.asarray(prior_sigma, float), 3)
+    def pose(x: np.ndarray) -> np.ndarray:
+        return perturbed(T0, np.concatenate([x, np.zeros(6 - n)]))
 
     def fun(x: np.ndarray) -> np.ndarray:
-        return np.concatenate([residuals_px(perturbed(T0, x), X, uv, f).ravel() / corner_noise_px, x * prior
+        return np.concatenate([residuals_px(pose(x), X, uv, f).ravel() / corner_noise_px, x * prior
                                if len(prior) else prior])
 
     def jac(x: np.ndarray) -> np.ndarray:
-        J = resection_jacobian_px(perturbed(T0, x), X, f)
-        J[:, 3:6] = J[:, 3:6] @ so3_left_jacobian(x[3:6])  # x holds a finite rotation increment
-        return np.vstack([J / corner_noise_px, np.diag(prior)]) if len(prior) else J / corner_noise_px
+        J = resection_jacobian_px(pose(x), X, f)
+        if n == 6:
+            J[:, 3:6] = J[:, 3:6] @ so3_left_jacobian(x[3:6])  # x holds a finite rotation increment
+        J = J[:, :n] / corner_noise_px
+        return np.vstack([J, np.diag(prior)]) if len(prior) else J
 
-    solved = robust_gauss_newton(fun, jac, 6, f_scale_px / corner_noise_px, FIT_ITERATIONS) or robust_least_squares(
-        fun, jac, np.array([0.01, 0.01, 0.01, 0.002, 0.002, 0.002]), f_scale_px / corner_noise_px, 60)
+    solved = robust_gauss_newton(fun, jac, n, f_scale_px / corner_noise_px, FIT_ITERATIONS) or robust_least_squares(
+        fun, jac, np.array([0.01, 0.01, 0.01, 0.002, 0.002, 0.002])[:n], f_scale_px / corner_noise_px, 60)
     if solved is None:
         return None
     x, covariance, _ = solved
-    T = perturbed(T0, x)
+    T = pose(x)
     r = residuals_px(T, X, uv, f)
     sigma_m = math.sqrt(max(float(np.linalg.eigvalsh(covariance[:3, :3]).max()), 0.0))
-    sigma_rad = math.sqrt(max(float(np.linalg.eigvalsh(covariance[3:, 3:]).max()), 0.0))
+    sigma_rad = math.sqrt(max(float(np.linalg.eigvalsh(covariance[3:, 3:]).max()), 0.0)) if n == 6 else 0.0
     return CameraFit(T, sigma_m, math.degrees(sigma_rad), float(np.sqrt(np.mean(r**2))), len(X))
 
 
@@ -685,8 +693,8 @@ class CameraWatch:
         if len(spans) < p.reference_cameras + 1:
             return
         prior = (FOLLOW_PRIOR_M, math.radians(FOLLOW_PRIOR_DEG))
-        near = {c: refit_camera(*stacked(span), self.anchor[c], p.corner_noise_px, prior_sigma=prior)
-                for c, span in spans.items()}
+        near = {c: refit_camera(*stacked(span), self.anchor[c], p.corner_noise_px, prior_sigma=prior,
+                                position_only=FOLLOW_POSITION_ONLY) for c, span in spans.items()}
         best: tuple[float, str, CameraFit, dict[str, CameraFit], dict[str, list[WatchSample]]] | None = None
         for camera, fit in near.items():
             if fit is None or np.linalg.norm(fit.T_world_cam[:3, 3] - self.anchor[camera][:3, 3]) <= p.follow_m:

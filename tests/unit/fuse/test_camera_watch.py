@@ -182,6 +182,26 @@ def test_noisy_imperfectly_calibrated_cameras_are_never_declared_moved():
     assert watch.stats["checked"] > 700 and watch.stats["checked while suspect"] < 0.01 * watch.stats["checked"]
 
 
+@pytest.mark.parametrize("iterations", [camera_watch.FIT_ITERATIONS, 1])
+def test_a_position_only_refit_keeps_the_orientation_and_finds_the_shift(monkeypatch, iterations):
+    """A drift's follow fits its step as a position alone (``refit_camera(position_only=True)``): a
+    camera shifted 3 mm sideways, started from where it was, is found within 0.3 mm of where it went
+    with the orientation kept to the bit, by Gauss-Newton and, where that gives up (one step
+    allowed), by the trust-region solver."""
+    rng = np.random.default_rng(8)
+    T_cam = CAMERAS["cam1"]
+    X = np.column_stack([rng.uniform(-0.6, 0.6, 200), rng.uniform(-0.6, 0.6, 200), rng.uniform(0.2, 0.4, 200)])
+    moved = T_cam.copy()
+    moved[:3, 3] += 0.003 * T_cam[:3, 0]  # along the camera's x axis: a turn about its y axis looks alike
+    in_cam = (X - moved[:3, 3]) @ moved[:3, :3]
+    uv = in_cam[:, :2] / in_cam[:, 2:] + rng.normal(0, 0.3 / INTR.K[0, 0], (200, 2))
+    monkeypatch.setattr(camera_watch, "FIT_ITERATIONS", iterations)
+    fit = camera_watch.refit_camera(X, uv, INTR.K[0, 0], T_cam, position_only=True)
+    assert fit is not None and fit.sigma_deg == 0.0 and 0.0 < fit.sigma_m < 0.002
+    np.testing.assert_array_equal(fit.T_world_cam[:3, :3], T_cam[:3, :3])
+    assert np.linalg.norm(fit.T_world_cam[:3, 3] - moved[:3, 3]) < 0.0003, fit.T_world_cam[:3, 3] - moved[:3, 3]
+
+
 @pytest.mark.slow
 def test_a_drifting_camera_is_followed_without_an_event_and_no_still_camera_is():
     """With ``follow_m`` set (off by default). A clamp slipping: cam3 drifts 6 mm/min along a random
