@@ -51,16 +51,20 @@ residual of its sets there), else none is declared yet. Then every camera's wind
 reference) and its samples are gathered for its re-calibration until :meth:`CameraWatch.rejoin`.
 
 A slow drift (a clamp slipping millimetres a minute) never makes a window say moved; it is followed
-instead, without an event (:meth:`CameraWatch._follow`, every ``baseline_every_s``). Each camera's
+instead, each step a ``followed`` event, no alarm (:meth:`CameraWatch._follow`, every ``baseline_every_s``).
+Each camera's
 settled pose over its first whole ``baseline_s`` is its **anchor**. A camera's own settled pose is
 fitted against the OTHER cameras' references, so when one camera drifts its settled pose moves with
 it; but every other camera's moves too, as the drifting camera sits in their references (the
 gauge), about as much. So a camera whose settled pose has moved more than ``follow_m`` from its
 anchor is followed only when that move, put into the others' references (:func:`with_camera_at`),
 takes their settled poses back to their anchors: the shift its move makes in its own corners must
-be ``follow_ratio`` times the largest shift left in any other's. Its pose in use then moves by its
-settled pose's move (the fusion takes its sightings there), its anchor becomes its settled pose,
-and the others keep their samples with their references fitted again.
+be ``follow_ratio`` times the largest shift left in any other's. The move is fitted as a shift of
+the camera's position alone, its orientation kept: a robot's sightings, bunched at one distance from
+the camera, hardly tell a sideways shift from a turn, and the spans' wander took one for the other
+(docs/calibration.md). Its pose in use then moves by that shift (the fusion takes its sightings
+there), its anchor becomes its settled pose, and the others keep their samples with their references
+fitted again.
 
 Pure: sightings in, events out; no clock, no thread (the re-calibration fit is the caller's to
 run in the background).
@@ -189,14 +193,16 @@ class CameraState(enum.Enum):
 class EventKind(enum.Enum):
     MOVED = "moved"
     REJOINED = "rejoined"
+    FOLLOWED = "followed"  # a drift's step: the pose in use moved, no alarm
 
 
 @dataclass(frozen=True, slots=True, eq=False)
 class WatchEvent:
     """Something the watcher decided: ``camera`` ``kind`` at host time ``time_s``; ``offset_m``
     and ``offset_deg`` how far its pose moved (moved: the window's refit against the pose it
-    had; rejoined: the new pose against the one before the move); ``T_world_cam`` the refitted
-    or new pose; ``sightings`` how many sightings the new pose comes from (rejoined)."""
+    had; rejoined: the new pose against the one before the move; followed: the drift's step of
+    the pose in use); ``T_world_cam`` the refitted or new pose; ``sightings`` how many sightings
+    the new pose comes from (rejoined)."""
 
     kind: EventKind
     camera: str
@@ -211,13 +217,15 @@ class WatchEvent:
         """One line for the status line and logs."""
         if self.kind is EventKind.MOVED:
             return f"{self.camera} moved {100 * self.offset_m:.1f} cm / {self.offset_deg:.1f} deg; set aside"
+        if self.kind is EventKind.FOLLOWED:
+            return f"{self.camera} drifting: followed {1000 * self.offset_m:.1f} mm"
         return (f"{self.camera} re-calibrated from {self.sightings} sightings ({100 * self.offset_m:.1f} cm / "
                 f"{self.offset_deg:.1f} deg from its old pose); rejoined")
 
 
 @dataclass(frozen=True, slots=True, eq=False)
 class DriftStep:
-    """A drift followed (no event: no alarm per millimetre): at host time ``time_s`` the pose in
+    """A drift followed (its event: ``followed``, no alarm): at host time ``time_s`` the pose in
     use of ``camera`` moved by ``offset_m`` / ``offset_deg`` to ``T_world_cam``, its settled pose's
     move since its anchor; ``shift_px`` that move's shift of its corners (RMS), ``others_px`` /
     ``others_after_px`` the largest shift of another camera's settled pose from its anchor before
@@ -601,7 +609,7 @@ class CameraWatch:
     def add(self, sighting: CubeSighting, T_world_cube: np.ndarray | None = None) -> list[WatchEvent]:
         """Take one sighting (any camera, any robot, in about capture order) and the fused
         prediction of its cube's pose at its capture time (None: no track), which its faces are
-        matched by; returns the events it led to (a camera declared moved)."""
+        matched by; returns the events it led to (a camera declared moved, a drift followed)."""
         if sighting.robot not in self.layouts or sighting.camera not in self.state:
             return []
         t, p = sighting.capture_time_s, self.params
@@ -668,12 +676,11 @@ class CameraWatch:
                 verdicts[camera] = verdict
         worst = self._culprit(verdicts, now_s)
         if worst is None:
-            if baseline and not any(v.moved for v in verdicts.values()):
-                self._follow(now_s)
-            return []
+            followed = self._follow(now_s) if baseline and not any(v.moved for v in verdicts.values()) else None
+            return [] if followed is None else [followed]
         return [self._declare(*worst, now_s)]
 
-    def _follow(self, now_s: float) -> None:
+    def _follow(self, now_s: float) -> WatchEvent | None:
         """Follow a drift (see the module doc). With every camera watched, each one's settled pose
         over a whole ``baseline_s`` is fitted again near its anchor (a prior of ``FOLLOW_PRIOR_M`` /
         ``FOLLOW_PRIOR_DEG``); each camera that has moved more than ``follow_m`` is tried: moved so
@@ -681,17 +688,17 @@ class CameraWatch:
         from their anchors? The one that leaves the least is followed if its own move shifts its
         corners by more than ``follow_px`` and ``follow_ratio`` times more: its pose in use moves by
         that much, its anchor becomes that pose, and the others keep their samples with their
-        references fitted again."""
+        references fitted again. Returns the ``followed`` event, or None."""
         p = self.params
         if p.follow_m <= 0 or any(s is not CameraState.WATCHED for s in self.state.values()):
-            return
+            return None
         start_s = now_s - p.window_s - p.baseline_s + p.baseline_every_s
         spans = {c: [s for s in self.samples[c] if s.time_s < now_s - p.window_s] for c in self.settled}
         spans = {c: span for c, span in spans.items() if span and span[0].time_s <= start_s}
         for camera in spans:
             self.anchor.setdefault(camera, self.settled[camera])
         if len(spans) < p.reference_cameras + 1:
-            return
+            return None
         prior = (FOLLOW_PRIOR_M, math.radians(FOLLOW_PRIOR_DEG))
         near = {c: refit_camera(*stacked(span), self.anchor[c], p.corner_noise_px, prior_sigma=prior,
                                 position_only=FOLLOW_POSITION_ONLY) for c, span in spans.items()}
@@ -712,11 +719,11 @@ class CameraWatch:
             if best is None or left < best[0]:
                 best = left, camera, fit, others, again
         if best is None:
-            return
+            return None
         left, camera, fit, others, again = best
         shift = shift_px(fit, self.anchor[camera], spans[camera])
         if shift <= p.follow_px or shift < p.follow_ratio * left:
-            return
+            return None
         T_new = self.T_world_cam[camera] @ invert_T(self.anchor[camera]) @ fit.T_world_cam
         off_m, off_deg = CameraFit(T_new, 0.0, 0.0, 0.0, 0).offset_from(self.T_world_cam[camera])
         before = max(shift_px(CameraFit(self.settled[c], 0.0, 0.0, 0.0, 0), self.anchor[c], spans[c]) for c in others)
@@ -727,6 +734,9 @@ class CameraWatch:
         for other, refit in others.items():
             self.settled[other] = refit.T_world_cam
             self.samples[other] = deque(again[other])
+        event = WatchEvent(EventKind.FOLLOWED, camera, now_s, off_m, off_deg, T_new.copy())
+        self.events.append(event)
+        return event
 
     def _declare(self, camera: str, verdict: Verdict, now_s: float) -> WatchEvent:
         """Declare ``camera`` moved (its ``verdict``, at ``now_s``): set it aside with its window's
