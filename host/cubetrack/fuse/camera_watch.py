@@ -289,12 +289,11 @@ PREDICTION_GATE_PX = 40.0
 REFERENCE_SIGHTINGS = 2
 WINDOW_PRIOR_M = 0.05  # a window's fit: prior spread of the camera's position about its settled pose, metres
 WINDOW_PRIOR_DEG = 3.0  # ... and of its orientation, degrees
-# a drift's follow: the settled pose fitted again with a prior of this spread about its anchor (metres, degrees): a
-# robot's sightings pin a camera's sideways shift against its turn, and its distance, weakly, and a span's settled
-# pose wanders millimetres along them from one span to the next while its corners move by a tenth of a pixel
+# a drift's follow: the settled pose's position fitted again (its orientation kept) with a prior of this spread about
+# its anchor, metres: a robot's sightings pin a camera's distance weakly, and a span's settled pose wanders
+# millimetres from one span to the next while its corners move by a tenth of a pixel (none instead: the same steps
+# to 0.2 mm on the development scenes, docs/calibration.md)
 FOLLOW_PRIOR_M = 0.002
-FOLLOW_PRIOR_DEG = 0.05
-FOLLOW_POSITION_ONLY = True
 
 
 def stacked(samples: Sequence[WatchSample]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -377,7 +376,7 @@ def refit_camera(points_world_m: np.ndarray, normalized: np.ndarray, focal_px: n
     ``prior_sigma`` (m, rad): a Gaussian prior keeping the pose near ``T_world_cam_init`` (a
     window of points bunched in one spot leaves a translation and a rotation that mimic each
     other free); ``position_only``: the orientation kept as ``T_world_cam_init``'s, the position
-    alone fitted (``sigma_deg`` 0)."""
+    alone fitted (``sigma_deg`` 0; the prior's rotation part unused)."""
     X = np.asarray(points_world_m, float).reshape(-1, 3)
     uv = np.asarray(normalized, float).reshape(-1, 2)
     f = np.broadcast_to(np.asarray(focal_px, float), (len(X),))
@@ -682,8 +681,8 @@ class CameraWatch:
 
     def _follow(self, now_s: float) -> WatchEvent | None:
         """Follow a drift (see the module doc). With every camera watched, each one's settled pose
-        over a whole ``baseline_s`` is fitted again near its anchor (a prior of ``FOLLOW_PRIOR_M`` /
-        ``FOLLOW_PRIOR_DEG``); each camera that has moved more than ``follow_m`` is tried: moved so
+        over a whole ``baseline_s`` is fitted again near its anchor, its position alone (a prior of
+        ``FOLLOW_PRIOR_M``); each camera that has moved more than ``follow_m`` is tried: moved so
         in the others' references, how far (RMS px of their corners) do their settled poses stay
         from their anchors? The one that leaves the least is followed if its own move shifts its
         corners by more than ``follow_px`` and ``follow_ratio`` times more: its pose in use moves by
@@ -699,9 +698,9 @@ class CameraWatch:
             self.anchor.setdefault(camera, self.settled[camera])
         if len(spans) < p.reference_cameras + 1:
             return None
-        prior = (FOLLOW_PRIOR_M, math.radians(FOLLOW_PRIOR_DEG))
+        prior = (FOLLOW_PRIOR_M, math.inf)  # the orientation is not fitted
         near = {c: refit_camera(*stacked(span), self.anchor[c], p.corner_noise_px, prior_sigma=prior,
-                                position_only=FOLLOW_POSITION_ONLY) for c, span in spans.items()}
+                                position_only=True) for c, span in spans.items()}
         best: tuple[float, str, CameraFit, dict[str, CameraFit], dict[str, list[WatchSample]]] | None = None
         for camera, fit in near.items():
             if fit is None or np.linalg.norm(fit.T_world_cam[:3, 3] - self.anchor[camera][:3, 3]) <= p.follow_m:
