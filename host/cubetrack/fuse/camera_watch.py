@@ -156,11 +156,12 @@ class WatchParams:
                                  "(its settled pose over its first whole baseline_s, or at its last follow) is "
                                  "followed when moving it by that much makes the other cameras' settled poses "
                                  "agree with their anchors again (follow_ratio), metres; 0: never (the default: "
-                                 "0.002 followed the drift on the development scenes but not on a held-out one, "
-                                 "docs/calibration.md)")
-    follow_px: float = param(0.3, "drift: ... and when that move shifts its corners by more than this (RMS): a still "
-                                  "camera's settled pose wanders up to 0.25 px from its anchor in ten minutes "
-                                  "(references joined over unsynchronised sightings of a robot turning), pixels")
+                                 "0.002 followed a 2 mm/min drift to within 3.2-6.4 mm on the development scenes, "
+                                 "5.6 mm on a held-out one, not the 5 mm aimed at; docs/calibration.md)")
+    follow_px: float = param(0.3, "drift: ... and when that move shifts its corners by more than this (RMS): with no "
+                                  "drift a camera's settled position wanders 0.11-0.55 px from its anchor in ten "
+                                  "minutes (references joined over unsynchronised sightings of a robot turning; "
+                                  "follow_ratio keeps it unfollowed), pixels")
     follow_ratio: float = param(2.0, "drift: ... when the camera's own move shifts its corners this many times more "
                                      "(RMS px) than the largest shift left in any other camera's settled pose once "
                                      "it is moved")
