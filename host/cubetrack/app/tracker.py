@@ -278,7 +278,7 @@ class Tracker:
         self.last_now_s = 0.0  # the host time the last frame became available
 
     def _rejoined(self, event: WatchEvent) -> None:
-        if event.kind is EventKind.REJOINED:
+        if event.kind is not EventKind.MOVED:  # rejoined, or a drift's step followed
             self.plan_cameras_at({event.camera: event.T_world_cam})
 
     def plan_cameras_at(self, poses: Mapping[str, np.ndarray]) -> None:

@@ -3,9 +3,10 @@ learnt"), live, in ``cubetrack fuse`` and in an offline replay alike: every even
 :class:`cubetrack.calib.recalibrate.WatchedFusion` as one JSON line in
 ``<out_dir>/camera_watch.jsonl`` (appended to), one status line in the log ("cam2 moved 2.1 cm /
 0.9 deg at 12:03:41, re-calibrated from 212 sightings"), the run record's ``camera_watch`` list
-(:meth:`WatchLog.summary`) and, at each rejoin, a new versioned extrinsics file beside the
-session (``extrinsics.watch-<n>.toml``: every camera, the re-calibrated one at its new pose; ``n``
-after every such file already there, so an earlier session's are never written over), written
+(:meth:`WatchLog.summary`) and, at each rejoin and each step of a drift followed, a new versioned
+extrinsics file beside the session (``extrinsics.watch-<n>.toml``: every camera, the re-calibrated
+or followed one at its new pose; ``n`` after every such file already there, so an earlier
+session's are never written over), written
 over the user's extrinsics file only when asked (``update_path``, the CLI's
 ``--update-extrinsics``). A file that cannot be written is said in one error line and tracking
 goes on: the event stays in the run record, with its pose. :meth:`WatchLog.attach` gives the
@@ -38,6 +39,7 @@ EVENTS_FILE = "camera_watch.jsonl"
 EXTRINSICS_PATTERN = "extrinsics.watch-{n}.toml"
 EXTRINSICS_NUMBER = re.compile(r"extrinsics\.watch-([0-9]+)\.toml")  # the <n> of a file of EXTRINSICS_PATTERN
 RECALIBRATED_METHOD = "re-calibrated while tracking"
+FOLLOWED_METHOD = "drift followed while tracking"
 
 
 class WatchLog:
@@ -78,15 +80,18 @@ class WatchLog:
             self._moved[event.camera] = event
             line = (f"{event.camera} moved {100 * event.offset_m:.1f} cm / {event.offset_deg:.1f} deg at "
                     f"{clock_text(event.time_s)}; set aside, re-calibrating")
+        elif event.kind is EventKind.FOLLOWED:
+            line = f"{event.camera} drifting: followed {1000 * event.offset_m:.1f} mm at {clock_text(event.time_s)}"
+            record.update(self._write_extrinsics(event, FOLLOWED_METHOD))
         else:
             moved = self._moved.pop(event.camera, event)
             line = (f"{event.camera} moved {100 * event.offset_m:.1f} cm / {event.offset_deg:.1f} deg at "
                     f"{clock_text(moved.time_s)}, re-calibrated from {event.sightings} sightings")
-            record.update(self._write_extrinsics(event))
+            record.update(self._write_extrinsics(event, RECALIBRATED_METHOD))
         self.records.append(record)
         self._append_event(record)
         self.lines.append(line)
-        log.warning("%s", line)
+        log.log(logging.INFO if event.kind is EventKind.FOLLOWED else logging.WARNING, "%s", line)
 
     def _append_event(self, record: dict[str, Any]) -> None:
         """One line more in the events file; when it cannot be written, one error line (the first
@@ -101,14 +106,14 @@ class WatchLog:
                 log.error("%s; the camera watching's events are in run.json only", cannot_write(path, exc))
             self._events_failed = True
 
-    def _write_extrinsics(self, event: WatchEvent) -> dict[str, str]:
-        """Write the session's extrinsics with ``event``'s camera at its new pose as the next
-        versioned file beside the session (and over ``update_path`` when given). Returns the
+    def _write_extrinsics(self, event: WatchEvent, method: str) -> dict[str, str]:
+        """Write the session's extrinsics with ``event``'s camera at its new pose (found by
+        ``method``) as the next versioned file beside the session (and over ``update_path`` when given). Returns the
         event record's addition: the file's name (``extrinsics``) or why it was not written
         (``extrinsics_error``; the pose is in the record)."""
         before = self.extrinsics.get(event.camera, CameraExtrinsics(event.T_world_cam))
         self.extrinsics[event.camera] = dataclasses.replace(before, T_world_cam=event.T_world_cam.copy(),
-                                                            samples=event.sightings, method=RECALIBRATED_METHOD)
+                                                            samples=event.sightings, method=method)
         path = self.out_dir / EXTRINSICS_PATTERN.format(n=self._next_number())
         try:
             self.out_dir.mkdir(parents=True, exist_ok=True)

@@ -12,7 +12,7 @@ replay does, so a replay is reproducible), lets the camera back in at its new po
 the fusion that camera's sightings at that pose from then on, and tells its ``state_listeners``
 what it says of each camera whenever that changes (:class:`cubetrack.core.records.CameraWatchState`:
 settling, watched, suspect, moved, re-calibrating with its progress in tenths, rejoined: the
-dashboard's camera tile).
+dashboard's camera tile; a drift's step, ``followed``, is told as watched with the camera's new pose).
 """
 
 from __future__ import annotations
@@ -257,20 +257,22 @@ class WatchedFusion:
         self._tell(self.watch.rejoin(camera, result.fit.T_world_cam, now_s, result.sightings))
 
     def _tell(self, event: WatchEvent) -> None:
-        log.log(logging.INFO if self.listeners else logging.WARNING, "%s", event.message)
+        quiet = self.listeners or event.kind is EventKind.FOLLOWED  # a drift's step is no alarm
+        log.log(logging.INFO if quiet else logging.WARNING, "%s", event.message)
         for listener in self.listeners:
             listener(event)
         moved = event.kind is EventKind.MOVED
-        self._announce(event.camera, event.time_s, ("moved" if moved else "rejoined", 0),
-                       event.message.removeprefix(event.camera + " "), None if moved else event.T_world_cam)
+        said = {EventKind.MOVED: "moved", EventKind.REJOINED: "rejoined", EventKind.FOLLOWED: "watched"}[event.kind]
+        self._announce(event.camera, event.time_s, (said, 0), event.message.removeprefix(event.camera + " "),
+                       None if moved else event.T_world_cam)
 
     def _announce(self, camera: str, now_s: float, said: tuple[str, int] | None = None, message: str = "",
                   T_world_cam: np.ndarray | None = None) -> None:
         """Tell the state listeners what the watcher says of ``camera`` (``said``: the state and
-        progress in tenths; None: from the watcher; ``T_world_cam``: its new pose, on a rejoin)
-        when it differs from what they were told last. After a move the camera stays ``moved``
-        until its first corners are gathered; after a rejoin ``rejoined`` until it has a settled
-        pose again."""
+        progress in tenths; None: from the watcher; ``T_world_cam``: its new pose, on a rejoin or
+        a drift's step, always told) when it differs from what they were told last. After a move
+        the camera stays ``moved`` until its first corners are gathered; after a rejoin
+        ``rejoined`` until it has a settled pose again."""
         if camera not in self.watch.state or not self.state_listeners:
             return
         last, progress = self._announced.get(camera, ("", 0)), 0.0
@@ -285,7 +287,8 @@ class WatchedFusion:
         elif said is None:  # watched, once it has a settled pose
             settling = last if last[0] == "rejoined" else ("settling", 0)
             said = ("watched", 0) if camera in self.watch.settled else settling
-        if said == last or (said[0] == "re-calibrating" and last[0] == "moved" and progress == 0.0):
+        if T_world_cam is None and (said == last or (said[0] == "re-calibrating" and last[0] == "moved"
+                                                     and progress == 0.0)):
             return
         self._announced[camera] = said
         state_now = CameraWatchState(camera, now_s, said[0], progress, message, T_world_cam)

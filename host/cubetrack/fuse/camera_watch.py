@@ -51,16 +51,20 @@ residual of its sets there), else none is declared yet. Then every camera's wind
 reference) and its samples are gathered for its re-calibration until :meth:`CameraWatch.rejoin`.
 
 A slow drift (a clamp slipping millimetres a minute) never makes a window say moved; it is followed
-instead, without an event (:meth:`CameraWatch._follow`, every ``baseline_every_s``). Each camera's
+instead, each step a ``followed`` event, no alarm (:meth:`CameraWatch._follow`, every ``baseline_every_s``).
+Each camera's
 settled pose over its first whole ``baseline_s`` is its **anchor**. A camera's own settled pose is
 fitted against the OTHER cameras' references, so when one camera drifts its settled pose moves with
 it; but every other camera's moves too, as the drifting camera sits in their references (the
 gauge), about as much. So a camera whose settled pose has moved more than ``follow_m`` from its
 anchor is followed only when that move, put into the others' references (:func:`with_camera_at`),
 takes their settled poses back to their anchors: the shift its move makes in its own corners must
-be ``follow_ratio`` times the largest shift left in any other's. Its pose in use then moves by its
-settled pose's move (the fusion takes its sightings there), its anchor becomes its settled pose,
-and the others keep their samples with their references fitted again.
+be ``follow_ratio`` times the largest shift left in any other's. The move is fitted as a shift of
+the camera's position alone, its orientation kept: a robot's sightings, bunched at one distance from
+the camera, hardly tell a sideways shift from a turn, and the spans' wander took one for the other
+(docs/calibration.md). Its pose in use then moves by that shift (the fusion takes its sightings
+there), its anchor becomes its settled pose, and the others keep their samples with their references
+fitted again.
 
 Pure: sightings in, events out; no clock, no thread (the re-calibration fit is the caller's to
 run in the background).
@@ -152,11 +156,12 @@ class WatchParams:
                                  "(its settled pose over its first whole baseline_s, or at its last follow) is "
                                  "followed when moving it by that much makes the other cameras' settled poses "
                                  "agree with their anchors again (follow_ratio), metres; 0: never (the default: "
-                                 "0.002 followed the drift on the development scenes but not on a held-out one, "
-                                 "docs/calibration.md)")
-    follow_px: float = param(0.3, "drift: ... and when that move shifts its corners by more than this (RMS): a still "
-                                  "camera's settled pose wanders up to 0.25 px from its anchor in ten minutes "
-                                  "(references joined over unsynchronised sightings of a robot turning), pixels")
+                                 "0.002 followed a 2 mm/min drift to within 3.2-6.4 mm on the development scenes, "
+                                 "5.6 mm on a held-out one, not the 5 mm aimed at; docs/calibration.md)")
+    follow_px: float = param(0.3, "drift: ... and when that move shifts its corners by more than this (RMS): with no "
+                                  "drift a camera's settled position wanders 0.11-0.55 px from its anchor in ten "
+                                  "minutes (references joined over unsynchronised sightings of a robot turning; "
+                                  "follow_ratio keeps it unfollowed), pixels")
     follow_ratio: float = param(2.0, "drift: ... when the camera's own move shifts its corners this many times more "
                                      "(RMS px) than the largest shift left in any other camera's settled pose once "
                                      "it is moved")
@@ -189,14 +194,16 @@ class CameraState(enum.Enum):
 class EventKind(enum.Enum):
     MOVED = "moved"
     REJOINED = "rejoined"
+    FOLLOWED = "followed"  # a drift's step: the pose in use moved, no alarm
 
 
 @dataclass(frozen=True, slots=True, eq=False)
 class WatchEvent:
     """Something the watcher decided: ``camera`` ``kind`` at host time ``time_s``; ``offset_m``
     and ``offset_deg`` how far its pose moved (moved: the window's refit against the pose it
-    had; rejoined: the new pose against the one before the move); ``T_world_cam`` the refitted
-    or new pose; ``sightings`` how many sightings the new pose comes from (rejoined)."""
+    had; rejoined: the new pose against the one before the move; followed: the drift's step of
+    the pose in use); ``T_world_cam`` the refitted or new pose; ``sightings`` how many sightings
+    the new pose comes from (rejoined)."""
 
     kind: EventKind
     camera: str
@@ -211,13 +218,15 @@ class WatchEvent:
         """One line for the status line and logs."""
         if self.kind is EventKind.MOVED:
             return f"{self.camera} moved {100 * self.offset_m:.1f} cm / {self.offset_deg:.1f} deg; set aside"
+        if self.kind is EventKind.FOLLOWED:
+            return f"{self.camera} drifting: followed {1000 * self.offset_m:.1f} mm"
         return (f"{self.camera} re-calibrated from {self.sightings} sightings ({100 * self.offset_m:.1f} cm / "
                 f"{self.offset_deg:.1f} deg from its old pose); rejoined")
 
 
 @dataclass(frozen=True, slots=True, eq=False)
 class DriftStep:
-    """A drift followed (no event: no alarm per millimetre): at host time ``time_s`` the pose in
+    """A drift followed (its event: ``followed``, no alarm): at host time ``time_s`` the pose in
     use of ``camera`` moved by ``offset_m`` / ``offset_deg`` to ``T_world_cam``, its settled pose's
     move since its anchor; ``shift_px`` that move's shift of its corners (RMS), ``others_px`` /
     ``others_after_px`` the largest shift of another camera's settled pose from its anchor before
@@ -281,11 +290,11 @@ PREDICTION_GATE_PX = 40.0
 REFERENCE_SIGHTINGS = 2
 WINDOW_PRIOR_M = 0.05  # a window's fit: prior spread of the camera's position about its settled pose, metres
 WINDOW_PRIOR_DEG = 3.0  # ... and of its orientation, degrees
-# a drift's follow: the settled pose fitted again with a prior of this spread about its anchor (metres, degrees): a
-# robot's sightings pin a camera's sideways shift against its turn, and its distance, weakly, and a span's settled
-# pose wanders millimetres along them from one span to the next while its corners move by a tenth of a pixel
+# a drift's follow: the settled pose's position fitted again (its orientation kept) with a prior of this spread about
+# its anchor, metres: a robot's sightings pin a camera's distance weakly, and a span's settled pose wanders
+# millimetres from one span to the next while its corners move by a tenth of a pixel (none instead: the same steps
+# to 0.2 mm on the development scenes, docs/calibration.md)
 FOLLOW_PRIOR_M = 0.002
-FOLLOW_PRIOR_DEG = 0.05
 
 
 def stacked(samples: Sequence[WatchSample]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -360,40 +369,47 @@ def resection_jacobian_px(T_world_cam: np.ndarray, points_world_m: np.ndarray, f
 
 def refit_camera(points_world_m: np.ndarray, normalized: np.ndarray, focal_px: np.ndarray,
                  T_world_cam_init: np.ndarray, corner_noise_px: float = 0.5,
-                 f_scale_px: float = 2.0, prior_sigma: tuple[float, float] | None = None) -> CameraFit | None:
+                 f_scale_px: float = 2.0, prior_sigma: tuple[float, float] | None = None,
+                 position_only: bool = False) -> CameraFit | None:
     """The camera pose that best explains ``normalized`` (N, 2) as images of ``points_world_m``
     (N, 3), started from ``T_world_cam_init``; None with fewer than six points or when the fit
     fails. ``corner_noise_px`` scales the covariance; ``f_scale_px`` is the robust loss's knee;
     ``prior_sigma`` (m, rad): a Gaussian prior keeping the pose near ``T_world_cam_init`` (a
     window of points bunched in one spot leaves a translation and a rotation that mimic each
-    other free)."""
+    other free); ``position_only``: the orientation kept as ``T_world_cam_init``'s, the position
+    alone fitted (``sigma_deg`` 0; the prior's rotation part unused)."""
     X = np.asarray(points_world_m, float).reshape(-1, 3)
     uv = np.asarray(normalized, float).reshape(-1, 2)
     f = np.broadcast_to(np.asarray(focal_px, float), (len(X),))
     if len(X) < 6:
         return None
     T0 = np.asarray(T_world_cam_init, float)
+    n = 3 if position_only else 6
+    prior = np.zeros(0) if prior_sigma is None else np.repeat(1.0 / np.asarray(prior_sigma, float), 3)[:n]
 
-    prior = np.zeros(0) if prior_sigma is None else np.repeat(1.0 / np.asarray(prior_sigma, float), 3)
+    def pose(x: np.ndarray) -> np.ndarray:
+        return perturbed(T0, np.concatenate([x, np.zeros(6 - n)]))
 
     def fun(x: np.ndarray) -> np.ndarray:
-        return np.concatenate([residuals_px(perturbed(T0, x), X, uv, f).ravel() / corner_noise_px, x * prior
+        return np.concatenate([residuals_px(pose(x), X, uv, f).ravel() / corner_noise_px, x * prior
                                if len(prior) else prior])
 
     def jac(x: np.ndarray) -> np.ndarray:
-        J = resection_jacobian_px(perturbed(T0, x), X, f)
-        J[:, 3:6] = J[:, 3:6] @ so3_left_jacobian(x[3:6])  # x holds a finite rotation increment
-        return np.vstack([J / corner_noise_px, np.diag(prior)]) if len(prior) else J / corner_noise_px
+        J = resection_jacobian_px(pose(x), X, f)
+        if n == 6:
+            J[:, 3:6] = J[:, 3:6] @ so3_left_jacobian(x[3:6])  # x holds a finite rotation increment
+        J = J[:, :n] / corner_noise_px
+        return np.vstack([J, np.diag(prior)]) if len(prior) else J
 
-    solved = robust_gauss_newton(fun, jac, 6, f_scale_px / corner_noise_px, FIT_ITERATIONS) or robust_least_squares(
-        fun, jac, np.array([0.01, 0.01, 0.01, 0.002, 0.002, 0.002]), f_scale_px / corner_noise_px, 60)
+    solved = robust_gauss_newton(fun, jac, n, f_scale_px / corner_noise_px, FIT_ITERATIONS) or robust_least_squares(
+        fun, jac, np.array([0.01, 0.01, 0.01, 0.002, 0.002, 0.002])[:n], f_scale_px / corner_noise_px, 60)
     if solved is None:
         return None
     x, covariance, _ = solved
-    T = perturbed(T0, x)
+    T = pose(x)
     r = residuals_px(T, X, uv, f)
     sigma_m = math.sqrt(max(float(np.linalg.eigvalsh(covariance[:3, :3]).max()), 0.0))
-    sigma_rad = math.sqrt(max(float(np.linalg.eigvalsh(covariance[3:, 3:]).max()), 0.0))
+    sigma_rad = math.sqrt(max(float(np.linalg.eigvalsh(covariance[3:, 3:]).max()), 0.0)) if n == 6 else 0.0
     return CameraFit(T, sigma_m, math.degrees(sigma_rad), float(np.sqrt(np.mean(r**2))), len(X))
 
 
@@ -593,7 +609,7 @@ class CameraWatch:
     def add(self, sighting: CubeSighting, T_world_cube: np.ndarray | None = None) -> list[WatchEvent]:
         """Take one sighting (any camera, any robot, in about capture order) and the fused
         prediction of its cube's pose at its capture time (None: no track), which its faces are
-        matched by; returns the events it led to (a camera declared moved)."""
+        matched by; returns the events it led to (a camera declared moved, a drift followed)."""
         if sighting.robot not in self.layouts or sighting.camera not in self.state:
             return []
         t, p = sighting.capture_time_s, self.params
@@ -660,33 +676,32 @@ class CameraWatch:
                 verdicts[camera] = verdict
         worst = self._culprit(verdicts, now_s)
         if worst is None:
-            if baseline and not any(v.moved for v in verdicts.values()):
-                self._follow(now_s)
-            return []
+            followed = self._follow(now_s) if baseline and not any(v.moved for v in verdicts.values()) else None
+            return [] if followed is None else [followed]
         return [self._declare(*worst, now_s)]
 
-    def _follow(self, now_s: float) -> None:
+    def _follow(self, now_s: float) -> WatchEvent | None:
         """Follow a drift (see the module doc). With every camera watched, each one's settled pose
-        over a whole ``baseline_s`` is fitted again near its anchor (a prior of ``FOLLOW_PRIOR_M`` /
-        ``FOLLOW_PRIOR_DEG``); each camera that has moved more than ``follow_m`` is tried: moved so
+        over a whole ``baseline_s`` is fitted again near its anchor, its position alone (a prior of
+        ``FOLLOW_PRIOR_M``); each camera that has moved more than ``follow_m`` is tried: moved so
         in the others' references, how far (RMS px of their corners) do their settled poses stay
         from their anchors? The one that leaves the least is followed if its own move shifts its
         corners by more than ``follow_px`` and ``follow_ratio`` times more: its pose in use moves by
         that much, its anchor becomes that pose, and the others keep their samples with their
-        references fitted again."""
+        references fitted again. Returns the ``followed`` event, or None."""
         p = self.params
         if p.follow_m <= 0 or any(s is not CameraState.WATCHED for s in self.state.values()):
-            return
+            return None
         start_s = now_s - p.window_s - p.baseline_s + p.baseline_every_s
         spans = {c: [s for s in self.samples[c] if s.time_s < now_s - p.window_s] for c in self.settled}
         spans = {c: span for c, span in spans.items() if span and span[0].time_s <= start_s}
         for camera in spans:
             self.anchor.setdefault(camera, self.settled[camera])
         if len(spans) < p.reference_cameras + 1:
-            return
-        prior = (FOLLOW_PRIOR_M, math.radians(FOLLOW_PRIOR_DEG))
-        near = {c: refit_camera(*stacked(span), self.anchor[c], p.corner_noise_px, prior_sigma=prior)
-                for c, span in spans.items()}
+            return None
+        prior = (FOLLOW_PRIOR_M, math.inf)  # the orientation is not fitted
+        near = {c: refit_camera(*stacked(span), self.anchor[c], p.corner_noise_px, prior_sigma=prior,
+                                position_only=True) for c, span in spans.items()}
         best: tuple[float, str, CameraFit, dict[str, CameraFit], dict[str, list[WatchSample]]] | None = None
         for camera, fit in near.items():
             if fit is None or np.linalg.norm(fit.T_world_cam[:3, 3] - self.anchor[camera][:3, 3]) <= p.follow_m:
@@ -704,11 +719,11 @@ class CameraWatch:
             if best is None or left < best[0]:
                 best = left, camera, fit, others, again
         if best is None:
-            return
+            return None
         left, camera, fit, others, again = best
         shift = shift_px(fit, self.anchor[camera], spans[camera])
         if shift <= p.follow_px or shift < p.follow_ratio * left:
-            return
+            return None
         T_new = self.T_world_cam[camera] @ invert_T(self.anchor[camera]) @ fit.T_world_cam
         off_m, off_deg = CameraFit(T_new, 0.0, 0.0, 0.0, 0).offset_from(self.T_world_cam[camera])
         before = max(shift_px(CameraFit(self.settled[c], 0.0, 0.0, 0.0, 0), self.anchor[c], spans[c]) for c in others)
@@ -719,6 +734,9 @@ class CameraWatch:
         for other, refit in others.items():
             self.settled[other] = refit.T_world_cam
             self.samples[other] = deque(again[other])
+        event = WatchEvent(EventKind.FOLLOWED, camera, now_s, off_m, off_deg, T_new.copy())
+        self.events.append(event)
+        return event
 
     def _declare(self, camera: str, verdict: Verdict, now_s: float) -> WatchEvent:
         """Declare ``camera`` moved (its ``verdict``, at ``now_s``): set it aside with its window's
