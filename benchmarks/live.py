@@ -119,6 +119,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                         "(default 2000) on one thread as the replay plans, works and fuses them, back to back and with "
                         "a sleep of GAP_MS before each frame (as a live worker process sleeps between frames), "
                         "--speed-rounds rounds interleaved (no live run, no accuracy)")
+    p.add_argument("--frames-per-wake", type=int, default=1, metavar="N",
+                   help="with --wake-cost: sleep before every Nth frame only (N frames per wake; default 1)")
     p.add_argument("--seed", type=int, default=7, help="scene seed (default 7)")
     p.add_argument("--out", type=Path, help="keep everything here (default: a temporary folder, deleted)")
     p.add_argument("--quick", action="store_true", help="smoke run: 2 cameras x 10 fps, 5 s, small recording")
@@ -148,7 +150,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     if args.quick:
         args.cameras, args.fps, args.duration, args.recording_s = 2, 10.0, 5.0, 3.0
         args.warmup, args.speed_frames = 1.5, 60
-    for name in ("cameras", "fps", "duration", "recording_s", "speed_frames", "speed_rounds", "workers"):
+    for name in ("cameras", "fps", "duration", "recording_s", "speed_frames", "speed_rounds", "workers",
+                 "frames_per_wake"):
         if getattr(args, name) is not None and not getattr(args, name) > 0:
             p.error(f"--{name.replace('_', '-')} must be positive")
     return args
@@ -852,9 +855,10 @@ def wake_cost(args: argparse.Namespace, rec: Path, work: Path) -> dict:
     """What waking per frame costs the same work (issue 31: the live premium): the recording's first
     frames on this thread, planned (``Tracker.admit``), worked (``FrameProcessor.work``) and fused
     (``Tracker.fuse``) as the replay does them, each step's thread CPU summed; back to back, and with a
-    sleep of --wake-cost ms before each frame (a live camera worker process sleeps until its next frame
-    comes: its caches then hold what ran meanwhile). A new tracker per pass; --speed-rounds rounds of
-    both, interleaved, the order alternating. Thread CPU per frame of each step, medians over the rounds."""
+    sleep of --wake-cost ms before each frame, or each --frames-per-wake'th (a live camera worker process
+    sleeps until its next frame comes: its caches then hold what ran meanwhile). A new tracker per pass;
+    --speed-rounds rounds of both, interleaved, the order alternating. Thread CPU per frame of each step,
+    medians over the rounds."""
     import cv2
 
     from cubetrack.app.config import load_config, recording_intrinsics
@@ -871,8 +875,8 @@ def wake_cost(args: argparse.Namespace, rec: Path, work: Path) -> dict:
     def one_pass(gap_s: float) -> dict[str, float]:
         tracker = Tracker(intrinsics, config.world, config.robots, extrinsics, settings.stages)
         cpu_s, jobs = {"plan": 0.0, "work": 0.0, "fuse": 0.0}, 0
-        for frame in frames:
-            if gap_s:
+        for k, frame in enumerate(frames):
+            if gap_s and k % args.frames_per_wake == 0:
                 time.sleep(gap_s)
             t0 = time.thread_time()
             job = tracker.admit(frame)
@@ -895,7 +899,7 @@ def wake_cost(args: argparse.Namespace, rec: Path, work: Path) -> dict:
         for name in order:
             rounds[name].append(one_pass(args.wake_cost / 1000.0 if name == "woken" else 0.0))
     ms = {name: {key: float(np.median([r[key] for r in runs])) for key in runs[0]} for name, runs in rounds.items()}
-    return {"frames": len(frames), "gap_ms": args.wake_cost, "ms": ms,
+    return {"frames": len(frames), "gap_ms": args.wake_cost, "frames_per_wake": args.frames_per_wake, "ms": ms,
             "ratio": {key: ms["woken"][key] / ms["back_to_back"][key] for key in ms["woken"]},
             "load_average": os.getloadavg()[0]}
 
@@ -906,7 +910,8 @@ def print_wake_cost(args: argparse.Namespace, wc: dict) -> None:
     print(f"waking per frame: the first {wc['frames']} frames on one thread, nproc {os.cpu_count()} (load average "
           f"{wc['load_average']:.1f}), {args.speed_rounds} round(s) interleaved, medians; thread CPU ms per frame "
           "(planning, decode + detection + estimates, fusion, all):")
-    for name, label in (("back_to_back", "back to back"), ("woken", f"a {wc['gap_ms']:g} ms sleep before each")):
+    each = "each" if wc["frames_per_wake"] == 1 else f"every {wc['frames_per_wake']}th frame"
+    for name, label in (("back_to_back", "back to back"), ("woken", f"a {wc['gap_ms']:g} ms sleep before {each}")):
         print(f"  {label}: " + ", ".join(f"{ms[name][k]:.3f}" for k in steps))
     print("  woken / back to back: " + ", ".join(f"{ratio[k]:.2f}" for k in steps))
 

@@ -33,7 +33,8 @@ def test_worker_kind_and_count_reach_the_trackers_live_section():
 
 def test_wake_cost_runs_alone_with_a_positive_gap():
     live = load_benchmark("live")
-    for bad in (["--wake-cost", "0"], ["--wake-cost", "1", "--speed-only"], ["--wake-cost", "1", "--worker-split"]):
+    for bad in (["--wake-cost", "0"], ["--wake-cost", "1", "--speed-only"], ["--wake-cost", "1", "--worker-split"],
+                ["--wake-cost", "1", "--frames-per-wake", "0"]):
         with pytest.raises(SystemExit):
             live.parse_args(bad)
 
