@@ -910,8 +910,8 @@ def print_wake_cost(args: argparse.Namespace, wc: dict) -> None:
     print(f"waking per frame: the first {wc['frames']} frames on one thread, nproc {os.cpu_count()} (load average "
           f"{wc['load_average']:.1f}), {args.speed_rounds} round(s) interleaved, medians; thread CPU ms per frame "
           "(planning, decode + detection + estimates, fusion, all):")
-    each = "each" if wc["frames_per_wake"] == 1 else f"every {wc['frames_per_wake']}th frame"
-    for name, label in (("back_to_back", "back to back"), ("woken", f"a {wc['gap_ms']:g} ms sleep before {each}")):
+    each = "before each" if wc["frames_per_wake"] == 1 else f"per {wc['frames_per_wake']} frames"
+    for name, label in (("back_to_back", "back to back"), ("woken", f"a {wc['gap_ms']:g} ms sleep {each}")):
         print(f"  {label}: " + ", ".join(f"{ms[name][k]:.3f}" for k in steps))
     print("  woken / back to back: " + ", ".join(f"{ratio[k]:.2f}" for k in steps))
 
