@@ -55,6 +55,7 @@ lists the targets missed.
     .venv/bin/python benchmarks/live.py --template ...  # with corner_refinement = "template"
     .venv/bin/python benchmarks/live.py --watch        # and the cost of the camera watching (issue 27)
     .venv/bin/python benchmarks/live.py --worker-split --duration 15 --out /tmp/lb16   # a camera worker's CPU
+    .venv/bin/python benchmarks/live.py --wake-cost 3 --speed-rounds 2 --out /tmp/lb16   # what waking per frame costs
 
 --out keeps the recording, the calibration, the live poses and ``live_report.json``
 (``speed_report.json`` with --speed-only; a recording made with the same parameters is reused).
@@ -113,6 +114,13 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                    help="only where a camera worker process's CPU goes: its loop in this process over half the "
                         "cameras for --duration s, fed by the emulator, the fusion in a thread standing in for the "
                         "tracker's process (no live run, no accuracy, no same-frames comparison)")
+    p.add_argument("--wake-cost", type=float, metavar="GAP_MS",
+                   help="only what waking per frame costs the same work (issue 31): the first --speed-frames frames "
+                        "(default 2000) on one thread as the replay plans, works and fuses them, back to back and with "
+                        "a sleep of GAP_MS before each frame (as a live worker process sleeps between frames), "
+                        "--speed-rounds rounds interleaved (no live run, no accuracy)")
+    p.add_argument("--frames-per-wake", type=int, default=1, metavar="N",
+                   help="with --wake-cost: sleep before every Nth frame only (N frames per wake; default 1)")
     p.add_argument("--seed", type=int, default=7, help="scene seed (default 7)")
     p.add_argument("--out", type=Path, help="keep everything here (default: a temporary folder, deleted)")
     p.add_argument("--quick", action="store_true", help="smoke run: 2 cameras x 10 fps, 5 s, small recording")
@@ -120,6 +128,7 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                    help="the tracker records the session too; the offline replay and the speed comparison use it")
     p.add_argument("--worker-kind", choices=("auto", "process", "thread", "camera-process"),
                    help="the tracker's [live] worker_kind (default: the config's, i.e. the package default)")
+    p.add_argument("--workers", type=int, help="the tracker's [live] workers (default: the config's, one per core)")
     p.add_argument("--outputs", action="store_true",
                    help="issue 10: a second live session with every output on (--zenoh --ros2 --vrpn --foxglove "
                         "--mcap), compared with the first (pose files only)")
@@ -133,12 +142,16 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     args = p.parse_args(argv)
     if args.worker_split and (args.speed_only or args.record or args.outputs or args.watch):
         p.error("--worker-split runs alone: no --speed-only, --record, --outputs or --watch")
+    if args.wake_cost is not None and (args.worker_split or args.speed_only or args.record or args.outputs
+                                       or args.watch or not args.wake_cost > 0):
+        p.error("--wake-cost (positive) runs alone: no --worker-split, --speed-only, --record, --outputs or --watch")
     if args.speed_only and (args.record or args.outputs or args.watch):
         p.error("--speed-only replays the simulated recording: no --record, --outputs or --watch")
     if args.quick:
         args.cameras, args.fps, args.duration, args.recording_s = 2, 10.0, 5.0, 3.0
         args.warmup, args.speed_frames = 1.5, 60
-    for name in ("cameras", "fps", "duration", "recording_s", "speed_frames", "speed_rounds"):
+    for name in ("cameras", "fps", "duration", "recording_s", "speed_frames", "speed_rounds", "workers",
+                 "frames_per_wake"):
         if getattr(args, name) is not None and not getattr(args, name) > 0:
             p.error(f"--{name.replace('_', '-')} must be positive")
     return args
@@ -342,6 +355,13 @@ def warm_kernels(args: argparse.Namespace, rec: Path, work: Path) -> float:
     return time.perf_counter() - started
 
 
+def live_section(args: argparse.Namespace) -> str:
+    """The ``[live]`` section --worker-kind and --workers ask for (empty: the config's)."""
+    keys = ([f'worker_kind = "{args.worker_kind}"'] if args.worker_kind else []) + \
+        ([f"workers = {args.workers}"] if args.workers else [])
+    return "\n[live]\n" + "".join(f"{k}\n" for k in keys) if keys else ""
+
+
 def run_live(args: argparse.Namespace, rec: Path, work: Path, name: str = "live",
              outputs: tuple[str, ...] = (), sections: str = "") -> dict:
     """One live session of the tracker (``name``: its folder in ``work`` and the prefix of its log
@@ -356,8 +376,7 @@ def run_live(args: argparse.Namespace, rec: Path, work: Path, name: str = "live"
             subprocess.run(["rm", "-rf", str(path)], check=True)
     with EmulatedCameras(rec, ("--loop",)) as emu:
         config = write_live_config(tracker_config(args, rec, work), emu.urls, work / "live_config.toml")
-        if args.worker_kind:
-            sections += f'\n[live]\nworker_kind = "{args.worker_kind}"\n'
+        sections += live_section(args)
         if sections:
             config.write_text(config.read_text(encoding="utf-8") + sections, encoding="utf-8")
         command = [sys.executable, "-m", "cubetrack.cli.main", "track", "--config", str(config),
@@ -829,6 +848,74 @@ def worker_split(args: argparse.Namespace, rec: Path, work: Path) -> dict:
             "load_average": os.getloadavg()[0]}
 
 
+WAKE_COST_FRAMES = 2000  # --wake-cost's frames when --speed-frames is not given
+
+
+def wake_cost(args: argparse.Namespace, rec: Path, work: Path) -> dict:
+    """What waking per frame costs the same work (issue 31: the live premium): the recording's first
+    frames on this thread, planned (``Tracker.admit``), worked (``FrameProcessor.work``) and fused
+    (``Tracker.fuse``) as the replay does them, each step's thread CPU summed; back to back, and with a
+    sleep of --wake-cost ms before each frame, or each --frames-per-wake'th (a live camera worker process
+    sleeps until its next frame comes: its caches then hold what ran meanwhile). A new tracker per pass;
+    --speed-rounds rounds of both, interleaved, the order alternating. Thread CPU per frame of each step,
+    medians over the rounds."""
+    import cv2
+
+    from cubetrack.app.config import load_config, recording_intrinsics
+    from cubetrack.app.tracker import Tracker
+    from cubetrack.io.config import read_extrinsics
+    from cubetrack.io.recording import Recording
+
+    cv2.setNumThreads(1)
+    config, settings = load_config(tracker_config(args, rec, work))
+    recording = Recording.open(rec)
+    frames = list(itertools.islice(recording.merged_frames(), args.speed_frames or WAKE_COST_FRAMES))
+    intrinsics, extrinsics = recording_intrinsics(config, recording), read_extrinsics(rec / "extrinsics.toml")
+
+    def one_pass(gap_s: float) -> dict[str, float]:
+        tracker = Tracker(intrinsics, config.world, config.robots, extrinsics, settings.stages)
+        cpu_s, jobs = {"plan": 0.0, "work": 0.0, "fuse": 0.0}, 0
+        for k, frame in enumerate(frames):
+            if gap_s and k % args.frames_per_wake == 0:
+                time.sleep(gap_s)
+            t0 = time.thread_time()
+            job = tracker.admit(frame)
+            t1 = time.thread_time()
+            cpu_s["plan"] += t1 - t0
+            if job is None:
+                continue
+            result = tracker.processor.work(job)
+            t2 = time.thread_time()
+            tracker.fuse(result, frame.host_time_s)
+            cpu_s["work"] += t2 - t1
+            cpu_s["fuse"] += time.thread_time() - t2
+            jobs += 1
+        per = {k: v / max(jobs, 1) * 1000.0 for k, v in cpu_s.items()}
+        return {**per, "all": sum(per.values())}
+
+    rounds: dict[str, list[dict[str, float]]] = {"back_to_back": [], "woken": []}
+    for k in range(args.speed_rounds):
+        order = ("back_to_back", "woken") if k % 2 == 0 else ("woken", "back_to_back")
+        for name in order:
+            rounds[name].append(one_pass(args.wake_cost / 1000.0 if name == "woken" else 0.0))
+    ms = {name: {key: float(np.median([r[key] for r in runs])) for key in runs[0]} for name, runs in rounds.items()}
+    return {"frames": len(frames), "gap_ms": args.wake_cost, "frames_per_wake": args.frames_per_wake, "ms": ms,
+            "ratio": {key: ms["woken"][key] / ms["back_to_back"][key] for key in ms["woken"]},
+            "load_average": os.getloadavg()[0]}
+
+
+def print_wake_cost(args: argparse.Namespace, wc: dict) -> None:
+    ms, ratio = wc["ms"], wc["ratio"]
+    steps = ("plan", "work", "fuse", "all")
+    print(f"waking per frame: the first {wc['frames']} frames on one thread, nproc {os.cpu_count()} (load average "
+          f"{wc['load_average']:.1f}), {args.speed_rounds} round(s) interleaved, medians; thread CPU ms per frame "
+          "(planning, decode + detection + estimates, fusion, all):")
+    each = "before each" if wc["frames_per_wake"] == 1 else f"per {wc['frames_per_wake']} frames"
+    for name, label in (("back_to_back", "back to back"), ("woken", f"a {wc['gap_ms']:g} ms sleep {each}")):
+        print(f"  {label}: " + ", ".join(f"{ms[name][k]:.3f}" for k in steps))
+    print("  woken / back to back: " + ", ".join(f"{ratio[k]:.2f}" for k in steps))
+
+
 class _NoSink:
     def pose(self, pose) -> None:
         pass
@@ -967,6 +1054,9 @@ def main(argv: list[str] | None = None) -> int:
         rec = ensure_recording(args, work)
         if args.worker_split:
             print_worker_split(args, worker_split(args, rec, work))
+            return 0
+        if args.wake_cost is not None:
+            print_wake_cost(args, wake_cost(args, rec, work))
             return 0
         if args.speed_only:
             load = os.getloadavg()
