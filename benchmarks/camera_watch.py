@@ -172,11 +172,29 @@ def principal_point_floor_deg(rec: Path, camera: str) -> float:
     return math.degrees(math.atan(math.hypot(*(told[:2, 2] - true[:2, 2])) / true[0, 0]))
 
 
+def calibrated_world(rec: Path, extrinsics: dict, still: list[str]) -> tuple[np.ndarray, float]:
+    """The rigid motion ``G`` (4x4) that best maps the ``still`` cameras' true poses onto their
+    calibrated ones (each pose as :func:`pose_points`), and the RMS (m) of what it leaves: the
+    world the calibration put those cameras in, and how far they are from any rigid copy of the truth."""
+    true = np.vstack([pose_points(true_camera_pose(rec, c)) for c in still])
+    calibrated = np.vstack([pose_points(extrinsics[c].T_world_cam) for c in still])
+    R, _, a, b = similarity(true, calibrated, False)
+    G = np.eye(4)
+    G[:3, :3], G[:3, 3] = R, b - R @ a
+    return G, float(np.sqrt(np.mean(np.sum((true @ R.T + G[:3, 3] - calibrated) ** 2, axis=1))))
+
+
 def bump_rows(rec: Path, events: list, moves: Moves, start: float, extrinsics: dict) -> dict:
     """Per bumped camera: moved declared and rejoined (s after its bump), the new pose's error,
     and what bounds it: the camera's calibrated pose against its true pose before the bump, and its
-    principal point's error as a turn."""
+    principal point's error as a turn. The new pose is also compared with its true pose mapped into
+    the calibrated world (:func:`calibrated_world` of the cameras never moved): what a re-calibration
+    against the other cameras can reach, their calibration error left out (``new_pose_error_in_world``,
+    ``world_rms_m``)."""
     out = {}
+    moved = {f"cam{c}" for c in moves.bump_cameras} | ({f"cam{moves.drift_camera}"} if moves.drift_camera else set())
+    still = sorted(c for c in extrinsics if c not in moved)
+    G, world_rms_m = calibrated_world(rec, extrinsics, still) if len(still) >= 2 else (None, math.nan)
     for number, at_s in zip(moves.bump_cameras, moves.bump_at_s, strict=True):
         camera = f"cam{number}"
         moved = [e for e in events if e.kind.value == "moved" and e.camera == camera]
@@ -191,6 +209,9 @@ def bump_rows(rec: Path, events: list, moves: Moves, start: float, extrinsics: d
             row["move_error"] = move_error(rejoined[0].T_world_cam, extrinsics[camera].T_world_cam,
                                            true_camera_pose(rec, camera), true_before)
             row["sightings"] = rejoined[0].sightings
+            if G is not None:
+                row["new_pose_error_in_world"] = pose_error(G @ true_camera_pose(rec, camera), rejoined[0].T_world_cam)
+                row["world_rms_m"] = world_rms_m
         out[camera] = row
     return out
 
@@ -463,6 +484,10 @@ def print_table(rows: list[dict]) -> None:
                   f"{_deg(b.get('principal_point_floor_deg')):>9}  {tail}")
             if b.get("move_error"):
                 print(f"{'':29}the move found against the true move: {_pose(b['move_error'])}")
+            if b.get("new_pose_error_in_world"):
+                print(f"{'':29}the new pose against its true pose in the calibrated world of the unmoved cameras: "
+                      f"{_pose(b['new_pose_error_in_world'])} (those cameras {1000 * b['world_rms_m']:.1f} mm RMS "
+                      f"from a rigid copy of their truth)")
         print(f"    drift followed: {len(w['follows'])} steps {sorted({f[0] for f in w['follows']})}; cameras that "
               f"never moved followed (mm from their calibration at the end): {w['false_follows_mm']} "
               f"(still twin: {r['still']['false_follows_mm'] if 'still' in r else '-'})")
