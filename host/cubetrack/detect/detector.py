@@ -202,11 +202,12 @@ class DetectorParams:
         "docs/detection.md \"Predicted markers\")",
     )
     predicted_edge_settled_px: float = param(
-        0.01, "edge and template: a marker fitted from its prediction gets no more fits after one that moved none "
+        0.05, "edge and template: a marker fitted from its prediction gets no more fits after one that moved none "
         "of its corners by this much along either axis, pixels (0: always predicted_edge_iterations fits). A fit "
-        "leaves about 0.4x its move still to go, so a marker stops ~0.004 px from where more fits take it, what 4 "
-        "fits leave from 1 px off; on the 16 x 30 recording 3.3 fits a marker instead of 4, corners within 0.0017 "
-        "px of 4 fits' (p95; docs/detection.md \"Predicted markers\")",
+        "leaves about 0.4x its move still to go, so a marker stops ~0.02 px from where more fits take it, under a "
+        "head-on edge-fit corner's own error (~0.06 px); on the 16 x 30 recording 2.7 fits a marker instead of 4 "
+        "(0.01: 3.3), corners within 0.016 px of 4 fits' (p95) and as far from 8 fits' as 4 fits' are (p95 "
+        "0.154 px, the markers whose fits do not settle; docs/detection.md \"Predicted markers\")",
     )
     template_iterations: int = param(
         2, "template only: Gauss-Newton iterations of each marker's fit, from the edge fit's corners",
