@@ -32,5 +32,11 @@ def test_the_drifting_camera_alone_is_followed_closer_than_without_the_follow(tm
     error_still = value(still["largest follow error"])
     assert error_followed["cam3"] < error_still["cam3"]              # the follow brought the pose in use closer
     assert error_followed["cam1"] == error_followed["cam2"] == 0.0   # the still cameras' poses in use never moved
-    for out in (followed, still):
-        assert out["events"].startswith("events [] ")                 # no moved alarm for a drift
+    events = {name: events_of(out["events"]) for name, out in (("followed", followed), ("still", still))}
+    assert not [e for run in events.values() for e in run if e[0] != "followed"]   # no moved alarm for a drift
+    assert {camera for _, camera, _ in events["followed"]} == {"cam3"} and events["still"] == []   # each step told
+
+
+def events_of(line: str) -> list[tuple[str, str, float]]:
+    """``events [(kind, camera, time_s), ...] {counts}`` -> the list."""
+    return ast.literal_eval(line.removeprefix("events ").rsplit(" {", 1)[0])
