@@ -37,6 +37,7 @@ from tests.helpers.webcams import paced_video
 pytestmark = pytest.mark.slow
 
 DURATION_S = 8.0
+STAMP_TOLERANCE_S = 20e-6  # a recorded stamp rebuilt from microsecond fields
 
 
 class HealthTap(Sink):
@@ -138,5 +139,11 @@ def test_the_mixed_session_recording_replays_offline_like_any_other(scene, mixed
     replay = read_tum(tmp_path / "replay" / "robot.tum")
     live = read_tum(work / "mixed" / "robot.tum")
     assert len(replay.times_s) >= 0.9 * len(live.times_s)
-    both = np.intersect1d(np.round(replay.times_s, 6), np.round(live.times_s, 6))
-    assert len(both) >= 0.5 * len(live.times_s)  # the same capture times: the recorded stamps replay
+    # the same capture times: the recording keeps stamps and round trips to the microsecond, and a
+    # frame is stamped from the round trips that came before it, live or replayed; a stamp taken
+    # from the arrival instead would be off by the transfer (cam1's emulated link: ~20 ms)
+    at = np.clip(np.searchsorted(replay.times_s, live.times_s), 1, len(replay.times_s) - 1)
+    off_s = np.minimum(np.abs(replay.times_s[at] - live.times_s), np.abs(replay.times_s[at - 1] - live.times_s))
+    print(f"live pose times to the nearest replayed one: median {np.median(off_s) * 1e6:.1f} us, "
+          f"max {off_s.max() * 1e6:.1f} us")
+    assert np.mean(off_s <= STAMP_TOLERANCE_S) >= 0.95
