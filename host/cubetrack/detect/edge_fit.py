@@ -11,7 +11,7 @@ from __future__ import annotations
 import functools
 import math
 from collections.abc import Callable
-from typing import cast
+from typing import Any, cast
 
 import numba
 import numpy as np
@@ -30,6 +30,9 @@ _EDGE_SPAN = (0.1, 0.9)       # the detector's edge samples: the middle 80 % of 
 _EDGE_SAMPLES_ACROSS = 17     # profile samples across an edge
 _EDGE_FOCUS_PX = 3.0          # focus='tent': half-width of the tent that re-centres each edge point, px
 _PEAK_WINDOW_PX = 1.25        # focus='peak': half-width of the window around the gradient's peak, px
+
+# _side_samples' output, per quad and side: (positions (M, 4, m, k), vector, outward normal, length, half-width)
+_Sides = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]
 
 
 def _distort_c(z: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:
@@ -58,39 +61,61 @@ def _edge_sampling(samples_along: int, samples_across: int, span: tuple[float, f
 
 
 @numba.njit(cache=True, nogil=True)
-def _edge_offset(g: np.ndarray, s_mid: np.ndarray, peak: bool, focus_px: float) -> float:
-    """Where along the normal (px) the rising gradient ``g`` (m-1 differences of one profile,
-    at ``s_mid`` px) puts the edge: see :func:`refine_corners_edges`'s ``focus``."""
-    n = g.shape[0]
+def _edge_points(prof: np.ndarray, s_mid: np.ndarray, focus: tuple[bool, float, float], g: np.ndarray,
+                 sums: np.ndarray, off: np.ndarray, weight: np.ndarray) -> None:
+    """One side's edge points from its profiles ``prof`` (m, k; float32: m samples from inside
+    to outside at each of k places along the side): ``off`` (k) where along the normal (px, the
+    sample midpoints at ``s_mid``) the rising gradient puts the edge (``focus``: peak or not,
+    ``focus_px``; see :func:`refine_corners_edges`), ``weight`` (k) the gradient's mass, 0 where
+    the profile brightens by ``min_contrast`` or less. ``g`` (m-1, k) and ``sums`` (2, k) are
+    scratch. The k profiles go in lockstep (k innermost: independent sums, which the compiler
+    vectorises; each profile's sums still run over its own samples in order)."""
+    peak, focus_px, min_contrast = focus
+    k = prof.shape[1]
+    for i in range(k):
+        weight[i] = 0.0
+    for j in range(g.shape[0]):
+        for i in range(k):
+            g[j, i] = max(np.float64(prof[j + 1, i]) - np.float64(prof[j, i]), 0.0)
+            weight[i] += g[j, i]
     if peak:   # start at the (smoothed) gradient's peak; a hard window of +-focus_px around the edge point
-        best, at = -1.0, 0
-        for j in range(n - 2):
-            smooth = g[j] + 2.0 * g[j + 1] + g[j + 2]
-            if smooth > best:
-                best, at = smooth, j
-        off = s_mid[at + 1]
+        for i in range(k):
+            sums[0, i], off[i] = -1.0, s_mid[1]
+        for j in range(g.shape[0] - 2):
+            for i in range(k):
+                smooth = g[j, i] + 2.0 * g[j + 1, i] + g[j + 2, i]
+                if smooth > sums[0, i]:
+                    sums[0, i], off[i] = smooth, s_mid[j + 1]
         for _focus in range(3):
-            sgd, sg = 0.0, 0.0
-            for j in range(n):
-                d = s_mid[j] - off
-                if abs(d) <= focus_px:
-                    sgd += g[j] * d
-                    sg += g[j]
-            off = off + sgd / max(sg, 1e-12)
-        return off
-    sgu, sg = 0.0, 0.0   # the centroid of the whole profile's gradient, then a tent of half-width focus_px
-    for j in range(n):
-        sgu += g[j] * s_mid[j]
-        sg += g[j]
-    off = sgu / max(sg, 1e-12)
-    for _focus in range(2):   # the centroid under tent weights focus_px - |d| around the last
-        sgu, sg = 0.0, 0.0
-        for j in range(n):
-            gf = g[j] * max(focus_px - abs(s_mid[j] - off), 0.0)
-            sgu += gf * s_mid[j]
-            sg += gf
-        off = sgu / max(sg, 1e-12)
-    return off
+            sums[:] = 0.0
+            for j in range(g.shape[0]):
+                for i in range(k):
+                    d = s_mid[j] - off[i]
+                    if abs(d) <= focus_px:
+                        sums[0, i] += g[j, i] * d
+                        sums[1, i] += g[j, i]
+            for i in range(k):
+                off[i] = off[i] + sums[0, i] / max(sums[1, i], 1e-12)
+    else:   # the centroid of the whole profile's gradient, then twice under tent weights focus_px - |d| around the last
+        sums[:] = 0.0
+        for j in range(g.shape[0]):
+            for i in range(k):
+                sums[0, i] += g[j, i] * s_mid[j]
+                sums[1, i] += g[j, i]
+        for i in range(k):
+            off[i] = sums[0, i] / max(sums[1, i], 1e-12)
+        for _focus in range(2):
+            sums[:] = 0.0
+            for j in range(g.shape[0]):
+                for i in range(k):
+                    gf = g[j, i] * max(focus_px - abs(s_mid[j] - off[i]), 0.0)
+                    sums[0, i] += gf * s_mid[j]
+                    sums[1, i] += gf
+            for i in range(k):
+                off[i] = sums[0, i] / max(sums[1, i], 1e-12)
+    for i in range(k):
+        rise = np.float64(prof[-1, i]) - np.float64(prof[0, i])
+        weight[i] = weight[i] if weight[i] > 1e-6 and rise > min_contrast else 0.0
 
 
 @numba.njit(cache=True, nogil=True)
@@ -113,18 +138,29 @@ def _line_fit(weight: np.ndarray, off: np.ndarray, t: np.ndarray) -> tuple[float
 
 
 @numba.njit(cache=True, nogil=True)
-def _side_samples(z: np.ndarray, width_per_side: np.ndarray, t: np.ndarray, unit: np.ndarray
-                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Where the edge fit samples the quads ``z`` (M, 4; complex x + iy): ``(p, v, n, length,
-    w)``, the positions (M, 4, k, m) at fractions ``t`` along each side and ``unit`` half-widths
-    across it, each side's vector (corner i -> i + 1), outward unit normal (clockwise, y down) and
-    length, and its half-width ``w``: ``width_per_side`` (M, 1; or 1, 1 for all) x the two
-    neighbouring sides, in [1.5, 4] px."""
+def _fit_buffers(n_markers: int, k: int, m: int) -> tuple[_Sides, np.ndarray, np.ndarray, tuple[np.ndarray, ...]]:
+    """What one fit of ``n_markers`` quads with k samples along and m across each side writes,
+    allocated once for all of a call's fits (a fit allocates nothing): ``(sides, prof, xy,
+    scratch)``, :func:`_side_samples`' ``(p, v, n, length, w)``, the profiles (M, 4, m, k;
+    float32), :func:`_profiles`' and :func:`_fitted_corners`' scratch."""
+    sides = (np.empty((n_markers, 4, m, k), np.complex128), np.empty((n_markers, 4), np.complex128),
+             np.empty((n_markers, 4), np.complex128), np.empty((n_markers, 4)), np.empty((n_markers, 4)))
+    scratch = (np.empty((m - 1, k)), np.empty((2, k)), np.empty(m - 1), np.empty(k), np.empty(k),
+               np.empty(4, np.complex128), np.empty(4, np.complex128))
+    samples = n_markers * 4 * m * k
+    return sides, np.empty((n_markers, 4, m, k), np.float32), np.empty((2, samples), np.float32), scratch
+
+
+@numba.njit(cache=True, nogil=True)
+def _side_samples(z: np.ndarray, width_per_side: np.ndarray, t: np.ndarray, unit: np.ndarray, sides: _Sides) -> None:
+    """Where the edge fit samples the quads ``z`` (M, 4; complex x + iy), into ``sides`` = ``(p,
+    v, n, length, w)``: the positions (M, 4, m, k) at ``unit`` half-widths across each side and
+    fractions ``t`` along it, each side's vector (corner i -> i + 1), outward unit normal
+    (clockwise, y down) and length, and its half-width ``w``: ``width_per_side`` (M, 1; or 1, 1
+    for all) x the two neighbouring sides, in [1.5, 4] px."""
+    p, v, n, length, w = sides
     n_markers, k, m = z.shape[0], t.shape[0], unit.shape[0]
     last = width_per_side.shape[0] - 1
-    v, n = np.empty((n_markers, 4), np.complex128), np.empty((n_markers, 4), np.complex128)
-    length, w = np.empty((n_markers, 4)), np.empty((n_markers, 4))
-    p = np.empty((n_markers, 4, k, m), np.complex128)
     for q in range(n_markers):
         for side in range(4):
             v[q, side] = z[q, (side + 1) % 4] - z[q, side]
@@ -136,9 +172,8 @@ def _side_samples(z: np.ndarray, width_per_side: np.ndarray, t: np.ndarray, unit
             across = w[q, side] * n[q, side]
             for i in range(k):
                 at = z[q, side] + t[i] * v[q, side]
-                for j in range(m):
-                    p[q, side, i, j] = at + unit[j] * across
-    return p, v, n, length, w
+                for j in range(m):   # at + unit[j] * across without the complex product's zero terms
+                    p[q, side, j, i] = complex(at.real + unit[j] * across.real, at.imag + unit[j] * across.imag)
 
 
 def _fma32_typed(typingctx: object, a: object, b: object, c: object) -> tuple[object, Callable[..., object]]:
@@ -154,36 +189,53 @@ def _fma32_typed(typingctx: object, a: object, b: object, c: object) -> tuple[ob
 _fma32 = cast(Callable[[np.float32, np.float32, np.float32], np.float32], intrinsic(_fma32_typed))
 
 
+@numba.njit(cache=True, nogil=True, inline="always")
+def _bilinear(img: np.ndarray, x0: np.unsignedinteger[Any], y0: np.unsignedinteger[Any], x1: np.unsignedinteger[Any],
+              y1: np.unsignedinteger[Any], ax: np.float32, ay: np.float32) -> np.float32:
+    """``cv2.remap``'s bilinear sample of ``img`` between the pixels x0, x1 and y0, y1 (unsigned:
+    no wrap-around code) at the fractions ``ax``, ``ay``: two fused multiply-adds along x, one along y."""
+    p00, p01 = np.float32(img[y0, x0]), np.float32(img[y0, x1])
+    p10, p11 = np.float32(img[y1, x0]), np.float32(img[y1, x1])
+    top, bottom = _fma32(ax, p01 - p00, p00), _fma32(ax, p11 - p10, p10)
+    return _fma32(ay, bottom - top, top)
+
+
 @numba.njit(cache=True, nogil=True)
-def _profiles(img: np.ndarray, p: np.ndarray) -> np.ndarray:
-    """``img`` (H, W; 8-bit or float32) sampled at the positions ``p`` (C-contiguous, any shape;
-    complex x + iy, pixels), float32 of ``p``'s shape: what ``cv2.remap`` of ``img`` as float32
-    at ``p`` as a float32 map (``INTER_LINEAR``, ``BORDER_REPLICATE``) gives in OpenCV 5, to the
-    bit — its arithmetic in its order: the float32 position's fractions, two fused multiply-adds
-    along x and one along y (tests/unit/detect/test_compiled_kernels.py compares the two) —
-    without a call per fit."""
+def _profiles(img: np.ndarray, p: np.ndarray, xy: np.ndarray, out: np.ndarray) -> None:
+    """``img`` (H, W; 8-bit or float32) sampled at the positions ``p`` (1-D, N; complex x + iy,
+    pixels) into ``out`` (float32, N): what ``cv2.remap`` of ``img`` as float32 at ``p`` as a
+    float32 map (``INTER_LINEAR``, ``BORDER_REPLICATE``) gives in OpenCV 5, to the bit — its
+    arithmetic in its order: the float32 position's fractions, two fused multiply-adds along x
+    and one along y (tests/unit/detect/test_compiled_kernels.py compares the two) — without a
+    call per fit. ``xy`` (2, N; float32) is scratch: the positions as float32, so that when all
+    lie inside the image (a fit's usual case) one loop without the border's branch samples them."""
     height, width = img.shape
-    out = np.empty(p.shape, np.float32)
-    flat, values = p.reshape(-1), out.reshape(-1)
     x_inside, y_inside = np.float32(width - 1), np.float32(height - 1)
-    for s in range(flat.shape[0]):
-        x, y = np.float32(flat[s].real), np.float32(flat[s].imag)
+    outside = 0
+    for s in range(p.shape[0]):
+        x, y = np.float32(p[s].real), np.float32(p[s].imag)
+        xy[0, s], xy[1, s] = x, y
+        outside += not (x >= 0.0 and x < x_inside and y >= 0.0 and y < y_inside)
+    if outside == 0:
+        for s in range(p.shape[0]):
+            x, y = xy[0, s], xy[1, s]
+            cx, cy = np.int32(x), np.int32(y)   # the pixel cell, as the loop below has it
+            out[s] = _bilinear(img, np.uint32(cx), np.uint32(cy), np.uint32(cx + 1), np.uint32(cy + 1),
+                               x - np.float32(cx), y - np.float32(cy))
+        return
+    for s in range(p.shape[0]):
+        x, y = xy[0, s], xy[1, s]
         if x >= 0.0 and x < x_inside and y >= 0.0 and y < y_inside:
             ix, iy = int(x), int(y)
-            x0, y0, x1, y1 = ix, iy, ix + 1, iy + 1
+            x0, y0, x1, y1 = numba.uint64(ix), numba.uint64(iy), numba.uint64(ix + 1), numba.uint64(iy + 1)
         else:   # the border's pixels replicated (a position beyond -1 or NaN as at -1, beyond the end as at it)
             x = x if x > -1.0 else np.float32(-1.0)
             y = y if y > -1.0 else np.float32(-1.0)
             x, y = min(x, np.float32(width)), min(y, np.float32(height))
             ix, iy = int(math.floor(x)), int(math.floor(y))
-            x0, x1 = min(max(ix, 0), width - 1), min(max(ix + 1, 0), width - 1)
-            y0, y1 = min(max(iy, 0), height - 1), min(max(iy + 1, 0), height - 1)
-        ax, ay = x - np.float32(ix), y - np.float32(iy)
-        p00, p01 = np.float32(img[y0, x0]), np.float32(img[y0, x1])
-        p10, p11 = np.float32(img[y1, x0]), np.float32(img[y1, x1])
-        top, bottom = _fma32(ax, p01 - p00, p00), _fma32(ax, p11 - p10, p10)
-        values[s] = _fma32(ay, bottom - top, top)
-    return out
+            x0, x1 = numba.uint64(min(max(ix, 0), width - 1)), numba.uint64(min(max(ix + 1, 0), width - 1))
+            y0, y1 = numba.uint64(min(max(iy, 0), height - 1)), numba.uint64(min(max(iy + 1, 0), height - 1))
+        out[s] = _bilinear(img, x0, y0, x1, y1, x - np.float32(ix), y - np.float32(iy))
 
 
 @numba.njit(cache=True, nogil=True)
@@ -230,36 +282,26 @@ def _fit_result(z: np.ndarray, z_in: np.ndarray, inv_modules: np.ndarray, fitted
 
 
 @numba.njit(cache=True, nogil=True)
-def _fitted_corners(prof: np.ndarray, z: np.ndarray, z0: np.ndarray, v: np.ndarray, n: np.ndarray,
-                    length: np.ndarray, w: np.ndarray, t: np.ndarray, unit_mid: np.ndarray,
-                    focus: tuple[bool, float, float], fitted: np.ndarray) -> np.ndarray:
-    """One iteration of the edge fit after sampling: from the profiles ``prof`` (M, 4, k, m,
-    float32) across the sides of the quads ``z`` (with :func:`_side_samples`' ``v``, ``n``,
-    ``length``, ``w``), each side's edge points (``focus``: peak or not, ``focus_px``,
-    ``min_contrast``), its line ``off = a + b t`` (px along the normal) fitted to them weighted by
-    their gradient mass, once more without points beyond 2.5 sigma, and the corners where
-    neighbouring lines meet. ``fitted`` (M, 4) is cleared where a side has fewer than 3 points or
-    is shorter than 4 px or a corner is not finite; those markers' corners are ``z0``'s. One
-    compiled pass: as numpy, ~40 calls per iteration over a few markers, and the calls were the cost."""
-    peak, focus_px, min_contrast = focus
-    n_markers, k, m = prof.shape[0], prof.shape[2], prof.shape[3]
-    base, direction = np.empty(4, np.complex128), np.empty(4, np.complex128)   # side i: base + s direction
-    out = np.empty_like(z)
-    g, s_mid = np.empty(m - 1), np.empty(m - 1)
-    off, weight = np.empty(k), np.empty(k)
+def _fitted_corners(prof: np.ndarray, z: np.ndarray, z0: np.ndarray, sides: _Sides, t: np.ndarray,
+                    unit_mid: np.ndarray, focus: tuple[bool, float, float], fitted: np.ndarray,
+                    scratch: tuple[np.ndarray, ...], out: np.ndarray) -> None:
+    """One iteration of the edge fit after sampling, into ``out`` (M, 4): from the profiles
+    ``prof`` (M, 4, m, k, float32) across the sides of the quads ``z`` (:func:`_side_samples`'
+    ``sides``; ``scratch`` from :func:`_fit_buffers`), each side's edge points
+    (:func:`_edge_points`; ``focus``: peak or not, ``focus_px``, ``min_contrast``), its line
+    ``off = a + b t`` (px along the normal) fitted to them weighted by their gradient mass, once
+    more without points beyond 2.5 sigma, and the corners where neighbouring lines meet.
+    ``fitted`` (M, 4) is cleared where a side has fewer than 3 points or is shorter than 4 px or
+    a corner is not finite; those markers' corners are ``z0``'s. One compiled pass: as numpy,
+    ~40 calls per iteration over a few markers, and the calls were the cost."""
+    _p, v, n, length, w = sides
+    g, sums, s_mid, off, weight, base, direction = scratch   # side i: base + s direction
+    n_markers, m, k = prof.shape[0], prof.shape[2], prof.shape[3]
     for q in range(n_markers):
         for side in range(4):
             for j in range(m - 1):
                 s_mid[j] = unit_mid[j] * w[q, side]
-            for i in range(k):
-                row = prof[q, side, i]
-                mass = 0.0
-                for j in range(m - 1):
-                    g[j] = max(np.float64(row[j + 1]) - np.float64(row[j]), 0.0)
-                    mass += g[j]
-                off[i] = _edge_offset(g, s_mid, peak, focus_px)
-                rise = np.float64(row[m - 1]) - np.float64(row[0])
-                weight[i] = mass if mass > 1e-6 and rise > min_contrast else 0.0
+            _edge_points(prof[q, side], s_mid, focus, g, sums, off, weight)
             a0, b0, s0 = _line_fit(weight, off, t)
             rms2 = 0.0
             for i in range(k):
@@ -286,7 +328,6 @@ def _fitted_corners(prof: np.ndarray, z: np.ndarray, z0: np.ndarray, v: np.ndarr
         for c in range(4):
             if not fitted[q, c]:
                 out[q, c] = z0[q, c]
-    return out
 
 
 @numba.njit(cache=True, nogil=True)
@@ -299,16 +340,20 @@ def _fitted_loop(img: np.ndarray, z0: np.ndarray, width_per_side: np.ndarray, t:
     corners by ``settled_px`` or more along either axis (0: never before ``iterations``)."""
     out = np.empty_like(z0)
     last = width_per_side.shape[0] - 1
+    sides, prof, xy, scratch = _fit_buffers(1, t.shape[0], unit.shape[0])   # one marker at a time, every fit
+    samples, values = sides[0].reshape(-1), prof.reshape(-1)
+    z, fit = np.empty((1, 4), np.complex128), np.empty((1, 4), np.complex128)
     for q in range(z0.shape[0]):
         start, held, width = z0[q:q + 1], fitted[q:q + 1], width_per_side[min(q, last):min(q, last) + 1]
-        z = start
+        z[:] = start
         for _ in range(iterations):
-            p, v, n, length, w = _side_samples(z, width, t, unit)
-            fit = _fitted_corners(_profiles(img, p), z, start, v, n, length, w, t, unit_mid, focus, held)
+            _side_samples(z, width, t, unit, sides)
+            _profiles(img, samples, xy, values)
+            _fitted_corners(prof, z, start, sides, t, unit_mid, focus, held, scratch, fit)
             moved = 0.0
             for c in range(4):
                 moved = max(moved, abs(fit[0, c].real - z[0, c].real), abs(fit[0, c].imag - z[0, c].imag))
-            z = fit
+            z, fit = fit, z
             if moved < settled_px:
                 break
         out[q] = z[0]
@@ -433,11 +478,13 @@ def refine_corners_edges(gray: np.ndarray, corners_px: np.ndarray, modules: int 
     z0 = _undistort_c(z_in, *lens)                                      # corners in the pinhole image
     fitted = np.ones(z0.shape, dtype=bool)   # per side and corner: the fit held (a failed marker's
     # corners restart from the initial ones, so the next iteration samples finite positions)
-    z = z0
+    z, fit = z0.copy(), np.empty_like(z0)
+    sides, prof, xy, scratch = _fit_buffers(z0.shape[0], t.shape[0], unit.shape[0])
     for _ in range(iterations):   # _fitted_loop's steps, each sample looked up at its distorted position
-        p, v, n, length, w = _side_samples(z, 0.4 * inv_modules, t, unit)
-        z = _fitted_corners(_profiles(region, _distort_c(p, *lens)), z, z0, v, n, length, w, t, unit_mid,
-                            fit_focus, fitted)
+        _side_samples(z, 0.4 * inv_modules, t, unit, sides)
+        _profiles(region, _distort_c(sides[0], *lens).reshape(-1), xy, prof.reshape(-1))
+        _fitted_corners(prof, z, z0, sides, t, unit_mid, fit_focus, fitted, scratch, fit)
+        z, fit = fit, z
     # a corner moving more than two modules (at least 3 px) is a failed fit
     c = _fit_result(_distort_c(z, *lens), z_in, inv_modules, fitted, good, origin)
     return c[0] if single else c
