@@ -71,8 +71,10 @@ def test_a_bumped_camera_goes_moved_recalibrating_rejoined_on_its_tile(tmp_path)
     assert cam2[:2] == ["settling", "watched"] and set(cam2[2:moved]) <= {"suspect", "watched"}, cam2
     assert cam2[moved + 1] == "re-calibrating", cam2
     assert cam2.index("rejoined") > moved + 1 and "corners gathered" in shown, (cam2, shown)
-    for other in ("cam1", "cam3", "cam4"):  # never judged moved (suspect for a moment while cam2 was off is allowed)
-        assert "moved" not in trail[other] and trail[other][-1] == "watched", trail
+    # never judged moved; suspect for a moment while cam2 was off is allowed, also when the trails are read (at
+    # cam2's rejoin: a spell begun while cam2 was away can still be on; seen at load 10-14, cam2 rejoined at 1.45 deg)
+    for other in ("cam1", "cam3", "cam4"):
+        assert "moved" not in trail[other] and trail[other][-1] in ("watched", "suspect"), trail
     assert camera["watch"]["state"] in ("rejoined", "watched")
     events = [json.loads(x) for x in (out / "camera_watch.jsonl").read_text().splitlines()]
     assert [(e["event"], e["camera"]) for e in events] == [("moved", "cam2"), ("rejoined", "cam2")], events
