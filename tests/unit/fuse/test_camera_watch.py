@@ -20,8 +20,8 @@ import pytest
 from scipy.spatial.transform import Rotation
 from test_joint_and_filter import CAMS, INTR, LAYOUT, detections, look_at
 
-from cubetrack.calib.recalibrate import JOINT_MAX_RATIO, WatchedFusion, extrapolation_ratio
-from cubetrack.core.geometry import make_T, rotation_angle
+from cubetrack.calib.recalibrate import JOINT_MAX_RATIO, WatchedFusion, block_spread, extrapolation_ratio
+from cubetrack.core.geometry import make_T, rotation_angle, transform_points
 from cubetrack.core.records import CameraWatchState, CubeSighting
 from cubetrack.estimate.pose import estimate_cube
 from cubetrack.fuse import camera_watch
@@ -444,6 +444,52 @@ def test_the_joint_fits_extrapolation_takes_only_a_shrinking_step_along_the_last
     turned = 0.5 * np.array([1e-3, 2e-3, 0.0, 0.0, 1e-4, 0.0])  # shorter, but at right angles
     assert abs(turned @ last) < 1e-12 and extrapolation_ratio(turned, last) == 0.0
     assert extrapolation_ratio(last, np.zeros(6)) == 0.0  # the first round
+
+
+@pytest.mark.parametrize("seed", [0, 3])
+def test_a_recalibrations_spread_is_what_its_sightings_leave_open_not_the_corner_noise(seed):
+    """A re-calibration rejoins when its sightings pin its pose (``block_spread``: its fits leaving out
+    each of 8 blocks of them in time, in turn), not only by the fit's own covariance, which takes every
+    corner's error as independent. 80 sightings of cam2 (8 corners each, 0.3 px of corner noise): with
+    independent noise alone the two agree; with each sighting's reference cube also off by its own few
+    millimetres (shared by its 8 corners, as the other cameras' cube pose is) the covariance still says
+    0.7 mm while the pose is several millimetres off, and the spread says so. With 2 blocks the spread
+    is half the distance between the fits of the older and the newer half (the test it replaces)."""
+    rng = np.random.default_rng(seed)
+    T_cam, focal = CAMERAS["cam2"], INTR.K[0, 0]
+    corners = np.array([[x, y, z] for x in (-0.05, 0.05) for y in (-0.05, 0.05) for z in (-0.05, 0.05)])
+
+    def gathered(shared_m: float) -> list[WatchSample]:
+        out = []
+        for k in range(80):
+            points = transform_points(cube_at(0.15 * k), corners)
+            in_cam = (points - T_cam[:3, 3]) @ T_cam[:3, :3]
+            normalized = in_cam[:, :2] / in_cam[:, 2:] + rng.normal(0.0, 0.3 / focal, (8, 2))
+            out.append(WatchSample("cam2", 0.15 * k, points + rng.normal(0.0, shared_m, 3), normalized,
+                                   np.full(8, focal)))
+        return out
+
+    for shared_m in (0.0, 0.005):
+        samples = gathered(shared_m)
+        fit = camera_watch.refit_camera(*camera_watch.stacked(samples), T_cam)
+        assert fit is not None
+        spread = block_spread(samples, fit.T_world_cam, 0.5)
+        assert spread is not None
+        error_m, _ = _offset(fit.T_world_cam, T_cam)
+        if shared_m == 0.0:
+            assert 0.5 * fit.sigma_m < spread[0] < 2.0 * fit.sigma_m and error_m < 2.0 * fit.sigma_m
+        else:
+            assert fit.sigma_m < 0.001 and spread[0] > 4.0 * fit.sigma_m and error_m < 3.0 * spread[0]
+            assert error_m > 2.0 * fit.sigma_m, "the covariance alone would have passed a pose this far off"
+    half = len(samples) // 2
+    older, newer = (camera_watch.refit_camera(*camera_watch.stacked(part), fit.T_world_cam)
+                    for part in (samples[:half], samples[half:]))
+    assert older is not None and newer is not None
+    apart_m, apart_deg = older.offset_from(newer.T_world_cam)
+    two = block_spread(samples, fit.T_world_cam, 0.5, blocks=2)
+    assert two is not None
+    assert two[0] == pytest.approx(apart_m / 2, rel=1e-6) and two[1] == pytest.approx(apart_deg / 2, rel=0.01)
+    assert block_spread(samples[:7], fit.T_world_cam, 0.5) is None  # fewer sightings than blocks
 
 
 @pytest.mark.parametrize(("changes", "message"), [
