@@ -12,7 +12,7 @@ camera saw of points the others located) and compared with the camera's **settle
 same fit over its samples of the ``baseline_s`` before the window (refitted every
 ``baseline_every_s``, once four times ``min_points`` corners over ``settle_span_s`` are there). The settled pose holds
 what the calibration left between this camera and the others, so that is never taken for a
-move; a camera is therefore only judged once it has one (a few seconds after the start or after
+move; a camera is therefore only judged once it has one (``settle_span_s`` of samples after the start or after
 rejoining). The camera is **moved** when
 
 - the window's pose moves the camera's corners by more than ``moved_px`` (RMS over the window's
