@@ -108,6 +108,8 @@ def main() -> None:
     ap.add_argument("--follow-m", type=float, default=0.0, help="[camera_watch] follow_m (0: no follow, the default)")
     ap.add_argument("--follow-ratio", type=float, default=2.0, help="[camera_watch] follow_ratio")
     ap.add_argument("--follow-px", type=float, default=0.3, help="[camera_watch] follow_px")
+    ap.add_argument("--settle-span-s", type=float, default=cw.WatchParams().settle_span_s,
+                    help="[camera_watch] settle_span_s (0: settled from the first seconds, as before session 26)")
     ap.add_argument("--anchor-s", type=float, default=35.0, help="the anchor for the table (s)")
     ap.add_argument("--work", default="/tmp/camera_drift", help="folder for the generated sightings (reused)")
     ap.add_argument("--true-model", action="store_true", help="the tracker told the true intrinsics and cube")
@@ -134,7 +136,8 @@ def main() -> None:
         seen = make_sightings(a, scene, believed, clock)
         with open(key, "wb") as f:
             pickle.dump(seen, f)
-    params = cw.WatchParams(enabled=True, follow_m=a.follow_m, follow_ratio=a.follow_ratio, follow_px=a.follow_px)
+    params = cw.WatchParams(enabled=True, follow_m=a.follow_m, follow_ratio=a.follow_ratio, follow_px=a.follow_px,
+                            settle_span_s=a.settle_span_s)
     robot = scene.robots[0]
     watch = cw.CameraWatch({robot.name: robot.true_layout if a.true_model else robot.layout}, believed, params)
     cams = {c.name: c for c in scene.cameras}

@@ -41,6 +41,7 @@ window_s = 1.0
 check_every_s = 0.25
 min_points = 20
 baseline_every_s = 0.5
+settle_span_s = 2.0
 rejoin_points = 150
 rejoin_sigma_m = 0.005
 rejoin_sigma_deg = 0.15

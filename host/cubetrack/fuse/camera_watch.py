@@ -10,9 +10,9 @@ that the watcher trusts. The sighting's corners and those reference world points
 are fitted as a camera resection (:func:`refit_camera`: the pose that best explains what this
 camera saw of points the others located) and compared with the camera's **settled pose**: the
 same fit over its samples of the ``baseline_s`` before the window (refitted every
-``baseline_every_s``, once four times ``min_points`` corners are there). The settled pose holds
+``baseline_every_s``, once four times ``min_points`` corners over ``settle_span_s`` are there). The settled pose holds
 what the calibration left between this camera and the others, so that is never taken for a
-move; a camera is therefore only judged once it has one (a few seconds after the start or after
+move; a camera is therefore only judged once it has one (``settle_span_s`` of samples after the start or after
 rejoining). The camera is **moved** when
 
 - the window's pose moves the camera's corners by more than ``moved_px`` (RMS over the window's
@@ -125,6 +125,11 @@ class WatchParams:
     baseline_s: float = param(30.0, "a camera's settled pose (what a window is compared with) is fitted to its "
                                     "checked sightings of this many seconds before the window, seconds")
     baseline_every_s: float = param(5.0, "how often the settled pose is fitted again, seconds")
+    settle_span_s: float = param(8.0, "a settled pose is fitted only to samples spanning this long at least (a "
+                                      "camera is judged from then on): fitted to the robot's first seconds in one "
+                                      "spot, it took up the other cameras' error there and wandered 30-60 mm / 1 deg "
+                                      "along the turn / sideways-shift ambiguity, and a window where the robot was "
+                                      "seen elsewhere said moved (docs/calibration.md, Session 26), seconds")
     moved_px: float = param(5.0, "moved: the refitted pose moves the camera's corners by more than this (RMS), "
                                  "pixels")
     moved_ratio: float = param(4.0, "moved: ... and the window's pose explains the window this many times better "
@@ -169,7 +174,7 @@ class WatchParams:
                                      "it is moved")
 
     def __post_init__(self) -> None:
-        check_at_least(self, 0, "gate_prediction_px", "follow_m")
+        check_at_least(self, 0, "gate_prediction_px", "follow_m", "settle_span_s")
         check_positive(self, "baseline_s", "baseline_every_s", "samples_per_s", "checks_per_s", "reference_span_s",
                        "reference_rms_px", "window_s", "check_every_s", "moved_px", "moved_ratio", "moved_m",
                        "moved_deg", "rejoin_sigma_m", "rejoin_sigma_deg", "rejoin_spread_m", "rejoin_spread_deg",
@@ -183,6 +188,8 @@ class WatchParams:
               f"check_every_s ({self.check_every_s}) must not exceed window_s ({self.window_s})")
         check(self.window_s < self.baseline_s, f"window_s ({self.window_s}) must be shorter than baseline_s "
               f"({self.baseline_s})")
+        check(self.settle_span_s < self.baseline_s, f"settle_span_s ({self.settle_span_s}) must be shorter than "
+              f"baseline_s ({self.baseline_s})")
 
 
 @enum.unique
@@ -865,8 +872,10 @@ class CameraWatch:
         return max(1.0 / self.params.samples_per_s, len(self.state) / self.params.checks_per_s)
 
     def _settle(self, camera: str, samples: Sequence[WatchSample]) -> None:
-        """Fit the camera's settled pose to its samples before the window, given enough of them."""
-        if sum(len(s.points_world_m) for s in samples) >= 4 * self.params.min_points:
+        """Fit the camera's settled pose to its samples before the window, given enough of them
+        (``4 min_points`` corners over ``settle_span_s`` at least)."""
+        if samples and sum(len(s.points_world_m) for s in samples) >= 4 * self.params.min_points and (
+                samples[-1].time_s - samples[0].time_s >= self.params.settle_span_s):
             start = self.settled.get(camera, self.T_world_cam[camera])
             fit = refit_camera(*stacked(samples), start, self.params.corner_noise_px)
             if fit is not None:
