@@ -146,7 +146,8 @@ def test_the_fusion_keeps_the_moved_camera_out_then_takes_it_back_at_its_new_pos
     back = [cameras for t, cameras in used if t > rejoined_at + 0.2]
     assert len(aside) > 30 and not any("cam2" in c for c in aside)
     assert sum("cam2" in c for c in back) > 30
-    assert fused.stats["set-aside sighting"] > 30
+    away = sum(s.camera == "cam2" and moved_at < s.capture_time_s < rejoined_at for s in seen)
+    assert away > 10 and fused.stats["set-aside sighting"] >= 0.9 * away  # each of its sightings while it was away
     # the tile: cam2 settles, is watched, goes suspect and moved, re-calibrates in tenths, rejoins
     # (and is watched again once it has a settled pose at its new place)
     cam2 = [(x.state, x.progress) for x in told if x.camera == "cam2"]
