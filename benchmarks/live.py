@@ -129,6 +129,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--worker-kind", choices=("auto", "process", "thread", "camera-process"),
                    help="the tracker's [live] worker_kind (default: the config's, i.e. the package default)")
     p.add_argument("--workers", type=int, help="the tracker's [live] workers (default: the config's, one per core)")
+    p.add_argument("--camera-tick-ms", type=float, metavar="MS",
+                   help="the tracker's [live] camera_tick_ms (default: the config's, i.e. the package default)")
     p.add_argument("--outputs", action="store_true",
                    help="issue 10: a second live session with every output on (--zenoh --ros2 --vrpn --foxglove "
                         "--mcap), compared with the first (pose files only)")
@@ -356,9 +358,10 @@ def warm_kernels(args: argparse.Namespace, rec: Path, work: Path) -> float:
 
 
 def live_section(args: argparse.Namespace) -> str:
-    """The ``[live]`` section --worker-kind and --workers ask for (empty: the config's)."""
+    """The ``[live]`` section --worker-kind, --workers and --camera-tick-ms ask for (empty: the config's)."""
     keys = ([f'worker_kind = "{args.worker_kind}"'] if args.worker_kind else []) + \
-        ([f"workers = {args.workers}"] if args.workers else [])
+        ([f"workers = {args.workers}"] if args.workers else []) + \
+        ([f"camera_tick_ms = {args.camera_tick_ms}"] if args.camera_tick_ms is not None else [])
     return "\n[live]\n" + "".join(f"{k}\n" for k in keys) if keys else ""
 
 
@@ -837,8 +840,9 @@ def worker_split(args: argparse.Namespace, rec: Path, work: Path) -> dict:
         side = threading.Thread(target=tracker_process, daemon=True)
         side.start()
         t0 = time.thread_time()
+        tick = {"tick_s": settings.live.camera_tick_ms / 1000.0} if hasattr(settings.live, "camera_tick_ms") else {}
         work_cameras(theirs, urls, settings.source, worker, False, time.time, working, taken, 0,
-                     *(() if board is None else (board,)))
+                     *(() if board is None else (board,)), **tick)
         total_s = time.thread_time() - t0
         side.join()
     frames = max(int(taken[0]), 1)
