@@ -109,7 +109,7 @@ class ScriptedCameras:
         pass
 
     def get(self, timeout_s, frames=True, newest_if_behind=False):
-        self.log.append("get")
+        self.log.append("get" if timeout_s == 0 else "wait")  # wait: until a frame comes (here: none)
         return self.waiting.pop(0) if self.waiting else None
 
     def slept(self):
