@@ -1,5 +1,5 @@
 """benchmarks/live.py's knobs for issue 31's live-premium measurements: the ``[live]`` section that
---worker-kind and --workers write into the live tracker's config (read back as the tracker reads it),
+--worker-kind, --workers and --camera-tick-ms write into the live tracker's config (read back as the tracker reads it),
 and --wake-cost's report (the same frames back to back and woken per frame)."""
 
 import re
@@ -26,6 +26,8 @@ def test_worker_kind_and_count_reach_the_trackers_live_section():
     both = live.live_section(live.parse_args(["--worker-kind", "camera-process", "--workers", "1"]))
     assert _live_params(both) == LiveParams(workers=1, worker_kind=WorkerKind.CAMERA_PROCESS)
     assert _live_params(live.live_section(live.parse_args(["--workers", "3"]))) == LiveParams(workers=3)
+    tick = live.live_section(live.parse_args(["--camera-tick-ms", "8"]))
+    assert _live_params(tick) == LiveParams(camera_tick_ms=8.0)
     assert live.live_section(live.parse_args([])) == ""   # the config's own [live]
     with pytest.raises(SystemExit):
         live.parse_args(["--workers", "0"])

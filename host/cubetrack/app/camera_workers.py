@@ -280,11 +280,10 @@ def work_cameras(conn: Connection, urls: dict[str, str], source: SourceParams, t
     """A camera worker process's loop on this thread (also ``benchmarks/live.py --worker-split``'s): read
     ``urls``, plan and work each frame with ``tracker``, send results on ``conn`` until it sends None;
     each frame is planned with the newest forecast posted to ``forecasts`` or sent on ``conn``.
-    ``tick_s`` > 0: the loop wakes at most once per ``tick_s``: with nothing to do, it sleeps on ``conn``
-    alone (a message ends the sleep; the streams do not) until ``tick_s`` after it last woke, then works
-    every frame that came meanwhile back to back, or sleeps until the next one comes: one wake for
-    several frames when they come faster than the tick (a sleeping thread comes back to cold caches),
-    each frame held up to ``tick_s``. 0: it wakes as each frame arrives."""
+    ``tick_s`` > 0: with nothing to do, the loop sleeps on ``conn`` alone (a message ends the sleep; the
+    streams do not) until ``tick_s`` after it last woke, then works every frame that came meanwhile back
+    to back: fewer wakes for the same frames (a sleeping thread comes back to cold caches), each frame
+    held up to ``tick_s``. 0: it wakes as each frame arrives."""
     forecast = Forecast({}, frozenset(r.name for r in tracker.robots))  # until the fusion sends one
     version = 0  # of the newest forecast taken from ``forecasts``
     inbox = PipePoll({conn: lane})
@@ -295,7 +294,7 @@ def work_cameras(conn: Connection, urls: dict[str, str], source: SourceParams, t
     stopping = False
     sent = 0
     job = None  # the next frame's, admitted before the result of the one before it went
-    woke = time.monotonic()  # when the loop last woke from a sleep (with a tick)
+    woke = time.monotonic()  # when the loop last woke from a tick's sleep
 
     def planned_with(values: tuple) -> Forecast:
         tracker.plan_cameras_at((new := Forecast.from_plain(values)).camera_poses)
@@ -330,10 +329,8 @@ def work_cameras(conn: Connection, urls: dict[str, str], source: SourceParams, t
                                  newest_if_behind=True)
                 if event is None and stopping:
                     break
-                if event is None and tick_s > 0:  # nothing to do: at most one wake per tick
-                    if (rest_s := woke + tick_s - time.monotonic()) > 0:
-                        inbox.ready(rest_s)  # the rest of the tick on the pipe alone: frames that come wait
-                    event = live.get(0.05, frames=room, newest_if_behind=True)  # then as the next one comes
+                if event is None and tick_s > 0:  # nothing to do: sleep out the tick on the pipe alone (frames wait)
+                    inbox.ready(woke + tick_s - time.monotonic())  # or until a message comes
                     woke = time.monotonic()
                 job = admitted(event)
             if job is not None:
