@@ -55,3 +55,27 @@ def test_wake_cost_prints_each_steps_cpu_both_ways_and_their_ratios(tmp_path):
         assert len(row) == 4 and all(v > 0 for v in row)
         assert row[3] == pytest.approx(sum(row[:3]), abs=0.002)   # all = planning + work + fusion (printed rounded)
     assert ratio == pytest.approx([w / b for w, b in zip(woken, back, strict=True)], rel=0.05, abs=0.01)
+
+
+def test_tick_rounds_alternate_the_order_and_give_each_rounds_cpu_ratio(tmp_path, monkeypatch, capsys):
+    """--tick-rounds: without and with the tick, the first in alternating order each round (a
+    machine that drifts slower does not favour one), each session's [live] section as asked."""
+    live = load_benchmark("live")
+    for bad in (["--tick-rounds", "2"], ["--tick-rounds", "2", "--camera-tick-ms", "0"],
+                ["--tick-rounds", "0", "--camera-tick-ms", "8"], ["--tick-rounds", "2", "--camera-tick-ms", "8",
+                                                                  "--speed-only"]):
+        with pytest.raises(SystemExit):
+            live.parse_args(bad)
+    ran = []
+
+    def session(args, rec, work):  # a live session whose CPU per frame is 2 ms without the tick, 1.5 with it
+        ran.append(_live_params(live.live_section(args)).camera_tick_ms)
+        return {"cpu_ms_per_frame_warm": 1.5 if ran[-1] else 2.0, "dropped_fraction": 0.0, "cores_used": 0.7,
+                "arrival_ms": {"p50": 3.0, "p95": 6.0, "p99": 9.0}}
+
+    monkeypatch.setattr(live, "run_live", session)
+    sessions = live.tick_rounds(live.parse_args(["--tick-rounds", "3", "--camera-tick-ms", "8"]), tmp_path, tmp_path)
+    assert ran == [0.0, 8.0, 8.0, 0.0, 0.0, 8.0]
+    assert [s["round"] for s in sessions] == [1, 1, 2, 2, 3, 3]
+    ratios = re.findall(r"round \d: CPU per processed frame tick / no tick (\d\.\d\d)", capsys.readouterr().out)
+    assert ratios == ["0.75"] * 3
