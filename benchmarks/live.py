@@ -119,11 +119,6 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
                         "(default 2000) on one thread as the replay plans, works and fuses them, back to back and with "
                         "a sleep of GAP_MS before each frame (as a live worker process sleeps between frames), "
                         "--speed-rounds rounds interleaved (no live run, no accuracy)")
-    p.add_argument("--tick-rounds", type=int, metavar="N",
-                   help="only the camera worker processes' tick (issue 31): N rounds of two live sessions, [live] "
-                        "camera_tick_ms 0 and --camera-tick-ms, in alternating order (no accuracy, no same-frames "
-                        "comparison); each session's CPU per processed frame after --warmup, dropped frames and "
-                        "arrival -> pose, and per round the CPU ratio tick / no tick")
     p.add_argument("--frames-per-wake", type=int, default=1, metavar="N",
                    help="with --wake-cost: sleep before every Nth frame only (N frames per wake; default 1)")
     p.add_argument("--seed", type=int, default=7, help="scene seed (default 7)")
@@ -134,8 +129,6 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--worker-kind", choices=("auto", "process", "thread", "camera-process"),
                    help="the tracker's [live] worker_kind (default: the config's, i.e. the package default)")
     p.add_argument("--workers", type=int, help="the tracker's [live] workers (default: the config's, one per core)")
-    p.add_argument("--camera-tick-ms", type=float, metavar="MS",
-                   help="the tracker's [live] camera_tick_ms (default: the config's, i.e. the package default)")
     p.add_argument("--outputs", action="store_true",
                    help="issue 10: a second live session with every output on (--zenoh --ros2 --vrpn --foxglove "
                         "--mcap), compared with the first (pose files only)")
@@ -152,17 +145,13 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     if args.wake_cost is not None and (args.worker_split or args.speed_only or args.record or args.outputs
                                        or args.watch or not args.wake_cost > 0):
         p.error("--wake-cost (positive) runs alone: no --worker-split, --speed-only, --record, --outputs or --watch")
-    if args.tick_rounds is not None and (args.worker_split or args.speed_only or args.wake_cost is not None
-                                         or args.record or args.outputs or args.watch
-                                         or not (args.camera_tick_ms or 0) > 0):
-        p.error("--tick-rounds needs a positive --camera-tick-ms and runs alone")
     if args.speed_only and (args.record or args.outputs or args.watch):
         p.error("--speed-only replays the simulated recording: no --record, --outputs or --watch")
     if args.quick:
         args.cameras, args.fps, args.duration, args.recording_s = 2, 10.0, 5.0, 3.0
         args.warmup, args.speed_frames = 1.5, 60
     for name in ("cameras", "fps", "duration", "recording_s", "speed_frames", "speed_rounds", "workers",
-                 "frames_per_wake", "tick_rounds"):
+                 "frames_per_wake"):
         if getattr(args, name) is not None and not getattr(args, name) > 0:
             p.error(f"--{name.replace('_', '-')} must be positive")
     return args
@@ -367,10 +356,9 @@ def warm_kernels(args: argparse.Namespace, rec: Path, work: Path) -> float:
 
 
 def live_section(args: argparse.Namespace) -> str:
-    """The ``[live]`` section --worker-kind, --workers and --camera-tick-ms ask for (empty: the config's)."""
+    """The ``[live]`` section --worker-kind and --workers ask for (empty: the config's)."""
     keys = ([f'worker_kind = "{args.worker_kind}"'] if args.worker_kind else []) + \
-        ([f"workers = {args.workers}"] if args.workers else []) + \
-        ([f"camera_tick_ms = {args.camera_tick_ms}"] if args.camera_tick_ms is not None else [])
+        ([f"workers = {args.workers}"] if args.workers else [])
     return "\n[live]\n" + "".join(f"{k}\n" for k in keys) if keys else ""
 
 
@@ -849,9 +837,8 @@ def worker_split(args: argparse.Namespace, rec: Path, work: Path) -> dict:
         side = threading.Thread(target=tracker_process, daemon=True)
         side.start()
         t0 = time.thread_time()
-        tick = {"tick_s": settings.live.camera_tick_ms / 1000.0} if hasattr(settings.live, "camera_tick_ms") else {}
         work_cameras(theirs, urls, settings.source, worker, False, time.time, working, taken, 0,
-                     *(() if board is None else (board,)), **tick)
+                     *(() if board is None else (board,)))
         total_s = time.thread_time() - t0
         side.join()
     frames = max(int(taken[0]), 1)
@@ -859,31 +846,6 @@ def worker_split(args: argparse.Namespace, rec: Path, work: Path) -> dict:
     per["rest"] = (total_s - cpu_s["work"] - cpu_s["plan"] - cpu_s["send"]) / frames * 1000.0
     return {"cameras": len(urls), "frames": int(taken[0]), "received": received[0], "ms": per,
             "load_average": os.getloadavg()[0]}
-
-
-def tick_rounds(args: argparse.Namespace, rec: Path, work: Path) -> list[dict]:
-    """--tick-rounds: live sessions without and with [live] camera_tick_ms, alternating which goes
-    first each round; one line per session and the CPU ratio per round, printed as they come."""
-    print(f"camera worker processes' tick: {args.cameras} cameras x {args.fps:g} fps, {args.duration:g} s per "
-          f"session, CPU per processed frame after {args.warmup:g} s; nproc {os.cpu_count()}")
-    sessions: list[dict] = []
-    for k in range(args.tick_rounds):
-        ticks = (0.0, args.camera_tick_ms) if k % 2 == 0 else (args.camera_tick_ms, 0.0)
-        cpu = {}
-        for tick in ticks:
-            load = os.getloadavg()[0]
-            live = run_live(argparse.Namespace(**{**vars(args), "camera_tick_ms": tick}), rec, work)
-            a, cpu[tick] = live["arrival_ms"], live["cpu_ms_per_frame_warm"]
-            sessions.append({"round": k + 1, "camera_tick_ms": tick, "load_average": [load, os.getloadavg()[0]],
-                             **{key: live[key] for key in ("cpu_ms_per_frame_warm", "dropped_fraction", "arrival_ms",
-                                                           "cores_used")}})
-            print(f"  round {k + 1}, tick {tick:g} ms (load {load:.1f}): {cpu[tick]:.2f} ms per processed frame, "
-                  f"{live['cores_used']:.2f} cores, dropped {live['dropped_fraction'] * 100:.2f} %, arrival -> pose "
-                  f"p50 / p95 / p99 {a['p50']:.1f} / {a['p95']:.1f} / {a['p99']:.1f} ms", flush=True)
-        print(f"  round {k + 1}: CPU per processed frame tick / no tick {cpu[args.camera_tick_ms] / cpu[0.0]:.2f}",
-              flush=True)
-    (work / "tick_rounds.json").write_text(json.dumps(sessions, indent=2) + "\n", encoding="utf-8")
-    return sessions
 
 
 WAKE_COST_FRAMES = 2000  # --wake-cost's frames when --speed-frames is not given
@@ -1095,9 +1057,6 @@ def main(argv: list[str] | None = None) -> int:
             return 0
         if args.wake_cost is not None:
             print_wake_cost(args, wake_cost(args, rec, work))
-            return 0
-        if args.tick_rounds is not None:
-            tick_rounds(args, rec, work)
             return 0
         if args.speed_only:
             load = os.getloadavg()

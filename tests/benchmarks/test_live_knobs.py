@@ -1,5 +1,5 @@
 """benchmarks/live.py's knobs for issue 31's live-premium measurements: the ``[live]`` section that
---worker-kind, --workers and --camera-tick-ms write into the live tracker's config (read back as the tracker reads it),
+--worker-kind and --workers write into the live tracker's config (read back as the tracker reads it),
 and --wake-cost's report (the same frames back to back and woken per frame)."""
 
 import re
@@ -26,8 +26,6 @@ def test_worker_kind_and_count_reach_the_trackers_live_section():
     both = live.live_section(live.parse_args(["--worker-kind", "camera-process", "--workers", "1"]))
     assert _live_params(both) == LiveParams(workers=1, worker_kind=WorkerKind.CAMERA_PROCESS)
     assert _live_params(live.live_section(live.parse_args(["--workers", "3"]))) == LiveParams(workers=3)
-    tick = live.live_section(live.parse_args(["--camera-tick-ms", "8"]))
-    assert _live_params(tick) == LiveParams(camera_tick_ms=8.0)
     assert live.live_section(live.parse_args([])) == ""   # the config's own [live]
     with pytest.raises(SystemExit):
         live.parse_args(["--workers", "0"])
@@ -55,27 +53,3 @@ def test_wake_cost_prints_each_steps_cpu_both_ways_and_their_ratios(tmp_path):
         assert len(row) == 4 and all(v > 0 for v in row)
         assert row[3] == pytest.approx(sum(row[:3]), abs=0.002)   # all = planning + work + fusion (printed rounded)
     assert ratio == pytest.approx([w / b for w, b in zip(woken, back, strict=True)], rel=0.05, abs=0.01)
-
-
-def test_tick_rounds_alternate_the_order_and_give_each_rounds_cpu_ratio(tmp_path, monkeypatch, capsys):
-    """--tick-rounds: without and with the tick, the first in alternating order each round (a
-    machine that drifts slower does not favour one), each session's [live] section as asked."""
-    live = load_benchmark("live")
-    for bad in (["--tick-rounds", "2"], ["--tick-rounds", "2", "--camera-tick-ms", "0"],
-                ["--tick-rounds", "0", "--camera-tick-ms", "8"], ["--tick-rounds", "2", "--camera-tick-ms", "8",
-                                                                  "--speed-only"]):
-        with pytest.raises(SystemExit):
-            live.parse_args(bad)
-    ran = []
-
-    def session(args, rec, work):  # a live session whose CPU per frame is 2 ms without the tick, 1.5 with it
-        ran.append(_live_params(live.live_section(args)).camera_tick_ms)
-        return {"cpu_ms_per_frame_warm": 1.5 if ran[-1] else 2.0, "dropped_fraction": 0.0, "cores_used": 0.7,
-                "arrival_ms": {"p50": 3.0, "p95": 6.0, "p99": 9.0}}
-
-    monkeypatch.setattr(live, "run_live", session)
-    sessions = live.tick_rounds(live.parse_args(["--tick-rounds", "3", "--camera-tick-ms", "8"]), tmp_path, tmp_path)
-    assert ran == [0.0, 8.0, 8.0, 0.0, 0.0, 8.0]
-    assert [s["round"] for s in sessions] == [1, 1, 2, 2, 3, 3]
-    ratios = re.findall(r"round \d: CPU per processed frame tick / no tick (\d\.\d\d)", capsys.readouterr().out)
-    assert ratios == ["0.75"] * 3

@@ -110,12 +110,11 @@ class CameraProcesses:
     the intrinsics and camera poses of a tracker made with the same arguments) turns them back.
     Wait for and take what came with :meth:`take` (on the caller's thread: no thread of this
     process reads the pipes, so none competes with the fusion for the GIL); send each new
-    :class:`~cubetrack.fuse.forecast.Forecast` with :meth:`forecast`. ``tick_s``: each process's tick
-    (:func:`work_cameras`; 0: it wakes as each frame arrives)."""
+    :class:`~cubetrack.fuse.forecast.Forecast` with :meth:`forecast`."""
 
     def __init__(self, urls: Mapping[str, str], source: SourceParams, make_tracker: Callable[[], Tracker],
                  count: int, unpack: Callable[[FrameJob, tuple], FrameResult], *, views: bool = False,
-                 clock: Callable[[], float] = time.time, tick_s: float = 0.0):
+                 clock: Callable[[], float] = time.time):
         self.urls = dict(urls)
         self._unpack = unpack  # (job, a result as pack_result sent it) -> the FrameResult
         self.count = count
@@ -135,8 +134,7 @@ class CameraProcesses:
         for lane, share in enumerate(shares):
             parent, child = context.Pipe()
             process = context.Process(target=_worker_main, args=(child, share, source, make_tracker, views, clock,
-                                                                 self._working, self._taken, lane, self._forecasts,
-                                                                 tick_s),
+                                                                 self._working, self._taken, lane, self._forecasts),
                                       daemon=True, name="cubetrack-camera-worker")
             process.start()
             child.close()
@@ -259,14 +257,14 @@ class CameraProcesses:
 
 def _worker_main(conn: Connection, urls: dict[str, str], source: SourceParams, make_tracker: Callable[[], Tracker],
                  views: bool, clock: Callable[[], float], working: MutableSequence[float],
-                 taken: Sequence[int], lane: int, forecasts: LatestBytes, tick_s: float) -> None:
+                 taken: Sequence[int], lane: int, forecasts: LatestBytes) -> None:
     """A camera worker process: its cameras' frames in, results out, until None comes (Ctrl-C
     is the tracker's process's business: it ends the session, then this process)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     end_with_parent()
     cv2.setNumThreads(1)
     try:
-        work_cameras(conn, urls, source, make_tracker(), views, clock, working, taken, lane, forecasts, tick_s)
+        work_cameras(conn, urls, source, make_tracker(), views, clock, working, taken, lane, forecasts)
     except (EOFError, BrokenPipeError):
         pass
     except Exception as exc:  # a bug or a broken camera source: the tracker's process re-raises it
@@ -276,14 +274,10 @@ def _worker_main(conn: Connection, urls: dict[str, str], source: SourceParams, m
 
 def work_cameras(conn: Connection, urls: dict[str, str], source: SourceParams, tracker: Tracker, views: bool,
                  clock: Callable[[], float], working: MutableSequence[float], taken: Sequence[int],
-                 lane: int, forecasts: LatestBytes | None = None, tick_s: float = 0.0) -> None:
+                 lane: int, forecasts: LatestBytes | None = None) -> None:
     """A camera worker process's loop on this thread (also ``benchmarks/live.py --worker-split``'s): read
     ``urls``, plan and work each frame with ``tracker``, send results on ``conn`` until it sends None;
-    each frame is planned with the newest forecast posted to ``forecasts`` or sent on ``conn``.
-    ``tick_s`` > 0: with nothing to do, the loop sleeps on ``conn`` alone (a message ends the sleep; the
-    streams do not) until ``tick_s`` after it last woke, then works every frame that came meanwhile back
-    to back: fewer wakes for the same frames (a sleeping thread comes back to cold caches), each frame
-    held up to ``tick_s``. 0: it wakes as each frame arrives."""
+    each frame is planned with the newest forecast posted to ``forecasts`` or sent on ``conn``."""
     forecast = Forecast({}, frozenset(r.name for r in tracker.robots))  # until the fusion sends one
     version = 0  # of the newest forecast taken from ``forecasts``
     inbox = PipePoll({conn: lane})
@@ -294,7 +288,6 @@ def work_cameras(conn: Connection, urls: dict[str, str], source: SourceParams, t
     stopping = False
     sent = 0
     job = None  # the next frame's, admitted before the result of the one before it went
-    woke = time.monotonic()  # when the loop last woke from a tick's sleep
 
     def planned_with(values: tuple) -> Forecast:
         tracker.plan_cameras_at((new := Forecast.from_plain(values)).camera_poses)
@@ -325,13 +318,10 @@ def work_cameras(conn: Connection, urls: dict[str, str], source: SourceParams, t
                 room = stopping or sent - taken[lane] < IN_FLIGHT
                 # in arrival order: the fusion gets fewer late sightings to fold in (each costs re-applying the
                 # newer ones) than freshest-first would give it; freshest first only once behind
-                event = live.get(0 if stopping or tick_s > 0 else 0.05, frames=room,  # or until a message comes
+                event = live.get(0 if stopping else 0.05, frames=room,  # or until a message comes
                                  newest_if_behind=True)
                 if event is None and stopping:
                     break
-                if event is None and tick_s > 0:  # nothing to do: sleep out the tick on the pipe alone (frames wait)
-                    inbox.ready(woke + tick_s - time.monotonic())  # or until a message comes
-                    woke = time.monotonic()
                 job = admitted(event)
             if job is not None:
                 working[lane] = job.capture_time_s  # results newer than this wait for it (CameraProcesses.take)

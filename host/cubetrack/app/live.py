@@ -187,7 +187,7 @@ class _CameraProcessFeed:
         self.stream, self.tracker, self.fused, self.clock = stream, tracker, fused, clock
         unpack = functools.partial(unpack_result, intrinsics=tracker.intrinsics, T_world_cam=tracker.T_world_cam)
         self.live = CameraProcesses(urls, source, make_tracker, live_params.worker_count, unpack, views=views,
-                                    clock=clock, tick_s=live_params.camera_tick_ms / 1000.0)
+                                    clock=clock)
         self.next_forecast_s = 0.0
 
     def step(self, timeout_s: float) -> None:

@@ -71,14 +71,9 @@ class LiveParams:
         "frame's JPEG handed over through a pipe; camera-process: worker processes that each read a share of the "
         "cameras and do their per-frame work, the fusion in the tracker's process (cubetrack.app.camera_workers; "
         "not while recording)")
-    camera_tick_ms: float = param(0.0, "camera-process: a camera worker process with nothing to do sleeps until this "
-                                       "many ms after it last woke, then works every frame that came meanwhile back to "
-                                       "back (a wake costs CPU; measured in docs/live.md); 0: it wakes as each frame "
-                                       "arrives")
 
     def __post_init__(self) -> None:
         check(self.workers >= 0, f"workers must not be negative, got {self.workers}")
-        check(0.0 <= self.camera_tick_ms <= 100.0, f"camera_tick_ms must be in [0, 100], got {self.camera_tick_ms}")
 
     @property
     def worker_count(self) -> int:

@@ -5,13 +5,9 @@ posted to shared memory (cubetrack.app.camera_workers)."""
 import math
 import multiprocessing
 import pickle
-import threading
-import time
-import types
 
 import numpy as np
 
-from cubetrack.app import camera_workers
 from cubetrack.app.camera_workers import IN_FLIGHT, WAKE, CameraProcesses, HeldResults
 from cubetrack.core.pipes import LatestBytes, PipePoll
 from cubetrack.core.records import Frame, FrameJob, FrameOutcome, FrameResult
@@ -90,109 +86,3 @@ def test_a_forecast_too_large_to_post_goes_down_the_pipes():
     end.forecast(Forecast({"robot": (1.0, np.eye(4), np.ones(3), np.zeros(3))}, frozenset()))
     assert end._forecasts.newer(0) == (0, None)
     assert Forecast.from_plain(far.recv()).motions["robot"][0] == 1.0
-
-
-class ScriptedCameras:
-    """LiveCameras as work_cameras uses it, without sockets: each get() returns the next of the
-    frames released so far; ``batches`` are released one per sleep of the loop (``log`` says when)."""
-
-    def __init__(self, log, batches):
-        self.log, self.batches, self.waiting = log, list(batches), []
-
-    def __call__(self, urls, source, clock, thread):
-        return self
-
-    def start(self):
-        return self
-
-    def wake_on(self, conn):
-        pass
-
-    def get(self, timeout_s, frames=True, newest_if_behind=False):
-        self.log.append("get" if timeout_s == 0 else "wait")  # wait: until a frame comes (here: none)
-        return self.waiting.pop(0) if self.waiting else None
-
-    def slept(self):
-        self.log.append("sleep")
-        if self.batches:
-            self.waiting += self.batches.pop(0)
-
-    def stop(self):
-        pass
-
-    def stats(self):
-        return {}
-
-
-class ScriptedTracker:
-    """The parts of a Tracker that work_cameras calls: every frame admitted and worked (``log``)."""
-
-    robots = ()
-    T_world_cam: dict = {}
-
-    def __init__(self, log):
-        self.log, self.stats = log, types.SimpleNamespace(frames=0, frames_before_clock_sync=0)
-        self.processor = types.SimpleNamespace(work=self.work)
-
-    def admit(self, frame, hold, forecast):
-        return FrameJob(frame, frame.device_time_s, None, frozenset())
-
-    def work(self, job):
-        self.log.append(f"work {job.frame.seq}")
-        return FrameResult(job, FrameOutcome.FULL_FRAME, ())
-
-    def count(self, result):
-        pass
-
-
-def run_worker_loop(monkeypatch, tick_s, batches, stop_after_works):
-    """work_cameras over scripted cameras on a thread; the far end of its pipe sends None (stop)
-    once ``stop_after_works`` frames were worked (0: once the loop sleeps). The log of gets, sleeps
-    and works, and whether the loop ended."""
-    log: list[str] = []
-    cameras = ScriptedCameras(log, batches)
-
-    class Inbox(PipePoll):  # a sleep of the loop: a wait on its pipe that may last
-        def ready(self, timeout_s=0.0):
-            if timeout_s is None or timeout_s > 0:
-                cameras.slept()
-            return super().ready(timeout_s)
-
-    monkeypatch.setattr(camera_workers, "LiveCameras", cameras)
-    monkeypatch.setattr(camera_workers, "PipePoll", Inbox)
-    monkeypatch.setattr(camera_workers, "pack_result", lambda result, T_world_cam: ())
-    near, far = multiprocessing.Pipe()
-    loop = threading.Thread(target=camera_workers.work_cameras, daemon=True,
-                            args=(far, {}, None, ScriptedTracker(log), False, time.time, [math.inf], [0], 0),
-                            kwargs={"tick_s": tick_s})
-    loop.start()
-    messages: list[tuple] = []
-    while len([m for m in messages if m[0] == "result"]) < stop_after_works and near.poll(30.0):
-        messages.append(pickle.loads(near.recv_bytes()))
-    for _ in range(3000):
-        if stop_after_works or "sleep" in log:
-            break
-        time.sleep(0.01)
-    near.send(None)
-    loop.join(30.0)
-    return log, not loop.is_alive()
-
-
-def frame(seq):
-    return Frame("cam1", seq, 1.0 + seq / 30.0, 1.0 + seq / 30.0, b"")
-
-
-def test_a_ticking_worker_loop_works_every_frame_that_came_in_one_wake(monkeypatch):
-    log, ended = run_worker_loop(monkeypatch, 0.001, [[], [frame(1), frame(2), frame(3)], [frame(4)]], 4)
-    works = [k for k, entry in enumerate(log) if entry.startswith("work")]
-    assert ended and [log[k] for k in works] == ["work 1", "work 2", "work 3", "work 4"]
-    assert "sleep" not in log[works[0]:works[2]]  # the three frames of one sleep: back to back
-    assert "sleep" in log[works[2]:works[3]]  # the fourth came in the next sleep
-    assert log[:works[0]].count("sleep") == 2  # nothing had come in the first sleep
-
-
-def test_a_message_ends_a_ticks_sleep(monkeypatch):
-    """A stop sent while the loop sleeps out a tick of 60 s ends it within the 30 s the test waits
-    (so does the wake for room for results): the loop sleeps on its pipe, not for the tick."""
-    log, ended = run_worker_loop(monkeypatch, 60.0, [], 0)
-    assert ended and log.count("sleep") == 1
