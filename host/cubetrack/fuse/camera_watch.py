@@ -712,7 +712,8 @@ class CameraWatch:
         near = {c: refit_camera(*stacked(span), self.anchor[c], p.corner_noise_px, prior_sigma=prior,
                                 position_only=True) for c, span in spans.items()}
         best: tuple[float, str, CameraFit, dict[str, CameraFit], dict[str, list[WatchSample]]] | None = None
-        for camera, fit in near.items():
+        drifting, kept_on = self._drifting(), False
+        for camera, fit in sorted(near.items(), key=lambda item: item[0] not in drifting):
             if fit is None or np.linalg.norm(fit.T_world_cam[:3, 3] - self.anchor[camera][:3, 3]) <= p.follow_m:
                 continue
             T_cam_world = invert_T(self.T_world_cam[camera] @ invert_T(self.anchor[camera]) @ fit.T_world_cam)
@@ -725,13 +726,16 @@ class CameraWatch:
                 continue
             others = {c: f for c, f in refits.items() if f is not None}
             left = max(shift_px(f, self.anchor[c], spans[c]) for c, f in others.items())
-            if best is None or left < best[0]:
+            kept_on = camera in drifting and shift_px(fit, self.anchor[camera], spans[camera]) > left
+            if kept_on or best is None or left < best[0]:
                 best = left, camera, fit, others, again
+            if kept_on:
+                break
         if best is None:
             return None
         left, camera, fit, others, again = best
         shift = shift_px(fit, self.anchor[camera], spans[camera])
-        if shift <= p.follow_px or shift < p.follow_ratio * left:
+        if not kept_on and (shift <= p.follow_px or shift < p.follow_ratio * left):
             return None
         T_new = self.T_world_cam[camera] @ invert_T(self.anchor[camera]) @ fit.T_world_cam
         off_m, off_deg = CameraFit(T_new, 0.0, 0.0, 0.0, 0).offset_from(self.T_world_cam[camera])
@@ -746,6 +750,17 @@ class CameraWatch:
         event = WatchEvent(EventKind.FOLLOWED, camera, now_s, off_m, off_deg, T_new.copy())
         self.events.append(event)
         return event
+
+    def _drifting(self) -> set[str]:
+        """The cameras followed since the last moved or rejoined event (every anchor restarted then): a
+        drift found once is followed on by every step over ``follow_m`` whose move leaves the others less
+        shift than it makes, without ``follow_px`` and ``follow_ratio``, which hold back only the first."""
+        drifting: set[str] = set()
+        for event in reversed(self.events):
+            if event.kind is not EventKind.FOLLOWED:
+                break
+            drifting.add(event.camera)
+        return drifting
 
     def _declare(self, camera: str, verdict: Verdict, now_s: float) -> WatchEvent:
         """Declare ``camera`` moved (its ``verdict``, at ``now_s``): set it aside with its window's
