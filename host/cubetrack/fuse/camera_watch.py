@@ -712,8 +712,7 @@ class CameraWatch:
         near = {c: refit_camera(*stacked(span), self.anchor[c], p.corner_noise_px, prior_sigma=prior,
                                 position_only=True) for c, span in spans.items()}
         best: tuple[float, str, CameraFit, dict[str, CameraFit], dict[str, list[WatchSample]]] | None = None
-        drifting, kept_on = self._drifting(), False
-        for camera, fit in sorted(near.items(), key=lambda item: item[0] not in drifting):
+        for camera, fit in near.items():
             if fit is None or np.linalg.norm(fit.T_world_cam[:3, 3] - self.anchor[camera][:3, 3]) <= p.follow_m:
                 continue
             T_cam_world = invert_T(self.T_world_cam[camera] @ invert_T(self.anchor[camera]) @ fit.T_world_cam)
@@ -726,16 +725,14 @@ class CameraWatch:
                 continue
             others = {c: f for c, f in refits.items() if f is not None}
             left = max(shift_px(f, self.anchor[c], spans[c]) for c, f in others.items())
-            kept_on = camera in drifting and shift_px(fit, self.anchor[camera], spans[camera]) > left
-            if kept_on or best is None or left < best[0]:
+            if best is None or left < best[0]:
                 best = left, camera, fit, others, again
-            if kept_on:
-                break
         if best is None:
             return None
         left, camera, fit, others, again = best
         shift = shift_px(fit, self.anchor[camera], spans[camera])
-        if not kept_on and (shift <= p.follow_px or shift < p.follow_ratio * left):
+        found = camera in self._drifting()  # a drift followed before: the first step's gates no longer hold it
+        if (shift <= p.follow_px or shift < p.follow_ratio * left) and not (found and shift > left):
             return None
         T_new = self.T_world_cam[camera] @ invert_T(self.anchor[camera]) @ fit.T_world_cam
         off_m, off_deg = CameraFit(T_new, 0.0, 0.0, 0.0, 0).offset_from(self.T_world_cam[camera])
