@@ -32,8 +32,8 @@ its window takes; so each checked sighting is also judged on its own (:meth:`Cam
 a camera whose last ``suspect_samples`` samples each miss the other cameras' cube pose by more
 than ``suspect_px`` (median corner residual at its settled pose), and which misses most now (the
 fused prediction, else the other cameras' cube pose: :meth:`CameraWatch._misses_most`), is
-**suspect**: out of the fusion and, with four cameras or more, no one's reference
-(:meth:`CameraWatch.referee`), still checked, until as many samples in a row agree again or it is
+**suspect**: out of the fusion and, with four cameras or more and while it is the only one, no one's
+reference (:meth:`CameraWatch.referee`), still checked, until as many samples in a row agree again or it is
 declared moved (at least ``reference_cameras`` others stay in use).
 And since a check waits for the other cameras' sightings around it, the very first sightings
 after a bump come before any check: :meth:`CameraWatch.off_prediction` holds a sighting out of
@@ -567,15 +567,21 @@ class CameraWatch:
     def referee(self, camera: str) -> bool:
         """Whether the camera's sightings may serve in the others' references: not while it
         re-calibrates; not while suspect either, where every check keeps ``reference_cameras``
-        others without it (four cameras or more). With three, a suspect camera set aside would
-        leave the other two unchecked, and its own window judged against references holding the
-        camera that really moved (issue 27's seed 58: cam3 bumped, the suspect cam2 declared)."""
+        others without it (four cameras or more) and no other camera is suspect. With three, a
+        suspect camera set aside would leave the other two unchecked, and its own window judged
+        against references holding the camera that really moved (issue 27's seed 58: cam3 bumped,
+        the suspect cam2 declared)."""
         state = self.state.get(camera, CameraState.WATCHED)
         return state is CameraState.WATCHED or (state is CameraState.SUSPECT and not self._suspects_aside())
 
     def _suspects_aside(self) -> bool:
-        """Whether a suspect camera is no one's reference (see :meth:`referee`)."""
-        return len(self.state) - 2 >= self.params.reference_cameras
+        """Whether a suspect camera is no one's reference (see :meth:`referee`): with four cameras or more,
+        while it is the only one. Several suspect at once say that the references disagree where the robot
+        is, not that each camera moved; set aside together they left references of two cameras that
+        disagreed more, every other camera then missed them, and three still cameras were declared moved
+        (5 cameras, seed 67: docs/calibration.md, "Session 28")."""
+        suspects = sum(s is CameraState.SUSPECT for s in self.state.values())
+        return len(self.state) - 2 >= self.params.reference_cameras and suspects <= 1
 
     def off_prediction(self, sighting: CubeSighting, T_world_cube: np.ndarray) -> bool:
         """Whether a watched camera's sighting must be held out of the fusion: it misses the

@@ -409,6 +409,25 @@ def test_a_suspect_camera_serves_in_the_references_only_where_it_would_leave_the
     assert (named is not None and named[0] == "cam1") is (cameras > 3)
 
 
+def test_several_suspect_cameras_stay_in_the_references_and_none_is_declared_for_being_suspect():
+    """Four cameras: one suspect camera is no one's reference, but two suspect at once both serve in the
+    others' references again (set aside together, they left two-camera references that every other camera
+    missed, and still cameras were declared moved: seed 67, docs/calibration.md "Session 28"); both stay
+    out of the fusion, and a suspect's window saying moved no longer names it on its own."""
+    watch = CameraWatch({"bot": LAYOUT}, CAMERAS, WatchParams(enabled=True))
+    watch.state["cam1"] = CameraState.SUSPECT
+    assert not watch.referee("cam1") and watch.referee("cam2")
+    watch.state["cam2"] = CameraState.SUSPECT
+    assert watch.referee("cam1") and watch.referee("cam2") and watch.excluded("cam1") and watch.excluded("cam2")
+    fit = camera_watch.CameraFit(CAMERAS["cam1"], 0.0, 0.0, 0.0, 8)
+    verdicts = {c: camera_watch.Verdict(fit, 9.0, 0.02, 1.0, c == "cam1") for c in ("cam1", "cam3")}
+    watch._disagreement["cam3"].append((0.0, 1.0))  # cam3 disagreed most: only the suspect shortcut names cam1
+    assert watch._culprit(verdicts, 0.0) is None
+    watch.state["cam2"] = CameraState.WATCHED
+    named = watch._culprit(verdicts, 0.0)
+    assert named is not None and named[0] == "cam1"
+
+
 def test_a_second_camera_declared_moved_is_taken_out_of_the_first_ones_gathered_samples():
     """Two of five bumped 10 s apart (issue 27): cam2 re-calibrating since 22 s when cam4 is declared
     at 32 s. cam2 keeps what it gathered (every sample was dropped before: cam2 started over, 43 s to
