@@ -58,6 +58,12 @@ class FilterParams:
                                                "rad/s^2/sqrt(Hz)")
     sharp_turn_rad_s: float = param(2.0, "a yaw rate above this is a sharp turn, rad/s")
     turn_hold_s: float = param(3.0, "the turning noise holds this long after the last sharp turn, seconds")
+    manoeuvre_yaw_accel_noise: float = param(8.0, "the yaw's angular acceleration noise while the sightings say the "
+                                             "robot manoeuvres (manoeuvre_nis), rad/s^2/sqrt(Hz)")
+    manoeuvre_nis: float = param(0.0, "the sightings say the robot manoeuvres while the fading mean of the yaw's "
+                                 "normalised correction squared is above this (1 for a filter whose model fits); 0: never")
+    manoeuvre_window_s: float = param(0.3, "the time constant of that fading mean, seconds")
+    manoeuvre_signed: bool = param(False, "scratch: the signed mean instead")
     corner_noise_px: float = param(0.5, "corner measurement noise (1 sigma), pixels, of a corner whose marker's border "
                                    "modules are 2.5 px wide or wider; narrower ones get more, each its own (issue 26, "
                                    "docs/tracking.md \"Each corner's own noise\")")
@@ -125,7 +131,7 @@ class FilterParams:
     def __post_init__(self) -> None:
         check_positive(self, "accel_noise", "vertical_accel_noise", "angular_accel_noise", "yaw_accel_noise",
                        "steady_yaw_accel_noise",
-                       "sharp_turn_rad_s", "turn_hold_s", "corner_noise_px", "huber_px", "gate_rms_px", "face_gate_px",
+                       "sharp_turn_rad_s", "turn_hold_s", "manoeuvre_yaw_accel_noise", "manoeuvre_window_s", "corner_noise_px", "huber_px", "gate_rms_px", "face_gate_px",
                        "init_velocity_sigma", "init_angular_velocity_sigma")
         check_non_negative(self, "camera_position_sigma_m", unit="metres")
         check_non_negative(self, "camera_scale_sigma", "camera_term_samples_per_s", "free_body_term_scale")
@@ -163,10 +169,13 @@ def transition(dt_s: float) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=8)
-def _motion_noise(params: FilterParams, turning: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _motion_noise(params: FilterParams, turning: bool, manoeuvre: bool
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(A, B, C)`` with the process noise over a step of ``dt`` = ``A |dt|³/3 + B dt²/2 + C |dt|``
     (white acceleration and angular acceleration, per axis; the yaw's while turning sharply or not)."""
     yaw = params.yaw_accel_noise if turning else params.steady_yaw_accel_noise
+    if manoeuvre:
+        yaw = max(yaw, params.manoeuvre_yaw_accel_noise)
     q = np.repeat([params.accel_noise**2, params.vertical_accel_noise**2, params.angular_accel_noise**2, yaw**2],
                   [2, 1, 2, 1])  # p (x, y; z), θ (x, y; z)
     A, B, C = np.zeros((12, 12)), np.zeros((12, 12)), np.zeros((12, 12))
@@ -195,6 +204,8 @@ class PoseFilter:
         self.angular_velocity_rad_s = (np.zeros(3) if angular_velocity_rad_s is None
                                        else np.asarray(angular_velocity_rad_s, dtype=float).copy())
         self.turning_until_s = float("-inf")  # the turning noise until then (see predict)
+        self.yaw_nis = 1.0 if not params.manoeuvre_signed else 0.0
+        self.yaw_nis_time_s = time_s
         self._note_turn()
         P = np.zeros((12, 12))
         if covariance.shape == (12, 12):
@@ -252,7 +263,9 @@ class PoseFilter:
         if dt == 0.0:
             return
         self._set_pose(self.predicted(time_s))
-        A, B, C = _motion_noise(self.params, self.time_s <= self.turning_until_s)
+        prm = self.params
+        manoeuvre = prm.manoeuvre_nis > 0.0 and (abs(self.yaw_nis) if prm.manoeuvre_signed else self.yaw_nis) > prm.manoeuvre_nis
+        A, B, C = _motion_noise(prm, self.time_s <= self.turning_until_s, manoeuvre)
         self.P = predicted_covariance(self.P, dt, A, B, C)  # F P Fᵀ + the process noise, F = transition(dt)
         self.time_s = time_s
 
@@ -326,6 +339,12 @@ class PoseFilter:
             return UpdateResult(False, rms, r.size // 2)
         if P is None:
             raise np.linalg.LinAlgError("singular matrix")
+        spread = self.P[5, 5] - P[5, 5]
+        if self.params.manoeuvre_nis > 0.0 and spread > 0.0:
+            keep = math.exp(-(self.time_s - self.yaw_nis_time_s) / self.params.manoeuvre_window_s)
+            z = delta[5] / math.sqrt(spread) if self.params.manoeuvre_signed else delta[5] * delta[5] / spread
+            self.yaw_nis = keep * self.yaw_nis + (1.0 - keep) * z
+            self.yaw_nis_time_s = self.time_s
         self.P = P
         self._set_pose(T)
         self.velocity_m_s = self.velocity_m_s + delta[_VELOCITY]
