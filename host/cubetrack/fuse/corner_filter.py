@@ -59,11 +59,12 @@ class FilterParams:
     sharp_turn_rad_s: float = param(2.0, "a yaw rate above this is a sharp turn, rad/s")
     turn_hold_s: float = param(3.0, "the turning noise holds this long after the last sharp turn, seconds")
     manoeuvre_yaw_accel_noise: float = param(8.0, "the yaw's angular acceleration noise while the sightings say the "
-                                             "robot manoeuvres (manoeuvre_nis), rad/s^2/sqrt(Hz)")
-    manoeuvre_nis: float = param(0.0, "the sightings say the robot manoeuvres while the fading mean of the yaw's "
-                                 "normalised correction squared is above this (1 for a filter whose model fits); 0: never")
-    manoeuvre_window_s: float = param(0.3, "the time constant of that fading mean, seconds")
-    manoeuvre_signed: bool = param(False, "scratch: the signed mean instead")
+                                             "robot manoeuvres (manoeuvre_ratio), rad/s^2/sqrt(Hz)")
+    manoeuvre_ratio: float = param(0.0, "the sightings say the robot manoeuvres when the short fading mean of the yaw's "
+                                   "normalised correction squared exceeds this times the long one; 0: never")
+    manoeuvre_short_s: float = param(0.15, "the short mean's time constant, seconds")
+    manoeuvre_long_s: float = param(3.0, "the long mean's time constant, seconds")
+    manoeuvre_hold_s: float = param(0.5, "the manoeuvre noise holds this long after the last such update, seconds")
     corner_noise_px: float = param(0.5, "corner measurement noise (1 sigma), pixels, of a corner whose marker's border "
                                    "modules are 2.5 px wide or wider; narrower ones get more, each its own (issue 26, "
                                    "docs/tracking.md \"Each corner's own noise\")")
@@ -131,7 +132,7 @@ class FilterParams:
     def __post_init__(self) -> None:
         check_positive(self, "accel_noise", "vertical_accel_noise", "angular_accel_noise", "yaw_accel_noise",
                        "steady_yaw_accel_noise",
-                       "sharp_turn_rad_s", "turn_hold_s", "manoeuvre_yaw_accel_noise", "manoeuvre_window_s", "corner_noise_px", "huber_px", "gate_rms_px", "face_gate_px",
+                       "sharp_turn_rad_s", "turn_hold_s", "manoeuvre_yaw_accel_noise", "manoeuvre_short_s", "manoeuvre_long_s", "corner_noise_px", "huber_px", "gate_rms_px", "face_gate_px",
                        "init_velocity_sigma", "init_angular_velocity_sigma")
         check_non_negative(self, "camera_position_sigma_m", unit="metres")
         check_non_negative(self, "camera_scale_sigma", "camera_term_samples_per_s", "free_body_term_scale")
@@ -204,8 +205,9 @@ class PoseFilter:
         self.angular_velocity_rad_s = (np.zeros(3) if angular_velocity_rad_s is None
                                        else np.asarray(angular_velocity_rad_s, dtype=float).copy())
         self.turning_until_s = float("-inf")  # the turning noise until then (see predict)
-        self.yaw_nis = 1.0 if not params.manoeuvre_signed else 0.0
+        self.yaw_nis_short = self.yaw_nis_long = self.yaw_nis_weight2 = 0.0
         self.yaw_nis_time_s = time_s
+        self.manoeuvre_until_s = float("-inf")
         self._note_turn()
         P = np.zeros((12, 12))
         if covariance.shape == (12, 12):
@@ -263,9 +265,7 @@ class PoseFilter:
         if dt == 0.0:
             return
         self._set_pose(self.predicted(time_s))
-        prm = self.params
-        manoeuvre = prm.manoeuvre_nis > 0.0 and (abs(self.yaw_nis) if prm.manoeuvre_signed else self.yaw_nis) > prm.manoeuvre_nis
-        A, B, C = _motion_noise(prm, self.time_s <= self.turning_until_s, manoeuvre)
+        A, B, C = _motion_noise(self.params, self.time_s <= self.turning_until_s, self.time_s <= self.manoeuvre_until_s)
         self.P = predicted_covariance(self.P, dt, A, B, C)  # F P Fᵀ + the process noise, F = transition(dt)
         self.time_s = time_s
 
@@ -340,11 +340,18 @@ class PoseFilter:
         if P is None:
             raise np.linalg.LinAlgError("singular matrix")
         spread = self.P[5, 5] - P[5, 5]
-        if self.params.manoeuvre_nis > 0.0 and spread > 0.0:
-            keep = math.exp(-(self.time_s - self.yaw_nis_time_s) / self.params.manoeuvre_window_s)
-            z = delta[5] / math.sqrt(spread) if self.params.manoeuvre_signed else delta[5] * delta[5] / spread
-            self.yaw_nis = keep * self.yaw_nis + (1.0 - keep) * z
+        prm = self.params
+        if prm.manoeuvre_ratio > 0.0 and spread > 0.0:
+            z, dt = delta[5] / math.sqrt(spread), self.time_s - self.yaw_nis_time_s
+            keep_short, keep_long = math.exp(-dt / prm.manoeuvre_short_s), math.exp(-dt / prm.manoeuvre_long_s)
+            if self.yaw_nis_long == 0.0:   # the first: both means start at it
+                keep_short = keep_long = 0.0
+            self.yaw_nis_short = keep_short * self.yaw_nis_short + (1.0 - keep_short) * z
+            self.yaw_nis_long = keep_long * self.yaw_nis_long + (1.0 - keep_long) * z * z
+            self.yaw_nis_weight2 = keep_short * keep_short * self.yaw_nis_weight2 + (1.0 - keep_short) ** 2
             self.yaw_nis_time_s = self.time_s
+            if self.yaw_nis_short * self.yaw_nis_short > prm.manoeuvre_ratio * self.yaw_nis_weight2 * self.yaw_nis_long:
+                self.manoeuvre_until_s = self.time_s + prm.manoeuvre_hold_s
         self.P = P
         self._set_pose(T)
         self.velocity_m_s = self.velocity_m_s + delta[_VELOCITY]
