@@ -10,8 +10,11 @@ spectral densities; along the world's z axis ``vertical_accel_noise``: a floor r
 changes). About the world's z axis the angular acceleration noise has two levels: the turning one
 (``yaw_accel_noise``) from a sharp turn (yaw rate above ``sharp_turn_rad_s``) until ``turn_hold_s``
 after the last, the steady one (``steady_yaw_accel_noise``) otherwise, so a robot that turns sharply
-is followed through its turns and one that does not gets a smoother heading.
-The level is part of the state (a function of the sightings in capture order). Update: an
+is followed through its turns and one that does not gets a smoother heading. Either is raised to
+``manoeuvre_yaw_accel_noise`` while the sightings say the robot manoeuvres: the yaw's corrections,
+each over the spread the motion model expects of it, lean one way over the last ~0.15 s (a z-test
+against their long mean square, ``manoeuvre_z2``): the yaw lags a turn's onset, noise flips sign.
+The levels are part of the state (a function of the sightings in capture order). Update: an
 iterated EKF (Gauss-Newton on the prior plus the reprojection error of every matched corner of one
 camera frame), with Huber weights per coordinate, so one camera's weak monocular depth is
 constrained by the prediction instead of being trusted. A frame whose residual after the update is
@@ -58,6 +61,20 @@ class FilterParams:
                                                "rad/s^2/sqrt(Hz)")
     sharp_turn_rad_s: float = param(2.0, "a yaw rate above this is a sharp turn, rad/s")
     turn_hold_s: float = param(3.0, "the turning noise holds this long after the last sharp turn, seconds")
+    manoeuvre_yaw_accel_noise: float = param(
+        8.0, "the yaw's angular acceleration noise while the sightings say the robot manoeuvres (manoeuvre_z2), at "
+        "least: rad/s^2/sqrt(Hz) (docs/tracking.md \"Session 28\")")
+    manoeuvre_z2: float = param(
+        6.0, "the sightings say the robot manoeuvres when the yaw's corrections, each over its expected spread, lean "
+        "one way: their short fading mean squared above this many times its variance (the long mean square times the "
+        "short mean's sum of squared weights; 6: a z-test at 2.45 sigma); the yaw lags a turn's onset that way, "
+        "while noise flips sign; 0: never")
+    manoeuvre_short_s: float = param(0.15, "the time constant of that short signed mean, seconds")
+    manoeuvre_long_s: float = param(3.0, "the time constant of the long mean square it is tested against, seconds")
+    manoeuvre_min_samples: float = param(
+        3.0, "the short mean must pool at least this many corrections (1 / its sum of squared weights): slower "
+        "sightings (a camera frame every 0.15 s or more) say nothing of a trend")
+    manoeuvre_hold_s: float = param(0.5, "the manoeuvre's noise holds this long after the last such update, seconds")
     corner_noise_px: float = param(0.5, "corner measurement noise (1 sigma), pixels, of a corner whose marker's border "
                                    "modules are 2.5 px wide or wider; narrower ones get more, each its own (issue 26, "
                                    "docs/tracking.md \"Each corner's own noise\")")
@@ -124,9 +141,12 @@ class FilterParams:
 
     def __post_init__(self) -> None:
         check_positive(self, "accel_noise", "vertical_accel_noise", "angular_accel_noise", "yaw_accel_noise",
-                       "steady_yaw_accel_noise",
-                       "sharp_turn_rad_s", "turn_hold_s", "corner_noise_px", "huber_px", "gate_rms_px", "face_gate_px",
+                       "steady_yaw_accel_noise", "sharp_turn_rad_s", "turn_hold_s", "manoeuvre_yaw_accel_noise",
+                       "manoeuvre_short_s", "manoeuvre_long_s", "corner_noise_px", "huber_px", "gate_rms_px",
+                       "face_gate_px",
                        "init_velocity_sigma", "init_angular_velocity_sigma")
+        check_non_negative(self, "manoeuvre_z2", "manoeuvre_min_samples")
+        check_non_negative(self, "manoeuvre_hold_s", unit="seconds")
         check_non_negative(self, "camera_position_sigma_m", unit="metres")
         check_non_negative(self, "camera_scale_sigma", "camera_term_samples_per_s", "free_body_term_scale")
         check_non_negative(self, "camera_rotation_sigma_deg", "correction_rotation_sigma_deg", "wobble_sigma_deg",
@@ -163,10 +183,13 @@ def transition(dt_s: float) -> np.ndarray:
 
 
 @functools.lru_cache(maxsize=8)
-def _motion_noise(params: FilterParams, turning: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _motion_noise(params: FilterParams, turning: bool, manoeuvre: bool
+                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(A, B, C)`` with the process noise over a step of ``dt`` = ``A |dt|³/3 + B dt²/2 + C |dt|``
     (white acceleration and angular acceleration, per axis; the yaw's while turning sharply or not)."""
     yaw = params.yaw_accel_noise if turning else params.steady_yaw_accel_noise
+    if manoeuvre:
+        yaw = max(yaw, params.manoeuvre_yaw_accel_noise)
     q = np.repeat([params.accel_noise**2, params.vertical_accel_noise**2, params.angular_accel_noise**2, yaw**2],
                   [2, 1, 2, 1])  # p (x, y; z), θ (x, y; z)
     A, B, C = np.zeros((12, 12)), np.zeros((12, 12)), np.zeros((12, 12))
@@ -195,6 +218,10 @@ class PoseFilter:
         self.angular_velocity_rad_s = (np.zeros(3) if angular_velocity_rad_s is None
                                        else np.asarray(angular_velocity_rad_s, dtype=float).copy())
         self.turning_until_s = float("-inf")  # the turning noise until then (see predict)
+        # the yaw's corrections over their spreads: short signed mean, its sum of squared weights (0: none yet),
+        # long mean square, the last one's time; the manoeuvre's noise until then (see _note_yaw_correction)
+        self.yaw_short, self.yaw_weight2, self.yaw_long, self.yaw_time_s = 0.0, 0.0, 0.0, time_s
+        self.manoeuvre_until_s = float("-inf")
         self._note_turn()
         P = np.zeros((12, 12))
         if covariance.shape == (12, 12):
@@ -209,6 +236,28 @@ class PoseFilter:
         """Hold the turning noise for ``turn_hold_s`` from now if the robot turns sharply."""
         if abs(self.angular_velocity_rad_s[2]) > self.params.sharp_turn_rad_s:
             self.turning_until_s = self.time_s + self.params.turn_hold_s
+
+    def _note_yaw_correction(self, correction_rad: float, spread_rad2: float) -> None:
+        """Hold the manoeuvre's yaw noise for ``manoeuvre_hold_s`` from now if the update's yaw correction
+        ``correction_rad`` (over ``spread_rad2``, its variance were the motion model right: the prior's yaw
+        variance less the posterior's) and the ones before it lean one way (``manoeuvre_z2``): fading means
+        over time, so corrections a few ms apart (cameras in step) count as one."""
+        prm = self.params
+        if prm.manoeuvre_z2 <= 0.0 or spread_rad2 <= 0.0:
+            return
+        z = correction_rad / math.sqrt(spread_rad2)
+        if self.yaw_weight2 == 0.0:  # the first: both means start at it
+            keep_short = keep_long = 0.0
+        else:
+            dt = self.time_s - self.yaw_time_s
+            keep_short, keep_long = math.exp(-dt / prm.manoeuvre_short_s), math.exp(-dt / prm.manoeuvre_long_s)
+        self.yaw_short = keep_short * self.yaw_short + (1.0 - keep_short) * z
+        self.yaw_weight2 = keep_short * keep_short * self.yaw_weight2 + (1.0 - keep_short) ** 2
+        self.yaw_long = keep_long * self.yaw_long + (1.0 - keep_long) * z * z
+        self.yaw_time_s = self.time_s
+        if (self.yaw_short * self.yaw_short > prm.manoeuvre_z2 * self.yaw_weight2 * self.yaw_long
+                and self.yaw_weight2 * prm.manoeuvre_min_samples <= 1.0):
+            self.manoeuvre_until_s = self.time_s + prm.manoeuvre_hold_s
 
     def _set_pose(self, T_world_cube: np.ndarray) -> None:
         """Take ``T_world_cube`` (a new array nothing else holds) as the pose."""
@@ -252,7 +301,7 @@ class PoseFilter:
         if dt == 0.0:
             return
         self._set_pose(self.predicted(time_s))
-        A, B, C = _motion_noise(self.params, self.time_s <= self.turning_until_s)
+        A, B, C = _motion_noise(self.params, self.time_s <= self.turning_until_s, self.time_s <= self.manoeuvre_until_s)
         self.P = predicted_covariance(self.P, dt, A, B, C)  # F P Fᵀ + the process noise, F = transition(dt)
         self.time_s = time_s
 
@@ -326,6 +375,7 @@ class PoseFilter:
             return UpdateResult(False, rms, r.size // 2)
         if P is None:
             raise np.linalg.LinAlgError("singular matrix")
+        self._note_yaw_correction(delta[5], self.P[5, 5] - P[5, 5])
         self.P = P
         self._set_pose(T)
         self.velocity_m_s = self.velocity_m_s + delta[_VELOCITY]
