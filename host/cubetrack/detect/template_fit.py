@@ -128,6 +128,7 @@ class LensMap:
 
     def __init__(self, intrinsics: CameraIntrinsics | None):
         self.intrinsics = intrinsics
+        self._samples: dict[tuple[int, int, int], tuple[np.ndarray, np.ndarray]] = {}  # :meth:`samples`'
         if intrinsics is None:
             self.K, self.dist, self.map = np.eye(3), np.zeros(5), None
             self.K_inv: np.ndarray = np.eye(3)  # (:meth:`distort`'s)
@@ -136,6 +137,26 @@ class LensMap:
         self.K_inv = np.linalg.inv(self.K)
         xs, ys = np.meshgrid(np.arange(-1.0, intrinsics.width + 1.0), np.arange(-1.0, intrinsics.height + 1.0))
         self.map = undistort_points(np.stack([xs, ys], axis=-1), self.K, self.dist, self.K).astype(np.float32)
+
+    def samples(self, s: int, shape: tuple[int, int],
+                box: tuple[int, int, int, int]) -> tuple[np.ndarray, np.ndarray, int, int]:
+        """Where a template fit keeps the undistorted centres of the ``s`` x ``s`` samples of each
+        pixel of its region ``box`` (x0, y0, nx, ny) of an image of ``shape`` (height, width)
+        (:func:`_filled_samples`): the samples (rows s, cols s, 2), which pixels have theirs (rows,
+        cols) and the region's first pixel's place (column, row) in them. With a lens, this
+        camera's table of the whole image, filled as fits first read a pixel and kept for the next
+        fits (float32: :func:`_map_point` reads float32 values; pages untouched stay unallocated);
+        without, room for the region alone (float64)."""
+        x0, y0, nx, ny = box
+        if self.map is None:
+            return np.empty((ny * s, nx * s, 2)), np.zeros((ny, nx), np.bool_), 0, 0
+        key = (s, *shape)
+        table = self._samples.get(key)
+        if table is None:
+            height, width = shape
+            table = self._samples[key] = (np.empty((height * s, width * s, 2), np.float32),
+                                          np.zeros((height, width), np.bool_))
+        return table[0], table[1], x0, y0
 
     def undistort(self, points_px: np.ndarray) -> np.ndarray:
         """Ideal pinhole pixels (..., 2) of distorted ones (within the image and its border),
@@ -234,62 +255,58 @@ def _region_start(table: np.ndarray, corners_px: np.ndarray, modules: int,
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _region_arrays(table: np.ndarray, corners_px: np.ndarray, H0: np.ndarray, ring_px: np.ndarray, modules: int,
-                   margin: float, s: int, width: int,
-                   height: int) -> tuple[bool, tuple[int, int, int, int], np.ndarray, np.ndarray, np.ndarray,
-                                         np.ndarray, np.ndarray, np.ndarray]:
+                   margin: float, width: int, height: int) -> tuple[bool, tuple[int, int, int, int], np.ndarray,
+                                                                    np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The pixels a fit of the marker (distorted ``corners_px``, its homography ``H0`` and its
     ring ``ring_px`` (4, 2) in the distorted image, :func:`_region_start`) compares, through the
     lens map ``table``: whether its region (the ring's bounds and ``REGION_PAD_PX``, what the blur
-    reads) lies wholly inside the ``width`` x ``height`` image; the region (x0, y0, nx, ny); room
-    for its pixels' ``s`` x ``s`` samples (ny s nx s, 2), filled only where a step reads them
-    (:func:`_filled_samples`); the compared pixels (those whose centre lies on the marker or
-    within ``margin`` modules of it): which (ny, nx), their flat indices (n,) in the region,
+    reads) lies wholly inside the ``width`` x ``height`` image; the region (x0, y0, nx, ny); the
+    compared pixels (those whose centre lies on the marker or within ``margin`` modules of it):
+    which (ny, nx), their flat indices (n,) in the region,
     their undistorted centres (n, 2) and their places across the region (n, 2,
     :func:`_compared_pixels`) and the lens's local map (2, 2) at the marker's centre
     (:func:`_map_jacobian`; the identity without a lens)."""
     empty = np.empty((0, 2))
     if not np.isfinite(ring_px).all():
-        return (False, (0, 0, 0, 0), empty, np.zeros((0, 0), np.bool_), np.empty(0, np.int64), empty, empty,
-                np.eye(2))
+        return False, (0, 0, 0, 0), np.zeros((0, 0), np.bool_), np.empty(0, np.int64), empty, empty, np.eye(2)
     x0 = int(np.floor(ring_px[:, 0].min())) - REGION_PAD_PX
     y0 = int(np.floor(ring_px[:, 1].min())) - REGION_PAD_PX
     x1 = int(np.ceil(ring_px[:, 0].max())) + REGION_PAD_PX + 1
     y1 = int(np.ceil(ring_px[:, 1].max())) + REGION_PAD_PX + 1
     if x0 < 0 or y0 < 0 or x1 > width or y1 > height:
-        return (False, (0, 0, 0, 0), empty, np.zeros((0, 0), np.bool_), np.empty(0, np.int64), empty, empty,
-                np.eye(2))
+        return False, (0, 0, 0, 0), np.zeros((0, 0), np.bool_), np.empty(0, np.int64), empty, empty, np.eye(2)
     nx, ny = x1 - x0, y1 - y0
     centres = _pixel_centres(table, x0, y0, nx, ny)
     fitted, gradient = _compared_pixels(centres, np.linalg.inv(H0), modules, margin, nx, ny)
     index = np.flatnonzero(fitted)
     lens = np.eye(2) if table.shape[0] == 0 else _map_jacobian(table, corners_px)
-    return (True, (x0, y0, nx, ny), np.empty((ny * s * nx * s, 2)), fitted.reshape(ny, nx), index, centres[index],
-            gradient, lens)
+    return True, (x0, y0, nx, ny), fitted.reshape(ny, nx), index, centres[index], gradient, lens
 
 
 _NO_TABLE = np.zeros((0, 0, 2), np.float32)  # :func:`_pixel_centres`'s lens map of the identity (no lens)
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _filled_samples(table: np.ndarray, x0: int, y0: int, s: int, samples: np.ndarray, have: np.ndarray,
-                    need: np.ndarray) -> None:
-    """Fill in ``samples`` (ny s nx s, 2, row by row) the centres (x, y) of ``s`` x ``s`` equal
-    parts of each pixel of the region from (``x0``, ``y0``) that ``need`` (ny, nx) names and
-    ``have`` does not (then marked there), undistorted through the lens map ``table``
-    (:func:`_map_point`; an empty one: the identity)."""
+def _filled_samples(table: np.ndarray, x0: int, y0: int, s: int, samples: np.ndarray, have: np.ndarray, at_x: int,
+                    at_y: int, need: np.ndarray) -> None:
+    """Fill in ``samples`` (rows s, cols s, 2) the centres (x, y) of ``s`` x ``s`` equal parts of
+    each pixel of the region from (``x0``, ``y0``) that ``need`` (ny, nx) names and ``have``
+    (rows, cols) does not (then marked there), undistorted through the lens map ``table``
+    (:func:`_map_point`; an empty one: the identity); the region's first pixel is at column
+    ``at_x``, row ``at_y`` of ``have`` (:meth:`LensMap.samples`)."""
     identity = table.shape[0] == 0
     ny, nx = need.shape
     for pi in range(ny):
         for pj in range(nx):
-            if not need[pi, pj] or have[pi, pj]:
+            if not need[pi, pj] or have[at_y + pi, at_x + pj]:
                 continue
-            have[pi, pj] = True
+            have[at_y + pi, at_x + pj] = True
             for di in range(s):
                 y = y0 + pi + (di + 0.5) / s - 0.5
                 for dj in range(s):
                     x = x0 + pj + (dj + 0.5) / s - 0.5
-                    k = (pi * s + di) * nx * s + pj * s + dj
-                    samples[k, 0], samples[k, 1] = (x, y) if identity else _map_point(table, x, y)
+                    r, c = (at_y + pi) * s + di, (at_x + pj) * s + dj
+                    samples[r, c, 0], samples[r, c, 1] = (x, y) if identity else _map_point(table, x, y)
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
@@ -414,18 +431,19 @@ def _area_sigmas(H: np.ndarray, modules: float, lens_jacobian: np.ndarray, super
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _pixel_areas(template: np.ndarray, samples: np.ndarray, H_inv: np.ndarray, need: np.ndarray,
-                 s: int) -> np.ndarray:
+def _pixel_areas(template: np.ndarray, samples: np.ndarray, at_x: int, at_y: int, H_inv: np.ndarray,
+                 need: np.ndarray, s: int) -> np.ndarray:
     """(ny, nx, 2) float32: each pixel's mean of its ``s`` x ``s`` samples' reads of both template
     images, where ``need`` (ny, nx) asks for it (elsewhere unset); a sample (undistorted px,
-    ``samples`` (ny s nx s, 2) row by row) reads them through the inverse homography ``H_inv``
+    ``samples`` (rows s, cols s, 2), the region's first pixel's at column ``at_x``, row ``at_y``:
+    :func:`_filled_samples`) reads them through the inverse homography ``H_inv``
     bilinearly, 0 and 1 beyond them
     (``cv2.remap``'s ``INTER_LINEAR`` and ``BORDER_CONSTANT``, at the exact point where OpenCV
     rounds it to 1/32 of a sample)."""
     rows, cols = template.shape[0], template.shape[1]
     ny, nx = need.shape
     out = np.empty((ny, nx, 2), np.float32)
-    cols_s, scale = nx * s, 1.0 / (s * s)
+    scale = 1.0 / (s * s)
     h00, h01, h02, h10, h11, h12 = H_inv[0, 0], H_inv[0, 1], H_inv[0, 2], H_inv[1, 0], H_inv[1, 1], H_inv[1, 2]
     h20, h21, h22 = H_inv[2, 0], H_inv[2, 1], H_inv[2, 2]  # locals: the loop reloads array elements
     for i in range(ny):
@@ -435,8 +453,8 @@ def _pixel_areas(template: np.ndarray, samples: np.ndarray, H_inv: np.ndarray, n
             a = b = 0.0
             for di in range(s):
                 for dj in range(s):
-                    k = (i * s + di) * cols_s + j * s + dj
-                    x, y = samples[k, 0], samples[k, 1]
+                    r, c = (at_y + i) * s + di, (at_x + j) * s + dj
+                    x, y = np.float64(samples[r, c, 0]), np.float64(samples[r, c, 1])
                     z = h20 * x + h21 * y + h22
                     u = TEMPLATE_RES * (h00 * x + h01 * y + h02) / z + _TEMPLATE_SHIFT
                     v = TEMPLATE_RES * (h10 * x + h11 * y + h12) / z + _TEMPLATE_SHIFT
@@ -648,7 +666,8 @@ def _homography_with_derivatives(corners: np.ndarray, side: float) -> tuple[np.n
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _gauss_newton_step(template: np.ndarray, region: tuple[np.ndarray, int, int, int, np.ndarray, np.ndarray],
+def _gauss_newton_step(template: np.ndarray,
+                       region: tuple[np.ndarray, int, int, int, np.ndarray, np.ndarray, int, int],
                        fitted: np.ndarray, index: np.ndarray, gradient: np.ndarray, pixels: np.ndarray,
                        centres: np.ndarray, lens: np.ndarray, H: np.ndarray, dH: np.ndarray,
                        blur: float) -> np.ndarray:
@@ -660,11 +679,11 @@ def _gauss_newton_step(template: np.ndarray, region: tuple[np.ndarray, int, int,
     ~0.45 ms per step on 30 px markers, nearly all of it per-call overhead. Only what the blurs
     need for the compared pixels ``fitted`` (ny, nx) is read and filtered (:func:`_needed`; the
     ``region``'s samples, :func:`_fitted_offsets`, filled as they are first read)."""
-    table, x0, y0, s, samples, have = region
+    table, x0, y0, s, samples, have, at_x, at_y = region
     rows, need = _needed(fitted, _kernel_half(blur + _BLUR_STEP_PX))  # the wider blur's reach: the larger
-    _filled_samples(table, x0, y0, s, samples, have, need)
+    _filled_samples(table, x0, y0, s, samples, have, at_x, at_y, need)
     H_inv = np.linalg.inv(H)
-    area = _pixel_areas(template, samples, H_inv, need, s)
+    area = _pixel_areas(template, samples, at_x, at_y, H_inv, need, s)
     fitted_t = np.ascontiguousarray(fitted.T)
     image, gx, gy = _blurred_with_gradient(area, blur, rows, fitted_t)
     wider = _blurred(area, blur + _BLUR_STEP_PX, rows, fitted_t)
@@ -675,16 +694,17 @@ def _gauss_newton_step(template: np.ndarray, region: tuple[np.ndarray, int, int,
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _fitted_offsets(template: np.ndarray, table: np.ndarray, box: tuple[int, int], s: int, samples: np.ndarray,
-                    fitted: np.ndarray, index: np.ndarray, gradient: np.ndarray, pixels: np.ndarray,
-                    centres: np.ndarray, lens: np.ndarray, start: np.ndarray, modules: int, blur: float,
-                    iterations: int) -> np.ndarray:
+def _fitted_offsets(template: np.ndarray, table: np.ndarray, box: tuple[int, int], s: int,
+                    store: tuple[np.ndarray, np.ndarray, int, int], fitted: np.ndarray, index: np.ndarray,
+                    gradient: np.ndarray, pixels: np.ndarray, centres: np.ndarray, lens: np.ndarray,
+                    start: np.ndarray, modules: int, blur: float, iterations: int) -> np.ndarray:
     """The fast fit's Gauss-Newton iterations from the undistorted corners ``start`` (4, 2): the
     corners' offsets (8,) from it (NaN where it diverged); LinAlgError on a degenerate homography.
-    ``samples``: room for the ``s`` x ``s`` samples of the pixels of the region whose corner is
-    ``box`` (x0, y0), undistorted through the lens map ``table`` as the steps first read them."""
+    ``store``: where the ``s`` x ``s`` samples of the pixels of the region whose corner is ``box``
+    (x0, y0) are kept (:meth:`LensMap.samples`), undistorted through the lens map ``table`` as
+    the steps first read them."""
     p = np.zeros(8)
-    region = (table, box[0], box[1], s, samples, np.zeros(fitted.shape, np.bool_))
+    region = (table, box[0], box[1], s, *store)
     for _ in range(iterations):
         H, dH = _homography_with_derivatives(start + p.reshape(4, 2), float(modules))
         delta = _gauss_newton_step(template, region, fitted, index, gradient, pixels, centres, lens, H, dH, blur)
@@ -716,13 +736,14 @@ def fast_template_corners(gray: np.ndarray, corners_px: np.ndarray, dictionary: 
         ok, start, H0, ring = _region_start(table, corners, modules, m)
         if not ok:
             return None
-        ok, (x0, y0, nx, ny), samples, fitted, index, centres, gradient, local = _region_arrays(
-            table, corners, H0, lens.distort(ring), modules, m, s, gray.shape[1], gray.shape[0])
+        ok, (x0, y0, nx, ny), fitted, index, centres, gradient, local = _region_arrays(
+            table, corners, H0, lens.distort(ring), modules, m, gray.shape[1], gray.shape[0])
         if not ok:
             return None
         template = _area_template(dictionary, marker_id, settings.white_modules, _area_steps(H0, modules, local, s))
         pixels = np.take(gray[y0:y0 + ny, x0:x0 + nx], index).astype(np.float64)
-        p = _fitted_offsets(template, table, (x0, y0), s, samples, fitted, index, gradient, pixels, centres, local,
+        store = lens.samples(s, gray.shape[:2], (x0, y0, nx, ny))
+        p = _fitted_offsets(template, table, (x0, y0), s, store, fitted, index, gradient, pixels, centres, local,
                             start, modules, settings.start_blur_px, iterations)
     except np.linalg.LinAlgError:  # a degenerate homography
         return None
