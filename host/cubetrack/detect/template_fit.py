@@ -142,19 +142,19 @@ class LensMap:
                 box: tuple[int, int, int, int]) -> tuple[np.ndarray, np.ndarray, int, int]:
         """Where a template fit keeps the undistorted centres of the ``s`` x ``s`` samples of each
         pixel of its region ``box`` (x0, y0, nx, ny) of an image of ``shape`` (height, width)
-        (:func:`_filled_samples`): the samples (rows s, cols s, 2), which pixels have theirs (rows,
-        cols) and the region's first pixel's place (column, row) in them. With a lens, this
+        (:func:`_filled_samples`): the samples (rows, cols, s s, 2: a pixel's together), which
+        pixels have theirs (rows, cols) and the region's first pixel's place (column, row) in them. With a lens, this
         camera's table of the whole image, filled as fits first read a pixel and kept for the next
         fits (float32: :func:`_map_point` reads float32 values; pages untouched stay unallocated);
         without, room for the region alone (float64)."""
         x0, y0, nx, ny = box
         if self.map is None:
-            return np.empty((ny * s, nx * s, 2)), np.zeros((ny, nx), np.bool_), 0, 0
+            return np.empty((ny, nx, s * s, 2)), np.zeros((ny, nx), np.bool_), 0, 0
         key = (s, *shape)
         table = self._samples.get(key)
         if table is None:
             height, width = shape
-            table = self._samples[key] = (np.empty((height * s, width * s, 2), np.float32),
+            table = self._samples[key] = (np.empty((height, width, s * s, 2), np.float32),
                                           np.zeros((height, width), np.bool_))
         return table[0], table[1], x0, y0
 
@@ -289,7 +289,7 @@ _NO_TABLE = np.zeros((0, 0, 2), np.float32)  # :func:`_pixel_centres`'s lens map
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _filled_samples(table: np.ndarray, x0: int, y0: int, s: int, samples: np.ndarray, have: np.ndarray, at_x: int,
                     at_y: int, need: np.ndarray) -> None:
-    """Fill in ``samples`` (rows s, cols s, 2) the centres (x, y) of ``s`` x ``s`` equal parts of
+    """Fill in ``samples`` (rows, cols, s s, 2) the centres (x, y) of ``s`` x ``s`` equal parts of
     each pixel of the region from (``x0``, ``y0``) that ``need`` (ny, nx) names and ``have``
     (rows, cols) does not (then marked there), undistorted through the lens map ``table``
     (:func:`_map_point`; an empty one: the identity); the region's first pixel is at column
@@ -305,8 +305,9 @@ def _filled_samples(table: np.ndarray, x0: int, y0: int, s: int, samples: np.nda
                 y = y0 + pi + (di + 0.5) / s - 0.5
                 for dj in range(s):
                     x = x0 + pj + (dj + 0.5) / s - 0.5
-                    r, c = (at_y + pi) * s + di, (at_x + pj) * s + dj
-                    samples[r, c, 0], samples[r, c, 1] = (x, y) if identity else _map_point(table, x, y)
+                    k = di * s + dj
+                    samples[at_y + pi, at_x + pj, k, 0], samples[at_y + pi, at_x + pj, k, 1] = (
+                        (x, y) if identity else _map_point(table, x, y))
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
@@ -314,21 +315,17 @@ def _needed(fitted: np.ndarray, half: int) -> tuple[np.ndarray, np.ndarray]:
     """What a blur of ``half`` taps either side reads to give the compared pixels ``fitted`` (ny,
     nx): the pixels its pass along the rows must give (``fitted`` widened by ``half`` rows, within
     the region) and the pixel areas that pass reads (that, widened by ``half`` columns)."""
-    rows = _widened(fitted, half)
-    return rows, np.ascontiguousarray(_widened(np.ascontiguousarray(rows.T), half).T)
-
-
-@numba.njit(cache=True, nogil=True, error_model="numpy")
-def _widened(mask: np.ndarray, half: int) -> np.ndarray:
-    """(n, m) bool: ``mask`` (n, m) widened by ``half`` along its first axis, within it."""
-    n, m = mask.shape
-    out = np.zeros((n, m), np.bool_)
-    for i in range(n):
-        for j in range(m):
-            if mask[i, j]:
-                for r in range(max(i - half, 0), min(i + half + 1, n)):
-                    out[r, j] = True
-    return out
+    ny, nx = fitted.shape
+    rows, need = np.zeros((ny, nx), np.bool_), np.zeros((ny, nx), np.bool_)
+    for i in range(ny):
+        for j in range(nx):
+            if fitted[i, j]:
+                rows[max(i - half, 0):min(i + half + 1, ny), j] = True
+    for i in range(ny):
+        for j in range(nx):
+            if rows[i, j]:
+                need[i, max(j - half, 0):min(j + half + 1, nx)] = True
+    return rows, need
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
@@ -435,7 +432,7 @@ def _pixel_areas(template: np.ndarray, samples: np.ndarray, at_x: int, at_y: int
                  need: np.ndarray, s: int) -> np.ndarray:
     """(ny, nx, 2) float32: each pixel's mean of its ``s`` x ``s`` samples' reads of both template
     images, where ``need`` (ny, nx) asks for it (elsewhere unset); a sample (undistorted px,
-    ``samples`` (rows s, cols s, 2), the region's first pixel's at column ``at_x``, row ``at_y``:
+    ``samples`` (rows, cols, s s, 2), the region's first pixel's at column ``at_x``, row ``at_y``:
     :func:`_filled_samples`) reads them through the inverse homography ``H_inv``
     bilinearly, 0 and 1 beyond them
     (``cv2.remap``'s ``INTER_LINEAR`` and ``BORDER_CONSTANT``, at the exact point where OpenCV
@@ -453,8 +450,8 @@ def _pixel_areas(template: np.ndarray, samples: np.ndarray, at_x: int, at_y: int
             a = b = 0.0
             for di in range(s):
                 for dj in range(s):
-                    r, c = (at_y + i) * s + di, (at_x + j) * s + dj
-                    x, y = np.float64(samples[r, c, 0]), np.float64(samples[r, c, 1])
+                    k = di * s + dj
+                    x, y = np.float64(samples[at_y + i, at_x + j, k, 0]), np.float64(samples[at_y + i, at_x + j, k, 1])
                     z = h20 * x + h21 * y + h22
                     u = TEMPLATE_RES * (h00 * x + h01 * y + h02) / z + _TEMPLATE_SHIFT
                     v = TEMPLATE_RES * (h10 * x + h11 * y + h12) / z + _TEMPLATE_SHIFT
@@ -668,8 +665,8 @@ def _homography_with_derivatives(corners: np.ndarray, side: float) -> tuple[np.n
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _gauss_newton_step(template: np.ndarray,
                        region: tuple[np.ndarray, int, int, int, np.ndarray, np.ndarray, int, int],
-                       fitted: np.ndarray, index: np.ndarray, gradient: np.ndarray, pixels: np.ndarray,
-                       centres: np.ndarray, lens: np.ndarray, H: np.ndarray, dH: np.ndarray,
+                       masks: tuple[np.ndarray, np.ndarray, np.ndarray], index: np.ndarray, gradient: np.ndarray,
+                       pixels: np.ndarray, centres: np.ndarray, lens: np.ndarray, H: np.ndarray, dH: np.ndarray,
                        blur: float) -> np.ndarray:
     """One Gauss-Newton step of the fast fit at homography ``H`` (derivatives ``dH``) and blur:
     the update of the 8 corner coordinates, the blur and the 5 brightness terms (their values, not
@@ -677,14 +674,14 @@ def _gauss_newton_step(template: np.ndarray,
     distorted image, through the lens's local map) times the motion of each compared pixel's
     template point when a corner moves. Compiled whole (numba): as OpenCV calls and numpy it was
     ~0.45 ms per step on 30 px markers, nearly all of it per-call overhead. Only what the blurs
-    need for the compared pixels ``fitted`` (ny, nx) is read and filtered (:func:`_needed`; the
-    ``region``'s samples, :func:`_fitted_offsets`, filled as they are first read)."""
+    need for the compared pixels is read and filtered (``masks``: :func:`_needed`'s two for the
+    wider blur's reach, the larger, and the compared pixels (nx, ny); the ``region``'s samples,
+    :func:`_fitted_offsets`, filled as they are first read)."""
     table, x0, y0, s, samples, have, at_x, at_y = region
-    rows, need = _needed(fitted, _kernel_half(blur + _BLUR_STEP_PX))  # the wider blur's reach: the larger
+    rows, need, fitted_t = masks
     _filled_samples(table, x0, y0, s, samples, have, at_x, at_y, need)
     H_inv = np.linalg.inv(H)
     area = _pixel_areas(template, samples, at_x, at_y, H_inv, need, s)
-    fitted_t = np.ascontiguousarray(fitted.T)
     image, gx, gy = _blurred_with_gradient(area, blur, rows, fitted_t)
     wider = _blurred(area, blur + _BLUR_STEP_PX, rows, fitted_t)
     N, rhs, beyond = _brightness_system(image, index, gradient, pixels)
@@ -705,9 +702,16 @@ def _fitted_offsets(template: np.ndarray, table: np.ndarray, box: tuple[int, int
     the steps first read them."""
     p = np.zeros(8)
     region = (table, box[0], box[1], s, *store)
+    fitted_t = np.ascontiguousarray(fitted.T)
+    half = -1
+    rows = need = fitted
     for _ in range(iterations):
+        if _kernel_half(blur + _BLUR_STEP_PX) != half:  # the wider blur's reach: the larger
+            half = _kernel_half(blur + _BLUR_STEP_PX)
+            rows, need = _needed(fitted, half)
         H, dH = _homography_with_derivatives(start + p.reshape(4, 2), float(modules))
-        delta = _gauss_newton_step(template, region, fitted, index, gradient, pixels, centres, lens, H, dH, blur)
+        delta = _gauss_newton_step(template, region, (rows, need, fitted_t), index, gradient, pixels, centres, lens,
+                                   H, dH, blur)
         p = p + delta[:8]
         blur = min(max(blur + delta[8], _BLUR_RANGE_PX[0]), _BLUR_RANGE_PX[1])
         if not np.isfinite(p).all() or np.abs(delta[:8]).max() < _CONVERGED_PX:
