@@ -48,6 +48,10 @@ _BLUR_STEP_PX = 0.05  # the blur's derivative: a forward difference of this much
 _BLUR_RANGE_PX = (0.3, 3.0)  # the fast fit keeps its blur sigma within this range
 _CONVERGED_PX = 1e-3  # the fast fit stops once no corner moves more than this in an iteration
 _BEYOND_MIN = 0.05  # the fast fit measures the brightness beyond the margin where a pixel sees this much of it
+# LLVM's fast-math flags for the fit's four arithmetic loops (areas, blurs, both normal equations): fused
+# multiply-adds, sums reordered (vectorised), reciprocals; not "no NaN / no inf", which would drop the
+# fit's finiteness checks. Corners within 1e-8 px of the strict arithmetic's (docs/live.md, session 28).
+_FAST_MATH = {"contract", "reassoc", "arcp", "nsz"}
 _AREA_STEP = 0.25  # template samples: the fast fit's pre-blurred templates are cached at multiples of this
 
 
@@ -427,7 +431,7 @@ def _area_sigmas(H: np.ndarray, modules: float, lens_jacobian: np.ndarray, super
     return np.sqrt(cov[0, 0]) / _AREA_STEP, np.sqrt(cov[1, 1]) / _AREA_STEP
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@numba.njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST_MATH)
 def _pixel_areas(template: np.ndarray, samples: np.ndarray, at_x: int, at_y: int, H_inv: np.ndarray,
                  need: np.ndarray, s: int) -> np.ndarray:
     """(ny, nx, 2) float32: each pixel's mean of its ``s`` x ``s`` samples' reads of both template
@@ -536,7 +540,7 @@ def _blurred_with_gradient(image: np.ndarray, sigma: float, rows_mask: np.ndarra
     return blurred, gx, gy
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@numba.njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST_MATH)
 def _filtered_across(image: np.ndarray, kernel: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """(nx, ny, 2) float64: the (ny, nx, 2) ``image`` filtered along its rows by the odd-sized
     ``kernel``, border replicated, and transposed (so that a second call filters the columns);
@@ -557,7 +561,7 @@ def _filtered_across(image: np.ndarray, kernel: np.ndarray, mask: np.ndarray) ->
     return out
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@numba.njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST_MATH)
 def _brightness_system(image: np.ndarray, index: np.ndarray, gradient: np.ndarray,
                        pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
     """The brightness model's normal equations (its columns per compared pixel: offset, the
@@ -583,7 +587,7 @@ def _brightness_system(image: np.ndarray, index: np.ndarray, gradient: np.ndarra
     return N, rhs, beyond
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@numba.njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST_MATH)
 def _step_system(image: np.ndarray, wider: np.ndarray, gx: np.ndarray, gy: np.ndarray, index: np.ndarray,
                  gradient: np.ndarray, pixels: np.ndarray, centres: np.ndarray, lens: np.ndarray,
                  H_inv: np.ndarray, dH: np.ndarray, coef: np.ndarray, beyond: bool) -> tuple[np.ndarray, np.ndarray]:
