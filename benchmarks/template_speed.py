@@ -11,11 +11,19 @@ row instant, through the true lens: corner_ceiling.py's ``Truth``). The base com
 reachable from this benchmark only. Both fits run on one thread (``cv2.setNumThreads(1)``),
 marker by marker, alternating which goes first each round; printed: median thread CPU per marker
 of each and their ratio (base / current: > 1 means the current fit is cheaper), the corner error
-(RMS per coordinate against the oracle) by the face's view angle, failures, the core count and
-the load average at the start and the end.
+(RMS per coordinate against the oracle) by the face's view angle, failures, how far the current
+fit's corners are from the base's (the largest difference; 0 when every corner is the same to the
+bit), the core count and the load average at the start and the end. Each fit keeps one lens map
+per camera across the rounds, as a Detector keeps them (the first round fills them).
+
+``--recording DIR`` (session 28) takes the markers instead from a recording's frames as the
+tracker's default detector finds them (the first ``--frames`` of every camera, its camera_info),
+e.g. the live benchmark's 16 x 30 scene (``benchmarks/live.py --out OUT``: ``OUT/rec_c16_f30_d20_s7``);
+no oracle there, so no corner error.
 
     nice -n 10 .venv/bin/python benchmarks/template_speed.py [--out /tmp/corner_ceiling] [--configs 1 3]
                                                              [--preset realistic] [--base 12ee071] [--rounds 2]
+    nice -n 10 .venv/bin/python benchmarks/template_speed.py --recording OUT/rec_c16_f30_d20_s7 [--frames 20]
 
 The exit code is 0 for a completed run.
 """
@@ -78,6 +86,27 @@ def markers(ceiling, bench, args) -> list[dict]:
     return out
 
 
+def recording_markers(path: Path, frames: int) -> list[dict]:
+    """Every marker the default detector finds in the first ``frames`` frames of each camera of the
+    recording at ``path``, with its frame and the camera's intrinsics (no oracle)."""
+    from cubetrack.detect.detector import Detector, decode_gray
+    from cubetrack.io.camera_info import read_camera_info
+    from cubetrack.io.recording import Recording
+
+    recording = Recording.open(path)
+    detector = Detector()
+    out = []
+    for cam in recording.camera_names:
+        info = recording.camera_info_path(cam)
+        intrinsics = None if info is None else read_camera_info(info)
+        for f in itertools.islice(recording.frames(cam), frames):
+            gray = decode_gray(f.jpeg)
+            out += [{"gray": gray, "corners": d.corners_px, "dictionary": d.dictionary, "marker_id": d.marker_id,
+                     "intrinsics": intrinsics, "camera": (path, cam), "oracle": None, "angle": None}
+                    for d in detector.detect(gray)]
+    return out
+
+
 def timed(fits: dict, items: list[dict], rounds: int) -> tuple[dict, dict]:
     """Per fit: the thread CPU (s) of each call over ``rounds`` rounds (the order alternating) and
     the corners of the last round."""
@@ -100,6 +129,8 @@ def timed(fits: dict, items: list[dict], rounds: int) -> tuple[dict, dict]:
 def error_row(items: list[dict], corners: list, bins_deg: tuple[float, ...]) -> str:
     """RMS corner error against the oracle, over all and by view-angle bin."""
     ok = [(c, m) for c, m in zip(corners, items, strict=True) if c is not None and m["oracle"] is not None]
+    if not ok:
+        return "- | " + " | ".join("-" for _ in itertools.pairwise(bins_deg))
     err = np.array([c - m["oracle"] for c, m in ok]).reshape(-1, 4, 2)
     angle = np.array([m["angle"] for _, m in ok])
     cells = []
@@ -118,6 +149,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--preset", choices=("clean", "realistic", "rig"), default="realistic")
     ap.add_argument("--base", default=BASE, help="the commit whose template fit is the baseline")
     ap.add_argument("--rounds", type=int, default=2, help="timed rounds over all markers")
+    ap.add_argument("--recording", type=Path, help="markers from this recording's frames instead of the scenes")
+    ap.add_argument("--frames", type=int, default=20, help="with --recording: the first frames of each camera")
     args = ap.parse_args(argv)
     import cv2
 
@@ -130,7 +163,7 @@ def main(argv: list[str] | None = None) -> int:
     cv2.setNumThreads(1)
     load_start = " ".join(f"{v:.1f}" for v in os.getloadavg())
     base = base_module(args.base)
-    items = markers(ceiling, bench, args)
+    items = recording_markers(args.recording, args.frames) if args.recording else markers(ceiling, bench, args)
     lenses: dict = {}
 
     def fit_with(module):
@@ -144,7 +177,9 @@ def main(argv: list[str] | None = None) -> int:
 
     fits = {f"base {args.base}": fit_with(base), "current": fit_with(template_fit)}
     cpu, corners = timed(fits, items, args.rounds)
-    print(f"template fit, {len(items)} markers of {args.preset} configs {args.configs} seed {args.seed}, "
+    source = (f"{args.recording} (first {args.frames} frames per camera)" if args.recording
+              else f"{args.preset} configs {args.configs} seed {args.seed}")
+    print(f"template fit, {len(items)} markers of {source}, "
           f"{args.rounds} rounds, one thread; {os.cpu_count()} cores, load average {load_start} at the start, "
           f"{' '.join(f'{v:.1f}' for v in os.getloadavg())} at the end")
     bins = " | ".join(f"{lo:g}-{hi:g}°" for lo, hi in itertools.pairwise(ceiling.VIEW_BINS_DEG))
@@ -158,6 +193,12 @@ def main(argv: list[str] | None = None) -> int:
     names = list(fits)
     ratio = np.median(cpu[names[0]]) / np.median(cpu[names[1]])
     print(f"ratio {names[0]} / current (median CPU per marker): {ratio:.2f}")
+    both = list(zip(corners[names[0]], corners[names[1]], strict=True))
+    pairs = [(a, b) for a, b in both if a is not None and b is not None]
+    moved = max((float(np.abs(a - b).max()) for a, b in pairs), default=0.0)
+    same_failures = all((a is None) == (b is None) for a, b in both)
+    print(f"current corners against the base's: largest difference {moved:.3g} px over {len(pairs)} markers; "
+          f"{'the same' if same_failures else 'different'} failures")
     return 0
 
 

@@ -48,6 +48,10 @@ _BLUR_STEP_PX = 0.05  # the blur's derivative: a forward difference of this much
 _BLUR_RANGE_PX = (0.3, 3.0)  # the fast fit keeps its blur sigma within this range
 _CONVERGED_PX = 1e-3  # the fast fit stops once no corner moves more than this in an iteration
 _BEYOND_MIN = 0.05  # the fast fit measures the brightness beyond the margin where a pixel sees this much of it
+# LLVM's fast-math flags for the fit's four arithmetic loops (areas, blurs, both normal equations): fused
+# multiply-adds, sums reordered (vectorised), reciprocals; not "no NaN / no inf", which would drop the
+# fit's finiteness checks. Corners within 1e-8 px of the strict arithmetic's (docs/live.md, session 28).
+_FAST_MATH = {"contract", "reassoc", "arcp", "nsz"}
 _AREA_STEP = 0.25  # template samples: the fast fit's pre-blurred templates are cached at multiples of this
 
 
@@ -128,6 +132,7 @@ class LensMap:
 
     def __init__(self, intrinsics: CameraIntrinsics | None):
         self.intrinsics = intrinsics
+        self._samples: dict[tuple[int, int, int], tuple[np.ndarray, np.ndarray]] = {}  # :meth:`samples`'
         if intrinsics is None:
             self.K, self.dist, self.map = np.eye(3), np.zeros(5), None
             self.K_inv: np.ndarray = np.eye(3)  # (:meth:`distort`'s)
@@ -136,6 +141,26 @@ class LensMap:
         self.K_inv = np.linalg.inv(self.K)
         xs, ys = np.meshgrid(np.arange(-1.0, intrinsics.width + 1.0), np.arange(-1.0, intrinsics.height + 1.0))
         self.map = undistort_points(np.stack([xs, ys], axis=-1), self.K, self.dist, self.K).astype(np.float32)
+
+    def samples(self, s: int, shape: tuple[int, int],
+                box: tuple[int, int, int, int]) -> tuple[np.ndarray, np.ndarray, int, int]:
+        """Where a template fit keeps the undistorted centres of the ``s`` x ``s`` samples of each
+        pixel of its region ``box`` (x0, y0, nx, ny) of an image of ``shape`` (height, width)
+        (:func:`_filled_samples`): the samples (rows, cols, s s, 2: a pixel's together), which
+        pixels have theirs (rows, cols) and the region's first pixel's place (column, row) in them. With a lens, this
+        camera's table of the whole image, filled as fits first read a pixel and kept for the next
+        fits (float32: :func:`_map_point` reads float32 values; pages untouched stay unallocated);
+        without, room for the region alone (float64)."""
+        x0, y0, nx, ny = box
+        if self.map is None:
+            return np.empty((ny, nx, s * s, 2)), np.zeros((ny, nx), np.bool_), 0, 0
+        key = (s, *shape)
+        table = self._samples.get(key)
+        if table is None:
+            height, width = shape
+            table = self._samples[key] = (np.empty((height, width, s * s, 2), np.float32),
+                                          np.zeros((height, width), np.bool_))
+        return table[0], table[1], x0, y0
 
     def undistort(self, points_px: np.ndarray) -> np.ndarray:
         """Ideal pinhole pixels (..., 2) of distorted ones (within the image and its border),
@@ -234,62 +259,59 @@ def _region_start(table: np.ndarray, corners_px: np.ndarray, modules: int,
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _region_arrays(table: np.ndarray, corners_px: np.ndarray, H0: np.ndarray, ring_px: np.ndarray, modules: int,
-                   margin: float, s: int, width: int,
-                   height: int) -> tuple[bool, tuple[int, int, int, int], np.ndarray, np.ndarray, np.ndarray,
-                                         np.ndarray, np.ndarray, np.ndarray]:
+                   margin: float, width: int, height: int) -> tuple[bool, tuple[int, int, int, int], np.ndarray,
+                                                                    np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """The pixels a fit of the marker (distorted ``corners_px``, its homography ``H0`` and its
     ring ``ring_px`` (4, 2) in the distorted image, :func:`_region_start`) compares, through the
     lens map ``table``: whether its region (the ring's bounds and ``REGION_PAD_PX``, what the blur
-    reads) lies wholly inside the ``width`` x ``height`` image; the region (x0, y0, nx, ny); room
-    for its pixels' ``s`` x ``s`` samples (ny s nx s, 2), filled only where a step reads them
-    (:func:`_filled_samples`); the compared pixels (those whose centre lies on the marker or
-    within ``margin`` modules of it): which (ny, nx), their flat indices (n,) in the region,
+    reads) lies wholly inside the ``width`` x ``height`` image; the region (x0, y0, nx, ny); the
+    compared pixels (those whose centre lies on the marker or within ``margin`` modules of it):
+    which (ny, nx), their flat indices (n,) in the region,
     their undistorted centres (n, 2) and their places across the region (n, 2,
     :func:`_compared_pixels`) and the lens's local map (2, 2) at the marker's centre
     (:func:`_map_jacobian`; the identity without a lens)."""
     empty = np.empty((0, 2))
     if not np.isfinite(ring_px).all():
-        return (False, (0, 0, 0, 0), empty, np.zeros((0, 0), np.bool_), np.empty(0, np.int64), empty, empty,
-                np.eye(2))
+        return False, (0, 0, 0, 0), np.zeros((0, 0), np.bool_), np.empty(0, np.int64), empty, empty, np.eye(2)
     x0 = int(np.floor(ring_px[:, 0].min())) - REGION_PAD_PX
     y0 = int(np.floor(ring_px[:, 1].min())) - REGION_PAD_PX
     x1 = int(np.ceil(ring_px[:, 0].max())) + REGION_PAD_PX + 1
     y1 = int(np.ceil(ring_px[:, 1].max())) + REGION_PAD_PX + 1
     if x0 < 0 or y0 < 0 or x1 > width or y1 > height:
-        return (False, (0, 0, 0, 0), empty, np.zeros((0, 0), np.bool_), np.empty(0, np.int64), empty, empty,
-                np.eye(2))
+        return False, (0, 0, 0, 0), np.zeros((0, 0), np.bool_), np.empty(0, np.int64), empty, empty, np.eye(2)
     nx, ny = x1 - x0, y1 - y0
     centres = _pixel_centres(table, x0, y0, nx, ny)
     fitted, gradient = _compared_pixels(centres, np.linalg.inv(H0), modules, margin, nx, ny)
     index = np.flatnonzero(fitted)
     lens = np.eye(2) if table.shape[0] == 0 else _map_jacobian(table, corners_px)
-    return (True, (x0, y0, nx, ny), np.empty((ny * s * nx * s, 2)), fitted.reshape(ny, nx), index, centres[index],
-            gradient, lens)
+    return True, (x0, y0, nx, ny), fitted.reshape(ny, nx), index, centres[index], gradient, lens
 
 
 _NO_TABLE = np.zeros((0, 0, 2), np.float32)  # :func:`_pixel_centres`'s lens map of the identity (no lens)
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _filled_samples(table: np.ndarray, x0: int, y0: int, s: int, samples: np.ndarray, have: np.ndarray,
-                    need: np.ndarray) -> None:
-    """Fill in ``samples`` (ny s nx s, 2, row by row) the centres (x, y) of ``s`` x ``s`` equal
-    parts of each pixel of the region from (``x0``, ``y0``) that ``need`` (ny, nx) names and
-    ``have`` does not (then marked there), undistorted through the lens map ``table``
-    (:func:`_map_point`; an empty one: the identity)."""
+def _filled_samples(table: np.ndarray, x0: int, y0: int, s: int, samples: np.ndarray, have: np.ndarray, at_x: int,
+                    at_y: int, need: np.ndarray) -> None:
+    """Fill in ``samples`` (rows, cols, s s, 2) the centres (x, y) of ``s`` x ``s`` equal parts of
+    each pixel of the region from (``x0``, ``y0``) that ``need`` (ny, nx) names and ``have``
+    (rows, cols) does not (then marked there), undistorted through the lens map ``table``
+    (:func:`_map_point`; an empty one: the identity); the region's first pixel is at column
+    ``at_x``, row ``at_y`` of ``have`` (:meth:`LensMap.samples`)."""
     identity = table.shape[0] == 0
     ny, nx = need.shape
     for pi in range(ny):
         for pj in range(nx):
-            if not need[pi, pj] or have[pi, pj]:
+            if not need[pi, pj] or have[at_y + pi, at_x + pj]:
                 continue
-            have[pi, pj] = True
+            have[at_y + pi, at_x + pj] = True
             for di in range(s):
                 y = y0 + pi + (di + 0.5) / s - 0.5
                 for dj in range(s):
                     x = x0 + pj + (dj + 0.5) / s - 0.5
-                    k = (pi * s + di) * nx * s + pj * s + dj
-                    samples[k, 0], samples[k, 1] = (x, y) if identity else _map_point(table, x, y)
+                    k = di * s + dj
+                    samples[at_y + pi, at_x + pj, k, 0], samples[at_y + pi, at_x + pj, k, 1] = (
+                        (x, y) if identity else _map_point(table, x, y))
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
@@ -297,21 +319,17 @@ def _needed(fitted: np.ndarray, half: int) -> tuple[np.ndarray, np.ndarray]:
     """What a blur of ``half`` taps either side reads to give the compared pixels ``fitted`` (ny,
     nx): the pixels its pass along the rows must give (``fitted`` widened by ``half`` rows, within
     the region) and the pixel areas that pass reads (that, widened by ``half`` columns)."""
-    rows = _widened(fitted, half)
-    return rows, np.ascontiguousarray(_widened(np.ascontiguousarray(rows.T), half).T)
-
-
-@numba.njit(cache=True, nogil=True, error_model="numpy")
-def _widened(mask: np.ndarray, half: int) -> np.ndarray:
-    """(n, m) bool: ``mask`` (n, m) widened by ``half`` along its first axis, within it."""
-    n, m = mask.shape
-    out = np.zeros((n, m), np.bool_)
-    for i in range(n):
-        for j in range(m):
-            if mask[i, j]:
-                for r in range(max(i - half, 0), min(i + half + 1, n)):
-                    out[r, j] = True
-    return out
+    ny, nx = fitted.shape
+    rows, need = np.zeros((ny, nx), np.bool_), np.zeros((ny, nx), np.bool_)
+    for i in range(ny):
+        for j in range(nx):
+            if fitted[i, j]:
+                rows[max(i - half, 0):min(i + half + 1, ny), j] = True
+    for i in range(ny):
+        for j in range(nx):
+            if rows[i, j]:
+                need[i, max(j - half, 0):min(j + half + 1, nx)] = True
+    return rows, need
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
@@ -413,19 +431,20 @@ def _area_sigmas(H: np.ndarray, modules: float, lens_jacobian: np.ndarray, super
     return np.sqrt(cov[0, 0]) / _AREA_STEP, np.sqrt(cov[1, 1]) / _AREA_STEP
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
-def _pixel_areas(template: np.ndarray, samples: np.ndarray, H_inv: np.ndarray, need: np.ndarray,
-                 s: int) -> np.ndarray:
+@numba.njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST_MATH)
+def _pixel_areas(template: np.ndarray, samples: np.ndarray, at_x: int, at_y: int, H_inv: np.ndarray,
+                 need: np.ndarray, s: int) -> np.ndarray:
     """(ny, nx, 2) float32: each pixel's mean of its ``s`` x ``s`` samples' reads of both template
     images, where ``need`` (ny, nx) asks for it (elsewhere unset); a sample (undistorted px,
-    ``samples`` (ny s nx s, 2) row by row) reads them through the inverse homography ``H_inv``
+    ``samples`` (rows, cols, s s, 2), the region's first pixel's at column ``at_x``, row ``at_y``:
+    :func:`_filled_samples`) reads them through the inverse homography ``H_inv``
     bilinearly, 0 and 1 beyond them
     (``cv2.remap``'s ``INTER_LINEAR`` and ``BORDER_CONSTANT``, at the exact point where OpenCV
     rounds it to 1/32 of a sample)."""
     rows, cols = template.shape[0], template.shape[1]
     ny, nx = need.shape
     out = np.empty((ny, nx, 2), np.float32)
-    cols_s, scale = nx * s, 1.0 / (s * s)
+    scale = 1.0 / (s * s)
     h00, h01, h02, h10, h11, h12 = H_inv[0, 0], H_inv[0, 1], H_inv[0, 2], H_inv[1, 0], H_inv[1, 1], H_inv[1, 2]
     h20, h21, h22 = H_inv[2, 0], H_inv[2, 1], H_inv[2, 2]  # locals: the loop reloads array elements
     for i in range(ny):
@@ -435,8 +454,8 @@ def _pixel_areas(template: np.ndarray, samples: np.ndarray, H_inv: np.ndarray, n
             a = b = 0.0
             for di in range(s):
                 for dj in range(s):
-                    k = (i * s + di) * cols_s + j * s + dj
-                    x, y = samples[k, 0], samples[k, 1]
+                    k = di * s + dj
+                    x, y = np.float64(samples[at_y + i, at_x + j, k, 0]), np.float64(samples[at_y + i, at_x + j, k, 1])
                     z = h20 * x + h21 * y + h22
                     u = TEMPLATE_RES * (h00 * x + h01 * y + h02) / z + _TEMPLATE_SHIFT
                     v = TEMPLATE_RES * (h10 * x + h11 * y + h12) / z + _TEMPLATE_SHIFT
@@ -521,7 +540,7 @@ def _blurred_with_gradient(image: np.ndarray, sigma: float, rows_mask: np.ndarra
     return blurred, gx, gy
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@numba.njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST_MATH)
 def _filtered_across(image: np.ndarray, kernel: np.ndarray, mask: np.ndarray) -> np.ndarray:
     """(nx, ny, 2) float64: the (ny, nx, 2) ``image`` filtered along its rows by the odd-sized
     ``kernel``, border replicated, and transposed (so that a second call filters the columns);
@@ -542,7 +561,7 @@ def _filtered_across(image: np.ndarray, kernel: np.ndarray, mask: np.ndarray) ->
     return out
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@numba.njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST_MATH)
 def _brightness_system(image: np.ndarray, index: np.ndarray, gradient: np.ndarray,
                        pixels: np.ndarray) -> tuple[np.ndarray, np.ndarray, bool]:
     """The brightness model's normal equations (its columns per compared pixel: offset, the
@@ -568,7 +587,7 @@ def _brightness_system(image: np.ndarray, index: np.ndarray, gradient: np.ndarra
     return N, rhs, beyond
 
 
-@numba.njit(cache=True, nogil=True, error_model="numpy")
+@numba.njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST_MATH)
 def _step_system(image: np.ndarray, wider: np.ndarray, gx: np.ndarray, gy: np.ndarray, index: np.ndarray,
                  gradient: np.ndarray, pixels: np.ndarray, centres: np.ndarray, lens: np.ndarray,
                  H_inv: np.ndarray, dH: np.ndarray, coef: np.ndarray, beyond: bool) -> tuple[np.ndarray, np.ndarray]:
@@ -648,9 +667,10 @@ def _homography_with_derivatives(corners: np.ndarray, side: float) -> tuple[np.n
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _gauss_newton_step(template: np.ndarray, region: tuple[np.ndarray, int, int, int, np.ndarray, np.ndarray],
-                       fitted: np.ndarray, index: np.ndarray, gradient: np.ndarray, pixels: np.ndarray,
-                       centres: np.ndarray, lens: np.ndarray, H: np.ndarray, dH: np.ndarray,
+def _gauss_newton_step(template: np.ndarray,
+                       region: tuple[np.ndarray, int, int, int, np.ndarray, np.ndarray, int, int],
+                       masks: tuple[np.ndarray, np.ndarray, np.ndarray], index: np.ndarray, gradient: np.ndarray,
+                       pixels: np.ndarray, centres: np.ndarray, lens: np.ndarray, H: np.ndarray, dH: np.ndarray,
                        blur: float) -> np.ndarray:
     """One Gauss-Newton step of the fast fit at homography ``H`` (derivatives ``dH``) and blur:
     the update of the 8 corner coordinates, the blur and the 5 brightness terms (their values, not
@@ -658,14 +678,14 @@ def _gauss_newton_step(template: np.ndarray, region: tuple[np.ndarray, int, int,
     distorted image, through the lens's local map) times the motion of each compared pixel's
     template point when a corner moves. Compiled whole (numba): as OpenCV calls and numpy it was
     ~0.45 ms per step on 30 px markers, nearly all of it per-call overhead. Only what the blurs
-    need for the compared pixels ``fitted`` (ny, nx) is read and filtered (:func:`_needed`; the
-    ``region``'s samples, :func:`_fitted_offsets`, filled as they are first read)."""
-    table, x0, y0, s, samples, have = region
-    rows, need = _needed(fitted, _kernel_half(blur + _BLUR_STEP_PX))  # the wider blur's reach: the larger
-    _filled_samples(table, x0, y0, s, samples, have, need)
+    need for the compared pixels is read and filtered (``masks``: :func:`_needed`'s two for the
+    wider blur's reach, the larger, and the compared pixels (nx, ny); the ``region``'s samples,
+    :func:`_fitted_offsets`, filled as they are first read)."""
+    table, x0, y0, s, samples, have, at_x, at_y = region
+    rows, need, fitted_t = masks
+    _filled_samples(table, x0, y0, s, samples, have, at_x, at_y, need)
     H_inv = np.linalg.inv(H)
-    area = _pixel_areas(template, samples, H_inv, need, s)
-    fitted_t = np.ascontiguousarray(fitted.T)
+    area = _pixel_areas(template, samples, at_x, at_y, H_inv, need, s)
     image, gx, gy = _blurred_with_gradient(area, blur, rows, fitted_t)
     wider = _blurred(area, blur + _BLUR_STEP_PX, rows, fitted_t)
     N, rhs, beyond = _brightness_system(image, index, gradient, pixels)
@@ -675,19 +695,27 @@ def _gauss_newton_step(template: np.ndarray, region: tuple[np.ndarray, int, int,
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _fitted_offsets(template: np.ndarray, table: np.ndarray, box: tuple[int, int], s: int, samples: np.ndarray,
-                    fitted: np.ndarray, index: np.ndarray, gradient: np.ndarray, pixels: np.ndarray,
-                    centres: np.ndarray, lens: np.ndarray, start: np.ndarray, modules: int, blur: float,
-                    iterations: int) -> np.ndarray:
+def _fitted_offsets(template: np.ndarray, table: np.ndarray, box: tuple[int, int], s: int,
+                    store: tuple[np.ndarray, np.ndarray, int, int], fitted: np.ndarray, index: np.ndarray,
+                    gradient: np.ndarray, pixels: np.ndarray, centres: np.ndarray, lens: np.ndarray,
+                    start: np.ndarray, modules: int, blur: float, iterations: int) -> np.ndarray:
     """The fast fit's Gauss-Newton iterations from the undistorted corners ``start`` (4, 2): the
     corners' offsets (8,) from it (NaN where it diverged); LinAlgError on a degenerate homography.
-    ``samples``: room for the ``s`` x ``s`` samples of the pixels of the region whose corner is
-    ``box`` (x0, y0), undistorted through the lens map ``table`` as the steps first read them."""
+    ``store``: where the ``s`` x ``s`` samples of the pixels of the region whose corner is ``box``
+    (x0, y0) are kept (:meth:`LensMap.samples`), undistorted through the lens map ``table`` as
+    the steps first read them."""
     p = np.zeros(8)
-    region = (table, box[0], box[1], s, samples, np.zeros(fitted.shape, np.bool_))
+    region = (table, box[0], box[1], s, *store)
+    fitted_t = np.ascontiguousarray(fitted.T)
+    half = -1
+    rows = need = fitted
     for _ in range(iterations):
+        if _kernel_half(blur + _BLUR_STEP_PX) != half:  # the wider blur's reach: the larger
+            half = _kernel_half(blur + _BLUR_STEP_PX)
+            rows, need = _needed(fitted, half)
         H, dH = _homography_with_derivatives(start + p.reshape(4, 2), float(modules))
-        delta = _gauss_newton_step(template, region, fitted, index, gradient, pixels, centres, lens, H, dH, blur)
+        delta = _gauss_newton_step(template, region, (rows, need, fitted_t), index, gradient, pixels, centres, lens,
+                                   H, dH, blur)
         p = p + delta[:8]
         blur = min(max(blur + delta[8], _BLUR_RANGE_PX[0]), _BLUR_RANGE_PX[1])
         if not np.isfinite(p).all() or np.abs(delta[:8]).max() < _CONVERGED_PX:
@@ -716,13 +744,14 @@ def fast_template_corners(gray: np.ndarray, corners_px: np.ndarray, dictionary: 
         ok, start, H0, ring = _region_start(table, corners, modules, m)
         if not ok:
             return None
-        ok, (x0, y0, nx, ny), samples, fitted, index, centres, gradient, local = _region_arrays(
-            table, corners, H0, lens.distort(ring), modules, m, s, gray.shape[1], gray.shape[0])
+        ok, (x0, y0, nx, ny), fitted, index, centres, gradient, local = _region_arrays(
+            table, corners, H0, lens.distort(ring), modules, m, gray.shape[1], gray.shape[0])
         if not ok:
             return None
         template = _area_template(dictionary, marker_id, settings.white_modules, _area_steps(H0, modules, local, s))
         pixels = np.take(gray[y0:y0 + ny, x0:x0 + nx], index).astype(np.float64)
-        p = _fitted_offsets(template, table, (x0, y0), s, samples, fitted, index, gradient, pixels, centres, local,
+        store = lens.samples(s, gray.shape[:2], (x0, y0, nx, ny))
+        p = _fitted_offsets(template, table, (x0, y0), s, store, fitted, index, gradient, pixels, centres, local,
                             start, modules, settings.start_blur_px, iterations)
     except np.linalg.LinAlgError:  # a degenerate homography
         return None

@@ -232,3 +232,23 @@ def test_the_pre_blur_is_one_reads_area_in_template_samples():
     assert half == (round(2 * sigma), round(2 * sigma))
     squashed = square * [1.0, 0.5]
     assert _area_steps(square_homography(squashed, modules), modules, np.eye(2), 2) == (round(sigma), round(2 * sigma))
+
+
+def test_a_cameras_kept_samples_give_the_corners_a_fresh_lens_map_gives():
+    """A LensMap keeps the undistorted samples of every pixel a fit read (its samples table, filled
+    as fits first read a pixel): fits in any order through one map, overlapping regions and all,
+    give the corners each gives through a map of its own, to the bit; so does an image of
+    another size through the same map (a table of its own)."""
+    lens = camera()
+    images = [render(oblique_square(centre, half, squash, turn), lens, seed=seed)
+              for seed, (centre, half, squash, turn) in enumerate(SCENES)]
+    images.append(render(oblique_square((96.0, 82.0), 23.0, 0.55, 22.0), lens, seed=9))  # overlaps the second
+    starts = [detected_corners(image, CornerRefinement.EDGE, lens) for image in images]
+    alone = [fast_template_corners(image, start, DICT, MARKER_ID, LensMap(lens)) for image, start in zip(
+        images, starts, strict=True)]
+    assert all(c is not None for c in alone)
+    shared = LensMap(lens)
+    for k in (4, 1, 0, 3, 2, 1, 4):
+        np.testing.assert_array_equal(fast_template_corners(images[k], starts[k], DICT, MARKER_ID, shared), alone[k])
+    padded = np.pad(images[0], ((0, 16), (0, 16)), mode="edge")
+    np.testing.assert_array_equal(fast_template_corners(padded, starts[0], DICT, MARKER_ID, shared), alone[0])
