@@ -132,6 +132,12 @@ class WatchParams:
                                       "seen elsewhere said moved (docs/calibration.md, Session 26), seconds")
     moved_px: float = param(5.0, "moved: the refitted pose moves the camera's corners by more than this (RMS), "
                                  "pixels")
+    moved_sigmas: float = param(4.0, "moved, a small bump: ... or by more than this many times the camera's own "
+                                     "window shift while unmoved (the RMS of its windows' shifts over the baseline_s "
+                                     "before the window; at least moved_min_px): a bump that moves the corners by "
+                                     "3-5 px is far out of a quiet camera's 0.5-1 px (docs/calibration.md, Session "
+                                     "28); 0: moved_px alone")
+    moved_min_px: float = param(2.0, "moved, a small bump: ... never by less than this, pixels")
     moved_ratio: float = param(4.0, "moved: ... and the window's pose explains the window this many times better "
                                     "(median corner residual) than the settled pose")
     moved_m: float = param(0.01, "moved: ... and the camera is more than this far from its pose, metres")
@@ -174,9 +180,9 @@ class WatchParams:
                                      "it is moved")
 
     def __post_init__(self) -> None:
-        check_at_least(self, 0, "gate_prediction_px", "follow_m", "settle_span_s")
+        check_at_least(self, 0, "gate_prediction_px", "follow_m", "settle_span_s", "moved_sigmas")
         check_positive(self, "baseline_s", "baseline_every_s", "samples_per_s", "checks_per_s", "reference_span_s",
-                       "reference_rms_px", "window_s", "check_every_s", "moved_px", "moved_ratio", "moved_m",
+                       "reference_rms_px", "window_s", "check_every_s", "moved_px", "moved_min_px", "moved_ratio", "moved_m",
                        "moved_deg", "rejoin_sigma_m", "rejoin_sigma_deg", "rejoin_spread_m", "rejoin_spread_deg",
                        "corner_noise_px", "gate_px", "suspect_px", "gate_prediction_ratio", "follow_px", "follow_ratio")
         check_at_least(self, 1, "reference_cameras", "suspect_samples")
@@ -457,9 +463,12 @@ def improvement_px(fit: CameraFit, T_world_cam: np.ndarray, samples: Sequence[Wa
     return before - after
 
 
-def window_verdict(samples: Sequence[WatchSample], T_world_cam: np.ndarray, params: WatchParams) -> Verdict | None:
+def window_verdict(samples: Sequence[WatchSample], T_world_cam: np.ndarray, params: WatchParams,
+                   moved_px: float | None = None) -> Verdict | None:
     """Fit a camera's window of samples against its settled pose ``T_world_cam`` and judge it
-    (see the module doc); None when the window holds under ``min_points`` corners or the fit fails."""
+    (see the module doc) by the corner shift ``moved_px`` (None: ``params.moved_px``; a small bump's:
+    :meth:`CameraWatch._moved_px`); None when the window holds under ``min_points`` corners or the fit fails."""
+    moved_px = params.moved_px if moved_px is None else moved_px
     if sum(len(s.points_world_m) for s in samples) < params.min_points:
         return None
     fit = refit_camera(*stacked(samples), T_world_cam, params.corner_noise_px,
@@ -469,11 +478,11 @@ def window_verdict(samples: Sequence[WatchSample], T_world_cam: np.ndarray, para
     shift = shift_px(fit, T_world_cam, samples)
     off_m, off_deg = fit.offset_from(T_world_cam)
     before, after = median_residuals_px(fit, T_world_cam, samples)
-    moved = (shift > params.moved_px and (off_m > params.moved_m or off_deg > params.moved_deg)
+    moved = (shift > moved_px and (off_m > params.moved_m or off_deg > params.moved_deg)
              and before >= params.moved_ratio * after)
     if moved:  # consistent: each half on its own is explained much better by the new pose
         middle = len(samples) // 2
-        moved = middle >= 2 and all(improvement_px(fit, T_world_cam, part) > params.moved_px / 2
+        moved = middle >= 2 and all(improvement_px(fit, T_world_cam, part) > moved_px / 2
                                     for part in (samples[:middle], samples[middle:]))
     return Verdict(fit, shift, off_m, off_deg, moved)
 
@@ -541,6 +550,8 @@ class CameraWatch:
         self.settled: dict[str, np.ndarray] = {}
         self._next_baseline_s = -math.inf
         self._disagreement: dict[str, deque[tuple[float, float]]] = {c: deque() for c in T_world_cams}
+        # camera -> its windows' (time, shift px) against its settled pose: its own noise while unmoved (_moved_px)
+        self._shifts: dict[str, deque[tuple[float, float]]] = {c: deque() for c in T_world_cams}
         # camera -> its latest samples' (time, median corner miss at its settled pose, px)
         self._misses: dict[str, deque[tuple[float, float]]] = {c: deque(maxlen=params.suspect_samples)
                                                                for c in T_world_cams}
@@ -654,6 +665,7 @@ class CameraWatch:
         self.T_world_cam[camera] = np.asarray(T_world_cam, float).copy()
         self.state[camera] = CameraState.WATCHED
         self.samples[camera].clear()
+        self._shifts[camera].clear()
         self.settled.pop(camera, None)
         self.anchor.clear()
         fit = CameraFit(self.T_world_cam[camera], 0.0, 0.0, 0.0, 0)
@@ -680,14 +692,29 @@ class CameraWatch:
             if camera not in self.settled:
                 continue
             window = [s for s in samples if s.time_s >= now_s - p.window_s]
-            verdict = window_verdict(window, self.settled[camera], p)
+            verdict = window_verdict(window, self.settled[camera], p, self._moved_px(camera, now_s))
             if verdict is not None:
                 verdicts[camera] = verdict
+                self._shifts[camera].append((now_s, verdict.shift_px))
         worst = self._culprit(verdicts, now_s)
         if worst is None:
             followed = self._follow(now_s) if baseline and not any(v.moved for v in verdicts.values()) else None
             return [] if followed is None else [followed]
         return [self._declare(*worst, now_s)]
+
+    def _moved_px(self, camera: str, now_s: float) -> float:
+        """The corner shift (px) that says ``camera`` moved now: ``moved_px``, or less, down to
+        ``moved_min_px``, ``moved_sigmas`` times the RMS shift of its windows that ended in the
+        ``baseline_s`` before this window began (its own noise while unmoved, once it has a quarter
+        of that span's checks; a bump's windows are in it only once they are older than a window)."""
+        p, shifts = self.params, self._shifts[camera]
+        while shifts and shifts[0][0] < now_s - p.window_s - p.baseline_s:
+            shifts.popleft()
+        past = [shift for t, shift in shifts if t <= now_s - p.window_s]
+        if p.moved_sigmas <= 0 or len(past) < p.baseline_s / p.check_every_s / 4:
+            return p.moved_px
+        noise_px = math.sqrt(sum(shift**2 for shift in past) / len(past))
+        return min(p.moved_px, max(p.moved_min_px, p.moved_sigmas * noise_px))
 
     def _follow(self, now_s: float) -> WatchEvent | None:
         """Follow a drift (see the module doc). With every camera watched, each one's settled pose
