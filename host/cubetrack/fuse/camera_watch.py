@@ -38,7 +38,7 @@ declared moved (at least ``reference_cameras`` others stay in use).
 And since a check waits for the other cameras' sightings around it, the very first sightings
 after a bump come before any check: :meth:`CameraWatch.off_prediction` holds a sighting out of
 the fusion when it misses the fused prediction by more than ``gate_prediction_px`` and
-``gate_prediction_ratio`` times more than every other camera's latest sighting.
+``gate_prediction_ratio`` times more than the other cameras' latest sightings do (their median).
 
 A moved camera spoils the references it takes part in, so its partners' windows shift too (with
 three cameras, about as much as its own). With four cameras or more a suspect camera whose window
@@ -162,8 +162,10 @@ class WatchParams:
     suspect_samples: int = param(2, "checked sightings in a row that make a camera suspect, or clear it")
     gate_prediction_px: float = param(3.0, "a watched camera's sighting is held out of the fusion when it misses the "
                                            "fused prediction by more than this (median corner residual at its "
-                                           "settled pose) and gate_prediction_ratio times more than any other "
-                                           "camera's latest sighting, pixels; 0: never")
+                                           "settled pose) and gate_prediction_ratio times more than the other "
+                                           "cameras' latest sightings (their median: one other camera's miss "
+                                           "let a bumped camera's first sightings in, docs/calibration.md, "
+                                           "Session 28), pixels; 0: never")
     gate_prediction_ratio: float = param(4.0, "... see gate_prediction_px")
     follow_m: float = param(0.0, "drift: a camera whose settled pose has moved more than this since its anchor "
                                  "(its settled pose over its first whole baseline_s, or at its last follow) is "
@@ -592,8 +594,9 @@ class CameraWatch:
         """Whether a watched camera's sighting must be held out of the fusion: it misses the
         fused prediction ``T_world_cube`` (at its capture time) by more than ``gate_prediction_px``
         (median corner residual at the camera's settled pose), and ``gate_prediction_ratio`` times
-        more than the latest sighting of any other camera in use (within ``window_s``; at least
-        ``reference_cameras`` of them). The first sightings after a bump come before any check can judge them (a
+        more than the latest sightings of the other cameras in use (within ``window_s``; at least
+        ``reference_cameras`` of them) miss it, by their median: one other camera missing too (its
+        own sighting off, or the prediction off from its view) does not let a bumped camera in. The first sightings after a bump come before any check can judge them (a
         check waits for the other cameras' sightings around it); this keeps them out."""
         p = self.params
         settled = self.settled.get(sighting.camera)
@@ -612,7 +615,7 @@ class CameraWatch:
             return False
         others = [m for c, (t, m) in latest.items() if c != sighting.camera and not self.excluded(c)
                   and t >= sighting.capture_time_s - p.window_s]
-        held = len(others) >= p.reference_cameras and miss > p.gate_prediction_ratio * max(others)
+        held = len(others) >= p.reference_cameras and miss > p.gate_prediction_ratio * float(np.median(others))
         self.stats["held off the prediction"] += held
         return held
 
