@@ -494,18 +494,18 @@ def holds(sample: WatchSample, camera: str) -> bool:
     return any(s.camera == camera for s in sample.reference_sets)
 
 
-def with_camera_at(sample: WatchSample, camera: str, T_cam_world: np.ndarray, corner_noise_px: float
+def with_camera_at(sample: WatchSample, camera: str, T_cam_world: np.ndarray | None, corner_noise_px: float
                    ) -> WatchSample | None:
-    """The sample as if ``camera`` stood at ``T_cam_world``: its sightings in the reference taken
-    there and the reference fitted again, the sample's corners placed in the world by that fit
-    (the sample itself when its reference does not hold ``camera``); None when it kept no cube
-    pose or corner sets, or the fit fails."""
+    """The sample as if ``camera`` stood at ``T_cam_world`` (None: as if it had not been seen):
+    its sightings in the reference taken there (or left out) and the reference fitted again, the
+    sample's corners placed in the world by that fit (the sample itself when its reference does not
+    hold ``camera``); None when it kept no cube pose or corner sets, or the fit fails."""
     if not holds(sample, camera):
         return sample
     if sample.T_world_cube is None or not sample.own_sets:
         return None
-    sets = tuple(dataclasses.replace(s, T_cam_world=T_cam_world) if s.camera == camera else s
-                 for s in sample.reference_sets)
+    sets = tuple(s for s in sample.reference_sets if s.camera != camera) if T_cam_world is None else tuple(
+        dataclasses.replace(s, T_cam_world=T_cam_world) if s.camera == camera else s for s in sample.reference_sets)
     refit = solve_joint(sets, sample.T_world_cube, sample.time_s, corner_noise_px, velocity_sigma=VELOCITY_SIGMA,
                         iterations=FIT_ITERATIONS)
     if refit is None:
@@ -806,7 +806,11 @@ class CameraWatch:
     def _culprit(self, verdicts: dict[str, Verdict], now_s: float) -> tuple[str, Verdict] | None:
         """The camera to declare moved, if any: of the cameras whose window says moved, the one
         that disagreed most with the others in the references it took part in over the window
-        (a moved camera shifts its partners' windows too, through their references)."""
+        (a moved camera shifts its partners' windows too, through their references). With four
+        cameras or more, the camera whose leaving out of the references makes the others agree
+        best (:meth:`_others_miss_px`), if its window says moved and the others then agree within
+        ``suspect_px``: a camera whose small bump went unseen spoils its partners' references, and
+        a partner's window said moved (issue 27's seed 151: cam4 and cam1 declared for cam5)."""
         for trail in self._disagreement.values():
             while trail and trail[0][0] < now_s - self.params.window_s:
                 trail.popleft()
@@ -817,6 +821,10 @@ class CameraWatch:
         if suspects:  # named when it became suspect; no one's reference since
             top = max(suspects, key=lambda c: verdicts[c].shift_px)
             return top, verdicts[top]
+        if self._suspects_aside():  # each left out in turn: the one without which the others agree
+            miss = {c: self._others_miss_px(c, None, now_s) for c in verdicts}
+            top = min(miss, key=lambda c: miss[c])
+            return (top, verdicts[top]) if top in moved and miss[top] <= self.params.suspect_px else None
         if len(moved) > 1:  # each in turn put where its window's newer half says: the one that makes the others agree
             miss = {c: self._others_miss_px(c, self._newer_pose(c, verdicts[c], now_s), now_s) for c in moved}
             top = min(moved, key=lambda c: miss[c])
@@ -834,20 +842,22 @@ class CameraWatch:
                            prior_sigma=(WINDOW_PRIOR_M, math.radians(WINDOW_PRIOR_DEG))) if newer else None
         return verdict.fit.T_world_cam if fit is None else fit.T_world_cam
 
-    def _others_miss_px(self, camera: str, T_world_cam: np.ndarray, now_s: float) -> float:
-        """If ``camera`` were at ``T_world_cam``: the median corner miss (px, at their settled
+    def _others_miss_px(self, camera: str, T_world_cam: np.ndarray | None, now_s: float) -> float:
+        """If ``camera`` were at ``T_world_cam`` (None: left out, where ``reference_cameras`` others
+        are left): the median corner miss (px, at their settled
         poses) of the other watched cameras' samples of the window's newer half (after the move,
         as the one declared keeps) whose reference it took part in, the
-        references fitted again with it there. With three cameras a moved one spoils both others'
+        references fitted again with it there (or without it). With three cameras a moved one spoils both others'
         references, and their windows can say moved as loudly as its own; put at its window's pose,
         only the camera that really moved makes the others' references agree with them again."""
-        T_cam_world, p, misses = invert_T(T_world_cam), self.params, []
+        T_cam_world, p, misses = None if T_world_cam is None else invert_T(T_world_cam), self.params, []
         for other, samples in self.samples.items():
             settled = self.settled.get(other)
             if other == camera or settled is None or self.state[other] is CameraState.RECALIBRATING:
                 continue
             for sample in samples:
-                if sample.time_s < now_s - p.window_s / 2 or not holds(sample, camera):
+                if sample.time_s < now_s - p.window_s / 2 or not holds(sample, camera) or (
+                        T_cam_world is None and len({s.camera for s in sample.reference_sets}) <= p.reference_cameras):
                     continue
                 moved = with_camera_at(sample, camera, T_cam_world, p.corner_noise_px)
                 if moved is not None:
