@@ -184,9 +184,10 @@ class WatchParams:
     def __post_init__(self) -> None:
         check_at_least(self, 0, "gate_prediction_px", "follow_m", "settle_span_s", "moved_sigmas")
         check_positive(self, "baseline_s", "baseline_every_s", "samples_per_s", "checks_per_s", "reference_span_s",
-                       "reference_rms_px", "window_s", "check_every_s", "moved_px", "moved_min_px", "moved_ratio", "moved_m",
-                       "moved_deg", "rejoin_sigma_m", "rejoin_sigma_deg", "rejoin_spread_m", "rejoin_spread_deg",
-                       "corner_noise_px", "gate_px", "suspect_px", "gate_prediction_ratio", "follow_px", "follow_ratio")
+                       "reference_rms_px", "window_s", "check_every_s", "moved_px", "moved_min_px", "moved_ratio",
+                       "moved_m", "moved_deg", "rejoin_sigma_m", "rejoin_sigma_deg", "rejoin_spread_m",
+                       "rejoin_spread_deg", "corner_noise_px", "gate_px", "suspect_px", "gate_prediction_ratio",
+                       "follow_px", "follow_ratio")
         check_at_least(self, 1, "reference_cameras", "suspect_samples")
         check(self.reference_cameras_max >= self.reference_cameras, f"reference_cameras_max "
               f"({self.reference_cameras_max}) must be at least reference_cameras ({self.reference_cameras})")
@@ -596,8 +597,9 @@ class CameraWatch:
         (median corner residual at the camera's settled pose), and ``gate_prediction_ratio`` times
         more than the latest sightings of the other cameras in use (within ``window_s``; at least
         ``reference_cameras`` of them) miss it, by their median: one other camera missing too (its
-        own sighting off, or the prediction off from its view) does not let a bumped camera in. The first sightings after a bump come before any check can judge them (a
-        check waits for the other cameras' sightings around it); this keeps them out."""
+        own sighting off, or the prediction off from its view) does not let a bumped camera in. The
+        first sightings after a bump come before any check can judge them (a check waits for the
+        other cameras' sightings around it); this keeps them out."""
         p = self.params
         settled = self.settled.get(sighting.camera)
         if p.gate_prediction_px <= 0 or settled is None or sighting.robot not in self.layouts:
