@@ -38,7 +38,7 @@ declared moved (at least ``reference_cameras`` others stay in use).
 And since a check waits for the other cameras' sightings around it, the very first sightings
 after a bump come before any check: :meth:`CameraWatch.off_prediction` holds a sighting out of
 the fusion when it misses the fused prediction by more than ``gate_prediction_px`` and
-``gate_prediction_ratio`` times more than every other camera's latest sighting.
+``gate_prediction_ratio`` times more than the other cameras' latest sightings do (their median).
 
 A moved camera spoils the references it takes part in, so its partners' windows shift too (with
 three cameras, about as much as its own). With four cameras or more a suspect camera whose window
@@ -132,6 +132,12 @@ class WatchParams:
                                       "seen elsewhere said moved (docs/calibration.md, Session 26), seconds")
     moved_px: float = param(5.0, "moved: the refitted pose moves the camera's corners by more than this (RMS), "
                                  "pixels")
+    moved_sigmas: float = param(4.0, "moved, a small bump: ... or by more than this many times the camera's own "
+                                     "window shift while unmoved (the RMS of its windows' shifts over the baseline_s "
+                                     "before the window; at least moved_min_px): a bump that moves the corners by "
+                                     "3-5 px is far out of a quiet camera's 0.5-1 px (docs/calibration.md, Session "
+                                     "28); 0: moved_px alone")
+    moved_min_px: float = param(2.0, "moved, a small bump: ... never by less than this, pixels")
     moved_ratio: float = param(4.0, "moved: ... and the window's pose explains the window this many times better "
                                     "(median corner residual) than the settled pose")
     moved_m: float = param(0.01, "moved: ... and the camera is more than this far from its pose, metres")
@@ -156,8 +162,10 @@ class WatchParams:
     suspect_samples: int = param(2, "checked sightings in a row that make a camera suspect, or clear it")
     gate_prediction_px: float = param(3.0, "a watched camera's sighting is held out of the fusion when it misses the "
                                            "fused prediction by more than this (median corner residual at its "
-                                           "settled pose) and gate_prediction_ratio times more than any other "
-                                           "camera's latest sighting, pixels; 0: never")
+                                           "settled pose) and gate_prediction_ratio times more than the other "
+                                           "cameras' latest sightings (their median: one other camera's miss "
+                                           "let a bumped camera's first sightings in, docs/calibration.md, "
+                                           "Session 28), pixels; 0: never")
     gate_prediction_ratio: float = param(4.0, "... see gate_prediction_px")
     follow_m: float = param(0.0, "drift: a camera whose settled pose has moved more than this since its anchor "
                                  "(its settled pose over its first whole baseline_s, or at its last follow) is "
@@ -174,11 +182,12 @@ class WatchParams:
                                      "it is moved")
 
     def __post_init__(self) -> None:
-        check_at_least(self, 0, "gate_prediction_px", "follow_m", "settle_span_s")
+        check_at_least(self, 0, "gate_prediction_px", "follow_m", "settle_span_s", "moved_sigmas")
         check_positive(self, "baseline_s", "baseline_every_s", "samples_per_s", "checks_per_s", "reference_span_s",
-                       "reference_rms_px", "window_s", "check_every_s", "moved_px", "moved_ratio", "moved_m",
-                       "moved_deg", "rejoin_sigma_m", "rejoin_sigma_deg", "rejoin_spread_m", "rejoin_spread_deg",
-                       "corner_noise_px", "gate_px", "suspect_px", "gate_prediction_ratio", "follow_px", "follow_ratio")
+                       "reference_rms_px", "window_s", "check_every_s", "moved_px", "moved_min_px", "moved_ratio",
+                       "moved_m", "moved_deg", "rejoin_sigma_m", "rejoin_sigma_deg", "rejoin_spread_m",
+                       "rejoin_spread_deg", "corner_noise_px", "gate_px", "suspect_px", "gate_prediction_ratio",
+                       "follow_px", "follow_ratio")
         check_at_least(self, 1, "reference_cameras", "suspect_samples")
         check(self.reference_cameras_max >= self.reference_cameras, f"reference_cameras_max "
               f"({self.reference_cameras_max}) must be at least reference_cameras ({self.reference_cameras})")
@@ -457,9 +466,12 @@ def improvement_px(fit: CameraFit, T_world_cam: np.ndarray, samples: Sequence[Wa
     return before - after
 
 
-def window_verdict(samples: Sequence[WatchSample], T_world_cam: np.ndarray, params: WatchParams) -> Verdict | None:
+def window_verdict(samples: Sequence[WatchSample], T_world_cam: np.ndarray, params: WatchParams,
+                   moved_px: float | None = None) -> Verdict | None:
     """Fit a camera's window of samples against its settled pose ``T_world_cam`` and judge it
-    (see the module doc); None when the window holds under ``min_points`` corners or the fit fails."""
+    (see the module doc) by the corner shift ``moved_px`` (None: ``params.moved_px``; a small bump's:
+    :meth:`CameraWatch._moved_px`); None when the window holds under ``min_points`` corners or the fit fails."""
+    moved_px = params.moved_px if moved_px is None else moved_px
     if sum(len(s.points_world_m) for s in samples) < params.min_points:
         return None
     fit = refit_camera(*stacked(samples), T_world_cam, params.corner_noise_px,
@@ -469,11 +481,11 @@ def window_verdict(samples: Sequence[WatchSample], T_world_cam: np.ndarray, para
     shift = shift_px(fit, T_world_cam, samples)
     off_m, off_deg = fit.offset_from(T_world_cam)
     before, after = median_residuals_px(fit, T_world_cam, samples)
-    moved = (shift > params.moved_px and (off_m > params.moved_m or off_deg > params.moved_deg)
+    moved = (shift > moved_px and (off_m > params.moved_m or off_deg > params.moved_deg)
              and before >= params.moved_ratio * after)
     if moved:  # consistent: each half on its own is explained much better by the new pose
         middle = len(samples) // 2
-        moved = middle >= 2 and all(improvement_px(fit, T_world_cam, part) > params.moved_px / 2
+        moved = middle >= 2 and all(improvement_px(fit, T_world_cam, part) > moved_px / 2
                                     for part in (samples[:middle], samples[middle:]))
     return Verdict(fit, shift, off_m, off_deg, moved)
 
@@ -483,18 +495,18 @@ def holds(sample: WatchSample, camera: str) -> bool:
     return any(s.camera == camera for s in sample.reference_sets)
 
 
-def with_camera_at(sample: WatchSample, camera: str, T_cam_world: np.ndarray, corner_noise_px: float
+def with_camera_at(sample: WatchSample, camera: str, T_cam_world: np.ndarray | None, corner_noise_px: float
                    ) -> WatchSample | None:
-    """The sample as if ``camera`` stood at ``T_cam_world``: its sightings in the reference taken
-    there and the reference fitted again, the sample's corners placed in the world by that fit
-    (the sample itself when its reference does not hold ``camera``); None when it kept no cube
-    pose or corner sets, or the fit fails."""
+    """The sample as if ``camera`` stood at ``T_cam_world`` (None: as if it had not been seen):
+    its sightings in the reference taken there (or left out) and the reference fitted again, the
+    sample's corners placed in the world by that fit (the sample itself when its reference does not
+    hold ``camera``); None when it kept no cube pose or corner sets, or the fit fails."""
     if not holds(sample, camera):
         return sample
     if sample.T_world_cube is None or not sample.own_sets:
         return None
-    sets = tuple(dataclasses.replace(s, T_cam_world=T_cam_world) if s.camera == camera else s
-                 for s in sample.reference_sets)
+    sets = tuple(s for s in sample.reference_sets if s.camera != camera) if T_cam_world is None else tuple(
+        dataclasses.replace(s, T_cam_world=T_cam_world) if s.camera == camera else s for s in sample.reference_sets)
     refit = solve_joint(sets, sample.T_world_cube, sample.time_s, corner_noise_px, velocity_sigma=VELOCITY_SIGMA,
                         iterations=FIT_ITERATIONS)
     if refit is None:
@@ -541,6 +553,8 @@ class CameraWatch:
         self.settled: dict[str, np.ndarray] = {}
         self._next_baseline_s = -math.inf
         self._disagreement: dict[str, deque[tuple[float, float]]] = {c: deque() for c in T_world_cams}
+        # camera -> its windows' (time, shift px) against its settled pose: its own noise while unmoved (_moved_px)
+        self._shifts: dict[str, deque[tuple[float, float]]] = {c: deque() for c in T_world_cams}
         # camera -> its latest samples' (time, median corner miss at its settled pose, px)
         self._misses: dict[str, deque[tuple[float, float]]] = {c: deque(maxlen=params.suspect_samples)
                                                                for c in T_world_cams}
@@ -587,9 +601,11 @@ class CameraWatch:
         """Whether a watched camera's sighting must be held out of the fusion: it misses the
         fused prediction ``T_world_cube`` (at its capture time) by more than ``gate_prediction_px``
         (median corner residual at the camera's settled pose), and ``gate_prediction_ratio`` times
-        more than the latest sighting of any other camera in use (within ``window_s``; at least
-        ``reference_cameras`` of them). The first sightings after a bump come before any check can judge them (a
-        check waits for the other cameras' sightings around it); this keeps them out."""
+        more than the latest sightings of the other cameras in use (within ``window_s``; at least
+        ``reference_cameras`` of them) miss it, by their median: one other camera missing too (its
+        own sighting off, or the prediction off from its view) does not let a bumped camera in. The
+        first sightings after a bump come before any check can judge them (a check waits for the
+        other cameras' sightings around it); this keeps them out."""
         p = self.params
         settled = self.settled.get(sighting.camera)
         if p.gate_prediction_px <= 0 or settled is None or sighting.robot not in self.layouts:
@@ -607,7 +623,7 @@ class CameraWatch:
             return False
         others = [m for c, (t, m) in latest.items() if c != sighting.camera and not self.excluded(c)
                   and t >= sighting.capture_time_s - p.window_s]
-        held = len(others) >= p.reference_cameras and miss > p.gate_prediction_ratio * max(others)
+        held = len(others) >= p.reference_cameras and miss > p.gate_prediction_ratio * float(np.median(others))
         self.stats["held off the prediction"] += held
         return held
 
@@ -660,6 +676,7 @@ class CameraWatch:
         self.T_world_cam[camera] = np.asarray(T_world_cam, float).copy()
         self.state[camera] = CameraState.WATCHED
         self.samples[camera].clear()
+        self._shifts[camera].clear()
         self.settled.pop(camera, None)
         self.anchor.clear()
         fit = CameraFit(self.T_world_cam[camera], 0.0, 0.0, 0.0, 0)
@@ -686,14 +703,29 @@ class CameraWatch:
             if camera not in self.settled:
                 continue
             window = [s for s in samples if s.time_s >= now_s - p.window_s]
-            verdict = window_verdict(window, self.settled[camera], p)
+            verdict = window_verdict(window, self.settled[camera], p, self._moved_px(camera, now_s))
             if verdict is not None:
                 verdicts[camera] = verdict
+                self._shifts[camera].append((now_s, verdict.shift_px))
         worst = self._culprit(verdicts, now_s)
         if worst is None:
             followed = self._follow(now_s) if baseline and not any(v.moved for v in verdicts.values()) else None
             return [] if followed is None else [followed]
         return [self._declare(*worst, now_s)]
+
+    def _moved_px(self, camera: str, now_s: float) -> float:
+        """The corner shift (px) that says ``camera`` moved now: ``moved_px``, or less, down to
+        ``moved_min_px``, ``moved_sigmas`` times the RMS shift of its windows that ended in the
+        ``baseline_s`` before this window began (its own noise while unmoved, once it has a quarter
+        of that span's checks; a bump's windows are in it only once they are older than a window)."""
+        p, shifts = self.params, self._shifts[camera]
+        while shifts and shifts[0][0] < now_s - p.window_s - p.baseline_s:
+            shifts.popleft()
+        past = [shift for t, shift in shifts if t <= now_s - p.window_s]
+        if p.moved_sigmas <= 0 or len(past) < p.baseline_s / p.check_every_s / 4:
+            return p.moved_px
+        noise_px = math.sqrt(sum(shift**2 for shift in past) / len(past))
+        return min(p.moved_px, max(p.moved_min_px, p.moved_sigmas * noise_px))
 
     def _follow(self, now_s: float) -> WatchEvent | None:
         """Follow a drift (see the module doc). With every camera watched, each one's settled pose
@@ -782,7 +814,11 @@ class CameraWatch:
     def _culprit(self, verdicts: dict[str, Verdict], now_s: float) -> tuple[str, Verdict] | None:
         """The camera to declare moved, if any: of the cameras whose window says moved, the one
         that disagreed most with the others in the references it took part in over the window
-        (a moved camera shifts its partners' windows too, through their references)."""
+        (a moved camera shifts its partners' windows too, through their references). With four
+        cameras or more, the camera whose leaving out of the references makes the others agree
+        best (:meth:`_others_miss_px`), if its window says moved and the others then agree within
+        ``suspect_px``: a camera whose small bump went unseen spoils its partners' references, and
+        a partner's window said moved (issue 27's seed 151: cam4 and cam1 declared for cam5)."""
         for trail in self._disagreement.values():
             while trail and trail[0][0] < now_s - self.params.window_s:
                 trail.popleft()
@@ -793,6 +829,10 @@ class CameraWatch:
         if suspects:  # named when it became suspect; no one's reference since
             top = max(suspects, key=lambda c: verdicts[c].shift_px)
             return top, verdicts[top]
+        if self._suspects_aside():  # each left out in turn: the one without which the others agree
+            miss = {c: self._others_miss_px(c, None, now_s) for c in verdicts}
+            top = min(miss, key=lambda c: miss[c])
+            return (top, verdicts[top]) if top in moved and miss[top] <= self.params.suspect_px else None
         if len(moved) > 1:  # each in turn put where its window's newer half says: the one that makes the others agree
             miss = {c: self._others_miss_px(c, self._newer_pose(c, verdicts[c], now_s), now_s) for c in moved}
             top = min(moved, key=lambda c: miss[c])
@@ -810,20 +850,22 @@ class CameraWatch:
                            prior_sigma=(WINDOW_PRIOR_M, math.radians(WINDOW_PRIOR_DEG))) if newer else None
         return verdict.fit.T_world_cam if fit is None else fit.T_world_cam
 
-    def _others_miss_px(self, camera: str, T_world_cam: np.ndarray, now_s: float) -> float:
-        """If ``camera`` were at ``T_world_cam``: the median corner miss (px, at their settled
+    def _others_miss_px(self, camera: str, T_world_cam: np.ndarray | None, now_s: float) -> float:
+        """If ``camera`` were at ``T_world_cam`` (None: left out, where ``reference_cameras`` others
+        are left): the median corner miss (px, at their settled
         poses) of the other watched cameras' samples of the window's newer half (after the move,
         as the one declared keeps) whose reference it took part in, the
-        references fitted again with it there. With three cameras a moved one spoils both others'
+        references fitted again with it there (or without it). With three cameras a moved one spoils both others'
         references, and their windows can say moved as loudly as its own; put at its window's pose,
         only the camera that really moved makes the others' references agree with them again."""
-        T_cam_world, p, misses = invert_T(T_world_cam), self.params, []
+        T_cam_world, p, misses = None if T_world_cam is None else invert_T(T_world_cam), self.params, []
         for other, samples in self.samples.items():
             settled = self.settled.get(other)
             if other == camera or settled is None or self.state[other] is CameraState.RECALIBRATING:
                 continue
             for sample in samples:
-                if sample.time_s < now_s - p.window_s / 2 or not holds(sample, camera):
+                if sample.time_s < now_s - p.window_s / 2 or not holds(sample, camera) or (
+                        T_cam_world is None and len({s.camera for s in sample.reference_sets}) <= p.reference_cameras):
                     continue
                 moved = with_camera_at(sample, camera, T_cam_world, p.corner_noise_px)
                 if moved is not None:
