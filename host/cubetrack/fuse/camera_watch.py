@@ -44,7 +44,9 @@ A moved camera spoils the references it takes part in, so its partners' windows 
 three cameras, about as much as its own). With four cameras or more a suspect camera whose window
 says moved is declared; otherwise, of several cameras whose window says moved, the one whose pose
 fitted to its window's newer half makes the others' references agree with them again
-(:meth:`CameraWatch._others_miss_px`); of one, it is declared if it is the one that disagreed most
+(:meth:`CameraWatch._others_miss_px`; with three cameras, of two within ``NEAR_TIE``, the one whose own
+checks' references still agree among themselves as before: :meth:`CameraWatch._references_rise_px`);
+of one, it is declared if it is the one that disagreed most
 with the others inside the reference fits it took part in over the window (the median corner
 residual of its sets there), else none is declared yet. Then every camera's window restarts. A moved camera is set aside
 (:meth:`CameraWatch.excluded`: its sightings leave the fusion, and it serves nobody as a
