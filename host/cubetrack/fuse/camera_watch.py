@@ -708,9 +708,6 @@ class CameraWatch:
                 continue
             while samples and samples[0].time_s < now_s - p.window_s - p.baseline_s:
                 samples.popleft()
-            trail = self._reference_rms[camera]
-            while trail and trail[0][0] < now_s - p.window_s - p.baseline_s:
-                trail.popleft()
             if baseline:
                 self._settle(camera, [s for s in samples if s.time_s < now_s - p.window_s])
             if camera not in self.settled:
@@ -1029,8 +1026,11 @@ class CameraWatch:
         t = sighting.capture_time_s
         reference = solve_joint(others, T_own, t, self.params.corner_noise_px, velocity_sigma=VELOCITY_SIGMA,
                                 iterations=FIT_ITERATIONS)
-        if reference is not None:
-            self._reference_rms[sighting.camera].append((t, reference.rms_px))
+        if reference is not None:  # kept over the window and baseline_s (a re-calibrating camera's too)
+            trail = self._reference_rms[sighting.camera]
+            trail.append((t, reference.rms_px))
+            while trail[0][0] < t - self.params.window_s - self.params.baseline_s:
+                trail.popleft()
         if reference is None or reference.rms_px > self.params.reference_rms_px:
             self.stats["reference fit refused"] += 1
             return None
