@@ -44,7 +44,9 @@ A moved camera spoils the references it takes part in, so its partners' windows 
 three cameras, about as much as its own). With four cameras or more a suspect camera whose window
 says moved is declared; otherwise, of several cameras whose window says moved, the one whose pose
 fitted to its window's newer half makes the others' references agree with them again
-(:meth:`CameraWatch._others_miss_px`); of one, it is declared if it is the one that disagreed most
+(:meth:`CameraWatch._others_miss_px`; with three cameras, of two within ``NEAR_TIE``, the one whose own
+checks' references still agree among themselves as before: :meth:`CameraWatch._references_rise_px`);
+of one, it is declared if it is the one that disagreed most
 with the others inside the reference fits it took part in over the window (the median corner
 residual of its sets there), else none is declared yet. Then every camera's window restarts. A moved camera is set aside
 (:meth:`CameraWatch.excluded`: its sightings leave the fusion, and it serves nobody as a
@@ -306,6 +308,9 @@ PREDICTION_GATE_PX = 40.0
 # a check's reference fit takes this many sightings of each other camera, those nearest the checked one in time (more
 # average the corners' noise; each costs the fit and the matching)
 REFERENCE_SIGHTINGS = 2
+# three cameras, several windows saying moved: the best newer-pose miss within this ratio of the second best is a near
+# tie, which the references' rise decides (CameraWatch._culprit; docs/calibration.md, "Session 29")
+NEAR_TIE = 0.8
 WINDOW_PRIOR_M = 0.05  # a window's fit: prior spread of the camera's position about its settled pose, metres
 WINDOW_PRIOR_DEG = 3.0  # ... and of its orientation, degrees
 # a drift's follow: the settled pose's position fitted again (its orientation kept) with a prior of this spread about
@@ -553,6 +558,9 @@ class CameraWatch:
         self.settled: dict[str, np.ndarray] = {}
         self._next_baseline_s = -math.inf
         self._disagreement: dict[str, deque[tuple[float, float]]] = {c: deque() for c in T_world_cams}
+        # camera -> its checks' (time, RMS corner residual of the reference fit, px; refused ones too): how well the
+        # OTHER cameras agree among themselves where this one checks (_references_rise_px)
+        self._reference_rms: dict[str, deque[tuple[float, float]]] = {c: deque() for c in T_world_cams}
         # camera -> its windows' (time, shift px) against its settled pose: its own noise while unmoved (_moved_px)
         self._shifts: dict[str, deque[tuple[float, float]]] = {c: deque() for c in T_world_cams}
         # camera -> its latest samples' (time, median corner miss at its settled pose, px)
@@ -677,6 +685,8 @@ class CameraWatch:
         self.state[camera] = CameraState.WATCHED
         self.samples[camera].clear()
         self._shifts[camera].clear()
+        for trail in self._reference_rms.values():  # the references change: with this camera from now on
+            trail.clear()
         self.settled.pop(camera, None)
         self.anchor.clear()
         fit = CameraFit(self.T_world_cam[camera], 0.0, 0.0, 0.0, 0)
@@ -794,6 +804,7 @@ class CameraWatch:
         window = [s for s in self.samples[camera] if s.time_s >= now_s - p.window_s]
         for other, samples in self.samples.items():
             self._misses[other].clear()
+            self._reference_rms[other].clear()  # the references change: without this camera from now on
             if self.state[other] is CameraState.RECALIBRATING:  # keeps what it gathered, without this one
                 kept = [k for k in (without_camera(s, camera, p.reference_cameras) for s in samples) if k is not None]
                 samples.clear()
@@ -818,7 +829,11 @@ class CameraWatch:
         cameras or more, the camera whose leaving out of the references makes the others agree
         best (:meth:`_others_miss_px`), if its window says moved and the others then agree within
         ``suspect_px``: a camera whose small bump went unseen spoils its partners' references, and
-        a partner's window said moved (issue 27's seed 151: cam4 and cam1 declared for cam5)."""
+        a partner's window said moved (issue 27's seed 151: cam4 and cam1 declared for cam5). With
+        three cameras, of several whose window says moved, the one whose pose fitted to its
+        window's newer half makes the others agree again (:meth:`_others_miss_px`); where the
+        best two are within ``NEAR_TIE`` of each other, the one of them whose checks' references
+        (the two others) still agree as before (:meth:`_references_rise_px`; issue 27's seed 263)."""
         for trail in self._disagreement.values():
             while trail and trail[0][0] < now_s - self.params.window_s:
                 trail.popleft()
@@ -835,12 +850,28 @@ class CameraWatch:
             return (top, verdicts[top]) if top in moved and miss[top] <= self.params.suspect_px else None
         if len(moved) > 1:  # each in turn put where its window's newer half says: the one that makes the others agree
             miss = {c: self._others_miss_px(c, self._newer_pose(c, verdicts[c], now_s), now_s) for c in moved}
-            top = min(moved, key=lambda c: miss[c])
+            top, second = sorted(moved, key=lambda c: miss[c])[:2]
+            if miss[top] > NEAR_TIE * miss[second] and len(self.state) - 1 <= self.params.reference_cameras:
+                rise = {c: self._references_rise_px(c, now_s) for c in (top, second)}
+                if not any(math.isnan(r) for r in rise.values()):  # the one whose references still agree
+                    self.stats["near tie"] += 1
+                    top = min((top, second), key=lambda c: rise[c])
             return top, verdicts[top]
         score = {c: float(np.median([d for _, d in self._disagreement[c]])) if self._disagreement[c] else 0.0
                  for c in verdicts}
         top = max(score, key=lambda c: score[c])
         return (top, verdicts[top]) if top in moved else None
+
+    def _references_rise_px(self, camera: str, now_s: float) -> float:
+        """How much worse the other cameras agree among themselves where ``camera`` is checked: the
+        median RMS corner residual of its checks' reference fits over the window's newer half, less
+        that over its checks before the window (px; NaN without both). A moved camera spoils the
+        references it takes part in, never its own: with three cameras the references of its checks
+        are the two others, which still agree, while each partner's hold the moved camera."""
+        p, trail = self.params, self._reference_rms[camera]
+        newer = [rms for t, rms in trail if t >= now_s - p.window_s / 2]
+        before = [rms for t, rms in trail if t < now_s - p.window_s]
+        return float(np.median(newer) - np.median(before)) if newer and before else math.nan
 
     def _newer_pose(self, camera: str, verdict: Verdict, now_s: float) -> np.ndarray:
         """The camera's pose fitted to its samples of the window's newer half (the window's own
@@ -995,6 +1026,11 @@ class CameraWatch:
         t = sighting.capture_time_s
         reference = solve_joint(others, T_own, t, self.params.corner_noise_px, velocity_sigma=VELOCITY_SIGMA,
                                 iterations=FIT_ITERATIONS)
+        if reference is not None:  # kept over the window and baseline_s (a re-calibrating camera's too)
+            trail = self._reference_rms[sighting.camera]
+            trail.append((t, reference.rms_px))
+            while trail[0][0] < t - self.params.window_s - self.params.baseline_s:
+                trail.popleft()
         if reference is None or reference.rms_px > self.params.reference_rms_px:
             self.stats["reference fit refused"] += 1
             return None

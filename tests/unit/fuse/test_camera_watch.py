@@ -404,6 +404,32 @@ def test_with_three_cameras_the_camera_that_moved_is_named_not_its_partners():
     assert [(e.camera, 10.0 < e.time_s < 13.0) for e in events] == [(victim, True)], events
 
 
+@pytest.mark.parametrize(("newer_px", "named"), [
+    ({"cam1": 1.06, "cam2": 1.25}, "cam2"),  # a near tie (issue 27's seed 263): the references' rise decides
+    ({"cam1": 0.57, "cam2": 1.93}, "cam1"),  # a clear newer-pose choice (seed 58) stands, whatever the rise
+])
+def test_with_three_cameras_a_near_tie_is_decided_by_whose_references_still_agree(monkeypatch, newer_px, named):
+    """Three cameras, cam1's and cam2's windows say moved. Put at its window's newer pose, each makes the
+    others' references agree about as well: then the camera whose own checks' references (the two others)
+    agree as they did before the window is named, not the one whose references now disagree more."""
+    three = {c: CAMERAS[c] for c in ("cam1", "cam2", "cam3")}
+    watch = CameraWatch({"bot": LAYOUT}, three, WatchParams(enabled=True))
+    now_s, p = 100.0, watch.params
+    for camera, rise_px in (("cam1", 1.5), ("cam2", 0.0), ("cam3", 1.5)):  # cam2's references: cam1 and cam3
+        for k in range(40):
+            t = now_s - 10.0 + 0.25 * (k + 1)
+            before = t < now_s - p.window_s
+            watch._reference_rms[camera].append((t, 1.0 + 0.1 * (k % 3) + (0.0 if before else rise_px)))
+    monkeypatch.setattr(watch, "_others_miss_px", lambda camera, T, now: newer_px[camera])
+    monkeypatch.setattr(watch, "_newer_pose", lambda camera, verdict, now: verdict.fit.T_world_cam)
+    fit = camera_watch.CameraFit(CAMERAS["cam1"], 0.0, 0.0, 0.0, 8)
+    verdicts = {c: camera_watch.Verdict(fit, 9.0, 0.02, 1.0, c != "cam3") for c in three}
+    assert watch._references_rise_px("cam1", now_s) == pytest.approx(1.5)
+    assert watch._references_rise_px("cam2", now_s) == pytest.approx(0.0)
+    found = watch._culprit(verdicts, now_s)
+    assert found is not None and found[0] == named
+
+
 def _missing(camera: str, time_s: float, miss_px: float) -> WatchSample:
     """A checked sighting of ``camera`` whose corners all miss by ``miss_px`` at its pose in CAMERAS."""
     points = np.array([[0.1 * i, 0.05 * i, 0.2] for i in range(8)])
