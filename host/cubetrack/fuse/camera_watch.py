@@ -180,12 +180,11 @@ class WatchParams:
     follow_ratio: float = param(2.0, "drift: ... when the camera's own move shifts its corners this many times more "
                                      "(RMS px) than the largest shift left in any other camera's settled pose once "
                                      "it is moved")
-    follow_relief: float = param(0.0, "drift: ... and when that move takes at least this fraction of the other "
-                                      "cameras' settled shift from their anchors away (RMS px, their quadratic "
-                                      "mean): a drifting camera moves the others' settled poses through their "
-                                      "references, and "
+    follow_relief: float = param(0.0, "drift: ... and when that move takes at least this fraction of the largest "
+                                      "shift of another camera's settled pose from its anchor away (a drifting "
+                                      "camera moves the others' settled poses through their references, and "
                                       "following it takes them back; a still camera's own wander moves nobody "
-                                      "else's; once a camera has been followed its further steps need only to "
+                                      "else's); once a camera has been followed its further steps need only to "
                                       "shift its corners more than they leave the others' (docs/calibration.md, "
                                       "Session 29); 0: no such test, every step held by follow_px and follow_ratio")
 
