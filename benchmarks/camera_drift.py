@@ -107,7 +107,6 @@ def main() -> None:
     ap.add_argument("--clock-walk-ms", type=float, default=1.0, help="its random walk, std per minute")
     ap.add_argument("--follow-m", type=float, default=0.0, help="[camera_watch] follow_m (0: no follow, the default)")
     ap.add_argument("--follow-ratio", type=float, default=2.0, help="[camera_watch] follow_ratio")
-    ap.add_argument("--follow-relief", type=float, default=0.0, help="[camera_watch] follow_relief")
     ap.add_argument("--follow-px", type=float, default=0.3, help="[camera_watch] follow_px")
     ap.add_argument("--settle-span-s", type=float, default=cw.WatchParams().settle_span_s,
                     help="[camera_watch] settle_span_s (0: settled from the first seconds, as before session 26)")
@@ -138,7 +137,6 @@ def main() -> None:
         with open(key, "wb") as f:
             pickle.dump(seen, f)
     params = cw.WatchParams(enabled=True, follow_m=a.follow_m, follow_ratio=a.follow_ratio, follow_px=a.follow_px,
-                            follow_relief=a.follow_relief,
                             settle_span_s=a.settle_span_s)
     robot = scene.robots[0]
     watch = cw.CameraWatch({robot.name: robot.true_layout if a.true_model else robot.layout}, believed, params)

@@ -77,7 +77,7 @@ import datetime
 import enum
 import math
 from collections import Counter, deque
-from collections.abc import Iterable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -180,13 +180,6 @@ class WatchParams:
     follow_ratio: float = param(2.0, "drift: ... when the camera's own move shifts its corners this many times more "
                                      "(RMS px) than the largest shift left in any other camera's settled pose once "
                                      "it is moved")
-    follow_relief: float = param(0.0, "drift: ... and when that move takes at least this fraction of the largest "
-                                      "shift of another camera's settled pose from its anchor away (a drifting "
-                                      "camera moves the others' settled poses through their references, and "
-                                      "following it takes them back; a still camera's own wander moves nobody "
-                                      "else's); once a camera has been followed its further steps need only to "
-                                      "shift its corners more than they leave the others' (docs/calibration.md, "
-                                      "Session 29); 0: no such test, every step held by follow_px and follow_ratio")
 
     def __post_init__(self) -> None:
         check_at_least(self, 0, "gate_prediction_px", "follow_m", "settle_span_s", "moved_sigmas")
@@ -195,7 +188,6 @@ class WatchParams:
                        "moved_m", "moved_deg", "rejoin_sigma_m", "rejoin_sigma_deg", "rejoin_spread_m",
                        "rejoin_spread_deg", "corner_noise_px", "gate_px", "suspect_px", "gate_prediction_ratio",
                        "follow_px", "follow_ratio")
-        check(0.0 <= self.follow_relief < 1.0, f"follow_relief ({self.follow_relief}) must be in [0, 1)")
         check_at_least(self, 1, "reference_cameras", "suspect_samples")
         check(self.reference_cameras_max >= self.reference_cameras, f"reference_cameras_max "
               f"({self.reference_cameras_max}) must be at least reference_cameras ({self.reference_cameras})")
@@ -356,12 +348,6 @@ def set_medians(values: np.ndarray, lengths: Sequence[int]) -> list[float]:
     start = np.concatenate([[0], np.cumsum(n)[:-1]])
     ordered = values[np.lexsort((values, np.repeat(np.arange(len(n)), n)))]
     return ((ordered[start + (n - 1) // 2] + ordered[start + n // 2]) / 2.0).tolist()
-
-
-def quadratic_mean(values: Iterable[float]) -> float:
-    """The root of the mean square of ``values`` (none: 0)."""
-    squares = [v * v for v in values]
-    return math.sqrt(sum(squares) / len(squares)) if squares else 0.0
 
 
 def residuals_px(T_world_cam: np.ndarray, points_world_m: np.ndarray, normalized: np.ndarray,
@@ -783,14 +769,11 @@ class CameraWatch:
             return None
         left, camera, fit, others, again = best
         shift = shift_px(fit, self.anchor[camera], spans[camera])
-        before_px = {c: shift_px(CameraFit(self.settled[c], 0.0, 0.0, 0.0, 0), self.anchor[c], spans[c])
-                     for c in others}
-        left_px = {c: shift_px(f, self.anchor[c], spans[c]) for c, f in others.items()}
-        before = max(before_px.values())
-        if not self._follows(camera, shift, before_px, left_px):
+        if shift <= p.follow_px or shift < p.follow_ratio * left:
             return None
         T_new = self.T_world_cam[camera] @ invert_T(self.anchor[camera]) @ fit.T_world_cam
         off_m, off_deg = CameraFit(T_new, 0.0, 0.0, 0.0, 0).offset_from(self.T_world_cam[camera])
+        before = max(shift_px(CameraFit(self.settled[c], 0.0, 0.0, 0.0, 0), self.anchor[c], spans[c]) for c in others)
         self.follows.append(DriftStep(camera, now_s, off_m, off_deg, shift, before, left, T_new.copy()))
         self.stats["drift followed"] += 1
         self.T_world_cam[camera] = T_new
@@ -801,30 +784,6 @@ class CameraWatch:
         event = WatchEvent(EventKind.FOLLOWED, camera, now_s, off_m, off_deg, T_new.copy())
         self.events.append(event)
         return event
-
-    def _follows(self, camera: str, shift: float, before_px: dict[str, float], left_px: dict[str, float]) -> bool:
-        """Whether the drift step of ``camera`` named best is taken: its move shifts its corners by
-        ``shift`` (RMS px) and leaves each other camera's settled pose ``left_px`` from its anchor,
-        against ``before_px`` unmoved. The first step: over ``follow_px`` and ``follow_ratio`` times
-        the largest left, and (``follow_relief``) taking that fraction of the others' shift away (their
-        quadratic mean: one noisy camera's own wander would hide the rest's). A camera already
-        followed (:meth:`_drifting`, with ``follow_relief`` set): any step that shifts its corners
-        more than it leaves any other's."""
-        p, left = self.params, max(left_px.values())
-        if p.follow_relief > 0 and camera in self._drifting():
-            return shift > left
-        return (shift > p.follow_px and shift >= p.follow_ratio * left
-                and (p.follow_relief <= 0 or quadratic_mean(left_px.values())
-                     <= (1.0 - p.follow_relief) * quadratic_mean(before_px.values())))
-
-    def _drifting(self) -> set[str]:
-        """The cameras followed since the last moved or rejoined event (every anchor restarts then)."""
-        drifting: set[str] = set()
-        for event in reversed(self.events):
-            if event.kind is not EventKind.FOLLOWED:
-                break
-            drifting.add(event.camera)
-        return drifting
 
     def _declare(self, camera: str, verdict: Verdict, now_s: float) -> WatchEvent:
         """Declare ``camera`` moved (its ``verdict``, at ``now_s``): set it aside with its window's

@@ -319,30 +319,6 @@ def test_a_drifting_camera_is_followed_and_published_and_no_still_camera_is(tmp_
     assert all(line.startswith("cam3 drifting: followed ") for line in log_.lines), log_.lines
 
 
-def test_a_drift_step_is_taken_only_where_it_takes_the_other_cameras_settled_poses_back():
-    """``follow_relief``: a drifting camera moves the others' settled poses through their references and
-    following it takes them back; a still camera's own wander moves nobody else's, so a step that leaves
-    the others where they were is not taken, however large. Once a camera is followed its further steps
-    need only to shift its corners more than they leave the others'; a moved event ends that."""
-    watch = CameraWatch({"bot": LAYOUT}, dict(CAMERAS), WatchParams(enabled=True, follow_m=0.002, follow_relief=0.5))
-    wander = {"cam1": 0.3, "cam2": 0.2}
-    assert not watch._follows("cam3", 0.7, wander, {"cam1": 0.28, "cam2": 0.21})  # its own wander: the others stay
-    assert watch._follows("cam3", 0.7, wander, {"cam1": 0.1, "cam2": 0.1})
-    # one camera's own wander (cam1's, untouched) does not hide what the move took from the others
-    still = {"cam1": 0.3, "cam2": 0.3, "cam4": 0.3, "cam5": 0.3}
-    assert watch._follows("cam3", 0.7, still, {"cam1": 0.25, "cam2": 0.0, "cam4": 0.0, "cam5": 0.0})
-    assert not watch._follows("cam3", 0.25, wander, {"cam1": 0.05, "cam2": 0.05})  # under follow_px
-    assert not watch._follows("cam3", 0.35, {"cam1": 0.6}, {"cam1": 0.2})  # under follow_ratio
-    plain = CameraWatch({"bot": LAYOUT}, dict(CAMERAS), WatchParams(enabled=True, follow_m=0.002))
-    assert plain._follows("cam3", 0.7, wander, {"cam1": 0.28, "cam2": 0.21})  # follow_relief 0: as before
-    watch.events.append(WatchEvent(EventKind.FOLLOWED, "cam3", 1.0, 0.002, 0.0, CAMERAS["cam3"]))
-    assert watch._follows("cam3", 0.2, {"cam1": 0.1}, {"cam1": 0.15})
-    assert not watch._follows("cam3", 0.2, {"cam1": 0.1}, {"cam1": 0.25})
-    assert not watch._follows("cam1", 0.2, {"cam3": 0.1}, {"cam3": 0.15})  # not followed before: the first gates
-    watch.events.append(WatchEvent(EventKind.MOVED, "cam2", 2.0, 0.02, 1.0, CAMERAS["cam2"]))
-    assert not watch._follows("cam3", 0.2, {"cam1": 0.1}, {"cam1": 0.15})
-
-
 def test_with_one_other_camera_the_watcher_says_so_and_waits():
     rng = np.random.default_rng(3)
     two = {c: CAMERAS[c] for c in ("cam1", "cam2")}
@@ -593,7 +569,6 @@ def test_a_recalibrations_spread_is_what_its_sightings_leave_open_not_the_corner
     ({"reference_cameras_max": 1}, "reference_cameras_max"),
     ({"follow_m": -0.001}, "follow_m"),
     ({"follow_px": 0.0}, "follow_px"),
-    ({"follow_relief": 1.0}, "follow_relief"),
 ])
 def test_bad_watch_settings_are_refused_with_a_clear_message(changes, message):
     from cubetrack.core.errors import ParamsError
