@@ -155,3 +155,27 @@ def test_a_marker_predicted_with_cells_narrower_than_a_pixel_is_not_searched_for
     wider = det.find(gray, [(40, 150, 420, 400)], predicted=[at_3, _prediction(thin + [[0, -0.5], [0, -0.5],
                                                                                       [0, 0.5], [0, 0.5]], 5)])
     assert [d.marker_id for d in wider.detections] == [3, 5]
+
+
+def test_only_a_marker_that_may_be_there_is_searched_for_in_its_box(monkeypatch):
+    """A box search costs an OpenCV detection: it is spent on a marker whose fit failed (moved off its
+    prediction) or whose border is black but its cells another id's or rotation's, not on a valid quad
+    without a black border (nothing OpenCV could identify lies there)."""
+    gray = _two_markers_image()              # ids 3 and 5, 60 px squares at x, y 300, 200 and 80, 300
+    plain = gray.copy()
+    plain[303:357, 83:137] = plain[305, 85]  # id 5's cells painted over with its border's black: a square, no bits
+    square = np.array([[-0.5, -0.5], [59.5, -0.5], [59.5, 59.5], [-0.5, 59.5]])
+    at_3, at_5 = _prediction(square + (300.0, 200.0), 3), _prediction(square + (80.0, 300.0), 5)
+    det = Detector()
+    boxes: list[tuple[int, int, int, int]] = []
+    search = det._detect_box
+    monkeypatch.setattr(det, "_detect_box", lambda image, box, dropped: boxes.append(box) or search(image, box, dropped))
+    found = det.find(plain, [(40, 150, 420, 400)], predicted=[at_3, at_5])
+    assert found.predicted and [d.marker_id for d in found.detections] == [3] and boxes == []
+    # the same square predicted as the marker turned a quarter (a black border, other cells): searched, found
+    turned = _prediction(np.roll(square + (80.0, 300.0), 1, axis=0), 5)
+    found = det.find(gray, [(40, 150, 420, 400)], predicted=[at_3, turned])
+    assert [d.marker_id for d in found.detections] == [3, 5] and len(boxes) == 1
+    # predicted where there is no marker (it left): searched for, not seen
+    gone = det.find(plain, [(40, 150, 420, 400)], predicted=[at_3, _prediction(square + (200.0, 320.0), 5)])
+    assert [d.marker_id for d in gone.detections] == [3] and len(boxes) == 2
