@@ -169,7 +169,8 @@ def test_only_a_marker_that_may_be_there_is_searched_for_in_its_box(monkeypatch)
     det = Detector()
     boxes: list[tuple[int, int, int, int]] = []
     search = det._detect_box
-    monkeypatch.setattr(det, "_detect_box", lambda image, box, dropped: boxes.append(box) or search(image, box, dropped))
+    monkeypatch.setattr(det, "_detect_box",
+                        lambda image, box, dropped: boxes.append(box) or search(image, box, dropped))
     found = det.find(plain, [(40, 150, 420, 400)], predicted=[at_3, at_5])
     assert found.predicted and [d.marker_id for d in found.detections] == [3] and boxes == []
     # the same square predicted as the marker turned a quarter (a black border, other cells): searched, found
