@@ -464,9 +464,9 @@ class Detector:
         not found there either is not seen, as OpenCV's search would not see it. No box for one
         predicted with cells narrower than a pixel (nothing can read it:
         :func:`cubetrack.detect.predicted.resolvable_markers`), nor for one whose edge fit gave a valid
-        quad without a black border (no marker OpenCV could identify lies there: oblique or small past
-        reading, occluded); None when none reads at its prediction (nothing confirms it: the regions are
-        searched)."""
+        quad without a dark border (:func:`cubetrack.detect.predicted.marker_reads`: no marker OpenCV could
+        identify lies there, oblique or small past reading); None when none reads at its prediction
+        (nothing confirms it: the regions are searched)."""
         quads = np.array([d.corners_px for d in predicted], dtype=np.float64)
         modules = np.array([modules_of(d.dictionary) for d in predicted])
         fitted = refine_corners_edges(gray, quads, modules, self.params.predicted_edge_iterations,  # NaN: failed
@@ -482,7 +482,8 @@ class Detector:
         found = {i: Detection(d.marker_id, fitted[i], area, d.dictionary)
                  for i, (d, area) in enumerate(zip(predicted, areas.tolist(), strict=True)) if read[i]}
         # searched for: the markers whose fit failed (off their prediction, past the fit's reach) and those with
-        # a black border but other inner cells (turned, another id, a misread bit), as OpenCV may read them
+        # a dark border but other cells (turned, another id, a misread bit, OpenCV's border limit), as OpenCV may
+        # read them
         unread = [i for i, (is_read, fit, black) in enumerate(zip(read, valid.tolist(), bordered.tolist(), strict=True))
                   if not is_read and (black or not fit)]
         if unread:

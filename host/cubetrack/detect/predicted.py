@@ -261,12 +261,14 @@ def _expected_cells(markers: tuple[tuple[str, int], ...]) -> tuple[np.ndarray, n
 
 
 @functools.lru_cache(maxsize=64)
-def _error_limits(dictionary_name: str, error_correction_rate: float) -> tuple[int, int]:
+def _error_limits(dictionary_name: str, error_correction_rate: float) -> tuple[int, int, int]:
     """The white border cells and the wrong inner cells a marker of ``dictionary_name`` may have
-    and still read (OpenCV's limits, as the module's docstring describes)."""
+    and still read (OpenCV's limits, as the module's docstring describes), and the white border
+    cells of a dark border (:func:`marker_reads`)."""
     dictionary = _dictionary(dictionary_name)
-    return (int(dictionary.markerSize ** 2 * BORDER_ERROR_RATE),
-            int(dictionary.maxCorrectionBits * error_correction_rate))
+    border_max = int(dictionary.markerSize ** 2 * BORDER_ERROR_RATE)
+    return (border_max, int(dictionary.maxCorrectionBits * error_correction_rate),
+            max(border_max, int(4 * (dictionary.markerSize + 1) * BORDER_ERROR_RATE)))
 
 
 def cell_errors(gray: np.ndarray, quads_px: np.ndarray, predicted: Sequence[Detection]) -> np.ndarray:
@@ -286,15 +288,16 @@ def marker_reads(gray: np.ndarray, fitted_px: np.ndarray, predicted: tuple[Detec
                  error_correction_rate: float) -> tuple[np.ndarray, np.ndarray]:
     """For the markers of ``predicted`` at their fitted corners ``fitted_px`` (N, 4, 2; NaN where the
     edge fit failed): (N,) bool, which read as their ids there (as the module's docstring describes),
-    and (N,) bool, which have a black border there (at most the white border cells OpenCV allows, the
-    cells readable: a marker lies at the corners, whether or not its inner cells are its id's)."""
+    and (N,) bool, which have a dark border there: readable cells and at most ``BORDER_ERROR_RATE`` of
+    the border's own cells white (``4 x (markerSize + 1)``, 20 for ``DICT_4X4_50``: 7, where OpenCV
+    allows ``int(0.35 x markerSize^2)``, 5, for reading; never fewer than those), a marker lying at
+    the corners whether or not its cells read as its id's."""
     errors = cell_errors(gray, fitted_px, predicted).tolist()   # plain ints: a handful of markers
     read, bordered = [], []
-    for (border, inner), (border_max, inner_max) in zip(
+    for (border, inner), (border_max, inner_max, dark_max) in zip(
             errors, (_error_limits(d.dictionary, error_correction_rate) for d in predicted), strict=True):
-        black = 0 <= border <= border_max
-        bordered.append(black)
-        read.append(black and inner <= inner_max)
+        bordered.append(0 <= border <= dark_max)
+        read.append(0 <= border <= border_max and inner <= inner_max)
     return np.array(read, dtype=bool), np.array(bordered, dtype=bool)
 
 

@@ -160,7 +160,7 @@ def test_a_marker_predicted_with_cells_narrower_than_a_pixel_is_not_searched_for
 def test_only_a_marker_that_may_be_there_is_searched_for_in_its_box(monkeypatch):
     """A box search costs an OpenCV detection: it is spent on a marker whose fit failed (moved off its
     prediction) or whose border is black but its cells another id's or rotation's, not on a valid quad
-    without a black border (nothing OpenCV could identify lies there)."""
+    without a dark border (nothing OpenCV could identify lies there)."""
     gray = _two_markers_image()              # ids 3 and 5, 60 px squares at x, y 300, 200 and 80, 300
     plain = gray.copy()
     plain[303:357, 83:137] = plain[305, 85]  # id 5's cells painted over with its border's black: a square, no bits
@@ -173,7 +173,7 @@ def test_only_a_marker_that_may_be_there_is_searched_for_in_its_box(monkeypatch)
                         lambda image, box, dropped: boxes.append(box) or search(image, box, dropped))
     found = det.find(plain, [(40, 150, 420, 400)], predicted=[at_3, at_5])
     assert found.predicted and [d.marker_id for d in found.detections] == [3] and boxes == []
-    # the same square predicted as the marker turned a quarter (a black border, other cells): searched, found
+    # the same square predicted as the marker turned a quarter (a dark border, other cells): searched, found
     turned = _prediction(np.roll(square + (80.0, 300.0), 1, axis=0), 5)
     found = det.find(gray, [(40, 150, 420, 400)], predicted=[at_3, turned])
     assert [d.marker_id for d in found.detections] == [3, 5] and len(boxes) == 1
