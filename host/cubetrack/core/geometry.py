@@ -147,7 +147,8 @@ def shoelace_area(points_px: np.ndarray) -> float:
     """Area (px^2) of a simple polygon from its (N, 2) vertices in order (paper eq. 3)."""
     p = np.asarray(points_px, dtype=float).reshape(-1, 2)
     x, y = p[:, 0], p[:, 1]
-    return 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
+    nxt = np.concatenate((p[1:], p[:1]))  # the next vertex: np.roll(., -1)'s values, without its ~10 us per call
+    return 0.5 * abs(float(np.dot(x, nxt[:, 1]) - np.dot(y, nxt[:, 0])))
 
 
 def mean_rotation(Rs: np.ndarray, weights: np.ndarray | None = None) -> np.ndarray:

@@ -42,6 +42,18 @@ def test_shoelace_area_by_hand():
     assert shoelace_area(np.array([[0, 0], [3, 0], [0, 4]])) == pytest.approx(6.0)
 
 
+def test_shoelace_area_is_the_rolled_formula_to_the_bit():
+    # the detector's areas (written to the sightings) must not change with how the next vertex is taken
+    rng = np.random.default_rng(3)
+    for n in (3, 4, 4, 4, 5, 9):
+        p = rng.normal(300.0, 80.0, (n, 2))
+        x, y = p[:, 0], p[:, 1]
+        rolled = 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
+        assert shoelace_area(p) == rolled
+        assert shoelace_area(p[::-1]) == pytest.approx(rolled, rel=1e-12)  # either direction
+        assert shoelace_area(p.ravel().tolist()) == rolled  # any array-like, flat or not
+
+
 def test_rotation_angle_units():
     R = Rotation.from_euler("z", 30, degrees=True).as_matrix()
     assert rotation_angle(np.eye(3), R, unit="deg") == pytest.approx(30.0)
