@@ -184,7 +184,7 @@ def main(argv: list[str] | None = None) -> int:
 _FRAME_HOOKS = (("cubetrack.app.tracker", "decode_gray", "decode"),
                 ("cubetrack.detect.detector", "refine_corners_edges", "edge"))
 # What the search of predicted markers calls besides the edge fit (module attribute, name printed).
-_PREDICTED_HOOKS = (("cubetrack.detect.detector", "readable_markers"),)
+_PREDICTED_HOOKS = (("cubetrack.detect.detector", "marker_reads"),)
 # What the fusion calls per sighting (module attribute, name printed).
 _FUSION_HOOKS = (("cubetrack.fuse.fusion", "match_faces"), ("cubetrack.fuse.fusion", "corner_set"),
                  ("cubetrack.fuse.fusion", "estimate_cube"),

@@ -41,7 +41,7 @@ from cubetrack.core.records import Detection
 from cubetrack.detect.decode import decode_gray as decode_gray  # also imported from here by other stages
 from cubetrack.detect.decode import read_gray as read_gray
 from cubetrack.detect.edge_fit import compile_edge_fit, refine_corners_edges
-from cubetrack.detect.predicted import compile_cell_reader, marker_box, modules_of, readable_markers, resolvable_markers
+from cubetrack.detect.predicted import compile_cell_reader, marker_box, marker_reads, modules_of, resolvable_markers
 from cubetrack.detect.quads import corners_finite
 from cubetrack.detect.template_fit import LensMap, compile_template_fit, fast_template_corners
 
@@ -458,27 +458,34 @@ class Detector:
     def _predicted(self, gray: np.ndarray, predicted: tuple[Detection, ...],
                    dropped: Counter[str]) -> tuple[Detection, ...] | None:
         """The ``predicted`` markers edge-fitted from their predicted corners where they are a valid
-        quad that reads as their id there (:func:`cubetrack.detect.predicted.readable_markers`), and
+        quad that reads as their id there (:func:`cubetrack.detect.predicted.marker_reads`), and
         the others as OpenCV finds them in a box around their prediction
         (:func:`cubetrack.detect.predicted.marker_box`; its drops counted into ``dropped``) — one
-        not found there either is not seen, as OpenCV's search would not see it, and one predicted
-        with cells narrower than a pixel is not searched for (nothing can read it:
-        :func:`cubetrack.detect.predicted.resolvable_markers`); None when none
-        reads at its prediction (nothing confirms it: the regions are searched)."""
+        not found there either is not seen, as OpenCV's search would not see it. No box for one
+        predicted with cells narrower than a pixel (nothing can read it:
+        :func:`cubetrack.detect.predicted.resolvable_markers`), nor for one whose edge fit gave a valid
+        quad without a dark border (:func:`cubetrack.detect.predicted.marker_reads`: no marker OpenCV could
+        identify lies there, oblique or small past reading); None when none reads at its prediction
+        (nothing confirms it: the regions are searched)."""
         quads = np.array([d.corners_px for d in predicted], dtype=np.float64)
         modules = np.array([modules_of(d.dictionary) for d in predicted])
         fitted = refine_corners_edges(gray, quads, modules, self.params.predicted_edge_iterations,  # NaN: failed
                                       settled_px=self.params.predicted_edge_settled_px)
         valid, areas = _quad_checks(fitted, self.params.min_area_px2)
-        read = (valid & readable_markers(gray, np.where(valid[:, None, None], fitted, np.nan), predicted,
-                                         self.params.error_correction_rate)).tolist()
+        reads, bordered = marker_reads(gray, np.where(valid[:, None, None], fitted, np.nan), predicted,
+                                       self.params.error_correction_rate)
+        read = (valid & reads).tolist()
         if not any(read):
             return None
         fitted.setflags(write=False)
         # plain Python from here: a handful of markers
         found = {i: Detection(d.marker_id, fitted[i], area, d.dictionary)
                  for i, (d, area) in enumerate(zip(predicted, areas.tolist(), strict=True)) if read[i]}
-        unread = [i for i, is_read in enumerate(read) if not is_read]
+        # searched for: the markers whose fit failed (off their prediction, past the fit's reach) and those with
+        # a dark border but other cells (turned, another id, a misread bit, OpenCV's border limit), as OpenCV may
+        # read them
+        unread = [i for i, (is_read, fit, black) in enumerate(zip(read, valid.tolist(), bordered.tolist(), strict=True))
+                  if not is_read and (black or not fit)]
         if unread:
             centres = None
             for i in np.array(unread)[resolvable_markers(quads[unread], modules[unread])].tolist():

@@ -5,7 +5,7 @@ or two. :func:`predicted_view` projects them (the tracker calls it per camera an
 planning a frame); the detector (:meth:`Detector.find <cubetrack.detect.detector.Detector.find>`
 with ``predicted``) fits each predicted quad's edges with the compiled edge fit
 (:func:`cubetrack.detect.edge_fit.refine_corners_edges`, from the predicted corners instead of
-OpenCV's), then :func:`readable_markers` reads the marker's bit cells at the fitted corners, as
+OpenCV's), then :func:`marker_reads` reads the marker's bit cells at the fitted corners, as
 OpenCV's dictionary identification does: the border cells must be black (at most
 ``int(0.35 x markerSize^2)`` white, OpenCV's ``maxErroneousBitsInBorderRate``) and the inner cells
 the predicted id's bits in the predicted rotation, with at most ``int(maxCorrectionBits x
@@ -261,12 +261,14 @@ def _expected_cells(markers: tuple[tuple[str, int], ...]) -> tuple[np.ndarray, n
 
 
 @functools.lru_cache(maxsize=64)
-def _error_limits(dictionary_name: str, error_correction_rate: float) -> tuple[int, int]:
+def _error_limits(dictionary_name: str, error_correction_rate: float) -> tuple[int, int, int]:
     """The white border cells and the wrong inner cells a marker of ``dictionary_name`` may have
-    and still read (OpenCV's limits, as the module's docstring describes)."""
+    and still read (OpenCV's limits, as the module's docstring describes), and the white border
+    cells of a dark border (:func:`marker_reads`)."""
     dictionary = _dictionary(dictionary_name)
-    return (int(dictionary.markerSize ** 2 * BORDER_ERROR_RATE),
-            int(dictionary.maxCorrectionBits * error_correction_rate))
+    border_max = int(dictionary.markerSize ** 2 * BORDER_ERROR_RATE)
+    return (border_max, int(dictionary.maxCorrectionBits * error_correction_rate),
+            max(border_max, int(4 * (dictionary.markerSize + 1) * BORDER_ERROR_RATE)))
 
 
 def cell_errors(gray: np.ndarray, quads_px: np.ndarray, predicted: Sequence[Detection]) -> np.ndarray:
@@ -282,15 +284,21 @@ def cell_errors(gray: np.ndarray, quads_px: np.ndarray, predicted: Sequence[Dete
     return out
 
 
-def readable_markers(gray: np.ndarray, fitted_px: np.ndarray, predicted: tuple[Detection, ...],
-                     error_correction_rate: float) -> np.ndarray:
-    """(N,) bool: which markers of ``predicted`` read as their ids at their fitted corners
-    ``fitted_px`` (N, 4, 2; NaN where the edge fit failed), as the module's docstring describes."""
+def marker_reads(gray: np.ndarray, fitted_px: np.ndarray, predicted: tuple[Detection, ...],
+                 error_correction_rate: float) -> tuple[np.ndarray, np.ndarray]:
+    """For the markers of ``predicted`` at their fitted corners ``fitted_px`` (N, 4, 2; NaN where the
+    edge fit failed): (N,) bool, which read as their ids there (as the module's docstring describes),
+    and (N,) bool, which have a dark border there: readable cells and at most ``BORDER_ERROR_RATE`` of
+    the border's own cells white (``4 x (markerSize + 1)``, 20 for ``DICT_4X4_50``: 7, where OpenCV
+    allows ``int(0.35 x markerSize^2)``, 5, for reading; never fewer than those), a marker lying at
+    the corners whether or not its cells read as its id's."""
     errors = cell_errors(gray, fitted_px, predicted).tolist()   # plain ints: a handful of markers
-    return np.array([0 <= border <= border_max and inner <= inner_max
-                     for (border, inner), (border_max, inner_max)
-                     in zip(errors, (_error_limits(d.dictionary, error_correction_rate) for d in predicted),
-                            strict=True)], dtype=bool)
+    read, bordered = [], []
+    for (border, inner), (border_max, inner_max, dark_max) in zip(
+            errors, (_error_limits(d.dictionary, error_correction_rate) for d in predicted), strict=True):
+        bordered.append(0 <= border <= dark_max)
+        read.append(0 <= border <= border_max and inner <= inner_max)
+    return np.array(read, dtype=bool), np.array(bordered, dtype=bool)
 
 
 def compile_cell_reader() -> None:
@@ -310,7 +318,7 @@ def resolvable_markers(quads_px: np.ndarray, modules: np.ndarray) -> np.ndarray:
     """(N,) bool: which quads ``quads_px`` (N, 4, 2) have every side at least ``MIN_PX_PER_MODULE``
     pixels per cell of their marker (``modules`` (N,): cells across, border included). Narrower,
     neighbouring cells share a pixel and the marker's bits are not in the image (below the sampling
-    limit of one pixel per cell), so neither :func:`readable_markers` nor OpenCV's identification
+    limit of one pixel per cell), so neither :func:`marker_reads` nor OpenCV's identification
     can read it: the detector spends no search on such a marker that did not read at its
     prediction. (On the live benchmark's 16-camera scene, seed 7, 3,000 frames: 1,055 of 3,037
     searches around unread predictions were of such markers, and none found one; issue 31.)"""

@@ -10,8 +10,9 @@ from test_detect_markers import INTR, _two_markers_image, facing
 
 from cubetrack.core.layout import paper_cube_layout
 from cubetrack.core.records import Detection
+from cubetrack.detect import predicted as predicted_module
 from cubetrack.detect.detector import CornerRefinement, Detector, DetectorParams
-from cubetrack.detect.predicted import cell_errors, marker_cells, predicted_markers, predicted_view
+from cubetrack.detect.predicted import cell_errors, marker_cells, marker_reads, predicted_markers, predicted_view
 
 SIZE_M = 0.08
 POSES = [facing(0.7, 30, 10, 15, 0.05, -0.03), facing(1.2, -40, 25, 100, -0.2, 0.1), facing(0.9, 5, 50, 200, 0.0, 0.1)]
@@ -155,3 +156,41 @@ def test_a_marker_predicted_with_cells_narrower_than_a_pixel_is_not_searched_for
     wider = det.find(gray, [(40, 150, 420, 400)], predicted=[at_3, _prediction(thin + [[0, -0.5], [0, -0.5],
                                                                                       [0, 0.5], [0, 0.5]], 5)])
     assert [d.marker_id for d in wider.detections] == [3, 5]
+
+
+def test_only_a_marker_that_may_be_there_is_searched_for_in_its_box(monkeypatch):
+    """A box search costs an OpenCV detection: it is spent on a marker whose fit failed (moved off its
+    prediction) or whose border is black but its cells another id's or rotation's, not on a valid quad
+    without a dark border (nothing OpenCV could identify lies there)."""
+    gray = _two_markers_image()              # ids 3 and 5, 60 px squares at x, y 300, 200 and 80, 300
+    plain = gray.copy()
+    plain[303:357, 83:137] = plain[305, 85]  # id 5's cells painted over with its border's black: a square, no bits
+    square = np.array([[-0.5, -0.5], [59.5, -0.5], [59.5, 59.5], [-0.5, 59.5]])
+    at_3, at_5 = _prediction(square + (300.0, 200.0), 3), _prediction(square + (80.0, 300.0), 5)
+    det = Detector()
+    boxes: list[tuple[int, int, int, int]] = []
+    search = det._detect_box
+    monkeypatch.setattr(det, "_detect_box",
+                        lambda image, box, dropped: boxes.append(box) or search(image, box, dropped))
+    found = det.find(plain, [(40, 150, 420, 400)], predicted=[at_3, at_5])
+    assert found.predicted and [d.marker_id for d in found.detections] == [3] and boxes == []
+    # the same square predicted as the marker turned a quarter (a dark border, other cells): searched, found
+    turned = _prediction(np.roll(square + (80.0, 300.0), 1, axis=0), 5)
+    found = det.find(gray, [(40, 150, 420, 400)], predicted=[at_3, turned])
+    assert [d.marker_id for d in found.detections] == [3, 5] and len(boxes) == 1
+    # predicted where there is no marker (it left): searched for, not seen
+    gone = det.find(plain, [(40, 150, 420, 400)], predicted=[at_3, _prediction(square + (200.0, 320.0), 5)])
+    assert [d.marker_id for d in gone.detections] == [3] and len(boxes) == 2
+
+
+def test_a_dark_border_allows_the_readers_rate_of_the_border_cells_white(monkeypatch, scenes):
+    """Reading takes OpenCV's limit (0.35 x 16 = 5 white border cells for DICT_4X4_50); the box search's dark
+    border the same rate of the border's own 20 cells (7): a marker with 6 white border cells does not read but
+    may be OpenCV's (searched for), one with 8 is not a marker there, nor is a patch without contrast."""
+    gray, truth = scenes[0]
+    errors = np.array([[0, 0], [5, 0], [6, 0], [7, 3], [8, 0], [-1, -1]])
+    monkeypatch.setattr(predicted_module, "cell_errors", lambda *_: errors)
+    read, bordered = marker_reads(gray, np.repeat(truth[None], len(errors), axis=0),
+                                  tuple(_prediction(truth) for _ in errors), 0.6)
+    assert read.tolist() == [True, True, False, False, False, False]
+    assert bordered.tolist() == [True, True, True, True, False, False]
