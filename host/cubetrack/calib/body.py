@@ -208,19 +208,24 @@ def travel_heading(times_s: np.ndarray, T_world_body: np.ndarray, first: np.ndar
         dt = t[b] - t[a]
         v = (T[b, :2, 3] - T[a, :2, 3]) / dt
         x = T[i, :2, 0] / np.linalg.norm(T[i, :2, 0])
-        wz = float(Rotation.from_matrix(T[b, :3, :3] @ T[a, :3, :3].T).as_rotvec()[2]) / dt
-        rows.append((v @ x, x[0] * v[1] - x[1] * v[0], wz))
-    s = np.array(rows, float).reshape(-1, 3)
+        w = Rotation.from_matrix(T[b, :3, :3] @ T[a, :3, :3].T).as_rotvec() / dt  # world frame
+        rows.append((v @ x, x[0] * v[1] - x[1] * v[0], w[2], w[:2] @ x))
+    s = np.array(rows, float).reshape(-1, 4)
     s = s[np.hypot(s[:, 0], s[:, 1]) >= TRAVEL_MIN_SPEED_M_S]
-    A = s[:, [0, 2]]
+    # sideways = tan(yaw) forward + lever * yaw rate - height * roll rate: the body's origin turns
+    # about a point behind or ahead of it, and sways as the robot rolls (its height over the roll axis)
+    # (a rate that never moves, e.g. no roll on a flat floor, is left out of the fit)
+    cols = [0] + [j for j in (2, 3) if len(s) and np.sqrt(np.mean(s[:, j] ** 2)) > 1e-6]
+    A = s[:, cols]
     gram = A.T @ A
-    if len(s) < 2 or gram[1, 1] == 0.0:
+    if len(s) < 4 or np.linalg.cond(gram) > 1e12:
         return TravelHeading(0.0, 0.0, math.inf, 0.0, len(s))
-    independence = float(1.0 - gram[0, 1] ** 2 / (gram[0, 0] * gram[1, 1]))
-    (slope, lever), *_ = np.linalg.lstsq(A, s[:, 1], rcond=None)
-    rest = s[:, 1] - A @ np.array([slope, lever])
+    independence = float(1.0 / (gram[0, 0] * np.linalg.inv(gram)[0, 0]))  # 1 / the yaw's variance inflation
+    coef, *_ = np.linalg.lstsq(A, s[:, 1], rcond=None)
+    rest = s[:, 1] - A @ coef
     sideways = float(np.sqrt(np.mean(rest ** 2) / np.mean(s[:, 0] ** 2)))
-    return TravelHeading(math.degrees(math.atan(slope)), float(lever), sideways, independence, len(s))
+    lever = float(coef[cols.index(2)]) if 2 in cols else 0.0
+    return TravelHeading(math.degrees(math.atan(coef[0])), lever, sideways, independence, len(s))
 
 
 def calibrate_body(frames: Mapping[str, Iterable[Frame]], extrinsics: Mapping[str, CameraExtrinsics],
