@@ -210,15 +210,17 @@ def travel_heading(times_s: np.ndarray, T_world_body: np.ndarray, first: np.ndar
         # the velocity at the pose: a local cubic in time through the neighbours' positions (a
         # chord over the span turns with the path's curvature: 0.5 deg on a figure eight)
         dt = t[near] - t[i]
-        v = np.polyfit(dt, T[near, :2, 3], min(3, len(near) - 2))[-2]
+        rates = np.polyfit(dt, np.hstack([T[near, :2, 3], T[near, :2, 2]]), min(3, len(near) - 2))[-2]
+        v, dz = rates[:2], rates[2:]  # the origin's horizontal velocity, the body's z axis' (its sway's rate)
         x = T[i, :2, 0] / np.linalg.norm(T[i, :2, 0])
-        w = Rotation.from_matrix(T[b, :3, :3] @ T[a, :3, :3].T).as_rotvec() / (t[b] - t[a])  # world frame
-        rows.append((v @ x, x[0] * v[1] - x[1] * v[0], w[2], w[:2] @ x))
+        wz = float(Rotation.from_matrix(T[b, :3, :3] @ T[a, :3, :3].T).as_rotvec()[2]) / (t[b] - t[a])
+        rows.append((v @ x, x[0] * v[1] - x[1] * v[0], wz, x[0] * dz[1] - x[1] * dz[0]))
     s = np.array(rows, float).reshape(-1, 4)
     s = s[np.hypot(s[:, 0], s[:, 1]) >= TRAVEL_MIN_SPEED_M_S]
-    # sideways = tan(yaw) forward + lever * yaw rate - height * roll rate: the body's origin turns
-    # about a point behind or ahead of it, and sways as the robot rolls (its height over the roll axis)
-    # (a rate that never moves, e.g. no roll on a flat floor, is left out of the fit)
+    # sideways = tan(yaw) forward + lever * yaw rate + height * the z axis' sideways rate: the body's
+    # origin turns about a point behind or ahead of it, and sways as the robot tilts (the point that
+    # travels straight is its wheels' contact, height below the origin along the body's z)
+    # (a rate that never moves, e.g. no tilt on a flat floor, is left out of the fit)
     cols = [0] + [j for j in (2, 3) if len(s) and np.sqrt(np.mean(s[:, j] ** 2)) > 1e-6]
     A = s[:, cols]
     gram = A.T @ A
