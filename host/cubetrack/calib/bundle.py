@@ -211,6 +211,13 @@ class BodyCalibrationParams:
                                      "marker's) and then by fitting each marker's whole image "
                                      "(cubetrack.calib.marker_fit, compiled: a few ms per marker seen; "
                                      "docs/calibration.md has the measured errors)")
+    heading_from_travel: bool = param(False, "for a robot that only drives forward (not a holonomic or carried "
+                                             "body) on the floor the world marker lies on: turn the body frame "
+                                             "about its z so that its x is the drive's direction of travel "
+                                             "(cubetrack.calib.body.travel_heading) instead of the markers' mean "
+                                             "yaw, which carries their build errors (0.5-1 deg; no image shows "
+                                             "it); left as it is, with a warning, when the drive moves sideways "
+                                             "or heads over 10 deg from the markers' x (docs/tracking.md)")
 
     def __post_init__(self) -> None:
         check_positive(self, "position_sigma_m", "rotation_sigma_deg", "size_sigma", "camera_sigma_m",
