@@ -16,7 +16,9 @@ that does its per-frame work between reads, in the consumer's own thread:
   giving (host_send, device_time, host_recv) :class:`~cubetrack.core.cameras.ClockSample`
   round trips (:mod:`cubetrack.source.time_poll`). The TCP connection is opened before
   ``host_send`` is taken, so the round trip brackets only the request and its answer. Timeouts
-  and garbage answers are counted and dropped.
+  and garbage answers are counted and dropped. A camera's first stream connection waits for its
+  first ``/time`` answer (or its failure, at most ``clock_timeout_s``): a frame that came before
+  its camera's clock was known could not be placed in time, and live tracking gives it up.
 
 :class:`LiveCameras` runs them for a set of cameras and merges everything into one bounded,
 queue in arrival order. When the consumer falls behind, each camera keeps only its
@@ -189,6 +191,11 @@ class _Camera:
     timing: CameraTiming = CameraTiming.UNKNOWN
     clock_failed: bool = False  # a /time round trip failed (no answer): with unstamped parts, no clock
     envelope: ArrivalEnvelope | None = None  # without a clock: its arrivals' envelope (stamps)
+
+    @property
+    def clock_told(self) -> bool:
+        """The first ``/time`` round trip has ended (a clock, none, or a failure): the stream may open."""
+        return self.timing is not CameraTiming.UNKNOWN or self.clock_failed
 
 
 class LiveCameras:
@@ -497,7 +504,7 @@ class LiveCameras:
         due = now + 1.0
         for camera in self._cameras:
             if camera.stream is None:
-                if now >= camera.reconnect_at:
+                if now >= camera.reconnect_at and camera.clock_told:
                     self._connect(camera, now)
             elif now >= camera.deadline:
                 if camera.parser is not None and camera.parser.awaiting:
@@ -507,7 +514,10 @@ class LiveCameras:
                     "the answer" if camera.stream.head is None else "the next bytes")
                 limit = p.connect_timeout_s if what == "connect" else p.read_timeout_s
                 self._stream_lost(camera, _StreamEnded(timeout_reason(what, limit, camera.url)))
-            due = min(due, camera.deadline if camera.stream is not None else camera.reconnect_at)
+            if camera.stream is not None:
+                due = min(due, camera.deadline)
+            elif camera.clock_told:  # else the round trip's end (its deadline, below) opens the stream
+                due = min(due, camera.reconnect_at)
             if camera.poll is None and now >= camera.poll_at:
                 if camera.timing is CameraTiming.ARRIVAL:
                     self._declare(camera, now)

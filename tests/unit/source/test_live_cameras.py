@@ -285,6 +285,35 @@ def test_a_chunked_esp32_style_stream_without_x_frame_is_read_without_added_late
     assert statistics.median(delays) < 0.05
 
 
+class _SlowClock(_Esp32Style):
+    """The same stream, its /time answered 0.3 s late (three frame intervals)."""
+
+    def do_GET(self):  # noqa: N802
+        if self.path == "/time":
+            time.sleep(0.3)
+        super().do_GET()
+
+
+def test_a_stream_opens_once_its_camera_has_answered_time_so_no_frame_comes_before_its_clock():
+    """Live tracking gives up a frame whose camera's clock is not known yet (it cannot be placed
+    in time): the stream is asked for only after the first /time round trip has ended."""
+    srv = http.server.ThreadingHTTPServer(("127.0.0.1", 0), _SlowClock)
+    threading.Thread(target=srv.serve_forever, daemon=True).start()
+    try:
+        url = f"http://127.0.0.1:{srv.server_address[1]}/stream"
+        events = []
+        with LiveCameras({"esp": url}, FAST) as live:
+            while sum(isinstance(e, Frame) for e in events) < 3:
+                if (event := live.get(5.0)) is None:
+                    break
+                events.append(event)
+    finally:
+        srv.shutdown()
+        srv.server_close()
+    assert isinstance(events[0], ClockReading)
+    assert [e.seq for e in events if isinstance(e, Frame)] == [1, 2, 3]  # the stream's first parts, none lost
+
+
 def test_without_a_thread_frames_are_read_inside_get_and_stamped_when_they_arrived(images):
     """thread=False (a camera worker process): nothing reads while the consumer is busy, yet the
     frames keep the time their bytes reached this host (the kernel's receive time), not the
