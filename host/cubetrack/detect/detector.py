@@ -23,6 +23,7 @@ from __future__ import annotations
 import enum
 import logging
 import math
+import threading
 import time
 import warnings
 from collections import Counter
@@ -327,8 +328,13 @@ def _lens_key(lens: CameraIntrinsics) -> tuple:
 def compile_kernels(what: str, *compile_functions: Callable[[], None]) -> None:
     """Run ``compile_functions`` (each compiles numba kernels or loads them from numba's on-disk
     cache) before the first frame; a compile over ``COMPILE_NOTICE_S`` (the first run after an
-    install or upgrade) is logged at INFO, naming ``what``."""
+    install or upgrade) is logged at INFO, naming ``what``: once that long has passed, so that a
+    user waiting on a silent start knows why, and when it is done, with the time it took."""
     started_s = time.perf_counter()
+    notice = threading.Timer(COMPILE_NOTICE_S, log.info, ("compiling the %s (numba; once after an install or "
+                                                          "upgrade, a minute or two) ...", what))
+    notice.daemon = True
+    notice.start()
     try:
         for compile_function in compile_functions:
             compile_function()
@@ -340,6 +346,8 @@ def compile_kernels(what: str, *compile_functions: Callable[[], None]) -> None:
         if caused_by_interrupt(exc):
             raise KeyboardInterrupt from None
         raise
+    finally:
+        notice.cancel()
     if (compile_s := time.perf_counter() - started_s) > COMPILE_NOTICE_S:
         log.info("compiled the %s in %.0f s (numba; once after an install or upgrade: later runs load them from its "
                  "cache)", what, compile_s)

@@ -179,3 +179,29 @@ def test_an_interrupt_while_the_kernels_load_is_an_interrupt(monkeypatch):
     monkeypatch.setattr(detector, "compile_edge_fit", broken)
     with pytest.raises(SystemError, match="of its own"):
         Detector(DetectorParams(corner_refinement=CornerRefinement.EDGE))
+
+
+def test_a_slow_compile_is_announced_while_it_runs_and_a_fast_load_says_nothing(monkeypatch, caplog):
+    """The first run after an install compiles for a minute: the user hears why while waiting,
+    not only after; a start from numba's cache is silent."""
+    import logging
+    import time
+
+    monkeypatch.setattr(detector_module, "COMPILE_NOTICE_S", 0.1)
+    said_while_compiling = []
+
+    def slow_compile():  # runs until the notice has come (or 10 s, a limit only against a hang)
+        deadline = time.monotonic() + 10.0
+        while not caplog.records and time.monotonic() < deadline:
+            time.sleep(0.01)
+        said_while_compiling.extend(r.getMessage() for r in caplog.records)
+
+    with caplog.at_level(logging.INFO, logger=detector_module.log.name):
+        detector_module.compile_kernels("test kernels", slow_compile)
+        assert said_while_compiling == ["compiling the test kernels (numba; once after an install or upgrade, "
+                                        "a minute or two) ..."]
+        assert caplog.records[-1].getMessage().startswith("compiled the test kernels in ")
+        caplog.clear()
+        detector_module.compile_kernels("test kernels", lambda: None)
+        time.sleep(0.3)  # past the notice's time: a cancelled notice never comes
+    assert caplog.records == []
