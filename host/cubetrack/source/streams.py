@@ -168,6 +168,10 @@ class _StreamEnded(Exception):
 _STREAM, _CLOCK, _WAKE = "stream", "clock", "wake"
 READS_PER_EVENT = 4  # reads of one ready stream before the loop turns to the others
 NO_TIME_STATUSES = frozenset({400, 401, 403, 404, 405, 501})  # /time answered so: the device has no /time
+# a camera's first round trips go back to back, then one per clock_period_s (as NTP's iburst): the tracker
+# trusts a clock on one narrow trip or on this many of any width (ClockSyncParams.start_round_trips), and
+# gives up the camera's frames until then
+FIRST_ROUND_TRIPS = 3
 
 
 @dataclass(slots=True, eq=False)
@@ -191,6 +195,7 @@ class _Camera:
     timing: CameraTiming = CameraTiming.UNKNOWN
     clock_failed: bool = False  # a /time round trip failed (no answer): with unstamped parts, no clock
     envelope: ArrivalEnvelope | None = None  # without a clock: its arrivals' envelope (stamps)
+    round_trips: int = 0  # /time round trips ended (answered or failed)
 
     @property
     def clock_told(self) -> bool:
@@ -703,10 +708,14 @@ class LiveCameras:
                 self._put_clock(camera.name, sample)
 
     def _poll_done(self, camera: _Camera, reason: str = "", detail: str = "") -> None:
-        """The round trip in flight ended (with a failure ``reason``, counted, or a sample)."""
+        """The round trip in flight ended (with a failure ``reason``, counted, or a sample); one of
+        the first ``FIRST_ROUND_TRIPS`` is followed by the next at once."""
         if camera.poll is not None:
             self._unregister(camera.poll.get)
             camera.poll = None
+            camera.round_trips += 1
+            if camera.round_trips < FIRST_ROUND_TRIPS and camera.timing is not CameraTiming.ARRIVAL:
+                camera.poll_at = time.monotonic()
         if reason:
             camera.clock_failed = True
             self._count(camera.name, clock_failures=Counter({reason: 1}))

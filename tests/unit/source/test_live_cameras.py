@@ -314,6 +314,17 @@ def test_a_stream_opens_once_its_camera_has_answered_time_so_no_frame_comes_befo
     assert [e.seq for e in events if isinstance(e, Frame)] == [1, 2, 3]  # the stream's first parts, none lost
 
 
+def test_a_cameras_first_round_trips_go_back_to_back_then_one_per_clock_period(images):
+    """The tracker trusts a clock on one narrow round trip or three of any width, and gives up the
+    camera's frames until then: the first three are not a clock period apart."""
+    slow_period = dataclasses.replace(FAST, clock_period_s=30.0)
+    with Emulator(images=images, fps=FPS, name="cam1", loop=True) as emu:
+        with LiveCameras(emu.urls, slow_period) as live:
+            _, clocks = collect(live, 20.0, until=lambda f, c: len(c) >= 3)
+            _, later = collect(live, 1.0)
+    assert len(clocks) == 3 and later == []  # three at once, the fourth a period later
+
+
 def test_without_a_thread_frames_are_read_inside_get_and_stamped_when_they_arrived(images):
     """thread=False (a camera worker process): nothing reads while the consumer is busy, yet the
     frames keep the time their bytes reached this host (the kernel's receive time), not the
@@ -401,7 +412,7 @@ def test_a_part_that_comes_in_pieces_is_read_once_it_is_whole(monkeypatch):
     handle = http_get.HttpGet.handle
 
     def counted(self):
-        reads[0] += 1
+        reads[0] += self._request.startswith(b"GET /stream ")  # the stream's reads (not the clock's)
         return handle(self)
 
     monkeypatch.setattr(http_get.HttpGet, "handle", counted)
