@@ -26,7 +26,9 @@ prints the thread CPU time per frame of each stage (decode, OpenCV's search, the
 the per-camera estimate, planning, fusion; median of rounds), the estimate/ functions the fusion
 calls (in place, then each alone on the calls it made in the first ``--micro-frames`` frames),
 the naive loop on the same frames as the ratio, the frames whose regions were empty (every robot
-predicted out of the camera's view) and what decoding them cost, the CPU of ways to decode the first
+predicted out of the camera's view) and what decoding them cost, the frames searched whole (no regions: a robot
+not predicted, or every ``[track] full_frame_every``-th frame of a camera; or regions that found nothing) and their
+per-frame work against the other frames', the CPU of ways to decode the first
 ``--micro-frames`` frames (colour, gray, DCT-scaled to 1/2, 1/4, 1/8, and the tracker's own top-rows decode)
 against the full gray decode, the CPU and markers kept of those frames' region searches as configured, at half
 size and with fewer adaptive-threshold passes, and whether the poses were bit-identical across rounds (exit 1 if not).
@@ -321,6 +323,7 @@ def stage_costs(args: argparse.Namespace) -> int:
     import os
 
     from cubetrack.app.tracker import Tracker
+    from cubetrack.core.records import FrameOutcome
 
     cv2.setNumThreads(1)
     with tempfile.TemporaryDirectory() as tmp:
@@ -357,7 +360,7 @@ def stage_costs(args: argparse.Namespace) -> int:
         for module, attr in _FUSION_HOOKS + _WORKER_HOOKS + _PREDICTED_HOOKS:
             hooks.wrap(importlib.import_module(module), attr, f"{module.rsplit('.', 1)[1]}.{attr}")
         cpu = {"plan": 0.0, "work": 0.0, "fuse": 0.0, "decode_empty": 0.0, "empty_frames": 0.0, "predicted_frames": 0.0,
-               "region_frames": 0.0}
+               "region_frames": 0.0, "whole_frames": 0.0, "whole_work": 0.0}
         poses = []
         clock = time.thread_time
         pauses = _GcPauses()
@@ -374,6 +377,9 @@ def stage_costs(args: argparse.Namespace) -> int:
                 result = tracker.processor.work(job)
                 t2 = clock()
                 cpu["region_frames"] += bool(job.regions)
+                if result.outcome is FrameOutcome.FULL_FRAME:   # no regions, or regions that found nothing
+                    cpu["whole_frames"] += 1
+                    cpu["whole_work"] += t2 - t1
                 if job.regions == ():   # every robot predicted out of view: nothing to search
                     cpu["empty_frames"] += 1
                     cpu["decode_empty"] += hooks.cpu_s["decode"] - decoded_s
@@ -428,6 +434,14 @@ def stage_costs(args: argparse.Namespace) -> int:
           f"ms/frame (of all frames), what skipping their decode would save")
     print(f"frames with regions: {rounds[0]['region_frames']:.0f} of {n}; of them found at their predicted markers, "
           f"verified, without OpenCV's search: {rounds[0]['predicted_frames']:.0f}")
+    whole = rounds[0]["whole_frames"]
+    if whole:
+        whole_ms = ms([c["whole_work"] for c in rounds])
+        others_ms = ms([c["work"] - c["whole_work"] for c in rounds])
+        print(f"frames searched whole (no regions, or regions that found nothing; [track] full_frame_every "
+              f"{stages.track.full_frame_every}): {whole:.0f} of {n}; their decode + detect + estimate "
+              f"{whole_ms * n / whole:.3f} ms each against {others_ms * n / max(n - whole, 1):.3f} for the other "
+              f"frames: {whole_ms:.3f} ms/frame, {100.0 * whole_ms / total:.1f}% of the total")
     inside = [k for k in rounds[0] if "." in k]
     print("in place (inclusive, incl. timer overhead):")
     for key in inside:

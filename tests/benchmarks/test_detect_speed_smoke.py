@@ -46,6 +46,12 @@ def test_stages_report_every_stage_and_a_bit_identical_replay(capsys):
     predicted = re.search(r"^frames with regions: (\d+) of (\d+); of them found at their predicted markers, "
                           r"verified, without OpenCV's search: (\d+)$", text, re.MULTILINE)
     assert predicted and 0 < int(predicted.group(3)) <= int(predicted.group(1)) <= int(predicted.group(2)), text
+    # the frames before the track started were searched whole (and timed), so some but not all were
+    whole = re.search(r"^frames searched whole .*: (\d+) of (\d+); their decode \+ detect \+ estimate "
+                      r"([0-9.]+) ms each against ([0-9.]+) for the other frames: ([0-9.]+) ms/frame", text,
+                      re.MULTILINE)
+    assert whole and 0 < int(whole.group(1)) < int(whole.group(2)), text
+    assert float(whole.group(3)) > 0.0 and float(whole.group(5)) <= ms("total (ours, one thread)"), text
     # the fusion ran (a track started) and its estimate/ calls were timed alone
     for name in ("fusion.match_faces", "corner_filter.solve_update", "corner_filter.packed_sets"):
         assert re.search(rf"^  {re.escape(name)}\s+[0-9.]+ calls/frame\s+[0-9.]+ us/call", text, re.MULTILINE), name

@@ -82,7 +82,9 @@ class TrackParams:
     )
     roi_margin_m: float = param(0.06, "a predicted cube's image region is grown by this much motion, metres")
     full_frame_every: int = param(
-        32, "with region detection: search a camera's full frame at least every this many frames")
+        128, "with region detection: search a camera's full frame at least every this many frames (32 before "
+        "session 30: a robot found nowhere is searched for in every whole frame once lost, [fusion] lost_after_s, "
+        "so this only bounds how long one camera can miss a robot the others track; docs/live.md)")
     camera_poses: CameraPoseSource = param(
         CameraPoseSource.EXTRINSICS,
         "extrinsics: calibrated camera poses (cubetrack calibrate); world-marker: each frame's own "

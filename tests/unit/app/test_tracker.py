@@ -367,3 +367,31 @@ def test_a_camera_re_calibrated_while_tracking_is_planned_through_its_new_pose()
     assert worker.plan(frames["cam2"], START_S, received).regions == before["cam2"]  # until told
     worker.plan_cameras_at(received.camera_poses)
     assert worker.plan(frames["cam2"], START_S, received).regions == after["cam2"]
+
+
+def test_a_robot_off_its_prediction_is_searched_for_whole_once_lost_whatever_full_frame_every(scenes):
+    """The bound on how long a tracked robot that turns up away from its prediction waits, with no
+    periodic whole-frame search at all: the other robot's box still finds its cube, so the frames
+    are searched in regions only until the moved robot's track is lost (``[fusion] lost_after_s``);
+    from then on every camera's whole frame is searched, and it is found in the first of them."""
+    moved = make_T(TRUTH["blue"][:3, :3], TRUTH["blue"][:3, 3] + [0.0, 0.35, 0.0])
+    world = marker_on_paper(np.eye(4), WORLD.dictionary, WORLD.marker_id, WORLD.marker_size_m, 0.03)
+    parts = [world, cube_solid(RED.layout, CUBE_M, TRUTH["red"]), cube_solid(BLUE.layout, CUBE_M, moved)]
+    rng = np.random.default_rng(1)
+    jumped = {cam: Camera(INTR, T, parts, supersample=1).jpeg(90, noise_std=1.0, rng=rng)
+              for cam, T in T_WORLD_CAM.items()}
+    t = tracker(StageParams(track=TrackParams(full_frame_every=10**6)))
+    before = run(t, stream(scenes["both"], 0, 12))
+    assert "R" in [kind(c) for _f, c, _p in before]          # tracked: regions only, no periodic whole frame
+    assert all(kind(c) != "F" for _f, c, _p in before[len(T_WORLD_CAM):])
+    after = run(t, stream(jumped, 12, 12))
+    kinds = [kind(c) for _f, c, _p in after]
+    first_whole = kinds.index("F")
+    lost_after_s = t.params.fusion.lost_after_s
+    # regions while the old track lasts (at most lost_after_s after the last frame that saw it there) ...
+    assert set(kinds[:first_whole]) <= {"R"}
+    assert after[first_whole][0].host_time_s - LATENCY_S <= capture_time("cam3", 11) + lost_after_s + 1 / FPS
+    # ... then the whole frame, where the moved robot is found at once
+    found = [(f, p) for f, _c, ps in after for p in ps if p.robot == "blue"
+             and np.linalg.norm(p.position_m - moved[:3, 3]) < 0.01]
+    assert found and found[0][0] in [f for f, _c, _p in after[first_whole:first_whole + len(T_WORLD_CAM)]]
