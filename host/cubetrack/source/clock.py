@@ -5,7 +5,11 @@ A camera node stamps each frame with X-Timestamp, its own clock since boot. The 
 device time was read somewhere inside [host_send, host_recv], so with the round trip's midpoint
 the offset is known to within half the round trip — independent of how long frames take to
 arrive. A line host = device + offset + drift * (device - device_ref) is fitted to the fastest
-recent round trips, which follows tens of ppm of drift.
+recent round trips, which follows tens of ppm of drift. The drift has a zero-mean prior
+(``drift_prior_ppm``): a crystal's rate error is tens of ppm, while two round trips a second apart,
+their midpoints each a few milliseconds off, would draw a line thousands of ppm off that runs away
+until a faster trip comes (docs/tracking.md, "Session 30"); the prior keeps the line level until the
+round trips span enough time to show a drift.
 
 :class:`ClockSync` is causal: it only uses round trips it has been given so far, so a recording
 replayed through it stamps frames exactly as the live tracker did. Without round trips it falls
@@ -42,6 +46,11 @@ class ClockSyncParams:
                                          "(a lone trip's midpoint can be half its width off), seconds")
     start_round_trips: int = param(3, "round trips after which they are trusted however wide (a network whose round "
                                       "trips are all slow still gets a clock)")
+    drift_prior_ppm: float = param(100.0, "standard deviation of the zero-mean prior on the clock's rate error, parts "
+                                          "per million (crystals: tens of ppm); a round trip's midpoint counts as "
+                                          "uncertain by its width / sqrt(12), so narrow trips over a long span "
+                                          "overrule it; 0: no prior (the drift fitted from the round trips alone; "
+                                          "before session 30)")
 
     def __post_init__(self) -> None:
         check(self.window >= 2 and self.min_samples >= 1 and 0.0 < self.fastest_fraction <= 1.0,
@@ -49,6 +58,7 @@ class ClockSyncParams:
         check(self.trusted_width_s >= 0 and self.start_round_trips >= 1,
               "need trusted_width_s >= 0 and start_round_trips >= 1")
         check(self.max_round_trip_s > 0, "max_round_trip_s must be positive")
+        check(self.drift_prior_ppm >= 0, "drift_prior_ppm must not be negative")
 
 
 @enum.unique
@@ -74,19 +84,24 @@ class ClockFit:
         return device_time_s + self.offset_s + self.drift * (device_time_s - self.device_ref_s)
 
 
-def fit_line(device_s: np.ndarray, offset_s: np.ndarray) -> tuple[float, float, float]:
-    """Least-squares offset = a + b (device - ref); returns (a, b, ref). One point: b = 0."""
+def fit_line(device_s: np.ndarray, offset_s: np.ndarray, ridge_s2: float = 0.0) -> tuple[float, float, float]:
+    """Least-squares offset = a + b (device - ref); returns (a, b, ref). One point: b = 0.
+    ``ridge_s2`` (s²) is added to the slope's normal equation: a zero-mean prior on ``b`` with
+    variance (the points' variance) / ``ridge_s2``."""
     ref = float(np.mean(device_s))
     x = device_s - ref
     a = float(np.mean(offset_s))  # x is centred: the intercept is the mean offset
     if len(x) < 2 or np.ptp(x) < 1e-6:
         return a, 0.0, ref
-    return a, float(np.dot(x, offset_s - a) / np.dot(x, x)), ref
+    return a, float(np.dot(x, offset_s - a) / (np.dot(x, x) + ridge_s2)), ref
 
 
 def fit_round_trips(host_send_s: np.ndarray, device_s: np.ndarray, host_recv_s: np.ndarray,
-                    fastest_fraction: float = 0.3) -> ClockFit:
-    """Fit the clock line to the fastest round trips (their midpoints), robust to slow ones."""
+                    fastest_fraction: float = 0.3, drift_prior_ppm: float = 0.0) -> ClockFit:
+    """Fit the clock line to the fastest round trips (their midpoints), robust to slow ones.
+    ``drift_prior_ppm`` > 0: the drift has a zero-mean prior of that standard deviation, each
+    midpoint counting as uncertain by its trip's width / sqrt(12) (the node read its clock somewhere
+    inside the trip), so the drift stays near 0 until the trips span enough time to show one."""
     host_send_s, device_s, host_recv_s = (np.asarray(a, dtype=float) for a in (host_send_s, device_s, host_recv_s))
     rtt = host_recv_s - host_send_s
     ok = np.isfinite(rtt) & (rtt >= 0)
@@ -96,7 +111,8 @@ def fit_round_trips(host_send_s: np.ndarray, device_s: np.ndarray, host_recv_s: 
     keep = max(min(2, rtt.size), int(np.ceil(fastest_fraction * rtt.size)))  # two points give the drift
     order = np.argsort(rtt, kind="stable")[:keep]
     mid = (host_send_s[order] + host_recv_s[order]) / 2.0
-    a, b, ref = fit_line(device_s[order], mid - device_s[order])
+    ridge_s2 = float(np.mean(rtt[order] ** 2)) / 12.0 / (drift_prior_ppm * 1e-6) ** 2 if drift_prior_ppm > 0 else 0.0
+    a, b, ref = fit_line(device_s[order], mid - device_s[order], ridge_s2)
     return ClockFit(a, b, ref, ClockFitMethod.ROUND_TRIP, float(np.max(rtt[order]) / 2.0))
 
 
@@ -149,7 +165,7 @@ class ClockSync:
             if self._trusted():
                 narrow = [t for t in self._trips if t[2] - t[0] <= self.params.trusted_width_s]
                 s, d, r = (np.array(v) for v in zip(*(narrow or self._trips), strict=True))
-                self._fit = fit_round_trips(s, d, r, self.params.fastest_fraction)
+                self._fit = fit_round_trips(s, d, r, self.params.fastest_fraction, self.params.drift_prior_ppm)
             elif self._arrivals:  # refitted per frame until a round trip comes: one array, few numpy calls
                 arrivals = np.array(self._arrivals)
                 self._fit = fit_arrivals(arrivals[:, 0], arrivals[:, 1])

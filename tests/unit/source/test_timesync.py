@@ -109,3 +109,36 @@ def test_round_trips_that_are_all_wide_are_trusted_after_a_few():
         sync.add_round_trip(h - 0.015, d, h + 0.015)
         assert (sync.method is ClockFitMethod.ROUND_TRIP) == (k == 2)
     assert sync.to_host(12.0) == pytest.approx(device_to_host(12.0), abs=1e-3)
+
+
+def test_two_round_trips_a_second_apart_leave_the_line_level():
+    """Realistic scene 6464's cam3 (session 30): its two fastest round trips in the first 3 s, 8.3 and
+    6.3 ms wide and a second apart, had their midpoints 2.4 ms after and 0.2 ms before the node's read
+    (which leg is slow varies); the line through them (about -2,500 ppm) stamped the next seconds'
+    frames up to 10 ms early as it ran away. With the drift's prior the line stays level (the node's
+    33 ppm is 0.1 ms over those 3 s)."""
+    h0, h1 = device_to_host(100.0), device_to_host(101.04)
+    trips = ((h0 - 0.00179, 100.0, h0 + 0.00653), (h1 - 0.00334, 101.04, h1 + 0.00292))
+    without = ClockSync(ClockSyncParams(drift_prior_ppm=0.0))
+    sync = ClockSync()
+    for trip in trips:
+        without.add_round_trip(*trip)
+        sync.add_round_trip(*trip)
+    assert abs(without.fit().drift) > 2000e-6  # the case is one where it matters
+    assert abs(sync.fit().drift) < 100e-6
+    error, error_without = (abs(s.to_host(104.0) - device_to_host(104.0)) for s in (sync, without))
+    assert error < error_without / 3
+    assert error < 0.003
+
+
+def test_the_drift_prior_gives_way_to_narrow_round_trips_over_minutes():
+    """A clock 40 ppm off over two minutes of round trips (the window's 120): the prior does not
+    hold the line level; the fit follows the drift as without it."""
+    rng = np.random.default_rng(6)
+    send, dev, recv = round_trips(rng, n=120)
+    sync = ClockSync()
+    for trip in zip(send, dev, recv, strict=True):
+        sync.add_round_trip(*trip)
+    assert sync.fit().drift == pytest.approx(DRIFT, abs=2e-5)
+    for d in (50.0, 169.0):
+        assert abs(sync.to_host(d) - device_to_host(d)) < 0.003
