@@ -170,9 +170,10 @@ class WatchParams:
                                            "Session 28), pixels; 0: never")
     gate_prediction_ratio: float = param(4.0, "... see gate_prediction_px")
     gate_hold_ratio: float = param(2.0, "a camera's sighting held off the prediction holds its later ones too while "
-                                        "each misses the prediction by more than gate_prediction_px and this many "
-                                        "times the camera's own misses before the hold (their median over window_s), "
-                                        "for window_s at most, until one is within: a bumped camera's second and "
+                                        "each misses the prediction by more than gate_prediction_px, this many "
+                                        "times the camera's own misses before the hold (their median over window_s) "
+                                        "and more than the other cameras' latest (their median), for window_s at "
+                                        "most, until one does not: a bumped camera's second and "
                                         "third sightings, fused before, dragged the track and made a still camera "
                                         "miss most (docs/calibration.md, Session 30); 0: never")
     follow_m: float = param(0.0, "drift: a camera whose settled pose has moved more than this since its anchor "
@@ -641,14 +642,14 @@ class CameraWatch:
         own = self._own_misses.setdefault(key, deque())
         while own and own[0][0] < t - p.window_s:
             own.popleft()
+        others = [m for c, (s, m) in latest.items() if c != sighting.camera and not self.excluded(c)
+                  and s >= t - p.window_s]
         hold = self._holding.pop(key, None)
-        if hold is not None and t - hold[0] <= p.window_s and miss > max(p.gate_prediction_px,
-                                                                          p.gate_hold_ratio * hold[1]):
+        if hold is not None and t - hold[0] <= p.window_s and miss > max(
+                p.gate_prediction_px, p.gate_hold_ratio * hold[1], float(np.median(others)) if others else 0.0):
             self._holding[key] = hold
             self.stats["held on"] += 1
             return True
-        others = [m for c, (s, m) in latest.items() if c != sighting.camera and not self.excluded(c)
-                  and s >= t - p.window_s]
         held = (miss > p.gate_prediction_px and len(others) >= p.reference_cameras
                 and miss > p.gate_prediction_ratio * float(np.median(others)))
         self.stats["held off the prediction"] += held
