@@ -169,13 +169,15 @@ class WatchParams:
                                            "let a bumped camera's first sightings in, docs/calibration.md, "
                                            "Session 28), pixels; 0: never")
     gate_prediction_ratio: float = param(4.0, "... see gate_prediction_px")
-    gate_hold_ratio: float = param(2.0, "a camera's sighting held off the prediction holds its later ones too while "
+    gate_hold_ratio: float = param(0.0, "a camera's sighting held off the prediction holds its later ones too while "
                                         "each misses the prediction by more than gate_prediction_px, this many "
                                         "times the camera's own misses before the hold (their median over window_s) "
                                         "and more than the other cameras' latest (their median), for window_s at "
                                         "most, until one does not: a bumped camera's second and "
                                         "third sightings, fused before, dragged the track and made a still camera "
-                                        "miss most (docs/calibration.md, Session 30); 0: never")
+                                        "miss most; 2 cut the burnt seeds' largest errors after a bump but not the "
+                                        "held-out one's, and cost unbumped sessions 2-3 poses of 900 "
+                                        "(docs/calibration.md, Session 30); 0: never (the default)")
     follow_m: float = param(0.0, "drift: a camera whose settled pose has moved more than this since its anchor "
                                  "(its settled pose over its first whole baseline_s, or at its last follow) is "
                                  "followed when moving it by that much makes the other cameras' settled poses "
