@@ -193,7 +193,7 @@ class WatchParams:
                                      "it is moved")
 
     def __post_init__(self) -> None:
-        check_at_least(self, 0, "gate_prediction_px", "follow_m", "settle_span_s", "moved_sigmas")
+        check_at_least(self, 0, "gate_prediction_px", "follow_m", "settle_span_s", "moved_sigmas", "gate_hold_ratio")
         check_positive(self, "baseline_s", "baseline_every_s", "samples_per_s", "checks_per_s", "reference_span_s",
                        "reference_rms_px", "window_s", "check_every_s", "moved_px", "moved_min_px", "moved_ratio",
                        "moved_m", "moved_deg", "rejoin_sigma_m", "rejoin_sigma_deg", "rejoin_spread_m",
@@ -625,7 +625,10 @@ class CameraWatch:
         ``reference_cameras`` of them) miss it, by their median: one other camera missing too (its
         own sighting off, or the prediction off from its view) does not let a bumped camera in. The
         first sightings after a bump come before any check can judge them (a check waits for the
-        other cameras' sightings around it); this keeps them out."""
+        other cameras' sightings around it); this keeps them out. With ``gate_hold_ratio`` (off by
+        default) a held camera's later sightings stay held while each misses the prediction by more
+        than ``gate_prediction_px``, that many times its own misses before the hold and more than the
+        others' latest (their median), for ``window_s`` at most."""
         p = self.params
         settled = self.settled.get(sighting.camera)
         if p.gate_prediction_px <= 0 or settled is None or sighting.robot not in self.layouts:

@@ -630,6 +630,7 @@ def test_a_recalibrations_spread_is_what_its_sightings_leave_open_not_the_corner
     ({"reference_cameras_max": 1}, "reference_cameras_max"),
     ({"follow_m": -0.001}, "follow_m"),
     ({"follow_px": 0.0}, "follow_px"),
+    ({"gate_hold_ratio": -1.0}, "gate_hold_ratio"),
 ])
 def test_bad_watch_settings_are_refused_with_a_clear_message(changes, message):
     from cubetrack.core.errors import ParamsError
