@@ -169,6 +169,15 @@ class WatchParams:
                                            "let a bumped camera's first sightings in, docs/calibration.md, "
                                            "Session 28), pixels; 0: never")
     gate_prediction_ratio: float = param(4.0, "... see gate_prediction_px")
+    gate_hold_ratio: float = param(0.0, "a camera's sighting held off the prediction holds its later ones too while "
+                                        "each misses the prediction by more than gate_prediction_px, this many "
+                                        "times the camera's own misses before the hold (their median over window_s) "
+                                        "and more than the other cameras' latest (their median), for window_s at "
+                                        "most, until one does not: a bumped camera's second and "
+                                        "third sightings, fused before, dragged the track and made a still camera "
+                                        "miss most; 2 cut the burnt seeds' largest errors after a bump but not the "
+                                        "held-out one's, and cost unbumped sessions 2-3 poses of 900 "
+                                        "(docs/calibration.md, Session 30); 0: never (the default)")
     follow_m: float = param(0.0, "drift: a camera whose settled pose has moved more than this since its anchor "
                                  "(its settled pose over its first whole baseline_s, or at its last follow) is "
                                  "followed when moving it by that much makes the other cameras' settled poses "
@@ -184,7 +193,7 @@ class WatchParams:
                                      "it is moved")
 
     def __post_init__(self) -> None:
-        check_at_least(self, 0, "gate_prediction_px", "follow_m", "settle_span_s", "moved_sigmas")
+        check_at_least(self, 0, "gate_prediction_px", "follow_m", "settle_span_s", "moved_sigmas", "gate_hold_ratio")
         check_positive(self, "baseline_s", "baseline_every_s", "samples_per_s", "checks_per_s", "reference_span_s",
                        "reference_rms_px", "window_s", "check_every_s", "moved_px", "moved_min_px", "moved_ratio",
                        "moved_m", "moved_deg", "rejoin_sigma_m", "rejoin_sigma_deg", "rejoin_spread_m",
@@ -567,6 +576,9 @@ class CameraWatch:
         self._misses: dict[str, deque[tuple[float, float]]] = {c: deque(maxlen=params.suspect_samples)
                                                                for c in T_world_cams}
         self._off_prediction: dict[str, dict[str, tuple[float, float]]] = {r: {} for r in layouts}
+        # (robot, camera) -> its misses of the prediction not held, (time, px), and its hold: (since, its level then)
+        self._own_misses: dict[tuple[str, str], deque[tuple[float, float]]] = {}
+        self._holding: dict[tuple[str, str], tuple[float, float]] = {}
         self.events: list[WatchEvent] = []
         self.follows: list[DriftStep] = []
         # camera -> its settled pose over its first whole baseline_s, or at its last follow: what a drift is
@@ -613,7 +625,10 @@ class CameraWatch:
         ``reference_cameras`` of them) miss it, by their median: one other camera missing too (its
         own sighting off, or the prediction off from its view) does not let a bumped camera in. The
         first sightings after a bump come before any check can judge them (a check waits for the
-        other cameras' sightings around it); this keeps them out."""
+        other cameras' sightings around it); this keeps them out. With ``gate_hold_ratio`` (off by
+        default) a held camera's later sightings stay held while each misses the prediction by more
+        than ``gate_prediction_px``, that many times its own misses before the hold and more than the
+        others' latest (their median), for ``window_s`` at most."""
         p = self.params
         settled = self.settled.get(sighting.camera)
         if p.gate_prediction_px <= 0 or settled is None or sighting.robot not in self.layouts:
@@ -625,14 +640,28 @@ class CameraWatch:
         residual = residuals_px(settled, points_world_m, np.concatenate([s.normalized for s in sets]),
                                 np.repeat([s.focal_px for s in sets], [len(s.normalized) for s in sets]))
         miss = float(np.median(np.linalg.norm(residual, axis=1)))
+        t = sighting.capture_time_s
         latest = self._off_prediction[sighting.robot]
-        latest[sighting.camera] = (sighting.capture_time_s, miss)
-        if miss <= p.gate_prediction_px:
-            return False
-        others = [m for c, (t, m) in latest.items() if c != sighting.camera and not self.excluded(c)
-                  and t >= sighting.capture_time_s - p.window_s]
-        held = len(others) >= p.reference_cameras and miss > p.gate_prediction_ratio * float(np.median(others))
+        latest[sighting.camera] = (t, miss)
+        key = (sighting.robot, sighting.camera)
+        own = self._own_misses.setdefault(key, deque())
+        while own and own[0][0] < t - p.window_s:
+            own.popleft()
+        others = [m for c, (s, m) in latest.items() if c != sighting.camera and not self.excluded(c)
+                  and s >= t - p.window_s]
+        hold = self._holding.pop(key, None)
+        if hold is not None and t - hold[0] <= p.window_s and miss > max(
+                p.gate_prediction_px, p.gate_hold_ratio * hold[1], float(np.median(others)) if others else 0.0):
+            self._holding[key] = hold
+            self.stats["held on"] += 1
+            return True
+        held = (miss > p.gate_prediction_px and len(others) >= p.reference_cameras
+                and miss > p.gate_prediction_ratio * float(np.median(others)))
         self.stats["held off the prediction"] += held
+        if not held:
+            own.append((t, miss))
+        elif p.gate_hold_ratio > 0 and own:
+            self._holding[key] = (t, float(np.median([m for _, m in own])))
         return held
 
     def points(self, camera: str) -> int:

@@ -233,6 +233,41 @@ def test_one_other_camera_missing_the_prediction_does_not_let_a_bumped_cameras_s
     assert not held("cam2", 7, off, turned)[0]
 
 
+@pytest.mark.parametrize("hold_ratio", [2.0, 0.0])
+def test_a_held_cameras_later_sightings_stay_held_while_they_miss_as_much(hold_ratio):
+    """``gate_hold_ratio``: once cam2's sighting after a 1 deg turn is held off the prediction, its
+    next ones are held too while they miss it by more than ``gate_prediction_px`` and twice its own
+    misses before the hold, though two other cameras now miss the prediction as well (a bumped
+    camera's second sighting, fused, dragged the track: issue 27's seeds 58, 263, 419); for
+    ``window_s`` at most, and a sighting within ends the hold. Without it (0) only the first is held."""
+    rng = np.random.default_rng(5)
+    watch = CameraWatch({"bot": LAYOUT}, CAMERAS, WatchParams(enabled=True, gate_hold_ratio=hold_ratio))
+    watch.settled.update(CAMERAS)
+    turned = bumped(CAMERAS["cam2"], 0.0, 1.0, rng)
+    truth = cube_at(5.0)
+    off = make_T(np.eye(3), [0.03, 0.0, 0.0]) @ truth  # a prediction 3 cm off
+    seq = iter(range(1000))
+
+    def held(camera: str, t: float, predicted: np.ndarray, true_pose: np.ndarray | None = None) -> bool:
+        dets = detections(truth, CAMERAS[camera] if true_pose is None else true_pose, rng, noise_px=0.2)
+        sighting = CubeSighting(camera, "bot", next(seq), t, t + 0.05, dets, None, CAMERAS[camera], INTR)
+        watch.add(sighting, predicted)
+        return watch.off_prediction(sighting, predicted)
+
+    for k in range(4):  # every camera agrees with the prediction: each one's own misses are small
+        assert not any(held(c, 5.0 + 0.1 * k + 0.01 * i, truth) for i, c in enumerate(CAMERAS))
+    assert held("cam2", 5.5, truth, turned)  # the first after the turn: four times the others' misses
+    assert not held("cam1", 5.51, off) and not held("cam4", 5.52, off)  # two others now miss as much
+    assert held("cam2", 5.6, truth, turned) is (hold_ratio > 0)
+    assert held("cam2", 5.7, truth, turned) is (hold_ratio > 0)
+    assert not held("cam2", 5.8, truth) and not held("cam2", 5.9, truth, turned)  # one within ends the hold
+    assert not any(held(c, 6.0 + 0.01 * i, truth) for i, c in enumerate(("cam1", "cam3", "cam4")))
+    assert held("cam2", 6.1, truth, turned)  # held again, as first
+    held("cam1", 6.11, off), held("cam4", 6.12, off)  # two others miss as much again
+    assert held("cam2", 6.2, truth, turned) is (hold_ratio > 0)
+    assert not held("cam2", 6.1 + watch.params.window_s + 0.05, truth, turned)  # a hold lasts window_s at most
+
+
 @pytest.mark.parametrize("iterations", [camera_watch.FIT_ITERATIONS, 1])
 def test_a_position_only_refit_keeps_the_orientation_and_finds_the_shift(monkeypatch, iterations):
     """A drift's follow fits its step as a position alone (``refit_camera(position_only=True)``): a
@@ -595,6 +630,7 @@ def test_a_recalibrations_spread_is_what_its_sightings_leave_open_not_the_corner
     ({"reference_cameras_max": 1}, "reference_cameras_max"),
     ({"follow_m": -0.001}, "follow_m"),
     ({"follow_px": 0.0}, "follow_px"),
+    ({"gate_hold_ratio": -1.0}, "gate_hold_ratio"),
 ])
 def test_bad_watch_settings_are_refused_with_a_clear_message(changes, message):
     from cubetrack.core.errors import ParamsError
