@@ -744,6 +744,19 @@ def _fitted_offsets(template: np.ndarray, table: np.ndarray, box: tuple[int, int
 # approximate where two edges meet.
 _TEMPLATE_SMOOTHING = 0.7 / TEMPLATE_RES  # modules: marker_template's Gaussian (0.7 samples)
 _READ_REACH = 5.0  # standard deviations: a cell edge farther than this from a read is taken as wholly passed
+_NORMAL_STEPS = 256  # the normal integral and density tabulated per standard deviation (linear reads: 5e-7 off)
+
+
+@functools.lru_cache(maxsize=1)
+def _normal_table() -> np.ndarray:
+    """(n, 2): the standard normal integral and density at ``1 / _NORMAL_STEPS`` steps over +-``_READ_REACH``
+    (and one step beyond), read linearly by :func:`_interval_weights` (math.erf and math.exp per cell edge
+    were half of a step's reads)."""
+    z = np.arange(-_READ_REACH * _NORMAL_STEPS, _READ_REACH * _NORMAL_STEPS + 2) / _NORMAL_STEPS
+    table = np.stack([0.5 * (1.0 + np.vectorize(math.erf)(z / math.sqrt(2.0))),
+                      np.exp(-0.5 * z * z) / math.sqrt(2.0 * math.pi)], axis=-1)
+    table.setflags(write=False)
+    return table
 
 
 @functools.lru_cache(maxsize=256)
@@ -765,10 +778,11 @@ def _module_cells(dictionary: str, marker_id: int, white_modules: float) -> tupl
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST_MATH)
-def _interval_weights(t: float, spread: float, edges: np.ndarray, w: np.ndarray, dw: np.ndarray,
-                      sw: np.ndarray) -> tuple[int, int]:
+def _interval_weights(t: float, spread: float, edges: np.ndarray, normal: np.ndarray, w: np.ndarray,
+                      dw: np.ndarray, sw: np.ndarray) -> tuple[int, int]:
     """How much of a Gaussian of standard deviation ``spread`` centred at ``t`` falls in each interval
-    between ``edges`` (the first interval before the first edge, the last after the last): ``w``, its
+    between ``edges`` (the first interval before the first edge, the last after the last; the normal
+    integral and density read from ``normal``, :func:`_normal_table`): ``w``, its
     derivative by ``t`` (``dw``) and by ``spread`` (``sw``), filled between the first and the last
     interval it reaches (returned; the rest unset)."""
     reach = _READ_REACH * spread
@@ -782,10 +796,14 @@ def _interval_weights(t: float, spread: float, edges: np.ndarray, w: np.ndarray,
     # edges lo .. hi - 1 lie within reach: intervals lo .. hi
     below, d_below, s_below = 0.0, 0.0, 0.0  # the normal integral up to the last edge, and its derivatives
     inv = 1.0 / spread
+    last = normal.shape[0] - 2
     for k in range(lo, hi):
         z = (edges[k] - t) * inv
-        F = 0.5 * (1.0 + math.erf(z * 0.7071067811865476))
-        f = 0.3989422804014327 * math.exp(-0.5 * z * z) * inv
+        at = (z + _READ_REACH) * _NORMAL_STEPS
+        j = min(max(int(at), 0), last)
+        frac = at - j
+        F = normal[j, 0] + frac * (normal[j + 1, 0] - normal[j, 0])
+        f = (normal[j, 1] + frac * (normal[j + 1, 1] - normal[j, 1])) * inv
         w[k], dw[k], sw[k] = F - below, -f - d_below, -f * z - s_below
         below, d_below, s_below = F, -f, -f * z
     w[hi], dw[hi], sw[hi] = 1.0 - below, -d_below, -s_below
@@ -793,8 +811,8 @@ def _interval_weights(t: float, spread: float, edges: np.ndarray, w: np.ndarray,
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST_MATH)
-def _blurred_reads(cells: np.ndarray, edges: np.ndarray, centres: np.ndarray, H_inv: np.ndarray,
-                   spans: np.ndarray, blur: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _blurred_reads(cells: np.ndarray, edges: np.ndarray, normal: np.ndarray, centres: np.ndarray,
+                   H_inv: np.ndarray, spans: np.ndarray, blur: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The predicted image at the compared pixels (undistorted ``centres`` (n, 2)): the template
     (``cells``, ``edges``: :func:`_module_cells`; the marker's image and the indicator of what lies beyond
     its margin) at each pixel's template point (``H_inv``: undistorted px -> modules), blurred by a
@@ -823,8 +841,8 @@ def _blurred_reads(cells: np.ndarray, edges: np.ndarray, centres: np.ndarray, H_
         a11 = d10 * spans[i, 0, 1] + d11 * spans[i, 1, 1]
         ax, ay = a00 * a00 + a01 * a01, a10 * a10 + a11 * a11
         sx, sy = math.sqrt(variance * ax + smoothing), math.sqrt(variance * ay + smoothing)
-        ix0, ix1 = _interval_weights(u, sx, edges, wx, dwx, swx)
-        iy0, iy1 = _interval_weights(v, sy, edges, wy, dwy, swy)
+        ix0, ix1 = _interval_weights(u, sx, edges, normal, wx, dwx, swx)
+        iy0, iy1 = _interval_weights(v, sy, edges, normal, wy, dwy, swy)
         P = Pu = Pv = Psx = Psy = Puv = Pusv = Psuv = Pss = 0.0
         for r in range(iy0, iy1 + 1):
             a = b = c = 0.0
@@ -919,7 +937,7 @@ def _read_systems(values: np.ndarray, grads: np.ndarray, by_blur: np.ndarray, gr
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
-def _read_offsets(cells: np.ndarray, edges: np.ndarray, gradient: np.ndarray, pixels: np.ndarray,
+def _read_offsets(cells: np.ndarray, edges: np.ndarray, normal: np.ndarray, gradient: np.ndarray, pixels: np.ndarray,
                   centres: np.ndarray, spans: np.ndarray, start: np.ndarray, modules: int, blur: float,
                   iterations: int) -> np.ndarray:
     """:func:`_fitted_offsets` with the blur in the template: each step predicts the compared pixels
@@ -928,7 +946,7 @@ def _read_offsets(cells: np.ndarray, edges: np.ndarray, gradient: np.ndarray, pi
     for _ in range(iterations):
         H, dH = _homography_with_derivatives(start + p.reshape(4, 2), float(modules))
         H_inv = np.linalg.inv(H)
-        values, grads, by_blur = _blurred_reads(cells, edges, centres, H_inv, spans, blur)
+        values, grads, by_blur = _blurred_reads(cells, edges, normal, centres, H_inv, spans, blur)
         N, rhs = _read_systems(values, grads, by_blur, gradient, pixels, centres, H_inv, dH)
         delta = _normal_solution(N, rhs)
         p = p + delta[:8]
@@ -966,7 +984,7 @@ def fast_template_corners(gray: np.ndarray, corners_px: np.ndarray, dictionary: 
         pixels = np.take(gray[y0:y0 + ny, x0:x0 + nx], index).astype(np.float64)
         if settings.blur_in_template:
             cells, edges = _module_cells(dictionary, marker_id, settings.white_modules)
-            p = _read_offsets(cells, edges, gradient, pixels, centres, spans, start, modules,
+            p = _read_offsets(cells, edges, _normal_table(), gradient, pixels, centres, spans, start, modules,
                               settings.start_blur_px, iterations)
         else:
             template = _area_template(dictionary, marker_id, settings.white_modules,
