@@ -260,7 +260,8 @@ def _region_start(table: np.ndarray, corners_px: np.ndarray, modules: int,
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _region_arrays(table: np.ndarray, corners_px: np.ndarray, H0: np.ndarray, ring_px: np.ndarray, modules: int,
                    margin: float, width: int, height: int) -> tuple[bool, tuple[int, int, int, int], np.ndarray,
-                                                                    np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                                                                    np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                                                                    np.ndarray]:
     """The pixels a fit of the marker (distorted ``corners_px``, its homography ``H0`` and its
     ring ``ring_px`` (4, 2) in the distorted image, :func:`_region_start`) compares, through the
     lens map ``table``: whether its region (the ring's bounds and ``REGION_PAD_PX``, what the blur
@@ -268,8 +269,9 @@ def _region_arrays(table: np.ndarray, corners_px: np.ndarray, H0: np.ndarray, ri
     compared pixels (those whose centre lies on the marker or within ``margin`` modules of it):
     which (ny, nx), their flat indices (n,) in the region,
     their undistorted centres (n, 2) and their places across the region (n, 2,
-    :func:`_compared_pixels`) and the lens's local map (2, 2) at the marker's centre
-    (:func:`_map_jacobian`; the identity without a lens)."""
+    :func:`_compared_pixels`), the lens's local map (2, 2) at the marker's centre
+    (:func:`_map_jacobian`; the identity without a lens) and at each compared pixel, the other way (n, 2, 2:
+    undistorted px per distorted px, from its neighbours' centres)."""
     empty, no_spans = np.empty((0, 2)), np.empty((0, 2, 2))
     if not np.isfinite(ring_px).all():
         return (False, (0, 0, 0, 0), np.zeros((0, 0), np.bool_), np.empty(0, np.int64), empty, empty, np.eye(2),
@@ -382,7 +384,9 @@ class TemplateFitSettings:
     white margin every marker has around its black border at least (modules; beyond it the fit
     assumes some uniform brightness of its own); ``margin_modules``: how much of that margin is
     fitted (modules); ``start_blur_px``: the blur (Gaussian sigma, px) the fit starts from;
-    ``max_move_px``: a corner moving farther than this from its start is a failed fit."""
+    ``max_move_px``: a corner moving farther than this from its start is a failed fit;
+    ``blur_in_template``: each step predicts the compared pixels alone in closed form
+    (:func:`_read_offsets`; ``supersample`` unused) instead of reading pixel areas and blurring them."""
 
     supersample: int = 3
     white_modules: float = 1.0
@@ -392,7 +396,10 @@ class TemplateFitSettings:
     blur_in_template: bool = False
 
 
-FAST_SETTINGS = TemplateFitSettings(supersample=2, blur_in_template=True)  # tracking's fit (fast_template_corners)
+FAST_SETTINGS = TemplateFitSettings(supersample=2)  # tracking's fit (fast_template_corners)
+# The same with the blur in the template (:func:`_read_offsets`, session 30): 1.5x cheaper per marker, corners
+# no worse overall but worse head-on and on the clean scenes (docs/detection.md): not tracking's default.
+READ_SETTINGS = TemplateFitSettings(supersample=2, blur_in_template=True)
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
@@ -817,8 +824,9 @@ def _blurred_reads(cells: np.ndarray, edges: np.ndarray, normal: np.ndarray, cen
     (``cells``, ``edges``: :func:`_module_cells`; the marker's image and the indicator of what lies beyond
     its margin) at each pixel's template point (``H_inv``: undistorted px -> modules), blurred by a
     Gaussian of ``blur`` px in the distorted image, with the pixel's area and the template's smoothing
-    (``lens_inv``: undistorted px per distorted px at the marker); (n, 2) values, (n, 2, 2) their gradient
-    (undistorted px: [pixel, image, x / y]) and (n, 2) their derivative by ``blur``."""
+    through the lens; (n, 2) values, (n, 2, 2) their gradient
+    (undistorted px: [pixel, image, x / y]) and (n, 2) their derivative by ``blur``. ``spans`` (n, 2, 2):
+    undistorted px per distorted px at each pixel (:func:`_region_arrays`)."""
     n, size = centres.shape[0], cells.shape[0]
     values, gradient, by_blur = np.empty((n, 2)), np.empty((n, 2, 2)), np.empty((n, 2))
     wx, dwx, swx = np.zeros(size), np.zeros(size), np.zeros(size)
@@ -832,7 +840,7 @@ def _blurred_reads(cells: np.ndarray, edges: np.ndarray, normal: np.ndarray, cen
         u1 = H_inv[1, 0] * cx + H_inv[1, 1] * cy + H_inv[1, 2]
         inv = 1.0 / (H_inv[2, 0] * cx + H_inv[2, 1] * cy + H_inv[2, 2])
         u, v = u0 * inv, u1 * inv
-        # D: modules per undistorted px at the pixel; A = D lens_inv: modules per distorted px
+        # d: modules per undistorted px at the pixel; a = d spans: modules per distorted px
         d00, d01 = (H_inv[0, 0] - u * H_inv[2, 0]) * inv, (H_inv[0, 1] - u * H_inv[2, 1]) * inv
         d10, d11 = (H_inv[1, 0] - v * H_inv[2, 0]) * inv, (H_inv[1, 1] - v * H_inv[2, 1]) * inv
         a00 = d00 * spans[i, 0, 0] + d01 * spans[i, 1, 0]

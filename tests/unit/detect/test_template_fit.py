@@ -14,6 +14,7 @@ from cubetrack.core.cameras import CameraIntrinsics
 from cubetrack.core.geometry import undistort_points
 from cubetrack.detect.detector import CornerRefinement, Detector, DetectorParams, aruco_dictionary
 from cubetrack.detect.template_fit import (
+    READ_SETTINGS,
     LensMap,
     TemplateFitSettings,
     distort_px,
@@ -264,8 +265,9 @@ SMALL_SCENES = [  # tracking's usual markers: 18-22 px across, head-on to strong
 
 
 def test_the_fit_converges_on_small_oblique_markers():
-    """Tracking's fit (the blur in the template) on small markers seen obliquely through the wide lens,
-    from the edge fit's corners: every fit succeeds and lands several times closer to the truth."""
+    """The fit with the blur in the template (READ_SETTINGS) on tracking's usual markers, seen obliquely
+    through the wide lens, from the edge fit's corners: every fit succeeds and lands several times closer
+    to the truth."""
     lens = camera()
     edge, template = [], []
     for seed, (centre, half, squash, turn) in enumerate(SMALL_SCENES):
@@ -273,7 +275,7 @@ def test_the_fit_converges_on_small_oblique_markers():
         image = render(truth_ideal, lens, blur_px=0.7, seed=20 + seed)  # measured: 0.013 px RMS (edge fit 0.11)
         truth = distort_px(truth_ideal, lens.K, lens.dist)
         start = detected_corners(image, CornerRefinement.EDGE, lens)
-        fitted = fast_template_corners(image, start, DICT, MARKER_ID, LensMap(lens))
+        fitted = fast_template_corners(image, start, DICT, MARKER_ID, LensMap(lens), settings=READ_SETTINGS)
         assert fitted is not None
         edge.append(start - truth)
         template.append(fitted - truth)
@@ -293,10 +295,11 @@ def _blurred_reads(corners: np.ndarray, points: np.ndarray, blur: float) -> tupl
 
 
 def test_the_blurred_reads_are_the_marker_blurred_in_the_image():
-    """Tracking's fit predicts each compared pixel in closed form (template_fit._blurred_reads): the
-    marker (cells, border, white margin, 0 beyond it; and the indicator of what lies beyond) seen through
-    a sheared homography, averaged over the pixel's area and blurred by a Gaussian in the image, as a
-    Monte-Carlo average of the template at 40,000 such points per pixel gives it (to its noise, 0.0025)."""
+    """The fit with the blur in the template predicts each compared pixel in closed form
+    (template_fit._blurred_reads): the marker (cells, border, white margin, 0 beyond it; and the
+    indicator of what lies beyond) seen through a sheared homography, averaged over the pixel's area
+    and blurred by a Gaussian in the image, as a Monte-Carlo average of the template at 40,000 such
+    points per pixel gives it (to its noise, 0.0025)."""
     corners = np.array([[10.0, 12.0], [30.0, 16.0], [24.0, 30.0], [4.0, 26.0]])  # the blur's covariance in
     # the template: correlation 0.2
     rng = np.random.default_rng(3)
