@@ -938,10 +938,16 @@ def _read_systems(values: np.ndarray, grads: np.ndarray, by_blur: np.ndarray, gr
             rhs[a] += ra * r
             for b in range(a, 14):
                 N[a, b] += ra * row[b]
-    for a in range(14):
+    return _symmetric(N), rhs
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _symmetric(N: np.ndarray) -> np.ndarray:
+    """``N`` with its lower triangle copied from its upper one (in place)."""
+    for a in range(N.shape[0]):
         for b in range(a):
             N[a, b] = N[b, a]
-    return N, rhs
+    return N
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
