@@ -260,7 +260,8 @@ def _region_start(table: np.ndarray, corners_px: np.ndarray, modules: int,
 @numba.njit(cache=True, nogil=True, error_model="numpy")
 def _region_arrays(table: np.ndarray, corners_px: np.ndarray, H0: np.ndarray, ring_px: np.ndarray, modules: int,
                    margin: float, width: int, height: int) -> tuple[bool, tuple[int, int, int, int], np.ndarray,
-                                                                    np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                                                                    np.ndarray, np.ndarray, np.ndarray, np.ndarray,
+                                                                    np.ndarray]:
     """The pixels a fit of the marker (distorted ``corners_px``, its homography ``H0`` and its
     ring ``ring_px`` (4, 2) in the distorted image, :func:`_region_start`) compares, through the
     lens map ``table``: whether its region (the ring's bounds and ``REGION_PAD_PX``, what the blur
@@ -268,23 +269,32 @@ def _region_arrays(table: np.ndarray, corners_px: np.ndarray, H0: np.ndarray, ri
     compared pixels (those whose centre lies on the marker or within ``margin`` modules of it):
     which (ny, nx), their flat indices (n,) in the region,
     their undistorted centres (n, 2) and their places across the region (n, 2,
-    :func:`_compared_pixels`) and the lens's local map (2, 2) at the marker's centre
-    (:func:`_map_jacobian`; the identity without a lens)."""
-    empty = np.empty((0, 2))
+    :func:`_compared_pixels`), the lens's local map (2, 2) at the marker's centre
+    (:func:`_map_jacobian`; the identity without a lens) and at each compared pixel, the other way (n, 2, 2:
+    undistorted px per distorted px, from its neighbours' centres)."""
+    empty, no_spans = np.empty((0, 2)), np.empty((0, 2, 2))
     if not np.isfinite(ring_px).all():
-        return False, (0, 0, 0, 0), np.zeros((0, 0), np.bool_), np.empty(0, np.int64), empty, empty, np.eye(2)
+        return (False, (0, 0, 0, 0), np.zeros((0, 0), np.bool_), np.empty(0, np.int64), empty, empty, np.eye(2),
+                no_spans)
     x0 = int(np.floor(ring_px[:, 0].min())) - REGION_PAD_PX
     y0 = int(np.floor(ring_px[:, 1].min())) - REGION_PAD_PX
     x1 = int(np.ceil(ring_px[:, 0].max())) + REGION_PAD_PX + 1
     y1 = int(np.ceil(ring_px[:, 1].max())) + REGION_PAD_PX + 1
     if x0 < 0 or y0 < 0 or x1 > width or y1 > height:
-        return False, (0, 0, 0, 0), np.zeros((0, 0), np.bool_), np.empty(0, np.int64), empty, empty, np.eye(2)
+        return (False, (0, 0, 0, 0), np.zeros((0, 0), np.bool_), np.empty(0, np.int64), empty, empty, np.eye(2),
+                no_spans)
     nx, ny = x1 - x0, y1 - y0
     centres = _pixel_centres(table, x0, y0, nx, ny)
     fitted, gradient = _compared_pixels(centres, np.linalg.inv(H0), modules, margin, nx, ny)
     index = np.flatnonzero(fitted)
     lens = np.eye(2) if table.shape[0] == 0 else _map_jacobian(table, corners_px)
-    return True, (x0, y0, nx, ny), fitted.reshape(ny, nx), index, centres[index], gradient, lens
+    spans = np.empty((len(index), 2, 2))  # undistorted px per pixel at each compared one: its neighbours' centres
+    for k in range(len(index)):
+        f = index[k]
+        for a in range(2):
+            spans[k, a, 0] = 0.5 * (centres[f + 1, a] - centres[f - 1, a])
+            spans[k, a, 1] = 0.5 * (centres[f + nx, a] - centres[f - nx, a])
+    return True, (x0, y0, nx, ny), fitted.reshape(ny, nx), index, centres[index], gradient, lens, spans
 
 
 _NO_TABLE = np.zeros((0, 0, 2), np.float32)  # :func:`_pixel_centres`'s lens map of the identity (no lens)
@@ -374,16 +384,22 @@ class TemplateFitSettings:
     white margin every marker has around its black border at least (modules; beyond it the fit
     assumes some uniform brightness of its own); ``margin_modules``: how much of that margin is
     fitted (modules); ``start_blur_px``: the blur (Gaussian sigma, px) the fit starts from;
-    ``max_move_px``: a corner moving farther than this from its start is a failed fit."""
+    ``max_move_px``: a corner moving farther than this from its start is a failed fit;
+    ``blur_in_template``: each step predicts the compared pixels alone in closed form
+    (:func:`_read_offsets`; ``supersample`` unused) instead of reading pixel areas and blurring them."""
 
     supersample: int = 3
     white_modules: float = 1.0
     margin_modules: float = 0.5
     start_blur_px: float = 0.8
     max_move_px: float = 1.5
+    blur_in_template: bool = False
 
 
 FAST_SETTINGS = TemplateFitSettings(supersample=2)  # tracking's fit (fast_template_corners)
+# The same with the blur in the template (:func:`_read_offsets`, session 30): 1.5x cheaper per marker, corners
+# no worse overall but worse head-on and on the clean scenes (docs/detection.md): not tracking's default.
+READ_SETTINGS = TemplateFitSettings(supersample=2, blur_in_template=True)
 
 
 @numba.njit(cache=True, nogil=True, error_model="numpy")
@@ -723,6 +739,237 @@ def _fitted_offsets(template: np.ndarray, table: np.ndarray, box: tuple[int, int
     return p
 
 
+# The blur in the template (session 30, issue 31). The fit above predicts the marker image on the region's pixel
+# grid (each pixel's area read from a pre-blurred template, then blurred in the image with its gradient and a
+# wider blur: ~1,100 pixel areas and three filter passes per step on a ~21 px marker). Its template is piecewise
+# constant on the module grid (cells, border, margin, what lies beyond), so the same image blurred by a Gaussian
+# is a sum of products of normal integrals along the two template axes. Here each compared pixel reads that sum
+# at its undistorted centre directly, with its gradient and its derivative by the blur, in closed form: the blur
+# (sigma px), the pixel's area (1/12 px^2, a box taken as a Gaussian of its variance) and the template's own
+# smoothing (``_TEMPLATE_SMOOTHING``) pulled back into the template through the homography and the lens at that
+# pixel. Only the covariance's diagonal is kept: exact across every cell edge (all along the template's axes),
+# approximate where two edges meet.
+_TEMPLATE_SMOOTHING = 0.7 / TEMPLATE_RES  # modules: marker_template's Gaussian (0.7 samples)
+_READ_REACH = 5.0  # standard deviations: a cell edge farther than this from a read is taken as wholly passed
+_NORMAL_STEPS = 256  # the normal integral and density tabulated per standard deviation (linear reads: 5e-7 off)
+
+
+@functools.lru_cache(maxsize=1)
+def _normal_table() -> np.ndarray:
+    """(n, 2): the standard normal integral and density at ``1 / _NORMAL_STEPS`` steps over +-``_READ_REACH``
+    (and one step beyond), read linearly by :func:`_interval_weights` (math.erf and math.exp per cell edge
+    were half of a step's reads)."""
+    z = np.arange(-_READ_REACH * _NORMAL_STEPS, _READ_REACH * _NORMAL_STEPS + 2) / _NORMAL_STEPS
+    table = np.stack([0.5 * (1.0 + np.vectorize(math.erf)(z / math.sqrt(2.0))),
+                      np.exp(-0.5 * z * z) / math.sqrt(2.0 * math.pi)], axis=-1)
+    table.setflags(write=False)
+    return table
+
+
+@functools.lru_cache(maxsize=256)
+def _module_cells(dictionary: str, marker_id: int, white_modules: float) -> tuple[np.ndarray, np.ndarray]:
+    """The marker ``marker_id`` of ``dictionary`` as :func:`_blurred_reads` reads it: its reflectance on the
+    module grid extended by the white margin and what lies beyond, ((modules + 4) x (modules + 4): beyond,
+    margin, the cells with the border, margin, beyond; 0 beyond, 1 on the margin) and the edges between those
+    intervals along either axis (modules + 3, in modules: -white_modules, 0, 1, ..., modules, modules +
+    white_modules)."""
+    d = cv2.aruco.getPredefinedDictionary(getattr(cv2.aruco, dictionary))
+    modules = d.markerSize + 2
+    cells = np.zeros((modules + 4, modules + 4))
+    cells[1:-1, 1:-1] = 1.0
+    cells[2:-2, 2:-2] = cv2.aruco.generateImageMarker(d, marker_id, modules, borderBits=1) / 255.0
+    edges = np.concatenate([[-white_modules], np.arange(modules + 1.0), [modules + white_modules]])
+    cells.setflags(write=False)
+    edges.setflags(write=False)
+    return cells, edges
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST_MATH)
+def _interval_weights(t: float, spread: float, edges: np.ndarray, normal: np.ndarray, w: np.ndarray,
+                      dw: np.ndarray, sw: np.ndarray) -> tuple[int, int]:
+    """How much of a Gaussian of standard deviation ``spread`` centred at ``t`` falls in each interval
+    between ``edges`` (the first interval before the first edge, the last after the last; the normal
+    integral and density read from ``normal``, :func:`_normal_table`): ``w``, its
+    derivative by ``t`` (``dw``) and by ``spread`` (``sw``), filled between the first and the last
+    interval it reaches (returned; the rest unset)."""
+    reach = _READ_REACH * spread
+    n = edges.shape[0]
+    lo = 0
+    while lo < n and edges[lo] <= t - reach:
+        lo += 1
+    hi = lo
+    while hi < n and edges[hi] < t + reach:
+        hi += 1
+    # edges lo .. hi - 1 lie within reach: intervals lo .. hi
+    below, d_below, s_below = 0.0, 0.0, 0.0  # the normal integral up to the last edge, and its derivatives
+    inv = 1.0 / spread
+    last = normal.shape[0] - 2
+    for k in range(lo, hi):
+        z = (edges[k] - t) * inv
+        at = (z + _READ_REACH) * _NORMAL_STEPS
+        j = min(max(int(at), 0), last)
+        frac = at - j
+        F = normal[j, 0] + frac * (normal[j + 1, 0] - normal[j, 0])
+        f = (normal[j, 1] + frac * (normal[j + 1, 1] - normal[j, 1])) * inv
+        w[k], dw[k], sw[k] = F - below, -f - d_below, -f * z - s_below
+        below, d_below, s_below = F, -f, -f * z
+    w[hi], dw[hi], sw[hi] = 1.0 - below, -d_below, -s_below
+    return lo, hi
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST_MATH)
+def _blurred_reads(cells: np.ndarray, edges: np.ndarray, normal: np.ndarray, centres: np.ndarray,
+                   H_inv: np.ndarray, spans: np.ndarray, blur: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The predicted image at the compared pixels (undistorted ``centres`` (n, 2)): the template
+    (``cells``, ``edges``: :func:`_module_cells`; the marker's image and the indicator of what lies beyond
+    its margin) at each pixel's template point (``H_inv``: undistorted px -> modules), blurred by a
+    Gaussian of ``blur`` px in the distorted image, with the pixel's area and the template's smoothing
+    through the lens; (n, 2) values, (n, 2, 2) their gradient
+    (undistorted px: [pixel, image, x / y]) and (n, 2) their derivative by ``blur``. ``spans`` (n, 2, 2):
+    undistorted px per distorted px at each pixel (:func:`_region_arrays`)."""
+    n, size = centres.shape[0], cells.shape[0]
+    values, gradient, by_blur = np.empty((n, 2)), np.empty((n, 2, 2)), np.empty((n, 2))
+    wx, dwx, swx = np.zeros(size), np.zeros(size), np.zeros(size)
+    wy, dwy, swy = np.zeros(size), np.zeros(size), np.zeros(size)
+    variance = blur * blur + 1.0 / 12.0
+    smoothing = _TEMPLATE_SMOOTHING * _TEMPLATE_SMOOTHING
+    last = edges.shape[0] - 1
+    for i in range(n):
+        cx, cy = centres[i, 0], centres[i, 1]
+        u0 = H_inv[0, 0] * cx + H_inv[0, 1] * cy + H_inv[0, 2]
+        u1 = H_inv[1, 0] * cx + H_inv[1, 1] * cy + H_inv[1, 2]
+        inv = 1.0 / (H_inv[2, 0] * cx + H_inv[2, 1] * cy + H_inv[2, 2])
+        u, v = u0 * inv, u1 * inv
+        # d: modules per undistorted px at the pixel; a = d spans: modules per distorted px
+        d00, d01 = (H_inv[0, 0] - u * H_inv[2, 0]) * inv, (H_inv[0, 1] - u * H_inv[2, 1]) * inv
+        d10, d11 = (H_inv[1, 0] - v * H_inv[2, 0]) * inv, (H_inv[1, 1] - v * H_inv[2, 1]) * inv
+        a00 = d00 * spans[i, 0, 0] + d01 * spans[i, 1, 0]
+        a01 = d00 * spans[i, 0, 1] + d01 * spans[i, 1, 1]
+        a10 = d10 * spans[i, 0, 0] + d11 * spans[i, 1, 0]
+        a11 = d10 * spans[i, 0, 1] + d11 * spans[i, 1, 1]
+        ax, ay = a00 * a00 + a01 * a01, a10 * a10 + a11 * a11
+        sx, sy = math.sqrt(variance * ax + smoothing), math.sqrt(variance * ay + smoothing)
+        ix0, ix1 = _interval_weights(u, sx, edges, normal, wx, dwx, swx)
+        iy0, iy1 = _interval_weights(v, sy, edges, normal, wy, dwy, swy)
+        P = Pu = Pv = Psx = Psy = Puv = Pusv = Psuv = Pss = 0.0
+        for r in range(iy0, iy1 + 1):
+            a = b = c = 0.0
+            for q in range(ix0, ix1 + 1):
+                a += cells[r, q] * wx[q]
+                b += cells[r, q] * dwx[q]
+                c += cells[r, q] * swx[q]
+            P += wy[r] * a
+            Pu += wy[r] * b
+            Psx += wy[r] * c
+            Pv += dwy[r] * a
+            Psy += swy[r] * a
+            Puv += dwy[r] * b
+            Pusv += dwy[r] * c
+            Psuv += swy[r] * b
+            Pss += swy[r] * c
+        # the covariance's off-diagonal, to second order: d/dcov_uv = d2/du dv, and d2/du2 = d/ds / s
+        cov = variance * (a00 * a10 + a01 * a11)
+        P += cov * Puv + 0.5 * cov * cov * Pss / (sx * sy)
+        Pu += cov * Pusv / sx
+        Pv += cov * Psuv / sy
+        # beyond the margin: 1 - (the share within the margin along x) (along y)
+        Nx = Ny = Nxu = Nyv = Nxs = Nys = 0.0
+        for q in range(max(ix0, 1), min(ix1, last) + 1):
+            Nx, Nxu, Nxs = Nx + wx[q], Nxu + dwx[q], Nxs + swx[q]
+        for r in range(max(iy0, 1), min(iy1, last) + 1):
+            Ny, Nyv, Nys = Ny + wy[r], Nyv + dwy[r], Nys + swy[r]
+        dsx, dsy = blur * ax / sx, blur * ay / sy  # the spreads' derivatives by the blur
+        values[i, 0] = P
+        values[i, 1] = 1.0 - Nx * Ny - cov * Nxu * Nyv - 0.5 * cov * cov * Nxs * Nys / (sx * sy)
+        gradient[i, 0, 0], gradient[i, 0, 1] = Pu * d00 + Pv * d10, Pu * d01 + Pv * d11
+        Bu, Bv = -Nxu * Ny, -Nx * Nyv
+        gradient[i, 1, 0], gradient[i, 1, 1] = Bu * d00 + Bv * d10, Bu * d01 + Bv * d11
+        by_blur[i, 0], by_blur[i, 1] = Psx * dsx + Psy * dsy, -(Nxs * Ny * dsx + Nx * Nys * dsy)
+    return values, gradient, by_blur
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy", fastmath=_FAST_MATH)
+def _read_systems(values: np.ndarray, grads: np.ndarray, by_blur: np.ndarray, gradient: np.ndarray,
+                  pixels: np.ndarray, centres: np.ndarray, H_inv: np.ndarray,
+                  dH: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """One Gauss-Newton step's normal equations from :func:`_blurred_reads`' predictions: the brightness
+    model's first (as :func:`_brightness_system`, solved here), then the 14 columns' (as
+    :func:`_step_system`: the 8 corners' through each pixel's motion when a corner moves, the blur's, the
+    5 brightness terms') against the residual at that brightness."""
+    n = values.shape[0]
+    seen = 0.0
+    for i in range(n):
+        seen = max(seen, values[i, 1])
+    beyond = seen >= _BEYOND_MIN
+    N, rhs, row = np.zeros((5, 5)), np.zeros(5), np.empty(5)
+    for i in range(n):
+        P = values[i, 0]
+        row[0], row[1], row[2], row[3] = 1.0, P, P * gradient[i, 0], P * gradient[i, 1]
+        row[4] = values[i, 1] if beyond else 0.0
+        for a in range(5):
+            ra = row[a]
+            rhs[a] += ra * pixels[i]
+            for b in range(5):
+                N[a, b] += ra * row[b]
+    coef = _normal_solution(N, rhs)
+    N, rhs, row = np.zeros((14, 14)), np.zeros(14), np.empty(14)
+    c4 = coef[4] if beyond else 0.0
+    for i in range(n):
+        g0, g1 = gradient[i, 0], gradient[i, 1]
+        P = values[i, 0]
+        B = values[i, 1] if beyond else 0.0
+        gain = coef[1] + coef[2] * g0 + coef[3] * g1
+        s0 = grads[i, 0, 0] * gain + grads[i, 1, 0] * c4
+        s1 = grads[i, 0, 1] * gain + grads[i, 1, 1] * c4
+        cx, cy = centres[i, 0], centres[i, 1]
+        u0 = H_inv[0, 0] * cx + H_inv[0, 1] * cy + H_inv[0, 2]
+        u1 = H_inv[1, 0] * cx + H_inv[1, 1] * cy + H_inv[1, 2]
+        u2 = H_inv[2, 0] * cx + H_inv[2, 1] * cy + H_inv[2, 2]
+        for k in range(8):
+            e0 = dH[k, 0, 0] * u0 + dH[k, 0, 1] * u1 + dH[k, 0, 2] * u2
+            e1 = dH[k, 1, 0] * u0 + dH[k, 1, 1] * u1 + dH[k, 1, 2] * u2
+            e2 = dH[k, 2, 0] * u0 + dH[k, 2, 1] * u1 + dH[k, 2, 2] * u2
+            row[k] = -(s0 * (e0 - cx * e2) + s1 * (e1 - cy * e2))
+        row[8] = gain * by_blur[i, 0] + c4 * by_blur[i, 1]
+        row[9], row[10], row[11], row[12], row[13] = 1.0, P, P * g0, P * g1, B
+        r = pixels[i] - (coef[0] + gain * P + c4 * B)
+        for a in range(14):
+            ra = row[a]
+            rhs[a] += ra * r
+            for b in range(a, 14):
+                N[a, b] += ra * row[b]
+    return _symmetric(N), rhs
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _symmetric(N: np.ndarray) -> np.ndarray:
+    """``N`` with its lower triangle copied from its upper one (in place)."""
+    for a in range(N.shape[0]):
+        for b in range(a):
+            N[a, b] = N[b, a]
+    return N
+
+
+@numba.njit(cache=True, nogil=True, error_model="numpy")
+def _read_offsets(cells: np.ndarray, edges: np.ndarray, normal: np.ndarray, gradient: np.ndarray, pixels: np.ndarray,
+                  centres: np.ndarray, spans: np.ndarray, start: np.ndarray, modules: int, blur: float,
+                  iterations: int) -> np.ndarray:
+    """:func:`_fitted_offsets` with the blur in the template: each step predicts the compared pixels
+    alone (:func:`_blurred_reads`); no pixel areas, no filter passes, no sample table."""
+    p = np.zeros(8)
+    for _ in range(iterations):
+        H, dH = _homography_with_derivatives(start + p.reshape(4, 2), float(modules))
+        H_inv = np.linalg.inv(H)
+        values, grads, by_blur = _blurred_reads(cells, edges, normal, centres, H_inv, spans, blur)
+        N, rhs = _read_systems(values, grads, by_blur, gradient, pixels, centres, H_inv, dH)
+        delta = _normal_solution(N, rhs)
+        p = p + delta[:8]
+        blur = min(max(blur + delta[8], _BLUR_RANGE_PX[0]), _BLUR_RANGE_PX[1])
+        if not np.isfinite(p).all() or np.abs(delta[:8]).max() < _CONVERGED_PX:
+            break
+    return p
+
+
 def fast_template_corners(gray: np.ndarray, corners_px: np.ndarray, dictionary: str, marker_id: int,
                           lens: LensMap, iterations: int = 2,
                           settings: TemplateFitSettings = FAST_SETTINGS) -> np.ndarray | None:
@@ -744,15 +991,21 @@ def fast_template_corners(gray: np.ndarray, corners_px: np.ndarray, dictionary: 
         ok, start, H0, ring = _region_start(table, corners, modules, m)
         if not ok:
             return None
-        ok, (x0, y0, nx, ny), fitted, index, centres, gradient, local = _region_arrays(
+        ok, (x0, y0, nx, ny), fitted, index, centres, gradient, local, spans = _region_arrays(
             table, corners, H0, lens.distort(ring), modules, m, gray.shape[1], gray.shape[0])
         if not ok:
             return None
-        template = _area_template(dictionary, marker_id, settings.white_modules, _area_steps(H0, modules, local, s))
         pixels = np.take(gray[y0:y0 + ny, x0:x0 + nx], index).astype(np.float64)
-        store = lens.samples(s, gray.shape[:2], (x0, y0, nx, ny))
-        p = _fitted_offsets(template, table, (x0, y0), s, store, fitted, index, gradient, pixels, centres, local,
-                            start, modules, settings.start_blur_px, iterations)
+        if settings.blur_in_template:
+            cells, edges = _module_cells(dictionary, marker_id, settings.white_modules)
+            p = _read_offsets(cells, edges, _normal_table(), gradient, pixels, centres, spans, start, modules,
+                              settings.start_blur_px, iterations)
+        else:
+            template = _area_template(dictionary, marker_id, settings.white_modules,
+                                      _area_steps(H0, modules, local, s))
+            store = lens.samples(s, gray.shape[:2], (x0, y0, nx, ny))
+            p = _fitted_offsets(template, table, (x0, y0), s, store, fitted, index, gradient, pixels, centres,
+                                local, start, modules, settings.start_blur_px, iterations)
     except np.linalg.LinAlgError:  # a degenerate homography
         return None
     if not np.isfinite(p).all() or np.abs(p).max() > settings.max_move_px:
