@@ -207,6 +207,15 @@ class FramePool:
         comes for it: the caller does it); False with threads or once started."""
         return any(lane.reclaim(job) for lane in self._lanes)
 
+    def reclaim_newest(self) -> FrameJob | None:
+        """Take back the job handed out last that no worker process has started (the caller does it
+        rather than wait for a started one), or None (threads, or every job started)."""
+        for lane in self._lanes:
+            job = lane.reclaim_newest()
+            if job is not None:
+                return job
+        return None
+
     def take(self) -> list[FrameResult]:
         """Every result ready now (completion order)."""
         with self._lock:
@@ -299,6 +308,19 @@ class _ProcessLane:
                 return False
             self.claims[ticket] = _RECLAIMED
         return True
+
+    def reclaim_newest(self) -> FrameJob | None:
+        """The newest job sent that the worker has not started, taken back (:meth:`reclaim`), or None.
+        The worker takes its jobs in the order sent: once the newest not taken back is started, all are."""
+        with self.claim_lock:
+            for job in reversed(self.jobs):
+                flag = self.claims[self.tickets[job]]
+                if flag == _STARTED:
+                    return None
+                if flag == _WAITING:
+                    self.claims[self.tickets[job]] = _RECLAIMED
+                    return job
+        return None
 
     def receive(self) -> None:
         """Take one message of the worker process (blocks until one comes)."""
