@@ -10,6 +10,7 @@ recording folder into those arguments (:mod:`cubetrack.app.config`) and writes t
 from __future__ import annotations
 
 import functools
+import gc
 import logging
 import os
 import time
@@ -203,7 +204,11 @@ def track_frames(frames: Iterable[Frame], intrinsics: Mapping[str, CameraIntrins
         if progress is not None:
             progress("track", item[0], frame_count)
 
-    session.run(step, drained=replay.drain)
+    gc.freeze()  # the objects of start-up (modules, compiled kernels: ~160,000) leave every collection of the replay
+    try:
+        session.run(step, drained=replay.drain)
+    finally:
+        gc.unfreeze()
     for pose in tracker.finish():
         output.pose(pose)
     if smoothed is not None and trail is not None:

@@ -15,6 +15,7 @@ a replay (:func:`cubetrack.app.track.track_frames`) keeps a few jobs queued per 
 from __future__ import annotations
 
 import enum
+import gc
 import multiprocessing
 import os
 import pickle
@@ -374,6 +375,7 @@ def _process_main(conn: Connection, make_worker: Callable[[], FrameWorker], clai
     cv2.setNumThreads(1)
     try:
         worker = make_worker()
+        gc.freeze()  # start-up's objects (modules, compiled kernels) leave every later collection of this process
         conn.send("ready")
         while (message := conn.recv()) is not None:
             ticket, values = message

@@ -91,6 +91,22 @@ def test_a_fixed_lag_whose_poses_leave_on_time_replays_the_same_with_workers(rep
     assert poses_again == poses and again.poses == stats.poses
 
 
+def test_the_replay_leaves_start_ups_objects_out_of_its_collections_and_restores_them(replay):
+    """track_frames freezes the garbage collector's objects of start-up for the replay (a full
+    collection walks ~160,000 of them in a tracker's process) and unfreezes them at its end."""
+    import gc
+
+    class Frozen(Collect):
+        def pose(self, pose):
+            self.poses.append(gc.get_freeze_count())
+
+    assert gc.get_freeze_count() == 0
+    out = Frozen()
+    track_frames(replay["frames"], replay["intrinsics"], replay["world"], replay["layouts"], replay["extrinsics"],
+                 out, replay["params"], clock_samples=replay["clock"])
+    assert out.poses and min(out.poses) > 1000 and gc.get_freeze_count() == 0
+
+
 class SlowPool:
     """A pool of one worker slot whose job is done only when the replay waits for it (a worker
     far slower than the replay's thread); it keeps the jobs it got."""
