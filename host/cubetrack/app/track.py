@@ -204,11 +204,14 @@ def track_frames(frames: Iterable[Frame], intrinsics: Mapping[str, CameraIntrins
         if progress is not None:
             progress("track", item[0], frame_count)
 
-    gc.freeze()  # the objects of start-up (modules, compiled kernels: ~160,000) leave every collection of the replay
+    freeze = gc.get_freeze_count() == 0  # (a caller that froze its own objects keeps them frozen)
+    if freeze:
+        gc.freeze()  # start-up's objects (modules, compiled kernels: ~160,000) leave the replay's collections
     try:
         session.run(step, drained=replay.drain)
     finally:
-        gc.unfreeze()
+        if freeze:
+            gc.unfreeze()
     for pose in tracker.finish():
         output.pose(pose)
     if smoothed is not None and trail is not None:
