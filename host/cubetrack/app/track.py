@@ -10,6 +10,7 @@ recording folder into those arguments (:mod:`cubetrack.app.config`) and writes t
 from __future__ import annotations
 
 import functools
+import gc
 import logging
 import os
 import time
@@ -93,10 +94,12 @@ class _Replay:
 
     def _result(self, job: FrameJob) -> FrameResult:
         """``job``'s result: a worker's, else done here; rather than wait for a worker's, this thread
-        does the oldest job no worker has, or takes ``job`` back if its worker has not started it."""
+        does the oldest job no worker has, or takes ``job`` back if its worker has not started it,
+        or else the newest job a worker has not started (while its worker does ``job``)."""
         done, pool = self.done, self.pool
         while job not in done:
             if pool is not None:
+                pool.poll()  # results already there (a slot holds every planned job: nothing else reads them)
                 done.update((r.job, r) for r in pool.take())
                 if job in done:
                     break
@@ -105,6 +108,8 @@ class _Replay:
                 done[todo] = self.tracker.processor.work(todo)
             elif pool is not None and pool.reclaim(job):  # its worker had not started it (busy, or not given a core)
                 done[job] = self.tracker.processor.work(job)
+            elif pool is not None and (newer := pool.reclaim_newest()) is not None:  # a worker behind: share
+                done[newer] = self.tracker.processor.work(newer)
             elif pool is not None:
                 pool.wait(1.0)
         return done.pop(job)
@@ -180,6 +185,7 @@ def track_frames(frames: Iterable[Frame], intrinsics: Mapping[str, CameraIntrins
     robots = tuple(RobotConfig(name, layout) for name, layout in layouts.items())
     tracker = Tracker(dict(intrinsics), world, robots, dict(extrinsics) if extrinsics is not None else None,
                       params, synced)
+    tracker.defer_views = pool is not None  # the workers project the predicted cubes into regions
     trail = tracker.fusion if isinstance(tracker.fusion, FilterFusion) else None  # --smooth: the filter's
     if smoothed is not None and trail is not None:
         trail.keep_trail()
@@ -198,7 +204,14 @@ def track_frames(frames: Iterable[Frame], intrinsics: Mapping[str, CameraIntrins
         if progress is not None:
             progress("track", item[0], frame_count)
 
-    session.run(step, drained=replay.drain)
+    freeze = gc.get_freeze_count() == 0  # (a caller that froze its own objects keeps them frozen)
+    if freeze:
+        gc.freeze()  # start-up's objects (modules, compiled kernels: ~160,000) leave the replay's collections
+    try:
+        session.run(step, drained=replay.drain)
+    finally:
+        if freeze:
+            gc.unfreeze()
     for pose in tracker.finish():
         output.pose(pose)
     if smoothed is not None and trail is not None:
@@ -258,13 +271,14 @@ def replay_pool(intrinsics: Mapping[str, CameraIntrinsics], world: WorldConfig, 
                 extrinsics: Mapping[str, CameraExtrinsics] | None, params: StageParams, workers: int,
                 depth: int | None = None) -> FramePool:
     """``workers`` frame worker processes for :func:`track_frames` with these arguments, each
-    taking up to ``depth`` jobs at a time (default: their share of the ``REPLAY_LAG`` - 1 frames
-    planned ahead but the oldest, which the replay's thread does when no worker has it). They
+    taking up to ``depth`` jobs at a time (default: their share of the ``REPLAY_LAG`` frames planned
+    ahead, so that a worker that keeps up does every job and the replay's thread only plans and
+    fuses; one that falls behind has its newest unstarted jobs taken back by that thread). They
     start in the background; close the pool when done."""
     robots = tuple(RobotConfig(name, layout) for name, layout in layouts.items())
     T_world_cam = {name: e.T_world_cam for name, e in (extrinsics or {}).items()}
     make_worker = functools.partial(FrameProcessor, dict(intrinsics), world, robots, T_world_cam, params)
-    return FramePool(make_worker, workers, WorkerKind.PROCESS, depth=depth or -(-(REPLAY_LAG - 1) // workers))
+    return FramePool(make_worker, workers, WorkerKind.PROCESS, depth=depth or -(-REPLAY_LAG // workers))
 
 
 @dataclass(frozen=True, slots=True)

@@ -22,6 +22,7 @@ from cubetrack.calib.recalibrate import WatchedFusion
 from cubetrack.core.cameras import CameraExtrinsics, CameraIntrinsics, ClockSample, WorldConfig
 from cubetrack.core.errors import ConfigError, ImageError
 from cubetrack.core.geometry import invert_T
+from cubetrack.core.layout import CubeLayout
 from cubetrack.core.params import check, param
 from cubetrack.core.records import CubeSighting, Detection, Frame, FrameJob, FrameOutcome, FrameResult, TrackedPose
 from cubetrack.detect.detector import Box, Detector, DetectorParams, DetectResult, decode_gray
@@ -126,6 +127,7 @@ class FrameProcessor:
         self.intrinsics = intrinsics
         self.world = world
         self.robots = robots
+        self.layouts = {r.name: r.layout for r in robots}
         self.T_world_cam = T_world_cam
         self.params = params
         self.detector = Detector(params.detector,
@@ -195,17 +197,37 @@ class FrameProcessor:
         (also when the regions find nothing). No regions at all (every robot predicted out of this
         camera's view): nothing to search, so the frame is not decoded (a corrupt one then goes
         unnoticed). ImageError: the frame does not decode."""
-        if (regions := job.regions) == ():
+        regions, predicted = (job.regions, job.predicted) if job.views is None else projected_views(
+            job.views, self.layouts, lens, self.params.track.roi_margin_m, self.params.detector)
+        if regions == ():
             return DetectResult(()), FrameOutcome.REGIONS
         if regions is not None:
             gray = decode_gray(jpeg, source, rows=max((box[3] for box in regions), default=None))
             height, width = gray.shape
             regions = tuple(box for box in ((x0, y0, min(x1, width), min(y1, height)) for x0, y0, x1, y1 in regions)
                             if box[2] - box[0] >= 16 and box[3] - box[1] >= 16)
-            found = self.detector.find(gray, regions, lens, job.predicted)
+            found = self.detector.find(gray, regions, lens, predicted)
             if found.detections or not regions:
                 return found, FrameOutcome.REGIONS
         return self.detector.find(decode_gray(jpeg, source), lens=lens), FrameOutcome.FULL_FRAME
+
+
+def projected_views(views: tuple[tuple[str, np.ndarray], ...], layouts: Mapping[str, CubeLayout],
+                    intrinsics: CameraIntrinsics, margin_m: float,
+                    detector: DetectorParams) -> tuple[tuple[Box, ...] | None, tuple[Detection, ...]]:
+    """Image boxes (x0, y0, x1, y1) around every robot's predicted cube (``views``: robot, T_cam_cube)
+    and its markers' predicted corners (:func:`cubetrack.detect.predicted.predicted_view`), or None
+    (and no markers) when the full frame must be searched (a cube too near the camera's plane)."""
+    boxes: list[Box] = []
+    markers: list[Detection] = []
+    for robot, T_cam_cube in views:
+        view = predicted_view(T_cam_cube, layouts[robot], intrinsics, margin_m, detector)
+        if view is None:
+            return None, ()
+        if view.box is not None:  # else: predicted out of this camera's view
+            boxes.append(view.box)
+            markers.extend(view.markers)
+    return tuple(boxes), tuple(markers)
 
 
 @dataclass(slots=True)
@@ -278,6 +300,7 @@ class Tracker:
         self.frames_since_full: Counter[str] = Counter()  # per camera, for region detection
         self.stats = TrackStats()
         self.last_now_s = 0.0  # the host time the last frame became available
+        self.defer_views = False  # plan() leaves the regions' projection to the per-frame work (a replay's workers)
 
     def _rejoined(self, event: WatchEvent) -> None:
         if event.kind is not EventKind.MOVED:  # rejoined, or a drift's step followed
@@ -362,11 +385,19 @@ class Tracker:
         """The per-frame work order of a frame whose capture time is known: the regions where
         ``forecast`` predicts the robots, and the robots whose fusion wants an estimate.
         ``forecast`` None: this tracker's own fusion; a camera worker process, which has no
-        fusion, gives the fusion's latest :class:`cubetrack.fuse.forecast.Forecast`."""
+        fusion, gives the fusion's latest :class:`cubetrack.fuse.forecast.Forecast`. With
+        :attr:`defer_views` the job carries the robots' predicted poses in the camera and the
+        per-frame work projects them into regions (the same regions, made on a replay's worker)."""
         forecast = self.fusion if forecast is None else forecast
-        regions, predicted = self._regions(frame.camera, capture_time_s, forecast)
-        return FrameJob(frame, capture_time_s, regions,
-                        frozenset(r.name for r in self.robots if forecast.needs_estimate(r.name)), predicted)
+        estimate_robots = frozenset(r.name for r in self.robots if forecast.needs_estimate(r.name))
+        views = self._views(frame.camera, capture_time_s, forecast)
+        if views is None:
+            return FrameJob(frame, capture_time_s, None, estimate_robots)
+        if self.defer_views:
+            return FrameJob(frame, capture_time_s, None, estimate_robots, views=views)
+        regions, predicted = projected_views(views, self.processor.layouts, self.intrinsics[frame.camera],
+                                             self.params.track.roi_margin_m, self.params.detector)
+        return FrameJob(frame, capture_time_s, regions, estimate_robots, predicted)
 
     def fuse(self, result: FrameResult, now_s: float) -> list[TrackedPose]:
         """Count what the per-frame work found and fuse its sightings (``now_s``: the host time
@@ -413,28 +444,21 @@ class Tracker:
             self.stats.frames_without_camera_pose += 1
         return True
 
-    def _regions(self, camera: str, time_s: float,
-                 forecast: Forecaster) -> tuple[tuple[Box, ...] | None, tuple[Detection, ...]]:
-        """Image boxes (x0, y0, x1, y1) around every robot's predicted cube and its markers' predicted
-        corners (:func:`cubetrack.detect.predicted.predicted_view`), or None (and no markers) when the
-        full frame must be searched (a robot not predicted, a full search due, region search off)."""
+    def _views(self, camera: str, time_s: float, forecast: Forecaster) -> tuple[tuple[str, np.ndarray], ...] | None:
+        """Every robot's predicted cube pose in the camera (robot, T_cam_cube), for the regions
+        (:func:`projected_views`), or None when the full frame must be searched (a robot not
+        predicted, a full search due, region search off)."""
         track = self.params.track
         if (not track.roi_detection or track.camera_poses is not CameraPoseSource.EXTRINSICS
                 or self.frames_since_full[camera] + 1 >= track.full_frame_every):
-            return None, ()
-        boxes: list[Box] = []
-        markers: list[Detection] = []
+            return None
+        views = []
         for robot in self.robots:
             T_world_cube = forecast.predicted_pose(robot.name, time_s)
-            view = None if T_world_cube is None else predicted_view(
-                self.T_cam_world[camera] @ T_world_cube, robot.layout, self.intrinsics[camera], track.roi_margin_m,
-                self.params.detector)
-            if view is None:
-                return None, ()
-            if view.box is not None:  # else: predicted out of this camera's view
-                boxes.append(view.box)
-                markers.extend(view.markers)
-        return tuple(boxes), tuple(markers)
+            if T_world_cube is None:
+                return None
+            views.append((robot.name, self.T_cam_world[camera] @ T_world_cube))
+        return tuple(views)
 
     def finish(self, now_s: float | None = None) -> list[TrackedPose]:
         """Poses still held back by the fusion (call at the end of a session); ``now_s``: the host

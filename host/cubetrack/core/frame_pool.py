@@ -15,6 +15,7 @@ a replay (:func:`cubetrack.app.track.track_frames`) keeps a few jobs queued per 
 from __future__ import annotations
 
 import enum
+import gc
 import multiprocessing
 import os
 import pickle
@@ -207,6 +208,15 @@ class FramePool:
         comes for it: the caller does it); False with threads or once started."""
         return any(lane.reclaim(job) for lane in self._lanes)
 
+    def reclaim_newest(self) -> FrameJob | None:
+        """Take back the job handed out last that no worker process has started (the caller does it
+        rather than wait for a started one), or None (threads, or every job started)."""
+        for lane in self._lanes:
+            job = lane.reclaim_newest()
+            if job is not None:
+                return job
+        return None
+
     def take(self) -> list[FrameResult]:
         """Every result ready now (completion order)."""
         with self._lock:
@@ -300,6 +310,19 @@ class _ProcessLane:
             self.claims[ticket] = _RECLAIMED
         return True
 
+    def reclaim_newest(self) -> FrameJob | None:
+        """The newest job sent that the worker has not started, taken back (:meth:`reclaim`), or None.
+        The worker takes its jobs in the order sent: once the newest not taken back is started, all are."""
+        with self.claim_lock:
+            for job in reversed(self.jobs):
+                flag = self.claims[self.tickets[job]]
+                if flag == _STARTED:
+                    return None
+                if flag == _WAITING:
+                    self.claims[self.tickets[job]] = _RECLAIMED
+                    return job
+        return None
+
     def receive(self) -> None:
         """Take one message of the worker process (blocks until one comes)."""
         message = self.conn.recv()
@@ -352,6 +375,7 @@ def _process_main(conn: Connection, make_worker: Callable[[], FrameWorker], clai
     cv2.setNumThreads(1)
     try:
         worker = make_worker()
+        gc.freeze()  # start-up's objects (modules, compiled kernels) leave every later collection of this process
         conn.send("ready")
         while (message := conn.recv()) is not None:
             ticket, values = message

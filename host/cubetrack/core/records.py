@@ -229,6 +229,9 @@ class FrameJob:
     regions: tuple[tuple[int, int, int, int], ...] | None  # (x0, y0, x1, y1) image boxes
     estimate_robots: frozenset[str]
     predicted: tuple[Detection, ...] = ()  # the markers where the forecast puts them (projected corners)
+    # instead of ``regions`` and ``predicted``: each robot's predicted cube pose in the camera
+    # (robot, T_cam_cube 4x4), which the per-frame work projects into the two (a replay's worker does it)
+    views: tuple[tuple[str, np.ndarray], ...] | None = None
 
     def plain(self, *, jpeg: bool = True, predicted: bool = True) -> tuple:
         """This job as plain values, which pickle several times faster than the records (between the
@@ -237,15 +240,18 @@ class FrameJob:
         f = self.frame
         markers = tuple((d.marker_id, d.corners_px, d.area_px2, d.dictionary)
                         for d in (self.predicted if predicted else ()))
+        views = None if self.views is None else tuple((robot, T.ravel().tolist()) for robot, T in self.views)
         return (f.camera, f.seq, f.device_time_s, f.host_time_s, f.jpeg if jpeg else b"", self.capture_time_s,
-                self.regions, tuple(self.estimate_robots), markers)
+                self.regions, tuple(self.estimate_robots), markers, views)
 
     @classmethod
     def from_plain(cls, values: tuple) -> FrameJob:
         """The job :meth:`plain` gave ``values`` of."""
-        camera, seq, device_time_s, host_time_s, jpeg, capture_time_s, regions, estimate_robots, predicted = values
+        (camera, seq, device_time_s, host_time_s, jpeg, capture_time_s, regions, estimate_robots, predicted,
+         views) = values
         return cls(Frame(camera, seq, device_time_s, host_time_s, jpeg), capture_time_s, regions,
-                   frozenset(estimate_robots), tuple(Detection(*marker) for marker in predicted))
+                   frozenset(estimate_robots), tuple(Detection(*marker) for marker in predicted),
+                   None if views is None else tuple((robot, np.array(T).reshape(4, 4)) for robot, T in views))
 
 
 @enum.unique

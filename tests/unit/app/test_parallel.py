@@ -165,6 +165,29 @@ def test_a_packed_result_comes_back_whole_through_pickle(scenes):
     assert back.outcome is FrameOutcome.CORRUPT and back.error  # the last job: the corrupt JPEG
 
 
+def test_the_newest_job_its_worker_has_not_started_is_taken_back(scenes):
+    """FramePool.reclaim_newest: the job handed out last that the worker process has not started
+    comes back, then the one before it; none once the newest left is the one it started."""
+    todo = jobs(scenes)[:4]
+    with FramePool(MAKE_WORKER, 1, WorkerKind.PROCESS, depth=4) as pool:
+        while not pool.all_started:
+            pool.wait(0.5)
+        assert pool.reclaim_newest() is None  # nothing handed out
+        os.kill(pool.process_ids[0], signal.SIGSTOP)  # the worker cannot start anything now
+        try:
+            for job in todo:
+                pool.submit(job)
+            assert pool.reclaim(todo[2])
+            assert pool.reclaim_newest() is todo[3] and pool.reclaim_newest() is todo[1]  # todo[2] taken back already
+        finally:
+            os.kill(pool.process_ids[0], signal.SIGCONT)
+        deadline = time.monotonic() + 60
+        while pool.busy() and time.monotonic() < deadline:
+            pool.wait(0.5)
+        assert [r.job for r in pool.take()] == [todo[0]] and pool.idle() == 4
+        assert pool.reclaim_newest() is None
+
+
 def test_a_job_its_worker_has_not_started_is_taken_back(scenes):
     """FramePool.reclaim: jobs queued at a worker process that has not started them come back
     (the worker answers None and frees their slots; no result comes); a job it started or

@@ -66,8 +66,8 @@ def test_worker_processes_replay_bit_for_bit_what_one_thread_replays(replay):
     assert len(poses) > 50 and stats.region_detections > 0  # the plans (regions) depend on the fusion
     for workers in (1, 2, 3):
         with started_pool(replay, workers) as pool:
-            # every frame planned ahead but the oldest fits in the workers
-            assert pool.depth * workers >= REPLAY_LAG - 1
+            # every frame planned ahead fits in the workers
+            assert pool.depth * workers >= REPLAY_LAG
             again, poses_again = run(replay, pool)
             assert pool.submitted > 0.5 * len(replay["frames"])  # the workers did most of the work
         assert poses_again == poses, workers
@@ -91,6 +91,22 @@ def test_a_fixed_lag_whose_poses_leave_on_time_replays_the_same_with_workers(rep
     assert poses_again == poses and again.poses == stats.poses
 
 
+def test_the_replay_leaves_start_ups_objects_out_of_its_collections_and_restores_them(replay):
+    """track_frames freezes the garbage collector's objects of start-up for the replay (a full
+    collection walks ~160,000 of them in a tracker's process) and unfreezes them at its end."""
+    import gc
+
+    class Frozen(Collect):
+        def pose(self, pose):
+            self.poses.append(gc.get_freeze_count())
+
+    assert gc.get_freeze_count() == 0
+    out = Frozen()
+    track_frames(replay["frames"], replay["intrinsics"], replay["world"], replay["layouts"], replay["extrinsics"],
+                 out, replay["params"], clock_samples=replay["clock"])
+    assert out.poses and min(out.poses) > 1000 and gc.get_freeze_count() == 0
+
+
 class SlowPool:
     """A pool of one worker slot whose job is done only when the replay waits for it (a worker
     far slower than the replay's thread); it keeps the jobs it got."""
@@ -110,6 +126,9 @@ class SlowPool:
 
     def reclaim(self, job):
         return False  # the worker started it
+
+    def reclaim_newest(self):
+        return None  # it holds one job, started
 
     def wait(self, timeout_s):
         self.ready.append(self.worker.work(self.busy))

@@ -229,6 +229,32 @@ def test_regions_while_every_robot_is_tracked_and_a_whole_frame_every_n(scenes):
     assert "RF" in kinds and "R" not in kinds
 
 
+def test_a_job_with_deferred_views_is_searched_where_a_planned_one_is(scenes):
+    """With ``defer_views`` (a replay's worker processes) a job carries each robot's predicted pose in
+    the camera instead of the regions; the per-frame work, given the job through its plain values as
+    a worker process is, projects them into the same regions and predicted markers, and the poses are
+    the same to the bit."""
+    import pickle
+
+    from cubetrack.core.records import FrameJob
+
+    eager, deferred = tracker(FILTER), tracker(FILTER)
+    deferred.defer_views = True
+    poses = {"eager": [], "deferred": []}
+    for frame in stream(scenes["both"], 0, 16):
+        planned, carried = eager.admit(frame), deferred.admit(frame)
+        assert carried.regions is None and carried.predicted == ()
+        assert (carried.views is None) == (planned.regions is None)
+        sent = FrameJob.from_plain(pickle.loads(pickle.dumps(carried.plain())))
+        for name, t, job in (("eager", eager, planned), ("deferred", deferred, sent)):
+            poses[name] += [(p.robot, p.position_m.tobytes(), p.quaternion_xyzw.tobytes())
+                            for p in t.fuse(t.processor.work(job), frame.host_time_s)]
+    spies = eager.processor.detector, deferred.processor.detector
+    assert spies[0].calls == spies[1].calls and spies[0].predicted == spies[1].predicted
+    assert sum(c is not None for c in spies[0].calls) > 20  # region searches, with predicted markers
+    assert len(poses["eager"]) > 20 and poses["eager"] == poses["deferred"]
+
+
 def test_a_frame_whose_regions_are_empty_is_neither_decoded_nor_searched(scenes, monkeypatch):
     """Every robot predicted out of a camera's view gives that frame no regions: nothing to search,
     so its JPEG is not even decoded (issue 31); the others are, and tracking goes on."""
