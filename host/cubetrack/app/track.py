@@ -184,8 +184,7 @@ def track_frames(frames: Iterable[Frame], intrinsics: Mapping[str, CameraIntrins
     synced = frozenset(c for c, samples in clock_samples.items() if samples)
     robots = tuple(RobotConfig(name, layout) for name, layout in layouts.items())
     tracker = Tracker(dict(intrinsics), world, robots, dict(extrinsics) if extrinsics is not None else None,
-                      params, synced)
-    tracker.defer_views = pool is not None  # the workers project the predicted cubes into regions
+                      params, synced, defer_views=pool is not None)  # the workers project the cubes into regions
     trail = tracker.fusion if isinstance(tracker.fusion, FilterFusion) else None  # --smooth: the filter's
     if smoothed is not None and trail is not None:
         trail.keep_trail()

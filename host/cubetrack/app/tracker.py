@@ -267,9 +267,12 @@ class Tracker:
 
     def __init__(self, intrinsics: dict[str, CameraIntrinsics], world: WorldConfig,
                  robots: tuple[RobotConfig, ...], extrinsics: dict[str, CameraExtrinsics] | None,
-                 params: StageParams = StageParams(), synced_cameras: frozenset[str] = frozenset()):
+                 params: StageParams = StageParams(), synced_cameras: frozenset[str] = frozenset(),
+                 defer_views: bool = False):
         """``synced_cameras``: cameras whose clock is polled by /time round trips; their frames wait
-        for the first usable round trip instead of being stamped by their late arrival."""
+        for the first usable round trip instead of being stamped by their late arrival.
+        ``defer_views``: :meth:`plan` leaves the regions' projection to the per-frame work (a
+        replay's workers do it, off the planning thread)."""
         self.intrinsics = intrinsics
         self.world = world
         self.robots = robots
@@ -300,7 +303,7 @@ class Tracker:
         self.frames_since_full: Counter[str] = Counter()  # per camera, for region detection
         self.stats = TrackStats()
         self.last_now_s = 0.0  # the host time the last frame became available
-        self.defer_views = False  # plan() leaves the regions' projection to the per-frame work (a replay's workers)
+        self.defer_views = defer_views
 
     def _rejoined(self, event: WatchEvent) -> None:
         if event.kind is not EventKind.MOVED:  # rejoined, or a drift's step followed

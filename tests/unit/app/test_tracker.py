@@ -238,8 +238,7 @@ def test_a_job_with_deferred_views_is_searched_where_a_planned_one_is(scenes):
 
     from cubetrack.core.records import FrameJob
 
-    eager, deferred = tracker(FILTER), tracker(FILTER)
-    deferred.defer_views = True
+    eager, deferred = tracker(FILTER), tracker(FILTER, defer_views=True)
     poses = {"eager": [], "deferred": []}
     for frame in stream(scenes["both"], 0, 16):
         planned, carried = eager.admit(frame), deferred.admit(frame)
