@@ -76,8 +76,12 @@ import tempfile
 import threading
 import time
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from cubetrack.app.kernels import CompiledKernels
 
 ROOT = Path(__file__).resolve().parents[1]
 REPORT_FILE = "live_report.json"
@@ -334,25 +338,15 @@ def over_time(status: list[tuple[float, int]], poses: list[dict], samples: list[
 # --------------------------------------------------------------------------- the live run
 
 
-COLD_KERNELS_S = 5.0   # building a tracker took longer: numba compiled its kernels (a cold on-disk cache)
+def warm_kernels() -> CompiledKernels:
+    """Every kernel a tracker compiles (as ``cubetrack compile`` does), here, before the timed run: numba
+    compiles them into its on-disk cache, or loads them from it, so that the tracker's processes load them
+    instead of compiling during the run. A cold cache (the first run after an install, an upgrade or a
+    change to a kernel's source) costs each of those processes seconds of CPU on the cores the run needs:
+    a first run's drops that a second run does not have."""
+    from cubetrack.app.kernels import compile_all
 
-
-def warm_kernels(args: argparse.Namespace, rec: Path, work: Path) -> float:
-    """Build one tracker of the session's config here, before the timed run: numba compiles its kernels
-    (the corner fits, the filter's) into its on-disk cache, or loads them from it, so that the tracker's
-    processes load them instead of compiling during the run. A cold cache (the first run after an install,
-    an upgrade or a change to a kernel's source) costs each of those processes seconds of CPU on the cores
-    the run needs: a first run's drops that a second run does not have. Seconds it took."""
-    from cubetrack.app.config import load_config, recording_intrinsics
-    from cubetrack.app.tracker import Tracker
-    from cubetrack.io.config import read_extrinsics
-    from cubetrack.io.recording import Recording
-
-    started = time.perf_counter()
-    config, settings = load_config(tracker_config(args, rec, work))
-    Tracker(recording_intrinsics(config, Recording.open(rec)), config.world, config.robots,
-            read_extrinsics(rec / "extrinsics.toml"), settings.stages)
-    return time.perf_counter() - started
+    return compile_all()
 
 
 def live_section(args: argparse.Namespace) -> str:
@@ -1018,7 +1012,8 @@ def print_report(args: argparse.Namespace, report: dict) -> list[str]:
     print(f"  RSS: {live['rss_start_mb']:.0f} MB at {args.warmup:g} s, {live['rss_mid_mb']:.0f} MB half-way after it, "
           f"{live['rss_end_mb']:.0f} MB at the end ({(live['rss_end_mb'] / live['rss_start_mb'] - 1) * 100:+.1f} %); "
           f"first pose {live['first_pose_s']:.2f} s after the tracker's command started; before it, the kernels "
-          + ("compiled (numba's cache was cold)" if live["kernels_warm_s"] > COLD_KERNELS_S else "loaded")
+          + (f"compiled (numba's cache was cold: {live['kernels_compiled']} signatures)" if live["kernels_compiled"]
+             else "loaded")
           + f" in {live['kernels_warm_s']:.1f} s")
     print(f"  accuracy vs ground truth: live {acc['live']['pos_cm']:.2f} cm / {acc['live']['rot_deg']:.2f} deg "
           f"(detection ratio {acc['live']['detection_ratio']:.3f}); offline replay of the same frames "
@@ -1072,9 +1067,10 @@ def main(argv: list[str] | None = None) -> int:
             return 0
         print(f"tracking live for {args.duration:g} s ...", file=sys.stderr, flush=True)
         load = os.getloadavg()
-        warm_s = warm_kernels(args, rec, work)
+        kernels = warm_kernels()
         live = run_live(args, rec, work)
-        live["kernels_warm_s"] = warm_s
+        live["kernels_warm_s"] = sum(g.time_s for g in kernels.groups)
+        live["kernels_compiled"] = kernels.compiled
         outputs = None
         if args.outputs:
             print("tracking live again with every output on ...", file=sys.stderr, flush=True)

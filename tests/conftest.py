@@ -20,13 +20,10 @@ def _ctrl_c_delivered() -> None:
 
 
 def pytest_sessionstart(session: pytest.Session) -> None:
-    """Compile the detector's and the filter's numba kernels (or load them from their on-disk cache) before any
-    test runs: in a fresh checkout the first build compiles for 10-30 s, which would otherwise
-    fall on whichever test first starts a tracker, perhaps a subprocess with a deadline."""
-    from cubetrack.detect.edge_fit import compile_edge_fit
-    from cubetrack.detect.template_fit import compile_template_fit
-    from cubetrack.fuse.filter_kernels import compile_filter_kernels
+    """Compile every numba kernel a tracker uses (or load them from their on-disk cache: tests/install.sh
+    runs ``cubetrack compile``) before any test runs: in a fresh checkout the first build compiles for a
+    minute or more, which would otherwise fall on whichever test first starts a tracker, perhaps a
+    subprocess with a deadline."""
+    from cubetrack.app.kernels import compile_all
 
-    compile_edge_fit()
-    compile_template_fit()
-    compile_filter_kernels()
+    compile_all()

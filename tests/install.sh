@@ -26,6 +26,7 @@ fi
 [ -x .venv/bin/python ] || python3 -m venv .venv
 .venv/bin/python -m pip install -q --upgrade pip
 .venv/bin/python -m pip install -q -e '.[test]'
+.venv/bin/cubetrack compile >/dev/null   # numba's kernels into its cache now, not on the first tracker's start
 
 # The official Foxglove WebSocket client library (npm; versions pinned in its package-lock.json),
 # which tests/e2e/test_outputs.py runs against the live server. Without npm that test is skipped.

@@ -29,6 +29,7 @@ COMMANDS = {
     "evaluate": "evaluate",
     "detect": "detect",
     "defaults": "defaults",
+    "compile": "compile",
 }
 
 

@@ -33,6 +33,7 @@ from dataclasses import dataclass, field
 import cv2
 import numba
 import numpy as np
+from numba.core import event as numba_events
 
 from cubetrack.core.cameras import CameraIntrinsics
 from cubetrack.core.errors import DetectionError, ImageError, caused_by_interrupt
@@ -47,7 +48,7 @@ from cubetrack.detect.quads import corners_finite
 from cubetrack.detect.template_fit import LensMap, compile_template_fit, fast_template_corners
 
 log = logging.getLogger(__name__)
-COMPILE_NOTICE_S = 2.0  # a start-up this much slower is the first compile of the corner fits: say so
+_cold_cache_told = threading.Lock()  # held once a process has warned that numba compiles (it says so once)
 
 # OpenCV's APRILTAG refinement reports corners with AprilTag's pixel convention (the top-left
 # pixel's centre at (0.5, 0.5)); this brings them to OpenCV's (centre at (0, 0)).
@@ -327,17 +328,16 @@ def _lens_key(lens: CameraIntrinsics) -> tuple:
 
 def compile_kernels(what: str, *compile_functions: Callable[[], None]) -> None:
     """Run ``compile_functions`` (each compiles numba kernels or loads them from numba's on-disk
-    cache) before the first frame; a compile over ``COMPILE_NOTICE_S`` (the first run after an
-    install or upgrade) is logged at INFO, naming ``what``: once that long has passed, so that a
-    user waiting on a silent start knows why, and when it is done, with the time it took."""
+    cache) before the first frame. When numba starts compiling a kernel rather than loading it (a
+    cold cache: the first run after an install or upgrade without ``cubetrack compile``), this is
+    said at WARNING, naming ``what``, once per process, as the compile starts: the user waiting on a
+    silent start for a minute or two knows why; when it is done, its time is logged at INFO."""
     started_s = time.perf_counter()
-    notice = threading.Timer(COMPILE_NOTICE_S, log.info, ("compiling the %s (numba; once after an install or "
-                                                          "upgrade, a minute or two) ...", what))
-    notice.daemon = True
-    notice.start()
+    notice = _ColdCacheNotice(what)
     try:
-        for compile_function in compile_functions:
-            compile_function()
+        with numba_events.install_listener("numba:compile", notice):
+            for compile_function in compile_functions:
+                compile_function()
     except SystemError as exc:
         # Ctrl-C (or SIGTERM/SIGHUP, which the CLI turns into it) while numba loads a kernel from its
         # cache comes out of numba's C dispatcher as a SystemError caused by the KeyboardInterrupt:
@@ -346,11 +346,33 @@ def compile_kernels(what: str, *compile_functions: Callable[[], None]) -> None:
         if caused_by_interrupt(exc):
             raise KeyboardInterrupt from None
         raise
-    finally:
-        notice.cancel()
-    if (compile_s := time.perf_counter() - started_s) > COMPILE_NOTICE_S:
+    if notice.compiled:
         log.info("compiled the %s in %.0f s (numba; once after an install or upgrade: later runs load them from its "
-                 "cache)", what, compile_s)
+                 "cache)", what, time.perf_counter() - started_s)
+
+
+def no_cold_cache_warning() -> None:
+    """From now on this process gives no cold-cache warning (:func:`compile_kernels`): for
+    ``cubetrack compile``, whose compiling is the point."""
+    _cold_cache_told.acquire(blocking=False)
+
+
+class _ColdCacheNotice(numba_events.Listener):
+    """Listens to numba's compile events: ``compiled`` once one has started; the first in the
+    process warns that the ``what`` are being compiled."""
+
+    def __init__(self, what: str):
+        self.what = what
+        self.compiled = False
+
+    def on_start(self, event: numba_events.Event) -> None:
+        self.compiled = True
+        if _cold_cache_told.acquire(blocking=False):
+            log.warning("compiling the %s (numba; once after an install or upgrade, a minute or two): run "
+                        "`cubetrack compile` after installing to do this ahead ...", self.what)
+
+    def on_end(self, event: numba_events.Event) -> None:
+        pass
 
 
 class Detector:

@@ -181,27 +181,70 @@ def test_an_interrupt_while_the_kernels_load_is_an_interrupt(monkeypatch):
         Detector(DetectorParams(corner_refinement=CornerRefinement.EDGE))
 
 
-def test_a_slow_compile_is_announced_while_it_runs_and_a_fast_load_says_nothing(monkeypatch, caplog):
-    """The first run after an install compiles for a minute: the user hears why while waiting,
-    not only after; a start from numba's cache is silent."""
-    import logging
-    import time
+def _cold_compile() -> None:
+    """A kernel numba has never compiled and does not cache: a cold cache's compile."""
+    import numba
 
-    monkeypatch.setattr(detector_module, "COMPILE_NOTICE_S", 0.1)
+    @numba.njit
+    def plus_one(x):
+        return x + 1
+
+    plus_one(1)
+
+
+COLD_WARNING = ("compiling the test kernels (numba; once after an install or upgrade, a minute or two): run "
+                "`cubetrack compile` after installing to do this ahead ...")
+
+
+def test_a_cold_compile_is_warned_once_as_it_starts_and_a_load_says_nothing(monkeypatch, caplog):
+    """The first run after an install compiles for a minute: the user hears why at the default
+    verbosity (WARNING), as it starts, not only after, and once; a start from numba's cache is silent."""
+    import logging
+    import threading
+
+    monkeypatch.setattr(detector_module, "_cold_cache_told", threading.Lock())  # a process that has said nothing
     said_while_compiling = []
 
-    def slow_compile():  # runs until the notice has come (or 10 s, a limit only against a hang)
-        deadline = time.monotonic() + 10.0
-        while not caplog.records and time.monotonic() < deadline:
-            time.sleep(0.01)
-        said_while_compiling.extend(r.getMessage() for r in caplog.records)
+    def compile_and_listen():
+        _cold_compile()
+        said_while_compiling.extend((r.levelno, r.getMessage()) for r in caplog.records)
 
     with caplog.at_level(logging.INFO, logger=detector_module.log.name):
-        detector_module.compile_kernels("test kernels", slow_compile)
-        assert said_while_compiling == ["compiling the test kernels (numba; once after an install or upgrade, "
-                                        "a minute or two) ..."]
+        detector_module.compile_kernels("test kernels", compile_and_listen)
+        assert said_while_compiling == [(logging.WARNING, COLD_WARNING)]
         assert caplog.records[-1].getMessage().startswith("compiled the test kernels in ")
         caplog.clear()
+        detector_module.compile_kernels("other kernels", _cold_compile)   # said once per process
+        assert [r.levelno for r in caplog.records] == [logging.INFO]
+        caplog.clear()
         detector_module.compile_kernels("test kernels", lambda: None)
-        time.sleep(0.3)  # past the notice's time: a cancelled notice never comes
     assert caplog.records == []
+
+
+def test_cubetrack_compile_silences_the_cold_cache_warning(monkeypatch, caplog):
+    """`cubetrack compile` compiles on purpose: no warning telling the user to run it."""
+    import logging
+    import threading
+
+    monkeypatch.setattr(detector_module, "_cold_cache_told", threading.Lock())
+    detector_module.no_cold_cache_warning()
+    with caplog.at_level(logging.WARNING, logger=detector_module.log.name):
+        detector_module.compile_kernels("test kernels", _cold_compile)
+    assert caplog.records == []
+
+
+def test_cubetrack_compile_reports_a_failure_in_one_line(monkeypatch, capsys):
+    from cubetrack.app import kernels
+    from cubetrack.cli.main import main
+
+    def broken() -> None:
+        raise RuntimeError("cannot cache function 'f': no locator available for file 'f.py'\nmore detail")
+
+    monkeypatch.setattr(kernels, "KERNEL_GROUPS", (("quad checks", detector_module.compile_quad_checks),
+                                                   ("broken kernels", broken)))
+    assert main(["compile"]) == 1
+    err = capsys.readouterr().err
+    assert err.splitlines()[-1] == ("cubetrack compile: error: numba failed: RuntimeError: cannot cache function "
+                                    "'f': no locator available for file 'f.py'; numba's cache needs a writable "
+                                    "folder: NUMBA_CACHE_DIR, __pycache__ beside the sources or ~/.cache/numba")
+    assert "compiling the broken kernels: 1/2" in err
