@@ -181,12 +181,12 @@ def _moved(T_world_cube: np.ndarray, s: CornerSet, t_ref_s: float, velocity_m_s:
     when still) and ``dt`` (a scalar, or (N,) per corner)."""
     R0, p0 = T_world_cube[:3, :3], T_world_cube[:3, 3]
     if velocity_m_s is None or angular_velocity_rad_s is None:
-        return R0, p0, None, np.float64(0.0)
+        return R0, p0, None, np.asarray(0.0)
     omega = angular_velocity_rad_s.tolist()
     if s.row_offsets_s is None:
         dt = s.time_s - t_ref_s
         chain = _exp_and_left_jacobian(omega, dt)  # [S | J_l(ω dt) dt]
-        return chain[:, :3] @ R0, p0 + velocity_m_s * dt, chain, np.float64(dt)
+        return chain[:, :3] @ R0, p0 + velocity_m_s * dt, chain, np.asarray(dt)
     dts = s.corner_times_s() - t_ref_s
     chains = np.array([_exp_and_left_jacobian(omega, float(dt)) for dt in dts])
     return chains[:, :, :3] @ R0, p0 + velocity_m_s * dts[:, None], chains, dts
