@@ -59,7 +59,7 @@ class CornerSet:
         """(N,) each corner's capture instant (host clock, seconds)."""
         if self.row_offsets_s is None:
             return np.full(len(self.points_cube_m), self.time_s)
-        return self.time_s + self.row_offsets_s
+        return np.add(self.time_s, self.row_offsets_s, dtype=np.float64)  # a host clock needs float64
 
 
 def normalize_px(corners_px: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:

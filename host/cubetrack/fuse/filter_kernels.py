@@ -58,7 +58,7 @@ def packed_sets(sets: Sequence[CornerSet]) -> Packed:
     return (np.concatenate([s.points_cube_m for s in sets], dtype=np.float64),
             np.concatenate([s.normalized for s in sets], dtype=np.float64), which,
             T_cw[:, :3, :3].astype(np.float64), T_cw[:, :3, 3].astype(np.float64),
-            np.array([s.focal_px for s in sets], dtype=np.float64), times.astype(np.float64))
+            np.array([s.focal_px for s in sets], dtype=np.float64), times)
 
 
 def taken_at(sets: Sequence[CornerSet], time_s: float) -> bool:

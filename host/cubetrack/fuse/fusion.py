@@ -232,7 +232,7 @@ def sighting_corner_sets(matches: Sequence[FaceMatch], intrinsics: CameraIntrins
     row_s, middle = intrinsics.readout_s / intrinsics.height, (intrinsics.height - 1) / 2.0
     corners_px = np.concatenate([m.detection.corners_px for m in matches])
     normalized = normalize_px(corners_px, intrinsics.K, intrinsics.dist)
-    rows = corners_px[:, 1].reshape(-1, 4)
+    rows = corners_px[:, 1].reshape(-1, 4).astype(np.float64)  # float32 corners would round the offsets
     means = rows.sum(axis=1) / 4.0
     offsets_s = (rows - means[:, None]) * row_s
     focal_px = float((intrinsics.K[0, 0] + intrinsics.K[1, 1]) / 2.0)
