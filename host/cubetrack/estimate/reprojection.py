@@ -40,7 +40,9 @@ class CornerSet:
     ``T_cam_world`` the camera's extrinsics; ``time_s`` its capture time (host clock); ``faces``
     the matched faces' names, four rows each, in order; ``noise_scale`` (N,) each corner's
     measurement noise over the nominal one (:func:`cubetrack.estimate.corner_noise.corner_noise_scale`;
-    None: 1 for every corner).
+    None: 1 for every corner); ``row_offsets_s`` (N,) each corner's own capture instant after
+    ``time_s``, seconds (under a rolling shutter the rows of one face are exposed one after the
+    other: a moving body's face is seen sheared; None: every corner at ``time_s``).
     """
 
     camera: str
@@ -51,6 +53,13 @@ class CornerSet:
     normalized: np.ndarray
     faces: tuple[str, ...]
     noise_scale: np.ndarray | None = None
+    row_offsets_s: np.ndarray | None = None
+
+    def corner_times_s(self) -> np.ndarray:
+        """(N,) each corner's capture instant (host clock, seconds)."""
+        if self.row_offsets_s is None:
+            return np.full(len(self.points_cube_m), self.time_s)
+        return np.add(self.time_s, self.row_offsets_s, dtype=np.float64)  # a host clock needs float64
 
 
 def normalize_px(corners_px: np.ndarray, K: np.ndarray, dist: np.ndarray) -> np.ndarray:
@@ -107,13 +116,14 @@ def perturbed(T0: np.ndarray, delta: np.ndarray) -> np.ndarray:
 
 
 def _residuals(s: CornerSet, R: np.ndarray, p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """The set's corners with the body at rotation ``R``, position ``p`` (world): ``q`` rotated
+    """The set's corners with the body at rotation ``R``, position ``p`` (world; one for the set,
+    or one per corner: (N, 3, 3), (N, 3)): ``q`` rotated
     (world axes, (N, 3)), their normalised image points ``uv`` (N, 2), ``focal/z`` (N,) and the
     pixel residuals (N, 2). A corner behind the camera (z <= 1e-6 m) gets a 1000 px residual
     and a zero ``focal/z``."""
     R_cw, t_cw = s.T_cam_world[:3, :3], s.T_cam_world[:3, 3]
-    q = s.points_cube_m @ R.T
-    pc = q @ R_cw.T + (R_cw @ p + t_cw)
+    q = s.points_cube_m @ R.T if R.ndim == 2 else np.einsum("nij,nj->ni", R, s.points_cube_m)
+    pc = q @ R_cw.T + ((R_cw @ p + t_cw) if p.ndim == 1 else (p @ R_cw.T + t_cw))
     z = pc[:, 2]
     ok = z > 1e-6
     if ok.all():
@@ -131,17 +141,13 @@ def reprojection_residuals_px(T_world_cube: np.ndarray, sets: Sequence[CornerSet
                               velocity_m_s: np.ndarray | None = None,
                               angular_velocity_rad_s: np.ndarray | None = None) -> np.ndarray:
     """Stacked (x, y) reprojection residuals in pixels of every corner set, motion-compensated
-    from ``t_ref_s`` to each set's time (without velocities: the still cube). Corners behind a
+    from ``t_ref_s`` to each set's time, or each corner's with the set's ``row_offsets_s`` (without
+    velocities: the still cube). Corners behind a
     camera give a large residual (1000 px; a NaN one, e.g. of a corner that did not undistort,
     too)."""
     out = []
-    R0, p0 = T_world_cube[:3, :3], T_world_cube[:3, 3]
-    omega = None if angular_velocity_rad_s is None else angular_velocity_rad_s.tolist()
     for s in sets:
-        R, p = R0, p0
-        if velocity_m_s is not None and omega is not None:  # moving: as reprojection_jacobian_px moves it
-            dt = s.time_s - t_ref_s
-            R, p = _exp_and_left_jacobian(omega, dt)[:, :3] @ R0, p0 + velocity_m_s * dt
+        R, p, _, _ = _moved(T_world_cube, s, t_ref_s, velocity_m_s, angular_velocity_rad_s)
         out.append(_residuals(s, R, p)[3].ravel())
     if not out:
         return np.zeros(0)
@@ -167,6 +173,25 @@ def _exp_and_left_jacobian(omega: list[float], dt: float) -> np.ndarray:
     return out
 
 
+def _moved(T_world_cube: np.ndarray, s: CornerSet, t_ref_s: float, velocity_m_s: np.ndarray | None,
+           angular_velocity_rad_s: np.ndarray | None) -> tuple[np.ndarray, np.ndarray, np.ndarray | None, np.ndarray]:
+    """The body's rotation and position when the set's corners were taken, moved from
+    ``T_world_cube`` at ``t_ref_s`` at the velocities (without them: the still body), one for the
+    set or, with its ``row_offsets_s``, one per corner; with ``[Exp(ω dt) | J_l(ω dt) dt]`` (None
+    when still) and ``dt`` (a scalar, or (N,) per corner)."""
+    R0, p0 = T_world_cube[:3, :3], T_world_cube[:3, 3]
+    if velocity_m_s is None or angular_velocity_rad_s is None:
+        return R0, p0, None, np.asarray(0.0)
+    omega = angular_velocity_rad_s.tolist()
+    if s.row_offsets_s is None:
+        dt = s.time_s - t_ref_s
+        chain = _exp_and_left_jacobian(omega, dt)  # [S | J_l(ω dt) dt]
+        return chain[:, :3] @ R0, p0 + velocity_m_s * dt, chain, np.asarray(dt)
+    dts = s.corner_times_s() - t_ref_s
+    chains = np.array([_exp_and_left_jacobian(omega, float(dt)) for dt in dts])
+    return chains[:, :, :3] @ R0, p0 + velocity_m_s * dts[:, None], chains, dts
+
+
 def reprojection_jacobian_px(T_world_cube: np.ndarray, sets: Sequence[CornerSet], t_ref_s: float = 0.0,
                              velocity_m_s: np.ndarray | None = None,
                              angular_velocity_rad_s: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -180,26 +205,21 @@ def reprojection_jacobian_px(T_world_cube: np.ndarray, sets: Sequence[CornerSet]
     With ``q`` the corner rotated to its moved pose, ``S = Exp(ω dt)`` and ``J_l`` the left
     Jacobian of SO(3): ``d(pw)/d[δp, δθ, δv, δω] = [I | -[q]× S | dt I | -[q]× J_l(ω dt) dt]``;
     the pinhole gives ``d(x/z, y/z)/d(pc) = [[1/z, 0, -x/z²], [0, 1/z, -y/z²]]``;
-    ``pc = R_cw pw + t_cw``. Corners behind a camera get a 1000 px residual and a zero row.
+    ``pc = R_cw pw + t_cw``. Corners behind a camera get a 1000 px residual and a zero row. A set
+    with ``row_offsets_s`` is moved per corner, each to its own instant (``dt`` per corner).
     """
     moving = velocity_m_s is not None and angular_velocity_rad_s is not None
-    R0, p0 = T_world_cube[:3, :3], T_world_cube[:3, 3]
     residuals, jacobians = [], []
-    omega = None if angular_velocity_rad_s is None else angular_velocity_rad_s.tolist()
     for s in sets:
-        R, p = R0, p0
-        if velocity_m_s is not None and omega is not None:  # moving
-            dt = s.time_s - t_ref_s
-            chain = _exp_and_left_jacobian(omega, dt)  # [S | J_l(ω dt) dt]
-            R, p = chain[:, :3] @ R0, p0 + velocity_m_s * dt
+        R, p, chain, dt = _moved(T_world_cube, s, t_ref_s, velocity_m_s, angular_velocity_rad_s)
         q, uv, scale, r = _residuals(s, R, p)
         R_cw = s.T_cam_world[:3, :3]
         # d(pixels)/d(pw) = focal/z [[1, 0, -x/z], [0, 1, -y/z]] R_cw, one (2, 3) block per corner
         d_pw = (R_cw[:2] - uv[:, :, None] * R_cw[2]) * scale[:, None, None]
         d_theta = d_pw @ (q @ _NEG_SKEW).reshape(-1, 3, 3)  # a^T (-[q]x) = q x a, row by row
-        if moving:
+        if chain is not None:  # moving
             d_rot = d_theta @ chain
-            blocks = [d_pw, d_rot[:, :, :3], d_pw * dt, d_rot[:, :, 3:]]
+            blocks = [d_pw, d_rot[:, :, :3], d_pw * (dt if dt.ndim == 0 else dt[:, None, None]), d_rot[:, :, 3:]]
         else:
             blocks = [d_pw, d_theta]
         residuals.append(r.ravel())

@@ -51,7 +51,7 @@ import numpy as np
 
 from cubetrack.core.geometry import R_from_rotvec, invert_T, make_T
 from cubetrack.estimate.reprojection import CornerSet, reprojection_jacobian_px
-from cubetrack.fuse.filter_kernels import moved_pose, packed_sets, reprojection
+from cubetrack.fuse.filter_kernels import moved_pose, packed_sets, reprojection, taken_at
 from cubetrack.fuse.multi_view_fit import solve_joint
 
 CLIP_SIGMAS = 4.0  # a correction is bounded to this many prior standard deviations per axis
@@ -343,7 +343,7 @@ def term_observed(corrections: CameraCorrections, own: Sequence[CornerSet], othe
                             corner_noise_px, iterations=TERM_FIT_ITERATIONS)
     if reference is None or reference.rms_px > TERM_REFERENCE_RMS_PX:
         return term_tried(corrections, camera, t)
-    moving = any(c.time_s != t for c in own)  # a rolling shutter's faces: at their rows' times
+    moving = not taken_at(own, t)  # a rolling shutter's faces and rows: at their own instants
     r, H = reprojection(reference.T_world_cube, *packed_sets(own), t, velocity_m_s, angular_velocity_rad_s, moving,
                         True)
     spread_px2 = statistics.median((r[0::2] ** 2 + r[1::2] ** 2).tolist()) / (2.0 * math.log(2.0))

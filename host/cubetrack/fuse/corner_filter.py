@@ -35,7 +35,7 @@ import numpy as np
 from cubetrack.core.geometry import make_T
 from cubetrack.core.params import check_at_least, check_non_negative, check_positive, param
 from cubetrack.estimate.reprojection import CornerSet, perturbed
-from cubetrack.fuse.filter_kernels import OK, moved_pose, packed_sets, predicted_covariance, solve_update
+from cubetrack.fuse.filter_kernels import OK, moved_pose, packed_sets, predicted_covariance, solve_update, taken_at
 
 _POSE, _VELOCITY, _ANGULAR_VELOCITY = slice(0, 6), slice(6, 9), slice(9, 12)  # error-state blocks
 _RATES = np.zeros((12, 12))  # d(state)/dt under constant velocity: δp' = δv, δθ' = δω
@@ -335,9 +335,10 @@ class PoseFilter:
         Corners taken at the filter's time see only the pose block of the state: their information
         adds to that block and their gradient to its rows. A set taken at another instant (a
         rolling shutter's row time) sees the pose moved there at the filter's velocities, so it
-        informs the velocities too (the full 12-column Jacobian)."""
+        informs the velocities too (the full 12-column Jacobian); so does a set whose corners were
+        taken at their own rows' instants (``row_offsets_s``)."""
         prm = self.params
-        moving = any(s.time_s != self.time_s for s in sets)
+        moving = not taken_at(sets, self.time_s)
         k = term_scale
         status, delta, _info, T, r, P, P_ok = solve_update(
             self.T_world_cube, self.P, self.time_s, self.velocity_m_s, self.angular_velocity_rad_s, *packed_sets(sets),
@@ -405,6 +406,8 @@ def _without_face(sets: Sequence[CornerSet], index: int) -> list[CornerSet]:
             if n > 1:
                 out.append(dataclasses.replace(s, points_cube_m=s.points_cube_m[keep], normalized=s.normalized[keep],
                                                noise_scale=None if s.noise_scale is None else s.noise_scale[keep],
+                                               row_offsets_s=None if s.row_offsets_s is None
+                                               else s.row_offsets_s[keep],
                                                faces=s.faces[:index] + s.faces[index + 1:]))
         else:
             out.append(s)

@@ -13,8 +13,8 @@ with the numpy version to rounding (tests/unit/fuse/test_filter_kernels.py). The
 starts a track (:mod:`cubetrack.fuse.multi_view_fit`) is compiled too (:func:`joint_fit`).
 
 A corner set's arrays are passed packed (:func:`packed_sets`): one row per corner
-(``points_cube_m``, ``normalized``, its set's index) and one per set (``R_cam_world``,
-``t_cam_world``, ``focal_px``, ``time_s``). :func:`compile_filter_kernels` compiles them (or
+(``points_cube_m``, ``normalized``, its set's index, its capture instant) and one per set
+(``R_cam_world``, ``t_cam_world``, ``focal_px``). :func:`compile_filter_kernels` compiles them (or
 loads them from numba's on-disk cache) before the first sighting.
 """
 
@@ -46,17 +46,25 @@ Packed = tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.ndarray, np.nd
 
 def packed_sets(sets: Sequence[CornerSet]) -> Packed:
     """The kernels' arrays of ``sets``: ``(points_cube_m (N, 3), normalized (N, 2), set of each
-    corner (N,), R_cam_world (S, 3, 3), t_cam_world (S, 3), focal_px (S,), time_s (S,))``."""
+    corner (N,), R_cam_world (S, 3, 3), t_cam_world (S, 3), focal_px (S,), each corner's capture
+    instant (N,))`` (:meth:`CornerSet.corner_times_s`)."""
     if len(sets) == 1:   # most sightings (per call: numpy's cost of making each array is most of it)
         T_cw, which = sets[0].T_cam_world[None], np.zeros(len(sets[0].points_cube_m), dtype=np.int64)
+        times = sets[0].corner_times_s()
     else:
         T_cw = np.array([s.T_cam_world for s in sets], dtype=np.float64)
         which = np.repeat(np.arange(len(sets)), [len(s.points_cube_m) for s in sets])
+        times = np.concatenate([s.corner_times_s() for s in sets])
     return (np.concatenate([s.points_cube_m for s in sets], dtype=np.float64),
             np.concatenate([s.normalized for s in sets], dtype=np.float64), which,
             T_cw[:, :3, :3].astype(np.float64), T_cw[:, :3, 3].astype(np.float64),
-            np.array([s.focal_px for s in sets], dtype=np.float64),
-            np.array([s.time_s for s in sets], dtype=np.float64))
+            np.array([s.focal_px for s in sets], dtype=np.float64), times)
+
+
+def taken_at(sets: Sequence[CornerSet], time_s: float) -> bool:
+    """Whether every corner of ``sets`` was taken at ``time_s`` (else a fit at ``time_s`` moves
+    them to their own instants at the body's velocities: a rolling shutter's rows)."""
+    return all(s.time_s == time_s and s.row_offsets_s is None for s in sets)
 
 
 @numba.njit(cache=True, nogil=True)
@@ -102,23 +110,26 @@ def _inverse(M: np.ndarray, out: np.ndarray) -> bool:  # pragma: no cover
 
 
 @numba.njit(cache=True, nogil=True)
-def _moved_sets(R0: np.ndarray, p0: np.ndarray, times: np.ndarray, t_ref: float, v: np.ndarray, w: np.ndarray,
-                moving: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover
-    """Each set's body rotation and position (the pose moved from ``t_ref`` to its time at ``v``,
-    ``w`` when ``moving``) and its ``[Exp(ω dt) | J_l(ω dt) dt]``."""
-    S = times.shape[0]
-    R, p, chain = np.empty((S, 3, 3)), np.empty((S, 3)), np.zeros((S, 3, 6))
-    for k in range(S):
-        if moving:
-            dt = times[k] - t_ref
-            exp_and_left_jacobian(w[0], w[1], w[2], dt, chain[k])
+def _moved_corners(R0: np.ndarray, p0: np.ndarray, times: np.ndarray, t_ref: float, v: np.ndarray, w: np.ndarray,
+                   moving: bool) -> tuple[np.ndarray, np.ndarray, np.ndarray]:  # pragma: no cover
+    """The body's rotation and position at each corner's instant (the pose moved from ``t_ref`` to
+    it at ``v``, ``w`` when ``moving``) and its ``[Exp(ω dt) | J_l(ω dt) dt]``; corners of one
+    instant (a set without row offsets) share them."""
+    N = times.shape[0]
+    R, p, chain = np.empty((N, 3, 3)), np.empty((N, 3)), np.zeros((N, 3, 6))
+    for i in range(N):
+        if not moving:
+            R[i] = R0
+            p[i] = p0
+        elif i > 0 and times[i] == times[i - 1]:
+            R[i], p[i], chain[i] = R[i - 1], p[i - 1], chain[i - 1]
+        else:
+            dt = times[i] - t_ref
+            exp_and_left_jacobian(w[0], w[1], w[2], dt, chain[i])
             for a in range(3):
                 for b in range(3):
-                    R[k, a, b] = chain[k, a, 0] * R0[0, b] + chain[k, a, 1] * R0[1, b] + chain[k, a, 2] * R0[2, b]
-                p[k, a] = p0[a] + v[a] * dt
-        else:
-            R[k] = R0
-            p[k] = p0
+                    R[i, a, b] = chain[i, a, 0] * R0[0, b] + chain[i, a, 1] * R0[1, b] + chain[i, a, 2] * R0[2, b]
+                p[i, a] = p0[a] + v[a] * dt
     return R, p, chain
 
 
@@ -127,22 +138,23 @@ def reprojection(T: np.ndarray, points: np.ndarray, normalized: np.ndarray, whic
                  t_cw: np.ndarray, focal: np.ndarray, times: np.ndarray, t_ref: float, v: np.ndarray, w: np.ndarray,
                  moving: bool, jacobian: bool) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover
     """Residuals (2N,) px of the packed corner sets and (``jacobian``) their Jacobian (2N, 12
-    when ``moving`` else 6), as ``reprojection_jacobian_px`` / ``reprojection_residuals_px``: a
+    when ``moving`` else 6; each corner moved to its own instant ``times[i]``), as
+    ``reprojection_jacobian_px`` / ``reprojection_residuals_px``: a
     corner behind its camera gets ``BEHIND_PX`` and a zero row; without the Jacobian, a non-finite
     residual becomes ``BEHIND_PX`` too."""
     N = points.shape[0]
     cols = 12 if moving else 6
-    R, p, chain = _moved_sets(T[:3, :3], T[:3, 3], times, t_ref, v, w, moving)
+    R, p, chain = _moved_corners(T[:3, :3], T[:3, 3], times, t_ref, v, w, moving)
     r = np.empty(2 * N)
     H = np.zeros((2 * N if jacobian else 0, cols))
     q, pw, pc, d_pw, d_th = np.empty(3), np.empty(3), np.empty(3), np.empty((2, 3)), np.empty((2, 3))
     for i in range(N):
         k = which[i]
-        X, Rk, Rc = points[i], R[k], R_cw[k]
+        X, Ri, Rc = points[i], R[i], R_cw[k]
         for a in range(3):
-            q[a] = Rk[a, 0] * X[0] + Rk[a, 1] * X[1] + Rk[a, 2] * X[2]
+            q[a] = Ri[a, 0] * X[0] + Ri[a, 1] * X[1] + Ri[a, 2] * X[2]
         for a in range(3):
-            pw[a] = q[a] + p[k, a]
+            pw[a] = q[a] + p[i, a]
         for a in range(3):
             pc[a] = Rc[a, 0] * pw[0] + Rc[a, 1] * pw[1] + Rc[a, 2] * pw[2] + t_cw[k, a]
         z, f = pc[2], focal[k]
@@ -161,16 +173,16 @@ def reprojection(T: np.ndarray, points: np.ndarray, normalized: np.ndarray, whic
             d_th[b, 0] = q[1] * d_pw[b, 2] - q[2] * d_pw[b, 1]
             d_th[b, 1] = q[2] * d_pw[b, 0] - q[0] * d_pw[b, 2]
             d_th[b, 2] = q[0] * d_pw[b, 1] - q[1] * d_pw[b, 0]
-        dt = times[k] - t_ref
+        dt = times[i] - t_ref
         for b in range(2):
             row = H[2 * i + b]
             for a in range(3):
                 row[a] = d_pw[b, a]
                 if moving:
                     row[6 + a] = d_pw[b, a] * dt
-                    row[3 + a] = d_th[b, 0] * chain[k, 0, a] + d_th[b, 1] * chain[k, 1, a] + d_th[b, 2] * chain[k, 2, a]
-                    row[9 + a] = (d_th[b, 0] * chain[k, 0, 3 + a] + d_th[b, 1] * chain[k, 1, 3 + a]
-                                  + d_th[b, 2] * chain[k, 2, 3 + a])
+                    row[3 + a] = d_th[b, 0] * chain[i, 0, a] + d_th[b, 1] * chain[i, 1, a] + d_th[b, 2] * chain[i, 2, a]
+                    row[9 + a] = (d_th[b, 0] * chain[i, 0, 3 + a] + d_th[b, 1] * chain[i, 1, 3 + a]
+                                  + d_th[b, 2] * chain[i, 2, 3 + a])
                 else:
                     row[3 + a] = d_th[b, a]
     if not jacobian:
@@ -580,14 +592,14 @@ def _run_kernels() -> None:
     which, R_cw, t_cw = np.zeros(4, dtype=np.int64), np.eye(3)[None].copy(), np.zeros((1, 3))
     for moving in (False, True):
         solve_update(T, P, 0.0, np.zeros(3), np.zeros(3), points, normalized, which, R_cw, t_cw, np.ones(1),
-                     np.full(1, 0.01 if moving else 0.0), moving, 2, 1.5, np.full(4, 4.0), 0.002, 0.002, 0.005, 0.01)
+                     np.full(4, 0.01 if moving else 0.0), moving, 2, 1.5, np.full(4, 4.0), 0.002, 0.002, 0.005, 0.01)
     for n in (6, 12):   # the joint fit's start pose (multi_view_fit) is a writable array
-        joint_fit(T.copy(), n, points, normalized, which, R_cw, t_cw, np.ones(1), np.zeros(1), 0.0, 0.5, 3.0, 1.0,
+        joint_fit(T.copy(), n, points, normalized, which, R_cw, t_cw, np.ones(1), np.zeros(4), 0.0, 0.5, 3.0, 1.0,
                   1.0, 2)
     moved_pose(T, np.zeros(3), np.zeros(3), 0.01)
     corner_noise_factors(points[:, :2] * 1000.0 + 100.0, [6])   # each corner's noise (the association's corner sets)
     for moving in (False, True):   # as a camera's term sample calls it (fuse.camera_corrections.term_observed)
-        reprojection(T.copy(), points, normalized, which, R_cw, t_cw, np.ones(1), np.zeros(1), 0.0, np.zeros(3),
+        reprojection(T.copy(), points, normalized, which, R_cw, t_cw, np.ones(1), np.zeros(4), 0.0, np.zeros(3),
                      np.zeros(3), moving, True)
     exp_and_left_jacobian(0.0, 0.0, 1.0, 0.01, np.empty((3, 6)))   # as estimate.reprojection calls it
     spread_m(P, 0.1)

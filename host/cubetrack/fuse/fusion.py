@@ -219,8 +219,9 @@ def sighting_corner_sets(matches: Sequence[FaceMatch], intrinsics: CameraIntrins
                          camera: str, time_s: float, T_cam_world: np.ndarray | None = None) -> list[CornerSet]:
     """A camera frame's matched faces as corner sets: one, taken at its capture time ``time_s``;
     under a rolling shutter (the camera's ``readout_s``) one per face, taken when the rows of its
-    corners were (their mean row's time); none when nothing matched. ``T_cam_world``:
-    ``T_world_cam``'s inverse if the caller holds it."""
+    corners were (their mean row's time), each corner at its own row's instant (``row_offsets_s``:
+    a moving face is seen sheared, which one instant per face reads as a tilt); none when nothing
+    matched. ``T_cam_world``: ``T_world_cam``'s inverse if the caller holds it."""
     if not matches:
         return []
     T_cam_world = invert_T(T_world_cam) if T_cam_world is None else T_cam_world
@@ -231,11 +232,14 @@ def sighting_corner_sets(matches: Sequence[FaceMatch], intrinsics: CameraIntrins
     row_s, middle = intrinsics.readout_s / intrinsics.height, (intrinsics.height - 1) / 2.0
     corners_px = np.concatenate([m.detection.corners_px for m in matches])
     normalized = normalize_px(corners_px, intrinsics.K, intrinsics.dist)
-    rows = corners_px[:, 1].reshape(-1, 4).sum(axis=1).tolist()
+    rows = corners_px[:, 1].reshape(-1, 4).astype(np.float64)  # float32 corners would round the offsets
+    means = rows.sum(axis=1) / 4.0
+    offsets_s = (rows - means[:, None]) * row_s
     focal_px = float((intrinsics.K[0, 0] + intrinsics.K[1, 1]) / 2.0)
     scales = noise_scales(matches, corners_px)
-    return [CornerSet(camera, time_s + (rows[i] / 4.0 - middle) * row_s, T_cam_world, focal_px, m.points_body_m,
-                      normalized[4 * i: 4 * i + 4], (m.face,), scales[4 * i: 4 * i + 4]) for i, m in enumerate(matches)]
+    return [CornerSet(camera, time_s + (float(means[i]) - middle) * row_s, T_cam_world, focal_px, m.points_body_m,
+                      normalized[4 * i: 4 * i + 4], (m.face,), scales[4 * i: 4 * i + 4], offsets_s[i])
+            for i, m in enumerate(matches)]
 
 
 @dataclass(frozen=True, slots=True)

@@ -94,6 +94,26 @@ def test_corner_sets_carry_each_corners_noise_from_its_own_quad(readout_s: float
     assert np.allclose(inverse_variances(plain, noise_px), 1.0 / noise_px**2)
 
 
+def test_under_a_rolling_shutter_each_corner_is_taken_at_its_own_rows_instant() -> None:
+    """A face's set is at its mean row's instant and each corner at its own row's, on a host clock
+    (float64 even when the detector's corners are float32: a float32 offset would turn the clock's
+    seconds to float32, 128 s steps at 1.75e9); dropping a face keeps them aligned."""
+    T_world_cube = make_T(cv2.Rodrigues(np.array([0.0, 0.0, np.radians(25.0)]))[0], [0.0, 0.0, 0.0])
+    readout_s, stamp_s = 0.03, 1_750_000_000.25
+    intrinsics = CameraIntrinsics(640, 480, K, np.zeros(5), "cam", readout_s=readout_s)
+    matches = match_faces(detections(T_world_cube), LAYOUT, intrinsics, T_WORLD_CAM, T_world_cube, gate_px=5.0)
+    matches = [dataclasses.replace(m, detection=dataclasses.replace(
+        m.detection, corners_px=m.detection.corners_px.astype(np.float32))) for m in matches]
+    sets = sighting_corner_sets(matches, intrinsics, T_WORLD_CAM, "cam", stamp_s)
+    rows = np.concatenate([m.detection.corners_px[:, 1] for m in matches]).astype(np.float64)
+    expected = stamp_s + (rows - 239.5) * readout_s / 480
+    times = np.concatenate([s.corner_times_s() for s in sets])
+    assert times.dtype == np.float64 and np.abs(times - expected).max() < 1e-6
+    assert np.ptp(times[:4]) > 1e-4   # the face's rows span a tenth of a millisecond and more
+    assert [s.time_s for s in sets] == pytest.approx([t.mean() for t in np.split(expected, len(sets))], abs=1e-6)
+    assert np.array_equal(np.concatenate([s.corner_times_s() for s in _without_face(sets, 0)]), times[4:])
+
+
 def test_the_filter_leans_on_the_corners_its_noise_says_are_good() -> None:
     """The same 0.5 px error on the oblique face's corners (1.5 px border modules) moves the filter's
     pose less than on the head-on face's (3.4 px): each corner's weight is its own."""

@@ -182,25 +182,30 @@ def turning(t):
     return make_T(Rotation.from_euler("z", 3.0 * t).as_matrix(), [-0.3 + 0.5 * t, 0.1, 0.7])
 
 
-def rolling_shutter_sightings(readout_s, told_readout_s, rng, t_end=1.2):
+def driving(t):
+    """A cube driving straight ahead (along its x) at 0.5 m/s, 0.4 m above where the cameras look."""
+    return make_T(np.eye(3), [-0.3 + 0.5 * t, 0.1, 0.7])
+
+
+def rolling_shutter_sightings(readout_s, told_readout_s, rng, t_end=1.2, motion=turning, noise_px=0.2):
     """Three 7.5 fps cameras with a rolling shutter of ``readout_s``: each corner is where the cube
-    was when its row was exposed (row v at (v - 239.5) readout / 480 after the stamp); the
-    sightings carry intrinsics that say ``told_readout_s``."""
+    (``motion``) was when its row was exposed (row v at (v - 239.5) readout / 480 after the stamp),
+    plus ``noise_px``; the sightings carry intrinsics that say ``told_readout_s``."""
     told = dataclasses.replace(INTR, readout_s=told_readout_s)
     out = []
     for k, cam in enumerate(CAMS):
         T_cam_world = np.linalg.inv(CAMS[cam])
         for t in np.arange(k * 0.044, t_end, 1 / 7.5):
             dets = []
-            for d in detections(turning(t), CAMS[cam], rng, noise_px=0.0):
+            for d in detections(motion(t), CAMS[cam], rng, noise_px=0.0):
                 m = next(m for m in LAYOUT.markers
-                         if np.abs(project(T_cam_world @ turning(t), m) - d.corners_px).max() < 1e-6)
+                         if np.abs(project(T_cam_world @ motion(t), m) - d.corners_px).max() < 1e-6)
                 px = d.corners_px
                 for _ in range(3):  # the row a corner lands on depends on when it was seen
                     row_t = t + (px[:, 1] - 239.5) * readout_s / 480
-                    px = np.array([project(T_cam_world @ turning(rt), m)[c]
+                    px = np.array([project(T_cam_world @ motion(rt), m)[c]
                                    for c, rt in enumerate(row_t)])
-                dets.append(dataclasses.replace(d, corners_px=px + rng.normal(0, 0.2, (4, 2))))
+                dets.append(dataclasses.replace(d, corners_px=px + rng.normal(0, noise_px, (4, 2))))
             est = estimate_cube(dets, LAYOUT, told, CAMS[cam], camera=cam, robot="bot", seq=0,
                                 capture_time_s=t, arrival_time_s=t + 0.05)
             out.append(CubeSighting(cam, "bot", 0, t, t + 0.05, tuple(dets), est, CAMS[cam], told))
@@ -232,6 +237,22 @@ def test_rolling_shutter_row_times_are_modelled_when_the_readout_is_known():
         errors[told] = (np.sqrt(np.mean(np.square(rot))), np.sqrt(np.mean(np.square(pos))))
     assert errors[0.03][0] < 0.6 * errors[0.0][0], errors
     assert errors[0.03][1] < 0.6 * errors[0.0][1], errors
+
+
+def test_a_face_sheared_by_the_rolling_shutter_is_not_read_as_a_tilt():
+    """A cube driving straight ahead under a 30 ms rolling shutter, exact corners: the lower rows of
+    each face are exposed later, when the face has moved on, so it is seen sheared along the travel.
+    The filter puts each corner at its own row's instant: the poses' mean error about the body's y
+    (a pitch, the same sign in every camera, as the realistic renders showed with every input true:
+    -0.16 to -0.18 degrees) stays under 0.01 degrees; with one instant per face it was -0.14."""
+    poses = run(FilterFusion({"bot": LAYOUT}, FusionParams(max_view_angle_deg=80.0)),
+                rolling_shutter_sightings(0.03, 0.03, np.random.default_rng(7), t_end=2.0, motion=driving,
+                                          noise_px=0.0))
+    late = [p for p in poses if p.time_s > 0.4]
+    assert len(late) > 25
+    errors = np.degrees([(Rotation.from_matrix(driving(p.time_s)[:3, :3]).inv()
+                          * Rotation.from_quat(p.quaternion_xyzw)).as_rotvec() for p in late])
+    assert abs(errors[:, 1].mean()) < 0.01, errors.mean(axis=0)
 
 
 def bumped(t):

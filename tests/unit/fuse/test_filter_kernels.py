@@ -4,6 +4,7 @@ its covariance, the prediction's F P Fᵀ, and one Gauss-Newton step by hand."""
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import numpy as np
@@ -55,10 +56,13 @@ def _read_only(a: np.ndarray) -> np.ndarray:
     return a
 
 
-@pytest.mark.parametrize("moving", [False, True])
-def test_the_reprojection_kernel_is_the_numpy_model(moving: bool) -> None:
+@pytest.mark.parametrize("moving, rows", [(False, False), (True, False), (True, True)])
+def test_the_reprojection_kernel_is_the_numpy_model(moving: bool, rows: bool) -> None:
+    """Also with each corner at its own row's instant (a rolling shutter within a face)."""
     rng = np.random.default_rng(3)
     sets = _sets(rng, [0.01, -0.02, 0.005] if moving else [0.0, 0.0, 0.0])
+    if rows:
+        sets = [dataclasses.replace(s, row_offsets_s=rng.normal(0.0, 1e-3, 4)) for s in sets]
     T, v, w = _pose(rng), rng.normal(0.0, 0.5, 3), rng.normal(0.0, 2.0, 3)
     motion = (0.0, v, w) if moving else ()
     r_ref, H_ref = reprojection_jacobian_px(T, sets, *motion)
