@@ -49,12 +49,14 @@ def packed_sets(sets: Sequence[CornerSet]) -> Packed:
     corner (N,), R_cam_world (S, 3, 3), t_cam_world (S, 3), focal_px (S,), time_s (S,))``."""
     if len(sets) == 1:   # most sightings (per call: numpy's cost of making each array is most of it)
         T_cw, which = sets[0].T_cam_world[None], np.zeros(len(sets[0].points_cube_m), dtype=np.int64)
+        points, normalized = sets[0].points_cube_m, sets[0].normalized
     else:
         T_cw = np.array([s.T_cam_world for s in sets], dtype=np.float64)
         which = np.repeat(np.arange(len(sets)), [len(s.points_cube_m) for s in sets])
-    return (np.concatenate([s.points_cube_m for s in sets], dtype=np.float64),
-            np.concatenate([s.normalized for s in sets], dtype=np.float64), which,
-            T_cw[:, :3, :3].astype(np.float64), T_cw[:, :3, 3].astype(np.float64),
+        points = np.concatenate([s.points_cube_m for s in sets])
+        normalized = np.concatenate([s.normalized for s in sets])
+    return (np.array(points, dtype=np.float64), np.array(normalized, dtype=np.float64), which,
+            np.array(T_cw[:, :3, :3], dtype=np.float64), np.array(T_cw[:, :3, 3], dtype=np.float64),
             np.array([s.focal_px for s in sets], dtype=np.float64),
             np.array([s.time_s for s in sets], dtype=np.float64))
 
