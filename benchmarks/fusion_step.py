@@ -4,7 +4,10 @@ baseline commit's code, on the same sightings in the same run.
 For each camera count (--cameras, default 3 and 5) a realistic scene is simulated (``cubetrack simulate
 --realistic``: wide-angle lens, rolling shutter, so one corner set per face, people, sharp turns) and
 replayed once through this checkout's tracker (``track_recording``, one thread) with every call the
-replay makes to the fusion (``FilterFusion.add(sighting, now)``, ``release(now)``) recorded. Those calls
+replay makes to the fusion (``FilterFusion.add(sighting, now)``, ``release(now)``) recorded; with --replay
+REC, instead, the first --frames frames of that recording (``benchmarks/live.py``'s 16 x 30 one, say) as its
+same-frames comparison replays them, where the frames held for each camera's first clock round trip come
+late and the fusion re-applies the newer steps after them (session 31: ~1.8 steps per sighting). Those calls
 are then fed to a fresh ``FilterFusion`` in child processes, alternately with this checkout's package and
 with the baseline's (``git archive --baseline`` of ``host/cubetrack``, put first on ``PYTHONPATH``), for
 --rounds rounds; each child reports its process CPU time over the calls (``time.process_time``, the
@@ -25,6 +28,7 @@ figures grow, the ratio much less.
     .venv/bin/python benchmarks/fusion_step.py --quick                        # the CI smoke run
     .venv/bin/python benchmarks/fusion_step.py --baseline 12ee071 --rounds 5  # against another commit
     .venv/bin/python benchmarks/fusion_step.py --ours-set filter.camera_scale_sigma=0  # same arithmetic
+    .venv/bin/python benchmarks/fusion_step.py --replay /tmp/lb16/rec_c16_f30_d20_s7 --baseline main  # live.py's scene
 
 --ours-set gives this checkout's side a [filter] setting the baseline lacks, at the value that does the
 baseline's arithmetic (the scale term of session 12 at 0): then the two sides' poses should agree.
@@ -37,6 +41,7 @@ from __future__ import annotations
 
 import argparse
 import hashlib
+import itertools
 import json
 import os
 import pickle
@@ -75,6 +80,11 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
     p.add_argument("--baseline", default=BASELINE, help=f"the commit compared against (default {BASELINE})")
     p.add_argument("--work", type=Path, help="keep everything here (default: a temporary folder, deleted)")
     p.add_argument("--quick", action="store_true", help="smoke run: 3 cameras, a 3 s scene at 10 fps, one round")
+    p.add_argument("--replay", type=Path, metavar="REC",
+                   help="instead of the scenes: the calls of a replay of this recording's first --frames frames "
+                   "(its config.toml and calibrated extrinsics.toml, as benchmarks/live.py's same-frames comparison "
+                   "replays them: each camera's frames held until its first clock round trip, then folded in late)")
+    p.add_argument("--frames", type=int, default=2000, help="with --replay: frames replayed (default 2000)")
     p.add_argument("--ours-set", action="append", default=[], metavar="filter.KEY=VALUE",
                    help="a [filter] setting for this checkout's side only (repeat): one the baseline does not "
                    "have, at the value that gives the baseline's arithmetic")
@@ -88,8 +98,8 @@ def parse_args(argv: list[str] | None) -> argparse.Namespace:
             p.error(f"--ours-set takes filter.KEY=VALUE, got {item!r}")
     if args.quick:
         args.cameras, args.duration, args.fps, args.rounds = [3], 3.0, 10.0, 1
-    if args.rounds < 1 or args.duration <= 0 or args.fps <= 0 or min(args.cameras) < 1:
-        p.error("--rounds, --duration, --fps and --cameras must be positive")
+    if args.rounds < 1 or args.duration <= 0 or args.fps <= 0 or min(args.cameras) < 1 or args.frames < 1:
+        p.error("--rounds, --duration, --fps, --cameras and --frames must be positive")
     return args
 
 
@@ -202,17 +212,25 @@ def scene(args: argparse.Namespace, cameras: int, work: Path) -> Path:
     return rec
 
 
-def record_calls(rec: Path) -> Path:
-    """Replay ``rec`` through this checkout's tracker (one thread, its true extrinsics) and pickle every
-    call it made to the filter fusion: [("add", sighting, now_s) | ("release", None, now_s)]."""
-    out = rec / "fusion_calls.pkl"
+def record_calls(rec: Path, frames: int | None = None, out: Path | None = None) -> Path:
+    """Replay ``rec`` through this checkout's tracker (one thread) and pickle every call it made to the filter
+    fusion to ``out`` (default ``rec/fusion_calls.pkl``): [("add", sighting, now_s) | ("release", None, now_s)].
+    ``frames`` None: the whole recording with its true extrinsics (a scene of this script's); else its first
+    ``frames`` frames with its calibrated ``extrinsics.toml``, replayed as ``benchmarks/live.py``'s same-frames
+    comparison replays them (``track_frames``, the round trips of each camera's clock as they came)."""
+    out = rec / "fusion_calls.pkl" if out is None else out
     if out.exists():
         return out
-    from cubetrack.app.config import load_config
-    from cubetrack.app.track import track_recording
+    from cubetrack.app.config import load_config, recording_intrinsics
+    from cubetrack.app.track import track_frames, track_recording
     from cubetrack.fuse.fusion import FilterFusion
     from cubetrack.io.config import read_extrinsics
     from cubetrack.io.recording import Recording
+    from cubetrack.sink.base import Sink
+
+    class Dropped(Sink):
+        def pose(self, pose) -> None:
+            pass
 
     calls: list = []
     add, release = FilterFusion.add, FilterFusion.release
@@ -225,12 +243,18 @@ def record_calls(rec: Path) -> Path:
         calls.append(("release", None, now_s))
         return release(self, now_s)
 
-    config, _ = load_config(rec / "config.toml")
+    config, settings = load_config(rec / "config.toml")
+    recording = Recording.open(rec)
     FilterFusion.add, FilterFusion.release = recorded_add, recorded_release  # type: ignore[method-assign]
     try:
-        with tempfile.TemporaryDirectory() as tmp:
-            track_recording(config, Recording.open(rec), read_extrinsics(rec / "true_extrinsics.toml"), tmp,
-                            workers=0)
+        if frames is None:
+            with tempfile.TemporaryDirectory() as tmp:
+                track_recording(config, recording, read_extrinsics(rec / "true_extrinsics.toml"), tmp, workers=0)
+        else:
+            track_frames(itertools.islice(recording.merged_frames(), frames), recording_intrinsics(config, recording),
+                         config.world, {r.name: r.layout for r in config.robots},
+                         read_extrinsics(rec / "extrinsics.toml"), Dropped(), settings.stages,
+                         clock_samples={c: recording.clock_samples(c) for c in recording.camera_names})
     finally:
         FilterFusion.add, FilterFusion.release = add, release  # type: ignore[method-assign]
     out.write_bytes(pickle.dumps(calls))
@@ -253,10 +277,11 @@ def pose_difference(a: dict, b: dict) -> dict:
             "max_rotation_deg": float(angles.max())}
 
 
-def measure(args: argparse.Namespace, cameras: int, work: Path, baseline: Path) -> dict:
-    """The interleaved rounds and the stage run at one camera count."""
-    rec = scene(args, cameras, work)
-    calls = record_calls(rec)
+def measure(args: argparse.Namespace, rec: Path, calls: Path, baseline: Path) -> dict:
+    """The interleaved rounds and the stage run on the ``calls`` recorded from ``rec``."""
+    from cubetrack.io.recording import Recording
+
+    cameras = len(Recording.open(rec).camera_names)
     child = ["--child", str(calls), "--config", str(rec / "config.toml")]
     ours_child = [*child, *(f"--ours-set={item}" for item in args.ours_set)]
     runs: dict[str, list[dict]] = {"baseline": [], "ours": []}
@@ -311,7 +336,12 @@ def main(argv: list[str] | None = None) -> int:
                   "baseline": args.baseline, "rounds": args.rounds, "ours_set": args.ours_set}
         try:
             baseline = baseline_package(args.baseline, work)
-            report["results"] = [measure(args, cameras, work, baseline) for cameras in args.cameras]
+            if args.replay is not None:
+                replays = [(args.replay, record_calls(args.replay, args.frames,
+                                                      work / f"replay_calls_{args.replay.name}_{args.frames}.pkl"))]
+            else:
+                replays = [(rec, record_calls(rec)) for rec in (scene(args, c, work) for c in args.cameras)]
+            report["results"] = [measure(args, rec, calls, baseline) for rec, calls in replays]
         except BenchmarkError as exc:
             print(f"fusion_step: {exc}", file=sys.stderr)
             return 1

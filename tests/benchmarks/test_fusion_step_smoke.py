@@ -49,3 +49,24 @@ def test_an_unknown_baseline_is_one_line_and_exit_1(tmp_path, capsys):
     assert bench.main(["--quick", "--work", str(tmp_path), "--baseline", "no-such-commit-xyz"]) == 1
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "no-such-commit-xyz" in err
+
+
+def test_a_replays_calls_are_measured_instead_of_the_scenes(tmp_path, capsys):
+    """--replay REC: the calls of a replay of the recording's first --frames frames with its calibrated
+    extrinsics (benchmarks/live.py's scene, held frames and all), recorded once into --work, fed to both sides."""
+    from cubetrack.cli.main import main as cubetrack
+
+    rec = tmp_path / "rec"
+    assert cubetrack(["simulate", "--out", str(rec), "--cameras", "2", "--fps", "10", "--duration", "3",
+                      "--calibration-frames", "0"]) == 0
+    (rec / "extrinsics.toml").write_bytes((rec / "true_extrinsics.toml").read_bytes())
+    bench = load_benchmark("fusion_step")
+    work = tmp_path / "work"
+    assert bench.main(["--replay", str(rec), "--frames", "40", "--rounds", "1", "--baseline", "HEAD",
+                       "--work", str(work)]) == 0
+    text = capsys.readouterr().out
+    (m,) = json.loads((work / bench.REPORT_FILE).read_text())["results"]
+    assert (work / "replay_calls_rec_40.pkl").exists() and m["recording"] == str(rec)
+    assert m["cameras"] == 2 and 0 < m["sightings"] <= 40 and m["baseline_ms"] > 0 and m["ours_ms"] > 0
+    assert m["difference"]["identical"]   # HEAD's package is this checkout's: the same poses
+    assert re.search(rf"^2 cameras: {m['sightings']} sightings", text, re.MULTILINE), text

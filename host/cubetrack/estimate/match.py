@@ -31,6 +31,7 @@ gets settled
 
 from __future__ import annotations
 
+import itertools
 import logging
 import math
 from collections.abc import Collection, Iterable, Sequence
@@ -205,40 +206,34 @@ def _match_by_prediction(detections: Sequence[Detection], layout: CubeLayout, in
                          T_world_cam: np.ndarray, T_world_cube: np.ndarray, gate_px: float,
                          max_view_angle_deg: float) -> tuple[FaceMatch, ...]:
     """Each detection, in order, takes the nearest unclaimed visible face with its id where
-    ``T_world_cube`` projects the faces (see the module doc). Runs per sighting in the filter:
-    compiled steps (:func:`_faces_in_camera`, :func:`~cubetrack.detect.predicted.projected_px`,
-    :func:`_mean_corner_distances`) and plain Python over the handful of faces."""
-    R_wc = T_world_cam[:3, :3]
-    R_cb = R_wc.T @ T_world_cube[:3, :3]
-    t_cb = (T_world_cube[:3, 3] - T_world_cam[:3, 3]) @ R_wc
+    ``T_world_cube`` projects the faces (see the module doc). Runs per sighting in the filter: one
+    compiled call (:func:`_nearest_faces`; with a lens model beyond the compiled one, OpenCV
+    projects the faces and :func:`_claimed_faces` assigns them)."""
     cos_max = math.cos(math.radians(max_view_angle_deg))
     detected = np.array([det.corners_px for det in detections], dtype=np.float64)
+    keys = np.array([(det.marker_id, max(gate_px, 0.5 * math.sqrt(det.area_px2))) for det in detections])
+    if len(layout.dictionaries) > 1:   # a detection of a named dictionary takes only that dictionary's faces
+        names = {name: code for code, name in enumerate(layout.dictionaries)}
+        face_dictionaries = np.array([names[name] for name in layout.marker_dictionaries], dtype=np.int64)
+        detection_dictionaries = np.array([names.get(det.dictionary, -2) if det.dictionary else -1
+                                           for det in detections], dtype=np.int64)
+    else:
+        face_dictionaries = detection_dictionaries = _NO_CODES
     dist = intrinsics.dist.ravel()
     if len(dist) <= COMPILED_DISTORTION:   # OpenCV's model without its tilted sensor: compiled (the same pixels)
-        found, visible = _predicted_distances(layout.corners_m, layout.normals, R_cb, t_cb, cos_max, intrinsics.K,
-                                              dist, detected)
+        chosen = _nearest_faces(layout.corners_m, layout.normals, T_world_cam, T_world_cube, cos_max, intrinsics.K,
+                                dist, detected, keys, layout.marker_ids, face_dictionaries, detection_dictionaries)
     else:
+        R_cb, t_cb = _body_in_camera(T_world_cam, T_world_cube)
         corners_cam, visible = _faces_in_camera(layout.corners_m, layout.normals, R_cb, t_cb, cos_max)
         found = _mean_corner_distances(
             cv2.projectPoints(corners_cam, _ZERO3, _ZERO3, intrinsics.K, dist)[0].reshape(-1, 2), detected)
-    free = visible.tolist()
-    if not any(free):
-        return ()
-    distances = found.tolist()   # (D, M)
-    ids = layout.marker_ids.tolist()
-    by_dictionary = len(layout.dictionaries) > 1
-    out: list[FaceMatch] = []
-    for det, row in zip(detections, distances, strict=True):
-        best, k = math.inf, -1
-        for j, distance in enumerate(row):
-            if (distance < best and free[j] and ids[j] == det.marker_id
-                    and not (by_dictionary and det.dictionary and layout.marker_dictionaries[j] != det.dictionary)):
-                best, k = distance, j
-        if k < 0 or best > max(gate_px, 0.5 * math.sqrt(det.area_px2)):
-            continue
-        free[k] = False
-        out.append(FaceMatch(k, layout.markers[k].face, det, layout.corners_m[k]))
-    return tuple(out)
+        chosen = _claimed_faces(found, visible, keys, layout.marker_ids, face_dictionaries, detection_dictionaries)
+    return tuple(FaceMatch(k, layout.markers[k].face, det, layout.corners_m[k])
+                 for det, k in zip(detections, chosen.tolist(), strict=True) if k >= 0)
+
+
+_NO_CODES = np.zeros(0, dtype=np.int64)   # a layout of one dictionary: no dictionary to check
 
 
 # The prediction's numeric steps, compiled (numba: a dozen small numpy calls per sighting were most of the
@@ -286,24 +281,75 @@ def _mean_corner_distances(projected: np.ndarray, detected: np.ndarray) -> np.nd
 
 
 @numba.njit(cache=True, nogil=True)
-def _predicted_distances(corners_m: np.ndarray, normals: np.ndarray, R_cb: np.ndarray, t_cb: np.ndarray,
-                         cos_max: float, K: np.ndarray, dist: np.ndarray,
-                         detected: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover
-    """:func:`_faces_in_camera`, :func:`~cubetrack.detect.predicted.projected_px` and
-    :func:`_mean_corner_distances` in one call from Python (each call costs a few microseconds of
-    dispatch): the (D, M) distances and the (M,) candidates."""
+def _body_in_camera(T_world_cam: np.ndarray,
+                    T_world_cube: np.ndarray) -> tuple[np.ndarray, np.ndarray]:  # pragma: no cover
+    """The body's rotation and position in the camera frame: ``R_wcᵀ R_wb``, ``R_wcᵀ (t_wb - t_wc)``."""
+    R_cb, t_cb = np.empty((3, 3)), np.empty(3)
+    for a in range(3):
+        for b in range(3):
+            R_cb[a, b] = (T_world_cam[0, a] * T_world_cube[0, b] + T_world_cam[1, a] * T_world_cube[1, b]
+                          + T_world_cam[2, a] * T_world_cube[2, b])
+        t_cb[a] = (T_world_cam[0, a] * (T_world_cube[0, 3] - T_world_cam[0, 3])
+                   + T_world_cam[1, a] * (T_world_cube[1, 3] - T_world_cam[1, 3])
+                   + T_world_cam[2, a] * (T_world_cube[2, 3] - T_world_cam[2, 3]))
+    return R_cb, t_cb
+
+
+@numba.njit(cache=True, nogil=True)
+def _claimed_faces(distances: np.ndarray, visible: np.ndarray, keys: np.ndarray, face_ids: np.ndarray,
+                   face_dictionaries: np.ndarray, detection_dictionaries: np.ndarray) -> np.ndarray:  # pragma: no cover
+    """(D,): the face each detection takes, in order (-1: none): the nearest (``distances`` (D, M))
+    unclaimed ``visible`` face with its id (``keys`` (D, 2): id, gate in pixels) within its gate; with
+    dictionaries given (codes, a detection's -1: any), one of its dictionary."""
+    D, M = distances.shape
+    free = visible.copy()
+    chosen = np.full(D, -1, dtype=np.int64)
+    for i in range(D):
+        best, k = math.inf, -1
+        for j in range(M):
+            if (distances[i, j] < best and free[j] and face_ids[j] == keys[i, 0]
+                    and not (detection_dictionaries.shape[0] and detection_dictionaries[i] != -1
+                             and face_dictionaries[j] != detection_dictionaries[i])):
+                best, k = distances[i, j], j
+        if k < 0 or best > keys[i, 1]:
+            continue
+        free[k] = False
+        chosen[i] = k
+    return chosen
+
+
+@numba.njit(cache=True, nogil=True)
+def _nearest_faces(corners_m: np.ndarray, normals: np.ndarray, T_world_cam: np.ndarray, T_world_cube: np.ndarray,
+                   cos_max: float, K: np.ndarray, dist: np.ndarray, detected: np.ndarray, keys: np.ndarray,
+                   face_ids: np.ndarray, face_dictionaries: np.ndarray,
+                   detection_dictionaries: np.ndarray) -> np.ndarray:  # pragma: no cover
+    """:func:`_body_in_camera`, :func:`_faces_in_camera`, :func:`~cubetrack.detect.predicted.projected_px`,
+    :func:`_mean_corner_distances` and :func:`_claimed_faces` in one call from Python (each call costs
+    a few microseconds of dispatch): the face each detection takes (-1: none)."""
+    R_cb, t_cb = _body_in_camera(T_world_cam, T_world_cube)
     corners_cam, visible = _faces_in_camera(corners_m, normals, R_cb, t_cb, cos_max)
-    return _mean_corner_distances(projected_px(corners_cam, K, dist), detected), visible
+    distances = _mean_corner_distances(projected_px(corners_cam, K, dist), detected)
+    return _claimed_faces(distances, visible, keys, face_ids, face_dictionaries, detection_dictionaries)
 
 
 def compile_match_kernels() -> None:
     """Compile the matcher's kernels (or load them from numba's on-disk cache) for the argument
-    types it passes (a layout's read-only arrays), so that no sighting pays it."""
+    types it passes (a layout's read-only arrays; poses read-only, as the filter's, or not), so that
+    no sighting pays it."""
     corners = np.zeros((1, 4, 3))
     normals = np.array([[0.0, 0.0, 1.0]])
-    for a in (corners, normals):
+    ids = np.zeros(1, dtype=np.int64)
+    for a in (corners, normals, ids):
         a.setflags(write=False)
-    cam, _ = _faces_in_camera(corners, normals, np.eye(3), np.array([0.0, 0.0, 1.0]), 0.5)
-    _mean_corner_distances(projected_px(cam, np.eye(3), np.zeros(5)), np.zeros((1, 4, 2)))
-    _predicted_distances(corners, normals, np.eye(3), np.array([0.0, 0.0, 1.0]), 0.5, np.eye(3), np.zeros(5),
-                         np.zeros((1, 4, 2)))
+    keys, detected = np.array([[0.0, 12.0]]), np.zeros((1, 4, 2))
+    cam, visible = _faces_in_camera(corners, normals, np.eye(3), np.array([0.0, 0.0, 1.0]), 0.5)
+    distances = _mean_corner_distances(projected_px(cam, np.eye(3), np.zeros(5)), detected)
+    _claimed_faces(distances, visible, keys, ids, _NO_CODES, _NO_CODES)
+    for cam_writable, cube_writable in itertools.product((False, True), repeat=2):
+        T_world_cam, T_world_cube = np.eye(4), np.eye(4)
+        T_world_cube[2, 3] = 1.0
+        T_world_cam.setflags(write=cam_writable)
+        T_world_cube.setflags(write=cube_writable)
+        _body_in_camera(T_world_cam, T_world_cube)
+        _nearest_faces(corners, normals, T_world_cam, T_world_cube, 0.5, np.eye(3), np.zeros(5), detected, keys, ids,
+                       _NO_CODES, _NO_CODES)

@@ -182,9 +182,10 @@ def transition(dt_s: float) -> np.ndarray:
     return _IDENTITY + dt_s * _RATES
 
 
-@functools.lru_cache(maxsize=8)
-def _motion_noise(params: FilterParams, turning: bool, manoeuvre: bool
-                  ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+Noise = tuple[np.ndarray, np.ndarray, np.ndarray]
+
+
+def _motion_noise(params: FilterParams, turning: bool, manoeuvre: bool) -> Noise:
     """``(A, B, C)`` with the process noise over a step of ``dt`` = ``A |dt|³/3 + B dt²/2 + C |dt|``
     (white acceleration and angular acceleration, per axis; the yaw's while turning sharply or not)."""
     yaw = params.yaw_accel_noise if turning else params.steady_yaw_accel_noise
@@ -201,6 +202,14 @@ def _motion_noise(params: FilterParams, turning: bool, manoeuvre: bool
     return A, B, C
 
 
+@functools.lru_cache(maxsize=8)
+def _motion_noises(params: FilterParams) -> tuple[Noise, Noise, Noise, Noise]:
+    """:func:`_motion_noise` for each (turning, manoeuvre), at ``2 * turning + manoeuvre``: a filter
+    takes them once (a prediction then hashes no params)."""
+    return tuple(_motion_noise(params, turning, manoeuvre)  # type: ignore[return-value]
+                 for turning in (False, True) for manoeuvre in (False, True))
+
+
 class PoseFilter:
     """One robot's filter: ``predict`` / ``update`` in time order. Every step replaces the state's
     arrays rather than writing into them, so a :meth:`copy` is an independent snapshot. The pose
@@ -212,6 +221,7 @@ class PoseFilter:
         """Start at ``time_s`` from a pose with its covariance: 6x6 over ``[δp, δθ]`` (velocities
         then start at zero with the params' spreads) or 12x12 over ``[δp, δθ, v, ω]``."""
         self.params = params
+        self._noises = _motion_noises(params)
         self.time_s = time_s
         self._set_pose(make_T(T_world_cube[:3, :3], T_world_cube[:3, 3]))
         self.velocity_m_s = np.zeros(3) if velocity_m_s is None else np.asarray(velocity_m_s, dtype=float).copy()
@@ -301,7 +311,7 @@ class PoseFilter:
         if dt == 0.0:
             return
         self._set_pose(self.predicted(time_s))
-        A, B, C = _motion_noise(self.params, self.time_s <= self.turning_until_s, self.time_s <= self.manoeuvre_until_s)
+        A, B, C = self._noises[2 * (self.time_s <= self.turning_until_s) + (self.time_s <= self.manoeuvre_until_s)]
         self.P = predicted_covariance(self.P, dt, A, B, C)  # F P Fᵀ + the process noise, F = transition(dt)
         self.time_s = time_s
 
@@ -376,7 +386,7 @@ class PoseFilter:
             return UpdateResult(False, rms, r.size // 2)
         if P is None:
             raise np.linalg.LinAlgError("singular matrix")
-        self._note_yaw_correction(delta[5], self.P[5, 5] - P[5, 5])
+        self._note_yaw_correction(float(delta[5]), float(self.P[5, 5] - P[5, 5]))
         self.P = P
         self._set_pose(T)
         self.velocity_m_s = self.velocity_m_s + delta[_VELOCITY]

@@ -50,14 +50,16 @@ def packed_sets(sets: Sequence[CornerSet]) -> Packed:
     instant (N,))`` (:meth:`CornerSet.corner_times_s`)."""
     if len(sets) == 1:   # most sightings (per call: numpy's cost of making each array is most of it)
         T_cw, which = sets[0].T_cam_world[None], np.zeros(len(sets[0].points_cube_m), dtype=np.int64)
+        points, normalized = sets[0].points_cube_m, sets[0].normalized
         times = sets[0].corner_times_s()
     else:
         T_cw = np.array([s.T_cam_world for s in sets], dtype=np.float64)
         which = np.repeat(np.arange(len(sets)), [len(s.points_cube_m) for s in sets])
+        points = np.concatenate([s.points_cube_m for s in sets])
+        normalized = np.concatenate([s.normalized for s in sets])
         times = np.concatenate([s.corner_times_s() for s in sets])
-    return (np.concatenate([s.points_cube_m for s in sets], dtype=np.float64),
-            np.concatenate([s.normalized for s in sets], dtype=np.float64), which,
-            T_cw[:, :3, :3].astype(np.float64), T_cw[:, :3, 3].astype(np.float64),
+    return (np.array(points, dtype=np.float64), np.array(normalized, dtype=np.float64), which,
+            np.array(T_cw[:, :3, :3], dtype=np.float64), np.array(T_cw[:, :3, 3], dtype=np.float64),
             np.array([s.focal_px for s in sets], dtype=np.float64), times)
 
 
@@ -571,6 +573,19 @@ def spread_m(covariance: np.ndarray, reach_m: float) -> float:  # pragma: no cov
             + reach_m * math.sqrt(max(largest_eigenvalue(covariance, 3), 0.0)))
 
 
+@numba.njit(cache=True, nogil=True)
+def projected_spread_px(covariance: np.ndarray, T_world_cube: np.ndarray, T_world_cam: np.ndarray, focal_px: float,
+                        reach_m: float) -> float:  # pragma: no cover
+    """:func:`spread_m` seen from the camera at ``T_world_cam``, pixels: over the body's depth there (its
+    origin's, at ``T_world_cube``) times ``focal_px``; 0 for a body less than a millimetre in front."""
+    depth_m = 0.0
+    for a in range(3):
+        depth_m += T_world_cam[a, 2] * (T_world_cube[a, 3] - T_world_cam[a, 3])
+    if depth_m <= 1e-3:
+        return 0.0
+    return focal_px * spread_m(covariance, reach_m) / depth_m
+
+
 def compile_filter_kernels() -> None:
     """Compile the kernels (or load them from numba's on-disk cache, ``__pycache__``) for the
     argument types the filter passes, on a made-up sighting, so that no sighting pays it: called
@@ -603,4 +618,6 @@ def _run_kernels() -> None:
                      np.zeros(3), moving, True)
     exp_and_left_jacobian(0.0, 0.0, 1.0, 0.01, np.empty((3, 6)))   # as estimate.reprojection calls it
     spread_m(P, 0.1)
+    for pose in (T, T.copy()):   # the filter's read-only pose, a corrected camera's array
+        projected_spread_px(P, T, pose, 500.0, 0.1)
     predicted_covariance(P, 0.01, noise, noise, noise)

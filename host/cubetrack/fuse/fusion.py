@@ -61,7 +61,7 @@ from cubetrack.fuse.camera_corrections import (
     term_observed,
 )
 from cubetrack.fuse.corner_filter import FilterParams, PoseFilter
-from cubetrack.fuse.filter_kernels import compile_filter_kernels, spread_m
+from cubetrack.fuse.filter_kernels import compile_filter_kernels, projected_spread_px
 from cubetrack.fuse.multi_view_fit import JointSolution, solve_joint
 from cubetrack.fuse.smoother import Gains, TrailStep, smoothed_poses
 
@@ -194,15 +194,13 @@ GATE_SIGMAS = 3.0  # the association gate grows by this many standard deviations
 def prediction_gate_px(covariance: np.ndarray, T_world_cube: np.ndarray, T_world_cam: np.ndarray,
                        intrinsics: CameraIntrinsics, reach_m: float) -> float:
     """How far (``GATE_SIGMAS`` standard deviations, pixels) the corners of a body predicted at
-    ``T_world_cube`` with ``covariance`` (6x6, ``[δp (m), δθ (rad)]``) may be from where they
+    ``T_world_cube`` with ``covariance`` (6x6 or more, ``[δp (m), δθ (rad)]`` first) may be from where they
     project: the largest position spread plus the largest rotation spread times ``reach_m``, the
     body's farthest corner from its origin (:func:`cubetrack.fuse.filter_kernels.spread_m`), over
-    the body's depth in the camera, times the focal length."""
-    depth_m = float(T_world_cam[:3, 2] @ (T_world_cube[:3, 3] - T_world_cam[:3, 3]))
-    if depth_m <= 1e-3:
-        return 0.0
+    the body's depth in the camera, times the focal length (0 for a body not in front of the camera:
+    :func:`cubetrack.fuse.filter_kernels.projected_spread_px`)."""
     focal_px = math.sqrt(intrinsics.K[0, 0] * intrinsics.K[1, 1])
-    return GATE_SIGMAS * focal_px * spread_m(covariance, reach_m) / depth_m
+    return projected_spread_px(covariance, T_world_cube, T_world_cam, GATE_SIGMAS * focal_px, reach_m)
 
 
 def pose_record(sighting: CubeSighting, f: PoseFilter, now_s: float, cameras: tuple[str, ...],
@@ -507,7 +505,7 @@ class FilterFusion:
         time offset: :mod:`cubetrack.fuse.camera_corrections`): one set, taken at the capture time;
         under a rolling shutter (the camera's ``readout_s``) one set
         per face, taken when the rows of its corners were (their mean row's time). ``covariance``
-        (6x6 over ``[δp, δθ]``): how uncertain that pose is, which widens the association gate
+        (6x6 or the filter's 12x12, ``[δp, δθ]`` first): how uncertain that pose is, which widens the association gate
         (:func:`prediction_gate_px`) of a body whose ids are all distinct (where an id repeats, the
         gate is what tells its faces apart: it stays ``association_gate_px``). ``made``: the sighting's
         corner sets made before (:attr:`HistoryStep.sets`), by the faces matched, which a camera without a
@@ -517,11 +515,11 @@ class FilterFusion:
         if offset is not None:
             t, T_world_cam = t + float(offset[6]), corrected_T_world_cam(T_world_cam, offset)
         layout = self.layouts[sighting.robot]
+        T_world_cam, T_cam_world = self._camera_pose(sighting.camera, T_world_cam)
         gate_px = self.params.association_gate_px
         if covariance is not None and not layout.has_repeated_ids:  # a repeated id's face is told by the gate
             gate_px += prediction_gate_px(covariance, T_world_cube, T_world_cam, intrinsics,
                                           self._reach_m[sighting.robot])
-        T_world_cam, T_cam_world = self._camera_pose(sighting.camera, T_world_cam)
         matches = match_faces(sighting.detections, layout, intrinsics, T_world_cam, T_world_cube, gate_px=gate_px,
                               max_view_angle_deg=self.params.max_view_angle_deg,
                               camera_checked=T_cam_world is not None)
@@ -560,7 +558,7 @@ class FilterFusion:
             return self._start(state, sighting, [s.sighting for s in window], now_s, record)
         f = state.filter.copy()
         f.predict(t)
-        corners = self._corners(sighting, f.T_world_cube, state.corrections, f.pose_covariance, history[index].sets)
+        corners = self._corners(sighting, f.T_world_cube, state.corrections, f.P, history[index].sets)
         prior, outcome = f.copy(), "accepted sighting"
         if not (corners and f.update(corners, state.corrections.term_scale(sighting.camera)).accepted):
             again = self._reacquire(sighting, f, state.corrections)

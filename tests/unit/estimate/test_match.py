@@ -3,15 +3,18 @@ pose, on exact projections of cubes at known poses."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 from scenes import look_at
 from scipy.spatial.transform import Rotation
 from test_estimate_poses import DISTORTED, PINHOLE, T_world_cube_at, cube_detections
 
+from cubetrack.core.cameras import CameraIntrinsics
 from cubetrack.core.errors import EstimationError
 from cubetrack.core.geometry import invert_T, make_T
-from cubetrack.core.layout import paper_cube_layout
+from cubetrack.core.layout import CubeLayout, paper_cube_layout
 from cubetrack.core.records import Detection
 from cubetrack.estimate.marker import marker_pose
 from cubetrack.estimate.match import body_detections, identify_faces, match_faces
@@ -99,6 +102,28 @@ def test_a_face_is_matched_once():
     twice = [d, Detection(d.marker_id, d.corners_px + 0.5, d.area_px2, d.dictionary)]
     assert len(match_faces(twice, DISTINCT, PINHOLE, T_world_cam, T_world_cube)) == 1
     assert len(match_faces(twice, DISTINCT, PINHOLE, T_world_cam)) == 1
+
+
+@pytest.mark.parametrize("dist", [DISTORTED.dist, np.r_[DISTORTED.dist, np.zeros(7), 0.001, -0.002]],
+                         ids=["compiled lens", "tilted sensor (OpenCV projects)"])
+def test_a_prediction_matches_a_named_dictionarys_detection_to_its_faces_only(dist):
+    """Two dictionaries, the same ids on both: a detection naming its dictionary takes a face of
+    that dictionary only (where the prediction puts the other one's face with its id, nothing);
+    one naming none takes the face with its id wherever it is; a face is still taken once."""
+    intr = CameraIntrinsics(640, 480, DISTORTED.K, dist)
+    other = "DICT_5X5_50"
+    mixed = CubeLayout(DISTINCT.dictionary, tuple(dataclasses.replace(m, dictionary=other if m.face == "left" else "")
+                                                   for m in DISTINCT.markers))
+    T_world_cam, T_world_cube, truth = view(DISTINCT, intr)
+    by_face = {f: d for f, d in truth}
+    left = by_face["left"]
+    named = {name: Detection(left.marker_id, left.corners_px, left.area_px2, name)
+             for name in ("", DISTINCT.dictionary, other)}
+    for name, expected in (("", "left"), (other, "left"), (DISTINCT.dictionary, None)):
+        found = match_faces([named[name]], mixed, intr, T_world_cam, T_world_cube)
+        assert [m.face for m in found] == ([expected] if expected else [])
+    found = match_faces([named[other], named[""], by_face["front"]], mixed, intr, T_world_cam, T_world_cube)
+    assert [(m.detection, m.face) for m in found] == [(named[other], "left"), (by_face["front"], "front")]
 
 
 def test_a_camera_pose_that_is_not_rigid_is_an_error_either_way():
