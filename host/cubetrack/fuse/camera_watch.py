@@ -668,26 +668,40 @@ class CameraWatch:
         t = sighting.capture_time_s
         latest = self._off_prediction[sighting.robot]
         latest[sighting.camera] = (t, miss)
-        key = (sighting.robot, sighting.camera)
-        own = self._own_misses.setdefault(key, deque())
-        while own and own[0][0] < t - p.window_s:
-            own.popleft()
         others = [m for c, (s, m) in latest.items() if c != sighting.camera and not self.excluded(c)
                   and s >= t - p.window_s]
-        hold = self._holding.pop(key, None)
-        if hold is not None and t - hold[0] <= p.window_s and miss > max(
-                p.gate_prediction_px, p.gate_hold_ratio * hold[1], float(np.median(others)) if others else 0.0):
-            self._holding[key] = hold
-            self.stats["held on"] += 1
+        if p.gate_hold_ratio > 0 and self._held_on((sighting.robot, sighting.camera), t, miss, others):
             return True
         held = (miss > p.gate_prediction_px and len(others) >= p.reference_cameras
                 and miss > p.gate_prediction_ratio * float(np.median(others)))
         self.stats["held off the prediction"] += held
+        if p.gate_hold_ratio > 0:
+            self._note_miss((sighting.robot, sighting.camera), t, miss, held)
+        return held
+
+    def _held_on(self, key: tuple[str, str], t: float, miss: float, others: list[float]) -> bool:
+        """``gate_hold_ratio``: whether the (robot, camera) sighting stays held, its camera's earlier one
+        having been held within ``window_s`` and this one missing the prediction as :meth:`off_prediction`
+        says."""
+        p = self.params
+        hold = self._holding.pop(key, None)
+        if hold is None or t - hold[0] > p.window_s or miss <= max(
+                p.gate_prediction_px, p.gate_hold_ratio * hold[1], float(np.median(others)) if others else 0.0):
+            return False
+        self._holding[key] = hold
+        self.stats["held on"] += 1
+        return True
+
+    def _note_miss(self, key: tuple[str, str], t: float, miss: float, held: bool) -> None:
+        """``gate_hold_ratio``: keep a sighting's miss among its (robot, camera)'s own over ``window_s``
+        when it was let in, or start a hold at the level of those when it was held."""
+        own = self._own_misses.setdefault(key, deque())
+        while own and own[0][0] < t - self.params.window_s:
+            own.popleft()
         if not held:
             own.append((t, miss))
-        elif p.gate_hold_ratio > 0 and own:
+        elif own:
             self._holding[key] = (t, float(np.median([m for _, m in own])))
-        return held
 
     def points(self, camera: str) -> int:
         """Corners the camera's samples hold (a re-calibrating camera's progress towards ``rejoin_points``)."""
