@@ -3,8 +3,9 @@ command modules, and the one error boundary.
 
 A command module has a docstring (its ``--help`` text), ``HELP`` (one line), ``add_arguments``
 and ``run(args) -> int``. Known errors (:class:`cubetrack.core.errors.CubetrackError`) print one line
-and exit 1; Ctrl-C exits 130 (also when a C extension wrapped it in another exception); anything else
-is a bug: its traceback is logged and the exit code is 2.
+and exit 1, as does numba finding no writable folder for its cache (an install's fault); Ctrl-C exits 130
+(also when a C extension wrapped it in another exception); anything else is a bug: its traceback is
+logged and the exit code is 2.
 SIGTERM and SIGHUP (``kill``, a service manager, a closed terminal) stop a command as Ctrl-C does, so
 that what it opened is closed and its temporary folders are removed (unless the signal is ignored,
 e.g. under ``nohup``).
@@ -21,7 +22,7 @@ import threading
 from collections.abc import Mapping
 from typing import Any
 
-from cubetrack.core.errors import CubetrackError, caused_by_interrupt
+from cubetrack.core.errors import NO_NUMBA_CACHE_FOLDER, CubetrackError, caused_by_interrupt, no_numba_cache_folder
 
 
 def build_parser(prog: str, description: str, version: str, package: str,
@@ -59,6 +60,10 @@ def run_command(parser: argparse.ArgumentParser, argv: list[str] | None) -> int:
         if caused_by_interrupt(exc):  # a C extension (numba's dispatcher) wrapped the interrupt
             print(f"{parser.prog} {args.command}: interrupted", file=sys.stderr)
             return 130
+        if no_numba_cache_folder(exc):  # the install's, not a bug: where the cache may go
+            print(f"{parser.prog} {args.command}: error: {str(exc).strip().splitlines()[0]}; {NO_NUMBA_CACHE_FOLDER}",
+                  file=sys.stderr)
+            return 1
         logging.getLogger(parser.prog).exception("%s %s: unexpected error (please report it)",
                                                  parser.prog, args.command)
         return 2

@@ -23,7 +23,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from cubetrack.core.errors import CubetrackError, caused_by_interrupt
+    from cubetrack.core.errors import NO_NUMBA_CACHE_FOLDER, CubetrackError, caused_by_interrupt, no_numba_cache_folder
     from cubetrack.core.progress import StderrProgress
 
     try:  # importing the kernels' modules too: numba picks their cache folder then, and fails with no writable one
@@ -33,8 +33,7 @@ def run(args: argparse.Namespace) -> int:
     except Exception as exc:  # numba's own errors (typing, LLVM, no cache folder): one line, exit 1
         if caused_by_interrupt(exc):
             raise KeyboardInterrupt from None
-        hint = ("; numba's cache needs a writable folder: NUMBA_CACHE_DIR, __pycache__ beside the sources or "
-                "~/.cache/numba" if "no locator available" in str(exc) else "")
+        hint = f"; {NO_NUMBA_CACHE_FOLDER}" if no_numba_cache_folder(exc) else ""
         raise CubetrackError(f"numba failed: {type(exc).__name__}: {str(exc).strip().splitlines()[0]}{hint}") from exc
     for g in done.groups:
         print(f"{g.name}: {g.compiled} compiled, {g.loaded} loaded from the cache, {g.time_s:.1f} s")

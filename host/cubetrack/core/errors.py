@@ -71,3 +71,14 @@ def caused_by_interrupt(exc: BaseException) -> bool:
             return True
         seen = seen.__cause__ if seen.__cause__ is not None or seen.__suppress_context__ else seen.__context__
     return False
+
+
+NO_NUMBA_CACHE_FOLDER = ("numba's cache needs a writable folder: NUMBA_CACHE_DIR, __pycache__ beside the sources or "
+                         "~/.cache/numba")
+
+
+def no_numba_cache_folder(exc: BaseException) -> bool:
+    """Whether ``exc`` is numba refusing to define a cached kernel because it found no writable
+    folder for its cache (a read-only install without ``NUMBA_CACHE_DIR`` or a writable home): the
+    install's fault, not a bug (:data:`NO_NUMBA_CACHE_FOLDER` says what to do)."""
+    return isinstance(exc, RuntimeError) and "no locator available" in str(exc)

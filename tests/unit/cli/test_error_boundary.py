@@ -41,6 +41,11 @@ def _numba_failure(_args: argparse.Namespace) -> int:
     raise SystemError("a numba failure of its own")
 
 
+def _no_numba_cache_folder(_args: argparse.Namespace) -> int:
+    """What numba raises defining a cached kernel with no writable cache folder (a read-only install)."""
+    raise RuntimeError("cannot cache function '_side_samples': no locator available for file '/usr/lib/x.py'")
+
+
 def _bad_input(_args: argparse.Namespace) -> int:
     raise CubetrackError("no such camera 'cam9'")
 
@@ -50,6 +55,8 @@ def _bad_input(_args: argparse.Namespace) -> int:
     (_numba_failure, 2, "unexpected error"),
     (_interrupt_while_handling, 2, "unexpected error"),
     (_bad_input, 1, "cubetrack probe: error: no such camera 'cam9'"),
+    (_no_numba_cache_folder, 1, "cubetrack probe: error: cannot cache function '_side_samples': no locator available "
+                                "for file '/usr/lib/x.py'; numba's cache needs a writable folder: NUMBA_CACHE_DIR"),
 ])
 def test_the_boundary_maps_each_failure_to_its_exit_code(run, code, says, capsys, caplog):
     assert run_command(_parser(run), ["probe"]) == code
