@@ -191,7 +191,9 @@ def bump_rows(rec: Path, events: list, moves: Moves, start: float, extrinsics: d
     the calibrated world (:func:`calibrated_world` of the cameras never moved): what a re-calibration
     against the other cameras can reach, their calibration error left out (``new_pose_error_in_world``,
     ``world_rms_m``)."""
-    out = {}
+    out: dict = {}
+    if not moves.bump_cameras:  # a still or drifting session: no camera was bumped, no true poses over time to read
+        return out
     moved = {f"cam{c}" for c in moves.bump_cameras} | ({f"cam{moves.drift_camera}"} if moves.drift_camera else set())
     still = sorted(c for c in extrinsics if c not in moved)
     G, world_rms_m = calibrated_world(rec, extrinsics, still) if len(still) >= 2 else (None, math.nan)

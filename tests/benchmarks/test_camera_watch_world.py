@@ -45,3 +45,13 @@ def test_a_pose_in_the_calibrated_world_leaves_out_the_rigid_copy_not_the_rest(t
     assert step_m < 1e-5 and turn_deg < 1e-3
     step_m, turn_deg = bench.pose_error(truth["cam4"], G @ truth["cam4"])
     assert step_m > 0.01 and math.isclose(turn_deg, 2.0, abs_tol=1e-3)
+
+
+def test_an_unbumped_session_has_no_bump_rows_and_needs_no_true_camera_poses(tmp_path, monkeypatch):
+    """``--long`` (the 10-minute false-alarm run): nothing was bumped, so the recording has no
+    true_camera_poses/ folder (the simulator writes it only for cameras that move); the watched
+    replay's bump rows are empty instead of a crash reading it."""
+    monkeypatch.syspath_prepend(str(BENCHMARKS))
+    bench = importlib.import_module("camera_watch")
+    extrinsics = {f"cam{i}": SimpleNamespace(T_world_cam=np.eye(4)) for i in range(1, 4)}
+    assert bench.bump_rows(tmp_path, [], bench.Moves(), 0.0, extrinsics) == {}
